@@ -1,0 +1,7 @@
+"""``python -m retargetd.daemon`` runs the ``retargetd`` console script."""
+
+import sys
+
+from retargetd.daemon.cli import main
+
+sys.exit(main())

@@ -1,0 +1,1 @@
+"""Marker sets for the synthetic performer (TOML package data)."""
