@@ -61,10 +61,10 @@ _WORLD_FROM_CAPTURE = {
 
 
 def normalize_up_axis(up: str) -> str:
-    """Return the canonical spelling (``"+Y"``) of an up axis such as ``"y"`` or ``"-z"``.
+    """Return the canonical spelling (``"+Y"``) of an up axis like ``"y"``, ``"-z"``.
 
     Raises:
-        ValueError: naming the value when it is not one of X, Y, Z with an optional sign.
+        ValueError: naming the value unless it is X, Y or Z with an optional sign.
     """
     text = up.strip().upper()
     if text in ("X", "Y", "Z"):
@@ -81,8 +81,15 @@ def normalize_units(units: str) -> str:
         ValueError: naming the value when the unit is unknown.
     """
     text = units.strip().lower()
-    aliases = {"millimeters": "mm", "millimetres": "mm", "meters": "m", "metres": "m",
-               "centimeters": "cm", "centimetres": "cm", "inches": "in"}
+    aliases = {
+        "millimeters": "mm",
+        "millimetres": "mm",
+        "meters": "m",
+        "metres": "m",
+        "centimeters": "cm",
+        "centimetres": "cm",
+        "inches": "in",
+    }
     text = aliases.get(text, text)
     if text not in UNIT_TO_METRES:
         raise ValueError(

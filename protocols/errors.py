@@ -1,6 +1,6 @@
 """Errors raised at the protocol boundary.
 
-Decoders raise only :class:`DecodeError`; its ``reason`` slug is what receive loops count.
+Decoders raise only :class:`DecodeError`; receive loops count its ``reason`` slug.
 """
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ class DecodeError(ValueError):
     """A packet or file record that does not match its documented layout.
 
     Args:
-        reason: short slug counted by receive loops (``"bad_length"``, ``"non_finite"`` ...).
+        reason: short slug counted by receive loops (``"bad_length"`` ...).
         detail: human-readable detail for the first occurrence's log line.
     """
 

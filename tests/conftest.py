@@ -15,7 +15,7 @@ IN_CI = os.environ.get("CI", "").lower() in ("1", "true", "yes")
 
 
 def require_datasets() -> Path:
-    """Return the shared datasets folder; skip (outside CI) or fail (in CI) if absent."""
+    """The shared datasets folder; skip (outside CI) or fail (in CI) if absent."""
     if DATASETS.is_dir():
         return DATASETS
     reason = f"shared datasets folder not found at {DATASETS}"

@@ -13,8 +13,11 @@ from pathlib import Path
 import pytest
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
-FOLDERS = {"daemon": "retargetd.daemon", "protocols": "retargetd.protocols",
-           "replay": "retargetd.replay"}
+FOLDERS = {
+    "daemon": "retargetd.daemon",
+    "protocols": "retargetd.protocols",
+    "replay": "retargetd.replay",
+}
 # protocols imports neither sibling; replay may import protocols; daemon both.
 ALLOWED = {
     "protocols": {"protocols"},
@@ -34,7 +37,9 @@ def test_package_list_matches_folders() -> None:
             rel = init.parent.relative_to(REPO_ROOT / folder)
             found.add(".".join([name, *rel.parts]))
     listed = set(_pyproject()["tool"]["setuptools"]["packages"])
-    assert found == listed, f"missing from pyproject: {found - listed}; stale: {listed - found}"
+    assert found == listed, (
+        f"missing from pyproject: {found - listed}; stale: {listed - found}"
+    )
 
 
 def test_package_guards() -> None:
@@ -44,7 +49,10 @@ def test_package_guards() -> None:
     # Importing the repository folder directly is refused with a clear message.
     proc = subprocess.run(
         [sys.executable, "-c", "import protocols"],
-        cwd=REPO_ROOT, capture_output=True, text=True, timeout=60,
+        cwd=REPO_ROOT,
+        capture_output=True,
+        text=True,
+        timeout=60,
     )
     assert proc.returncode != 0
     assert "import as retargetd.protocols" in proc.stderr
@@ -62,21 +70,28 @@ def test_import_direction(folder: str) -> None:
             elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
                 names = [node.module]
             elif isinstance(node, ast.ImportFrom) and node.level:
-                bad.append(f"{path}: relative import (use absolute retargetd.* imports)")
+                bad.append(
+                    f"{path}: relative import (use absolute retargetd.* imports)"
+                )
             for mod in names:
                 parts = mod.split(".")
                 if parts[0] in FOLDERS:
                     bad.append(f"{path}: imports top-level {mod!r}")
-                if parts[0] == "retargetd" and len(parts) > 1:
-                    if parts[1] not in ALLOWED[folder]:
-                        bad.append(f"{path}: {folder} must not import {mod}")
+                if (
+                    parts[0] == "retargetd"
+                    and len(parts) > 1
+                    and parts[1] not in ALLOWED[folder]
+                ):
+                    bad.append(f"{path}: {folder} must not import {mod}")
     assert not bad, "\n".join(bad)
 
 
 def test_console_script_version_and_help() -> None:
     exe = Path(sys.executable).parent / "retargetd"
     cmd = [str(exe)] if exe.exists() else [sys.executable, "-m", "retargetd.daemon"]
-    proc = subprocess.run([*cmd, "--version"], capture_output=True, text=True, timeout=60)
+    proc = subprocess.run(
+        [*cmd, "--version"], capture_output=True, text=True, timeout=60
+    )
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.strip() == f"retargetd {version('mocap-retargetd')}"
     proc = subprocess.run([*cmd, "--help"], capture_output=True, text=True, timeout=60)
@@ -87,7 +102,10 @@ def test_console_script_version_and_help() -> None:
 def test_python_dash_m_matches_console_script() -> None:
     proc = subprocess.run(
         [sys.executable, "-m", "retargetd.daemon", "--version"],
-        capture_output=True, text=True, timeout=60, cwd="/",
+        capture_output=True,
+        text=True,
+        timeout=60,
+        cwd="/",
     )
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.startswith("retargetd ")
