@@ -20,7 +20,7 @@ from retargetd.replay.take import TakeError
 logger = logging.getLogger(__name__)
 
 #: Subcommand modules, in ``--help`` order.
-SUBCOMMAND_MODULES: tuple[str, ...] = ()
+SUBCOMMAND_MODULES: tuple[str, ...] = ("retargetd.daemon.cmd_take",)
 
 
 class UsageError(Exception):

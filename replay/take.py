@@ -77,7 +77,8 @@ class Take:
         path: the file it came from.
         format: ``"c3d"`` or ``"trc"``.
         subject: the subject this take holds (prefix stripped from labels), or None.
-        subjects: every subject found in the file (empty when it has no prefixes).
+        subjects: every subject found in the file: label prefixes (``Name:``), or the
+            single C3D ``SUBJECTS:NAMES`` entry of an unprefixed file; else empty.
         labels: (M,) marker labels, subject prefix stripped.
         positions: (T, M, 3) float64, metres, internal world; NaN rows = occluded.
         valid: (T, M) bool, True where the marker was seen.
@@ -92,6 +93,8 @@ class Take:
         measurements: subject measurements (C3D ``PROCESSING`` group), name -> value as
             written by the vendor (lengths in mm for Vicon, body mass in kg).
         manufacturer: the writing software as found in the file, or "".
+        unassigned_labels: labels as written that carry no subject prefix in a file
+            whose other labels do; they belong to no subject and were left out.
     """
 
     path: str
@@ -111,6 +114,7 @@ class Take:
     references: References = field(default_factory=_no_references)
     measurements: dict[str, float] = field(default_factory=dict)
     manufacturer: str = ""
+    unassigned_labels: tuple[str, ...] = ()
 
     @property
     def n_frames(self) -> int:
