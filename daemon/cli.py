@@ -20,7 +20,10 @@ from retargetd.replay.take import TakeError
 logger = logging.getLogger(__name__)
 
 #: Subcommand modules, in ``--help`` order.
-SUBCOMMAND_MODULES: tuple[str, ...] = ("retargetd.daemon.cmd_take",)
+SUBCOMMAND_MODULES: tuple[str, ...] = (
+    "retargetd.daemon.cmd_take",
+    "retargetd.daemon.cmd_synth",
+)
 
 
 class UsageError(Exception):

@@ -194,7 +194,7 @@ def read_c3d(
     n_points = data.shape[1]
     residuals = np.asarray(c3d["data"]["meta_points"]["residuals"], dtype=np.float64)
     points = np.ascontiguousarray(data[:3].transpose(2, 1, 0))  # (T, N, 3)
-    valid = np.isfinite(points).all(axis=-1)
+    valid = np.asarray(np.isfinite(points).all(axis=-1), dtype=bool)
     if residuals.shape == (1, n_points, points.shape[0]):
         valid &= residuals[0].T >= 0
     rate = _param(params, "POINT", "RATE")
@@ -275,7 +275,7 @@ def write_c3d(
         raise ValueError(f"first_frame must be >= 0; got {first_frame}")
     pos = pts.check_positions(labels, positions_world)
     n_frames, n_markers = pos.shape[:2]
-    valid = np.isfinite(pos).all(axis=-1)  # (T, M)
+    valid = np.asarray(np.isfinite(pos).all(axis=-1), dtype=bool)  # (T, M)
     capture = np.where(valid[..., None], pts.capture_from_world_pos(pos, up, unit), 0.0)
     data = np.ones((4, n_markers, n_frames))
     data[:3] = capture.transpose(2, 1, 0)

@@ -140,7 +140,7 @@ def read_trc(
     if not rows:
         raise TakeError(f"take {name}: no data rows after the header")
     points = np.asarray(rows, dtype=np.float64).reshape(len(rows), n_markers, 3)
-    valid = np.isfinite(points).all(axis=-1)
+    valid = np.asarray(np.isfinite(points).all(axis=-1), dtype=bool)
     declared_frames = _header_value(keys, values, "NumFrames")
     if (
         declared_frames
@@ -213,7 +213,7 @@ def write_trc(
     pos = pts.check_positions(labels, positions_world)
     n_frames, n_markers = pos.shape[:2]
     capture = pts.capture_from_world_pos(pos, up, unit)
-    valid = np.isfinite(capture).all(axis=-1)
+    valid = np.asarray(np.isfinite(capture).all(axis=-1), dtype=bool)
     out = [
         f"PathFileType\t4\t(X/Y/Z)\t{Path(path).name}",
         "DataRate\tCameraRate\tNumFrames\tNumMarkers\tUnits\tOrigDataRate"

@@ -1,0 +1,45 @@
+"""The README's two fresh-machine commands: CI runs the test one; the main one runs."""
+
+from __future__ import annotations
+
+import re
+import shlex
+from pathlib import Path
+
+import pytest
+
+from retargetd.daemon.cli import main
+
+REPO_ROOT = Path(__file__).resolve().parent.parent
+
+
+def _first_commands() -> list[str]:
+    text = (REPO_ROOT / "README.md").read_text()
+    blocks = re.findall(r"```sh\n(.*?)```", text, flags=re.S)
+    return [blocks[0].strip(), blocks[1].strip()]
+
+
+def test_readme_opens_with_two_single_line_commands() -> None:
+    main_cmd, test_cmd = _first_commands()
+    assert "\n" not in main_cmd and "\n" not in test_cmd
+    assert "pip install" in main_cmd and "pytest" in test_cmd
+
+
+def test_ci_runs_the_readme_test_command_verbatim() -> None:
+    _, test_cmd = _first_commands()
+    ci_lines = (REPO_ROOT / ".ci" / "run").read_text().splitlines()
+    assert test_cmd in ci_lines
+
+
+def test_readme_main_command_runs(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    main_cmd, _ = _first_commands()
+    job = main_cmd.split("&&", 1)[1].strip()
+    argv = shlex.split(job)
+    assert argv[0] == "retargetd"
+    monkeypatch.chdir(tmp_path)
+    assert main(argv[1:]) == 0
+    out = capsys.readouterr().out
+    assert "frames" in out
+    assert (tmp_path / argv[argv.index("--out") + 1]).stat().st_size > 0
