@@ -21,8 +21,11 @@ logger = logging.getLogger(__name__)
 
 #: Subcommand modules, in ``--help`` order.
 SUBCOMMAND_MODULES: tuple[str, ...] = (
-    "retargetd.daemon.cmd_take",
     "retargetd.daemon.cmd_synth",
+    "retargetd.daemon.cmd_take",
+    "retargetd.daemon.cmd_rig",
+    "retargetd.daemon.cmd_calibrate",
+    "retargetd.daemon.cmd_solve",
 )
 
 

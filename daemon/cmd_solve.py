@@ -1,0 +1,155 @@
+"""``retargetd solve TAKE --rig RIG (--calibration FILE | --calibrate-frames a:b)
+--out OUT.npz``: solve every frame of a take.
+
+The NPZ (``numpy.load(..., allow_pickle=False)``) holds, in rig order:
+``joint_names`` (J,), ``joint_centres`` (T, J, 3) metres world; ``bone_names`` (B,),
+``bone_parents`` (B,) int (-1 root), ``bone_humanoid`` (B,) ("" when unmapped),
+``world_from_bone_quat`` (T, B, 4) w x y z, ``parent_from_bone_quat`` (T, B, 4) w x y z
+(relative to the calibration pose), ``root_pos`` (T, 3) metres, ``bone_lengths`` (B,)
+metres as calibrated, ``bone_quality`` (T, B) float32, ``bone_flags`` (T, B) uint8,
+``rate_hz``, ``world_from_capture`` (3, 3), ``first_frame``, ``rig_name``. See README
+"Solve output".
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from typing import Any
+
+import numpy as np
+
+from retargetd.daemon.cli import UsageError
+
+logger = logging.getLogger(__name__)
+
+
+def add_parser(subparsers: Any) -> None:
+    """Register ``solve``."""
+    from retargetd.daemon.cmd_calibrate import add_rig_arguments
+    from retargetd.daemon.cmd_take import add_take_arguments
+
+    parser = subparsers.add_parser(
+        "solve",
+        help="solve every frame of a take to the rig's skeleton (NPZ)",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("take", metavar="TAKE", help="a .c3d or .trc take")
+    add_rig_arguments(parser)
+    group = parser.add_mutually_exclusive_group(required=True)
+    group.add_argument("--calibration", metavar="FILE.json", help="calibrated skeleton")
+    group.add_argument(
+        "--calibrate-frames",
+        metavar="a:b",
+        help="calibrate on these rows of the take itself (0-based, half-open)",
+    )
+    parser.add_argument("--out", required=True, metavar="OUT.npz")
+    add_take_arguments(parser)
+    parser.set_defaults(run=run)
+
+
+def segment_stability(
+    rig: Any, joint_names: tuple[str, ...], joints: np.ndarray
+) -> list[tuple[str, float, float]]:
+    """(bone, mean length m, coefficient of variation %) for every bone whose origin
+    and aim are both named joint centres."""
+    point_to_joint = {p: j for j, p in rig.joints.items()}
+    index = {j: i for i, j in enumerate(joint_names)}
+    out = []
+    for bone in rig.bones:
+        a = point_to_joint.get(bone.origin)
+        b = point_to_joint.get(bone.aim)
+        if a is None or b is None:
+            continue
+        d = np.linalg.norm(joints[:, index[b]] - joints[:, index[a]], axis=-1)
+        d = d[np.isfinite(d)]
+        if d.size < 2:
+            continue
+        out.append(
+            (f"{bone.name} ({a}-{b})", float(d.mean()), float(100 * d.std() / d.mean()))
+        )
+    return out
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``solve``."""
+    from retargetd.daemon.calibration import (
+        CalibrationError,
+        load_calibration,
+    )
+    from retargetd.daemon.cmd_calibrate import (
+        calibrate_from_take,
+        load_rig_or_fail,
+        parse_measures,
+    )
+    from retargetd.daemon.framesel import parse_frames
+    from retargetd.daemon.solve_body import FLAG_HELD, BodySolver
+    from retargetd.replay.takes import load_take
+
+    if not args.out.lower().endswith(".npz"):
+        raise UsageError(f"--out: expected a .npz file; got {args.out!r}")
+    rig = load_rig_or_fail(args.rig)
+    take = load_take(
+        args.take, subject=args.subject, units=args.take_units, up_axis=args.take_up
+    )
+    try:
+        if args.calibration is not None:
+            cal = load_calibration(args.calibration)
+        else:
+            frames = parse_frames(
+                args.calibrate_frames, take.n_frames, option="--calibrate-frames"
+            )
+            cal = calibrate_from_take(take, rig, frames, parse_measures(args.measure))
+        solver = BodySolver(rig, cal, take.labels)
+    except CalibrationError as exc:
+        raise UsageError(str(exc)) from None
+    res = solver.solve_take(take.positions)
+    np.savez(
+        args.out,
+        joint_names=np.asarray(res.joint_names, dtype=str),
+        joint_centres=res.joint_centres,
+        bone_names=np.asarray(res.bone_names, dtype=str),
+        bone_parents=np.asarray(res.bone_parents, dtype=np.int64),
+        bone_humanoid=np.asarray([b.humanoid or "" for b in rig.bones], dtype=str),
+        world_from_bone_quat=res.world_from_bone_quat,
+        parent_from_bone_quat=res.parent_from_bone_quat,
+        root_pos=res.root_pos,
+        bone_lengths=res.bone_lengths,
+        bone_quality=res.bone_quality,
+        bone_flags=res.bone_flags,
+        rate_hz=np.float64(take.rate_hz),
+        world_from_capture=np.asarray(take.world_from_capture, dtype=np.float64),
+        first_frame=np.int64(take.first_frame),
+        rig_name=np.asarray(rig.name),
+    )
+    out = sys.stdout.write
+    n = take.n_frames
+    cols = solver.marker_cols
+    present = cols[cols >= 0]
+    occluded = int((~take.valid[:, present]).sum())
+    total = n * len(cols)
+    out(f"wrote {args.out}: {n} frames at {take.rate_hz:g} Hz, rig {rig.name}, ")
+    out(f"{len(res.bone_names)} bones, {len(res.joint_names)} joint centres\n")
+    missing = n * int((cols < 0).sum())
+    out(
+        f"occluded rig-marker samples: {occluded + missing} of {total} "
+        f"({100.0 * (occluded + missing) / max(total, 1):.1f} %)"
+    )
+    if solver.missing_markers:
+        out(f"; not in the take: {' '.join(solver.missing_markers)}")
+    out("\n")
+    held = (res.bone_flags & FLAG_HELD) != 0
+    flagged = [
+        f"{name} {100.0 * held[:, b].mean():.1f} %"
+        for b, name in enumerate(res.bone_names)
+        if held[:, b].any()
+    ]
+    out("bones held (frames): " + (", ".join(flagged) if flagged else "none") + "\n")
+    stab = segment_stability(rig, res.joint_names, res.joint_centres)
+    if stab:
+        out("joint-centre segment stability (mean length, CV):\n")
+        for name, mean, cv in stab:
+            out(f"  {name}: {1000 * mean:.1f} mm, {cv:.2f} %\n")
+    return 0

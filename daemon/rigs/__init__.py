@@ -1,0 +1,1 @@
+"""Shipped rig files (TOML package data); reference: RIGS.md."""
