@@ -104,15 +104,68 @@ def _mul(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
 
 
 @numba.njit(cache=True, nogil=True)
+def _jacobi_top_eigvec(a: np.ndarray, v: np.ndarray, out: np.ndarray) -> None:
+    # Eigenvector of the largest eigenvalue of the symmetric 4x4 ``a`` (destroyed),
+    # by cyclic Jacobi rotations on the scratch ``v`` (4, 4): no allocation.
+    for i in range(4):
+        for j in range(4):
+            v[i, j] = 1.0 if i == j else 0.0
+    for _sweep in range(30):
+        off = 0.0
+        for p in range(3):
+            for q in range(p + 1, 4):
+                off += a[p, q] * a[p, q]
+        if off < 1e-30:
+            break
+        for p in range(3):
+            for q in range(p + 1, 4):
+                apq = a[p, q]
+                if abs(apq) < 1e-300:
+                    continue
+                theta = (a[q, q] - a[p, p]) / (2.0 * apq)
+                t = 1.0 / (abs(theta) + math.sqrt(theta * theta + 1.0))
+                if theta < 0.0:
+                    t = -t
+                c = 1.0 / math.sqrt(t * t + 1.0)
+                s = t * c
+                for k in range(4):
+                    akp = a[k, p]
+                    akq = a[k, q]
+                    a[k, p] = c * akp - s * akq
+                    a[k, q] = s * akp + c * akq
+                for k in range(4):
+                    apk = a[p, k]
+                    aqk = a[q, k]
+                    a[p, k] = c * apk - s * aqk
+                    a[q, k] = s * apk + c * aqk
+                for k in range(4):
+                    vkp = v[k, p]
+                    vkq = v[k, q]
+                    v[k, p] = c * vkp - s * vkq
+                    v[k, q] = s * vkp + c * vkq
+    best = 0
+    for i in range(1, 4):
+        if a[i, i] > a[best, best]:
+            best = i
+    for k in range(4):
+        out[k] = v[k, best]
+
+
+@numba.njit(cache=True, nogil=True)
 def _kabsch_fill(
     pts: np.ndarray,
     seen: np.ndarray,
     idx: np.ndarray,
     layout: np.ndarray,
     filled: np.ndarray,
+    n44: np.ndarray,
+    v44: np.ndarray,
+    q4: np.ndarray,
 ) -> None:
-    # Fit the calibrated layout of one rigid segment to its visible markers and put
-    # the missing ones where the fit says. Needs >= 3 visible markers.
+    # Fit the calibrated layout of one rigid segment to its visible markers (Horn's
+    # quaternion method: the rotation is the top eigenvector of a 4x4 matrix built
+    # from the cross-covariance) and put the missing ones where the fit says. Needs
+    # >= 3 visible markers not on one line. Scratch n44, v44 (4, 4) and q4 (4,).
     k = idx.shape[0]
     n = 0
     for i in range(k):
@@ -120,37 +173,80 @@ def _kabsch_fill(
             n += 1
     if n < 3 or n == k:
         return
-    cl = np.zeros(3)
-    cc = np.zeros(3)
+    clx = cly = clz = ccx = ccy = ccz = 0.0
     for i in range(k):
         if seen[idx[i]]:
-            for j in range(3):
-                cl[j] += layout[i, j]
-                cc[j] += pts[idx[i], j]
-    for j in range(3):
-        cl[j] /= n
-        cc[j] /= n
-    h = np.zeros((3, 3))
+            m = idx[i]
+            clx += layout[i, 0]
+            cly += layout[i, 1]
+            clz += layout[i, 2]
+            ccx += pts[m, 0]
+            ccy += pts[m, 1]
+            ccz += pts[m, 2]
+    clx /= n
+    cly /= n
+    clz /= n
+    ccx /= n
+    ccy /= n
+    ccz /= n
+    sxx = sxy = sxz = syx = syy = syz = szx = szy = szz = 0.0
+    # Largest cross product of visible layout offsets: 0 when they are collinear.
+    area = 0.0
+    ref_x = ref_y = ref_z = 0.0
+    have_ref = False
     for i in range(k):
-        if seen[idx[i]]:
-            for r in range(3):
-                for c in range(3):
-                    h[r, c] += (layout[i, r] - cl[r]) * (pts[idx[i], c] - cc[c])
-    u, s, vt = np.linalg.svd(h)
-    d = np.linalg.det(vt.T @ u.T)
-    dmat = np.eye(3)
-    dmat[2, 2] = 1.0 if d >= 0 else -1.0
-    rot = vt.T @ dmat @ u.T  # current = rot @ (layout - cl) + cc
-    if s[1] < 1e-12:
-        return  # collinear visible markers: the fit is not determined
+        if not seen[idx[i]]:
+            continue
+        m = idx[i]
+        lx, ly, lz = layout[i, 0] - clx, layout[i, 1] - cly, layout[i, 2] - clz
+        cx, cy, cz = pts[m, 0] - ccx, pts[m, 1] - ccy, pts[m, 2] - ccz
+        sxx += lx * cx
+        sxy += lx * cy
+        sxz += lx * cz
+        syx += ly * cx
+        syy += ly * cy
+        syz += ly * cz
+        szx += lz * cx
+        szy += lz * cy
+        szz += lz * cz
+        if not have_ref:
+            ref_x, ref_y, ref_z = lx, ly, lz
+            have_ref = True
+        else:
+            ax = ref_y * lz - ref_z * ly
+            ay = ref_z * lx - ref_x * lz
+            az = ref_x * ly - ref_y * lx
+            area = max(area, ax * ax + ay * ay + az * az)
+    if area < 1e-12:  # (1 mm x 1 mm)^2: the fit is not determined
+        return
+    n44[0, 0] = sxx + syy + szz
+    n44[0, 1] = n44[1, 0] = syz - szy
+    n44[0, 2] = n44[2, 0] = szx - sxz
+    n44[0, 3] = n44[3, 0] = sxy - syx
+    n44[1, 1] = sxx - syy - szz
+    n44[1, 2] = n44[2, 1] = sxy + syx
+    n44[1, 3] = n44[3, 1] = szx + sxz
+    n44[2, 2] = -sxx + syy - szz
+    n44[2, 3] = n44[3, 2] = syz + szy
+    n44[3, 3] = -sxx - syy + szz
+    _jacobi_top_eigvec(n44, v44, q4)
+    w, x, y, z = q4[0], q4[1], q4[2], q4[3]
+    r00 = 1.0 - 2.0 * (y * y + z * z)
+    r01 = 2.0 * (x * y - w * z)
+    r02 = 2.0 * (x * z + w * y)
+    r10 = 2.0 * (x * y + w * z)
+    r11 = 1.0 - 2.0 * (x * x + z * z)
+    r12 = 2.0 * (y * z - w * x)
+    r20 = 2.0 * (x * z - w * y)
+    r21 = 2.0 * (y * z + w * x)
+    r22 = 1.0 - 2.0 * (x * x + y * y)
     for i in range(k):
         m = idx[i]
         if not seen[m]:
-            for r in range(3):
-                acc = cc[r]
-                for c in range(3):
-                    acc += rot[r, c] * (layout[i, c] - cl[c])
-                pts[m, r] = acc
+            lx, ly, lz = layout[i, 0] - clx, layout[i, 1] - cly, layout[i, 2] - clz
+            pts[m, 0] = ccx + r00 * lx + r01 * ly + r02 * lz
+            pts[m, 1] = ccy + r10 * lx + r11 * ly + r12 * lz
+            pts[m, 2] = ccz + r20 * lx + r21 * ly + r22 * lz
             filled[m] = True
 
 
@@ -180,6 +276,9 @@ def solve_one(
     have_good: np.ndarray,  # (B,) bool, a good value was seen
     prev_wfb: np.ndarray,  # (B, 4) previous frame's output; w = NaN: none
     tmp4: np.ndarray,  # (4,)
+    n44: np.ndarray,  # (4, 4) scratch
+    v44: np.ndarray,  # (4, 4) scratch
+    last_root: np.ndarray,  # (3,) last good root position (init: calibrated rest)
     # outputs for this frame
     out_joints: np.ndarray,  # (J, 3)
     out_wfb: np.ndarray,  # (B, 4)
@@ -212,7 +311,7 @@ def solve_one(
     # 2. rebuild occluded markers from their rigid segment
     for s in range(seg_ptr.shape[0] - 1):
         a, b = seg_ptr[s], seg_ptr[s + 1]
-        _kabsch_fill(pts, seen, seg_idx[a:b], seg_layout[a:b], filled)
+        _kabsch_fill(pts, seen, seg_idx[a:b], seg_layout[a:b], filled, n44, v44, tmp4)
     # 3. derived points (NaN propagates through the arithmetic)
     for p in range(op_kind.shape[0]):
         dst = n_markers + p
@@ -338,8 +437,14 @@ def solve_one(
     for j in range(joint_idx.shape[0]):
         for c in range(3):
             out_joints[j, c] = pts[joint_idx[j], c]
+    # The root position holds its last good value when its point is missing.
+    rx, ry, rz = pts[root_point, 0], pts[root_point, 1], pts[root_point, 2]
+    if math.isfinite(rx) and math.isfinite(ry) and math.isfinite(rz):
+        last_root[0] = rx
+        last_root[1] = ry
+        last_root[2] = rz
     for c in range(3):
-        out_root[c] = pts[root_point, c]
+        out_root[c] = last_root[c]
     return n_held
 
 
@@ -368,6 +473,9 @@ def solve_many(
     have_good: np.ndarray,
     prev_wfb: np.ndarray,
     tmp4: np.ndarray,
+    n44: np.ndarray,
+    v44: np.ndarray,
+    last_root: np.ndarray,
     out_joints: np.ndarray,  # (T, J, 3)
     out_wfb: np.ndarray,  # (T, B, 4)
     out_pfb: np.ndarray,  # (T, B, 4)
@@ -381,7 +489,7 @@ def solve_many(
             markers[t], marker_cols, op_kind, op_idx, op_u, op_off, seg_ptr,
             seg_idx, seg_layout, bone_pts, bone_parent, bone_def_ptr, bone_def_idx,
             rest_pfb, joint_idx, root_point, pts, seen, filled, last_pfb, have_good,
-            prev_wfb, tmp4,
+            prev_wfb, tmp4, n44, v44, last_root,
             out_joints[t], out_wfb[t], out_pfb[t], out_root[t], out_quality[t],
             out_flags[t],
         )  # fmt: skip

@@ -207,6 +207,9 @@ class BodySolver:
         self._have_good = np.zeros(n_bones, dtype=bool)
         self._prev_wfb = np.zeros((n_bones, 4))
         self._tmp4 = np.zeros(4)
+        self._n44 = np.zeros((4, 4))
+        self._v44 = np.zeros((4, 4))
+        self._last_root = np.zeros(3)
         for arr in (self.marker_cols, self.op_kind, self.op_idx, self.op_u, self.op_off,
                     self.seg_ptr, self.seg_idx, self.seg_layout, self.bone_pts,
                     self.bone_parent, self.bone_def_ptr, self.bone_def_idx,
@@ -219,6 +222,7 @@ class BodySolver:
         self._last_pfb[:] = self.rest_pfb
         self._have_good[:] = False
         self._prev_wfb[:] = np.nan
+        self._last_root[:] = self.calibration.root_rest_pos
 
     def new_pose(self) -> BodyPose:
         """Allocate the buffers of one frame's output (once per stream)."""
@@ -248,7 +252,8 @@ class BodySolver:
             self.op_off, self.seg_ptr, self.seg_idx, self.seg_layout, self.bone_pts,
             self.bone_parent, self.bone_def_ptr, self.bone_def_idx, self.rest_pfb,
             self.joint_idx, self.root_point, self._pts, self._seen, self._filled,
-            self._last_pfb, self._have_good, self._prev_wfb, self._tmp4,
+            self._last_pfb, self._have_good, self._prev_wfb, self._tmp4, self._n44,
+            self._v44, self._last_root,
             out.joint_centres, out.world_from_bone_quat, out.parent_from_bone_quat,
             out.root_pos, out.bone_quality, out.bone_flags,
         )  # fmt: skip
@@ -281,7 +286,8 @@ class BodySolver:
             self.op_off, self.seg_ptr, self.seg_idx, self.seg_layout, self.bone_pts,
             self.bone_parent, self.bone_def_ptr, self.bone_def_idx, self.rest_pfb,
             self.joint_idx, self.root_point, self._pts, self._seen, self._filled,
-            self._last_pfb, self._have_good, self._prev_wfb, self._tmp4,
+            self._last_pfb, self._have_good, self._prev_wfb, self._tmp4, self._n44,
+            self._v44, self._last_root,
             joints, wfb, pfb, root, quality, flags,
         )  # fmt: skip
         return BodySolve(
