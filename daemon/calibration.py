@@ -291,6 +291,15 @@ def body_axes(rig: Rig, pts: Mapping[str, F64Array]) -> F64Array:
     return np.stack([height, width, depth], axis=-1)
 
 
+def _finite_mean(x: F64Array, axis: int = 0) -> F64Array:
+    """Mean over ``axis`` of the finite entries (NaN where there are none), quietly."""
+    ok = np.isfinite(x)
+    count = ok.sum(axis=axis)
+    total = np.where(ok, x, 0.0).sum(axis=axis)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(count > 0, total / np.maximum(count, 1), np.nan)
+
+
 def _mean_quat(q: F64Array) -> F64Array:
     """Average of (F, 4) quaternions near each other (sign-aligned chordal mean)."""
     ok = np.isfinite(q).all(axis=-1)
@@ -379,8 +388,7 @@ def calibrate(
     # Rigid segments: the base-pose layout of the markers that were seen.
     layouts: dict[str, tuple[tuple[str, ...], F64Array]] = {}
     index = {m: i for i, m in enumerate(rig.markers)}
-    with np.errstate(invalid="ignore"):
-        mean_pos = np.nanmean(np.where(seen[..., None], marker_pos, np.nan), axis=0)
+    mean_pos = _finite_mean(np.where(seen[..., None], marker_pos, np.nan))
     for seg, names in rig.segments.items():
         kept = tuple(n for n in names if seen_frac[index[n]] > 0.0)
         if len(kept) < 3:
@@ -464,7 +472,7 @@ def calibrate(
         bone_lengths=lengths,
         rest_world_from_bone_quat=rest_wfb,
         rest_parent_from_bone_quat=rest_pfb,
-        root_rest_pos=np.nanmean(pts[root], axis=0),
+        root_rest_pos=_finite_mean(pts[root]),
         measurements=meas,
         base_pose=dict(base_pose or {}, frames_used=int(n_frames)),
     )

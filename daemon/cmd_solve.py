@@ -73,6 +73,36 @@ def segment_stability(
     return out
 
 
+#: Our joint-centre names -> the vendor reference points that hold the same centre
+#: (Plug-in Gait: femur proximal = hip, femur origin = knee, tibia origin = ankle,
+#: humerus proximal = shoulder, humerus origin = elbow, radius origin = wrist).
+REFERENCE_CENTRES = {
+    f"{s}{j}": (f"{s}{j}", f"{s}{pig}")
+    for s in "LR"
+    for j, pig in (("HJC", "FEP"), ("KJC", "FEO"), ("AJC", "TIO"), ("SJC", "HUP"),
+                   ("EJC", "HUO"), ("WJC", "RAO"))
+}  # fmt: skip
+
+
+def reference_distances(
+    take: Any, joint_names: tuple[str, ...], joints: np.ndarray
+) -> list[tuple[str, str, float, float]]:
+    """(joint, reference, median mm, p95 mm) against the take's vendor joint centres."""
+    refs = take.references
+    out = []
+    for j, name in enumerate(joint_names):
+        for ref in REFERENCE_CENTRES.get(name, ()):
+            if ref in refs.labels and refs.kinds[refs.index(ref)] != "angle":
+                d = 1000 * np.linalg.norm(joints[:, j] - refs.get(ref), axis=-1)
+                d = d[np.isfinite(d)]
+                if d.size:
+                    out.append(
+                        (name, ref, float(np.median(d)), float(np.percentile(d, 95)))
+                    )
+                break
+    return out
+
+
 def run(args: argparse.Namespace) -> int:
     """Run ``solve``."""
     from retargetd.daemon.calibration import (
@@ -152,4 +182,9 @@ def run(args: argparse.Namespace) -> int:
         out("joint-centre segment stability (mean length, CV):\n")
         for name, mean, cv in stab:
             out(f"  {name}: {1000 * mean:.1f} mm, {cv:.2f} %\n")
+    compared = reference_distances(take, res.joint_names, res.joint_centres)
+    if compared:
+        out("joint centres against the take's own reference points (median, p95):\n")
+        for name, ref, med, p95 in compared:
+            out(f"  {name} vs {ref}: {med:.1f} mm, {p95:.1f} mm\n")
     return 0

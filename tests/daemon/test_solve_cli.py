@@ -95,3 +95,23 @@ def test_solve_errors_are_one_line_exit_2(
     assert code == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and message in err[0]
+
+
+def test_calibrating_without_a_needed_marker_is_one_clear_line(
+    synth_take: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from retargetd.replay.c3d import write_c3d
+    from retargetd.replay.takes import load_take
+
+    full = load_take(synth_take)
+    keep = [i for i, lab in enumerate(full.labels) if lab != "LHEAD"]
+    part = tmp_path / "nohead.c3d"
+    write_c3d(
+        part, [full.labels[i] for i in keep], full.positions[:, keep], full.rate_hz
+    )
+    code = main(["calibrate", str(part), "--rig", "menache", "--frames", "0:10",
+                 "--out", str(tmp_path / "p.json")])  # fmt: skip
+    assert code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1
+    assert "LHEAD" in err[0] and "never all seen" in err[0]
