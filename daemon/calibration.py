@@ -13,9 +13,9 @@ constant:
   subject's measurements;
 - bone lengths and rest orientations (world and parent-relative), averaged.
 
-Measurements: a rig measurement takes the take's value (C3D ``PROCESSING``) when the
-file has one (a value <= 0 for a length whose default is > 0 counts as "not measured",
-as Vicon writes 0 there), else an explicit override, else the rig default; every
+Measurements: a rig measurement takes an explicit override (``--measure``), else the
+take's value (C3D ``PROCESSING``; a value <= 0 for a length whose default is > 0 counts
+as "not measured", as Vicon writes 0 there), else the rig default; every
 measurement used is saved with its source, and defaults used are reported, never fatal.
 
 The calibrated skeleton is a JSON file (``retargetd calibrate --out performer.json``),
@@ -482,5 +482,5 @@ def _bone_markers(rig: Rig, bone_name: str) -> list[str]:
     bone = next(b for b in rig.bones if b.name == bone_name)
     out: list[str] = []
     for p in bone.inputs:
-        out.extend(m for m in rig.markers_of(p) if m not in out)
+        out.extend(m for m in rig.markers_of(p, base_pose=True) if m not in out)
     return out

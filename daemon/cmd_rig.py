@@ -78,6 +78,10 @@ def run(args: argparse.Namespace) -> int:
     for p in rig.points:
         out(f"  {p.name}: {_describe_point(rig, p.name)}\n")
         out(f"      markers: {' '.join(rig.markers_of(p.name))}\n")
+        base = [m for m in rig.markers_of(p.name, base_pose=True)
+                if m not in rig.markers_of(p.name)]  # fmt: skip
+        if base:
+            out(f"      base pose only: {' '.join(base)}\n")
     out(f"bones ({len(rig.bones)}, parents first):\n")
     for b in rig.bones:
         up = b.up[0] if len(b.up) == 1 else f"{b.up[0]} -> {b.up[1]}"

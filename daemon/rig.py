@@ -119,6 +119,11 @@ class LinePoint:
         """Points this one is built from."""
         return (self.a, self.b)
 
+    @property
+    def frame_inputs(self) -> tuple[str, ...]:
+        """Points needed in every frame (the same as ``inputs`` for a line)."""
+        return (self.a, self.b)
+
 
 @dataclass(frozen=True, slots=True, kw_only=True)
 class RigidPoint:
@@ -141,6 +146,12 @@ class RigidPoint:
             for expr in self.rule.values():
                 extra.extend(expr.names)
         return tuple(dict.fromkeys((*self.frame, *extra)))
+
+    @property
+    def frame_inputs(self) -> tuple[str, ...]:
+        """Points needed in every frame: the three of the frame (a rule's points are
+        used only in the base pose)."""
+        return self.frame
 
 
 DerivedPoint = LinePoint | RigidPoint
@@ -200,8 +211,14 @@ class Rig:
         index = {b.name: i for i, b in enumerate(self.bones)}
         return tuple(-1 if b.parent is None else index[b.parent] for b in self.bones)
 
-    def markers_of(self, name: str) -> tuple[str, ...]:
-        """Rig markers a point (or marker) depends on, transitively, in rig order."""
+    def markers_of(self, name: str, *, base_pose: bool = False) -> tuple[str, ...]:
+        """Rig markers a point (or marker) depends on, transitively, in rig order.
+
+        Args:
+            name: a marker or derived point.
+            base_pose: include the markers that ``rule`` points use only when they are
+                calibrated (default: only what every frame's solve needs).
+        """
         by_name = {p.name: p for p in self.points}
         seen: set[str] = set()
         stack = [name]
@@ -214,7 +231,8 @@ class Rig:
             if item in self.markers:
                 found.add(item)
             elif item in by_name:
-                stack.extend(by_name[item].inputs)
+                point = by_name[item]
+                stack.extend(point.inputs if base_pose else point.frame_inputs)
         return tuple(m for m in self.markers if m in found)
 
 
