@@ -1,0 +1,317 @@
+"""ZeroMQ pose stream (PUB): one binary data message per solved frame, plus names.
+
+Byte layout in ``protocols/PROTOCOLS.md`` (section 6). All little-endian.
+
+Data message, two parts:
+
+- header, 68 bytes ``<4sHHqdqqqIHH3f``: magic ``RTDP``, version 1, names id uint16,
+  frame number int64, source time float64 s (NaN = unknown), received / solved / sent
+  ``time.monotonic_ns()`` of this host (int64), frame flags uint32, n_bones uint16,
+  n_weights uint16, root position float32 x 3 (metres, world);
+- body: world_from_bone float32 (B, 4) (w, x, y, z), parent_from_bone float32 (B, 4)
+  (w, x, y, z), weights float32 (K,) in [0, 1], bone flags uint8 (B,), NUL-padded to a
+  multiple of 4. Bones in the rig's (solve NPZ) order; rotations in the internal world
+  (right-handed, +Z up).
+
+The names id says which names message describes this data (it changes whenever the
+names do, e.g. after a rig reload), so a client that joins mid-stream can tell.
+
+Names message, two parts: ``RTDN`` + version uint16 + names id uint16 (8 bytes), then
+UTF-8 JSON (rig, bones, parents, weights, flag bits). Sent on change and at least once
+a second. The magic doubles as the topic: subscribe to ``b"RTDP"``, ``b"RTDN"`` or
+``b"RTD"`` for both.
+
+``sent_ns`` is patched in by :func:`stamp_sent` just before the send.
+"""
+
+from __future__ import annotations
+
+import json
+import struct
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from retargetd.protocols.errors import DecodeError
+from retargetd.protocols.frames import F32Array, F64Array, U8Array
+
+DATA_MAGIC = b"RTDP"
+NAMES_MAGIC = b"RTDN"
+VERSION = 1
+HEADER = struct.Struct("<4sHHqdqqqIHH3f")  # 68 bytes
+NAMES_HEADER = struct.Struct("<4sHH")  # 8 bytes
+SENT_NS_OFFSET = 40
+_SENT_NS = struct.Struct("<q")
+_LE_F32 = np.dtype("<f4")
+
+# Frame flag bits (uint32 in the header).
+FRAME_LATE = 1 << 0  # the solve overran its budget; sent late
+FRAME_HELD = 1 << 1  # at least one bone holds its last good value
+FRAME_RESTARTED = 1 << 2  # the marker source restarted (frame numbers reset)
+FRAME_INPUT_DROPPED = 1 << 3  # input frames were dropped since the last pose
+FRAME_VALIDATION_MASK = 0x0000_FF00  # bits 8-15: reserved for validation results
+FRAME_FLAG_BITS = {"late": 0, "held": 1, "restarted": 2, "input_dropped": 3}
+
+# Bone flag bits (one uint8 per bone).
+BONE_HELD = 1 << 0  # too little data: last good rotation held
+BONE_REBUILT = 1 << 1  # a defining point rebuilt from its rigid segment's other markers
+BONE_PARTIAL = 1 << 2  # solved with some defining markers missing
+BONE_NEVER = 1 << 3  # never solved since the stream started (rest pose sent)
+BONE_VALIDATION_MASK = 0xF0  # bits 4-7: reserved for validation results
+BONE_FLAG_BITS = {"held": 0, "rebuilt": 1, "partial": 2, "never": 3}
+
+
+def body_size(n_bones: int, n_weights: int) -> int:
+    """Bytes in the body of a data message for ``n_bones`` bones and ``n_weights``."""
+    return 32 * n_bones + 4 * n_weights + ((n_bones + 3) & ~3)
+
+
+def stamp_sent(header: bytearray | memoryview, t_ns: int) -> None:
+    """Write ``sent_ns`` (``time.monotonic_ns()`` just before sending) into a header."""
+    _SENT_NS.pack_into(header, SENT_NS_OFFSET, t_ns)
+
+
+class PoseEncoder:
+    """Encodes pose data messages into two preallocated buffers.
+
+    Args:
+        n_bones: bones in the rig (the solve's NPZ order), <= 65535.
+        n_weights: blendshape weights, <= 65535.
+        names_id: the id of the names message describing these bones (0-65535).
+
+    Attributes:
+        parts: ``[header, body]`` memoryviews, reused by every :meth:`encode`.
+    """
+
+    def __init__(self, n_bones: int, n_weights: int, names_id: int = 0) -> None:
+        if not (0 <= n_bones <= 0xFFFF and 0 <= n_weights <= 0xFFFF):
+            raise ValueError(
+                "n_bones and n_weights must be in [0, 65535]; "
+                f"got {n_bones}, {n_weights}"
+            )
+        if not 0 <= names_id <= 0xFFFF:
+            raise ValueError(f"names_id must be in [0, 65535]; got {names_id}")
+        self.n_bones = n_bones
+        self.n_weights = n_weights
+        self.names_id = names_id
+        self._header = bytearray(HEADER.size)
+        self._body = bytearray(body_size(n_bones, n_weights))
+        b, k = n_bones, n_weights
+        self._world = np.frombuffer(self._body, _LE_F32, 4 * b, 0).reshape(b, 4)
+        self._parent = np.frombuffer(self._body, _LE_F32, 4 * b, 16 * b).reshape(b, 4)
+        self._weights = np.frombuffer(self._body, _LE_F32, k, 32 * b)
+        self._bone_flags = np.frombuffer(self._body, np.uint8, b, 32 * b + 4 * k)
+        self.parts = [memoryview(self._header), memoryview(self._body)]
+
+    def encode(
+        self,
+        frame_id: int,
+        source_time_s: float,
+        received_ns: int,
+        solved_ns: int,
+        flags: int,
+        root_pos_world: F64Array,
+        world_from_bone_quat: F64Array,
+        parent_from_bone_quat: F64Array,
+        weights: F64Array,
+        bone_flags: U8Array,
+    ) -> list[memoryview]:
+        """Write one frame; ``sent_ns`` is 0 until :func:`stamp_sent`.
+
+        Args:
+            frame_id: the source's frame number.
+            source_time_s: the source's timestamp, seconds (NaN when unknown).
+            received_ns: ``time.monotonic_ns()`` when the marker frame arrived.
+            solved_ns: ``time.monotonic_ns()`` when the solve finished.
+            flags: frame flag bits (``FRAME_*``).
+            root_pos_world: (3,) float, metres, world frame.
+            world_from_bone_quat: (n_bones, 4) float, (w, x, y, z), world frame.
+            parent_from_bone_quat: (n_bones, 4) float, (w, x, y, z).
+            weights: (n_weights,) float in [0, 1].
+            bone_flags: (n_bones,) uint8 bone flag bits (``BONE_*``).
+
+        Returns:
+            :attr:`parts` (``[header, body]``).
+        """
+        HEADER.pack_into(
+            self._header, 0, DATA_MAGIC, VERSION, self.names_id, frame_id, source_time_s,
+            received_ns, solved_ns, 0, flags, self.n_bones, self.n_weights,
+            root_pos_world[0], root_pos_world[1], root_pos_world[2],
+        )  # fmt: skip
+        self._world[:] = world_from_bone_quat
+        self._parent[:] = parent_from_bone_quat
+        self._weights[:] = weights
+        self._bone_flags[:] = bone_flags
+        return self.parts
+
+
+@dataclass(slots=True, eq=False)
+class PoseMessage:
+    """A decoded pose data message (clients and tests; arrays are copies).
+
+    Attributes:
+        frame_id: the source's frame number.
+        source_time_s: the source's timestamp, seconds (NaN when unknown).
+        received_ns, solved_ns, sent_ns: the sender's ``time.monotonic_ns()`` stamps.
+        flags: frame flag bits.
+        root_pos_world: (3,) float32, metres, world.
+        world_from_bone_quat: (n_bones, 4) float32, (w, x, y, z).
+        parent_from_bone_quat: (n_bones, 4) float32, (w, x, y, z).
+        weights: (n_weights,) float32.
+        bone_flags: (n_bones,) uint8.
+        names_id: the names message these bones are described by.
+    """
+
+    frame_id: int
+    source_time_s: float
+    received_ns: int
+    solved_ns: int
+    sent_ns: int
+    flags: int
+    root_pos_world: F32Array
+    world_from_bone_quat: F32Array
+    parent_from_bone_quat: F32Array
+    weights: F32Array
+    bone_flags: U8Array
+    names_id: int = 0
+
+
+def decode_pose(parts: Sequence[bytes | bytearray | memoryview]) -> PoseMessage:
+    """Decode a pose data message.
+
+    Raises:
+        DecodeError: ``bad_parts`` (not two parts), ``bad_length``, ``bad_magic``,
+            ``bad_version``.
+    """
+    if len(parts) != 2:
+        raise DecodeError("bad_parts", f"{len(parts)} parts, expected 2")
+    header, body = parts
+    if len(header) != HEADER.size:
+        raise DecodeError("bad_length", f"header of {len(header)} bytes, expected 68")
+    (magic, version, names_id, frame_id, time_s, received, solved, sent, flags, b, k,
+     x, y, z) = HEADER.unpack_from(header)  # fmt: skip
+    if magic != DATA_MAGIC:
+        raise DecodeError("bad_magic", f"expected {DATA_MAGIC!r}; got {magic!r}")
+    if version != VERSION:
+        raise DecodeError("bad_version", f"version {version}, expected {VERSION}")
+    if len(body) != body_size(b, k):
+        raise DecodeError("bad_length", f"body of {len(body)} bytes for {b} bones, {k}")
+    data = bytes(body)
+    return PoseMessage(
+        frame_id=frame_id,
+        source_time_s=time_s,
+        received_ns=received,
+        solved_ns=solved,
+        sent_ns=sent,
+        flags=flags,
+        root_pos_world=np.array([x, y, z], dtype=np.float32),
+        world_from_bone_quat=np.frombuffer(data, _LE_F32, 4 * b, 0)
+        .reshape(b, 4)
+        .copy(),
+        parent_from_bone_quat=np.frombuffer(data, _LE_F32, 4 * b, 16 * b)
+        .reshape(b, 4)
+        .copy(),
+        weights=np.frombuffer(data, _LE_F32, k, 32 * b).copy(),
+        bone_flags=np.frombuffer(data, np.uint8, b, 32 * b + 4 * k).copy(),
+        names_id=names_id,
+    )
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class PoseNames:
+    """What the numbers of a data message mean: sent in the names message.
+
+    Attributes:
+        rig: the rig's name.
+        bone_names: bone names, in body order.
+        bone_parents: parent index per bone, -1 for the root.
+        weight_names: blendshape names, in body order.
+        names_id: echoed in every data message these names describe (0-65535).
+    """
+
+    rig: str
+    bone_names: tuple[str, ...]
+    bone_parents: tuple[int, ...]
+    weight_names: tuple[str, ...]
+    names_id: int = 0
+
+    def __post_init__(self) -> None:
+        n = len(self.bone_names)
+        if len(self.bone_parents) != n or any(
+            not -1 <= p < n for p in self.bone_parents
+        ):
+            raise ValueError(
+                f"bone_parents must hold one index in [-1, {n}) per bone; "
+                f"got {self.bone_parents}"
+            )
+
+
+def encode_pose_names(names: PoseNames) -> list[bytes]:
+    """Encode the names message ``[header, json]`` (sent on change and >= 1 Hz)."""
+    doc = {
+        "schema": "retargetd.pose_names",
+        "version": VERSION,
+        "names_id": names.names_id,
+        "rig": names.rig,
+        "bones": list(names.bone_names),
+        "parents": list(names.bone_parents),
+        "weights": list(names.weight_names),
+        "quat_order": "wxyz",
+        "frame": "world: right-handed, +Z up, metres",
+        "frame_flag_bits": FRAME_FLAG_BITS,
+        "bone_flag_bits": BONE_FLAG_BITS,
+        "validation_bits": {"frame": [8, 15], "bone": [4, 7]},
+    }
+    body = json.dumps(doc, separators=(",", ":"), ensure_ascii=False).encode()
+    return [NAMES_HEADER.pack(NAMES_MAGIC, VERSION, names.names_id), body]
+
+
+def _str_list(doc: dict[str, Any], key: str) -> tuple[str, ...]:
+    value = doc.get(key)
+    if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
+        raise DecodeError("bad_json", f"{key!r} must be a list of strings")
+    return tuple(value)
+
+
+def decode_pose_names(parts: Sequence[bytes | bytearray | memoryview]) -> PoseNames:
+    """Decode a names message.
+
+    Raises:
+        DecodeError: ``bad_parts``, ``bad_length``, ``bad_magic``, ``bad_version``,
+            ``bad_json`` (not UTF-8 JSON, or fields of the wrong type or length).
+    """
+    if len(parts) != 2:
+        raise DecodeError("bad_parts", f"{len(parts)} parts, expected 2")
+    header, body = parts
+    if len(header) != NAMES_HEADER.size:
+        raise DecodeError("bad_length", f"header of {len(header)} bytes, expected 8")
+    magic, version, names_id = NAMES_HEADER.unpack_from(header)
+    if magic != NAMES_MAGIC:
+        raise DecodeError("bad_magic", f"expected {NAMES_MAGIC!r}; got {magic!r}")
+    if version != VERSION:
+        raise DecodeError("bad_version", f"version {version}, expected {VERSION}")
+    try:
+        doc = json.loads(bytes(body).decode())
+    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
+        raise DecodeError("bad_json", "names message is not UTF-8 JSON") from exc
+    if not isinstance(doc, dict) or not isinstance(doc.get("rig"), str):
+        raise DecodeError("bad_json", "expected an object with a 'rig' string")
+    parents = doc.get("parents")
+    if not isinstance(parents, list) or not all(
+        isinstance(p, int) and not isinstance(p, bool) for p in parents
+    ):
+        raise DecodeError("bad_json", "'parents' must be a list of integers")
+    try:
+        return PoseNames(
+            rig=doc["rig"],
+            bone_names=_str_list(doc, "bones"),
+            bone_parents=tuple(parents),
+            weight_names=_str_list(doc, "weights"),
+            names_id=names_id,
+        )
+    except ValueError as exc:
+        if isinstance(exc, DecodeError):
+            raise
+        raise DecodeError("bad_json", str(exc)) from exc

@@ -1,0 +1,207 @@
+"""VMC protocol output (OSC over UDP, default 127.0.0.1:39539), encoded from templates.
+
+Per frame, in this order (``shared/reference/engines.md``, PROTOCOLS.md section 5)::
+
+    /VMC/Ext/Root/Pos  ,sfffffff  "root" px py pz qx qy qz qw
+    /VMC/Ext/Bone/Pos  ,sfffffff  NAME   px py pz qx qy qz qw     (every bone)
+    /VMC/Ext/Blend/Val ,sf        NAME   value                     (every blendshape)
+    /VMC/Ext/Blend/Apply ,
+    /VMC/Ext/OK        ,i         1  (model loaded)
+    /VMC/Ext/T         ,f         t  (sender time, seconds)
+
+All values in Unity's frame (left-handed, +Y up, metres, x y z w; see
+``engine_unity``). The messages are packed in order into bundles (time tag
+"immediately"), each datagram at most :data:`MAX_DATAGRAM` bytes so nothing is
+IP-fragmented; ``/VMC/Ext/T`` is the last message of the last datagram.
+
+Every message is prebuilt once; the float slots of all datagrams are one big-endian
+float32 view over one buffer, so a frame is encoded by a handful of array writes and
+one scatter (no per-message Python objects).
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Sequence
+
+import numpy as np
+
+from retargetd.protocols.frames import BoolArray, F64Array, IntArray
+from retargetd.protocols.osc_wire import (
+    BUNDLE_HEADER,
+    ELEMENT_SIZE_PREFIX,
+    build_message,
+)
+
+DEFAULT_HOST = "127.0.0.1"
+DEFAULT_PORT = 39539
+#: Largest UDP payload sent: a 1500-byte Ethernet MTU minus IPv4 (20) and UDP (8).
+MAX_DATAGRAM = 1472
+
+#: The standard humanoid (Unity HumanBodyBones without eyes, jaw and fingers).
+HUMANOID_BONES: tuple[str, ...] = (
+    "Hips",
+    "LeftUpperLeg",
+    "RightUpperLeg",
+    "LeftLowerLeg",
+    "RightLowerLeg",
+    "LeftFoot",
+    "RightFoot",
+    "Spine",
+    "Chest",
+    "UpperChest",
+    "Neck",
+    "Head",
+    "LeftShoulder",
+    "RightShoulder",
+    "LeftUpperArm",
+    "RightUpperArm",
+    "LeftLowerArm",
+    "RightLowerArm",
+    "LeftHand",
+    "RightHand",
+    "LeftToes",
+    "RightToes",
+)
+
+ROOT_ADDRESS = "/VMC/Ext/Root/Pos"
+BONE_ADDRESS = "/VMC/Ext/Bone/Pos"
+BLEND_VAL_ADDRESS = "/VMC/Ext/Blend/Val"
+BLEND_APPLY_ADDRESS = "/VMC/Ext/Blend/Apply"
+OK_ADDRESS = "/VMC/Ext/OK"
+TIME_ADDRESS = "/VMC/Ext/T"
+_NAN7 = [float("nan")] * 7
+
+
+def _pack(messages: list[tuple[bytes, int]]) -> tuple[bytearray, list[int], IntArray]:
+    """Pack ``(message, n_trailing_floats)`` in order into bundles <= MAX_DATAGRAM.
+
+    Returns the buffer (datagrams back to back), the datagram boundaries and the
+    float32 index (into the buffer viewed as 4-byte words) of every float slot.
+    """
+    buf = bytearray()
+    bounds = [0]
+    slots: list[int] = []
+    for msg, n_floats in messages:
+        element = ELEMENT_SIZE_PREFIX + len(msg)
+        if len(BUNDLE_HEADER) + element > MAX_DATAGRAM:
+            raise ValueError(f"a {len(msg)}-byte VMC message cannot fit one datagram")
+        if len(buf) == bounds[-1] or len(buf) - bounds[-1] + element > MAX_DATAGRAM:
+            if len(buf) != bounds[-1]:
+                bounds.append(len(buf))
+            buf += BUNDLE_HEADER
+        buf += len(msg).to_bytes(4, "big")
+        end = len(buf) + len(msg)
+        buf += msg
+        # Float slots are the message's last n_floats words (all offsets are 4-aligned).
+        slots.extend(range(end // 4 - n_floats, end // 4))
+    bounds.append(len(buf))
+    return buf, bounds, np.array(slots, dtype=np.intp)
+
+
+class VmcEncoder:
+    """Encodes one frame of VMC into prebuilt datagrams.
+
+    Args:
+        bone_names: bone names, in the order of the ``bone_*`` arrays given to
+            :meth:`encode` (default :data:`HUMANOID_BONES`; add any others you send).
+        blend_names: blendshape clip names, in the order of ``blend``; may be empty.
+
+    Attributes:
+        datagrams: the datagrams of a frame, in send order (memoryviews into one
+            reused buffer: send them before the next :meth:`encode`).
+    """
+
+    def __init__(
+        self,
+        bone_names: Sequence[str] = HUMANOID_BONES,
+        blend_names: Sequence[str] = (),
+    ) -> None:
+        names = tuple(bone_names)
+        blends = tuple(blend_names)
+        for kind, seq in (("bone", names), ("blendshape", blends)):
+            if len(set(seq)) != len(seq) or not all(seq):
+                raise ValueError(
+                    f"{kind} names must be unique and non-empty; got {seq}"
+                )
+        self.bone_names = names
+        self.blend_names = blends
+        n_pose = 1 + len(names)
+        messages = [(build_message(ROOT_ADDRESS, ",sfffffff", ["root", *_NAN7]), 7)]
+        messages += [
+            (build_message(BONE_ADDRESS, ",sfffffff", [name, *_NAN7]), 7)
+            for name in names
+        ]
+        messages += [
+            (build_message(BLEND_VAL_ADDRESS, ",sf", [name, 0.0]), 1) for name in blends
+        ]
+        messages += [
+            (build_message(BLEND_APPLY_ADDRESS, ",", []), 0),
+            (build_message(OK_ADDRESS, ",i", [1]), 0),
+            (build_message(TIME_ADDRESS, ",f", [0.0]), 1),
+        ]
+        self._buf, bounds, self._slots = _pack(messages)
+        view = memoryview(self._buf)
+        self.datagrams = [view[a:b] for a, b in itertools.pairwise(bounds)]
+        self._floats = np.frombuffer(self._buf, dtype=">f4")
+        # Staging, in slot order: (root + bones) x 7, then blend values, then T.
+        self._stage: F64Array = np.zeros(len(self._slots))
+        self._pose = self._stage[: 7 * n_pose].reshape(n_pose, 7)
+        self._quat = self._pose[:, 3:7]
+        self._blend = self._stage[7 * n_pose : 7 * n_pose + len(blends)]
+        self._last_quat: F64Array = np.zeros((n_pose, 4))
+        self._prod: F64Array = np.zeros((n_pose, 4))
+        self._dot: F64Array = np.zeros(n_pose)
+        self._flip: BoolArray = np.zeros(n_pose, dtype=bool)
+        self._flip_col = self._flip[:, None]
+        self._has_last = False
+
+    def reset_continuity(self) -> None:
+        """Forget the last quaternions sent (e.g. after a receiver restart)."""
+        self._has_last = False
+
+    def encode(
+        self,
+        root_pos_unity: F64Array,
+        root_quat_xyzw: F64Array,
+        bone_pos_unity: F64Array,
+        bone_quat_xyzw: F64Array,
+        blend: F64Array,
+        t_s: float,
+    ) -> list[memoryview]:
+        """Write one frame into the datagrams and return them.
+
+        Each quaternion (the root's and every bone's) is negated when its dot product
+        with the one sent last frame is < 0, so receivers that blend never take the
+        long way round.
+
+        Args:
+            root_pos_unity: (3,) float, metres, Unity frame: the model root's position.
+            root_quat_xyzw: (4,) float, (x, y, z, w), Unity frame.
+            bone_pos_unity: (n_bones, 3) float, metres: each bone's position in its
+                parent (the target rest pose's offsets; never zeros).
+            bone_quat_xyzw: (n_bones, 4) float, (x, y, z, w): parent_from_bone.
+            blend: (n_blend,) float in [0, 1], in ``blend_names`` order.
+            t_s: sender time in seconds (``/VMC/Ext/T``; float32 on the wire, so keep
+                it small, e.g. seconds since the stream started).
+
+        Returns:
+            :attr:`datagrams`, in send order.
+        """
+        pose = self._pose
+        pose[0, 0:3] = root_pos_unity
+        pose[0, 3:7] = root_quat_xyzw
+        pose[1:, 0:3] = bone_pos_unity
+        pose[1:, 3:7] = bone_quat_xyzw
+        quat = self._quat
+        if self._has_last:
+            np.multiply(quat, self._last_quat, out=self._prod)
+            np.sum(self._prod, axis=1, out=self._dot)
+            np.less(self._dot, 0.0, out=self._flip)
+            np.negative(quat, out=quat, where=self._flip_col)
+        self._has_last = True
+        np.copyto(self._last_quat, quat)
+        self._blend[:] = blend
+        self._stage[-1] = t_s
+        self._floats[self._slots] = self._stage
+        return self.datagrams

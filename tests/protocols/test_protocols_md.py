@@ -1,0 +1,142 @@
+"""PROTOCOLS.md cannot rot: its hex examples equal the encoders' bytes, and its
+senders, run as written (only the port changed), are decoded by our decoders."""
+
+from __future__ import annotations
+
+import re
+import socket
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zmq
+
+from retargetd.protocols import marker_input as mi
+from retargetd.protocols import osc_in, pose_stream, zmq_wire
+from retargetd.protocols.osc_wire import build_message
+
+DOC = (Path(__file__).resolve().parents[2] / "protocols" / "PROTOCOLS.md").read_text()
+NAN = float("nan")
+LABELS = mi.LabelSet(3, ("LASI", "RASI"))
+POS = np.array([[1.0, 2.0, 3.0], [NAN, NAN, NAN]])
+
+
+def _block(kind: str, name: str) -> str:
+    match = re.search(rf"<!-- {kind}: {name} -->\n```[a-z]*\n(.*?)```", DOC, re.DOTALL)
+    assert match, f"no {kind} block {name!r} in PROTOCOLS.md"
+    return match.group(1)
+
+
+def _hex(name: str) -> bytes:
+    data = bytearray()
+    for line in _block("hex", name).splitlines():
+        data += bytes.fromhex(line[6:].split("|")[0])
+    return bytes(data)
+
+
+def _pose_parts() -> list[bytes]:
+    enc = pose_stream.PoseEncoder(1, 1)
+    parts = enc.encode(
+        7, 0.5, 1000, 2000, pose_stream.FRAME_HELD, np.array([0.0, 0.0, 1.0]),
+        np.array([[1.0, 0, 0, 0]]), np.array([[1.0, 0, 0, 0]]), np.array([0.5]),
+        np.array([pose_stream.BONE_HELD], dtype=np.uint8),
+    )  # fmt: skip
+    pose_stream.stamp_sent(parts[0], 3000)
+    return [bytes(p) for p in parts]
+
+
+def test_hex_examples_match_the_encoders() -> None:
+    zmq_frame = zmq_wire.encode_zmq_frame(7, 0.5, 3, POS)
+    zmq_labels = zmq_wire.encode_zmq_labels(LABELS)
+    expected = {
+        "osc_compact": osc_in.encode_compact_frame(7, 0.5, 3, POS),
+        "osc_labels": osc_in.encode_labels(LABELS),
+        "osc_simple": osc_in.encode_simple_bundle(LABELS.labels, POS, 7),
+        "zmq_frame_header": zmq_frame[0],
+        "zmq_frame_payload": zmq_frame[1],
+        "zmq_labels_header": zmq_labels[0],
+        "zmq_labels_payload": zmq_labels[1],
+        "vmc_bone": build_message(
+            "/VMC/Ext/Bone/Pos", ",sfffffff", ["Spine", 0.0, 0.1, 0, 0, 0, 0, 1.0]
+        ),
+        "pose_header": _pose_parts()[0],
+        "pose_body": _pose_parts()[1],
+    }
+    for name, data in expected.items():
+        assert _hex(name) == data, name
+
+
+def _run(name: str, port: int) -> None:
+    code = re.sub(r"^PORT = \d+", f"PORT = {port}", _block("sender", name), flags=re.M)
+    namespace: dict[str, object] = {}
+    try:
+        exec(compile(code, f"PROTOCOLS.md:{name}", "exec"), namespace)
+    finally:  # the snippets leave their sockets to the interpreter's exit
+        for value in namespace.values():
+            if isinstance(value, socket.socket):
+                value.close()
+
+
+def _udp_receiver() -> socket.socket:
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)
+    sock.bind(("127.0.0.1", 0))
+    sock.settimeout(2.0)
+    return sock
+
+
+@pytest.mark.timeout(30)
+def test_osc_compact_sender() -> None:
+    with _udp_receiver() as rx:
+        _run("osc_compact", rx.getsockname()[1])
+        stream = mi.MarkerStream(up_axis="+Y", units="mm")
+        for t in range(122):
+            data = rx.recv(65536)
+            if data.startswith(b"/rtd/labels"):
+                stream.set_labels(osc_in.decode_labels(data))
+            else:
+                assert (
+                    stream.feed(osc_in.decode_compact_frame, data, t_ns=t)
+                    == mi.ACCEPTED
+                )
+    frame = stream.current.frame
+    assert frame.frame_id == 119 and stream.counters["accepted"] == 120
+    np.testing.assert_allclose(frame.markers_world[0], [0.219, -0.25, 1.7], rtol=1e-6)
+    np.testing.assert_array_equal(frame.valid, [True, False, True])
+
+
+@pytest.mark.timeout(30)
+def test_osc_simple_sender() -> None:
+    with _udp_receiver() as rx:
+        _run("osc_simple", rx.getsockname()[1])
+        stream = mi.MarkerStream(mi.LabelSet(0, ("LASI", "RASI", "LPSI")))
+        for t in range(120):
+            assert stream.feed(osc_in.decode_simple_bundle, rx.recv(65536), t_ns=t) == 0
+    frame = stream.current.frame
+    assert frame.frame_id == 119
+    np.testing.assert_array_equal(frame.valid, [True, False, False])
+    np.testing.assert_allclose(frame.markers_world[0], [0.1, 0.2, 1.0], rtol=1e-6)
+
+
+@pytest.mark.timeout(30)
+def test_zmq_sender_speaks_zmtp_to_a_pull_socket() -> None:
+    ctx = zmq.Context()
+    pull = ctx.socket(zmq.PULL)
+    pull.linger = 0
+    pull.rcvtimeo = 5000
+    try:
+        port = pull.bind_to_random_port("tcp://127.0.0.1")
+        _run("zmq_push", port)
+        stream = mi.MarkerStream()
+        stream.set_labels(zmq_wire.decode_zmq_labels(*pull.recv_multipart()))
+        for t in range(120):
+            code = stream.feed(
+                zmq_wire.decode_zmq_frame, *pull.recv_multipart(), t_ns=t
+            )
+            assert code == mi.ACCEPTED
+    finally:
+        pull.close()
+        ctx.term()
+    frame = stream.current.frame
+    assert frame.frame_id == 119
+    np.testing.assert_allclose(frame.markers_world[0], [0.1, 0.2, 1.119], rtol=1e-6)
