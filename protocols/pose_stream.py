@@ -136,8 +136,9 @@ class PoseEncoder:
             :attr:`parts` (``[header, body]``).
         """
         HEADER.pack_into(
-            self._header, 0, DATA_MAGIC, VERSION, self.names_id, frame_id, source_time_s,
-            received_ns, solved_ns, 0, flags, self.n_bones, self.n_weights,
+            self._header, 0, DATA_MAGIC, VERSION, self.names_id, frame_id,
+            source_time_s, received_ns, solved_ns, 0, flags, self.n_bones,
+            self.n_weights,
             root_pos_world[0], root_pos_world[1], root_pos_world[2],
         )  # fmt: skip
         self._world[:] = world_from_bone_quat
