@@ -1,0 +1,660 @@
+"""The live loop: one thread owns the sockets and the solve.
+
+A ``zmq.Poller`` waits on every input at once (plain UDP sockets and ZeroMQ sockets
+alike). Each wake-up drains every readable socket, decoding marker packets straight
+into preallocated buffers (``retargetd.protocols``); malformed packets are counted by
+reason and dropped. Then the newest accepted frame is solved (latest wins: the older
+ones are counted as ``stale``), unless ``process_every_frame`` asks to solve every
+accepted frame in order (offline replay). A solved frame is retargeted onto the engine
+skeleton, encoded as VMC datagrams and a ZeroMQ pose message, and sent without ever
+blocking (a slow subscriber loses messages, counted). Solve + send has a budget
+(``solve_budget_ms``): a frame over it is sent late, flagged and counted, never queued.
+
+Control requests (``retargetd ctl``: status, calibrate, reload) arrive on a local
+ZeroMQ REP socket; show-control arrives as OSC on VMC's performer port
+(``/VMC/Ext/Set/Calib/Ready``, ``/VMC/Ext/Set/Calib/Exec``, ``/rtd/calibrate``,
+``/rtd/reload``). A live calibration averages the next N accepted frames while the
+stream goes on with the old calibration, then swaps the new one in atomically (the
+loop thread is the only one that reads it) and saves it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import socket
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import zmq
+
+from retargetd.daemon.calibration import Calibration, calibrate, load_calibration
+from retargetd.daemon.config import DaemonConfig
+from retargetd.daemon.rig import Rig, load_rig
+from retargetd.daemon.solve_body import FLAG_HELD, BodySolver
+from retargetd.daemon.stats import LoopStats
+from retargetd.protocols import engine_unity, osc_in, pose_stream, zmq_wire
+from retargetd.protocols.errors import DecodeError
+from retargetd.protocols.marker_input import ACCEPTED, RESTART, LabelSet, MarkerStream
+from retargetd.protocols.osc_wire import iter_bundle_elements, parse_message
+from retargetd.protocols.vmc_out import VmcEncoder
+
+logger = logging.getLogger(__name__)
+
+_UDP_MAX = 65536
+
+
+@dataclass(slots=True)
+class _Pipeline:
+    """Everything that depends on (rig, calibration, label set); rebuilt off the hot
+    path when one of them changes."""
+
+    solver: BodySolver
+    retargeter: Any
+    pose: Any
+    target_pose: Any
+    vmc: VmcEncoder
+    bone_pos_unity: np.ndarray
+    bone_quat_xyzw: np.ndarray
+    root_pos_unity: np.ndarray
+    root_quat_xyzw: np.ndarray
+    blend: np.ndarray
+    pose_enc: pose_stream.PoseEncoder
+    names_parts: list[bytes]
+    weights: np.ndarray
+
+
+class Daemon:
+    """The live daemon (one performer). ``open()``, then ``run(should_exit)``.
+
+    Args:
+        config: validated configuration.
+        out: where the "listening on" and stats lines go (``print`` by default).
+    """
+
+    def __init__(
+        self, config: DaemonConfig, out: Callable[[str], None] | None = None
+    ) -> None:
+        self.config = config
+        self.out = out or (lambda line: print(line, flush=True))
+        self.stats = LoopStats()
+        self.rig: Rig = load_rig(config.performer.rig)
+        self.calibration: Calibration | None = None
+        if config.performer.calibration:
+            self.calibration = load_calibration(config.performer.calibration)
+        self.target = _load_target(config)
+        self._ctx = zmq.Context.instance()
+        self._poller = zmq.Poller()
+        self._sockets: list[Any] = []
+        self._osc: socket.socket | None = None
+        self._show: socket.socket | None = None
+        self._vmc: socket.socket | None = None
+        self._zin: zmq.Socket[bytes] | None = None
+        self._pub: zmq.Socket[bytes] | None = None
+        self._ctl: zmq.Socket[bytes] | None = None
+        osc_cfg, zmq_cfg = config.input.osc, config.input.zmq
+        simple_labels = (
+            LabelSet(0, osc_cfg.labels) if osc_cfg.form == "simple" else None
+        )
+        self.osc_stream = MarkerStream(simple_labels, osc_cfg.up, osc_cfg.units)
+        self.zmq_stream = MarkerStream(None, zmq_cfg.up, zmq_cfg.units)
+        self._pipelines: dict[int, _Pipeline] = {}  # id(MarkerStream) -> pipeline
+        self._labels_of: dict[int, tuple[str, ...]] = {}
+        self._names_id = 0
+        self._last_names_ns = 0
+        self._t0_ns = time.monotonic_ns()
+        self._buf = bytearray(_UDP_MAX)
+        self._allow = frozenset(osc_cfg.allow)
+        self._calib_target = 0  # frames still wanted by a live calibration
+        self._calib_frames: list[np.ndarray] = []
+        self._calib_labels: tuple[str, ...] = ()
+        self._calib_requested_by = ""
+        self._frame_flags = 0  # restarted / input dropped since the last pose sent
+        self.last_stats_line = ""
+        self.endpoints: dict[str, str] = {}
+
+    # ---- lifecycle -------------------------------------------------------------------
+
+    def open(self) -> None:
+        """Bind every endpoint; prints one "listening on" line each."""
+        c = self.config
+        if c.input.osc.enabled:
+            self._osc = self._udp_bind(c.input.osc.host, c.input.osc.port)
+            form = c.input.osc.form
+            self._announce("osc markers", f"udp://{self._addr(self._osc)} ({form})")
+        if c.show_control.enabled:
+            self._show = self._udp_bind(c.show_control.host, c.show_control.port)
+            self._announce("show control", f"udp://{self._addr(self._show)} (OSC)")
+        if c.input.zmq.enabled:
+            if c.input.zmq.mode == "pull":
+                self._zin = self._ctx.socket(zmq.PULL)
+                self._zin.setsockopt(zmq.LINGER, 0)
+                self._zin.setsockopt(zmq.RCVHWM, 1000)
+                self._zin.bind(c.input.zmq.endpoint)
+            else:
+                self._zin = self._ctx.socket(zmq.SUB)
+                self._zin.setsockopt(zmq.LINGER, 0)
+                self._zin.setsockopt(zmq.SUBSCRIBE, b"RTD")
+                self._zin.connect(c.input.zmq.endpoint)
+            self._poller.register(self._zin, zmq.POLLIN)
+            self._sockets.append(self._zin)
+            ep = (
+                self._zin.getsockopt(zmq.LAST_ENDPOINT).decode() or c.input.zmq.endpoint
+            )
+            self._announce("zmq markers", f"{ep} ({c.input.zmq.mode})")
+        if c.output.pose.enabled:
+            self._pub = self._ctx.socket(zmq.PUB)
+            self._pub.setsockopt(zmq.LINGER, 0)
+            self._pub.setsockopt(zmq.SNDHWM, c.output.pose.sndhwm)
+            self._pub.bind(c.output.pose.endpoint)
+            self._sockets.append(self._pub)
+            ep = self._pub.getsockopt(zmq.LAST_ENDPOINT).decode()
+            self._announce("zmq poses", f"{ep} (pub)")
+        self._ctl = self._ctx.socket(zmq.REP)
+        self._ctl.setsockopt(zmq.LINGER, 0)
+        self._ctl.bind(c.control.endpoint)
+        self._poller.register(self._ctl, zmq.POLLIN)
+        self._sockets.append(self._ctl)
+        ep = self._ctl.getsockopt(zmq.LAST_ENDPOINT).decode()
+        self._announce("control", f"{ep} (retargetd ctl --endpoint {ep})")
+        if c.output.vmc.enabled:
+            self._vmc = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            self._vmc.setblocking(False)
+            self._vmc_addr = (c.output.vmc.host, c.output.vmc.port)
+            self._announce("vmc out", f"udp://{c.output.vmc.host}:{c.output.vmc.port}")
+        if self.calibration is None:
+            self.out(
+                "no calibration loaded: streaming starts after 'retargetd ctl "
+                "calibrate' (or /VMC/Ext/Set/Calib/Exec) with the performer in the "
+                "base pose"
+            )
+
+    def _announce(self, what: str, where: str) -> None:
+        self.endpoints[what] = where
+        self.out(f"listening on {where}: {what}" if what != "vmc out" else
+                 f"sending to {where}: {what}")  # fmt: skip
+
+    def _udp_bind(self, host: str, port: int) -> socket.socket:
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)
+        sock.bind((host, port))
+        sock.setblocking(False)
+        self._poller.register(sock, zmq.POLLIN)
+        self._sockets.append(sock)
+        return sock
+
+    @staticmethod
+    def _addr(sock: socket.socket) -> str:
+        host, port = sock.getsockname()[:2]
+        return f"{host}:{port}"
+
+    def close(self) -> None:
+        """Close every socket (idempotent)."""
+        for sock in self._sockets:
+            with contextlib.suppress(KeyError):
+                self._poller.unregister(sock)
+            sock.close()
+        self._sockets.clear()
+        if self._vmc is not None:
+            self._vmc.close()
+            self._vmc = None
+
+    def run(self, should_exit: Callable[[], bool]) -> None:
+        """Serve until ``should_exit()`` is true (checked every poll timeout)."""
+        c = self.config.loop
+        timeout = c.poll_timeout_ms
+        next_stats = time.monotonic_ns() + int(c.stats_interval_s * 1e9)
+        while not should_exit():
+            events = dict(self._poller.poll(timeout))
+            if events:
+                self._service(events)
+            now = time.monotonic_ns()
+            if now >= next_stats:
+                self.last_stats_line = self.stats_line()
+                self.out(self.last_stats_line)
+                next_stats = now + int(c.stats_interval_s * 1e9)
+
+    # ---- one wake-up -----------------------------------------------------------------
+
+    def _service(self, events: dict[Any, int]) -> None:
+        every = self.config.loop.process_every_frame
+        newest: MarkerStream | None = None
+        newest_ns = 0
+        if self._osc is not None and self._osc.fileno() in events:
+            got = self._drain_osc(every)
+            if got:
+                newest, newest_ns = self.osc_stream, got
+        if self._zin is not None and self._zin in events:
+            got = self._drain_zmq(every)
+            if got and got >= newest_ns:
+                newest, newest_ns = self.zmq_stream, got
+        if newest is not None and not every:
+            self._solve_and_send(newest, newest_ns)
+        if self._show is not None and self._show.fileno() in events:
+            self._drain_show_control()
+        if self._ctl is not None and self._ctl in events:
+            self._serve_control()
+
+    def _accept(self, stream: MarkerStream, code: int, t_ns: int, every: bool) -> int:
+        """Book-keeping for one decoded packet; returns t_ns when it was accepted."""
+        if code != ACCEPTED and code != RESTART:
+            return 0
+        self.stats.frames_in += 1
+        stream.current.frame.t_ns = t_ns
+        if code == RESTART:
+            self.stats.restarts += 1
+            self._frame_flags |= pose_stream.FRAME_RESTARTED
+            pipe = self._pipelines.get(id(stream))
+            if pipe is not None:
+                pipe.solver.reset()
+                pipe.vmc.reset_continuity()
+        if self._calib_target:
+            self._collect_calibration_frame(stream)
+        if every:
+            self._solve_and_send(stream, t_ns)
+        return t_ns
+
+    def _drain_osc(self, every: bool) -> int:
+        assert self._osc is not None
+        sock, buf, stream = self._osc, self._buf, self.osc_stream
+        simple = self.config.input.osc.form == "simple"
+        view = memoryview(buf)
+        newest = 0
+        accepted = 0
+        while True:
+            try:
+                n, addr = sock.recvfrom_into(buf)
+            except (BlockingIOError, InterruptedError):
+                break
+            if self._allow and addr[0] not in self._allow:
+                self.stats.rejected_sources += 1
+                continue
+            t_ns = time.monotonic_ns()
+            packet = view[:n]
+            if simple:
+                code = stream.feed(osc_in.decode_simple_bundle, packet, t_ns=t_ns)
+            elif bytes(packet[:11]) == b"/rtd/labels":
+                try:
+                    label_set = osc_in.decode_labels(packet)
+                except DecodeError as exc:
+                    stream.counters.add_reason(exc.reason)
+                    continue
+                stream.set_labels(label_set)
+                continue
+            else:
+                code = stream.feed(osc_in.decode_compact_frame, packet, t_ns=t_ns)
+            got = self._accept(stream, code, t_ns, every)
+            if got:
+                accepted += 1
+                newest = got
+        if accepted > 1 and not every:
+            self.stats.stale += accepted - 1
+            self._frame_flags |= pose_stream.FRAME_INPUT_DROPPED
+        return newest
+
+    def _drain_zmq(self, every: bool) -> int:
+        assert self._zin is not None
+        sock, stream = self._zin, self.zmq_stream
+        newest = 0
+        accepted = 0
+        while True:
+            try:
+                parts = sock.recv_multipart(zmq.NOBLOCK, copy=False)
+            except zmq.Again:
+                break
+            t_ns = time.monotonic_ns()
+            if len(parts) != 2:
+                stream.counters.add_reason("bad_length")
+                continue
+            header, payload = parts[0].buffer, parts[1].buffer
+            if bytes(header[:4]) == zmq_wire.LABELS_MAGIC:
+                try:
+                    stream.set_labels(zmq_wire.decode_zmq_labels(header, payload))
+                except DecodeError as exc:
+                    stream.counters.add_reason(exc.reason)
+                continue
+            code = stream.feed(zmq_wire.decode_zmq_frame, header, payload, t_ns=t_ns)
+            got = self._accept(stream, code, t_ns, every)
+            if got:
+                accepted += 1
+                newest = got
+        if accepted > 1 and not every:
+            self.stats.stale += accepted - 1
+            self._frame_flags |= pose_stream.FRAME_INPUT_DROPPED
+        return newest
+
+    # ---- solve and send --------------------------------------------------------------
+
+    def _pipeline(self, stream: MarkerStream) -> _Pipeline | None:
+        if self.calibration is None:
+            return None
+        labels = stream.current.label_set.labels
+        key = id(stream)
+        pipe = self._pipelines.get(key)
+        if pipe is not None and self._labels_of.get(key) == labels:
+            return pipe
+        pipe = self._build_pipeline(labels)
+        self._pipelines[key] = pipe
+        self._labels_of[key] = labels
+        return pipe
+
+    def _build_pipeline(self, labels: tuple[str, ...]) -> _Pipeline:
+        from retargetd.daemon.target import Retargeter
+
+        assert self.calibration is not None
+        solver = BodySolver(self.rig, self.calibration, labels)
+        if solver.missing_markers:
+            logger.warning(
+                "rig %s markers not in the stream (occluded): %s",
+                self.rig.name,
+                " ".join(solver.missing_markers),
+            )
+        retargeter = Retargeter(
+            self.rig,
+            self.calibration,
+            self.target,
+            compensate_base_pose=self.config.target.compensate_base_pose,
+        )
+        target_pose = retargeter.new_pose()
+        names = tuple(self.target.bone_names)
+        n = len(names)
+        bone_pos_unity = np.zeros((n, 3))
+        engine_unity.unity_pos_from_world(
+            np.asarray(target_pose.rest_offsets, dtype=np.float64), bone_pos_unity
+        )
+        self._names_id = (self._names_id + 1) % 65536
+        n_bones = len(self.rig.bones)
+        names_msg = pose_stream.PoseNames(
+            rig=self.rig.name,
+            bone_names=self.rig.bone_names,
+            bone_parents=self.rig.bone_parent_indices(),
+            weight_names=(),
+            names_id=self._names_id,
+        )
+        return _Pipeline(
+            solver=solver,
+            retargeter=retargeter,
+            pose=solver.new_pose(),
+            target_pose=target_pose,
+            vmc=VmcEncoder(names, ()),
+            bone_pos_unity=bone_pos_unity,
+            bone_quat_xyzw=np.zeros((n, 4)),
+            root_pos_unity=np.zeros(3),
+            root_quat_xyzw=np.array([0.0, 0.0, 0.0, 1.0]),
+            blend=np.zeros(0),
+            pose_enc=pose_stream.PoseEncoder(n_bones, 0, names_id=self._names_id),
+            names_parts=pose_stream.encode_pose_names(names_msg),
+            weights=np.zeros(0),
+        )
+
+    def _solve_and_send(self, stream: MarkerStream, received_ns: int) -> None:
+        pipe = self._pipeline(stream)
+        if pipe is None:
+            return
+        frame = stream.current.frame
+        t_start = time.monotonic_ns()
+        pose = pipe.solver.solve_frame(frame.markers_world, pipe.pose)
+        tp = pipe.retargeter.apply(pose, pipe.target_pose)
+        solved_ns = time.monotonic_ns()
+        self.stats.frames_solved += 1
+        self.stats.held_bone_frames += pose.n_held
+        flags = self._frame_flags | (pose_stream.FRAME_HELD if pose.n_held else 0)
+        self._frame_flags = 0
+        # VMC: Unity frame, x y z w.
+        engine_unity.unity_quat_xyzw_from_world(tp.local_rot_quat, pipe.bone_quat_xyzw)
+        engine_unity.unity_pos_from_world(tp.root_pos, pipe.root_pos_unity)
+        t_s = (solved_ns - self._t0_ns) * 1e-9
+        if self._vmc is not None:
+            datagrams = pipe.vmc.encode(
+                pipe.root_pos_unity, pipe.root_quat_xyzw, pipe.bone_pos_unity,
+                pipe.bone_quat_xyzw, pipe.blend, t_s,
+            )  # fmt: skip
+            for dgram in datagrams:
+                try:
+                    self._vmc.sendto(dgram, self._vmc_addr)
+                except OSError:  # receiver absent, buffer full: never block, count
+                    self.stats.vmc_errors += 1
+        budget_ns = int(self.config.loop.solve_budget_ms * 1e6)
+        if self._pub is not None:
+            if solved_ns - self._last_names_ns >= 1_000_000_000:
+                self._send_pub(pipe.names_parts)
+                self._last_names_ns = solved_ns
+            if time.monotonic_ns() - t_start > budget_ns:
+                flags |= pose_stream.FRAME_LATE
+            parts = pipe.pose_enc.encode(
+                frame.frame_id, frame.source_time_s, received_ns, solved_ns, flags,
+                pose.root_pos, pose.world_from_bone_quat, pose.parent_from_bone_quat,
+                pipe.weights, pose.bone_flags,
+            )  # fmt: skip
+            pose_stream.stamp_sent(parts[0], time.monotonic_ns())
+            self._send_pub(parts)
+        sent_ns = time.monotonic_ns()
+        self.stats.frames_out += 1
+        if sent_ns - t_start > budget_ns:
+            self.stats.overruns += 1
+        self.stats.record(
+            solved_ns - received_ns, solved_ns - t_start, sent_ns - solved_ns,
+            sent_ns - received_ns,
+        )  # fmt: skip
+
+    def _send_pub(self, parts: list[Any]) -> None:
+        assert self._pub is not None
+        try:
+            self._pub.send_multipart(parts, zmq.NOBLOCK, copy=False)
+        except zmq.Again:
+            self.stats.send_drops += 1
+
+    # ---- control ---------------------------------------------------------------------
+
+    def request_calibration(self, count: int | None = None, by: str = "") -> str:
+        """Start a live calibration over the next ``count`` accepted frames."""
+        n = count or self.config.performer.calibrate_frames
+        if n < 1:
+            raise ValueError(f"count must be >= 1; got {n}")
+        self._calib_target = n
+        self._calib_frames = []
+        self._calib_labels = ()
+        self._calib_requested_by = by
+        logger.info("calibration requested (%s): averaging %d frames", by, n)
+        return f"calibrating over the next {n} frames: hold the base pose"
+
+    def _collect_calibration_frame(self, stream: MarkerStream) -> None:
+        labels = stream.current.label_set.labels
+        if self._calib_labels and labels != self._calib_labels:
+            self._calib_frames = []  # the marker layout changed: start again
+        self._calib_labels = labels
+        self._calib_frames.append(stream.current.frame.markers_world.copy())
+        if len(self._calib_frames) >= self._calib_target:
+            self._finish_calibration()
+
+    def _finish_calibration(self) -> None:
+        frames = np.stack(self._calib_frames)
+        labels = self._calib_labels
+        self._calib_target = 0
+        self._calib_frames = []
+        try:
+            cal = calibrate(
+                self.rig,
+                frames,
+                labels,
+                base_pose={"live": True, "frames": int(frames.shape[0]),
+                           "requested_by": self._calib_requested_by},
+            )  # fmt: skip
+        except ValueError as exc:
+            logger.warning("live calibration failed: %s", exc)
+            self.out(f"calibration failed: {exc}")
+            return
+        # Atomic: the loop thread is the only reader; the next frame uses the new one.
+        self.calibration = cal
+        self._pipelines.clear()
+        self._labels_of.clear()
+        self.stats.calibrations += 1
+        path = (
+            self.config.performer.save_calibration or self.config.performer.calibration
+        )
+        if path:
+            try:
+                cal.save(path)
+                self.out(f"calibrated on {frames.shape[0]} frames; saved {path}")
+            except OSError as exc:
+                self.out(f"calibrated on {frames.shape[0]} frames; NOT saved: {exc}")
+        else:
+            self.out(f"calibrated on {frames.shape[0]} frames (not saved: no path)")
+
+    def reload(self) -> str:
+        """Reload the rig file and the calibration file from disk."""
+        try:
+            rig = load_rig(self.config.performer.rig)
+            cal = (
+                load_calibration(self.config.performer.calibration)
+                if self.config.performer.calibration
+                else self.calibration
+            )
+            if cal is not None:
+                BodySolver(rig, cal, ())  # checks the calibration fits the rig
+        except ValueError as exc:
+            return f"reload failed, kept the running rig and calibration: {exc}"
+        self.rig, self.calibration = rig, cal
+        self._pipelines.clear()
+        self._labels_of.clear()
+        return f"reloaded rig {rig.name}" + (" and calibration" if cal else "")
+
+    def status(self) -> dict[str, Any]:
+        """The status document (``retargetd ctl status --json``)."""
+        lat = self.stats.latency_us()
+        up_s = (time.monotonic_ns() - self._t0_ns) * 1e-9
+        pipe = next(iter(self._pipelines.values()), None)
+        occluded: list[str] = []
+        flagged: list[str] = []
+        if pipe is not None:
+            solver = pipe.solver
+            pts_seen = solver._seen[: len(self.rig.markers)]
+            occluded = [
+                m for m, s in zip(self.rig.marker_names, pts_seen, strict=True) if not s
+            ]
+            flags = pipe.pose.bone_flags
+            names = self.rig.bone_names
+            flagged = [b for b, f in zip(names, flags, strict=True) if f & FLAG_HELD]
+        return {
+            "uptime_s": round(up_s, 3),
+            "rig": self.rig.name,
+            "calibrated": self.calibration is not None,
+            "calibrating": self._calib_target > 0,
+            "endpoints": self.endpoints,
+            "counters": self.stats.counters(),
+            "fps_in": round(self.stats.frames_in / up_s, 2) if up_s else 0.0,
+            "fps_out": round(self.stats.frames_out / up_s, 2) if up_s else 0.0,
+            "drops": {
+                "osc": self.osc_stream.counters.as_dict(),
+                "zmq": self.zmq_stream.counters.as_dict(),
+            },
+            "latency_us": {k: [round(v[0], 1), round(v[1], 1)] for k, v in lat.items()},
+            "occluded_markers": occluded,
+            "held_bones": flagged,
+        }
+
+    def stats_line(self) -> str:
+        """The periodic one-line health summary."""
+        s = self.status()
+        lat = s["latency_us"]
+        drops = {
+            **s["drops"]["osc"],
+            **{f"zmq.{k}": v for k, v in s["drops"]["zmq"].items()},
+        }
+        drops.pop("accepted", None)
+        drops.pop("zmq.accepted", None)
+        c = s["counters"]
+        return (
+            f"fps in {s['fps_in']:.1f} out {s['fps_out']:.1f} | latency us p50/p99 "
+            f"solve {lat['solve'][0]:.0f}/{lat['solve'][1]:.0f} "
+            f"recv->sent {lat['receive_to_sent'][0]:.0f}/"
+            f"{lat['receive_to_sent'][1]:.0f}"
+            f" | stale {c['stale']} overruns {c['overruns']} send drops "
+            f"{c['send_drops']} | drops {drops or 0} | occluded "
+            f"{len(s['occluded_markers'])} held {len(s['held_bones'])}"
+            + ("" if s["calibrated"] else " | NOT CALIBRATED")
+        )
+
+    def _serve_control(self) -> None:
+        assert self._ctl is not None
+        try:
+            raw = self._ctl.recv(zmq.NOBLOCK)
+        except zmq.Again:
+            return
+        try:
+            req = json.loads(raw)
+            if not isinstance(req, dict):
+                raise ValueError("request must be a JSON object")
+            reply = self._control(req)
+        except (ValueError, TypeError) as exc:
+            reply = {"ok": False, "error": str(exc)}
+        self._ctl.send(json.dumps(reply).encode())
+
+    def _control(self, req: dict[str, Any]) -> dict[str, Any]:
+        cmd = req.get("cmd")
+        if cmd == "status":
+            return {"ok": True, "status": self.status(), "line": self.stats_line()}
+        if cmd == "calibrate":
+            count = req.get("count")
+            if count is not None and (not isinstance(count, int) or count < 1):
+                raise ValueError(f"count must be a positive integer; got {count!r}")
+            return {"ok": True, "message": self.request_calibration(count, "ctl")}
+        if cmd == "reload":
+            msg = self.reload()
+            return {"ok": not msg.startswith("reload failed"), "message": msg}
+        raise ValueError(f"unknown command {cmd!r} (status, calibrate, reload)")
+
+    def _drain_show_control(self) -> None:
+        assert self._show is not None
+        while True:
+            try:
+                n, addr = self._show.recvfrom_into(self._buf)
+            except (BlockingIOError, InterruptedError):
+                break
+            packet = bytes(self._buf[:n])
+            for message in _osc_messages(packet):
+                try:
+                    address, _tags, args = parse_message(message)
+                except DecodeError:
+                    continue
+                self._show_control(address, args, addr)
+
+    def _show_control(self, address: str, args: list[Any], addr: Any) -> None:
+        if address == "/VMC/Ext/Set/Calib/Ready":
+            self.out(f"show control {addr[0]}: calibration ready (hold the base pose)")
+        elif address in ("/VMC/Ext/Set/Calib/Exec", "/rtd/calibrate"):
+            count = args[0] if address == "/rtd/calibrate" and args else None
+            if not isinstance(count, int) or count < 1:
+                count = None
+            self.out(self.request_calibration(count, f"show control {addr[0]}"))
+        elif address == "/rtd/reload":
+            self.out(self.reload())
+
+
+def _osc_messages(packet: bytes, depth: int = 0) -> list[bytes]:
+    """The messages of an OSC packet (a message, or a bundle, flattened)."""
+    if not packet.startswith(b"#bundle\0"):
+        return [packet]
+    if depth > 4:
+        return []
+    try:
+        out: list[bytes] = []
+        for element in iter_bundle_elements(packet):
+            out.extend(_osc_messages(bytes(element), depth + 1))
+        return out
+    except DecodeError:
+        return []
+
+
+def _load_target(config: DaemonConfig) -> Any:
+    from retargetd.daemon.target import TargetSkeleton, default_humanoid
+
+    t = config.target
+    if t.skeleton == "humanoid":
+        return default_humanoid()
+    return TargetSkeleton.from_bvh(Path(t.skeleton), units=t.bvh_units, up=t.bvh_up)

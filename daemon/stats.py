@@ -1,0 +1,82 @@
+"""Loop statistics: integer counters and per-stage latency rings (no allocation per
+frame); summarized into the periodic stats line and ``retargetd ctl status``."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from retargetd.protocols.frames import IntArray
+
+#: Latency stages, in pipeline order (ns rings).
+STAGES = ("receive_to_solved", "solve", "encode_send", "receive_to_sent")
+RING = 4096
+
+
+@dataclass(slots=True)
+class LoopStats:
+    """Counters and latency rings owned by the loop thread.
+
+    Attributes:
+        frames_in: accepted marker frames (all inputs).
+        frames_solved: frames solved (latest wins: <= frames_in).
+        frames_out: frames sent.
+        stale: accepted frames skipped because a newer one arrived first.
+        overruns: frames whose solve + send exceeded ``solve_budget_ms``.
+        send_drops: pose-stream messages dropped (subscriber slow: ``zmq.Again``).
+        vmc_errors: VMC datagrams the OS refused.
+        restarts: sources restarted.
+        calibrations: live calibrations applied.
+        held_bone_frames: bone-frames held (too little data).
+        occluded_samples: rig-marker samples occluded in solved frames.
+        rejected_sources: OSC datagrams from addresses not on the allow-list.
+    """
+
+    frames_in: int = 0
+    frames_solved: int = 0
+    frames_out: int = 0
+    stale: int = 0
+    overruns: int = 0
+    send_drops: int = 0
+    vmc_errors: int = 0
+    restarts: int = 0
+    calibrations: int = 0
+    held_bone_frames: int = 0
+    occluded_samples: int = 0
+    rejected_sources: int = 0
+    rings: IntArray = field(
+        default_factory=lambda: np.zeros((len(STAGES), RING), np.int64)
+    )
+    ring_pos: int = 0
+    ring_count: int = 0
+
+    def record(self, *durations_ns: int) -> None:
+        """Store one frame's stage durations (ns), in :data:`STAGES` order."""
+        i = self.ring_pos
+        rings = self.rings
+        for s, d in enumerate(durations_ns):
+            rings[s, i] = d
+        self.ring_pos = (i + 1) % RING
+        if self.ring_count < RING:
+            self.ring_count += 1
+
+    def latency_us(self) -> dict[str, tuple[float, float]]:
+        """Per stage (p50, p99) in microseconds over the last frames."""
+        n = self.ring_count
+        if n == 0:
+            return {s: (float("nan"), float("nan")) for s in STAGES}
+        data = self.rings[:, :n] / 1000.0
+        p = np.percentile(data, [50.0, 99.0], axis=1)
+        return {s: (float(p[0, i]), float(p[1, i])) for i, s in enumerate(STAGES)}
+
+    def counters(self) -> dict[str, int]:
+        """All integer counters by name."""
+        return {
+            name: int(getattr(self, name))
+            for name in (
+                "frames_in", "frames_solved", "frames_out", "stale", "overruns",
+                "send_drops", "vmc_errors", "restarts", "calibrations",
+                "held_bone_frames", "occluded_samples", "rejected_sources",
+            )
+        }  # fmt: skip

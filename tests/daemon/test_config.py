@@ -1,0 +1,61 @@
+"""Daemon config: defaults, the shipped example, one-line errors naming the key."""
+
+from __future__ import annotations
+
+from importlib import resources
+from pathlib import Path
+
+import pytest
+
+from retargetd.daemon.cli import main
+from retargetd.daemon.config import ConfigError, DaemonConfig
+
+
+def test_example_config_documents_the_defaults() -> None:
+    example = resources.files("retargetd.daemon") / "retargetd.example.toml"
+    assert DaemonConfig.from_toml(str(example)) == DaemonConfig()
+
+
+def test_defaults_bind_loopback_only() -> None:
+    c = DaemonConfig()
+    assert c.input.osc.host == "127.0.0.1" and c.show_control.host == "127.0.0.1"
+    assert c.output.vmc.port == 39539 and c.show_control.port == 39540
+    for ep in (c.input.zmq.endpoint, c.output.pose.endpoint, c.control.endpoint):
+        assert ep.startswith("tcp://127.0.0.1:")
+
+
+@pytest.mark.parametrize(
+    ("toml", "message"),
+    [
+        ("[input.osc]\nprot = 1", "input.osc.prot: unknown key"),
+        ("[inputs]\nx = 1", "inputs: unknown key"),
+        ("[loop]\nsolve_budget_ms = 'fast'", "loop.solve_budget_ms: expected a number"),
+        ("[loop]\nsolve_budget_ms = 0", "loop.solve_budget_ms: expected (0, 1000]"),
+        ("[input.osc]\nport = 70000", "input.osc.port: expected a port"),
+        ("[input.osc]\nhost = 'localhost'", "input.osc.host: expected an IP address"),
+        ("[input.osc]\nform = 'fancy'", "input.osc.form"),
+        ("[input.osc]\nform = 'simple'", "input.osc.labels: the simple form needs"),
+        ("[input.zmq]\nup = 'north'", "input.zmq.up: up axis must be one of"),
+        ("[input.zmq]\nunits = 'furlong'", "input.zmq.units: length units"),
+        ("[input.zmq]\nmode = 'push'", "input.zmq.mode"),
+        ("[output.vmc]\nenabled = 'yes'", "output.vmc.enabled: expected true or false"),
+        (
+            "[control]\nendpoint = 'tcp://0.0.0.0:1'",
+            "control.endpoint: the control socket is local only",
+        ),
+        ("[input.osc]\nallow = ['nope']", "input.osc.allow[0]: expected an IP address"),
+        ("[loop\n", "not valid TOML"),
+    ],
+)
+def test_bad_config_is_one_line_naming_the_key(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], toml: str, message: str
+) -> None:
+    path = tmp_path / "bad.toml"
+    path.write_text(toml)
+    with pytest.raises(ConfigError, match=None) as info:
+        DaemonConfig.from_toml(path)
+    assert message in str(info.value) and "\n" not in str(info.value)
+    # Through the CLI: exit 2, one line, before any socket opens.
+    assert main(["run", "--config", str(path)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and message in err[0] and str(path) in err[0]
