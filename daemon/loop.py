@@ -406,7 +406,9 @@ class Daemon:
         flags = self._frame_flags | (pose_stream.FRAME_HELD if pose.n_held else 0)
         self._frame_flags = 0
         # VMC: Unity frame, x y z w.
-        engine_unity.unity_quat_xyzw_from_world(tp.local_rot_quat, pipe.bone_quat_xyzw)
+        engine_unity.unity_quat_xyzw_from_world(
+            tp.parent_from_bone_quat, pipe.bone_quat_xyzw
+        )
         engine_unity.unity_pos_from_world(tp.root_pos, pipe.root_pos_unity)
         t_s = (solved_ns - self._t0_ns) * 1e-9
         if self._vmc is not None:
