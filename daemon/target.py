@@ -545,8 +545,8 @@ class TargetPose:
     """One frame on the target (buffers reused frame after frame).
 
     Attributes:
-        world_from_bone_quat: (N, 4) float64, w x y z: ``world_from_bone`` of each target
-            bone, ``G_h = E_h ⊗ T_h``.
+        world_from_bone_quat: (N, 4) float64, w x y z: ``world_from_bone`` of each
+            target bone, ``G_h = E_h ⊗ T_h``.
         parent_from_bone_quat: (N, 4) float64, w x y z, world axes: each bone's rotation
             relative to its parent and its rest (``L_h = Ē_p ⊗ E_h``; Hips: its world
             rotation relative to rest). What VMC sends (after ``engine_unity``).
@@ -828,7 +828,8 @@ def bone_axes_from_world_axes(
 
     Args:
         target: the target.
-        parent_from_bone_quat: (..., N, 4) w x y z, world axes (``TargetPose.parent_from_bone_quat``).
+        parent_from_bone_quat: (..., N, 4) w x y z, world axes
+            (``TargetPose.parent_from_bone_quat``).
         out: optional (..., N, 4) destination.
 
     Returns:
