@@ -167,12 +167,28 @@ class Daemon:
             self._vmc.setblocking(False)
             self._vmc_addr = (c.output.vmc.host, c.output.vmc.port)
             self._announce("vmc out", f"udp://{c.output.vmc.host}:{c.output.vmc.port}")
+        self._warm_up()
         if self.calibration is None:
             self.out(
                 "no calibration loaded: streaming starts after 'retargetd ctl "
                 "calibrate' (or /VMC/Ext/Set/Calib/Exec) with the performer in the "
                 "base pose"
             )
+
+    def _warm_up(self) -> None:
+        """Load the compiled kernel and run every stage once before the first frame
+        arrives, so no streamed frame pays for it (numba's cache load is ~0.3 s)."""
+        from retargetd.daemon.solve_body import warm_up
+
+        warm_up()
+        if self.calibration is None:
+            return
+        pipe = self._build_pipeline(self.rig.marker_names)
+        nan_frame = np.full((len(self.rig.marker_names), 3), np.nan)
+        pose = pipe.solver.solve_frame(nan_frame, pipe.pose)
+        pipe.retargeter.apply(pose, pipe.target_pose)
+        pipe.solver.reset()
+        self._names_id -= 1  # this pipeline is thrown away; keep the ids dense
 
     def _announce(self, what: str, where: str) -> None:
         self.endpoints[what] = where
@@ -491,10 +507,14 @@ class Daemon:
             logger.warning("live calibration failed: %s", exc)
             self.out(f"calibration failed: {exc}")
             return
-        # Atomic: the loop thread is the only reader; the next frame uses the new one.
+        # Atomic: the loop thread is the only reader; the next frame uses the new one,
+        # with its pipeline built now rather than on the next frame.
         self.calibration = cal
         self._pipelines.clear()
         self._labels_of.clear()
+        for stream in (self.osc_stream, self.zmq_stream):
+            if stream.current.label_set.labels == labels:
+                self._pipeline(stream)
         self.stats.calibrations += 1
         path = (
             self.config.performer.save_calibration or self.config.performer.calibration

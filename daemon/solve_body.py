@@ -302,3 +302,45 @@ class BodySolver:
             bone_quality=quality,
             bone_flags=flags,
         )
+
+
+_WARM_RIG = """
+[rig]
+name = "warm-up"
+lateral = ["A", "B"]
+[markers]
+A = "A"
+B = "B"
+C = "C"
+D = "D"
+[segments.s]
+markers = ["A", "B", "C", "D"]
+[points.M]
+line = ["A", "B"]
+[points.R]
+rigid = ["A", "B", "C"]
+rule = { height = "C", width = "M", depth = "M" }
+[bones.b]
+origin = "M"
+aim = "C"
+up = "B"
+[joints]
+J = "R"
+"""
+
+
+def warm_up() -> None:
+    """Load (or compile) the kernel through the same code path as a real solve, so
+    the first live frame does not pay numba's cache load (~0.3 s) or compile."""
+    from retargetd.daemon.calibration import calibrate
+    from retargetd.daemon.rig import parse_rig
+
+    rig = parse_rig(_WARM_RIG, source="warm-up")
+    labels = ("A", "B", "C", "D")
+    frame = np.array(
+        [[0.0, 0.0, 0.0], [0.0, 0.2, 0.0], [0.0, 0.1, 0.3], [0.1, 0.1, 0.1]]
+    )
+    solver = BodySolver(rig, calibrate(rig, frame[None], labels), labels)
+    solver.solve_take(frame[None])
+    frame[3] = np.nan  # exercise the rigid-segment rebuild as well
+    solver.solve_frame(frame, solver.new_pose())
