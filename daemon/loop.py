@@ -384,6 +384,7 @@ class Daemon:
             np.asarray(target_pose.rest_offsets, dtype=np.float64), bone_pos_unity
         )
         self._names_id = (self._names_id + 1) % 65536
+        self._last_names_ns = 0  # new names: announce them with the next frame
         n_bones = len(self.rig.bones)
         names_msg = pose_stream.PoseNames(
             rig=self.rig.name,
