@@ -71,6 +71,8 @@ class Calibration:
         bone_names, bone_parents (-1 root), bone_lengths (B,) metres,
         rest_world_from_bone_quat (B, 4) and rest_parent_from_bone_quat (B, 4), w x y z.
         root_rest_pos: (3,) metres, the root bone's origin in the base pose.
+        rest_bone_origin_pos: (B, 3) metres, world, each bone's origin in the base
+            pose (the BVH export's offsets); None in files written before it existed.
         measurements: name -> value and source.
         base_pose: where the base pose came from (take, subject, frames a:b).
     """
@@ -89,11 +91,17 @@ class Calibration:
     rest_world_from_bone_quat: F64Array
     rest_parent_from_bone_quat: F64Array
     root_rest_pos: F64Array
+    rest_bone_origin_pos: F64Array | None = None
     measurements: dict[str, MeasurementUsed] = field(default_factory=dict)
     base_pose: dict[str, Any] = field(default_factory=dict)
 
     def to_json(self) -> dict[str, Any]:
         """A JSON-ready dict (the file format of ``retargetd calibrate``)."""
+        origins = (
+            [None] * len(self.bone_names)
+            if self.rest_bone_origin_pos is None
+            else self.rest_bone_origin_pos
+        )
         return {
             "format": CALIBRATION_FORMAT,
             "version": CALIBRATION_VERSION,
@@ -128,13 +136,19 @@ class Calibration:
                     "length_m": float(length),
                     "rest_world_from_bone_quat": [float(x) for x in qw],
                     "rest_parent_from_bone_quat": [float(x) for x in qp],
+                    **(
+                        {}
+                        if origin is None
+                        else {"rest_origin_m": [float(x) for x in origin]}
+                    ),
                 }
-                for n, p, length, qw, qp in zip(
+                for n, p, length, qw, qp, origin in zip(
                     self.bone_names,
                     self.bone_parents,
                     self.bone_lengths,
                     self.rest_world_from_bone_quat,
                     self.rest_parent_from_bone_quat,
+                    origins,
                     strict=False,
                 )
             },
@@ -200,6 +214,13 @@ def load_calibration(path: str | Path) -> Calibration:
                 [b["rest_parent_from_bone_quat"] for b in bones.values()]
             ).reshape(-1, 4),
             root_rest_pos=np.asarray(doc["root_rest_pos_m"], dtype=np.float64),
+            rest_bone_origin_pos=(
+                np.asarray(
+                    [b["rest_origin_m"] for b in bones.values()], dtype=np.float64
+                ).reshape(-1, 3)
+                if all("rest_origin_m" in b for b in bones.values())
+                else None
+            ),
             measurements={
                 k: MeasurementUsed(value_mm=float(v["value"]), source=str(v["source"]))
                 for k, v in doc["measurements_mm"].items()
@@ -437,6 +458,7 @@ def calibrate(
     wfb = bone_world_quats(rig, pts)  # (F, B, 4), NaN where undetermined
     rest_wfb = np.zeros((len(rig.bones), 4))
     lengths = np.zeros(len(rig.bones))
+    origins = np.zeros((len(rig.bones), 3))
     for b, bone in enumerate(rig.bones):
         if not np.isfinite(wfb[:, b]).all(axis=-1).any():
             raise CalibrationError(
@@ -449,6 +471,7 @@ def calibrate(
         lengths[b] = np.nanmean(
             np.linalg.norm(pts[bone.aim] - pts[bone.origin], axis=-1)
         )
+        origins[b] = _finite_mean(pts[bone.origin])
     parents = rig.bone_parent_indices()
     rest_pfb = np.zeros_like(rest_wfb)
     from retargetd.daemon.rotations import quat_conj, quat_mul
@@ -473,6 +496,7 @@ def calibrate(
         rest_world_from_bone_quat=rest_wfb,
         rest_parent_from_bone_quat=rest_pfb,
         root_rest_pos=_finite_mean(pts[root]),
+        rest_bone_origin_pos=origins,
         measurements=meas,
         base_pose=dict(base_pose or {}, frames_used=int(n_frames)),
     )

@@ -26,6 +26,7 @@ SUBCOMMAND_MODULES: tuple[str, ...] = (
     "retargetd.daemon.cmd_rig",
     "retargetd.daemon.cmd_calibrate",
     "retargetd.daemon.cmd_solve",
+    "retargetd.daemon.cmd_export_c3d",
     "retargetd.daemon.cmd_run",
     "retargetd.daemon.cmd_ctl",
     "retargetd.daemon.cmd_demo",

@@ -1,5 +1,11 @@
 """``retargetd solve TAKE --rig RIG (--calibration FILE | --calibrate-frames a:b)
---out OUT.npz``: solve every frame of a take.
+--out OUT.npz|OUT.bvh [--bvh-order ZXY] [--bvh-root-order ORDER]``: solve every frame
+of a take. The ``--out`` suffix chooses the format.
+
+``.bvh``: the calibrated skeleton and the solved motion as BVH, centimetres, Y up,
+every joint's rotation channels in ``--bvh-order`` (default Z X Y; any of XYZ, XZY,
+YXZ, YZX, ZXY, ZYX), the root's in ``--bvh-root-order`` when given. See
+``retargetd.daemon.export_bvh``.
 
 The NPZ (``numpy.load(..., allow_pickle=False)``) holds, in rig order:
 ``joint_names`` (J,), ``joint_centres`` (T, J, 3) metres world; ``bone_names`` (B,),
@@ -45,7 +51,17 @@ def add_parser(subparsers: Any) -> None:
         metavar="a:b",
         help="calibrate on these rows of the take itself (0-based, half-open)",
     )
-    parser.add_argument("--out", required=True, metavar="OUT.npz")
+    parser.add_argument("--out", required=True, metavar="OUT.npz|OUT.bvh")
+    parser.add_argument(
+        "--bvh-order",
+        metavar="ORDER",
+        help="BVH: rotation channel order of every joint (default ZXY)",
+    )
+    parser.add_argument(
+        "--bvh-root-order",
+        metavar="ORDER",
+        help="BVH: rotation channel order of the root (default: --bvh-order)",
+    )
     add_take_arguments(parser)
     parser.set_defaults(run=run)
 
@@ -118,8 +134,7 @@ def run(args: argparse.Namespace) -> int:
     from retargetd.daemon.solve_body import FLAG_HELD, BodySolver
     from retargetd.replay.takes import load_take
 
-    if not args.out.lower().endswith(".npz"):
-        raise UsageError(f"--out: expected a .npz file; got {args.out!r}")
+    out_format = _out_format(args)
     rig = load_rig_or_fail(args.rig)
     take = load_take(
         args.take, subject=args.subject, units=args.take_units, up_axis=args.take_up
@@ -136,24 +151,27 @@ def run(args: argparse.Namespace) -> int:
     except CalibrationError as exc:
         raise UsageError(str(exc)) from None
     res = solver.solve_take(take.positions)
-    np.savez(
-        args.out,
-        joint_names=np.asarray(res.joint_names, dtype=str),
-        joint_centres=res.joint_centres,
-        bone_names=np.asarray(res.bone_names, dtype=str),
-        bone_parents=np.asarray(res.bone_parents, dtype=np.int64),
-        bone_humanoid=np.asarray([b.humanoid or "" for b in rig.bones], dtype=str),
-        world_from_bone_quat=res.world_from_bone_quat,
-        parent_from_bone_quat=res.parent_from_bone_quat,
-        root_pos=res.root_pos,
-        bone_lengths=res.bone_lengths,
-        bone_quality=res.bone_quality,
-        bone_flags=res.bone_flags,
-        rate_hz=np.float64(take.rate_hz),
-        world_from_capture=np.asarray(take.world_from_capture, dtype=np.float64),
-        first_frame=np.int64(take.first_frame),
-        rig_name=np.asarray(rig.name),
-    )
+    if out_format == "bvh":
+        _write_bvh(args, cal, res, take.rate_hz)
+    else:
+        np.savez(
+            args.out,
+            joint_names=np.asarray(res.joint_names, dtype=str),
+            joint_centres=res.joint_centres,
+            bone_names=np.asarray(res.bone_names, dtype=str),
+            bone_parents=np.asarray(res.bone_parents, dtype=np.int64),
+            bone_humanoid=np.asarray([b.humanoid or "" for b in rig.bones], dtype=str),
+            world_from_bone_quat=res.world_from_bone_quat,
+            parent_from_bone_quat=res.parent_from_bone_quat,
+            root_pos=res.root_pos,
+            bone_lengths=res.bone_lengths,
+            bone_quality=res.bone_quality,
+            bone_flags=res.bone_flags,
+            rate_hz=np.float64(take.rate_hz),
+            world_from_capture=np.asarray(take.world_from_capture, dtype=np.float64),
+            first_frame=np.int64(take.first_frame),
+            rig_name=np.asarray(rig.name),
+        )
     out = sys.stdout.write
     n = take.n_frames
     cols = solver.marker_cols
@@ -188,3 +206,39 @@ def run(args: argparse.Namespace) -> int:
         for name, ref, med, p95 in compared:
             out(f"  {name} vs {ref}: {med:.1f} mm, {p95:.1f} mm\n")
     return 0
+
+
+def _out_format(args: argparse.Namespace) -> str:
+    """``"npz"`` or ``"bvh"`` from the ``--out`` suffix; checks the BVH options."""
+    from retargetd.replay.bvh import normalize_rotation_order
+
+    suffix = args.out.lower().rsplit(".", 1)[-1] if "." in args.out else ""
+    if suffix not in ("npz", "bvh"):
+        raise UsageError(f"--out: expected a .npz or .bvh file; got {args.out!r}")
+    for option, value in (
+        ("--bvh-order", args.bvh_order),
+        ("--bvh-root-order", args.bvh_root_order),
+    ):
+        if value is None:
+            continue
+        if suffix != "bvh":
+            raise UsageError(f"{option} applies to .bvh output; --out is {args.out!r}")
+        try:
+            normalize_rotation_order(value)
+        except ValueError as exc:
+            raise UsageError(f"{option}: {exc}") from None
+    return suffix
+
+
+def _write_bvh(args: argparse.Namespace, cal: Any, res: Any, rate_hz: float) -> None:
+    from retargetd.daemon.calibration import CalibrationError
+    from retargetd.daemon.export_bvh import DEFAULT_ROTATION_ORDER, write_solve_bvh
+
+    try:
+        write_solve_bvh(
+            args.out, cal, res, rate_hz,
+            rotation_order=args.bvh_order or DEFAULT_ROTATION_ORDER,
+            root_rotation_order=args.bvh_root_order,
+        )  # fmt: skip
+    except CalibrationError as exc:
+        raise UsageError(str(exc)) from None

@@ -36,11 +36,20 @@ The file, as read here (``shared/reference/engines.md`` "BVH")::
   survive); a ``{`` on the same line is accepted.
 
 One ``ROOT`` per file. Every problem raises ``ValueError`` naming the file and line.
+
+Writing (:func:`write_bvh`) takes plain arrays (a :class:`BvhSkeleton` built with
+:func:`bvh_skeleton`, and the motion as one row of channel values per frame, made with
+:func:`bvh_motion`) and emits the same layout: two-space indents, ``{`` on its own
+line, joints depth first (children in the order given), End Sites on leaves, numbers
+with a fixed count of decimals. What the numbers mean (unit, axes, rest pose) is the
+caller's; the file cannot say.
 """
 
 from __future__ import annotations
 
 import logging
+import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -343,3 +352,313 @@ def read_bvh_hierarchy(path: str | Path, *, read_motion: bool = False) -> BvhSke
     except (OSError, UnicodeDecodeError) as exc:
         raise ValueError(f"{path}: cannot read BVH: {exc}") from None
     return parse_bvh(text, source=str(path), read_motion=read_motion)
+
+
+#: The six rotation orders a joint's three rotation channels can take (Tait-Bryan:
+#: each axis once), spelt as the channels are listed: ``"ZXY"`` is ``Zrotation
+#: Xrotation Yrotation``, ``R = R_Z R_X R_Y``.
+ROTATION_ORDERS = ("XYZ", "XZY", "YXZ", "YZX", "ZXY", "ZYX")
+_POSITION_CHANNELS = ("Xposition", "Yposition", "Zposition")
+
+
+def normalize_rotation_order(order: str) -> str:
+    """Canonical spelling (``"ZXY"``) of a rotation order (``"zxy"``, ``"Z X Y"`` ...).
+
+    Raises:
+        ValueError: naming the value unless it is one of :data:`ROTATION_ORDERS`.
+    """
+    text = "".join(str(order).split()).upper()
+    if text not in ROTATION_ORDERS:
+        raise ValueError(
+            f"rotation order must be one of {', '.join(ROTATION_ORDERS)}; got {order!r}"
+        )
+    return text
+
+
+def _check_name(name: str) -> None:
+    if (
+        not isinstance(name, str)
+        or not name.strip()
+        or name != name.strip()
+        or any(c in name for c in "{}\r\n\t")
+    ):
+        raise ValueError(
+            "joint names must be non-empty, without surrounding spaces, braces, tabs "
+            f"or line breaks; got {name!r}"
+        )
+
+
+def bvh_skeleton(
+    *,
+    joint_names: Sequence[str],
+    parents: Sequence[int],
+    offsets: F64Array,
+    rotation_orders: Sequence[str],
+    end_sites: F64Array | None = None,
+    root_position: bool = True,
+) -> BvhSkeleton:
+    """A skeleton to write: channels built from each joint's rotation order.
+
+    Args:
+        joint_names: (J,) unique names.
+        parents: (J,) parent index, -1 for the one root; parents before children.
+        offsets: (J, 3) float, the file's length unit and axes: each joint's origin in
+            its parent's frame (the root's: from the file origin).
+        rotation_orders: (J,) one of :data:`ROTATION_ORDERS` per joint.
+        end_sites: optional (J, 3) float, the file's unit: End Site offsets of leaf
+            joints, NaN rows where there is none.
+        root_position: give the root ``Xposition Yposition Zposition`` channels
+            before its rotation channels.
+
+    Returns:
+        The skeleton (``source="<built>"``, no motion).
+
+    Raises:
+        ValueError: naming the argument and what was received.
+    """
+    names = tuple(joint_names)
+    n = len(names)
+    par = tuple(int(p) for p in parents)
+    if n == 0 or len(par) != n:
+        raise ValueError(
+            f"joint_names and parents must be non-empty and match: {n} names, "
+            f"{len(par)} parents"
+        )
+    for name in names:
+        _check_name(name)
+    if len(set(names)) != n:
+        raise ValueError(f"joint_names must be unique; got {names!r}")
+    if par[0] != -1 or any(not 0 <= p < j for j, p in enumerate(par) if j > 0):
+        raise ValueError(
+            f"parents must be -1 for joint 0 (the one root) and name an earlier joint "
+            f"for every other; got {par!r}"
+        )
+    off = np.array(offsets, dtype=np.float64)
+    if off.shape != (n, 3) or not np.isfinite(off).all():
+        raise ValueError(f"offsets must be finite ({n}, 3); got shape {off.shape}")
+    ends = (
+        np.full((n, 3), np.nan)
+        if end_sites is None
+        else np.array(end_sites, dtype=np.float64)
+    )
+    has_end = np.isfinite(ends).all(axis=-1)
+    if ends.shape != (n, 3) or not (has_end | np.isnan(ends).all(axis=-1)).all():
+        raise ValueError(
+            f"end_sites must be ({n}, 3), rows finite or all NaN; got {ends.shape}"
+        )
+    parent_set = set(par)
+    with_children = [names[j] for j in range(n) if has_end[j] and j in parent_set]
+    if with_children:
+        raise ValueError(f"End Sites only go on leaf joints; not on {with_children}")
+    if len(rotation_orders) != n:
+        raise ValueError(f"rotation_orders must have {n} entries")
+    orders = tuple(normalize_rotation_order(o) for o in rotation_orders)
+    channels = tuple(
+        (_POSITION_CHANNELS if j == 0 and root_position else ())
+        + tuple(f"{axis}rotation" for axis in orders[j])
+        for j in range(n)
+    )
+    for a in (off, ends):
+        a.flags.writeable = False
+    return BvhSkeleton(
+        source="<built>",
+        joint_names=names,
+        parents=par,
+        offsets=off,
+        channels=channels,
+        rotation_orders=orders,
+        end_sites=ends,
+    )
+
+
+def bvh_motion(
+    skeleton: BvhSkeleton, angles_deg: F64Array, positions: F64Array | None = None
+) -> F64Array:
+    """Channel values per frame from per-joint angles and positions.
+
+    Args:
+        skeleton: the hierarchy (its ``channels`` say what goes where).
+        angles_deg: (T, J, 3) float, degrees: each joint's angles in the order of its
+            ``rotation_orders`` entry (``"ZXY"``: Z, X, Y).
+        positions: (T, J, 3) float, the file's unit and axes, x y z; read only for
+            joints with position channels (other rows may be NaN). Required when any
+            joint has position channels.
+
+    Returns:
+        (T, n_channels) float64, one motion line per frame, in the skeleton's joint
+        order.
+
+    Raises:
+        ValueError: on a shape mismatch or missing positions.
+    """
+    ang = np.asarray(angles_deg, dtype=np.float64)
+    n = len(skeleton.joint_names)
+    if ang.ndim != 3 or ang.shape[1:] != (n, 3):
+        raise ValueError(f"angles_deg must be (frames, {n}, 3); got {ang.shape}")
+    out = np.zeros((ang.shape[0], skeleton.n_channels))
+    at = skeleton.channel_offsets()
+    for j, chans in enumerate(skeleton.channels):
+        order = skeleton.rotation_orders[j]
+        for k, chan in enumerate(chans):
+            axis = "XYZ".index(chan[0])
+            if chan.endswith("rotation"):
+                out[:, at[j] + k] = ang[:, j, order.index(chan[0])]
+                continue
+            if positions is None:
+                raise ValueError(
+                    f"joint {skeleton.joint_names[j]!r} has position channels: "
+                    "give positions"
+                )
+            pos = np.asarray(positions, dtype=np.float64)
+            if pos.shape != ang.shape:
+                raise ValueError(f"positions must be {ang.shape}; got {pos.shape}")
+            out[:, at[j] + k] = pos[:, j, axis]
+    return out
+
+
+def split_bvh_motion(
+    skeleton: BvhSkeleton, frames: F64Array
+) -> tuple[F64Array, F64Array]:
+    """The inverse of :func:`bvh_motion`.
+
+    Args:
+        skeleton: the hierarchy.
+        frames: (T, n_channels) float, motion lines.
+
+    Returns:
+        ``(angles_deg, positions)``: (T, J, 3) float64 each; angles in each joint's
+        rotation order (zeros for a joint without rotation channels), positions in
+        the file's unit and axes (NaN for a joint without position channels; a
+        missing axis reads 0).
+    """
+    fr = np.asarray(frames, dtype=np.float64)
+    if fr.ndim != 2 or fr.shape[1] != skeleton.n_channels:
+        raise ValueError(
+            f"frames must be (frames, {skeleton.n_channels}); got {fr.shape}"
+        )
+    n = len(skeleton.joint_names)
+    ang = np.zeros((fr.shape[0], n, 3))
+    pos = np.full((fr.shape[0], n, 3), np.nan)
+    at = skeleton.channel_offsets()
+    for j, chans in enumerate(skeleton.channels):
+        if any(c.endswith("position") for c in chans):
+            pos[:, j] = 0.0
+        for k, chan in enumerate(chans):
+            if chan.endswith("rotation"):
+                ang[:, j, skeleton.rotation_orders[j].index(chan[0])] = fr[:, at[j] + k]
+            else:
+                pos[:, j, "XYZ".index(chan[0])] = fr[:, at[j] + k]
+    return ang, pos
+
+
+def _preorder(parents: tuple[int, ...]) -> list[int]:
+    children: list[list[int]] = [[] for _ in parents]
+    for j, p in enumerate(parents):
+        if p >= 0:
+            children[p].append(j)
+    order: list[int] = []
+    stack = [0]
+    while stack:
+        j = stack.pop()
+        order.append(j)
+        stack.extend(reversed(children[j]))
+    return order
+
+
+def format_bvh(
+    skeleton: BvhSkeleton,
+    frames: F64Array,
+    frame_time_s: float,
+    *,
+    decimals: int = 6,
+) -> str:
+    """BVH text for a skeleton and its motion (see :func:`write_bvh`)."""
+    n = len(skeleton.joint_names)
+    fr = np.asarray(frames, dtype=np.float64)
+    if fr.ndim != 2 or fr.shape[1] != skeleton.n_channels:
+        raise ValueError(
+            f"frames must be (frames, {skeleton.n_channels}) channel values; got "
+            f"{fr.shape}"
+        )
+    if not np.isfinite(fr).all():
+        raise ValueError("frames must be finite (BVH has no missing values)")
+    if not (math.isfinite(frame_time_s) and frame_time_s > 0.0):
+        raise ValueError(f"frame_time_s must be > 0; got {frame_time_s}")
+    if not 0 <= decimals <= 17:
+        raise ValueError(f"decimals must be in 0..17; got {decimals}")
+    order = _preorder(skeleton.parents)
+    if sorted(order) != list(range(n)):
+        raise ValueError("parents do not form one tree rooted at joint 0")
+    num = f"{{:.{decimals}f}}".format
+    depth = [0] * n
+    lines = ["HIERARCHY"]
+    open_stack: list[int] = []
+    for j in order:
+        p = skeleton.parents[j]
+        while open_stack and open_stack[-1] != p:
+            closed = open_stack.pop()
+            lines.append("  " * depth[closed] + "}")
+        depth[j] = 0 if p < 0 else depth[p] + 1
+        pad = "  " * depth[j]
+        lines.append(f"{pad}{'ROOT' if p < 0 else 'JOINT'} {skeleton.joint_names[j]}")
+        lines.append(pad + "{")
+        lines.append(f"{pad}  OFFSET " + " ".join(num(v) for v in skeleton.offsets[j]))
+        chans = skeleton.channels[j]
+        lines.append(f"{pad}  CHANNELS {len(chans)}" + "".join(f" {c}" for c in chans))
+        end = skeleton.end_sites[j]
+        if np.isfinite(end).all():
+            lines += [f"{pad}  End Site", f"{pad}  {{"]
+            lines.append(f"{pad}    OFFSET " + " ".join(num(v) for v in end))
+            lines.append(f"{pad}  }}")
+        open_stack.append(j)
+    while open_stack:
+        lines.append("  " * depth[open_stack.pop()] + "}")
+    at = skeleton.channel_offsets()
+    cols = np.concatenate(
+        [np.arange(at[j], at[j] + len(skeleton.channels[j])) for j in order]
+    ).astype(np.int64)
+    lines += ["MOTION", f"Frames: {fr.shape[0]}", f"Frame Time: {frame_time_s:.9g}"]
+    lines.extend(" ".join(num(v) for v in row) for row in fr[:, cols].tolist())
+    return "\n".join(lines) + "\n"
+
+
+def write_bvh(
+    path: str | Path,
+    skeleton: BvhSkeleton,
+    frames: F64Array,
+    frame_time_s: float,
+    *,
+    decimals: int = 6,
+) -> None:
+    """Write a BVH file: the hierarchy, then the motion.
+
+    Joints are written depth first (children in the order given), so a joint order
+    that is not depth first comes back from :func:`read_bvh_hierarchy` in file order;
+    each motion line is permuted to match.
+
+    Args:
+        path: the ``.bvh`` file to create (overwritten).
+        skeleton: the hierarchy, e.g. from :func:`bvh_skeleton`.
+        frames: (T, n_channels) float, channel values per frame in the skeleton's
+            joint order (see :func:`bvh_motion`): degrees for rotations, the file's
+            unit for positions.
+        frame_time_s: seconds per frame (``1 / rate``).
+        decimals: digits after the point for every number.
+
+    Raises:
+        ValueError: a bad shape, non-finite values, a bad frame time.
+    """
+    text = format_bvh(skeleton, frames, frame_time_s, decimals=decimals)
+    target = Path(path)
+    tmp = target.with_name(f".{target.name}.tmp")
+    try:
+        tmp.write_text(text, encoding="utf-8")
+        tmp.replace(target)
+    finally:
+        tmp.unlink(missing_ok=True)
+    logger.debug(
+        "wrote %s: %d joints, %d frames",
+        path,
+        len(skeleton.joint_names),
+        np.shape(frames)[0],
+    )
