@@ -30,6 +30,8 @@ SUBCOMMAND_MODULES: tuple[str, ...] = (
     "retargetd.daemon.cmd_run",
     "retargetd.daemon.cmd_ctl",
     "retargetd.daemon.cmd_demo",
+    "retargetd.daemon.cmd_record",
+    "retargetd.daemon.cmd_replay",
 )
 
 

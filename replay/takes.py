@@ -16,6 +16,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from retargetd.replay.c3d import read_c3d
+from retargetd.replay.recording import read_mcap_take
 from retargetd.replay.take import Take, TakeError
 from retargetd.replay.trc import read_trc
 
@@ -23,7 +24,11 @@ logger = logging.getLogger(__name__)
 
 _Reader = Callable[..., Take]
 #: Suffix (lower case) -> reader.
-READERS: dict[str, _Reader] = {".c3d": read_c3d, ".trc": read_trc}
+READERS: dict[str, _Reader] = {
+    ".c3d": read_c3d,
+    ".trc": read_trc,
+    ".mcap": read_mcap_take,
+}
 
 
 def load_take(

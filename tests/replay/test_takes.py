@@ -142,7 +142,7 @@ def test_suffix_dispatch(tmp_path: Path) -> None:
     path = tmp_path / "UPPER.C3D"
     write_c3d(path, ["a"], np.zeros((2, 1, 3)), 100.0)
     assert load_take(path).format == "c3d"
-    with pytest.raises(TakeError, match=r"notes\.txt.*supported: \.c3d, \.trc"):
+    with pytest.raises(TakeError, match=r"notes\.txt.*supported: \.c3d, \.mcap, \.trc"):
         load_take(tmp_path / "notes.txt")
     with pytest.raises(TakeError, match=r"missing\.trc: no such file"):
         load_take(tmp_path / "missing.trc")
