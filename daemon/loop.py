@@ -23,6 +23,7 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
+import math
 import socket
 import time
 from collections.abc import Callable
@@ -247,6 +248,11 @@ class Daemon:
                 newest, newest_ns = self.osc_stream, got
         if self._zin is not None and self._zin in events:
             got = self._drain_zmq(every)
+            if got and newest is not None and not every:
+                # Both inputs delivered in one wake-up: only the newer one is solved,
+                # so the other's newest frame is stale too (counted, never silent).
+                self.stats.stale += 1
+                self._frame_flags |= pose_stream.FRAME_INPUT_DROPPED
             if got and got >= newest_ns:
                 newest, newest_ns = self.zmq_stream, got
         if newest is not None and not every:
@@ -549,7 +555,11 @@ class Daemon:
 
     def status(self) -> dict[str, Any]:
         """The status document (``retargetd ctl status --json``)."""
-        lat = self.stats.latency_us()
+        # None until the first frame: NaN is not JSON (jq and browsers refuse it).
+        latency = {
+            k: [_round_or_none(p50), _round_or_none(p99)]
+            for k, (p50, p99) in self.stats.latency_us().items()
+        }
         up_s = (time.monotonic_ns() - self._t0_ns) * 1e-9
         pipe = next(iter(self._pipelines.values()), None)
         occluded: list[str] = []
@@ -576,7 +586,7 @@ class Daemon:
                 "osc": self.osc_stream.counters.as_dict(),
                 "zmq": self.zmq_stream.counters.as_dict(),
             },
-            "latency_us": {k: [round(v[0], 1), round(v[1], 1)] for k, v in lat.items()},
+            "latency_us": latency,
             "occluded_markers": occluded,
             "held_bones": flagged,
         }
@@ -594,9 +604,9 @@ class Daemon:
         c = s["counters"]
         return (
             f"fps in {s['fps_in']:.1f} out {s['fps_out']:.1f} | latency us p50/p99 "
-            f"solve {lat['solve'][0]:.0f}/{lat['solve'][1]:.0f} "
-            f"recv->sent {lat['receive_to_sent'][0]:.0f}/"
-            f"{lat['receive_to_sent'][1]:.0f}"
+            f"solve {_us(lat['solve'][0])}/{_us(lat['solve'][1])} "
+            f"recv->sent {_us(lat['receive_to_sent'][0])}/"
+            f"{_us(lat['receive_to_sent'][1])}"
             f" | stale {c['stale']} overruns {c['overruns']} send drops "
             f"{c['send_drops']} | drops {drops or 0} | occluded "
             f"{len(s['occluded_markers'])} held {len(s['held_bones'])}"
@@ -624,7 +634,7 @@ class Daemon:
             return {"ok": True, "status": self.status(), "line": self.stats_line()}
         if cmd == "calibrate":
             count = req.get("count")
-            if count is not None and (not isinstance(count, int) or count < 1):
+            if count is not None and (type(count) is not int or count < 1):
                 raise ValueError(f"count must be a positive integer; got {count!r}")
             return {"ok": True, "message": self.request_calibration(count, "ctl")}
         if cmd == "reload":
@@ -652,11 +662,19 @@ class Daemon:
             self.out(f"show control {addr[0]}: calibration ready (hold the base pose)")
         elif address in ("/VMC/Ext/Set/Calib/Exec", "/rtd/calibrate"):
             count = args[0] if address == "/rtd/calibrate" and args else None
-            if not isinstance(count, int) or count < 1:
+            if type(count) is not int or count < 1:  # bool (OSC T/F) is not a count
                 count = None
             self.out(self.request_calibration(count, f"show control {addr[0]}"))
         elif address == "/rtd/reload":
             self.out(self.reload())
+
+
+def _round_or_none(value: float) -> float | None:
+    return round(value, 1) if math.isfinite(value) else None
+
+
+def _us(value: float | None) -> str:
+    return "-" if value is None else f"{value:.0f}"
 
 
 def _osc_messages(packet: bytes, depth: int = 0) -> list[bytes]:

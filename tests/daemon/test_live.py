@@ -1,0 +1,1508 @@
+"""The live daemon over real loopback sockets: inputs, outputs, control, lifecycle.
+
+Daemons run in-process in a thread (``Daemon.run(event.is_set)``), except the
+lifecycle tests, which start ``retargetd run`` / ``retargetd demo`` as subprocesses.
+Every endpoint is ephemeral (UDP port 0, ``tcp://127.0.0.1:*``) and bound to 127.0.0.1;
+every wait has an explicit deadline; every socket is closed at teardown.
+
+The performer is the synthetic one wearing ``tests/data/synth-exact-markers.toml``,
+solved with ``tests/data/synth-exact-rig.toml`` (every bone rigid on one segment, so
+the solve is exact and poses can be worked by hand).
+
+Hand-worked Unity quaternions (``tests/daemon/test_target.py`` derives them; Unity
+``(w, -M v)`` with M: world (x, y, z) -> Unity (x, z, y)), for a performer calibrated in
+the T-pose facing world +Y like the target (heading identity):
+
+- hips yawed +90° about world +Z: world ``(c, 0, 0, s)`` -> Unity xyzw
+  ``(0, -s, 0, c)``;
+- left elbow flexed 90° (T-pose, palms down, the hinge axis vertical: the forearm
+  swings from world -X to +Y, -90° about +Z): world ``(c, 0, 0, -s)`` -> Unity
+  ``(0, s, 0, c)``;
+
+with ``c = s = √½``.
+"""
+
+from __future__ import annotations
+
+import functools
+import itertools
+import json
+import math
+import os
+import queue
+import re
+import shlex
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import zmq
+from pythonosc.osc_bundle import OscBundle
+from pythonosc.osc_bundle_builder import IMMEDIATELY, OscBundleBuilder
+from pythonosc.osc_message import OscMessage
+from pythonosc.osc_message_builder import OscMessageBuilder
+
+from retargetd.daemon import performer as pf
+from retargetd.daemon.calibration import calibrate, load_calibration
+from retargetd.daemon.cli import build_parser
+from retargetd.daemon.cli import main as cli_main
+from retargetd.daemon.cmd_ctl import request
+from retargetd.daemon.config import DaemonConfig
+from retargetd.daemon.loop import Daemon
+from retargetd.daemon.rig import load_rig
+from retargetd.daemon.solve_body import BodySolver
+from retargetd.daemon.target import Retargeter, default_humanoid
+from retargetd.protocols import engine_unity, osc_in, pose_stream, vmc_out, zmq_wire
+from retargetd.protocols.marker_input import LabelSet
+
+TESTS = Path(__file__).resolve().parent.parent
+REPO_ROOT = TESTS.parent
+DATA = TESTS / "data"
+EXACT_RIG = DATA / "synth-exact-rig.toml"
+EXACT_MARKERS = DATA / "synth-exact-markers.toml"
+RATE_HZ = 100.0
+C = S = math.sqrt(0.5)
+IN_CI = os.environ.get("CI", "").lower() in ("1", "true", "yes")
+VMC_FRAME = (
+    ["/VMC/Ext/Root/Pos"]
+    + ["/VMC/Ext/Bone/Pos"] * len(vmc_out.HUMANOID_BONES)
+    + ["/VMC/Ext/Blend/Apply", "/VMC/Ext/OK", "/VMC/Ext/T"]
+)
+ENDPOINT_LINE = re.compile(r"^(listening on|sending to) (\S+)(?: \(.*\))?: (.+)$")
+
+
+# ---- data --------------------------------------------------------------------------
+
+
+@functools.cache
+def _take() -> pf.SynthTake:
+    """1 s exact T-pose, then every motion; exact markers, no noise."""
+    return pf.synthesize(seconds=3.0, rate_hz=RATE_HZ, markerset=EXACT_MARKERS)
+
+
+def _f32(a: np.ndarray) -> np.ndarray:
+    """What the daemon decodes: float32 on the wire, float64 inside."""
+    return np.asarray(a, dtype=np.float32).astype(np.float64)
+
+
+def _rot_z(deg: float) -> np.ndarray:
+    a = math.radians(deg)
+    return np.array(
+        [[math.cos(a), -math.sin(a), 0.0], [math.sin(a), math.cos(a), 0.0], [0, 0, 1]]
+    )
+
+
+@pytest.fixture(scope="module")
+def exact_calibration(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A calibration of the exact rig on the take's T-pose hold (float32 markers)."""
+    take = _take()
+    rig = load_rig(EXACT_RIG)
+    cal = calibrate(rig, _f32(take.markers_world[take.base_pose_frames]), take.labels)
+    path = tmp_path_factory.mktemp("calibration") / "exact.json"
+    cal.save(path)
+    return path
+
+
+# ---- waiting -----------------------------------------------------------------------
+
+
+def _wait_until(pred: Callable[[], bool], what: str, timeout_s: float = 5.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not pred():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
+        time.sleep(0.002)
+
+
+# ---- the daemon in a thread --------------------------------------------------------
+
+
+def _deep_merge(base: dict[str, Any], extra: dict[str, Any]) -> dict[str, Any]:
+    out = dict(base)
+    for key, value in extra.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = _deep_merge(out[key], value)
+        else:
+            out[key] = value
+    return out
+
+
+def _unused_udp_port() -> int:
+    """A port nobody listens on (bound, then closed at once)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+def _ephemeral_doc(vmc_port: int) -> dict[str, Any]:
+    return {
+        "performer": {"rig": str(EXACT_RIG)},
+        "input": {
+            "osc": {"port": 0},
+            "zmq": {"endpoint": "tcp://127.0.0.1:*"},
+        },
+        "output": {
+            "vmc": {"port": vmc_port},
+            # Every pose reaches the test's subscriber (the default drops when slow).
+            "pose": {"endpoint": "tcp://127.0.0.1:*", "sndhwm": 1000},
+        },
+        "control": {"endpoint": "tcp://127.0.0.1:*"},
+        "show_control": {"port": 0},
+        "loop": {"poll_timeout_ms": 20, "stats_interval_s": 0.5},
+    }
+
+
+class Live:
+    """An opened daemon serving in a thread."""
+
+    def __init__(self, config: DaemonConfig) -> None:
+        self.lines: list[str] = []
+        self.daemon = Daemon(config, out=self.lines.append)
+        try:
+            self.daemon.open()
+        except BaseException:
+            self.daemon.close()
+            raise
+        self._stop = threading.Event()
+        self._errors: list[BaseException] = []
+        self.thread = threading.Thread(
+            target=self._run, name="live-daemon", daemon=True
+        )
+        self.thread.start()
+
+    def _run(self) -> None:
+        try:
+            self.daemon.run(self._stop.is_set)
+        except BaseException as exc:  # re-raised in the test thread by stop()
+            self._errors.append(exc)
+
+    def stop(self) -> None:
+        """Stop the loop (bounded), close every socket, re-raise a loop crash."""
+        self._stop.set()
+        self.thread.join(timeout=5.0)
+        alive = self.thread.is_alive()
+        if not alive:
+            self.daemon.close()
+        assert not alive, "the daemon loop did not stop within 5 s"
+        if self._errors:
+            raise self._errors[0]
+
+    @property
+    def running(self) -> bool:
+        return self.thread.is_alive()
+
+    def udp(self, what: str) -> tuple[str, int]:
+        where = self.daemon.endpoints[what].split()[0]  # "udp://host:port (form)"
+        host, port = where.removeprefix("udp://").rsplit(":", 1)
+        return host, int(port)
+
+    def tcp(self, what: str) -> str:
+        return self.daemon.endpoints[what].split()[0]
+
+    def ctl(self, req: dict[str, Any]) -> dict[str, Any]:
+        reply = request(self.tcp("control"), req, 2000)
+        assert reply is not None, f"no control reply to {req}"
+        return reply
+
+
+@pytest.fixture
+def start_daemon() -> Iterator[Callable[..., Live]]:
+    """``start(overrides, vmc_port=None)``: a daemon on ephemeral ports in a thread."""
+    lives: list[Live] = []
+
+    def start(overrides: dict[str, Any] | None = None, *, vmc_port: int = 0) -> Live:
+        doc = _deep_merge(
+            _ephemeral_doc(vmc_port or _unused_udp_port()), overrides or {}
+        )
+        live = Live(DaemonConfig.from_dict(doc, source="test"))
+        lives.append(live)
+        return live
+
+    yield start
+    errors = []
+    for live in lives:
+        try:
+            live.stop()
+        except BaseException as exc:
+            errors.append(exc)
+    if errors:
+        raise errors[0]
+
+
+# ---- senders and receivers ---------------------------------------------------------
+
+
+class OscSource:
+    """A compact-form OSC marker sender; remembers what it sent (for the oracle)."""
+
+    def __init__(
+        self, sock: socket.socket, addr: tuple[str, int], label_set_id: int = 1
+    ):
+        self.sock = sock
+        self.addr = addr
+        self.label_set = LabelSet(label_set_id, _take().labels)
+        self.next_id = 0
+        self.sent: list[tuple[int, np.ndarray]] = []
+
+    def announce(self, label_set_id: int | None = None) -> None:
+        if label_set_id is not None:
+            self.label_set = LabelSet(label_set_id, self.label_set.labels)
+        self.raw(osc_in.encode_labels(self.label_set))
+
+    def send(self, markers: np.ndarray, frame_id: int | None = None) -> int:
+        fid = self.next_id if frame_id is None else frame_id
+        self.next_id = fid + 1
+        self.raw(
+            osc_in.encode_compact_frame(fid, fid / RATE_HZ, self.label_set.id, markers)
+        )
+        self.sent.append((fid, _f32(markers)))
+        return fid
+
+    def raw(self, data: bytes) -> None:
+        self.sock.sendto(data, self.addr)
+
+
+class PoseSub:
+    """A SUB on the daemon's pose stream: data and names messages, decoded."""
+
+    def __init__(self, sock: Any, endpoint: str) -> None:
+        sock.setsockopt(zmq.SUBSCRIBE, b"RTD")
+        sock.setsockopt(zmq.RCVHWM, 10_000)
+        sock.connect(endpoint)
+        self.sock = sock
+        self.poses: list[pose_stream.PoseMessage] = []
+        self.names: list[pose_stream.PoseNames] = []
+        self.events: list[tuple[str, int]] = []  # ("names"|"data", names_id) in order
+
+    def clear(self) -> None:
+        for received in (self.poses, self.names, self.events):
+            received.clear()
+
+    def pump(self, timeout_ms: int = 0) -> None:
+        while self.sock.poll(timeout_ms):
+            timeout_ms = 0
+            parts = self.sock.recv_multipart()
+            if parts[0][:4] == pose_stream.DATA_MAGIC:
+                msg = pose_stream.decode_pose(parts)
+                self.poses.append(msg)
+                self.events.append(("data", msg.names_id))
+            else:
+                names = pose_stream.decode_pose_names(parts)
+                self.names.append(names)
+                self.events.append(("names", names.names_id))
+
+    def wait(self, pred: Callable[[], bool], what: str, timeout_s: float = 5.0) -> None:
+        deadline = time.monotonic() + timeout_s
+        while not pred():
+            if time.monotonic() > deadline:
+                raise AssertionError(
+                    f"timed out after {timeout_s} s waiting for {what}"
+                )
+            self.pump(5)
+
+
+def _prime(sub: PoseSub, send: Callable[[], int], timeout_s: float = 5.0) -> None:
+    """Send frames (``send`` returns the frame number) until the subscriber receives
+    one: poses published before its connection completes are lost (ZeroMQ's slow
+    joiner). Then one more, waited for, so every later pose arrives; forget what the
+    subscriber received so far."""
+    deadline = time.monotonic() + timeout_s
+    while not sub.poses:
+        assert time.monotonic() < deadline, "the pose stream never reached the SUB"
+        send()
+        sub.pump(20)
+    last = send()
+    sub.wait(lambda: sub.poses[-1].frame_id == last, "the last priming frame")
+    sub.clear()
+
+
+class VmcReceiver:
+    """Collects VMC datagrams; splits them into frames at ``/VMC/Ext/T`` with
+    python-osc's generic parser (``OscBundle`` / ``OscMessage``)."""
+
+    def __init__(self, sock: socket.socket) -> None:
+        self.sock = sock
+        self.port = int(sock.getsockname()[1])
+        self.datagrams: list[bytes] = []
+        self.frames: list[list[tuple[str, list[Any]]]] = []
+        self.frame_datagrams: list[int] = []
+        self._pending: list[tuple[str, list[Any]]] = []
+        self._pending_dgrams = 0
+
+    def pump(self) -> None:
+        """Read every datagram waiting (the first one waits up to the timeout)."""
+        try:
+            data = self.sock.recv(65536)
+        except TimeoutError:
+            return
+        while True:
+            self._parse(data)
+            try:
+                data = self.sock.recv(65536, socket.MSG_DONTWAIT)
+            except (BlockingIOError, TimeoutError):
+                return
+
+    def _parse(self, data: bytes) -> None:
+        self.datagrams.append(data)
+        self._pending_dgrams += 1
+        bundle = OscBundle(data)
+        for element in bundle:
+            assert isinstance(element, OscMessage), "VMC bundles hold messages only"
+            self._pending.append((element.address, list(element.params)))
+            if element.address == vmc_out.TIME_ADDRESS:
+                self.frames.append(self._pending)
+                self.frame_datagrams.append(self._pending_dgrams)
+                self._pending, self._pending_dgrams = [], 0
+
+    def wait_frames(self, n: int, timeout_s: float = 5.0) -> None:
+        deadline = time.monotonic() + timeout_s
+        while len(self.frames) < n:
+            if time.monotonic() > deadline:
+                raise AssertionError(
+                    f"timed out: {len(self.frames)} of {n} VMC frames received"
+                )
+            self.pump()
+
+
+def _vmc_bones(frame: list[tuple[str, list[Any]]]) -> dict[str, np.ndarray]:
+    """Bone name -> (7,) position xyz + quaternion xyzw, plus "root"."""
+    out = {}
+    for address, params in frame:
+        if address in (vmc_out.ROOT_ADDRESS, vmc_out.BONE_ADDRESS):
+            out[params[0]] = np.array(params[1:], dtype=np.float64)
+    return out
+
+
+def _vmc_quats(frame: list[tuple[str, list[Any]]]) -> np.ndarray:
+    """(1 + bones, 4) xyzw: root then bones, in message order."""
+    return np.array(
+        [p[4:] for a, p in frame if a in (vmc_out.ROOT_ADDRESS, vmc_out.BONE_ADDRESS)]
+    )
+
+
+@pytest.fixture
+def vmc(udp_socket: Callable[..., socket.socket]) -> VmcReceiver:
+    return VmcReceiver(udp_socket(bind=True))
+
+
+@pytest.fixture
+def osc_source(udp_socket: Callable[..., socket.socket]) -> Callable[..., OscSource]:
+    def make(live: Live, label_set_id: int = 1) -> OscSource:
+        return OscSource(udp_socket(), live.udp("osc markers"), label_set_id)
+
+    return make
+
+
+def _solve_oracle(
+    calibration: Path, frames: list[np.ndarray]
+) -> tuple[list[Any], Retargeter]:
+    """The BodySolver on the same frames, in the same order (copies per frame)."""
+    rig = load_rig(EXACT_RIG)
+    cal = load_calibration(calibration)
+    solver = BodySolver(rig, cal, _take().labels)
+    pose = solver.new_pose()
+    out = []
+    for markers in frames:
+        solver.solve_frame(markers, pose)
+        out.append(
+            (
+                pose.world_from_bone_quat.copy(),
+                pose.parent_from_bone_quat.copy(),
+                pose.root_pos.copy(),
+                pose.bone_flags.copy(),
+            )
+        )
+    return out, Retargeter(rig, cal, default_humanoid())
+
+
+def _json_strict(text: str) -> Any:
+    def reject(name: str) -> Any:
+        raise ValueError(f"not JSON: {name}")
+
+    return json.loads(text, parse_constant=reject)
+
+
+def _import_vmcp() -> tuple[Any, Any]:
+    try:
+        from osc4py3 import oscbuildparse
+        from vmcp import events
+    except ImportError as exc:  # the test extra is installed in CI
+        if IN_CI:
+            pytest.fail(f"vmcp/osc4py3 missing (CI=true: nothing may skip): {exc}")
+        pytest.skip(f"vmcp/osc4py3 not installed: {exc}")
+    return oscbuildparse, events
+
+
+# ---- streaming: VMC and the pose stream --------------------------------------------
+
+
+def test_stream_vmc_and_pose_stream_match_the_solver(
+    start_daemon: Callable[..., Live],
+    osc_source: Callable[..., OscSource],
+    zmq_socket: Callable[[int], Any],
+    vmc: VmcReceiver,
+    exact_calibration: Path,
+) -> None:
+    take = _take()
+    live = start_daemon(
+        {
+            "performer": {"calibration": str(exact_calibration)},
+            "loop": {"process_every_frame": True},
+        },
+        vmc_port=vmc.port,
+    )
+    sub = PoseSub(zmq_socket(zmq.SUB), live.tcp("zmq poses"))
+    src = osc_source(live)
+    src.announce()
+    _prime(sub, lambda: src.send(take.markers_world[0]))
+    k = len(src.sent)  # primed frames: solved and sent as VMC, before the SUB counts
+    # The motion, paced at 200 Hz for 1.2 s: names are repeated at least once a second.
+    for row in range(60, 300):
+        src.send(take.markers_world[row])
+        if row % 100 == 0:
+            src.announce()
+        sub.pump()
+        time.sleep(0.005)
+    n = len(src.sent)
+    sub.wait(lambda: len(sub.poses) == n - k, f"{n - k} poses")
+    vmc.wait_frames(n)
+    live.stop()
+    sub.pump(50)
+    vmc.pump()
+
+    # Every frame accepted, solved and sent once; nothing dropped.
+    s = live.daemon.stats
+    assert (s.frames_in, s.frames_solved, s.frames_out, s.stale) == (n, n, n, 0)
+    assert live.daemon.osc_stream.counters.as_dict() == {"accepted": n}
+    assert live.daemon.status()["calibrated"]
+    assert any(line.startswith("fps in") for line in live.lines)
+
+    # ---- ZeroMQ pose stream ---------------------------------------------------------
+    rig = load_rig(EXACT_RIG)
+    assert len(sub.poses) == n - k
+    assert [p.frame_id for p in sub.poses] == [fid for fid, _ in src.sent[k:]]
+    names = sub.names[-1]
+    assert names.rig == "synth-exact"
+    assert names.bone_names == rig.bone_names  # the solve's NPZ order
+    assert names.bone_parents == tuple(rig.bone_parent_indices())
+    assert names.weight_names == ()
+    assert len({p.names_id for p in sub.poses}) == 1
+    assert sub.poses[-1].names_id == names.names_id
+    assert sum(e[0] == "names" for e in sub.events) >= 1  # repeated once a second
+    oracle, retargeter = _solve_oracle(exact_calibration, [m for _, m in src.sent])
+    lat_us = []
+    for msg, (fid, _), (wfb, pfb, root, bone_flags) in zip(
+        sub.poses, src.sent[k:], oracle[k:], strict=True
+    ):
+        assert msg.received_ns <= msg.solved_ns <= msg.sent_ns
+        assert msg.source_time_s == fid / RATE_HZ
+        assert msg.flags & (pose_stream.FRAME_HELD | pose_stream.FRAME_RESTARTED) == 0
+        assert msg.flags & pose_stream.FRAME_INPUT_DROPPED == 0
+        np.testing.assert_array_equal(msg.bone_flags, bone_flags)
+        np.testing.assert_allclose(
+            msg.root_pos_world, root.astype(np.float32), rtol=0, atol=1e-7
+        )
+        np.testing.assert_allclose(
+            msg.world_from_bone_quat, wfb.astype(np.float32), rtol=0, atol=1e-6
+        )
+        np.testing.assert_allclose(
+            msg.parent_from_bone_quat, pfb.astype(np.float32), rtol=0, atol=1e-6
+        )
+        lat_us.append((msg.sent_ns - msg.received_ns) / 1e3)
+    assert not bone_flags.any()
+    # The motion really moves: the oracle is not a constant.
+    assert np.ptp([o[2] for o in oracle], axis=0).max() > 0.1
+    print(
+        f"\npose stream: {n} frames, received->sent p50 "
+        f"{np.percentile(lat_us, 50):.0f} us, p99 {np.percentile(lat_us, 99):.0f} us"
+    )
+
+    # ---- VMC, through python-osc's generic parser -----------------------------------
+    assert len(vmc.frames) == n
+    assert all(len(d) <= vmc_out.MAX_DATAGRAM for d in vmc.datagrams)
+    assert all(OscBundle.dgram_is_bundle(d) for d in vmc.datagrams)
+    assert set(vmc.frame_datagrams) == {2}  # 22 bones: two datagrams per frame
+    print(
+        f"VMC: {len(vmc.datagrams)} datagrams, sizes "
+        f"{sorted({len(d) for d in vmc.datagrams})} bytes"
+    )
+    target = default_humanoid()
+    assert sorted(target.bone_names) == sorted(vmc_out.HUMANOID_BONES)
+    rest_unity = np.zeros((22, 3))
+    engine_unity.unity_pos_from_world(target.rest_offsets, rest_unity)
+    times = []
+    prev_q = None
+    tp = retargeter.new_pose()
+    unity_q = np.zeros((22, 4))
+    pose = BodySolver(rig, load_calibration(exact_calibration), take.labels).new_pose()
+    worst = 0.0
+    for frame, (wfb, pfb, root, _) in zip(vmc.frames, oracle, strict=True):
+        assert [a for a, _ in frame] == VMC_FRAME
+        assert frame[0][1][0] == "root"
+        np.testing.assert_array_equal(frame[0][1][4:], [0.0, 0.0, 0.0, 1.0])
+        bones = frame[1:23]
+        # One Bone/Pos per standard humanoid bone, in the target's order.
+        assert [p[0] for _, p in bones] == list(target.bone_names)
+        pos = np.array([p[1:4] for _, p in bones])
+        # The target's real rest offsets (Unity frame), never zeros, not even Hips'.
+        np.testing.assert_array_equal(pos, rest_unity.astype(np.float32))
+        assert (np.linalg.norm(pos, axis=1) > 0.05).all()
+        assert frame[-3][1] == [] and frame[-2][1] == [1]
+        times.append(frame[-1][1][0])
+        q = _vmc_quats(frame)
+        np.testing.assert_allclose(np.linalg.norm(q, axis=1), 1.0, atol=1e-6)
+        if prev_q is not None:  # hemisphere continuity, root and every bone
+            assert (np.sum(q * prev_q, axis=1) >= 0.0).all()
+        prev_q = q
+        # The rotations are the retargeted solve (up to the continuity sign).
+        pose.world_from_bone_quat[:] = wfb
+        pose.parent_from_bone_quat[:] = pfb
+        pose.root_pos[:] = root
+        retargeter.apply(pose, tp)
+        engine_unity.unity_quat_xyzw_from_world(tp.parent_from_bone_quat, unity_q)
+        sign = np.where(np.sum(q[1:] * unity_q, axis=1) < 0, -1.0, 1.0)[:, None]
+        worst = max(worst, float(np.abs(q[1:] * sign - unity_q).max()))
+        root_unity = np.zeros(3)
+        engine_unity.unity_pos_from_world(tp.root_pos, root_unity)
+        np.testing.assert_allclose(frame[0][1][1:4], root_unity, atol=1e-6)
+    assert worst < 1e-6, worst
+    assert (np.diff(times) > 0).all()
+
+    # ---- VMC, through vmcp (over osc4py3's decoder) ---------------------------------
+    oscbuildparse, events = _import_vmcp()
+    kinds = {
+        e.ADDRESS_PATTERN: e
+        for e in (
+            events.RootTransformEvent,
+            events.BoneTransformEvent,
+            events.BlendShapeApplyEvent,
+            events.StateEvent,
+            events.RelativeTimeEvent,
+        )
+    }
+    got: list[Any] = []
+    for dgram in vmc.datagrams:
+        bundle = oscbuildparse.decode_packet(dgram)
+        assert isinstance(bundle, oscbuildparse.OSCBundle)
+        for msg in bundle.elements:
+            event = kinds[msg.addrpattern].from_message_data(
+                "retargetd", msg.addrpattern, msg.arguments
+            )
+            got.append(event)
+    per_frame = len(VMC_FRAME)
+    assert len(got) == n * per_frame
+    for k in range(n):
+        frame_events = got[k * per_frame : (k + 1) * per_frame]
+        assert isinstance(frame_events[0], events.RootTransformEvent)
+        bones_ev = frame_events[1:23]
+        assert all(isinstance(e, events.BoneTransformEvent) for e in bones_ev)
+        assert [e.joint.value for e in bones_ev] == list(target.bone_names)
+        assert isinstance(frame_events[-3], events.BlendShapeApplyEvent)
+        assert frame_events[-2].model_state.value == 1
+        assert isinstance(frame_events[-1], events.RelativeTimeEvent)
+    k = 1 + target.index("LeftLowerArm")
+    last = got[-per_frame + k]  # the last frame's LeftLowerArm
+    assert last.joint.value == "LeftLowerArm"
+    assert last.position.x == pytest.approx(vmc.frames[-1][k][1][1], abs=1e-7)
+    assert last.rotation.w == pytest.approx(vmc.frames[-1][k][1][7], abs=1e-7)
+
+
+def test_hand_worked_poses_arrive_as_unity_quaternions(
+    start_daemon: Callable[..., Live],
+    osc_source: Callable[..., OscSource],
+    vmc: VmcReceiver,
+    tmp_path: Path,
+) -> None:
+    """Calibrated live on the T-pose (facing +Y), then the left elbow flexed 90° and
+    the hips yawed +90°: the received quaternions are the hand-derived ones."""
+    take = _take()
+    facing_y = _rot_z(90.0)  # the performer faces +X; turn the lab so it faces +Y
+    t_pose = take.markers_world[0] @ facing_y.T
+    joints = take.joint_pos_world[0] @ facing_y.T
+    segments = take.segment_names
+    # Left elbow: forearm and hand markers, rigidly about the vertical through the
+    # elbow centre, by -90° (the forearm swings from world -X to +Y).
+    elbow = t_pose.copy()
+    moving = np.isin(
+        take.marker_segments, [segments.index("l_forearm"), segments.index("l_hand")]
+    )
+    centre = joints[segments.index("l_forearm")]
+    elbow[moving] = (t_pose[moving] - centre) @ _rot_z(-90.0).T + centre
+    fore_dir = elbow[moving].mean(axis=0) - centre
+    assert fore_dir[1] > 0.1 and abs(fore_dir[0]) < 0.05  # now in front (+Y)
+    # Hips: every marker about the vertical through the pelvis, +90°.
+    pelvis = joints[segments.index("pelvis")]
+    hips = (t_pose - pelvis) @ _rot_z(90.0).T + pelvis
+
+    saved = tmp_path / "live-calibration.json"
+    live = start_daemon(
+        {
+            "performer": {"save_calibration": str(saved)},
+            "loop": {"process_every_frame": True},
+        },
+        vmc_port=vmc.port,
+    )
+    src = osc_source(live)
+    src.announce()
+    reply = live.ctl({"cmd": "calibrate", "count": 5})
+    assert reply["ok"] and "5 frames" in reply["message"]
+    for _ in range(5):
+        src.send(t_pose)
+    _wait_until(
+        lambda: any(
+            ln.startswith("calibrated on 5 frames; saved") for ln in live.lines
+        ),
+        "the live calibration",
+    )
+    assert json.loads(saved.read_text())["base_pose"]["live"]
+    for markers in (elbow, t_pose, hips):
+        src.send(markers)
+    vmc.wait_frames(4)  # the 5th calibration frame is the first one solved
+    t_frame, elbow_frame, t_again, hips_frame = map(_vmc_bones, vmc.frames[:4])
+    identity = np.array([0.0, 0.0, 0.0, 1.0])
+    worst = 0.0
+
+    def check(frame: dict[str, np.ndarray], special: dict[str, list[float]]) -> None:
+        nonlocal worst
+        for name in vmc_out.HUMANOID_BONES:
+            want = np.array(special.get(name, identity))
+            got = frame[name][3:]
+            if got @ want < 0:  # q and -q: one rotation (only the first frame's
+                got = -got  # hemisphere is free; later ones follow it)
+            worst = max(worst, float(np.abs(got - want).max()))
+            np.testing.assert_allclose(got, want, atol=1e-3, err_msg=name)
+        np.testing.assert_allclose(frame["root"][:3], 0.0, atol=1e-5)
+
+    frames = [t_frame, elbow_frame, t_again, hips_frame]
+    for prev, this in itertools.pairwise(frames):  # hemisphere continuity
+        for name in vmc_out.HUMANOID_BONES:
+            assert prev[name][3:] @ this[name][3:] >= 0.0, name
+    check(t_frame, {})
+    check(elbow_frame, {"LeftLowerArm": [0.0, S, 0.0, C]})
+    check(t_again, {})
+    check(hips_frame, {"Hips": [0.0, -S, 0.0, C]})
+    print(f"\nhand-worked poses through the daemon: worst deviation {worst:.1e}")
+
+
+# ---- inputs ------------------------------------------------------------------------
+
+
+def test_osc_simple_form(
+    start_daemon: Callable[..., Live],
+    udp_socket: Callable[..., socket.socket],
+    zmq_socket: Callable[[int], Any],
+    exact_calibration: Path,
+) -> None:
+    take = _take()
+    live = start_daemon(
+        {
+            "performer": {"calibration": str(exact_calibration)},
+            "input": {"osc": {"form": "simple", "labels": list(take.labels)}},
+            "loop": {"process_every_frame": True},
+        },
+    )
+    sub = PoseSub(zmq_socket(zmq.SUB), live.tcp("zmq poses"))
+    sock, addr = udp_socket(), live.udp("osc markers")
+    labels = [*take.labels, "XTRA"]  # one marker the config does not name
+    sent: list[int] = []
+
+    def send(row: int) -> int:
+        fid = len(sent)
+        markers = np.vstack([take.markers_world[row], [[0.0, 0.0, 1.0]]])
+        sock.sendto(osc_in.encode_simple_bundle(labels, markers, frame_id=fid), addr)
+        sent.append(fid)
+        return fid
+
+    _prime(sub, lambda: send(0))
+    k = len(sent)
+    for row in range(100, 130):
+        send(row)
+    sub.wait(lambda: len(sub.poses) == len(sent) - k, "every simple-form frame")
+    assert [p.frame_id for p in sub.poses] == sent[k:]
+    counters = live.daemon.osc_stream.counters.as_dict()
+    assert counters == {"accepted": len(sent), "unknown_label": len(sent)}
+    assert live.daemon.stats.frames_solved == len(sent)
+
+
+def test_zmq_pull_input_every_frame_burst_and_malformed(
+    start_daemon: Callable[..., Live],
+    zmq_socket: Callable[[int], Any],
+    exact_calibration: Path,
+) -> None:
+    """PULL bound by the daemon; 500 frames as fast as possible, process-every-frame:
+    all solved. Malformed ZeroMQ messages around them are counted and dropped."""
+    take = _take()
+    live = start_daemon(
+        {
+            "performer": {"calibration": str(exact_calibration)},
+            "loop": {"process_every_frame": True},
+        },
+    )
+    push = zmq_socket(zmq.PUSH)
+    push.connect(live.tcp("zmq markers"))
+    labels = LabelSet(7, take.labels)
+    push.send_multipart(zmq_wire.encode_zmq_labels(labels))
+    header, payload = zmq_wire.encode_zmq_frame(0, 0.0, 7, take.markers_world[0])
+    push.send_multipart([header])  # one part: bad_length
+    push.send_multipart([b"XXXX" + header[4:], payload])  # bad_magic
+    push.send_multipart([header, payload[:-12]])  # payload too short: bad_length
+    push.send_multipart(zmq_wire.encode_zmq_frame(0, 0.0, 8, take.markers_world[0]))
+    t0 = time.perf_counter()
+    for fid in range(500):
+        row = 100 + fid % 200
+        push.send_multipart(
+            zmq_wire.encode_zmq_frame(fid, fid / RATE_HZ, 7, take.markers_world[row])
+        )
+    send_s = time.perf_counter() - t0
+    _wait_until(lambda: live.daemon.stats.frames_solved == 500, "500 solved frames")
+    solve_s = time.perf_counter() - t0
+    live.stop()
+    s = live.daemon.stats
+    assert (s.frames_in, s.frames_solved, s.frames_out, s.stale) == (500, 500, 500, 0)
+    assert live.daemon.zmq_stream.counters.as_dict() == {
+        "accepted": 500,
+        "bad_length": 2,
+        "bad_magic": 1,
+        "unknown_label_set": 1,
+    }
+    assert live.daemon.zmq_stream.current.frame.frame_id == 499
+    print(
+        f"\nZeroMQ burst: 500 frames sent in {send_s * 1e3:.0f} ms, all solved "
+        f"after {solve_s * 1e3:.0f} ms"
+    )
+
+
+def test_zmq_sub_input_connects_to_a_publisher(
+    start_daemon: Callable[..., Live],
+    zmq_socket: Callable[[int], Any],
+    exact_calibration: Path,
+) -> None:
+    take = _take()
+    pub = zmq_socket(zmq.XPUB)  # an XPUB sees the daemon's subscription arrive
+    pub.bind("tcp://127.0.0.1:*")
+    endpoint = pub.getsockopt(zmq.LAST_ENDPOINT).decode()
+    live = start_daemon(
+        {
+            "performer": {"calibration": str(exact_calibration)},
+            "input": {"zmq": {"mode": "sub", "endpoint": endpoint}},
+            "loop": {"process_every_frame": True},
+        },
+    )
+    assert live.daemon.endpoints["zmq markers"] == f"{endpoint} (sub)"
+    assert pub.poll(5000), "the daemon's SUB never subscribed"
+    assert pub.recv() == b"\x01RTD"
+    pub.send_multipart(zmq_wire.encode_zmq_labels(LabelSet(3, take.labels)))
+    for fid in range(40):
+        pub.send_multipart(
+            zmq_wire.encode_zmq_frame(fid, fid / RATE_HZ, 3, take.markers_world[fid])
+        )
+    _wait_until(lambda: live.daemon.stats.frames_solved == 40, "40 solved frames")
+    live.stop()
+    assert live.daemon.zmq_stream.counters.as_dict() == {"accepted": 40}
+    assert live.daemon.osc_stream.counters.as_dict() == {}
+
+
+def test_malformed_packets_are_counted_and_every_good_frame_solved(
+    start_daemon: Callable[..., Live],
+    osc_source: Callable[..., OscSource],
+    zmq_socket: Callable[[int], Any],
+    exact_calibration: Path,
+) -> None:
+    take = _take()
+    live = start_daemon(
+        {
+            "performer": {"calibration": str(exact_calibration)},
+            "loop": {"process_every_frame": True},
+        },
+    )
+    sub = PoseSub(zmq_socket(zmq.SUB), live.tcp("zmq poses"))
+    src = osc_source(live)
+    src.announce()
+    _prime(sub, lambda: src.send(take.markers_world[0]))
+    n_primed = len(src.sent)
+    markers = take.markers_world
+    good: list[int] = []
+
+    def send_good(row: int) -> None:
+        good.append(src.send(markers[row]))
+
+    def frame(fid: int, m: np.ndarray, label_set_id: int = 1) -> bytes:
+        return osc_in.encode_compact_frame(fid, 0.0, label_set_id, m)
+
+    n = len(take.labels)
+    bad: dict[str, int] = {}
+
+    def send_bad(reason: str, data: bytes) -> None:
+        src.raw(data)
+        bad[reason] = bad.get(reason, 0) + 1
+
+    send_good(100)
+    nxt = src.next_id
+    send_bad("bad_length", frame(nxt, markers[101])[:-4])  # wrong size
+    send_good(101)
+    nxt = src.next_id
+    tags = bytearray(frame(nxt, markers[102]))
+    tags[12:20] = b",hdiif\0\0"  # wrong type tags
+    send_bad("bad_typetags", bytes(tags))
+    send_good(102)
+    send_bad("count_mismatch", frame(src.next_id, markers[103][: n - 1]))
+    send_good(103)
+    send_bad("unknown_label_set", frame(src.next_id, markers[104], label_set_id=99))
+    send_good(104)
+    send_bad("backwards", frame(good[-3], markers[105]))  # frame number goes back
+    send_bad("duplicate", frame(good[-1], markers[105]))
+    send_good(105)
+    blob = bytearray(frame(src.next_id, markers[106]))
+    blob[44:48] = (12 * n + 12).to_bytes(4, "big")
+    send_bad("bad_blob_size", bytes(blob))
+    inf = markers[106].copy()
+    inf[3, 1] = np.inf
+    send_bad("non_finite", frame(src.next_id, inf))
+    send_bad("bad_frame_number", frame(-5, markers[106]))
+    send_bad("bad_address", b"/rtd/frome" + frame(src.next_id, markers[106])[10:])
+    send_bad("bad_length", b"\0" * 7)
+    send_good(106)
+    # Occluded markers (NaN) are data, not malformed.
+    occluded = markers[107].copy()
+    occluded[[0, 5, 9]] = np.nan
+    good.append(src.send(occluded))
+    for row in range(108, 112):
+        send_good(row)
+    n_good = len(good)
+    sub.wait(lambda: len(sub.poses) == n_good, "every good frame's pose")
+    live.stop()
+    sub.pump(20)
+    # ALL the good frames were solved, in order; only they were.
+    assert [p.frame_id for p in sub.poses] == good
+    assert live.daemon.stats.frames_solved == n_primed + n_good
+    counts = live.daemon.osc_stream.counters.as_dict()
+    assert counts == {"accepted": n_primed + n_good, **bad}, counts
+    occluded_pose = sub.poses[n_good - 5]
+    assert occluded_pose.bone_flags.any()  # the occlusion shows in the bone flags
+    print(
+        f"\nmalformed: {sum(bad.values())} packets dropped by reason {bad}; "
+        f"{n_good} good frames around them all solved"
+    )
+
+
+def test_restart_after_a_gap_or_new_label_set_receiver_absent(
+    start_daemon: Callable[..., Live],
+    osc_source: Callable[..., OscSource],
+    zmq_socket: Callable[[int], Any],
+    exact_calibration: Path,
+) -> None:
+    """VMC goes to a port nobody listens on; the source stops, then restarts its frame
+    numbers after > 1 s (a restart: reset, counted, not dropped), then announces a new
+    label-set id and restarts again at once. The daemon keeps running throughout."""
+    take = _take()
+    live = start_daemon(
+        {
+            "performer": {"calibration": str(exact_calibration)},
+            "loop": {"process_every_frame": True},
+        },
+        vmc_port=_unused_udp_port(),
+    )
+    sub = PoseSub(zmq_socket(zmq.SUB), live.tcp("zmq poses"))
+    src = osc_source(live)
+    src.announce()
+    _prime(sub, lambda: src.send(take.markers_world[0]))
+    n_primed = len(src.sent)
+    for row in range(100, 110):
+        src.send(take.markers_world[row])
+    n_first = len(src.sent)
+    sub.wait(lambda: len(sub.poses) == 10, "the first run")
+    time.sleep(1.05)  # the source stops for more than RESTART_GAP (1 s)
+    src.announce()
+    for row in range(110, 115):
+        src.send(take.markers_world[row], frame_id=row - 110)  # numbers start again
+    sub.wait(lambda: len(sub.poses) == 15, "the restarted run")
+    src.announce(label_set_id=2)  # same names, new id: a restart without a gap
+    for row in range(115, 118):
+        src.send(take.markers_world[row], frame_id=row - 115)
+    sub.wait(lambda: len(sub.poses) == 18, "the new label set's frames")
+    assert live.running
+    assert live.ctl({"cmd": "status"})["ok"]
+    live.stop()
+    s = live.daemon.stats
+    assert s.restarts == 2
+    assert (s.frames_in, s.frames_solved, s.frames_out) == (n_first + 8,) * 3
+    assert live.daemon.osc_stream.counters.as_dict() == {
+        "accepted": n_first + 6,
+        "restart": 2,
+    }
+    restarted = [p.frame_id for p in sub.poses if p.flags & pose_stream.FRAME_RESTARTED]
+    assert restarted == [0, 0]
+    ids = [p.frame_id for p in sub.poses]
+    assert ids == [fid for fid, _ in src.sent[n_primed:n_first]] + [
+        0,
+        1,
+        2,
+        3,
+        4,
+        0,
+        1,
+        2,
+    ]
+    # The restarted solve starts afresh: the oracle, reset at the same frames, agrees.
+    oracle, _ = _solve_oracle(exact_calibration, [m for _, m in src.sent[n_first:]])
+    np.testing.assert_allclose(
+        sub.poses[-1].parent_from_bone_quat, oracle[-1][1].astype(np.float32), atol=1e-6
+    )
+    print(
+        f"\nreceiver absent: {s.frames_out} frames sent to a closed port, "
+        f"{s.vmc_errors} send errors counted"
+    )
+
+
+def test_burst_latest_wins_drops_stale_frames(
+    start_daemon: Callable[..., Live],
+    osc_source: Callable[..., OscSource],
+    zmq_socket: Callable[[int], Any],
+    exact_calibration: Path,
+) -> None:
+    take = _take()
+    live = start_daemon({"performer": {"calibration": str(exact_calibration)}})
+    sub = PoseSub(zmq_socket(zmq.SUB), live.tcp("zmq poses"))
+    src = osc_source(live)
+    src.announce()
+    _prime(sub, lambda: src.send(take.markers_world[0]))
+    # The last priming frame was solved and received: every earlier one is settled.
+    before = dict(live.daemon.stats.counters())
+    for k in range(500):
+        src.send(take.markers_world[100 + k % 200])
+    last = src.sent[-1][0]
+    sub.wait(lambda: bool(sub.poses) and sub.poses[-1].frame_id == last, "the last")
+    live.stop()
+    sub.pump(20)
+    after = live.daemon.stats.counters()
+    got_in = after["frames_in"] - before["frames_in"]
+    solved = after["frames_solved"] - before["frames_solved"]
+    stale = after["stale"] - before["stale"]
+    # UDP on loopback may lose datagrams in the kernel; everything that arrived is
+    # either solved or counted stale, and the newest frame always wins.
+    assert got_in <= 500 and got_in > 450
+    assert stale > 0 and solved + stale == got_in
+    burst = sub.poses
+    assert len(burst) == solved
+    ids = [p.frame_id for p in burst]
+    assert ids == sorted(ids) and ids[-1] == last
+    assert any(p.flags & pose_stream.FRAME_INPUT_DROPPED for p in burst)
+    print(
+        f"\nlatest wins: 500 sent, {got_in} arrived, {solved} solved, {stale} "
+        "stale (dropped and counted)"
+    )
+
+
+@pytest.mark.parametrize(
+    ("allow", "accepted"),
+    [(["10.1.2.3"], False), (["10.1.2.3", "127.0.0.1"], True)],
+)
+def test_osc_allow_list(
+    start_daemon: Callable[..., Live],
+    osc_source: Callable[..., OscSource],
+    allow: list[str],
+    accepted: bool,
+) -> None:
+    take = _take()
+    live = start_daemon({"input": {"osc": {"allow": allow}}})
+    src = osc_source(live)
+    src.announce()
+    for row in range(5):
+        src.send(take.markers_world[row])
+    s = live.daemon.stats
+    if accepted:
+        _wait_until(lambda: s.frames_in == 5, "5 accepted frames")
+    else:
+        _wait_until(lambda: s.rejected_sources == 6, "6 rejected datagrams")
+    live.stop()
+    if accepted:
+        assert s.rejected_sources == 0
+        assert live.daemon.osc_stream.counters.as_dict() == {"accepted": 5}
+    else:
+        assert s.frames_in == 0 and s.rejected_sources == 6  # labels + 5 frames
+        assert live.daemon.osc_stream.counters.as_dict() == {}
+
+
+# ---- control -----------------------------------------------------------------------
+
+
+class _Streamer(threading.Thread):
+    """Streams the T-pose hold at ~200 Hz until stopped (a live source)."""
+
+    def __init__(self, src: OscSource) -> None:
+        super().__init__(name="test-streamer", daemon=True)
+        self.src = src
+        self.stop_event = threading.Event()
+
+    def run(self) -> None:
+        hold = _take().markers_world[_take().base_pose_frames]
+        k = 0
+        while not self.stop_event.is_set():
+            if k % 100 == 0:
+                self.src.announce()
+            self.src.send(hold[k % len(hold)])
+            k += 1
+            time.sleep(0.005)
+
+    def stop(self) -> None:
+        self.stop_event.set()
+        self.join(timeout=2.0)
+        assert not self.is_alive()
+
+
+@pytest.fixture
+def streamer() -> Iterator[Callable[[OscSource], _Streamer]]:
+    made: list[_Streamer] = []
+
+    def make(src: OscSource) -> _Streamer:
+        s = _Streamer(src)
+        made.append(s)
+        s.start()
+        return s
+
+    yield make
+    for s in made:
+        s.stop()
+
+
+def test_ctl_live_calibration_while_streaming_status_and_reload(
+    start_daemon: Callable[..., Live],
+    osc_source: Callable[..., OscSource],
+    zmq_socket: Callable[[int], Any],
+    streamer: Callable[[OscSource], _Streamer],
+    exact_calibration: Path,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    cal_path = tmp_path / "performer.json"
+    cal_path.write_bytes(exact_calibration.read_bytes())
+    live = start_daemon({"performer": {"calibration": str(cal_path)}})
+    ep = live.tcp("control")
+    sub = PoseSub(zmq_socket(zmq.SUB), live.tcp("zmq poses"))
+    src = osc_source(live)
+    feed = streamer(src)
+    sub.wait(lambda: len(sub.poses) > 20, "the stream")
+    first_cal = live.daemon.calibration
+
+    def ctl(*argv: str) -> tuple[int, str, str]:
+        rc = cli_main(["ctl", "--endpoint", ep, *argv])
+        out, err = capsys.readouterr()
+        return rc, out, err
+
+    for count, n_cal in ((30, 1), (10, 2)):
+        n_before = len(sub.poses)
+        rc, out, _ = ctl("calibrate", "--count", str(count))
+        assert rc == 0 and f"next {count} frames" in out
+        _wait_until(
+            lambda n=n_cal: (
+                sum(ln.startswith("calibrated on") for ln in live.lines) == n
+            ),
+            f"calibration {n_cal}",
+        )
+        doc = json.loads(cal_path.read_text())  # saved over the configured path
+        assert doc["base_pose"]["live"] and doc["base_pose"]["frames"] == count
+        assert doc["base_pose"]["requested_by"] == "ctl"
+        sub.wait(lambda n=n_before: len(sub.poses) > n + 20, "poses after calibrating")
+    assert live.daemon.calibration is not first_cal
+    assert any(line.startswith("calibrated on 30 frames; saved") for line in live.lines)
+
+    rc, out, _ = ctl("status")
+    assert rc == 0 and out.startswith("fps in") and "NOT CALIBRATED" not in out
+    rc, out, _ = ctl("status", "--json")
+    status = _json_strict(out)
+    assert rc == 0 and status["calibrated"] and status["counters"]["calibrations"] == 2
+    assert status["endpoints"] == live.daemon.endpoints
+    rc, out, _ = ctl("reload")
+    assert rc == 0 and out.strip() == "reloaded rig synth-exact and calibration"
+    n_before = len(sub.poses)
+    sub.wait(lambda: len(sub.poses) > n_before + 20, "poses after the reload")
+    feed.stop()
+    live.stop()
+    sub.pump(20)
+
+    # The stream never stopped: no hole in the daemon's send times (its monotonic
+    # clock) over the calibrations and the reload.
+    gaps = np.diff([p.sent_ns for p in sub.poses]) * 1e-9
+    assert gaps.max() < 0.25, gaps.max()  # ~0.02 s observed (200 Hz source)
+    ids = [p.frame_id for p in sub.poses]
+    assert ids == sorted(set(ids))
+    # Every new pipeline (2 calibrations, 1 reload) announced its names before its data.
+    names_ids = [p.names_id for p in sub.poses]
+    changes = [i for i in range(1, len(names_ids)) if names_ids[i] != names_ids[i - 1]]
+    assert len(changes) == 3
+    announced: set[int] = set()
+    for kind, nid in sub.events:
+        if kind == "names":
+            announced.add(nid)
+        elif nid != names_ids[0]:
+            assert nid in announced, f"data with names id {nid} before its names"
+    print(
+        f"\nlive calibration while streaming: {len(ids)} poses, longest gap "
+        f"{gaps.max() * 1e3:.0f} ms"
+    )
+
+
+def test_show_control_triggers_a_calibration(
+    start_daemon: Callable[..., Live],
+    osc_source: Callable[..., OscSource],
+    udp_socket: Callable[..., socket.socket],
+    streamer: Callable[[OscSource], _Streamer],
+    tmp_path: Path,
+) -> None:
+    saved = tmp_path / "show.json"
+    live = start_daemon(
+        {"performer": {"save_calibration": str(saved), "calibrate_frames": 20}}
+    )
+    feed = streamer(osc_source(live))
+    _wait_until(lambda: live.daemon.stats.frames_in > 10, "frames in")
+    assert live.daemon.stats.frames_out == 0  # not calibrated: nothing streamed
+    sock, show = udp_socket(), live.udp("show control")
+    sock.sendto(OscMessageBuilder("/VMC/Ext/Set/Calib/Ready").build().dgram, show)
+    bundle = OscBundleBuilder(IMMEDIATELY)
+    bundle.add_content(OscMessageBuilder("/VMC/Ext/Set/Calib/Exec").build())
+    sock.sendto(bundle.build().dgram, show)  # inside a bundle, as VMC apps send it
+    _wait_until(
+        lambda: any(
+            ln.startswith("calibrated on 20 frames; saved") for ln in live.lines
+        ),
+        "the calibration",
+    )
+    _wait_until(lambda: live.daemon.stats.frames_out > 10, "streaming")
+    feed.stop()
+    live.stop()
+    assert json.loads(saved.read_text())["base_pose"]["frames"] == 20
+    assert any("calibration ready" in line for line in live.lines)
+    assert any("calibrating over the next 20 frames" in line for line in live.lines)
+
+
+def test_side_by_side_daemons_and_ctl_endpoint(
+    start_daemon: Callable[..., Live],
+    osc_source: Callable[..., OscSource],
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    a, b = start_daemon(), start_daemon()
+    ends_a, ends_b = a.daemon.endpoints, b.daemon.endpoints
+    assert (
+        set(ends_a)
+        == set(ends_b)
+        == {
+            "osc markers",
+            "show control",
+            "zmq markers",
+            "zmq poses",
+            "control",
+            "vmc out",
+        }
+    )
+    assert not {v.split()[0] for v in ends_a.values()} & {
+        v.split()[0] for v in ends_b.values()
+    }
+    src = osc_source(a)
+    src.announce()
+    for row in range(3):
+        src.send(_take().markers_world[row])
+    _wait_until(lambda: a.daemon.stats.frames_in == 3, "frames at daemon A")
+    for live, frames in ((a, 3), (b, 0)):
+        rc = cli_main(["ctl", "--endpoint", live.tcp("control"), "status", "--json"])
+        out = capsys.readouterr().out
+        assert rc == 0
+        status = _json_strict(out)  # strict JSON: no NaN before the first frame
+        assert status["endpoints"] == live.daemon.endpoints
+        assert status["counters"]["frames_in"] == frames
+        assert not status["calibrated"]
+        rc = cli_main(["ctl", "--endpoint", live.tcp("control"), "status"])
+        assert rc == 0 and "NOT CALIBRATED" in capsys.readouterr().out
+    # Requests the daemon refuses; it keeps serving.
+    assert a.ctl({"cmd": "bogus"}) == {
+        "ok": False,
+        "error": "unknown command 'bogus' (status, calibrate, reload)",
+    }
+    assert not a.ctl({"cmd": "calibrate", "count": 0})["ok"]
+    assert not a.ctl({"cmd": "calibrate", "count": True})["ok"]
+    reply = request(a.tcp("control"), [1, 2], 2000)  # type: ignore[arg-type]
+    assert reply is not None and not reply["ok"]
+    assert (
+        cli_main(["ctl", "--endpoint", a.tcp("control"), "calibrate", "--count", "0"])
+        == 2
+    )
+    assert "--count must be >= 1" in capsys.readouterr().err
+    # Nobody there: exit 1 within the timeout.
+    dead = f"tcp://127.0.0.1:{_unused_udp_port()}"
+    t0 = time.monotonic()
+    assert cli_main(["ctl", "--endpoint", dead, "--timeout-ms", "200", "status"]) == 1
+    assert time.monotonic() - t0 < 2.0
+    assert "no daemon answered" in capsys.readouterr().err
+    assert a.running and b.running
+
+
+def test_readme_live_daemon_example(
+    start_daemon: Callable[..., Live], capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The README's "Live daemon" commands parse; its ctl commands work on a daemon
+    (with ``--endpoint`` added, since tests never use the default ports)."""
+    text = (REPO_ROOT / "README.md").read_text()
+    section = text.split("\n## Live daemon", 1)[1].split("\n## ", 1)[0]
+    block = re.search(r"```sh\n(.*?)```", section, flags=re.S)
+    assert block is not None
+    commands = []
+    for line in block.group(1).splitlines():
+        command, _, comment = line.partition("#")
+        commands.append(shlex.split(command))
+        if comment.strip().startswith("or:"):
+            commands.append(shlex.split(comment.strip()[3:]))
+    assert {c[1] for c in commands} >= {"calibrate", "run", "ctl"}
+    parser = build_parser()
+    for argv in commands:
+        assert argv[0] == "retargetd"
+        parser.parse_args(argv[1:])
+    live = start_daemon()
+    for argv in commands:
+        if argv[1] == "ctl":
+            rc = cli_main(["ctl", "--endpoint", live.tcp("control"), *argv[2:]])
+            assert rc == 0, (argv, capsys.readouterr())
+    assert live.daemon.status()["calibrating"]
+
+
+# ---- lifecycle: subprocesses -------------------------------------------------------
+
+
+def _retargetd() -> list[str]:
+    """The installed console script beside this interpreter, else ``-m``."""
+    script = Path(sys.executable).with_name("retargetd")
+    return (
+        [str(script)]
+        if script.is_file()
+        else [sys.executable, "-m", "retargetd.daemon"]
+    )
+
+
+class Proc:
+    """A subprocess whose stdout lines are read by a thread (bounded waits)."""
+
+    def __init__(self, argv: list[str], cwd: Path) -> None:
+        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+        self.p = subprocess.Popen(
+            argv,
+            cwd=cwd,
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        self.lines: list[str] = []
+        self._q: queue.Queue[str | None] = queue.Queue()
+        self._reader = threading.Thread(target=self._pump, daemon=True)
+        self._reader.start()
+
+    def _pump(self) -> None:
+        assert self.p.stdout is not None
+        for line in self.p.stdout:
+            self._q.put(line.rstrip("\n"))
+        self._q.put(None)
+
+    def read_until(self, pred: Callable[[str], bool], timeout_s: float) -> str:
+        deadline = time.monotonic() + timeout_s
+        while True:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise AssertionError(f"timed out; stdout so far: {self.lines}")
+            try:
+                line = self._q.get(timeout=left)
+            except queue.Empty:
+                continue
+            if line is None:
+                raise AssertionError(f"exited early; stdout: {self.lines}")
+            self.lines.append(line)
+            if pred(line):
+                return line
+
+    def finish(self, timeout_s: float) -> tuple[int, str]:
+        rc = self.p.wait(timeout=timeout_s)
+        self._reader.join(timeout=5.0)
+        while True:
+            line = self._q.get_nowait() if not self._q.empty() else None
+            if line is None:
+                break
+            self.lines.append(line)
+        assert self.p.stderr is not None
+        return rc, self.p.stderr.read()
+
+    def close(self) -> None:
+        if self.p.poll() is None:
+            self.p.kill()
+            self.p.wait(timeout=5.0)
+        self._reader.join(timeout=5.0)
+        for stream in (self.p.stdout, self.p.stderr):
+            if stream is not None:
+                stream.close()
+
+
+@pytest.fixture
+def spawn(tmp_path: Path) -> Iterator[Callable[..., Proc]]:
+    procs: list[Proc] = []
+
+    def make(*args: str) -> Proc:
+        proc = Proc([*_retargetd(), *args], tmp_path)
+        procs.append(proc)
+        return proc
+
+    yield make
+    for proc in procs:
+        proc.close()
+
+
+def _toml_config(path: Path, vmc_port: int, extra: str = "") -> Path:
+    q = json.dumps  # a JSON string is a valid TOML basic string for these paths
+    path.write_text(
+        f"""[performer]
+rig = {q(str(EXACT_RIG))}
+{extra}
+[input.osc]
+port = 0
+[input.zmq]
+endpoint = "tcp://127.0.0.1:*"
+[output.vmc]
+port = {vmc_port}
+[output.pose]
+endpoint = "tcp://127.0.0.1:*"
+[control]
+endpoint = "tcp://127.0.0.1:*"
+[show_control]
+port = 0
+"""
+    )
+    return path
+
+
+def _endpoints(lines: list[str]) -> dict[str, str]:
+    out = {}
+    for line in lines:
+        m = ENDPOINT_LINE.match(line)
+        if m:
+            out[m.group(3)] = m.group(2)
+    return out
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
+def test_run_subprocess_stops_cleanly_on_signal(
+    spawn: Callable[..., Proc],
+    udp_socket: Callable[..., socket.socket],
+    exact_calibration: Path,
+    tmp_path: Path,
+    signum: int,
+) -> None:
+    vmc_rx = VmcReceiver(udp_socket(bind=True))
+    config = _toml_config(
+        tmp_path / "retargetd.toml",
+        vmc_rx.port,
+        f"calibration = {json.dumps(str(exact_calibration))}",
+    )
+    proc = spawn("run", "--config", str(config), "--process-every-frame")
+    proc.read_until(lambda line: "vmc out" in line, timeout_s=30.0)
+    listening = [line for line in proc.lines if line.startswith("listening on")]
+    what = sorted(line.rsplit(": ", 1)[1] for line in listening)
+    assert what == [
+        "control",
+        "osc markers",
+        "show control",
+        "zmq markers",
+        "zmq poses",
+    ]
+    ends = _endpoints(proc.lines)
+    assert ends["vmc out"] == f"udp://127.0.0.1:{vmc_rx.port}"
+    # It is live: markers in, VMC out, control answers.
+    host, port = ends["osc markers"].removeprefix("udp://").rsplit(":", 1)
+    src = OscSource(udp_socket(), (host, int(port)))
+    src.announce()
+    for row in range(3):
+        src.send(_take().markers_world[row])
+    vmc_rx.wait_frames(3, timeout_s=10.0)
+    reply = request(ends["control"], {"cmd": "status"}, 5000)
+    assert reply is not None and reply["status"]["counters"]["frames_out"] == 3
+
+    t0 = time.monotonic()
+    proc.p.send_signal(signum)
+    rc, err = proc.finish(timeout_s=5.0)
+    took = time.monotonic() - t0
+    assert rc == 0, err
+    assert took < 2.0, f"exit took {took:.2f} s"
+    assert proc.lines[-1] == "retargetd: stopped"
+    assert "Traceback" not in err
+    # Every socket was closed: the same ports bind again.
+    for what in ("osc markers", "show control"):
+        host, port = ends[what].removeprefix("udp://").rsplit(":", 1)
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            s.bind((host, int(port)))
+    for what in ("zmq markers", "zmq poses", "control"):
+        host, port = ends[what].removeprefix("tcp://").rsplit(":", 1)
+        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            s.bind((host, int(port)))
+            s.listen()
+    print(f"\n{signal.Signals(signum).name}: exit 0 after {took * 1e3:.0f} ms")
+
+
+@pytest.mark.parametrize(
+    ("extra", "key"),
+    [
+        ("[loop]\nsolve_budget_ms = -1.0", "loop.solve_budget_ms"),
+        ("[input.zmq]\nmode = 'push'", "input.zmq.mode"),
+        ("[output.vmc]\nprot = 5", "output.vmc.prot"),
+    ],
+)
+def test_run_subprocess_bad_config_exits_2_with_one_line(
+    spawn: Callable[..., Proc], tmp_path: Path, extra: str, key: str
+) -> None:
+    config = tmp_path / "bad.toml"
+    config.write_text(f"[performer]\nrig = {json.dumps(str(EXACT_RIG))}\n{extra}\n")
+    proc = spawn("run", "--config", str(config))
+    rc, err = proc.finish(timeout_s=20.0)
+    assert rc == 2
+    assert len(err.splitlines()) == 1, err
+    assert err.startswith("retargetd run: error:") and key in err
+    assert not any("listening on" in line for line in proc.lines)
+
+
+def test_demo_subprocess_streams_poses(
+    spawn: Callable[..., Proc],
+    udp_socket: Callable[..., socket.socket],
+    zmq_socket: Callable[[int], Any],
+    tmp_path: Path,
+) -> None:
+    vmc_rx = VmcReceiver(udp_socket(bind=True))
+    config = _toml_config(tmp_path / "demo.toml", vmc_rx.port)
+    proc = spawn("demo", "--seconds", "2", "--rate", "120", "--config", str(config))
+    proc.read_until(lambda line: line.endswith(": zmq poses"), timeout_s=30.0)
+    sub = PoseSub(zmq_socket(zmq.SUB), _endpoints(proc.lines)["zmq poses"])
+    deadline = time.monotonic() + 30.0
+    while proc.p.poll() is None and time.monotonic() < deadline:
+        sub.pump(20)
+        vmc_rx.pump()
+    rc, err = proc.finish(timeout_s=5.0)
+    sub.pump(50)
+    vmc_rx.pump()
+    assert rc == 0, err
+    assert any(line.startswith("calibrated on") for line in proc.lines)
+    summary = proc.lines[-1]
+    assert summary.startswith("demo: sent"), proc.lines
+    assert len(sub.poses) > 50, len(sub.poses)
+    ids = [p.frame_id for p in sub.poses]
+    assert ids == sorted(set(ids))
+    assert all(p.received_ns <= p.solved_ns <= p.sent_ns for p in sub.poses)
+    assert sub.names and sub.names[-1].rig == "menache"
+    assert sub.names[-1].names_id == sub.poses[-1].names_id
+    assert len(sub.names[-1].bone_names) == sub.poses[-1].world_from_bone_quat.shape[0]
+    streamed = int(re.findall(r"streamed (\d+)", summary)[0])
+    assert len(vmc_rx.frames) == streamed  # one VMC frame per pose streamed
+    print(
+        f"\ndemo: {summary}; the SUB received {len(sub.poses)} poses, "
+        f"{len(vmc_rx.frames)} VMC frames"
+    )
