@@ -57,7 +57,8 @@ class OscInputConfig:
     labels: tuple[str, ...] = ()  # the simple form's marker names (compact: announced)
     units: str = "m"
     up: str = "+Z"
-    allow: tuple[str, ...] = ()  # allowed source addresses ("" = any)
+    allow: tuple[str, ...] = ()  # allowed source addresses, markers and show control
+    # (empty = any)
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)

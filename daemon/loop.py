@@ -116,6 +116,8 @@ class Daemon:
         self._calib_labels: tuple[str, ...] = ()
         self._calib_requested_by = ""
         self._frame_flags = 0  # restarted / input dropped since the last pose sent
+        # (t_ns, frames_in, frames_out) at the last stats line: fps over that window.
+        self._window = (self._t0_ns, 0, 0)
         self.last_stats_line = ""
         self.endpoints: dict[str, str] = {}
 
@@ -233,6 +235,7 @@ class Daemon:
             now = time.monotonic_ns()
             if now >= next_stats:
                 self.last_stats_line = self.stats_line()
+                self._window = (now, self.stats.frames_in, self.stats.frames_out)
                 self.out(self.last_stats_line)
                 next_stats = now + int(c.stats_interval_s * 1e9)
 
@@ -580,8 +583,9 @@ class Daemon:
             "calibrating": self._calib_target > 0,
             "endpoints": self.endpoints,
             "counters": self.stats.counters(),
-            "fps_in": round(self.stats.frames_in / up_s, 2) if up_s else 0.0,
-            "fps_out": round(self.stats.frames_out / up_s, 2) if up_s else 0.0,
+            "fps_in": self._fps(self.stats.frames_in, 1),
+            "fps_out": self._fps(self.stats.frames_out, 2),
+            "fps_window_s": round((time.monotonic_ns() - self._window[0]) * 1e-9, 3),
             "drops": {
                 "osc": self.osc_stream.counters.as_dict(),
                 "zmq": self.zmq_stream.counters.as_dict(),
@@ -590,6 +594,12 @@ class Daemon:
             "occluded_markers": occluded,
             "held_bones": flagged,
         }
+
+    def _fps(self, count: int, which: int) -> float:
+        """Frames per second since the last stats line (the recent rate, not the
+        lifetime average: it falls to 0 when a source stops)."""
+        dt = (time.monotonic_ns() - self._window[0]) * 1e-9
+        return round((count - self._window[which]) / dt, 2) if dt > 0 else 0.0
 
     def stats_line(self) -> str:
         """The periodic one-line health summary."""
@@ -649,6 +659,9 @@ class Daemon:
                 n, addr = self._show.recvfrom_into(self._buf)
             except (BlockingIOError, InterruptedError):
                 break
+            if self._allow and addr[0] not in self._allow:
+                self.stats.rejected_sources += 1  # the same allow-list as the markers
+                continue
             packet = bytes(self._buf[:n])
             for message in _osc_messages(packet):
                 try:

@@ -154,11 +154,13 @@ class VmcEncoder:
         self._dot: F64Array = np.zeros(n_pose)
         self._flip: BoolArray = np.zeros(n_pose, dtype=bool)
         self._flip_col = self._flip[:, None]
-        self._has_last = False
+        self.reset_continuity()
 
     def reset_continuity(self) -> None:
-        """Forget the last quaternions sent (e.g. after a receiver restart)."""
-        self._has_last = False
+        """Forget the last quaternions sent (e.g. after a receiver restart): the next
+        frame is kept on the hemisphere of the identity (w >= 0), so the first frame's
+        signs are deterministic too."""
+        self._last_quat[:] = (0.0, 0.0, 0.0, 1.0)  # x y z w identity
 
     def encode(
         self,
@@ -172,8 +174,8 @@ class VmcEncoder:
         """Write one frame into the datagrams and return them.
 
         Each quaternion (the root's and every bone's) is negated when its dot product
-        with the one sent last frame is < 0, so receivers that blend never take the
-        long way round.
+        with the one sent last frame is < 0 (with the identity for the first frame),
+        so receivers that blend never take the long way round.
 
         Args:
             root_pos_unity: (3,) float, metres, Unity frame: the model root's position.
@@ -194,12 +196,10 @@ class VmcEncoder:
         pose[1:, 0:3] = bone_pos_unity
         pose[1:, 3:7] = bone_quat_xyzw
         quat = self._quat
-        if self._has_last:
-            np.multiply(quat, self._last_quat, out=self._prod)
-            np.sum(self._prod, axis=1, out=self._dot)
-            np.less(self._dot, 0.0, out=self._flip)
-            np.negative(quat, out=quat, where=self._flip_col)
-        self._has_last = True
+        np.multiply(quat, self._last_quat, out=self._prod)
+        np.sum(self._prod, axis=1, out=self._dot)
+        np.less(self._dot, 0.0, out=self._flip)
+        np.negative(quat, out=quat, where=self._flip_col)
         np.copyto(self._last_quat, quat)
         self._blend[:] = blend
         self._stage[-1] = t_s

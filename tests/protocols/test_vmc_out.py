@@ -23,6 +23,7 @@ EXTRA = tuple(
 def _frame(rng: np.random.Generator, n: int, k: int) -> tuple:
     quats = rng.normal(size=(n + 1, 4))
     quats /= np.linalg.norm(quats, axis=1, keepdims=True)
+    quats *= np.where(quats[:, 3:] < 0, -1.0, 1.0)  # x y z w, w >= 0: sent unchanged
     return (
         rng.normal(size=3),
         quats[0],
@@ -103,10 +104,13 @@ def test_hemisphere_continuity(rng: np.random.Generator) -> None:
     sent = np.array([p[4:] for _, p in _messages(enc.datagrams)[:3]])
     np.testing.assert_allclose(sent, q, rtol=1e-6)
     assert (np.sum(sent * sent_first, axis=1) >= 0).all()
+    # After a reset (and on the very first frame) the reference is the identity:
+    # every quaternion is sent with w >= 0, whatever sign it was given.
     enc.reset_continuity()
     enc.encode(root_pos, flipped[0], bone_pos, flipped[1:], blend, 0.2)
     sent = np.array([p[4:] for _, p in _messages(enc.datagrams)[:3]])
-    np.testing.assert_allclose(sent, flipped, rtol=1e-6)
+    np.testing.assert_allclose(sent, q, rtol=1e-6)
+    assert (sent[:, 3] >= 0).all()
 
 
 def test_vmcp_reads_the_frame(rng: np.random.Generator) -> None:
