@@ -40,6 +40,14 @@ def test_readme_main_command_runs(
     assert argv[:2] == ["retargetd", "demo"]
     # The README runs it for longer; 3 s shows the same path (calibration, streaming).
     argv[argv.index("--seconds") + 1] = "3"
+    # Ephemeral ports, so parallel test runs never collide on the defaults.
+    config = tmp_path / "ports.toml"
+    config.write_text(
+        "[input.osc]\nport = 0\n[input.zmq]\nendpoint = 'tcp://127.0.0.1:*'\n"
+        "[output.pose]\nendpoint = 'tcp://127.0.0.1:*'\n"
+        "[control]\nendpoint = 'tcp://127.0.0.1:*'\n[show_control]\nport = 0\n"
+    )
+    argv += ["--config", str(config)]
     monkeypatch.chdir(tmp_path)
     assert main(argv[1:]) == 0
     out = capsys.readouterr().out
