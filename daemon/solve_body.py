@@ -324,16 +324,19 @@ rule = { height = "C", width = "M", depth = "M" }
 origin = "M"
 aim = "C"
 up = "B"
+humanoid = "Hips"
 [joints]
 J = "R"
 """
 
 
 def warm_up() -> None:
-    """Load (or compile) the kernel through the same code path as a real solve, so
-    the first live frame does not pay numba's cache load (~0.3 s) or compile."""
+    """Load (or compile) the body-solve and retarget kernels through the same code
+    paths as a real frame (``BodySolver.solve_frame``, ``Retargeter.apply``), so the
+    first live frame does not pay numba's cache load (~0.3 s) or compile."""
     from retargetd.daemon.calibration import calibrate
     from retargetd.daemon.rig import parse_rig
+    from retargetd.daemon.target import Retargeter  # (target imports this module)
 
     rig = parse_rig(_WARM_RIG, source="warm-up")
     labels = ("A", "B", "C", "D")
@@ -343,4 +346,11 @@ def warm_up() -> None:
     solver = BodySolver(rig, calibrate(rig, frame[None], labels), labels)
     solver.solve_take(frame[None])
     frame[3] = np.nan  # exercise the rigid-segment rebuild as well
-    solver.solve_frame(frame, solver.new_pose())
+    pose = solver.solve_frame(frame, solver.new_pose())
+    rt = Retargeter(
+        rig,
+        solver.calibration,
+        performer_left_world=np.array([0.0, 1.0, 0.0]),
+        performer_hips_height=1.0,
+    )
+    rt.apply(pose, rt.new_pose())

@@ -57,8 +57,9 @@ child joint, or the tip for a leaf, at rest, world axes).
    Hips' Bone/Pos position), so the hips move by the scaled displacement.
 
 Everything is in the internal world (+Z up, metres); ``protocols/engine_unity``
-converts for VMC. :meth:`Retargeter.apply` is vectorized over bones and allocates
-nothing in steady state.
+converts for VMC. :meth:`Retargeter.apply` is one call of the compiled kernel
+(``retargetd.daemon.kernel_target``) and allocates nothing in steady state; the numpy
+version it replaced, :func:`_reference_apply`, is the tests' oracle.
 """
 
 from __future__ import annotations
@@ -70,9 +71,11 @@ from pathlib import Path
 
 import numpy as np
 
+from retargetd.daemon import kernel_target as kt
 from retargetd.daemon import rotations as rot
 from retargetd.daemon.calibration import Calibration, check_calibration_fits
 from retargetd.daemon.kernel import FLAG_HELD
+from retargetd.daemon.kernel_target import FLAG_FILLED, FLAG_SOURCE_HELD
 from retargetd.daemon.rig import HUMANOID_BONES, Rig
 from retargetd.daemon.solve_body import BodyPose
 from retargetd.protocols.conventions import (
@@ -136,11 +139,6 @@ COMPENSATED_BONES = tuple(
     for s in ("Left", "Right")
     for b in ("UpperArm", "LowerArm", "UpperLeg", "LowerLeg")
 )
-
-#: Bit 0: filled by interpolation along the chain (the rig does not solve it).
-FLAG_FILLED = 1
-#: Bit 1: the rig bone it follows was held this frame (solve ``FLAG_HELD``).
-FLAG_SOURCE_HELD = 2
 
 #: BVH joint name (after stripping a ``prefix:``) -> humanoid bone: Mixamo,
 #: MotionBuilder and most game rigs.
@@ -711,31 +709,31 @@ class Retargeter:
         self.root_scale = target.hips_height / self.performer_hips_height
         self._root_rest = _readonly(calibration.root_rest_pos)
 
-        # Scratch (steady state allocates nothing).
-        m, ni = len(mapped), len(interp)
-        self._w = np.zeros((m, 4))
-        self._em = np.zeros((m, 4))
-        self._e = np.tile(_IDENTITY, (n + 1, 1))  # row n: identity, Hips' "parent"
-        self._e_n = self._e[:n]
-        self._ep = np.zeros((n, 4))
-        self._q0 = np.zeros((ni, 4))
-        self._q1 = np.zeros((ni, 4))
-        self._qi = np.zeros((ni, 4))
-        self._tmp4 = np.zeros((ni, 4))
-        self._dot = np.zeros(ni)
-        self._theta = np.zeros(ni)
-        self._sin = np.zeros(ni)
-        self._tmp = np.zeros(ni)
-        self._w0 = np.zeros(ni)
-        self._w1 = np.zeros(ni)
-        self._mask = np.zeros(ni, dtype=bool)
-        self._sgn = np.zeros(ni)
-        self._sgn_col = self._sgn[:, None]
-        self._norm_col = self._tmp[:, None]
-        self._w0_col = self._w0[:, None]
-        self._w1_col = self._w1[:, None]
-        self._ec = np.zeros((len(copy), 4))
-        self._fsrc = np.zeros(m, dtype=np.uint8)
+        # The compiled kernel's program (kernel_target), read-only, and its scratch.
+        prog = np.zeros((n, 4), dtype=np.int64)
+        prog[:, 3] = target.parents
+        cst = np.zeros((n, kt.N_CST))
+        cst[:, kt.C_REST : kt.C_REST + 4] = target.rest_world_from_bone_quat
+        for m, i in enumerate(mapped):
+            prog[i, :3] = (kt.KIND_MAPPED, src[i], -1)
+            cst[i, kt.C_K : kt.C_K + 4] = k[m]
+        for (i, a, d, _), u, one_minus_u in zip(
+            interp, self._i_u, self._i_1mu, strict=True
+        ):
+            prog[i, :3] = (kt.KIND_SLERP, a, d)
+            cst[i, kt.C_U] = u
+            cst[i, kt.C_1MU] = one_minus_u
+        for i, c in zip(copy, copy_src, strict=True):
+            prog[i, :3] = (kt.KIND_COPY, c, -1)
+        params = np.zeros(kt.N_PARAMS)
+        params[kt.P_ROOT : kt.P_ROOT + 3] = self._root_rest
+        params[kt.P_SCALE] = self.root_scale
+        params[kt.P_HALF_LINEAR] = 0.5 * rot.SLERP_LINEAR_BELOW_RAD
+        prog.flags.writeable = False
+        self._prog = prog
+        self._cst = _readonly(cst)
+        self._params = _readonly(params)
+        self._e = np.tile(_IDENTITY, (n, 1))  # E_h, scratch (steady state: no alloc)
 
     def new_pose(self) -> TargetPose:
         """Allocate one frame's output buffers (once per stream)."""
@@ -760,61 +758,106 @@ class Retargeter:
         Returns:
             ``out``.
         """
-        e = self._e
-        # E_h = W_b(t) ⊗ K_h for the mapped bones.
-        np.take(pose.world_from_bone_quat, self._src, axis=0, out=self._w)
-        np.einsum("ijk,nj,nk->ni", _MUL, self._w, self._k, out=self._em)
-        e[self._mapped_t] = self._em
-        if self._i_t.size:
-            self._slerp_filled()
-            e[self._i_t] = self._qi
-        if self._c_t.size:
-            np.take(e, self._c_s, axis=0, out=self._ec)
-            e[self._c_t] = self._ec
-        # L_h = Ē_parent ⊗ E_h (Hips' parent row is identity); G_h = E_h ⊗ T_h.
-        np.take(e, self._parent, axis=0, out=self._ep)
-        np.einsum("ijk,nj,nk->ni", _CONJ_MUL, self._ep, self._e_n,
-                  out=out.parent_from_bone_quat)  # fmt: skip
-        np.einsum("ijk,nj,nk->ni", _MUL, self._e_n, self._rest_t,
-                  out=out.world_from_bone_quat)  # fmt: skip
-        np.subtract(pose.root_pos, self._root_rest, out=out.root_pos)
-        np.multiply(out.root_pos, self.root_scale, out=out.root_pos)
-        np.add(out.root_pos, out.rest_offsets[0], out=out.hips_pos)
-        np.copyto(out.flags, self._base_flags)
-        np.take(pose.bone_flags, self._src, out=self._fsrc)
-        np.bitwise_and(self._fsrc, FLAG_HELD, out=self._fsrc)
-        np.minimum(self._fsrc, 1, out=self._fsrc)
-        np.multiply(self._fsrc, FLAG_SOURCE_HELD, out=self._fsrc)
-        out.flags[self._mapped_t] = self._fsrc
+        kt.retarget_one(
+            pose.world_from_bone_quat, pose.root_pos, pose.bone_flags, self._prog,
+            self._cst, self._params, self._e, out.parent_from_bone_quat,
+            out.world_from_bone_quat, out.root_pos, out.hips_pos, out.rest_offsets,
+            out.flags,
+        )  # fmt: skip
         return out
 
-    def _slerp_filled(self) -> None:
-        """``_qi = slerp(E[a], E[d], u)`` per filled bone, short arc, into buffers."""
-        q0, q1 = self._q0, self._q1
-        np.take(self._e, self._i_a, axis=0, out=q0)
-        np.take(self._e, self._i_d, axis=0, out=q1)
-        np.einsum("ij,ij->i", q0, q1, out=self._dot)
-        np.copysign(1.0, self._dot, out=self._sgn)  # short arc: q1 -> -q1 if dot < 0
-        np.multiply(q1, self._sgn_col, out=q1)
-        np.abs(self._dot, out=self._dot)
-        np.minimum(self._dot, 1.0, out=self._dot)
-        np.arccos(self._dot, out=self._theta)  # half the angle between the ends
-        np.sin(self._theta, out=self._sin)
-        np.greater(self._theta, 0.5 * rot.SLERP_LINEAR_BELOW_RAD, out=self._mask)
-        np.copyto(self._w0, self._i_1mu)
-        np.copyto(self._w1, self._i_u)
-        np.multiply(self._i_1mu, self._theta, out=self._tmp)
-        np.sin(self._tmp, out=self._tmp)
-        np.divide(self._tmp, self._sin, out=self._w0, where=self._mask)
-        np.multiply(self._i_u, self._theta, out=self._tmp)
-        np.sin(self._tmp, out=self._tmp)
-        np.divide(self._tmp, self._sin, out=self._w1, where=self._mask)
-        np.multiply(q0, self._w0_col, out=self._qi)
-        np.multiply(q1, self._w1_col, out=self._tmp4)
-        np.add(self._qi, self._tmp4, out=self._qi)
-        np.einsum("ij,ij->i", self._qi, self._qi, out=self._tmp)
-        np.sqrt(self._tmp, out=self._tmp)
-        np.divide(self._qi, self._norm_col, out=self._qi)
+
+class _ReferenceScratch:
+    """Buffers of :func:`_reference_apply` (built once per retargeter)."""
+
+    def __init__(self, rt: Retargeter) -> None:
+        n, m, ni = len(rt.bone_names), len(rt._src), len(rt._i_t)
+        self.w = np.zeros((m, 4))
+        self.em = np.zeros((m, 4))
+        self.e = np.tile(_IDENTITY, (n + 1, 1))  # row n: identity, Hips' "parent"
+        self.e_n = self.e[:n]
+        self.ep = np.zeros((n, 4))
+        self.q0 = np.zeros((ni, 4))
+        self.q1 = np.zeros((ni, 4))
+        self.qi = np.zeros((ni, 4))
+        self.tmp4 = np.zeros((ni, 4))
+        self.dot = np.zeros(ni)
+        self.theta = np.zeros(ni)
+        self.sin = np.zeros(ni)
+        self.tmp = np.zeros(ni)
+        self.w0 = np.zeros(ni)
+        self.w1 = np.zeros(ni)
+        self.mask = np.zeros(ni, dtype=bool)
+        self.sgn = np.zeros(ni)
+        self.sgn_col = self.sgn[:, None]
+        self.norm_col = self.tmp[:, None]
+        self.w0_col = self.w0[:, None]
+        self.w1_col = self.w1[:, None]
+        self.ec = np.zeros((len(rt._c_t), 4))
+        self.fsrc = np.zeros(m, dtype=np.uint8)
+
+
+def _reference_apply(
+    rt: Retargeter, pose: BodyPose, out: TargetPose, s: _ReferenceScratch
+) -> TargetPose:
+    """:meth:`Retargeter.apply` in vectorized numpy (~41 calls): the test oracle of
+    the compiled kernel and the baseline of ``bench/bench_retarget.py``; not hot."""
+    e = s.e
+    # E_h = W_b(t) ⊗ K_h for the mapped bones.
+    np.take(pose.world_from_bone_quat, rt._src, axis=0, out=s.w)
+    np.einsum("ijk,nj,nk->ni", _MUL, s.w, rt._k, out=s.em)
+    e[rt._mapped_t] = s.em
+    if rt._i_t.size:
+        _reference_slerp_filled(rt, s)
+        e[rt._i_t] = s.qi
+    if rt._c_t.size:
+        np.take(e, rt._c_s, axis=0, out=s.ec)
+        e[rt._c_t] = s.ec
+    # L_h = Ē_parent ⊗ E_h (Hips' parent row is identity); G_h = E_h ⊗ T_h.
+    np.take(e, rt._parent, axis=0, out=s.ep)
+    np.einsum("ijk,nj,nk->ni", _CONJ_MUL, s.ep, s.e_n,
+              out=out.parent_from_bone_quat)  # fmt: skip
+    np.einsum("ijk,nj,nk->ni", _MUL, s.e_n, rt._rest_t,
+              out=out.world_from_bone_quat)  # fmt: skip
+    np.subtract(pose.root_pos, rt._root_rest, out=out.root_pos)
+    np.multiply(out.root_pos, rt.root_scale, out=out.root_pos)
+    np.add(out.root_pos, out.rest_offsets[0], out=out.hips_pos)
+    np.copyto(out.flags, rt._base_flags)
+    np.take(pose.bone_flags, rt._src, out=s.fsrc)
+    np.bitwise_and(s.fsrc, FLAG_HELD, out=s.fsrc)
+    np.minimum(s.fsrc, 1, out=s.fsrc)
+    np.multiply(s.fsrc, FLAG_SOURCE_HELD, out=s.fsrc)
+    out.flags[rt._mapped_t] = s.fsrc
+    return out
+
+
+def _reference_slerp_filled(rt: Retargeter, s: _ReferenceScratch) -> None:
+    """``s.qi = slerp(E[a], E[d], u)`` per filled bone, short arc, into buffers."""
+    q0, q1 = s.q0, s.q1
+    np.take(s.e, rt._i_a, axis=0, out=q0)
+    np.take(s.e, rt._i_d, axis=0, out=q1)
+    np.einsum("ij,ij->i", q0, q1, out=s.dot)
+    np.copysign(1.0, s.dot, out=s.sgn)  # short arc: q1 -> -q1 if dot < 0
+    np.multiply(q1, s.sgn_col, out=q1)
+    np.abs(s.dot, out=s.dot)
+    np.minimum(s.dot, 1.0, out=s.dot)
+    np.arccos(s.dot, out=s.theta)  # half the angle between the ends
+    np.sin(s.theta, out=s.sin)
+    np.greater(s.theta, 0.5 * rot.SLERP_LINEAR_BELOW_RAD, out=s.mask)
+    np.copyto(s.w0, rt._i_1mu)
+    np.copyto(s.w1, rt._i_u)
+    np.multiply(rt._i_1mu, s.theta, out=s.tmp)
+    np.sin(s.tmp, out=s.tmp)
+    np.divide(s.tmp, s.sin, out=s.w0, where=s.mask)
+    np.multiply(rt._i_u, s.theta, out=s.tmp)
+    np.sin(s.tmp, out=s.tmp)
+    np.divide(s.tmp, s.sin, out=s.w1, where=s.mask)
+    np.multiply(q0, s.w0_col, out=s.qi)
+    np.multiply(q1, s.w1_col, out=s.tmp4)
+    np.add(s.qi, s.tmp4, out=s.qi)
+    np.einsum("ij,ij->i", s.qi, s.qi, out=s.tmp)
+    np.sqrt(s.tmp, out=s.tmp)
+    np.divide(s.qi, s.norm_col, out=s.qi)
 
 
 def bone_axes_from_world_axes(

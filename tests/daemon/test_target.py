@@ -363,6 +363,144 @@ def test_apply_returns_out_and_does_not_allocate(hand: tuple) -> None:
     assert end - start < 1024, f"{end - start} bytes kept over 1000 apply calls"
 
 
+def _nrt_stats() -> tuple[int, int]:
+    nrt = pytest.importorskip("numba.core.runtime._nrt_python")
+    if not hasattr(nrt, "memsys_enable_stats"):
+        pytest.skip("numba has no NRT statistics switch")
+    nrt.memsys_enable_stats()
+    return int(nrt.memsys_get_stats_alloc()), int(nrt.memsys_get_stats_free())
+
+
+def test_kernel_allocates_nothing_on_numba_heap(hand: tuple) -> None:
+    # numba's own heap (not visible to tracemalloc): a call boxes each array argument
+    # (one MemInfo per array, freed on return); the kernel itself allocates nothing.
+    rig, cal, rt = hand
+    pose = _pose(cal)
+    _rotate_bones(pose, rig, _quat_z(30.0), ["chest"])
+    out = rt.new_pose()
+    rt.apply(pose, out)
+
+    def allocs(calls: int) -> tuple[int, int]:
+        a0, f0 = _nrt_stats()
+        for _ in range(calls):
+            rt.apply(pose, out)
+        a1, f1 = _nrt_stats()
+        return a1 - a0, f1 - f0
+
+    one, _ = allocs(1)
+    many, freed = allocs(100)
+    n_array_args = 13  # kernel_target.retarget_one
+    assert one <= n_array_args
+    assert many == 100 * one and freed == many
+
+
+def _random_quats(rng: np.random.Generator, n: int) -> np.ndarray:
+    q = rng.normal(size=(n, 4))
+    return q / np.linalg.norm(q, axis=1, keepdims=True)
+
+
+def _oracle_cases() -> list[tuple[str, Rig, Calibration, tg.Retargeter]]:
+    rig = _hand_rig()
+    cal = _hand_calibration(rig)
+    apose = _hand_calibration(rig, arm_down_deg=60.0)
+    sparse = dataclasses.replace(
+        rig,
+        humanoid={
+            k: v
+            for k, v in rig.humanoid.items()
+            if k not in ("Chest", "Neck", "LeftLowerArm", "LeftHand", "RightFoot")
+        },
+    )
+    turned = dataclasses.replace(
+        cal, rest_world_from_bone_quat=rot.quat_mul(
+            _quat_z(-37.0), cal.rest_world_from_bone_quat
+        ),
+    )  # fmt: skip
+    bvh = tg.TargetSkeleton.from_bvh(BVH)
+    return [
+        ("hand", rig, cal, tg.Retargeter(rig, cal)),
+        ("hand a-pose", rig, apose, tg.Retargeter(rig, apose)),
+        ("hand plain", rig, apose, tg.Retargeter(rig, apose,
+                                                 compensate_base_pose=False)),
+        ("hand turned", rig, turned, tg.Retargeter(rig, turned)),
+        ("sparse", sparse, cal, tg.Retargeter(sparse, cal)),
+        ("bvh target", rig, apose, tg.Retargeter(rig, apose, bvh)),
+    ]  # fmt: skip
+
+
+def _assert_matches_oracle(
+    rt: tg.Retargeter, pose: BodyPose, scratch: object, what: str
+) -> None:
+    got, want = rt.new_pose(), rt.new_pose()
+    assert rt.apply(pose, got) is got
+    tg._reference_apply(rt, pose, want, scratch)
+    for name in ("world_from_bone_quat", "parent_from_bone_quat", "root_pos",
+                 "hips_pos"):  # fmt: skip
+        np.testing.assert_allclose(
+            getattr(got, name), getattr(want, name), rtol=0, atol=1e-12,
+            err_msg=f"{what}: {name}",
+        )  # fmt: skip
+    np.testing.assert_array_equal(got.flags, want.flags, err_msg=what)
+
+
+def test_compiled_apply_equals_numpy_oracle() -> None:
+    """Random poses, held sources, filled bones (slerped and copied), BVH target."""
+    rng = np.random.default_rng(7)
+    for what, rig, cal, rt in _oracle_cases():
+        assert rt.filled, what
+        scratch = tg._ReferenceScratch(rt)
+        b = len(rig.bones)
+        for trial in range(200):
+            pose = _pose(cal)
+            pose.world_from_bone_quat[:] = _random_quats(rng, b)
+            pose.root_pos[:] = rng.normal(size=3)
+            pose.bone_flags[:] = rng.integers(0, 16, size=b, dtype=np.uint8)
+            _assert_matches_oracle(rt, pose, scratch, f"{what} #{trial}")
+        # Slerp edge cases: ends equal, antipodal (same rotation), tiny angles on
+        # both sides of the linear fallback, and nearly opposite rotations.
+        for deg in (0.0, 1e-8, 4e-5, 6e-5, 1e-3, 30.0, 179.0, 180.0, 181.0, 359.9):
+            pose = _pose(cal)
+            for bone in rig.bone_names:
+                if bone not in ("hips", "spine", "chest"):
+                    _rotate_bones(pose, rig, _quat_z(deg), [bone])
+            _assert_matches_oracle(rt, pose, scratch, f"{what} {deg} deg")
+            pose.world_from_bone_quat[:] *= -1.0
+            pose.bone_flags[:] = FLAG_HELD
+            _assert_matches_oracle(rt, pose, scratch, f"{what} {deg} deg, negated")
+
+
+def test_compiled_apply_equals_numpy_oracle_on_menache(synth: pf.SynthTake) -> None:
+    rig = load_rig("menache")
+    cal = calibrate(rig, synth.markers_world[synth.base_pose_frames], synth.labels)
+    rt = tg.Retargeter(rig, cal)
+    assert rt.filled
+    scratch = tg._ReferenceScratch(rt)
+    solver = BodySolver(rig, cal, synth.labels)
+    bp = solver.new_pose()
+    frames = np.array(synth.markers_world)
+    frames[60:, 0] = np.nan  # SACRUM lost after the T-pose: bones held
+    held = 0
+    for f in range(frames.shape[0]):
+        solver.solve_frame(frames[f], bp)
+        held += bool((bp.bone_flags & FLAG_HELD).any())
+        _assert_matches_oracle(rt, bp, scratch, f"menache frame {f}")
+    assert held > 0
+
+
+def test_warm_up_loads_the_retarget_kernel(hand: tuple) -> None:
+    from retargetd.daemon import kernel_target
+    from retargetd.daemon.solve_body import warm_up
+
+    warm_up()
+    signatures = list(kernel_target.retarget_one.signatures)
+    assert signatures
+    rig, cal, rt = hand
+    rt.apply(_pose(cal), rt.new_pose())
+    bvh = tg.Retargeter(rig, cal, tg.TargetSkeleton.from_bvh(BVH))
+    bvh.apply(_pose(cal), bvh.new_pose())
+    assert kernel_target.retarget_one.signatures == signatures  # nothing new compiled
+
+
 # -- the synthetic performer ----------------------------------------------------------
 
 
