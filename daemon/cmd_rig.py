@@ -91,8 +91,8 @@ def run(args: argparse.Namespace) -> int:
             f"aim {b.aim}, up {up}\n"
         )
         markers: list[str] = []
-        for p in b.inputs:
-            markers.extend(m for m in rig.markers_of(p) if m not in markers)
+        for name in b.inputs:
+            markers.extend(m for m in rig.markers_of(name) if m not in markers)
         out(f"      markers: {' '.join(markers)}\n")
     out(f"joint centres ({len(rig.joints)}): ")
     out(" ".join(f"{j}={p}" for j, p in rig.joints.items()) + "\n")

@@ -364,7 +364,9 @@ class _Parser:
             raise self.fail(key, f"expected {n} names, got {len(value)}: {value!r}")
         return tuple(value)
 
-    def unknown_keys(self, key: str, table: dict[str, Any], allowed: tuple[str, ...]):
+    def unknown_keys(
+        self, key: str, table: dict[str, Any], allowed: tuple[str, ...]
+    ) -> None:
         for k in table:
             if k not in allowed:
                 raise self.fail(

@@ -182,9 +182,9 @@ class BodySolver:
             self.bone_pts[b, 2] = index[bone.up[0]]
             if len(bone.up) == 2:
                 self.bone_pts[b, 3] = index[bone.up[1]]
-            markers = []
-            for p in bone.inputs:
-                markers.extend(m for m in rig.markers_of(p) if m not in markers)
+            markers: list[str] = []
+            for name in bone.inputs:
+                markers.extend(m for m in rig.markers_of(name) if m not in markers)
             def_idx.extend(index[m] for m in markers)
             def_ptr.append(len(def_idx))
         self.bone_parent = np.asarray(rig.bone_parent_indices(), dtype=np.int64)

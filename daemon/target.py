@@ -523,8 +523,9 @@ def performer_left_from_calibration(rig: Rig, calibration: Calibration) -> F64Ar
             return _horizontal_unit(sign * mats[index[bone.name]][:, 0], bone.name)
     feet = [rig.humanoid.get(s + "Foot") for s in ("Left", "Right")]
     if all(feet):
-        fwd = sum(
-            _horizontal_unit(mats[index[f]][:, 1], f) for f in feet if f is not None
+        fwd = np.sum(
+            [_horizontal_unit(mats[index[f]][:, 1], f) for f in feet if f is not None],
+            axis=0,
         )
         return np.cross(_UP, _horizontal_unit(fwd, "mean foot direction"))
     arms = [rig.humanoid.get(s + "UpperArm") for s in ("Left", "Right")]
