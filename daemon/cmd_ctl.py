@@ -1,15 +1,24 @@
-"""``retargetd ctl [--endpoint E] status [--json] | calibrate [--count N] | reload``.
+"""``retargetd ctl [--endpoint E] status [--json] | calibrate [--count N] | reload |
+record start FILE.mcap [--no-poses] | record stop``.
 
 Talks to a running daemon over its local control socket (ZeroMQ REQ/REP, JSON
 requests ``{"cmd": "status"}``, ``{"cmd": "calibrate", "count": N}``,
-``{"cmd": "reload"}``). Exit 0 on success, 1 when the daemon refuses or does not answer
-within ``--timeout-ms``, 2 for usage errors.
+``{"cmd": "reload"}``, ``{"cmd": "record", "action": "start", "path": FILE,
+"poses": true}``, ``{"cmd": "record", "action": "stop"}``). ``record start`` makes the
+daemon record every marker packet it receives, its pose stream (unless
+``--no-poses``) and control events to a new MCAP file, in the format of
+``retargetd record`` (``retargetd replay`` plays it back); FILE is sent as an absolute
+path (the daemon runs elsewhere) and must not exist yet. ``record stop`` returns at
+once; the daemon finishes the file in the background (``status --json``: ``record``).
+Exit 0 on success, 1 when the daemon refuses or does not answer within
+``--timeout-ms``, 2 for usage errors.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from typing import Any
 
@@ -20,7 +29,7 @@ def add_parser(subparsers: Any) -> None:
     """Register ``ctl``."""
     parser = subparsers.add_parser(
         "ctl",
-        help="control a running daemon: status, calibrate, reload",
+        help="control a running daemon: status, calibrate, reload, record",
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -36,6 +45,17 @@ def add_parser(subparsers: Any) -> None:
     cal = sub.add_parser("calibrate", help="calibrate live on the next N frames")
     cal.add_argument("--count", type=int, default=None, metavar="N")
     sub.add_parser("reload", help="reload the rig and calibration files")
+    rec = sub.add_parser("record", help="record inside the daemon: start FILE | stop")
+    rec_sub = rec.add_subparsers(dest="record_action", metavar="ACTION", required=True)
+    start = rec_sub.add_parser("start", help="start recording to a new MCAP file")
+    start.add_argument("file", metavar="FILE.mcap")
+    start.add_argument(
+        "--no-poses", action="store_true", help="record markers and events only"
+    )
+    rec_sub.add_parser(
+        "stop",
+        help="stop recording (returns at once; the file is finished in the background)",
+    )
     parser.set_defaults(run=run)
 
 
@@ -45,7 +65,7 @@ def request(
     """Send one request; the reply, or None on timeout."""
     import zmq
 
-    ctx = zmq.Context.instance()
+    ctx: Any = zmq.Context.instance()
     sock = ctx.socket(zmq.REQ)
     sock.setsockopt(zmq.LINGER, 0)
     sock.setsockopt(zmq.RCVTIMEO, timeout_ms)
@@ -70,6 +90,15 @@ def run(args: argparse.Namespace) -> int:
     req: dict[str, Any] = {"cmd": args.ctl_command}
     if args.ctl_command == "calibrate" and args.count is not None:
         req["count"] = args.count
+    if args.ctl_command == "record":
+        req["action"] = args.record_action
+        if args.record_action == "start":
+            if not args.file.lower().endswith(".mcap"):
+                raise UsageError(
+                    f"record start: FILE must end in .mcap; got {args.file!r}"
+                )
+            req["path"] = os.path.abspath(args.file)
+            req["poses"] = not args.no_poses
     reply = request(args.endpoint, req, args.timeout_ms)
     if reply is None:
         sys.stderr.write(

@@ -10,12 +10,16 @@ skeleton, encoded as VMC datagrams and a ZeroMQ pose message, and sent without e
 blocking (a slow subscriber loses messages, counted). Solve + send has a budget
 (``solve_budget_ms``): a frame over it is sent late, flagged and counted, never queued.
 
-Control requests (``retargetd ctl``: status, calibrate, reload) arrive on a local
-ZeroMQ REP socket; show-control arrives as OSC on VMC's performer port
+Control requests (``retargetd ctl``: status, calibrate, reload, record) arrive on a
+local ZeroMQ REP socket; show-control arrives as OSC on VMC's performer port
 (``/VMC/Ext/Set/Calib/Ready``, ``/VMC/Ext/Set/Calib/Exec``, ``/rtd/calibrate``,
 ``/rtd/reload``). A live calibration averages the next N accepted frames while the
 stream goes on with the old calibration, then swaps the new one in atomically (the
 loop thread is the only one that reads it) and saves it.
+
+``record`` starts and stops a recording inside the daemon (``live_recording.py``):
+the loop hands packets, poses and control events to a writer thread with
+``put_nowait`` only, and never writes to the disk itself.
 """
 
 from __future__ import annotations
@@ -36,6 +40,12 @@ import zmq
 
 from retargetd.daemon.calibration import Calibration, calibrate, load_calibration
 from retargetd.daemon.config import DaemonConfig
+from retargetd.daemon.live_recording import (
+    FORM_OSC,
+    FORM_ZMQ,
+    LiveRecording,
+    input_infos,
+)
 from retargetd.daemon.rig import Rig, load_rig
 from retargetd.daemon.solve_body import FLAG_HELD, BodySolver
 from retargetd.daemon.stats import LoopStats
@@ -120,6 +130,8 @@ class Daemon:
         self._window = (self._t0_ns, 0, 0)
         self.last_stats_line = ""
         self.endpoints: dict[str, str] = {}
+        self.recording = LiveRecording()
+        self._osc_form = FORM_OSC[osc_cfg.form]
 
     # ---- lifecycle -------------------------------------------------------------------
 
@@ -213,7 +225,9 @@ class Daemon:
         return f"{host}:{port}"
 
     def close(self) -> None:
-        """Close every socket (idempotent)."""
+        """Stop an active recording (its file is finished, bounded wait) and close
+        every socket (idempotent)."""
+        self.recording.close()
         for sock in self._sockets:
             with contextlib.suppress(KeyError):
                 self._poller.unregister(sock)
@@ -301,6 +315,9 @@ class Daemon:
                 continue
             t_ns = time.monotonic_ns()
             packet = view[:n]
+            rec = self.recording.packets
+            if rec is not None:
+                rec.record_packet("osc", self._osc_form, t_ns, packet)
             if simple:
                 code = stream.feed(osc_in.decode_simple_bundle, packet, t_ns=t_ns)
             elif bytes(packet[:11]) == b"/rtd/labels":
@@ -333,6 +350,9 @@ class Daemon:
             except zmq.Again:
                 break
             t_ns = time.monotonic_ns()
+            rec = self.recording.packets
+            if rec is not None:
+                rec.record_packet("zmq", FORM_ZMQ, t_ns, *(p.buffer for p in parts))
             if len(parts) != 2:
                 stream.counters.add_reason("bad_length")
                 continue
@@ -448,9 +468,9 @@ class Daemon:
                 except OSError:  # receiver absent, buffer full: never block, count
                     self.stats.vmc_errors += 1
         budget_ns = int(self.config.loop.solve_budget_ms * 1e6)
-        if self._pub is not None:
+        if self._pub is not None or self.recording.poses is not None:
             if solved_ns - self._last_names_ns >= 1_000_000_000:
-                self._send_pub(pipe.names_parts)
+                self._send_pub(pipe.names_parts, solved_ns)
                 self._last_names_ns = solved_ns
             if time.monotonic_ns() - t_start > budget_ns:
                 flags |= pose_stream.FRAME_LATE
@@ -459,8 +479,9 @@ class Daemon:
                 pose.root_pos, pose.world_from_bone_quat, pose.parent_from_bone_quat,
                 pipe.weights, pose.bone_flags,
             )  # fmt: skip
-            pose_stream.stamp_sent(parts[0], time.monotonic_ns())
-            self._send_pub(parts)
+            sent_ns = time.monotonic_ns()
+            pose_stream.stamp_sent(parts[0], sent_ns)
+            self._send_pub(parts, sent_ns)
         sent_ns = time.monotonic_ns()
         self.stats.frames_out += 1
         if sent_ns - t_start > budget_ns:
@@ -470,8 +491,12 @@ class Daemon:
             sent_ns - received_ns,
         )  # fmt: skip
 
-    def _send_pub(self, parts: list[Any]) -> None:
-        assert self._pub is not None
+    def _send_pub(self, parts: list[Any], t_ns: int) -> None:
+        rec = self.recording.poses
+        if rec is not None:
+            rec.record_pose(t_ns, *parts)
+        if self._pub is None:
+            return
         try:
             self._pub.send_multipart(parts, zmq.NOBLOCK, copy=False)
         except zmq.Again:
@@ -488,6 +513,7 @@ class Daemon:
         self._calib_frames = []
         self._calib_labels = ()
         self._calib_requested_by = by
+        self.recording.event("calibration_requested", count=n, by=by)
         logger.info("calibration requested (%s): averaging %d frames", by, n)
         return f"calibrating over the next {n} frames: hold the base pose"
 
@@ -515,6 +541,7 @@ class Daemon:
             )  # fmt: skip
         except ValueError as exc:
             logger.warning("live calibration failed: %s", exc)
+            self.recording.event("calibration_failed", error=str(exc))
             self.out(f"calibration failed: {exc}")
             return
         # Atomic: the loop thread is the only reader; the next frame uses the new one,
@@ -529,6 +556,10 @@ class Daemon:
         path = (
             self.config.performer.save_calibration or self.config.performer.calibration
         )
+        self.recording.event(
+            "calibrated", frames=int(frames.shape[0]), by=self._calib_requested_by,
+            path=path or "",
+        )  # fmt: skip
         if path:
             try:
                 cal.save(path)
@@ -550,11 +581,15 @@ class Daemon:
             if cal is not None:
                 BodySolver(rig, cal, ())  # checks the calibration fits the rig
         except ValueError as exc:
-            return f"reload failed, kept the running rig and calibration: {exc}"
+            msg = f"reload failed, kept the running rig and calibration: {exc}"
+            self.recording.event("reload", ok=False, message=msg)
+            return msg
         self.rig, self.calibration = rig, cal
         self._pipelines.clear()
         self._labels_of.clear()
-        return f"reloaded rig {rig.name}" + (" and calibration" if cal else "")
+        msg = f"reloaded rig {rig.name}" + (" and calibration" if cal else "")
+        self.recording.event("reload", ok=True, message=msg)
+        return msg
 
     def status(self) -> dict[str, Any]:
         """The status document (``retargetd ctl status --json``)."""
@@ -593,6 +628,7 @@ class Daemon:
             "latency_us": latency,
             "occluded_markers": occluded,
             "held_bones": flagged,
+            "record": self.recording.status(),
         }
 
     def _fps(self, count: int, which: int) -> float:
@@ -621,6 +657,11 @@ class Daemon:
             f"{c['send_drops']} | drops {drops or 0} | occluded "
             f"{len(s['occluded_markers'])} held {len(s['held_bones'])}"
             + ("" if s["calibrated"] else " | NOT CALIBRATED")
+            + (
+                f" | REC {s['record']['path']} dropped {s['record']['dropped']}"
+                if s["record"]["active"]
+                else ""
+            )
         )
 
     def _serve_control(self) -> None:
@@ -650,7 +691,39 @@ class Daemon:
         if cmd == "reload":
             msg = self.reload()
             return {"ok": not msg.startswith("reload failed"), "message": msg}
-        raise ValueError(f"unknown command {cmd!r} (status, calibrate, reload)")
+        if cmd == "record":
+            return {"ok": True, "message": self._record_control(req)}
+        raise ValueError(f"unknown command {cmd!r} (status, calibrate, reload, record)")
+
+    def _record_control(self, req: dict[str, Any]) -> str:
+        """``{"cmd": "record", "action": "start", "path": FILE, "poses": bool}`` or
+        ``{"cmd": "record", "action": "stop"}``; ValueError names what is wrong."""
+        action = req.get("action")
+        if action == "stop":
+            return self.recording.stop("ctl")
+        if action != "start":
+            raise ValueError(f"record action must be 'start' or 'stop'; got {action!r}")
+        path = req.get("path")
+        poses = req.get("poses", True)
+        if not isinstance(path, str) or not path:
+            raise ValueError(f"record start needs a 'path' string; got {path!r}")
+        if type(poses) is not bool:
+            raise ValueError(f"'poses' must be true or false; got {poses!r}")
+        announcements: list[tuple[str, int, tuple[bytes, ...]]] = []
+        if self._osc is not None and self.config.input.osc.form == "compact":
+            ls = self.osc_stream.label_set
+            if ls is not None:
+                announcements.append(
+                    ("osc", self._osc_form, (osc_in.encode_labels(ls),))
+                )
+        if self._zin is not None and self.zmq_stream.label_set is not None:
+            parts = tuple(zmq_wire.encode_zmq_labels(self.zmq_stream.label_set))
+            announcements.append(("zmq", FORM_ZMQ, parts))
+        msg = self.recording.start(
+            path, poses, input_infos(self.config, self.endpoints), announcements
+        )
+        self._last_names_ns = 0  # the names message opens the recorded pose stream
+        return msg
 
     def _drain_show_control(self) -> None:
         assert self._show is not None

@@ -99,7 +99,9 @@ class InputInfo:
 
 @dataclass(slots=True)
 class RecorderStats:
-    """What was written (counted on the writer thread) and dropped (producer side)."""
+    """What was written (counted on the writer thread) and dropped (producer side:
+    ``dropped`` when the queue was full, ``unrecordable`` for a ZeroMQ message of more
+    than 255 parts, which the envelope cannot hold)."""
 
     frames: int = 0
     label_packets: int = 0
@@ -108,6 +110,7 @@ class RecorderStats:
     poses: int = 0
     events: int = 0
     dropped: int = 0
+    unrecordable: int = 0
     write_errors: int = 0
     first_t_ns: int = 0
     last_t_ns: int = 0
@@ -324,6 +327,8 @@ class Recorder:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._sink: Sink | None = None
+        #: Why the sink could not be opened (``start(open_in_writer=True)``), or "".
+        self.error = ""
 
     # ---- producer side (the live loop): never blocks --------------------------------
 
@@ -345,8 +350,12 @@ class Recorder:
             parts: the datagram, or the ZeroMQ parts (bytes-like).
 
         Returns:
-            False when the queue was full and the packet was dropped (counted).
+            False when the queue was full and the packet was dropped (counted), or
+            when it has more than 255 parts (``unrecordable``, counted).
         """
+        if not 1 <= len(parts) <= 255:  # the envelope's part count is one byte
+            self.stats.unrecordable += 1
+            return False
         return self._put(
             (_PACKET, t_ns, input_name, form, tuple(bytes(p) for p in parts))
         )
@@ -362,11 +371,30 @@ class Recorder:
 
     # ---- lifecycle -------------------------------------------------------------------
 
-    def start(self) -> None:
-        """Open the sink and start the writer thread."""
-        self._sink = self._sink_factory(self.stats)
+    def start(self, *, open_in_writer: bool = False) -> None:
+        """Start the writer thread.
+
+        Args:
+            open_in_writer: build the sink (which writes the file's header) on the
+                writer thread rather than here, so the caller does no file I/O at all
+                (the live loop). A sink that fails to open (``OSError``) is then
+                reported in :attr:`error` and every queued item counts as a write
+                error.
+        """
+        if not open_in_writer:
+            self._sink = self._sink_factory(self.stats)
         self._thread = threading.Thread(target=self._run, name="recorder", daemon=True)
         self._thread.start()
+
+    def stop(self) -> None:
+        """Ask the writer to write what is queued, finish the file and exit; returns
+        at once (the live loop's way to close). Nothing may be queued after this."""
+        self._stop.set()
+
+    @property
+    def finished(self) -> bool:
+        """True once the writer thread has finished the file and exited."""
+        return self._thread is None or not self._thread.is_alive()
 
     def close(self, timeout_s: float = 5.0) -> RecorderStats:
         """Write what is queued, finish the file and stop the thread (bounded wait).
@@ -383,12 +411,18 @@ class Recorder:
         return self.stats
 
     def _run(self) -> None:
+        failed = False
+        if self._sink is None:
+            try:
+                self._sink = self._sink_factory(self.stats)
+            except OSError as exc:
+                self.error = str(exc)
+                logger.error("recorder: cannot open the recording: %s", exc)
+                failed = True
         sink = self._sink
-        assert sink is not None
         interval = self._flush_interval_s
         next_flush = time.monotonic() + interval
         dirty = False
-        failed = False
         while True:
             try:
                 item: tuple[Any, ...] | None = self._queue.get(
@@ -396,7 +430,7 @@ class Recorder:
                 )
             except queue.Empty:
                 item = None
-            if item is not None and not failed:
+            if item is not None and not failed and sink is not None:
                 try:
                     sink.write(item)
                     dirty = True
@@ -407,13 +441,13 @@ class Recorder:
                 self.stats.write_errors += 1
             now = time.monotonic()
             if now >= next_flush:
-                if dirty and not failed:
+                if dirty and not failed and sink is not None:
                     _try(sink.flush)
                 dirty = False
                 next_flush = now + interval
             if self._stop.is_set() and self._queue.empty():
                 break
-        if not failed:
+        if sink is not None and not failed:
             _try(sink.close)
 
 
@@ -432,27 +466,39 @@ def open_recorder(
     queue_size: int = DEFAULT_QUEUE_SIZE,
     flush_interval_s: float = DEFAULT_FLUSH_INTERVAL_S,
     chunk_size: int = DEFAULT_CHUNK_SIZE,
+    exclusive: bool = False,
+    open_in_writer: bool = False,
 ) -> Recorder:
     """A started :class:`Recorder` writing MCAP to ``path`` (created or truncated).
 
+    Args:
+        exclusive: refuse an existing file (``FileExistsError``) instead of
+            truncating it.
+        open_in_writer: only create the file here; the MCAP header is written on the
+            writer thread (see :meth:`Recorder.start`).
+
     Raises:
-        OSError: the file cannot be created.
+        OSError: the file cannot be created (or exists, with ``exclusive``).
     """
-    out = open(path, "wb")  # noqa: SIM115 (the sink closes it)
+    out = open(path, "xb" if exclusive else "wb")  # noqa: SIM115 (the sink closes it)
     mono = time.monotonic_ns()
     wall = time.time_ns()
 
     def factory(stats: RecorderStats) -> McapSink:
-        return McapSink(
-            out, inputs, stats, mono_anchor_ns=mono, wall_anchor_ns=wall,
-            software=software, chunk_size=chunk_size,
-        )  # fmt: skip
+        try:
+            return McapSink(
+                out, inputs, stats, mono_anchor_ns=mono, wall_anchor_ns=wall,
+                software=software, chunk_size=chunk_size,
+            )  # fmt: skip
+        except BaseException:
+            out.close()
+            raise
 
     recorder = Recorder(
         factory, queue_size=queue_size, flush_interval_s=flush_interval_s
     )
     try:
-        recorder.start()
+        recorder.start(open_in_writer=open_in_writer)
     except Exception:
         out.close()
         raise

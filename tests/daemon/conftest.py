@@ -1,4 +1,5 @@
-"""Fixtures for live-daemon tests: loopback sockets that are always closed.
+"""Fixtures for live-daemon tests: loopback sockets that are always closed, the
+Plug-in Gait calibration, and ``retargetd run`` subprocesses.
 
 Every socket binds 127.0.0.1 (port 0 or ``tcp://127.0.0.1:*``), so tests run in
 parallel and never collide with the daemon's default ports.
@@ -6,8 +7,18 @@ parallel and never collide with the daemon's default ports.
 
 from __future__ import annotations
 
+import json
+import os
+import queue
+import re
+import signal
 import socket
+import subprocess
+import sys
+import threading
+import time
 from collections.abc import Callable, Iterator
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -49,3 +60,270 @@ def zmq_socket() -> Iterator[Callable[[int], Any]]:
     yield make
     for sock in made:
         sock.close()
+
+
+# ---- the Plug-in Gait pair and daemons as subprocesses -----------------------------
+
+#: Same place as ``tests/conftest.py``'s DATASETS (a conftest can't be imported).
+DATASETS = Path(__file__).resolve().parents[2].parent / "shared" / "datasets"
+PIG_STATIC = "btkdata/PiG_Calibration-FlatFoot-Full.c3d"
+PIG_WALK = "btkdata/PiG_Motion-FlatFoot-Full.c3d"
+_ENDPOINT_LINE = re.compile(r"^(listening on|sending to) (\S+)(?: \(.*\))?: (.+)$")
+
+
+@pytest.fixture(scope="session")
+def pig_calibration(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """``retargetd calibrate`` of the plug-in-gait rig on the btkdata static."""
+    if not DATASETS.is_dir():
+        reason = f"shared datasets folder not found at {DATASETS}"
+        if os.environ.get("CI", "").lower() in ("1", "true", "yes"):
+            pytest.fail(f"{reason} (CI=true: nothing may skip)")
+        pytest.skip(reason)
+    from retargetd.daemon.cli import main
+
+    out = tmp_path_factory.mktemp("pig") / "performer.json"
+    argv = ["calibrate", str(DATASETS / PIG_STATIC), "--rig", "plug-in-gait"]
+    assert main([*argv, "--out", str(out)]) == 0
+    return out
+
+
+def retargetd_argv() -> list[str]:
+    """The installed console script beside this interpreter, else ``-m``."""
+    script = Path(sys.executable).with_name("retargetd")
+    if script.is_file():
+        return [str(script)]
+    return [sys.executable, "-m", "retargetd.daemon"]
+
+
+def daemon_config(path: Path, calibration: Path, extra: str = "") -> Path:
+    """A ``retargetd run`` config for the plug-in-gait rig: every endpoint ephemeral
+    on 127.0.0.1, VMC off, a pose stream that queues (not drops) for a slow SUB."""
+    q = json.dumps  # a JSON string is a valid TOML basic string for these paths
+    path.write_text(
+        f"""[performer]
+rig = "plug-in-gait"
+calibration = {q(str(calibration))}
+[input.osc]
+port = 0
+[input.zmq]
+endpoint = "tcp://127.0.0.1:*"
+[output.vmc]
+enabled = false
+[output.pose]
+endpoint = "tcp://127.0.0.1:*"
+sndhwm = 100000
+[control]
+endpoint = "tcp://127.0.0.1:*"
+[show_control]
+port = 0
+[loop]
+poll_timeout_ms = 20
+{extra}"""
+    )
+    return path
+
+
+class DaemonProc:
+    """``retargetd run ARGS`` as a subprocess: its endpoints, control, a clean stop."""
+
+    def __init__(self, args: list[str], cwd: Path, timeout_s: float = 60.0) -> None:
+        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+        self.p = subprocess.Popen(
+            [*retargetd_argv(), "run", *args], cwd=cwd, env=env,
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        )  # fmt: skip
+        self.lines: list[str] = []
+        self._q: queue.Queue[str | None] = queue.Queue()
+        self._reader = threading.Thread(target=self._pump, daemon=True)
+        self._reader.start()
+        self.endpoints: dict[str, str] = {}
+        deadline = time.monotonic() + timeout_s
+        while "control" not in self.endpoints:
+            line = self._next_line(deadline)
+            m = _ENDPOINT_LINE.match(line)
+            if m:
+                self.endpoints[m.group(3)] = m.group(2)
+        # The loop serves once open() (and the kernel's warm-up) is done.
+        while self.ctl({"cmd": "status"}, timeout_ms=500) is None:
+            assert time.monotonic() < deadline, f"daemon not serving: {self.lines}"
+
+    def _pump(self) -> None:
+        assert self.p.stdout is not None
+        for line in self.p.stdout:
+            self._q.put(line.rstrip("\n"))
+        self._q.put(None)
+
+    def _next_line(self, deadline: float) -> str:
+        left = deadline - time.monotonic()
+        if left <= 0:
+            raise AssertionError(f"timed out; stdout so far: {self.lines}")
+        try:
+            line = self._q.get(timeout=left)
+        except queue.Empty:
+            raise AssertionError(f"timed out; stdout: {self.lines}") from None
+        if line is None:
+            err = self.p.stderr.read() if self.p.stderr else ""
+            raise AssertionError(f"daemon exited early: {self.lines} {err}")
+        self.lines.append(line)
+        return line
+
+    def udp(self, what: str) -> tuple[str, int]:
+        """(host, port) of a UDP endpoint, e.g. ``"osc markers"``."""
+        host, port = self.endpoints[what].removeprefix("udp://").rsplit(":", 1)
+        return host, int(port)
+
+    def ctl(self, req: dict[str, Any], timeout_ms: int = 2000) -> dict[str, Any] | None:
+        """One control request; the reply, or None on timeout."""
+        from retargetd.daemon.cmd_ctl import request
+
+        return request(self.endpoints["control"], req, timeout_ms)
+
+    def counters(self) -> dict[str, Any]:
+        """The status document's counters."""
+        reply = self.ctl({"cmd": "status"})
+        assert reply is not None and reply["ok"], reply
+        return dict(reply["status"]["counters"])
+
+    def stop(self, timeout_s: float = 20.0) -> tuple[int, str]:
+        """SIGINT, then wait (bounded): exit code and stderr."""
+        self.p.send_signal(signal.SIGINT)
+        rc = self.p.wait(timeout=timeout_s)
+        self._reader.join(timeout=5.0)
+        assert self.p.stderr is not None
+        return rc, self.p.stderr.read()
+
+    def close(self) -> None:
+        """Kill if still running; close the pipes."""
+        if self.p.poll() is None:
+            self.p.kill()
+            self.p.wait(timeout=10.0)
+        self._reader.join(timeout=5.0)
+        for stream in (self.p.stdout, self.p.stderr):
+            if stream is not None:
+                stream.close()
+
+
+@pytest.fixture
+def retargetd() -> list[str]:
+    """argv prefix that runs the ``retargetd`` console script."""
+    return retargetd_argv()
+
+
+@pytest.fixture
+def run_daemon(tmp_path: Path) -> Iterator[Callable[..., DaemonProc]]:
+    """``start(calibration, *args, extra="")``: ``retargetd run --config C ARGS`` in
+    ``tmp_path``, C from :func:`daemon_config`; killed at teardown if still running."""
+    procs: list[DaemonProc] = []
+
+    def start(calibration: Path, *args: str, extra: str = "") -> DaemonProc:
+        config = daemon_config(
+            tmp_path / f"daemon{len(procs)}.toml", calibration, extra
+        )
+        proc = DaemonProc(["--config", str(config), *args], tmp_path)
+        procs.append(proc)
+        return proc
+
+    yield start
+    for proc in procs:
+        proc.close()
+
+
+class PoseCapture:
+    """A SUB on a daemon's pose stream, every message decoded, in arrival order."""
+
+    def __init__(self, sock: Any, endpoint: str) -> None:
+        from retargetd.protocols import pose_stream
+
+        self._ps = pose_stream
+        sock.setsockopt(zmq.RCVHWM, 0)  # unlimited: the test must see every pose
+        sock.setsockopt(zmq.SUBSCRIBE, b"RTD")
+        sock.connect(endpoint)
+        self.sock = sock
+        self.poses: list[Any] = []  # pose_stream.PoseMessage
+        self.names: list[Any] = []  # pose_stream.PoseNames
+        self.order: list[tuple[str, int]] = []  # ("names" | "data", names id)
+
+    def pump(self, timeout_ms: int = 0) -> None:
+        """Receive what is waiting (the first poll waits up to ``timeout_ms``)."""
+        while self.sock.poll(timeout_ms):
+            timeout_ms = 0
+            parts = self.sock.recv_multipart()
+            if parts[0][:4] == self._ps.DATA_MAGIC:
+                msg = self._ps.decode_pose(parts)
+                self.poses.append(msg)
+                self.order.append(("data", msg.names_id))
+            else:
+                names = self._ps.decode_pose_names(parts)
+                self.names.append(names)
+                self.order.append(("names", names.names_id))
+
+    def wait_for(self, n: int, timeout_s: float) -> None:
+        """Pump until ``n`` data messages arrived or the time is up."""
+        deadline = time.monotonic() + timeout_s
+        while len(self.poses) < n and time.monotonic() < deadline:
+            self.pump(50)
+
+    def clear(self) -> None:
+        for received in (self.poses, self.names, self.order):
+            received.clear()
+
+    def prime(
+        self, daemon: DaemonProc, via: str, labels: tuple[str, ...], row: Any
+    ) -> set[int]:
+        """Beat ZeroMQ's slow joiner without touching the input under test: send
+        frames (markers ``row``) through the daemon's ``via`` input ("osc" or "zmq")
+        until this SUB receives a pose. Each input has its own solver, so the other
+        one starts fresh. Forgets what arrived; returns the names ids it used."""
+        import numpy as np
+
+        from retargetd.protocols import osc_in, zmq_wire
+        from retargetd.protocols.marker_input import LabelSet
+
+        label_set = LabelSet(PRIME_SET_ID, labels)
+        row = np.asarray(row, dtype=np.float32)
+        ctx = zmq.Context.instance()
+        push = ctx.socket(zmq.PUSH)
+        push.setsockopt(zmq.LINGER, 0)
+        udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        try:
+            if via == "zmq":
+                push.connect(daemon.endpoints["zmq markers"])
+                push.send_multipart(zmq_wire.encode_zmq_labels(label_set))
+            else:
+                udp.sendto(osc_in.encode_labels(label_set), daemon.udp("osc markers"))
+            deadline = time.monotonic() + 10.0
+            i = 0
+            while not self.poses:
+                assert time.monotonic() < deadline, "poses never reached the SUB"
+                if via == "zmq":
+                    push.send_multipart(
+                        zmq_wire.encode_zmq_frame(i, i / 100, PRIME_SET_ID, row)
+                    )
+                else:
+                    frame = osc_in.encode_compact_frame(i, i / 100, PRIME_SET_ID, row)
+                    udp.sendto(frame, daemon.udp("osc markers"))
+                i += 1
+                self.pump(20)
+            self.pump(100)
+        finally:
+            push.close()
+            udp.close()
+        used = {m.names_id for m in self.poses}
+        self.clear()
+        return used
+
+
+#: Label-set id of the priming sender (the player announces 1).
+PRIME_SET_ID = 7
+
+
+@pytest.fixture
+def pose_capture(
+    zmq_socket: Callable[[int], Any],
+) -> Callable[[str], PoseCapture]:
+    """``capture(endpoint)``: a :class:`PoseCapture` on a pose stream."""
+
+    def make(endpoint: str) -> PoseCapture:
+        return PoseCapture(zmq_socket(zmq.SUB), endpoint)
+
+    return make
