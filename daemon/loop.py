@@ -99,7 +99,7 @@ class Daemon:
         if config.performer.calibration:
             self.calibration = load_calibration(config.performer.calibration)
         self.target = _load_target(config)
-        self._ctx = zmq.Context.instance()
+        self._ctx: Any = zmq.Context.instance()
         self._poller = zmq.Poller()
         self._sockets: list[Any] = []
         self._osc: socket.socket | None = None
@@ -158,9 +158,7 @@ class Daemon:
                 self._zin.connect(c.input.zmq.endpoint)
             self._poller.register(self._zin, zmq.POLLIN)
             self._sockets.append(self._zin)
-            ep = (
-                self._zin.getsockopt(zmq.LAST_ENDPOINT).decode() or c.input.zmq.endpoint
-            )
+            ep = _last_endpoint(self._zin) or c.input.zmq.endpoint
             self._announce("zmq markers", f"{ep} ({c.input.zmq.mode})")
         if c.output.pose.enabled:
             self._pub = self._ctx.socket(zmq.PUB)
@@ -168,14 +166,14 @@ class Daemon:
             self._pub.setsockopt(zmq.SNDHWM, c.output.pose.sndhwm)
             self._pub.bind(c.output.pose.endpoint)
             self._sockets.append(self._pub)
-            ep = self._pub.getsockopt(zmq.LAST_ENDPOINT).decode()
+            ep = _last_endpoint(self._pub)
             self._announce("zmq poses", f"{ep} (pub)")
         self._ctl = self._ctx.socket(zmq.REP)
         self._ctl.setsockopt(zmq.LINGER, 0)
         self._ctl.bind(c.control.endpoint)
         self._poller.register(self._ctl, zmq.POLLIN)
         self._sockets.append(self._ctl)
-        ep = self._ctl.getsockopt(zmq.LAST_ENDPOINT).decode()
+        ep = _last_endpoint(self._ctl)
         self._announce("control", f"{ep} (retargetd ctl --endpoint {ep})")
         if c.output.vmc.enabled:
             self._vmc = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -776,6 +774,12 @@ def _osc_messages(packet: bytes, depth: int = 0) -> list[bytes]:
         return out
     except DecodeError:
         return []
+
+
+def _last_endpoint(sock: Any) -> str:
+    """The endpoint a socket bound (with the real port of a ``*`` wildcard)."""
+    value = sock.getsockopt(zmq.LAST_ENDPOINT)
+    return value.decode() if isinstance(value, bytes) else str(value)
 
 
 def _load_target(config: DaemonConfig) -> Any:
