@@ -3,9 +3,11 @@
 A ``zmq.Poller`` waits on every input at once (plain UDP sockets and ZeroMQ sockets
 alike). Each wake-up drains every readable socket, decoding marker packets straight
 into preallocated buffers (``retargetd.protocols``); malformed packets are counted by
-reason and dropped. Then the newest accepted frame is solved (latest wins: the older
-ones are counted as ``stale``), unless ``process_every_frame`` asks to solve every
-accepted frame in order (offline replay). A solved frame is retargeted onto the engine
+reason and dropped. Accepted frames are solved as they are decoded while the wake-up is
+within ``solve_budget_ms`` (frames that merely arrived together are all solved); past
+that the loop is behind and the latest frame wins: the older ones are counted as
+``stale`` and dropped. ``process_every_frame`` solves every accepted frame in order
+whatever the time (offline replay). A solved frame is retargeted onto the engine
 skeleton, encoded as VMC datagrams and a ZeroMQ pose message, and sent without ever
 blocking (a slow subscriber loses messages, counted). Solve + send has a budget
 (``solve_budget_ms``): a frame over it is sent late, flagged and counted, never queued.
@@ -126,6 +128,8 @@ class Daemon:
         self._calib_labels: tuple[str, ...] = ()
         self._calib_requested_by = ""
         self._frame_flags = 0  # restarted / input dropped since the last pose sent
+        self._wake_ns = 0  # when the current wake-up began
+        self._catch_up_ns = int(config.loop.solve_budget_ms * 1e6)
         # (t_ns, frames_in, frames_out) at the last stats line: fps over that window.
         self._window = (self._t0_ns, 0, 0)
         self.last_stats_line = ""
@@ -255,6 +259,7 @@ class Daemon:
 
     def _service(self, events: dict[Any, int]) -> None:
         every = self.config.loop.process_every_frame
+        self._wake_ns = time.monotonic_ns()
         newest: MarkerStream | None = None
         newest_ns = 0
         if self._osc is not None and self._osc.fileno() in events:
@@ -278,7 +283,8 @@ class Daemon:
             self._serve_control()
 
     def _accept(self, stream: MarkerStream, code: int, t_ns: int, every: bool) -> int:
-        """Book-keeping for one decoded packet; returns t_ns when it was accepted."""
+        """Book-keeping for one decoded packet; returns its receive time when it was
+        accepted and left for later (latest wins), else 0."""
         if code != ACCEPTED and code != RESTART:
             return 0
         self.stats.frames_in += 1
@@ -292,8 +298,12 @@ class Daemon:
                 pipe.vmc.reset_continuity()
         if self._calib_target:
             self._collect_calibration_frame(stream)
-        if every:
+        # Solve at once while this wake-up is within the budget (frames that merely
+        # arrived together are all solved); past it the loop is behind, and the
+        # latest frame wins: this one waits and is dropped if a newer one comes.
+        if every or time.monotonic_ns() - self._wake_ns < self._catch_up_ns:
             self._solve_and_send(stream, t_ns)
+            return 0
         return t_ns
 
     def _drain_osc(self, every: bool) -> int:
@@ -301,8 +311,7 @@ class Daemon:
         sock, buf, stream = self._osc, self._buf, self.osc_stream
         simple = self.config.input.osc.form == "simple"
         view = memoryview(buf)
-        newest = 0
-        accepted = 0
+        newest = 0  # receive time of the newest accepted frame not yet solved
         while True:
             try:
                 n, addr = sock.recvfrom_into(buf)
@@ -330,18 +339,16 @@ class Daemon:
                 code = stream.feed(osc_in.decode_compact_frame, packet, t_ns=t_ns)
             got = self._accept(stream, code, t_ns, every)
             if got:
-                accepted += 1
+                if newest:  # a newer frame supersedes the unsolved one: stale
+                    self.stats.stale += 1
+                    self._frame_flags |= pose_stream.FRAME_INPUT_DROPPED
                 newest = got
-        if accepted > 1 and not every:
-            self.stats.stale += accepted - 1
-            self._frame_flags |= pose_stream.FRAME_INPUT_DROPPED
         return newest
 
     def _drain_zmq(self, every: bool) -> int:
         assert self._zin is not None
         sock, stream = self._zin, self.zmq_stream
-        newest = 0
-        accepted = 0
+        newest = 0  # receive time of the newest accepted frame not yet solved
         while True:
             try:
                 parts = sock.recv_multipart(zmq.NOBLOCK, copy=False)
@@ -364,11 +371,10 @@ class Daemon:
             code = stream.feed(zmq_wire.decode_zmq_frame, header, payload, t_ns=t_ns)
             got = self._accept(stream, code, t_ns, every)
             if got:
-                accepted += 1
+                if newest:  # a newer frame supersedes the unsolved one: stale
+                    self.stats.stale += 1
+                    self._frame_flags |= pose_stream.FRAME_INPUT_DROPPED
                 newest = got
-        if accepted > 1 and not every:
-            self.stats.stale += accepted - 1
-            self._frame_flags |= pose_stream.FRAME_INPUT_DROPPED
         return newest
 
     # ---- solve and send --------------------------------------------------------------
