@@ -84,12 +84,12 @@ class _Sender(threading.Thread):
 
 def run(args: argparse.Namespace) -> int:
     """Run the demo."""
-    import zmq
 
     from retargetd.daemon.cmd_run import (
         install_signal_handlers,
         load_config,
         make_daemon,
+        open_or_fail,
     )
     from retargetd.daemon.performer import synthesize
 
@@ -120,11 +120,7 @@ def run(args: argparse.Namespace) -> int:
     daemon = make_daemon(config)
     stop = threading.Event()
     install_signal_handlers(stop)
-    try:
-        daemon.open()
-    except (OSError, zmq.ZMQError) as exc:
-        daemon.close()
-        raise UsageError(f"cannot open an endpoint (another daemon?): {exc}") from None
+    open_or_fail(daemon, " (another daemon?)")
     hold = take.base_pose_frames
     daemon.out(
         daemon.request_calibration(max(1, (hold.stop - hold.start) // 2), "demo")

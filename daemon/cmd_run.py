@@ -72,6 +72,18 @@ def make_daemon(config: Any) -> Any:
         raise UsageError(str(exc)) from None
 
 
+def open_or_fail(daemon: Any, hint: str = "") -> None:
+    """Open every endpoint; a port in use (or any bind error) closes what was opened
+    and becomes one UsageError line (exit 2)."""
+    import zmq
+
+    try:
+        daemon.open()
+    except (OSError, zmq.ZMQError) as exc:
+        daemon.close()
+        raise UsageError(f"cannot open an endpoint{hint}: {exc}") from None
+
+
 def install_signal_handlers(stop: threading.Event) -> None:
     """SIGINT/SIGTERM set ``stop``; a second SIGINT exits at once."""
 
@@ -87,17 +99,11 @@ def install_signal_handlers(stop: threading.Event) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run the daemon until SIGINT/SIGTERM."""
-    import zmq
-
     config = load_config(args)
     daemon = make_daemon(config)
     stop = threading.Event()
     install_signal_handlers(stop)
-    try:
-        daemon.open()
-    except (OSError, zmq.ZMQError) as exc:
-        daemon.close()
-        raise UsageError(f"cannot open an endpoint: {exc}") from None
+    open_or_fail(daemon)
     try:
         daemon.run(stop.is_set)
     finally:

@@ -41,33 +41,12 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
+from retargetd.protocols.humanoid import HUMANOID_BONES as _HUMANOID_BONES
+
 logger = logging.getLogger(__name__)
 
-#: The standard humanoid bones (Unity HumanBodyBones subset used by VMC receivers).
-HUMANOID_BONES = (
-    "Hips",
-    "Spine",
-    "Chest",
-    "UpperChest",
-    "Neck",
-    "Head",
-    "LeftShoulder",
-    "LeftUpperArm",
-    "LeftLowerArm",
-    "LeftHand",
-    "RightShoulder",
-    "RightUpperArm",
-    "RightLowerArm",
-    "RightHand",
-    "LeftUpperLeg",
-    "LeftLowerLeg",
-    "LeftFoot",
-    "LeftToes",
-    "RightUpperLeg",
-    "RightLowerLeg",
-    "RightFoot",
-    "RightToes",
-)
+#: The standard humanoid bones (parents first), re-exported for rig files.
+HUMANOID_BONES = _HUMANOID_BONES
 
 RULE_AXES = ("height", "width", "depth")
 

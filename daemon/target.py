@@ -83,35 +83,11 @@ from retargetd.protocols.conventions import (
     world_from_capture_pos,
 )
 from retargetd.protocols.frames import F64Array, U8Array
+from retargetd.protocols.humanoid import HUMANOID_PARENTS
 from retargetd.replay.bvh import read_bvh_hierarchy
 
 logger = logging.getLogger(__name__)
 
-#: Parent of each standard humanoid bone (None for Hips).
-HUMANOID_PARENTS: dict[str, str | None] = {
-    "Hips": None,
-    "Spine": "Hips",
-    "Chest": "Spine",
-    "UpperChest": "Chest",
-    "Neck": "UpperChest",
-    "Head": "Neck",
-    **{
-        f"{s}{b}": f"{s}{p}"
-        for s in ("Left", "Right")
-        for b, p in (
-            ("UpperArm", "Shoulder"),
-            ("LowerArm", "UpperArm"),
-            ("Hand", "LowerArm"),
-            ("LowerLeg", "UpperLeg"),
-            ("Foot", "LowerLeg"),
-            ("Toes", "Foot"),
-        )
-    },
-    "LeftShoulder": "UpperChest",
-    "RightShoulder": "UpperChest",
-    "LeftUpperLeg": "Hips",
-    "RightUpperLeg": "Hips",
-}
 #: The chain child of each bone: its aim, and the way down for filling.
 CHAIN_CHILD: dict[str, str] = {
     "Hips": "Spine",

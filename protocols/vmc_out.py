@@ -27,6 +27,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from retargetd.protocols.frames import BoolArray, F64Array, IntArray
+from retargetd.protocols.humanoid import HUMANOID_BONES
 from retargetd.protocols.osc_wire import (
     BUNDLE_HEADER,
     ELEMENT_SIZE_PREFIX,
@@ -38,31 +39,6 @@ DEFAULT_PORT = 39539
 #: Largest UDP payload sent: a 1500-byte Ethernet MTU minus IPv4 (20) and UDP (8).
 MAX_DATAGRAM = 1472
 
-#: The standard humanoid (Unity HumanBodyBones without eyes, jaw and fingers).
-HUMANOID_BONES: tuple[str, ...] = (
-    "Hips",
-    "LeftUpperLeg",
-    "RightUpperLeg",
-    "LeftLowerLeg",
-    "RightLowerLeg",
-    "LeftFoot",
-    "RightFoot",
-    "Spine",
-    "Chest",
-    "UpperChest",
-    "Neck",
-    "Head",
-    "LeftShoulder",
-    "RightShoulder",
-    "LeftUpperArm",
-    "RightUpperArm",
-    "LeftLowerArm",
-    "RightLowerArm",
-    "LeftHand",
-    "RightHand",
-    "LeftToes",
-    "RightToes",
-)
 
 ROOT_ADDRESS = "/VMC/Ext/Root/Pos"
 BONE_ADDRESS = "/VMC/Ext/Bone/Pos"
