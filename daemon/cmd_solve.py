@@ -38,7 +38,7 @@ def add_parser(subparsers: Any) -> None:
 
     parser = subparsers.add_parser(
         "solve",
-        help="solve every frame of a take to the rig's skeleton (NPZ)",
+        help="solve every frame of a take to the rig's skeleton (NPZ or BVH)",
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )

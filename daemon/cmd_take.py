@@ -30,14 +30,14 @@ WORST_MARKERS = 5
 def add_parser(subparsers: Any) -> None:
     """Register ``take`` and its actions on the top-level subparsers."""
     parser = subparsers.add_parser(
-        "take", help="inspect take files (C3D, TRC)", description=__doc__
+        "take", help="inspect take files (C3D, TRC, MCAP)", description=__doc__
     )
     parser.set_defaults(run=run)
     actions = parser.add_subparsers(dest="take_action", metavar="ACTION", required=True)
     info = actions.add_parser(
         "info", help="show what a take holds and how it will be converted"
     )
-    info.add_argument("take", metavar="TAKE", help="a .c3d or .trc file")
+    info.add_argument("take", metavar="TAKE", help="a .c3d, .trc or .mcap file")
     add_take_arguments(info)
     info.add_argument("--json", action="store_true", help="print one JSON object")
     info.set_defaults(take_run=_run_info)

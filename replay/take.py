@@ -75,7 +75,7 @@ class Take:
 
     Attributes:
         path: the file it came from.
-        format: ``"c3d"`` or ``"trc"``.
+        format: ``"c3d"``, ``"trc"`` or ``"mcap"`` (a recording).
         subject: the subject this take holds (prefix stripped from labels), or None.
         subjects: every subject found in the file: label prefixes (``Name:``), or the
             single C3D ``SUBJECTS:NAMES`` entry of an unprefixed file; else empty.
