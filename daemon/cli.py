@@ -32,6 +32,7 @@ SUBCOMMAND_MODULES: tuple[str, ...] = (
     "retargetd.daemon.cmd_demo",
     "retargetd.daemon.cmd_record",
     "retargetd.daemon.cmd_replay",
+    "retargetd.daemon.cmd_validate",
 )
 
 

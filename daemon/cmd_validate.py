@@ -1,0 +1,166 @@
+"""``retargetd validate TAKE --rig RIG (--calibration FILE | --calibrate-frames a:b)
+--report DIR``: check every solved frame of a take against a MuJoCo model of the
+calibrated skeleton.
+
+Writes ``DIR/report.json`` (per check: threshold, frames flagged, worst frames and
+values), ``DIR/report.txt`` (the same, readable) and ``DIR/model.xml`` (the model
+checked against). Body mass: the take's ``Bodymass`` when it has one, else 70 kg
+(``--body-mass-kg`` overrides). Checks and thresholds: ``retargetd.daemon.validate``.
+
+Exit code: 0 every check passes, 1 a check fails, 2 bad input, 3 internal error.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+from pathlib import Path
+from typing import Any
+
+from retargetd.daemon.cli import UsageError
+
+logger = logging.getLogger(__name__)
+
+EXIT_PASS, EXIT_FAIL, EXIT_INTERNAL = 0, 1, 3
+
+
+def add_parser(subparsers: Any) -> None:
+    """Register ``validate``."""
+    from retargetd.daemon.cmd_calibrate import add_rig_arguments
+    from retargetd.daemon.cmd_take import add_take_arguments
+
+    parser = subparsers.add_parser(
+        "validate",
+        help="check a take's solved poses against a physical model (report)",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("take", metavar="TAKE", help="a .c3d or .trc take")
+    add_rig_arguments(parser)
+    group = parser.add_mutually_exclusive_group(required=True)
+    group.add_argument("--calibration", metavar="FILE.json", help="calibrated skeleton")
+    group.add_argument(
+        "--calibrate-frames",
+        metavar="a:b",
+        help="calibrate on these rows of the take itself (0-based, half-open)",
+    )
+    parser.add_argument("--report", required=True, metavar="DIR")
+    parser.add_argument(
+        "--body-mass-kg", type=float, metavar="KG", help="override the body mass"
+    )
+    add_take_arguments(parser)
+    parser.set_defaults(run=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``validate``."""
+    from retargetd.daemon.calibration import CalibrationError, load_calibration
+    from retargetd.daemon.cmd_calibrate import (
+        calibrate_from_take,
+        load_rig_or_fail,
+        parse_measures,
+    )
+    from retargetd.daemon.framesel import parse_frames
+    from retargetd.daemon.solve_body import BodySolver
+    from retargetd.replay.takes import load_take
+
+    rig = load_rig_or_fail(args.rig)
+    take = load_take(
+        args.take, subject=args.subject, units=args.take_units, up_axis=args.take_up
+    )
+    try:
+        if args.calibration is not None:
+            cal = load_calibration(args.calibration)
+        else:
+            frames = parse_frames(
+                args.calibrate_frames, take.n_frames, option="--calibrate-frames"
+            )
+            cal = calibrate_from_take(take, rig, frames, parse_measures(args.measure))
+        solver = BodySolver(rig, cal, take.labels)
+    except CalibrationError as exc:
+        raise UsageError(str(exc)) from None
+    if cal.rest_bone_origin_pos is None:
+        raise UsageError("calibration has no rest bone origins: recalibrate")
+    mass = args.body_mass_kg
+    if mass is None:
+        mass = float(take.measurements.get("Bodymass", 0.0) or 0.0)
+        mass = mass if mass > 0.0 else None
+    if mass is not None and not mass > 0.0:
+        raise UsageError(f"--body-mass-kg must be > 0; got {mass}")
+    report_dir = Path(args.report)
+    report_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        return _validate(args, rig, cal, solver, take, mass, report_dir)
+    except Exception as exc:  # a bug, not the user's input: exit 3, with traceback
+        logger.exception("validate: internal error")
+        sys.stderr.write(f"retargetd validate: internal error: {exc!r}\n")
+        return EXIT_INTERNAL
+
+
+def _validate(
+    args: argparse.Namespace,
+    rig: Any,
+    cal: Any,
+    solver: Any,
+    take: Any,
+    mass: float | None,
+    report_dir: Path,
+) -> int:
+    from retargetd.daemon.validate import THRESHOLDS, fit_pairs, validate_take
+    from retargetd.daemon.validate_model import (
+        DEFAULT_BODY_MASS_KG,
+        build_model,
+        skeleton_from_calibration,
+    )
+
+    res = solver.solve_take(take.positions)
+    body_mass = DEFAULT_BODY_MASS_KG if mass is None else mass
+    vm = build_model(skeleton_from_calibration(rig, cal), body_mass)
+    (report_dir / "model.xml").write_text(vm.xml)
+    rep = validate_take(vm, res, take.rate_hz, fit=fit_pairs(rig, res.joint_names))
+    doc = {
+        "take": str(take.path),
+        "rig": rig.name,
+        "frames": rep.n_frames,
+        "rate_hz": take.rate_hz,
+        "body_mass_kg": body_mass,
+        "body_mass_source": "default" if mass is None else "take or --body-mass-kg",
+        "model": {"xml": "model.xml", "sha256": vm.digest, "floor_z_m": vm.floor_z},
+        "thresholds_note": (
+            "set from the literature and the PiG walk on its static calibration; see "
+            "retargetd.daemon.validate.THRESHOLDS and validate_limits"
+        ),
+        "thresholds": THRESHOLDS,
+        "seconds_per_frame": rep.seconds_per_frame,
+        "passed": rep.passed,
+        "failed": rep.failed(),
+        "checks": {
+            n: {**c.summary(), "detail": c.detail} for n, c in rep.checks.items()
+        },
+    }
+    (report_dir / "report.json").write_text(json.dumps(doc, indent=1) + "\n")
+    lines = [
+        f"retargetd validate: {take.path} (rig {rig.name}, {rep.n_frames} frames at "
+        f"{take.rate_hz:g} Hz, body mass {body_mass:g} kg)",
+        "Thresholds: literature ranges and the PiG walk (see report.json).",
+        f"Result: {'PASS' if rep.passed else 'FAIL: ' + ', '.join(rep.failed())}",
+        "",
+    ]
+    for name, c in rep.checks.items():
+        s = c.summary(3)
+        worst = ", ".join(
+            f"{f} ({v:.3g})"
+            for f, v in zip(s["worst_frames"], s["worst_values"], strict=True)
+        )
+        lines.append(
+            f"{name:18s} {'FAIL' if c.n_flagged else 'ok  '} flagged {c.n_flagged:6d}"
+            f"  max {s['max']:.4g} {c.unit} (threshold {c.threshold:g})"
+            f"  worst frames: {worst}"
+        )
+        lines.extend(f"    {d}" for d in c.detail)
+    text = "\n".join(lines) + "\n"
+    (report_dir / "report.txt").write_text(text)
+    sys.stdout.write(text)
+    return EXIT_PASS if rep.passed else EXIT_FAIL

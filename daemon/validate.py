@@ -1,0 +1,372 @@
+"""Per-frame physical checks of a solved take against its MuJoCo model.
+
+Convention (what ``qpos`` is). Body ``b``'s frame in its parent body's frame is
+``rest_pfb_b = conj(rest_wfb_p) * rest_wfb_b`` (``validate_model``), and a ball joint
+rotates the body in its own frame, so the model poses
+
+    wfb_b = wfb_p * rest_pfb_b * q_b  =>  q_b = conj(rest_pfb_b) * conj(wfb_p) * wfb_b,
+
+which is exactly the streamed ``parent_from_bone_quat`` (README "Solve output": the
+parent-relative rotation composed with the inverse of its calibrated value, in the
+bone's own axes). The root's free joint takes ``root_pos`` and the root's
+``world_from_bone_quat`` (w x y z). The check poses the model from the parent-relative
+chain and compares its body origins and aim sites with the skeleton posed directly from
+each bone's streamed ``world_from_bone_quat`` and the calibrated offsets
+(:func:`pose_skeleton`): any disagreement between the two streamed rotation sets, a
+component order or a model/stream length mismatch shows up as distance.
+
+Checks (thresholds: :data:`THRESHOLDS`; how they were set: ``validate_limits`` and the
+report header): convention, fit (posed skeleton vs solved joint centres), quaternion
+norms, anatomical limits (swing/twist about each bone's +Y, :mod:`validate_limits`),
+self-penetration, floor penetration, floating (no foot near the floor for longer than
+a jump's flight), impossible speeds of the root and the end effectors.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import mujoco
+import numpy as np
+
+from retargetd.daemon import rotations as rot
+from retargetd.daemon.rig import Rig
+from retargetd.daemon.solve_body import BodySolve
+from retargetd.daemon.validate_limits import limit_violation_deg
+from retargetd.daemon.validate_model import (
+    FOOT_KINDS,
+    Skeleton,
+    ValidationModel,
+    capsule_radii,
+)
+from retargetd.protocols.frames import F64Array
+
+_Y_AXIS = np.array([0.0, 1.0, 0.0])
+
+#: Check thresholds (SI unless suffixed). Set from the literature and the real takes
+#: (PiG walk on its static calibration): see the comments.
+THRESHOLDS: dict[str, float] = {
+    # Model posed from the chain vs skeleton posed from world rotations: numerical
+    # agreement is ~1e-12 m, any convention error is >= millimetres.
+    "convention_mm": 0.1,
+    # Streamed skeleton vs solved joint centres. Exact synthetic data: < 1 mm; the PiG
+    # walk: median ~4 mm, max ~35 mm (a rigid chain cannot follow soft-tissue-borne
+    # joint centres exactly); limits leave ~2x headroom over the PiG walk.
+    "fit_median_mm": 10.0,
+    "fit_max_mm": 60.0,
+    # |q| - 1: the solve writes unit quaternions to ~1e-15.
+    "quat_norm": 1e-6,
+    # Degrees beyond the per-joint table (the table already has margins).
+    "limit_deg": 0.0,
+    # Penetration depth (contact.dist < -x) between non-excluded segments: capsules are
+    # lean, so any overlap beyond the contact noise is real.
+    "self_penetration_mm": 10.0,
+    # Segments below the calibrated floor: heel-strike on a capsule foot reads a few
+    # mm in the PiG walk.
+    "floor_penetration_mm": 30.0,
+    # A foot above the floor by more than this counts as airborne; airborne longer than
+    # a jump's flight (a 1 m vertical jump flies 0.9 s) is floating.
+    "airborne_clearance_mm": 100.0,
+    "max_airborne_s": 1.0,
+    # Sprint peak ~12.4 m/s (Bolt 2009): the root; end effectors (hands, feet, head):
+    # a pitcher's or server's hand reaches ~20-25 m/s.
+    "root_speed_m_s": 13.0,
+    "effector_speed_m_s": 30.0,
+}
+
+
+def pose_skeleton(
+    skel: Skeleton, root_pos: F64Array, world_from_bone_quat: F64Array
+) -> tuple[F64Array, F64Array]:
+    """Bone origins and aims from world rotations and the skeleton's offsets.
+
+    ``origin_b = origin_p + wfb_p · offset_b`` (offset in the parent's bone frame),
+    ``aim_b = origin_b + wfb_b · (0, L_b, 0)``.
+
+    Args:
+        skel: the skeleton (lengths, offsets).
+        root_pos: (T, 3) metres.
+        world_from_bone_quat: (T, B, 4) w x y z.
+
+    Returns:
+        origins (T, B, 3) and aims (T, B, 3), metres, world.
+    """
+    wfb = world_from_bone_quat
+    n = wfb.shape[0]
+    origins = np.empty((n, len(skel.bone_names), 3))
+    for b, p in enumerate(skel.bone_parents):
+        if p < 0:
+            origins[:, b] = root_pos
+        else:
+            origins[:, b] = origins[:, p] + rot.quat_rotate(
+                wfb[:, p], skel.offset_parent[b]
+            )
+    aims = origins + rot.quat_rotate(wfb, skel.bone_lengths[:, None] * _Y_AXIS)
+    return origins, aims
+
+
+def fit_pairs(rig: Rig, joint_names: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """Joint centres that are skeleton points: (joint index, point index) arrays.
+
+    Point index ``b`` is bone ``b``'s origin, ``B + b`` its aim.
+    """
+    n_bones = len(rig.bones)
+    where: dict[str, int] = {}
+    for b, bone in enumerate(rig.bones):
+        where.setdefault(bone.origin, b)
+    for b, bone in enumerate(rig.bones):
+        where.setdefault(bone.aim, n_bones + b)
+    joints, points = [], []
+    for j, name in enumerate(joint_names):
+        point = rig.joints.get(name)
+        if point in where:
+            joints.append(j)
+            points.append(where[point])
+    return np.asarray(joints, dtype=np.int64), np.asarray(points, dtype=np.int64)
+
+
+@dataclass(slots=True, eq=False)
+class FrameContacts:
+    """One frame's MuJoCo results (buffers reused)."""
+
+    points: F64Array  # (2B, 3) body origins then aim sites, world
+    self_depth: float = 0.0  # deepest segment/segment penetration, metres (>= 0)
+    self_pair: tuple[int, int] = (-1, -1)
+    floor_depth: float = 0.0  # deepest penetration of the floor, metres (>= 0)
+
+
+class FrameChecker:
+    """Writes one frame into the model and reads positions and contacts.
+
+    Index arrays are resolved once; per frame: a qpos write, ``mj_kinematics``,
+    ``mj_collision`` and a vectorised read of the contacts.
+    """
+
+    def __init__(self, vm: ValidationModel) -> None:
+        self.vm = vm
+        self.data = mujoco.MjData(vm.model)
+        self._root = next(b for b, p in enumerate(vm.skeleton.bone_parents) if p < 0)
+        adr = int(vm.model.jnt_qposadr[0])  # the free joint is the first joint
+        self._root_pos_idx = adr + np.arange(3)
+        self._root_quat_idx = adr + 3 + np.arange(4)
+        self._ball_idx = vm.ball_qpos_idx.reshape(-1)
+        self._ball_bones = vm.ball_bones
+        self.out = FrameContacts(points=np.zeros((2 * len(vm.body_ids), 3)))
+
+    def check(
+        self, root_pos: F64Array, world_from_root_quat: F64Array, pfb: F64Array
+    ) -> FrameContacts:
+        """Pose one frame and collide it; returns the reused :class:`FrameContacts`."""
+        m, d, vm, out = self.vm.model, self.data, self.vm, self.out
+        d.qpos[self._root_pos_idx] = root_pos
+        d.qpos[self._root_quat_idx] = world_from_root_quat
+        d.qpos[self._ball_idx] = pfb[self._ball_bones].reshape(-1)
+        mujoco.mj_kinematics(m, d)
+        mujoco.mj_collision(m, d)
+        n_bones = len(vm.body_ids)
+        out.points[:n_bones] = d.xpos[vm.body_ids]
+        out.points[n_bones:] = d.site_xpos[vm.site_ids]
+        out.self_depth = 0.0
+        out.floor_depth = 0.0
+        out.self_pair = (-1, -1)
+        if d.ncon:
+            dist = d.contact.dist[: d.ncon]
+            geoms = d.contact.geom[: d.ncon]
+            floor = (geoms == vm.floor_geom).any(axis=1)
+            if floor.any():
+                out.floor_depth = max(0.0, -float(dist[floor].min()))
+            if (~floor).any():
+                k = int(np.argmin(np.where(floor, np.inf, dist)))
+                out.self_depth = max(0.0, -float(dist[k]))
+                g0, g1 = geoms[k]
+                out.self_pair = (int(vm.geom_bone[g0]), int(vm.geom_bone[g1]))
+        return out
+
+
+@dataclass(slots=True)
+class CheckResult:
+    """One check over a take: per-frame values, a threshold, the flagged frames."""
+
+    name: str
+    values: F64Array  # (T,)
+    threshold: float
+    unit: str
+    flagged: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
+    detail: list[str] = field(default_factory=list)  # per worst frame
+
+    @property
+    def n_flagged(self) -> int:
+        return int(self.flagged.sum())
+
+    def summary(self, n_worst: int = 5) -> dict[str, Any]:
+        """JSON-ready: frames flagged, worst frames and values, threshold."""
+        v = np.where(np.isfinite(self.values), self.values, -np.inf)
+        worst = np.argsort(-v)[:n_worst]
+        return {
+            "threshold": self.threshold,
+            "unit": self.unit,
+            "frames_flagged": self.n_flagged,
+            "first_flagged": (
+                int(np.flatnonzero(self.flagged)[0]) if self.n_flagged else None
+            ),
+            "max": float(np.nanmax(self.values)) if self.values.size else 0.0,
+            "median": float(np.nanmedian(self.values)) if self.values.size else 0.0,
+            "worst_frames": [int(i) for i in worst],
+            "worst_values": [float(self.values[i]) for i in worst],
+        }
+
+
+@dataclass(slots=True)
+class TakeReport:
+    """All checks of a take."""
+
+    checks: dict[str, CheckResult]
+    n_frames: int
+    seconds_per_frame: float  # the MuJoCo per-frame loop (qpos, kinematics, collision)
+
+    @property
+    def passed(self) -> bool:
+        return all(c.n_flagged == 0 for c in self.checks.values())
+
+    def failed(self) -> list[str]:
+        return [n for n, c in self.checks.items() if c.n_flagged]
+
+
+def validate_take(
+    vm: ValidationModel,
+    solve: BodySolve,
+    rate_hz: float,
+    *,
+    fit: tuple[np.ndarray, np.ndarray] | None = None,
+    thresholds: dict[str, float] | None = None,
+) -> TakeReport:
+    """Run every check on a solved take.
+
+    Args:
+        vm: the model (its skeleton = the calibration the model was built from).
+        solve: the solved take; its ``bone_lengths`` pose the streamed skeleton.
+        rate_hz: frame rate.
+        fit: (joint index, point index) from :func:`fit_pairs`; None skips "fit".
+        thresholds: overrides of :data:`THRESHOLDS`.
+
+    Returns:
+        The report.
+    """
+    from retargetd.daemon.validate_model import skeleton_from_arrays
+
+    th = {**THRESHOLDS, **(thresholds or {})}
+    skel_model = vm.skeleton
+    skel_stream = skeleton_from_arrays(skel_model, solve.bone_lengths)
+    wfb, pfb, root_pos = (
+        solve.world_from_bone_quat,
+        solve.parent_from_bone_quat,
+        solve.root_pos,
+    )
+    n, n_bones = wfb.shape[:2]
+    root = next(b for b, p in enumerate(skel_model.bone_parents) if p < 0)
+    origins, aims = pose_skeleton(skel_stream, root_pos, wfb)
+    points = np.concatenate([origins, aims], axis=1)  # (T, 2B, 3)
+
+    checker = FrameChecker(vm)
+    conv = np.empty(n)
+    self_depth = np.empty(n)
+    self_pairs = np.empty((n, 2), dtype=np.int64)
+    floor_depth = np.empty(n)
+    t0 = time.perf_counter()
+    for t in range(n):
+        fc = checker.check(root_pos[t], wfb[t, root], pfb[t])
+        conv[t] = np.sqrt(((fc.points - points[t]) ** 2).sum(axis=1).max())
+        self_depth[t] = fc.self_depth
+        self_pairs[t] = fc.self_pair
+        floor_depth[t] = fc.floor_depth
+    per_frame = (time.perf_counter() - t0) / max(n, 1)
+
+    checks: dict[str, CheckResult] = {}
+    checks["convention"] = CheckResult(
+        "convention", 1e3 * conv, th["convention_mm"], "mm"
+    )
+    if fit is not None and fit[0].size:
+        d = 1e3 * np.linalg.norm(
+            points[:, fit[1]] - solve.joint_centres[:, fit[0]], axis=-1
+        )
+        ok = np.isfinite(d).any(axis=1)
+        med = np.full(n, np.nan)
+        mx = np.full(n, np.nan)
+        med[ok] = np.nanmedian(d[ok], axis=1)
+        mx[ok] = np.nanmax(d[ok], axis=1)
+        checks["fit_median"] = CheckResult("fit_median", med, th["fit_median_mm"], "mm")
+        checks["fit_max"] = CheckResult("fit_max", mx, th["fit_max_mm"], "mm")
+    norms = np.maximum(
+        np.abs(np.linalg.norm(wfb, axis=-1) - 1.0).max(axis=1),
+        np.abs(np.linalg.norm(pfb, axis=-1) - 1.0).max(axis=1),
+    )
+    checks["quat_norm"] = CheckResult("quat_norm", norms, th["quat_norm"], "")
+    viol, which = limit_violation_deg(skel_model, pfb)
+    worst_bone = np.argmax(viol, axis=1)
+    checks["limits"] = CheckResult(
+        "limits", viol.max(axis=1), th["limit_deg"], "deg beyond limit"
+    )
+    checks["self_penetration"] = CheckResult(
+        "self_penetration", 1e3 * self_depth, th["self_penetration_mm"], "mm"
+    )
+    checks["floor_penetration"] = CheckResult(
+        "floor_penetration", 1e3 * floor_depth, th["floor_penetration_mm"], "mm"
+    )
+    clearance = _foot_clearance(skel_model, vm.floor_z, origins, aims)
+    airborne = 1e3 * clearance > th["airborne_clearance_mm"]
+    run_s = _run_lengths(airborne) / rate_hz
+    checks["floating"] = CheckResult("floating", run_s, th["max_airborne_s"], "s")
+    root_speed = _speed(root_pos, rate_hz)
+    checks["root_speed"] = CheckResult(
+        "root_speed", root_speed, th["root_speed_m_s"], "m/s"
+    )
+    leaves = [b for b in range(n_bones) if b not in set(skel_model.bone_parents)]
+    eff = np.max(_speed(aims[:, leaves], rate_hz), axis=1)
+    checks["effector_speed"] = CheckResult(
+        "effector_speed", eff, th["effector_speed_m_s"], "m/s"
+    )
+    for c in checks.values():
+        c.flagged = np.isfinite(c.values) & (c.values > c.threshold)
+    names = skel_model.bone_names
+    checks["limits"].detail = [
+        f"frame {t}: {names[worst_bone[t]]} {which[t, worst_bone[t]]}"
+        for t in np.flatnonzero(checks["limits"].flagged)[:5]
+    ]
+    checks["self_penetration"].detail = [
+        f"frame {t}: {names[self_pairs[t, 0]]} / {names[self_pairs[t, 1]]}"
+        for t in np.flatnonzero(checks["self_penetration"].flagged)[:5]
+    ]
+    return TakeReport(checks=checks, n_frames=n, seconds_per_frame=per_frame)
+
+
+def _foot_clearance(
+    skel: Skeleton, floor_z: float, origins: F64Array, aims: F64Array
+) -> F64Array:
+    """(T,) height of the lowest foot-capsule point above the floor, metres."""
+    feet = [b for b, k in enumerate(skel.bone_kinds) if k in FOOT_KINDS]
+    if not feet:
+        return np.zeros(origins.shape[0])
+    r = capsule_radii(skel)[feet]
+    low = np.minimum(origins[:, feet, 2], aims[:, feet, 2]) - r
+    return low.min(axis=1) - floor_z
+
+
+def _run_lengths(mask: np.ndarray) -> F64Array:
+    """(T,) length in frames of the run of True each frame belongs to (0 if False)."""
+    out = np.zeros(mask.shape[0])
+    if not mask.any():
+        return out
+    padded = np.concatenate([[False], mask, [False]])
+    edges = np.flatnonzero(np.diff(padded.astype(np.int8)))
+    for start, stop in zip(edges[::2], edges[1::2], strict=True):
+        out[start:stop] = stop - start
+    return out
+
+
+def _speed(pos: F64Array, rate_hz: float) -> F64Array:
+    """(T, ...) speed by the backward difference (0 for the first frame), m/s."""
+    out = np.zeros(pos.shape[:-1])
+    out[1:] = np.linalg.norm(np.diff(pos, axis=0), axis=-1) * rate_hz
+    return out

@@ -1,0 +1,361 @@
+"""Pose validation against a MuJoCo model of the calibrated skeleton.
+
+The model (``validate_model``), the per-frame checks (``validate``) and the negative
+tests: each synthetic defect is flagged by the check meant for it, while the clean
+synthetic take and the real PiG walk pass every check.
+
+Clean synthetic take: the exact rig on the synthetic performer without the
+``forearm_twist`` component: with it, the performer's procedural right forearm passes
+~75 mm into its right thigh around t = 2 s (a real defect of the synthetic motion, which
+the self-penetration check reports).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Iterator
+from pathlib import Path
+
+import mujoco
+import numpy as np
+import pytest
+
+from retargetd.daemon import performer as pf
+from retargetd.daemon import rotations as rot
+from retargetd.daemon.calibration import Calibration, calibrate
+from retargetd.daemon.rig import Rig, load_rig
+from retargetd.daemon.solve_body import BodySolve, BodySolver
+from retargetd.daemon.validate import (
+    THRESHOLDS,
+    TakeReport,
+    fit_pairs,
+    pose_skeleton,
+    validate_take,
+)
+from retargetd.daemon.validate_limits import swing_twist
+from retargetd.daemon.validate_model import (
+    Skeleton,
+    ValidationModel,
+    build_model,
+    capsule_radii,
+    segment_masses,
+    skeleton_from_arrays,
+    skeleton_from_calibration,
+)
+
+DATA = Path(__file__).resolve().parent.parent / "data"
+RATE_HZ = 120.0
+DEFECT = slice(20, 110)  # frames of the T-pose hold that get a defect
+
+
+@pytest.fixture(autouse=True)
+def _mujoco_cwd(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[None]:
+    """MuJoCo writes MUJOCO_LOG.TXT into the CWD when it warns: never the repo."""
+    monkeypatch.chdir(tmp_path)
+    yield
+
+
+@dataclasses.dataclass(frozen=True)
+class Solved:
+    rig: Rig
+    cal: Calibration
+    solve: BodySolve
+    skel: Skeleton
+    vm: ValidationModel
+    fit: tuple[np.ndarray, np.ndarray]
+
+
+@pytest.fixture(scope="module")
+def clean() -> Solved:
+    rig = load_rig(DATA / "synth-exact-rig.toml")
+    motions = [m for m in pf.ALL_MOTIONS if m != "forearm_twist"]
+    take = pf.synthesize(
+        seconds=4.0,
+        rate_hz=RATE_HZ,
+        markerset=DATA / "synth-exact-markers.toml",
+        motions=motions,
+    )
+    cal = calibrate(rig, take.markers_world[take.base_pose_frames], take.labels)
+    solve = BodySolver(rig, cal, take.labels).solve_take(take.markers_world)
+    skel = skeleton_from_calibration(rig, cal)
+    return Solved(
+        rig, cal, solve, skel, build_model(skel), fit_pairs(rig, solve.joint_names)
+    )
+
+
+def _run(s: Solved, solve: BodySolve, vm: ValidationModel | None = None) -> TakeReport:
+    return validate_take(vm or s.vm, solve, RATE_HZ, fit=s.fit)
+
+
+def _with(solve: BodySolve, **arrays: np.ndarray) -> BodySolve:
+    return dataclasses.replace(solve, **arrays)
+
+
+def _rechain(s: Solved, pfb: np.ndarray) -> np.ndarray:
+    """World rotations consistent with ``pfb`` (a defect sent consistently)."""
+    rest = s.skel.rest_world_from_bone_quat
+    wfb = s.solve.world_from_bone_quat.copy()
+    for b, p in enumerate(s.skel.bone_parents):
+        if p >= 0:
+            rest_pfb = rot.quat_mul(rot.quat_conj(rest[p]), rest[b])
+            wfb[:, b] = rot.quat_mul(wfb[:, p], rot.quat_mul(rest_pfb, pfb[:, b]))
+    return wfb
+
+
+def _rotate_bone(s: Solved, bone: str, axis_world: np.ndarray, deg: float) -> BodySolve:
+    """Bone ``bone`` turned about ``axis_world`` (calibration-pose axes) over the DEFECT
+    frames, up to ``deg`` in a smooth bump (no jump), children following, sent
+    consistently."""
+    b = s.skel.bone_names.index(bone)
+    axis = rot.quat_rotate(
+        rot.quat_conj(s.skel.rest_world_from_bone_quat[b]), axis_world
+    )
+    pfb = s.solve.parent_from_bone_quat.copy()
+    n = DEFECT.stop - DEFECT.start
+    bump = np.sin(np.pi * (np.arange(n) + 0.5) / n)
+    turn = rot.quat_from_axis_angle(axis, np.radians(deg) * bump)
+    pfb[DEFECT, b] = rot.quat_mul(turn, pfb[DEFECT, b])
+    return _with(
+        s.solve, parent_from_bone_quat=pfb, world_from_bone_quat=_rechain(s, pfb)
+    )
+
+
+def _flagged(rep: TakeReport) -> set[str]:
+    return set(rep.failed())
+
+
+# --- the model ---------------------------------------------------------------------
+
+
+def test_model_structure(clean: Solved) -> None:
+    vm, skel = clean.vm, clean.skel
+    m = vm.model
+    assert m.nbody == len(skel.bone_names) + 1
+    assert m.njnt == len(skel.bone_names)
+    assert m.jnt_type[0] == mujoco.mjtJoint.mjJNT_FREE
+    assert (m.jnt_type[1:] == mujoco.mjtJoint.mjJNT_BALL).all()
+    assert m.nq == 7 + 4 * (len(skel.bone_names) - 1)
+    assert m.body_mass[1:].sum() == pytest.approx(70.0)
+    masses = segment_masses(skel, 70.0)
+    thigh = skel.bone_names.index("l_thigh")
+    assert masses[thigh] / 70.0 == pytest.approx(0.1416, rel=0.05)  # de Leva
+    radii = capsule_radii(skel)
+    assert (radii > 0.01).all() and (radii < 0.15).all()
+    # Excluded rest-pose contacts: the calibration pose collides with nothing but the
+    # floor, on which the feet stand.
+    data = mujoco.MjData(m)
+    mujoco.mj_kinematics(m, data)
+    mujoco.mj_collision(m, data)
+    geoms = data.contact.geom[: data.ncon]
+    assert (geoms == vm.floor_geom).any(axis=1).all()
+    assert data.contact.dist[: data.ncon].min() > -1e-6
+    # The XML reloads to the same model; the cache returns the same object.
+    again = mujoco.MjModel.from_xml_string(vm.xml)
+    assert again.nq == m.nq and np.allclose(again.body_pos, m.body_pos)
+    assert build_model(skeleton_from_calibration(clean.rig, clean.cal)) is vm
+    assert build_model(clean.skel, 80.0) is not vm
+
+
+def test_rest_pose_is_identity(clean: Solved) -> None:
+    """qpos0 (identity ball joints) poses the calibrated rest origins."""
+    data = mujoco.MjData(clean.vm.model)
+    mujoco.mj_kinematics(clean.vm.model, data)
+    rest = clean.skel.rest_origin_world
+    assert np.abs(data.xpos[clean.vm.body_ids] - rest).max() < 1e-9
+
+
+def test_swing_twist_recomposes() -> None:
+    q = rot.quat_normalize(np.random.default_rng(1).normal(size=(50, 4)))
+    swing, twist = swing_twist(q)
+    assert np.abs(swing[:, 1]).max() < 1e-12  # swing axis perpendicular to +Y
+    tq = rot.quat_from_axis_angle(np.array([0.0, 1.0, 0.0]), twist)
+    back = rot.quat_mul(rot.quat_from_rotvec(swing), tq)
+    assert np.abs(np.abs(np.sum(back * q, axis=-1)) - 1.0).max() < 1e-12
+
+
+# --- clean takes pass ----------------------------------------------------------------
+
+
+def test_clean_synthetic_take_passes(clean: Solved) -> None:
+    rep = _run(clean, clean.solve)
+    assert rep.passed, {n: c.summary() for n, c in rep.checks.items() if c.n_flagged}
+    assert rep.checks["convention"].values.max() < 1e-6  # mm
+    assert rep.checks["fit_max"].values.max() < 1e-3  # mm: exact rig, no noise
+    print(f"\nper-frame MuJoCo loop: {1e6 * rep.seconds_per_frame:.1f} us")
+
+
+def test_pig_walk_passes(datasets: Path) -> None:
+    from retargetd.replay.takes import load_take
+
+    rig = load_rig("plug-in-gait")
+    static = load_take(datasets / "btkdata/PiG_Calibration-FlatFoot-Full.c3d")
+    cal = calibrate(
+        rig, static.positions, static.labels, take_measurements=static.measurements
+    )
+    walk = load_take(datasets / "btkdata/PiG_Motion-FlatFoot-Full.c3d")
+    solve = BodySolver(rig, cal, walk.labels).solve_take(walk.positions)
+    mass = static.measurements.get("Bodymass", 70.0)
+    vm = build_model(skeleton_from_calibration(rig, cal), mass)
+    assert vm.model.body_mass[1:].sum() == pytest.approx(mass)
+    rep = validate_take(vm, solve, walk.rate_hz, fit=fit_pairs(rig, solve.joint_names))
+    lines = [
+        f"{n}: max {c.summary()['max']:.3g} {c.unit} (threshold {c.threshold:g})"
+        for n, c in rep.checks.items()
+    ]
+    print("\nPiG walk\n" + "\n".join(lines))
+    assert rep.passed, rep.failed()
+
+
+# --- negative tests ------------------------------------------------------------------
+
+
+def test_xyzw_quaternions_fail_convention(clean: Solved) -> None:
+    s = clean.solve
+    rep = _run(
+        clean,
+        _with(
+            s,
+            world_from_bone_quat=s.world_from_bone_quat[..., [1, 2, 3, 0]],
+            parent_from_bone_quat=s.parent_from_bone_quat[..., [1, 2, 3, 0]],
+        ),
+    )
+    assert {"convention", "fit_median"} <= _flagged(rep)
+    assert np.median(rep.checks["convention"].values) > 100.0  # mm
+
+
+def test_world_rotations_as_parent_relative_fail_convention(clean: Solved) -> None:
+    s = clean.solve
+    rep = _run(clean, _with(s, parent_from_bone_quat=s.world_from_bone_quat))
+    assert "convention" in _flagged(rep)
+    assert rep.checks["convention"].n_flagged == s.root_pos.shape[0]
+
+
+def test_longer_bone_in_model_fails_convention(clean: Solved) -> None:
+    lengths = clean.skel.bone_lengths.copy()
+    b = clean.skel.bone_names.index("l_thigh")
+    lengths[b] *= 1.03
+    vm = build_model(skeleton_from_arrays(clean.skel, lengths))
+    rep = _run(clean, clean.solve, vm)
+    assert _flagged(rep) == {"convention"}
+    expect_mm = 0.03 * 1e3 * clean.skel.bone_lengths[b]
+    assert rep.checks["convention"].values.min() == pytest.approx(expect_mm, rel=0.02)
+
+
+def test_teleport_fails_speed(clean: Solved) -> None:
+    s = clean.solve
+    root = s.root_pos.copy()
+    root[200:] += [0.3, 0.0, 0.0]
+    joints = s.joint_centres.copy()
+    joints[200:] += [0.3, 0.0, 0.0]
+    rep = _run(clean, _with(s, root_pos=root, joint_centres=joints))
+    assert _flagged(rep) == {"root_speed", "effector_speed"}
+    assert np.flatnonzero(rep.checks["root_speed"].flagged).tolist() == [200]
+
+
+def test_floating_body_fails_floating(clean: Solved) -> None:
+    s = clean.solve
+    lift = np.array([0.0, 0.0, 0.3])
+    rep = _run(
+        clean,
+        _with(s, root_pos=s.root_pos + lift, joint_centres=s.joint_centres + lift),
+    )
+    assert _flagged(rep) == {"floating"}
+
+
+def test_knee_bent_backwards_fails_limits(clean: Solved) -> None:
+    # +angle about the performer's left flexes the knee: -40 deg is hyperextension.
+    solve = _rotate_bone(clean, "l_shank", clean.skel.left_world, -40.0)
+    rep = _run(clean, _with(solve, joint_centres=_posed_joints(clean, solve)))
+    assert _flagged(rep) == {"limits"}
+    limits = rep.checks["limits"]
+    flagged = np.flatnonzero(limits.flagged)
+    assert DEFECT.start < flagged[0] and flagged[-1] < DEFECT.stop
+    assert limits.values.max() == pytest.approx(40.0 - 15.0, abs=0.1)
+    assert "l_shank" in limits.detail[0] and "sagittal -" in limits.detail[0]
+    # The same angle forwards is an ordinary knee flexion (its toes, turning with the
+    # shank, do go through the floor: that check fires, not the limits).
+    solve = _rotate_bone(clean, "l_shank", clean.skel.left_world, 40.0)
+    rep = _run(clean, _with(solve, joint_centres=_posed_joints(clean, solve)))
+    assert "limits" not in _flagged(rep)
+
+
+def test_legs_crossing_fail_self_penetration(clean: Solved) -> None:
+    # Adduct the left hip 30 deg (about -forward): the left leg crosses the right.
+    forward = np.cross(clean.skel.left_world, [0.0, 0.0, 1.0])
+    solve = _rotate_bone(clean, "l_thigh", forward, -30.0)
+    rep = _run(clean, _with(solve, joint_centres=_posed_joints(clean, solve)))
+    assert _flagged(rep) == {"self_penetration"}
+    detail = rep.checks["self_penetration"].detail[0]
+    assert "l_" in detail and "r_" in detail
+
+
+def test_quaternion_norm(clean: Solved) -> None:
+    s = clean.solve
+    pfb = s.parent_from_bone_quat.copy()
+    pfb[DEFECT] *= 1.01  # MuJoCo normalises silently: poses unchanged
+    rep = _run(clean, _with(s, parent_from_bone_quat=pfb))
+    assert _flagged(rep) == {"quat_norm"}
+
+
+def test_thresholds_are_documented() -> None:
+    assert set(THRESHOLDS) >= {"convention_mm", "fit_median_mm", "root_speed_m_s"}
+
+
+def _posed_joints(s: Solved, solve: BodySolve) -> np.ndarray:
+    """Joint centres that follow a defect (so only the check meant for it fires)."""
+    origins, aims = pose_skeleton(s.skel, solve.root_pos, solve.world_from_bone_quat)
+    points = np.concatenate([origins, aims], axis=1)
+    joints = solve.joint_centres.copy()
+    joints[:, s.fit[0]] = points[:, s.fit[1]]
+    return joints
+
+
+# --- retargetd validate ------------------------------------------------------------
+
+
+def _validate_argv(datasets: Path, calibration: Path, report: Path) -> list[str]:
+    walk = datasets / "btkdata/PiG_Motion-FlatFoot-Full.c3d"
+    return [
+        "validate", str(walk), "--rig", "plug-in-gait",
+        "--calibration", str(calibration), "--report", str(report),
+    ]  # fmt: skip
+
+
+def test_cli_pig_walk_passes(
+    datasets: Path, pig_calibration: Path, tmp_path: Path
+) -> None:
+    import json
+
+    from retargetd.daemon.cli import main
+
+    report = tmp_path / "report"
+    assert main(_validate_argv(datasets, pig_calibration, report)) == 0
+    doc = json.loads((report / "report.json").read_text())
+    assert doc["passed"] and doc["body_mass_kg"] == pytest.approx(47.5)  # Bodymass
+    assert set(doc["checks"]) >= {"convention", "fit_max", "limits", "floating"}
+    assert "PASS" in (report / "report.txt").read_text()
+    assert mujoco.MjModel.from_xml_path(str(report / "model.xml")).nbody == 20
+    assert not (Path(__file__).resolve().parents[2] / "MUJOCO_LOG.TXT").exists()
+
+
+def test_cli_exit_codes(
+    datasets: Path,
+    pig_calibration: Path,
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    from retargetd.daemon import validate
+    from retargetd.daemon.cli import main
+
+    argv = _validate_argv(datasets, pig_calibration, tmp_path / "r")
+    bad = [*argv[:5], str(tmp_path / "missing.json"), *argv[6:]]
+    assert main(bad) == 2
+    monkeypatch.setitem(validate.THRESHOLDS, "convention_mm", -1.0)
+    assert main(argv) == 1
+    assert "FAIL: convention" in (tmp_path / "r" / "report.txt").read_text()
+
+    def boom(*args: object, **kwargs: object) -> None:
+        raise RuntimeError("boom")
+
+    monkeypatch.setattr(validate, "validate_take", boom)
+    assert main(argv) == 3
