@@ -25,6 +25,7 @@ SUBCOMMAND_MODULES: tuple[str, ...] = (
     "retargetd.daemon.cmd_take",
     "retargetd.daemon.cmd_rig",
     "retargetd.daemon.cmd_calibrate",
+    "retargetd.daemon.cmd_face_train",
     "retargetd.daemon.cmd_solve",
     "retargetd.daemon.cmd_export_c3d",
     "retargetd.daemon.cmd_run",

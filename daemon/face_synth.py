@@ -1,0 +1,300 @@
+"""Synthetic facial-marker takes with known weights, from the ICT-FaceKit model riding
+on real head motion.
+
+The ICT-FaceKit "Light" expressions (``../shared/datasets/face/ict-facekit``, MIT;
+see that folder's PROVENANCE.md) are linear blendshapes in centimetres, +Y up, +Z
+forward, +X the subject's left. Here they become ARKit-52 shapes at marker sites:
+
+- facial markers: one at the peak of each shape (>= ``spacing`` apart), then the 68
+  landmark vertices (jaw line, brows, nose, lips), then the most-moving vertices,
+  until ``n_markers``; all on the face region ``[0, 9409)``, so eyelids, cheeks and
+  forehead get markers;
+- head markers LFHD RFHD LBHD RBHD on vertices the upstream fitter treats as rigid
+  (``idx_to_rigid_verts``): forehead left/right, back of the head left/right;
+- ARKit names: ``x_L`` -> ``xLeft``; ``browInnerUp`` and ``cheekPuff`` are the sums of
+  their halves; ``cheekRaiser_*`` and the pupil shapes are dropped; ``tongueOut`` has
+  no ICT shape and is a zero column (the solver must report it unobservable).
+
+Head coordinates (``HEAD_FROM_ICT``): +X the subject's right, +Y forward, +Z up,
+metres, origin at the head-marker centroid. Frames are ``neutral + sum_k w_k delta_k``
+in head coordinates, moved by ``world_from_head`` of each frame of a Plug-in Gait take
+(the Kabsch fit of its LFHD RFHD LBHD RBHD to their layout), plus Gaussian noise.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import numpy.typing as npt
+
+from retargetd.daemon.solve_face import TrainingSet, head_layout_from_frames
+
+logger = logging.getLogger(__name__)
+
+F64Array = npt.NDArray[np.float64]
+
+CM_TO_M = 1e-2
+#: Signed permutation: head coords (x right, y forward, z up) from ICT (x left,
+#: y up, z forward). det = +1.
+HEAD_FROM_ICT = np.array([[-1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, 1.0, 0.0]])
+ICT_DIR = "face/ict-facekit"
+ICT_FACE_END = 9409  #: vertices [0, 9409) are the face skin
+ICT_SKIN_END = 11248  #: [9409, 11248) head and neck
+HEAD_NAMES = ("LFHD", "RFHD", "LBHD", "RBHD")
+PIG_WALK = "btkdata/PiG_Motion-FlatFoot-Full.c3d"
+
+ARKIT_52: tuple[str, ...] = (
+    "browDownLeft", "browDownRight", "browInnerUp", "browOuterUpLeft",
+    "browOuterUpRight", "cheekPuff", "cheekSquintLeft", "cheekSquintRight",
+    "eyeBlinkLeft", "eyeBlinkRight", "eyeLookDownLeft", "eyeLookDownRight",
+    "eyeLookInLeft", "eyeLookInRight", "eyeLookOutLeft", "eyeLookOutRight",
+    "eyeLookUpLeft", "eyeLookUpRight", "eyeSquintLeft", "eyeSquintRight",
+    "eyeWideLeft", "eyeWideRight", "jawForward", "jawLeft", "jawOpen", "jawRight",
+    "mouthClose", "mouthDimpleLeft", "mouthDimpleRight", "mouthFrownLeft",
+    "mouthFrownRight", "mouthFunnel", "mouthLeft", "mouthLowerDownLeft",
+    "mouthLowerDownRight", "mouthPressLeft", "mouthPressRight", "mouthPucker",
+    "mouthRight", "mouthRollLower", "mouthRollUpper", "mouthShrugLower",
+    "mouthShrugUpper", "mouthSmileLeft", "mouthSmileRight", "mouthStretchLeft",
+    "mouthStretchRight", "mouthUpperUpLeft", "mouthUpperUpRight", "noseSneerLeft",
+    "noseSneerRight", "tongueOut",
+)  # fmt: skip
+
+#: Directions from the head centre (ICT axes) at which the head markers sit.
+_HEAD_DIRS_ICT = {
+    "LFHD": (0.6, 0.45, 0.65),
+    "RFHD": (-0.6, 0.45, 0.65),
+    "LBHD": (0.5, 0.35, -0.8),
+    "RBHD": (-0.5, 0.35, -0.8),
+}
+
+
+def _arkit_from_ict(name: str) -> str:
+    if name.endswith("_L"):
+        return name[:-2] + "Left"
+    if name.endswith("_R"):
+        return name[:-2] + "Right"
+    return name
+
+
+def ict_arkit_shapes(datasets: Path) -> tuple[F64Array, F64Array, dict[str, list[int]]]:
+    """The ICT model as ARKit 52 shapes.
+
+    Returns:
+        neutral (V, 3) cm ICT axes, deltas (52, V, 3) cm ICT axes (ARKIT_52 order),
+        and ``vertex_indices.json`` (landmark and rigid vertex lists).
+    """
+    folder = datasets / ICT_DIR
+    with np.load(folder / "ict_expressions_skin.npz", allow_pickle=False) as z:
+        names = [str(s) for s in z["names"]]
+        neutral = np.asarray(z["neutral"], dtype=np.float64)
+        ict = np.asarray(z["deltas"], dtype=np.float64)
+    indices = json.loads((folder / "vertex_indices.json").read_text())
+    by = {n: i for i, n in enumerate(names)}
+    deltas = np.zeros((len(ARKIT_52), *neutral.shape))
+    for k, name in enumerate(ARKIT_52):
+        if name in ("browInnerUp", "cheekPuff"):
+            deltas[k] = ict[by[name + "_L"]] + ict[by[name + "_R"]]
+            continue
+        src = [n for n in names if _arkit_from_ict(n) == name]
+        if src:
+            deltas[k] = ict[by[src[0]]]
+    return neutral, deltas, indices
+
+
+def pick_face_vertices(
+    neutral: F64Array,
+    deltas: F64Array,
+    landmarks: list[int],
+    n_markers: int = 40,
+    spacing_cm: float = 0.8,
+) -> list[int]:
+    """Facial marker vertices: shape peaks, then landmarks, then the most-moving.
+
+    Args:
+        neutral: (V, 3) cm. deltas: (K, V, 3) cm. landmarks: vertex ids.
+        n_markers: how many to pick. spacing_cm: minimum distance between markers.
+    """
+    face = np.arange(ICT_FACE_END)
+    mag = np.linalg.norm(deltas[:, :ICT_FACE_END], axis=2)  # (K, F)
+    chosen: list[int] = []
+
+    def far(v: int) -> bool:
+        if not chosen:
+            return True
+        return bool(
+            np.min(np.linalg.norm(neutral[chosen] - neutral[v], axis=1)) >= spacing_cm
+        )
+
+    for k in np.argsort(-mag.max(axis=1)):
+        if mag[k].max() < 0.05 or len(chosen) >= n_markers:
+            continue
+        for v in face[np.argsort(-mag[k])][:400]:
+            if far(int(v)):
+                chosen.append(int(v))
+                break
+    for v in landmarks:
+        if len(chosen) < n_markers and v < ICT_FACE_END and far(v):
+            chosen.append(int(v))
+    for v in np.argsort(-mag.sum(axis=0)):
+        if len(chosen) >= n_markers:
+            break
+        if far(int(v)):
+            chosen.append(int(v))
+    return chosen
+
+
+def pick_head_vertices(neutral: F64Array, rigid: list[int]) -> list[int]:
+    """LFHD RFHD LBHD RBHD: the rigid skin vertex furthest along each direction."""
+    cand = np.array([v for v in rigid if v < ICT_SKIN_END])
+    centre = np.array([0.0, 4.0, 0.0])
+    rel = neutral[cand] - centre
+    unit = rel / np.linalg.norm(rel, axis=1, keepdims=True)
+    out = []
+    for name in HEAD_NAMES:
+        d = np.asarray(_HEAD_DIRS_ICT[name])
+        out.append(int(cand[np.argmax(unit @ (d / np.linalg.norm(d)))]))
+    return out
+
+
+def ict_training_set(datasets: Path, n_markers: int = 40) -> TrainingSet:
+    """The ground-truth training set of the synthetic face (ARKit 52, head coords)."""
+    neutral, deltas, indices = ict_arkit_shapes(datasets)
+    face_v = pick_face_vertices(
+        neutral, deltas, indices["idx_to_landmark_verts"], n_markers
+    )
+    head_v = pick_head_vertices(neutral, indices["idx_to_rigid_verts"])
+    to_head = HEAD_FROM_ICT * CM_TO_M
+    head = neutral[head_v] @ to_head.T
+    origin = head.mean(axis=0)
+    return TrainingSet(
+        head_names=HEAD_NAMES,
+        marker_names=tuple(f"F{i:02d}_v{v}" for i, v in enumerate(face_v)),
+        expression_names=ARKIT_52,
+        head_layout=head - origin,
+        neutral=neutral[face_v] @ to_head.T - origin,
+        deltas=deltas[:, face_v] @ to_head.T,
+    )
+
+
+def pig_head_motion(datasets: Path) -> tuple[F64Array, F64Array]:
+    """``world_from_head`` per complete frame of the Plug-in Gait walk.
+
+    The head frame is built on the take's LFHD RFHD LBHD RBHD layout (x right,
+    y forward, z up, origin at their centroid); each frame is the Kabsch fit of the
+    four markers to that layout. Returns quat (T, 4) (w, x, y, z) and pos (T, 3) m.
+    """
+    from scipy.spatial.transform import Rotation
+
+    from retargetd.replay.takes import load_take
+
+    take = load_take(datasets / PIG_WALK)
+    cols = [take.labels.index(n) for n in HEAD_NAMES]
+    head_world = take.positions[:, cols]
+    complete = np.all(np.isfinite(head_world), axis=(1, 2))
+    head_world = head_world[complete]
+    layout = head_layout_from_frames(head_world)
+    # Anatomical axes of the layout: x = right, y = forward, z = up.
+    lf, rf, lb, rb = layout
+    right = (rf + rb - lf - lb) / 2.0
+    fwd = (lf + rf - lb - rb) / 2.0
+    x = right / np.linalg.norm(right)
+    z = np.cross(x, fwd)
+    z /= np.linalg.norm(z)
+    y = np.cross(z, x)
+    layout = layout @ np.stack([x, y, z], axis=1)
+    quat = np.zeros((len(head_world), 4))
+    pos = np.zeros((len(head_world), 3))
+    for t, f in enumerate(head_world):
+        c = f.mean(axis=0)
+        rot, _ = Rotation.align_vectors(f - c, layout)
+        quat[t] = rot.as_quat(scalar_first=True)
+        pos[t] = c
+    return quat, pos
+
+
+def synth_weights(rng: np.random.Generator, n_frames: int, rate_hz: float) -> F64Array:
+    """Smooth random ARKit-52 weights (T, 52) in [0, 1], about a third at 0 at a
+    time, left and right sides independent (asymmetry), ``mouthClose <= jawOpen``,
+    ``tongueOut`` = 0 (no ICT shape)."""
+    t = np.arange(n_frames)[:, None] / rate_hz
+    k = len(ARKIT_52)
+    freq = rng.uniform(0.2, 1.5, k)
+    phase = rng.uniform(0, 2 * np.pi, k)
+    amp = rng.uniform(0.6, 1.0, k)
+    w = np.clip(amp * (0.5 + 0.8 * np.sin(2 * np.pi * freq * t + phase)) - 0.1, 0, 1)
+    jaw = ARKIT_52.index("jawOpen")
+    close = ARKIT_52.index("mouthClose")
+    w[:, close] = np.minimum(w[:, close], w[:, jaw])
+    w[:, ARKIT_52.index("tongueOut")] = 0.0
+    return w
+
+
+@dataclass(frozen=True, slots=True, kw_only=True, eq=False)
+class SynthFace:
+    """A synthetic face take.
+
+    Attributes:
+        training: the ground-truth training set.
+        labels: (N,) stream labels: head markers, then facial markers.
+        markers_world: (T, N, 3) float64, metres, world, noisy.
+        weights: (T, K) true weights.
+        world_from_head_quat: (T, 4) true head pose, (w, x, y, z).
+        world_from_head_pos: (T, 3) metres.
+        noise_rms_m: 3-D RMS marker noise, metres (per-axis sigma = it / sqrt 3).
+    """
+
+    training: TrainingSet
+    labels: tuple[str, ...]
+    markers_world: F64Array
+    weights: F64Array
+    world_from_head_quat: F64Array
+    world_from_head_pos: F64Array
+    noise_rms_m: float
+
+
+def synth_face_take(
+    datasets: Path,
+    rng: np.random.Generator,
+    *,
+    n_frames: int | None = None,
+    noise_rms_m: float = 5e-4,
+    n_markers: int = 40,
+    rate_hz: float = 100.0,
+) -> SynthFace:
+    """The ICT face with known weights on the head motion of the PiG walk.
+
+    Args:
+        datasets: the ``../shared/datasets`` folder.
+        rng: random generator (weights and noise).
+        n_frames: frames to make (default: every complete frame of the walk).
+        noise_rms_m: 3-D RMS Gaussian noise, metres, on every marker.
+        n_markers: facial markers.
+        rate_hz: time base of the weight curves.
+    """
+    from scipy.spatial.transform import Rotation
+
+    training = ict_training_set(datasets, n_markers)
+    quat, pos = pig_head_motion(datasets)
+    if n_frames is not None:
+        quat, pos = quat[:n_frames], pos[:n_frames]
+    n = len(quat)
+    w = synth_weights(rng, n, rate_hz)
+    face = training.neutral + np.einsum("tk,kmc->tmc", w, training.deltas)
+    head = np.broadcast_to(training.head_layout, (n, *training.head_layout.shape))
+    local = np.concatenate([head, face], axis=1)
+    rot = Rotation.from_quat(quat, scalar_first=True).as_matrix()
+    world = np.einsum("tij,tmj->tmi", rot, local) + pos[:, None, :]
+    world += rng.normal(0.0, noise_rms_m / np.sqrt(3.0), world.shape)
+    return SynthFace(
+        training=training,
+        labels=(*training.head_names, *training.marker_names),
+        markers_world=world,
+        weights=w,
+        world_from_head_quat=quat,
+        world_from_head_pos=pos,
+        noise_rms_m=noise_rms_m,
+    )

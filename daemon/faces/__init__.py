@@ -1,0 +1,1 @@
+"""Shipped face configs (TOML package data); format: ``face_config``."""
