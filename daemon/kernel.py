@@ -152,6 +152,43 @@ def _jacobi_top_eigvec(a: np.ndarray, v: np.ndarray, out: np.ndarray) -> None:
 
 
 @numba.njit(cache=True, nogil=True)
+def horn_rotation(
+    sxx: float, sxy: float, sxz: float,
+    syx: float, syy: float, syz: float,
+    szx: float, szy: float, szz: float,
+    n44: np.ndarray,
+    v44: np.ndarray,
+    q4: np.ndarray,
+) -> None:  # fmt: skip
+    """Horn's closed-form rigid fit: from the cross-covariance S = sum l_i c_i^T of
+    centred layout points l and current points c, the rotation R maximizing
+    sum c_i . R l_i is the top eigenvector of a symmetric 4x4 matrix built from S.
+    Writes R (3, 3) into ``n44[:3, :3]`` and its quaternion (w, x, y, z) into ``q4``
+    (scratch n44, v44 (4, 4); no allocation)."""
+    n44[0, 0] = sxx + syy + szz
+    n44[0, 1] = n44[1, 0] = syz - szy
+    n44[0, 2] = n44[2, 0] = szx - sxz
+    n44[0, 3] = n44[3, 0] = sxy - syx
+    n44[1, 1] = sxx - syy - szz
+    n44[1, 2] = n44[2, 1] = sxy + syx
+    n44[1, 3] = n44[3, 1] = szx + sxz
+    n44[2, 2] = -sxx + syy - szz
+    n44[2, 3] = n44[3, 2] = syz + szy
+    n44[3, 3] = -sxx - syy + szz
+    _jacobi_top_eigvec(n44, v44, q4)
+    w, x, y, z = q4[0], q4[1], q4[2], q4[3]
+    n44[0, 0] = 1.0 - 2.0 * (y * y + z * z)
+    n44[0, 1] = 2.0 * (x * y - w * z)
+    n44[0, 2] = 2.0 * (x * z + w * y)
+    n44[1, 0] = 2.0 * (x * y + w * z)
+    n44[1, 1] = 1.0 - 2.0 * (x * x + z * z)
+    n44[1, 2] = 2.0 * (y * z - w * x)
+    n44[2, 0] = 2.0 * (x * z - w * y)
+    n44[2, 1] = 2.0 * (y * z + w * x)
+    n44[2, 2] = 1.0 - 2.0 * (x * x + y * y)
+
+
+@numba.njit(cache=True, nogil=True)
 def _kabsch_fill(
     pts: np.ndarray,
     seen: np.ndarray,
@@ -219,27 +256,10 @@ def _kabsch_fill(
             area = max(area, ax * ax + ay * ay + az * az)
     if area < 1e-12:  # (1 mm x 1 mm)^2: the fit is not determined
         return
-    n44[0, 0] = sxx + syy + szz
-    n44[0, 1] = n44[1, 0] = syz - szy
-    n44[0, 2] = n44[2, 0] = szx - sxz
-    n44[0, 3] = n44[3, 0] = sxy - syx
-    n44[1, 1] = sxx - syy - szz
-    n44[1, 2] = n44[2, 1] = sxy + syx
-    n44[1, 3] = n44[3, 1] = szx + sxz
-    n44[2, 2] = -sxx + syy - szz
-    n44[2, 3] = n44[3, 2] = syz + szy
-    n44[3, 3] = -sxx - syy + szz
-    _jacobi_top_eigvec(n44, v44, q4)
-    w, x, y, z = q4[0], q4[1], q4[2], q4[3]
-    r00 = 1.0 - 2.0 * (y * y + z * z)
-    r01 = 2.0 * (x * y - w * z)
-    r02 = 2.0 * (x * z + w * y)
-    r10 = 2.0 * (x * y + w * z)
-    r11 = 1.0 - 2.0 * (x * x + z * z)
-    r12 = 2.0 * (y * z - w * x)
-    r20 = 2.0 * (x * z - w * y)
-    r21 = 2.0 * (y * z + w * x)
-    r22 = 1.0 - 2.0 * (x * x + y * y)
+    horn_rotation(sxx, sxy, sxz, syx, syy, syz, szx, szy, szz, n44, v44, q4)
+    r00, r01, r02 = n44[0, 0], n44[0, 1], n44[0, 2]
+    r10, r11, r12 = n44[1, 0], n44[1, 1], n44[1, 2]
+    r20, r21, r22 = n44[2, 0], n44[2, 1], n44[2, 2]
     for i in range(k):
         m = idx[i]
         if not seen[m]:

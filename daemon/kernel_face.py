@@ -2,7 +2,7 @@
 
 ``solve_face_frame`` is one call per frame with every buffer passed in (no
 allocation): the weighted rigid fit of the head markers (Horn's quaternion method,
-the top eigenvector from ``kernel._jacobi_top_eigvec``), the facial markers mapped to
+the shared ``kernel.horn_rotation``), the facial markers mapped to
 head coordinates, the restricted normal matrix rebuilt only when the occlusion
 pattern changes, and the box-constrained QP by block principal pivoting. The method
 and the frames are described in ``solve_face``.
@@ -15,7 +15,9 @@ import math
 import numba
 import numpy as np
 
-from retargetd.daemon.kernel import _jacobi_top_eigvec
+# numba's on-disk cache does not track functions imported from other modules: after
+# changing kernel.horn_rotation, delete daemon/__pycache__/*.nbi/*.nbc (CI starts clean).
+from retargetd.daemon.kernel import horn_rotation
 
 FLAG_HEAD_PARTIAL = 1  #: a head marker was missing (fit from the others)
 FLAG_HEAD_LOST = 2  #: < 3 usable head markers: pose and weights held, markers NaN
@@ -102,27 +104,10 @@ def _fit_head(
             area = max(area, ax * ax + ay * ay + az * az)
     if area < 1e-12:  # (1 mm x 1 mm)^2: collinear, rotation about the line unknown
         return 0
-    n44[0, 0] = sxx + syy + szz
-    n44[0, 1] = n44[1, 0] = syz - szy
-    n44[0, 2] = n44[2, 0] = szx - sxz
-    n44[0, 3] = n44[3, 0] = sxy - syx
-    n44[1, 1] = sxx - syy - szz
-    n44[1, 2] = n44[2, 1] = sxy + syx
-    n44[1, 3] = n44[3, 1] = szx + sxz
-    n44[2, 2] = -sxx + syy - szz
-    n44[2, 3] = n44[3, 2] = syz + szy
-    n44[3, 3] = -sxx - syy + szz
-    _jacobi_top_eigvec(n44, v44, q4)
-    w, x, y, z = q4[0], q4[1], q4[2], q4[3]
-    rot[0, 0] = 1.0 - 2.0 * (y * y + z * z)
-    rot[0, 1] = 2.0 * (x * y - w * z)
-    rot[0, 2] = 2.0 * (x * z + w * y)
-    rot[1, 0] = 2.0 * (x * y + w * z)
-    rot[1, 1] = 1.0 - 2.0 * (x * x + z * z)
-    rot[1, 2] = 2.0 * (y * z - w * x)
-    rot[2, 0] = 2.0 * (x * z - w * y)
-    rot[2, 1] = 2.0 * (y * z + w * x)
-    rot[2, 2] = 1.0 - 2.0 * (x * x + y * y)
+    horn_rotation(sxx, sxy, sxz, syx, syy, syz, szx, szy, szz, n44, v44, q4)
+    for r in range(3):
+        for c in range(3):
+            rot[r, c] = n44[r, c]
     pos[0] = ccx - rot[0, 0] * clx - rot[0, 1] * cly - rot[0, 2] * clz
     pos[1] = ccy - rot[1, 0] * clx - rot[1, 1] * cly - rot[1, 2] * clz
     pos[2] = ccz - rot[2, 0] * clx - rot[2, 1] * cly - rot[2, 2] * clz
