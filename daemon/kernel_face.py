@@ -15,8 +15,9 @@ import math
 import numba
 import numpy as np
 
-# numba's on-disk cache does not track functions imported from other modules: after
-# changing kernel.horn_rotation, delete daemon/__pycache__/*.nbi/*.nbc (CI starts clean).
+# numba's on-disk cache does not track functions imported from other modules:
+# after changing kernel.horn_rotation, delete daemon/__pycache__/*.nb[ic]
+# (CI starts clean).
 from retargetd.daemon.kernel import horn_rotation
 
 FLAG_HEAD_PARTIAL = 1  #: a head marker was missing (fit from the others)
