@@ -18,8 +18,11 @@ component order or a model/stream length mismatch shows up as distance.
 Checks (thresholds: :data:`THRESHOLDS`; how they were set: ``validate_limits`` and the
 report header): convention, fit (posed skeleton vs solved joint centres), quaternion
 norms, anatomical limits (swing/twist about each bone's +Y, :mod:`validate_limits`),
-self-penetration, floor penetration, floating (no foot near the floor for longer than
-a jump's flight), impossible speeds of the root and the end effectors.
+self-penetration, floor penetration, floating (no foot support for longer than a jump's
+flight; support = a foot near the floor or stationary at any height, inferred by
+:mod:`validate_dynamics`), impossible speeds of the root and the end effectors, and
+offline the ghost force (:mod:`validate_dynamics`: the inverse-dynamics root wrench the
+inferred foot contacts cannot explain, in body weights).
 """
 
 from __future__ import annotations
@@ -32,14 +35,13 @@ import mujoco
 import numpy as np
 
 from retargetd.daemon import rotations as rot
+from retargetd.daemon import validate_dynamics as vd
 from retargetd.daemon.rig import Rig
 from retargetd.daemon.solve_body import BodySolve
 from retargetd.daemon.validate_limits import limit_violation_deg
 from retargetd.daemon.validate_model import (
-    FOOT_KINDS,
     Skeleton,
     ValidationModel,
-    capsule_radii,
 )
 from retargetd.protocols.frames import F64Array
 
@@ -66,13 +68,23 @@ THRESHOLDS: dict[str, float] = {
     # Segments below the calibrated floor: heel-strike on a capsule foot reads a few
     # mm in the PiG walk.
     "floor_penetration_mm": 30.0,
-    # A foot above the floor by more than this counts as airborne; airborne longer than
-    # a jump's flight (a 1 m vertical jump flies 0.9 s) is floating.
+    # A foot point (capsule bottom) within this of the floor, or stationary at any
+    # height (validate_dynamics.CONTACT: a box, a step, a riser), supports the body;
+    # unsupported longer than a jump's flight (a 1 m vertical jump flies 0.9 s) is
+    # floating.
     "airborne_clearance_mm": 100.0,
     "max_airborne_s": 1.0,
     # Sprint peak ~12.4 m/s (Bolt 2009): the root; end effectors (hands, feet, head):
     # a pitcher's or server's hand reaches ~20-25 m/s.
     "root_speed_m_s": 13.0,
+    # Ghost force (validate_dynamics): root wrench no inferred foot contact explains,
+    # in body weights, 6 Hz zero-phase low-pass. Literature/reference: filtered walking
+    # median ~0.02, p95 ~0.1 BW; floating 30 cm 1.0 BW; a 30 cm teleport 6-12 BW.
+    # Measured: PiG walk median 0.006, p95 0.022, max 0.025 BW; synthetic walk (not
+    # dynamically consistent) median 0.03, p95 0.15, max 0.26; floating 30 cm
+    # ~0.9-1.0 BW; 30 cm teleport peak ~5.5 BW. 0.5 BW: 2x the synthetic max, 20x
+    # the PiG max, half of floating.
+    "ghost_force_bw": 0.5,
     "effector_speed_m_s": 30.0,
 }
 
@@ -241,6 +253,7 @@ def validate_take(
     *,
     fit: tuple[np.ndarray, np.ndarray] | None = None,
     thresholds: dict[str, float] | None = None,
+    dynamics: bool = True,
 ) -> TakeReport:
     """Run every check on a solved take.
 
@@ -250,6 +263,7 @@ def validate_take(
         rate_hz: frame rate.
         fit: (joint index, point index) from :func:`fit_pairs`; None skips "fit".
         thresholds: overrides of :data:`THRESHOLDS`.
+        dynamics: run the ghost-force check (offline inverse dynamics).
 
     Returns:
         The report.
@@ -314,10 +328,23 @@ def validate_take(
     checks["floor_penetration"] = CheckResult(
         "floor_penetration", 1e3 * floor_depth, th["floor_penetration_mm"], "mm"
     )
-    clearance = _foot_clearance(skel_model, vm.floor_z, origins, aims)
-    airborne = 1e3 * clearance > th["airborne_clearance_mm"]
+    # Support from the feet: near the floor or stationary at any height
+    # (validate_dynamics); unsupported longer than a jump's flight is floating.
+    feet_pts, _, _ = vd.foot_points(skel_model, origins, aims)
+    contacts = vd.infer_contacts(
+        feet_pts,
+        vm.floor_z,
+        rate_hz,
+        {"near_floor_m": 1e-3 * th["airborne_clearance_mm"]},
+    )
+    airborne = ~contacts.any(axis=1) if contacts.shape[1] else np.zeros(n, bool)
     run_s = _run_lengths(airborne) / rate_hz
     checks["floating"] = CheckResult("floating", run_s, th["max_airborne_s"], "s")
+    if dynamics and contacts.shape[1]:
+        gf = vd.ghost_force(vm, root_pos, wfb[:, root], pfb, rate_hz, contacts)
+        checks["ghost_force"] = CheckResult(
+            "ghost_force", gf.ghost_bw, th["ghost_force_bw"], "BW"
+        )
     root_speed = _speed(root_pos, rate_hz)
     checks["root_speed"] = CheckResult(
         "root_speed", root_speed, th["root_speed_m_s"], "m/s"
@@ -339,18 +366,6 @@ def validate_take(
         for t in np.flatnonzero(checks["self_penetration"].flagged)[:5]
     ]
     return TakeReport(checks=checks, n_frames=n, seconds_per_frame=per_frame)
-
-
-def _foot_clearance(
-    skel: Skeleton, floor_z: float, origins: F64Array, aims: F64Array
-) -> F64Array:
-    """(T,) height of the lowest foot-capsule point above the floor, metres."""
-    feet = [b for b, k in enumerate(skel.bone_kinds) if k in FOOT_KINDS]
-    if not feet:
-        return np.zeros(origins.shape[0])
-    r = capsule_radii(skel)[feet]
-    low = np.minimum(origins[:, feet, 2], aims[:, feet, 2]) - r
-    return low.min(axis=1) - floor_z
 
 
 def _run_lengths(mask: np.ndarray) -> F64Array:

@@ -248,7 +248,7 @@ def test_teleport_fails_speed(clean: Solved) -> None:
     joints = s.joint_centres.copy()
     joints[200:] += [0.3, 0.0, 0.0]
     rep = _run(clean, _with(s, root_pos=root, joint_centres=joints))
-    assert _flagged(rep) == {"root_speed", "effector_speed"}
+    assert _flagged(rep) == {"root_speed", "effector_speed", "ghost_force"}
     assert np.flatnonzero(rep.checks["root_speed"].flagged).tolist() == [200]
 
 
@@ -259,7 +259,7 @@ def test_floating_body_fails_floating(clean: Solved) -> None:
         clean,
         _with(s, root_pos=s.root_pos + lift, joint_centres=s.joint_centres + lift),
     )
-    assert _flagged(rep) == {"floating"}
+    assert _flagged(rep) == {"floating", "ghost_force"}
 
 
 def test_knee_bent_backwards_fails_limits(clean: Solved) -> None:
