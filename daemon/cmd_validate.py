@@ -4,8 +4,11 @@ calibrated skeleton.
 
 Writes ``DIR/report.json`` (per check: threshold, frames flagged, worst frames and
 values), ``DIR/report.txt`` (the same, readable) and ``DIR/model.xml`` (the model
-checked against). Body mass: the take's ``Bodymass`` when it has one, else 70 kg
-(``--body-mass-kg`` overrides). Checks and thresholds: ``retargetd.daemon.validate``.
+checked against), ``DIR/checks.png`` (every check over time) and
+``DIR/snapshot_*.png`` (the worst frames rendered headless: EGL, else OSMesa; skipped,
+with the reason in the report, when neither works; ``validate_render``).
+Body mass: the take's ``Bodymass`` when it has one, else 70 kg (``--body-mass-kg``
+overrides). Checks and thresholds: ``retargetd.daemon.validate``.
 
 Exit code: 0 every check passes, 1 a check fails, 2 bad input, 3 internal error.
 """
@@ -141,6 +144,10 @@ def _validate(
         },
     }
     (report_dir / "report.json").write_text(json.dumps(doc, indent=1) + "\n")
+    from retargetd.daemon.validate_render import visuals_text, write_visuals
+
+    doc["visuals"] = write_visuals(report_dir, vm, res, rep, take.rate_hz)
+    (report_dir / "report.json").write_text(json.dumps(doc, indent=1) + "\n")
     lines = [
         f"retargetd validate: {take.path} (rig {rig.name}, {rep.n_frames} frames at "
         f"{take.rate_hz:g} Hz, body mass {body_mass:g} kg)",
@@ -160,6 +167,7 @@ def _validate(
             f"  worst frames: {worst}"
         )
         lines.extend(f"    {d}" for d in c.detail)
+    lines.extend(["", *visuals_text(doc["visuals"])])
     text = "\n".join(lines) + "\n"
     (report_dir / "report.txt").write_text(text)
     sys.stdout.write(text)

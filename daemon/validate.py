@@ -337,7 +337,9 @@ def validate_take(
         rate_hz,
         {"near_floor_m": 1e-3 * th["airborne_clearance_mm"]},
     )
-    airborne = ~contacts.any(axis=1) if contacts.shape[1] else np.zeros(n, bool)
+    airborne = np.asarray(
+        ~contacts.any(axis=1) if contacts.shape[1] else np.zeros(n, bool), dtype=bool
+    )
     run_s = _run_lengths(airborne) / rate_hz
     checks["floating"] = CheckResult("floating", run_s, th["max_airborne_s"], "s")
     if dynamics and contacts.shape[1]:
