@@ -141,3 +141,55 @@ def run(args: argparse.Namespace) -> int:
         + "\n"
     )
     return 0
+
+
+def add_solve_arguments(parser: argparse.ArgumentParser) -> None:
+    """TAKE, ``--rig``/``--measure``, ``--calibration FILE | --calibrate-frames a:b``
+    and the take options: what every command that solves a take accepts."""
+    from retargetd.daemon.cmd_take import add_take_arguments
+
+    parser.add_argument("take", metavar="TAKE", help="a .c3d, .trc or .mcap take")
+    add_rig_arguments(parser)
+    group = parser.add_mutually_exclusive_group(required=True)
+    group.add_argument("--calibration", metavar="FILE.json", help="calibrated skeleton")
+    group.add_argument(
+        "--calibrate-frames",
+        metavar="a:b",
+        help="calibrate on these rows of the take itself (0-based, half-open)",
+    )
+    add_take_arguments(parser)
+
+
+def solver_for_take(args: argparse.Namespace) -> tuple[Any, Any, Any, Any]:
+    """Load the rig and the take, load or make the calibration, build the solver.
+
+    Returns:
+        ``(rig, take, calibration, solver)``.
+
+    Raises:
+        UsageError: a bad rig, calibration or frame selection (one line, exit 2).
+    """
+    from retargetd.daemon.calibration import (
+        CalibrationError,
+        load_calibration,
+    )
+    from retargetd.daemon.framesel import parse_frames
+    from retargetd.daemon.solve_body import BodySolver
+    from retargetd.replay.takes import load_take
+
+    rig = load_rig_or_fail(args.rig)
+    take = load_take(
+        args.take, subject=args.subject, units=args.take_units, up_axis=args.take_up
+    )
+    try:
+        if args.calibration is not None:
+            cal = load_calibration(args.calibration)
+        else:
+            frames = parse_frames(
+                args.calibrate_frames, take.n_frames, option="--calibrate-frames"
+            )
+            cal = calibrate_from_take(take, rig, frames, parse_measures(args.measure))
+        solver = BodySolver(rig, cal, take.labels)
+    except CalibrationError as exc:
+        raise UsageError(str(exc)) from None
+    return rig, take, cal, solver

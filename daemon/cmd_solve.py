@@ -33,8 +33,7 @@ logger = logging.getLogger(__name__)
 
 def add_parser(subparsers: Any) -> None:
     """Register ``solve``."""
-    from retargetd.daemon.cmd_calibrate import add_rig_arguments
-    from retargetd.daemon.cmd_take import add_take_arguments
+    from retargetd.daemon.cmd_calibrate import add_solve_arguments
 
     parser = subparsers.add_parser(
         "solve",
@@ -42,15 +41,7 @@ def add_parser(subparsers: Any) -> None:
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    parser.add_argument("take", metavar="TAKE", help="a .c3d or .trc take")
-    add_rig_arguments(parser)
-    group = parser.add_mutually_exclusive_group(required=True)
-    group.add_argument("--calibration", metavar="FILE.json", help="calibrated skeleton")
-    group.add_argument(
-        "--calibrate-frames",
-        metavar="a:b",
-        help="calibrate on these rows of the take itself (0-based, half-open)",
-    )
+    add_solve_arguments(parser)
     parser.add_argument("--out", required=True, metavar="OUT.npz|OUT.bvh")
     parser.add_argument(
         "--bvh-order",
@@ -62,7 +53,6 @@ def add_parser(subparsers: Any) -> None:
         metavar="ORDER",
         help="BVH: rotation channel order of the root (default: --bvh-order)",
     )
-    add_take_arguments(parser)
     parser.set_defaults(run=run)
 
 
@@ -121,35 +111,11 @@ def reference_distances(
 
 def run(args: argparse.Namespace) -> int:
     """Run ``solve``."""
-    from retargetd.daemon.calibration import (
-        CalibrationError,
-        load_calibration,
-    )
-    from retargetd.daemon.cmd_calibrate import (
-        calibrate_from_take,
-        load_rig_or_fail,
-        parse_measures,
-    )
-    from retargetd.daemon.framesel import parse_frames
-    from retargetd.daemon.solve_body import FLAG_HELD, BodySolver
-    from retargetd.replay.takes import load_take
+    from retargetd.daemon.cmd_calibrate import solver_for_take
+    from retargetd.daemon.solve_body import FLAG_HELD
 
     out_format = _out_format(args)
-    rig = load_rig_or_fail(args.rig)
-    take = load_take(
-        args.take, subject=args.subject, units=args.take_units, up_axis=args.take_up
-    )
-    try:
-        if args.calibration is not None:
-            cal = load_calibration(args.calibration)
-        else:
-            frames = parse_frames(
-                args.calibrate_frames, take.n_frames, option="--calibrate-frames"
-            )
-            cal = calibrate_from_take(take, rig, frames, parse_measures(args.measure))
-        solver = BodySolver(rig, cal, take.labels)
-    except CalibrationError as exc:
-        raise UsageError(str(exc)) from None
+    rig, take, cal, solver = solver_for_take(args)
     res = solver.solve_take(take.positions)
     if out_format == "bvh":
         _write_bvh(args, cal, res, take.rate_hz)

@@ -31,8 +31,7 @@ EXIT_PASS, EXIT_FAIL, EXIT_INTERNAL = 0, 1, 3
 
 def add_parser(subparsers: Any) -> None:
     """Register ``validate``."""
-    from retargetd.daemon.cmd_calibrate import add_rig_arguments
-    from retargetd.daemon.cmd_take import add_take_arguments
+    from retargetd.daemon.cmd_calibrate import add_solve_arguments
 
     parser = subparsers.add_parser(
         "validate",
@@ -40,50 +39,19 @@ def add_parser(subparsers: Any) -> None:
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    parser.add_argument("take", metavar="TAKE", help="a .c3d or .trc take")
-    add_rig_arguments(parser)
-    group = parser.add_mutually_exclusive_group(required=True)
-    group.add_argument("--calibration", metavar="FILE.json", help="calibrated skeleton")
-    group.add_argument(
-        "--calibrate-frames",
-        metavar="a:b",
-        help="calibrate on these rows of the take itself (0-based, half-open)",
-    )
+    add_solve_arguments(parser)
     parser.add_argument("--report", required=True, metavar="DIR")
     parser.add_argument(
         "--body-mass-kg", type=float, metavar="KG", help="override the body mass"
     )
-    add_take_arguments(parser)
     parser.set_defaults(run=run)
 
 
 def run(args: argparse.Namespace) -> int:
     """Run ``validate``."""
-    from retargetd.daemon.calibration import CalibrationError, load_calibration
-    from retargetd.daemon.cmd_calibrate import (
-        calibrate_from_take,
-        load_rig_or_fail,
-        parse_measures,
-    )
-    from retargetd.daemon.framesel import parse_frames
-    from retargetd.daemon.solve_body import BodySolver
-    from retargetd.replay.takes import load_take
+    from retargetd.daemon.cmd_calibrate import solver_for_take
 
-    rig = load_rig_or_fail(args.rig)
-    take = load_take(
-        args.take, subject=args.subject, units=args.take_units, up_axis=args.take_up
-    )
-    try:
-        if args.calibration is not None:
-            cal = load_calibration(args.calibration)
-        else:
-            frames = parse_frames(
-                args.calibrate_frames, take.n_frames, option="--calibrate-frames"
-            )
-            cal = calibrate_from_take(take, rig, frames, parse_measures(args.measure))
-        solver = BodySolver(rig, cal, take.labels)
-    except CalibrationError as exc:
-        raise UsageError(str(exc)) from None
+    rig, take, cal, solver = solver_for_take(args)
     if cal.rest_bone_origin_pos is None:
         raise UsageError("calibration has no rest bone origins: recalibrate")
     mass = args.body_mass_kg

@@ -327,7 +327,7 @@ class Daemon:
                 rec.record_packet("osc", self._osc_form, t_ns, packet)
             if simple:
                 code = stream.feed(osc_in.decode_simple_bundle, packet, t_ns=t_ns)
-            elif bytes(packet[:11]) == b"/rtd/labels":
+            elif n >= 12 and buf.startswith(b"/rtd/labels\0"):  # no per-packet copy
                 try:
                     label_set = osc_in.decode_labels(packet)
                 except DecodeError as exc:

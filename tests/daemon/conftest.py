@@ -7,6 +7,7 @@ parallel and never collide with the daemon's default ports.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import queue
@@ -327,3 +328,53 @@ def pose_capture(
         return PoseCapture(zmq_socket(zmq.SUB), endpoint)
 
     return make
+
+
+@dataclasses.dataclass(frozen=True)
+class CleanTake:
+    """A clean synthetic take solved with the exact test rig, and its MuJoCo model."""
+
+    rig: Any
+    cal: Any
+    solve: Any
+    skel: Any
+    vm: Any
+    fit: tuple[Any, Any]
+    rate_hz: float
+
+
+@pytest.fixture(scope="session")
+def clean_synth() -> CleanTake:
+    """The synthetic performer (every motion but forearm_twist, which pushes a forearm
+    into a thigh), 4 s at 120 Hz, solved with ``tests/data/synth-exact-rig.toml`` and
+    modelled: shared by the validation tests."""
+    from retargetd.daemon import performer as pf
+    from retargetd.daemon.calibration import calibrate
+    from retargetd.daemon.rig import load_rig
+    from retargetd.daemon.solve_body import BodySolver
+    from retargetd.daemon.validate import fit_pairs
+    from retargetd.daemon.validate_model import build_model, skeleton_from_calibration
+
+    data = Path(__file__).resolve().parent.parent / "data"
+    rate_hz = 120.0
+    rig = load_rig(data / "synth-exact-rig.toml")
+    take = pf.synthesize(
+        seconds=4.0,
+        rate_hz=rate_hz,
+        markerset=data / "synth-exact-markers.toml",
+        motions=[m for m in pf.ALL_MOTIONS if m != "forearm_twist"],
+    )
+    cal = calibrate(rig, take.markers_world[take.base_pose_frames], take.labels)
+    solve = BodySolver(rig, cal, take.labels).solve_take(take.markers_world)
+    skel = skeleton_from_calibration(rig, cal)
+    return CleanTake(
+        rig, cal, solve, skel, build_model(skel), fit_pairs(rig, solve.joint_names),
+        rate_hz,
+    )  # fmt: skip
+
+
+@pytest.fixture
+def mujoco_cwd(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[None]:
+    """MuJoCo writes MUJOCO_LOG.TXT into the CWD when it warns: never the repo."""
+    monkeypatch.chdir(tmp_path)
+    yield

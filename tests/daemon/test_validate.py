@@ -13,17 +13,16 @@ the self-penetration check reports).
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import mujoco
 import numpy as np
 import pytest
 
-from retargetd.daemon import performer as pf
 from retargetd.daemon import rotations as rot
-from retargetd.daemon.calibration import Calibration, calibrate
-from retargetd.daemon.rig import Rig, load_rig
+from retargetd.daemon.calibration import calibrate
+from retargetd.daemon.rig import load_rig
 from retargetd.daemon.solve_body import BodySolve, BodySolver
 from retargetd.daemon.validate import (
     THRESHOLDS,
@@ -34,7 +33,6 @@ from retargetd.daemon.validate import (
 )
 from retargetd.daemon.validate_limits import swing_twist
 from retargetd.daemon.validate_model import (
-    Skeleton,
     ValidationModel,
     build_model,
     capsule_radii,
@@ -48,42 +46,16 @@ RATE_HZ = 120.0
 DEFECT = slice(20, 110)  # frames of the T-pose hold that get a defect
 
 
-@pytest.fixture(autouse=True)
-def _mujoco_cwd(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[None]:
-    """MuJoCo writes MUJOCO_LOG.TXT into the CWD when it warns: never the repo."""
-    monkeypatch.chdir(tmp_path)
-    yield
+pytestmark = pytest.mark.usefixtures("mujoco_cwd")
 
 
-@dataclasses.dataclass(frozen=True)
-class Solved:
-    rig: Rig
-    cal: Calibration
-    solve: BodySolve
-    skel: Skeleton
-    vm: ValidationModel
-    fit: tuple[np.ndarray, np.ndarray]
+@pytest.fixture
+def clean(clean_synth: Any) -> Any:
+    """The shared clean synthetic take (``tests/daemon/conftest.py``)."""
+    return clean_synth
 
 
-@pytest.fixture(scope="module")
-def clean() -> Solved:
-    rig = load_rig(DATA / "synth-exact-rig.toml")
-    motions = [m for m in pf.ALL_MOTIONS if m != "forearm_twist"]
-    take = pf.synthesize(
-        seconds=4.0,
-        rate_hz=RATE_HZ,
-        markerset=DATA / "synth-exact-markers.toml",
-        motions=motions,
-    )
-    cal = calibrate(rig, take.markers_world[take.base_pose_frames], take.labels)
-    solve = BodySolver(rig, cal, take.labels).solve_take(take.markers_world)
-    skel = skeleton_from_calibration(rig, cal)
-    return Solved(
-        rig, cal, solve, skel, build_model(skel), fit_pairs(rig, solve.joint_names)
-    )
-
-
-def _run(s: Solved, solve: BodySolve, vm: ValidationModel | None = None) -> TakeReport:
+def _run(s: Any, solve: BodySolve, vm: ValidationModel | None = None) -> TakeReport:
     return validate_take(vm or s.vm, solve, RATE_HZ, fit=s.fit)
 
 
@@ -91,7 +63,7 @@ def _with(solve: BodySolve, **arrays: np.ndarray) -> BodySolve:
     return dataclasses.replace(solve, **arrays)
 
 
-def _rechain(s: Solved, pfb: np.ndarray) -> np.ndarray:
+def _rechain(s: Any, pfb: np.ndarray) -> np.ndarray:
     """World rotations consistent with ``pfb`` (a defect sent consistently)."""
     rest = s.skel.rest_world_from_bone_quat
     wfb = s.solve.world_from_bone_quat.copy()
@@ -102,7 +74,7 @@ def _rechain(s: Solved, pfb: np.ndarray) -> np.ndarray:
     return wfb
 
 
-def _rotate_bone(s: Solved, bone: str, axis_world: np.ndarray, deg: float) -> BodySolve:
+def _rotate_bone(s: Any, bone: str, axis_world: np.ndarray, deg: float) -> BodySolve:
     """Bone ``bone`` turned about ``axis_world`` (calibration-pose axes) over the DEFECT
     frames, up to ``deg`` in a smooth bump (no jump), children following, sent
     consistently."""
@@ -127,7 +99,7 @@ def _flagged(rep: TakeReport) -> set[str]:
 # --- the model ---------------------------------------------------------------------
 
 
-def test_model_structure(clean: Solved) -> None:
+def test_model_structure(clean: Any) -> None:
     vm, skel = clean.vm, clean.skel
     m = vm.model
     assert m.nbody == len(skel.bone_names) + 1
@@ -156,7 +128,7 @@ def test_model_structure(clean: Solved) -> None:
     assert build_model(clean.skel, 80.0) is not vm
 
 
-def test_rest_pose_is_identity(clean: Solved) -> None:
+def test_rest_pose_is_identity(clean: Any) -> None:
     """qpos0 (identity ball joints) poses the calibrated rest origins."""
     data = mujoco.MjData(clean.vm.model)
     mujoco.mj_kinematics(clean.vm.model, data)
@@ -176,7 +148,7 @@ def test_swing_twist_recomposes() -> None:
 # --- clean takes pass ----------------------------------------------------------------
 
 
-def test_clean_synthetic_take_passes(clean: Solved) -> None:
+def test_clean_synthetic_take_passes(clean: Any) -> None:
     rep = _run(clean, clean.solve)
     assert rep.passed, {n: c.summary() for n, c in rep.checks.items() if c.n_flagged}
     assert rep.checks["convention"].values.max() < 1e-6  # mm
@@ -209,7 +181,7 @@ def test_pig_walk_passes(datasets: Path) -> None:
 # --- negative tests ------------------------------------------------------------------
 
 
-def test_xyzw_quaternions_fail_convention(clean: Solved) -> None:
+def test_xyzw_quaternions_fail_convention(clean: Any) -> None:
     s = clean.solve
     rep = _run(
         clean,
@@ -223,14 +195,14 @@ def test_xyzw_quaternions_fail_convention(clean: Solved) -> None:
     assert np.median(rep.checks["convention"].values) > 100.0  # mm
 
 
-def test_world_rotations_as_parent_relative_fail_convention(clean: Solved) -> None:
+def test_world_rotations_as_parent_relative_fail_convention(clean: Any) -> None:
     s = clean.solve
     rep = _run(clean, _with(s, parent_from_bone_quat=s.world_from_bone_quat))
     assert "convention" in _flagged(rep)
     assert rep.checks["convention"].n_flagged == s.root_pos.shape[0]
 
 
-def test_longer_bone_in_model_fails_convention(clean: Solved) -> None:
+def test_longer_bone_in_model_fails_convention(clean: Any) -> None:
     lengths = clean.skel.bone_lengths.copy()
     b = clean.skel.bone_names.index("l_thigh")
     lengths[b] *= 1.03
@@ -241,7 +213,7 @@ def test_longer_bone_in_model_fails_convention(clean: Solved) -> None:
     assert rep.checks["convention"].values.min() == pytest.approx(expect_mm, rel=0.02)
 
 
-def test_teleport_fails_speed(clean: Solved) -> None:
+def test_teleport_fails_speed(clean: Any) -> None:
     s = clean.solve
     root = s.root_pos.copy()
     root[200:] += [0.3, 0.0, 0.0]
@@ -252,7 +224,7 @@ def test_teleport_fails_speed(clean: Solved) -> None:
     assert np.flatnonzero(rep.checks["root_speed"].flagged).tolist() == [200]
 
 
-def test_floating_body_fails_floating(clean: Solved) -> None:
+def test_floating_body_fails_floating(clean: Any) -> None:
     s = clean.solve
     lift = np.array([0.0, 0.0, 0.3])
     rep = _run(
@@ -262,7 +234,7 @@ def test_floating_body_fails_floating(clean: Solved) -> None:
     assert _flagged(rep) == {"floating", "ghost_force"}
 
 
-def test_knee_bent_backwards_fails_limits(clean: Solved) -> None:
+def test_knee_bent_backwards_fails_limits(clean: Any) -> None:
     # +angle about the performer's left flexes the knee: -40 deg is hyperextension.
     solve = _rotate_bone(clean, "l_shank", clean.skel.left_world, -40.0)
     rep = _run(clean, _with(solve, joint_centres=_posed_joints(clean, solve)))
@@ -279,7 +251,7 @@ def test_knee_bent_backwards_fails_limits(clean: Solved) -> None:
     assert "limits" not in _flagged(rep)
 
 
-def test_legs_crossing_fail_self_penetration(clean: Solved) -> None:
+def test_legs_crossing_fail_self_penetration(clean: Any) -> None:
     # Adduct the left hip 30 deg (about -forward): the left leg crosses the right.
     forward = np.cross(clean.skel.left_world, [0.0, 0.0, 1.0])
     solve = _rotate_bone(clean, "l_thigh", forward, -30.0)
@@ -289,7 +261,7 @@ def test_legs_crossing_fail_self_penetration(clean: Solved) -> None:
     assert "l_" in detail and "r_" in detail
 
 
-def test_quaternion_norm(clean: Solved) -> None:
+def test_quaternion_norm(clean: Any) -> None:
     s = clean.solve
     pfb = s.parent_from_bone_quat.copy()
     pfb[DEFECT] *= 1.01  # MuJoCo normalises silently: poses unchanged
@@ -301,7 +273,7 @@ def test_thresholds_are_documented() -> None:
     assert set(THRESHOLDS) >= {"convention_mm", "fit_median_mm", "root_speed_m_s"}
 
 
-def _posed_joints(s: Solved, solve: BodySolve) -> np.ndarray:
+def _posed_joints(s: Any, solve: BodySolve) -> np.ndarray:
     """Joint centres that follow a defect (so only the check meant for it fires)."""
     origins, aims = pose_skeleton(s.skel, solve.root_pos, solve.world_from_bone_quat)
     points = np.concatenate([origins, aims], axis=1)

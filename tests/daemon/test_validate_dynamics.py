@@ -9,13 +9,12 @@ floating.
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
 
-from retargetd.daemon import performer as pf
 from retargetd.daemon import validate_dynamics as vd
 from retargetd.daemon.calibration import calibrate
 from retargetd.daemon.rig import load_rig
@@ -23,12 +22,10 @@ from retargetd.daemon.solve_body import BodySolve, BodySolver
 from retargetd.daemon.validate import (
     THRESHOLDS,
     TakeReport,
-    fit_pairs,
     pose_skeleton,
     validate_take,
 )
 from retargetd.daemon.validate_model import (
-    ValidationModel,
     build_model,
     skeleton_from_calibration,
 )
@@ -37,38 +34,16 @@ DATA = Path(__file__).resolve().parent.parent / "data"
 RATE_HZ = 120.0
 
 
-@pytest.fixture(autouse=True)
-def _mujoco_cwd(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[None]:
-    """MuJoCo writes MUJOCO_LOG.TXT into the CWD when it warns: never the repo."""
-    monkeypatch.chdir(tmp_path)
-    yield
+pytestmark = pytest.mark.usefixtures("mujoco_cwd")
 
 
-@dataclasses.dataclass(frozen=True)
-class Clean:
-    solve: BodySolve
-    vm: ValidationModel
-    fit: tuple[np.ndarray, np.ndarray]
+@pytest.fixture
+def clean(clean_synth: Any) -> Any:
+    """The shared clean synthetic take (``tests/daemon/conftest.py``)."""
+    return clean_synth
 
 
-@pytest.fixture(scope="module")
-def clean() -> Clean:
-    """The clean synthetic take of ``test_validate`` (no forearm_twist)."""
-    rig = load_rig(DATA / "synth-exact-rig.toml")
-    motions = [m for m in pf.ALL_MOTIONS if m != "forearm_twist"]
-    take = pf.synthesize(
-        seconds=4.0,
-        rate_hz=RATE_HZ,
-        markerset=DATA / "synth-exact-markers.toml",
-        motions=motions,
-    )
-    cal = calibrate(rig, take.markers_world[take.base_pose_frames], take.labels)
-    solve = BodySolver(rig, cal, take.labels).solve_take(take.markers_world)
-    vm = build_model(skeleton_from_calibration(rig, cal))
-    return Clean(solve, vm, fit_pairs(rig, solve.joint_names))
-
-
-def _run(c: Clean, solve: BodySolve) -> TakeReport:
+def _run(c: Any, solve: BodySolve) -> TakeReport:
     return validate_take(c.vm, solve, RATE_HZ, fit=c.fit)
 
 
@@ -86,7 +61,7 @@ def _stats(values: np.ndarray) -> str:
     )
 
 
-def test_clean_walk_below_threshold(clean: Clean) -> None:
+def test_clean_walk_below_threshold(clean: Any) -> None:
     rep = _run(clean, clean.solve)
     ghost = rep.checks["ghost_force"]
     print(f"\nsynthetic walk ghost force: {_stats(ghost.values)}")
@@ -96,7 +71,7 @@ def test_clean_walk_below_threshold(clean: Clean) -> None:
     assert rep.passed, rep.failed()
 
 
-def test_floating_30cm_flagged_by_ghost_force(clean: Clean) -> None:
+def test_floating_30cm_flagged_by_ghost_force(clean: Any) -> None:
     n = clean.solve.root_pos.shape[0]
     rep = _run(clean, _shift(clean.solve, [0.0, 0.0, 0.3], slice(0, n)))
     ghost = rep.checks["ghost_force"]
@@ -108,7 +83,7 @@ def test_floating_30cm_flagged_by_ghost_force(clean: Clean) -> None:
     assert np.nanmax(ghost.values[: int(0.9 * RATE_HZ)]) < THRESHOLDS["ghost_force_bw"]
 
 
-def test_teleport_30cm_flagged_by_ghost_force(clean: Clean) -> None:
+def test_teleport_30cm_flagged_by_ghost_force(clean: Any) -> None:
     rep = _run(clean, _shift(clean.solve, [0.3, 0.0, 0.0], slice(200, None)))
     ghost = rep.checks["ghost_force"]
     flagged = np.flatnonzero(ghost.flagged)
@@ -117,7 +92,7 @@ def test_teleport_30cm_flagged_by_ghost_force(clean: Clean) -> None:
     assert np.nanmax(ghost.values) > 3.0
 
 
-def test_standing_still_on_platform_is_supported(clean: Clean) -> None:
+def test_standing_still_on_platform_is_supported(clean: Any) -> None:
     """Feet stationary 40 cm above the floor for 2 s: a platform, not floating."""
     hold = np.zeros(int(2.0 * RATE_HZ), dtype=np.int64)  # the T-pose, frame 0
     s = clean.solve

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import dataclasses
 import os
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -18,15 +17,10 @@ import numpy as np
 import pytest
 from matplotlib.image import imread
 
-from retargetd.daemon import performer as pf
-from retargetd.daemon.calibration import calibrate
-from retargetd.daemon.rig import load_rig
-from retargetd.daemon.solve_body import BodySolve, BodySolver
-from retargetd.daemon.validate import TakeReport, fit_pairs, validate_take
+from retargetd.daemon.solve_body import BodySolve
+from retargetd.daemon.validate import TakeReport, validate_take
 from retargetd.daemon.validate_model import (
     ValidationModel,
-    build_model,
-    skeleton_from_calibration,
 )
 from retargetd.daemon.validate_render import (
     BLAMED_RGBA,
@@ -44,11 +38,7 @@ DATA = Path(__file__).resolve().parent.parent / "data"
 RATE_HZ = 120.0
 
 
-@pytest.fixture(autouse=True)
-def _mujoco_cwd(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[None]:
-    """MuJoCo writes MUJOCO_LOG.TXT into the CWD when it warns: never the repo."""
-    monkeypatch.chdir(tmp_path)
-    yield
+pytestmark = pytest.mark.usefixtures("mujoco_cwd")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -59,21 +49,11 @@ class Take:
 
 
 @pytest.fixture(scope="module")
-def take() -> Take:
-    """The clean synthetic take of ``test_validate`` (no forearm twist), 2 s."""
-    rig = load_rig(DATA / "synth-exact-rig.toml")
-    motions = [m for m in pf.ALL_MOTIONS if m != "forearm_twist"]
-    synth = pf.synthesize(
-        seconds=2.0,
-        rate_hz=RATE_HZ,
-        markerset=DATA / "synth-exact-markers.toml",
-        motions=motions,
-    )
-    cal = calibrate(rig, synth.markers_world[synth.base_pose_frames], synth.labels)
-    solve = BodySolver(rig, cal, synth.labels).solve_take(synth.markers_world)
-    vm = build_model(skeleton_from_calibration(rig, cal))
-    rep = validate_take(vm, solve, RATE_HZ, fit=fit_pairs(rig, solve.joint_names))
-    return Take(vm, solve, rep)
+def take(clean_synth: Any) -> Take:
+    """The shared clean synthetic take (``tests/daemon/conftest.py``), validated."""
+    c = clean_synth
+    rep = validate_take(c.vm, c.solve, c.rate_hz, fit=c.fit)
+    return Take(c.vm, c.solve, rep)
 
 
 def _need_render(render: dict[str, Any]) -> None:
