@@ -51,16 +51,42 @@ FRAME_LATE = 1 << 0  # the solve overran its budget; sent late
 FRAME_HELD = 1 << 1  # at least one bone holds its last good value
 FRAME_RESTARTED = 1 << 2  # the marker source restarted (frame numbers reset)
 FRAME_INPUT_DROPPED = 1 << 3  # input frames were dropped since the last pose
-FRAME_VALIDATION_MASK = 0x0000_FF00  # bits 8-15: reserved for validation results
+FRAME_VALIDATION_MASK = 0x0000_FF00  # bits 8-15: validation results (below)
 FRAME_FLAG_BITS = {"late": 0, "held": 1, "restarted": 2, "input_dropped": 3}
+
+# Validation frame bits (8-15), set by the daemon's live validator (``[validate]``):
+# one per check, in this order; VALIDATION_CHECKS names them.
+FRAME_V_CONVENTION = 1 << 8  # model posed from the chain != streamed skeleton
+FRAME_V_FIT = 1 << 9  # streamed skeleton far from the solved joint centres
+FRAME_V_QUAT_NORM = 1 << 10  # a rotation is not a unit quaternion
+FRAME_V_LIMITS = 1 << 11  # a joint beyond its anatomical swing/twist limits
+FRAME_V_SELF_PENETRATION = 1 << 12  # two non-excluded segments overlap
+FRAME_V_FLOOR_PENETRATION = 1 << 13  # a segment below the floor
+FRAME_V_SPEED = 1 << 14  # root or an end effector faster than a human can move
+FRAME_V_FLOATING = 1 << 15  # no foot support for longer than a jump's flight
+VALIDATION_CHECKS = (
+    "convention",
+    "fit",
+    "quat_norm",
+    "limits",
+    "self_penetration",
+    "floor_penetration",
+    "speed",
+    "floating",
+)
 
 # Bone flag bits (one uint8 per bone).
 BONE_HELD = 1 << 0  # too little data: last good rotation held
 BONE_REBUILT = 1 << 1  # a defining point rebuilt from its rigid segment's other markers
 BONE_PARTIAL = 1 << 2  # solved with some defining markers missing
 BONE_NEVER = 1 << 3  # never solved since the stream started (rest pose sent)
-BONE_VALIDATION_MASK = 0xF0  # bits 4-7: reserved for validation results
+BONE_VALIDATION_MASK = 0xF0  # bits 4-7: validation results (below)
 BONE_FLAG_BITS = {"held": 0, "rebuilt": 1, "partial": 2, "never": 3}
+BONE_V_LIMIT = 1 << 4  # this bone's joint is beyond its limits
+BONE_V_PENETRATION = 1 << 5  # this bone's segment penetrates another or the floor
+BONE_V_FIT = 1 << 6  # this bone's origin/aim is far from its solved joint centre
+BONE_V_SPEED = 1 << 7  # this bone (root or end effector) moves impossibly fast
+BONE_VALIDATION_BITS = {"limit": 4, "penetration": 5, "fit": 6, "speed": 7}
 
 
 def body_size(n_bones: int, n_weights: int) -> int:
