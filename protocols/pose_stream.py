@@ -13,13 +13,25 @@ Data message, two parts:
   multiple of 4. Bones in the rig's (solve NPZ) order; rotations in the internal world
   (right-handed, +Z up).
 
+A third part follows when the daemon solves a face (the stabilized "Mug"):
+``<HHI7f`` n_face_markers uint16, reserved uint16, face flags uint32, world_from_head
+float32 (w, x, y, z) and head position float32 x 3 (metres, world), then the
+stabilized facial markers float32 (M, 3), metres, head coordinates, NaN = occluded.
+
+Validation message, two parts (topic ``RTDV``), one per frame the live validator
+checked, sent after that frame's pose: header ``<4sHHqqqIHH`` (40 bytes) magic,
+version 1, names id, the checked frame's number, its received_ns, validated_ns,
+frame flags (validation bits 8-15 only), n_bones, n_values; body: one float32 value
+per check (``VALIDATION_CHECKS`` order), bone flags uint8 (B,) (bits 4-7 only),
+NUL-padded to a multiple of 4.
+
 The names id says which names message describes this data (it changes whenever the
 names do, e.g. after a rig reload), so a client that joins mid-stream can tell.
 
 Names message, two parts: ``RTDN`` + version uint16 + names id uint16 (8 bytes), then
 UTF-8 JSON (rig, bones, parents, weights, flag bits). Sent on change and at least once
 a second. The magic doubles as the topic: subscribe to ``b"RTDP"``, ``b"RTDN"`` or
-``b"RTD"`` for both.
+``b"RTD"`` for all.
 
 ``sent_ns`` is patched in by :func:`stamp_sent` just before the send.
 """
@@ -39,9 +51,12 @@ from retargetd.protocols.frames import F32Array, F64Array, U8Array
 
 DATA_MAGIC = b"RTDP"
 NAMES_MAGIC = b"RTDN"
+VALIDATION_MAGIC = b"RTDV"
 VERSION = 1
 HEADER = struct.Struct("<4sHHqdqqqIHH3f")  # 68 bytes
 NAMES_HEADER = struct.Struct("<4sHH")  # 8 bytes
+FACE_HEADER = struct.Struct("<HHI7f")  # 36 bytes, then (M, 3) float32
+VALIDATION_HEADER = struct.Struct("<4sHHqqqIHH")  # 40 bytes
 SENT_NS_OFFSET = 40
 _SENT_NS = struct.Struct("<q")
 _LE_F32 = np.dtype("<f4")
@@ -88,10 +103,29 @@ BONE_V_FIT = 1 << 6  # this bone's origin/aim is far from its solved joint centr
 BONE_V_SPEED = 1 << 7  # this bone (root or end effector) moves impossibly fast
 BONE_VALIDATION_BITS = {"limit": 4, "penetration": 5, "fit": 6, "speed": 7}
 
+# Face flag bits (uint32 in the face part).
+FACE_HEAD_PARTIAL = 1 << 0  # a head marker was missing (pose fitted from the others)
+FACE_HEAD_LOST = 1 << 1  # < 3 head markers: head pose and weights held, markers NaN
+FACE_NOT_CONVERGED = 1 << 2  # the weight solve hit its iteration cap (best kept)
+FACE_PARTIAL = 1 << 3  # some facial marker occluded (left out of that frame's solve)
+FACE_NEVER = 1 << 4  # no good frame yet: identity head pose and zero weights
+FACE_FLAG_BITS = {
+    "head_partial": 0,
+    "head_lost": 1,
+    "not_converged": 2,
+    "face_partial": 3,
+    "never": 4,
+}
+
 
 def body_size(n_bones: int, n_weights: int) -> int:
     """Bytes in the body of a data message for ``n_bones`` bones and ``n_weights``."""
     return 32 * n_bones + 4 * n_weights + ((n_bones + 3) & ~3)
+
+
+def face_size(n_face_markers: int) -> int:
+    """Bytes in the face part for ``n_face_markers`` stabilized markers."""
+    return FACE_HEADER.size + 12 * n_face_markers
 
 
 def stamp_sent(header: bytearray | memoryview, t_ns: int) -> None:
@@ -106,12 +140,21 @@ class PoseEncoder:
         n_bones: bones in the rig (the solve's NPZ order), <= 65535.
         n_weights: blendshape weights, <= 65535.
         names_id: the id of the names message describing these bones (0-65535).
+        n_face_markers: stabilized facial markers in the face part; None = no face
+            part (two-part messages).
 
     Attributes:
-        parts: ``[header, body]`` memoryviews, reused by every :meth:`encode`.
+        parts: ``[header, body]`` (``[header, body, face]`` with a face) memoryviews,
+            reused by every :meth:`encode`.
     """
 
-    def __init__(self, n_bones: int, n_weights: int, names_id: int = 0) -> None:
+    def __init__(
+        self,
+        n_bones: int,
+        n_weights: int,
+        names_id: int = 0,
+        n_face_markers: int | None = None,
+    ) -> None:
         if not (0 <= n_bones <= 0xFFFF and 0 <= n_weights <= 0xFFFF):
             raise ValueError(
                 "n_bones and n_weights must be in [0, 65535]; "
@@ -130,6 +173,17 @@ class PoseEncoder:
         self._weights = np.frombuffer(self._body, _LE_F32, k, 32 * b)
         self._bone_flags = np.frombuffer(self._body, np.uint8, b, 32 * b + 4 * k)
         self.parts = [memoryview(self._header), memoryview(self._body)]
+        self.n_face_markers = n_face_markers
+        if n_face_markers is not None:
+            if not 0 <= n_face_markers <= 0xFFFF:
+                raise ValueError(
+                    f"n_face_markers must be in [0, 65535]; got {n_face_markers}"
+                )
+            self._face = bytearray(face_size(n_face_markers))
+            self._face_markers = np.frombuffer(
+                self._face, _LE_F32, 3 * n_face_markers, FACE_HEADER.size
+            ).reshape(n_face_markers, 3)
+            self.parts.append(memoryview(self._face))
 
     def encode(
         self,
@@ -173,6 +227,28 @@ class PoseEncoder:
         self._bone_flags[:] = bone_flags
         return self.parts
 
+    def encode_face(
+        self,
+        flags: int,
+        world_from_head_quat: F64Array,
+        head_pos_world: F64Array,
+        markers_head: F64Array,
+    ) -> None:
+        """Write the face part (this frame's stabilized markers) before sending.
+
+        Args:
+            flags: face flag bits (``FACE_*``).
+            world_from_head_quat: (4,) (w, x, y, z).
+            head_pos_world: (3,) metres, world.
+            markers_head: (n_face_markers, 3) metres, head coordinates, NaN = occluded.
+        """
+        q, p = world_from_head_quat, head_pos_world
+        FACE_HEADER.pack_into(
+            self._face, 0, self.n_face_markers, 0, flags,
+            q[0], q[1], q[2], q[3], p[0], p[1], p[2],
+        )  # fmt: skip
+        self._face_markers[:] = markers_head
+
 
 @dataclass(slots=True, eq=False)
 class PoseMessage:
@@ -189,6 +265,11 @@ class PoseMessage:
         weights: (n_weights,) float32.
         bone_flags: (n_bones,) uint8.
         names_id: the names message these bones are described by.
+        face_flags: face flag bits (``FACE_*``); 0 without a face part.
+        world_from_head_quat: (4,) float32 (w, x, y, z), or None without a face.
+        head_pos_world: (3,) float32 metres, or None without a face.
+        face_markers: (M, 3) float32, metres, head coordinates (NaN = occluded), or
+            None without a face part.
     """
 
     frame_id: int
@@ -203,18 +284,22 @@ class PoseMessage:
     weights: F32Array
     bone_flags: U8Array
     names_id: int = 0
+    face_flags: int = 0
+    world_from_head_quat: F32Array | None = None
+    head_pos_world: F32Array | None = None
+    face_markers: F32Array | None = None
 
 
 def decode_pose(parts: Sequence[bytes | bytearray | memoryview]) -> PoseMessage:
     """Decode a pose data message.
 
     Raises:
-        DecodeError: ``bad_parts`` (not two parts), ``bad_length``, ``bad_magic``,
-            ``bad_version``.
+        DecodeError: ``bad_parts`` (not two or three parts), ``bad_length``,
+            ``bad_magic``, ``bad_version``.
     """
-    if len(parts) != 2:
-        raise DecodeError("bad_parts", f"{len(parts)} parts, expected 2")
-    header, body = parts
+    if len(parts) not in (2, 3):
+        raise DecodeError("bad_parts", f"{len(parts)} parts, expected 2 or 3")
+    header, body = parts[0], parts[1]
     if len(header) != HEADER.size:
         raise DecodeError("bad_length", f"header of {len(header)} bytes, expected 68")
     (magic, version, names_id, frame_id, time_s, received, solved, sent, flags, b, k,
@@ -226,6 +311,9 @@ def decode_pose(parts: Sequence[bytes | bytearray | memoryview]) -> PoseMessage:
     if len(body) != body_size(b, k):
         raise DecodeError("bad_length", f"body of {len(body)} bytes for {b} bones, {k}")
     data = bytes(body)
+    face: dict[str, Any] = {}
+    if len(parts) == 3:
+        face = _decode_face(parts[2])
     return PoseMessage(
         frame_id=frame_id,
         source_time_s=time_s,
@@ -243,7 +331,25 @@ def decode_pose(parts: Sequence[bytes | bytearray | memoryview]) -> PoseMessage:
         weights=np.frombuffer(data, _LE_F32, k, 32 * b).copy(),
         bone_flags=np.frombuffer(data, np.uint8, b, 32 * b + 4 * k).copy(),
         names_id=names_id,
+        **face,
     )
+
+
+def _decode_face(part: bytes | bytearray | memoryview) -> dict[str, Any]:
+    if len(part) < FACE_HEADER.size:
+        raise DecodeError("bad_length", f"face part of {len(part)} bytes, < 36")
+    m, _reserved, flags, *vals = FACE_HEADER.unpack_from(part)
+    if len(part) != face_size(m):
+        raise DecodeError("bad_length", f"face part of {len(part)} bytes for {m}")
+    data = bytes(part)
+    return {
+        "face_flags": flags,
+        "world_from_head_quat": np.array(vals[:4], dtype=np.float32),
+        "head_pos_world": np.array(vals[4:], dtype=np.float32),
+        "face_markers": np.frombuffer(data, _LE_F32, 3 * m, FACE_HEADER.size)
+        .reshape(m, 3)
+        .copy(),
+    }
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -256,6 +362,8 @@ class PoseNames:
         bone_parents: parent index per bone, -1 for the root.
         weight_names: blendshape names, in body order.
         names_id: echoed in every data message these names describe (0-65535).
+        face_markers: the face part's stabilized marker names, in order (empty
+            without a face).
     """
 
     rig: str
@@ -263,6 +371,7 @@ class PoseNames:
     bone_parents: tuple[int, ...]
     weight_names: tuple[str, ...]
     names_id: int = 0
+    face_markers: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         n = len(self.bone_names)
@@ -290,6 +399,10 @@ def encode_pose_names(names: PoseNames) -> list[bytes]:
         "frame_flag_bits": FRAME_FLAG_BITS,
         "bone_flag_bits": BONE_FLAG_BITS,
         "validation_bits": {"frame": [8, 15], "bone": [4, 7]},
+        "validation_checks": list(VALIDATION_CHECKS),
+        "bone_validation_bits": BONE_VALIDATION_BITS,
+        "face_markers": list(names.face_markers),
+        "face_flag_bits": FACE_FLAG_BITS,
     }
     body = json.dumps(doc, separators=(",", ":"), ensure_ascii=False).encode()
     return [NAMES_HEADER.pack(NAMES_MAGIC, VERSION, names.names_id), body]
@@ -330,6 +443,7 @@ def decode_pose_names(parts: Sequence[bytes | bytearray | memoryview]) -> PoseNa
         isinstance(p, int) and not isinstance(p, bool) for p in parents
     ):
         raise DecodeError("bad_json", "'parents' must be a list of integers")
+    has_face = "face_markers" in doc
     try:
         return PoseNames(
             rig=doc["rig"],
@@ -337,8 +451,95 @@ def decode_pose_names(parts: Sequence[bytes | bytearray | memoryview]) -> PoseNa
             bone_parents=tuple(parents),
             weight_names=_str_list(doc, "weights"),
             names_id=names_id,
+            face_markers=_str_list(doc, "face_markers") if has_face else (),
         )
     except ValueError as exc:
         if isinstance(exc, DecodeError):
             raise
         raise DecodeError("bad_json", str(exc)) from exc
+
+
+# ---- validation messages -----------------------------------------------------------
+
+
+@dataclass(slots=True, eq=False)
+class ValidationMessage:
+    """A decoded validation message (one checked frame).
+
+    Attributes:
+        names_id: the names message describing the bones.
+        frame_id: the checked frame's number (as in its data message).
+        received_ns: that frame's received_ns (matches its data message).
+        validated_ns: the sender's ``time.monotonic_ns()`` when the checks finished.
+        flags: validation frame bits (8-15).
+        values: (n_values,) float32, one measured value per check
+            (``VALIDATION_CHECKS`` order).
+        bone_flags: (n_bones,) uint8, validation bone bits (4-7).
+    """
+
+    names_id: int
+    frame_id: int
+    received_ns: int
+    validated_ns: int
+    flags: int
+    values: F32Array
+    bone_flags: U8Array
+
+
+def validation_body_size(n_bones: int, n_values: int) -> int:
+    """Bytes in the body of a validation message."""
+    return 4 * n_values + ((n_bones + 3) & ~3)
+
+
+def encode_validation(
+    names_id: int,
+    frame_id: int,
+    received_ns: int,
+    validated_ns: int,
+    flags: int,
+    values: F64Array | F32Array,
+    bone_flags: U8Array,
+) -> list[bytes]:
+    """Encode a validation message ``[header, body]`` (off the hot path: allocates)."""
+    b, k = len(bone_flags), len(values)
+    header = VALIDATION_HEADER.pack(
+        VALIDATION_MAGIC, VERSION, names_id, frame_id, received_ns, validated_ns,
+        flags, b, k,
+    )  # fmt: skip
+    body = bytearray(validation_body_size(b, k))
+    body[: 4 * k] = np.asarray(values, dtype=_LE_F32).tobytes()
+    body[4 * k : 4 * k + b] = np.asarray(bone_flags, dtype=np.uint8).tobytes()
+    return [header, bytes(body)]
+
+
+def decode_validation(
+    parts: Sequence[bytes | bytearray | memoryview],
+) -> ValidationMessage:
+    """Decode a validation message.
+
+    Raises:
+        DecodeError: ``bad_parts``, ``bad_length``, ``bad_magic``, ``bad_version``.
+    """
+    if len(parts) != 2:
+        raise DecodeError("bad_parts", f"{len(parts)} parts, expected 2")
+    header, body = parts
+    if len(header) != VALIDATION_HEADER.size:
+        raise DecodeError("bad_length", f"header of {len(header)} bytes, expected 40")
+    (magic, version, names_id, frame_id, received, validated, flags, b,
+     k) = VALIDATION_HEADER.unpack_from(header)  # fmt: skip
+    if magic != VALIDATION_MAGIC:
+        raise DecodeError("bad_magic", f"expected {VALIDATION_MAGIC!r}; got {magic!r}")
+    if version != VERSION:
+        raise DecodeError("bad_version", f"version {version}, expected {VERSION}")
+    if len(body) != validation_body_size(b, k):
+        raise DecodeError("bad_length", f"body of {len(body)} bytes for {b} bones, {k}")
+    data = bytes(body)
+    return ValidationMessage(
+        names_id=names_id,
+        frame_id=frame_id,
+        received_ns=received,
+        validated_ns=validated,
+        flags=flags,
+        values=np.frombuffer(data, _LE_F32, k, 0).copy(),
+        bone_flags=np.frombuffer(data, np.uint8, b, 4 * k).copy(),
+    )

@@ -149,3 +149,96 @@ def test_names_id_travels_in_data_and_names_messages() -> None:
     parts = enc.encode(1, 0.0, 1, 2, 0, np.zeros(3), q, q, np.zeros(0),
                        np.zeros(2, dtype=np.uint8))  # fmt: skip
     assert decode_pose([bytes(p) for p in parts]).names_id == 7
+
+
+def test_face_part_round_trip_and_layout(rng: np.random.Generator) -> None:
+    enc = ps.PoseEncoder(3, 2, n_face_markers=4)
+    parts, _ = _encode(rng, enc)
+    assert len(parts) == 3 and len(parts[2]) == ps.face_size(4) == 36 + 48
+    markers = rng.normal(size=(4, 3))
+    markers[2] = np.nan
+    quat = np.array([0.5, 0.5, -0.5, 0.5])
+    enc.encode_face(
+        ps.FACE_PARTIAL | ps.FACE_HEAD_PARTIAL, quat, [0.1, 0.2, 1.6], markers
+    )
+    raw = bytes(parts[2])
+    assert struct.unpack_from("<HHI", raw) == (4, 0, ps.FACE_PARTIAL | 1)
+    assert struct.unpack_from("<4f", raw, 8) == tuple(np.float32(quat))
+    msg = ps.decode_pose([bytes(p) for p in parts])
+    assert msg.face_flags == ps.FACE_PARTIAL | ps.FACE_HEAD_PARTIAL
+    np.testing.assert_array_equal(msg.world_from_head_quat, np.float32(quat))
+    np.testing.assert_array_equal(msg.head_pos_world, np.float32([0.1, 0.2, 1.6]))
+    np.testing.assert_array_equal(msg.face_markers, np.float32(markers))
+    # Without a face the message keeps two parts and decodes with no face fields.
+    plain = ps.decode_pose([bytes(p) for p in parts[:2]])
+    assert plain.face_markers is None and plain.face_flags == 0
+    with pytest.raises(DecodeError) as info:
+        ps.decode_pose([bytes(p) for p in parts[:2]] + [raw[:-4]])
+    assert info.value.reason == "bad_length"
+    # The flag names match the face solver's bits.
+    from retargetd.daemon import kernel_face as kf
+
+    assert (kf.FLAG_HEAD_PARTIAL, kf.FLAG_HEAD_LOST, kf.FLAG_NOT_CONVERGED,
+            kf.FLAG_FACE_PARTIAL, kf.FLAG_NEVER) == (
+        ps.FACE_HEAD_PARTIAL, ps.FACE_HEAD_LOST, ps.FACE_NOT_CONVERGED,
+        ps.FACE_PARTIAL, ps.FACE_NEVER,
+    )  # fmt: skip
+
+
+def test_names_carry_face_markers() -> None:
+    names = ps.PoseNames(
+        rig="r",
+        bone_names=("a",),
+        bone_parents=(-1,),
+        weight_names=("jawOpen",),
+        face_markers=("CHIN", "LLIP"),
+    )
+    assert ps.decode_pose_names(ps.encode_pose_names(names)) == names
+
+
+def test_validation_message_round_trip() -> None:
+    values = np.arange(len(ps.VALIDATION_CHECKS), dtype=np.float64) * 0.5
+    flags = ps.FRAME_V_LIMITS | ps.FRAME_V_SPEED
+    bones = np.array([0, ps.BONE_V_LIMIT, ps.BONE_V_SPEED | ps.BONE_V_FIT, 0, 0],
+                     dtype=np.uint8)  # fmt: skip
+    parts = ps.encode_validation(9, 1234, 5_000, 6_000, flags, values, bones)
+    assert len(parts[0]) == ps.VALIDATION_HEADER.size == 40
+    assert parts[0][:8] == b"RTDV\x01\x00\x09\x00"
+    assert len(parts[1]) == 4 * 8 + 8
+    msg = ps.decode_validation(parts)
+    assert (msg.names_id, msg.frame_id, msg.received_ns, msg.validated_ns) == (
+        9, 1234, 5_000, 6_000,
+    )  # fmt: skip
+    assert msg.flags == flags
+    np.testing.assert_array_equal(msg.values, np.float32(values))
+    np.testing.assert_array_equal(msg.bone_flags, bones)
+    for bad, reason in (
+        ([parts[0]], "bad_parts"),
+        ([parts[0][:-1], parts[1]], "bad_length"),
+        ([b"RTDX" + parts[0][4:], parts[1]], "bad_magic"),
+        ([parts[0][:4] + b"\x02" + parts[0][5:], parts[1]], "bad_version"),
+        ([parts[0], parts[1][:-4]], "bad_length"),
+    ):
+        with pytest.raises(DecodeError) as info:
+            ps.decode_validation(bad)
+        assert info.value.reason == reason
+
+
+def test_validation_bits_fill_the_reserved_ranges() -> None:
+    frame = [getattr(ps, f"FRAME_V_{c.upper()}") for c in ps.VALIDATION_CHECKS]
+    assert sum(frame) == ps.FRAME_VALIDATION_MASK and len(set(frame)) == 8
+    bone = [1 << b for b in ps.BONE_VALIDATION_BITS.values()]
+    assert sum(bone) == ps.BONE_VALIDATION_MASK
+
+
+@settings(max_examples=200)
+@given(st.binary(max_size=60), st.binary(max_size=80))
+def test_face_and_validation_decoders_raise_only_decode_error(
+    a: bytes, b: bytes
+) -> None:
+    enc = ps.PoseEncoder(1, 0, n_face_markers=1)
+    for parts in ([bytes(enc.parts[0]), bytes(enc.parts[1]), a], [a, b]):
+        with contextlib.suppress(DecodeError):
+            ps.decode_pose(parts)
+        with contextlib.suppress(DecodeError):
+            ps.decode_validation(parts[:2])

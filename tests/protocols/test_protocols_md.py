@@ -45,6 +45,24 @@ def _pose_parts() -> list[bytes]:
     return [bytes(p) for p in parts]
 
 
+def _face_part() -> bytes:
+    enc = pose_stream.PoseEncoder(1, 1, n_face_markers=2)
+    nan3 = [np.nan] * 3
+    enc.encode_face(
+        pose_stream.FACE_PARTIAL, np.array([1.0, 0, 0, 0]), np.array([0, 0, 1.5]),
+        np.array([[0.0, 0.1, 0.0], nan3]),
+    )  # fmt: skip
+    return bytes(enc.parts[2])
+
+
+def _validation_parts() -> list[bytes]:
+    values = np.array([0, 1.5, 0, 12.5, 0, 0, 0, 0.0])
+    bones = np.array([pose_stream.BONE_V_LIMIT], dtype=np.uint8)
+    return pose_stream.encode_validation(
+        0, 7, 1000, 5000, pose_stream.FRAME_V_LIMITS, values, bones
+    )
+
+
 def test_hex_examples_match_the_encoders() -> None:
     zmq_frame = zmq_wire.encode_zmq_frame(7, 0.5, 3, POS)
     zmq_labels = zmq_wire.encode_zmq_labels(LABELS)
@@ -61,6 +79,9 @@ def test_hex_examples_match_the_encoders() -> None:
         ),
         "pose_header": _pose_parts()[0],
         "pose_body": _pose_parts()[1],
+        "pose_face": _face_part(),
+        "validation_header": _validation_parts()[0],
+        "validation_body": _validation_parts()[1],
     }
     for name, data in expected.items():
         assert _hex(name) == data, name
