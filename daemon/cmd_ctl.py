@@ -1,15 +1,20 @@
 """``retargetd ctl [--endpoint E] status [--json] | calibrate [--count N] | reload |
-record start FILE.mcap [--no-poses] | record stop``.
+record start FILE.mcap [--no-poses] | record stop | face-capture NAME [--count N]``.
 
 Talks to a running daemon over its local control socket (ZeroMQ REQ/REP, JSON
 requests ``{"cmd": "status"}``, ``{"cmd": "calibrate", "count": N}``,
 ``{"cmd": "reload"}``, ``{"cmd": "record", "action": "start", "path": FILE,
-"poses": true}``, ``{"cmd": "record", "action": "stop"}``). ``record start`` makes the
+"poses": true}``, ``{"cmd": "record", "action": "stop"}``,
+``{"cmd": "face-capture", "name": NAME, "count": N}``). ``record start`` makes the
 daemon record every marker packet it receives, its pose stream (unless
 ``--no-poses``) and control events to a new MCAP file, in the format of
 ``retargetd record`` (``retargetd replay`` plays it back); FILE is sent as an absolute
 path (the daemon runs elsewhere) and must not exist yet. ``record stop`` returns at
 once; the daemon finishes the file in the background (``status --json``: ``record``).
+``face-capture NAME`` (``neutral`` first, then any expression of the face config)
+averages the next N frames into the face training set, which the daemon starts
+solving with at once and saves (``[face]`` in the daemon config; ``status --json``:
+``face``).
 Exit 0 on success, 1 when the daemon refuses or does not answer within
 ``--timeout-ms``, 2 for usage errors.
 """
@@ -29,7 +34,8 @@ def add_parser(subparsers: Any) -> None:
     """Register ``ctl``."""
     parser = subparsers.add_parser(
         "ctl",
-        help="control a running daemon: status, calibrate, reload, record",
+        help="control a running daemon: status, calibrate, reload, record, "
+        "face-capture",
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -56,6 +62,12 @@ def add_parser(subparsers: Any) -> None:
         "stop",
         help="stop recording (returns at once; the file is finished in the background)",
     )
+    face = sub.add_parser(
+        "face-capture",
+        help="capture a face training pose live (neutral first, then expressions)",
+    )
+    face.add_argument("name", metavar="NAME", help="neutral or an expression name")
+    face.add_argument("--count", type=int, default=None, metavar="N")
     parser.set_defaults(run=run)
 
 
@@ -85,11 +97,14 @@ def run(args: argparse.Namespace) -> int:
     """Run ``ctl``."""
     from retargetd.daemon.cli import UsageError
 
-    if args.ctl_command == "calibrate" and args.count is not None and args.count < 1:
+    counted = args.ctl_command in ("calibrate", "face-capture")
+    if counted and args.count is not None and args.count < 1:
         raise UsageError(f"--count must be >= 1; got {args.count}")
     req: dict[str, Any] = {"cmd": args.ctl_command}
-    if args.ctl_command == "calibrate" and args.count is not None:
+    if counted and args.count is not None:
         req["count"] = args.count
+    if args.ctl_command == "face-capture":
+        req["name"] = args.name
     if args.ctl_command == "record":
         req["action"] = args.record_action
         if args.record_action == "start":

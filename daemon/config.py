@@ -127,6 +127,28 @@ class LoopConfig:
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
+class FaceSectionConfig:
+    """The stabilized face, solved from the same marker stream as the body."""
+
+    enabled: bool = False
+    config: str = "arkit52"  # a face preset (arkit52, vrm0, vrm1) or a face TOML
+    training: str = ""  # face.npz (retargetd face-train); loaded when it exists
+    save_training: str = ""  # where live captures are written ("" = over training)
+    capture_frames: int = 60  # frames averaged by `ctl face-capture` (--count)
+    regularization: float = 1e-3  # unitless weight damping (solve_face)
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class ValidateSectionConfig:
+    """The live validator: MuJoCo checks on their own thread, flags in the stream."""
+
+    enabled: bool = False
+    queue: int = 16  # frames waiting for the validator; more are dropped, counted
+    body_mass_kg: float = 0.0  # 0 = the calibration's Bodymass, else 70 kg
+    switch_interval_ms: float = 0.5  # Python's GIL switch interval while it runs
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
 class InputConfig:
     """Marker inputs."""
 
@@ -153,6 +175,8 @@ class DaemonConfig:
     show_control: ShowControlConfig = field(default_factory=ShowControlConfig)
     target: TargetConfig = field(default_factory=TargetConfig)
     loop: LoopConfig = field(default_factory=LoopConfig)
+    face: FaceSectionConfig = field(default_factory=FaceSectionConfig)
+    validate: ValidateSectionConfig = field(default_factory=ValidateSectionConfig)
 
     @classmethod
     def from_toml(cls, path: str | Path) -> DaemonConfig:
@@ -327,3 +351,46 @@ def _check(c: DaemonConfig, source: str) -> None:
         raise ConfigError(
             f"{source}: output.pose.sndhwm: expected >= 1; got {c.output.pose.sndhwm}"
         )
+    _check_face(c.face, source)
+    v = c.validate
+    if not 1 <= v.queue <= 10_000:
+        raise ConfigError(
+            f"{source}: validate.queue: expected [1, 10000]; got {v.queue}"
+        )
+    if not (v.body_mass_kg == 0.0 or 20.0 <= v.body_mass_kg <= 300.0):
+        raise ConfigError(
+            f"{source}: validate.body_mass_kg: expected 0 (from the calibration) or "
+            f"[20, 300]; got {v.body_mass_kg}"
+        )
+    if not 0.05 <= v.switch_interval_ms <= 5.0:
+        raise ConfigError(
+            f"{source}: validate.switch_interval_ms: expected [0.05, 5]; "
+            f"got {v.switch_interval_ms}"
+        )
+
+
+def _check_face(f: FaceSectionConfig, source: str) -> None:
+    if not 1 <= f.capture_frames <= 100_000:
+        raise ConfigError(
+            f"{source}: face.capture_frames: expected [1, 100000]; "
+            f"got {f.capture_frames}"
+        )
+    if not 0.0 <= f.regularization <= 1.0:
+        raise ConfigError(
+            f"{source}: face.regularization: expected [0, 1]; got {f.regularization}"
+        )
+    if not f.enabled:
+        return
+    from retargetd.daemon.face_config import FaceConfigError, load_face_config
+
+    try:
+        load_face_config(f.config)
+    except FaceConfigError as exc:
+        raise ConfigError(f"{source}: face.config: {exc}") from None
+    if f.training and Path(f.training).exists():
+        from retargetd.daemon.solve_face import TrainingSet
+
+        try:
+            TrainingSet.load(f.training)
+        except (OSError, ValueError) as exc:
+            raise ConfigError(f"{source}: face.training: {exc}") from None

@@ -22,6 +22,16 @@ loop thread is the only one that reads it) and saves it.
 ``record`` starts and stops a recording inside the daemon (``live_recording.py``):
 the loop hands packets, poses and control events to a writer thread with
 ``put_nowait`` only, and never writes to the disk itself.
+
+With ``[face]`` on, the same frame is also solved for the face (``live_face.py``:
+stabilized markers and blendshape weights) before the send: the weights go out as
+VMC blendshapes under the target's names and in the pose stream with the stabilized
+markers. ``face-capture`` captures training poses live.
+
+With ``[validate]`` on, every sent pose is handed to the live validator
+(``validate_live.py``) with a non-blocking submit after the send; its results come
+back on later frames: their bits are ORed into the next pose and each is published
+as an ``RTDV`` message (``protocols/PROTOCOLS.md``).
 """
 
 from __future__ import annotations
@@ -42,6 +52,7 @@ import zmq
 
 from retargetd.daemon.calibration import Calibration, calibrate, load_calibration
 from retargetd.daemon.config import DaemonConfig
+from retargetd.daemon.live_face import FaceStage, LiveFace
 from retargetd.daemon.live_recording import (
     FORM_OSC,
     FORM_ZMQ,
@@ -80,6 +91,8 @@ class _Pipeline:
     pose_enc: pose_stream.PoseEncoder
     names_parts: list[bytes]
     weights: np.ndarray
+    bone_flags: np.ndarray  # sent bone flags: the solve's | the latest validation's
+    face: FaceStage | None = None
 
 
 class Daemon:
@@ -136,6 +149,12 @@ class Daemon:
         self.endpoints: dict[str, str] = {}
         self.recording = LiveRecording()
         self._osc_form = FORM_OSC[osc_cfg.form]
+        self.face: LiveFace | None = None
+        if config.face.enabled:
+            self.face = LiveFace(config.face, self.rig.marker_names)
+        self.validator: Any = None  # LiveValidator when [validate] is on
+        self._validation_bits = 0  # frame bits of the latest validation result
+        self._validation_bones: np.ndarray | None = None  # its bone bits
 
     # ---- lifecycle -------------------------------------------------------------------
 
@@ -198,6 +217,10 @@ class Daemon:
         from retargetd.daemon.solve_body import warm_up
 
         warm_up()
+        if self.face is not None:
+            from retargetd.daemon.live_face import warm_up as warm_up_face
+
+            warm_up_face()
         if self.calibration is None:
             return
         pipe = self._build_pipeline(self.rig.marker_names)
@@ -205,6 +228,10 @@ class Daemon:
         pose = pipe.solver.solve_frame(nan_frame, pipe.pose)
         pipe.retargeter.apply(pose, pipe.target_pose)
         pipe.solver.reset()
+        if pipe.face is not None:
+            nan_face = np.full((len(pipe.face.solver.labels), 3), np.nan)
+            pipe.face.solve(nan_face, np.zeros(len(nan_face), dtype=bool))
+            pipe.face.solver.reset()
         self._names_id -= 1  # this pipeline is thrown away; keep the ids dense
 
     def _announce(self, what: str, where: str) -> None:
@@ -298,6 +325,8 @@ class Daemon:
                 pipe.vmc.reset_continuity()
         if self._calib_target:
             self._collect_calibration_frame(stream)
+        if self.face is not None and self.face.capturing:
+            self._collect_face_frame(stream)
         # Solve at once while this wake-up is within the budget (frames that merely
         # arrived together are all solved); past it the loop is behind, and the
         # latest frame wins: this one waits and is dropped if a newer one comes.
@@ -419,27 +448,38 @@ class Daemon:
         self._names_id = (self._names_id + 1) % 65536
         self._last_names_ns = 0  # new names: announce them with the next frame
         n_bones = len(self.rig.bones)
+        face = self.face.stage(labels) if self.face is not None else None
+        weight_names = face.weight_names if face is not None else ()
+        face_markers = face.marker_names if face is not None else ()
         names_msg = pose_stream.PoseNames(
             rig=self.rig.name,
             bone_names=self.rig.bone_names,
             bone_parents=self.rig.bone_parent_indices(),
-            weight_names=(),
+            weight_names=weight_names,
             names_id=self._names_id,
+            face_markers=face_markers,
         )
         return _Pipeline(
             solver=solver,
             retargeter=retargeter,
             pose=solver.new_pose(),
             target_pose=target_pose,
-            vmc=VmcEncoder(names, ()),
+            vmc=VmcEncoder(names, face.output_names if face is not None else ()),
             bone_pos_unity=bone_pos_unity,
             bone_quat_xyzw=np.zeros((n, 4)),
             root_pos_unity=np.zeros(3),
             root_quat_xyzw=np.array([0.0, 0.0, 0.0, 1.0]),
-            blend=np.zeros(0),
-            pose_enc=pose_stream.PoseEncoder(n_bones, 0, names_id=self._names_id),
+            blend=face.blend if face is not None else np.zeros(0),
+            pose_enc=pose_stream.PoseEncoder(
+                n_bones,
+                len(weight_names),
+                names_id=self._names_id,
+                n_face_markers=len(face_markers) if face is not None else None,
+            ),
             names_parts=pose_stream.encode_pose_names(names_msg),
-            weights=np.zeros(0),
+            weights=face.weights if face is not None else np.zeros(0),
+            bone_flags=np.zeros(n_bones, dtype=np.uint8),
+            face=face,
         )
 
     def _solve_and_send(self, stream: MarkerStream, received_ns: int) -> None:
@@ -450,11 +490,23 @@ class Daemon:
         t_start = time.monotonic_ns()
         pose = pipe.solver.solve_frame(frame.markers_world, pipe.pose)
         tp = pipe.retargeter.apply(pose, pipe.target_pose)
+        face = pipe.face
+        if face is not None:
+            fo = face.solve(frame.markers_world, frame.valid)
+            self.stats.face_solved += 1
+            if fo.status[0] & pose_stream.FACE_HEAD_LOST:
+                self.stats.face_head_lost += 1
         solved_ns = time.monotonic_ns()
         self.stats.frames_solved += 1
         self.stats.held_bone_frames += pose.n_held
         flags = self._frame_flags | (pose_stream.FRAME_HELD if pose.n_held else 0)
         self._frame_flags = 0
+        validator = self.validator
+        if validator is not None:
+            results = validator.results()
+            if results:
+                self._take_validation(results, pipe)
+            flags |= self._validation_bits
         # VMC: Unity frame, x y z w.
         engine_unity.unity_quat_xyzw_from_world(
             tp.parent_from_bone_quat, pipe.bone_quat_xyzw
@@ -478,15 +530,30 @@ class Daemon:
                 self._last_names_ns = solved_ns
             if time.monotonic_ns() - t_start > budget_ns:
                 flags |= pose_stream.FRAME_LATE
+            bone_flags = pose.bone_flags
+            vb = self._validation_bones
+            if vb is not None and len(vb) == len(bone_flags):
+                bone_flags = np.bitwise_or(bone_flags, vb, out=pipe.bone_flags)
             parts = pipe.pose_enc.encode(
                 frame.frame_id, frame.source_time_s, received_ns, solved_ns, flags,
                 pose.root_pos, pose.world_from_bone_quat, pose.parent_from_bone_quat,
-                pipe.weights, pose.bone_flags,
+                pipe.weights, bone_flags,
             )  # fmt: skip
+            if face is not None:
+                pipe.pose_enc.encode_face(
+                    fo.flags, fo.world_from_head_quat, fo.world_from_head_pos,
+                    fo.markers_head,
+                )  # fmt: skip
             sent_ns = time.monotonic_ns()
             pose_stream.stamp_sent(parts[0], sent_ns)
             self._send_pub(parts, sent_ns)
         sent_ns = time.monotonic_ns()
+        # After the send: a copy into the validator's ring, never a wait.
+        if validator is not None and not validator.submit(
+            frame.frame_id, received_ns, pose.root_pos, pose.world_from_bone_quat,
+            pose.parent_from_bone_quat, pose.joint_centres,
+        ):  # fmt: skip
+            self.stats.validation_drops += 1
         self.stats.frames_out += 1
         if sent_ns - t_start > budget_ns:
             self.stats.overruns += 1
@@ -494,6 +561,28 @@ class Daemon:
             solved_ns - received_ns, solved_ns - t_start, sent_ns - solved_ns,
             sent_ns - received_ns,
         )  # fmt: skip
+
+    def _take_validation(self, results: list[Any], pipe: _Pipeline) -> None:
+        """Keep the latest result's bits for the next poses and publish every result
+        as an ``RTDV`` message (the frame it belongs to, its values)."""
+        last = results[-1]
+        self._validation_bits = last.frame_flags & pose_stream.FRAME_VALIDATION_MASK
+        bones = last.bone_flags
+        if self._validation_bones is None or len(self._validation_bones) != len(bones):
+            self._validation_bones = np.zeros(len(bones), dtype=np.uint8)
+        np.bitwise_and(bones, pose_stream.BONE_VALIDATION_MASK,
+                       out=self._validation_bones)  # fmt: skip
+        for r in results:
+            self.stats.validated += 1
+            if r.frame_flags & pose_stream.FRAME_VALIDATION_MASK:
+                self.stats.validation_flagged += 1
+            if self._pub is not None or self.recording.poses is not None:
+                msg = pose_stream.encode_validation(
+                    pipe.pose_enc.names_id, r.frame_id, r.t_ns, r.validated_ns,
+                    r.frame_flags & pose_stream.FRAME_VALIDATION_MASK, r.values,
+                    r.bone_flags & pose_stream.BONE_VALIDATION_MASK,
+                )  # fmt: skip
+                self._send_pub(msg, r.validated_ns)
 
     def _send_pub(self, parts: list[Any], t_ns: int) -> None:
         rec = self.recording.poses
@@ -529,6 +618,35 @@ class Daemon:
         self._calib_frames.append(stream.current.frame.markers_world.copy())
         if len(self._calib_frames) >= self._calib_target:
             self._finish_calibration()
+
+    def _collect_face_frame(self, stream: MarkerStream) -> None:
+        assert self.face is not None
+        labels = stream.current.label_set.labels
+        msg = self.face.collect(stream.current.frame.markers_world, labels)
+        if msg is None:
+            return
+        ok = "failed" not in msg
+        if ok:
+            # The next frame solves with the new training set; pipelines rebuilt now,
+            # off the frame that completed the capture.
+            self.stats.face_captures += 1
+            self._pipelines.clear()
+            self._labels_of.clear()
+            for s in (self.osc_stream, self.zmq_stream):
+                if s.current.label_set.labels == labels:
+                    self._pipeline(s)
+        self.recording.event("face_capture", ok=ok, message=msg)
+        self.out(msg)
+
+    def request_face_capture(
+        self, name: str, count: int | None = None, by: str = ""
+    ) -> str:
+        """Start capturing face pose ``name`` over the next ``count`` frames."""
+        if self.face is None:
+            raise ValueError("the face is off: set [face] enabled = true")
+        msg = self.face.request_capture(name, count)
+        self.recording.event("face_capture_requested", name=name, by=by)
+        return msg
 
     def _finish_calibration(self) -> None:
         frames = np.stack(self._calib_frames)
@@ -633,7 +751,16 @@ class Daemon:
             "occluded_markers": occluded,
             "held_bones": flagged,
             "record": self.recording.status(),
+            "face": self.face.status() if self.face is not None else None,
+            "validate": self._validate_status(),
         }
+
+    def _validate_status(self) -> dict[str, Any] | None:
+        v = self.validator
+        if v is None:
+            return None
+        status: dict[str, Any] = v.status()
+        return status
 
     def _fps(self, count: int, which: int) -> float:
         """Frames per second since the last stats line (the recent rate, not the
@@ -697,7 +824,19 @@ class Daemon:
             return {"ok": not msg.startswith("reload failed"), "message": msg}
         if cmd == "record":
             return {"ok": True, "message": self._record_control(req)}
-        raise ValueError(f"unknown command {cmd!r} (status, calibrate, reload, record)")
+        if cmd == "face-capture":
+            name, count = req.get("name"), req.get("count")
+            if not isinstance(name, str) or not name:
+                raise ValueError(f"face-capture needs a 'name' string; got {name!r}")
+            if count is not None and (type(count) is not int or count < 1):
+                raise ValueError(f"count must be a positive integer; got {count!r}")
+            return {
+                "ok": True,
+                "message": self.request_face_capture(name, count, "ctl"),
+            }
+        raise ValueError(
+            f"unknown command {cmd!r} (status, calibrate, reload, record, face-capture)"
+        )
 
     def _record_control(self, req: dict[str, Any]) -> str:
         """``{"cmd": "record", "action": "start", "path": FILE, "poses": bool}`` or

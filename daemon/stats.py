@@ -31,6 +31,12 @@ class LoopStats:
         held_bone_frames: bone-frames held (too little data).
         occluded_samples: rig-marker samples occluded in solved frames.
         rejected_sources: OSC datagrams from addresses not on the allow-list.
+        face_solved: frames the face was solved on.
+        face_head_lost: of those, frames with fewer than 3 head markers (face held).
+        face_captures: live face training captures applied.
+        validated: frames the live validator finished (results taken by the loop).
+        validation_flagged: of those, frames with at least one check over threshold.
+        validation_drops: sent frames the validator's queue had no room for.
     """
 
     frames_in: int = 0
@@ -45,6 +51,12 @@ class LoopStats:
     held_bone_frames: int = 0
     occluded_samples: int = 0
     rejected_sources: int = 0
+    face_solved: int = 0
+    face_head_lost: int = 0
+    face_captures: int = 0
+    validated: int = 0
+    validation_flagged: int = 0
+    validation_drops: int = 0
     rings: IntArray = field(
         default_factory=lambda: np.zeros((len(STAGES), RING), np.int64)
     )
@@ -78,5 +90,7 @@ class LoopStats:
                 "frames_in", "frames_solved", "frames_out", "stale", "overruns",
                 "send_drops", "vmc_errors", "restarts", "calibrations",
                 "held_bone_frames", "occluded_samples", "rejected_sources",
+                "face_solved", "face_head_lost", "face_captures", "validated",
+                "validation_flagged", "validation_drops",
             )
         }  # fmt: skip

@@ -1223,7 +1223,8 @@ def test_side_by_side_daemons_and_ctl_endpoint(
     # Requests the daemon refuses; it keeps serving.
     assert a.ctl({"cmd": "bogus"}) == {
         "ok": False,
-        "error": "unknown command 'bogus' (status, calibrate, reload, record)",
+        "error": "unknown command 'bogus' "
+        "(status, calibrate, reload, record, face-capture)",
     }
     assert not a.ctl({"cmd": "calibrate", "count": 0})["ok"]
     assert not a.ctl({"cmd": "calibrate", "count": True})["ok"]
