@@ -223,15 +223,11 @@ class Daemon:
             warm_up_face()
         if self.calibration is None:
             return
-        pipe = self._build_pipeline(self.rig.marker_names)
+        pipe = self._build_pipeline(self.rig.marker_names, face=False)
         nan_frame = np.full((len(self.rig.marker_names), 3), np.nan)
         pose = pipe.solver.solve_frame(nan_frame, pipe.pose)
         pipe.retargeter.apply(pose, pipe.target_pose)
         pipe.solver.reset()
-        if pipe.face is not None:
-            nan_face = np.full((len(pipe.face.solver.labels), 3), np.nan)
-            pipe.face.solve(nan_face, np.zeros(len(nan_face), dtype=bool))
-            pipe.face.solver.reset()
         self._names_id -= 1  # this pipeline is thrown away; keep the ids dense
 
     def _announce(self, what: str, where: str) -> None:
@@ -421,7 +417,9 @@ class Daemon:
         self._labels_of[key] = labels
         return pipe
 
-    def _build_pipeline(self, labels: tuple[str, ...]) -> _Pipeline:
+    def _build_pipeline(
+        self, labels: tuple[str, ...], *, face: bool = True
+    ) -> _Pipeline:
         from retargetd.daemon.target import Retargeter
 
         assert self.calibration is not None
@@ -448,7 +446,8 @@ class Daemon:
         self._names_id = (self._names_id + 1) % 65536
         self._last_names_ns = 0  # new names: announce them with the next frame
         n_bones = len(self.rig.bones)
-        face = self.face.stage(labels) if self.face is not None else None
+        stage = self.face.stage(labels) if face and self.face is not None else None
+        face = stage  # (the face stage of this stream, or None)
         weight_names = face.weight_names if face is not None else ()
         face_markers = face.marker_names if face is not None else ()
         names_msg = pose_stream.PoseNames(

@@ -1,0 +1,335 @@
+"""The face in the live daemon, over real loopback sockets: body and face solved from
+one ZeroMQ marker stream, weights out as VMC blendshapes under the target's names and
+in the pose stream, stabilized markers in the pose stream's face part, and training
+poses captured live with ``retargetd ctl face-capture``.
+
+The face is the ICT-FaceKit ARKit face (``face_synth``) riding on the synthetic
+performer's own head: its four head markers (LFHD RFHD LBHD RBHD, shared with the
+body rig) are the stabilization markers, their T-pose layout the head frame, and the
+40 facial markers are placed exactly (no noise), so the live weights must equal an
+offline :class:`FaceSolver` run on the same float32 frames.
+"""
+
+from __future__ import annotations
+
+import functools
+import importlib.util
+import socket
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import zmq
+
+from retargetd.daemon import face_synth as fs
+from retargetd.daemon.cli import main as cli_main
+from retargetd.daemon.face_config import load_face_config
+from retargetd.daemon.solve_face import FaceSolver, TrainingSet, observability
+from retargetd.protocols import pose_stream, vmc_out, zmq_wire
+from retargetd.protocols.marker_input import LabelSet
+
+
+def _load_live_harness() -> Any:
+    """``test_live.py`` (the live-daemon harness: daemon in a thread, VMC receiver,
+    the exact performer) as a module; tests import in importlib mode, so by path."""
+    name = "retargetd_tests_live_harness"
+    if name not in sys.modules:
+        spec = importlib.util.spec_from_file_location(
+            name, Path(__file__).with_name("test_live.py")
+        )
+        assert spec is not None and spec.loader is not None
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[name] = module
+        spec.loader.exec_module(module)
+    return sys.modules[name]
+
+
+_live = _load_live_harness()
+Live, VmcReceiver = _live.Live, _live.VmcReceiver
+_f32, _take, _wait_until = _live._f32, _live._take, _live._wait_until
+start_daemon = _live.start_daemon  # fixtures, re-exported for this module
+exact_calibration = _live.exact_calibration
+
+HEAD = ("LFHD", "RFHD", "LBHD", "RBHD")
+
+
+@functools.cache
+def _face(datasets: Path) -> tuple[TrainingSet, np.ndarray, np.ndarray]:
+    """(training set in the performer's head frame, world_from_head rotations (T,3,3),
+    head positions (T,3)) for every frame of the synthetic take."""
+    take = _take()
+    cols = [take.labels.index(n) for n in HEAD]
+    head = take.markers_world[:, cols]  # (T, 4, 3), exact rigid head
+    layout = head[0] - head[0].mean(axis=0)  # head frame = world axes at frame 0
+    ict = fs.ict_training_set(datasets)
+    # ICT head coordinates are x right, y forward, z up: the T-posed performer faces
+    # world +Y with +Z up, so they are the world axes of frame 0 too.
+    training = TrainingSet(
+        head_names=HEAD, marker_names=ict.marker_names,
+        expression_names=ict.expression_names, head_layout=layout,
+        neutral=ict.neutral, deltas=ict.deltas,
+    )  # fmt: skip
+    rots = np.empty((len(head), 3, 3))
+    for t, f in enumerate(head):
+        c = f - f.mean(axis=0)
+        u, _, vt = np.linalg.svd(layout.T @ c)
+        d = np.sign(np.linalg.det(vt.T @ u.T))
+        rots[t] = vt.T @ np.diag([1.0, 1.0, d]) @ u.T  # c ~ layout @ rot.T
+    return training, rots, head.mean(axis=1)
+
+
+def _stream(
+    training: TrainingSet, rots: np.ndarray, pos: np.ndarray, rows: np.ndarray,
+    weights: np.ndarray,
+) -> tuple[tuple[str, ...], np.ndarray]:  # fmt: skip
+    """Stream labels (body, then facial) and float32 frames (len(rows), N, 3)."""
+    take = _take()
+    local = training.neutral + np.einsum("tk,kmc->tmc", weights, training.deltas)
+    face = np.einsum("tij,tmj->tmi", rots[rows], local) + pos[rows, None]
+    frames = np.concatenate([take.markers_world[rows], face], axis=1)
+    return (*take.labels, *training.marker_names), _f32(frames)
+
+
+class Harness:
+    """A daemon with ZeroMQ PUSH input, a pose SUB and a VMC receiver."""
+
+    def __init__(
+        self, live: Live, zmq_socket: Callable[[int], Any], vmc: VmcReceiver
+    ) -> None:
+        self.live, self.vmc = live, vmc
+        self.push = zmq_socket(zmq.PUSH)
+        self.push.connect(live.tcp("zmq markers"))
+        self.sub = zmq_socket(zmq.SUB)
+        self.sub.setsockopt(zmq.SUBSCRIBE, b"RTD")
+        self.sub.setsockopt(zmq.RCVHWM, 100_000)
+        self.sub.connect(live.tcp("zmq poses"))
+        self.poses: list[pose_stream.PoseMessage] = []
+        self.names: list[pose_stream.PoseNames] = []
+        self.next_id = 0
+        self.label_set: LabelSet | None = None
+
+    def announce(self, labels: tuple[str, ...]) -> None:
+        self.label_set = LabelSet(3, labels)
+        self.push.send_multipart(zmq_wire.encode_zmq_labels(self.label_set))
+
+    def send(self, frames: np.ndarray) -> None:
+        for f in frames:
+            self.push.send_multipart(
+                zmq_wire.encode_zmq_frame(self.next_id, self.next_id / 100.0, 3, f)
+            )
+            self.next_id += 1
+
+    def pump(self, timeout_ms: int = 0) -> None:
+        while self.sub.poll(timeout_ms):
+            timeout_ms = 0
+            parts = self.sub.recv_multipart()
+            if parts[0][:4] == pose_stream.DATA_MAGIC:
+                self.poses.append(pose_stream.decode_pose(parts))
+            elif parts[0][:4] == pose_stream.NAMES_MAGIC:
+                self.names.append(pose_stream.decode_pose_names(parts))
+
+    def prime(self, frame: np.ndarray) -> None:
+        """Send until the SUB hears the daemon (slow joiner), then forget it all."""
+        deadline = time.monotonic() + 10.0
+        while not self.poses:
+            assert time.monotonic() < deadline, "pose stream never reached the SUB"
+            self.send(frame[None])
+            self.pump(20)
+        n = self.live.daemon.stats.frames_out
+        _wait_until(lambda: self.live.daemon.stats.frames_solved >= n, "primed")
+        self.pump(50)
+        self.poses.clear()
+        self.vmc.pump()
+        self.vmc.frames.clear()
+
+    def wait_poses(self, n: int, timeout_s: float = 10.0) -> None:
+        deadline = time.monotonic() + timeout_s
+        while len(self.poses) < n:
+            assert time.monotonic() < deadline, f"{len(self.poses)}/{n} poses"
+            self.pump(20)
+
+
+def _blends(frame: list[tuple[str, list[Any]]]) -> dict[str, float]:
+    return {p[0]: p[1] for a, p in frame if a == vmc_out.BLEND_VAL_ADDRESS}
+
+
+@pytest.fixture
+def harness(
+    start_daemon: Callable[..., Live],
+    zmq_socket: Callable[[int], Any],
+    udp_socket: Callable[..., socket.socket],
+    exact_calibration: Path,
+) -> Callable[..., Harness]:
+    def make(face: dict[str, Any]) -> Harness:
+        vmc = VmcReceiver(udp_socket(bind=True))
+        live = start_daemon(
+            {
+                "performer": {"calibration": str(exact_calibration)},
+                "loop": {"process_every_frame": True},
+                "face": {"enabled": True, **face},
+            },
+            vmc_port=vmc.port,
+        )
+        return Harness(live, zmq_socket, vmc)
+
+    return make
+
+
+def test_face_solved_with_the_body_streamed_by_name(
+    harness: Callable[..., Harness], datasets: Path, tmp_path: Path
+) -> None:
+    """ARKit 52 from a trained face: weights and stabilized markers in the pose
+    stream equal an offline FaceSolver on the same float32 frames; VMC carries every
+    ARKit name with the same value, then Apply."""
+    training, rots, pos = _face(datasets)
+    training.save(tmp_path / "face.npz")
+    h = harness({"config": "arkit52", "training": str(tmp_path / "face.npz")})
+    rows = np.arange(100, 300)
+    w = fs.synth_weights(np.random.default_rng(5), len(rows), 100.0)
+    labels, frames = _stream(training, rots, pos, rows, w)
+    h.announce(labels)
+    h.prime(frames[0])
+    h.send(frames)
+    h.wait_poses(len(rows))
+    h.vmc.wait_frames(len(rows))
+    # Names: the solved expressions and the stabilized markers, in order.
+    names = h.names[-1]
+    assert names.weight_names == training.expression_names
+    assert names.face_markers == training.marker_names
+    # Oracle: the same solver on the frames as the daemon decoded them.
+    solver = FaceSolver(training, labels=labels, head_weights=(1.0,) * 4)
+    out = solver.new_output()
+    solver.solve_frame(frames[0].astype(np.float64), np.ones(len(labels), bool), out)
+    errs = []
+    for t, msg in enumerate(h.poses):
+        f64 = frames[t].astype(np.float64)
+        solver.solve_frame(f64, np.isfinite(f64[:, 0]), out)
+        assert msg.face_markers is not None and msg.face_markers.shape == (40, 3)
+        np.testing.assert_allclose(msg.face_markers, out.markers_head, atol=2e-7)
+        np.testing.assert_allclose(msg.weights, out.weights, atol=1e-6)
+        assert msg.face_flags == 0
+        # The head pose the markers were stabilized with is the performer's.
+        np.testing.assert_allclose(msg.head_pos_world, pos[rows[t]], atol=1e-6)
+        errs.append(np.abs(msg.weights - w[t]))
+    # Noise-free markers: on the shapes 40 markers can see, the live weights are the
+    # truth up to the regularization.
+    seen = observability(training).observable
+    assert 20 < seen.sum() < 52
+    assert float(np.median(np.array(errs)[:, seen])) < 0.02
+    # VMC: every ARKit name, the weight of its expression, then Apply.
+    face_cfg = load_face_config("arkit52")
+    for msg, frame in zip(h.poses, h.vmc.frames, strict=True):
+        blends = _blends(frame)
+        assert list(blends) == list(face_cfg.outputs)
+        expr = dict(zip(training.expression_names, msg.weights, strict=True))
+        for name, value in blends.items():
+            assert value == pytest.approx(expr[name], abs=1e-6), name
+        addresses = [a for a, _ in frame]
+        assert addresses.index(vmc_out.BLEND_APPLY_ADDRESS) > max(
+            i for i, a in enumerate(addresses) if a == vmc_out.BLEND_VAL_ADDRESS
+        )
+    s = h.live.daemon.stats
+    assert s.face_solved >= len(rows) and s.face_head_lost == 0
+    status = h.live.ctl({"cmd": "status"})["status"]
+    assert status["face"]["trained"] and len(status["face"]["expressions"]) == 52
+
+
+def test_face_vrm_names_mix_and_a_lost_head(
+    harness: Callable[..., Harness], datasets: Path, tmp_path: Path
+) -> None:
+    """The VRM 1.0 preset: VMC sends its names with clip(M w); with two head markers
+    occluded (< 3) the face part says head_lost and the weights are held."""
+    training, rots, pos = _face(datasets)
+    training.save(tmp_path / "face.npz")
+    h = harness({"config": "vrm1", "training": str(tmp_path / "face.npz")})
+    rows = np.arange(100, 160)
+    w = fs.synth_weights(np.random.default_rng(6), len(rows), 100.0)
+    labels, frames = _stream(training, rots, pos, rows, w)
+    lost = frames[-10:].copy()
+    for n in ("LFHD", "RBHD"):
+        lost[:, labels.index(n)] = np.nan
+    h.announce(labels)
+    h.prime(frames[0])
+    h.send(np.concatenate([frames, lost]))
+    h.wait_poses(len(rows) + 10)
+    h.vmc.wait_frames(len(rows) + 10)
+    vrm = load_face_config("vrm1")
+    m = vrm.output_matrix(training.expression_names)
+    for msg, frame in zip(h.poses, h.vmc.frames, strict=True):
+        blends = _blends(frame)
+        assert tuple(blends) == vrm.outputs
+        want = np.clip(m @ msg.weights.astype(np.float64), 0.0, 1.0)
+        np.testing.assert_allclose(list(blends.values()), want, atol=1e-5)
+    held = h.poses[len(rows) - 1]
+    for msg in h.poses[len(rows) :]:
+        assert msg.face_flags & pose_stream.FACE_HEAD_LOST
+        assert msg.face_markers is not None and np.isnan(msg.face_markers).all()
+        np.testing.assert_array_equal(msg.weights, held.weights)
+    assert h.live.daemon.stats.face_head_lost == 10
+
+
+def test_face_capture_live_neutral_then_expressions(
+    harness: Callable[..., Harness], datasets: Path, tmp_path: Path
+) -> None:
+    """No training set: the face is silent; `ctl face-capture neutral` (the CLI)
+    then two expressions build one, saved, and the daemon solves with it at once."""
+    training, rots, pos = _face(datasets)
+    path = tmp_path / "face.npz"
+    h = harness({"config": "arkit52", "training": str(path), "capture_frames": 12})
+    k = training.expression_names
+    jaw, smile = k.index("jawOpen"), k.index("mouthSmileLeft")
+    rows = np.full(12, 50)  # the T-pose hold: a still head
+    labels, neutral = _stream(training, rots, pos, rows, np.zeros((12, len(k))))
+    h.announce(labels)
+    h.prime(neutral[0])
+    assert h.poses == [] and h.live.daemon.stats.face_solved == 0
+    ep = h.live.tcp("control")
+    # An expression before the neutral, and an unknown name, are refused.
+    reply = h.live.ctl({"cmd": "face-capture", "name": "jawOpen"})
+    assert not reply["ok"] and "neutral" in reply["error"]
+    reply = h.live.ctl({"cmd": "face-capture", "name": "frown"})
+    assert not reply["ok"] and "frown" in reply["error"]
+    assert cli_main(["ctl", "--endpoint", ep, "face-capture", "neutral"]) == 0
+    h.send(neutral)
+    _wait_until(lambda: h.live.daemon.stats.face_captures == 1, "neutral captured")
+    t1 = TrainingSet.load(path)
+    assert t1.k == 0 and t1.marker_names == training.marker_names
+    # Neutral only: stabilized markers stream, no weights.
+    h.wait_poses(len(neutral))
+    h.poses.clear()
+    h.send(neutral[:3])
+    h.wait_poses(3)
+    last = h.poses[-1]
+    assert last.face_markers is not None and last.weights.size == 0
+    np.testing.assert_allclose(last.face_markers, t1.neutral, atol=1e-6)
+    for name, col in (("jawOpen", jaw), ("mouthSmileLeft", smile)):
+        w = np.zeros((12, len(k)))
+        w[:, col] = 1.0
+        _, pose_frames = _stream(training, rots, pos, rows, w)
+        argv = ["ctl", "--endpoint", ep, "face-capture", name, "--count", "12"]
+        assert cli_main(argv) == 0
+        before = h.live.daemon.stats.face_captures
+        h.send(pose_frames)
+        _wait_until(lambda b=before: h.live.daemon.stats.face_captures == b + 1, name)
+    t3 = TrainingSet.load(path)
+    assert t3.expression_names == ("jawOpen", "mouthSmileLeft")  # config order
+    np.testing.assert_allclose(t3.deltas[0], training.deltas[jaw], atol=2e-6)
+    np.testing.assert_allclose(t3.deltas[1], training.deltas[smile], atol=2e-6)
+    # Solve a mix of the two with the captured set, on a moving head.
+    h.wait_poses(3 + 2 * 12)
+    h.poses.clear()
+    mix_rows = np.arange(100, 140)
+    w = np.zeros((len(mix_rows), len(k)))
+    w[:, jaw], w[:, smile] = 0.5, 0.3
+    _, mix = _stream(training, rots, pos, mix_rows, w)
+    h.send(mix)
+    h.wait_poses(len(mix_rows))
+    got = np.array([m.weights for m in h.poses])
+    np.testing.assert_allclose(np.median(got, axis=0), [0.5, 0.3], atol=0.02)
+    status = h.live.ctl({"cmd": "status"})["status"]["face"]
+    assert status["expressions"] == ["jawOpen", "mouthSmileLeft"]
+    assert status["captures"] == 3 and "saved" in status["last_capture"]
