@@ -3,7 +3,7 @@
 Run from the repository root::
 
     python bench/bench_latency.py [--seconds S] [--rates 240,1000]
-        [--transports osc,zmq] [--warmup W]
+        [--transports osc,zmq] [--warmup W] [--variants body,face,face+validate]
 
 Every case runs its own processes, all bound to 127.0.0.1 and all terminated at the
 end, even on error:
@@ -42,6 +42,15 @@ counters (``{"cmd": "status"}`` on its control socket, as ``retargetd ctl status
 --json``), sends ``--seconds`` of timed frames and snapshots again. Drops = timed
 frames sent that the daemon did not solve (counter deltas); with latest wins, frames
 it received but skipped for a newer one are ``stale``.
+
+Variants (``--variants``, each run for every transport and rate): ``body`` (the
+skeleton only), ``face`` (the body and the face from one marker stream: 40 facial
+markers of the ICT-FaceKit ARKit face, ``face_synth``, riding the walk's own head
+markers LFHD RFHD LBHD RBHD with known weights and 0.5 mm noise, occluded in frames
+where a head marker is; ``[face]`` on with that training set, so every frame also
+stabilizes 40 markers, solves 52 weights and sends 52 VMC blendshapes and the Mug),
+``validate`` (``[validate]`` on: the live validator's thread checks every frame
+beside the loop) and ``face+validate``.
 
 Speed is printed, never asserted (STYLE.md section 10).
 """
@@ -298,7 +307,46 @@ def _receiver(capacity: int, raw_mode: bool, conn: Connection) -> None:
 # ---- the daemon ----------------------------------------------------------------------
 
 
-def _config_toml(calibration: Path, transport: str, vmc_port: int) -> str:
+def _face_stream(take: Any, rng: np.random.Generator) -> tuple[Any, Any, Any]:
+    """(training set, labels, positions) of the walk with a face riding its head.
+
+    The head frame is the walk's anatomical head frame (``face_synth.pig_head_motion``:
+    x right, y forward, z up at the LFHD RFHD LBHD RBHD centroid), so the ICT face
+    sits the right way round on the head markers; the training head layout is the
+    mean of those markers in that frame.
+    """
+    from scipy.spatial.transform import Rotation
+
+    from retargetd.daemon import face_synth as fs
+    from retargetd.daemon.solve_face import TrainingSet
+
+    cols = [take.labels.index(n) for n in fs.HEAD_NAMES]
+    head = take.positions[:, cols]
+    complete = np.all(np.isfinite(head), axis=(1, 2))
+    quat, pos = fs.pig_head_motion(DATASETS)  # complete frames, in order
+    rot = Rotation.from_quat(quat, scalar_first=True).as_matrix()
+    local = np.einsum("tji,tmj->tmi", rot, head[complete] - pos[:, None])
+    layout = local.mean(axis=0)
+    ict = fs.ict_training_set(DATASETS)
+    training = TrainingSet(
+        head_names=fs.HEAD_NAMES, marker_names=ict.marker_names,
+        expression_names=ict.expression_names, head_layout=layout - layout.mean(0),
+        neutral=ict.neutral, deltas=ict.deltas,
+    )  # fmt: skip
+    w = fs.synth_weights(rng, int(complete.sum()), take.rate_hz)
+    face_local = training.neutral + np.einsum("tk,kmc->tmc", w, training.deltas)
+    face = np.full((take.n_frames, len(ict.marker_names), 3), np.nan)
+    face[complete] = np.einsum("tij,tmj->tmi", rot, face_local) + pos[:, None]
+    face[complete] += rng.normal(0.0, 5e-4 / np.sqrt(3.0), face[complete].shape)
+    labels = (*take.labels, *training.marker_names)
+    return training, labels, np.concatenate([take.positions, face], axis=1)
+
+
+def _config_toml(
+    calibration: Path, transport: str, vmc_port: int, variant: str, face_npz: Path
+) -> str:
+    face = "face" in variant
+    validate = "validate" in variant
     return f"""\
 [performer]
 rig = "plug-in-gait"
@@ -321,6 +369,12 @@ endpoint = "tcp://{LOCALHOST}:*"
 enabled = false
 [loop]
 process_every_frame = false
+[face]
+enabled = {str(face).lower()}
+config = "arkit52"
+training = "{face_npz}"
+[validate]
+enabled = {str(validate).lower()}
 """
 
 
@@ -414,9 +468,14 @@ def run_case(
     take: Any,
     calibration: Path | None,
     tmp: Path,
+    variant: str = "body",
+    stream: tuple[tuple[str, ...], np.ndarray] | None = None,
 ) -> Result:
-    """One case: transport "raw" (baseline, no daemon), "osc" or "zmq"."""
-    name = f"{transport} {rate_hz:g} Hz"
+    """One case: transport "raw" (baseline, no daemon), "osc" or "zmq"; variant
+    "body", "face", "validate" or "face+validate" (``stream``: its labels and
+    positions)."""
+    name = f"{transport} {rate_hz:g} Hz" + ("" if variant == "body" else f" {variant}")
+    labels, positions = stream or (take.labels, take.positions)
     capacity = int(rate_hz * (args.seconds + args.warmup + 5)) + 1000
     recv_conn, recv_child = ctx.Pipe()
     send_conn, send_child = ctx.Pipe()
@@ -436,18 +495,21 @@ def run_case(
             "rate_hz": rate_hz,
             "seconds": args.seconds,
             "warmup_s": args.warmup,
-            "positions": take.positions,
-            "labels": take.labels,
-            "raw_size": 48 + 12 * take.n_markers,  # the OSC compact frame's size
+            "positions": positions,
+            "labels": labels,
+            "raw_size": 48 + 12 * len(labels),  # the OSC compact frame's size
             "frame0": 0,
         }
         if transport == "raw":
             spec["port"] = port
         else:
             assert calibration is not None
-            config = tmp / f"{transport}_{rate_hz:g}.toml"
-            config.write_text(_config_toml(calibration, transport, port))
-            daemon = Daemon(config, tmp / f"{transport}_{rate_hz:g}.log")
+            stem = f"{transport}_{rate_hz:g}_{variant}"
+            config = tmp / f"{stem}.toml"
+            config.write_text(
+                _config_toml(calibration, transport, port, variant, tmp / "face.npz")
+            )
+            daemon = Daemon(config, tmp / f"{stem}.log")
             daemon.wait_ready()
             recv_conn.send(("sub", daemon.endpoints["zmq poses"]))
             recv_conn.recv()
@@ -619,7 +681,7 @@ def print_report(summaries: list[Summary], args: argparse.Namespace) -> None:
         "time.monotonic_ns in every process"
     )
     head = (
-        f"{'case':<14} {'sent':>6} {'rate Hz':>8} {'solved':>6} {'stale':>5} "
+        f"{'case':<24} {'sent':>6} {'rate Hz':>8} {'solved':>6} {'stale':>5} "
         f"{'drops':>5} {'pose rx':>7} {'VMC T rx':>8} {'unmatch':>7} "
         f"{'overrun':>7} {'pub drop':>8}  input drops"
     )
@@ -628,12 +690,12 @@ def print_report(summaries: list[Summary], args: argparse.Namespace) -> None:
     print("-" * len(head))
     for s in summaries:
         if s.name.startswith("raw"):
-            print(f"{s.name:<14} {s.sent:>6} {s.send_rate_hz:8.1f} {'':>6} {'':>5} "
+            print(f"{s.name:<24} {s.sent:>6} {s.send_rate_hz:8.1f} {'':>6} {'':>5} "
                   f"{s.sent - s.raw_recv:>5} {'':>7} {s.raw_recv:>8}")  # fmt: skip
             continue
         c = s.counters
         print(
-            f"{s.name:<14} {s.sent:>6} {s.send_rate_hz:8.1f} "
+            f"{s.name:<24} {s.sent:>6} {s.send_rate_hz:8.1f} "
             f"{c.get('frames_solved', 0):>6} {c.get('stale', 0):>5} {s.drops:>5} "
             f"{s.pose_recv:>7} {s.vmc_recv:>8} {s.vmc_unmatched:>7} "
             f"{c.get('overruns', 0):>7} {c.get('send_drops', 0):>8}  "
@@ -644,7 +706,7 @@ def print_report(summaries: list[Summary], args: argparse.Namespace) -> None:
         "(latest wins); unmatch = VMC Ts whose pose message never arrived"
     )
     head = (
-        f"{'case':<14} {'raw UDP p50/p99':>16} {'VMC T p50/p99':>14} "
+        f"{'case':<24} {'raw UDP p50/p99':>16} {'VMC T p50/p99':>14} "
         f"{'added':>12} {'pose p50/p99':>13} {'added':>12}"
     )
     print("\nlatency, µs (added = case percentile - raw UDP percentile, same rate)")
@@ -654,17 +716,17 @@ def print_report(summaries: list[Summary], args: argparse.Namespace) -> None:
         b = raw.get(s.rate_hz)
         rp = b.raw if b else (float("nan"),) * 2
         if s.name.startswith("raw"):
-            print(f"{s.name:<14} {_f(rp[0]):>7} / {_f(rp[1]):<6}")
+            print(f"{s.name:<24} {_f(rp[0]):>7} / {_f(rp[1]):<6}")
             continue
         av = (s.vmc[0] - rp[0], s.vmc[1] - rp[1])
         ap = (s.pose[0] - rp[0], s.pose[1] - rp[1])
         print(
-            f"{s.name:<14} {_f(rp[0]):>7} / {_f(rp[1]):<6} "
+            f"{s.name:<24} {_f(rp[0]):>7} / {_f(rp[1]):<6} "
             f"{_f(s.vmc[0]):>6} / {_f(s.vmc[1]):<5} {_f(av[0]):>5} / {_f(av[1]):<4} "
             f"{_f(s.pose[0]):>5} / {_f(s.pose[1]):<5} {_f(ap[0]):>5} / {_f(ap[1]):<4}"
         )
     head = (
-        f"{'case':<14} {'in p50/p99':>13} {'solve p50/p99':>14} {'send p50/p99':>13} "
+        f"{'case':<24} {'in p50/p99':>13} {'solve p50/p99':>14} {'send p50/p99':>13} "
         f"{'out p50/p99':>13}"
     )
     print(
@@ -680,20 +742,20 @@ def print_report(summaries: list[Summary], args: argparse.Namespace) -> None:
             f"{_f(st[k][0]):>6} / {_f(st[k][1]):<6}"
             for k in ("in", "solve", "send", "out")
         )
-        print(f"{s.name:<14} {cols}")
+        print(f"{s.name:<24} {cols}")
     print()
     for s in cases:
         b = raw.get(s.rate_hz)
         if s.rate_hz == 240 and b is not None:
             for out, p in (("VMC T", s.vmc), ("pose", s.pose)):
                 print(
-                    f"added p99 at 240 Hz, {s.name.split()[0]} -> {out}: "
+                    f"added p99 at 240 Hz, {s.name} -> {out}: "
                     f"{_f(p[1] - b.raw[1])} µs (target <= {ADDED_P99_TARGET_US:.0f} µs)"
                 )
     for s in cases:
         if s.rate_hz == 1000:
             print(
-                f"drops at 1000 Hz, {s.name.split()[0]}: {s.drops} of {s.sent} "
+                f"drops at 1000 Hz, {s.name}: {s.drops} of {s.sent} "
                 f"(target 0; stale {s.counters.get('stale', 0)}, latest wins)"
             )
 
@@ -721,7 +783,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--warmup", type=float, default=0.5, help="untimed s per case")
     parser.add_argument("--rates", default="240,1000", help="send rates, Hz")
     parser.add_argument("--transports", default="osc,zmq", help="osc, zmq or both")
+    parser.add_argument(
+        "--variants", default="body,face",
+        help="body, face, validate, face+validate (comma-separated)",
+    )  # fmt: skip
     args = parser.parse_args(argv)
+    variants = [v for v in args.variants.split(",") if v]
     rates = [float(r) for r in args.rates.split(",") if r]
     transports = [t for t in args.transports.split(",") if t]
     if (
@@ -730,8 +797,12 @@ def main(argv: list[str] | None = None) -> int:
         or not rates
         or any(not 1 <= r <= 10_000 for r in rates)
         or any(t not in ("osc", "zmq") for t in transports)
+        or any(v not in ("body", "face", "validate", "face+validate") for v in variants)
     ):
-        parser.error("--seconds > 0, --warmup >= 0, rates in [1, 10000], osc/zmq")
+        parser.error(
+            "--seconds > 0, --warmup >= 0, rates in [1, 10000], osc/zmq, variants "
+            "body/face/validate/face+validate"
+        )
     if not (PIG_MOTION.is_file() and PIG_CALIBRATION.is_file()):
         print(f"datasets not found at {DATASETS / 'btkdata'}", file=sys.stderr)
         return 1
@@ -748,10 +819,27 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory(prefix="bench_latency_") as tmp_name:
         tmp = Path(tmp_name)
         calibration = _calibrate(tmp)
-        plan = [("raw", r) for r in rates] + [(t, r) for t in transports for r in rates]
-        for transport, rate in plan:
+        streams: dict[str, Any] = {v: None for v in variants}
+        if any("face" in v for v in variants):
+            training, labels, positions = _face_stream(take, np.random.default_rng(0))
+            training.save(tmp / "face.npz")
+            for v in variants:
+                if "face" in v:
+                    streams[v] = (labels, positions)
+            print(
+                f"face variants: {len(training.marker_names)} facial markers x "
+                f"{training.k} shapes on the walk's head; {len(labels)} markers "
+                f"per frame (compact frame {48 + 12 * len(labels)} bytes)"
+            )
+        plan = [("raw", r, "body") for r in rates] + [
+            (t, r, v) for v in variants for t in transports for r in rates
+        ]
+        for transport, rate, variant in plan:
             t0 = time.monotonic()
-            result = run_case(ctx, transport, rate, args, take, calibration, tmp)
+            result = run_case(
+                ctx, transport, rate, args, take, calibration, tmp, variant,
+                streams.get(variant),
+            )  # fmt: skip
             summaries.append(summarize(result))
             print(f"  {result.name}: done in {time.monotonic() - t0:.1f} s", flush=True)
     print_report(summaries, args)
