@@ -223,7 +223,7 @@ class Daemon:
             warm_up_face()
         if self.calibration is None:
             return
-        pipe = self._build_pipeline(self.rig.marker_names, face=False)
+        pipe = self._build_pipeline(self.rig.marker_names, with_face=False)
         nan_frame = np.full((len(self.rig.marker_names), 3), np.nan)
         pose = pipe.solver.solve_frame(nan_frame, pipe.pose)
         pipe.retargeter.apply(pose, pipe.target_pose)
@@ -418,7 +418,7 @@ class Daemon:
         return pipe
 
     def _build_pipeline(
-        self, labels: tuple[str, ...], *, face: bool = True
+        self, labels: tuple[str, ...], *, with_face: bool = True
     ) -> _Pipeline:
         from retargetd.daemon.target import Retargeter
 
@@ -446,8 +446,9 @@ class Daemon:
         self._names_id = (self._names_id + 1) % 65536
         self._last_names_ns = 0  # new names: announce them with the next frame
         n_bones = len(self.rig.bones)
-        stage = self.face.stage(labels) if face and self.face is not None else None
-        face = stage  # (the face stage of this stream, or None)
+        face = None
+        if with_face and self.face is not None:
+            face = self.face.stage(labels)
         weight_names = face.weight_names if face is not None else ()
         face_markers = face.marker_names if face is not None else ()
         names_msg = pose_stream.PoseNames(
