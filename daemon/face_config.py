@@ -6,6 +6,8 @@ A face config is a TOML file (or a shipped preset by name: ``arkit52``, ``vrm0``
     name = "my-face"                       # optional, defaults to the file stem
     head_markers = ["LFHD", "RFHD", "LBHD", "RBHD"]   # >= 3, rigid on the head
     head_weights = [1.0, 1.0, 1.0, 1.0]    # optional: weight of each in the rigid fit
+                                           # (equal is best for equal noise; else
+                                           # 1 / variance of each marker)
     facial_markers = ["BRL1", "BRR1", ...]  # [] = every other marker of the take
     expressions = ["browDownLeft", ...]     # the solved shapes (training poses)
 

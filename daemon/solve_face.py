@@ -212,6 +212,66 @@ def observability(
     )
 
 
+def stabilization_error(
+    training: TrainingSet,
+    *,
+    noise_rms_m: float = 5e-4,
+    head_weights: Sequence[float] | None = None,
+    head_seen: Sequence[bool] | None = None,
+) -> F64Array:
+    """Expected stabilization error of each facial marker from head-marker noise.
+
+    First order, for independent isotropic noise of ``noise_rms_m`` (3-D RMS, metres)
+    on every head marker: with ``u_i`` the layout, ``H_i = [I, -[u_i]x]`` the Jacobian
+    of head marker ``i`` with respect to a small pose error ``(dt, dtheta)`` and
+    ``w_i`` the fit weights, the weighted fit's pose error has covariance
+    ``s^2 G^-1 (sum w_i^2 H_i^T H_i) G^-1`` with ``G = sum w_i H_i^T H_i`` and
+    ``s^2 = noise_rms_m^2 / 3``; marker ``p`` is off by ``H_p (dt, dtheta)``.
+
+    The facial markers' own noise is not in it (see the module docstring). Equal
+    weights give the least error (Gauss-Markov); ``head_weights`` only help when
+    some head markers are noisier than others (weight them ``1 / variance``).
+
+    Args:
+        training: layout and neutral facial markers (head coordinates).
+        noise_rms_m: 3-D RMS noise of each head marker, metres.
+        head_weights: (H,) fit weights (default 1).
+        head_seen: (H,) which head markers are used (default all).
+
+    Returns:
+        (M,) float64, metres: the RMS 3-D error of each stabilized facial marker.
+
+    Raises:
+        ValueError: fewer than 3 head markers, or all on one line.
+    """
+    h = len(training.head_names)
+    w = np.ones(h) if head_weights is None else np.asarray(head_weights, float)
+    seen = np.ones(h, bool) if head_seen is None else np.asarray(head_seen, bool)
+    if w.shape != (h,) or seen.shape != (h,):
+        raise ValueError(f"head_weights / head_seen: expected ({h},)")
+    w = np.where(seen, w, 0.0)
+
+    def jac(pts: F64Array) -> F64Array:  # (n, 3, 6)
+        j = np.zeros((len(pts), 3, 6))
+        j[:, :, :3] = np.eye(3)
+        x, y, z = pts.T
+        j[:, 0, 4], j[:, 0, 5] = z, -y
+        j[:, 1, 3], j[:, 1, 5] = -z, x
+        j[:, 2, 3], j[:, 2, 4] = y, -x
+        return j
+
+    hj = jac(training.head_layout)
+    g = np.einsum("i,iap,iaq->pq", w, hj, hj)
+    if int(np.count_nonzero(w)) < 3 or np.linalg.cond(g) > 1e12:
+        raise ValueError("head markers: need >= 3 weighted markers not on one line")
+    g_inv = np.linalg.inv(g)
+    cov = (noise_rms_m**2 / 3.0) * (
+        g_inv @ np.einsum("i,iap,iaq->pq", w**2, hj, hj) @ g_inv
+    )
+    fj = jac(training.neutral)
+    return np.sqrt(np.einsum("map,pq,maq->m", fj, cov, fj))
+
+
 # ---- output -------------------------------------------------------------------------
 
 
@@ -470,6 +530,7 @@ __all__ = [
     "TrainingSet",
     "head_layout_from_frames",
     "observability",
+    "stabilization_error",
     "stabilize_frames",
     "train",
 ]

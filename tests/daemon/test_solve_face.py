@@ -182,6 +182,43 @@ def test_solve_frame_allocates_nothing(rng: np.random.Generator) -> None:
     assert end - start < 1024, f"{end - start} bytes kept over 1000 solve_frame calls"
 
 
+def test_stabilization_error_matches_monte_carlo(rng: np.random.Generator) -> None:
+    tr = _random_training(rng)
+    noise = 5e-4
+    n = 3000
+    local = np.concatenate([tr.head_layout, tr.neutral])
+    rots = Rotation.random(n, random_state=2).as_matrix()
+    for weights, seen in (
+        (None, None),
+        ([3.0, 1.0, 1.0, 0.5], None),
+        (None, [True, False, True, True]),
+    ):
+        solver = sf.FaceSolver(tr, head_weights=weights)
+        out = solver.new_output()
+        valid = np.ones(len(local), dtype=bool)
+        if seen is not None:
+            valid[:4] = seen
+        err = np.empty((n, len(tr.neutral), 3))
+        for t in range(n):
+            pos = rng.normal(0.0, 1.0, 3)
+            noisy = local @ rots[t].T + pos
+            noisy += rng.normal(0.0, noise / math.sqrt(3.0), noisy.shape)
+            solver.solve_frame(np.where(valid[:, None], noisy, np.nan), valid, out)
+            err[t] = out.markers_head - (noisy[4:] - pos) @ rots[t]
+        got = np.sqrt(np.mean(np.sum(err**2, axis=-1), axis=0))
+        want = sf.stabilization_error(
+            tr, noise_rms_m=noise, head_weights=weights, head_seen=seen
+        )
+        np.testing.assert_allclose(got, want, rtol=0.05)
+    # Equal weights are the best for equal noise (Gauss-Markov).
+    equal = sf.stabilization_error(tr)
+    for _ in range(5):
+        other = sf.stabilization_error(tr, head_weights=rng.uniform(0.2, 2.0, 4))
+        assert np.mean(other**2) >= np.mean(equal**2)
+    with pytest.raises(ValueError, match="3"):
+        sf.stabilization_error(tr, head_seen=[True, True, False, False])
+
+
 # ---- ICT-FaceKit on the Plug-in Gait head motion -------------------------------------
 
 
