@@ -2,13 +2,18 @@
 
 Ground truth (``face_synth``): the ICT-FaceKit face as ARKit 52 shapes at 40 facial
 marker sites (eyelids, cheeks, forehead, brows, nose, lips, jaw) with known,
-asymmetric weights and 0.5 mm (3-D RMS) noise, carried by the head motion of the
-Plug-in Gait walk. A small random face (no datasets) checks exactness and the
-kernel contract; ``scipy.optimize.lsq_linear`` is the oracle of the weights.
+asymmetric weights and 0.5 mm noise (3-D RMS, per-axis sigma 0.29 mm) on every marker,
+under the Plug-in Gait walk's own four head markers and carried by their motion.
+"Stabilization residual" is the error the fitted head pose adds (stabilized marker
+minus the same observed marker mapped by the true pose), not the markers' own noise,
+which is reported beside it (``test_ict_stabilization_and_weights``). A small random
+face (no datasets) checks exactness and the kernel contract;
+``scipy.optimize.lsq_linear`` is the oracle of the weights.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import tracemalloc
@@ -257,15 +262,18 @@ def _solve_take(
     return solver, {k: np.array(v) for k, v in got.items()}
 
 
-def _head_truth(take: fs.SynthFace) -> np.ndarray:
-    # The noisy facial markers taken to head coordinates by the true head pose: what
-    # a perfect stabilizer would output.
+def _head_truth(take: fs.SynthFace, clean: bool = False) -> np.ndarray:
+    # The observed facial markers (noisy, or the noise-free ones) taken to head
+    # coordinates by the TRUE head pose: what a perfect stabilizer would output.
     rot = Rotation.from_quat(take.world_from_head_quat, scalar_first=True).as_matrix()
-    rel = (
-        take.markers_world[:, len(take.training.head_names) :]
-        - (take.world_from_head_pos[:, None])
-    )
+    world = take.markers_clean_world if clean else take.markers_world
+    rel = world[:, len(take.training.head_names) :] - take.world_from_head_pos[:, None]
     return np.einsum("tji,tmj->tmi", rot, rel)
+
+
+def _rms_mm(err: np.ndarray) -> float:
+    # 3-D RMS over every finite (frame, marker), millimetres.
+    return 1e3 * float(np.sqrt(np.nanmean(np.sum(err**2, axis=-1))))
 
 
 def _fit_residual_mm(
@@ -283,10 +291,20 @@ def _fit_residual_mm(
     return 1e3 * float(np.sqrt(np.mean(res)))
 
 
+def _predicted_mm(take: fs.SynthFace, seen: np.ndarray | None = None) -> float:
+    e = sf.stabilization_error(
+        take.training, noise_rms_m=take.noise_rms_m, head_seen=seen
+    )
+    return 1e3 * float(np.sqrt(np.mean(e**2)))
+
+
 def test_ict_layout_and_observability(ict_take: fs.SynthFace) -> None:
     tr = ict_take.training
     assert len(tr.marker_names) >= 40 and tr.k == 52
     assert ict_take.markers_world.shape[0] > 200  # every complete frame of the walk
+    # The head markers are the take's own four, in their measured layout.
+    layout = fs.pig_head_layout(DATASETS)
+    np.testing.assert_allclose(tr.head_layout, layout - layout.mean(axis=0))
     obs = sf.observability(tr)
     # Reported, not pretended: no ICT tongue; gaze shapes look like lid shapes.
     assert "tongueOut" in obs.unobservable
@@ -297,17 +315,50 @@ def test_ict_layout_and_observability(ict_take: fs.SynthFace) -> None:
 
 
 def test_ict_stabilization_and_weights(ict_take: fs.SynthFace) -> None:
+    """Issue 7 item 5 on the synthetic face (0.5 mm 3-D RMS noise on every marker).
+
+    The stabilization residual is the error the fitted head pose puts on the facial
+    markers: stabilized marker minus the SAME observed marker mapped by the true
+    head pose (``_head_truth``). Against the noise-free face the stabilized markers
+    also hold their own noise, which no stabilizer removes; both parts are measured
+    here, and the residual is checked against its first-order prediction
+    (``solve_face.stabilization_error``), so the figure is the fit's, not luck's.
+    """
     solver, got = _solve_take(ict_take)
     assert (got["f"][:, 0] == 0).all()
-    # Rigid-fit residual of the head markers (what the stabilizer can measure).
-    assert _fit_residual_mm(ict_take, got) <= 0.5
-    # Error of the stabilized facial markers against the true head pose: four head
-    # markers ~10 cm apart with 0.5 mm noise put ~0.8 mm on markers 15 cm in front.
-    err = np.linalg.norm(got["s"] - _head_truth(ict_take), axis=-1)
-    assert 1e3 * np.sqrt(np.mean(err**2)) <= 1.0
+    noise_mm = 1e3 * ict_take.noise_rms_m
+    # Head-marker fit residual: 4 markers, 6 pose dof -> noise * sqrt(1 - 6/12).
+    assert _fit_residual_mm(ict_take, got) == pytest.approx(
+        noise_mm * math.sqrt(0.5), rel=0.1
+    )
+    # Stabilization residual (issue: <= 0.5 mm RMS), expected value and measured.
+    stab = _rms_mm(got["s"] - _head_truth(ict_take))
+    predicted = _predicted_mm(ict_take)
+    assert predicted <= 0.5
+    assert stab <= 0.5
+    assert stab == pytest.approx(predicted, rel=0.1)
+    # The same with noise-free facial markers and noisy head markers.
+    clean = ict_take.markers_clean_world.copy()
+    clean[:, :4] = ict_take.markers_world[:, :4]
+    _, got_clean = _solve_take(dataclasses.replace(ict_take, markers_world=clean))
+    stab_clean = _rms_mm(got_clean["s"] - _head_truth(ict_take, clean=True))
+    assert stab_clean == pytest.approx(stab, rel=0.01)
+    # The markers' own noise, and the total against the noise-free face.
+    own = _rms_mm(_head_truth(ict_take) - _head_truth(ict_take, clean=True))
+    assert own == pytest.approx(noise_mm, rel=0.05)
+    total = _rms_mm(got["s"] - _head_truth(ict_take, clean=True))
+    assert total == pytest.approx(math.hypot(stab, own), rel=0.05)
+    # Weights: median error on the observable shapes; and the report does not
+    # pretend: every shape recovered worse than 0.1 (median) is reported.
     obs = sf.observability(ict_take.training)
     w_err = np.abs(got["w"] - ict_take.weights)
     assert np.median(w_err[:, obs.observable]) <= 0.05
+    per_shape = np.median(w_err, axis=0)
+    assert (per_shape[obs.observable] <= 0.1).all()
+    bad = {
+        ict_take.training.expression_names[k] for k in np.flatnonzero(per_shape > 0.1)
+    }
+    assert bad <= set(obs.unobservable)
     # The oracle on a sample of frames.
     seen = np.ones(len(ict_take.training.marker_names), dtype=bool)
     for t in range(0, len(w_err), 40):
@@ -320,19 +371,40 @@ def test_ict_noise_free_stabilization_is_exact(ict_take: fs.SynthFace) -> None:
     clean = fs.synth_face_take(DATASETS, np.random.default_rng(0), noise_rms_m=0.0)
     _, got = _solve_take(clean)
     np.testing.assert_allclose(got["s"], _head_truth(clean), atol=1e-9)
+    # Any three head markers fit the rigid head exactly.
+    n, m = clean.markers_world.shape[:2]
+    for lost in range(4):
+        valid = np.ones((n, m), dtype=bool)
+        valid[:, lost] = False
+        _, got = _solve_take(clean, valid)
+        np.testing.assert_allclose(got["s"], _head_truth(clean), atol=1e-9)
 
 
 def test_ict_missing_head_marker(ict_take: fs.SynthFace) -> None:
     n, m = ict_take.markers_world.shape[:2]
-    valid = np.ones((n, m), dtype=bool)
-    valid[:, ict_take.labels.index("LBHD")] = False
-    _, got = _solve_take(ict_take, valid)
-    assert (got["f"][:, 0] == sf.FLAG_HEAD_PARTIAL).all()
-    assert _fit_residual_mm(ict_take, got, valid[0, :4]) <= 0.5
-    err = np.linalg.norm(got["s"] - _head_truth(ict_take), axis=-1)
-    assert 1e3 * np.sqrt(np.mean(err**2)) <= 2.0  # three markers: a weaker fit
     obs = sf.observability(ict_take.training)
-    assert np.median(np.abs(got["w"] - ict_take.weights)[:, obs.observable]) <= 0.06
+    for lost in range(4):
+        valid = np.ones((n, m), dtype=bool)
+        valid[:, lost] = False
+        _, got = _solve_take(ict_take, valid)
+        assert (got["f"][:, 0] == sf.FLAG_HEAD_PARTIAL).all()
+        # 3 markers: noise * sqrt(1 - 6/9).
+        assert _fit_residual_mm(ict_take, got, valid[0, :4]) == pytest.approx(
+            1e3 * ict_take.noise_rms_m / math.sqrt(3.0), rel=0.1
+        )
+        # Three markers are a weaker fit (0.55-0.79 mm here), as predicted.
+        stab = _rms_mm(got["s"] - _head_truth(ict_take))
+        assert stab == pytest.approx(_predicted_mm(ict_take, valid[0, :4]), rel=0.1)
+        assert stab <= 1.0
+        w_err = np.abs(got["w"] - ict_take.weights)
+        assert np.median(w_err[:, obs.observable]) <= 0.05
+    # A head marker that drops out now and then: flagged on exactly those frames.
+    valid = np.ones((n, m), dtype=bool)
+    valid[:, 2] = np.random.default_rng(4).uniform(size=n) > 0.2
+    _, got = _solve_take(ict_take, valid)
+    partial = got["f"][:, 0] == sf.FLAG_HEAD_PARTIAL
+    assert np.array_equal(partial, ~valid[:, 2])
+    assert (got["f"][valid[:, 2], 0] == 0).all()
 
 
 def test_ict_occluded_facial_markers(ict_take: fs.SynthFace) -> None:
@@ -344,8 +416,12 @@ def test_ict_occluded_facial_markers(ict_take: fs.SynthFace) -> None:
     assert (got["f"][:, 0] & sf.FLAG_FACE_PARTIAL).any()
     assert (got["f"][:, 2] == valid[:, 4:].sum(axis=1)).all()
     assert np.array_equal(np.isfinite(got["s"][..., 0]), valid[:, 4:])
+    # Facial occlusion does not touch the head fit: the seen markers are stabilized
+    # exactly as with every marker seen.
+    _, full = _solve_take(ict_take)
+    np.testing.assert_allclose(got["s"][valid[:, 4:]], full["s"][valid[:, 4:]])
     obs = sf.observability(ict_take.training)
-    assert np.median(np.abs(got["w"] - ict_take.weights)[:, obs.observable]) <= 0.06
+    assert np.median(np.abs(got["w"] - ict_take.weights)[:, obs.observable]) <= 0.05
     for t in range(0, n, 40):
         np.testing.assert_allclose(
             got["w"][t], _oracle(solver, got["s"][t], valid[t, 4:]), atol=1e-6
