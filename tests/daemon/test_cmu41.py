@@ -40,23 +40,24 @@ LIMBS = (
 #: acromion marker rides on the scapula, SHO-ELB spans 286-341 mm (CV 5.3 %) left and
 #: 298-354 mm (3.7 %) right; KNE-ANK spans 426-464 mm (2.7 %) left with knee flexion.
 #: tennis (calibrated on its first second, arms down): SHO-ELB CV 7.8 / 6.7 % (arm
-#: overhead in the serve), ELB-WRA 5.6 / 7.0 % and > 15 % off its median in 53 / 128
-#: frames (the epicondyle marker is off the flexion axis through the serve's full elbow
-#: flexion; FRM-WRA, on one forearm, also jumps in 11 / 16 frames: wand wobble or
-#: swaps). Thighs 3.4 / 3.8 %: not isolated (KNE slides over the epicondyle through the
-#: deep knee bend; the regression HJC is not the functional centre). The printed "marker
-#: floor" of a thigh (FWT-KNE) is no floor: FWT is not on the femur.
+#: overhead in the serve); the forearms are at their marker floor (ELB-WRA CV 5.6 / 7.0
+#: %, > 15 % off its median in 53 / 128 frames: the epicondyle marker is off the
+#: flexion axis through the serve's full elbow flexion; FRM-WRA, on one forearm, also
+#: jumps in 11 / 16 frames: wand wobble or swaps). Thighs 3.4 / 3.8 %: not isolated
+#: (KNE slides over the epicondyle through the deep knee bend; the regression HJC is
+#: not the functional centre). The printed "marker floor" of a thigh (FWT-KNE) is no
+#: floor: FWT is not on the femur. The elbow is Plug-in Gait's chord on the arm plane
+#: (cmu41.toml); with the upper-arm wand's plane instead, the forearms read 3.3 / 2.7 %
+#: (ballet) and 8.5 / 8.1 % (tennis).
 KNOWN_OVER = {
-    ("ballet", "lupperarm"): 5.5,   # 5.21 %
-    ("ballet", "rupperarm"): 5.0,   # 4.98 %
-    ("ballet", "llowerarm"): 3.5,   # 3.25 %
-    ("ballet", "rlowerarm"): 3.0,   # 2.70 %
+    ("ballet", "lupperarm"): 5.5,   # 5.31 %
+    ("ballet", "rupperarm"): 5.5,   # 5.06 %
     ("ballet", "llowerleg"): 3.0,   # 2.87 %
     ("ballet", "rupperleg"): 2.5,   # 2.14 %
-    ("tennis", "lupperarm"): 4.5,   # 4.12 %
-    ("tennis", "rupperarm"): 4.0,   # 3.85 %
-    ("tennis", "llowerarm"): 9.0,   # 8.45 %
-    ("tennis", "rlowerarm"): 8.5,   # 8.07 %
+    ("tennis", "lupperarm"): 4.5,   # 4.21 %
+    ("tennis", "rupperarm"): 4.0,   # 3.93 %
+    ("tennis", "llowerarm"): 6.0,   # 5.42 %
+    ("tennis", "rlowerarm"): 7.0,   # 6.48 %
     ("tennis", "lupperleg"): 3.5,   # 3.39 %
     ("tennis", "rupperleg"): 4.0,   # 3.77 %
     ("tennis", "llowerleg"): 3.0,   # 2.64 %
