@@ -15,7 +15,8 @@ angle only (an elbow hyperextension is then not caught; noted).
 
 Table :data:`JOINT_LIMITS_DEG`, degrees, per child segment kind (the joint between the
 segment and its parent). Literature ranges of active motion in healthy adults, then a
-margin for soft-tissue artefact and the rest pose not being exactly neutral:
+margin for soft-tissue artefact and the rest pose not being exactly neutral, widened
+where performers (dancers, overhead athletes) or skin-marker measurement exceed them:
 
 - AAOS: American Academy of Orthopaedic Surgeons, *Joint Motion: Method of Measuring
   and Recording* (1965); Greene & Heckman, *The Clinical Measurement of Joint Motion*
@@ -24,17 +25,51 @@ margin for soft-tissue artefact and the rest pose not being exactly neutral:
   ed. (F.A. Davis 2016).
 - Soucie J.M. et al., "Range of motion measurements: reference values and a database
   for comparison studies", Haemophilia 17(3):500-507 (2011).
+- Fleisig G., Nicholls R., Elliott B., Escamilla R., "Kinematics used by world class
+  tennis players to produce high-velocity serves", Sports Biomech 2(1):51-64 (2003):
+  the upper arm reaches 172 deg of shoulder external rotation (mean, Sydney 2000
+  Olympic players), the arm abducted ~100 deg.
+- Reinschmidt C. et al., "Effect of skin movement on the analysis of skeletal knee
+  joint motion during running", J Biomech 30(7):729-732 (1997): against bone pins,
+  skin-marker knee errors were 21 % of the range (flexion), 63 % (internal/external
+  rotation) and 70 % (abduction/adduction); Benoit D.L. et al., Gait Posture
+  24(2):152-164 (2006): rotational errors up to 4.4 deg walking, 13.1 deg cutting.
+- Ramakrishnan H.K., Kadaba M.P., "On the estimation of joint kinematics during gait",
+  J Biomech 24(10):969-977 (1991): a knee flexion axis misaligned by a adds ~theta sin a
+  of abduction/adduction at flexion theta (cross-talk).
+- Hamilton W.G. et al., "A profile of the musculoskeletal characteristics of elite
+  professional ballet dancers", Am J Sports Med 20(3):267-273 (1992): dancers' hip and
+  ankle ranges differ markedly from population norms.
 
-Per joint (segment): literature ranges; limit here.
+Per joint (segment): literature ranges; limit here; the real takes (how the validator
+was tuned: ``retargetd.daemon.validate.THRESHOLDS``): PiG walk / MOTEK ballet / tennis
+serve, extreme values of the component that set the limit.
 
 - knee (shank): flexion 0-140/150, hyperextension <= 10, varus/valgus a few deg,
-  tibial rotation ~30-40 at 90 flexion;
-  here sagittal -15..160, frontal 25, twist +-45.
+  tibial rotation ~30-40 at 90 flexion; skin markers: abduction/adduction and rotation
+  errors of the order of their whole range (Reinschmidt, Benoit) and flexion cross-talk
+  from the knee axis (Ramakrishnan & Kadaba);
+  here sagittal -15..160, frontal 35, twist +-55. Takes: frontal 13.9 / 21.2 / 32.9,
+  twist 16.8 / 35.2 / 52.8 deg. The serve's calibration window (its first second) is a
+  wide serving stance, legs turned 15-30 deg from the pelvis, while the rig sets the
+  knee axis along the pelvis width: the serve's knee bends read frontal -26..-33 deg at
+  47-54 deg of flexion (0.5-0.7 deg per deg of flexion: an axis ~30 deg off) and the
+  knee marker slides (the shank reads 357 mm against 392 mm calibrated). A knee bent
+  backwards is caught by the sagittal bound (-15).
 - hip (thigh): flexion 120-125, extension 10-30, abduction 45, adduction 30,
-  rotation 45/45;
-  here sagittal -140..45, frontal 60, twist +-60.
+  rotation 45/45; dancers: hip external rotation 45-60 (turnout), abduction beyond the
+  norms (Hamilton 1992); a middle split, a pose trained performers hold, puts each hip
+  at ~90 deg of abduction;
+  here sagittal -140..45, frontal 90 (a magnitude: adduction that far puts the thighs
+  through each other, which self-penetration reports), twist +-60. Takes: frontal
+  7.6 / 64.2 (the ballet's side kick, frame 62) / 35.2.
 - ankle (foot): dorsiflexion 20, plantarflexion 50, inversion 35, eversion 15;
-  here sagittal -35..65, frontal 45, twist +-45.
+  here sagittal -35..65, frontal 45, twist +-55: the foot's twist about the ankle-toe
+  line is whole-foot inversion/eversion read from the heel marker on the heel pad,
+  and with the foot plantarflexed the swing/twist split counts part of the foot's
+  adduction as twist (6-10 deg at 35-50 deg of plantarflexion and 20 of adduction).
+  Takes: twist 19.5 / 52.1 (the ballet's pointed foot, frames 48-50: 32-38 deg
+  plantarflexion, 18-22 deg adduction) / 50.3.
 - toes (MTP): extension 70-90, flexion 30-40;
   here cone 100, twist +-30.
 - lumbar / thoracic (abdomen, thorax): thoracolumbar flexion 60-80, extension 25,
@@ -44,8 +79,14 @@ Per joint (segment): literature ranges; limit here.
   here sagittal -80..65, frontal 55, twist +-90.
 - sternoclavicular (clavicle): elevation 35-45, protraction/retraction 15-30;
   here cone 60, twist +-60.
-- shoulder (upper arm): flexion 180, extension 60, abduction 180, rotation 70/90;
-  here cone 175, twist +-120.
+- shoulder (upper arm): flexion 180, extension 60, abduction 180, rotation 70/90
+  (AAOS); overhead athletes rotate the humerus externally to 172 deg in the serve
+  (Fleisig 2003: mean of world-class players; throwers reach similar values);
+  here cone 175, twist not limited (+-180: the twist is measured from a calibration
+  pose whose humeral rotation is not known, and the serve's 172 deg leaves no room
+  below the half turn). Takes: twist 39.4 / -101.2 / +170.5 (the serve's cocking,
+  right arm). A roll flipped by a marker-plane ambiguity (what cmu41's old elbow did)
+  still shows as the forearm's twist against it.
 - elbow (forearm): flexion 140-150, pronation/supination 75-85 each;
   here cone 165, twist +-160 (a).
 - wrist (hand): flexion 80, extension 70, radial 20, ulnar 30;
@@ -54,6 +95,12 @@ Per joint (segment): literature ranges; limit here.
 (a) The forearm's twist is measured from the calibration pose, whose pronation is not
 known (anatomical pose: supinated; PiG static: near neutral or pronated), so it may use
 the whole pronation-supination arc (~160) either way; the PiG walk reaches +137.
+
+Single-frame excursions: ``validate`` counts a frame beyond the table only when the
+excursion lasts at least ``THRESHOLDS["limit_min_frames"]`` consecutive frames; shorter
+ones are reported as transients (marker glitches: in the tennis serve, frame 400 has
+LWRA and LWRB labelled on one marker, frame 744 a wrist bar 119 mm long against 101 mm
+either side; the forearm and hand twists jump by 120-160 deg for that one frame).
 
 The root and bones with no humanoid mapping are not limited.
 """
@@ -80,16 +127,16 @@ class JointLimit:
 
 
 JOINT_LIMITS_DEG: dict[str, JointLimit] = {
-    "shank": JointLimit((-45, 45), sagittal=(-15, 160), frontal=25),
-    "thigh": JointLimit((-60, 60), sagittal=(-140, 45), frontal=60),
-    "foot": JointLimit((-45, 45), sagittal=(-35, 65), frontal=45),
+    "shank": JointLimit((-55, 55), sagittal=(-15, 160), frontal=35),
+    "thigh": JointLimit((-60, 60), sagittal=(-140, 45), frontal=90),
+    "foot": JointLimit((-55, 55), sagittal=(-35, 65), frontal=45),
     "toes": JointLimit((-30, 30), cone=100),
     "abdomen": JointLimit((-50, 50), sagittal=(-40, 80), frontal=45),
     "thorax": JointLimit((-50, 50), sagittal=(-40, 80), frontal=45),
     "neck": JointLimit((-90, 90), sagittal=(-80, 65), frontal=55),
     "head": JointLimit((-90, 90), sagittal=(-80, 65), frontal=55),
     "clavicle": JointLimit((-60, 60), cone=60),
-    "upper_arm": JointLimit((-120, 120), cone=175),
+    "upper_arm": JointLimit((-180, 180), cone=175),
     "forearm": JointLimit((-160, 160), cone=165),
     "hand": JointLimit((-60, 60), cone=100),
 }

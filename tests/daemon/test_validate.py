@@ -2,7 +2,8 @@
 
 The model (``validate_model``), the per-frame checks (``validate``) and the negative
 tests: each synthetic defect is flagged by the check meant for it, while the clean
-synthetic take and the real PiG walk pass every check.
+synthetic take and the real PiG walk pass every check (the MOTEK ballet and the tennis
+serve, direct and recorded: ``test_validate_takes.py``).
 
 Clean synthetic take: the exact rig on the synthetic performer without the
 ``forearm_twist`` component: with it, the performer's procedural right forearm passes
@@ -249,6 +250,48 @@ def test_knee_bent_backwards_fails_limits(clean: Any) -> None:
     solve = _rotate_bone(clean, "l_shank", clean.skel.left_world, 40.0)
     rep = _run(clean, _with(solve, joint_centres=_posed_joints(clean, solve)))
     assert "limits" not in _flagged(rep)
+
+
+def test_one_frame_knee_glitch_is_a_transient(clean: Any) -> None:
+    """A knee bent 40 deg backwards for one frame (a marker glitch) is reported as a
+    transient, not failed; held for two frames it fails."""
+    b = clean.skel.bone_names.index("l_shank")
+    axis = rot.quat_rotate(
+        rot.quat_conj(clean.skel.rest_world_from_bone_quat[b]), clean.skel.left_world
+    )
+    for frames in ([60], [60, 61]):
+        pfb = clean.solve.parent_from_bone_quat.copy()
+        turn = rot.quat_from_axis_angle(axis, np.radians(-40.0))
+        pfb[frames, b] = rot.quat_mul(turn, pfb[frames, b])
+        solve = _with(
+            clean.solve,
+            parent_from_bone_quat=pfb,
+            world_from_bone_quat=_rechain(clean, pfb),
+        )
+        rep = _run(clean, _with(solve, joint_centres=_posed_joints(clean, solve)))
+        limits = rep.checks["limits"]
+        if len(frames) == 1:
+            assert "limits" not in _flagged(rep)
+            assert limits.transients.tolist() == frames
+            assert limits.summary()["transient_frames"] == frames
+            assert len(limits.detail) == 1
+            assert limits.detail[0].startswith("transient, frame 60: l_shank ")
+            assert "sagittal -" in limits.detail[0]
+        else:
+            assert "limits" in _flagged(rep)
+            assert np.flatnonzero(limits.flagged).tolist() == frames
+            assert limits.transients.size == 0
+
+
+def test_sunk_body_fails_floor_penetration(clean: Any) -> None:
+    s = clean.solve
+    drop = np.array([0.0, 0.0, -0.15])
+    rep = _run(
+        clean,
+        _with(s, root_pos=s.root_pos + drop, joint_centres=s.joint_centres + drop),
+    )
+    assert _flagged(rep) == {"floor_penetration"}
+    assert rep.checks["floor_penetration"].values.max() > 150.0  # mm
 
 
 def test_legs_crossing_fail_self_penetration(clean: Any) -> None:
