@@ -1,26 +1,52 @@
-"""The real takes validate clean: the MOTEK ballet and the tennis serve (rig cmu41).
+"""The real takes validate clean: the MOTEK ballet and the tennis serve (rig cmu41)
+solved in process, and all three (with the PiG walk) as recorded replays.
 
-The PiG walk is in ``test_validate.py``. Thresholds and the joint table were set on
-these takes and the literature (``validate.THRESHOLDS``, ``validate_limits``); the
-figures each check reaches are printed (``pytest -s``).
+Thresholds and the joint table were set on these takes and the literature
+(``validate.THRESHOLDS``, ``validate_limits``); the figures each check reaches are
+printed (``pytest -s``). Recorded replays: a real ``retargetd replay`` (ZeroMQ, as fast
+as possible) into a real ``retargetd record`` subprocess over 127.0.0.1, once per
+session, then ``retargetd validate RECORDING.mcap --calibration ...``; the recording
+holds the markers as sent (float32 metres, world frame) and not the take's subject
+measurements, so the calibrations are made from the original files.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import json
+import os
+import re
+import selectors
+import signal
+import subprocess
+import sys
+import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
 
 from retargetd.daemon.calibration import calibrate
+from retargetd.daemon.cli import main
 from retargetd.daemon.rig import load_rig
 from retargetd.daemon.solve_body import BodySolver
-from retargetd.daemon.validate import TakeReport, fit_pairs, validate_take
+from retargetd.daemon.validate import (
+    THRESHOLDS,
+    THRESHOLDS_BASIS,
+    TakeReport,
+    fit_pairs,
+    validate_take,
+)
 from retargetd.daemon.validate_model import build_model, skeleton_from_calibration
+from retargetd.replay import recording as rf
 from retargetd.replay.takes import load_take
 
 pytestmark = pytest.mark.usefixtures("mujoco_cwd")
 
+DATASETS = Path(__file__).resolve().parents[2].parent / "shared" / "datasets"
+PIG_STATIC = "btkdata/PiG_Calibration-FlatFoot-Full.c3d"
+PIG_WALK = "btkdata/PiG_Motion-FlatFoot-Full.c3d"
 BALLET = "btkdata/MOTEK_ballet_reduced.trc"
 MOTEK_T = "btkdata/MOTEK_T.trc"
 TENNIS = "kineticstoolkit/kinematics_tennis_serve.c3d"
@@ -64,3 +90,161 @@ def test_tennis_serve_passes(datasets: Path) -> None:
     assert rep.passed, {n: c.summary() for n, c in rep.checks.items() if c.n_flagged}
     assert rep.checks["limits"].transients.tolist() == TENNIS_GLITCHES
     assert 0.3 < np.nanmax(rep.checks["ghost_force"].values) < 0.75  # serve flight
+
+
+# --- recorded replays ----------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class Recorded:
+    """A take recorded through ``retargetd replay`` -> ``retargetd record``."""
+
+    name: str
+    rig: str
+    source: Path  # the original take
+    recording: Path  # the .mcap
+    calibration: Path  # made from the original files
+    n_frames: int
+    rate_hz: float
+    extra: tuple[str, ...] = ()  # more validate arguments
+
+
+#: name -> (rig, take, calibration take, calibration frames or None, validate extras).
+CASES: dict[str, tuple[str, str, str, str | None, tuple[str, ...]]] = {
+    # The walk's Bodymass, from its C3D (a recording carries no measurements).
+    "pig-walk": (
+        "plug-in-gait",
+        PIG_WALK,
+        PIG_STATIC,
+        None,
+        ("--body-mass-kg", "47.5"),
+    ),
+    "motek-ballet": ("cmu41", BALLET, MOTEK_T, None, ()),
+    "tennis-serve": ("cmu41", TENNIS, TENNIS, "0:50", ()),
+}
+
+
+def _start_recorder(out: Path) -> tuple[subprocess.Popen[str], int]:
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "retargetd.daemon", "record",
+         "--listen", "zmq://127.0.0.1:0", "--out", str(out)],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    assert proc.stdout is not None
+    with selectors.DefaultSelector() as sel:
+        sel.register(proc.stdout, selectors.EVENT_READ)
+        if not sel.select(60.0):
+            proc.kill()
+            raise AssertionError("recorder did not start in time")
+    line = proc.stdout.readline()
+    match = re.search(r"tcp://127\.0\.0\.1:(\d+)", line)
+    if not match:
+        proc.kill()
+        raise AssertionError(f"no listening line: {line!r}")
+    return proc, int(match.group(1))
+
+
+@pytest.fixture(scope="session")
+def recorded(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Recorded]:
+    """The PiG walk, the MOTEK ballet and the tennis serve, each replayed at full
+    speed into its own ``retargetd record`` (started together), and their
+    calibrations."""
+    if not DATASETS.is_dir():
+        reason = f"shared datasets folder not found at {DATASETS}"
+        if os.environ.get("CI", "").lower() in ("1", "true", "yes"):
+            pytest.fail(f"{reason} (CI=true: nothing may skip)")
+        pytest.skip(reason)
+    root = tmp_path_factory.mktemp("recorded")
+    procs: dict[str, tuple[subprocess.Popen[str], int]] = {}
+    out: dict[str, Recorded] = {}
+    try:
+        for name in CASES:
+            procs[name] = _start_recorder(root / f"{name}.mcap")
+        for name, (rig, take, static, frames, extra) in CASES.items():
+            source = DATASETS / take
+            cal = root / f"{name}-calibration.json"
+            argv = [
+                "calibrate",
+                str(DATASETS / static),
+                "--rig",
+                rig,
+                "--out",
+                str(cal),
+            ]
+            if frames is not None:
+                argv += ["--frames", frames]
+            assert main(argv) == 0
+            to = f"zmq://127.0.0.1:{procs[name][1]}"
+            assert main(["replay", str(source), "--to", to, "--speed", "0"]) == 0
+            original = load_take(source)
+            out[name] = Recorded(
+                name, rig, source, root / f"{name}.mcap", cal, original.n_frames,
+                original.rate_hz, extra,
+            )  # fmt: skip
+        for name, rec in out.items():
+            proc = procs[name][0]
+            _wait_frames(rec.recording, rec.n_frames, proc)
+            proc.send_signal(signal.SIGINT)
+            stdout, stderr = proc.communicate(timeout=30)
+            assert proc.returncode == 0, stderr
+            assert f"recorded {rec.n_frames} marker frames" in stdout, stdout
+    finally:
+        for proc, _ in procs.values():
+            if proc.poll() is None:
+                proc.kill()
+                proc.communicate(timeout=10)
+    return out
+
+
+def _wait_frames(path: Path, n: int, proc: subprocess.Popen[str]) -> None:
+    """Until the recorder's (flushed) file holds ``n`` marker frames (bounded)."""
+    deadline = time.monotonic() + 30.0
+    while time.monotonic() < deadline:
+        assert proc.poll() is None, "recorder exited early"
+        if path.exists() and path.stat().st_size > 0:
+            got = sum(
+                p.kind == rf.KIND_FRAME for p in rf.read_recording(path).packets()
+            )
+            if got >= n:
+                return
+        time.sleep(0.1)
+    raise AssertionError(f"{path.name}: recorder did not get {n} frames in 30 s")
+
+
+@pytest.mark.timeout(240)
+@pytest.mark.parametrize("name", list(CASES))
+def test_recorded_replay_validates_clean(
+    recorded: dict[str, Recorded], name: str, tmp_path: Path
+) -> None:
+    rec = recorded[name]
+    take = load_take(rec.recording)
+    source = load_take(rec.source)
+    assert take.n_frames == rec.n_frames and take.labels == source.labels
+    assert take.rate_hz == pytest.approx(rec.rate_hz, rel=1e-6)
+    np.testing.assert_array_equal(
+        take.positions, source.positions.astype(np.float32).astype(np.float64)
+    )
+    report = tmp_path / "report"
+    argv = [
+        *("validate", str(rec.recording), "--rig", rec.rig),
+        *("--calibration", str(rec.calibration), "--report", str(report), *rec.extra),
+    ]
+    assert main(argv) == 0
+    doc: dict[str, Any] = json.loads((report / "report.json").read_text())
+    assert doc["passed"] and doc["failed"] == [] and doc["frames"] == rec.n_frames
+    assert doc["take"] == str(rec.recording)
+    assert doc["thresholds"] == THRESHOLDS
+    assert doc["thresholds_basis"] == THRESHOLDS_BASIS and doc["thresholds_note"]
+    checks = doc["checks"]
+    assert set(checks) == {*THRESHOLDS_BASIS}
+    for check in checks.values():
+        assert check["frames_flagged"] == 0
+        assert check["max"] <= check["threshold"] or check["transient_frames"]
+    glitches = TENNIS_GLITCHES if name == "tennis-serve" else []
+    assert checks["limits"]["transient_frames"] == glitches
+    assert checks["convention"]["max"] < 1e-6  # mm
+    assert 0.0 < checks["ghost_force"]["max"] < THRESHOLDS["ghost_force_bw"]
+    assert checks["floating"]["max"] == 0.0
+    text = (report / "report.txt").read_text()
+    assert "Result: PASS" in text and "How the thresholds were set" in text
+    assert (report / "model.xml").is_file() and (report / "checks.png").is_file()
