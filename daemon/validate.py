@@ -385,15 +385,14 @@ def validate_take(
     # Support from the feet: near the floor or stationary at any height
     # (validate_dynamics); unsupported longer than a jump's flight is floating.
     feet_pts, _, _ = vd.foot_points(skel_model, origins, aims)
-    contacts = vd.infer_contacts(
-        feet_pts,
-        vm.floor_z,
-        rate_hz,
-        {"near_floor_m": 1e-3 * th["airborne_clearance_mm"]},
-    )
+    near = {"near_floor_m": 1e-3 * th["airborne_clearance_mm"]}
+    supported = vd.infer_contacts(feet_pts, vm.floor_z, rate_hz, near, surfaces=False)
     airborne = np.asarray(
-        ~contacts.any(axis=1) if contacts.shape[1] else np.zeros(n, bool), dtype=bool
+        ~supported.any(axis=1) if supported.shape[1] else np.zeros(n, bool),
+        dtype=bool,
     )
+    # The ghost force's contacts add the surfaces where a foot stood (a platform).
+    contacts = vd.infer_contacts(feet_pts, vm.floor_z, rate_hz, near)
     run_s = _run_lengths(airborne) / rate_hz
     checks["floating"] = CheckResult("floating", run_s, th["max_airborne_s"], "s")
     if dynamics and contacts.shape[1]:

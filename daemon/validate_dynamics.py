@@ -6,13 +6,25 @@ capsule at the bone's origin and at its aim) supports the body when it is
 * near the floor: within ``near_floor_m`` of the calibrated ground height, or
 * stationary at any height: its (low-passed) speed stays below ``still_speed_m_s`` for
   at least ``still_min_s``, which is a box, a step, a stage riser. A foot at the apex of
-  a jump or a swing is below that speed only for a few hundredths of a second.
+  a jump or a swing is below that speed only for a few hundredths of a second. Slow
+  runs split by a gap of at most ``still_gap_s`` are one run (a stance heel rocking
+  over: the PiG walk's heel stance reads 0.19 + 0.18 s of slow frames); a run that
+  touches the first or last frame (its length unknown) needs only ``edge_min_s``; or
+* on a surface where a foot stood: within ``surface_radius_m`` horizontally of the
+  spot where a foot point was stationary (a still run's mean position) and between
+  ``surface_below_m`` below and ``near_floor_m`` above its height, which is what "near
+  the floor" is on a platform: a heel striking it, a foot landing on it, a foot turning
+  or sliding on it (the ballet's pivots move the toe point at ~1 m/s). The ghost force
+  uses these contacts; the floating check counts only the direct evidence above (the
+  floor, a still foot), as the live validator does frame by frame.
 
-So a performer standing on a platform or stepping down from it is supported, one whose
-feet move in the air is not. Free flight (a jump) needs no contact: its inverse-dynamics
-root wrench is ~0 (ballistic), so it leaves no ghost force either. Known limit: a
-performer hanging in the air with perfectly still feet is indistinguishable, from the
-feet alone, from one standing on a riser.
+So a performer standing on a platform, walking or dancing on it, or stepping down from
+it is supported, one whose feet move in the air is not: the PiG walk, the MOTEK ballet
+and the tennis serve raised 35 cm (on a riser) infer the same support as on the floor
+(tests). Free flight (a jump) needs no contact: its inverse-dynamics root wrench is ~0
+(ballistic), so it leaves no ghost force either. Known limit: a performer hanging in
+the air with perfectly still feet is indistinguishable, from the feet alone, from one
+standing on a riser, and the surfaces are found over the whole take (offline).
 
 Ghost force (:func:`ghost_force`), after the reference recipe (``mujoco.md``):
 
@@ -42,6 +54,7 @@ import mujoco
 import numpy as np
 from scipy.optimize import nnls
 from scipy.signal import butter, filtfilt
+from scipy.spatial import cKDTree
 
 from retargetd.daemon import rotations as rot
 from retargetd.daemon.validate_model import (
@@ -62,6 +75,16 @@ CONTACT: dict[str, float] = {
     # heel/toe speeds are < 0.1 m/s; a jump apex is below 0.2 m/s for ~0.04 s.
     "still_speed_m_s": 0.20,
     "still_min_s": 0.20,
+    # Slow runs split by at most this are one run (a heel rocking over in stance).
+    "still_gap_s": 0.05,
+    # A slow run touching the first or last frame counts from this long.
+    "edge_min_s": 0.05,
+    # A surface where a foot stood (offline: over the whole take): within this radius
+    # horizontally of the still run's mean position (~a foot length: a pivot, a heel
+    # strike at the spot it then stands on), from surface_below_m below its height
+    # to near_floor_m above.
+    "surface_radius_m": 0.30,
+    "surface_below_m": 0.03,
     # Low-pass for the speed (zero-phase), Hz.
     "cutoff_hz": 6.0,
 }
@@ -111,8 +134,21 @@ def infer_contacts(
     floor_z: float,
     rate_hz: float,
     params: dict[str, float] | None = None,
+    *,
+    surfaces: bool = True,
 ) -> np.ndarray:
-    """(T, P) bool: point p supports the body at frame t (near floor or stationary)."""
+    """(T, P) bool: point p supports the body at frame t (near the floor, stationary,
+    or on a surface where a foot stood; module docstring).
+
+    Args:
+        points: (T, P, 3) foot points (:func:`foot_points`), metres, world.
+        floor_z: the floor's height, metres.
+        rate_hz: frame rate.
+        params: overrides of :data:`CONTACT`.
+        surfaces: also the surfaces where a foot stood (the ghost force's contacts);
+            False: direct evidence only, near the floor or stationary (the floating
+            check, as the live validator infers it frame by frame).
+    """
     p = {**CONTACT, **(params or {})}
     n = points.shape[0]
     near = points[..., 2] - floor_z < p["near_floor_m"]
@@ -124,10 +160,52 @@ def infer_contacts(
     speed[0], speed[-1] = speed[1], speed[-2]
     slow = speed < p["still_speed_m_s"]
     min_frames = max(1, round(p["still_min_s"] * rate_hz))
+    edge_frames = max(1, round(p["edge_min_s"] * rate_hz))
+    gap_frames = round(p["still_gap_s"] * rate_hz)
     still = np.zeros_like(slow)
+    spots: list[F64Array] = []  # (x, y, z) of each still run
     for j in range(slow.shape[1]):
-        still[:, j] = run_lengths(slow[:, j]) >= min_frames
-    return near | still
+        run = _close_gaps(slow[:, j], gap_frames)
+        length = run_lengths(run)
+        keep = length >= min_frames
+        for end in (0, n - 1):  # a run at either end: its true length is unknown
+            if run[end] and length[end] >= edge_frames:
+                keep |= run & (np.abs(np.arange(n) - end) < length[end])
+        still[:, j] = run & keep
+        edges = np.flatnonzero(np.diff(np.concatenate([[0], still[:, j], [0]])))
+        for start, stop in zip(edges[::2], edges[1::2], strict=True):
+            seg = points[start:stop, j]
+            spots.append(np.array([*seg[:, :2].mean(axis=0), np.median(seg[:, 2])]))
+    if not surfaces:
+        return near | still
+    return near | still | _on_surface(points, np.asarray(spots), p)
+
+
+def _close_gaps(mask: np.ndarray, max_gap: int) -> np.ndarray:
+    """(T,) bool: ``mask`` with False gaps of at most ``max_gap`` frames filled."""
+    out = mask.copy()
+    idx = np.flatnonzero(mask)
+    if max_gap <= 0 or idx.size < 2:
+        return out
+    gaps = np.diff(idx) - 1
+    for k in np.flatnonzero((gaps > 0) & (gaps <= max_gap)):
+        out[idx[k] + 1 : idx[k + 1]] = True
+    return out
+
+
+def _on_surface(points: F64Array, spots: F64Array, p: dict[str, float]) -> np.ndarray:
+    """(T, P) bool: within a still spot's radius and height band (module docstring)."""
+    out = np.zeros(points.shape[:2], dtype=bool)
+    if spots.size == 0:
+        return out
+    flat = points.reshape(-1, 3)
+    pairs = cKDTree(flat[:, :2]).sparse_distance_matrix(
+        cKDTree(spots[:, :2]), p["surface_radius_m"], output_type="ndarray"
+    )
+    dz = flat[pairs["i"], 2] - spots[pairs["j"], 2]
+    ok = (dz >= -p["surface_below_m"]) & (dz <= p["near_floor_m"])
+    out.reshape(-1)[pairs["i"][ok]] = True
+    return out
 
 
 def run_lengths(mask: np.ndarray) -> F64Array:
