@@ -144,8 +144,8 @@ class ValidateSectionConfig:
 
     enabled: bool = False
     queue: int = 16  # frames waiting for the validator; more are dropped, counted
-    body_mass_kg: float = 0.0  # 0 = the calibration's Bodymass, else 70 kg
-    switch_interval_ms: float = 0.5  # Python's GIL switch interval while it runs
+    body_mass_kg: float = 0.0  # 0 = 70 kg (the model's masses; no live check uses them)
+    rate_hz: float = 240.0  # the rate the source's frame numbers count at (speeds)
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -359,13 +359,12 @@ def _check(c: DaemonConfig, source: str) -> None:
         )
     if not (v.body_mass_kg == 0.0 or 20.0 <= v.body_mass_kg <= 300.0):
         raise ConfigError(
-            f"{source}: validate.body_mass_kg: expected 0 (from the calibration) or "
+            f"{source}: validate.body_mass_kg: expected 0 (70 kg) or "
             f"[20, 300]; got {v.body_mass_kg}"
         )
-    if not 0.05 <= v.switch_interval_ms <= 5.0:
+    if not 1.0 <= v.rate_hz <= 10_000.0:
         raise ConfigError(
-            f"{source}: validate.switch_interval_ms: expected [0.05, 5]; "
-            f"got {v.switch_interval_ms}"
+            f"{source}: validate.rate_hz: expected [1, 10000]; got {v.rate_hz}"
         )
 
 

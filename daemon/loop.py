@@ -37,6 +37,7 @@ as an ``RTDV`` message (``protocols/PROTOCOLS.md``).
 from __future__ import annotations
 
 import contextlib
+import gc
 import json
 import logging
 import math
@@ -204,6 +205,11 @@ class Daemon:
             self._vmc_addr = (c.output.vmc.host, c.output.vmc.port)
             self._announce("vmc out", f"udp://{c.output.vmc.host}:{c.output.vmc.port}")
         self._warm_up()
+        self._start_validator()
+        # Everything built so far lives as long as the daemon: keep it out of the
+        # garbage collector's full passes (one took ~50 ms here, holding the GIL).
+        gc.collect()
+        gc.freeze()
         if self.calibration is None:
             self.out(
                 "no calibration loaded: streaming starts after 'retargetd ctl "
@@ -230,6 +236,36 @@ class Daemon:
         pipe.solver.reset()
         self._names_id -= 1  # this pipeline is thrown away; keep the ids dense
 
+    def _start_validator(self) -> None:
+        """(Re)start the live validator on the current calibration ([validate] on).
+
+        Builds the MuJoCo model (cached by skeleton hash) and warms the kernels
+        (tens of ms; seconds on a cold numba cache): at start-up, and after a live
+        calibration or a reload, never per frame."""
+        v = self.config.validate
+        old, self.validator = self.validator, None
+        if old is not None:
+            old.close()
+        self._validation_bits = 0
+        self._validation_bones = None
+        if not v.enabled or self.calibration is None:
+            return
+        from retargetd.daemon.validate_live import LiveValidator
+
+        validator = LiveValidator(
+            self.rig,
+            self.calibration,
+            body_mass_kg=v.body_mass_kg or None,
+            rate_hz=v.rate_hz,
+            queue_size=v.queue,
+        )
+        validator.start()
+        self.validator = validator
+        self.out(
+            f"live validator on: MuJoCo model {validator.vm.digest[:12]}, "
+            f"queue {v.queue}, frame numbers at {v.rate_hz:g} Hz"
+        )
+
     def _announce(self, what: str, where: str) -> None:
         self.endpoints[what] = where
         self.out(f"listening on {where}: {what}" if what != "vmc out" else
@@ -253,6 +289,9 @@ class Daemon:
         """Stop an active recording (its file is finished, bounded wait) and close
         every socket (idempotent)."""
         self.recording.close()
+        if self.validator is not None:
+            self.validator.close()
+            self.validator = None
         for sock in self._sockets:
             with contextlib.suppress(KeyError):
                 self._poller.unregister(sock)
@@ -674,6 +713,7 @@ class Daemon:
         for stream in (self.osc_stream, self.zmq_stream):
             if stream.current.label_set.labels == labels:
                 self._pipeline(stream)
+        self._start_validator()
         self.stats.calibrations += 1
         path = (
             self.config.performer.save_calibration or self.config.performer.calibration
@@ -709,6 +749,7 @@ class Daemon:
         self.rig, self.calibration = rig, cal
         self._pipelines.clear()
         self._labels_of.clear()
+        self._start_validator()
         msg = f"reloaded rig {rig.name}" + (" and calibration" if cal else "")
         self.recording.event("reload", ok=True, message=msg)
         return msg
@@ -791,6 +832,17 @@ class Daemon:
             + (
                 f" | REC {s['record']['path']} dropped {s['record']['dropped']}"
                 if s["record"]["active"]
+                else ""
+            )
+            + (
+                f" | face head lost {c['face_head_lost']}/{c['face_solved']}"
+                if s["face"] is not None
+                else ""
+            )
+            + (
+                f" | validated {c['validated']} flagged {c['validation_flagged']} "
+                f"dropped {c['validation_drops']}"
+                if s["validate"] is not None
                 else ""
             )
         )
