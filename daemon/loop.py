@@ -541,10 +541,11 @@ class Daemon:
         flags = self._frame_flags | (pose_stream.FRAME_HELD if pose.n_held else 0)
         self._frame_flags = 0
         validator = self.validator
+        results: list[Any] = []
         if validator is not None:
             results = validator.results()
             if results:
-                self._take_validation(results, pipe)
+                self._take_validation_bits(results)
             flags |= self._validation_bits
         # VMC: Unity frame, x y z w.
         engine_unity.unity_quat_xyzw_from_world(
@@ -593,6 +594,8 @@ class Daemon:
             pose.parent_from_bone_quat, pose.joint_centres,
         ):  # fmt: skip
             self.stats.validation_drops += 1
+        if results:  # published after this frame's pose: never ahead of a send
+            self._publish_validation(results, pipe)
         self.stats.frames_out += 1
         if sent_ns - t_start > budget_ns:
             self.stats.overruns += 1
@@ -601,9 +604,8 @@ class Daemon:
             sent_ns - received_ns,
         )  # fmt: skip
 
-    def _take_validation(self, results: list[Any], pipe: _Pipeline) -> None:
-        """Keep the latest result's bits for the next poses and publish every result
-        as an ``RTDV`` message (the frame it belongs to, its values)."""
+    def _take_validation_bits(self, results: list[Any]) -> None:
+        """Keep the latest result's bits for this and the next poses."""
         last = results[-1]
         self._validation_bits = last.frame_flags & pose_stream.FRAME_VALIDATION_MASK
         bones = last.bone_flags
@@ -611,6 +613,10 @@ class Daemon:
             self._validation_bones = np.zeros(len(bones), dtype=np.uint8)
         np.bitwise_and(bones, pose_stream.BONE_VALIDATION_MASK,
                        out=self._validation_bones)  # fmt: skip
+
+    def _publish_validation(self, results: list[Any], pipe: _Pipeline) -> None:
+        """Count every result and publish it as an ``RTDV`` message (the frame it
+        belongs to, its values)."""
         for r in results:
             self.stats.validated += 1
             if r.frame_flags & pose_stream.FRAME_VALIDATION_MASK:

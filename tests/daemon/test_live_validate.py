@@ -169,18 +169,20 @@ def test_validation_bits_and_messages_flag_a_teleport(
     others = {checks[fid0 + i].flags for i in flagged if i not in speed}
     assert others <= {ps.FRAME_V_SELF_PENETRATION}, others
     # In the pose stream a result shows on a LATER frame's pose (the validator runs
-    # after the send): every pose's validation bits are those of a check that
-    # arrived before it, of an earlier frame.
-    seen_checks: dict[int, int] = {}
-    for kind, frame in s.order:
-        if kind == "check":
-            seen_checks[frame] = next(c.flags for c in s.checks if c.frame_id == frame)
-            continue
-        msg = next(p for p in s.poses if p.frame_id == frame)
+    # after the send), and its RTDV message follows that pose: every pose's
+    # validation bits are those of a check of an earlier frame, and every check
+    # arrives after the pose of its own frame.
+    arrival = {(kind, frame): k for k, (kind, frame) in enumerate(s.order)}
+    flags_of = {c.frame_id: c.flags for c in s.checks}
+    for msg in s.poses:
         bits = msg.flags & ps.FRAME_VALIDATION_MASK
         if bits:
-            earlier = [f for f in seen_checks if f < frame]
-            assert earlier and bits == seen_checks[max(earlier)], frame
+            assert any(f < msg.frame_id and b == bits for f, b in flags_of.items()), (
+                msg.frame_id
+            )
+    for c in s.checks:
+        if ("pose", c.frame_id) in arrival:
+            assert arrival[("check", c.frame_id)] > arrival[("pose", c.frame_id)]
     shown = [p for p in s.poses if p.flags & ps.FRAME_V_SPEED]
     assert shown and all(p.frame_id > fid0 + jump[0] for p in shown)
     status = live.ctl({"cmd": "status"})["status"]
