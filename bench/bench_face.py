@@ -3,17 +3,18 @@
 Run from the repository root::
 
     python bench/bench_face.py [--calls C] [--baseline-calls B] [--occluded P]
+                               [--model ict|makehuman]
 
-The synthetic ICT-FaceKit face (``retargetd.daemon.face_synth``: 40 facial markers,
-4 head markers, ARKit 52 shapes, 0.5 mm noise) rides on the head motion of the
-Plug-in Gait walk (``../shared/datasets``), replayed end to end to fill ``--calls``.
-For each case (every marker seen; ``--occluded`` percent of facial markers hidden at
-random per frame, so the restricted normal matrix is rebuilt on most frames) it
-prints ``FaceSolver.solve_frame`` latency (``time.perf_counter_ns`` around each call
-after a warm-up): median, p99, max in microseconds, the Cholesky solves per frame,
-and the same-run baseline: numpy Kabsch (SVD) + ``scipy.optimize.lsq_linear``
-(``bounds=(0, 1)``, method ``bvls``) per frame, with the ratio of medians. Speed is
-printed, never asserted (STYLE.md section 10).
+The synthetic face (``--model``: ICT-FaceKit, default, or MakeHuman + TalkingHead ARKit;
+``retargetd.daemon.face_synth``): 40 facial markers, 4 head markers, ARKit 52 shapes,
+0.5 mm noise) rides on the head motion of the Plug-in Gait walk
+(``../shared/datasets``), replayed end to end to fill ``--calls``. For each case (every
+marker seen; ``--occluded`` percent of facial markers hidden at random per frame, so the
+restricted normal matrix is rebuilt on most frames) it prints ``FaceSolver.solve_frame``
+latency (``time.perf_counter_ns`` around each call after a warm-up): median, p99, max in
+microseconds, the Cholesky solves per frame, and the same-run baseline: numpy Kabsch
+(SVD) + ``scipy.optimize.lsq_linear`` (``bounds=(0, 1)``, method ``bvls``) per frame,
+with the ratio of medians. Speed is printed, never asserted (STYLE.md section 10).
 """
 
 from __future__ import annotations
@@ -65,16 +66,18 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--calls", type=int, default=20000)
     ap.add_argument("--baseline-calls", type=int, default=500)
     ap.add_argument("--occluded", type=float, default=10.0, help="percent")
+    ap.add_argument("--model", choices=sorted(fs.MODELS), default="ict")
     args = ap.parse_args(argv)
-    if not (DATASETS / fs.ICT_DIR).is_dir():
+    if not (DATASETS / fs.MODEL_DIRS[args.model]).is_dir():
         sys.stderr.write(f"bench_face: datasets not found at {DATASETS}\n")
         return 2
     rng = np.random.default_rng(0)
-    take = fs.synth_face_take(DATASETS, rng)
+    take = fs.synth_face_take(DATASETS, rng, model=args.model)
     tr = take.training
     n, m = take.markers_world.shape[:2]
     print(
-        f"face: {len(tr.marker_names)} facial + {len(tr.head_names)} head markers x "
+        f"face ({args.model}): {len(tr.marker_names)} facial + "
+        f"{len(tr.head_names)} head markers x "
         f"{tr.k} shapes; {n} frames of the PiG walk's head motion, looped"
     )
     cases = {"all seen": np.ones((n, m), dtype=bool)}

@@ -1,13 +1,14 @@
 """The face solve: stabilization and bounded weights against known truth and scipy.
 
-Ground truth (``face_synth``): the ICT-FaceKit face as ARKit 52 shapes at 40 facial
-marker sites (eyelids, cheeks, forehead, brows, nose, lips, jaw) with known,
-asymmetric weights and 0.5 mm noise (3-D RMS, per-axis sigma 0.29 mm) on every marker,
-under the Plug-in Gait walk's own four head markers and carried by their motion.
-"Stabilization residual" is the error the fitted head pose adds (stabilized marker
-minus the same observed marker mapped by the true pose), not the markers' own noise,
-which is reported beside it (``test_ict_stabilization_and_weights``). A small random
-face (no datasets) checks exactness and the kernel contract;
+Ground truth (``face_synth``), for each of two real face models (the scanned ICT-FaceKit
+and the artist-made MakeHuman mesh with TalkingHead's ARKit targets): the face as ARKit
+52 shapes at 40 facial marker sites (eyelids, cheeks, forehead, brows, nose, lips, jaw)
+with known, asymmetric weights and 0.5 mm noise (3-D RMS, per-axis sigma 0.29 mm) on
+every marker, under the Plug-in Gait walk's own four head markers and carried by their
+motion. "Stabilization residual" is the error the fitted head pose adds (stabilized
+marker minus the same observed marker mapped by the true pose), not the markers' own
+noise, which is reported beside it (``test_face_stabilization_and_weights``). A small
+random face (no datasets) checks exactness and the kernel contract;
 ``scipy.optimize.lsq_linear`` is the oracle of the weights.
 """
 
@@ -224,22 +225,25 @@ def test_stabilization_error_matches_monte_carlo(rng: np.random.Generator) -> No
         sf.stabilization_error(tr, head_seen=[True, True, False, False])
 
 
-# ---- ICT-FaceKit on the Plug-in Gait head motion -------------------------------------
+# ---- ICT-FaceKit and MakeHuman on the Plug-in Gait head motion ------------------
 
 
 #: Same place as ``tests/conftest.py``'s DATASETS (a conftest can't be imported).
 DATASETS = Path(__file__).resolve().parents[2].parent / "shared" / "datasets"
 
 
-@pytest.fixture(scope="module")
-def ict_take() -> fs.SynthFace:
-    """The synthetic face on the PiG walk's head motion (module-wide: ~1 s)."""
-    if not (DATASETS / fs.ICT_DIR).is_dir():
-        reason = f"face dataset not found at {DATASETS / fs.ICT_DIR}"
+@pytest.fixture(scope="module", params=sorted(fs.MODELS))
+def face_take(request: pytest.FixtureRequest) -> fs.SynthFace:
+    """A synthetic face on the PiG walk's head motion, once per face model: the
+    scanned ICT-FaceKit and the artist-made MakeHuman/TalkingHead ARKit targets
+    (module-wide: ~1 s each)."""
+    folder = DATASETS / fs.MODEL_DIRS[request.param]
+    if not folder.is_dir():
+        reason = f"face dataset not found at {folder}"
         if os.environ.get("CI", "").lower() in ("1", "true", "yes"):
             pytest.fail(f"{reason} (CI=true: nothing may skip)")
         pytest.skip(reason)
-    return fs.synth_face_take(DATASETS, np.random.default_rng(0))
+    return fs.synth_face_take(DATASETS, np.random.default_rng(0), model=request.param)
 
 
 def _solve_take(
@@ -298,23 +302,37 @@ def _predicted_mm(take: fs.SynthFace, seen: np.ndarray | None = None) -> float:
     return 1e3 * float(np.sqrt(np.mean(e**2)))
 
 
-def test_ict_layout_and_observability(ict_take: fs.SynthFace) -> None:
-    tr = ict_take.training
+#: Per model: how many of the 52 shapes its 40 markers must see, and shapes that
+#: must be reported unobservable (ICT has no tongue shape; MakeHuman's moves only
+#: the tongue, under the skin; gaze shapes look like lid shapes in both).
+EXPECTED_OBSERVABILITY = {
+    "ict": (30, {"tongueOut", "eyeLookUpLeft", "eyeLookDownLeft"}),
+    "makehuman": (25, {"tongueOut", "eyeLookUpLeft", "eyeLookDownLeft"}),
+}
+
+
+def test_face_layout_and_observability(face_take: fs.SynthFace) -> None:
+    tr = face_take.training
     assert len(tr.marker_names) >= 40 and tr.k == 52
-    assert ict_take.markers_world.shape[0] > 200  # every complete frame of the walk
+    assert face_take.markers_world.shape[0] > 200  # every complete frame of the walk
     # The head markers are the take's own four, in their measured layout.
     layout = fs.pig_head_layout(DATASETS)
     np.testing.assert_allclose(tr.head_layout, layout - layout.mean(axis=0))
+    # The face sits under the band: facial markers below and in front of it,
+    # spread over a face-sized area (eyelids and brows to the chin).
+    assert (tr.neutral[:, 2] < 0.0).all()
+    assert 0.09 <= float(np.ptp(tr.neutral[:, 2])) <= 0.16
+    assert 0.08 <= float(np.ptp(tr.neutral[:, 0])) <= 0.14
     obs = sf.observability(tr)
-    # Reported, not pretended: no ICT tongue; gaze shapes look like lid shapes.
-    assert "tongueOut" in obs.unobservable
-    assert {"eyeLookUpLeft", "eyeLookDownLeft"} <= set(obs.unobservable)
-    assert obs.observable.sum() >= 30
+    n_observable, must_be_unobservable = EXPECTED_OBSERVABILITY[face_take.model]
+    # Reported, not pretended.
+    assert must_be_unobservable <= set(obs.unobservable)
+    assert obs.observable.sum() >= n_observable
     for name in ("jawOpen", "mouthSmileLeft", "browInnerUp", "cheekPuff"):
         assert obs.observable[tr.expression_names.index(name)], name
 
 
-def test_ict_stabilization_and_weights(ict_take: fs.SynthFace) -> None:
+def test_face_stabilization_and_weights(face_take: fs.SynthFace) -> None:
     """Issue 7 item 5 on the synthetic face (0.5 mm 3-D RMS noise on every marker).
 
     The stabilization residual is the error the fitted head pose puts on the facial
@@ -324,51 +342,53 @@ def test_ict_stabilization_and_weights(ict_take: fs.SynthFace) -> None:
     here, and the residual is checked against its first-order prediction
     (``solve_face.stabilization_error``), so the figure is the fit's, not luck's.
     """
-    solver, got = _solve_take(ict_take)
+    solver, got = _solve_take(face_take)
     assert (got["f"][:, 0] == 0).all()
-    noise_mm = 1e3 * ict_take.noise_rms_m
+    noise_mm = 1e3 * face_take.noise_rms_m
     # Head-marker fit residual: 4 markers, 6 pose dof -> noise * sqrt(1 - 6/12).
-    assert _fit_residual_mm(ict_take, got) == pytest.approx(
+    assert _fit_residual_mm(face_take, got) == pytest.approx(
         noise_mm * math.sqrt(0.5), rel=0.1
     )
     # Stabilization residual (issue: <= 0.5 mm RMS), expected value and measured.
-    stab = _rms_mm(got["s"] - _head_truth(ict_take))
-    predicted = _predicted_mm(ict_take)
+    stab = _rms_mm(got["s"] - _head_truth(face_take))
+    predicted = _predicted_mm(face_take)
     assert predicted <= 0.5
     assert stab <= 0.5
     assert stab == pytest.approx(predicted, rel=0.1)
     # The same with noise-free facial markers and noisy head markers.
-    clean = ict_take.markers_clean_world.copy()
-    clean[:, :4] = ict_take.markers_world[:, :4]
-    _, got_clean = _solve_take(dataclasses.replace(ict_take, markers_world=clean))
-    stab_clean = _rms_mm(got_clean["s"] - _head_truth(ict_take, clean=True))
+    clean = face_take.markers_clean_world.copy()
+    clean[:, :4] = face_take.markers_world[:, :4]
+    _, got_clean = _solve_take(dataclasses.replace(face_take, markers_world=clean))
+    stab_clean = _rms_mm(got_clean["s"] - _head_truth(face_take, clean=True))
     assert stab_clean == pytest.approx(stab, rel=0.01)
     # The markers' own noise, and the total against the noise-free face.
-    own = _rms_mm(_head_truth(ict_take) - _head_truth(ict_take, clean=True))
+    own = _rms_mm(_head_truth(face_take) - _head_truth(face_take, clean=True))
     assert own == pytest.approx(noise_mm, rel=0.05)
-    total = _rms_mm(got["s"] - _head_truth(ict_take, clean=True))
+    total = _rms_mm(got["s"] - _head_truth(face_take, clean=True))
     assert total == pytest.approx(math.hypot(stab, own), rel=0.05)
     # Weights: median error on the observable shapes; and the report does not
     # pretend: every shape recovered worse than 0.1 (median) is reported.
-    obs = sf.observability(ict_take.training)
-    w_err = np.abs(got["w"] - ict_take.weights)
+    obs = sf.observability(face_take.training)
+    w_err = np.abs(got["w"] - face_take.weights)
     assert np.median(w_err[:, obs.observable]) <= 0.05
     per_shape = np.median(w_err, axis=0)
     assert (per_shape[obs.observable] <= 0.1).all()
     bad = {
-        ict_take.training.expression_names[k] for k in np.flatnonzero(per_shape > 0.1)
+        face_take.training.expression_names[k] for k in np.flatnonzero(per_shape > 0.1)
     }
     assert bad <= set(obs.unobservable)
     # The oracle on a sample of frames.
-    seen = np.ones(len(ict_take.training.marker_names), dtype=bool)
+    seen = np.ones(len(face_take.training.marker_names), dtype=bool)
     for t in range(0, len(w_err), 40):
         np.testing.assert_allclose(
             got["w"][t], _oracle(solver, got["s"][t], seen), atol=1e-6
         )
 
 
-def test_ict_noise_free_stabilization_is_exact(ict_take: fs.SynthFace) -> None:
-    clean = fs.synth_face_take(DATASETS, np.random.default_rng(0), noise_rms_m=0.0)
+def test_face_noise_free_stabilization_is_exact(face_take: fs.SynthFace) -> None:
+    clean = fs.synth_face_take(
+        DATASETS, np.random.default_rng(0), noise_rms_m=0.0, model=face_take.model
+    )
     _, got = _solve_take(clean)
     np.testing.assert_allclose(got["s"], _head_truth(clean), atol=1e-9)
     # Any three head markers fit the rigid head exactly.
@@ -380,48 +400,48 @@ def test_ict_noise_free_stabilization_is_exact(ict_take: fs.SynthFace) -> None:
         np.testing.assert_allclose(got["s"], _head_truth(clean), atol=1e-9)
 
 
-def test_ict_missing_head_marker(ict_take: fs.SynthFace) -> None:
-    n, m = ict_take.markers_world.shape[:2]
-    obs = sf.observability(ict_take.training)
+def test_face_missing_head_marker(face_take: fs.SynthFace) -> None:
+    n, m = face_take.markers_world.shape[:2]
+    obs = sf.observability(face_take.training)
     for lost in range(4):
         valid = np.ones((n, m), dtype=bool)
         valid[:, lost] = False
-        _, got = _solve_take(ict_take, valid)
+        _, got = _solve_take(face_take, valid)
         assert (got["f"][:, 0] == sf.FLAG_HEAD_PARTIAL).all()
         # 3 markers: noise * sqrt(1 - 6/9).
-        assert _fit_residual_mm(ict_take, got, valid[0, :4]) == pytest.approx(
-            1e3 * ict_take.noise_rms_m / math.sqrt(3.0), rel=0.1
+        assert _fit_residual_mm(face_take, got, valid[0, :4]) == pytest.approx(
+            1e3 * face_take.noise_rms_m / math.sqrt(3.0), rel=0.1
         )
         # Three markers are a weaker fit (0.55-0.79 mm here), as predicted.
-        stab = _rms_mm(got["s"] - _head_truth(ict_take))
-        assert stab == pytest.approx(_predicted_mm(ict_take, valid[0, :4]), rel=0.1)
+        stab = _rms_mm(got["s"] - _head_truth(face_take))
+        assert stab == pytest.approx(_predicted_mm(face_take, valid[0, :4]), rel=0.1)
         assert stab <= 1.0
-        w_err = np.abs(got["w"] - ict_take.weights)
+        w_err = np.abs(got["w"] - face_take.weights)
         assert np.median(w_err[:, obs.observable]) <= 0.05
     # A head marker that drops out now and then: flagged on exactly those frames.
     valid = np.ones((n, m), dtype=bool)
     valid[:, 2] = np.random.default_rng(4).uniform(size=n) > 0.2
-    _, got = _solve_take(ict_take, valid)
+    _, got = _solve_take(face_take, valid)
     partial = got["f"][:, 0] == sf.FLAG_HEAD_PARTIAL
     assert np.array_equal(partial, ~valid[:, 2])
     assert (got["f"][valid[:, 2], 0] == 0).all()
 
 
-def test_ict_occluded_facial_markers(ict_take: fs.SynthFace) -> None:
+def test_face_occluded_facial_markers(face_take: fs.SynthFace) -> None:
     rng = np.random.default_rng(3)
-    n, m = ict_take.markers_world.shape[:2]
+    n, m = face_take.markers_world.shape[:2]
     valid = np.ones((n, m), dtype=bool)
     valid[:, 4:] = rng.uniform(size=(n, m - 4)) > 0.1  # 10 % of facial markers
-    solver, got = _solve_take(ict_take, valid)
+    solver, got = _solve_take(face_take, valid)
     assert (got["f"][:, 0] & sf.FLAG_FACE_PARTIAL).any()
     assert (got["f"][:, 2] == valid[:, 4:].sum(axis=1)).all()
     assert np.array_equal(np.isfinite(got["s"][..., 0]), valid[:, 4:])
     # Facial occlusion does not touch the head fit: the seen markers are stabilized
     # exactly as with every marker seen.
-    _, full = _solve_take(ict_take)
+    _, full = _solve_take(face_take)
     np.testing.assert_allclose(got["s"][valid[:, 4:]], full["s"][valid[:, 4:]])
-    obs = sf.observability(ict_take.training)
-    assert np.median(np.abs(got["w"] - ict_take.weights)[:, obs.observable]) <= 0.05
+    obs = sf.observability(face_take.training)
+    assert np.median(np.abs(got["w"] - face_take.weights)[:, obs.observable]) <= 0.05
     for t in range(0, n, 40):
         np.testing.assert_allclose(
             got["w"][t], _oracle(solver, got["s"][t], valid[t, 4:]), atol=1e-6
