@@ -110,23 +110,25 @@ def _arkit_from_ict(name: str) -> str:
 
 @dataclass(frozen=True, slots=True, kw_only=True, eq=False)
 class FaceModel:
-    """A linear blendshape face as ARKit-52 shapes, in head axes (x the subject's
-    right, y forward, z up), metres, in the model's own origin.
+    """A linear blendshape face (ARKit-52 shapes, or a rig's own), in head axes
+    (x the subject's right, y forward, z up), metres, in the model's own origin.
 
     Attributes:
-        name: ``"ict"`` or ``"makehuman"`` (:data:`MODELS`).
+        name: ``"ict"``, ``"makehuman"`` (:data:`MODELS`) or ``"makehuman-units"``.
+        expressions: (K,) shape names (:data:`ARKIT_52` for the ARKit models).
         neutral: (V, 3) every vertex of the model.
-        deltas: (52, V, 3) ARKit-52 order (:data:`ARKIT_52`); a shape the model
-            lacks is a zero column.
+        deltas: (K, V, 3) in ``expressions`` order; a shape the model lacks is a
+            zero column.
         candidates: vertex ids where a facial marker may go (outer face skin).
         landmarks: vertex ids preferred after the shape peaks (may be empty).
         skin: vertex ids of the outer head skin (the head band sits on it).
         eye_level: (2, 3) two points at eye level, left-right symmetric (outer eye
             corners, or the eyeball centres), for the head band's height.
-        missing: ARKit names with no shape in the model.
+        missing: expression names with no shape in the model.
     """
 
     name: str
+    expressions: tuple[str, ...]
     neutral: F64Array
     deltas: F64Array
     candidates: npt.NDArray[np.int64]
@@ -171,6 +173,7 @@ def ict_model(datasets: Path) -> FaceModel:
     landmarks = indices["idx_to_landmark_verts"]
     return FaceModel(
         name="ict",
+        expressions=ARKIT_52,
         neutral=neutral @ to_head.T,
         deltas=deltas @ to_head.T,
         candidates=np.arange(ICT_FACE_END),
@@ -224,27 +227,16 @@ def _obj_vertices_and_groups(
     return v, {g: np.array(sorted(ix)) for g, ix in groups.items()}, normals
 
 
-def makehuman_model(datasets: Path) -> FaceModel:
-    """MakeHuman's base mesh (CC0) with the TalkingHead ARKit-52 targets (MIT):
-    artist-made, every ARKit name present. Units decimetres, axes as ICT's (x the
-    subject's left, y up, z forward).
-
-    Markers may go on vertices of the ``body`` group that an ARKit target moves
-    (the face) and whose normal faces away from the eyes' midpoint (outer skin, not
-    the mouth cavity); ``tongueOut`` moves only the tongue helper, so no marker
-    sees it. Eye level: the two eye joint cubes' centres.
-    """
+def _makehuman(
+    datasets: Path, name: str, expressions: tuple[str, ...], targets: dict[str, str]
+) -> FaceModel:
+    # The MakeHuman mesh with one target text per expression (absent = zero shape).
     folder = datasets / MAKEHUMAN_DIR
     verts, groups, normals = _obj_vertices_and_groups(folder / "base.obj")
-    deltas = np.zeros((len(ARKIT_52), *verts.shape))
-    with zipfile.ZipFile(folder / "talkinghead-targets.zip") as z:
-        for entry in z.namelist():
-            stem = entry.rsplit("/", 1)[-1].removesuffix(".target")
-            if entry.startswith("__MACOSX") or stem not in ARKIT_52:
-                continue
-            k = ARKIT_52.index(stem)
-            for v, d in read_mh_target(z.read(entry).decode()).items():
-                deltas[k, v] = d
+    deltas = np.zeros((len(expressions), *verts.shape))
+    for k, expr in enumerate(expressions):
+        for v, d in read_mh_target(targets.get(expr, "")).items():
+            deltas[k, v] = d
     body = groups["body"]
     eyes = np.stack(
         [
@@ -258,15 +250,52 @@ def makehuman_model(datasets: Path) -> FaceModel:
     head = body[verts[body, 1] > eyes[:, 1].mean() - 1.5]  # above the chin-neck line
     to_head = HEAD_FROM_ICT * DM_TO_M
     return FaceModel(
-        name="makehuman",
+        name=name,
+        expressions=expressions,
         neutral=verts @ to_head.T,
         deltas=deltas @ to_head.T,
         candidates=np.flatnonzero(moved & outward),
         landmarks=(),
         skin=head,
         eye_level=eyes @ to_head.T,
-        missing=(),
+        missing=tuple(e for e in expressions if e not in targets),
     )
+
+
+def makehuman_model(datasets: Path) -> FaceModel:
+    """MakeHuman's base mesh (CC0) with the TalkingHead ARKit-52 targets (MIT):
+    artist-made, every ARKit name present. Units decimetres, axes as ICT's (x the
+    subject's left, y up, z forward).
+
+    Markers may go on vertices of the ``body`` group that a target moves (the face)
+    and whose normal faces away from the eyes' midpoint (outer skin, not the mouth
+    cavity); ``tongueOut`` moves only the tongue helper, so no marker sees it. Eye
+    level: the two eye joint cubes' centres.
+    """
+    targets: dict[str, str] = {}
+    with zipfile.ZipFile(datasets / MAKEHUMAN_DIR / "talkinghead-targets.zip") as z:
+        for entry in z.namelist():
+            stem = entry.rsplit("/", 1)[-1].removesuffix(".target")
+            if not entry.startswith("__MACOSX") and stem in ARKIT_52:
+                targets[stem] = z.read(entry).decode()
+    return _makehuman(datasets, "makehuman", ARKIT_52, targets)
+
+
+def makehuman_units_model(
+    datasets: Path, expressions: tuple[str, ...] | None = None
+) -> FaceModel:
+    """The same MakeHuman mesh with MakeHuman's own FACS-like expression units
+    (``expression-units-caucasian/*.target``, CC0: ``eye-left-closure``,
+    ``mouth-corner-puller``, ...): a second rig whose names are not ARKit's, for
+    custom output maps. ``expressions``: which units (default all 34, by name)."""
+    folder = datasets / MAKEHUMAN_DIR / "expression-units-caucasian"
+    files = {p.stem: p for p in sorted(folder.glob("*.target"))}
+    names = tuple(files) if expressions is None else tuple(expressions)
+    unknown = [n for n in names if n not in files]
+    if unknown:
+        raise ValueError(f"makehuman_units_model: no expression unit {unknown[0]!r}")
+    targets = {n: files[n].read_text() for n in names}
+    return _makehuman(datasets, "makehuman-units", names, targets)
 
 
 #: The face models, by name.
@@ -353,17 +382,20 @@ def face_training_set(
     ``n_markers`` facial markers on the model (:func:`pick_face_vertices`) under the
     take's head-marker layout worn as a headband (:func:`place_head_band`), origin
     at the head markers' centroid."""
-    return _training_on(MODELS[model](datasets), datasets, n_markers)
+    return model_training_set(MODELS[model](datasets), datasets, n_markers)
 
 
-def _training_on(fm: FaceModel, datasets: Path, n_markers: int) -> TrainingSet:
+def model_training_set(
+    fm: FaceModel, datasets: Path, n_markers: int = 40
+) -> TrainingSet:
+    """:func:`face_training_set` of a loaded :class:`FaceModel` (its own names)."""
     face_v = pick_face_vertices(fm, n_markers)
     head = place_head_band(fm.neutral[fm.skin], fm.eye_level, pig_head_layout(datasets))
     origin = head.mean(axis=0)
     return TrainingSet(
         head_names=HEAD_NAMES,
         marker_names=tuple(f"F{i:02d}_v{v}" for i, v in enumerate(face_v)),
-        expression_names=ARKIT_52,
+        expression_names=fm.expressions,
         head_layout=head - origin,
         neutral=fm.neutral[face_v] - origin,
         deltas=fm.deltas[:, face_v],
@@ -498,7 +530,7 @@ def synth_face_take(
     from scipy.spatial.transform import Rotation
 
     fm = MODELS[model](datasets)
-    training = _training_on(fm, datasets, n_markers)
+    training = model_training_set(fm, datasets, n_markers)
     quat, pos = pig_head_motion(datasets)
     if n_frames is not None:
         quat, pos = quat[:n_frames], pos[:n_frames]
