@@ -8,7 +8,10 @@ other name must be one of the face config's ``expressions`` and the training set
 keeps the config's expression order. ``--face`` is a shipped preset (``arkit52``,
 ``vrm0``, ``vrm1``) or a face config TOML (``retargetd.daemon.face_config``); when it
 lists no facial markers, every take marker that is not a head marker is one. The
-output is ``face.npz`` (:class:`~retargetd.daemon.solve_face.TrainingSet`, no pickle).
+output is ``face.npz`` (:class:`~retargetd.daemon.solve_face.TrainingSet`, no pickle);
+the command prints the expressions this marker layout cannot see or separate
+(:func:`~retargetd.daemon.solve_face.observability`). Reference:
+``daemon/faces/FACES.md``.
 """
 
 from __future__ import annotations
@@ -68,7 +71,7 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from retargetd.daemon.face_config import FaceConfigError, load_face_config
-    from retargetd.daemon.solve_face import train
+    from retargetd.daemon.solve_face import observability, train
     from retargetd.replay.takes import load_take
 
     if not args.out.lower().endswith(".npz"):
@@ -104,8 +107,11 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as exc:
         raise UsageError(str(exc)) from None
     training.save(args.out)
-    logger.info(
-        "wrote %s: %d facial markers, %d expressions", args.out,
-        len(training.marker_names), training.k,
-    )  # fmt: skip
+    obs = observability(training)
+    print(
+        f"wrote {args.out}: {len(training.head_names)} head markers, "
+        f"{len(training.marker_names)} facial markers, {training.k} expressions"
+    )
+    unseen = ", ".join(obs.unobservable) or "none"
+    print(f"unobservable with this marker layout (0.5 mm noise): {unseen}")
     return 0

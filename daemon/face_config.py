@@ -23,6 +23,7 @@ VRM 0.x preset blend shapes (``vrm0``: A I U E O, Blink, Blink_L/R, Joy, Angry,
 Sorrow, Fun, LookUp/Down/Left/Right) or VRM 1.0 expressions (``vrm1``: aa ih ou ee
 oh, blinkLeft/Right, happy, angry, sad, relaxed, surprised, lookUp/Down/Left/Right).
 The VRM mixes are a starting point meant to be tuned per avatar: copy the preset.
+Reference: ``daemon/faces/FACES.md``.
 """
 
 from __future__ import annotations
@@ -41,6 +42,12 @@ import numpy.typing as npt
 logger = logging.getLogger(__name__)
 
 F64Array = npt.NDArray[np.float64]
+
+
+#: Every key a face config may hold (``output`` is the table).
+FACE_KEYS = (
+    "name", "head_markers", "head_weights", "facial_markers", "expressions", "output"
+)  # fmt: skip
 
 
 class FaceConfigError(ValueError):
@@ -111,8 +118,7 @@ def parse_face_config(doc: dict[str, Any], src: str, default_name: str) -> FaceC
     Raises:
         FaceConfigError: naming ``src``, the key and the bad value.
     """
-    known = {"name", "head_markers", "head_weights", "facial_markers", "expressions"}
-    unknown = sorted(set(doc) - known - {"output"})
+    unknown = sorted(set(doc) - set(FACE_KEYS))
     if unknown:
         raise FaceConfigError(f"{src}: unknown keys {unknown}")
     head = _names(src, doc, "head_markers", required=True)
