@@ -395,7 +395,7 @@ def validate_take(
     )
     # The ghost force's contacts add the surfaces where a foot stood (a platform).
     contacts = vd.infer_contacts(feet_pts, vm.floor_z, rate_hz, near)
-    run_s = _run_lengths(airborne) / rate_hz
+    run_s = vd.run_lengths(airborne) / rate_hz
     checks["floating"] = CheckResult("floating", run_s, th["max_airborne_s"], "s")
     if dynamics and contacts.shape[1]:
         gf = vd.ghost_force(vm, root_pos, wfb[:, root], pfb, rate_hz, contacts)
@@ -417,7 +417,7 @@ def validate_take(
     # glitch), reported but not failed: see validate_limits "Single-frame excursions".
     lim = checks["limits"]
     beyond = lim.flagged
-    lim.flagged = beyond & (_run_lengths(beyond) >= th["limit_min_frames"])
+    lim.flagged = beyond & (vd.run_lengths(beyond) >= th["limit_min_frames"])
     lim.transients = np.flatnonzero(beyond & ~lim.flagged)
     names = skel_model.bone_names
     lim.detail = [
@@ -433,18 +433,6 @@ def validate_take(
         for t in np.flatnonzero(checks["self_penetration"].flagged)[:5]
     ]
     return TakeReport(checks=checks, n_frames=n, seconds_per_frame=per_frame)
-
-
-def _run_lengths(mask: np.ndarray) -> F64Array:
-    """(T,) length in frames of the run of True each frame belongs to (0 if False)."""
-    out = np.zeros(mask.shape[0])
-    if not mask.any():
-        return out
-    padded = np.concatenate([[False], mask, [False]])
-    edges = np.flatnonzero(np.diff(padded.astype(np.int8)))
-    for start, stop in zip(edges[::2], edges[1::2], strict=True):
-        out[start:stop] = stop - start
-    return out
 
 
 def _speed(pos: F64Array, rate_hz: float) -> F64Array:
