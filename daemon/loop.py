@@ -358,6 +358,8 @@ class Daemon:
             if pipe is not None:
                 pipe.solver.reset()
                 pipe.vmc.reset_continuity()
+                if pipe.face is not None:
+                    pipe.face.solver.reset()
         if self._calib_target:
             self._collect_calibration_frame(stream)
         if self.face is not None and self.face.capturing:

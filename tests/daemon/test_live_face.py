@@ -112,14 +112,15 @@ class Harness:
         self.next_id = 0
         self.label_set: LabelSet | None = None
 
-    def announce(self, labels: tuple[str, ...]) -> None:
-        self.label_set = LabelSet(3, labels)
+    def announce(self, labels: tuple[str, ...], label_set_id: int = 3) -> None:
+        self.label_set = LabelSet(label_set_id, labels)
         self.push.send_multipart(zmq_wire.encode_zmq_labels(self.label_set))
 
     def send(self, frames: np.ndarray) -> None:
+        ls_id = self.label_set.id if self.label_set is not None else 3
         for f in frames:
             self.push.send_multipart(
-                zmq_wire.encode_zmq_frame(self.next_id, self.next_id / 100.0, 3, f)
+                zmq_wire.encode_zmq_frame(self.next_id, self.next_id / 100.0, ls_id, f)
             )
             self.next_id += 1
 
@@ -242,7 +243,8 @@ def test_face_vrm_names_mix_and_a_lost_head(
     harness: Callable[..., Harness], datasets: Path, tmp_path: Path
 ) -> None:
     """The VRM 1.0 preset: VMC sends its names with clip(M w); with two head markers
-    occluded (< 3) the face part says head_lost and the weights are held."""
+    occluded (< 3) the face part says head_lost and the weights are held. After a
+    source restart nothing is held from the old run: the face starts afresh."""
     training, rots, pos = _face(datasets)
     training.save(tmp_path / "face.npz")
     h = harness({"config": "vrm1", "training": str(tmp_path / "face.npz")})
@@ -270,6 +272,17 @@ def test_face_vrm_names_mix_and_a_lost_head(
         assert msg.face_markers is not None and np.isnan(msg.face_markers).all()
         np.testing.assert_array_equal(msg.weights, held.weights)
     assert h.live.daemon.stats.face_head_lost == 10
+    # A restart (new label-set id), the head still lost: no pose or weights held
+    # over from the previous run (the face solver was reset with the body's).
+    h.poses.clear()
+    h.announce(labels, label_set_id=4)
+    h.next_id = 0  # frame numbers start again
+    h.send(lost[:5])
+    h.wait_poses(5)
+    assert h.poses[0].flags & pose_stream.FRAME_RESTARTED
+    for msg in h.poses:
+        assert msg.face_flags & pose_stream.FACE_NEVER
+        assert not msg.weights.any()
 
 
 def test_face_capture_live_neutral_then_expressions(
