@@ -112,7 +112,9 @@ def classify(form: int, parts: Sequence[bytes]) -> tuple[int, int, float]:
     """Kind, source frame number and source timestamp of a packet, from its header.
 
     Never raises: bytes that do not parse are ``KIND_OTHER`` (or a frame whose number
-    is unknown, -1).
+    is unknown, -1). Pose-stream data messages (2 parts, 3 with the face part) are
+    ``KIND_FRAME``, names messages ``KIND_LABELS``; validation messages (``RTDV``)
+    are ``KIND_OTHER``, kept as sent.
     """
     first = parts[0] if parts else b""
     if form == FORM_OSC_COMPACT and len(parts) == 1:
@@ -126,7 +128,9 @@ def classify(form: int, parts: Sequence[bytes]) -> tuple[int, int, float]:
     elif form == FORM_OSC_SIMPLE and len(parts) == 1:
         if first[:8] == BUNDLE_TAG:
             return KIND_FRAME, _simple_frame_number(first), math.nan
-    elif form in (FORM_ZMQ, FORM_POSE) and len(parts) == 2:
+    elif (form == FORM_ZMQ and len(parts) == 2) or (
+        form == FORM_POSE and len(parts) in (2, 3)  # a pose with its face part: 3
+    ):
         magic = first[:4]
         if magic in (zmq_wire.LABELS_MAGIC, b"RTDN"):
             return KIND_LABELS, -1, math.nan

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
-from retargetd.protocols import osc_in, zmq_wire
+from retargetd.protocols import osc_in, pose_stream, zmq_wire
 from retargetd.protocols.marker_input import LabelSet
 from retargetd.replay import recording as rf
 from retargetd.replay.recorder import InputInfo, Recorder, open_recorder
@@ -85,6 +85,21 @@ def test_classify_reads_source_frame_and_time() -> None:
     zmq_frame = zmq_wire.encode_zmq_frame(5, 1.5, 3, pos)
     assert rf.classify(rf.FORM_ZMQ, zmq_frame) == (rf.KIND_FRAME, 5, 1.5)
     assert rf.classify(rf.FORM_ZMQ, [b"junk"])[0] == rf.KIND_OTHER
+    # Pose-stream messages: data with and without the face part, validation.
+    q = np.tile([1.0, 0.0, 0.0, 0.0], (2, 1))
+    for n_face in (None, 3):
+        enc = pose_stream.PoseEncoder(2, 0, n_face_markers=n_face)
+        parts = enc.encode(12, 0.5, 1, 2, 0, np.zeros(3), q, q, np.zeros(0),
+                           np.zeros(2, dtype=np.uint8))  # fmt: skip
+        got = rf.classify(rf.FORM_POSE, [bytes(x) for x in parts])
+        assert (len(parts), got) == (
+            2 if n_face is None else 3,
+            (rf.KIND_FRAME, 12, 0.5),
+        )
+    rtdv = pose_stream.encode_validation(
+        0, 12, 1, 2, 0, np.zeros(8), np.zeros(2, np.uint8)
+    )
+    assert rf.classify(rf.FORM_POSE, rtdv)[:2] == (rf.KIND_OTHER, -1)
 
 
 def test_full_queue_drops_and_counts_and_never_blocks() -> None:
