@@ -231,14 +231,39 @@ def test_validation_bits_fill_the_reserved_ranges() -> None:
     assert sum(bone) == ps.BONE_VALIDATION_MASK
 
 
-@settings(max_examples=200)
-@given(st.binary(max_size=60), st.binary(max_size=80))
+@settings(max_examples=300)
+@given(st.binary(max_size=100), st.integers(0, 10_000), st.integers(0, 255))
 def test_face_and_validation_decoders_raise_only_decode_error(
-    a: bytes, b: bytes
+    junk: bytes, i: int, v: int
 ) -> None:
-    enc = ps.PoseEncoder(1, 0, n_face_markers=1)
-    for parts in ([bytes(enc.parts[0]), bytes(enc.parts[1]), a], [a, b]):
-        with contextlib.suppress(DecodeError):
-            ps.decode_pose(parts)
-        with contextlib.suppress(DecodeError):
-            ps.decode_validation(parts[:2])
+    # Valid pose and validation headers, so the face-part and RTDV body decoders are
+    # reached: random bytes as the face part or the RTDV body, and one byte of a
+    # valid face part or RTDV body changed.
+    enc = ps.PoseEncoder(2, 1, n_face_markers=4)
+    parts, _ = _encode(np.random.default_rng(0), enc)
+    enc.encode_face(0, np.array([1.0, 0.0, 0.0, 0.0]), np.zeros(3), np.zeros((4, 3)))
+    head, body, face = (bytes(p) for p in parts)
+    rtdv_head, rtdv_body = (
+        bytes(p)
+        for p in ps.encode_validation(0, 5, 1, 2, 0, np.zeros(8), np.zeros(2, np.uint8))
+    )
+    for decode, msg in (
+        (ps.decode_pose, [head, body, junk]),
+        (ps.decode_validation, [rtdv_head, junk]),
+    ):
+        try:
+            decode(msg)
+        except DecodeError as exc:
+            assert exc.reason == "bad_length", exc.reason
+    # One byte changed inside a well-formed part: only the face part's marker count
+    # (bytes 0-1) can make it wrong; anything else decodes.
+    bad = bytearray(face)
+    bad[i % len(face)] = v
+    try:
+        msg = ps.decode_pose([head, body, bytes(bad)])
+        assert msg.face_markers is not None and msg.face_markers.shape == (4, 3)
+    except DecodeError as exc:
+        assert exc.reason == "bad_length" and i % len(face) < 2
+    bad = bytearray(rtdv_body)
+    bad[i % len(bad)] = v
+    assert ps.decode_validation([rtdv_head, bytes(bad)]).frame_id == 5
