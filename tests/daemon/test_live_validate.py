@@ -163,23 +163,31 @@ def test_validation_bits_and_messages_flag_a_teleport(
     for i in speed:
         c = checks[fid0 + i]
         assert c.values[ps.VALIDATION_CHECKS.index("speed")] > 13.0
-        assert c.bone_flags.any() and not (c.bone_flags & 0x0F).any()
+        assert c.bone_flags.any()
     # Elsewhere only self-penetration: the synthetic motions (rows 197+) bring two
     # lean capsules ~14 mm into each other, as the offline check says too.
     others = {checks[fid0 + i].flags for i in flagged if i not in speed}
     assert others <= {ps.FRAME_V_SELF_PENETRATION}, others
     # In the pose stream a result shows on a LATER frame's pose (the validator runs
-    # after the send), and its RTDV message follows that pose: every pose's
-    # validation bits are those of a check of an earlier frame, and every check
-    # arrives after the pose of its own frame.
+    # after the send), and its RTDV message follows that pose: the loop takes the
+    # finished results before encoding a pose, ORs in the newest one's bits, sends
+    # the pose, then publishes those results. So each pose carries the bits of the
+    # last check published before the next pose, from an earlier frame; and every
+    # check arrives after the pose of its own frame.
     arrival = {(kind, frame): k for k, (kind, frame) in enumerate(s.order)}
     flags_of = {c.frame_id: c.flags for c in s.checks}
-    for msg in s.poses:
-        bits = msg.flags & ps.FRAME_VALIDATION_MASK
-        if bits:
-            assert any(f < msg.frame_id and b == bits for f, b in flags_of.items()), (
-                msg.frame_id
-            )
+    bits_of = {m.frame_id: m.flags & ps.FRAME_VALIDATION_MASK for m in s.poses}
+    expect, pending, compared = 0, None, 0
+    for kind, frame in [*s.order, ("pose", None)]:
+        if kind == "check":
+            assert pending is None or frame < pending, (frame, pending)
+            expect = flags_of[frame]
+            continue
+        if pending is not None:
+            assert bits_of[pending] == expect, (pending, bits_of[pending], expect)
+            compared += 1
+        pending = frame
+    assert compared == len(s.poses)
     for c in s.checks:
         if ("pose", c.frame_id) in arrival:
             assert arrival[("check", c.frame_id)] > arrival[("pose", c.frame_id)]
