@@ -206,8 +206,11 @@ class LiveFace:
         self._capture_labels = ()
         return f"capturing face pose {name!r} over the next {n} frames: hold it"
 
-    def collect(self, markers_world: F64Array, labels: tuple[str, ...]) -> str | None:
-        """Add one accepted frame to the capture; returns a message when it ends."""
+    def collect(
+        self, markers_world: F64Array, labels: tuple[str, ...]
+    ) -> tuple[bool, str] | None:
+        """Add one accepted frame to the capture; when it ends, returns (captured,
+        message): ``captured`` is False when the pose could not be built."""
         if labels != self._capture_labels:
             self._capture_head = []  # the marker layout changed: start again
             self._capture_face = []
@@ -225,7 +228,7 @@ class LiveFace:
             return None
         return self._finish()
 
-    def _finish(self) -> str:
+    def _finish(self) -> tuple[bool, str]:
         name = self._capture_name
         head = np.stack(self._capture_head)
         face = np.stack(self._capture_face)
@@ -237,7 +240,7 @@ class LiveFace:
             )
         except ValueError as exc:
             self.last_message = f"face capture {name!r} failed: {exc}"
-            return self.last_message
+            return False, self.last_message
         self.training = training
         self.captures += 1
         path = self.settings.save_training or self.settings.training
@@ -254,7 +257,7 @@ class LiveFace:
         else:
             msg += " (not saved: no face.training path)"
         self.last_message = msg
-        return msg
+        return True, msg
 
     def status(self) -> dict[str, object]:
         """The face part of ``ctl status --json``."""

@@ -669,10 +669,10 @@ class Daemon:
     def _collect_face_frame(self, stream: MarkerStream) -> None:
         assert self.face is not None
         labels = stream.current.label_set.labels
-        msg = self.face.collect(stream.current.frame.markers_world, labels)
-        if msg is None:
+        done = self.face.collect(stream.current.frame.markers_world, labels)
+        if done is None:
             return
-        ok = "failed" not in msg
+        ok, msg = done
         if ok:
             # The next frame solves with the new training set; pipelines rebuilt now,
             # off the frame that completed the capture.

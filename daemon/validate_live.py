@@ -86,7 +86,8 @@ refilled every tick, ~46,000 checks/s, a whole core): p99 +66 to +113 µs, work
 median +9 µs (GIL hand-overs at the loop's own nogil kernels). ``sys.setswitchinterval``
 5, 1, 0.5 or 0.1 ms made no difference beyond that noise: the validator never runs a
 long pure-Python stretch, which is all the interval bounds. So the daemon leaves it
-at Python's default for the validator (no config key; below ~0.1 ms buys nothing). What the interval cannot bound is a garbage collection, which holds the GIL:
+at Python's default for the validator (no config key; below ~0.1 ms buys nothing).
+What the interval cannot bound is a garbage collection, which holds the GIL:
 a full (gen 2) collection of this process took 53 ms, 2 µs after ``gc.freeze()``;
 the daemon should ``gc.freeze()`` once its models and solvers are built.
 
