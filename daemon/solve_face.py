@@ -165,8 +165,6 @@ class Observability:
     Attributes:
         names: (K,) expression names.
         peak_m: (K,) largest marker displacement of each shape, metres.
-        unique: (K,) distance of each column of B from the span of the others,
-            relative to its norm (0 = a combination of others, 1 = orthogonal).
         weight_std: (K,) standard deviation of each unbounded weight estimate under
             ``noise_m`` marker noise: ``noise * sqrt(((B^T B + lambda I)^-1)_kk)``.
         observable: (K,) bool, ``peak_m >= min_peak_m`` and
@@ -175,7 +173,6 @@ class Observability:
 
     names: tuple[str, ...]
     peak_m: F64Array
-    unique: F64Array
     weight_std: F64Array
     observable: BoolArray
 
@@ -206,7 +203,6 @@ def observability(
     peak = np.linalg.norm(training.deltas, axis=2).max(axis=1)
     seen = peak >= min_peak_m
     cols = np.flatnonzero(seen)
-    unique = np.zeros(training.k)
     std = np.full(training.k, np.inf)
     if cols.size:
         bs = b[:, cols]
@@ -215,16 +211,9 @@ def observability(
         std[cols] = noise_m * np.sqrt(
             np.diag(np.linalg.inv(btb + lam * np.eye(cols.size)))
         )
-        for j, k in enumerate(cols):
-            others = np.delete(bs, j, axis=1)
-            coef, *_ = np.linalg.lstsq(others, b[:, k], rcond=None)
-            unique[k] = np.linalg.norm(b[:, k] - others @ coef) / np.linalg.norm(
-                b[:, k]
-            )
     return Observability(
         names=training.expression_names,
         peak_m=peak,
-        unique=unique,
         weight_std=std,
         observable=seen & (std <= max_weight_std),
     )
