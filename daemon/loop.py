@@ -43,7 +43,7 @@ import logging
 import math
 import socket
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -156,6 +156,7 @@ class Daemon:
         self.validator: Any = None  # LiveValidator when [validate] is on
         self._validation_bits = 0  # frame bits of the latest validation result
         self._validation_bones: np.ndarray | None = None  # its bone bits
+        self._validation_enc: pose_stream.ValidationEncoder | None = None  # RTDV
 
     # ---- lifecycle -------------------------------------------------------------------
 
@@ -543,7 +544,7 @@ class Daemon:
         flags = self._frame_flags | (pose_stream.FRAME_HELD if pose.n_held else 0)
         self._frame_flags = 0
         validator = self.validator
-        results: list[Any] = []
+        results: Sequence[Any] = ()
         if validator is not None:
             results = validator.results()
             if results:
@@ -606,7 +607,7 @@ class Daemon:
             sent_ns - received_ns,
         )  # fmt: skip
 
-    def _take_validation_bits(self, results: list[Any]) -> None:
+    def _take_validation_bits(self, results: Sequence[Any]) -> None:
         """Keep the latest result's bits for this and the next poses."""
         last = results[-1]
         self._validation_bits = last.frame_flags & pose_stream.FRAME_VALIDATION_MASK
@@ -616,18 +617,22 @@ class Daemon:
         np.bitwise_and(bones, pose_stream.BONE_VALIDATION_MASK,
                        out=self._validation_bones)  # fmt: skip
 
-    def _publish_validation(self, results: list[Any], pipe: _Pipeline) -> None:
+    def _publish_validation(self, results: Sequence[Any], pipe: _Pipeline) -> None:
         """Count every result and publish it as an ``RTDV`` message (the frame it
-        belongs to, its values)."""
+        belongs to, its values), written into a reused buffer. The validator sets
+        only the validation bits (frame bits 8-15, bone bits 4-7)."""
         for r in results:
             self.stats.validated += 1
-            if r.frame_flags & pose_stream.FRAME_VALIDATION_MASK:
+            if r.frame_flags:
                 self.stats.validation_flagged += 1
             if self._pub is not None or self.recording.poses is not None:
-                msg = pose_stream.encode_validation(
+                enc = self._validation_enc
+                if enc is None or enc.n_bones != len(r.bone_flags):
+                    enc = pose_stream.ValidationEncoder(len(r.bone_flags))
+                    self._validation_enc = enc
+                msg = enc.encode(
                     pipe.pose_enc.names_id, r.frame_id, r.t_ns, r.validated_ns,
-                    r.frame_flags & pose_stream.FRAME_VALIDATION_MASK, r.values,
-                    r.bone_flags & pose_stream.BONE_VALIDATION_MASK,
+                    r.frame_flags, r.values, r.bone_flags,
                 )  # fmt: skip
                 self._send_pub(msg, r.validated_ns)
 

@@ -107,6 +107,7 @@ import math
 import queue
 import threading
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -881,11 +882,12 @@ class LiveValidator:
         self._wake.put(0)
         return True
 
-    def results(self) -> list[ValidationResult]:
-        """Results finished since the last call, oldest first (never waits)."""
+    def results(self) -> Sequence[ValidationResult]:
+        """Results finished since the last call, oldest first (never waits; an empty
+        tuple, not a new list, when there are none)."""
         dq = self._results
         if not dq:
-            return []
+            return ()
         out = []
         while dq:
             out.append(dq.popleft())

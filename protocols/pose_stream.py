@@ -491,6 +491,44 @@ def validation_body_size(n_bones: int, n_values: int) -> int:
     return 4 * n_values + ((n_bones + 3) & ~3)
 
 
+class ValidationEncoder:
+    """Writes validation messages (``RTDV``) into preallocated buffers: no
+    allocation per message (the loop publishes one per validated frame).
+
+    Args:
+        n_bones: bones per message (B).
+        n_values: measured values per message (K; ``len(VALIDATION_CHECKS)``).
+    """
+
+    def __init__(self, n_bones: int, n_values: int = len(VALIDATION_CHECKS)) -> None:
+        self.n_bones = n_bones
+        self.n_values = n_values
+        self._header = bytearray(VALIDATION_HEADER.size)
+        self._body = bytearray(validation_body_size(n_bones, n_values))
+        self._values = np.frombuffer(self._body, _LE_F32, n_values, 0)
+        self._bones = np.frombuffer(self._body, np.uint8, n_bones, 4 * n_values)
+        self.parts = [memoryview(self._header), memoryview(self._body)]
+
+    def encode(
+        self,
+        names_id: int,
+        frame_id: int,
+        received_ns: int,
+        validated_ns: int,
+        flags: int,
+        values: F64Array | F32Array,
+        bone_flags: U8Array,
+    ) -> list[memoryview]:
+        """Write one message; returns ``parts`` (valid until the next call)."""
+        VALIDATION_HEADER.pack_into(
+            self._header, 0, VALIDATION_MAGIC, VERSION, names_id, frame_id,
+            received_ns, validated_ns, flags, self.n_bones, self.n_values,
+        )  # fmt: skip
+        self._values[:] = values
+        self._bones[:] = bone_flags
+        return self.parts
+
+
 def encode_validation(
     names_id: int,
     frame_id: int,
@@ -500,16 +538,13 @@ def encode_validation(
     values: F64Array | F32Array,
     bone_flags: U8Array,
 ) -> list[bytes]:
-    """Encode a validation message ``[header, body]`` (off the hot path: allocates)."""
-    b, k = len(bone_flags), len(values)
-    header = VALIDATION_HEADER.pack(
-        VALIDATION_MAGIC, VERSION, names_id, frame_id, received_ns, validated_ns,
-        flags, b, k,
-    )  # fmt: skip
-    body = bytearray(validation_body_size(b, k))
-    body[: 4 * k] = np.asarray(values, dtype=_LE_F32).tobytes()
-    body[4 * k : 4 * k + b] = np.asarray(bone_flags, dtype=np.uint8).tobytes()
-    return [header, bytes(body)]
+    """Encode one validation message ``[header, body]`` as new bytes
+    (:class:`ValidationEncoder` without reuse)."""
+    enc = ValidationEncoder(len(bone_flags), len(values))
+    parts = enc.encode(
+        names_id, frame_id, received_ns, validated_ns, flags, values, bone_flags
+    )
+    return [bytes(x) for x in parts]
 
 
 def decode_validation(

@@ -297,7 +297,7 @@ def test_thread_equals_synchronous(
     assert 0.0 < c["check_us_p50"] <= c["check_us_p99"]
     st = v.status()
     assert st["running"] and st["pending"] == 0 and st["queue_size"] == n
-    assert v.results() == []
+    assert v.results() == ()
     v.close(timeout=5.0)
     assert not v.running
     v.close()  # idempotent
@@ -358,7 +358,7 @@ def test_full_ring_drops_when_not_started(
     assert [ok for ok, _ in sent] == [True, True, False, False, False]
     assert max(dt for _, dt in sent) < 0.5  # returned at once (no wait for a slot)
     assert (v.submitted, v.dropped, v.pending) == (2, 3, 2)
-    assert v.results() == []
+    assert v.results() == ()
     v.start()  # the two queued frames are checked; the ring frees
     _wait(lambda: v.validated == 2)
     assert [r.frame_id for r in v.results()] == [0, 1]

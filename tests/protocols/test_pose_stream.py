@@ -267,3 +267,19 @@ def test_face_and_validation_decoders_raise_only_decode_error(
     bad = bytearray(rtdv_body)
     bad[i % len(bad)] = v
     assert ps.decode_validation([rtdv_head, bytes(bad)]).frame_id == 5
+
+
+def test_validation_encoder_reuses_its_buffers(rng: np.random.Generator) -> None:
+    enc = ps.ValidationEncoder(3)
+    for frame in (7, 8):
+        values = rng.normal(size=8)
+        bones = np.array([0, ps.BONE_VALIDATION_MASK & 0x30, 0x80], dtype=np.uint8)
+        parts = enc.encode(2, frame, 10, 20, ps.FRAME_V_SPEED, values, bones)
+        assert parts is enc.parts
+        assert [bytes(p) for p in parts] == ps.encode_validation(
+            2, frame, 10, 20, ps.FRAME_V_SPEED, values, bones
+        )
+        msg = ps.decode_validation([bytes(p) for p in parts])
+        assert (msg.frame_id, msg.flags) == (frame, ps.FRAME_V_SPEED)
+        np.testing.assert_array_equal(msg.values, np.float32(values))
+        np.testing.assert_array_equal(msg.bone_flags, bones)
