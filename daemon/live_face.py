@@ -40,7 +40,7 @@ from retargetd.daemon.solve_face import (
     FaceSolver,
     TrainingSet,
     head_layout_from_frames,
-    stabilize_frames,
+    mean_pose,
 )
 from retargetd.protocols.frames import F64Array
 
@@ -327,14 +327,7 @@ def capture_into(
         layout = head_layout_from_frames(head_world)
     else:
         layout = training.head_layout
-    stab = stabilize_frames(head_world, face_world, layout)
-    never = ~np.any(np.isfinite(stab[..., 0]), axis=0)
-    if never.all():
-        raise ValueError("no frame with 3 head markers seen")
-    if never.any():
-        missing = [marker_names[int(i)] for i in np.flatnonzero(never)]
-        raise ValueError(f"markers never seen: {missing}")
-    mean = np.nanmean(stab, axis=0)
+    mean = mean_pose(head_world, face_world, layout, marker_names)
     if training is None:
         return TrainingSet(
             head_names=face.head_markers, marker_names=tuple(marker_names),

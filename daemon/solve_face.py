@@ -474,6 +474,28 @@ def stabilize_frames(
     return out
 
 
+def mean_pose(
+    head_world: F64Array,
+    face_world: F64Array,
+    layout: F64Array,
+    marker_names: Sequence[str],
+) -> F64Array:
+    """One held pose: the facial markers stabilized against ``layout`` frame by frame
+    (:func:`stabilize_frames`) and averaged, in head coordinates, (M, 3).
+
+    Raises:
+        ValueError: no frame with >= 3 head markers, or a facial marker never seen.
+    """
+    stab = stabilize_frames(head_world, face_world, layout)
+    never = ~np.any(np.isfinite(stab[..., 0]), axis=0)
+    if never.all():
+        raise ValueError("no frame with 3 head markers seen")
+    if never.any():
+        missing = [marker_names[int(i)] for i in np.flatnonzero(never)]
+        raise ValueError(f"markers never seen: {missing}")
+    return np.nanmean(stab, axis=0)
+
+
 def train(
     head_world: F64Array,
     face_world: F64Array,
@@ -505,14 +527,12 @@ def train(
     layout = head_layout_from_frames(head_world[ranges["neutral"]])
     means: dict[str, F64Array] = {}
     for name, rows in ranges.items():
-        stab = stabilize_frames(head_world[rows], face_world[rows], layout)
-        never = ~np.any(np.isfinite(stab[..., 0]), axis=0)
-        if never.any():
-            missing = [marker_names[int(i)] for i in np.flatnonzero(never)]
-            raise ValueError(
-                f"pose {name}: markers never seen in its frames: {missing}"
+        try:
+            means[name] = mean_pose(
+                head_world[rows], face_world[rows], layout, marker_names
             )
-        means[name] = np.nanmean(stab, axis=0)
+        except ValueError as exc:
+            raise ValueError(f"pose {name}: {exc}") from None
     exprs = [n for n, _ in poses if n != "neutral"]
     neutral = means["neutral"]
     return TrainingSet(
@@ -536,6 +556,7 @@ __all__ = [
     "Observability",
     "TrainingSet",
     "head_layout_from_frames",
+    "mean_pose",
     "observability",
     "stabilization_error",
     "stabilize_frames",
