@@ -186,6 +186,8 @@ def _box_qp(
     # largest index is exchanged (Murty's rule), which terminates for SPD A.
     # Returns the number of Cholesky solves, or -1 when max_iter was hit.
     k = a.shape[0]
+    if k == 0:  # no expressions (a neutral-only training set): nothing to solve
+        return 0
     scale = 0.0
     for i in range(k):
         scale += a[i, i]

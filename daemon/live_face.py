@@ -20,8 +20,8 @@ When the face config lists no facial markers, they are every stream label that i
 a head marker and not one of the body rig's markers.
 
 With a neutral but no expression captured yet, the stabilized markers (the "Mug")
-are streamed and no weights are sent (the solver runs on one placeholder shape of
-zero displacement, which the stream does not show).
+are streamed and no weights are sent (the solver stabilizes; with no expression
+there is nothing to solve).
 """
 
 from __future__ import annotations
@@ -45,8 +45,6 @@ from retargetd.daemon.solve_face import (
 from retargetd.protocols.frames import F64Array
 
 logger = logging.getLogger(__name__)
-
-_PLACEHOLDER = "_none"
 
 
 @dataclass(slots=True, eq=False)
@@ -139,19 +137,11 @@ class LiveFace:
         t = self.training
         if t is None:
             return None
-        solve_t = t
-        if t.k == 0:  # neutral only: stabilize, no weights
-            m = len(t.marker_names)
-            solve_t = TrainingSet(
-                head_names=t.head_names, marker_names=t.marker_names,
-                expression_names=(_PLACEHOLDER,), head_layout=t.head_layout,
-                neutral=t.neutral, deltas=np.zeros((1, m, 3)),
-            )  # fmt: skip
         head_w = None
         if tuple(t.head_names) == self.face.head_markers:
             head_w = self.face.head_weights
         solver = FaceSolver(
-            solve_t,
+            t,
             labels=tuple(labels),
             regularization=self.settings.regularization,
             head_weights=head_w,
@@ -170,7 +160,7 @@ class LiveFace:
             output_names=outputs,
             out_matrix=self.face.output_matrix(names) if t.k else np.zeros((0, 0)),
             blend=np.zeros(len(outputs)),
-            weights=out.weights[: t.k],
+            weights=out.weights,
         )
 
     # ---- live capture ----------------------------------------------------------------

@@ -118,7 +118,8 @@ class TrainingSet:
     @property
     def basis(self) -> F64Array:
         """B: (3 M, K) float64, metres; row 3 m + c is marker m, axis c."""
-        return np.ascontiguousarray(self.deltas.transpose(1, 2, 0).reshape(-1, self.k))
+        m3 = 3 * len(self.marker_names)
+        return np.ascontiguousarray(self.deltas.transpose(1, 2, 0).reshape(m3, self.k))
 
     @property
     def k(self) -> int:
@@ -337,7 +338,7 @@ class FaceSolver:
         h, m, k = len(training.head_names), len(training.marker_names), training.k
         self._basis = training.basis
         btb = self._basis.T @ self._basis
-        self.lambda_ = float(regularization * np.mean(np.diag(btb)))
+        self.lambda_ = float(regularization * np.mean(np.diag(btb))) if k else 0.0
         if self.lambda_ <= 0.0:
             self.lambda_ = 1e-12
         self._a_full = btb + self.lambda_ * np.eye(k)

@@ -161,6 +161,22 @@ def test_bad_training_shapes_are_rejected(rng: np.random.Generator) -> None:
         )  # fmt: skip
 
 
+def test_neutral_only_training_set_stabilizes_without_weights(
+    rng: np.random.Generator,
+) -> None:
+    # No expression captured yet: the solver still stabilizes, with zero weights.
+    full = _random_training(rng, m=5, k=1)
+    tr = dataclasses.replace(full, expression_names=(), deltas=np.zeros((0, 5, 3)))
+    assert tr.basis.shape == (15, 0)
+    markers, _, _ = _frames(tr, rng, np.zeros((3, 0)))
+    solver = sf.FaceSolver(tr)
+    out = solver.new_output()
+    for frame in markers:
+        solver.solve_frame(frame, np.ones(len(frame), dtype=bool), out)
+        assert out.weights.shape == (0,) and out.status[0] == 0
+        np.testing.assert_allclose(out.markers_head, tr.neutral, atol=1e-12)
+
+
 def test_solve_frame_allocates_nothing(rng: np.random.Generator) -> None:
     tr = _random_training(rng, m=40, k=52)
     w = rng.uniform(-0.2, 1.2, (200, tr.k))
