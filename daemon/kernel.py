@@ -36,7 +36,7 @@ FLAG_PARTIAL = 4  #: some defining marker was not seen (quality < 1)
 FLAG_NEVER = 8  #: no good value yet: the calibrated rest rotation is sent
 
 
-@numba.njit(cache=True, nogil=True, fastmath=False)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _quat_from_axes(
     xx: float, xy: float, xz: float,
     yx: float, yy: float, yz: float,
@@ -81,7 +81,7 @@ def _quat_from_axes(
     out[3] = z / n
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _conj_mul(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
     # out = conj(a) * b (Hamilton), i.e. a^-1 b for unit a.
     aw, ax, ay, az = a[0], -a[1], -a[2], -a[3]
@@ -92,7 +92,7 @@ def _conj_mul(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
     out[3] = aw * bz + ax * by - ay * bx + az * bw
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _mul(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
     # out = a * b (Hamilton); out may not alias a or b.
     aw, ax, ay, az = a[0], a[1], a[2], a[3]
@@ -103,7 +103,7 @@ def _mul(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
     out[3] = aw * bz + ax * by - ay * bx + az * bw
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _jacobi_top_eigvec(a: np.ndarray, v: np.ndarray, out: np.ndarray) -> None:
     # Eigenvector of the largest eigenvalue of the symmetric 4x4 ``a`` (destroyed),
     # by cyclic Jacobi rotations on the scratch ``v`` (4, 4): no allocation.
@@ -151,7 +151,7 @@ def _jacobi_top_eigvec(a: np.ndarray, v: np.ndarray, out: np.ndarray) -> None:
         out[k] = v[k, best]
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def horn_rotation(
     sxx: float, sxy: float, sxz: float,
     syx: float, syy: float, syz: float,
@@ -188,7 +188,7 @@ def horn_rotation(
     n44[2, 2] = 1.0 - 2.0 * (x * x + y * y)
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _kabsch_fill(
     pts: np.ndarray,
     seen: np.ndarray,
@@ -270,7 +270,7 @@ def _kabsch_fill(
             filled[m] = True
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def solve_one(
     markers: np.ndarray,  # (M_stream, 3) world metres, NaN = occluded
     marker_cols: np.ndarray,  # (Mr,) int64, stream column per rig marker, -1 absent
@@ -468,7 +468,7 @@ def solve_one(
     return n_held
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def solve_many(
     markers: np.ndarray,  # (T, M_stream, 3)
     marker_cols: np.ndarray,

@@ -30,7 +30,7 @@ FLAG_NEVER = 16  #: no good frame yet: identity pose and zero weights are sent
 _BPP_TRIES = 3
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _fit_head(
     markers: np.ndarray,  # (N, 3) world
     valid: np.ndarray,  # (N,) bool
@@ -115,7 +115,7 @@ def _fit_head(
     return n
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _solve_free(
     a: np.ndarray,
     b: np.ndarray,
@@ -165,7 +165,7 @@ def _solve_free(
     return nf
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _box_qp(
     a: np.ndarray,  # (K, K) SPD
     b: np.ndarray,  # (K,)
@@ -250,7 +250,7 @@ def _box_qp(
     return -1
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def solve_face_frame(
     markers: np.ndarray,  # (N, 3) world, metres
     valid: np.ndarray,  # (N,) bool

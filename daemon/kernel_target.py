@@ -49,7 +49,7 @@ P_HALF_LINEAR = 4
 N_PARAMS = 5
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def retarget_one(
     in_wfb: np.ndarray,  # (B, 4) rig world_from_bone (w x y z)
     in_root: np.ndarray,  # (3,) rig root position, metres world

@@ -72,6 +72,9 @@ from retargetd.protocols.vmc_out import VmcEncoder
 logger = logging.getLogger(__name__)
 
 _UDP_MAX = 65536
+#: Largest control request accepted (bytes); ZeroMQ drops the connection of a
+#: peer that sends more. A request is a small JSON object (a path at most).
+CONTROL_MAX_BYTES = 65536
 
 
 @dataclass(slots=True)
@@ -195,6 +198,7 @@ class Daemon:
             self._announce("zmq poses", f"{ep} (pub)")
         self._ctl = self._ctx.socket(zmq.REP)
         self._ctl.setsockopt(zmq.LINGER, 0)
+        self._ctl.setsockopt(zmq.MAXMSGSIZE, CONTROL_MAX_BYTES)
         self._ctl.bind(c.control.endpoint)
         self._poller.register(self._ctl, zmq.POLLIN)
         self._sockets.append(self._ctl)
@@ -863,17 +867,28 @@ class Daemon:
     def _serve_control(self) -> None:
         assert self._ctl is not None
         try:
-            raw = self._ctl.recv(zmq.NOBLOCK)
+            # Every part of the request, so the REP socket is always ready to reply
+            # (a multipart request read with recv() left it mid-message).
+            parts = self._ctl.recv_multipart(zmq.NOBLOCK)
         except zmq.Again:
             return
         try:
-            req = json.loads(raw)
+            if len(parts) != 1:
+                raise ValueError(
+                    f"a control request is one JSON message; got {len(parts)} parts"
+                )
+            req = json.loads(parts[0])
             if not isinstance(req, dict):
                 raise ValueError("request must be a JSON object")
             reply = self._control(req)
+        except RecursionError:  # nesting deeper than the parser's stack
+            reply = {"ok": False, "error": "request nested too deeply"}
         except (ValueError, TypeError) as exc:
             reply = {"ok": False, "error": str(exc)}
-        self._ctl.send(json.dumps(reply).encode())
+        try:
+            self._ctl.send(json.dumps(reply).encode(), zmq.NOBLOCK)
+        except zmq.ZMQError as exc:  # the requester vanished: nothing to answer
+            logger.warning("control reply not sent: %s", exc)
 
     def _control(self, req: dict[str, Any]) -> dict[str, Any]:
         cmd = req.get("cmd")

@@ -218,7 +218,7 @@ class _Slot:
 # ---- compiled kernels --------------------------------------------------------------
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _write_qpos(
     qpos: np.ndarray,
     root_pos: np.ndarray,
@@ -242,7 +242,7 @@ def _write_qpos(
             qpos[a + k] = pfb[b, k]
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
+@numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _rotate(
     q: np.ndarray, vx: float, vy: float, vz: float
 ) -> tuple[float, float, float]:  # pragma: no cover - compiled
@@ -258,12 +258,12 @@ def _rotate(
     )
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
+@numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _beyond(x: float, lo: float, hi: float) -> float:  # pragma: no cover - compiled
     return max(max(lo - x, x - hi), 0.0)
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _check_frame(
     root_pos: np.ndarray,  # (3,)
     wfb: np.ndarray,  # (B, 4)

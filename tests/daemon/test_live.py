@@ -1244,6 +1244,37 @@ def test_side_by_side_daemons_and_ctl_endpoint(
     assert a.running and b.running
 
 
+def _raw_control(endpoint: str, *parts: bytes) -> dict[str, Any]:
+    """One request of raw parts on a fresh REQ socket; the daemon's JSON reply."""
+    ctx = zmq.Context.instance()
+    sock = ctx.socket(zmq.REQ)
+    sock.setsockopt(zmq.LINGER, 0)
+    sock.setsockopt(zmq.RCVTIMEO, 2000)
+    try:
+        sock.connect(endpoint)
+        sock.send_multipart(list(parts))
+        reply: dict[str, Any] = json.loads(sock.recv())
+        return reply
+    finally:
+        sock.close()
+
+
+def test_control_survives_hostile_requests(start_daemon: Callable[..., Live]) -> None:
+    """Issue 12: 1 KB of ``[`` raised RecursionError in the loop; a 3-part request
+    left the REP socket mid-message (ZMQError "cannot be accomplished in current
+    state"). Both are answered with an error and the daemon goes on."""
+    live = start_daemon()
+    ep = live.tcp("control")
+    reply = _raw_control(ep, b"[" * 1024)
+    assert reply == {"ok": False, "error": "request nested too deeply"}
+    reply = _raw_control(ep, b'{"cmd": "status"}', b"two", b"three")
+    assert not reply["ok"] and "3 parts" in reply["error"]
+    reply = _raw_control(ep, b"\xff\xfe not json")
+    assert not reply["ok"]
+    assert live.ctl({"cmd": "status"})["ok"]
+    assert live.running
+
+
 def test_readme_live_daemon_example(
     start_daemon: Callable[..., Live], capsys: pytest.CaptureFixture[str]
 ) -> None:
