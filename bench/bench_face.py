@@ -6,7 +6,7 @@ Run from the repository root::
                                [--model ict|makehuman]
 
 The synthetic face (``--model``: ICT-FaceKit, default, or MakeHuman + TalkingHead ARKit;
-``retargetd.daemon.face_synth``): 40 facial markers, 4 head markers, ARKit 52 shapes,
+``retargetd.daemon.synth.face``): 40 facial markers, 4 head markers, ARKit 52 shapes,
 0.5 mm noise) rides on the head motion of the Plug-in Gait walk
 (``../shared/datasets``), replayed end to end to fill ``--calls``. For each case (every
 marker seen; ``--occluded`` percent of facial markers hidden at random per frame, so the
@@ -29,8 +29,8 @@ from pathlib import Path
 import numpy as np
 from scipy.optimize import lsq_linear
 
-from retargetd.daemon import face_synth as fs
-from retargetd.daemon import solve_face as sf
+from retargetd.daemon.face import solve as sf
+from retargetd.daemon.synth import face as fs
 
 DATASETS = Path(__file__).resolve().parent.parent.parent / "shared" / "datasets"
 

@@ -317,8 +317,8 @@ def _face_stream(take: Any, rng: np.random.Generator) -> tuple[Any, Any, Any]:
     """
     from scipy.spatial.transform import Rotation
 
-    from retargetd.daemon import face_synth as fs
-    from retargetd.daemon.solve_face import TrainingSet
+    from retargetd.daemon.face.solve import TrainingSet
+    from retargetd.daemon.synth import face as fs
 
     cols = [take.labels.index(n) for n in fs.HEAD_NAMES]
     head = take.positions[:, cols]
@@ -415,7 +415,7 @@ class Daemon:
 
     def status(self, timeout_ms: int = 2000) -> dict[str, Any] | None:
         """``retargetd ctl status --json`` (the same request, in process)."""
-        from retargetd.daemon.cmd_ctl import request
+        from retargetd.daemon.cli.ctl import request
 
         reply = request(self.endpoints["control"], {"cmd": "status"}, timeout_ms)
         return None if reply is None else reply["status"]

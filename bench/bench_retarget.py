@@ -26,11 +26,11 @@ from collections.abc import Callable
 
 import numpy as np
 
-from retargetd.daemon import performer as pf
-from retargetd.daemon import target as tg
-from retargetd.daemon.calibration import calibrate
-from retargetd.daemon.rig import load_rig
-from retargetd.daemon.solve_body import BodyPose, BodySolver
+from retargetd.daemon.body.calibration import calibrate
+from retargetd.daemon.body.rig import load_rig
+from retargetd.daemon.body.solve import BodyPose, BodySolver
+from retargetd.daemon.synth import performer as pf
+from retargetd.daemon.target import retarget as tg
 
 
 def _time(fn: Callable[[int], object], calls: int, n_frames: int) -> np.ndarray:

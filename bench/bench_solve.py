@@ -39,16 +39,16 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from retargetd.daemon import performer as pf
 from retargetd.daemon import rotations as rot
-from retargetd.daemon.calibration import (
+from retargetd.daemon.body.calibration import (
     Calibration,
     calibrate,
     compute_points,
     match_markers,
 )
-from retargetd.daemon.rig import LinePoint, Rig, load_rig, shipped_rigs
-from retargetd.daemon.solve_body import BodySolver, bone_world_quats
+from retargetd.daemon.body.rig import LinePoint, Rig, load_rig, shipped_rigs
+from retargetd.daemon.body.solve import BodySolver, bone_world_quats
+from retargetd.daemon.synth import performer as pf
 
 DATASETS = Path(__file__).resolve().parent.parent.parent / "shared" / "datasets"
 PIG_MOTION = DATASETS / "btkdata" / "PiG_Motion-FlatFoot-Full.c3d"
@@ -81,7 +81,7 @@ def _menache(n_frames: int) -> Case:
 def _plug_in_gait(n_frames: int) -> Case | None:
     if "plug-in-gait" not in shipped_rigs():
         print(
-            "plug-in-gait: no rig daemon/rigs/plug-in-gait.toml yet: skipped",
+            "plug-in-gait: no rig daemon/body/rigs/plug-in-gait.toml yet: skipped",
             file=sys.stderr,
         )
         return None

@@ -44,7 +44,7 @@ Figures, 2026-11-22, this 2-core shared machine (load 0.2-0.8), default options
 - GIL (``--gil-seconds 5``), +p99 against ``off``: ``on`` -27, -15, +1, -21 µs at 5,
   1, 0.5, 0.1 ms (noise), ``saturated`` +66, +113, +66, +81 µs; work median 18 µs
   off, 22.5 on, 27 saturated. The switch interval makes no difference: see
-  ``daemon/validate_live.py``.
+  ``daemon/validate/live.py``.
 
 Speed is printed, never asserted (STYLE.md section 10).
 """
@@ -62,12 +62,12 @@ from typing import Any
 
 import numpy as np
 
-from retargetd.daemon import target as tg
-from retargetd.daemon import validate_live as vl
-from retargetd.daemon.calibration import calibrate
-from retargetd.daemon.rig import load_rig
-from retargetd.daemon.solve_body import BodySolve, BodySolver
-from retargetd.daemon.validate import FrameChecker, fit_pairs, validate_take
+from retargetd.daemon.body.calibration import calibrate
+from retargetd.daemon.body.rig import load_rig
+from retargetd.daemon.body.solve import BodySolve, BodySolver
+from retargetd.daemon.target import retarget as tg
+from retargetd.daemon.validate import live as vl
+from retargetd.daemon.validate.checks import FrameChecker, fit_pairs, validate_take
 from retargetd.protocols import pose_stream
 from retargetd.replay.takes import load_take
 

@@ -2,6 +2,6 @@
 
 import sys
 
-from retargetd.daemon.cli import main
+from retargetd.daemon.cli.main import main
 
 sys.exit(main())

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from retargetd.daemon.cli import main
+from retargetd.daemon.cli.main import main
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 

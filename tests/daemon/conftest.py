@@ -80,7 +80,7 @@ def pig_calibration(tmp_path_factory: pytest.TempPathFactory) -> Path:
         if os.environ.get("CI", "").lower() in ("1", "true", "yes"):
             pytest.fail(f"{reason} (CI=true: nothing may skip)")
         pytest.skip(reason)
-    from retargetd.daemon.cli import main
+    from retargetd.daemon.cli.main import main
 
     out = tmp_path_factory.mktemp("pig") / "performer.json"
     argv = ["calibrate", str(DATASETS / PIG_STATIC), "--rig", "plug-in-gait"]
@@ -175,7 +175,7 @@ class DaemonProc:
 
     def ctl(self, req: dict[str, Any], timeout_ms: int = 2000) -> dict[str, Any] | None:
         """One control request; the reply, or None on timeout."""
-        from retargetd.daemon.cmd_ctl import request
+        from retargetd.daemon.cli.ctl import request
 
         return request(self.endpoints["control"], req, timeout_ms)
 
@@ -348,12 +348,12 @@ def clean_synth() -> CleanTake:
     """The synthetic performer (every motion but forearm_twist, which pushes a forearm
     into a thigh), 4 s at 120 Hz, solved with ``tests/data/synth-exact-rig.toml`` and
     modelled: shared by the validation tests."""
-    from retargetd.daemon import performer as pf
-    from retargetd.daemon.calibration import calibrate
-    from retargetd.daemon.rig import load_rig
-    from retargetd.daemon.solve_body import BodySolver
-    from retargetd.daemon.validate import fit_pairs
-    from retargetd.daemon.validate_model import build_model, skeleton_from_calibration
+    from retargetd.daemon.body.calibration import calibrate
+    from retargetd.daemon.body.rig import load_rig
+    from retargetd.daemon.body.solve import BodySolver
+    from retargetd.daemon.synth import performer as pf
+    from retargetd.daemon.validate.checks import fit_pairs
+    from retargetd.daemon.validate.model import build_model, skeleton_from_calibration
 
     data = Path(__file__).resolve().parent.parent / "data"
     rate_hz = 120.0

@@ -21,7 +21,7 @@ import pytest
 import zmq
 from mcap.reader import make_reader
 
-from retargetd.daemon.cli import main
+from retargetd.daemon.cli.main import main
 from retargetd.protocols import osc_in
 from retargetd.protocols.marker_input import LabelSet
 from retargetd.replay import recording as rf

@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from retargetd.daemon.cli import main
-from retargetd.daemon.performer import load_truth, synthesize
+from retargetd.daemon.cli.main import main
+from retargetd.daemon.synth.performer import load_truth, synthesize
 from retargetd.replay.takes import load_take
 
 

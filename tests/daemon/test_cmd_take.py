@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from retargetd.daemon.cli import main
-from retargetd.daemon.cmd_take import longest_gaps
+from retargetd.daemon.cli.main import main
+from retargetd.daemon.cli.take import longest_gaps
 
 TWO_SUBJECT_FILES = {
     "pyomeca/markers_analogs.c3d": ("boite", "Daphnee"),

@@ -15,11 +15,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from retargetd.daemon.calibration import Calibration, calibrate
-from retargetd.daemon.cmd_solve import segment_stability
-from retargetd.daemon.rig import Rig, load_rig
+from retargetd.daemon.body.calibration import Calibration, calibrate
+from retargetd.daemon.body.rig import Rig, load_rig
+from retargetd.daemon.body.solve import FLAG_HELD, BodySolve, BodySolver
+from retargetd.daemon.cli.solve import segment_stability
 from retargetd.daemon.rotations import mat_from_quat
-from retargetd.daemon.solve_body import FLAG_HELD, BodySolve, BodySolver
 from retargetd.replay.take import Take
 from retargetd.replay.takes import load_take
 

@@ -7,12 +7,12 @@ from pathlib import Path
 
 import pytest
 
-from retargetd.daemon.cli import main
-from retargetd.daemon.config import ConfigError, DaemonConfig
+from retargetd.daemon.cli.main import main
+from retargetd.daemon.live.config import ConfigError, DaemonConfig
 
 
 def test_example_config_documents_the_defaults() -> None:
-    example = resources.files("retargetd.daemon") / "retargetd.example.toml"
+    example = resources.files("retargetd.daemon.live") / "retargetd.example.toml"
     assert DaemonConfig.from_toml(str(example)) == DaemonConfig()
 
 

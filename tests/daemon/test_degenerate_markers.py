@@ -19,10 +19,10 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from retargetd.daemon import solve_face as sf
-from retargetd.daemon.calibration import calibrate
-from retargetd.daemon.rig import load_rig
-from retargetd.daemon.solve_body import FLAG_HELD, BodyPose, BodySolver
+from retargetd.daemon.body.calibration import calibrate
+from retargetd.daemon.body.rig import load_rig
+from retargetd.daemon.body.solve import FLAG_HELD, BodyPose, BodySolver
+from retargetd.daemon.face import solve as sf
 from retargetd.replay.takes import load_take
 
 DATASETS = Path(__file__).resolve().parents[2].parent / "shared" / "datasets"

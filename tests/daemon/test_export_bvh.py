@@ -17,16 +17,16 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from retargetd.daemon import rotations as rot
-from retargetd.daemon.calibration import Calibration, calibrate, load_calibration
-from retargetd.daemon.cli import main
-from retargetd.daemon.export_bvh import (
+from retargetd.daemon.body.calibration import Calibration, calibrate, load_calibration
+from retargetd.daemon.body.rig import load_rig
+from retargetd.daemon.body.solve import BodySolve, BodySolver
+from retargetd.daemon.cli.main import main
+from retargetd.daemon.target.bvh import (
     BVH_CM_PER_M,
     BVH_FROM_WORLD,
     posed_bone_origins,
     write_solve_bvh,
 )
-from retargetd.daemon.rig import load_rig
-from retargetd.daemon.solve_body import BodySolve, BodySolver
 from retargetd.replay.bvh import BvhSkeleton, read_bvh_hierarchy, split_bvh_motion
 from retargetd.replay.takes import load_take
 

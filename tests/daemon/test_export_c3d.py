@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from retargetd.daemon.cli import main
+from retargetd.daemon.cli.main import main
 from retargetd.replay.c3d import write_c3d
 from retargetd.replay.takes import load_take
 from retargetd.replay.trc import write_trc

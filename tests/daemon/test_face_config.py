@@ -10,15 +10,15 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from retargetd.daemon import face_synth as fs
-from retargetd.daemon import solve_face as sf
-from retargetd.daemon.cli import main
-from retargetd.daemon.face_config import (
+from retargetd.daemon.cli.main import main
+from retargetd.daemon.face import solve as sf
+from retargetd.daemon.face.config import (
     FACE_KEYS,
     FaceConfigError,
     load_face_config,
     shipped_faces,
 )
+from retargetd.daemon.synth import face as fs
 
 DATASETS = Path(__file__).resolve().parents[2].parent / "shared" / "datasets"
 
@@ -66,8 +66,9 @@ def test_bad_configs_are_refused(tmp_path: Path, text: str, match: str) -> None:
 
 
 def test_reference_document_matches_the_parser(tmp_path: Path) -> None:
-    # daemon/faces/FACES.md: its example loads, and its key table is the parser's.
-    doc = (Path(__file__).resolve().parents[2] / "daemon/faces/FACES.md").read_text()
+    # daemon/face/faces/FACES.md: its example loads, and its key table is the parser's.
+    repo = Path(__file__).resolve().parents[2]
+    doc = (repo / "daemon/face/faces/FACES.md").read_text()
     example = doc.split("```toml\n", 1)[1].split("```", 1)[0]
     path = tmp_path / "example.toml"
     path.write_text(example)

@@ -128,8 +128,8 @@ def test_a_moved_calibration_offset_fails_naming_joints(
 ) -> None:
     """A change upstream of the solve: the calibrated left ankle centre (a rigid
     point's offset) moves 0.2 mm; its joint centre and the left shank are named."""
-    from retargetd.daemon import calibration
-    from retargetd.daemon.rig import load_rig
+    from retargetd.daemon.body import calibration
+    from retargetd.daemon.body.rig import load_rig
 
     rig = load_rig("menache")
     point = rig.point_names.index(rig.joints["LAJC"])

@@ -50,16 +50,16 @@ from pythonosc.osc_bundle_builder import IMMEDIATELY, OscBundleBuilder
 from pythonosc.osc_message import OscMessage
 from pythonosc.osc_message_builder import OscMessageBuilder
 
-from retargetd.daemon import performer as pf
-from retargetd.daemon.calibration import calibrate, load_calibration
-from retargetd.daemon.cli import build_parser
-from retargetd.daemon.cli import main as cli_main
-from retargetd.daemon.cmd_ctl import request
-from retargetd.daemon.config import DaemonConfig
-from retargetd.daemon.loop import Daemon
-from retargetd.daemon.rig import load_rig
-from retargetd.daemon.solve_body import BodySolver
-from retargetd.daemon.target import Retargeter, default_humanoid
+from retargetd.daemon.body.calibration import calibrate, load_calibration
+from retargetd.daemon.body.rig import load_rig
+from retargetd.daemon.body.solve import BodySolver
+from retargetd.daemon.cli.ctl import request
+from retargetd.daemon.cli.main import build_parser
+from retargetd.daemon.cli.main import main as cli_main
+from retargetd.daemon.live.config import DaemonConfig
+from retargetd.daemon.live.loop import Daemon
+from retargetd.daemon.synth import performer as pf
+from retargetd.daemon.target.retarget import Retargeter, default_humanoid
 from retargetd.protocols import engine_unity, osc_in, pose_stream, vmc_out, zmq_wire
 from retargetd.protocols.marker_input import LabelSet
 

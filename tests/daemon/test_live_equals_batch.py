@@ -34,11 +34,11 @@ from typing import Any
 import numpy as np
 import pytest
 
-from retargetd.daemon.calibration import load_calibration
-from retargetd.daemon.cli import main
-from retargetd.daemon.rig import load_rig
+from retargetd.daemon.body.calibration import load_calibration
+from retargetd.daemon.body.rig import load_rig
+from retargetd.daemon.body.solve import BodySolve, BodySolver
+from retargetd.daemon.cli.main import main
 from retargetd.daemon.rotations import quat_angle, quat_conj, quat_mul
-from retargetd.daemon.solve_body import BodySolve, BodySolver
 from retargetd.replay.take import Take
 from retargetd.replay.takes import load_take
 

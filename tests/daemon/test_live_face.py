@@ -25,10 +25,10 @@ import numpy as np
 import pytest
 import zmq
 
-from retargetd.daemon import face_synth as fs
-from retargetd.daemon.cli import main as cli_main
-from retargetd.daemon.face_config import load_face_config
-from retargetd.daemon.solve_face import FaceSolver, TrainingSet, observability
+from retargetd.daemon.cli.main import main as cli_main
+from retargetd.daemon.face.config import load_face_config
+from retargetd.daemon.face.solve import FaceSolver, TrainingSet, observability
+from retargetd.daemon.synth import face as fs
 from retargetd.protocols import pose_stream, vmc_out, zmq_wire
 from retargetd.protocols.marker_input import LabelSet
 

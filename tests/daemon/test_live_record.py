@@ -28,10 +28,10 @@ from typing import Any
 import numpy as np
 import pytest
 
-from retargetd.daemon.cli import main
-from retargetd.daemon.cmd_ctl import request
-from retargetd.daemon.config import DaemonConfig
-from retargetd.daemon.loop import Daemon
+from retargetd.daemon.cli.ctl import request
+from retargetd.daemon.cli.main import main
+from retargetd.daemon.live.config import DaemonConfig
+from retargetd.daemon.live.loop import Daemon
 from retargetd.protocols import osc_in, pose_stream
 from retargetd.protocols.marker_input import LabelSet
 from retargetd.replay import recorder as recorder_mod

@@ -19,10 +19,10 @@ from typing import Any
 import numpy as np
 import zmq
 
-from retargetd.daemon.calibration import load_calibration
-from retargetd.daemon.rig import load_rig
-from retargetd.daemon.solve_body import BodySolver
-from retargetd.daemon.validate_live import LiveValidator
+from retargetd.daemon.body.calibration import load_calibration
+from retargetd.daemon.body.rig import load_rig
+from retargetd.daemon.body.solve import BodySolver
+from retargetd.daemon.validate.live import LiveValidator
 from retargetd.protocols import pose_stream as ps
 from retargetd.protocols import zmq_wire
 from retargetd.protocols.marker_input import LabelSet

@@ -16,10 +16,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from retargetd.daemon.calibration import Calibration, calibrate, match_markers
-from retargetd.daemon.performer import synthesize
-from retargetd.daemon.rig import Rig, load_rig
-from retargetd.daemon.solve_body import (
+from retargetd.daemon.body.calibration import Calibration, calibrate, match_markers
+from retargetd.daemon.body.rig import Rig, load_rig
+from retargetd.daemon.body.solve import (
     FLAG_HELD,
     FLAG_NEVER,
     FLAG_PARTIAL,
@@ -27,6 +26,7 @@ from retargetd.daemon.solve_body import (
     BodySolve,
     BodySolver,
 )
+from retargetd.daemon.synth.performer import synthesize
 from retargetd.replay.take import Take
 from retargetd.replay.takes import load_take
 

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from retargetd.daemon import performer as pf
 from retargetd.daemon import rotations as rot
+from retargetd.daemon.synth import performer as pf
 
 PLUG_IN_GAIT = [
     "LFHD",

@@ -15,15 +15,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from retargetd.daemon.calibration import (
+from retargetd.daemon.body.calibration import (
     Calibration,
     calibrate,
     compute_points,
     match_markers,
 )
-from retargetd.daemon.cli import main
-from retargetd.daemon.rig import Rig, load_rig
-from retargetd.daemon.solve_body import FLAG_HELD, FLAG_REBUILT, BodySolve, BodySolver
+from retargetd.daemon.body.rig import Rig, load_rig
+from retargetd.daemon.body.solve import FLAG_HELD, FLAG_REBUILT, BodySolve, BodySolver
+from retargetd.daemon.cli.main import main
 from retargetd.replay.take import Take
 from retargetd.replay.takes import load_take
 

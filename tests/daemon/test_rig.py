@@ -6,8 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from retargetd.daemon.cli import main
-from retargetd.daemon.rig import (
+from retargetd.daemon.body.rig import (
     HUMANOID_BONES,
     LinePoint,
     RigError,
@@ -17,6 +16,7 @@ from retargetd.daemon.rig import (
     parse_rig,
     shipped_rigs,
 )
+from retargetd.daemon.cli.main import main
 
 MINIMAL = """
 [rig]

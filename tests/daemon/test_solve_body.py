@@ -27,11 +27,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from retargetd.daemon import performer as pf
 from retargetd.daemon import rotations as rot
-from retargetd.daemon.calibration import Calibration, calibrate, compute_points
-from retargetd.daemon.rig import Rig, load_rig
-from retargetd.daemon.solve_body import (
+from retargetd.daemon.body.calibration import Calibration, calibrate, compute_points
+from retargetd.daemon.body.rig import Rig, load_rig
+from retargetd.daemon.body.solve import (
     FLAG_HELD,
     FLAG_NEVER,
     FLAG_REBUILT,
@@ -39,6 +38,7 @@ from retargetd.daemon.solve_body import (
     BodySolver,
     bone_world_quats,
 )
+from retargetd.daemon.synth import performer as pf
 
 DATA = Path(__file__).resolve().parent.parent / "data"
 EXACT_RIG = DATA / "synth-exact-rig.toml"

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from retargetd.daemon import rotations as rot
-from retargetd.daemon.calibration import load_calibration
-from retargetd.daemon.cli import main
+from retargetd.daemon.body.calibration import load_calibration
+from retargetd.daemon.cli.main import main
 
 NPZ_KEYS = {
     "joint_names", "joint_centres", "bone_names", "bone_parents",

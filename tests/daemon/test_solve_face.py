@@ -25,8 +25,8 @@ import pytest
 from scipy.optimize import lsq_linear
 from scipy.spatial.transform import Rotation
 
-from retargetd.daemon import face_synth as fs
-from retargetd.daemon import solve_face as sf
+from retargetd.daemon.face import solve as sf
+from retargetd.daemon.synth import face as fs
 
 
 def _random_training(

@@ -27,13 +27,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from retargetd.daemon import performer as pf
 from retargetd.daemon import rotations as rot
-from retargetd.daemon import target as tg
-from retargetd.daemon.calibration import Calibration, calibrate
-from retargetd.daemon.kernel import FLAG_HELD
-from retargetd.daemon.rig import HUMANOID_BONES, Bone, Rig, load_rig
-from retargetd.daemon.solve_body import BodyPose, BodySolver
+from retargetd.daemon.body.calibration import Calibration, calibrate
+from retargetd.daemon.body.kernel import FLAG_HELD
+from retargetd.daemon.body.rig import HUMANOID_BONES, Bone, Rig, load_rig
+from retargetd.daemon.body.solve import BodyPose, BodySolver
+from retargetd.daemon.synth import performer as pf
+from retargetd.daemon.target import retarget as tg
 from retargetd.protocols import engine_unity
 from retargetd.protocols.conventions import world_from_capture_mat
 from retargetd.replay.bvh import read_bvh_hierarchy
@@ -488,8 +488,8 @@ def test_compiled_apply_equals_numpy_oracle_on_menache(synth: pf.SynthTake) -> N
 
 
 def test_warm_up_loads_the_retarget_kernel(hand: tuple) -> None:
-    from retargetd.daemon import kernel_target
-    from retargetd.daemon.solve_body import warm_up
+    from retargetd.daemon.target import kernel as kernel_target
+    from retargetd.daemon.target.retarget import warm_up
 
     warm_up()
     signatures = list(kernel_target.retarget_one.signatures)

@@ -22,18 +22,18 @@ import numpy as np
 import pytest
 
 from retargetd.daemon import rotations as rot
-from retargetd.daemon.calibration import calibrate
-from retargetd.daemon.rig import load_rig
-from retargetd.daemon.solve_body import BodySolve, BodySolver
-from retargetd.daemon.validate import (
+from retargetd.daemon.body.calibration import calibrate
+from retargetd.daemon.body.rig import load_rig
+from retargetd.daemon.body.solve import BodySolve, BodySolver
+from retargetd.daemon.validate.checks import (
     THRESHOLDS,
     TakeReport,
     fit_pairs,
     pose_skeleton,
     validate_take,
 )
-from retargetd.daemon.validate_limits import swing_twist
-from retargetd.daemon.validate_model import (
+from retargetd.daemon.validate.limits import swing_twist
+from retargetd.daemon.validate.model import (
     ValidationModel,
     build_model,
     capsule_radii,
@@ -341,7 +341,7 @@ def test_cli_pig_walk_passes(
 ) -> None:
     import json
 
-    from retargetd.daemon.cli import main
+    from retargetd.daemon.cli.main import main
 
     report = tmp_path / "report"
     assert main(_validate_argv(datasets, pig_calibration, report)) == 0
@@ -359,8 +359,8 @@ def test_cli_exit_codes(
     tmp_path: Path,
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    from retargetd.daemon import validate
-    from retargetd.daemon.cli import main
+    from retargetd.daemon.cli.main import main
+    from retargetd.daemon.validate import checks as validate
 
     argv = _validate_argv(datasets, pig_calibration, tmp_path / "r")
     bad = [*argv[:5], str(tmp_path / "missing.json"), *argv[6:]]

@@ -24,17 +24,17 @@ import pytest
 from scipy.signal import butter, lfilter, lfilter_zi
 
 from retargetd.daemon import rotations as rot
-from retargetd.daemon import validate_dynamics as vd
-from retargetd.daemon import validate_live as vl
-from retargetd.daemon.solve_body import BodySolve
-from retargetd.daemon.validate import (
+from retargetd.daemon.body.solve import BodySolve
+from retargetd.daemon.validate import dynamics as vd
+from retargetd.daemon.validate import live as vl
+from retargetd.daemon.validate.checks import (
     THRESHOLDS,
     TakeReport,
     fit_pairs,
     pose_skeleton,
     validate_take,
 )
-from retargetd.daemon.validate_model import skeleton_from_arrays
+from retargetd.daemon.validate.model import skeleton_from_arrays
 from retargetd.protocols import pose_stream as ps
 
 pytestmark = [pytest.mark.usefixtures("mujoco_cwd"), pytest.mark.timeout(60)]
@@ -76,9 +76,9 @@ class Pig:
 @pytest.fixture(scope="module")
 def pig() -> Pig:
     """The PiG walk solved with the plug-in-gait rig on its static calibration."""
-    from retargetd.daemon.calibration import calibrate
-    from retargetd.daemon.rig import load_rig
-    from retargetd.daemon.solve_body import BodySolver
+    from retargetd.daemon.body.calibration import calibrate
+    from retargetd.daemon.body.rig import load_rig
+    from retargetd.daemon.body.solve import BodySolver
     from retargetd.replay.takes import load_take
 
     if not DATASETS.is_dir():

@@ -24,17 +24,17 @@ import numpy as np
 import pytest
 
 from retargetd.daemon import rotations as rot
-from retargetd.daemon import validate_dynamics as vd
-from retargetd.daemon.calibration import calibrate
-from retargetd.daemon.rig import load_rig
-from retargetd.daemon.solve_body import BodySolve, BodySolver
-from retargetd.daemon.validate import (
+from retargetd.daemon.body.calibration import calibrate
+from retargetd.daemon.body.rig import load_rig
+from retargetd.daemon.body.solve import BodySolve, BodySolver
+from retargetd.daemon.validate import dynamics as vd
+from retargetd.daemon.validate.checks import (
     THRESHOLDS,
     fit_pairs,
     pose_skeleton,
     validate_take,
 )
-from retargetd.daemon.validate_model import (
+from retargetd.daemon.validate.model import (
     Skeleton,
     build_model,
     skeleton_from_calibration,

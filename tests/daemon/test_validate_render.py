@@ -17,12 +17,12 @@ import numpy as np
 import pytest
 from matplotlib.image import imread
 
-from retargetd.daemon.solve_body import BodySolve
-from retargetd.daemon.validate import TakeReport, validate_take
-from retargetd.daemon.validate_model import (
+from retargetd.daemon.body.solve import BodySolve
+from retargetd.daemon.validate.checks import TakeReport, validate_take
+from retargetd.daemon.validate.model import (
     ValidationModel,
 )
-from retargetd.daemon.validate_render import (
+from retargetd.daemon.validate.render import (
     BLAMED_RGBA,
     HEIGHT,
     MAX_SNAPSHOTS,
@@ -145,7 +145,7 @@ def test_cli_report_lists_pictures(
     named in report.json and report.txt."""
     import json
 
-    from retargetd.daemon.cli import main
+    from retargetd.daemon.cli.main import main
 
     report = tmp_path / "report"
     walk = datasets / "btkdata/PiG_Motion-FlatFoot-Full.c3d"

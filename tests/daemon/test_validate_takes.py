@@ -27,18 +27,18 @@ from typing import Any
 import numpy as np
 import pytest
 
-from retargetd.daemon.calibration import calibrate
-from retargetd.daemon.cli import main
-from retargetd.daemon.rig import load_rig
-from retargetd.daemon.solve_body import BodySolver
-from retargetd.daemon.validate import (
+from retargetd.daemon.body.calibration import calibrate
+from retargetd.daemon.body.rig import load_rig
+from retargetd.daemon.body.solve import BodySolver
+from retargetd.daemon.cli.main import main
+from retargetd.daemon.validate.checks import (
     THRESHOLDS,
     THRESHOLDS_BASIS,
     TakeReport,
     fit_pairs,
     validate_take,
 )
-from retargetd.daemon.validate_model import build_model, skeleton_from_calibration
+from retargetd.daemon.validate.model import build_model, skeleton_from_calibration
 from retargetd.replay import recording as rf
 from retargetd.replay.takes import load_take
 

@@ -171,10 +171,10 @@ def _calibration_measurements(take: Any, window: slice) -> dict[str, float]:
 
 def compute(case: Case, datasets: Path = DATASETS) -> Computed:
     """Calibrate and solve a case from its definition."""
-    from retargetd.daemon.calibration import calibrate
-    from retargetd.daemon.performer import synthesize
-    from retargetd.daemon.rig import load_rig
-    from retargetd.daemon.solve_body import BodySolver
+    from retargetd.daemon.body.calibration import calibrate
+    from retargetd.daemon.body.rig import load_rig
+    from retargetd.daemon.body.solve import BodySolver
+    from retargetd.daemon.synth.performer import synthesize
     from retargetd.replay.takes import load_take
 
     rig_ref = case.rig

@@ -176,7 +176,7 @@ def test_face_part_round_trip_and_layout(rng: np.random.Generator) -> None:
         ps.decode_pose([bytes(p) for p in parts[:2]] + [raw[:-4]])
     assert info.value.reason == "bad_length"
     # The flag names match the face solver's bits.
-    from retargetd.daemon import kernel_face as kf
+    from retargetd.daemon.face import kernel as kf
 
     assert (kf.FLAG_HEAD_PARTIAL, kf.FLAG_HEAD_LOST, kf.FLAG_NOT_CONVERGED,
             kf.FLAG_FACE_PARTIAL, kf.FLAG_NEVER) == (

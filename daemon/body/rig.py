@@ -1,0 +1,632 @@
+"""Rig files: how a marker set becomes the chapter's internal skeleton.
+
+A rig is a TOML file (reference: ``daemon/body/rigs/RIGS.md``) declaring
+
+- ``[rig]``: name, description, and ``lateral = [RIGHT, LEFT]``, the two points whose
+  horizontal direction (right to left) gives the body's width axis in the base pose
+  (height is world +Z, depth = width x height, i.e. forward);
+- ``[measurements]``: named subject measurements in mm, each with a default;
+- ``[markers]``: rig marker name -> take label, or a list of accepted labels;
+- ``[segments.NAME]``: ``markers = [...]``, markers moving as one rigid body, used to
+  rebuild an occluded marker from the others of its segment;
+- ``[points.NAME]``: derived points built from the chapter's primitives:
+  ``line = [A, B]`` with ``u`` (a point on the line A->B at parameter u, eq. 5.13-5.17),
+  or ``rigid = [A, B, C]`` (a point held rigidly in the frame of three points,
+  eq. 5.1-5.39) with either ``rule = {height = ..., width = ..., depth = ...}`` (the
+  point's coordinates along the base-pose body axes, each an affine combination of
+  points such as ``"SACRUM"`` or ``"0.5*L1 + 0.5*PELVIS"``) or ``offset_mm = [x, y, z]``
+  (explicit offset in the three-point frame, each a number or a linear expression in
+  measurements such as ``"LKneeWidth/2 + MarkerDiameter/2"``);
+- ``[bones.NAME]``: ``parent``, ``origin``, ``aim``, ``up`` (a point, or ``[A, B]`` for
+  the direction A->B) and optional ``humanoid`` (standard humanoid bone name). Bone
+  axes: +Y from origin to aim, +X towards the up reference (made orthogonal to Y),
+  +Z = X x Y;
+- ``[joints]``: named joint centres, name -> point.
+
+The three-point frame of ``rigid = [A, B, C]``: origin A, x = unit(B - A),
+z = unit(x x (C - A)), y = z x x.
+
+Parsing validates everything and raises :class:`RigError` with one line naming the
+file, the key and the unknown or bad value (cycles included).
+"""
+
+from __future__ import annotations
+
+import ast
+import logging
+import math
+import tomllib
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+from retargetd.protocols.humanoid import HUMANOID_BONES as _HUMANOID_BONES
+
+logger = logging.getLogger(__name__)
+
+#: The standard humanoid bones (parents first), re-exported for rig files.
+HUMANOID_BONES = _HUMANOID_BONES
+
+RULE_AXES = ("height", "width", "depth")
+
+_TOP_KEYS = ("rig", "measurements", "markers", "segments", "points", "bones", "joints")
+
+
+class RigError(ValueError):
+    """A rig file that cannot be used; the message is one line naming file and key."""
+
+
+@dataclass(frozen=True, slots=True)
+class LinearExpr:
+    """``constant + sum(coef * name)``: a linear expression in named quantities."""
+
+    constant: float
+    terms: tuple[tuple[str, float], ...]
+    text: str
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        """The names the expression uses."""
+        return tuple(name for name, _ in self.terms)
+
+    def evaluate(self, values: dict[str, float]) -> float:
+        """Value with ``values[name]`` substituted for each name."""
+        return self.constant + sum(coef * values[name] for name, coef in self.terms)
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class Measurement:
+    """A named subject measurement (mm), its default and what it is."""
+
+    name: str
+    default_mm: float
+    description: str = ""
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class LinePoint:
+    """A point on the line ``a -> b`` at parameter ``u`` (0 at a, 1 at b)."""
+
+    name: str
+    a: str
+    b: str
+    u: float
+
+    @property
+    def inputs(self) -> tuple[str, ...]:
+        """Points this one is built from."""
+        return (self.a, self.b)
+
+    @property
+    def frame_inputs(self) -> tuple[str, ...]:
+        """Points needed in every frame (the same as ``inputs`` for a line)."""
+        return (self.a, self.b)
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class RigidPoint:
+    """A point held rigidly in the frame of three points (see module docstring).
+
+    Exactly one of ``rule`` (per-axis base-pose rule, affine combinations of points)
+    and ``offset_mm`` (explicit offset in the three-point frame) is set.
+    """
+
+    name: str
+    frame: tuple[str, str, str]
+    rule: dict[str, LinearExpr] | None = None
+    offset_mm: tuple[LinearExpr, LinearExpr, LinearExpr] | None = None
+
+    @property
+    def inputs(self) -> tuple[str, ...]:
+        """Points this one is built from (the frame, and the rule's points)."""
+        extra: list[str] = []
+        if self.rule is not None:
+            for expr in self.rule.values():
+                extra.extend(expr.names)
+        return tuple(dict.fromkeys((*self.frame, *extra)))
+
+    @property
+    def frame_inputs(self) -> tuple[str, ...]:
+        """Points needed in every frame: the three of the frame (a rule's points are
+        used only in the base pose)."""
+        return self.frame
+
+
+DerivedPoint = LinePoint | RigidPoint
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class Bone:
+    """A bone: +Y from ``origin`` to ``aim``; +X towards ``up`` (a point or a direction
+    between two points); ``parent`` is another bone or None for a root."""
+
+    name: str
+    parent: str | None
+    origin: str
+    aim: str
+    up: tuple[str, ...]
+    humanoid: str | None = None
+
+    @property
+    def inputs(self) -> tuple[str, ...]:
+        """Points that define the bone."""
+        return tuple(dict.fromkeys((self.origin, self.aim, *self.up)))
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class Rig:
+    """A parsed, validated rig. Points and bones are in dependency order."""
+
+    name: str
+    source: str
+    description: str
+    lateral: tuple[str, str]
+    measurements: dict[str, Measurement]
+    markers: dict[str, tuple[str, ...]]
+    segments: dict[str, tuple[str, ...]]
+    points: tuple[DerivedPoint, ...]
+    bones: tuple[Bone, ...]
+    joints: dict[str, str]
+    humanoid: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def marker_names(self) -> tuple[str, ...]:
+        """Rig marker names, in file order."""
+        return tuple(self.markers)
+
+    @property
+    def point_names(self) -> tuple[str, ...]:
+        """Derived point names, in dependency order."""
+        return tuple(p.name for p in self.points)
+
+    @property
+    def bone_names(self) -> tuple[str, ...]:
+        """Bone names, parents before children."""
+        return tuple(b.name for b in self.bones)
+
+    def bone_parent_indices(self) -> tuple[int, ...]:
+        """Parent index per bone (-1 for a root)."""
+        index = {b.name: i for i, b in enumerate(self.bones)}
+        return tuple(-1 if b.parent is None else index[b.parent] for b in self.bones)
+
+    def markers_of(self, name: str, *, base_pose: bool = False) -> tuple[str, ...]:
+        """Rig markers a point (or marker) depends on, transitively, in rig order.
+
+        Args:
+            name: a marker or derived point.
+            base_pose: include the markers that ``rule`` points use only when they are
+                calibrated (default: only what every frame's solve needs).
+        """
+        by_name = {p.name: p for p in self.points}
+        seen: set[str] = set()
+        stack = [name]
+        found: set[str] = set()
+        while stack:
+            item = stack.pop()
+            if item in seen:
+                continue
+            seen.add(item)
+            if item in self.markers:
+                found.add(item)
+            elif item in by_name:
+                point = by_name[item]
+                stack.extend(point.inputs if base_pose else point.frame_inputs)
+        return tuple(m for m in self.markers if m in found)
+
+
+def shipped_rigs() -> tuple[str, ...]:
+    """Names of the rigs shipped as package data."""
+    folder = resources.files("retargetd.daemon.body.rigs")
+    return tuple(
+        sorted(p.name[:-5] for p in folder.iterdir() if p.name.endswith(".toml"))
+    )
+
+
+def load_rig(name_or_path: str | Path) -> Rig:
+    """Load a shipped rig by name (``"menache"``) or a rig file by path.
+
+    Raises:
+        RigError: one line naming the file, the key and the bad value.
+    """
+    text_name = str(name_or_path)
+    path = Path(text_name)
+    if path.suffix.lower() != ".toml" and "/" not in text_name and not path.exists():
+        resource = resources.files("retargetd.daemon.body.rigs") / f"{text_name}.toml"
+        if not resource.is_file():
+            raise RigError(
+                f"no shipped rig named {text_name!r} (shipped: "
+                f"{', '.join(shipped_rigs())}; or give a path to a .toml file)"
+            )
+        return parse_rig(resource.read_text(), source=f"{text_name} (shipped)")
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise RigError(f"{path}: cannot read rig file: {exc.strerror}") from None
+    return parse_rig(text, source=str(path))
+
+
+def parse_linear(text: str | float | int, *, where: str) -> LinearExpr:
+    """Parse a linear expression such as ``"LKneeWidth/2 + 7"`` or ``"0.5*A + 0.5*B"``.
+
+    Raises:
+        RigError: naming ``where`` when the text is not a linear expression.
+    """
+    if isinstance(text, bool):
+        raise RigError(f"{where}: expected a number or an expression, got {text!r}")
+    if isinstance(text, int | float):
+        if not math.isfinite(text):
+            raise RigError(f"{where}: {text!r} is not finite")
+        return LinearExpr(float(text), (), str(text))
+    if not isinstance(text, str):
+        raise RigError(f"{where}: expected a number or an expression, got {text!r}")
+    try:
+        tree = ast.parse(text, mode="eval").body
+    except SyntaxError:
+        raise RigError(f"{where}: cannot parse expression {text!r}") from None
+    constant, terms = _linear(tree, where=where, text=text)
+    merged: dict[str, float] = {}
+    for name, coef in terms:
+        merged[name] = merged.get(name, 0.0) + coef
+    return LinearExpr(constant, tuple(merged.items()), text)
+
+
+def _linear(
+    node: ast.expr, *, where: str, text: str
+) -> tuple[float, list[tuple[str, float]]]:
+    bad = RigError(f"{where}: {text!r} is not a linear expression of names and numbers")
+    if isinstance(node, ast.Constant) and isinstance(node.value, int | float):
+        if isinstance(node.value, bool):
+            raise bad
+        return float(node.value), []
+    if isinstance(node, ast.Name):
+        return 0.0, [(node.id, 1.0)]
+    if isinstance(node, ast.UnaryOp) and isinstance(node.op, ast.USub | ast.UAdd):
+        c, t = _linear(node.operand, where=where, text=text)
+        sign = -1.0 if isinstance(node.op, ast.USub) else 1.0
+        return sign * c, [(n, sign * k) for n, k in t]
+    if isinstance(node, ast.BinOp):
+        lc, lt = _linear(node.left, where=where, text=text)
+        rc, rt = _linear(node.right, where=where, text=text)
+        if isinstance(node.op, ast.Add):
+            return lc + rc, lt + rt
+        if isinstance(node.op, ast.Sub):
+            return lc - rc, lt + [(n, -k) for n, k in rt]
+        if isinstance(node.op, ast.Mult):
+            if lt and rt:
+                raise bad
+            if lt:
+                return lc * rc, [(n, k * rc) for n, k in lt]
+            return lc * rc, [(n, k * lc) for n, k in rt]
+        if isinstance(node.op, ast.Div):
+            if rt or rc == 0.0:
+                raise bad
+            return lc / rc, [(n, k / rc) for n, k in lt]
+    raise bad
+
+
+def parse_rig(text: str, *, source: str) -> Rig:
+    """Parse and validate rig TOML text. ``source`` names the file in errors."""
+    try:
+        doc = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise RigError(f"{source}: not valid TOML: {exc}") from None
+    return _Parser(doc, source).parse()
+
+
+class _Parser:
+    def __init__(self, doc: dict[str, Any], source: str) -> None:
+        self.doc = doc
+        self.src = source
+
+    def fail(self, key: str, message: str) -> RigError:
+        return RigError(f"{self.src}: {key}: {message}")
+
+    def table(self, key: str, value: Any) -> dict[str, Any]:
+        if not isinstance(value, dict):
+            raise self.fail(key, f"expected a table, got {type(value).__name__}")
+        return value
+
+    def string(self, key: str, value: Any) -> str:
+        if not isinstance(value, str) or not value:
+            raise self.fail(key, f"expected a non-empty string, got {value!r}")
+        return value
+
+    def strings(self, key: str, value: Any, n: int | None = None) -> tuple[str, ...]:
+        if isinstance(value, str):
+            value = [value]
+        if not isinstance(value, list) or not all(
+            isinstance(v, str) and v for v in value
+        ):
+            raise self.fail(key, f"expected a list of names, got {value!r}")
+        if n is not None and len(value) != n:
+            raise self.fail(key, f"expected {n} names, got {len(value)}: {value!r}")
+        return tuple(value)
+
+    def unknown_keys(
+        self, key: str, table: dict[str, Any], allowed: tuple[str, ...]
+    ) -> None:
+        for k in table:
+            if k not in allowed:
+                raise self.fail(
+                    f"{key}.{k}" if key else k,
+                    f"unknown key (expected one of: {', '.join(allowed)})",
+                )
+
+    def parse(self) -> Rig:
+        doc = self.doc
+        self.unknown_keys("", doc, _TOP_KEYS)
+        head = self.table("rig", doc.get("rig", {}))
+        self.unknown_keys("rig", head, ("name", "description", "lateral"))
+        name = self.string("rig.name", head.get("name"))
+        description = str(head.get("description", ""))
+        measurements = self.parse_measurements()
+        markers = self.parse_markers()
+        points = self.parse_points(markers, measurements)
+        known = set(markers) | {p.name for p in points}
+        if "lateral" not in head:
+            raise self.fail("rig.lateral", "missing: give [RIGHT, LEFT] point names")
+        lateral = self.strings("rig.lateral", head["lateral"], n=2)
+        for item in lateral:
+            self.known_point("rig.lateral", item, known)
+        segments = self.parse_segments(markers)
+        bones = self.parse_bones(known)
+        joints = self.parse_joints(known)
+        humanoid: dict[str, str] = {}
+        for bone in bones:
+            if bone.humanoid is not None:
+                if bone.humanoid in humanoid:
+                    raise self.fail(
+                        f"bones.{bone.name}.humanoid",
+                        f"{bone.humanoid!r} is already mapped to bone "
+                        f"{humanoid[bone.humanoid]!r}",
+                    )
+                humanoid[bone.humanoid] = bone.name
+        return Rig(
+            name=name,
+            source=self.src,
+            description=description,
+            lateral=(lateral[0], lateral[1]),
+            measurements=measurements,
+            markers=markers,
+            segments=segments,
+            points=points,
+            bones=bones,
+            joints=joints,
+            humanoid=humanoid,
+        )
+
+    def known_point(self, key: str, name: str, known: set[str]) -> None:
+        if name not in known:
+            raise self.fail(key, f"unknown point or marker {name!r}")
+
+    def parse_measurements(self) -> dict[str, Measurement]:
+        out: dict[str, Measurement] = {}
+        table = self.table("measurements", self.doc.get("measurements", {}))
+        for mname, spec in table.items():
+            key = f"measurements.{mname}"
+            if isinstance(spec, int | float) and not isinstance(spec, bool):
+                spec = {"default": spec}
+            spec = self.table(key, spec)
+            self.unknown_keys(key, spec, ("default", "description"))
+            default = spec.get("default")
+            if (
+                not isinstance(default, int | float)
+                or isinstance(default, bool)
+                or not math.isfinite(default)
+            ):
+                raise self.fail(f"{key}.default", f"expected a number, got {default!r}")
+            out[mname] = Measurement(
+                name=mname,
+                default_mm=float(default),
+                description=str(spec.get("description", "")),
+            )
+        return out
+
+    def parse_markers(self) -> dict[str, tuple[str, ...]]:
+        table = self.table("markers", self.doc.get("markers", {}))
+        if not table:
+            raise self.fail("markers", "a rig needs at least one marker")
+        return {m: self.strings(f"markers.{m}", v) for m, v in table.items()}
+
+    def parse_segments(
+        self, markers: dict[str, tuple[str, ...]]
+    ) -> dict[str, tuple[str, ...]]:
+        out: dict[str, tuple[str, ...]] = {}
+        table = self.table("segments", self.doc.get("segments", {}))
+        owner: dict[str, str] = {}
+        for sname, spec in table.items():
+            key = f"segments.{sname}"
+            spec = self.table(key, spec)
+            self.unknown_keys(key, spec, ("markers",))
+            names = self.strings(f"{key}.markers", spec.get("markers"))
+            for m in names:
+                if m not in markers:
+                    raise self.fail(f"{key}.markers", f"unknown marker {m!r}")
+                if m in owner:
+                    raise self.fail(
+                        f"{key}.markers", f"marker {m!r} is already in {owner[m]!r}"
+                    )
+                owner[m] = sname
+            if len(names) < 3:
+                raise self.fail(
+                    f"{key}.markers", "a rigid segment needs at least 3 markers"
+                )
+            out[sname] = names
+        return out
+
+    def parse_points(
+        self, markers: dict[str, tuple[str, ...]], measurements: dict[str, Measurement]
+    ) -> tuple[DerivedPoint, ...]:
+        table = self.table("points", self.doc.get("points", {}))
+        parsed: dict[str, DerivedPoint] = {}
+        for pname, spec in table.items():
+            key = f"points.{pname}"
+            if pname in markers:
+                raise self.fail(key, "a derived point cannot reuse a marker's name")
+            spec = self.table(key, spec)
+            if "line" in spec:
+                self.unknown_keys(key, spec, ("line", "u", "description"))
+                a, b = self.strings(f"{key}.line", spec["line"], n=2)
+                u = spec.get("u", 0.5)
+                if not isinstance(u, int | float) or isinstance(u, bool):
+                    raise self.fail(f"{key}.u", f"expected a number, got {u!r}")
+                parsed[pname] = LinePoint(name=pname, a=a, b=b, u=float(u))
+            elif "rigid" in spec:
+                self.unknown_keys(
+                    key, spec, ("rigid", "rule", "offset_mm", "description")
+                )
+                a, b, c = self.strings(f"{key}.rigid", spec["rigid"], n=3)
+                if len({a, b, c}) != 3:
+                    raise self.fail(f"{key}.rigid", "needs three different points")
+                has_rule, has_off = "rule" in spec, "offset_mm" in spec
+                if has_rule == has_off:
+                    raise self.fail(key, "give exactly one of 'rule' and 'offset_mm'")
+                if has_rule:
+                    rule_t = self.table(f"{key}.rule", spec["rule"])
+                    self.unknown_keys(f"{key}.rule", rule_t, RULE_AXES)
+                    rule = {}
+                    for axis in RULE_AXES:
+                        if axis not in rule_t:
+                            raise self.fail(f"{key}.rule", f"missing axis {axis!r}")
+                        expr = parse_linear(
+                            rule_t[axis], where=f"{self.src}: {key}.rule.{axis}"
+                        )
+                        if abs(sum(k for _, k in expr.terms) - 1.0) > 1e-9 or (
+                            expr.constant != 0.0
+                        ):
+                            raise self.fail(
+                                f"{key}.rule.{axis}",
+                                f"{expr.text!r} must be an affine combination of "
+                                "points (coefficients summing to 1, no constant)",
+                            )
+                        rule[axis] = expr
+                    parsed[pname] = RigidPoint(name=pname, frame=(a, b, c), rule=rule)
+                else:
+                    off = spec["offset_mm"]
+                    if not isinstance(off, list) or len(off) != 3:
+                        raise self.fail(
+                            f"{key}.offset_mm", f"expected [x, y, z], got {off!r}"
+                        )
+                    exprs = tuple(
+                        parse_linear(v, where=f"{self.src}: {key}.offset_mm[{i}]")
+                        for i, v in enumerate(off)
+                    )
+                    for i, expr in enumerate(exprs):
+                        for n in expr.names:
+                            if n not in measurements:
+                                raise self.fail(
+                                    f"{key}.offset_mm[{i}]",
+                                    f"unknown measurement {n!r}",
+                                )
+                    parsed[pname] = RigidPoint(
+                        name=pname,
+                        frame=(a, b, c),
+                        offset_mm=(exprs[0], exprs[1], exprs[2]),
+                    )
+            else:
+                raise self.fail(key, "a point needs 'line' or 'rigid'")
+        known = set(markers) | set(parsed)
+        for p in parsed.values():
+            for item in p.inputs:
+                self.known_point(f"points.{p.name}", item, known)
+        return tuple(parsed[n] for n in self.order(parsed, set(markers)))
+
+    def order(self, parsed: dict[str, DerivedPoint], leaves: set[str]) -> list[str]:
+        """Topological order of derived points; a cycle is reported by its path."""
+        done: list[str] = []
+        state: dict[str, int] = {}
+
+        def visit(name: str, path: list[str]) -> None:
+            if name in leaves or state.get(name) == 2:
+                return
+            if state.get(name) == 1:
+                cycle = [*path[path.index(name) :], name]
+                raise self.fail(f"points.{name}", "cycle " + " -> ".join(cycle))
+            state[name] = 1
+            for item in parsed[name].inputs:
+                visit(item, [*path, name])
+            state[name] = 2
+            done.append(name)
+
+        for name in parsed:
+            visit(name, [])
+        return done
+
+    def parse_bones(self, known: set[str]) -> tuple[Bone, ...]:
+        table = self.table("bones", self.doc.get("bones", {}))
+        if not table:
+            raise self.fail("bones", "a rig needs at least one bone")
+        bones: dict[str, Bone] = {}
+        for bname, spec in table.items():
+            key = f"bones.{bname}"
+            spec = self.table(key, spec)
+            self.unknown_keys(
+                key, spec, ("parent", "origin", "aim", "up", "humanoid", "description")
+            )
+            for req in ("origin", "aim", "up"):
+                if req not in spec:
+                    raise self.fail(f"{key}.{req}", "missing")
+            parent = spec.get("parent", "")
+            if not isinstance(parent, str):
+                raise self.fail(
+                    f"{key}.parent", f"expected a bone name, got {parent!r}"
+                )
+            origin = self.string(f"{key}.origin", spec["origin"])
+            aim = self.string(f"{key}.aim", spec["aim"])
+            up = self.strings(f"{key}.up", spec["up"])
+            if len(up) not in (1, 2):
+                raise self.fail(f"{key}.up", "give a point or [FROM, TO]")
+            for sub, item in (("origin", origin), ("aim", aim)):
+                self.known_point(f"{key}.{sub}", item, known)
+            for item in up:
+                self.known_point(f"{key}.up", item, known)
+            if origin == aim:
+                raise self.fail(f"{key}.aim", "aim must differ from origin")
+            humanoid = spec.get("humanoid")
+            if humanoid is not None and humanoid not in HUMANOID_BONES:
+                raise self.fail(
+                    f"{key}.humanoid",
+                    f"unknown humanoid bone {humanoid!r} "
+                    f"(one of {', '.join(HUMANOID_BONES)})",
+                )
+            bones[bname] = Bone(
+                name=bname,
+                parent=parent or None,
+                origin=origin,
+                aim=aim,
+                up=up,
+                humanoid=humanoid,
+            )
+        for b in bones.values():
+            if b.parent is not None and b.parent not in bones:
+                raise self.fail(f"bones.{b.name}.parent", f"unknown bone {b.parent!r}")
+        ordered: list[str] = []
+        state: dict[str, int] = {}
+
+        def visit(name: str, path: list[str]) -> None:
+            if state.get(name) == 2:
+                return
+            if state.get(name) == 1:
+                cycle = [*path[path.index(name) :], name]
+                raise self.fail(f"bones.{name}.parent", "cycle " + " -> ".join(cycle))
+            state[name] = 1
+            parent = bones[name].parent
+            if parent is not None:
+                visit(parent, [*path, name])
+            state[name] = 2
+            ordered.append(name)
+
+        for name in bones:
+            visit(name, [])
+        return tuple(bones[n] for n in ordered)
+
+    def parse_joints(self, known: set[str]) -> dict[str, str]:
+        table = self.table("joints", self.doc.get("joints", {}))
+        out = {}
+        for jname, point in table.items():
+            key = f"joints.{jname}"
+            point = self.string(key, point)
+            self.known_point(key, point, known)
+            out[jname] = point
+        return out

@@ -1,0 +1,321 @@
+"""The body solve: labelled markers -> the rig's skeleton, one frame or a whole take.
+
+:class:`BodySolver` flattens a rig and its calibration into index arrays once (the
+"program") and runs the compiled kernel (``body.kernel``) either one frame
+at a time into preallocated buffers (:meth:`BodySolver.solve_frame`, the live path:
+no allocation in steady state) or over a whole take (:meth:`BodySolver.solve_take`,
+the same kernel in a loop, so batch and live agree exactly).
+
+Outputs per frame (see README "Solve output"): joint centres (J, 3) metres world;
+``world_from_bone_quat`` (B, 4); ``parent_from_bone_quat`` (B, 4) = the bone's rotation
+relative to its parent composed with the inverse of its calibrated value
+(``conj(rest_parent_from_bone) * parent_from_bone``: identity in the calibration pose,
+expressed in the bone's own axes, +Y along the bone); root position (3,); per-bone
+quality (fraction of defining markers seen) and flags (``FLAG_*``).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from retargetd.daemon.body import kernel
+from retargetd.daemon.body.calibration import (
+    Calibration,
+    bone_world_quats,
+    calibrate,
+    check_calibration_fits,
+    match_markers,
+)
+from retargetd.daemon.body.kernel import (
+    FLAG_HELD,
+    FLAG_NEVER,
+    FLAG_PARTIAL,
+    FLAG_REBUILT,
+)
+from retargetd.daemon.body.rig import LinePoint, Rig, parse_rig
+from retargetd.protocols.frames import F64Array
+
+logger = logging.getLogger(__name__)
+
+__all__ = [
+    "FLAG_HELD",
+    "FLAG_NEVER",
+    "FLAG_PARTIAL",
+    "FLAG_REBUILT",
+    "BodyPose",
+    "BodySolve",
+    "BodySolver",
+    "bone_world_quats",
+]
+
+
+@dataclass(slots=True, eq=False)
+class BodyPose:
+    """One frame of the body solve (buffers reused frame after frame).
+
+    Attributes:
+        joint_centres: (J, 3) float64, metres, world.
+        world_from_bone_quat: (B, 4) float64, w x y z.
+        parent_from_bone_quat: (B, 4) float64, w x y z, relative to calibration.
+        root_pos: (3,) float64, metres, world (the root bone's origin).
+        bone_quality: (B,) float32, fraction of defining markers seen.
+        bone_flags: (B,) uint8, ``FLAG_*`` bits.
+        n_held: bones held this frame.
+    """
+
+    joint_centres: F64Array
+    world_from_bone_quat: F64Array
+    parent_from_bone_quat: F64Array
+    root_pos: F64Array
+    bone_quality: np.ndarray
+    bone_flags: np.ndarray
+    n_held: int = 0
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class BodySolve:
+    """A solved take: the arrays of ``retargetd solve``'s NPZ (see README)."""
+
+    joint_names: tuple[str, ...]
+    bone_names: tuple[str, ...]
+    bone_parents: tuple[int, ...]
+    joint_centres: F64Array  # (T, J, 3)
+    world_from_bone_quat: F64Array  # (T, B, 4)
+    parent_from_bone_quat: F64Array  # (T, B, 4)
+    root_pos: F64Array  # (T, 3)
+    bone_lengths: F64Array  # (B,)
+    bone_quality: np.ndarray  # (T, B) float32
+    bone_flags: np.ndarray  # (T, B) uint8
+
+
+class BodySolver:
+    """A rig + calibration compiled for one marker layout (the take's or stream's).
+
+    Args:
+        rig: the rig.
+        calibration: its calibrated skeleton.
+        labels: (M,) the marker labels of the frames to solve (prefixes stripped on
+            match; rig markers absent are occluded; extra labels ignored).
+    """
+
+    def __init__(
+        self, rig: Rig, calibration: Calibration, labels: Sequence[str]
+    ) -> None:
+        check_calibration_fits(rig, calibration)
+        self.rig = rig
+        self.calibration = calibration
+        self.labels = tuple(labels)
+        self.n_stream = len(self.labels)
+        names = [*rig.marker_names, *rig.point_names]
+        index = {n: i for i, n in enumerate(names)}
+        n_markers = len(rig.marker_names)
+        self.marker_cols = np.asarray(match_markers(rig, labels), dtype=np.int64)
+        self.missing_markers = tuple(
+            m for m, c in zip(rig.marker_names, self.marker_cols, strict=False) if c < 0
+        )
+        n_points = len(rig.points)
+        self.op_kind = np.zeros(n_points, dtype=np.int64)
+        self.op_idx = np.zeros((n_points, 3), dtype=np.int64)
+        self.op_u = np.zeros(n_points)
+        self.op_off = np.ascontiguousarray(calibration.point_offsets, dtype=np.float64)
+        for k, p in enumerate(rig.points):
+            if isinstance(p, LinePoint):
+                self.op_kind[k] = kernel.OP_LINE
+                self.op_idx[k] = (index[p.a], index[p.b], index[p.a])
+                self.op_u[k] = p.u
+            else:
+                self.op_kind[k] = kernel.OP_RIGID
+                self.op_idx[k] = [index[n] for n in p.frame]
+        seg_ptr = [0]
+        seg_idx: list[int] = []
+        seg_layout: list[F64Array] = []
+        for names_k, layout in calibration.segment_layouts.values():
+            seg_idx.extend(index[n] for n in names_k)
+            seg_layout.append(np.asarray(layout).reshape(-1, 3))
+            seg_ptr.append(len(seg_idx))
+        self.seg_ptr = np.asarray(seg_ptr, dtype=np.int64)
+        self.seg_idx = np.asarray(seg_idx, dtype=np.int64)
+        self.seg_layout = (
+            np.ascontiguousarray(np.concatenate(seg_layout))
+            if seg_layout
+            else np.zeros((0, 3))
+        )
+        n_bones = len(rig.bones)
+        self.bone_pts = np.full((n_bones, 4), -1, dtype=np.int64)
+        def_ptr = [0]
+        def_idx: list[int] = []
+        for b, bone in enumerate(rig.bones):
+            self.bone_pts[b, 0] = index[bone.origin]
+            self.bone_pts[b, 1] = index[bone.aim]
+            self.bone_pts[b, 2] = index[bone.up[0]]
+            if len(bone.up) == 2:
+                self.bone_pts[b, 3] = index[bone.up[1]]
+            markers: list[str] = []
+            for name in bone.inputs:
+                markers.extend(m for m in rig.markers_of(name) if m not in markers)
+            def_idx.extend(index[m] for m in markers)
+            def_ptr.append(len(def_idx))
+        self.bone_parent = np.asarray(rig.bone_parent_indices(), dtype=np.int64)
+        self.bone_def_ptr = np.asarray(def_ptr, dtype=np.int64)
+        self.bone_def_idx = np.asarray(def_idx, dtype=np.int64)
+        self.rest_pfb = np.ascontiguousarray(
+            calibration.rest_parent_from_bone_quat, dtype=np.float64
+        )
+        self.joint_names = tuple(rig.joints)
+        self.joint_idx = np.asarray(
+            [index[p] for p in rig.joints.values()], dtype=np.int64
+        )
+        self.root_point = int(index[rig.bones[0].origin])
+        self.bone_names = rig.bone_names
+        # Scratch and state.
+        self._pts = np.zeros((n_markers + n_points, 3))
+        self._seen = np.zeros(n_markers + n_points, dtype=bool)
+        self._filled = np.zeros(n_markers + n_points, dtype=bool)
+        self._last_pfb = np.zeros((n_bones, 4))
+        self._have_good = np.zeros(n_bones, dtype=bool)
+        self._prev_wfb = np.zeros((n_bones, 4))
+        self._tmp4 = np.zeros(4)
+        self._n44 = np.zeros((4, 4))
+        self._v44 = np.zeros((4, 4))
+        self._last_root = np.zeros(3)
+        for arr in (self.marker_cols, self.op_kind, self.op_idx, self.op_u, self.op_off,
+                    self.seg_ptr, self.seg_idx, self.seg_layout, self.bone_pts,
+                    self.bone_parent, self.bone_def_ptr, self.bone_def_idx,
+                    self.rest_pfb, self.joint_idx):  # fmt: skip
+            arr.flags.writeable = False
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the last good pose (a new source, or a new take)."""
+        self._last_pfb[:] = self.rest_pfb
+        self._have_good[:] = False
+        self._prev_wfb[:] = np.nan
+        self._last_root[:] = self.calibration.root_rest_pos
+
+    def new_pose(self) -> BodyPose:
+        """Allocate the buffers of one frame's output (once per stream)."""
+        n_bones = len(self.bone_names)
+        return BodyPose(
+            joint_centres=np.zeros((len(self.joint_names), 3)),
+            world_from_bone_quat=np.zeros((n_bones, 4)),
+            parent_from_bone_quat=np.zeros((n_bones, 4)),
+            root_pos=np.zeros(3),
+            bone_quality=np.zeros(n_bones, dtype=np.float32),
+            bone_flags=np.zeros(n_bones, dtype=np.uint8),
+        )
+
+    def solve_frame(self, markers_world: F64Array, out: BodyPose) -> BodyPose:
+        """Solve one frame into ``out`` (no allocation).
+
+        Args:
+            markers_world: (M, 3) float64, metres, world, in this solver's label order;
+                NaN rows = occluded.
+            out: buffers from :meth:`new_pose`, overwritten.
+
+        Returns:
+            ``out``.
+        """
+        out.n_held = kernel.solve_one(
+            markers_world, self.marker_cols, self.op_kind, self.op_idx, self.op_u,
+            self.op_off, self.seg_ptr, self.seg_idx, self.seg_layout, self.bone_pts,
+            self.bone_parent, self.bone_def_ptr, self.bone_def_idx, self.rest_pfb,
+            self.joint_idx, self.root_point, self._pts, self._seen, self._filled,
+            self._last_pfb, self._have_good, self._prev_wfb, self._tmp4, self._n44,
+            self._v44, self._last_root,
+            out.joint_centres, out.world_from_bone_quat, out.parent_from_bone_quat,
+            out.root_pos, out.bone_quality, out.bone_flags,
+        )  # fmt: skip
+        return out
+
+    def solve_take(self, positions: F64Array) -> BodySolve:
+        """Solve every frame of a take (the same kernel as :meth:`solve_frame`).
+
+        Args:
+            positions: (T, M, 3) float64, metres, world, NaN rows = occluded.
+
+        Returns:
+            The solved arrays.
+        """
+        positions = np.ascontiguousarray(positions, dtype=np.float64)
+        if positions.ndim != 3 or positions.shape[1:] != (self.n_stream, 3):
+            raise ValueError(
+                f"positions must be (frames, {self.n_stream}, 3); got {positions.shape}"
+            )
+        n = positions.shape[0]
+        n_bones = len(self.bone_names)
+        joints = np.zeros((n, len(self.joint_names), 3))
+        wfb = np.zeros((n, n_bones, 4))
+        pfb = np.zeros((n, n_bones, 4))
+        root = np.zeros((n, 3))
+        quality = np.zeros((n, n_bones), dtype=np.float32)
+        flags = np.zeros((n, n_bones), dtype=np.uint8)
+        kernel.solve_many(
+            positions, self.marker_cols, self.op_kind, self.op_idx, self.op_u,
+            self.op_off, self.seg_ptr, self.seg_idx, self.seg_layout, self.bone_pts,
+            self.bone_parent, self.bone_def_ptr, self.bone_def_idx, self.rest_pfb,
+            self.joint_idx, self.root_point, self._pts, self._seen, self._filled,
+            self._last_pfb, self._have_good, self._prev_wfb, self._tmp4, self._n44,
+            self._v44, self._last_root,
+            joints, wfb, pfb, root, quality, flags,
+        )  # fmt: skip
+        return BodySolve(
+            joint_names=self.joint_names,
+            bone_names=self.bone_names,
+            bone_parents=tuple(int(p) for p in self.bone_parent),
+            joint_centres=joints,
+            world_from_bone_quat=wfb,
+            parent_from_bone_quat=pfb,
+            root_pos=root,
+            bone_lengths=np.asarray(self.calibration.bone_lengths, dtype=np.float64),
+            bone_quality=quality,
+            bone_flags=flags,
+        )
+
+
+_WARM_RIG = """
+[rig]
+name = "warm-up"
+lateral = ["A", "B"]
+[markers]
+A = "A"
+B = "B"
+C = "C"
+D = "D"
+[segments.s]
+markers = ["A", "B", "C", "D"]
+[points.M]
+line = ["A", "B"]
+[points.R]
+rigid = ["A", "B", "C"]
+rule = { height = "C", width = "M", depth = "M" }
+[bones.b]
+origin = "M"
+aim = "C"
+up = "B"
+humanoid = "Hips"
+[joints]
+J = "R"
+"""
+
+
+def warm_up() -> tuple[BodySolver, BodyPose]:
+    """Load (or compile) the body-solve kernel through the same code paths as a real
+    frame (``BodySolver.solve_frame``, ``solve_take``), so the first live frame does not
+    pay numba's cache load (~0.3 s) or compile.
+
+    Returns:
+        the warm-up solver and its last pose (for the next stage's own warm-up).
+    """
+    rig = parse_rig(_WARM_RIG, source="warm-up")
+    labels = ("A", "B", "C", "D")
+    frame = np.array(
+        [[0.0, 0.0, 0.0], [0.0, 0.2, 0.0], [0.0, 0.1, 0.3], [0.1, 0.1, 0.1]]
+    )
+    solver = BodySolver(rig, calibrate(rig, frame[None], labels), labels)
+    solver.solve_take(frame[None])
+    frame[3] = np.nan  # exercise the rigid-segment rebuild as well
+    return solver, solver.solve_frame(frame, solver.new_pose())

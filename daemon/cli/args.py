@@ -1,0 +1,162 @@
+"""Argument, take and rig helpers shared by the commands: frame selections ``a:b``
+(0-based, half-open row indices), the take options (``--subject``, ``--take-units``,
+``--take-up``), ``--rig``/``--measure``, and loading a rig, a take and its calibration
+into a solver. Heavy modules are imported inside the helpers so that ``retargetd
+--help`` stays fast (the CLI is the only layer that imports lazily)."""
+
+from __future__ import annotations
+
+import argparse
+from typing import Any
+
+from retargetd.daemon.errors import UsageError
+
+
+def parse_frames(text: str | None, n_frames: int, *, option: str) -> slice:
+    """Parse ``a:b`` (0-based, half-open rows of the take as loaded; either side may be
+    omitted; negative counts from the end) into a slice of ``n_frames`` rows.
+
+    Raises:
+        UsageError: naming the option when the text is malformed or selects nothing.
+    """
+    if text is None:
+        return slice(0, n_frames)
+    parts = text.split(":")
+    if len(parts) != 2:
+        raise UsageError(f"{option}: expected a:b (0-based, half-open); got {text!r}")
+    try:
+        a = int(parts[0]) if parts[0].strip() else 0
+        b = int(parts[1]) if parts[1].strip() else n_frames
+    except ValueError:
+        raise UsageError(f"{option}: expected integers a:b; got {text!r}") from None
+    start, stop, _ = slice(a, b).indices(n_frames)
+    if stop <= start:
+        raise UsageError(
+            f"{option}: {text!r} selects no frames of a take with {n_frames} frames"
+        )
+    return slice(start, stop)
+
+
+def add_take_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add ``--subject``, ``--take-units`` and ``--take-up`` (shared by commands)."""
+    parser.add_argument("--subject", metavar="NAME", help="subject to load")
+    parser.add_argument(
+        "--take-units", metavar="U", help="override the file's length unit (mm, m ...)"
+    )
+    parser.add_argument(
+        "--take-up", metavar="AXIS", help="override the file's up axis (+Z, +Y ...)"
+    )
+
+
+def add_rig_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--rig`` and ``--measure`` (shared by calibrate and solve)."""
+    parser.add_argument(
+        "--rig", required=True, metavar="RIG", help="shipped rig name or a rig file"
+    )
+    parser.add_argument(
+        "--measure",
+        action="append",
+        default=[],
+        metavar="NAME=MM",
+        help="override a subject measurement in mm (repeatable)",
+    )
+
+
+def parse_measures(items: list[str]) -> dict[str, float]:
+    """``["LKneeWidth=105", ...]`` -> {name: mm}. Raises UsageError naming the item."""
+    out: dict[str, float] = {}
+    for item in items:
+        name, sep, value = item.partition("=")
+        try:
+            if not sep or not name:
+                raise ValueError
+            out[name.strip()] = float(value)
+        except ValueError:
+            raise UsageError(f"--measure: expected NAME=MM; got {item!r}") from None
+    return out
+
+
+def calibrate_from_take(
+    take: Any, rig: Any, frames: slice, overrides: dict[str, float]
+) -> Any:
+    """Calibrate ``rig`` on ``take.positions[frames]``; errors become UsageError."""
+    from retargetd.daemon.body.calibration import CalibrationError, calibrate
+
+    try:
+        return calibrate(
+            rig,
+            take.positions[frames],
+            take.labels,
+            take_measurements=take.measurements,
+            overrides=overrides,
+            base_pose={
+                "take": str(take.path),
+                "subject": take.subject,
+                "frames": f"{frames.start}:{frames.stop}",
+                "rate_hz": take.rate_hz,
+            },
+        )
+    except CalibrationError as exc:
+        raise UsageError(str(exc)) from None
+
+
+def load_rig_or_fail(name: str) -> Any:
+    """Load a rig; a bad rig is a UsageError (one line, exit 2)."""
+    from retargetd.daemon.body.rig import RigError, load_rig
+
+    try:
+        return load_rig(name)
+    except RigError as exc:
+        raise UsageError(str(exc)) from None
+
+
+def add_solve_arguments(parser: argparse.ArgumentParser) -> None:
+    """TAKE, ``--rig``/``--measure``, ``--calibration FILE | --calibrate-frames a:b``
+    and the take options: what every command that solves a take accepts."""
+    from retargetd.daemon.cli.args import add_take_arguments
+
+    parser.add_argument("take", metavar="TAKE", help="a .c3d, .trc or .mcap take")
+    add_rig_arguments(parser)
+    group = parser.add_mutually_exclusive_group(required=True)
+    group.add_argument("--calibration", metavar="FILE.json", help="calibrated skeleton")
+    group.add_argument(
+        "--calibrate-frames",
+        metavar="a:b",
+        help="calibrate on these rows of the take itself (0-based, half-open)",
+    )
+    add_take_arguments(parser)
+
+
+def solver_for_take(args: argparse.Namespace) -> tuple[Any, Any, Any, Any]:
+    """Load the rig and the take, load or make the calibration, build the solver.
+
+    Returns:
+        ``(rig, take, calibration, solver)``.
+
+    Raises:
+        UsageError: a bad rig, calibration or frame selection (one line, exit 2).
+    """
+    from retargetd.daemon.body.calibration import (
+        CalibrationError,
+        load_calibration,
+    )
+    from retargetd.daemon.body.solve import BodySolver
+    from retargetd.daemon.cli.args import parse_frames
+    from retargetd.replay.takes import load_take
+
+    rig = load_rig_or_fail(args.rig)
+    take = load_take(
+        args.take, subject=args.subject, units=args.take_units, up_axis=args.take_up
+    )
+    try:
+        if args.calibration is not None:
+            cal = load_calibration(args.calibration)
+        else:
+            frames = parse_frames(
+                args.calibrate_frames, take.n_frames, option="--calibrate-frames"
+            )
+            cal = calibrate_from_take(take, rig, frames, parse_measures(args.measure))
+        solver = BodySolver(rig, cal, take.labels)
+    except CalibrationError as exc:
+        raise UsageError(str(exc)) from None
+    return rig, take, cal, solver

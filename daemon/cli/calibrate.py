@@ -1,0 +1,86 @@
+"""``retargetd calibrate STATIC --rig RIG --out performer.json [--frames a:b]``.
+
+The performer holds the base pose over the selected frames (0-based, half-open rows of
+the take as loaded; default: the whole take). The result is a calibrated skeleton
+(point offsets, bone lengths, rest orientations, measurements used with their source,
+rig identity) loaded by ``retargetd solve --calibration`` and by the daemon.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from typing import Any
+
+from retargetd.daemon.cli.args import (
+    add_rig_arguments,
+    calibrate_from_take,
+    load_rig_or_fail,
+    parse_measures,
+)
+
+logger = logging.getLogger(__name__)
+
+
+def add_parser(subparsers: Any) -> None:
+    """Register ``calibrate``."""
+    parser = subparsers.add_parser(
+        "calibrate",
+        help="calibrate a rig on a base pose (static trial or frames of a take)",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("static", metavar="STATIC", help="take holding the base pose")
+    add_rig_arguments(parser)
+    parser.add_argument("--out", required=True, metavar="FILE.json")
+    parser.add_argument(
+        "--frames", metavar="a:b", help="base-pose rows (0-based, half-open)"
+    )
+    from retargetd.daemon.cli.args import add_take_arguments
+
+    add_take_arguments(parser)
+    parser.set_defaults(run=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``calibrate``."""
+    from retargetd.daemon.cli.args import parse_frames
+    from retargetd.replay.takes import load_take
+
+    rig = load_rig_or_fail(args.rig)
+    overrides = parse_measures(args.measure)
+    take = load_take(
+        args.static, subject=args.subject, units=args.take_units, up_axis=args.take_up
+    )
+    frames = parse_frames(args.frames, take.n_frames, option="--frames")
+    cal = calibrate_from_take(take, rig, frames, overrides)
+    cal.save(args.out)
+    out = sys.stdout.write
+    out(f"wrote {args.out}: rig {rig.name}, base pose {take.path} rows ")
+    out(f"{frames.start}:{frames.stop} ({frames.stop - frames.start} frames)\n")
+    unseen = [
+        m for m, s in zip(cal.marker_names, cal.markers_seen, strict=False) if s == 0.0
+    ]
+    if unseen:
+        out(f"markers never seen in the base pose: {' '.join(unseen)}\n")
+    defaults = [k for k, v in cal.measurements.items() if v.source == "default"]
+    if cal.measurements:
+        used = ", ".join(
+            f"{k}={v.value_mm:g} ({v.source})" for k, v in cal.measurements.items()
+        )
+        out(f"measurements (mm): {used}\n")
+    if defaults:
+        out(
+            "measurements missing from the take, rig defaults used: "
+            f"{' '.join(defaults)}\n"
+        )
+    out("bone lengths (mm): ")
+    out(
+        ", ".join(
+            f"{n} {1000 * length:.0f}"
+            for n, length in zip(cal.bone_names, cal.bone_lengths, strict=False)
+        )
+        + "\n"
+    )
+    return 0

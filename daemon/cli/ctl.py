@@ -1,0 +1,136 @@
+"""``retargetd ctl [--endpoint E] status [--json] | calibrate [--count N] | reload |
+record start FILE.mcap [--no-poses] | record stop | face-capture NAME [--count N]``.
+
+Talks to a running daemon over its local control socket (ZeroMQ REQ/REP, JSON
+requests ``{"cmd": "status"}``, ``{"cmd": "calibrate", "count": N}``,
+``{"cmd": "reload"}``, ``{"cmd": "record", "action": "start", "path": FILE,
+"poses": true}``, ``{"cmd": "record", "action": "stop"}``,
+``{"cmd": "face-capture", "name": NAME, "count": N}``). ``record start`` makes the
+daemon record every marker packet it receives, its pose stream (unless
+``--no-poses``) and control events to a new MCAP file, in the format of
+``retargetd record`` (``retargetd replay`` plays it back); FILE is sent as an absolute
+path (the daemon runs elsewhere) and must not exist yet. ``record stop`` returns at
+once; the daemon finishes the file in the background (``status --json``: ``record``).
+``face-capture NAME`` (``neutral`` first, then any expression of the face config)
+averages the next N frames into the face training set, which the daemon starts
+solving with at once and saves (``[face]`` in the daemon config; ``status --json``:
+``face``).
+Exit 0 on success, 1 when the daemon refuses or does not answer within
+``--timeout-ms``, 2 for usage errors.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from typing import Any
+
+from retargetd.daemon.live.config import ControlConfig
+
+
+def add_parser(subparsers: Any) -> None:
+    """Register ``ctl``."""
+    parser = subparsers.add_parser(
+        "ctl",
+        help="control a running daemon: status, calibrate, reload, record, "
+        "face-capture",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument(
+        "--endpoint",
+        default=ControlConfig().endpoint,
+        help="the daemon's control endpoint (default %(default)s)",
+    )
+    parser.add_argument("--timeout-ms", type=int, default=2000)
+    sub = parser.add_subparsers(dest="ctl_command", metavar="ACTION", required=True)
+    status = sub.add_parser("status", help="fps, drops, latency, occluded markers")
+    status.add_argument("--json", action="store_true", help="the full JSON document")
+    cal = sub.add_parser("calibrate", help="calibrate live on the next N frames")
+    cal.add_argument("--count", type=int, default=None, metavar="N")
+    sub.add_parser("reload", help="reload the rig and calibration files")
+    rec = sub.add_parser("record", help="record inside the daemon: start FILE | stop")
+    rec_sub = rec.add_subparsers(dest="record_action", metavar="ACTION", required=True)
+    start = rec_sub.add_parser("start", help="start recording to a new MCAP file")
+    start.add_argument("file", metavar="FILE.mcap")
+    start.add_argument(
+        "--no-poses", action="store_true", help="record markers and events only"
+    )
+    rec_sub.add_parser(
+        "stop",
+        help="stop recording (returns at once; the file is finished in the background)",
+    )
+    face = sub.add_parser(
+        "face-capture",
+        help="capture a face training pose live (neutral first, then expressions)",
+    )
+    face.add_argument("name", metavar="NAME", help="neutral or an expression name")
+    face.add_argument("--count", type=int, default=None, metavar="N")
+    parser.set_defaults(run=run)
+
+
+def request(
+    endpoint: str, req: dict[str, Any], timeout_ms: int
+) -> dict[str, Any] | None:
+    """Send one request; the reply, or None on timeout."""
+    import zmq
+
+    ctx: Any = zmq.Context.instance()
+    sock = ctx.socket(zmq.REQ)
+    sock.setsockopt(zmq.LINGER, 0)
+    sock.setsockopt(zmq.RCVTIMEO, timeout_ms)
+    sock.setsockopt(zmq.SNDTIMEO, timeout_ms)
+    try:
+        sock.connect(endpoint)
+        sock.send(json.dumps(req).encode())
+        reply: dict[str, Any] = json.loads(sock.recv())
+        return reply
+    except zmq.Again:
+        return None
+    finally:
+        sock.close()
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``ctl``."""
+    from retargetd.daemon.errors import UsageError
+
+    counted = args.ctl_command in ("calibrate", "face-capture")
+    if counted and args.count is not None and args.count < 1:
+        raise UsageError(f"--count must be >= 1; got {args.count}")
+    req: dict[str, Any] = {"cmd": args.ctl_command}
+    if counted and args.count is not None:
+        req["count"] = args.count
+    if args.ctl_command == "face-capture":
+        req["name"] = args.name
+    if args.ctl_command == "record":
+        req["action"] = args.record_action
+        if args.record_action == "start":
+            if not args.file.lower().endswith(".mcap"):
+                raise UsageError(
+                    f"record start: FILE must end in .mcap; got {args.file!r}"
+                )
+            req["path"] = os.path.abspath(args.file)
+            req["poses"] = not args.no_poses
+    reply = request(args.endpoint, req, args.timeout_ms)
+    if reply is None:
+        sys.stderr.write(
+            f"retargetd ctl: no daemon answered at {args.endpoint} "
+            f"within {args.timeout_ms} ms\n"
+        )
+        return 1
+    if not reply.get("ok"):
+        sys.stderr.write(
+            f"retargetd ctl: {reply.get('error') or reply.get('message')}\n"
+        )
+        return 1
+    if args.ctl_command == "status":
+        if args.json:
+            sys.stdout.write(json.dumps(reply["status"], indent=1) + "\n")
+        else:
+            sys.stdout.write(reply["line"] + "\n")
+    else:
+        sys.stdout.write(reply["message"] + "\n")
+    return 0

@@ -1,0 +1,117 @@
+"""``retargetd face-train TAKE --face FACECONFIG --poses neutral=a:b,jawOpen=c:d,...
+--out face.npz``: build a face training set from a take.
+
+Each pose is averaged over its frame range (rows of the take as loaded, 0-based,
+half-open, as ``--frames`` elsewhere) after stabilization against the neutral head
+layout (:func:`retargetd.daemon.face.solve.train`). ``neutral`` is required; every
+other name must be one of the face config's ``expressions`` and the training set
+keeps the config's expression order. ``--face`` is a shipped preset (``arkit52``,
+``vrm0``, ``vrm1``) or a face config TOML (``retargetd.daemon.face.config``); when it
+lists no facial markers, every take marker that is not a head marker is one. The
+output is ``face.npz`` (:class:`~retargetd.daemon.face.solve.TrainingSet`, no pickle);
+the command prints the expressions this marker layout cannot see or separate
+(:func:`~retargetd.daemon.face.solve.observability`). Reference:
+``daemon/face/faces/FACES.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+from typing import Any
+
+from retargetd.daemon.errors import UsageError
+
+logger = logging.getLogger(__name__)
+
+
+def add_parser(subparsers: Any) -> None:
+    """Register ``face-train``."""
+    from retargetd.daemon.cli.args import add_take_arguments
+
+    parser = subparsers.add_parser(
+        "face-train",
+        help="build a face training set (neutral + a pose per expression) from a take",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("take", metavar="TAKE", help="a .c3d, .trc or .mcap take")
+    parser.add_argument("--face", required=True, metavar="FACECONFIG")
+    parser.add_argument(
+        "--poses", required=True, metavar="neutral=a:b,NAME=c:d,...",
+        help="frame range of each pose (0-based, half-open rows)",
+    )  # fmt: skip
+    parser.add_argument("--out", required=True, metavar="face.npz")
+    add_take_arguments(parser)
+    parser.set_defaults(run=run)
+
+
+def parse_poses(text: str, n_frames: int) -> list[tuple[str, slice]]:
+    """``neutral=a:b,jawOpen=c:d`` -> [(name, rows)], in the order given.
+
+    Raises:
+        UsageError: malformed entry, repeated name or an empty range.
+    """
+    from retargetd.daemon.cli.args import parse_frames
+
+    out: list[tuple[str, slice]] = []
+    for item in filter(None, (s.strip() for s in text.split(","))):
+        name, sep, rng = item.partition("=")
+        if not sep or not name.strip():
+            raise UsageError(f"--poses: expected NAME=a:b, got {item!r}")
+        name = name.strip()
+        if any(name == n for n, _ in out):
+            raise UsageError(f"--poses: {name!r} given twice")
+        out.append((name, parse_frames(rng, n_frames, option=f"--poses {name}")))
+    return out
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``face-train``."""
+    import numpy as np
+
+    from retargetd.daemon.face.config import FaceConfigError, load_face_config
+    from retargetd.daemon.face.solve import observability, train
+    from retargetd.replay.takes import load_take
+
+    if not args.out.lower().endswith(".npz"):
+        raise UsageError(f"--out: expected a .npz file; got {args.out!r}")
+    try:
+        face = load_face_config(args.face)
+    except FaceConfigError as exc:
+        raise UsageError(str(exc)) from None
+    take = load_take(
+        args.take, subject=args.subject, units=args.take_units, up_axis=args.take_up
+    )
+    poses = parse_poses(args.poses, take.n_frames)
+    unknown = [n for n, _ in poses if n != "neutral" and n not in face.expressions]
+    if unknown:
+        raise UsageError(f"--poses: not expressions of {face.name}: {unknown}")
+    order = {n: i for i, n in enumerate(face.expressions)}
+    poses.sort(key=lambda p: -1 if p[0] == "neutral" else order[p[0]])
+    facial = face.facial_markers or tuple(
+        n for n in take.labels if n not in face.head_markers
+    )
+    missing = [n for n in (*face.head_markers, *facial) if n not in take.labels]
+    if missing:
+        raise UsageError(f"take {args.take}: markers of {face.name} missing: {missing}")
+    col = {n: i for i, n in enumerate(take.labels)}
+    pos = np.where(take.valid[..., None], take.positions, np.nan)
+    head_world = pos[:, [col[n] for n in face.head_markers]]
+    face_world = pos[:, [col[n] for n in facial]]
+    try:
+        training = train(
+            head_world, face_world, poses,
+            head_names=face.head_markers, marker_names=facial,
+        )  # fmt: skip
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+    training.save(args.out)
+    obs = observability(training)
+    print(
+        f"wrote {args.out}: {len(training.head_names)} head markers, "
+        f"{len(training.marker_names)} facial markers, {training.k} expressions"
+    )
+    unseen = ", ".join(obs.unobservable) or "none"
+    print(f"unobservable with this marker layout (0.5 mm noise): {unseen}")
+    return 0

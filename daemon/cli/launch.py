@@ -1,0 +1,92 @@
+"""Start-up and shutdown helpers shared by the commands that run a daemon or a
+recorder in the foreground: the config with CLI overrides, building and opening a
+daemon, and the signal handlers."""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import os
+import signal
+import sys
+import threading
+from collections.abc import Iterator
+from typing import Any
+
+from retargetd.daemon.errors import UsageError
+
+
+def load_config(args: argparse.Namespace) -> Any:
+    """The validated config with CLI overrides applied (ConfigError -> UsageError)."""
+    import dataclasses
+
+    from retargetd.daemon.live.config import ConfigError, DaemonConfig
+
+    try:
+        config = DaemonConfig.from_toml(args.config) if args.config else DaemonConfig()
+    except ConfigError as exc:
+        raise UsageError(str(exc)) from None
+    performer = config.performer
+    if getattr(args, "rig", None):
+        performer = dataclasses.replace(performer, rig=args.rig)
+    if getattr(args, "calibration", None):
+        performer = dataclasses.replace(performer, calibration=args.calibration)
+    loop = config.loop
+    if getattr(args, "process_every_frame", False):
+        loop = dataclasses.replace(loop, process_every_frame=True)
+    return dataclasses.replace(config, performer=performer, loop=loop)
+
+
+def make_daemon(config: Any) -> Any:
+    """Build a Daemon, turning rig/calibration problems into UsageError."""
+    from retargetd.daemon.body.calibration import CalibrationError
+    from retargetd.daemon.body.rig import RigError
+    from retargetd.daemon.live.loop import Daemon
+
+    try:
+        return Daemon(config)
+    except (RigError, CalibrationError) as exc:
+        raise UsageError(str(exc)) from None
+
+
+def open_or_fail(daemon: Any, hint: str = "") -> None:
+    """Open every endpoint; a port in use (or any bind error) closes what was opened
+    and becomes one UsageError line (exit 2)."""
+    import zmq
+
+    try:
+        daemon.open()
+    except (OSError, zmq.ZMQError) as exc:
+        daemon.close()
+        raise UsageError(f"cannot open an endpoint{hint}: {exc}") from None
+
+
+def install_signal_handlers(stop: threading.Event) -> None:
+    """SIGINT/SIGTERM set ``stop``; a second SIGINT exits at once."""
+
+    def handler(signum: int, _frame: Any) -> None:
+        if stop.is_set() and signum == signal.SIGINT:
+            sys.stderr.write("retargetd: forced exit\n")
+            os._exit(130)
+        stop.set()
+
+    signal.signal(signal.SIGINT, handler)
+    signal.signal(signal.SIGTERM, handler)
+
+
+@contextlib.contextmanager
+def stop_on_signals(stop: threading.Event) -> Iterator[None]:
+    """SIGINT/SIGTERM set ``stop`` (a second SIGINT raises KeyboardInterrupt);
+    the previous handlers are restored on exit. Main thread only."""
+
+    def handler(signum: int, _frame: Any) -> None:
+        if stop.is_set() and signum == signal.SIGINT:
+            raise KeyboardInterrupt
+        stop.set()
+
+    old = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)

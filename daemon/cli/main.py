@@ -1,0 +1,92 @@
+"""The ``retargetd`` console script: argparse subcommands, one module per subcommand.
+
+Each subcommand module exposes ``add_parser(subparsers)`` (cheap: heavy imports happen
+inside ``run``) and ``run(args) -> int``. ``main(argv)`` returns the exit code:
+0 success, 1 a failure the command reports (or a crash), 2 a usage, config or input
+error (one clear line on stderr, no traceback).
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+from collections.abc import Sequence
+
+from retargetd.daemon.errors import UsageError
+from retargetd.daemon.version import package_version
+from retargetd.replay.take import TakeError
+
+logger = logging.getLogger(__name__)
+
+#: Subcommand modules, in ``--help`` order.
+SUBCOMMAND_MODULES: tuple[str, ...] = (
+    "retargetd.daemon.cli.synth",
+    "retargetd.daemon.cli.take",
+    "retargetd.daemon.cli.rig",
+    "retargetd.daemon.cli.calibrate",
+    "retargetd.daemon.cli.face_train",
+    "retargetd.daemon.cli.solve",
+    "retargetd.daemon.cli.export_c3d",
+    "retargetd.daemon.cli.run",
+    "retargetd.daemon.cli.ctl",
+    "retargetd.daemon.cli.demo",
+    "retargetd.daemon.cli.record",
+    "retargetd.daemon.cli.replay",
+    "retargetd.daemon.cli.validate",
+)
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str) -> None:  # type: ignore[override]
+        # One line, exit 2: the usage block is one `--help` away.
+        self.exit(2, f"{self.prog}: error: {message}\n")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """Build the top-level parser with every subcommand registered."""
+    parser = _Parser(
+        prog="retargetd",
+        description=(
+            "Live motion-capture retarget daemon: labelled optical markers in, "
+            "a skeleton solved, rotations streamed to engines."
+        ),
+    )
+    parser.add_argument(
+        "--version", action="version", version=f"retargetd {package_version()}"
+    )
+    parser.add_argument(
+        "-v", "--verbose", action="count", default=0, help="more logging (-vv: debug)"
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+    for name in SUBCOMMAND_MODULES:
+        importlib.import_module(name).add_parser(sub)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the CLI; returns the process exit code."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(
+        level=logging.WARNING - 10 * min(args.verbose, 2),
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+        stream=sys.stderr,
+    )
+    if args.command is None:
+        parser.print_help(sys.stderr)
+        return 2
+    try:
+        return int(args.run(args))
+    except (UsageError, TakeError, OSError) as exc:
+        # Input problems (bad file, bad value, ambiguous subject) are the user's to fix:
+        # one line, exit 2. Anything else is a bug and crashes with a traceback (1).
+        sys.stderr.write(f"retargetd {args.command}: error: {exc}\n")
+        return 2
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

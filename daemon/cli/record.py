@@ -1,0 +1,196 @@
+"""``retargetd record --listen URL --out FILE.mcap``: record a marker input, no solving.
+
+``--listen`` takes ``osc://HOST:PORT`` (a UDP socket bound there; ``--form compact``
+or ``simple``), ``zmq://HOST:PORT`` (a PULL bound there: a player's or bridge's PUSH
+connects) or ``zmq+sub://HOST:PORT`` (a SUB connecting to a publisher). Port 0
+binds an ephemeral port; the "listening on" line names it. Every packet is recorded
+as received, with its receive time, on a writer thread that never holds up the
+receive loop (``/markers/raw``; label sets on ``/markers/labels``). ``--poses
+zmq+sub://HOST:PORT`` also records a daemon's pose stream (``/poses``). SIGINT,
+SIGTERM or ``--seconds`` stop it cleanly: the file is finished (footer and index)
+and a summary is printed. A killed recorder leaves a readable file (all but the last
+~0.25 s). Layout: ``protocols/PROTOCOLS.md``, "Recordings (MCAP)".
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import socket
+import sys
+import threading
+import time
+from typing import Any
+
+from retargetd.daemon.cli.launch import stop_on_signals
+from retargetd.daemon.errors import UsageError
+from retargetd.daemon.version import package_version
+
+_UDP_MAX = 65536
+_POLL_MS = 50
+
+
+def add_parser(subparsers: Any) -> None:
+    """Register ``record``."""
+    parser = subparsers.add_parser(
+        "record",
+        help="record a marker input (OSC or ZeroMQ) to MCAP, without solving",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument(
+        "--listen", required=True, metavar="URL",
+        help="osc://HOST:PORT, zmq://HOST:PORT (bind a PULL) or zmq+sub://HOST:PORT",
+    )  # fmt: skip
+    parser.add_argument("--out", required=True, metavar="FILE.mcap")
+    parser.add_argument(
+        "--form", choices=("compact", "simple"), default="compact",
+        help="OSC form of the input (default compact)",
+    )  # fmt: skip
+    parser.add_argument("--seconds", type=float, help="stop after this long")
+    parser.add_argument(
+        "--units", default="m", help="the sender's length unit (stored; default m)"
+    )
+    parser.add_argument(
+        "--up", default="+Z", help="the sender's up axis (stored; default +Z)"
+    )
+    parser.add_argument(
+        "--poses", metavar="URL", help="also record a pose stream: zmq+sub://HOST:PORT"
+    )
+    parser.set_defaults(run=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Record until stopped; returns the exit code."""
+    import zmq
+
+    from retargetd.protocols import conventions as cv
+    from retargetd.replay import recording as rf
+    from retargetd.replay.player import parse_endpoint
+    from retargetd.replay.recorder import InputInfo, open_recorder
+
+    try:
+        ep = parse_endpoint(args.listen, ("osc", "zmq", "zmq+sub"), allow_port_0=True)
+        poses_ep = (
+            parse_endpoint(args.poses, ("zmq+sub",)) if args.poses is not None else None
+        )
+        units = cv.normalize_units(args.units)
+        up = cv.normalize_up_axis(args.up)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+    if args.seconds is not None and not args.seconds > 0:
+        raise UsageError(f"--seconds must be > 0; got {args.seconds:g}")
+
+    ctx = zmq.Context()
+    poller = zmq.Poller()
+    udp: socket.socket | None = None
+    zin: Any = None
+    zposes: Any = None
+    try:
+        if ep.scheme == "osc":
+            udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            udp.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)
+            udp.bind((ep.host, ep.port))
+            udp.setblocking(False)
+            poller.register(udp, zmq.POLLIN)
+            host, port = udp.getsockname()[:2]
+            where = f"udp://{host}:{port} (osc {args.form})"
+            info = InputInfo(
+                name="osc", form=f"osc-{args.form}", units=units, up=up,
+                endpoint=f"udp://{host}:{port}",
+            )  # fmt: skip
+            form = rf.FORM_CODES[info.form]
+        else:
+            zin = ctx.socket(zmq.PULL if ep.scheme == "zmq" else zmq.SUB)
+            zin.setsockopt(zmq.LINGER, 0)
+            zin.setsockopt(zmq.RCVHWM, 10_000)
+            if ep.scheme == "zmq":
+                zin.bind(ep.tcp)
+            else:
+                zin.setsockopt(zmq.SUBSCRIBE, b"RTD")
+                zin.connect(ep.tcp)
+            poller.register(zin, zmq.POLLIN)
+            last = zin.getsockopt(zmq.LAST_ENDPOINT).decode() or ep.tcp
+            mode = "pull" if ep.scheme == "zmq" else "sub"
+            where = f"{last} (zmq {mode})"
+            info = InputInfo(name="zmq", form="zmq", units=units, up=up, endpoint=last)
+            form = rf.FORM_ZMQ
+        if poses_ep is not None:
+            zposes = ctx.socket(zmq.SUB)
+            zposes.setsockopt(zmq.LINGER, 0)
+            zposes.setsockopt(zmq.SUBSCRIBE, b"RTDP")
+            zposes.setsockopt(zmq.SUBSCRIBE, b"RTDN")
+            zposes.connect(poses_ep.tcp)
+            poller.register(zposes, zmq.POLLIN)
+    except (OSError, zmq.ZMQError) as exc:
+        for s in (udp, zin, zposes):
+            if s is not None:
+                s.close()
+        ctx.term()
+        raise UsageError(f"cannot open {args.listen}: {exc}") from None
+
+    try:
+        recorder = open_recorder(
+            args.out, (info,), software=f"retargetd {package_version()}"
+        )
+    except OSError:
+        for s in (udp, zin, zposes):
+            if s is not None:
+                s.close()
+        ctx.term()
+        raise
+    recorder.record_event("record_start", listen=where, form=info.form)
+    print(f"listening on {where}: recording to {args.out}", flush=True)
+    stop = threading.Event()
+    deadline = math.inf if args.seconds is None else time.monotonic() + args.seconds
+    buf = bytearray(_UDP_MAX)
+    view = memoryview(buf)
+    try:
+        with stop_on_signals(stop):
+            while not stop.is_set() and time.monotonic() < deadline:
+                events = dict(poller.poll(_POLL_MS))
+                if udp is not None and udp.fileno() in events:
+                    while True:
+                        try:
+                            n = udp.recv_into(buf)
+                        except (BlockingIOError, InterruptedError):
+                            break
+                        recorder.record_packet(
+                            "osc", form, time.monotonic_ns(), view[:n]
+                        )
+                if zin is not None and zin in events:
+                    _drain_zmq(
+                        zin, lambda t, p: recorder.record_packet("zmq", form, t, *p)
+                    )
+                if zposes is not None and zposes in events:
+                    _drain_zmq(zposes, lambda t, p: recorder.record_pose(t, *p))
+    finally:
+        recorder.record_event("record_stop")
+        for s in (udp, zin, zposes):
+            if s is not None:
+                s.close()
+        ctx.term()
+        st = recorder.close()
+    print(
+        f"recorded {st.frames} marker frames, {st.label_packets} label packets, "
+        f"{st.other_packets} other packets ({st.label_sets} label sets"
+        + (f", {st.poses} pose messages" if zposes is not None else "")
+        + f") over {st.seconds:.2f} s to {args.out}; dropped {st.dropped} "
+        f"(recorder queue full)",
+        flush=True,
+    )
+    if st.write_errors:
+        sys.stderr.write(f"retargetd record: {st.write_errors} packets not written\n")
+        return 1
+    return 0
+
+
+def _drain_zmq(sock: Any, record: Any) -> None:
+    import zmq
+
+    while True:
+        try:
+            parts = sock.recv_multipart(zmq.NOBLOCK, copy=False)
+        except zmq.Again:
+            return
+        record(time.monotonic_ns(), [p.buffer for p in parts])

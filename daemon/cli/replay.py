@@ -1,0 +1,140 @@
+"""``retargetd replay TAKE --to URL``: send a take (MCAP, C3D, TRC) to a live input.
+
+``--to osc://HOST:PORT`` sends UDP datagrams (``--form compact``, the default, or
+``simple``); ``--to zmq://HOST:PORT`` connects a PUSH to the daemon's bound PULL.
+``--speed 1`` (the default) keeps the recorded timing, ``2`` doubles it, ``0`` sends
+as fast as possible. ``--loop`` starts over at the end (frame numbers keep
+increasing) until Ctrl-C or ``--seconds``. ``--frames a:b`` picks rows (0-based,
+half-open; for a recording, its marker frames).
+
+C3D and TRC takes are sent in world metres (the daemon input's default ``units = "m"``,
+``up = "+Z"``), frame number = row, source timestamp = row / rate, labels announced
+first and every second. An MCAP recording is re-sent as recorded: the same bytes, at
+the recorded inter-arrival times (scaled by ``--speed``), when ``--to`` uses the
+recorded transport and ``--form`` (if given) the recorded form; otherwise (or with
+``--subject``, ``--take-units``, ``--take-up``) it is decoded to a take and sent as one.
+At the end the player prints its own timing jitter (send time - due time).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import threading
+from typing import Any
+
+from retargetd.daemon.cli.args import add_take_arguments
+from retargetd.daemon.errors import UsageError
+
+
+def add_parser(subparsers: Any) -> None:
+    """Register ``replay``."""
+    parser = subparsers.add_parser(
+        "replay",
+        help="send a take (MCAP, C3D, TRC) over OSC or ZeroMQ, paced",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("take", metavar="TAKE", help="a .mcap, .c3d or .trc file")
+    parser.add_argument(
+        "--to", required=True, metavar="URL", help="osc://HOST:PORT or zmq://HOST:PORT"
+    )
+    parser.add_argument(
+        "--speed", type=float, default=1.0,
+        help="1 = recorded speed (default), 2 = twice as fast, 0 = unpaced",
+    )  # fmt: skip
+    parser.add_argument("--loop", action="store_true", help="start over at the end")
+    parser.add_argument("--frames", metavar="a:b", help="rows to send (0-based)")
+    parser.add_argument(
+        "--form", choices=("compact", "simple"),
+        help="OSC form (default compact; for a recording: as recorded)",
+    )  # fmt: skip
+    parser.add_argument("--seconds", type=float, help="stop after this long")
+    add_take_arguments(parser)
+    parser.set_defaults(run=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Replay; returns the exit code."""
+    from retargetd.daemon.cli.args import parse_frames
+    from retargetd.daemon.cli.launch import stop_on_signals
+    from retargetd.replay import recording as rf
+    from retargetd.replay.player import (
+        RecordingSource,
+        Sender,
+        TakeSource,
+        parse_endpoint,
+        play,
+    )
+    from retargetd.replay.takes import load_take
+
+    try:
+        ep = parse_endpoint(args.to)
+    except ValueError as exc:
+        raise UsageError(f"--to: {exc}") from None
+    if not (math.isfinite(args.speed) and args.speed >= 0):
+        raise UsageError(f"--speed must be >= 0; got {args.speed:g}")
+    if args.seconds is not None and not args.seconds > 0:
+        raise UsageError(f"--seconds must be > 0; got {args.seconds:g}")
+    if ep.scheme == "zmq" and args.form == "simple":
+        raise UsageError("--form simple is an OSC form; ZeroMQ has one form")
+
+    source: TakeSource | RecordingSource | None = None
+    overrides = args.subject or args.take_units or args.take_up
+    if args.take.lower().endswith(".mcap") and not overrides:
+        rec = rf.read_recording(args.take)
+        name = rf.main_input(rec)
+        packets = [p for p in rec.packets() if p.input == name]
+        form = rf.FORM_NAMES[next(p.form for p in packets if p.kind == rf.KIND_FRAME)]
+        wanted = "zmq" if ep.scheme == "zmq" else f"osc-{args.form or form[4:]}"
+        if form == wanted:
+            n_frames = sum(p.kind == rf.KIND_FRAME for p in packets)
+            rows = parse_frames(args.frames, n_frames, option="--frames")
+            source = RecordingSource(packets, rows)
+            what = f"{len(range(*rows.indices(n_frames)))} recorded {form} frames"
+    if source is None:
+        take = load_take(
+            args.take, subject=args.subject, units=args.take_units,
+            up_axis=args.take_up,
+        )  # fmt: skip
+        rows = parse_frames(args.frames, take.n_frames, option="--frames")
+        source = TakeSource(take, ep.scheme, args.form or "compact", rows)
+        form_text = f"osc {source.form}" if ep.scheme == "osc" else "zmq"
+        what = (
+            f"{len(source.rows)} frames of {take.n_markers} markers at "
+            f"{take.rate_hz:g} Hz ({form_text})"
+        )
+    print(
+        f"replaying {args.take}: {what}, {source.duration_s:.2f} s, to {ep} at speed "
+        f"{args.speed:g}{' (looping)' if args.loop else ''}",
+        flush=True,
+    )
+    try:
+        sender = Sender(ep)
+    except OSError as exc:
+        raise UsageError(f"cannot send to {ep}: {exc}") from None
+    stop = threading.Event()
+    try:
+        with stop_on_signals(stop):
+            report = play(
+                source, sender, speed=args.speed, loop=args.loop,
+                should_stop=stop.is_set, max_seconds=args.seconds,
+            )  # fmt: skip
+    finally:
+        sender.close()
+    jitter = report.jitter_us()
+    timing = (
+        f"jitter (send - due) us: median {jitter['median']:.0f}, p99 "
+        f"{jitter['p99']:.0f}, max {jitter['max']:.0f}"
+        if report.lateness_s
+        else "unpaced"
+    )
+    sys.stdout.write(
+        f"replay: sent {report.frames} frames, {report.label_packets} label packets"
+        + (f", {report.other_packets} other packets" if report.other_packets else "")
+        + f" in {report.wall_s:.3f} s ({report.passes} full passes); {timing}; "
+        f"dropped {report.dropped}\n"
+    )
+    sys.stdout.flush()
+    return 0

@@ -1,0 +1,162 @@
+"""``retargetd rig check RIG [TAKE]``: validate a rig and show how it is built.
+
+Prints, for every derived point and bone, what it is built from and the markers it
+finally depends on; with a take, how the take's labels match the rig (prefixes
+stripped, extra labels ignored, missing rig markers occluded) and which points and
+bones the missing markers leave without data. Exit 0 when the rig is valid (and, with a
+take, every bone can be built from the take's labels), 1 when the take leaves bones
+without data, 2 for a bad rig or take (one line naming file, key and value).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from typing import Any
+
+from retargetd.daemon.body.rig import LinePoint, Rig, RigError, load_rig, shipped_rigs
+from retargetd.daemon.errors import UsageError
+
+
+def add_parser(subparsers: Any) -> None:
+    """Register ``rig`` and its ``check`` subcommand."""
+    parser = subparsers.add_parser("rig", help="validate and inspect rig files")
+    sub = parser.add_subparsers(dest="rig_command", metavar="ACTION", required=True)
+    check = sub.add_parser(
+        "check",
+        help="validate a rig (and its fit to a take); print what each point uses",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    check.add_argument(
+        "rig", metavar="RIG", help=f"shipped name ({', '.join(shipped_rigs())}) or path"
+    )
+    check.add_argument("take", metavar="TAKE", nargs="?", help="a take to match")
+    from retargetd.daemon.cli.args import add_take_arguments
+
+    add_take_arguments(check)
+    check.set_defaults(run=run)
+
+
+def _describe_point(rig: Rig, name: str) -> str:
+    point = next(p for p in rig.points if p.name == name)
+    if isinstance(point, LinePoint):
+        how = f"line {point.a} -> {point.b} at u = {point.u:g}"
+    elif point.rule is not None:
+        rule = ", ".join(f"{k} of {v.text}" for k, v in point.rule.items())
+        how = f"rigid in frame [{', '.join(point.frame)}]; base-pose rule: {rule}"
+    else:
+        assert point.offset_mm is not None
+        off = ", ".join(e.text for e in point.offset_mm)
+        how = f"rigid in frame [{', '.join(point.frame)}]; offset_mm [{off}]"
+    return how
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``rig check``."""
+    try:
+        rig = load_rig(args.rig)
+    except RigError as exc:
+        raise UsageError(str(exc)) from None
+    out = sys.stdout.write
+    out(f"rig {rig.name} ({rig.source}): valid\n")
+    if rig.description:
+        out(f"  {rig.description}\n")
+    out(f"markers ({len(rig.markers)}):\n")
+    for name, aliases in rig.markers.items():
+        alias = "" if aliases == (name,) else f"  <- {' | '.join(aliases)}"
+        out(f"  {name}{alias}\n")
+    if rig.measurements:
+        out(f"measurements ({len(rig.measurements)}, mm):\n")
+        for m in rig.measurements.values():
+            out(f"  {m.name} = {m.default_mm:g} (default) {m.description}\n")
+    if rig.segments:
+        out(f"rigid segments ({len(rig.segments)}):\n")
+        for seg, names in rig.segments.items():
+            out(f"  {seg}: {' '.join(names)}\n")
+    out(f"derived points ({len(rig.points)}, in solve order):\n")
+    for p in rig.points:
+        out(f"  {p.name}: {_describe_point(rig, p.name)}\n")
+        out(f"      markers: {' '.join(rig.markers_of(p.name))}\n")
+        base = [m for m in rig.markers_of(p.name, base_pose=True)
+                if m not in rig.markers_of(p.name)]  # fmt: skip
+        if base:
+            out(f"      base pose only: {' '.join(base)}\n")
+    out(f"bones ({len(rig.bones)}, parents first):\n")
+    for b in rig.bones:
+        up = b.up[0] if len(b.up) == 1 else f"{b.up[0]} -> {b.up[1]}"
+        hum = f" [{b.humanoid}]" if b.humanoid else ""
+        out(
+            f"  {b.name}{hum}: parent {b.parent or '(root)'}; origin {b.origin}, "
+            f"aim {b.aim}, up {up}\n"
+        )
+        markers: list[str] = []
+        for name in b.inputs:
+            markers.extend(m for m in rig.markers_of(name) if m not in markers)
+        out(f"      markers: {' '.join(markers)}\n")
+    out(f"joint centres ({len(rig.joints)}): ")
+    out(" ".join(f"{j}={p}" for j, p in rig.joints.items()) + "\n")
+    unmapped = [h for h in _humanoid_order() if h not in rig.humanoid]
+    out(f"humanoid: {len(rig.humanoid)} mapped; not solved: {' '.join(unmapped)}\n")
+    if args.take is None:
+        return 0
+    return _check_take(rig, args)
+
+
+def _humanoid_order() -> tuple[str, ...]:
+    from retargetd.daemon.body.rig import HUMANOID_BONES
+
+    return HUMANOID_BONES
+
+
+def _check_take(rig: Rig, args: argparse.Namespace) -> int:
+    from retargetd.daemon.body.calibration import match_markers
+    from retargetd.replay.takes import load_take
+
+    take = load_take(
+        args.take, subject=args.subject, units=args.take_units, up_axis=args.take_up
+    )
+    out = sys.stdout.write
+    cols = match_markers(rig, take.labels)
+    missing = [m for m, c in zip(rig.markers, cols, strict=True) if c < 0]
+    used = {c for c in cols if c >= 0}
+    extra = [lab for i, lab in enumerate(take.labels) if i not in used]
+    out(f"take {take.path}: {take.n_markers} markers, {take.n_frames} frames\n")
+    out(f"  matched {len(rig.markers) - len(missing)}/{len(rig.markers)} rig markers\n")
+    if missing:
+        out(f"  missing (occluded in every frame): {' '.join(missing)}\n")
+    if extra:
+        out(f"  extra labels (ignored): {' '.join(extra)}\n")
+    for m, c in zip(rig.markers, cols, strict=True):
+        if c >= 0 and not take.valid[:, c].all():
+            gap = 100.0 * (1.0 - take.valid[:, c].mean())
+            out(f"  {m} ({take.labels[c]}): occluded in {gap:.1f} % of frames\n")
+    lost_points = [
+        p.name for p in rig.points if set(rig.markers_of(p.name)) & set(missing)
+    ]
+    segs = {m: s for s, names in rig.segments.items() for m in names}
+    # A missing marker of a rigid segment with >= 3 others present is rebuilt.
+    rebuildable = {
+        m
+        for m in missing
+        if m in segs and sum(1 for n in rig.segments[segs[m]] if n not in missing) >= 3
+    }
+    lost = set(missing) - rebuildable
+    dead_points = [p.name for p in rig.points if set(rig.markers_of(p.name)) & lost]
+    dead_bones = []
+    for b in rig.bones:
+        need: set[str] = set()
+        for p in b.inputs:
+            need |= set(rig.markers_of(p))
+        if need & lost:
+            dead_bones.append(b.name)
+    if lost_points:
+        out(f"  points using missing markers: {' '.join(lost_points)}\n")
+    if rebuildable:
+        out(f"  rebuilt from their rigid segment: {' '.join(sorted(rebuildable))}\n")
+    if dead_bones:
+        out(f"  bones without data (held at rest, flagged): {' '.join(dead_bones)}\n")
+        out(f"  points without data: {' '.join(dead_points)}\n")
+        return 1
+    out("  every bone can be built from this take\n")
+    return 0

@@ -1,0 +1,56 @@
+"""``retargetd run [--config FILE]``: the live daemon, in the foreground.
+
+The config is validated before any socket opens (a bad key: one line, exit 2). SIGINT
+or SIGTERM ends it cleanly (sockets closed, exit 0, within the poll timeout); a second
+SIGINT forces the exit. Endpoints and their defaults: README "Live daemon".
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import threading
+from typing import Any
+
+from retargetd.daemon.cli.launch import (
+    install_signal_handlers,
+    load_config,
+    make_daemon,
+    open_or_fail,
+)
+
+logger = logging.getLogger(__name__)
+
+
+def add_parser(subparsers: Any) -> None:
+    """Register ``run``."""
+    parser = subparsers.add_parser(
+        "run",
+        help="run the live daemon (markers in over OSC/ZeroMQ, VMC and poses out)",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("--config", metavar="FILE.toml", help="daemon config (TOML)")
+    parser.add_argument("--rig", help="override performer.rig")
+    parser.add_argument("--calibration", help="override performer.calibration")
+    parser.add_argument(
+        "--process-every-frame",
+        action="store_true",
+        help="solve every accepted frame in order (offline replay), drop none",
+    )
+    parser.set_defaults(run=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the daemon until SIGINT/SIGTERM."""
+    config = load_config(args)
+    daemon = make_daemon(config)
+    stop = threading.Event()
+    install_signal_handlers(stop)
+    open_or_fail(daemon)
+    try:
+        daemon.run(stop.is_set)
+    finally:
+        daemon.close()
+        print("retargetd: stopped", flush=True)
+    return 0

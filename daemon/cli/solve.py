@@ -1,0 +1,210 @@
+"""``retargetd solve TAKE --rig RIG (--calibration FILE | --calibrate-frames a:b)
+--out OUT.npz|OUT.bvh [--bvh-order ZXY] [--bvh-root-order ORDER]``: solve every frame
+of a take. The ``--out`` suffix chooses the format.
+
+``.bvh``: the calibrated skeleton and the solved motion as BVH, centimetres, Y up,
+every joint's rotation channels in ``--bvh-order`` (default Z X Y; any of XYZ, XZY,
+YXZ, YZX, ZXY, ZYX), the root's in ``--bvh-root-order`` when given. See
+``retargetd.daemon.target.bvh``.
+
+The NPZ (``numpy.load(..., allow_pickle=False)``) holds, in rig order:
+``joint_names`` (J,), ``joint_centres`` (T, J, 3) metres world; ``bone_names`` (B,),
+``bone_parents`` (B,) int (-1 root), ``bone_humanoid`` (B,) ("" when unmapped),
+``world_from_bone_quat`` (T, B, 4) w x y z, ``parent_from_bone_quat`` (T, B, 4) w x y z
+(relative to the calibration pose), ``root_pos`` (T, 3) metres, ``bone_lengths`` (B,)
+metres as calibrated, ``bone_quality`` (T, B) float32, ``bone_flags`` (T, B) uint8,
+``rate_hz``, ``world_from_capture`` (3, 3), ``first_frame``, ``rig_name``. See README
+"Solve output".
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from typing import Any
+
+import numpy as np
+
+from retargetd.daemon.errors import UsageError
+
+logger = logging.getLogger(__name__)
+
+
+def add_parser(subparsers: Any) -> None:
+    """Register ``solve``."""
+    from retargetd.daemon.cli.args import add_solve_arguments
+
+    parser = subparsers.add_parser(
+        "solve",
+        help="solve every frame of a take to the rig's skeleton (NPZ or BVH)",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    add_solve_arguments(parser)
+    parser.add_argument("--out", required=True, metavar="OUT.npz|OUT.bvh")
+    parser.add_argument(
+        "--bvh-order",
+        metavar="ORDER",
+        help="BVH: rotation channel order of every joint (default ZXY)",
+    )
+    parser.add_argument(
+        "--bvh-root-order",
+        metavar="ORDER",
+        help="BVH: rotation channel order of the root (default: --bvh-order)",
+    )
+    parser.set_defaults(run=run)
+
+
+def segment_stability(
+    rig: Any, joint_names: tuple[str, ...], joints: np.ndarray
+) -> list[tuple[str, float, float]]:
+    """(bone, mean length m, coefficient of variation %) for every bone whose origin
+    and aim are both named joint centres."""
+    point_to_joint = {p: j for j, p in rig.joints.items()}
+    index = {j: i for i, j in enumerate(joint_names)}
+    out = []
+    for bone in rig.bones:
+        a = point_to_joint.get(bone.origin)
+        b = point_to_joint.get(bone.aim)
+        if a is None or b is None:
+            continue
+        d = np.linalg.norm(joints[:, index[b]] - joints[:, index[a]], axis=-1)
+        d = d[np.isfinite(d)]
+        if d.size < 2:
+            continue
+        out.append(
+            (f"{bone.name} ({a}-{b})", float(d.mean()), float(100 * d.std() / d.mean()))
+        )
+    return out
+
+
+#: Our joint-centre names -> the vendor reference points that hold the same centre
+#: (Plug-in Gait: femur proximal = hip, femur origin = knee, tibia origin = ankle,
+#: humerus proximal = shoulder, humerus origin = elbow, radius origin = wrist).
+REFERENCE_CENTRES = {
+    f"{s}{j}": (f"{s}{j}", f"{s}{pig}")
+    for s in "LR"
+    for j, pig in (("HJC", "FEP"), ("KJC", "FEO"), ("AJC", "TIO"), ("SJC", "HUP"),
+                   ("EJC", "HUO"), ("WJC", "RAO"))
+}  # fmt: skip
+
+
+def reference_distances(
+    take: Any, joint_names: tuple[str, ...], joints: np.ndarray
+) -> list[tuple[str, str, float, float]]:
+    """(joint, reference, median mm, p95 mm) against the take's vendor joint centres."""
+    refs = take.references
+    out = []
+    for j, name in enumerate(joint_names):
+        for ref in REFERENCE_CENTRES.get(name, ()):
+            if ref in refs.labels and refs.kinds[refs.index(ref)] != "angle":
+                d = 1000 * np.linalg.norm(joints[:, j] - refs.get(ref), axis=-1)
+                d = d[np.isfinite(d)]
+                if d.size:
+                    out.append(
+                        (name, ref, float(np.median(d)), float(np.percentile(d, 95)))
+                    )
+                break
+    return out
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``solve``."""
+    from retargetd.daemon.body.solve import FLAG_HELD
+    from retargetd.daemon.cli.args import solver_for_take
+
+    out_format = _out_format(args)
+    rig, take, cal, solver = solver_for_take(args)
+    res = solver.solve_take(take.positions)
+    if out_format == "bvh":
+        _write_bvh(args, cal, res, take.rate_hz)
+    else:
+        np.savez(
+            args.out,
+            joint_names=np.asarray(res.joint_names, dtype=str),
+            joint_centres=res.joint_centres,
+            bone_names=np.asarray(res.bone_names, dtype=str),
+            bone_parents=np.asarray(res.bone_parents, dtype=np.int64),
+            bone_humanoid=np.asarray([b.humanoid or "" for b in rig.bones], dtype=str),
+            world_from_bone_quat=res.world_from_bone_quat,
+            parent_from_bone_quat=res.parent_from_bone_quat,
+            root_pos=res.root_pos,
+            bone_lengths=res.bone_lengths,
+            bone_quality=res.bone_quality,
+            bone_flags=res.bone_flags,
+            rate_hz=np.float64(take.rate_hz),
+            world_from_capture=np.asarray(take.world_from_capture, dtype=np.float64),
+            first_frame=np.int64(take.first_frame),
+            rig_name=np.asarray(rig.name),
+        )
+    out = sys.stdout.write
+    n = take.n_frames
+    cols = solver.marker_cols
+    present = cols[cols >= 0]
+    occluded = int((~take.valid[:, present]).sum())
+    total = n * len(cols)
+    out(f"wrote {args.out}: {n} frames at {take.rate_hz:g} Hz, rig {rig.name}, ")
+    out(f"{len(res.bone_names)} bones, {len(res.joint_names)} joint centres\n")
+    missing = n * int((cols < 0).sum())
+    out(
+        f"occluded rig-marker samples: {occluded + missing} of {total} "
+        f"({100.0 * (occluded + missing) / max(total, 1):.1f} %)"
+    )
+    if solver.missing_markers:
+        out(f"; not in the take: {' '.join(solver.missing_markers)}")
+    out("\n")
+    held = (res.bone_flags & FLAG_HELD) != 0
+    flagged = [
+        f"{name} {100.0 * held[:, b].mean():.1f} %"
+        for b, name in enumerate(res.bone_names)
+        if held[:, b].any()
+    ]
+    out("bones held (frames): " + (", ".join(flagged) if flagged else "none") + "\n")
+    stab = segment_stability(rig, res.joint_names, res.joint_centres)
+    if stab:
+        out("joint-centre segment stability (mean length, CV):\n")
+        for name, mean, cv in stab:
+            out(f"  {name}: {1000 * mean:.1f} mm, {cv:.2f} %\n")
+    compared = reference_distances(take, res.joint_names, res.joint_centres)
+    if compared:
+        out("joint centres against the take's own reference points (median, p95):\n")
+        for name, ref, med, p95 in compared:
+            out(f"  {name} vs {ref}: {med:.1f} mm, {p95:.1f} mm\n")
+    return 0
+
+
+def _out_format(args: argparse.Namespace) -> str:
+    """``"npz"`` or ``"bvh"`` from the ``--out`` suffix; checks the BVH options."""
+    from retargetd.replay.bvh import normalize_rotation_order
+
+    suffix = args.out.lower().rsplit(".", 1)[-1] if "." in args.out else ""
+    if suffix not in ("npz", "bvh"):
+        raise UsageError(f"--out: expected a .npz or .bvh file; got {args.out!r}")
+    for option, value in (
+        ("--bvh-order", args.bvh_order),
+        ("--bvh-root-order", args.bvh_root_order),
+    ):
+        if value is None:
+            continue
+        if suffix != "bvh":
+            raise UsageError(f"{option} applies to .bvh output; --out is {args.out!r}")
+        try:
+            normalize_rotation_order(value)
+        except ValueError as exc:
+            raise UsageError(f"{option}: {exc}") from None
+    return suffix
+
+
+def _write_bvh(args: argparse.Namespace, cal: Any, res: Any, rate_hz: float) -> None:
+    from retargetd.daemon.body.calibration import CalibrationError
+    from retargetd.daemon.target.bvh import DEFAULT_ROTATION_ORDER, write_solve_bvh
+
+    try:
+        write_solve_bvh(
+            args.out, cal, res, rate_hz,
+            rotation_order=args.bvh_order or DEFAULT_ROTATION_ORDER,
+            root_rotation_order=args.bvh_root_order,
+        )  # fmt: skip
+    except CalibrationError as exc:
+        raise UsageError(str(exc)) from None

@@ -1,0 +1,166 @@
+"""``retargetd validate TAKE --rig RIG (--calibration FILE | --calibrate-frames a:b)
+--report DIR``: check every solved frame of a take against a MuJoCo model of the
+calibrated skeleton.
+
+Writes ``DIR/report.json`` (per check: threshold, frames flagged, worst frames and
+values), ``DIR/report.txt`` (the same, readable) and ``DIR/model.xml`` (the model
+checked against), ``DIR/checks.png`` (every check over time) and
+``DIR/snapshot_*.png`` (the worst frames rendered headless: EGL, else OSMesa; skipped,
+with the reason in the report, when neither works; ``validate_render``).
+Body mass: the take's ``Bodymass`` when it has one, else 70 kg (``--body-mass-kg``
+overrides). Checks and thresholds: ``validate.checks``; the report's header
+says how each threshold was set (the literature and the PiG walk, the MOTEK ballet and
+the tennis serve). A joint-limit excursion of a single frame is listed as a transient
+(a marker glitch), not failed.
+
+Exit code: 0 every check passes, 1 a check fails, 2 bad input, 3 internal error.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+from pathlib import Path
+from typing import Any
+
+from retargetd.daemon.errors import UsageError
+
+logger = logging.getLogger(__name__)
+
+EXIT_PASS, EXIT_FAIL, EXIT_INTERNAL = 0, 1, 3
+
+#: The report header's account of the thresholds (report.json "thresholds_note").
+THRESHOLDS_NOTE = (
+    "from the literature and three real takes that must pass: the PiG walk (rig "
+    "plug-in-gait, calibrated on PiG_Calibration), the MOTEK ballet (rig cmu41, "
+    "calibrated on MOTEK_T, another session) and the tennis serve (rig cmu41, "
+    "calibrated on its first second); each limit sits above the takes' worst frame "
+    "and below the synthetic defects it must catch (per check below; values and "
+    "sources: validate.checks.THRESHOLDS, joint table: validate.limits)"
+)
+
+
+def add_parser(subparsers: Any) -> None:
+    """Register ``validate``."""
+    from retargetd.daemon.cli.args import add_solve_arguments
+
+    parser = subparsers.add_parser(
+        "validate",
+        help="check a take's solved poses against a physical model (report)",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    add_solve_arguments(parser)
+    parser.add_argument("--report", required=True, metavar="DIR")
+    parser.add_argument(
+        "--body-mass-kg", type=float, metavar="KG", help="override the body mass"
+    )
+    parser.set_defaults(run=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``validate``."""
+    from retargetd.daemon.cli.args import solver_for_take
+
+    rig, take, cal, solver = solver_for_take(args)
+    if cal.rest_bone_origin_pos is None:
+        raise UsageError("calibration has no rest bone origins: recalibrate")
+    mass = args.body_mass_kg
+    if mass is None:
+        mass = float(take.measurements.get("Bodymass", 0.0) or 0.0)
+        mass = mass if mass > 0.0 else None
+    if mass is not None and not mass > 0.0:
+        raise UsageError(f"--body-mass-kg must be > 0; got {mass}")
+    report_dir = Path(args.report)
+    report_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        return _validate(args, rig, cal, solver, take, mass, report_dir)
+    except Exception as exc:  # a bug, not the user's input: exit 3, with traceback
+        logger.exception("validate: internal error")
+        sys.stderr.write(f"retargetd validate: internal error: {exc!r}\n")
+        return EXIT_INTERNAL
+
+
+def _validate(
+    args: argparse.Namespace,
+    rig: Any,
+    cal: Any,
+    solver: Any,
+    take: Any,
+    mass: float | None,
+    report_dir: Path,
+) -> int:
+    from retargetd.daemon.validate.checks import (
+        THRESHOLDS,
+        THRESHOLDS_BASIS,
+        fit_pairs,
+        validate_take,
+    )
+    from retargetd.daemon.validate.model import (
+        DEFAULT_BODY_MASS_KG,
+        build_model,
+        skeleton_from_calibration,
+    )
+
+    res = solver.solve_take(take.positions)
+    body_mass = DEFAULT_BODY_MASS_KG if mass is None else mass
+    vm = build_model(skeleton_from_calibration(rig, cal), body_mass)
+    (report_dir / "model.xml").write_text(vm.xml)
+    rep = validate_take(vm, res, take.rate_hz, fit=fit_pairs(rig, res.joint_names))
+    doc = {
+        "take": str(take.path),
+        "rig": rig.name,
+        "frames": rep.n_frames,
+        "rate_hz": take.rate_hz,
+        "body_mass_kg": body_mass,
+        "body_mass_source": "default" if mass is None else "take or --body-mass-kg",
+        "model": {"xml": "model.xml", "sha256": vm.digest, "floor_z_m": vm.floor_z},
+        "thresholds_note": THRESHOLDS_NOTE,
+        "thresholds": THRESHOLDS,
+        "thresholds_basis": THRESHOLDS_BASIS,
+        "seconds_per_frame": rep.seconds_per_frame,
+        "passed": rep.passed,
+        "failed": rep.failed(),
+        "checks": {
+            n: {**c.summary(), "detail": c.detail} for n, c in rep.checks.items()
+        },
+    }
+    (report_dir / "report.json").write_text(json.dumps(doc, indent=1) + "\n")
+    from retargetd.daemon.validate.render import visuals_text, write_visuals
+
+    doc["visuals"] = write_visuals(report_dir, vm, res, rep, take.rate_hz)
+    (report_dir / "report.json").write_text(json.dumps(doc, indent=1) + "\n")
+    lines = [
+        f"retargetd validate: {take.path} (rig {rig.name}, {rep.n_frames} frames at "
+        f"{take.rate_hz:g} Hz, body mass {body_mass:g} kg)",
+        f"Result: {'PASS' if rep.passed else 'FAIL: ' + ', '.join(rep.failed())}",
+        "",
+        f"How the thresholds were set: {THRESHOLDS_NOTE}",
+        *(
+            f"    {name}: {rep.checks[name].threshold:g} {rep.checks[name].unit}"
+            f" - {basis}"
+            for name, basis in THRESHOLDS_BASIS.items()
+            if name in rep.checks
+        ),
+        "",
+    ]
+    for name, c in rep.checks.items():
+        s = c.summary(3)
+        worst = ", ".join(
+            f"{f} ({v:.3g})"
+            for f, v in zip(s["worst_frames"], s["worst_values"], strict=True)
+        )
+        transients = f"  transients {c.transients.size}" if c.transients.size else ""
+        lines.append(
+            f"{name:18s} {'FAIL' if c.n_flagged else 'ok  '} flagged {c.n_flagged:6d}"
+            f"  max {s['max']:.4g} {c.unit} (threshold {c.threshold:g})"
+            f"  worst frames: {worst}{transients}"
+        )
+        lines.extend(f"    {d}" for d in c.detail)
+    lines.extend(["", *visuals_text(doc["visuals"])])
+    text = "\n".join(lines) + "\n"
+    (report_dir / "report.txt").write_text(text)
+    sys.stdout.write(text)
+    return EXIT_PASS if rep.passed else EXIT_FAIL

@@ -1,0 +1,565 @@
+"""The stabilized face: head motion removed, blendshape weights solved per frame.
+
+Two steps per frame, one compiled call (numba, no allocation in steady state):
+
+1. **Stabilization.** A weighted rigid fit (Horn's quaternion form of Kabsch) of the
+   visible head markers (>= 3, not collinear) to their neutral layout in head
+   coordinates gives ``world_from_head`` (quat + pos). Every facial marker is mapped
+   back, ``p_head = R^T (p_world - t)``: the stabilized markers (the chapter's "Mug"
+   control points).
+2. **Weights.** With ``d`` the stabilized displacement from the neutral layout over the
+   visible facial markers and ``B`` (3 M x K) the training-set deltas, solve
+
+       min_w  |B_v w - d_v|^2 + lambda |w|^2     subject to 0 <= w <= 1
+
+   i.e. the box QP ``min 1/2 w^T A w - b^T w`` with ``A = B_v^T B_v + lambda I`` and
+   ``b = B_v^T d_v`` (``v`` = visible rows). ``A`` is precomputed for all markers; when
+   the occlusion pattern changes, the rows of the occluded markers are subtracted once
+   (their ``B_m^T B_m``). The QP is solved by block principal pivoting on its KKT
+   conditions (free block by Cholesky, every bound violation exchanged at once, with
+   Murty's single exchange as the finite fallback), warm-started from the last
+   frame's active set: in steady state a few Cholesky solves of the free block.
+
+``lambda = regularization * mean(diag(B^T B))`` (unitless ``regularization``, default
+1e-3), so the damping does not depend on the marker count or units.
+
+**Stabilization error.** What stabilization adds is the error of the fitted head pose
+carried to each facial marker: the stabilized marker minus the same observed marker
+mapped by the true pose, ``R_fit^T (p - t_fit) - R^T (p - t)``. That is the
+"stabilization residual" (issue 7: <= 0.5 mm RMS). The facial markers' own noise goes
+through any rigid map unchanged, so the stabilized noisy markers against the
+noise-free face hold both, in quadrature (``total^2 = stab^2 + noise^2``); the same
+stabilization residual is what noise-free facial markers with noisy head markers show.
+With independent, equal noise on the head markers, the least-squares fit is the best
+linear unbiased pose (Gauss-Markov): no weighting does better, and the error is set by
+the number and spread of the head markers and how far the face is from them.
+:func:`stabilization_error` gives it to first order; the kernel reaches it. For the
+synthetic face (``face_synth``: the Plug-in Gait take's four head markers as a band at
+temple height, 0.5 mm 3-D RMS noise) it is 0.45 mm RMS over the 40 facial markers
+(0.31-0.56 mm per marker; 0.42 mm measured), 0.55-0.79 mm with one head marker
+missing. The pose is not filtered over time: a causal constant-velocity (alpha-beta)
+filter of the head rotation took 20-30 % off on walks (100 and 250 Hz) but lagged on
+fast head motion (a 50 Hz tennis serve: 0.87 -> 1.5 mm and worse).
+
+The compiled kernels are in ``kernel_face``. Frames: markers in the internal world
+(metres); head coordinates are the training set's: origin at the neutral head-marker
+centroid. Quaternions are (w, x, y, z).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import numpy.typing as npt
+
+from retargetd.daemon.face.kernel import (
+    FLAG_FACE_PARTIAL,
+    FLAG_HEAD_LOST,
+    FLAG_HEAD_PARTIAL,
+    FLAG_NEVER,
+    FLAG_NOT_CONVERGED,
+    solve_face_frame,
+)
+
+logger = logging.getLogger(__name__)
+
+F64Array = npt.NDArray[np.float64]
+BoolArray = npt.NDArray[np.bool_]
+
+TRAINING_FORMAT = "retargetd-face-training/1"
+
+
+# ---- training set -------------------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True, kw_only=True, eq=False)
+class TrainingSet:
+    """A performer's face training set.
+
+    Attributes:
+        head_names: (H,) head (stabilization) marker names.
+        marker_names: (M,) facial marker names.
+        expression_names: (K,) expression names.
+        head_layout: (H, 3) float64, metres, head coordinates: neutral head markers.
+        neutral: (M, 3) float64, metres, head coordinates: neutral facial markers.
+        deltas: (K, M, 3) float64, metres, head coordinates: expression minus neutral.
+    """
+
+    head_names: tuple[str, ...]
+    marker_names: tuple[str, ...]
+    expression_names: tuple[str, ...]
+    head_layout: F64Array
+    neutral: F64Array
+    deltas: F64Array
+
+    def __post_init__(self) -> None:
+        h, m, k = (
+            len(self.head_names),
+            len(self.marker_names),
+            len(self.expression_names),
+        )
+        for name, arr, shape in (
+            ("head_layout", self.head_layout, (h, 3)),
+            ("neutral", self.neutral, (m, 3)),
+            ("deltas", self.deltas, (k, m, 3)),
+        ):
+            if arr.shape != shape:
+                raise ValueError(f"{name}: expected shape {shape}, got {arr.shape}")
+            if not np.all(np.isfinite(arr)):
+                raise ValueError(f"{name}: non-finite values")
+        if h < 3:
+            raise ValueError(f"head_names: need >= 3 head markers, got {h}")
+
+    @property
+    def basis(self) -> F64Array:
+        """B: (3 M, K) float64, metres; row 3 m + c is marker m, axis c."""
+        m3 = 3 * len(self.marker_names)
+        return np.ascontiguousarray(self.deltas.transpose(1, 2, 0).reshape(m3, self.k))
+
+    @property
+    def k(self) -> int:
+        """Number of expressions."""
+        return len(self.expression_names)
+
+    def save(self, path: str | Path) -> None:
+        """Write ``face.npz`` (no pickle)."""
+        np.savez(
+            path,
+            format=np.array(TRAINING_FORMAT),
+            head_names=np.array(self.head_names, dtype=str),
+            marker_names=np.array(self.marker_names, dtype=str),
+            expression_names=np.array(self.expression_names, dtype=str),
+            head_layout=self.head_layout,
+            neutral=self.neutral,
+            deltas=self.deltas,
+        )
+
+    @classmethod
+    def load(cls, path: str | Path) -> TrainingSet:
+        """Read a file written by :meth:`save`.
+
+        Raises:
+            ValueError: not a face training set, or inconsistent shapes.
+        """
+        with np.load(path, allow_pickle=False) as z:
+            if "format" not in z or str(z["format"]) != TRAINING_FORMAT:
+                raise ValueError(f"{path}: not a {TRAINING_FORMAT} file")
+            return cls(
+                head_names=tuple(str(s) for s in z["head_names"]),
+                marker_names=tuple(str(s) for s in z["marker_names"]),
+                expression_names=tuple(str(s) for s in z["expression_names"]),
+                head_layout=np.asarray(z["head_layout"], dtype=np.float64),
+                neutral=np.asarray(z["neutral"], dtype=np.float64),
+                deltas=np.asarray(z["deltas"], dtype=np.float64),
+            )
+
+
+@dataclass(frozen=True, slots=True, kw_only=True, eq=False)
+class Observability:
+    """Which shapes a marker layout can see.
+
+    Attributes:
+        names: (K,) expression names.
+        peak_m: (K,) largest marker displacement of each shape, metres.
+        weight_std: (K,) standard deviation of each unbounded weight estimate under
+            ``noise_m`` marker noise: ``noise * sqrt(((B^T B + lambda I)^-1)_kk)``.
+        observable: (K,) bool, ``peak_m >= min_peak_m`` and
+            ``weight_std <= max_weight_std``.
+    """
+
+    names: tuple[str, ...]
+    peak_m: F64Array
+    weight_std: F64Array
+    observable: BoolArray
+
+    @property
+    def unobservable(self) -> tuple[str, ...]:
+        """Names of the shapes this layout cannot see or tell apart."""
+        return tuple(
+            n for n, ok in zip(self.names, self.observable, strict=True) if not ok
+        )
+
+
+def observability(
+    training: TrainingSet,
+    *,
+    noise_m: float = 5e-4 / math.sqrt(3.0),
+    regularization: float = 1e-3,
+    min_peak_m: float = 1e-3,
+    max_weight_std: float = 0.1,
+) -> Observability:
+    """Report the shapes the training set's markers cannot see or separate.
+
+    A shape is unobservable when it moves no marker by ``min_peak_m``, or when
+    marker noise of ``noise_m`` (per axis, metres) gives its weight a standard
+    deviation above ``max_weight_std``: its column of B is too close to a
+    combination of the others (near rank deficiency, e.g. gaze vs. eyelid shapes).
+    """
+    b = training.basis
+    peak = np.linalg.norm(training.deltas, axis=2).max(axis=1)
+    seen = peak >= min_peak_m
+    cols = np.flatnonzero(seen)
+    std = np.full(training.k, np.inf)
+    if cols.size:
+        bs = b[:, cols]
+        btb = bs.T @ bs
+        lam = regularization * float(np.mean(np.diag(b.T @ b)))
+        std[cols] = noise_m * np.sqrt(
+            np.diag(np.linalg.inv(btb + lam * np.eye(cols.size)))
+        )
+    return Observability(
+        names=training.expression_names,
+        peak_m=peak,
+        weight_std=std,
+        observable=seen & (std <= max_weight_std),
+    )
+
+
+def stabilization_error(
+    training: TrainingSet,
+    *,
+    noise_rms_m: float = 5e-4,
+    head_weights: Sequence[float] | None = None,
+    head_seen: Sequence[bool] | None = None,
+) -> F64Array:
+    """Expected stabilization error of each facial marker from head-marker noise.
+
+    First order, for independent isotropic noise of ``noise_rms_m`` (3-D RMS, metres)
+    on every head marker: with ``u_i`` the layout, ``H_i = [I, -[u_i]x]`` the Jacobian
+    of head marker ``i`` with respect to a small pose error ``(dt, dtheta)`` and
+    ``w_i`` the fit weights, the weighted fit's pose error has covariance
+    ``s^2 G^-1 (sum w_i^2 H_i^T H_i) G^-1`` with ``G = sum w_i H_i^T H_i`` and
+    ``s^2 = noise_rms_m^2 / 3``; marker ``p`` is off by ``H_p (dt, dtheta)``.
+
+    The facial markers' own noise is not in it (see the module docstring). Equal
+    weights give the least error (Gauss-Markov); ``head_weights`` only help when
+    some head markers are noisier than others (weight them ``1 / variance``).
+
+    Args:
+        training: layout and neutral facial markers (head coordinates).
+        noise_rms_m: 3-D RMS noise of each head marker, metres.
+        head_weights: (H,) fit weights (default 1).
+        head_seen: (H,) which head markers are used (default all).
+
+    Returns:
+        (M,) float64, metres: the RMS 3-D error of each stabilized facial marker.
+
+    Raises:
+        ValueError: fewer than 3 head markers, or all on one line.
+    """
+    h = len(training.head_names)
+    w = np.ones(h) if head_weights is None else np.asarray(head_weights, float)
+    seen = np.ones(h, bool) if head_seen is None else np.asarray(head_seen, bool)
+    if w.shape != (h,) or seen.shape != (h,):
+        raise ValueError(f"head_weights / head_seen: expected ({h},)")
+    w = np.where(seen, w, 0.0)
+
+    def jac(pts: F64Array) -> F64Array:  # (n, 3, 6)
+        j = np.zeros((len(pts), 3, 6))
+        j[:, :, :3] = np.eye(3)
+        x, y, z = pts.T
+        j[:, 0, 4], j[:, 0, 5] = z, -y
+        j[:, 1, 3], j[:, 1, 5] = -z, x
+        j[:, 2, 3], j[:, 2, 4] = y, -x
+        return j
+
+    hj = jac(training.head_layout)
+    g = np.einsum("i,iap,iaq->pq", w, hj, hj)
+    if int(np.count_nonzero(w)) < 3 or np.linalg.cond(g) > 1e12:
+        raise ValueError("head markers: need >= 3 weighted markers not on one line")
+    g_inv = np.linalg.inv(g)
+    cov = (noise_rms_m**2 / 3.0) * (
+        g_inv @ np.einsum("i,iap,iaq->pq", w**2, hj, hj) @ g_inv
+    )
+    fj = jac(training.neutral)
+    return np.sqrt(np.einsum("map,pq,maq->m", fj, cov, fj))
+
+
+# ---- output -------------------------------------------------------------------------
+
+
+@dataclass(slots=True, eq=False)
+class FaceOutput:
+    """One frame's face solve, allocated once per stream (``FaceSolver.new_output``).
+
+    Attributes:
+        markers_head: (M, 3) float64, metres, head coordinates; NaN = occluded.
+        weights: (K,) float64 in [0, 1], training-set expression order.
+        world_from_head_quat: (4,) float64, (w, x, y, z).
+        world_from_head_pos: (3,) float64, metres, world.
+        status: (3,) int64: flags (``FLAG_*``), Cholesky solves of the QP, visible
+            facial markers.
+    """
+
+    markers_head: F64Array
+    weights: F64Array
+    world_from_head_quat: F64Array
+    world_from_head_pos: F64Array
+    status: npt.NDArray[np.int64]
+
+    @property
+    def flags(self) -> int:
+        """The ``FLAG_*`` bits of this frame."""
+        return int(self.status[0])
+
+
+# ---- the solver ---------------------------------------------------------------------
+
+
+class FaceSolver:
+    """Per-frame face solve from a training set (stabilize + bounded weights).
+
+    Args:
+        training: the performer's training set.
+        labels: the stream's marker labels (column order of ``markers_world``);
+            default: head markers then facial markers, in training-set order.
+        regularization: unitless; ``lambda = regularization * mean(diag(B^T B))``.
+        head_weights: (H,) weight of each head marker in the rigid fit (default 1).
+        max_iter: active-set iteration cap per frame.
+    """
+
+    def __init__(
+        self,
+        training: TrainingSet,
+        *,
+        labels: Sequence[str] | None = None,
+        regularization: float = 1e-3,
+        head_weights: Sequence[float] | None = None,
+        max_iter: int | None = None,
+    ) -> None:
+        if not regularization >= 0.0:
+            raise ValueError(f"regularization: expected >= 0, got {regularization}")
+        self.training = training
+        h, m, k = len(training.head_names), len(training.marker_names), training.k
+        self._basis = training.basis
+        btb = self._basis.T @ self._basis
+        self.lambda_ = float(regularization * np.mean(np.diag(btb))) if k else 0.0
+        if self.lambda_ <= 0.0:
+            self.lambda_ = 1e-12
+        self._a_full = btb + self.lambda_ * np.eye(k)
+        self._a = self._a_full.copy()
+        self._last_seen = np.ones(m, dtype=np.bool_)
+        self._seen = np.ones(m, dtype=np.bool_)
+        self._b = np.zeros(k)
+        self._w_prev = np.zeros(k)
+        self._state = np.ones(k, dtype=np.int64)
+        self._idx = np.zeros(k, dtype=np.int64)
+        self._chol = np.zeros((k, k))
+        self._x = np.zeros(k)
+        self._g = np.zeros(k)
+        self._n44 = np.zeros((4, 4))
+        self._v44 = np.zeros((4, 4))
+        self._q4 = np.array([1.0, 0.0, 0.0, 0.0])
+        self._rot = np.eye(3)
+        self._pos = np.zeros(3)
+        self._have_good = np.zeros(1, dtype=np.bool_)
+        self._layout = np.ascontiguousarray(training.head_layout, dtype=np.float64)
+        self._neutral = np.ascontiguousarray(training.neutral, dtype=np.float64)
+        if head_weights is None:
+            self._head_w = np.ones(h)
+        else:
+            self._head_w = np.asarray(head_weights, dtype=np.float64)
+            if self._head_w.shape != (h,) or np.any(self._head_w < 0):
+                raise ValueError(
+                    f"head_weights: expected ({h},) >= 0, got {head_weights}"
+                )
+        self.max_iter = int(max_iter if max_iter is not None else 3 * k + 20)
+        self.bind(labels or (*training.head_names, *training.marker_names))
+
+    def bind(self, labels: Sequence[str]) -> None:
+        """Map the stream's labels to the training set's markers (absent = occluded)."""
+        col = {name: i for i, name in enumerate(labels)}
+        t = self.training
+        self.labels = tuple(labels)
+        self._head_cols = np.array([col.get(n, -1) for n in t.head_names], np.int64)
+        self._face_cols = np.array([col.get(n, -1) for n in t.marker_names], np.int64)
+
+    def reset(self) -> None:
+        """Forget the warm start and the held pose (new take or performer)."""
+        self._w_prev[:] = 0.0
+        self._state[:] = 1
+        self._have_good[0] = False
+        self._q4[:] = (1.0, 0.0, 0.0, 0.0)
+        self._rot[:] = np.eye(3)
+        self._pos[:] = 0.0
+
+    def new_output(self) -> FaceOutput:
+        """An output buffer sized for this solver (allocate once per stream)."""
+        m, k = len(self.training.marker_names), self.training.k
+        return FaceOutput(
+            markers_head=np.full((m, 3), np.nan),
+            weights=np.zeros(k),
+            world_from_head_quat=np.array([1.0, 0.0, 0.0, 0.0]),
+            world_from_head_pos=np.zeros(3),
+            status=np.zeros(3, dtype=np.int64),
+        )
+
+    def solve_frame(
+        self, markers_world: F64Array, valid: BoolArray, out: FaceOutput
+    ) -> FaceOutput:
+        """Solve one frame into ``out`` (no allocation) and return it.
+
+        Args:
+            markers_world: (N, 3) float64, metres, world; columns as ``labels``;
+                NaN rows = occluded.
+            valid: (N,) bool, True where the marker was seen.
+            out: from :meth:`new_output`.
+        """
+        solve_face_frame(
+            markers_world, valid, self._head_cols, self._face_cols, self._layout,
+            self._head_w, self._neutral, self._basis, self._a_full, self._a,
+            self._last_seen, self._seen, self._b, self._w_prev, self._state, self._idx,
+            self._chol, self._x, self._g, self._n44, self._v44, self._q4, self._rot,
+            self._pos, self._have_good, self.max_iter, out.markers_head, out.weights,
+            out.world_from_head_quat, out.world_from_head_pos, out.status,
+        )  # fmt: skip
+        return out
+
+
+# ---- offline helpers ----------------------------------------------------------------
+
+
+def head_layout_from_frames(head_world: F64Array) -> F64Array:
+    """The neutral head layout from (T, H, 3) world frames of the head markers.
+
+    Each frame is fitted (Kabsch) to the first complete one and the fits averaged;
+    the result is centred (head-coordinate origin = head-marker centroid, axes = the
+    world axes of that first frame). Returns (H, 3) float64 metres.
+    """
+    ok = np.all(np.isfinite(head_world), axis=(1, 2))
+    if not ok.any():
+        raise ValueError("head markers: no frame with every head marker seen")
+    frames = head_world[ok]
+    ref = frames[0] - frames[0].mean(axis=0)
+    acc = np.zeros_like(ref)
+    for f in frames:
+        c = f - f.mean(axis=0)
+        u, _, vt = np.linalg.svd(c.T @ ref)
+        d = np.sign(np.linalg.det(u @ vt))
+        r = u @ np.diag([1.0, 1.0, d]) @ vt  # ref ~ r^T c  (rotation c -> ref)
+        acc += c @ r
+    layout = acc / len(frames)
+    return layout - layout.mean(axis=0)
+
+
+def stabilize_frames(
+    head_world: F64Array, face_world: F64Array, head_layout: F64Array
+) -> F64Array:
+    """Facial markers in head coordinates, frame by frame (offline, numpy).
+
+    Args:
+        head_world: (T, H, 3) float64, metres, world; NaN = occluded.
+        face_world: (T, M, 3) float64, metres, world; NaN = occluded.
+        head_layout: (H, 3) float64, metres, head coordinates.
+
+    Returns:
+        (T, M, 3) float64, metres, head coordinates; NaN where the marker was
+        occluded or fewer than 3 head markers were seen.
+    """
+    out = np.full(face_world.shape, np.nan)
+    for t in range(len(head_world)):
+        seen = np.all(np.isfinite(head_world[t]), axis=1)
+        if seen.sum() < 3:
+            continue
+        p, q = head_world[t][seen], head_layout[seen]
+        cp, cq = p.mean(axis=0), q.mean(axis=0)
+        u, _, vt = np.linalg.svd((q - cq).T @ (p - cp))
+        d = np.sign(np.linalg.det(vt.T @ u.T))
+        rot = vt.T @ np.diag([1.0, 1.0, d]) @ u.T  # world_from_head
+        out[t] = (face_world[t] - cp) @ rot + cq
+    return out
+
+
+def mean_pose(
+    head_world: F64Array,
+    face_world: F64Array,
+    layout: F64Array,
+    marker_names: Sequence[str],
+) -> F64Array:
+    """One held pose: the facial markers stabilized against ``layout`` frame by frame
+    (:func:`stabilize_frames`) and averaged, in head coordinates, (M, 3).
+
+    Raises:
+        ValueError: no frame with >= 3 head markers, or a facial marker never seen.
+    """
+    stab = stabilize_frames(head_world, face_world, layout)
+    never = ~np.any(np.isfinite(stab[..., 0]), axis=0)
+    if never.all():
+        raise ValueError("no frame with 3 head markers seen")
+    if never.any():
+        missing = [marker_names[int(i)] for i in np.flatnonzero(never)]
+        raise ValueError(f"markers never seen: {missing}")
+    return np.nanmean(stab, axis=0)
+
+
+def train(
+    head_world: F64Array,
+    face_world: F64Array,
+    poses: Sequence[tuple[str, slice]],
+    *,
+    head_names: Sequence[str],
+    marker_names: Sequence[str],
+) -> TrainingSet:
+    """Build a training set from a take: each pose averaged over its frame range.
+
+    The neutral range (``poses`` must hold ``"neutral"``) defines the head layout
+    (:func:`head_layout_from_frames`); every frame of every range is stabilized
+    against it, and each pose is the mean of its frames in head coordinates.
+
+    Args:
+        head_world: (T, H, 3) float64, metres, world; NaN = occluded.
+        face_world: (T, M, 3) float64, metres, world; NaN = occluded.
+        poses: (name, rows) pairs: ``"neutral"`` and one per expression.
+        head_names / marker_names: (H,) and (M,) names.
+
+    Raises:
+        ValueError: no neutral, a repeated name, or a marker never seen in a range.
+    """
+    ranges = dict(poses)
+    if len(ranges) != len(poses):
+        raise ValueError("poses: a name appears twice")
+    if "neutral" not in ranges:
+        raise ValueError("poses: need a 'neutral' range")
+    layout = head_layout_from_frames(head_world[ranges["neutral"]])
+    means: dict[str, F64Array] = {}
+    for name, rows in ranges.items():
+        try:
+            means[name] = mean_pose(
+                head_world[rows], face_world[rows], layout, marker_names
+            )
+        except ValueError as exc:
+            raise ValueError(f"pose {name}: {exc}") from None
+    exprs = [n for n, _ in poses if n != "neutral"]
+    neutral = means["neutral"]
+    return TrainingSet(
+        head_names=tuple(head_names),
+        marker_names=tuple(marker_names),
+        expression_names=tuple(exprs),
+        head_layout=layout,
+        neutral=neutral,
+        deltas=np.array([means[e] - neutral for e in exprs]).reshape(len(exprs), -1, 3),
+    )
+
+
+__all__ = [
+    "FLAG_FACE_PARTIAL",
+    "FLAG_HEAD_LOST",
+    "FLAG_HEAD_PARTIAL",
+    "FLAG_NEVER",
+    "FLAG_NOT_CONVERGED",
+    "FaceOutput",
+    "FaceSolver",
+    "Observability",
+    "TrainingSet",
+    "head_layout_from_frames",
+    "mean_pose",
+    "observability",
+    "stabilization_error",
+    "stabilize_frames",
+    "train",
+]

@@ -1,0 +1,343 @@
+"""The face in the live daemon: training set, live captures, per-stream solve stage.
+
+``[face]`` in the daemon config names a face config (``face_config``: head markers,
+facial markers, expressions, output map) and a training set (``face.npz`` from
+``retargetd face-train``). The face is solved from the same marker stream as the
+body: the stream's labels must include the head and facial markers.
+
+**Live training** (``retargetd ctl face-capture NAME --count N``): the next N
+accepted frames are averaged after stabilization, like ``face-train`` does offline.
+The head frame is defined once, by the first neutral capture (or the loaded training
+set): every later capture, a new neutral included, is stabilized against that head
+layout, so the expressions already captured stay valid. A new neutral replaces the
+neutral markers and keeps the expression deltas; a captured expression replaces its
+delta (``mean - neutral``). Expressions are kept in the face config's order; those
+not yet captured are simply absent (their output terms contribute nothing). Each
+capture rebuilds the solver and saves the training set (``face.save_training`` or
+``face.training``).
+
+When the face config lists no facial markers, they are every stream label that is not
+a head marker and not one of the body rig's markers.
+
+With a neutral but no expression captured yet, the stabilized markers (the "Mug")
+are streamed and no weights are sent (the solver stabilizes; with no expression
+there is nothing to solve).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from retargetd.daemon.face.config import FaceConfig, load_face_config
+from retargetd.daemon.face.solve import (
+    FaceOutput,
+    FaceSolver,
+    TrainingSet,
+    head_layout_from_frames,
+    mean_pose,
+)
+from retargetd.daemon.live.config import FaceSectionConfig
+from retargetd.protocols.frames import F64Array
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(slots=True, eq=False)
+class FaceStage:
+    """The face solve of one marker stream (built off the hot path).
+
+    Attributes:
+        solver: the face solver bound to the stream's labels.
+        out: its output buffers.
+        marker_names: (M,) stabilized marker names (the face part's order).
+        weight_names: (K,) solved expression names sent in the pose stream.
+        output_names: VMC blendshape names (the face config's outputs).
+        out_matrix: (n_out, K) the output map.
+        blend: (n_out,) the output values of the last frame, in [0, 1].
+        weights: (K,) view of the solved weights sent in the pose stream.
+    """
+
+    solver: FaceSolver
+    out: FaceOutput
+    marker_names: tuple[str, ...]
+    weight_names: tuple[str, ...]
+    output_names: tuple[str, ...]
+    out_matrix: F64Array
+    blend: F64Array
+    weights: F64Array
+
+    def solve(self, markers_world: F64Array, valid: np.ndarray) -> FaceOutput:
+        """Solve one frame (no allocation): ``out`` and ``blend`` updated."""
+        fo = self.solver.solve_frame(markers_world, valid, self.out)
+        if self.blend.size:
+            np.dot(self.out_matrix, fo.weights, out=self.blend)
+            np.clip(self.blend, 0.0, 1.0, out=self.blend)
+        return fo
+
+
+class LiveFace:
+    """The daemon's face state (config, training set, a live capture in progress).
+
+    Args:
+        settings: the ``[face]`` section.
+        body_markers: the body rig's marker names (not facial markers).
+
+    Raises:
+        FaceConfigError / ValueError: a bad face config or training file.
+    """
+
+    def __init__(
+        self, settings: FaceSectionConfig, body_markers: Sequence[str] = ()
+    ) -> None:
+        self.settings = settings
+        self.face: FaceConfig = load_face_config(settings.config)
+        self.body_markers = frozenset(body_markers)
+        self.training: TrainingSet | None = None
+        if settings.training and Path(settings.training).exists():
+            self.training = TrainingSet.load(settings.training)
+            self._check_training(self.training)
+        self._capture_name = ""
+        self._capture_target = 0
+        self._capture_head: list[F64Array] = []
+        self._capture_face: list[F64Array] = []
+        self._capture_labels: tuple[str, ...] = ()
+        self.captures = 0
+        self.last_message = ""
+
+    def _check_training(self, t: TrainingSet) -> None:
+        if tuple(t.head_names) != self.face.head_markers:
+            logger.warning(
+                "face training set head markers %s differ from face config %s's %s",
+                t.head_names,
+                self.face.name,
+                self.face.head_markers,
+            )
+
+    # ---- the solve stage -------------------------------------------------------------
+
+    def facial_markers(self, labels: Sequence[str]) -> tuple[str, ...]:
+        """The facial markers for a stream with ``labels`` (training set's when one
+        exists, else the config's, else every non-head, non-body label)."""
+        if self.training is not None:
+            return self.training.marker_names
+        if self.face.facial_markers:
+            return self.face.facial_markers
+        head = set(self.face.head_markers)
+        return tuple(
+            lb for lb in labels if lb not in head and lb not in self.body_markers
+        )
+
+    def stage(self, labels: Sequence[str]) -> FaceStage | None:
+        """The solve stage for a stream (None without a training set)."""
+        t = self.training
+        if t is None:
+            return None
+        head_w = None
+        if tuple(t.head_names) == self.face.head_markers:
+            head_w = self.face.head_weights
+        solver = FaceSolver(
+            t,
+            labels=tuple(labels),
+            regularization=self.settings.regularization,
+            head_weights=head_w,
+        )
+        out = solver.new_output()
+        names = t.expression_names
+        outputs = self.face.outputs if t.k else ()
+        missing = [n for n in (*t.head_names, *t.marker_names) if n not in labels]
+        if missing:
+            logger.warning("face markers not in the stream (occluded): %s", missing)
+        return FaceStage(
+            solver=solver,
+            out=out,
+            marker_names=t.marker_names,
+            weight_names=names,
+            output_names=outputs,
+            out_matrix=self.face.output_matrix(names) if t.k else np.zeros((0, 0)),
+            blend=np.zeros(len(outputs)),
+            weights=out.weights,
+        )
+
+    # ---- live capture ----------------------------------------------------------------
+
+    @property
+    def capturing(self) -> bool:
+        """True while a capture collects frames."""
+        return self._capture_target > 0
+
+    def request_capture(self, name: str, count: int | None = None) -> str:
+        """Start capturing pose ``name`` over the next ``count`` accepted frames.
+
+        Raises:
+            ValueError: an unknown name, a bad count, or an expression before any
+                neutral.
+        """
+        n = count or self.settings.capture_frames
+        if type(n) is not int or n < 1:
+            raise ValueError(f"count must be a positive integer; got {n!r}")
+        if name != "neutral" and name not in self.face.expressions:
+            raise ValueError(
+                f"face-capture: {name!r} is not 'neutral' nor an expression of face "
+                f"config {self.face.name} ({', '.join(self.face.expressions[:6])}, ...)"
+            )
+        if name != "neutral" and self.training is None:
+            raise ValueError(
+                "face-capture: capture 'neutral' first (it defines the head)"
+            )
+        self._capture_name = name
+        self._capture_target = n
+        self._capture_head = []
+        self._capture_face = []
+        self._capture_labels = ()
+        return f"capturing face pose {name!r} over the next {n} frames: hold it"
+
+    def collect(
+        self, markers_world: F64Array, labels: tuple[str, ...]
+    ) -> tuple[bool, str] | None:
+        """Add one accepted frame to the capture; when it ends, returns (captured,
+        message): ``captured`` is False when the pose could not be built."""
+        if labels != self._capture_labels:
+            self._capture_head = []  # the marker layout changed: start again
+            self._capture_face = []
+            self._capture_labels = labels
+            col = {lb: i for i, lb in enumerate(labels)}
+            head = self.face.head_markers
+            if self.training is not None:
+                head = self.training.head_names
+            self._head_cols = [col.get(n, -1) for n in head]
+            self._face_names = self.facial_markers(labels)
+            self._face_cols = [col.get(n, -1) for n in self._face_names]
+        self._capture_head.append(_take_cols(markers_world, self._head_cols))
+        self._capture_face.append(_take_cols(markers_world, self._face_cols))
+        if len(self._capture_head) < self._capture_target:
+            return None
+        return self._finish()
+
+    def _finish(self) -> tuple[bool, str]:
+        name = self._capture_name
+        head = np.stack(self._capture_head)
+        face = np.stack(self._capture_face)
+        self._capture_target = 0
+        self._capture_head, self._capture_face = [], []
+        try:
+            training = capture_into(
+                self.training, name, head, face, self.face, self._face_names
+            )
+        except ValueError as exc:
+            self.last_message = f"face capture {name!r} failed: {exc}"
+            return False, self.last_message
+        self.training = training
+        self.captures += 1
+        path = self.settings.save_training or self.settings.training
+        msg = (
+            f"face pose {name!r} captured on {head.shape[0]} frames "
+            f"({training.k} expressions)"
+        )
+        if path:
+            try:
+                training.save(path)
+                msg += f"; saved {path}"
+            except OSError as exc:
+                msg += f"; NOT saved: {exc}"
+        else:
+            msg += " (not saved: no face.training path)"
+        self.last_message = msg
+        return True, msg
+
+    def status(self) -> dict[str, object]:
+        """The face part of ``ctl status --json``."""
+        t = self.training
+        return {
+            "config": self.face.name,
+            "trained": t is not None,
+            "expressions": list(t.expression_names) if t is not None else [],
+            "facial_markers": len(t.marker_names) if t is not None else 0,
+            "capturing": self._capture_name if self.capturing else "",
+            "captures": self.captures,
+            "last_capture": self.last_message,
+        }
+
+
+def warm_up() -> None:
+    """Load the compiled face kernel (numba's cache, ~0.3 s) before the first frame,
+    through the same path as a live frame."""
+    layout = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.0, 0.1, 0.0]])
+    t = TrainingSet(
+        head_names=("H1", "H2", "H3"), marker_names=("F1", "F2"),
+        expression_names=("e",), head_layout=layout,
+        neutral=np.array([[0.0, 0.05, -0.05], [0.05, 0.0, -0.05]]),
+        deltas=np.array([[[0.0, 0.0, 0.01], [0.0, 0.01, 0.0]]]),
+    )  # fmt: skip
+    solver = FaceSolver(t)
+    frame = np.vstack([layout, t.neutral + t.deltas[0]])
+    valid = np.ones(len(frame), dtype=bool)
+    solver.solve_frame(frame, valid, solver.new_output())
+    valid[0] = False
+    frame[0] = np.nan
+    solver.solve_frame(frame, valid, solver.new_output())
+
+
+def _take_cols(markers: F64Array, cols: Sequence[int]) -> F64Array:
+    out = np.full((len(cols), 3), np.nan)
+    for i, c in enumerate(cols):
+        if c >= 0:
+            out[i] = markers[c]
+    return out
+
+
+def capture_into(
+    training: TrainingSet | None,
+    name: str,
+    head_world: F64Array,
+    face_world: F64Array,
+    face: FaceConfig,
+    marker_names: Sequence[str],
+) -> TrainingSet:
+    """A training set with pose ``name`` (averaged over the frames) put in.
+
+    Args:
+        training: the current set (None: ``name`` must be ``"neutral"``).
+        name: ``"neutral"`` or an expression of ``face``.
+        head_world: (T, H, 3) metres, world, the config's head markers.
+        face_world: (T, M, 3) metres, world, ``marker_names``' markers.
+        face: the face config (expression order, head marker names).
+        marker_names: (M,) facial marker names (the training set's when it exists).
+
+    Raises:
+        ValueError: no neutral yet, no frame with the head seen, a marker never seen.
+    """
+    if training is None:
+        if name != "neutral":
+            raise ValueError("capture 'neutral' first")
+        layout = head_layout_from_frames(head_world)
+    else:
+        layout = training.head_layout
+    mean = mean_pose(head_world, face_world, layout, marker_names)
+    if training is None:
+        return TrainingSet(
+            head_names=face.head_markers, marker_names=tuple(marker_names),
+            expression_names=(), head_layout=layout, neutral=mean,
+            deltas=np.zeros((0, len(marker_names), 3)),
+        )  # fmt: skip
+    deltas = dict(zip(training.expression_names, training.deltas, strict=True))
+    neutral = training.neutral
+    if name == "neutral":
+        neutral = mean
+    else:
+        deltas[name] = mean - neutral
+    order = [e for e in face.expressions if e in deltas]
+    order += [e for e in deltas if e not in order]  # from a file, not in the config
+    m = len(training.marker_names)
+    return TrainingSet(
+        head_names=training.head_names,
+        marker_names=training.marker_names,
+        expression_names=tuple(order),
+        head_layout=layout,
+        neutral=neutral,
+        deltas=np.array([deltas[e] for e in order]).reshape(len(order), m, 3),
+    )

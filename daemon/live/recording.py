@@ -1,0 +1,244 @@
+"""Recording inside the live daemon (``retargetd ctl record start FILE`` / ``stop``).
+
+The loop thread never touches the disk beyond creating the file: :meth:`start` opens
+``FILE`` exclusively (one ``open`` call, so a bad path or an existing file is refused
+in the control reply), and everything else (the MCAP header, chunks, the summary and
+footer, closing the file) happens on the :class:`~retargetd.replay.recorder.Recorder`'s
+writer thread. While a recording runs, the loop hands the recorder every marker packet
+it receives (raw bytes, receive time, input name and form), every pose-stream message
+it publishes (unless started with ``poses = False``) and the control events
+(``record_start``, ``record_stop``, calibrations, reloads), each with a
+``put_nowait``: a full queue drops the item and counts it, never waits.
+
+:meth:`stop` queues ``record_stop`` and tells the writer to finish (``Recorder.stop``:
+an event, no join) and returns at once; the writer drains its queue, writes the
+footer and exits on its own, and :meth:`status` reports it under ``finishing`` until
+then. Daemon shutdown (:meth:`close`) stops an active recording the same way and then
+waits, bounded, for every writer.
+
+A recording started mid-stream would otherwise hold frames whose label set was
+announced before it began (compact OSC and ZeroMQ announce on change; a capture system
+may never repeat it). So :meth:`start` first records, per input, the label set the
+daemon is using, encoded as that input's announcement and stamped with the start time:
+the file is self-contained (``read_recording``, ``load_take``, ``retargetd replay``).
+The format is that of ``retargetd record``: ``protocols/PROTOCOLS.md`` section 7.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from retargetd.daemon.version import package_version
+from retargetd.replay import recording as rf
+from retargetd.replay.recorder import (
+    DEFAULT_QUEUE_SIZE,
+    InputInfo,
+    Recorder,
+    RecorderStats,
+    open_recorder,
+)
+
+logger = logging.getLogger(__name__)
+
+#: Writer queue length (items: packets, poses, events); ~8 s of 240 Hz frames + poses.
+QUEUE_SIZE = DEFAULT_QUEUE_SIZE
+#: Shutdown waits this long, in all, for the writers to finish their files.
+CLOSE_TIMEOUT_S = 5.0
+
+
+@dataclass(slots=True)
+class _Active:
+    recorder: Recorder
+    path: str
+    poses: bool
+    started_ns: int
+
+
+class LiveRecording:
+    """The daemon's recording state: at most one active recording, plus the ones
+    whose writers are still finishing. Used by the loop thread only.
+
+    Attributes:
+        packets: the active recorder while recording (the loop's hot-path check),
+            else None.
+        poses: the active recorder when it records poses, else None.
+    """
+
+    def __init__(self) -> None:
+        self.packets: Recorder | None = None
+        self.poses: Recorder | None = None
+        self._active: _Active | None = None
+        self._finishing: list[_Active] = []
+        self._last: dict[str, Any] | None = None
+
+    @property
+    def active(self) -> bool:
+        """True while a recording runs."""
+        return self._active is not None
+
+    def start(
+        self,
+        path: str,
+        poses: bool,
+        inputs: tuple[InputInfo, ...],
+        announcements: list[tuple[str, int, tuple[bytes, ...]]],
+    ) -> str:
+        """Start recording to ``path`` (absolute, ``.mcap``, not existing).
+
+        Args:
+            path: the file to create.
+            poses: also record the pose stream.
+            inputs: the marker inputs (stored in the file's metadata).
+            announcements: (input name, form code, parts) of each input's current
+                label-set announcement, recorded first.
+
+        Returns:
+            A one-line message for the control reply.
+
+        Raises:
+            ValueError: already recording, or a bad path (the message says why).
+        """
+        if self._active is not None:
+            raise ValueError(f"already recording to {self._active.path}")
+        if not os.path.isabs(path):
+            raise ValueError(
+                f"path must be absolute (the daemon's working directory is not the "
+                f"client's); got {path!r}"
+            )
+        if Path(path).suffix.lower() != ".mcap":
+            raise ValueError(f"path must end in .mcap; got {path!r}")
+        try:
+            recorder = open_recorder(
+                path, inputs, software=f"retargetd {package_version()}",
+                queue_size=QUEUE_SIZE, exclusive=True, open_in_writer=True,
+            )  # fmt: skip
+        except OSError as exc:
+            raise ValueError(
+                f"cannot record to {path}: {exc.strerror or exc}"
+            ) from None
+        now = time.monotonic_ns()
+        self._active = _Active(recorder, path, poses, now)
+        self.packets = recorder
+        self.poses = recorder if poses else None
+        recorder.record_event(
+            "record_start", now, path=path, poses=poses,
+            inputs=[i.name for i in inputs],
+        )  # fmt: skip
+        for name, form, parts in announcements:
+            recorder.record_packet(name, form, now, *parts)
+        logger.info("recording to %s (poses %s)", path, "on" if poses else "off")
+        return f"recording to {path}" + ("" if poses else " (no poses)")
+
+    def event(self, event: str, **fields: Any) -> None:
+        """Queue a control event when recording (never blocks)."""
+        if self.packets is not None:
+            self.packets.record_event(event, **fields)
+
+    def stop(self, reason: str = "ctl") -> str:
+        """Stop the active recording without waiting for the writer.
+
+        Returns:
+            A one-line message for the control reply.
+
+        Raises:
+            ValueError: nothing is being recorded.
+        """
+        active = self._active
+        if active is None:
+            raise ValueError("not recording")
+        active.recorder.record_event("record_stop", reason=reason)
+        active.recorder.stop()  # the writer finishes the file and exits on its own
+        self._active = None
+        self.packets = self.poses = None
+        self._finishing.append(active)
+        st = active.recorder.stats
+        seconds = (time.monotonic_ns() - active.started_ns) * 1e-9
+        logger.info("recording to %s stopped (%s)", active.path, reason)
+        return (
+            f"stopped recording {active.path} after {seconds:.2f} s; dropped "
+            f"{st.dropped} so far; the file is finished in the background"
+        )
+
+    def status(self) -> dict[str, Any]:
+        """The ``record`` part of the status document (JSON-ready)."""
+        self._reap()
+        a = self._active
+        doc: dict[str, Any] = {
+            "active": a is not None,
+            "finishing": [f.path for f in self._finishing],
+            "last": self._last,
+        }
+        if a is not None:
+            doc.update(
+                path=a.path,
+                poses=a.poses,
+                seconds=round((time.monotonic_ns() - a.started_ns) * 1e-9, 3),
+                **_counts(a.recorder.stats),
+                error=a.recorder.error,
+            )
+        return doc
+
+    def _reap(self) -> None:
+        still = []
+        for f in self._finishing:
+            if f.recorder.finished:
+                self._last = {
+                    "path": f.path, **_counts(f.recorder.stats),
+                    "error": f.recorder.error,
+                }  # fmt: skip
+            else:
+                still.append(f)
+        self._finishing = still
+
+    def close(self, timeout_s: float = CLOSE_TIMEOUT_S) -> None:
+        """Stop an active recording and wait (bounded, ``timeout_s`` in all) for
+        every writer to finish its file. For shutdown, when the loop has stopped."""
+        if self._active is not None:
+            self.stop("shutdown")
+        deadline = time.monotonic() + timeout_s
+        for f in self._finishing:
+            f.recorder.close(max(0.0, deadline - time.monotonic()))
+        self._reap()
+
+
+def _counts(st: RecorderStats) -> dict[str, int]:
+    return {
+        "frames": st.frames, "poses_written": st.poses, "events": st.events,
+        "dropped": st.dropped + st.unrecordable, "write_errors": st.write_errors,
+    }  # fmt: skip
+
+
+def input_infos(config: Any, endpoints: dict[str, str]) -> tuple[InputInfo, ...]:
+    """The daemon's enabled marker inputs as recording metadata."""
+    from retargetd.protocols.conventions import normalize_units, normalize_up_axis
+
+    out = []
+    osc, zin = config.input.osc, config.input.zmq
+    if osc.enabled:
+        out.append(
+            InputInfo(
+                name="osc", form=f"osc-{osc.form}", units=normalize_units(osc.units),
+                up=normalize_up_axis(osc.up),
+                endpoint=endpoints.get("osc markers", "").split(" ")[0],
+                labels=tuple(osc.labels) if osc.form == "simple" else (),
+            )
+        )  # fmt: skip
+    if zin.enabled:
+        out.append(
+            InputInfo(
+                name="zmq", form="zmq", units=normalize_units(zin.units),
+                up=normalize_up_axis(zin.up),
+                endpoint=endpoints.get("zmq markers", "").split(" ")[0],
+            )
+        )  # fmt: skip
+    return tuple(out)
+
+
+#: Envelope form codes of the daemon's inputs.
+FORM_OSC = {"compact": rf.FORM_OSC_COMPACT, "simple": rf.FORM_OSC_SIMPLE}
+FORM_ZMQ = rf.FORM_ZMQ
