@@ -27,6 +27,8 @@ from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
+from retargetd.daemon.face.config import FaceConfigError, load_face_config
+from retargetd.daemon.face.training import TrainingSet
 from retargetd.protocols.conventions import normalize_units, normalize_up_axis
 
 LOCALHOST = "127.0.0.1"
@@ -380,15 +382,12 @@ def _check_face(f: FaceSectionConfig, source: str) -> None:
         )
     if not f.enabled:
         return
-    from retargetd.daemon.face.config import FaceConfigError, load_face_config
 
     try:
         load_face_config(f.config)
     except FaceConfigError as exc:
         raise ConfigError(f"{source}: face.config: {exc}") from None
     if f.training and Path(f.training).exists():
-        from retargetd.daemon.face.solve import TrainingSet
-
         try:
             TrainingSet.load(f.training)
         except (OSError, ValueError) as exc:

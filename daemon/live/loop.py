@@ -56,6 +56,7 @@ from retargetd.daemon.body.rig import Rig, load_rig
 from retargetd.daemon.body.solve import FLAG_HELD, BodySolver
 from retargetd.daemon.live.config import DaemonConfig
 from retargetd.daemon.live.face import FaceStage, LiveFace
+from retargetd.daemon.live.face import warm_up as warm_up_face
 from retargetd.daemon.live.recording import (
     FORM_OSC,
     FORM_ZMQ,
@@ -63,6 +64,13 @@ from retargetd.daemon.live.recording import (
     input_infos,
 )
 from retargetd.daemon.live.stats import LoopStats
+from retargetd.daemon.target.retarget import (
+    Retargeter,
+    TargetSkeleton,
+    default_humanoid,
+    warm_up,
+)
+from retargetd.daemon.validate.live import LiveValidator
 from retargetd.protocols import engine_unity, osc_in, pose_stream, zmq_wire
 from retargetd.protocols.errors import DecodeError
 from retargetd.protocols.marker_input import ACCEPTED, RESTART, LabelSet, MarkerStream
@@ -225,12 +233,8 @@ class Daemon:
     def _warm_up(self) -> None:
         """Load the compiled kernel and run every stage once before the first frame
         arrives, so no streamed frame pays for it (numba's cache load is ~0.3 s)."""
-        from retargetd.daemon.target.retarget import warm_up
-
         warm_up()
         if self.face is not None:
-            from retargetd.daemon.live.face import warm_up as warm_up_face
-
             warm_up_face()
         if self.calibration is None:
             return
@@ -255,7 +259,6 @@ class Daemon:
         self._validation_bones = None
         if not v.enabled or self.calibration is None:
             return
-        from retargetd.daemon.validate.live import LiveValidator
 
         validator = LiveValidator(
             self.rig,
@@ -466,8 +469,6 @@ class Daemon:
     def _build_pipeline(
         self, labels: tuple[str, ...], *, with_face: bool = True
     ) -> _Pipeline:
-        from retargetd.daemon.target.retarget import Retargeter
-
         assert self.calibration is not None
         solver = BodySolver(self.rig, self.calibration, labels)
         if solver.missing_markers:
@@ -1008,8 +1009,6 @@ def _last_endpoint(sock: Any) -> str:
 
 
 def _load_target(config: DaemonConfig) -> Any:
-    from retargetd.daemon.target.retarget import TargetSkeleton, default_humanoid
-
     t = config.target
     if t.skeleton == "humanoid":
         return default_humanoid()

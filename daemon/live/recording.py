@@ -34,6 +34,7 @@ from pathlib import Path
 from typing import Any
 
 from retargetd.daemon.version import package_version
+from retargetd.protocols.conventions import normalize_units, normalize_up_axis
 from retargetd.replay import recording as rf
 from retargetd.replay.recorder import (
     DEFAULT_QUEUE_SIZE,
@@ -215,8 +216,6 @@ def _counts(st: RecorderStats) -> dict[str, int]:
 
 def input_infos(config: Any, endpoints: dict[str, str]) -> tuple[InputInfo, ...]:
     """The daemon's enabled marker inputs as recording metadata."""
-    from retargetd.protocols.conventions import normalize_units, normalize_up_axis
-
     out = []
     osc, zin = config.input.osc, config.input.zmq
     if osc.enabled:

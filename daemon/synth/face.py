@@ -58,6 +58,7 @@ import numpy as np
 import numpy.typing as npt
 
 from retargetd.daemon.face.solve import TrainingSet, head_layout_from_frames
+from retargetd.replay.takes import load_take
 
 logger = logging.getLogger(__name__)
 
@@ -410,7 +411,6 @@ def ict_training_set(datasets: Path, n_markers: int = 40) -> TrainingSet:
 def _pig_head(datasets: Path) -> tuple[F64Array, F64Array]:
     # (T, 4, 3) complete frames of the walk's head markers (world, m) and their
     # layout (4, 3) in anatomical head axes (x right, y forward, z up), centred.
-    from retargetd.replay.takes import load_take
 
     take = load_take(datasets / PIG_WALK)
     cols = [take.labels.index(n) for n in HEAD_NAMES]

@@ -42,6 +42,7 @@ from retargetd.daemon.validate.limits import limit_violation_deg
 from retargetd.daemon.validate.model import (
     Skeleton,
     ValidationModel,
+    skeleton_from_arrays,
 )
 from retargetd.protocols.frames import F64Array
 
@@ -324,8 +325,6 @@ def validate_take(
     Returns:
         The report.
     """
-    from retargetd.daemon.validate.model import skeleton_from_arrays
-
     th = {**THRESHOLDS, **(thresholds or {})}
     skel_model = vm.skeleton
     skel_stream = skeleton_from_arrays(skel_model, solve.bone_lengths)

@@ -35,6 +35,7 @@ from typing import Any
 
 import numpy as np
 
+from retargetd.daemon import rotations as rot
 from retargetd.daemon.body.solve import BodySolve
 from retargetd.daemon.validate.checks import FrameChecker, TakeReport
 from retargetd.daemon.validate.limits import limit_violation_deg
@@ -104,8 +105,6 @@ def _blamed_bones(
 
 def _camera(vm: ValidationModel, solve: BodySolve, t: int) -> dict[str, Any]:
     """A free camera at frame ``t``: lookat the root, front-left, sized to fit."""
-    from retargetd.daemon import rotations as rot
-
     skel = vm.skeleton
     root = next(b for b, p in enumerate(skel.bone_parents) if p < 0)
     up = np.array([0.0, 0.0, 1.0])

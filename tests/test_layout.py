@@ -1,0 +1,194 @@
+"""The layout of ``daemon/`` (issue 13): one subpackage per part, imports that run one
+way, parsed from every module's source (nothing is imported).
+
+Layers, highest first; a module may import its own subpackage and any lower layer,
+never a higher one nor another subpackage of its own layer::
+
+    cli                                  the command line
+    live, synth                          the live daemon; the synthetic performer
+    target, face, validate, post, console
+    body                                 rigs, calibration, the body solve
+    shared leaves (daemon/*.py)          rotations, errors, version, compiled primitives
+    replay, protocols                    outside daemon/ (tests/test_packaging.py)
+
+Also: no import cycle between modules; no import of a ``retargetd`` module inside a
+function (the one way to hide a cycle) except in ``cli/``, whose commands load heavy
+modules lazily so that ``retargetd --help`` stays fast; no runtime module imports
+``cli``; no command imports another command.
+"""
+
+from __future__ import annotations
+
+import ast
+import re
+from collections.abc import Iterator
+from pathlib import Path
+
+REPO_ROOT = Path(__file__).resolve().parent.parent
+DAEMON = REPO_ROOT / "daemon"
+PREFIX = "retargetd.daemon"
+
+#: Subpackage -> layer (higher imports lower). Leaves (daemon/*.py) are layer 1.
+LAYERS: dict[str, int] = {
+    "body": 2,
+    "target": 3,
+    "face": 3,
+    "validate": 3,
+    "post": 3,
+    "console": 3,
+    "live": 4,
+    "synth": 4,
+    "cli": 5,
+}
+LEAF_LAYER = 1
+#: Data-only packages (shipped files, no code of their own).
+DATA_PACKAGES = {"body.rigs", "face.faces", "synth.markersets"}
+
+
+def _modules() -> Iterator[tuple[str, Path]]:
+    for path in sorted(DAEMON.rglob("*.py")):
+        rel = path.relative_to(DAEMON).with_suffix("")
+        parts = list(rel.parts)
+        if parts[-1] == "__init__":
+            parts = parts[:-1]
+        yield ".".join([PREFIX, *parts]) if parts else PREFIX, path
+
+
+def _imports(path: Path) -> Iterator[tuple[str, bool, int]]:
+    """(imported module, inside a function, line) for every retargetd import."""
+    tree = ast.parse(path.read_text(), filename=str(path))
+    func_lines: set[int] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef | ast.Lambda):
+            for sub in ast.walk(node):
+                if isinstance(sub, ast.Import | ast.ImportFrom):
+                    func_lines.add(sub.lineno)
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            for alias in node.names:
+                if alias.name.startswith("retargetd."):
+                    yield alias.name, node.lineno in func_lines, node.lineno
+        elif isinstance(node, ast.ImportFrom) and node.module:
+            if not node.module.startswith("retargetd."):
+                continue
+            for alias in node.names:
+                # ``from pkg import module`` names a module: resolve to it.
+                candidate = f"{node.module}.{alias.name}"
+                target = candidate if _is_module(candidate) else node.module
+                yield target, node.lineno in func_lines, node.lineno
+
+
+def _is_module(name: str) -> bool:
+    if not name.startswith(PREFIX + "."):
+        return False
+    rel = Path(*name[len(PREFIX) + 1 :].split("."))
+    return (DAEMON / rel).with_suffix(".py").is_file() or (
+        DAEMON / rel / "__init__.py"
+    ).is_file()
+
+
+def _part(module: str) -> str | None:
+    """The subpackage of a daemon module (None: a shared leaf or the root)."""
+    if not module.startswith(PREFIX + "."):
+        return None
+    first = module[len(PREFIX) + 1 :].split(".")[0]
+    return first if (DAEMON / first / "__init__.py").is_file() else None
+
+
+def _layer(module: str) -> int:
+    part = _part(module)
+    return LEAF_LAYER if part is None else LAYERS[part]
+
+
+def test_every_subpackage_has_a_layer_and_a_docstring() -> None:
+    for init in sorted(DAEMON.rglob("__init__.py")):
+        rel = ".".join(init.parent.relative_to(DAEMON).parts)
+        if not rel or rel in DATA_PACKAGES:
+            continue
+        assert rel in LAYERS, f"daemon/{rel}: give it a layer in LAYERS"
+        doc = ast.get_docstring(ast.parse(init.read_text()))
+        assert doc and len(doc) > 40, (
+            f"daemon/{rel}/__init__.py: a docstring saying what it owns"
+        )
+
+
+def test_imports_run_one_way() -> None:
+    bad = []
+    for module, path in _modules():
+        if module == f"{PREFIX}.__main__":
+            continue  # ``python -m retargetd.daemon``: the entry point itself
+        src_part, src_layer = _part(module), _layer(module)
+        for target, _in_func, line in _imports(path):
+            if not target.startswith(PREFIX + "."):
+                continue
+            dst_part, dst_layer = _part(target), _layer(target)
+            where = f"{path.relative_to(REPO_ROOT)}:{line} imports {target}"
+            if dst_part == src_part and dst_part is not None:
+                continue
+            if dst_layer > src_layer:
+                bad.append(f"{where} (a higher layer)")
+            elif dst_layer == src_layer and dst_part != src_part:
+                bad.append(f"{where} (another part of the same layer)")
+    assert not bad, "\n".join(bad)
+
+
+def test_no_function_level_imports_outside_cli() -> None:
+    bad = [
+        f"{path.relative_to(REPO_ROOT)}:{line} imports {target} inside a function"
+        for module, path in _modules()
+        if _part(module) != "cli"
+        for target, in_func, line in _imports(path)
+        if in_func
+    ]
+    assert not bad, "\n".join(bad)
+
+
+def test_no_runtime_module_imports_cli_and_commands_stand_alone() -> None:
+    main = (DAEMON / "cli" / "main.py").read_text()
+    commands = set(re.findall(r'"(retargetd\.daemon\.cli\.\w+)"', main))
+    assert f"{PREFIX}.cli.run" in commands and len(commands) >= 13
+    bad = []
+    for module, path in _modules():
+        for target, _in_func, line in _imports(path):
+            where = f"{path.relative_to(REPO_ROOT)}:{line} imports {target}"
+            if _part(module) != "cli" and _part(target) == "cli":
+                if module != f"{PREFIX}.__main__":
+                    bad.append(f"{where} (a runtime module importing the CLI)")
+            if module in commands and target in commands and target != module:
+                bad.append(f"{where} (a command importing another command)")
+    assert not bad, "\n".join(bad)
+
+
+def test_no_import_cycles() -> None:
+    graph: dict[str, set[str]] = {}
+    for module, path in _modules():
+        graph[module] = {
+            t for t, in_func, _ in _imports(path) if t.startswith(PREFIX) and t != module
+        }
+    state: dict[str, int] = {}
+    stack: list[str] = []
+
+    def visit(node: str) -> None:
+        state[node] = 1
+        stack.append(node)
+        for nxt in sorted(graph.get(node, ())):
+            if state.get(nxt) == 1:
+                cycle = stack[stack.index(nxt) :] + [nxt]
+                raise AssertionError("import cycle: " + " -> ".join(cycle))
+            if nxt in graph and not state.get(nxt):
+                visit(nxt)
+        stack.pop()
+        state[node] = 2
+
+    for module in sorted(graph):
+        if not state.get(module):
+            visit(module)
+
+
+def test_imports_are_absolute() -> None:
+    bad = []
+    for _module, path in _modules():
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and node.level:
+                bad.append(f"{path.relative_to(REPO_ROOT)}:{node.lineno}")
+    assert not bad, "relative imports: " + ", ".join(bad)
