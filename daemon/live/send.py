@@ -1,0 +1,231 @@
+"""Solve and send: the pipeline of a (rig, calibration, label set) built once off the
+hot path; per frame the body and face solve, the retarget, VMC datagrams and the
+ZeroMQ pose message from reused buffers, sends that never block, the hand-off to the
+live validator after the send, and the per-stage latency record.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+import zmq
+
+from retargetd.daemon.body.solve import BodySolver
+from retargetd.daemon.live.state import DaemonState, Pipeline
+from retargetd.daemon.target.retarget import (
+    Retargeter,
+)
+from retargetd.protocols import engine_unity, pose_stream
+from retargetd.protocols.marker_input import MarkerStream
+from retargetd.protocols.vmc_out import VmcEncoder
+
+logger = logging.getLogger(__name__)
+
+
+class SendMixin(DaemonState):
+    """Building the per-stream pipelines and solving, retargeting, encoding and sending
+    one frame.
+    """
+
+    def _pipeline(self, stream: MarkerStream) -> Pipeline | None:
+        if self.calibration is None:
+            return None
+        labels = stream.current.label_set.labels
+        key = id(stream)
+        pipe = self._pipelines.get(key)
+        if pipe is not None and self._labels_of.get(key) == labels:
+            return pipe
+        pipe = self._build_pipeline(labels)
+        self._pipelines[key] = pipe
+        self._labels_of[key] = labels
+        return pipe
+
+    def _build_pipeline(
+        self, labels: tuple[str, ...], *, with_face: bool = True
+    ) -> Pipeline:
+        assert self.calibration is not None
+        solver = BodySolver(self.rig, self.calibration, labels)
+        if solver.missing_markers:
+            logger.warning(
+                "rig %s markers not in the stream (occluded): %s",
+                self.rig.name,
+                " ".join(solver.missing_markers),
+            )
+        retargeter = Retargeter(
+            self.rig,
+            self.calibration,
+            self.target,
+            compensate_base_pose=self.config.target.compensate_base_pose,
+        )
+        target_pose = retargeter.new_pose()
+        names = tuple(self.target.bone_names)
+        n = len(names)
+        bone_pos_unity = np.zeros((n, 3))
+        engine_unity.unity_pos_from_world(
+            np.asarray(target_pose.rest_offsets, dtype=np.float64), bone_pos_unity
+        )
+        self._names_id = (self._names_id + 1) % 65536
+        self._last_names_ns = 0  # new names: announce them with the next frame
+        n_bones = len(self.rig.bones)
+        face = None
+        if with_face and self.face is not None:
+            face = self.face.stage(labels)
+        weight_names = face.weight_names if face is not None else ()
+        face_markers = face.marker_names if face is not None else ()
+        names_msg = pose_stream.PoseNames(
+            rig=self.rig.name,
+            bone_names=self.rig.bone_names,
+            bone_parents=self.rig.bone_parent_indices(),
+            weight_names=weight_names,
+            names_id=self._names_id,
+            face_markers=face_markers,
+        )
+        return Pipeline(
+            solver=solver,
+            retargeter=retargeter,
+            pose=solver.new_pose(),
+            target_pose=target_pose,
+            vmc=VmcEncoder(names, face.output_names if face is not None else ()),
+            bone_pos_unity=bone_pos_unity,
+            bone_quat_xyzw=np.zeros((n, 4)),
+            root_pos_unity=np.zeros(3),
+            root_quat_xyzw=np.array([0.0, 0.0, 0.0, 1.0]),
+            blend=face.blend if face is not None else np.zeros(0),
+            pose_enc=pose_stream.PoseEncoder(
+                n_bones,
+                len(weight_names),
+                names_id=self._names_id,
+                n_face_markers=len(face_markers) if face is not None else None,
+            ),
+            names_parts=pose_stream.encode_pose_names(names_msg),
+            weights=face.weights if face is not None else np.zeros(0),
+            bone_flags=np.zeros(n_bones, dtype=np.uint8),
+            face=face,
+        )
+
+    def _solve_and_send(self, stream: MarkerStream, received_ns: int) -> None:
+        pipe = self._pipeline(stream)
+        if pipe is None:
+            return
+        frame = stream.current.frame
+        t_start = time.monotonic_ns()
+        pose = pipe.solver.solve_frame(frame.markers_world, pipe.pose)
+        tp = pipe.retargeter.apply(pose, pipe.target_pose)
+        face = pipe.face
+        if face is not None:
+            fo = face.solve(frame.markers_world, frame.valid)
+            self.stats.face_solved += 1
+            if fo.status[0] & pose_stream.FACE_HEAD_LOST:
+                self.stats.face_head_lost += 1
+        solved_ns = time.monotonic_ns()
+        self.stats.frames_solved += 1
+        self.stats.held_bone_frames += pose.n_held
+        flags = self._frame_flags | (pose_stream.FRAME_HELD if pose.n_held else 0)
+        self._frame_flags = 0
+        validator = self.validator
+        results: Sequence[Any] = ()
+        if validator is not None:
+            results = validator.results()
+            if results:
+                self._take_validation_bits(results)
+            flags |= self._validation_bits
+        # VMC: Unity frame, x y z w.
+        engine_unity.unity_quat_xyzw_from_world(
+            tp.parent_from_bone_quat, pipe.bone_quat_xyzw
+        )
+        engine_unity.unity_pos_from_world(tp.root_pos, pipe.root_pos_unity)
+        t_s = (solved_ns - self._t0_ns) * 1e-9
+        if self._vmc is not None:
+            datagrams = pipe.vmc.encode(
+                pipe.root_pos_unity, pipe.root_quat_xyzw, pipe.bone_pos_unity,
+                pipe.bone_quat_xyzw, pipe.blend, t_s,
+            )  # fmt: skip
+            for dgram in datagrams:
+                try:
+                    self._vmc.sendto(dgram, self._vmc_addr)
+                except OSError:  # receiver absent, buffer full: never block, count
+                    self.stats.vmc_errors += 1
+        budget_ns = int(self.config.loop.solve_budget_ms * 1e6)
+        if self._pub is not None or self.recording.poses is not None:
+            if solved_ns - self._last_names_ns >= 1_000_000_000:
+                self._send_pub(pipe.names_parts, solved_ns)
+                self._last_names_ns = solved_ns
+            if time.monotonic_ns() - t_start > budget_ns:
+                flags |= pose_stream.FRAME_LATE
+            bone_flags = pose.bone_flags
+            vb = self._validation_bones
+            if vb is not None and len(vb) == len(bone_flags):
+                bone_flags = np.bitwise_or(bone_flags, vb, out=pipe.bone_flags)
+            parts = pipe.pose_enc.encode(
+                frame.frame_id, frame.source_time_s, received_ns, solved_ns, flags,
+                pose.root_pos, pose.world_from_bone_quat, pose.parent_from_bone_quat,
+                pipe.weights, bone_flags,
+            )  # fmt: skip
+            if face is not None:
+                pipe.pose_enc.encode_face(
+                    fo.flags, fo.world_from_head_quat, fo.world_from_head_pos,
+                    fo.markers_head,
+                )  # fmt: skip
+            sent_ns = time.monotonic_ns()
+            pose_stream.stamp_sent(parts[0], sent_ns)
+            self._send_pub(parts, sent_ns)
+        sent_ns = time.monotonic_ns()
+        # After the send: a copy into the validator's ring, never a wait.
+        if validator is not None and not validator.submit(
+            frame.frame_id, received_ns, pose.root_pos, pose.world_from_bone_quat,
+            pose.parent_from_bone_quat, pose.joint_centres,
+        ):  # fmt: skip
+            self.stats.validation_drops += 1
+        if results:  # published after this frame's pose: never ahead of a send
+            self._publish_validation(results, pipe)
+        self.stats.frames_out += 1
+        if sent_ns - t_start > budget_ns:
+            self.stats.overruns += 1
+        self.stats.record(
+            solved_ns - received_ns, solved_ns - t_start, sent_ns - solved_ns,
+            sent_ns - received_ns,
+        )  # fmt: skip
+
+    def _take_validation_bits(self, results: Sequence[Any]) -> None:
+        """Keep the latest result's bits for this and the next poses."""
+        last = results[-1]
+        self._validation_bits = last.frame_flags & pose_stream.FRAME_VALIDATION_MASK
+        bones = last.bone_flags
+        if self._validation_bones is None or len(self._validation_bones) != len(bones):
+            self._validation_bones = np.zeros(len(bones), dtype=np.uint8)
+        np.bitwise_and(bones, pose_stream.BONE_VALIDATION_MASK,
+                       out=self._validation_bones)  # fmt: skip
+
+    def _publish_validation(self, results: Sequence[Any], pipe: Pipeline) -> None:
+        """Count every result and publish it as an ``RTDV`` message (the frame it
+        belongs to, its values), written into a reused buffer. The validator sets
+        only the validation bits (frame bits 8-15, bone bits 4-7)."""
+        for r in results:
+            self.stats.validated += 1
+            if r.frame_flags:
+                self.stats.validation_flagged += 1
+            if self._pub is not None or self.recording.poses is not None:
+                enc = self._validation_enc
+                if enc is None or enc.n_bones != len(r.bone_flags):
+                    enc = pose_stream.ValidationEncoder(len(r.bone_flags))
+                    self._validation_enc = enc
+                msg = enc.encode(
+                    pipe.pose_enc.names_id, r.frame_id, r.t_ns, r.validated_ns,
+                    r.frame_flags, r.values, r.bone_flags,
+                )  # fmt: skip
+                self._send_pub(msg, r.validated_ns)
+
+    def _send_pub(self, parts: list[Any], t_ns: int) -> None:
+        rec = self.recording.poses
+        if rec is not None:
+            rec.record_pose(t_ns, *parts)
+        if self._pub is None:
+            return
+        try:
+            self._pub.send_multipart(parts, zmq.NOBLOCK, copy=False)
+        except zmq.Again:
+            self.stats.send_drops += 1

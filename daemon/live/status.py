@@ -1,0 +1,120 @@
+"""Health: the status document (``retargetd ctl status --json``) and the one-line stats
+summary printed every ``stats_interval_s``.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from typing import Any
+
+from retargetd.daemon.body.solve import FLAG_HELD
+from retargetd.daemon.live.state import DaemonState
+
+logger = logging.getLogger(__name__)
+
+
+class StatusMixin(DaemonState):
+    """The status document and the periodic stats line."""
+
+    def status(self) -> dict[str, Any]:
+        """The status document (``retargetd ctl status --json``)."""
+        # None until the first frame: NaN is not JSON (jq and browsers refuse it).
+        latency = {
+            k: [_round_or_none(p50), _round_or_none(p99)]
+            for k, (p50, p99) in self.stats.latency_us().items()
+        }
+        up_s = (time.monotonic_ns() - self._t0_ns) * 1e-9
+        pipe = next(iter(self._pipelines.values()), None)
+        occluded: list[str] = []
+        flagged: list[str] = []
+        if pipe is not None:
+            solver = pipe.solver
+            pts_seen = solver._seen[: len(self.rig.markers)]
+            occluded = [
+                m for m, s in zip(self.rig.marker_names, pts_seen, strict=True) if not s
+            ]
+            flags = pipe.pose.bone_flags
+            names = self.rig.bone_names
+            flagged = [b for b, f in zip(names, flags, strict=True) if f & FLAG_HELD]
+        return {
+            "uptime_s": round(up_s, 3),
+            "rig": self.rig.name,
+            "calibrated": self.calibration is not None,
+            "calibrating": self._calib_target > 0,
+            "endpoints": self.endpoints,
+            "counters": self.stats.counters(),
+            "fps_in": self._fps(self.stats.frames_in, 1),
+            "fps_out": self._fps(self.stats.frames_out, 2),
+            "fps_window_s": round((time.monotonic_ns() - self._window[0]) * 1e-9, 3),
+            "drops": {
+                "osc": self.osc_stream.counters.as_dict(),
+                "zmq": self.zmq_stream.counters.as_dict(),
+            },
+            "latency_us": latency,
+            "occluded_markers": occluded,
+            "held_bones": flagged,
+            "record": self.recording.status(),
+            "face": self.face.status() if self.face is not None else None,
+            "validate": self._validate_status(),
+        }
+
+    def _validate_status(self) -> dict[str, Any] | None:
+        v = self.validator
+        if v is None:
+            return None
+        status: dict[str, Any] = v.status()
+        return status
+
+    def _fps(self, count: int, which: int) -> float:
+        """Frames per second since the last stats line (the recent rate, not the
+        lifetime average: it falls to 0 when a source stops)."""
+        dt = (time.monotonic_ns() - self._window[0]) * 1e-9
+        return round((count - self._window[which]) / dt, 2) if dt > 0 else 0.0
+
+    def stats_line(self) -> str:
+        """The periodic one-line health summary."""
+        s = self.status()
+        lat = s["latency_us"]
+        drops = {
+            **s["drops"]["osc"],
+            **{f"zmq.{k}": v for k, v in s["drops"]["zmq"].items()},
+        }
+        drops.pop("accepted", None)
+        drops.pop("zmq.accepted", None)
+        c = s["counters"]
+        return (
+            f"fps in {s['fps_in']:.1f} out {s['fps_out']:.1f} | latency us p50/p99 "
+            f"solve {_us(lat['solve'][0])}/{_us(lat['solve'][1])} "
+            f"recv->sent {_us(lat['receive_to_sent'][0])}/"
+            f"{_us(lat['receive_to_sent'][1])}"
+            f" | stale {c['stale']} overruns {c['overruns']} send drops "
+            f"{c['send_drops']} | drops {drops or 0} | occluded "
+            f"{len(s['occluded_markers'])} held {len(s['held_bones'])}"
+            + ("" if s["calibrated"] else " | NOT CALIBRATED")
+            + (
+                f" | REC {s['record']['path']} dropped {s['record']['dropped']}"
+                if s["record"]["active"]
+                else ""
+            )
+            + (
+                f" | face head lost {c['face_head_lost']}/{c['face_solved']}"
+                if s["face"] is not None
+                else ""
+            )
+            + (
+                f" | validated {c['validated']} flagged {c['validation_flagged']} "
+                f"dropped {c['validation_drops']}"
+                if s["validate"] is not None
+                else ""
+            )
+        )
+
+
+def _round_or_none(value: float) -> float | None:
+    return round(value, 1) if math.isfinite(value) else None
+
+
+def _us(value: float | None) -> str:
+    return "-" if value is None else f"{value:.0f}"
