@@ -34,6 +34,10 @@ from typing import Any
 import numpy as np
 import pytest
 
+# Fixtures and helpers from tests/daemon/conftest.py (pytest loads it; tests can't
+# import it by name under --import-mode=importlib, so the paths are repeated here).
+from paths import DATASETS
+
 from retargetd.daemon.body.calibration import load_calibration
 from retargetd.daemon.body.rig import load_rig
 from retargetd.daemon.body.solve import BodySolve, BodySolver
@@ -42,9 +46,6 @@ from retargetd.daemon.rotations import quat_angle, quat_conj, quat_mul
 from retargetd.replay.take import Take
 from retargetd.replay.takes import load_take
 
-# Fixtures and helpers from tests/daemon/conftest.py (pytest loads it; tests can't
-# import it by name under --import-mode=importlib, so the paths are repeated here).
-DATASETS = Path(__file__).resolve().parents[2].parent / "shared" / "datasets"
 WALK = DATASETS / "btkdata/PiG_Motion-FlatFoot-Full.c3d"
 TOL_RAD = 1e-6
 

@@ -16,11 +16,11 @@ import os
 import threading
 import time
 from collections.abc import Callable, Iterator
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
+from paths import DATASETS
 from scipy.signal import butter, lfilter, lfilter_zi
 
 from retargetd.daemon import rotations as rot
@@ -43,8 +43,6 @@ CHECKS = ps.VALIDATION_CHECKS
 DEFECT = slice(20, 110)  # test_validate.py's frames of the T-pose hold with a defect
 T0_NS = 10**12  # an arbitrary receive clock origin
 #: ``../shared/datasets`` (as in ``tests/conftest.py``; a conftest can't be imported).
-DATASETS = Path(__file__).resolve().parents[2].parent / "shared" / "datasets"
-
 
 # ---- fixtures and helpers ----------------------------------------------------------
 

@@ -18,11 +18,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from paths import DATASETS
 
 GOLDEN_DIR = Path(__file__).resolve().parent
 REPO_ROOT = GOLDEN_DIR.parent.parent
 #: Same place as ``tests/conftest.py``'s DATASETS (tests can't import conftest).
-DATASETS = REPO_ROOT.parent / "shared" / "datasets"
 
 FORMAT = "retargetd-golden"
 FORMAT_VERSION = 1
