@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import retarget_oracle
 
 from retargetd.daemon import rotations as rot
 from retargetd.daemon.body.calibration import Calibration, calibrate
@@ -34,8 +35,10 @@ from retargetd.daemon.body.rig import HUMANOID_BONES, Bone, Rig, load_rig
 from retargetd.daemon.body.solve import BodyPose, BodySolver
 from retargetd.daemon.synth import performer as pf
 from retargetd.daemon.target import retarget as tg
+from retargetd.daemon.target.kernel import FLAG_FILLED, FLAG_SOURCE_HELD
 from retargetd.protocols import engine_unity
 from retargetd.protocols.conventions import world_from_capture_mat
+from retargetd.protocols.humanoid import HUMANOID_PARENTS
 from retargetd.replay.bvh import read_bvh_hierarchy
 
 DATA = Path(__file__).resolve().parent.parent / "data"
@@ -63,9 +66,9 @@ def _hand_rig() -> Rig:
     names = [h for h in HUMANOID_BONES if h not in UNMAPPED]
     bones = []
     for h in names:
-        p = tg.HUMANOID_PARENTS[h]
+        p = HUMANOID_PARENTS[h]
         while p in UNMAPPED:
-            p = tg.HUMANOID_PARENTS[p]
+            p = HUMANOID_PARENTS[p]
         up = ("RHIP", "LHIP") if h == "Hips" else ("X",)
         bones.append(
             Bone(
@@ -159,9 +162,9 @@ def test_default_humanoid_shape() -> None:
     assert t.bone_names == HUMANOID_BONES and len(t.bone_names) == 22
     for h, p in zip(t.bone_names, t.parents, strict=True):
         assert (
-            (tg.HUMANOID_PARENTS[h] is None)
+            (HUMANOID_PARENTS[h] is None)
             if p < 0
-            else (t.bone_names[p] == tg.HUMANOID_PARENTS[h])
+            else (t.bone_names[p] == HUMANOID_PARENTS[h])
         )
     np.testing.assert_array_equal(t.forward_world, [0, 1, 0])
     np.testing.assert_array_equal(t.left_world, [-1, 0, 0])
@@ -290,8 +293,8 @@ def test_unmapped_bones_filled_and_flagged(hand: tuple) -> None:
     for toes in ("LeftToes", "RightToes"):  # no mapped descendant: rigid on the foot
         assert _angle_deg(out.parent_from_bone_quat[t.index(toes)]) < 1e-6
     want = np.zeros(22, dtype=np.uint8)
-    want[[t.index(h) for h in UNMAPPED]] = tg.FLAG_FILLED
-    want[t.index("LeftFoot")] = tg.FLAG_SOURCE_HELD
+    want[[t.index(h) for h in UNMAPPED]] = FLAG_FILLED
+    want[t.index("LeftFoot")] = FLAG_SOURCE_HELD
     np.testing.assert_array_equal(out.flags, want)
 
 
@@ -433,7 +436,7 @@ def _assert_matches_oracle(
 ) -> None:
     got, want = rt.new_pose(), rt.new_pose()
     assert rt.apply(pose, got) is got
-    tg._reference_apply(rt, pose, want, scratch)
+    retarget_oracle._reference_apply(rt, pose, want, scratch)
     for name in ("world_from_bone_quat", "parent_from_bone_quat", "root_pos",
                  "hips_pos"):  # fmt: skip
         np.testing.assert_allclose(
@@ -448,7 +451,7 @@ def test_compiled_apply_equals_numpy_oracle() -> None:
     rng = np.random.default_rng(7)
     for what, rig, cal, rt in _oracle_cases():
         assert rt.filled, what
-        scratch = tg._ReferenceScratch(rt)
+        scratch = retarget_oracle._ReferenceScratch(rt)
         b = len(rig.bones)
         for trial in range(200):
             pose = _pose(cal)
@@ -474,7 +477,7 @@ def test_compiled_apply_equals_numpy_oracle_on_menache(synth: pf.SynthTake) -> N
     cal = calibrate(rig, synth.markers_world[synth.base_pose_frames], synth.labels)
     rt = tg.Retargeter(rig, cal)
     assert rt.filled
-    scratch = tg._ReferenceScratch(rt)
+    scratch = retarget_oracle._ReferenceScratch(rt)
     solver = BodySolver(rig, cal, synth.labels)
     bp = solver.new_pose()
     frames = np.array(synth.markers_world)
