@@ -74,6 +74,8 @@ class BodyPose:
     bone_quality: np.ndarray
     bone_flags: np.ndarray
     n_held: int = 0
+    #: The same buffers as the kernel's output tuple (built once, never per frame).
+    kernel_out: kernel.BodyOut | None = None
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -182,11 +184,23 @@ class BodySolver:
         self._n44 = np.zeros((4, 4))
         self._v44 = np.zeros((4, 4))
         self._last_root = np.zeros(3)
+        seg_w = np.ones(len(self.seg_idx))
         for arr in (self.marker_cols, self.op_kind, self.op_idx, self.op_u, self.op_off,
-                    self.seg_ptr, self.seg_idx, self.seg_layout, self.bone_pts,
+                    self.seg_ptr, self.seg_idx, self.seg_layout, seg_w, self.bone_pts,
                     self.bone_parent, self.bone_def_ptr, self.bone_def_idx,
                     self.rest_pfb, self.joint_idx):  # fmt: skip
             arr.flags.writeable = False
+        self.plan = kernel.BodyPlan(
+            self.marker_cols, self.op_kind, self.op_idx, self.op_u, self.op_off,
+            self.seg_ptr, self.seg_idx, self.seg_layout, seg_w, self.bone_pts,
+            self.bone_parent, self.bone_def_ptr, self.bone_def_idx, self.rest_pfb,
+            self.joint_idx, self.root_point,
+        )  # fmt: skip
+        self.state = kernel.BodyState(
+            self._pts, self._seen, self._filled, self._last_pfb, self._have_good,
+            self._prev_wfb, self._tmp4, self._n44, self._v44, np.zeros(6),
+            self._last_root,
+        )  # fmt: skip
         self.reset()
 
     def reset(self) -> None:
@@ -199,7 +213,7 @@ class BodySolver:
     def new_pose(self) -> BodyPose:
         """Allocate the buffers of one frame's output (once per stream)."""
         n_bones = len(self.bone_names)
-        return BodyPose(
+        pose = BodyPose(
             joint_centres=np.zeros((len(self.joint_names), 3)),
             world_from_bone_quat=np.zeros((n_bones, 4)),
             parent_from_bone_quat=np.zeros((n_bones, 4)),
@@ -207,6 +221,8 @@ class BodySolver:
             bone_quality=np.zeros(n_bones, dtype=np.float32),
             bone_flags=np.zeros(n_bones, dtype=np.uint8),
         )
+        pose.kernel_out = _kernel_out(pose)
+        return pose
 
     def solve_frame(self, markers_world: F64Array, out: BodyPose) -> BodyPose:
         """Solve one frame into ``out`` (no allocation).
@@ -219,16 +235,10 @@ class BodySolver:
         Returns:
             ``out``.
         """
-        out.n_held = kernel.solve_one(
-            markers_world, self.marker_cols, self.op_kind, self.op_idx, self.op_u,
-            self.op_off, self.seg_ptr, self.seg_idx, self.seg_layout, self.bone_pts,
-            self.bone_parent, self.bone_def_ptr, self.bone_def_idx, self.rest_pfb,
-            self.joint_idx, self.root_point, self._pts, self._seen, self._filled,
-            self._last_pfb, self._have_good, self._prev_wfb, self._tmp4, self._n44,
-            self._v44, self._last_root,
-            out.joint_centres, out.world_from_bone_quat, out.parent_from_bone_quat,
-            out.root_pos, out.bone_quality, out.bone_flags,
-        )  # fmt: skip
+        k_out = out.kernel_out
+        if k_out is None:  # a BodyPose made by hand: wrap it once
+            k_out = out.kernel_out = _kernel_out(out)
+        out.n_held = kernel.solve_one(markers_world, self.plan, self.state, k_out)
         return out
 
     def solve_take(self, positions: F64Array) -> BodySolve:
@@ -254,13 +264,8 @@ class BodySolver:
         quality = np.zeros((n, n_bones), dtype=np.float32)
         flags = np.zeros((n, n_bones), dtype=np.uint8)
         kernel.solve_many(
-            positions, self.marker_cols, self.op_kind, self.op_idx, self.op_u,
-            self.op_off, self.seg_ptr, self.seg_idx, self.seg_layout, self.bone_pts,
-            self.bone_parent, self.bone_def_ptr, self.bone_def_idx, self.rest_pfb,
-            self.joint_idx, self.root_point, self._pts, self._seen, self._filled,
-            self._last_pfb, self._have_good, self._prev_wfb, self._tmp4, self._n44,
-            self._v44, self._last_root,
-            joints, wfb, pfb, root, quality, flags,
+            positions, self.plan, self.state,
+            kernel.BodyOut(joints, wfb, pfb, root, quality, flags),
         )  # fmt: skip
         return BodySolve(
             joint_names=self.joint_names,
@@ -274,6 +279,13 @@ class BodySolver:
             bone_quality=quality,
             bone_flags=flags,
         )
+
+
+def _kernel_out(pose: BodyPose) -> kernel.BodyOut:
+    return kernel.BodyOut(
+        pose.joint_centres, pose.world_from_bone_quat, pose.parent_from_bone_quat,
+        pose.root_pos, pose.bone_quality, pose.bone_flags,
+    )  # fmt: skip
 
 
 _WARM_RIG = """

@@ -7,9 +7,9 @@ from __future__ import annotations
 
 import math
 
-import numba
 import numpy as np
 
+from retargetd.daemon.compiled import kernel
 from retargetd.protocols import pose_stream as ps
 
 N_CHECKS = len(ps.VALIDATION_CHECKS)
@@ -55,7 +55,7 @@ _N_PARAMS = 19
 # ---- compiled kernels --------------------------------------------------------------
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@kernel
 def _write_qpos(
     qpos: np.ndarray,
     root_pos: np.ndarray,
@@ -79,7 +79,7 @@ def _write_qpos(
             qpos[a + k] = pfb[b, k]
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@kernel(inline="always")
 def _rotate(
     q: np.ndarray, vx: float, vy: float, vz: float
 ) -> tuple[float, float, float]:  # pragma: no cover - compiled
@@ -95,12 +95,12 @@ def _rotate(
     )
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@kernel(inline="always")
 def _beyond(x: float, lo: float, hi: float) -> float:  # pragma: no cover - compiled
     return max(max(lo - x, x - hi), 0.0)
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@kernel
 def _check_frame(
     root_pos: np.ndarray,  # (3,)
     wfb: np.ndarray,  # (B, 4)
