@@ -14,7 +14,8 @@ kernel walks it once per frame with no allocation:
 4. bones: +Y = unit(aim - origin), +X = the up reference made orthogonal to Y,
    +Z = X x Y; a bone whose points are missing or degenerate holds its last good
    rotation and is flagged;
-5. parent-relative rotations, relative to the calibration pose; joint centres; root.
+5. parent-relative rotations, and the same relative to the calibration pose; joint
+   centres; root.
 
 Why numba: a vectorized numpy version costs ~1-2 us per numpy call and a rig needs
 ~150 of them per frame; the compiled walk is one call (figures in bench/).
@@ -92,7 +93,8 @@ class BodyOut(NamedTuple):
 
     joints: np.ndarray  # (J, 3)
     wfb: np.ndarray  # (B, 4) world_from_bone
-    pfb: np.ndarray  # (B, 4) relative to the calibration pose
+    pfb: np.ndarray  # (B, 4) parent_from_bone (the root's parent: the world)
+    rfb: np.ndarray  # (B, 4) rest_from_bone: relative to the calibration pose
     root: np.ndarray  # (3,)
     quality: np.ndarray  # (B,) float32
     flags: np.ndarray  # (B,) uint8
@@ -351,21 +353,23 @@ def solve_one(markers: np.ndarray, plan: BodyPlan, st: BodyState, out: BodyOut) 
         for j in range(4):
             prev_wfb[b, j] = out_wfb[b, j]
         out_flags[b] = flags
-    # 5. parent-relative, relative to the calibration pose:
-    #    out = conj(rest_pfb) * (conj(world_from_parent) * world_from_bone)
+    # 5. parent_from_bone = conj(world_from_parent) * world_from_bone (the root's
+    #    parent is the world), and relative to the calibration pose
+    #    rest_from_bone = conj(rest_parent_from_bone) * parent_from_bone.
+    out_rfb = out.rfb
     for b in range(bone_pts.shape[0]):
         par = bone_parent[b]
         if par < 0:
             for j in range(4):
-                tmp4[j] = out_wfb[b, j]
+                out_pfb[b, j] = out_wfb[b, j]
         else:
-            quat_conj_mul_into(out_wfb[par], out_wfb[b], tmp4)
-        quat_conj_mul_into(rest_pfb[b], tmp4, out_pfb[b])
-        # The relative rotation is near identity in normal use: keep w >= 0 so that
+            quat_conj_mul_into(out_wfb[par], out_wfb[b], out_pfb[b])
+        quat_conj_mul_into(rest_pfb[b], out_pfb[b], out_rfb[b])
+        # The rotation from rest is near identity in normal use: keep w >= 0 so that
         # it reads as the short way round.
-        if out_pfb[b, 0] < 0.0:
+        if out_rfb[b, 0] < 0.0:
             for j in range(4):
-                out_pfb[b, j] = -out_pfb[b, j]
+                out_rfb[b, j] = -out_rfb[b, j]
     for j in range(joint_idx.shape[0]):
         for c in range(3):
             out_joints[j, c] = pts[joint_idx[j], c]
@@ -387,8 +391,8 @@ def solve_many(markers: np.ndarray, plan: BodyPlan, st: BodyState, out: BodyOut)
     held = 0
     for t in range(markers.shape[0]):
         frame = BodyOut(
-            out.joints[t], out.wfb[t], out.pfb[t], out.root[t], out.quality[t],
-            out.flags[t],
+            out.joints[t], out.wfb[t], out.pfb[t], out.rfb[t], out.root[t],
+            out.quality[t], out.flags[t],
         )  # fmt: skip
         held += solve_one(markers[t], plan, st, frame)
     return held

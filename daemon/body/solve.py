@@ -8,10 +8,12 @@ the same kernel in a loop, so batch and live agree exactly).
 
 Outputs per frame (see README "Solve output"): joint centres (J, 3) metres world;
 ``world_from_bone_quat`` (B, 4); ``parent_from_bone_quat`` (B, 4) = the bone's rotation
-relative to its parent composed with the inverse of its calibrated value
+relative to its parent (``conj(world_from_parent) * world_from_bone``; the root's parent
+is the world), so ``world_from_parent * parent_from_bone = world_from_bone``;
+``rest_from_bone_quat`` (B, 4) = the same relative to its calibrated value
 (``conj(rest_parent_from_bone) * parent_from_bone``: identity in the calibration pose,
-expressed in the bone's own axes, +Y along the bone); root position (3,); per-bone
-quality (fraction of defining markers seen) and flags (``FLAG_*``).
+in the bone's own axes, +Y along the bone); root position (3,); per-bone quality
+(fraction of defining markers seen) and flags (``FLAG_*``).
 """
 
 from __future__ import annotations
@@ -60,7 +62,10 @@ class BodyPose:
     Attributes:
         joint_centres: (J, 3) float64, metres, world.
         world_from_bone_quat: (B, 4) float64, w x y z.
-        parent_from_bone_quat: (B, 4) float64, w x y z, relative to calibration.
+        parent_from_bone_quat: (B, 4) float64, w x y z, relative to the parent (the
+            world for the root).
+        rest_from_bone_quat: (B, 4) float64, w x y z, relative to the calibration
+            pose (``conj(rest_parent_from_bone) * parent_from_bone``, w >= 0).
         root_pos: (3,) float64, metres, world (the root bone's origin).
         bone_quality: (B,) float32, fraction of defining markers seen.
         bone_flags: (B,) uint8, ``FLAG_*`` bits.
@@ -70,6 +75,7 @@ class BodyPose:
     joint_centres: F64Array
     world_from_bone_quat: F64Array
     parent_from_bone_quat: F64Array
+    rest_from_bone_quat: F64Array
     root_pos: F64Array
     bone_quality: np.ndarray
     bone_flags: np.ndarray
@@ -88,6 +94,7 @@ class BodySolve:
     joint_centres: F64Array  # (T, J, 3)
     world_from_bone_quat: F64Array  # (T, B, 4)
     parent_from_bone_quat: F64Array  # (T, B, 4)
+    rest_from_bone_quat: F64Array  # (T, B, 4)
     root_pos: F64Array  # (T, 3)
     bone_lengths: F64Array  # (B,)
     bone_quality: np.ndarray  # (T, B) float32
@@ -217,6 +224,7 @@ class BodySolver:
             joint_centres=np.zeros((len(self.joint_names), 3)),
             world_from_bone_quat=np.zeros((n_bones, 4)),
             parent_from_bone_quat=np.zeros((n_bones, 4)),
+            rest_from_bone_quat=np.zeros((n_bones, 4)),
             root_pos=np.zeros(3),
             bone_quality=np.zeros(n_bones, dtype=np.float32),
             bone_flags=np.zeros(n_bones, dtype=np.uint8),
@@ -260,12 +268,13 @@ class BodySolver:
         joints = np.zeros((n, len(self.joint_names), 3))
         wfb = np.zeros((n, n_bones, 4))
         pfb = np.zeros((n, n_bones, 4))
+        rfb = np.zeros((n, n_bones, 4))
         root = np.zeros((n, 3))
         quality = np.zeros((n, n_bones), dtype=np.float32)
         flags = np.zeros((n, n_bones), dtype=np.uint8)
         kernel.solve_many(
             positions, self.plan, self.state,
-            kernel.BodyOut(joints, wfb, pfb, root, quality, flags),
+            kernel.BodyOut(joints, wfb, pfb, rfb, root, quality, flags),
         )  # fmt: skip
         return BodySolve(
             joint_names=self.joint_names,
@@ -274,6 +283,7 @@ class BodySolver:
             joint_centres=joints,
             world_from_bone_quat=wfb,
             parent_from_bone_quat=pfb,
+            rest_from_bone_quat=rfb,
             root_pos=root,
             bone_lengths=np.asarray(self.calibration.bone_lengths, dtype=np.float64),
             bone_quality=quality,
@@ -284,7 +294,7 @@ class BodySolver:
 def _kernel_out(pose: BodyPose) -> kernel.BodyOut:
     return kernel.BodyOut(
         pose.joint_centres, pose.world_from_bone_quat, pose.parent_from_bone_quat,
-        pose.root_pos, pose.bone_quality, pose.bone_flags,
+        pose.rest_from_bone_quat, pose.root_pos, pose.bone_quality, pose.bone_flags,
     )  # fmt: skip
 
 

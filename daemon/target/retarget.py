@@ -185,7 +185,7 @@ class TargetPose:
     Attributes:
         world_from_bone_quat: (N, 4) float64, w x y z: ``world_from_bone`` of each
             target bone, ``G_h = E_h ⊗ T_h``.
-        parent_from_bone_quat: (N, 4) float64, w x y z, world axes: each bone's rotation
+        rest_from_bone_quat: (N, 4) float64, w x y z, world axes: each bone's rotation
             relative to its parent and its rest (``L_h = Ē_p ⊗ E_h``; Hips: its world
             rotation relative to rest). What VMC sends (after ``engine_unity``).
         root_pos: (3,) float64, metres, world: the model root (floor point under the
@@ -199,7 +199,7 @@ class TargetPose:
     """
 
     world_from_bone_quat: F64Array
-    parent_from_bone_quat: F64Array
+    rest_from_bone_quat: F64Array
     root_pos: F64Array
     hips_pos: F64Array
     rest_offsets: F64Array
@@ -380,7 +380,7 @@ class Retargeter:
         n = len(self.bone_names)
         return TargetPose(
             world_from_bone_quat=np.tile(_IDENTITY, (n, 1)),
-            parent_from_bone_quat=np.tile(_IDENTITY, (n, 1)),
+            rest_from_bone_quat=np.tile(_IDENTITY, (n, 1)),
             root_pos=np.zeros(3),
             hips_pos=np.zeros(3),
             rest_offsets=self.target.rest_offsets,
@@ -400,7 +400,7 @@ class Retargeter:
         """
         kt.retarget_one(
             pose.world_from_bone_quat, pose.root_pos, pose.bone_flags, self._prog,
-            self._cst, self._params, self._e, out.parent_from_bone_quat,
+            self._cst, self._params, self._e, out.rest_from_bone_quat,
             out.world_from_bone_quat, out.root_pos, out.hips_pos, out.rest_offsets,
             out.flags,
         )  # fmt: skip

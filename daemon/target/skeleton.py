@@ -366,7 +366,7 @@ def default_humanoid() -> TargetSkeleton:
 
 
 def bone_axes_from_world_axes(
-    target: TargetSkeleton, parent_from_bone_quat: F64Array, out: F64Array | None = None
+    target: TargetSkeleton, rest_from_bone_quat: F64Array, out: F64Array | None = None
 ) -> F64Array:
     """Rotations relative to rest, from world axes to each bone's rest axes.
 
@@ -376,15 +376,15 @@ def bone_axes_from_world_axes(
 
     Args:
         target: the target.
-        parent_from_bone_quat: (..., N, 4) w x y z, world axes
-            (``TargetPose.parent_from_bone_quat``).
+        rest_from_bone_quat: (..., N, 4) w x y z, world axes
+            (``TargetPose.rest_from_bone_quat``).
         out: optional (..., N, 4) destination.
 
     Returns:
         (..., N, 4) w x y z, each bone's rest axes.
     """
     t = target.rest_world_from_bone_quat
-    res = rot.quat_mul(rot.quat_conj(t), rot.quat_mul(parent_from_bone_quat, t))
+    res = rot.quat_mul(rot.quat_conj(t), rot.quat_mul(rest_from_bone_quat, t))
     if out is None:
         return res
     out[...] = res

@@ -171,7 +171,7 @@ class _Slot:
     has_lengths: bool
     root_pos: F64Array  # (3,)
     world_from_bone_quat: F64Array  # (B, 4)
-    parent_from_bone_quat: F64Array  # (B, 4)
+    rest_from_bone_quat: F64Array  # (B, 4)
     joint_centres: F64Array  # (J, 3)
     bone_lengths: F64Array  # (B,)
 
@@ -283,7 +283,7 @@ class LiveValidator:
         t_ns: int,
         root_pos: F64Array,
         world_from_bone_quat: F64Array,
-        parent_from_bone_quat: F64Array,
+        rest_from_bone_quat: F64Array,
         joint_centres: F64Array,
         bone_lengths: F64Array | None = None,
     ) -> bool:
@@ -294,7 +294,7 @@ class LiveValidator:
             t_ns: its receive time, ``time.monotonic_ns()``.
             root_pos: (3,) float64, metres, world.
             world_from_bone_quat: (B, 4) float64, w x y z.
-            parent_from_bone_quat: (B, 4) float64, w x y z, relative to calibration.
+            rest_from_bone_quat: (B, 4) float64, w x y z, relative to calibration.
             joint_centres: (J, 3) float64, metres, world; NaN rows = not solved.
             bone_lengths: (B,) float64 metres, the streamed skeleton's lengths; None =
                 the calibrated ones.
@@ -312,7 +312,7 @@ class LiveValidator:
         slot.t_ns = t_ns
         np.copyto(slot.root_pos, root_pos)
         np.copyto(slot.world_from_bone_quat, world_from_bone_quat)
-        np.copyto(slot.parent_from_bone_quat, parent_from_bone_quat)
+        np.copyto(slot.rest_from_bone_quat, rest_from_bone_quat)
         np.copyto(slot.joint_centres, joint_centres)
         if bone_lengths is None:
             slot.has_lengths = False
@@ -414,7 +414,7 @@ class LiveValidator:
             slot.t_ns,
             slot.root_pos,
             slot.world_from_bone_quat,
-            slot.parent_from_bone_quat,
+            slot.rest_from_bone_quat,
             slot.joint_centres,
             lengths,
         )
@@ -484,7 +484,7 @@ class LiveValidator:
         t_ns: int,
         root_pos: F64Array,
         world_from_bone_quat: F64Array,
-        parent_from_bone_quat: F64Array,
+        rest_from_bone_quat: F64Array,
         joint_centres: F64Array,
         bone_lengths: F64Array | None = None,
     ) -> ValidationResult:
@@ -504,7 +504,7 @@ class LiveValidator:
             t_ns,
             np.ascontiguousarray(root_pos, dtype=np.float64),
             np.ascontiguousarray(world_from_bone_quat, dtype=np.float64),
-            np.ascontiguousarray(parent_from_bone_quat, dtype=np.float64),
+            np.ascontiguousarray(rest_from_bone_quat, dtype=np.float64),
             np.ascontiguousarray(joint_centres, dtype=np.float64),
             np.ascontiguousarray(lengths, dtype=np.float64),
         )

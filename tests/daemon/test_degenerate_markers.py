@@ -39,7 +39,7 @@ def _check(pose: BodyPose) -> None:
     q = pose.world_from_bone_quat
     assert np.isfinite(q).all()
     np.testing.assert_allclose(np.linalg.norm(q, axis=1), 1.0, atol=1e-9)
-    assert np.isfinite(pose.parent_from_bone_quat).all()
+    assert np.isfinite(pose.rest_from_bone_quat).all()
     assert np.isfinite(pose.root_pos).all()
 
 

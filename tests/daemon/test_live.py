@@ -153,7 +153,7 @@ def test_stream_vmc_and_pose_stream_match_the_solver(
             msg.world_from_bone_quat, wfb.astype(np.float32), rtol=0, atol=1e-6
         )
         np.testing.assert_allclose(
-            msg.parent_from_bone_quat, pfb.astype(np.float32), rtol=0, atol=1e-6
+            msg.rest_from_bone_quat, pfb.astype(np.float32), rtol=0, atol=1e-6
         )
         lat_us.append((msg.sent_ns - msg.received_ns) / 1e3)
     assert not bone_flags.any()
@@ -203,10 +203,10 @@ def test_stream_vmc_and_pose_stream_match_the_solver(
         prev_q = q
         # The rotations are the retargeted solve (up to the continuity sign).
         pose.world_from_bone_quat[:] = wfb
-        pose.parent_from_bone_quat[:] = pfb
+        pose.rest_from_bone_quat[:] = pfb
         pose.root_pos[:] = root
         retargeter.apply(pose, tp)
-        engine_unity.unity_quat_xyzw_from_world(tp.parent_from_bone_quat, unity_q)
+        engine_unity.unity_quat_xyzw_from_world(tp.rest_from_bone_quat, unity_q)
         sign = np.where(np.sum(q[1:] * unity_q, axis=1) < 0, -1.0, 1.0)[:, None]
         worst = max(worst, float(np.abs(q[1:] * sign - unity_q).max()))
         root_unity = np.zeros(3)
@@ -593,7 +593,7 @@ def test_restart_after_a_gap_or_new_label_set_receiver_absent(
     # The restarted solve starts afresh: the oracle, reset at the same frames, agrees.
     oracle, _ = _solve_oracle(exact_calibration, [m for _, m in src.sent[n_first:]])
     np.testing.assert_allclose(
-        sub.poses[-1].parent_from_bone_quat, oracle[-1][1].astype(np.float32), atol=1e-6
+        sub.poses[-1].rest_from_bone_quat, oracle[-1][1].astype(np.float32), atol=1e-6
     )
     print(
         f"\nreceiver absent: {s.frames_out} frames sent to a closed port, "

@@ -171,7 +171,7 @@ def test_ctl_record_in_a_live_daemon_then_replay_reproduces_the_pose_stream(
         # recording started mid-stream, and the live daemon's sign continuity
         # carries its history from before the start (q and -q are one rotation).
         np.testing.assert_array_equal(
-            again.parent_from_bone_quat, live.parent_from_bone_quat
+            again.rest_from_bone_quat, live.rest_from_bone_quat
         )
         np.testing.assert_array_equal(again.root_pos_world, live.root_pos_world)
         np.testing.assert_array_equal(again.bone_flags, live.bone_flags)

@@ -130,7 +130,7 @@ def test_validation_bits_and_messages_flag_a_teleport(
         solver.solve_frame(f.astype(np.float64), pose)
         want = oracle.check_frame(
             fid0 + i, 0, pose.root_pos, pose.world_from_bone_quat,
-            pose.parent_from_bone_quat, pose.joint_centres,
+            pose.rest_from_bone_quat, pose.joint_centres,
         )  # fmt: skip
         got = checks[fid0 + i]
         np.testing.assert_allclose(got.values, want.values, rtol=1e-5, atol=1e-4)

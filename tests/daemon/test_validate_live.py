@@ -125,7 +125,7 @@ def _run_sync(v: vl.LiveValidator, s: BodySolve, rate_hz: float) -> Live:
                 _t_ns(t, rate_hz),
                 s.root_pos[t],
                 s.world_from_bone_quat[t],
-                s.parent_from_bone_quat[t],
+                s.rest_from_bone_quat[t],
                 s.joint_centres[t],
                 s.bone_lengths,
             )
@@ -263,7 +263,7 @@ def test_thread_equals_synchronous(
             0,
             s.root_pos[0],
             s.world_from_bone_quat[0],
-            s.parent_from_bone_quat[0],
+            s.rest_from_bone_quat[0],
             s.joint_centres[0],
         )
     got: list[vl.ValidationResult] = []
@@ -274,7 +274,7 @@ def test_thread_equals_synchronous(
             _t_ns(t, pig.rate_hz),
             s.root_pos[t],
             s.world_from_bone_quat[t],
-            s.parent_from_bone_quat[t],
+            s.rest_from_bone_quat[t],
             s.joint_centres[t],
         )
         got += v.results()
@@ -304,7 +304,7 @@ def test_thread_equals_synchronous(
         0,
         s.root_pos[0],
         s.world_from_bone_quat[0],
-        s.parent_from_bone_quat[0],
+        s.rest_from_bone_quat[0],
         s.joint_centres[0],
     )
     assert v.dropped == 1
@@ -342,7 +342,7 @@ def _submit_frame(v: vl.LiveValidator, s: BodySolve, t: int) -> tuple[bool, floa
         T0_NS + t,
         s.root_pos[t],
         s.world_from_bone_quat[t],
-        s.parent_from_bone_quat[t],
+        s.rest_from_bone_quat[t],
         s.joint_centres[t],
     )
     return ok, time.perf_counter() - t0
@@ -446,7 +446,7 @@ def test_speed_over_gaps(
             _t_ns(t, rate) if t_ns is None else t_ns,
             s.root_pos[t],
             s.world_from_bone_quat[t],
-            s.parent_from_bone_quat[t],
+            s.rest_from_bone_quat[t],
             s.joint_centres[t],
         )
         return float(r.values[speed])
@@ -471,7 +471,7 @@ def test_speed_over_gaps(
             _t_ns(t, rate),
             s.root_pos[t],
             s.world_from_bone_quat[t],
-            s.parent_from_bone_quat[t],
+            s.rest_from_bone_quat[t],
             s.joint_centres[t],
         )
         speeds.append(float(r.values[speed]))
@@ -508,13 +508,13 @@ def _rotate_bone(c: Any, bone: str, axis_world: np.ndarray, deg: float) -> BodyS
     axis = rot.quat_rotate(
         rot.quat_conj(c.skel.rest_world_from_bone_quat[b]), axis_world
     )
-    pfb = c.solve.parent_from_bone_quat.copy()
+    pfb = c.solve.rest_from_bone_quat.copy()
     n = DEFECT.stop - DEFECT.start
     bump = np.sin(np.pi * (np.arange(n) + 0.5) / n)
     turn = rot.quat_from_axis_angle(axis, np.radians(deg) * bump)
     pfb[DEFECT, b] = rot.quat_mul(turn, pfb[DEFECT, b])
     solve = dataclasses.replace(
-        c.solve, parent_from_bone_quat=pfb, world_from_bone_quat=_rechain(c, pfb)
+        c.solve, rest_from_bone_quat=pfb, world_from_bone_quat=_rechain(c, pfb)
     )
     origins, aims = pose_skeleton(c.skel, solve.root_pos, solve.world_from_bone_quat)
     points = np.concatenate([origins, aims], axis=1)
@@ -602,14 +602,14 @@ def test_xyzw_and_norms_flag_convention_and_quat_norm(
     xyzw = dataclasses.replace(
         s,
         world_from_bone_quat=s.world_from_bone_quat[..., [1, 2, 3, 0]],
-        parent_from_bone_quat=s.parent_from_bone_quat[..., [1, 2, 3, 0]],
+        rest_from_bone_quat=s.rest_from_bone_quat[..., [1, 2, 3, 0]],
     )
     live, _ = _defect(c, synth_live, xyzw)
     assert {"convention", "fit"} <= _bits(live.flags)
     assert np.median(live.values[:, CHECKS.index("convention")]) > 100.0
-    pfb = s.parent_from_bone_quat.copy()
+    pfb = s.rest_from_bone_quat.copy()
     pfb[DEFECT] *= 1.01
-    live, _ = _defect(c, synth_live, dataclasses.replace(s, parent_from_bone_quat=pfb))
+    live, _ = _defect(c, synth_live, dataclasses.replace(s, rest_from_bone_quat=pfb))
     assert _bits(live.flags) == {"quat_norm"}
 
 
@@ -627,7 +627,7 @@ def test_thread_counts_flags(
             _t_ns(t, c.rate_hz),
             s.root_pos[t],
             s.world_from_bone_quat[t],
-            s.parent_from_bone_quat[t],
+            s.rest_from_bone_quat[t],
             s.joint_centres[t],
         )
     _wait(lambda: v.validated == n)

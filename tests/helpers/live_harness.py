@@ -392,7 +392,7 @@ def _solve_oracle(
         out.append(
             (
                 pose.world_from_bone_quat.copy(),
-                pose.parent_from_bone_quat.copy(),
+                pose.rest_from_bone_quat.copy(),
                 pose.root_pos.copy(),
                 pose.bone_flags.copy(),
             )

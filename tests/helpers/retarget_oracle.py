@@ -87,7 +87,7 @@ def _reference_apply(
     # L_h = Ē_parent ⊗ E_h (Hips' parent row is identity); G_h = E_h ⊗ T_h.
     np.take(e, rt._parent, axis=0, out=s.ep)
     np.einsum("ijk,nj,nk->ni", _CONJ_MUL, s.ep, s.e_n,
-              out=out.parent_from_bone_quat)  # fmt: skip
+              out=out.rest_from_bone_quat)  # fmt: skip
     np.einsum("ijk,nj,nk->ni", _MUL, s.e_n, rt._rest_t,
               out=out.world_from_bone_quat)  # fmt: skip
     np.subtract(pose.root_pos, rt._root_rest, out=out.root_pos)
