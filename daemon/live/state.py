@@ -92,6 +92,7 @@ class DaemonState:
     _validation_bits: int
     _validation_bones: np.ndarray | None
     _validation_enc: pose_stream.ValidationEncoder | None
+    _log_after_ns: dict[str, int]
 
     def _start_validator(self) -> None:  # implemented by Daemon
         raise NotImplementedError
