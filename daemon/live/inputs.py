@@ -58,6 +58,8 @@ class InputsMixin(DaemonState):
                 newest, newest_ns = self.zmq_stream, got
         if newest is not None and not every:
             self._solve_and_send(newest, newest_ns)
+        if self._zmon is not None and self._zmon in events:
+            self._drain_zmq_monitor()
         if self._show is not None and self._show.fileno() in events:
             self._drain_show_control()
         if self._ctl is not None and self._ctl in events:
@@ -175,6 +177,24 @@ class InputsMixin(DaemonState):
                     self._frame_flags |= pose_stream.FRAME_INPUT_DROPPED
                 newest = got
         return newest
+
+    def _drain_zmq_monitor(self) -> None:
+        """Count the ZeroMQ input's disconnect events (a part over MAXMSGSIZE makes
+        libzmq drop the peer before buffering it; a sender closing does too)."""
+        assert self._zmon is not None
+        while True:
+            try:
+                self._zmon.recv_multipart(zmq.NOBLOCK)
+            except zmq.Again:
+                return
+            self.stats.zmq_disconnects += 1
+            self._log_limited(
+                "zmq.disconnect",
+                time.monotonic_ns(),
+                "zmq input: a peer was disconnected (a message part over "
+                "input.zmq.max_message_bytes = %d, or the peer closed)",
+                self.config.input.zmq.max_message_bytes,
+            )
 
     def _take_labels(
         self, name: str, stream: MarkerStream, label_set: LabelSet, t_ns: int

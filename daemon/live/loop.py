@@ -104,6 +104,7 @@ class Daemon(InputsMixin, SendMixin, CalibrationMixin, StatusMixin, ControlMixin
         self._show: socket.socket | None = None
         self._vmc: socket.socket | None = None
         self._zin: zmq.Socket[bytes] | None = None
+        self._zmon: zmq.Socket[bytes] | None = None  # the input's disconnect events
         self._pub: zmq.Socket[bytes] | None = None
         self._ctl: zmq.Socket[bytes] | None = None
         osc_cfg, zmq_cfg = config.input.osc, config.input.zmq
@@ -183,6 +184,10 @@ class Daemon(InputsMixin, SendMixin, CalibrationMixin, StatusMixin, ControlMixin
                 self._zin.connect(c.input.zmq.endpoint)
             self._poller.register(self._zin, zmq.POLLIN)
             self._sockets.append(self._zin)
+            self._zmon = self._zin.get_monitor_socket(zmq.EVENT_DISCONNECTED)
+            self._zmon.setsockopt(zmq.LINGER, 0)
+            self._poller.register(self._zmon, zmq.POLLIN)
+            self._sockets.append(self._zmon)
             ep = _last_endpoint(self._zin) or c.input.zmq.endpoint
             self._announce("zmq markers", f"{ep} ({c.input.zmq.mode})")
         if c.output.pose.enabled:

@@ -71,6 +71,7 @@ class DaemonState:
     _vmc: socket.socket | None
     _vmc_addr: tuple[str, int]
     _zin: zmq.Socket[bytes] | None
+    _zmon: zmq.Socket[bytes] | None
     _pub: zmq.Socket[bytes] | None
     _ctl: zmq.Socket[bytes] | None
     _pipelines: dict[int, Pipeline]
