@@ -256,11 +256,12 @@ class MarkerPacket:
         np.logical_or(self._mask_cols[0], self._mask_cols[1], out=occluded)
         np.logical_or(occluded, self._mask_cols[2], out=occluded)
         if self.zero_is_occluded:
-            zero, cols = self._zero, self._mask_cols
             np.equal(raw32, 0.0, out=mask)
-            np.logical_and(cols[0], cols[1], out=zero)
-            np.logical_and(zero, cols[2], out=zero)
-            np.logical_or(occluded, zero, out=occluded)
+            if np.count_nonzero(mask):  # rare: skip the row test when no zero at all
+                zero, cols = self._zero, self._mask_cols
+                np.logical_and(cols[0], cols[1], out=zero)
+                np.logical_and(zero, cols[2], out=zero)
+                np.logical_or(occluded, zero, out=occluded)
         frame = self.frame
         np.logical_not(occluded, out=frame.valid)
         # Whole occluded rows become a quiet NaN: a signalling NaN from the wire would

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from retargetd.protocols import marker_input as mi
 from retargetd.protocols import osc_in, zmq_wire
@@ -261,3 +263,29 @@ def test_exact_zero_rows_are_occluded_unless_configured_otherwise(zero: float) -
     out = osc_in.decode_compact_frame(packet, kept)
     np.testing.assert_array_equal(out.frame.valid, [True, True, True])
     np.testing.assert_array_equal(out.frame.markers_world[0], [0.0, 0.0, 0.0])
+
+
+@given(
+    steps=st.lists(st.integers(1, 3), min_size=5, max_size=60),
+    strays=st.dictionaries(
+        st.integers(0, 59),
+        st.integers(-900, -1) | st.integers(2_000, 2**62),
+        max_size=8,
+    ),
+)
+def test_single_stray_frames_never_cost_a_genuine_frame(
+    steps: list[int], strays: dict[int, int]
+) -> None:
+    """A genuine source at 240 Hz (frame numbers stepping by 1-3), with one stray frame
+    (backwards, or beyond the plausible advance) before some of its frames: no stray
+    frame is accepted and every genuine frame is."""
+    seq = mi.FrameSequencer()
+    frame, t_ns = 1000, 0
+    assert seq.check(frame, 1, t_ns) == mi.ACCEPTED
+    for i, step in enumerate(steps):
+        t_ns += 4_166_667
+        if i in strays:
+            code = seq.check(frame + strays[i], 1, t_ns)
+            assert code in (mi.BACKWARDS, mi.IMPLAUSIBLE_JUMP)
+        frame += step
+        assert seq.check(frame, 1, t_ns + 1000) == mi.ACCEPTED
