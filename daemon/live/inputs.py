@@ -20,6 +20,7 @@ from retargetd.protocols import osc_in, pose_stream, zmq_wire
 from retargetd.protocols.errors import DecodeError
 from retargetd.protocols.marker_input import (
     ACCEPTED,
+    IMPLAUSIBLE_JUMP,
     REASON_INDEX,
     RESTART,
     LabelSet,
@@ -69,6 +70,16 @@ class InputsMixin(DaemonState):
         """Book-keeping for one decoded packet; returns its receive time when it was
         accepted and left for later (latest wins), else 0."""
         if code != ACCEPTED and code != RESTART:
+            if code == IMPLAUSIBLE_JUMP:
+                name = "osc" if stream is self.osc_stream else "zmq"
+                self._log_limited(
+                    f"{name}.implausible_jump",
+                    t_ns,
+                    "%s input: frame number jumped implausibly past %d (faster than "
+                    "max_rate_hz); dropped (implausible_jump)",
+                    name,
+                    stream.sequencer.last_frame,
+                )
             return 0
         self.stats.frames_in += 1
         stream.current.frame.t_ns = t_ns

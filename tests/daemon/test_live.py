@@ -1548,6 +1548,7 @@ def test_a_spoofed_or_bit_flipped_frame_number_is_dropped_not_adopted(
     osc_source: Callable[..., OscSource],
     zmq_socket: Callable[[int], Any],
     exact_calibration: Path,
+    caplog: pytest.LogCaptureFixture,
 ) -> None:
     """Today's hijack: a valid frame numbered 2^62 was solved, sent, and made the
     genuine frames "backwards" for 1 s. Now it is counted and dropped, and so is a
@@ -1583,6 +1584,8 @@ def test_a_spoofed_or_bit_flipped_frame_number_is_dropped_not_adopted(
     assert counts["implausible_jump"] == 2
     assert counts["backwards"] == 0 and counts["restart"] == 0
     assert not any(p.flags & pose_stream.FRAME_RESTARTED for p in sub.poses)
+    jumps = [r for r in caplog.records if "implausible_jump" in r.getMessage()]
+    assert len(jumps) == 1  # two drops, one line (rate-limited)
 
 
 def test_renamed_labels_under_the_id_in_use_never_reach_the_solve(
