@@ -30,6 +30,7 @@ from typing import Any
 from retargetd.daemon.face.config import FaceConfigError, load_face_config
 from retargetd.daemon.face.training import TrainingSet
 from retargetd.protocols.conventions import normalize_units, normalize_up_axis
+from retargetd.protocols.marker_input import MAX_MARKERS, MAX_MESSAGE_BYTES, MAX_RATE_HZ
 
 LOCALHOST = "127.0.0.1"
 
@@ -61,6 +62,12 @@ class OscInputConfig:
     up: str = "+Z"
     allow: tuple[str, ...] = ()  # allowed source addresses, markers and show control
     # (empty = any)
+    # Input bounds (protocols/PROTOCOLS.md "Limits"): fastest plausible frame rate,
+    # markers per label set, bytes per datagram; zeros as occlusion.
+    max_rate_hz: float = MAX_RATE_HZ
+    max_markers: int = MAX_MARKERS
+    max_message_bytes: int = MAX_MESSAGE_BYTES
+    zero_is_occluded: bool = True
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -72,6 +79,10 @@ class ZmqInputConfig:
     endpoint: str = f"tcp://{LOCALHOST}:39571"
     units: str = "m"
     up: str = "+Z"
+    max_rate_hz: float = MAX_RATE_HZ
+    max_markers: int = MAX_MARKERS
+    max_message_bytes: int = MAX_MESSAGE_BYTES  # per message part (ZMQ_MAXMSGSIZE)
+    zero_is_occluded: bool = True
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -320,6 +331,7 @@ def _check(c: DaemonConfig, source: str) -> None:
         ("control.endpoint", c.control.endpoint),
     ):
         _check_endpoint(ep, name, source)
+    _check_input_limits(c.input, source)
     ctl = c.control.endpoint
     if ctl.startswith("tcp://") and not ctl.startswith(
         ("tcp://127.", "tcp://localhost")
@@ -368,6 +380,34 @@ def _check(c: DaemonConfig, source: str) -> None:
         raise ConfigError(
             f"{source}: validate.rate_hz: expected [1, 10000]; got {v.rate_hz}"
         )
+
+
+#: Ceiling for ``input.zmq.max_message_bytes``: the frame payload of the largest label
+#: set allowed (100,000 markers x 12 bytes = 1.2 MB), rounded up to 2 MiB. The input
+#: queue then holds at most RCVHWM (1,000) messages of 2 parts this size.
+_ZMQ_MAX_MESSAGE_BYTES = 2 << 20
+
+
+def _check_input_limits(inputs: InputConfig, source: str) -> None:
+    for name, section, most_bytes in (
+        ("input.osc", inputs.osc, MAX_MESSAGE_BYTES),  # UDP cannot carry more
+        ("input.zmq", inputs.zmq, _ZMQ_MAX_MESSAGE_BYTES),
+    ):
+        if not 1.0 <= section.max_rate_hz <= 1e6:
+            raise ConfigError(
+                f"{source}: {name}.max_rate_hz: expected [1, 1000000]; "
+                f"got {section.max_rate_hz}"
+            )
+        if not 1 <= section.max_markers <= 100_000:
+            raise ConfigError(
+                f"{source}: {name}.max_markers: expected [1, 100000]; "
+                f"got {section.max_markers}"
+            )
+        if not 64 <= section.max_message_bytes <= most_bytes:
+            raise ConfigError(
+                f"{source}: {name}.max_message_bytes: expected [64, {most_bytes}]; "
+                f"got {section.max_message_bytes}"
+            )
 
 
 def _check_face(f: FaceSectionConfig, source: str) -> None:

@@ -1177,3 +1177,266 @@ def test_demo_subprocess_streams_poses(
         f"\ndemo: {summary}; the SUB received {len(sub.poses)} poses, "
         f"{len(vmc_rx.frames)} VMC frames"
     )
+
+
+# ---- inputs that cannot be hijacked, bounded inputs (issue 12) ---------------------
+
+
+def test_a_spoofed_or_bit_flipped_frame_number_is_dropped_not_adopted(
+    start_daemon: Callable[..., Live],
+    osc_source: Callable[..., OscSource],
+    zmq_socket: Callable[[int], Any],
+    exact_calibration: Path,
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """Today's hijack: a valid frame numbered 2^62 was solved, sent, and made the
+    genuine frames "backwards" for 1 s. Now it is counted and dropped, and so is a
+    frame whose number has bit 40 flipped; every genuine frame is solved."""
+    take = _take()
+    live = start_daemon(
+        {
+            "performer": {"calibration": str(exact_calibration)},
+            "loop": {"process_every_frame": True},
+        },
+    )
+    sub = PoseSub(zmq_socket(zmq.SUB), live.tcp("zmq poses"))
+    src = osc_source(live)
+    src.announce()
+    _prime(sub, lambda: src.send(take.markers_world[0]))
+    genuine: list[int] = []
+    for row in range(100, 105):
+        genuine.append(src.send(take.markers_world[row]))
+    spoof = osc_in.encode_compact_frame(2**62, 0.0, 1, take.markers_world[200])
+    src.raw(spoof)
+    flipped = bytearray(
+        osc_in.encode_compact_frame(src.next_id, 0.0, 1, take.markers_world[201])
+    )
+    flipped[20 + 2] ^= 0x01  # bit 40 of the big-endian int64 frame number
+    src.raw(bytes(flipped))
+    for row in range(105, 115):
+        genuine.append(src.send(take.markers_world[row]))
+    sub.wait(lambda: len(sub.poses) == len(genuine), "every genuine frame")
+    sub.pump(50)
+    live.stop()
+    assert [p.frame_id for p in sub.poses] == genuine
+    counts = live.daemon.osc_stream.counters
+    assert counts["implausible_jump"] == 2
+    assert counts["backwards"] == 0 and counts["restart"] == 0
+    assert not any(p.flags & pose_stream.FRAME_RESTARTED for p in sub.poses)
+    jumps = [r for r in caplog.records if "implausible_jump" in r.getMessage()]
+    assert len(jumps) == 1  # two drops, one line (rate-limited)
+
+
+def test_renamed_labels_under_the_id_in_use_never_reach_the_solve(
+    start_daemon: Callable[..., Live],
+    osc_source: Callable[..., OscSource],
+    zmq_socket: Callable[[int], Any],
+    exact_calibration: Path,
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """Today's hijack: the same id with the names rotated by one gave 0.7 s of poses
+    with bones off by up to 180°, nothing counted. Now the frames under the disputed
+    id are dropped and counted until the sender announces its names again; logged
+    once for two conflicting announcements."""
+    take = _take()
+    live = start_daemon(
+        {
+            "performer": {"calibration": str(exact_calibration)},
+            "loop": {"process_every_frame": True},
+        },
+    )
+    sub = PoseSub(zmq_socket(zmq.SUB), live.tcp("zmq poses"))
+    src = osc_source(live)
+    src.announce()
+    _prime(sub, lambda: src.send(take.markers_world[0]))
+    labels = take.labels
+    rotated = LabelSet(1, labels[1:] + labels[:1])
+    src.raw(osc_in.encode_labels(rotated))
+    disputed = [src.send(take.markers_world[row]) for row in range(100, 105)]
+    src.raw(osc_in.encode_labels(rotated))
+    disputed += [src.send(take.markers_world[row]) for row in range(105, 108)]
+    stream = live.daemon.osc_stream
+    _wait_until(lambda: stream.counters["label_conflict"] == 8, "8 disputed frames")
+    src.announce()  # the genuine sender repeats its names: the conflict ends
+    resumed = [src.send(take.markers_world[row]) for row in range(108, 112)]
+    sub.wait(lambda: len(sub.poses) == len(resumed), "the frames after the conflict")
+    sub.pump(50)
+    live.stop()
+    assert [p.frame_id for p in sub.poses] == resumed  # none of the disputed ones
+    assert stream.counters["conflicting_labels"] == 2
+    assert stream.label_set == LabelSet(1, labels)
+    conflict_lines = [r for r in caplog.records if "label_conflict" in r.getMessage()]
+    assert len(conflict_lines) == 1, conflict_lines
+    assert "label set 1" in conflict_lines[0].getMessage()
+    # The poses after the conflict are the solve of the genuine frames.
+    oracle, _ = _solve_oracle(exact_calibration, [m for _, m in src.sent])
+    np.testing.assert_allclose(
+        sub.poses[-1].parent_from_bone_quat, oracle[-1][1].astype(np.float32), atol=1e-6
+    )
+    assert len(disputed) == 8
+
+
+def test_oversized_messages_and_label_sets_are_refused_before_decoding(
+    start_daemon: Callable[..., Live],
+    osc_source: Callable[..., OscSource],
+    zmq_socket: Callable[[int], Any],
+    exact_calibration: Path,
+) -> None:
+    """A ZeroMQ label message of 1 M names (7.9 MB) used to stall the loop 0.4 s and
+    keep 130 MB: now libzmq refuses the part (MAXMSGSIZE) before buffering it, the
+    disconnect is counted, and the sender's next messages are served. Over OSC, a
+    datagram over ``max_message_bytes`` and a label set over ``max_markers`` are
+    counted and dropped."""
+    take = _take()
+    n = len(take.labels)
+    live = start_daemon(
+        {
+            "performer": {"calibration": str(exact_calibration)},
+            "input": {"osc": {"max_message_bytes": 2000, "max_markers": n - 1}},
+            "loop": {"process_every_frame": True},
+        },
+    )
+    push = zmq_socket(zmq.PUSH)
+    push.connect(live.tcp("zmq markers"))
+    names = [f"M{i:06d}" for i in range(1_000_000)]
+    huge = zmq_wire.LABELS_HEADER.pack(zmq_wire.LABELS_MAGIC, 1, 0, 9, len(names))
+    payload = "\n".join(names).encode()
+    assert len(payload) > 7_000_000
+    t0 = time.perf_counter()
+    push.send_multipart([huge, payload])
+    s = live.daemon.stats
+    _wait_until(lambda: s.zmq_disconnects >= 1, "libzmq to drop the oversized part")
+    # The same PUSH reconnects; its label set and frames are served as usual.
+    push.send_multipart(zmq_wire.encode_zmq_labels(LabelSet(7, take.labels)))
+    for fid in range(20):
+        push.send_multipart(
+            zmq_wire.encode_zmq_frame(fid, 0.0, 7, take.markers_world[100 + fid])
+        )
+    _wait_until(lambda: s.frames_solved == 20, "20 frames after the oversized one")
+    served_s = time.perf_counter() - t0
+    print(
+        f"\n7.9 MB label message: refused by libzmq; 20 frames served "
+        f"{served_s * 1e3:.0f} ms after it (the PUSH reconnects: reconnect_ivl 100 ms)"
+    )
+    assert live.daemon.zmq_stream.label_set == LabelSet(7, take.labels)
+    assert live.daemon.zmq_stream.counters["accepted"] == 20
+
+    src = osc_source(live)
+    src.raw(b"\0" * 2001)  # one byte over max_message_bytes
+    src.announce()  # n names > max_markers = n - 1
+    stream = live.daemon.osc_stream
+    _wait_until(
+        lambda: stream.counters["too_many_markers"] == 1, "the refused label set"
+    )
+    live.stop()
+    assert stream.counters["too_large"] == 1
+    assert stream.label_set is None
+    assert live.daemon.status()["counters"]["zmq_disconnects"] >= 1
+
+
+def test_kernel_receive_buffer_drops_are_counted_and_shown(
+    start_daemon: Callable[..., Live],
+    udp_socket: Callable[..., socket.socket],
+) -> None:
+    """The loop is held while the OSC socket is flooded (4 MB into a receive buffer
+    of at most 2 MB): the kernel drops datagrams, and status and the stats line show
+    how many (``/proc/net/udp``)."""
+    if not Path("/proc/net/udp").exists():
+        if IN_CI:
+            pytest.fail("/proc/net/udp missing (CI=true: nothing may skip)")
+        pytest.skip("no /proc/net/udp (not Linux): kernel drops are unknown here")
+    live = start_daemon()
+    daemon = live.daemon
+    held, release = threading.Event(), threading.Event()
+    service = daemon._service
+
+    def paused(events: dict[Any, int]) -> None:
+        held.set()
+        release.wait(10.0)
+        service(events)
+
+    assert daemon.status()["kernel_drops"]["osc"] == 0
+    daemon._service = paused  # type: ignore[method-assign]
+    sock, addr = udp_socket(), live.udp("osc markers")
+    sock.sendto(b"\0" * 8, addr)
+    assert held.wait(5.0), "the loop never woke for the first datagram"
+    for _ in range(3000):
+        sock.sendto(b"\0" * 1400, addr)
+    drops = daemon.status()["kernel_drops"]["osc"]
+    release.set()
+    assert drops is not None and drops > 0
+    _wait_until(
+        lambda: (
+            re.search(r"kernel_drops [1-9]", live.daemon.last_stats_line) is not None
+        ),
+        "a stats line showing the kernel drops",
+    )
+    live.stop()
+    assert daemon.status()["kernel_drops"]["osc"] is None  # socket closed: unknown
+    print(f"\nkernel drops: {drops} of 3001 datagrams dropped while the loop was held")
+
+
+@pytest.mark.parametrize("zero_is_occluded", [True, False])
+def test_zero_markers_are_occluded_at_the_input(
+    start_daemon: Callable[..., Live],
+    osc_source: Callable[..., OscSource],
+    zmq_socket: Callable[[int], Any],
+    exact_calibration: Path,
+    zero_is_occluded: bool,
+) -> None:
+    """Many capture systems send (0, 0, 0) for an occluded marker: by default such a
+    frame is solved exactly like the same frame with NaN there."""
+    take = _take()
+    live = start_daemon(
+        {
+            "performer": {"calibration": str(exact_calibration)},
+            "input": {"osc": {"zero_is_occluded": zero_is_occluded}},
+            "loop": {"process_every_frame": True},
+        },
+    )
+    sub = PoseSub(zmq_socket(zmq.SUB), live.tcp("zmq poses"))
+    src = osc_source(live)
+    src.announce()
+    _prime(sub, lambda: src.send(take.markers_world[0]))
+    zeros = take.markers_world[150].copy()
+    zeros[[0, 5, 9]] = 0.0
+    nans = take.markers_world[150].copy()
+    nans[[0, 5, 9]] = np.nan
+    src.send(zeros)
+    stream = live.daemon.osc_stream
+    sub.wait(lambda: len(sub.poses) == 1, "the zeros frame")
+    valid = stream.current.frame.valid.copy()
+    src.send(nans)
+    sub.wait(lambda: len(sub.poses) == 2, "the NaN frame")
+    live.stop()
+    assert valid[[0, 5, 9]].tolist() == [not zero_is_occluded] * 3
+    assert valid.sum() == len(take.labels) - (3 if zero_is_occluded else 0)
+    same = np.array_equal(
+        sub.poses[0].parent_from_bone_quat, sub.poses[1].parent_from_bone_quat
+    )
+    assert same == zero_is_occluded
+
+
+def test_zmq_parts_over_the_limit_that_reach_the_loop_are_too_large(
+    start_daemon: Callable[..., Live],
+    zmq_socket: Callable[[int], Any],
+) -> None:
+    """inproc bypasses libzmq's MAXMSGSIZE: the drain checks part sizes itself, before
+    decoding (a 1.4 KB label payload over a 1,000-byte limit)."""
+    take = _take()
+    endpoint = f"inproc://rtd-bounds-{os.getpid()}"
+    live = start_daemon(
+        {"input": {"zmq": {"endpoint": endpoint, "max_message_bytes": 1000}}}
+    )
+    push = zmq_socket(zmq.PUSH)
+    push.connect(endpoint)
+    big = LabelSet(4, tuple(f"M{i:05d}" for i in range(200)))
+    header, payload = zmq_wire.encode_zmq_labels(big)
+    assert len(payload) > 1000
+    push.send_multipart([header, payload])
+    push.send_multipart(zmq_wire.encode_zmq_labels(LabelSet(5, take.labels)))
+    stream = live.daemon.zmq_stream
+    _wait_until(lambda: stream.label_set is not None, "the label set within bounds")
+    live.stop()
+    assert stream.counters.as_dict() == {"too_large": 1}
+    assert stream.label_set == LabelSet(5, take.labels)
