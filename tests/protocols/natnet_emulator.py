@@ -93,7 +93,7 @@ def frame_of_data(
     *,
     timecode: int = 0,
     models_changed: bool = False,
-    residual_m: float = 0.0005,
+    residual_m: float = 2.0**-10,
 ) -> bytes:
     """``NAT_FRAMEOFDATA`` with one marker set, one rigid body and the labelled
     markers; NaN rows of ``positions_motive_m`` (n, 3) are sent occluded."""
@@ -106,7 +106,7 @@ def frame_of_data(
     ms += b"".join(struct.pack("<fff", *p) for p in pos)
     out += _list(1, ms, sized)
     out += _list(0, b"", sized)  # legacy other markers
-    rb = struct.pack("<i3f4ffh", 7, 0.1, 1.0, 0.2, 0.0, 0.0, 0.0, 1.0, 0.001, 1)
+    rb = struct.pack("<i3f4ffh", 7, 0.5, 1.0, 0.25, 0.0, 0.0, 0.0, 1.0, 0.125, 1)
     out += _list(1, rb, sized)  # one rigid body, to be skipped
     out += _list(0, b"", sized)  # skeletons
     if sized:
@@ -115,7 +115,7 @@ def frame_of_data(
     for k in range(n):
         marker_id = (SKELETON_ID << 16) | (k + 1)
         params = 0x04 if seen[k] else 0x01  # model solved / occluded
-        lm += struct.pack("<i3ffhf", marker_id, *pos[k], 0.014, params, residual_m)
+        lm += struct.pack("<i3ffhf", marker_id, *pos[k], 2.0**-6, params, residual_m)
     out += _list(n, lm, sized)
     out += _list(0, b"", sized)  # force plates
     out += _list(0, b"", sized)  # devices
