@@ -77,9 +77,11 @@ def data_packet(frame: int, timestamp_us: int, markers_mm: np.ndarray) -> bytes:
     body = b""
     for xyz in markers_mm:
         residual = -1.0 if np.isnan(xyz).any() else 0.8
-        body += struct.pack("<4f", float(xyz[0]), float(xyz[1]), float(xyz[2]), residual)
-    component = struct.pack("<iiIHH", 16 + len(body), COMPONENT_3D_RES, n, 0, 0) + body
-    return rt_packet(PACKET_DATA, struct.pack("<qii", timestamp_us, frame, 1) + component)
+        x, y, z = (float(v) for v in xyz)
+        body += struct.pack("<4f", x, y, z, residual)
+    component = struct.pack("<iiIHH", 16 + len(body), COMPONENT_3D_RES, n, 0, 0)
+    head = struct.pack("<qii", timestamp_us, frame, 1)
+    return rt_packet(PACKET_DATA, head + component + body)
 
 
 @dataclass
