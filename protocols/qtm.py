@@ -285,7 +285,8 @@ class QtmSource:
     Attributes:
         counts: ``connects``, ``disconnects``, ``connect_failures``, ``param_reads``,
             ``events``, ``handover_drops`` (loop too slow: socketpair full),
-            ``oversize`` (packets larger than :data:`MAX_PACKET`), ``no_measurement``.
+            ``oversize`` (packets larger than :data:`MAX_PACKET`), ``no_measurement``,
+            ``bad_version`` (QTM refused the RT protocol version).
         state: ``"connecting"``, ``"streaming"``, ``"idle"`` (connected, no
             measurement) or ``"stopped"``.
     """
@@ -317,6 +318,7 @@ class QtmSource:
                 "handover_drops",
                 "oversize",
                 "no_measurement",
+                "bad_version",
             ),
             0,
         )
@@ -418,18 +420,8 @@ class QtmSource:
 
         assert self._stop is not None and self._wake is not None
         streamed = False
-        conn = await qtm_rt.connect(
-            self.host,
-            self.port,
-            version=PROTOCOL_VERSION,
-            on_event=self._on_event,
-            on_disconnect=self._on_disconnect,
-            timeout=COMMAND_TIMEOUT_S,
-        )
+        conn = await self._connect(qtm_rt, QRTCommandException)
         if conn is None:
-            self.counts["connect_failures"] += 1
-            if self.counts["connect_failures"] == 1 or self.state != "connecting":
-                self._say(f"qtm: cannot connect to {self.host}:{self.port}; retrying")
             return False
         self._connected = True
         self.counts["connects"] += 1
@@ -496,6 +488,49 @@ class QtmSource:
             if not self._stop.is_set():
                 self._say(f"qtm: disconnected from {self.host}:{self.port}")
         return streamed
+
+    async def _connect(self, qtm_rt: Any, command_error: type[Exception]) -> Any:
+        """``qtm_rt.connect`` spelled out with the SDK's own classes, so that a
+        refused protocol version is told apart from an unreachable QTM."""
+        from qtm_rt.protocol import QTMProtocol
+
+        loop = asyncio.get_running_loop()
+        where = f"{self.host}:{self.port}"
+        self.counts["connect_failures"] += 1  # until it succeeds
+        first = self.counts["connect_failures"] == 1
+        try:
+            _, protocol = await asyncio.wait_for(
+                loop.create_connection(
+                    lambda: QTMProtocol(
+                        loop=loop,
+                        on_event=self._on_event,
+                        on_disconnect=self._on_disconnect,
+                    ),
+                    self.host,
+                    self.port,
+                ),
+                COMMAND_TIMEOUT_S,
+            )
+        except (OSError, TimeoutError) as exc:
+            if first or self.state != "connecting":
+                self._say(f"qtm: cannot connect to {where} ({exc}); retrying")
+            return None
+        try:
+            await asyncio.wait_for(
+                protocol.set_version(PROTOCOL_VERSION), COMMAND_TIMEOUT_S
+            )
+        except (command_error, TimeoutError) as exc:
+            self.counts["bad_version"] += 1
+            if self.counts["bad_version"] == 1:
+                self._say(
+                    f"qtm: {where} refused RT protocol version {PROTOCOL_VERSION} "
+                    f"({exc}); QTM 2.x or later speaks it; retrying"
+                )
+            if protocol.transport is not None:
+                protocol.transport.close()
+            return None
+        self.counts["connect_failures"] -= 1
+        return qtm_rt.QRTConnection(protocol, timeout=COMMAND_TIMEOUT_S)
 
     def _idle(self, detail: str) -> None:
         self.state = "idle"

@@ -95,6 +95,7 @@ class Scenario:
             serve the take from its start again.
         vanish_at: after this frame, close everything for good.
         no_measurement: QTM has no measurement open.
+        refuse_version: answer ``version`` with an error (a QTM too old for 1.25).
     """
 
     faults: bool = True
@@ -103,6 +104,7 @@ class Scenario:
     restart_pause_s: float = 1.2
     vanish_at: int = -1
     no_measurement: bool = False
+    refuse_version: bool = False
     sent: dict[str, int] = field(default_factory=dict)
 
 
@@ -204,7 +206,9 @@ class QtmEmulator:
         """Reply to ``cmd``; returns "stream", "stop" or ""."""
         self.commands.append(cmd)
         word = cmd.split(" ", 1)[0].lower()
-        if word == "version":
+        if word == "version" and self.sc.refuse_version:
+            conn.sendall(rt_string(PACKET_ERROR, "Version NOT supported"))
+        elif word == "version":
             conn.sendall(rt_string(PACKET_COMMAND, f"Version set to {cmd.split()[1]}"))
         elif word == "qtmversion":
             conn.sendall(rt_string(PACKET_COMMAND, "QTM Version is 2024.1 (emulated)"))
