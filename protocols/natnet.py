@@ -52,7 +52,7 @@ import math
 import socket
 import struct
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -620,33 +620,128 @@ KEEPALIVE_S = 1.0
 SERVER_TIMEOUT_S = 2.0
 
 
+def packet_info(buf: Buffer) -> tuple[int, int, float]:
+    """(kind, frame number, source time) of a NatNet datagram, for the recording
+    envelope: kind 1 frame (its frame number; the timestamp sits in the suffix and
+    is left NaN), 2 model definitions, 0 anything else (-1, NaN)."""
+    if len(buf) >= 8 and buf[0] == NAT_FRAMEOFDATA and buf[1] == 0:
+        return 1, int(_I32.unpack_from(buf, 4)[0]), math.nan
+    if len(buf) >= 2 and buf[0] == NAT_MODELDEF and buf[1] == 0:
+        return 2, -1, math.nan
+    return 0, -1, math.nan
+
+
+class NatNetSession:
+    """What one server has told us (socket-free: live and replay alike).
+
+    Args:
+        sets: the marker sets to read (all but ``all`` when None).
+        version: the bitstream version assumed until a server info says otherwise
+            (replay of a recording that starts without one).
+        out: where status lines go.
+
+    Attributes:
+        info: the server's info once it answered.
+        models: the last model definitions.
+        decoder: the frame decoder once model definitions arrived, else None.
+        label_set: its label set.
+        counts: ``connects``, ``model_defs``, ``not_frames``, ``bad_control``.
+        last_error: the last control-packet error.
+    """
+
+    def __init__(
+        self,
+        sets: Sequence[str] | None = None,
+        version: Version = Version(4, 1),
+        out: Callable[[str], None] | None = None,
+        where: str = "",
+    ) -> None:
+        self.sets = sets
+        self.version = version
+        self._say = out or logger.info
+        self.where = where
+        self.info: ServerInfo | None = None
+        self.models: ModelDefs | None = None
+        self.decoder: NatNetDecoder | None = None
+        self.label_set: LabelSet | None = None
+        self.counts: dict[str, int] = dict.fromkeys(
+            ("connects", "model_defs", "not_frames", "bad_control"), 0
+        )
+        self.last_error: DecodeError | None = None
+        self._next_label_id = 1
+
+    def handle(self, packet: Buffer) -> int:
+        """Handle a control packet; returns its message id (-1 when malformed)."""
+        try:
+            msg_id, _ = read_header(packet)
+            if msg_id == NAT_SERVERINFO:
+                info = decode_server_info(packet)
+                _check_version(info.natnet_version)
+                self.info = info
+                self.version = info.natnet_version
+                self.counts["connects"] += 1
+                self._say(
+                    f"natnet: connected to {info.app_name} "
+                    f"{'.'.join(map(str, info.app_version))} at {self.where}, "
+                    f"NatNet {info.natnet_version}"
+                    + (f", multicast {info.multicast_group}" if info.multicast else "")
+                )
+            elif msg_id == NAT_MODELDEF:
+                self.adopt_models(decode_model_defs(packet, self.version))
+            else:
+                self.counts["not_frames"] += 1
+            return int(msg_id)
+        except DecodeError as exc:
+            self.counts["bad_control"] += 1
+            if self.last_error is None or exc.reason != self.last_error.reason:
+                self._say(f"natnet: bad packet from {self.where}: {exc}")
+            self.last_error = exc
+            return -1
+
+    def adopt_models(self, models: ModelDefs) -> None:
+        """Build the decoder for ``models`` (a new label-set id when names change)."""
+        self.counts["model_defs"] += 1
+        labels = label_set_from_models(models, self._next_label_id, self.sets)
+        if self.label_set is not None and labels.labels == self.label_set.labels:
+            labels = self.label_set
+        else:
+            self._next_label_id += 1
+            self._say(
+                f"natnet: {len(labels.labels)} markers in "
+                f"{len(_chosen_sets(models, self.sets))} marker set(s)"
+            )
+        self.models = models
+        self.label_set = labels
+        self.decoder = NatNetDecoder(models, labels, self.sets)
+
+
 class NatNetClient:
     """Command-port client and data socket for one Motive server; never blocks.
 
-    All sockets are non-blocking UDP. The loop polls :meth:`fds` and calls
-    :meth:`read` for each readable socket; non-frame messages (server info, model
-    definitions, responses) are handled here and frames are returned for the loop to
-    decode with :attr:`decoder`. :meth:`tick` (every poll timeout) sends the connect
-    and model-definition requests until answered, the unicast keep-alive, and notices
-    a silent server.
+    All sockets are non-blocking UDP. The loop polls :meth:`fds`, reads every
+    datagram with :meth:`read` and hands it to :meth:`NatNetInput.feed` (frames and
+    control messages alike, so a recording holds both). :meth:`tick` (every wake-up
+    or poll timeout) sends the connect and model-definition requests until answered,
+    the unicast keep-alive, and notices a silent server.
+
+    Unicast: requests go from the command socket to Motive's command port, and Motive
+    answers and streams to that socket's address (the SDK's NatNetClient.py reads
+    frames on its command socket too). Multicast: frames arrive on a data socket bound
+    to ``data_port`` and joined to ``group``.
 
     Args:
         host: Motive's address.
         command_port / data_port: Motive's ports (1510 / 1511 by default).
-        multicast: receive data from ``group`` (Motive's "Multicast" transmission)
-            instead of unicast.
+        multicast: receive data from ``group`` (Motive's "Multicast" transmission).
         group: the multicast group.
-        local: the local interface address for the socket binds and the group join.
+        local: the local interface address for the binds and the group join.
         sets: the marker sets to read (all but ``all`` when None).
         version: bitstream version asked for in ``NAT_CONNECT``.
         out: where status lines go.
 
     Attributes:
-        decoder: the frame decoder once model definitions arrived, else None.
-        label_set: its label set (hand it to ``MarkerStream.set_labels``).
-        info: the server's info once it answered.
-        counts: status counters (``connects``, ``model_defs``, ``timeouts``,
-            ``not_frames``, ``bad_control``).
+        session: what the server told us (decoder, label set, counts).
+        timeouts: how often the server fell silent for :data:`SERVER_TIMEOUT_S`.
     """
 
     def __init__(
@@ -660,23 +755,16 @@ class NatNetClient:
         local: str = "0.0.0.0",
         sets: Sequence[str] | None = None,
         version: Version = Version(4, 1),
-        out: object = None,
+        out: Callable[[str], None] | None = None,
     ) -> None:
         self.server = (host, command_port)
-        self.sets = sets
         self.requested = version
-        self._say = out if callable(out) else logger.info
-        self.decoder: NatNetDecoder | None = None
-        self.label_set: LabelSet | None = None
-        self.info: ServerInfo | None = None
-        self.models: ModelDefs | None = None
-        self._next_label_id = 1
-        self.counts: dict[str, int] = dict.fromkeys(
-            ("connects", "model_defs", "timeouts", "not_frames", "bad_control"), 0
-        )
-        self.last_error: DecodeError | None = None
+        self._say = out or logger.info
+        self.session = NatNetSession(sets, version, self._say, host)
+        self.timeouts = 0
         self.cmd = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.cmd.bind((local if not multicast else "0.0.0.0", 0))
+        self.cmd.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)
+        self.cmd.bind((local, 0))
         self.cmd.setblocking(False)
         self.data: socket.socket | None = None
         if multicast:
@@ -716,12 +804,13 @@ class NatNetClient:
     def tick(self, now_s: float | None = None) -> None:
         """Send what is due (connect, model definitions, keep-alive); never blocks."""
         now = time.monotonic() if now_s is None else now_s
-        if self.info is None and now - self._last_connect >= COMMAND_RETRY_S:
+        session = self.session
+        if session.info is None and now - self._last_connect >= COMMAND_RETRY_S:
             self._last_connect = now
             self._send(encode_connect(self.requested))
         elif (
-            self.info is not None
-            and self.decoder is None
+            session.info is not None
+            and session.decoder is None
             and now - self._last_modeldef >= COMMAND_RETRY_S
         ):
             self.request_models(now)
@@ -734,26 +823,21 @@ class NatNetClient:
             and now - self._last_rx >= SERVER_TIMEOUT_S
         ):
             self._silent = True
-            self.counts["timeouts"] += 1
+            self.timeouts += 1
             self._say(
                 f"natnet: no packet from {self.server[0]} for {SERVER_TIMEOUT_S:g} s; "
                 "holding the last pose, reconnecting"
             )
-            self.info = None  # connect again (Motive restarted?)
+            session.info = None  # connect again (Motive restarted?)
 
     def request_models(self, now_s: float | None = None) -> None:
-        """Ask for the model definitions (after a ``count_mismatch``, a change)."""
+        """Ask for the model definitions (after a change or a ``count_mismatch``)."""
         self._last_modeldef = time.monotonic() if now_s is None else now_s
         self._send(encode_request(NAT_REQUEST_MODELDEF))
 
     def read(self, sock: socket.socket) -> memoryview | None:
-        """Receive one datagram from ``sock``.
-
-        Returns:
-            A frame-of-data packet for the loop to decode (a view into a buffer the
-            next call reuses), or None when the socket is drained or the datagram was
-            a control message (handled here).
-        """
+        """One datagram from ``sock`` (a view into a buffer the next call reuses),
+        or None when the socket is drained. Never blocks."""
         while True:
             try:
                 n = sock.recv_into(self._buf)
@@ -765,81 +849,45 @@ class NatNetClient:
             if self._silent:
                 self._silent = False
                 self._say(f"natnet: {self.server[0]} is back")
-            packet = self._view[:n]
-            if n >= 2 and self._buf[0] == NAT_FRAMEOFDATA and self._buf[1] == 0:
-                return packet
-            self._control(packet)
-
-    def _control(self, packet: memoryview) -> None:
-        try:
-            msg_id, _ = read_header(packet)
-            if msg_id == NAT_SERVERINFO:
-                info = decode_server_info(packet)
-                _check_version(info.natnet_version)
-                self.info = info
-                self.counts["connects"] += 1
-                self._say(
-                    f"natnet: connected to {info.app_name} "
-                    f"{'.'.join(map(str, info.app_version))} at {self.server[0]}, "
-                    f"NatNet {info.natnet_version}"
-                    + (f", multicast {info.multicast_group}" if info.multicast else "")
-                )
-                self.request_models()
-            elif msg_id == NAT_MODELDEF:
-                version = (
-                    self.info.natnet_version
-                    if self.info is not None
-                    else self.requested
-                )
-                self.adopt_models(decode_model_defs(packet, version))
-            else:
-                self.counts["not_frames"] += 1
-        except DecodeError as exc:
-            self.counts["bad_control"] += 1
-            if self.last_error is None or exc.reason != self.last_error.reason:
-                self._say(f"natnet: bad packet from {self.server[0]}: {exc}")
-            self.last_error = exc
-
-    def adopt_models(self, models: ModelDefs) -> None:
-        """Build the decoder for ``models`` (a new label-set id when names change)."""
-        self.counts["model_defs"] += 1
-        labels = label_set_from_models(models, self._next_label_id, self.sets)
-        if self.label_set is not None and labels.labels == self.label_set.labels:
-            labels = self.label_set
-        else:
-            self._next_label_id += 1
-            self._say(
-                f"natnet: {len(labels.labels)} markers in "
-                f"{len(_chosen_sets(models, self.sets))} marker set(s)"
-            )
-        self.models = models
-        self.label_set = labels
-        self.decoder = NatNetDecoder(models, labels, self.sets)
+            return self._view[:n]
 
 
 class NatNetInput:
-    """A Motive marker input for the live loop: client, stream and decoder together.
+    """A Motive marker input: any NatNet datagram in, frames into a stream.
+
+    Live: built on a :class:`NatNetClient`; replay: on ``None`` (a socket-free
+    session, fed the recorded datagrams in order).
 
     Args:
-        client: the command/data client (its sockets are what the loop polls).
+        client: the client, or None for replay.
         up_axis: Motive's streaming "Up Axis" (``"+Y"`` by default; the stream does
             not announce it).
         restart_gap_ns: see :class:`~retargetd.protocols.marker_input.FrameSequencer`.
+        sets / out: for the replay session (the client has its own).
 
     Attributes:
         stream: the :class:`MarkerStream` (``stream.current.frame`` is the last
             accepted frame; counters by reason).
+        session: the client's session (or the replay one).
     """
 
     def __init__(
         self,
-        client: NatNetClient,
+        client: NatNetClient | None,
         up_axis: str = "+Y",
         restart_gap_ns: int | None = None,
+        *,
+        sets: Sequence[str] | None = None,
+        out: Callable[[str], None] | None = None,
     ) -> None:
         from retargetd.protocols.marker_input import RESTART_GAP_NS, MarkerStream
 
         self.client = client
+        self.session = (
+            client.session
+            if client is not None
+            else NatNetSession(sets, out=out, where="recording")
+        )
         self.stream = MarkerStream(
             None,
             up_axis,
@@ -849,10 +897,18 @@ class NatNetInput:
         self._last_models_request = -math.inf
 
     def feed(self, packet: Buffer, t_ns: int) -> int:
-        """Decode one frame packet from :meth:`NatNetClient.read`; returns the
-        ``MarkerStream.feed`` reason index (``ACCEPTED``/``RESTART`` = use it)."""
-        client = self.client
-        decoder = client.decoder
+        """Handle one datagram.
+
+        Returns:
+            For a frame, the ``MarkerStream.feed`` reason index (``ACCEPTED`` /
+            ``RESTART`` = use ``stream.current``); -1 for a control message.
+        """
+        if not (len(packet) >= 2 and packet[0] == NAT_FRAMEOFDATA and packet[1] == 0):
+            msg_id = self.session.handle(packet)
+            if msg_id == NAT_SERVERINFO and self.client is not None:
+                self.client.request_models()
+            return -1
+        decoder = self.session.decoder
         stream = self.stream
         if decoder is None:
             return stream.feed(_no_labels, packet, t_ns=t_ns)  # unknown_label_set
@@ -861,9 +917,13 @@ class NatNetInput:
         code = stream.feed(decoder.decode_natnet_frame, packet, t_ns=t_ns)
         asked = decoder.models_changed or code == COUNT_MISMATCH
         now = time.monotonic()
-        if asked and now - self._last_models_request >= COMMAND_RETRY_S:
+        if (
+            asked
+            and self.client is not None
+            and now - self._last_models_request >= COMMAND_RETRY_S
+        ):
             self._last_models_request = now
-            client.request_models()
+            self.client.request_models()
         return code
 
 

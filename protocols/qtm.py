@@ -242,6 +242,19 @@ def packet_type(buf: Buffer) -> int:
     return int(_HEADER.unpack_from(buf, 0)[1])
 
 
+def packet_info(buf: Buffer) -> tuple[int, int, float]:
+    """(kind, frame number, source time s) of an RT packet, for the recording
+    envelope: kind 1 data (QTM's frame number and timestamp), 2 parameters XML,
+    0 anything else (-1, NaN)."""
+    kind = packet_type(buf)
+    if kind == PACKET_DATA and len(buf) >= _DATA_OFFSET:
+        timestamp_us, frame_id, _ = _DATA.unpack_from(buf, _HEADER.size)
+        return 1, int(frame_id), timestamp_us * 1e-6
+    if kind == PACKET_XML:
+        return 2, -1, math.nan
+    return 0, -1, math.nan
+
+
 def encode_packet(packet_type: int, body: bytes) -> bytes:
     """An RT packet: header + body (used to hand packets to the loop unchanged)."""
     return _HEADER.pack(_HEADER.size + len(body), packet_type) + body
@@ -544,13 +557,14 @@ class QtmSource:
 class QtmInput:
     """A QTM marker input for the live loop: the source's packets into a stream.
 
-    Runs on the loop thread. Data packets are decoded with :class:`Qtm3dDecoder`;
+    Runs on the loop thread (live), or alone on recorded packets (replay: no
+    source). Data packets are decoded with :class:`Qtm3dDecoder`;
     the parameters XML sets the labels (a new label-set id whenever they change) and
     QTM's up axis (a changed up axis rebuilds :attr:`stream`; the loop re-reads it);
     other packets (events, command replies) are counted.
 
     Args:
-        source: the started :class:`QtmSource`.
+        source: the started :class:`QtmSource` (None when replaying a recording).
         out: where status lines go.
 
     Attributes:
@@ -561,7 +575,7 @@ class QtmInput:
     """
 
     def __init__(
-        self, source: QtmSource, out: Callable[[str], None] | None = None
+        self, source: QtmSource | None, out: Callable[[str], None] | None = None
     ) -> None:
         from retargetd.protocols.marker_input import MarkerStream
 

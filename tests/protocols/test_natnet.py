@@ -190,6 +190,7 @@ class _Loop:
             self.poller.register(sock, zmq.POLLIN)
         self.frames: list[tuple[int, tuple[str, ...], np.ndarray]] = []
         self.codes: list[int] = []
+        self.recorded: list[bytes] = []  # every datagram, as a recorder gets them
 
     def run_until(self, done: Any, timeout_s: float) -> None:
         end = time.monotonic() + timeout_s
@@ -200,6 +201,7 @@ class _Loop:
                 if sock.fileno() not in events:
                     continue
                 while (pkt := self.client.read(sock)) is not None:
+                    self.recorded.append(bytes(pkt))
                     code = self.input.feed(pkt, time.monotonic_ns())
                     self.codes.append(code)
                     if code in (ACCEPTED, RESTART):
@@ -261,9 +263,19 @@ def test_served_take_arrives_equal_with_faults_counted(
     assert counters["restart"] == 1
     # The label change was followed: later frames carry the renamed marker.
     assert loop.frames[-1][1][0] == "renamed" and loop.frames[0][1][0] == "RFHD"
-    assert client.counts["model_defs"] >= 2
+    assert client.session.counts["model_defs"] >= 2
     assert len(loop.frames) >= n + 250 - 10
     assert any("connected to Motive" in line for line in lines)
+    # Replay: the recorded datagrams through a socket-free input, same frames.
+    replay = natnet.NatNetInput(None, "+Y")
+    again = []
+    for k, pkt in enumerate(loop.recorded):
+        t_ns = k * 10_000_000  # 10 ms apart: the restart's 1.2 s pause not kept
+        if natnet.packet_info(pkt)[1] == take.first_frame and k > 10:
+            t_ns += 2_000_000_000
+        if replay.feed(pkt, t_ns) in (ACCEPTED, RESTART):
+            again.append(replay.stream.current.frame.frame_id)
+    assert again == [f[0] for f in loop.frames]
 
 
 @pytest.mark.timeout(30)
@@ -275,7 +287,7 @@ def test_vanished_server_is_reported_once_and_never_blocks(take: Any) -> None:
     )
     loop = _Loop(client)
     try:
-        loop.run_until(lambda: client.counts["timeouts"] >= 1, 10)
+        loop.run_until(lambda: client.timeouts >= 1, 10)
         t0 = time.monotonic()
         for sock in client.fds():
             assert client.read(sock) is None
@@ -284,10 +296,10 @@ def test_vanished_server_is_reported_once_and_never_blocks(take: Any) -> None:
     finally:
         client.close()
         server.close()
-    assert client.counts["timeouts"] == 1
+    assert client.timeouts == 1
     assert sum("no packet from 127.0.0.1" in line for line in lines) == 1
     assert 40 <= len(loop.frames) <= 51
-    assert client.info is None  # connecting again
+    assert client.session.info is None  # connecting again
 
 
 @pytest.mark.timeout(30)
@@ -299,12 +311,14 @@ def test_unknown_protocol_version_is_said_and_counted(take: Any) -> None:
     )
     loop = _Loop(client)
     try:
-        loop.run_until(lambda: client.counts["bad_control"] >= 2, 5)
+        loop.run_until(lambda: client.session.counts["bad_control"] >= 2, 5)
     finally:
         client.close()
         server.close()
-    assert client.decoder is None and client.info is None
-    assert client.last_error is not None and client.last_error.reason == "bad_version"
+    session = client.session
+    assert session.decoder is None and session.info is None
+    assert session.last_error is not None
+    assert session.last_error.reason == "bad_version"
     assert sum("NatNet 2.9" in line for line in lines) == 1  # said once, counted
 
 

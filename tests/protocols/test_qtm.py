@@ -152,6 +152,7 @@ class _Loop:
         self.poller.register(source.fileno(), zmq.POLLIN)
         self.frames: list[tuple[int, tuple[str, ...], np.ndarray]] = []
         self.codes: dict[int, int] = {}
+        self.recorded: list[bytes] = []  # every packet, as a recorder gets them
 
     def run_until(self, done: Any, timeout_s: float) -> None:
         end = time.monotonic() + timeout_s
@@ -159,6 +160,7 @@ class _Loop:
             if not self.poller.poll(5):
                 continue
             while (pkt := self.source.read()) is not None:
+                self.recorded.append(bytes(pkt))
                 code = self.input.feed(pkt, time.monotonic_ns())
                 self.codes[code] = self.codes.get(code, 0) + 1
                 if code in (ACCEPTED, RESTART):
@@ -212,6 +214,18 @@ def test_served_take_arrives_equal_with_faults_counted(take: Any) -> None:
     assert source.counts["connects"] == 2 and source.counts["param_reads"] == 3
     assert any("labels changed" in line or "streaming" in line for line in lines)
     assert sum("disconnected" in line for line in lines) >= 1
+    # Replay: the recorded packets through a source-free input, same frames.
+    replay = qtm.QtmInput(None)
+    again = []
+    for k, pkt in enumerate(loop.recorded):
+        kind, frame_id, time_s = qtm.packet_info(pkt)
+        t_ns = k * 5_000_000
+        if kind == 1 and frame_id == take.first_frame and k > 10:
+            t_ns += 2_000_000_000  # the restart's pause
+        if replay.feed(pkt, t_ns) in (ACCEPTED, RESTART):
+            again.append((replay.stream.current.frame.frame_id, time_s))
+    assert [a[0] for a in again] == [f[0] for f in loop.frames]
+    assert again[1][1] == pytest.approx(1.0 / take.rate_hz)  # QTM's timestamp kept
 
 
 @pytest.mark.timeout(30)
