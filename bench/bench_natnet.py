@@ -121,7 +121,7 @@ def main() -> None:
     cases = [(source, positions, labels)]
     cases.append(("200 markers (walk tiled)", tiled, [f"M{i}" for i in range(200)]))
     print(
-        f"{'frame':34s} {'ver':>4s} {'ours med':>9s} {'p99':>7s} "
+        f"{'frame':42s} {'ver':>4s} {'ours med':>9s} {'p99':>7s} "
         f"{'natnet med':>10s} {'p99':>7s} {'ratio':>6s}"
     )
     for name, pos_world, names in cases:
@@ -142,7 +142,7 @@ def main() -> None:
             stream.sequencer.restart_gap_ns = 0
             med, p99 = _time(_ours(stream, dec, packets), args.calls)
             assert stream.counters.dropped() == 0
-            line = f"{name:34s} {version[0]}.{version[1]:<2d} {med:9.1f} {p99:7.1f}"
+            line = f"{name:42s} {version[0]}.{version[1]:<2d} {med:9.1f} {p99:7.1f}"
             if natnet_pkg is not None:
                 theirs = _theirs(natnet_pkg, PacketBuffer, version, packets)
                 b_med, b_p99 = _time(theirs, args.calls)

@@ -9,6 +9,7 @@ not merely each other.
 from __future__ import annotations
 
 import importlib.util
+import re
 import sys
 import time
 from pathlib import Path
@@ -75,6 +76,24 @@ MODELDEF_31_HEX = (
 
 def _hex(text: str) -> bytes:
     return bytes.fromhex(text.replace(" ", ""))
+
+
+DOC = (Path(__file__).resolve().parents[2] / "protocols" / "PROTOCOLS.md").read_text()
+
+
+def _doc_hex(name: str) -> bytes:
+    """A hex dump block of PROTOCOLS.md (``<!-- hex: name -->``)."""
+    match = re.search(rf"<!-- hex: {name} -->\n```\n(.*?)```", DOC, re.DOTALL)
+    assert match, f"no hex block {name!r} in PROTOCOLS.md"
+    data = bytearray()
+    for line in match.group(1).splitlines():
+        data += bytes.fromhex(line[6:].split("|")[0])
+    return bytes(data)
+
+
+def test_protocols_md_shows_the_hand_worked_bytes() -> None:
+    assert _doc_hex("natnet_frame_31") == _hex(FRAME_31_HEX)
+    assert _doc_hex("natnet_modeldef_31") == _hex(MODELDEF_31_HEX)
 
 
 def test_emulator_frame_matches_the_hand_worked_bytes() -> None:

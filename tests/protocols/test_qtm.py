@@ -8,6 +8,7 @@ the RT protocol documentation (1.25) and against ``qtm-rt``'s own packet parser.
 from __future__ import annotations
 
 import importlib.util
+import re
 import sys
 import time
 from pathlib import Path
@@ -61,6 +62,23 @@ PARAMS_XML = (
 
 def _hex(text: str) -> bytes:
     return bytes.fromhex(text.replace(" ", ""))
+
+
+DOC = (Path(__file__).resolve().parents[2] / "protocols" / "PROTOCOLS.md").read_text()
+
+
+def _doc_hex(name: str) -> bytes:
+    """A hex dump block of PROTOCOLS.md (``<!-- hex: name -->``)."""
+    match = re.search(rf"<!-- hex: {name} -->\n```\n(.*?)```", DOC, re.DOTALL)
+    assert match, f"no hex block {name!r} in PROTOCOLS.md"
+    data = bytearray()
+    for line in match.group(1).splitlines():
+        data += bytes.fromhex(line[6:].split("|")[0])
+    return bytes(data)
+
+
+def test_protocols_md_shows_the_hand_worked_bytes() -> None:
+    assert _doc_hex("qtm_data_3dres") == _hex(DATA_HEX)
 
 
 def test_emulator_packet_matches_the_hand_worked_bytes() -> None:
