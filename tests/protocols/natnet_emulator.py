@@ -63,14 +63,33 @@ def server_info(version: tuple[int, int], data_port: int) -> bytes:
     return packet(NAT_SERVERINFO, payload)
 
 
-def model_defs(version: tuple[int, int], labels: list[str]) -> bytes:
-    """``NAT_MODELDEF``: a marker set and a skeleton (no bones), sized from 4.1."""
+def rigid_body_description(version: tuple[int, int], name: str, rb_id: int) -> bytes:
+    """A rigid body with two markers: name, id, parent -1, offset, (4.2 on: a
+    quaternion), marker count, offsets, active labels, (4.0 on: marker names)."""
+    out = cstr(name) + struct.pack("<ii3f", rb_id, -1, 0.0, 0.0, 0.0)
+    if version >= (4, 2):
+        out += struct.pack("<4f", 0.0, 0.0, 0.0, 1.0)
+    out += struct.pack("<i", 2) + struct.pack("<6f", 0.0, 0.0, 0.1, 0.0, 0.1, 0.0)
+    out += struct.pack("<ii", 0, 0)
+    if version >= (4, 0):
+        out += cstr(f"{name}_1") + cstr(f"{name}_2")
+    return out
+
+
+def model_defs(
+    version: tuple[int, int], labels: list[str], *, rigid_body: bool = False
+) -> bytes:
+    """``NAT_MODELDEF``: a marker set and a skeleton (no bones), sized from 4.1;
+    ``rigid_body`` puts a rigid-body description (id 7) between them."""
     sized = version >= (4, 1)
     marker_set = cstr(SKELETON_NAME) + struct.pack("<i", len(labels))
     marker_set += b"".join(cstr(f"{SKELETON_NAME}_{name}") for name in labels)
     skeleton = cstr(SKELETON_NAME) + struct.pack("<ii", SKELETON_ID, 0)
-    out = struct.pack("<i", 2)
-    for kind, body in ((0, marker_set), (2, skeleton)):
+    items = [(0, marker_set), (2, skeleton)]
+    if rigid_body:
+        items.insert(1, (1, rigid_body_description(version, "Wand", 7)))
+    out = struct.pack("<i", len(items))
+    for kind, body in items:
         out += struct.pack("<i", kind)
         if sized:
             out += struct.pack("<i", len(body))

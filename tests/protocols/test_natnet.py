@@ -23,7 +23,12 @@ from natnet.packet_buffer import PacketBuffer
 
 from retargetd.protocols import natnet
 from retargetd.protocols.errors import DecodeError
-from retargetd.protocols.marker_input import ACCEPTED, RESTART, MarkerStream
+from retargetd.protocols.marker_input import (
+    ACCEPTED,
+    REASON_INDEX,
+    RESTART,
+    MarkerStream,
+)
 from retargetd.replay.takes import load_take
 
 
@@ -187,6 +192,72 @@ def test_cut_and_garbled_frames_raise_only_decode_error(
         stream.feed(dec, bytes(garbled), t_ns=10_000 + k)
     assert "bad_length" in reasons
     assert stream.counters.dropped() >= len(pkt)
+
+
+@pytest.mark.parametrize("version", [(3, 0), (3, 1), (4, 0), (4, 1), (4, 2)])
+def test_model_defs_skip_rigid_bodies_in_every_layout(version: tuple[int, int]) -> None:
+    packet = em.model_defs(version, ["LASI", "RASI"], rigid_body=True)
+    models = natnet.decode_model_defs(packet, natnet.Version(*version))
+    assert models.marker_sets == (("Performer", ("Performer_LASI", "Performer_RASI")),)
+    assert models.model_ids == {"Wand": 7, "Performer": 1}
+
+
+def test_label_set_names_sets_and_prefixes() -> None:
+    models = natnet.ModelDefs(
+        natnet.Version(4, 1),
+        (
+            ("all", ("Performer_LASI", "Wand_1")),
+            ("Performer", ("Performer_LASI", "Performer_RASI")),
+            ("Wand", ("Wand_1", "LASI")),
+        ),
+        {"Performer": 1, "Wand": 7},
+    )
+    labels = natnet.label_set_from_models(models, 9).labels
+    assert labels == ("LASI", "RASI", "1", "Wand:LASI")  # "all" left out
+    only = natnet.label_set_from_models(models, 9, sets=["Wand"]).labels
+    assert only == ("1", "LASI")
+
+
+def test_configured_z_up_is_used() -> None:
+    """Motive set to Z up: positions pass unrotated (the stream cannot tell)."""
+    dec, ls = _decoder((4, 1), ["A"])
+    stream = MarkerStream(ls, "+Z", "m")
+    pkt = em.frame_of_data((4, 1), 1, np.array([[0.5, 0.25, 2.0]]), 0.0)
+    assert stream.feed(dec, pkt, t_ns=1) == ACCEPTED
+    np.testing.assert_array_equal(stream.current.frame.markers_world, [[0.5, 0.25, 2]])
+
+
+def test_count_change_is_count_mismatch_and_asks_again(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A marker set that grew: dropped as count_mismatch, model definitions asked."""
+    client = natnet.NatNetClient("127.0.0.1", 9, local="127.0.0.1")
+    asked: list[int] = []
+    try:
+        monkeypatch.setattr(client, "request_models", lambda: asked.append(1))
+        inp = natnet.NatNetInput(client)
+        inp.session.adopt_models(
+            natnet.decode_model_defs(
+                em.model_defs((4, 1), ["A", "B"]), natnet.Version(4, 1)
+            )
+        )
+        pkt = em.frame_of_data((4, 1), 1, np.zeros((3, 3)), 0.0)
+        assert inp.feed(pkt, 1) == REASON_INDEX["count_mismatch"]
+        assert inp.stream.counters["count_mismatch"] == 1
+        assert asked == [1]
+    finally:
+        client.close()
+
+
+def test_multicast_client_joins_the_group_without_sending() -> None:
+    """The multicast data socket is bound to the data port and joined; nothing is
+    sent here (traffic stays on 127.0.0.1)."""
+    client = natnet.NatNetClient("127.0.0.1", 9, 0, multicast=True, local="127.0.0.1")
+    try:
+        assert client.data is not None and len(client.fds()) == 2
+        assert client.data.getsockname()[1] > 0
+    finally:
+        client.close()
 
 
 def test_unknown_version_is_refused() -> None:
