@@ -213,7 +213,7 @@ class Qtm3dDecoder:
         residuals = self.residuals_mm
         if stride == 4 and residuals.shape[0] == count:
             np.copyto(residuals, values[:, 3])
-            np.copyto(residuals, np.nan, where=~out.frame.valid)
+            np.copyto(residuals, np.nan, where=out._occluded)  # store()'s mask
         else:
             residuals.fill(np.nan)
         frame = out.frame
