@@ -96,6 +96,10 @@ class Scenario:
         vanish_at: after this frame, close everything for good.
         no_measurement: QTM has no measurement open.
         refuse_version: answer ``version`` with an error (a QTM too old for 1.25).
+        measurement_after_s: with ``no_measurement``, open one this long after the
+            client connected (event 1, "connected": a new measurement).
+        reload_at: before this frame the measurement is closed (event 2) and, 0.3 s
+            later, opened again (event 1), as when QTM reloads a measurement.
     """
 
     faults: bool = True
@@ -105,6 +109,8 @@ class Scenario:
     vanish_at: int = -1
     no_measurement: bool = False
     refuse_version: bool = False
+    measurement_after_s: float = -1.0
+    reload_at: int = -1
     sent: dict[str, int] = field(default_factory=dict)
 
 
@@ -238,9 +244,17 @@ class QtmEmulator:
         streaming = False
         period = 1.0 / self.rate_hz
         t_next = time.monotonic()
+        t_connect = t_next
         n = self.markers_mm.shape[0]
         try:
             while not self._stop.is_set():
+                if (
+                    self.sc.no_measurement
+                    and self.sc.measurement_after_s >= 0
+                    and time.monotonic() - t_connect >= self.sc.measurement_after_s
+                ):
+                    self.sc.no_measurement = False
+                    conn.sendall(rt_packet(PACKET_EVENT, bytes([EVENT_CONNECTED])))
                 cmd = self._read_command(conn, buf)
                 while cmd is not None:
                     what = self._answer(conn, cmd)
@@ -260,6 +274,16 @@ class QtmEmulator:
                     continue
                 t_next += period
                 i = self._next
+                if i == self.sc.reload_at:
+                    self.sc.reload_at = -1
+                    streaming = False
+                    conn.sendall(
+                        rt_packet(PACKET_EVENT, bytes([EVENT_CONNECTION_CLOSED]))
+                    )
+                    time.sleep(0.3)
+                    conn.sendall(rt_packet(PACKET_EVENT, bytes([EVENT_CONNECTED])))
+                    self.sent["reloads"] = self.sent.get("reloads", 0) + 1
+                    continue
                 if i == self.sc.label_change_at and self.labels[0] != "renamed":
                     self.labels[0] = "renamed"
                     self.sent["label_change"] += 1

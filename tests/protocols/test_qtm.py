@@ -261,6 +261,29 @@ def test_no_measurement_is_said_and_counted(take: Any) -> None:
 
 
 @pytest.mark.timeout(30)
+def test_measurement_opened_later_and_reloaded_is_followed(take: Any) -> None:
+    """No measurement at first (said once), then QTM opens one: streaming starts;
+    later the measurement is reloaded (closed, opened): streaming resumes, every
+    frame arrives once."""
+    scenario = em.Scenario(
+        faults=False, no_measurement=True, measurement_after_s=0.5, reload_at=60
+    )
+    server, source, lines = _start(take, scenario)
+    loop = _Loop(source)
+    n = take.positions.shape[0]
+    try:
+        loop.run_until(lambda: len(loop.frames) >= n, 30)
+    finally:
+        source.close()
+        server.close()
+    assert [f[0] - take.first_frame for f in loop.frames] == list(range(n))
+    assert server.sent["reloads"] == 1
+    assert source.counts["no_measurement"] == 2  # at start, and during the reload
+    assert source.counts["connects"] == 1 and source.counts["param_reads"] == 3
+    assert sum("runs no measurement" in line for line in lines) == 2
+
+
+@pytest.mark.timeout(30)
 def test_vanished_server_reconnects_with_backoff_and_never_blocks(take: Any) -> None:
     server, source, lines = _start(take, em.Scenario(faults=False, vanish_at=40))
     loop = _Loop(source)
