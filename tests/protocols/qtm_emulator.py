@@ -100,6 +100,8 @@ class Scenario:
             client connected (event 1, "connected": a new measurement).
         reload_at: before this frame the measurement is closed (event 2) and, 0.3 s
             later, opened again (event 1), as when QTM reloads a measurement.
+        bad_component_at: after this frame, a data packet whose one component has
+            type 99 (none in the protocol): ``qtm-rt``'s own parser raises on it.
     """
 
     faults: bool = True
@@ -111,6 +113,7 @@ class Scenario:
     refuse_version: bool = False
     measurement_after_s: float = -1.0
     reload_at: int = -1
+    bad_component_at: int = -1
     sent: dict[str, int] = field(default_factory=dict)
 
 
@@ -304,6 +307,10 @@ class QtmEmulator:
                     self._send_truncated(conn, data)
                 if self.sc.faults and i == 31:
                     self._send_garbled(conn, data)
+                if i == self.sc.bad_component_at:
+                    body = struct.pack("<qii", 0, 0, 1) + struct.pack("<ii", 8, 99)
+                    conn.sendall(rt_packet(PACKET_DATA, body))
+                    self.sent["bad_component"] = 1
                 if i == self.sc.vanish_at:
                     return "vanish"
                 if i == self.sc.restart_at and not self._restarted:

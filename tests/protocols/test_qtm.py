@@ -284,6 +284,26 @@ def test_measurement_opened_later_and_reloaded_is_followed(take: Any) -> None:
 
 
 @pytest.mark.timeout(30)
+def test_packet_the_sdk_cannot_parse_costs_a_reconnect(take: Any) -> None:
+    """qtm-rt raises inside its protocol on an unknown component type, and asyncio
+    closes that connection: said, reconnected, streaming goes on (no frame twice)."""
+    scenario = em.Scenario(faults=False, bad_component_at=50)
+    server, source, lines = _start(take, scenario)
+    loop = _Loop(source)
+    n = take.positions.shape[0]
+    try:
+        loop.run_until(lambda: server.done.is_set() and len(loop.frames) >= n - 5, 30)
+        loop.run_until(lambda: False, 0.2)
+    finally:
+        source.close()
+        server.close()
+    ids = [f[0] - take.first_frame for f in loop.frames]
+    assert ids[:51] == list(range(51)) and ids == sorted(set(ids))
+    assert source.counts["connects"] == 2 and source.counts["disconnects"] >= 1
+    assert any("disconnected" in line for line in lines)
+
+
+@pytest.mark.timeout(30)
 def test_vanished_server_reconnects_with_backoff_and_never_blocks(take: Any) -> None:
     server, source, lines = _start(take, em.Scenario(faults=False, vanish_at=40))
     loop = _Loop(source)
