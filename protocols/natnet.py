@@ -41,6 +41,20 @@ and, for those, the labelled-marker flags (occluded) and residuals; the frame nu
 timestamp and timecode. Rigid bodies, skeleton bones, force plates and devices are
 skipped. Why our own decoder rather than the PyPI ``natnet`` package:
 ``protocols/PROTOCOLS.md`` section 8 (benchmark ``bench/bench_natnet.py``).
+
+Loop integration (one thread, never blocks)::
+
+    opts = parse_natnet_url("natnet://HOST")           # or from the config
+    client = opts.client(out)                           # binds non-blocking sockets
+    inp = NatNetInput(client, opts.up_axis)
+    for sock in client.fds(): poller.register(sock, zmq.POLLIN)
+    # every wake-up / poll timeout: client.tick()
+    # for each readable sock: while (pkt := client.read(sock)) is not None:
+    #     record pkt (form natnet, kind from packet_info(pkt)); code = inp.feed(pkt, t)
+    #     code ACCEPTED / RESTART -> inp.stream.current.frame; -1 -> control message
+    # close: client.close()
+
+Replay: ``NatNetInput(None, up_axis).feed(pkt, t_ns)`` for every recorded datagram.
 """
 
 from __future__ import annotations
@@ -850,6 +864,78 @@ class NatNetClient:
                 self._silent = False
                 self._say(f"natnet: {self.server[0]} is back")
             return self._view[:n]
+
+
+@dataclass(frozen=True, slots=True)
+class NatNetOptions:
+    """Where and how to reach Motive: what ``natnet://`` names.
+
+    Attributes:
+        host: Motive's address.
+        command_port / data_port: 1510 / 1511 by default.
+        multicast / group / local: transmission type, group, local interface.
+        up_axis: Motive's streaming up axis (``+Y`` default).
+        sets: the marker sets to read (None: all but ``all``).
+    """
+
+    host: str
+    command_port: int = DEFAULT_COMMAND_PORT
+    data_port: int = DEFAULT_DATA_PORT
+    multicast: bool = False
+    group: str = DEFAULT_MULTICAST_GROUP
+    local: str = "0.0.0.0"
+    up_axis: str = "+Y"
+    sets: tuple[str, ...] | None = None
+
+    def client(self, out: Callable[[str], None] | None = None) -> NatNetClient:
+        """A client for these options."""
+        return NatNetClient(
+            self.host,
+            self.command_port,
+            self.data_port,
+            multicast=self.multicast,
+            group=self.group,
+            local=self.local,
+            sets=self.sets,
+            out=out,
+        )
+
+
+def parse_natnet_url(url: str) -> NatNetOptions:
+    """``natnet://HOST[:COMMAND_PORT][?data_port=N&multicast=1&group=G&local=A
+    &up=+Z&sets=A,B]`` -> options.
+
+    Raises:
+        ValueError: naming the part that is wrong.
+    """
+    from urllib.parse import parse_qs, urlsplit
+
+    from retargetd.protocols.conventions import normalize_up_axis
+
+    parts = urlsplit(url)
+    if parts.scheme != "natnet" or not parts.hostname:
+        raise ValueError(f"expected natnet://HOST[:PORT][?...]; got {url!r}")
+    query = {k: v[-1] for k, v in parse_qs(parts.query, strict_parsing=False).items()}
+    known = {"data_port", "multicast", "group", "local", "up", "sets"}
+    if set(query) - known:
+        raise ValueError(f"unknown natnet:// option(s) {sorted(set(query) - known)}")
+    try:
+        port = parts.port or DEFAULT_COMMAND_PORT
+        data_port = int(query.get("data_port", DEFAULT_DATA_PORT))
+    except ValueError as exc:
+        raise ValueError(f"bad port in {url!r}: {exc}") from None
+    multicast = query.get("multicast", "0").lower() in ("1", "true", "yes", "on")
+    sets = tuple(query["sets"].split(",")) if query.get("sets") else None
+    return NatNetOptions(
+        parts.hostname,
+        port,
+        data_port,
+        multicast,
+        query.get("group", DEFAULT_MULTICAST_GROUP),
+        query.get("local", "0.0.0.0"),
+        normalize_up_axis(query.get("up", "+Y")),
+        sets,
+    )
 
 
 class NatNetInput:

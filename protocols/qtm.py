@@ -28,6 +28,20 @@ version 1.25 (the version ``qtm-rt`` 3.x asks for), little-endian (port 22223):
 Units and axes: QTM streams millimetres in its own lab frame, whose up axis the
 parameters report; :func:`parse_qtm_parameters` returns it and the stream is built for
 it, so positions are converted once, at the input.
+
+Loop integration (the loop thread never waits for the client thread)::
+
+    host, port = parse_qtm_url("qtm://HOST[:PORT]")
+    source = QtmSource(host, port, out=out); source.start()   # returns at once
+    inp = QtmInput(source, out)
+    poller.register(source.fileno(), zmq.POLLIN)
+    # when readable: while (pkt := source.read()) is not None:
+    #     record pkt (form qtm, kind from packet_info(pkt)); code = inp.feed(pkt, t)
+    #     code ACCEPTED / RESTART -> inp.stream.current.frame (inp.stream may be
+    #     replaced when QTM's up axis changes); -1 -> parameters / event / reply
+    # close: source.close()   (bounded join)
+
+Replay: ``QtmInput(None).feed(pkt, t_ns)`` for every recorded packet.
 """
 
 from __future__ import annotations
@@ -253,6 +267,24 @@ def packet_info(buf: Buffer) -> tuple[int, int, float]:
     if kind == PACKET_XML:
         return 2, -1, math.nan
     return 0, -1, math.nan
+
+
+def parse_qtm_url(url: str) -> tuple[str, int]:
+    """``qtm://HOST[:PORT]`` -> (host, port); the port defaults to 22223.
+
+    Raises:
+        ValueError: naming the URL when it is not of that form.
+    """
+    from urllib.parse import urlsplit
+
+    parts = urlsplit(url)
+    try:
+        port = parts.port or DEFAULT_PORT
+    except ValueError as exc:
+        raise ValueError(f"bad port in {url!r}: {exc}") from None
+    if parts.scheme != "qtm" or not parts.hostname or parts.path or parts.query:
+        raise ValueError(f"expected qtm://HOST[:PORT]; got {url!r}")
+    return parts.hostname, port
 
 
 def encode_packet(packet_type: int, body: bytes) -> bytes:

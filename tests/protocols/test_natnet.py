@@ -260,6 +260,20 @@ def test_multicast_client_joins_the_group_without_sending() -> None:
         client.close()
 
 
+def test_natnet_urls() -> None:
+    opts = natnet.parse_natnet_url("natnet://10.0.0.5")
+    assert (opts.host, opts.command_port, opts.data_port) == ("10.0.0.5", 1510, 1511)
+    assert not opts.multicast and opts.up_axis == "+Y" and opts.sets is None
+    opts = natnet.parse_natnet_url(
+        "natnet://motive:1600?data_port=1601&multicast=1&up=z&sets=Performer,Wand"
+    )
+    assert (opts.command_port, opts.data_port, opts.multicast) == (1600, 1601, True)
+    assert opts.up_axis == "+Z" and opts.sets == ("Performer", "Wand")
+    for bad in ("qtm://x", "natnet://", "natnet://x?speed=1", "natnet://x?up=w"):
+        with pytest.raises(ValueError):
+            natnet.parse_natnet_url(bad)
+
+
 def test_unknown_version_is_refused() -> None:
     with pytest.raises(DecodeError) as err:
         natnet.decode_model_defs(em.model_defs((4, 1), ["A"]), natnet.Version(2, 9))

@@ -112,6 +112,14 @@ def test_decoder_reads_the_hand_worked_bytes() -> None:
     assert qtm.decode_qtm_3d(_hex(DATA_HEX), out) is out
 
 
+def test_qtm_urls() -> None:
+    assert qtm.parse_qtm_url("qtm://10.0.0.7") == ("10.0.0.7", 22223)
+    assert qtm.parse_qtm_url("qtm://qtm-host:4000") == ("qtm-host", 4000)
+    for bad in ("natnet://x", "qtm://", "qtm://x:port", "qtm://x/path"):
+        with pytest.raises(ValueError):
+            qtm.parse_qtm_url(bad)
+
+
 def test_parameters_give_labels_up_axis_and_rate() -> None:
     params = qtm.parse_qtm_parameters(PARAMS_XML.encode() + b"\0")
     assert params.labels == ("LASI", "RASI")
