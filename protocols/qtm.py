@@ -372,6 +372,7 @@ class QtmSource:
         self._aloop: asyncio.AbstractEventLoop | None = None
         self._stop: asyncio.Event | None = None
         self._wake: asyncio.Event | None = None
+        self._stopping = threading.Event()  # close() before the asyncio loop runs
 
     # ---- loop side ---------------------------------------------------------------
 
@@ -400,6 +401,7 @@ class QtmSource:
 
     def close(self, timeout_s: float = 2.0) -> None:
         """Stop the thread (bounded wait) and close the socketpair (idempotent)."""
+        self._stopping.set()
         aloop, stop = self._aloop, self._stop
         if aloop is not None and stop is not None:
             with contextlib.suppress(RuntimeError):
@@ -431,6 +433,8 @@ class QtmSource:
         self._aloop = asyncio.get_running_loop()
         self._stop = asyncio.Event()
         self._wake = asyncio.Event()
+        if self._stopping.is_set():
+            self._stop.set()
         backoff = BACKOFF_FIRST_S
         while not self._stop.is_set():
             streamed = await self._session()

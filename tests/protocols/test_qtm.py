@@ -342,6 +342,18 @@ def test_unknown_protocol_version_is_said_and_counted(take: Any) -> None:
     assert sum("refused RT protocol version 1.25" in line for line in lines) == 1
 
 
+def test_close_right_after_start_returns_promptly() -> None:
+    """close() racing the thread's start-up still stops it (bounded, no hang)."""
+    for _ in range(20):
+        source = qtm.QtmSource("127.0.0.1", 9)  # nothing listens: connect refused
+        source.start()
+        thread = source._thread
+        assert thread is not None
+        t0 = time.monotonic()
+        source.close()
+        assert time.monotonic() - t0 < 1.5 and not thread.is_alive()
+
+
 def test_flood_drops_at_the_handover_counted() -> None:
     """A loop that reads nothing while QTM floods: the socketpair fills, the newest
     packets are dropped and counted, nothing blocks."""
