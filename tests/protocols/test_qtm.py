@@ -255,6 +255,29 @@ def test_served_take_arrives_equal_with_faults_counted(take: Any) -> None:
 
 
 @pytest.mark.timeout(30)
+def test_occluded_markers_arrive_occluded(datasets: Path) -> None:
+    """A take with occlusions (the PiG walk: 30 marker-frames missing) through
+    qtm-rt: NaN where the take has NaN, equal elsewhere."""
+    walk = load_take(datasets / "btkdata" / "PiG_Motion-FlatFoot-Full.c3d")
+    assert np.isnan(walk.positions).any()
+    server, source, _ = _start(walk, em.Scenario(faults=False))
+    loop = _Loop(source)
+    n = walk.positions.shape[0]
+    try:
+        loop.run_until(lambda: len(loop.frames) >= n, 20)
+    finally:
+        source.close()
+        server.close()
+    assert len(loop.frames) == n
+    for fid, _labels, markers in loop.frames:
+        row = walk.positions[fid - walk.first_frame]
+        assert np.array_equal(np.isnan(markers), np.isnan(row))
+        np.testing.assert_allclose(markers, row, atol=1e-6, rtol=0)
+    residuals = loop.input.decoder.residuals_mm
+    assert np.isnan(residuals).sum() == np.isnan(walk.positions[-1, :, 0]).sum()
+
+
+@pytest.mark.timeout(30)
 def test_no_measurement_is_said_and_counted(take: Any) -> None:
     server, source, lines = _start(take, em.Scenario(no_measurement=True))
     try:
