@@ -62,6 +62,7 @@ REASONS: tuple[str, ...] = (
     "count_mismatch",
     "duplicate_marker",
     "bad_label",
+    "no_3d",
     "other",
 )
 REASON_INDEX: dict[str, int] = {name: i for i, name in enumerate(REASONS)}
