@@ -349,9 +349,15 @@ def read_c3d(
         rate, rate_source, rate_repairs = _resolve_rate(
             name, params, layout.header_rate_hz, rate_hz
         )
+        # The package derives analog samples per frame from the rate: give it the
+        # file's own (a --take-rate override must not change the frame layout).
+        file_rate = _file_rate(params, layout.header_rate_hz)[0]
+        for layout_rate in (file_rate, layout.header_rate_hz, rate):
+            if math.isfinite(layout_rate) and layout_rate > 0:
+                break
         try:
-            data = read_fallback(layout, rate)
-        except (ValueError, OSError, AssertionError, struct.error) as exc:
+            data = read_fallback(layout, layout_rate)
+        except (ValueError, KeyError, OSError, AssertionError, struct.error) as exc:
             raise TakeError(
                 f"take {name}: not a readable C3D file (ezc3d not used: {why}; "
                 f"c3d package: {exc})"

@@ -32,7 +32,7 @@ from retargetd.replay.c3d_layout import C3DLayout, param_value
 READER_NAME = f"c3d {importlib.metadata.version('c3d')} (fallback)"
 
 
-class _LenientReader(c3d.Reader):  # type: ignore[misc]
+class _LenientReader(c3d.Reader):
     """``c3d.Reader`` without its consistency asserts, at a given frame rate."""
 
     rate_hz: float = 0.0
@@ -43,7 +43,7 @@ class _LenientReader(c3d.Reader):  # type: ignore[misc]
 
     @property
     def point_rate(self) -> float:
-        # The rate resolved by read_c3d (file, header or --take-rate): the package
+        # The file's rate (or --take-rate when the file says 0): the package
         # divides by it to find analog samples per frame.
         return self.rate_hz
 
@@ -78,8 +78,8 @@ def read_fallback(layout: C3DLayout, rate_hz: float) -> FallbackData:
 
     Args:
         layout: the file's checked layout.
-        rate_hz: the frame rate to read at, Hz (> 0; the package derives the analog
-            samples per frame from it).
+        rate_hz: the file's frame rate, Hz (> 0; the package derives the analog
+            samples per frame from it, so pass the file's own rate when it has one).
 
     Returns:
         Points and parameters; at most ``layout.frames_present`` frames.

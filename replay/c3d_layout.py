@@ -187,7 +187,7 @@ def _walk_parameters(
             break
         gid = struct.unpack_from("b", section, pos + 1)[0]
         pos += 2
-        name = section[pos : pos + abs(n_name)].decode("latin-1").strip().upper()
+        name = section[pos : pos + abs(n_name)].decode("latin-1").strip()
         pos += abs(n_name)
         if pos + 2 > end:
             problems.append("parameter section cut inside an entry")
@@ -231,6 +231,7 @@ def _walk_parameters(
                     f"parameter {name} declares {size} bytes of values but its "
                     f"entry holds {max(0, min(limit, end) - pos)}"
                 )
+                standard = False  # one message for this entry is enough
                 notes.append(f"parameter {name} skipped: declares more bytes than held")
             else:
                 pending.append(
@@ -432,8 +433,10 @@ def param_value(layout: C3DLayout, param: RawParam) -> list[str] | np.ndarray:
             return []
         width = param.dims[0]
         text = param.data.decode("latin-1")
-        if len(param.dims) == 1 or width == 0:
+        if len(param.dims) == 1:
             return [text.rstrip(" \x00")]
+        if width == 0:
+            return [""] * math.prod(param.dims[1:])
         return [text[i : i + width].rstrip(" \x00") for i in range(0, len(text), width)]
     big = layout.processor == "MIPS"
     if param.type_code == 1:
