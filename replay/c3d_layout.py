@@ -276,6 +276,40 @@ def _walk_parameters(
     return params, problems, notes
 
 
+def _rotation_problems(
+    dec: _Decoder,
+    params: dict[tuple[str, str], RawParam],
+    n_frames: int,
+    header_rate_hz: float,
+    size: int,
+) -> list[str]:
+    """ezc3d also reads a ``ROTATION`` data section: check its declared size.
+
+    ezc3d reads ``USED`` x ``RATIO`` rotations per frame, each at least a 4 x 4 float
+    matrix, from block ``DATA_START``; the c3d package ignores the section.
+    """
+    if not any(group == "ROTATION" for group, _ in params):
+        return []
+    used = _param_number(dec, params.get(("ROTATION", "USED")))
+    start = _param_number(dec, params.get(("ROTATION", "DATA_START")))
+    ratio = _param_number(dec, params.get(("ROTATION", "RATIO")))
+    if ratio is None:
+        rate = _param_number(dec, params.get(("ROTATION", "RATE")))
+        if rate is not None and header_rate_hz > 0:
+            ratio = rate / header_rate_hz
+    if used is None or start is None or ratio is None:
+        return ["ROTATION group without USED, DATA_START and RATIO or RATE"]
+    if not (math.isfinite(ratio) and ratio >= 0 and start >= 1):
+        return [f"ROTATION:RATIO {ratio} or DATA_START {start} out of range"]
+    need = int(used) * int(ratio) * n_frames * 16 * 4
+    held = size - (int(start) - 1) * BLOCK_BYTES
+    if need > held:
+        return [
+            f"ROTATION data declares {need} bytes but the file holds {max(held, 0)}"
+        ]
+    return []
+
+
 def inspect_c3d(path: str | os.PathLike[str]) -> C3DLayout:
     """Read and check what a C3D file declares, without reading its data.
 
@@ -394,6 +428,7 @@ def inspect_c3d(path: str | os.PathLike[str]) -> C3DLayout:
         problems.append(
             f"declares {ezc3d_frames} frames but holds {frames_present} complete ones"
         )
+    problems += _rotation_problems(dec, params, ezc3d_frames, header_rate, size)
     if frames_declared > frames_present:
         notes.append(
             f"file ends after {frames_present} of {frames_declared} declared frames"

@@ -533,3 +533,19 @@ def test_copy_of_bkin_file_is_small_to_read(tmp_path: Path) -> None:
     assert result["ok"] and result["reader"] == READER_NAME
     assert result["maxrss_mb"] < MAX_RSS_MB
     assert math.isclose(result["rate_hz"], 1000.0)
+
+
+def test_crafted_rotation_section_beyond_the_file(tmp_path: Path) -> None:
+    """ezc3d reads ROTATION:USED x RATIO matrices per frame: declared far past EOF."""
+    path = tmp_path / "rotation.c3d"
+    rotation = _entry_group(2, "ROTATION")
+    rotation += _entry_param(2, "USED", 2, (), struct.pack("<h", 30000))
+    rotation += _entry_param(2, "RATIO", 2, (), struct.pack("<h", 255))
+    rotation += _entry_param(2, "DATA_START", 2, (), struct.pack("<h", 3))
+    _crafted_c3d(path, n_points=10, header_frames=5, frames_held=5, extra=rotation)
+    layout = inspect_c3d(path)
+    assert any("ROTATION data declares" in p for p in layout.ezc3d_problems)
+    result = _load_in_child(path)
+    assert result["maxrss_mb"] < MAX_RSS_MB
+    assert result["ok"] and result["reader"] == READER_NAME
+    assert result["frames"] == 5 and result["markers"] == 10
