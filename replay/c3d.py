@@ -5,10 +5,11 @@ file declares against its size, without reading data (an empty file, no points o
 complete frame is a one-line error). ezc3d then reads the file, unless that check
 found something ezc3d cannot be trusted with (MIPS processor type, a parameter
 section it would misread or allocate gigabytes for, missing ``POINT:USED``, fewer
-frames than declared, a ``ROTATION`` section past the end of the file), or ezc3d fails; then the ``c3d`` package reads it
-(:mod:`retargetd.replay.c3d_fallback`). A file ezc3d reads is loaded exactly as
-before the fallback existed. ``Take.reader`` names the reader, ``Take.repairs``
-lists what had to be worked around. What we take from the file:
+frames than declared, a ``ROTATION`` section past the end of the file), or ezc3d
+fails; then the ``c3d`` package reads it (:mod:`retargetd.replay.c3d_fallback`).
+A file ezc3d reads is loaded exactly as before the fallback existed. ``Take.reader``
+names the reader, ``Take.repairs`` lists what had to be worked around. What we take
+from the file:
 
 - **Points:** ``POINT:LABELS`` (+ ``LABELS2``, ``LABELS3`` ... past 255 points), data
   as ezc3d gives it (``data/points`` (4, N, T), file units, capture frame). A sample is
