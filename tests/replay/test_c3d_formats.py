@@ -57,6 +57,16 @@ def require_formats() -> Path:
     pytest.skip(reason)
 
 
+def require_file(path: Path) -> Path:
+    """A shared file; skip (outside CI) or fail (in CI) if absent."""
+    if path.is_file():
+        return path
+    reason = f"{path} not found"
+    if IN_CI:
+        pytest.fail(f"{reason} (CI=true: nothing may skip)")
+    pytest.skip(reason)
+
+
 def _format_files() -> list[str]:
     if not FORMATS.is_dir():
         return ["(formats folder absent)"]
@@ -230,10 +240,7 @@ def test_zero_rate_needs_take_rate(
 
 
 def test_zero_rate_trc_needs_take_rate(tmp_path: Path) -> None:
-    src = REPO_ROOT.parent / "shared" / "datasets" / "btkdata" / "MOTEK_T.trc"
-    if not src.is_file():
-        require_formats()
-        pytest.skip(f"{src} not found") if not IN_CI else pytest.fail(f"{src} absent")
+    src = require_file(REPO_ROOT.parent / "shared/datasets/btkdata/MOTEK_T.trc")
     lines = src.read_text().splitlines()
     fields = lines[2].split("\t")
     fields[0] = "0"
@@ -327,10 +334,7 @@ PACKAGE_REFUSES = {
 
 @pytest.mark.parametrize("rel", _both_readable())
 def test_fallback_reads_what_ezc3d_reads(rel: str) -> None:
-    path = REPO_ROOT.parent / "shared" / rel
-    if not path.is_file():
-        require_formats()
-        pytest.skip(f"{path} absent") if not IN_CI else pytest.fail(f"{path} absent")
+    path = require_file(REPO_ROOT.parent / "shared" / rel)
     expected = _read_ezc3d(str(path))
     layout = inspect_c3d(path)
     assert layout.ezc3d_problems == ()
@@ -373,11 +377,9 @@ def _entry_param(
     dims: tuple[int, ...],
     data: bytes,
     desc: bytes = b"",
-    desc_len: int | None = None,
 ) -> bytes:
-    n_desc = len(desc) if desc_len is None else desc_len
     body = struct.pack("bB", type_code, len(dims)) + bytes(dims) + data
-    body += struct.pack("B", n_desc) + desc
+    body += struct.pack("B", len(desc)) + desc
     return (
         struct.pack("bb", len(name), gid)
         + name.encode()
