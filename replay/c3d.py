@@ -205,7 +205,6 @@ class _Raw:
     valid: BoolArray  # (T, N)
     header_rate_hz: float
     first_frame: int
-    repairs: tuple[str, ...] = ()
 
 
 def _read_ezc3d(name: str) -> _Raw:

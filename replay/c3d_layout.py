@@ -40,6 +40,9 @@ from retargetd.replay.take import TakeError
 BLOCK_BYTES = 512
 #: Parameter-section processor byte -> name (C3D standard: 84 Intel, 85 DEC, 86 MIPS).
 PROCESSORS = {84: "Intel", 85: "DEC", 86: "MIPS"}
+#: Zero bytes skipped before the header, as ezc3d does for some Vicon files (bound:
+#: one block; a longer run is not a C3D header).
+MAX_LEADING_ZEROS = BLOCK_BYTES
 #: The parameter section is at most 255 blocks: its block count is one byte.
 MAX_PARAMETER_BLOCKS = 255
 #: Parameter element types: -1 char, 1 byte, 2 int16, 4 float (C3D standard).
@@ -324,12 +327,22 @@ def inspect_c3d(path: str | os.PathLike[str]) -> C3DLayout:
             shorter than a header, no 3D points, no complete frame); one line.
     """
     name = str(path)
+    leading_notes: list[str] = []
     try:
         size = os.stat(name).st_size
         with open(name, "rb") as fh:
-            head = fh.read(BLOCK_BYTES)
             if size == 0:
                 raise _no_data(name, "empty file (0 bytes)")
+            # Some Vicon files start with zero bytes; ezc3d skips them and reads the
+            # header and parameters after them (the data start stays absolute).
+            lead = fh.read(MAX_LEADING_ZEROS + 1)
+            zeros = len(lead) - len(lead.lstrip(b"\x00"))
+            if zeros == len(lead):
+                raise _no_data(name, f"the first {zeros} bytes are all zero")
+            if zeros:
+                leading_notes.append(f"{zeros} zero bytes before the header, skipped")
+            fh.seek(zeros)
+            head = fh.read(BLOCK_BYTES)
             if len(head) < BLOCK_BYTES:
                 raise _no_data(name, f"{size} bytes, shorter than a C3D header (512)")
             if head[1] != _KEY:
@@ -337,11 +350,12 @@ def inspect_c3d(path: str | os.PathLike[str]) -> C3DLayout:
                     f"take {name}: not a C3D file (byte 2 is {head[1]:#04x}, not 0x50)"
                 )
             param_block = head[0]
-            if param_block < 1 or (param_block - 1) * BLOCK_BYTES + 4 > size:
+            section_at = (param_block - 1) * BLOCK_BYTES + zeros
+            if section_at + 4 > size:
                 raise _no_data(
                     name, f"parameter block {param_block} lies beyond the file"
                 )
-            fh.seek((param_block - 1) * BLOCK_BYTES)
+            fh.seek(section_at)
             # The walk may run past the declared block count (ezc3d ignores it), so
             # read the most a section can hold, bounded by the file.
             section = fh.read(MAX_PARAMETER_BLOCKS * BLOCK_BYTES)
@@ -360,6 +374,9 @@ def inspect_c3d(path: str | os.PathLike[str]) -> C3DLayout:
         problems.append("MIPS (SGI) processor type, which ezc3d does not read")
     params, walk_problems, notes = _walk_parameters(section, dec, n_blocks)
     problems += walk_problems
+    if zeros:
+        # The c3d package would not find the header: only ezc3d reads these.
+        notes = leading_notes + notes
 
     header_points = dec.u16(head, 2)
     header_analog = dec.u16(head, 4)
