@@ -551,3 +551,22 @@ def test_crafted_rotation_section_beyond_the_file(tmp_path: Path) -> None:
     assert result["maxrss_mb"] < MAX_RSS_MB
     assert result["ok"] and result["reader"] == READER_NAME
     assert result["frames"] == 5 and result["markers"] == 10
+
+
+def test_take_info_gives_processing_units(
+    datasets: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Plug-in Gait measurements: lengths in mm, body mass in kg, angles in rad."""
+    path = datasets / "btkdata" / "PiG_Motion-FlatFoot-Full.c3d"
+    assert main(["take", "info", str(path)]) == 0
+    out = capsys.readouterr().out
+    assert "  LKneeWidth = 105 mm\n" in out
+    assert "  Bodymass = 47.5 kg\n" in out
+    assert "  HeadOffset = 0.353677 rad\n" in out
+    assert "  RStaticPlantFlex = 0.162755 rad\n" in out
+    assert main(["take", "info", str(path), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    units = info["measurement_units"]
+    assert set(units) == set(info["measurements"])
+    assert units["InterAsisDistance"] == "mm" and units["LTibialTorsion"] == "rad"
+    assert "" not in units.values()  # every PiG measurement has a known unit
