@@ -365,8 +365,24 @@ def test_fallback_reads_what_ezc3d_reads(rel: str) -> None:
 # --- crafted files -------------------------------------------------------------
 
 
-def _entry_group(gid: int, name: str, desc: bytes = b"") -> bytes:
-    body = struct.pack("<hB", 2 + 1 + len(desc), len(desc)) + desc
+#: Byte order of each processor type (DEC integers are little-endian).
+_ORDER = {84: "<", 85: "<", 86: ">"}
+
+
+def _f32(value: float, proc: int = 84) -> bytes:
+    """One float as the processor stores it (DEC: IEEE x 4 with halves swapped)."""
+    if proc == 85:
+        raw = struct.pack("<f", value * 4.0)
+        return raw[2:4] + raw[0:2]
+    return struct.pack(_ORDER[proc] + "f", value)
+
+
+def _i16(value: int, proc: int = 84) -> bytes:
+    return struct.pack(_ORDER[proc] + "h", value)
+
+
+def _entry_group(gid: int, name: str, desc: bytes = b"", proc: int = 84) -> bytes:
+    body = _i16(2 + 1 + len(desc), proc) + struct.pack("B", len(desc)) + desc
     return struct.pack("bb", len(name), -gid) + name.encode() + body
 
 
@@ -377,13 +393,14 @@ def _entry_param(
     dims: tuple[int, ...],
     data: bytes,
     desc: bytes = b"",
+    proc: int = 84,
 ) -> bytes:
     body = struct.pack("bB", type_code, len(dims)) + bytes(dims) + data
     body += struct.pack("B", len(desc)) + desc
     return (
         struct.pack("bb", len(name), gid)
         + name.encode()
-        + struct.pack("<h", 2 + len(body))
+        + _i16(2 + len(body), proc)
         + body
     )
 
@@ -398,20 +415,29 @@ def _crafted_c3d(
     point_frames: float | None = None,
     param_blocks: int | None = None,
     terminate: bool = True,
+    proc: int = 84,
+    scale: float = -1.0,
 ) -> np.ndarray:
-    """Write a float C3D (Intel); returns the (T, N, 3) float32 points it holds."""
+    """Write a C3D; returns the (T, N, 3) float64 points it holds (NaN: occluded).
+
+    ``scale`` < 0 writes float data, > 0 16-bit integers (``value / scale``); every
+    7th sample is occluded (residual word -1). ``proc`` is the processor type.
+    """
+    o = _ORDER[proc]
     labels = b"".join(f"M{i:03d}".encode() for i in range(n_points))
-    entries = _entry_group(1, "POINT")
-    entries += _entry_param(1, "USED", 2, (), struct.pack("<h", n_points))
-    entries += _entry_param(1, "SCALE", 4, (), struct.pack("<f", -1.0))
-    entries += _entry_param(1, "RATE", 4, (), struct.pack("<f", 100.0))
-    entries += _entry_param(1, "UNITS", -1, (2,), b"mm")
+    entries = _entry_group(1, "POINT", proc=proc)
+    entries += _entry_param(1, "USED", 2, (), _i16(n_points, proc), proc=proc)
+    entries += _entry_param(1, "SCALE", 4, (), _f32(scale, proc), proc=proc)
+    entries += _entry_param(1, "RATE", 4, (), _f32(100.0, proc), proc=proc)
+    entries += _entry_param(1, "UNITS", -1, (2,), b"mm", proc=proc)
     n_labels = min(n_points, 255)  # one byte per dimension; more need LABELS2
-    entries += _entry_param(1, "LABELS", -1, (4, n_labels), labels[: 4 * n_labels])
+    entries += _entry_param(
+        1, "LABELS", -1, (4, n_labels), labels[: 4 * n_labels], proc=proc
+    )
     if point_frames is not None:
-        entries += _entry_param(1, "FRAMES", 4, (), struct.pack("<f", point_frames))
+        entries += _entry_param(1, "FRAMES", 4, (), _f32(point_frames, proc), proc=proc)
     entries += extra
-    section = bytearray(b"\x01\x50\x00\x54" + entries)
+    section = bytearray(bytes([1, 0x50, 0, proc]) + entries)
     if terminate:
         section += b"\x00\x00"
         blocks = -(-len(section) // 512)
@@ -422,23 +448,70 @@ def _crafted_c3d(
     section[2] = blocks if param_blocks is None else param_blocks
     header = bytearray(512)
     header[0:2] = b"\x02\x50"
-    struct.pack_into("<HHHH", header, 2, n_points, 0, 1, header_frames)
-    struct.pack_into("<f", header, 12, -1.0)
-    struct.pack_into("<HH", header, 16, 2 + blocks, 0)
-    struct.pack_into("<f", header, 20, 100.0)
+    struct.pack_into(o + "HHHH", header, 2, n_points, 0, 1, header_frames)
+    header[12:16] = _f32(scale, proc)
+    struct.pack_into(o + "HH", header, 16, 2 + blocks, 0)
+    header[20:24] = _f32(100.0, proc)
     rng = np.random.default_rng(0)
-    xyz = rng.uniform(-1000, 1000, (frames_held, n_points, 3)).astype(np.float32)
-    data = np.zeros((frames_held, n_points, 4), dtype="<f4")
-    data[..., :3] = xyz
-    path.write_bytes(bytes(header) + bytes(section) + data.tobytes())
+    shape = (frames_held, n_points)
+    occluded = (np.arange(np.prod(shape)).reshape(shape) % 7) == 3
+    if scale < 0:
+        xyz = rng.uniform(-1000, 1000, (*shape, 3)).astype(np.float32)
+        words = np.zeros((*shape, 4), dtype=np.float32)
+        words[..., :3] = xyz
+        words[..., 3] = np.where(occluded, -1.0, 2.0)  # residual byte 2, camera 0
+        if proc == 85:
+            raw = (words * 4.0).astype("<f4").view("<u2").reshape(-1, 2)[:, ::-1]
+            data = np.ascontiguousarray(raw).tobytes()
+        else:
+            data = words.astype(o + "f4").tobytes()
+        values = xyz.astype(np.float64)
+    else:
+        counts = rng.integers(-20000, 20000, (*shape, 3))
+        words_i = np.zeros((*shape, 4), dtype=np.int64)
+        words_i[..., :3] = counts
+        words_i[..., 3] = np.where(occluded, -1, 2)
+        data = words_i.astype(o + "i2").tobytes()
+        values = counts * np.float64(np.float32(scale))
+    path.write_bytes(bytes(header) + bytes(section) + data)
     assert path.stat().st_size < 1_000_000
-    return xyz
+    values[occluded] = np.nan
+    return values
+
+
+@pytest.mark.parametrize("proc", [84, 85, 86])
+@pytest.mark.parametrize("scale", [-1.0, 0.1])
+def test_integer_and_float_data_of_every_processor(
+    tmp_path: Path, proc: int, scale: float
+) -> None:
+    """Intel, DEC and MIPS, float and 16-bit integer data: the points as written."""
+    path = tmp_path / f"p{proc}_{'float' if scale < 0 else 'int'}.c3d"
+    values = _crafted_c3d(
+        path, n_points=12, header_frames=40, frames_held=40, proc=proc, scale=scale
+    )
+    take = read_c3d(path)
+    assert take.reader == (READER_NAME if proc == 86 else EZC3D_READER)
+    np.testing.assert_array_equal(take.valid, np.isfinite(values[..., 0]))
+    # Integers times a float32 scale are rounded to float32 by the readers:
+    # 2000 mm x 2^-24 ~ 1.2e-4 mm.
+    np.testing.assert_allclose(
+        take.positions, values * cv.MM_TO_M, rtol=0, atol=1e-3 * cv.MM_TO_M
+    )
+    layout = inspect_c3d(path)
+    got = read_fallback(layout, 100.0)
+    np.testing.assert_array_equal(got.valid, take.valid)
+    np.testing.assert_allclose(
+        np.where(got.valid[..., None], got.points, np.nan),
+        values,
+        rtol=0,
+        atol=1e-3,
+    )
 
 
 def test_crafted_declared_frames_far_beyond_the_file(tmp_path: Path) -> None:
     """10^9 frames declared (POINT:FRAMES), 2 held: read 2, say so, stay small."""
     path = tmp_path / "billion.c3d"
-    xyz = _crafted_c3d(
+    values = _crafted_c3d(
         path, n_points=1000, header_frames=65535, frames_held=2, point_frames=1e9
     )
     layout = inspect_c3d(path)
@@ -450,9 +523,7 @@ def test_crafted_declared_frames_far_beyond_the_file(tmp_path: Path) -> None:
     assert result["frames"] == 2 and result["markers"] == 1000
     assert any("2 of 1000000000 declared frames" in r for r in result["repairs"])
     take = read_c3d(path)
-    np.testing.assert_allclose(
-        take.positions[:, :, 0], xyz[..., 0].astype(np.float64) * cv.MM_TO_M
-    )
+    np.testing.assert_array_equal(take.positions[..., 0], values[..., 0] * cv.MM_TO_M)
 
 
 def test_crafted_declared_frames_none_held(tmp_path: Path) -> None:
