@@ -13,7 +13,7 @@ whatever the parameter block count says) so that it can say, before ezc3d runs,
 whether ezc3d would read the file as written (``ezc3d_problems`` empty) or would
 fail, read nothing, or allocate from a nonsense size. Examples from the c3d.org
 samples (``../shared/formats``): ``BKINtechnologies.c3d`` gives
-``EXPERIMENT:SESSION`` a 168-character description; ezc3d reads that length as -88
+``EXPERIMENT:SESSION`` a 163-character description; ezc3d reads that length as -93
 and asks for a ~4 GB string (12.6 GB and 46 s before it failed); the PhaseSpace
 sample has an empty parameter section, where ezc3d reads 0 points and a 0 Hz rate
 although the header declares 40 points at 30 Hz; the SGI sample is MIPS, which
