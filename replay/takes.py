@@ -88,4 +88,7 @@ def load_take(
         take.units,
         take.up_axis,
     )
+    for repair in take.repairs:
+        # `take info` prints these; other commands keep them in the log.
+        logger.info("%s (%s): %s", file, take.reader, repair)
     return take
