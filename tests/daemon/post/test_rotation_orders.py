@@ -42,7 +42,9 @@ def test_matrix_and_quaternion_from_euler_match_scipy(order: str) -> None:
 def test_euler_from_matrix_matches_scipy_away_from_lock(order: str) -> None:
     r = Rotation.random(400, rng=11)
     m = r.as_matrix()
-    np.testing.assert_allclose(rot.euler_from_mat(m, order), r.as_euler(order), atol=1e-10)
+    np.testing.assert_allclose(
+        rot.euler_from_mat(m, order), r.as_euler(order), atol=1e-10
+    )
     back = rot.mat_from_euler(rot.euler_from_mat(m, order), order)
     np.testing.assert_allclose(back, m, atol=1e-12)
 
@@ -58,7 +60,9 @@ def test_euler_at_gimbal_lock_matches_scipy(order: str) -> None:
         rot.euler_from_mat(r.as_matrix(), order),
     ):
         # The same rotation, and the same angles as scipy (angles of +-pi may wrap).
-        np.testing.assert_allclose(rot.mat_from_euler(got, order), r.as_matrix(), atol=1e-9)
+        np.testing.assert_allclose(
+            rot.mat_from_euler(got, order), r.as_matrix(), atol=1e-9
+        )
         diff = np.angle(np.exp(1j * (got - expected)))
         np.testing.assert_allclose(diff, 0.0, atol=1e-7)
 
@@ -80,7 +84,9 @@ def test_trace_method_each_branch_matches_scipy(branch: int) -> None:
     rng = np.random.default_rng(branch)
     r = Rotation.random(4000, rng=branch)
     m = r.as_matrix()
-    keys = np.stack([np.trace(m, axis1=-2, axis2=-1), m[:, 0, 0], m[:, 1, 1], m[:, 2, 2]])
+    keys = np.stack(
+        [np.trace(m, axis1=-2, axis2=-1), m[:, 0, 0], m[:, 1, 1], m[:, 2, 2]]
+    )
     pick = np.argmax(keys, axis=0) == branch
     assert pick.sum() > 100
     # Near-half-turns too: trace -> -1, where the w branch loses all precision.
