@@ -40,6 +40,7 @@ import numpy as np
 
 from retargetd.daemon.post._kernels import qmul, twist_about
 from retargetd.daemon.post.pose import PoseBuffer
+from retargetd.daemon.rotations import twist_angle
 from retargetd.protocols.frames import F64Array, IntArray
 
 #: The chapter's default: "distribute the total longitudinal rotations of the arm
@@ -61,7 +62,12 @@ ARM_CHAINS: dict[str, tuple[tuple[str, str, str], ...]] = {
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _distribute(
-    q: F64Array, chains: IntArray, fractions: F64Array, axis: F64Array, tw: F64Array
+    q: F64Array,
+    chains: IntArray,
+    fractions: F64Array,
+    axis: F64Array,
+    rest_tw: F64Array,
+    tw: F64Array,
 ) -> None:  # pragma: no cover - compiled
     ux, uy, uz = axis[0], axis[1], axis[2]
     n = chains.shape[1]
@@ -71,10 +77,11 @@ def _distribute(
             b = chains[c, k]
             tw[k] = twist_about(q[b, 0], q[b, 1], q[b, 2], q[b, 3], ux, uy, uz)
             if k > 0:
-                total += tw[k]
+                rel = tw[k] - rest_tw[c, k]
+                total += math.atan2(math.sin(rel), math.cos(rel))
         excess = 0.0
         for k in range(n - 1, 0, -1):
-            excess = tw[k] + excess - fractions[k] * total
+            excess = tw[k] + excess - rest_tw[c, k] - fractions[k] * total
             s, co = math.sin(0.5 * excess), math.cos(0.5 * excess)
             b, p = chains[c, k], chains[c, k - 1]
             # Parent: q_p ⊗ T(e).
@@ -95,6 +102,12 @@ class TwistDistribution:
         fractions: (n,) share of the pooled twist per joint, each in [0, 1], summing
             to 1; default a third each.
         axis: (3,) the bones' long axis in their own frame (normalized here).
+        rest_parent_from_bone_quat: (B, 4) float64 (w, x, y, z): the rest pose's
+            rotations, when the rest pose itself holds twist (a solve's calibration:
+            pass ``Calibration.rest_parent_from_bone_quat`` and apply the stage to
+            ``rest ⊗ solve.parent_from_bone_quat``). Twist is then counted from the
+            rest twist: joint ``k >= 1`` ends with its rest twist plus ``f_k τ``, and
+            the rest pose passes unchanged. Default: identity rest.
 
     Raises:
         ValueError: naming a bad chain, fraction or axis.
@@ -106,6 +119,7 @@ class TwistDistribution:
         chains: Sequence[Sequence[int]],
         fractions: Sequence[float] = DEFAULT_FRACTIONS,
         axis: Sequence[float] = LONG_AXIS,
+        rest_parent_from_bone_quat: F64Array | None = None,
     ) -> None:
         parents = np.asarray(bone_parents, dtype=np.int64)
         chain_arr = np.asarray(chains, dtype=np.int64)
@@ -145,6 +159,15 @@ class TwistDistribution:
         self.fractions = frac
         self.axis = ax / norm
         self._tw = np.zeros(chain_arr.shape[1])
+        self._rest_tw = np.zeros(chain_arr.shape)
+        if rest_parent_from_bone_quat is not None:
+            rest = np.asarray(rest_parent_from_bone_quat, dtype=np.float64)
+            if rest.shape != (len(parents), 4):
+                raise ValueError(
+                    f"rest_parent_from_bone_quat must be ({len(parents)}, 4); got "
+                    f"{rest.shape}"
+                )
+            self._rest_tw[:] = twist_angle(rest[chain_arr], self.axis)
 
     def apply_quat(self, parent_from_bone_quat: F64Array, out: F64Array) -> F64Array:
         """Distribute the twist of one pose's rotations.
@@ -158,7 +181,9 @@ class TwistDistribution:
         """
         if out is not parent_from_bone_quat:
             np.copyto(out, parent_from_bone_quat)
-        _distribute(out, self.chains, self.fractions, self.axis, self._tw)
+        _distribute(
+            out, self.chains, self.fractions, self.axis, self._rest_tw, self._tw
+        )
         return out
 
     def apply(self, pose: PoseBuffer, out: PoseBuffer) -> PoseBuffer:
@@ -174,7 +199,12 @@ class TwistDistribution:
         if out is not pose:
             out.copy_from(pose)
         _distribute(
-            out.parent_from_bone_quat, self.chains, self.fractions, self.axis, self._tw
+            out.parent_from_bone_quat,
+            self.chains,
+            self.fractions,
+            self.axis,
+            self._rest_tw,
+            self._tw,
         )
         return out
 

@@ -36,8 +36,12 @@ def _check(
     parent_from_bone: np.ndarray,
     chains: list[list[int]],
     fractions: tuple[float, ...],
+    rest: np.ndarray | None = None,
 ) -> float:
-    stage = TwistDistribution(parents, chains, fractions)
+    stage = TwistDistribution(
+        parents, chains, fractions, rest_parent_from_bone_quat=rest
+    )
+    rest_q = np.tile([1.0, 0.0, 0.0, 0.0], (len(parents), 1)) if rest is None else rest
     out = np.empty_like(parent_from_bone)
     for t in range(len(parent_from_bone)):
         view = out[t]
@@ -57,14 +61,15 @@ def _check(
             )
         tw_in = np.stack([rot.twist_angle(parent_from_bone[:, b], Y) for b in chain])
         tw_out = np.stack([rot.twist_angle(out[:, b], Y) for b in chain])
-        pooled = tw_in[1:].sum(axis=0)
+        tw_rest = np.array([rot.twist_angle(rest_q[b], Y) for b in chain])
+        pooled = _wrap(tw_in[1:] - tw_rest[1:, None]).sum(axis=0)
         pooled_max = max(pooled_max, float(np.abs(pooled).max()))
         np.testing.assert_allclose(
             _wrap(tw_out[0] - tw_in[0] - fractions[0] * pooled), 0.0, atol=1e-9
         )
         for k in range(1, len(chain)):
             np.testing.assert_allclose(
-                _wrap(tw_out[k] - fractions[k] * pooled), 0.0, atol=1e-9
+                _wrap(tw_out[k] - tw_rest[k] - fractions[k] * pooled), 0.0, atol=1e-9
             )
     assert np.max(np.abs(np.linalg.norm(out, axis=-1) - 1.0)) < 1e-12
     return pooled_max
@@ -90,17 +95,31 @@ def test_synthetic_forearm_twist(
 
 
 def test_real_take(pig_walk: Any) -> None:
+    """The PiG walk: the stage on the solve's actual parent_from_bone (rest ⊗ the
+    calibration-relative rotation), the hand checked against the solve's own world
+    orientation; the rest pose's twist is kept."""
     cal, res = pig_walk.calibration, pig_walk.solve
+    parents = np.asarray(cal.bone_parents)
     chains = arm_chains(cal.bone_names)
     assert len(chains) == 2
-    ok = np.all(np.isfinite(res.parent_from_bone_quat), axis=(1, 2))
-    _check(
-        np.asarray(cal.bone_parents),
-        res.world_from_bone_quat[ok],
-        res.parent_from_bone_quat[ok],
-        chains,
-        (1 / 3, 1 / 3, 1 / 3),
+    rest = np.asarray(cal.rest_parent_from_bone_quat)
+    actual = rot.quat_mul(rest, res.parent_from_bone_quat)
+    world = res.world_from_bone_quat
+    np.testing.assert_allclose(  # the relation the check below relies on
+        np.abs(
+            np.sum(
+                rot.quat_mul(world[:, parents[1:]], actual[:, 1:]) * world[:, 1:], -1
+            )
+        ),
+        1.0,
+        atol=1e-12,
     )
+    pooled = _check(parents, world, actual, chains, (1 / 3, 1 / 3, 1 / 3), rest)
+    assert pooled > np.radians(5.0)  # the walk's forearms do turn
+    # The calibration pose passes unchanged.
+    stage = TwistDistribution(parents, chains, rest_parent_from_bone_quat=rest)
+    out = stage.apply_quat(rest, np.empty_like(rest))
+    np.testing.assert_allclose(np.abs(np.sum(out * rest, -1)), 1.0, atol=1e-12)
 
 
 def test_pose_buffer_stage_is_allocation_free(forearm_twist: pf.SynthTake) -> None:
