@@ -13,6 +13,11 @@ as the BVH export: world +Z -> +Y, world -Y -> +Z):
 ``solve.parent_from_bone_quat`` is relative to the calibration
 (``conj(rest) ⊗ parent_from_bone``), so :func:`clip_from_solve` puts the rest back:
 a glTF node rotation is the whole ``parent_from_node``.
+
+Blender's importer (default options) turns the file back into our world, metres:
+each bone becomes an empty at the bone's origin, its axes ``world_from_bone ⊗
+gltf_from_world`` (the importer re-labels every node's own axes Y-up to Z-up as
+well); ``tests/daemon/post/test_gltf_blender.py`` checks this.
 """
 
 from __future__ import annotations

@@ -265,3 +265,34 @@ def reduce_clip(
         n_frames=clip.n_frames,
         rate_hz=clip.rate_hz,
     )
+
+
+def describe(reduced: ReducedClip, bone_names: tuple[str, ...] | list[str]) -> str:
+    """Keys kept per channel and the worst error, as ``retargetd reduce`` prints them.
+
+    Args:
+        reduced: the reduction.
+        bone_names: (B,) names of the rotation channels.
+
+    Returns:
+        One line per channel plus a summary line (degrees, millimetres).
+    """
+    lines = []
+    total = reduced.n_frames * (len(reduced.rotations) + 1)
+    kept = len(reduced.root.frames)
+    for name, ch in zip(bone_names, reduced.rotations, strict=True):
+        kept += len(ch.frames)
+        lines.append(
+            f"{name:<16} rotation    {len(ch.frames):>6} of {reduced.n_frames} keys, "
+            f"worst {math.degrees(ch.max_error):.3f} deg"
+        )
+    lines.append(
+        f"{'root':<16} translation {len(reduced.root.frames):>6} of {reduced.n_frames} "
+        f"keys, worst {reduced.root.max_error / MM_TO_M:.3f} mm"
+    )
+    worst = max((ch.max_error for ch in reduced.rotations), default=0.0)
+    lines.append(
+        f"kept {kept} of {total} keys ({100.0 * kept / total:.1f} %); worst "
+        f"{math.degrees(worst):.3f} deg, root {reduced.root.max_error / MM_TO_M:.3f} mm"
+    )
+    return "\n".join(lines)

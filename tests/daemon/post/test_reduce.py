@@ -12,6 +12,7 @@ from retargetd.daemon import performer as pf
 from retargetd.daemon import rotations as rot
 from retargetd.daemon.post.interp import Clip
 from retargetd.daemon.post.reduce import (
+    describe,
     reduce_clip,
     reduce_position,
     reduce_rotation,
@@ -74,6 +75,9 @@ def test_tolerance_holds_and_keys_follow_the_motion(
     # the gaps between keys vary with the motion.
     gaps = np.concatenate([np.diff(ch.frames) for ch in red.rotations])
     assert gaps.max() >= 100 and gaps.min() < 10
+    text = describe(red, take.segment_names)
+    assert text.splitlines()[-1].startswith(f"kept {kept + len(red.root.frames)} of ")
+    assert len(text.splitlines()) == len(red.rotations) + 2
 
 
 def test_refit_is_least_squares_and_kept_only_within_tolerance(
