@@ -40,6 +40,7 @@ from retargetd.daemon.post.export_gltf import clip_from_solve
 from retargetd.daemon.post.hermite import HermiteSpine
 from retargetd.daemon.post.interp import Clip, RateResampler, resample
 from retargetd.daemon.post.one_euro import OneEuroFilter
+from retargetd.daemon.post.pipeline import build_pipeline
 from retargetd.daemon.post.pivot import ShiftingPivot
 from retargetd.daemon.post.pose import PoseBuffer
 from retargetd.daemon.post.reduce import reduce_clip
@@ -183,6 +184,12 @@ def main() -> None:
     spine_out = np.empty((5, 3))
     euro = OneEuroFilter(b, beta_rot=0.5, beta_pos=5.0)
     res60 = RateResampler(b, 60.0)
+    pipe = build_pipeline(
+        [{"kind": "twist"}, {"kind": "one_euro", "beta_rot": 0.5, "beta_pos": 5.0}],
+        bone_names=names,
+        bone_parents=parents,
+        rest_parent_from_bone_quat=cal.rest_parent_from_bone_quat,
+    )
 
     def resample_step(i: int) -> None:
         res60.push(load(i))
@@ -202,6 +209,7 @@ def main() -> None:
         ),
         ("RateResampler push+pop (100->60 Hz)", resample_step),
         ("OneEuroFilter.apply (19 bones)", lambda i: euro.apply(load(i), out)),
+        ("Pipeline.apply (twist, one_euro)", lambda i: pipe.apply(load(i), out)),
     ]
     load_only = np.median(_time(load, args.calls))
     print(
