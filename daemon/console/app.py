@@ -111,9 +111,7 @@ class Console:
         self.server.scene.set_up_direction("+z")
         self.server.scene.add_grid("/floor", width=8.0, height=8.0, cell_size=0.5)
         self._build_gui()
-        self._thread = threading.Thread(
-            target=self._run, name="console", daemon=True
-        )
+        self._thread = threading.Thread(target=self._run, name="console", daemon=True)
         self._thread.start()
 
     def stop(self, timeout_s: float = 5.0) -> None:
@@ -266,7 +264,9 @@ class Console:
         button = self._buttons.get("calibrate")
         if button is not None:
             left = max(0.0, at - time.monotonic()) if at else 0.0
-            label = f"Calibrating in {left:.0f} s (press to cancel)" if at else "Calibrate"
+            label = (
+                f"Calibrating in {left:.0f} s (press to cancel)" if at else "Calibrate"
+            )
             if button.label != label:
                 button.label = label
 
@@ -310,10 +310,10 @@ class Console:
             if len(layout.humanoid_pairs):
                 h = s.humanoid_pos[layout.humanoid_pairs] + layout.humanoid_offset_m
                 hok = np.isfinite(h).all(axis=(1, 2))
+                colors = np.broadcast_to(HUMANOID_RGB, (int(hok.sum()), 2, 3))
                 self._humanoid = self._segments(
-                    "/humanoid", h[hok], np.broadcast_to(HUMANOID_RGB, (hok.sum(), 2, 3)),
-                    self._humanoid,
-                )  # fmt: skip
+                    "/humanoid", h[hok], colors, self._humanoid
+                )
             if layout.face_names:
                 self._face_folder.visible = s.face_on
                 if s.face_on:

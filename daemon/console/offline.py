@@ -158,7 +158,9 @@ def _marks(frames: tuple[int, ...]) -> tuple[tuple[int, str], ...]:
     :data:`MAX_MARKS` of them (evenly thinned)."""
     starts = [f for i, f in enumerate(frames) if i == 0 or frames[i - 1] != f - 1]
     if len(starts) > MAX_MARKS:
-        starts = [starts[i] for i in np.linspace(0, len(starts) - 1, MAX_MARKS, dtype=int)]
+        starts = [
+            starts[i] for i in np.linspace(0, len(starts) - 1, MAX_MARKS, dtype=int)
+        ]
     return tuple((f, "!") for f in starts)
 
 

@@ -162,7 +162,9 @@ def bone_endpoints(
             out[..., b, 0, :] = joint_pos[..., oj, :]
         elif program.origin_bone[b] >= 0:
             src = program.origin_bone[b]
-            out[..., b, 0, :] = out[..., src, 0 if program.origin_of_origin[b] else 1, :]
+            out[..., b, 0, :] = out[
+                ..., src, 0 if program.origin_of_origin[b] else 1, :
+            ]
         elif b == 0 and root_pos is not None:
             out[..., b, 0, :] = root_pos
         tj = program.tip_joint[b]
@@ -203,9 +205,7 @@ class ConsoleLayout:
     skeleton: SkeletonProgram
     bone_lengths: F64Array
     humanoid_names: tuple[str, ...] = ()
-    humanoid_pairs: IntArray = field(
-        default_factory=lambda: np.zeros((0, 2), np.int64)
-    )
+    humanoid_pairs: IntArray = field(default_factory=lambda: np.zeros((0, 2), np.int64))
     humanoid_offset_m: F64Array = field(
         default_factory=lambda: np.array([1.2, 0.0, 0.0])
     )

@@ -183,16 +183,20 @@ def test_console_in_chromium(driver: Any) -> None:
         while time.monotonic() < deadline:
             publish()
             c = client.camera
-            if c.update_timestamp and np.allclose(c.look_at, cam.look_at, atol=1e-3):
-                if console.frames_drawn >= 3:
-                    break
+            aimed = np.allclose(c.look_at, cam.look_at, atol=1e-3)
+            if c.update_timestamp and aimed and console.frames_drawn >= 3:
+                break
             time.sleep(0.1)
         time.sleep(2.0)  # let a few frames render
-        for b in driver.find_elements(By.CSS_SELECTOR, "button.mantine-Notification-closeButton"):
+        for b in driver.find_elements(
+            By.CSS_SELECTOR, "button.mantine-Notification-closeButton"
+        ):
             b.click()
         time.sleep(1.0)  # the notification fades out
         png = driver.get_screenshot_as_png()
-        img = (mpimg.imread(io.BytesIO(png), format="png")[..., :3] * 255).astype(np.uint8)
+        img = (mpimg.imread(io.BytesIO(png), format="png")[..., :3] * 255).astype(
+            np.uint8
+        )
         if os.environ.get("RETARGETD_DOCS_SCREENSHOT") == "1":
             (REPO / "docs").mkdir(exist_ok=True)
             (REPO / "docs" / "console.png").write_bytes(png)
@@ -204,7 +208,7 @@ def test_console_in_chromium(driver: Any) -> None:
         left, top, w, h = canvas
         ends = bone_endpoints(layout.skeleton, take.joint_pos_world[frame])
         mid = ends.mean(axis=1)
-        px = _project(c, mid, w, h) + (left, top)
+        px = _project(c, mid, w, h) + np.array([left, top])
         inside = (px[:, 0] > 5) & (px[:, 0] < img.shape[1] - 5) & (px[:, 1] > 5)
         assert inside.sum() >= len(pairs) // 2, "skeleton projected off the page"
         hit_blue = _near(img, px, _blue)
@@ -213,10 +217,10 @@ def test_console_in_chromium(driver: Any) -> None:
         frac = hit_blue[plain & inside].mean()
         assert frac >= 0.8, f"bone colour at {frac:.0%} of projected bone midpoints"
         # Control: the same test 60 px to the side of every bone finds almost none.
-        off = _near(img, px + (60.0, 0.0), _blue)[plain & inside].mean()
+        off = _near(img, px + np.array([60.0, 0.0]), _blue)[plain & inside].mean()
         assert off <= 0.4, f"bone colour also where no bone is ({off:.0%})"
         assert _near(img, px[[flagged]], _red)[0], "flagged bone not drawn red"
-        hpx = _project(c, mid + layout.humanoid_offset_m, w, h) + (left, top)
+        hpx = _project(c, mid + layout.humanoid_offset_m, w, h) + np.array([left, top])
         hin = (hpx[:, 0] > 5) & (hpx[:, 0] < img.shape[1] - 5) & (hpx[:, 1] > 5)
         assert hin.sum() >= len(pairs) // 2, "humanoid projected off the page"
         hfrac = _near(img, hpx, _green)[hin].mean()
