@@ -193,7 +193,9 @@ class OfflineViewer:
             )  # fmt: skip
             self.play = gui.add_checkbox("Play", False)
             self.loop = gui.add_checkbox("Loop", True)
-            self.speed = gui.add_dropdown("Speed", ("0.25", "0.5", "1", "2"), "1")
+            self.speed = gui.add_dropdown(
+                "Speed", ("0.25", "0.5", "1", "2"), initial_value="1"
+            )
             nxt = gui.add_button("Next flagged", disabled=not self.seq.flagged_frames)
             gui.add_markdown(
                 f"{self.seq.n_frames} frames at {self.seq.rate_hz:g} Hz; "

@@ -60,43 +60,49 @@ COMMAND_KINDS = (
 class SkeletonProgram:
     """How to place each bone's two ends, as index arrays (built once per layout).
 
-    End sources, per bone, origin and tip alike: ``*_joint`` >= 0 takes that joint
-    centre; otherwise ``origin_bone`` >= 0 takes that (earlier) bone's origin
-    (``origin_of_origin``) or tip; otherwise the root position (origin of the root
-    bone only). A tip with ``tip_joint`` < 0 is ``origin + world_from_bone * (0, L,
-    0)`` with L the bone's calibrated length.
+    Bones run between named points (a rig's bone ``origin`` and ``aim``). A point is
+    known where it is a solved joint centre, or the root bone's origin (the solve's
+    root position); from a known end, the other end of a bone is reached along the
+    bone's +Y axis by its calibrated length (``world_from_bone * (0, L, 0)``, forward
+    from the origin or back from the tip), repeated until nothing more is found.
 
     Attributes:
-        origin_joint: (B,) int64 joint index or -1.
-        origin_bone: (B,) int64 earlier bone index or -1.
-        origin_of_origin: (B,) bool: ``origin_bone``'s origin (True) or tip (False).
-        tip_joint: (B,) int64 joint index or -1.
+        n_points: number of points P.
+        joint_point: (J,) int64 point index of each joint centre, -1 when no bone
+            uses it.
+        origin_point: (B,) int64 point index of each bone's origin.
+        tip_point: (B,) int64 point index of each bone's tip.
+        root_point: point index of the root bone's origin, or -1.
     """
 
-    origin_joint: IntArray
-    origin_bone: IntArray
-    origin_of_origin: np.ndarray
-    tip_joint: IntArray
+    n_points: int
+    joint_point: IntArray
+    origin_point: IntArray
+    tip_point: IntArray
+    root_point: int = -1
 
     @property
     def n_bones(self) -> int:
         """Number of bones B."""
-        return int(self.origin_joint.shape[0])
+        return int(self.origin_point.shape[0])
 
     @staticmethod
-    def from_joint_pairs(pairs: Sequence[tuple[int, int]]) -> SkeletonProgram:
+    def from_joint_pairs(
+        pairs: Sequence[tuple[int, int]], n_joints: int | None = None
+    ) -> SkeletonProgram:
         """Bones that run from one joint centre to another (a stick figure).
 
         Args:
             pairs: (origin joint, tip joint) per bone.
+            n_joints: J (default: the largest index + 1).
         """
         a = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
-        n = a.shape[0]
+        j = int(a.max()) + 1 if n_joints is None and a.size else int(n_joints or 0)
         return SkeletonProgram(
-            origin_joint=a[:, 0].copy(),
-            origin_bone=np.full(n, -1, np.int64),
-            origin_of_origin=np.zeros(n, bool),
-            tip_joint=a[:, 1].copy(),
+            n_points=j,
+            joint_point=np.arange(j, dtype=np.int64),
+            origin_point=a[:, 0].copy(),
+            tip_point=a[:, 1].copy(),
         )
 
     @staticmethod
@@ -107,27 +113,21 @@ class SkeletonProgram:
             rig: the rig.
             joint_names: the solver's joint-centre names (its output order).
         """
-        joint_of_point = {p: j for j, p in rig.joints.items()}
-        jindex = {name: i for i, name in enumerate(joint_names)}
-        n = len(rig.bones)
-        origin_joint = np.full(n, -1, np.int64)
-        origin_bone = np.full(n, -1, np.int64)
-        origin_of_origin = np.zeros(n, bool)
-        tip_joint = np.full(n, -1, np.int64)
-        origin_at: dict[str, tuple[int, bool]] = {}
-        for b, bone in enumerate(rig.bones):
-            oj = jindex.get(joint_of_point.get(bone.origin, ""), -1)
-            tj = jindex.get(joint_of_point.get(bone.aim, ""), -1)
-            origin_joint[b], tip_joint[b] = oj, tj
-            if oj < 0 and bone.origin in origin_at:
-                origin_bone[b], origin_of_origin[b] = origin_at[bone.origin]
-            origin_at.setdefault(bone.origin, (b, True))
-            origin_at.setdefault(bone.aim, (b, False))
+        points: dict[str, int] = {}
+        for bone in rig.bones:
+            points.setdefault(bone.origin, len(points))
+            points.setdefault(bone.aim, len(points))
+        joint_point = np.array(
+            [points.get(rig.joints.get(name, ""), -1) for name in joint_names],
+            dtype=np.int64,
+        )
+        roots = [points[b.origin] for b in rig.bones if b.parent is None]
         return SkeletonProgram(
-            origin_joint=origin_joint,
-            origin_bone=origin_bone,
-            origin_of_origin=origin_of_origin,
-            tip_joint=tip_joint,
+            n_points=len(points),
+            joint_point=joint_point,
+            origin_point=np.array([points[b.origin] for b in rig.bones], np.int64),
+            tip_point=np.array([points[b.aim] for b in rig.bones], np.int64),
+            root_point=roots[0] if roots else -1,
         )
 
 
@@ -143,9 +143,9 @@ def bone_endpoints(
     Args:
         program: the skeleton program.
         joint_pos: (..., J, 3) metres, world joint centres (NaN when unknown).
-        world_from_bone_quat: (..., B, 4) w x y z; needed for tips that are not joint
-            centres (NaN there when absent).
-        root_pos: (..., 3) metres, world: the root bone's origin when not a joint.
+        world_from_bone_quat: (..., B, 4) w x y z; needed for ends that are not
+            joint centres (those stay NaN without it).
+        root_pos: (..., 3) metres, world: the root bone's origin.
         bone_lengths: (B,) metres, calibrated origin-to-aim lengths.
 
     Returns:
@@ -154,29 +154,26 @@ def bone_endpoints(
     from retargetd.daemon.rotations import quat_rotate
 
     lead = joint_pos.shape[:-2]
-    n = program.n_bones
-    out = np.full((*lead, n, 2, 3), np.nan)
-    for b in range(n):
-        oj = program.origin_joint[b]
-        if oj >= 0:
-            out[..., b, 0, :] = joint_pos[..., oj, :]
-        elif program.origin_bone[b] >= 0:
-            src = program.origin_bone[b]
-            out[..., b, 0, :] = out[
-                ..., src, 0 if program.origin_of_origin[b] else 1, :
-            ]
-        elif b == 0 and root_pos is not None:
-            out[..., b, 0, :] = root_pos
-        tj = program.tip_joint[b]
-        if tj >= 0:
-            out[..., b, 1, :] = joint_pos[..., tj, :]
-        elif world_from_bone_quat is not None and bone_lengths is not None:
-            along = np.zeros((*lead, 3))
-            along[..., 1] = bone_lengths[b]
-            out[..., b, 1, :] = out[..., b, 0, :] + quat_rotate(
-                world_from_bone_quat[..., b, :], along
-            )
-    return out
+    pts = np.full((*lead, program.n_points, 3), np.nan)
+    has = program.joint_point >= 0
+    pts[..., program.joint_point[has], :] = joint_pos[..., has, :]
+    if program.root_point >= 0 and root_pos is not None:
+        r = pts[..., program.root_point, :]
+        pts[..., program.root_point, :] = np.where(np.isnan(r), root_pos, r)
+    o, t = program.origin_point, program.tip_point
+    if world_from_bone_quat is not None and bone_lengths is not None:
+        y = np.zeros((*lead, program.n_bones, 3))
+        y[..., 1] = bone_lengths
+        along = quat_rotate(world_from_bone_quat, y)  # (..., B, 3)
+        for _ in range(program.n_bones):  # each pass reaches one bone further
+            before = np.isnan(pts).sum()
+            for b in range(program.n_bones):
+                po, pt = pts[..., o[b], :], pts[..., t[b], :]
+                pts[..., t[b], :] = np.where(np.isnan(pt), po + along[..., b, :], pt)
+                pts[..., o[b], :] = np.where(np.isnan(po), pt - along[..., b, :], po)
+            if np.isnan(pts).sum() == before:
+                break
+    return np.stack([pts[..., o, :], pts[..., t, :]], axis=-2)
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
