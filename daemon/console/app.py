@@ -30,6 +30,7 @@ from retargetd.daemon.console.snapshot import (
     CMD_RECORD_STOP,
     CMD_RELOAD,
     CommandQueue,
+    ConsoleLayout,
     Snapshot,
     SnapshotSlot,
     bone_endpoints,
@@ -224,7 +225,8 @@ class Console:
 
     def _run(self) -> None:
         period = 1.0 / RENDER_HZ
-        snap = Snapshot.for_layout(self.slot.layout, self.slot.layout_id)
+        layout, layout_id = self.slot.current_layout()
+        snap = Snapshot.for_layout(layout, layout_id)
         seq = 0
         last_plot = 0.0
         last_drops, last_t = 0, 0.0
@@ -233,14 +235,15 @@ class Console:
                 self._tick_countdown()
                 got = self.slot.read(snap, seq)
                 if got < 0:  # new layout
-                    snap = Snapshot.for_layout(self.slot.layout, self.slot.layout_id)
+                    layout, layout_id = self.slot.current_layout()
+                    snap = Snapshot.for_layout(layout, layout_id)
                     self._last_marker_pos = None
                     seq = -1
                     continue
                 if got == seq:
                     continue
                 seq = got
-                self._draw(snap)
+                self._draw(layout, snap)
                 self.frames_drawn += 1
                 if self._plots:
                     dt = snap.t_s - last_t
@@ -270,8 +273,7 @@ class Console:
             if button.label != label:
                 button.label = label
 
-    def _draw(self, s: Snapshot) -> None:
-        layout = self.slot.layout
+    def _draw(self, layout: ConsoleLayout, s: Snapshot) -> None:
         scene = self.server.scene
         with self.server.atomic():
             # Markers: last seen position for occluded ones (greyed).

@@ -362,6 +362,11 @@ class SnapshotSlot:
             ]
             self.seq += 1
 
+    def current_layout(self) -> tuple[ConsoleLayout, int]:
+        """(layout, layout_id) as one consistent pair (for the reader)."""
+        with self._lock:
+            return self.layout, self.layout_id
+
     def due(self, now_ns: int | None = None) -> bool:
         """True when a publish is due at ``publish_hz`` (and schedules the next).
 

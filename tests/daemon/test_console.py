@@ -269,3 +269,34 @@ def test_solve_as_foxglove_mcap(solved: tuple[Path, Path], tmp_path: Path) -> No
     ok = np.isfinite(ends[100]).all(axis=(1, 2))
     np.testing.assert_allclose(got, ends[100][ok], atol=1e-9)
     assert len(got) == len(rig.bones)  # every bone drawn
+
+
+def test_offline_viewer_shows_a_take_alone(solved: tuple[Path, Path]) -> None:
+    from retargetd.daemon.console.offline import serve_offline
+    from retargetd.replay.takes import load_take
+
+    take_path, _ = solved
+    take = load_take(take_path)
+    viewer = serve_offline(take_path, port=0, block=False)
+    try:
+        assert viewer.seq.layout.joint_names == ()
+        out = Snapshot.for_layout(viewer.slot.layout)
+
+        def drawn(n: int) -> int:  # the page's render thread drew n snapshots
+            t_end = time.monotonic() + 10
+            while viewer.console.frames_drawn < n and time.monotonic() < t_end:
+                time.sleep(0.02)
+            return viewer.console.frames_drawn
+
+        assert drawn(1) == 1  # frame 0
+        viewer.frame.value = 17
+        t_end = time.monotonic() + 10
+        while time.monotonic() < t_end:
+            if viewer.slot.read(out, 0) > 0 and out.frame == 17:
+                break
+            time.sleep(0.02)
+        assert out.frame == 17
+        np.testing.assert_array_equal(out.marker_pos, take.positions[17])
+        assert drawn(2) == 2
+    finally:
+        viewer.stop()

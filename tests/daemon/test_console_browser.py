@@ -242,3 +242,67 @@ def test_console_in_chromium(driver: Any) -> None:
         assert commands.poll() is None
     finally:
         console.stop()
+
+
+@pytest.fixture(scope="module")
+def solved(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    from retargetd.daemon.cli import main
+
+    d = tmp_path_factory.mktemp("view")
+    take, npz = d / "s.c3d", d / "s.npz"
+    assert main(["synth", "--seconds", "3", "--rate", "60", "--out", str(take)]) == 0
+    args = ["solve", str(take), "--rig", "menache", "--calibrate-frames", "0:60"]
+    assert main([*args, "--out", str(npz)]) == 0
+    return take, npz
+
+
+def test_view_timeline_in_chromium(driver: Any, solved: tuple[Path, Path]) -> None:
+    from selenium.webdriver.common.by import By
+    from selenium.webdriver.common.keys import Keys
+    from selenium.webdriver.support import expected_conditions as ec
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    from retargetd.daemon.console import Snapshot
+    from retargetd.daemon.console.offline import serve_offline
+
+    take, npz = solved
+    viewer = serve_offline(npz, take=take, flagged_frames=[30], port=0, block=False)
+    try:
+        out = Snapshot.for_layout(viewer.slot.layout)
+
+        def shown(want: int, timeout_s: float = 20.0) -> int:
+            t_end = time.monotonic() + timeout_s
+            while time.monotonic() < t_end:
+                if viewer.slot.read(out, 0) > 0 and out.frame == want:
+                    break
+                time.sleep(0.05)
+            return out.frame
+
+        driver.get(viewer.url)
+        wait = WebDriverWait(driver, 60)
+        thumb = wait.until(
+            ec.element_to_be_clickable((By.CSS_SELECTOR, "[role='slider']"))
+        )
+        assert shown(0) == 0
+        thumb.click()
+        for _ in range(5):
+            thumb.send_keys(Keys.ARROW_RIGHT)
+        assert shown(int(viewer.frame.value)) == viewer.frame.value
+        assert viewer.frame.value >= 5, "arrow keys on the slider did not scrub"
+        with np.load(npz, allow_pickle=False) as z:
+            np.testing.assert_array_equal(out.joint_pos, z["joint_centres"][out.frame])
+        # Play, through the page: the frame moves on by itself.
+        play = driver.find_element(
+            By.XPATH,
+            "//label[normalize-space(.)='Play']/ancestor::*[.//input][1]//input",
+        )
+        driver.execute_script("arguments[0].click();", play)
+        t_end = time.monotonic() + 20
+        while viewer.play.value is not True and time.monotonic() < t_end:
+            time.sleep(0.05)
+        assert viewer.play.value is True
+        start = int(viewer.frame.value)
+        time.sleep(1.0)
+        assert int(viewer.frame.value) > start
+    finally:
+        viewer.stop()
