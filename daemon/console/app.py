@@ -140,7 +140,9 @@ class Console:
         from viser import uplot
 
         gui = self.server.gui
-        gui.configure_theme(control_width="medium")
+        # No share button: it would open a tunnel through viser's public relay; the
+        # console stays on the network it is served on.
+        gui.configure_theme(control_width="medium", show_share_button=False)
         self._status = gui.add_markdown(f"**{html.escape(self._title)}**: waiting")
         self._buttons: dict[str, Any] = {}
         if self.commands is not None:
