@@ -15,6 +15,7 @@ from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
 from scipy.spatial.transform import Rotation
 
+from retargetd.daemon.console.snapshot import SkeletonProgram, bone_endpoints
 from retargetd.daemon.performer import synthesize
 from retargetd.protocols import osc_in
 from retargetd.protocols.marker_input import LabelSet
@@ -181,3 +182,43 @@ def test_channels_refuse_mismatched_parents() -> None:
     w.start()
     with pytest.raises(ValueError, match="one entry per bone"):
         fg.FoxgloveChannels(w, ("a", "b"), (-1,))
+
+
+def test_live_recorder_writes_the_skeleton_beside_the_packets(tmp_path: Path) -> None:
+    from retargetd.replay.foxglove_recorder import open_skeleton_recorder
+
+    p = _performer()
+    take = p["take"]
+    labels = LabelSet(1, take.labels)
+    par = take.segment_parents
+    program = SkeletonProgram.from_joint_pairs(
+        [(int(par[s]), s) for s in range(len(par)) if par[s] >= 0]
+    )
+
+    def bone_ends_fn(joints: np.ndarray, quats: np.ndarray, root: np.ndarray) -> Any:
+        return bone_endpoints(program, joints)  # what the daemon supplies
+
+    path = tmp_path / "live.mcap"
+    rec = open_skeleton_recorder(
+        path, (InputInfo(name="osc", form="osc-compact"),),
+        bone_names=p["bone_names"], bone_parents=p["bone_parents"],
+        bone_ends_fn=bone_ends_fn,
+    )  # fmt: skip
+    t0 = time.monotonic_ns()
+    rec.record_packet("osc", rf.FORM_OSC_COMPACT, t0, osc_in.encode_labels(labels))
+    for i, row in enumerate(take.markers_world):
+        t = t0 + round(i * 1e9 / RATE_HZ)
+        buf = osc_in.encode_compact_frame(i, i / RATE_HZ, labels.id, row)
+        rec.record_packet("osc", rf.FORM_OSC_COMPACT, t, buf)
+        joints = take.joint_pos_world[i]
+        assert rec.record_skeleton(
+            t, joints, p["world_from_bone_quat"][i], joints[0], p["bone_flags"][i],
+            take.markers_world[i], take.valid[i],
+        )  # fmt: skip
+    assert rec.close().dropped == 0
+    raw = [m.log_time_ns for m in rf.read_recording(path).topic(rf.RAW_TOPIC)][1:]
+    # Same clock as the packets: frame i's skeleton is logged with its packet.
+    _check_frames(_decoded(path), p, np.asarray(raw))
+    np.testing.assert_array_equal(
+        load_take(path).positions, take.markers_world.astype(np.float32)
+    )
