@@ -71,16 +71,17 @@ def _stamp(t_ns: int) -> Any:
 
 
 def _rotate(q: F64Array, v: F64Array) -> F64Array:
-    """v (3,) rotated by the unit quaternion q (4,) w x y z (replay may not import
-    the daemon's rotations)."""
-    w, u = q[0], q[1:]
+    """v (..., 3) rotated by unit quaternions q (..., 4) w x y z (replay may not
+    import the daemon's rotations)."""
+    w, u = q[..., :1], q[..., 1:]
     return v + 2.0 * np.cross(u, np.cross(u, v) + w * v)
 
 
 def _mul(a: F64Array, b: F64Array) -> F64Array:
-    """Hamilton product a * b of (4,) w x y z quaternions."""
-    w1, v1, w2, v2 = a[0], a[1:], b[0], b[1:]
-    return np.r_[w1 * w2 - v1 @ v2, w1 * v2 + w2 * v1 + np.cross(v1, v2)]
+    """Hamilton products a * b of (..., 4) w x y z quaternions."""
+    w1, v1, w2, v2 = a[..., :1], a[..., 1:], b[..., :1], b[..., 1:]
+    w = w1 * w2 - np.sum(v1 * v2, axis=-1, keepdims=True)
+    return np.concatenate([w, w1 * v2 + w2 * v1 + np.cross(v1, v2)], axis=-1)
 
 
 class FoxgloveChannels:
@@ -116,6 +117,10 @@ class FoxgloveChannels:
         )
         channels[HEALTH_TOPIC] = writer.register_channel(HEALTH_TOPIC, "json", hid)
         self._channels = channels
+        self._frames = [BONE_FRAME_PREFIX + n for n in self.bone_names]
+        self._parent_frames = [
+            WORLD_FRAME if p < 0 else self._frames[p] for p in self.bone_parents
+        ]
         self._seq = dict.fromkeys(channels, 0)
 
     def _add(self, topic: str, t_ns: int, data: bytes) -> None:
@@ -164,12 +169,14 @@ class FoxgloveChannels:
         stamp = _stamp(t_ns)
         ok = np.isfinite(bone_ends).all(axis=(1, 2))
         flags = np.zeros(len(ok), bool) if bone_flags is None else bone_flags != 0
-        pts, cols = [], []
-        for b in np.flatnonzero(ok):
-            rgba = FLAGGED_RGBA if flags[b] else BONE_RGBA
-            for end in bone_ends[b]:
-                pts.append(Point3(x=float(end[0]), y=float(end[1]), z=float(end[2])))
-                cols.append(Color(r=rgba[0], g=rgba[1], b=rgba[2], a=rgba[3]))
+        # Shared sub-messages (copied into each message on encode).
+        blue, red = (
+            Color(r=c[0], g=c[1], b=c[2], a=c[3]) for c in (BONE_RGBA, FLAGGED_RGBA)
+        )
+        pts = [
+            Point3(x=x, y=y, z=z) for x, y, z in bone_ends[ok].reshape(-1, 3).tolist()
+        ]
+        cols = [red if f else blue for f in np.repeat(flags[ok], 2).tolist()]
         entities = [
             SceneEntity(
                 timestamp=stamp,
@@ -190,16 +197,15 @@ class FoxgloveChannels:
             if marker_valid is not None:
                 seen &= marker_valid
             r, g, b_, a = MARKER_RGBA
+            size = Vector3(x=MARKER_SIZE_M, y=MARKER_SIZE_M, z=MARKER_SIZE_M)
+            orange, upright = Color(r=r, g=g, b=b_, a=a), Quaternion(w=1.0)
             spheres = [
                 SpherePrimitive(
-                    pose=Pose(
-                        position=Vector3(x=float(p[0]), y=float(p[1]), z=float(p[2])),
-                        orientation=Quaternion(w=1.0),
-                    ),
-                    size=Vector3(x=MARKER_SIZE_M, y=MARKER_SIZE_M, z=MARKER_SIZE_M),
-                    color=Color(r=r, g=g, b=b_, a=a),
+                    pose=Pose(position=Vector3(x=x, y=y, z=z), orientation=upright),
+                    size=size,
+                    color=orange,
                 )
-                for p in markers[seen]
+                for x, y, z in markers[seen].tolist()
             ]
             entities.append(
                 SceneEntity(
@@ -210,36 +216,35 @@ class FoxgloveChannels:
                 )
             )
         self._add(SCENE_TOPIC, t_ns, SceneUpdate(entities=entities).encode())
-        # Bone frames, each in its parent's.
+        # Bone frames, each in its parent's: t = parent^-1 (origin - parent origin),
+        # r = parent^-1 * bone (world_from_bone for a root), for all bones at once.
         q = world_from_bone_quat
-        qok = ok & np.isfinite(q).all(axis=1)
-        transforms = []
-        for bi in np.flatnonzero(qok):
-            p = int(self.bone_parents[bi])
-            origin = bone_ends[bi, 0]
-            if p < 0:
-                parent, t, r_q = WORLD_FRAME, origin, q[bi]
-            elif qok[p]:
-                parent = BONE_FRAME_PREFIX + self.bone_names[p]
-                inv = q[p] * (1.0, -1.0, -1.0, -1.0)
-                t = _rotate(inv, origin - bone_ends[p, 0])
-                r_q = _mul(inv, q[bi])
-            else:
-                continue
-            transforms.append(
-                FrameTransform(
-                    timestamp=stamp,
-                    parent_frame_id=parent,
-                    child_frame_id=BONE_FRAME_PREFIX + self.bone_names[bi],
-                    translation=Vector3(x=float(t[0]), y=float(t[1]), z=float(t[2])),
-                    rotation=Quaternion(
-                        w=float(r_q[0]),
-                        x=float(r_q[1]),
-                        y=float(r_q[2]),
-                        z=float(r_q[3]),
-                    ),
-                )
+        par = self.bone_parents
+        root = par < 0
+        pi = np.where(root, 0, par)
+        inv = np.where(
+            root[:, None], (1.0, 0.0, 0.0, 0.0), q[pi] * (1.0, -1.0, -1.0, -1.0)
+        )
+        base = np.where(root[:, None], 0.0, bone_ends[pi, 0])
+        trans = _rotate(inv, bone_ends[:, 0] - base)
+        rot = _mul(inv, q)
+        good = ok & np.isfinite(q).all(axis=1)
+        good &= root | good[pi]
+        transforms = [
+            FrameTransform(
+                timestamp=stamp,
+                parent_frame_id=self._parent_frames[bi],
+                child_frame_id=self._frames[bi],
+                translation=Vector3(x=tx, y=ty, z=tz),
+                rotation=Quaternion(w=rw, x=rx, y=ry, z=rz),
             )
+            for bi, (tx, ty, tz), (rw, rx, ry, rz) in zip(
+                np.flatnonzero(good).tolist(),
+                trans[good].tolist(),
+                rot[good].tolist(),
+                strict=True,
+            )
+        ]
         self._add(TF_TOPIC, t_ns, FrameTransforms(transforms=transforms).encode())
 
     def write_health(self, t_ns: int, figures: Mapping[str, Any]) -> None:

@@ -64,7 +64,9 @@ class SkeletonProgram:
     known where it is a solved joint centre, or the root bone's origin (the solve's
     root position); from a known end, the other end of a bone is reached along the
     bone's +Y axis by its calibrated length (``world_from_bone * (0, L, 0)``, forward
-    from the origin or back from the tip), repeated until nothing more is found.
+    from the origin or back from the tip), repeated until nothing more is found. Which
+    end is reached from which is planned once here (``steps``, in levels: each level
+    a few index arrays), so placing a frame is a handful of vectorised numpy calls.
 
     Attributes:
         n_points: number of points P.
@@ -80,6 +82,39 @@ class SkeletonProgram:
     origin_point: IntArray
     tip_point: IntArray
     root_point: int = -1
+    #: Planned levels: (bone, source point, destination point, +1 forward / -1
+    #: back) index arrays per level (computed from the fields above).
+    steps: tuple[tuple[IntArray, IntArray, IntArray, F64Array], ...] = field(
+        init=False, default=()
+    )
+
+    def __post_init__(self) -> None:
+        known = {int(p) for p in self.joint_point if p >= 0}
+        if self.root_point >= 0:
+            known.add(self.root_point)
+        levels = []
+        while True:
+            level: dict[int, tuple[int, int, float]] = {}  # dst -> (bone, src, sign)
+            for b in range(self.n_bones):
+                o, t = int(self.origin_point[b]), int(self.tip_point[b])
+                if o in known and t not in known:
+                    level.setdefault(t, (b, o, 1.0))
+                elif t in known and o not in known:
+                    level.setdefault(o, (b, t, -1.0))
+            if not level:
+                break
+            dst = np.fromiter(level, np.int64, len(level))
+            vals = list(level.values())
+            levels.append(
+                (
+                    np.array([v[0] for v in vals], np.int64),
+                    np.array([v[1] for v in vals], np.int64),
+                    dst,
+                    np.array([v[2] for v in vals])[:, None],
+                )
+            )
+            known.update(level)
+        object.__setattr__(self, "steps", tuple(levels))
 
     @property
     def n_bones(self) -> int:
@@ -165,14 +200,8 @@ def bone_endpoints(
         y = np.zeros((*lead, program.n_bones, 3))
         y[..., 1] = bone_lengths
         along = quat_rotate(world_from_bone_quat, y)  # (..., B, 3)
-        for _ in range(program.n_bones):  # each pass reaches one bone further
-            before = np.isnan(pts).sum()
-            for b in range(program.n_bones):
-                po, pt = pts[..., o[b], :], pts[..., t[b], :]
-                pts[..., t[b], :] = np.where(np.isnan(pt), po + along[..., b, :], pt)
-                pts[..., o[b], :] = np.where(np.isnan(po), pt - along[..., b, :], po)
-            if np.isnan(pts).sum() == before:
-                break
+        for bone, src, dst, sign in program.steps:
+            pts[..., dst, :] = pts[..., src, :] + sign * along[..., bone, :]
     return np.stack([pts[..., o, :], pts[..., t, :]], axis=-2)
 
 
