@@ -98,6 +98,7 @@ class Console:
         self._thread: threading.Thread | None = None
         self._lock = threading.Lock()
         self._calibrate_at = 0.0  # time.monotonic() of the pending calibrate, or 0
+        self._recording = False  # as last published by the loop
         self.server: Any = None
         #: Snapshots drawn (render thread).
         self.frames_drawn = 0
@@ -215,13 +216,12 @@ class Console:
             self._calibrate_at = time.monotonic() + self._countdown_s
 
     def _press_record(self) -> None:
-        button = self._buttons["record"]
-        if button.label == "Record start":
-            self._put(CMD_RECORD_START, self._record_name.value.strip())
-            button.label = "Record stop"
-        else:
+        # The loop's state decides (the snapshot's ``recording``), not the label:
+        # a start the loop refused leaves the button at "Record start".
+        if self._recording:
             self._put(CMD_RECORD_STOP)
-            button.label = "Record start"
+        else:
+            self._put(CMD_RECORD_START, self._record_name.value.strip())
 
     # ---- render thread ---------------------------------------------------------------
 
@@ -323,6 +323,11 @@ class Console:
                 if s.face_on:
                     self._face_html.content = _face_bars(layout.face_names, s)
             self._status.content = _status_text(self._title, s)
+            self._recording = s.recording
+            button = self._buttons.get("record")
+            label = "Record stop" if s.recording else "Record start"
+            if button is not None and button.label != label:
+                button.label = label
 
     def _segments(
         self, name: str, points: np.ndarray, colors: np.ndarray, handle: Any

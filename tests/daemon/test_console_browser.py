@@ -23,6 +23,7 @@ from retargetd.daemon.console import (
     CommandQueue,
     ConsoleLayout,
     SkeletonProgram,
+    Snapshot,
     SnapshotSlot,
     bone_endpoints,
 )
@@ -89,6 +90,13 @@ def driver() -> Iterator[Any]:
     finally:
         d.quit()
         shutil.rmtree(profile, ignore_errors=True)
+
+
+def snap_now(slot: SnapshotSlot) -> Snapshot:
+    """A copy of the slot's latest snapshot."""
+    out = Snapshot.for_layout(slot.layout, slot.layout_id)
+    slot.read(out, -2)
+    return out
 
 
 def _project(cam: Any, pts: np.ndarray, w: int, h: int) -> np.ndarray:
@@ -240,6 +248,30 @@ def test_console_in_chromium(driver: Any) -> None:
         assert cmd.kind == "calibrate"
         assert time.monotonic() - t_click >= COUNTDOWN_S * 0.9
         assert commands.poll() is None
+
+        # Record: the file name typed in the page goes with record_start; the button
+        # follows the loop's published state, then sends record_stop.
+        field = driver.find_element(By.XPATH, "//input[@value='take.mcap']")
+        field.clear()
+        field.send_keys("walk01.mcap")
+        t_end = time.monotonic() + 15
+        while console._record_name.value != "walk01.mcap" and time.monotonic() < t_end:
+            time.sleep(0.05)
+        rec = "//button[contains(normalize-space(.), 'Record {}')]"
+        driver.find_element(By.XPATH, rec.format("start")).click()
+        cmd = commands.get(timeout_s=15.0)
+        assert cmd is not None and (cmd.kind, cmd.arg) == (
+            "record_start",
+            "walk01.mcap",
+        )
+        recording = slot.begin()
+        recording.copy_from(snap_now(slot))
+        recording.recording = True
+        assert slot.commit()
+        stop = wait.until(ec.element_to_be_clickable((By.XPATH, rec.format("stop"))))
+        stop.click()
+        cmd = commands.get(timeout_s=15.0)
+        assert cmd is not None and cmd.kind == "record_stop"
     finally:
         console.stop()
 
