@@ -50,6 +50,10 @@ logger = logging.getLogger(__name__)
 #: Queue length: ~34 s of 120 Hz packets; a stalled disk drops beyond it.
 DEFAULT_QUEUE_SIZE = 4096
 DEFAULT_FLUSH_INTERVAL_S = 0.25
+#: The longest flush interval allowed: a killed recorder may lose at most 1 s (issue
+#: 12's requirement for crash loss), so the file is made crash-readable at least once
+#: a second.
+MAX_FLUSH_INTERVAL_S = 1.0
 #: Chunks close at this size even between flushes (bytes, uncompressed).
 DEFAULT_CHUNK_SIZE = 256 * 1024
 
@@ -460,8 +464,11 @@ class Recorder:
     ) -> None:
         if queue_size < 1:
             raise ValueError(f"queue_size must be >= 1; got {queue_size}")
-        if not flush_interval_s > 0:
-            raise ValueError(f"flush_interval_s must be > 0 s; got {flush_interval_s}")
+        if not 0 < flush_interval_s <= MAX_FLUSH_INTERVAL_S:
+            raise ValueError(
+                f"flush_interval_s must be in (0, {MAX_FLUSH_INTERVAL_S:g}] s; got "
+                f"{flush_interval_s}"
+            )
         self.stats = RecorderStats()
         self._queue: queue.Queue[tuple[Any, ...]] = queue.Queue(queue_size)
         self._sink_factory = sink_factory

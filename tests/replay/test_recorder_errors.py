@@ -112,6 +112,13 @@ def _check_truth(path: Path, rec: Recorder, sent: list[bytes]) -> rf.Recording:
     return recording
 
 
+def test_the_flush_interval_is_at_most_a_second() -> None:
+    for bad in (0.0, -1.0, 1.5, float("nan")):
+        with pytest.raises(ValueError, match="flush_interval_s"):
+            Recorder(lambda stats: None, flush_interval_s=bad)
+    Recorder(lambda stats: None, flush_interval_s=1.0)  # the bound itself is fine
+
+
 def _error_lines(caplog: pytest.LogCaptureFixture) -> list[str]:
     return [
         r.getMessage()
@@ -125,7 +132,7 @@ def _error_lines(caplog: pytest.LogCaptureFixture) -> list[str]:
     "where,kw,period_s",
     [
         # A chunk closed by size inside add_message, between flushes.
-        ("chunk", {"chunk_size": 4096, "flush_interval_s": 30.0}, 0.0005),
+        ("chunk", {"chunk_size": 4096, "flush_interval_s": 1.0}, 0.0005),
         # The periodic flush (chunks never reach their size between flushes).
         ("flush", {"chunk_size": 1 << 20, "flush_interval_s": 0.02}, 0.002),
     ],
