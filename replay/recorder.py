@@ -531,6 +531,8 @@ class Recorder:
     def queued(self) -> int:
         """Items accepted and neither in the file nor lost yet (in the queue or in
         the chunk being built)."""
+        if self.failed and self.finished:
+            return 0  # anything put while the writer was failing is not recorded
         st = self.stats
         return max(0, st.accepted - st.items_written - st.write_errors)
 

@@ -11,7 +11,9 @@ as compact OSC:
 - ``retargetd run`` recording onto a full file system (a 256 KiB tmpfs; root only, CI
   runs as root): the recording stops by itself, ``ctl status --json`` ``record``
   says so with the file's own counts, stderr carries one line about it, and the
-  daemon goes on solving.
+  daemon goes on solving;
+- ``retargetd record`` under a file-size limit (``RLIMIT_FSIZE``, unprivileged: the
+  kernel's ``EFBIG``): it stops by itself, prints the file's counts and exits 1.
 """
 
 from __future__ import annotations
@@ -242,13 +244,27 @@ def test_a_full_disk_stops_the_daemon_recording_and_status_tells(
         assert len(lines) == 1 and str(path) in lines[0], err
 
 
-class RecordProc:
-    """``retargetd record --listen osc://127.0.0.1:0 --out FILE``."""
+#: Runs argv[2:] with a file-size limit of argv[1] bytes and SIGXFSZ ignored, so a
+#: write past the limit fails with EFBIG (after a short write), unprivileged.
+_LIMITED = (
+    "import os, resource, signal, sys; "
+    "signal.signal(signal.SIGXFSZ, signal.SIG_IGN); "
+    "n = int(sys.argv[1]); resource.setrlimit(resource.RLIMIT_FSIZE, (n, n)); "
+    "os.execv(sys.argv[2], sys.argv[2:])"
+)
 
-    def __init__(self, out: Path) -> None:
+
+class RecordProc:
+    """``retargetd record --listen osc://127.0.0.1:0 --out FILE``, optionally with a
+    file-size limit (bytes)."""
+
+    def __init__(self, out: Path, fsize_limit: int = 0) -> None:
         self.out = out
+        limit = (
+            [sys.executable, "-c", _LIMITED, str(fsize_limit)] if fsize_limit else []
+        )
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "retargetd.daemon", "record", "--listen",
+            [*limit, sys.executable, "-m", "retargetd.daemon", "record", "--listen",
              "osc://127.0.0.1:0", "--out", str(out)],
             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
         )  # fmt: skip
@@ -288,3 +304,27 @@ def test_a_signal_finishes_the_record_command(
     assert got == sender.sent
     assert f"recorded {len(got)} marker frames" in out, out
     assert recording.json(rf.CONTROL_TOPIC)[-1]["event"] == "record_stop"
+
+
+@pytest.mark.timeout(60)
+def test_a_write_error_stops_the_record_command_with_the_true_counts(
+    tmp_path: Path, sender_for: Callable[[tuple[str, int]], Sender]
+) -> None:
+    rec = RecordProc(tmp_path / "limited.mcap", fsize_limit=60_000)
+    try:
+        sender = sender_for(rec.addr)
+        deadline = time.monotonic() + 30.0
+        while rec.proc.poll() is None:  # it stops by itself
+            assert time.monotonic() < deadline, "the recorder did not stop"
+            sender.send(0.25, 240.0)
+        out, err = rec.proc.communicate(timeout=20)
+    finally:
+        rec.kill()
+    assert rec.proc.returncode == 1, (out, err)
+    assert "stopped early (write failed: File too large (EFBIG))" in err, err
+    recording = rf.read_recording(rec.out)
+    got = _frames(recording)
+    assert got and got == sender.sent[: len(got)]
+    assert f"recorded {len(got)} marker frames" in out, out
+    assert recording.bytes_read == rec.out.stat().st_size <= 60_000
+    print(f"record with a 60 kB limit: {len(got)}/{len(sender.sent)} frames kept")
