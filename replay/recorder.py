@@ -479,6 +479,8 @@ class Recorder:
         self._sink: Sink | None = None
         self.error = ""
         self.failed = False
+        #: ``time.monotonic_ns()`` when the write error stopped the recording, or 0.
+        self.failed_ns = 0
 
     # ---- producer side (the live loop): never blocks --------------------------------
 
@@ -613,6 +615,7 @@ class Recorder:
     def _fail(self, sink: Sink | None, exc: BaseException, what: str) -> None:
         """Stop the recording on a write error: cut the file back to what is
         counted, count what is lost, say why (one log line)."""
+        self.failed_ns = time.monotonic_ns()
         self.failed = True  # producers stop queueing from here on
         lost = 0
         if sink is not None:

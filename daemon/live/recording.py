@@ -201,6 +201,7 @@ class LiveRecording:
         if a is None or not a.recorder.failed:
             return None
         self._retire(a, "write error")
+        a.stopped_ns = a.recorder.failed_ns or a.stopped_ns  # when it failed
         self._failed = a
         return a
 
@@ -249,17 +250,18 @@ class LiveRecording:
         self._reap()
 
 
-def _counts(recorder: Recorder) -> dict[str, int]:
+def _counts(recorder: Recorder) -> dict[str, int | float]:
     """What the file holds (``frames``, ``poses_written``, ``events``: written whole,
     counted by the writer), what is on its way (``queued``), what a full queue refused
     (``dropped_queue_full``) or the envelope cannot hold (``unrecordable``; both in
-    ``dropped``), and what a write error lost (``write_errors``)."""
+    ``dropped``), what a write error lost (``write_errors``), and the receive-time
+    span of the packets in the file (``seconds_in_file``)."""
     st: RecorderStats = recorder.stats
     return {
         "frames": st.frames, "poses_written": st.poses, "events": st.events,
         "queued": recorder.queued, "dropped": st.dropped + st.unrecordable,
         "dropped_queue_full": st.dropped, "unrecordable": st.unrecordable,
-        "write_errors": st.write_errors,
+        "write_errors": st.write_errors, "seconds_in_file": round(st.seconds, 3),
     }  # fmt: skip
 
 

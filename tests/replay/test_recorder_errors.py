@@ -259,6 +259,8 @@ def test_live_recording_full_disk_ends_the_recording_in_status(
         assert "No space left on device (ENOSPC)" in last["error"], last
         recording = _check_truth(path, rec, sent)
         assert last["frames"] == rec.stats.frames
+        t_ns = [p.t_ns for p in recording.packets()]
+        assert last["seconds_in_file"] == round((max(t_ns) - min(t_ns)) * 1e-9, 3)
         assert last["events"] == len(recording.json(rf.CONTROL_TOPIC)) >= 1
         with pytest.raises(ValueError, match="stopped on a write error"):
             live.stop()
