@@ -122,6 +122,10 @@ class VmcEncoder:
         self._floats = np.frombuffer(self._buf, dtype=">f4")
         # Staging, in slot order: (root + bones) x 7, then blend values, then T.
         self._stage: F64Array = np.zeros(len(self._slots))
+        # The staging cast to the wire's dtype first, so the scatter into the
+        # datagrams copies like for like (a float64 -> >f4 scatter made a 4 KB
+        # temporary every frame).
+        self._stage_wire = np.zeros(len(self._slots), dtype=">f4")
         self._pose = self._stage[: 7 * n_pose].reshape(n_pose, 7)
         self._quat = self._pose[:, 3:7]
         self._blend = self._stage[7 * n_pose : 7 * n_pose + len(blends)]
@@ -179,5 +183,6 @@ class VmcEncoder:
         np.copyto(self._last_quat, quat)
         self._blend[:] = blend
         self._stage[-1] = t_s
-        self._floats[self._slots] = self._stage
+        np.copyto(self._stage_wire, self._stage)
+        self._floats[self._slots] = self._stage_wire
         return self.datagrams

@@ -134,6 +134,13 @@ class Daemon(InputsMixin, SendMixin, CalibrationMixin, StatusMixin, ControlMixin
         self._last_names_ns = 0
         self._t0_ns = time.monotonic_ns()
         self._buf = bytearray(_UDP_MAX)
+        # ZeroMQ input parts, received in place: header (a frame's or a label set's
+        # is 32 / 16 bytes; 64 leaves room to see a wrong one), payload (the limit).
+        self._zbuf_header = bytearray(64)
+        self._zbuf_payload = bytearray(config.input.zmq.max_message_bytes)
+        self._zbuf_extra = bytearray(64)
+        self._zview_header = memoryview(self._zbuf_header)
+        self._zview_payload = memoryview(self._zbuf_payload)
         self._allow = frozenset(osc_cfg.allow)
         self._calib_target = 0  # frames still wanted by a live calibration
         self._calib_frames: list[np.ndarray] = []
@@ -155,6 +162,7 @@ class Daemon(InputsMixin, SendMixin, CalibrationMixin, StatusMixin, ControlMixin
         self._validation_bits = 0  # frame bits of the latest validation result
         self._validation_bones: np.ndarray | None = None  # its bone bits
         self._validation_enc: pose_stream.ValidationEncoder | None = None  # RTDV
+        self._validation_results: list[Any] = []  # sized when the validator starts
 
     # ---- lifecycle -------------------------------------------------------------------
 
@@ -262,6 +270,7 @@ class Daemon(InputsMixin, SendMixin, CalibrationMixin, StatusMixin, ControlMixin
             queue_size=v.queue,
         )
         validator.start()
+        self._validation_results = [None] * validator.results_capacity
         self.validator = validator
         self.out(
             f"live validator on: MuJoCo model {validator.vm.digest[:12]}, "
@@ -309,7 +318,7 @@ class Daemon(InputsMixin, SendMixin, CalibrationMixin, StatusMixin, ControlMixin
         timeout = c.poll_timeout_ms
         next_stats = time.monotonic_ns() + int(c.stats_interval_s * 1e9)
         while not should_exit():
-            events = dict(self._poller.poll(timeout))
+            events = self._poller.poll(timeout)  # [(socket or fd, flags)]
             if events:
                 self._service(events)
             now = time.monotonic_ns()

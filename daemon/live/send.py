@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -127,11 +126,12 @@ class SendMixin(DaemonState):
         flags = self._frame_flags | (pose_stream.FRAME_HELD if pose.n_held else 0)
         self._frame_flags = 0
         validator = self.validator
-        results: Sequence[Any] = ()
+        n_results = 0
+        results = self._validation_results
         if validator is not None:
-            results = validator.results()
-            if results:
-                self._take_validation_bits(results)
+            n_results = validator.drain_results(results)  # no allocation
+            if n_results:
+                self._take_validation_bits(results[n_results - 1])
             flags |= self._validation_bits
         # VMC: Unity frame, x y z w.
         engine_unity.unity_quat_xyzw_from_world(
@@ -180,8 +180,8 @@ class SendMixin(DaemonState):
             pose.rest_from_bone_quat, pose.joint_centres,
         ):  # fmt: skip
             self.stats.validation_drops += 1
-        if results:  # published after this frame's pose: never ahead of a send
-            self._publish_validation(results, pipe)
+        if n_results:  # published after this frame's pose: never ahead of a send
+            self._publish_validation(results, n_results, pipe)
         self.stats.frames_out += 1
         if sent_ns - t_start > budget_ns:
             self.stats.overruns += 1
@@ -190,9 +190,8 @@ class SendMixin(DaemonState):
             sent_ns - received_ns,
         )  # fmt: skip
 
-    def _take_validation_bits(self, results: Sequence[Any]) -> None:
+    def _take_validation_bits(self, last: Any) -> None:
         """Keep the latest result's bits for this and the next poses."""
-        last = results[-1]
         self._validation_bits = last.frame_flags & pose_stream.FRAME_VALIDATION_MASK
         bones = last.bone_flags
         if self._validation_bones is None or len(self._validation_bones) != len(bones):
@@ -200,11 +199,12 @@ class SendMixin(DaemonState):
         np.bitwise_and(bones, pose_stream.BONE_VALIDATION_MASK,
                        out=self._validation_bones)  # fmt: skip
 
-    def _publish_validation(self, results: Sequence[Any], pipe: Pipeline) -> None:
-        """Count every result and publish it as an ``RTDV`` message (the frame it
-        belongs to, its values), written into a reused buffer. The validator sets
-        only the validation bits (frame bits 8-15, bone bits 4-7)."""
-        for r in results:
+    def _publish_validation(self, results: list[Any], n: int, pipe: Pipeline) -> None:
+        """Count the first ``n`` results and publish each as an ``RTDV`` message (the
+        frame it belongs to, its values), written into a reused buffer. The validator
+        sets only the validation bits (frame bits 8-15, bone bits 4-7)."""
+        for k in range(n):
+            r = results[k]
             self.stats.validated += 1
             if r.frame_flags:
                 self.stats.validation_flagged += 1

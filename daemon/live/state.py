@@ -80,6 +80,11 @@ class DaemonState:
     _last_names_ns: int
     _t0_ns: int
     _buf: bytearray
+    _zbuf_header: bytearray
+    _zbuf_payload: bytearray
+    _zbuf_extra: bytearray
+    _zview_header: memoryview
+    _zview_payload: memoryview
     _allow: frozenset[str]
     _calib_target: int
     _calib_frames: list[np.ndarray]
@@ -93,6 +98,7 @@ class DaemonState:
     _validation_bits: int
     _validation_bones: np.ndarray | None
     _validation_enc: pose_stream.ValidationEncoder | None
+    _validation_results: list[Any]  # reused by LiveValidator.drain_results
     _log_after_ns: dict[str, int]
 
     def _start_validator(self) -> None:  # implemented by Daemon

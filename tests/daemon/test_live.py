@@ -1272,7 +1272,7 @@ def test_renamed_labels_under_the_id_in_use_never_reach_the_solve(
     # The poses after the conflict are the solve of the genuine frames.
     oracle, _ = _solve_oracle(exact_calibration, [m for _, m in src.sent])
     np.testing.assert_allclose(
-        sub.poses[-1].parent_from_bone_quat, oracle[-1][1].astype(np.float32), atol=1e-6
+        sub.poses[-1].rest_from_bone_quat, oracle[-1][1].astype(np.float32), atol=1e-6
     )
     assert len(disputed) == 8
 
