@@ -240,9 +240,16 @@ def load_rig(name_or_path: str | Path) -> Rig:
             )
         return parse_rig(resource.read_text(), source=f"{text_name} (shipped)")
     try:
-        text = path.read_text()
+        data = path.read_bytes()
     except OSError as exc:
         raise RigError(f"{path}: cannot read rig file: {exc.strerror}") from None
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise RigError(
+            f"{path}: not UTF-8 text (byte 0x{data[exc.start]:02x} at offset "
+            f"{exc.start})"
+        ) from None
     return parse_rig(text, source=str(path))
 
 

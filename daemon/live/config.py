@@ -361,10 +361,18 @@ def _check_field(value: Any, meta: Any, name: str, source: str) -> None:
     check = meta.get("check", "")
     try:
         _apply_rule(check, meta, value)
+    except _ItemError as exc:  # one item of a list: input.osc.allow[0]: ...
+        raise ConfigError(f"{source}: {name}[{exc.index}]: {exc}") from None
     except ValueError as exc:
-        text = str(exc)
-        sep = "" if text.startswith("[") else ": "  # an item: input.osc.allow[0]: ..
-        raise ConfigError(f"{source}: {name}{sep}{text}") from None
+        raise ConfigError(f"{source}: {name}: {exc}") from None
+
+
+class _ItemError(ValueError):
+    """A rule failed on item ``index`` of a list value."""
+
+    def __init__(self, index: int, message: str) -> None:
+        super().__init__(message)
+        self.index = index
 
 
 def _apply_rule(check: str, meta: Any, value: Any) -> None:
@@ -387,7 +395,7 @@ def _apply_rule(check: str, meta: Any, value: Any) -> None:
             try:
                 _check_host(host)
             except ValueError as exc:
-                raise ValueError(f"[{i}]: {exc}") from None
+                raise _ItemError(i, str(exc)) from None
     elif check == "endpoint":
         parse_endpoint(value)
     elif check == "units":
