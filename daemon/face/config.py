@@ -136,7 +136,9 @@ def parse_face_config(doc: dict[str, Any], src: str, default_name: str) -> FaceC
     facial = _names(src, doc, "facial_markers", required=False)
     both = sorted(set(head) & set(facial))
     if both:
-        raise FaceConfigError(f"{src}: markers both head and facial: {both}")
+        raise FaceConfigError(
+            f"{src}: facial_markers: markers also in head_markers: {both}"
+        )
     exprs = _names(src, doc, "expressions", required=True)
     if not exprs:
         raise FaceConfigError(f"{src}: expressions: empty")
