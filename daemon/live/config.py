@@ -16,6 +16,12 @@ performer, run side by side):
 | control socket (ZeroMQ REP) | ``control.endpoint`` | tcp://127.0.0.1:39573 |
 | OSC show-control (UDP, VMC performer port) | ``show_control.port`` | 127.0.0.1:39540 |
 | VMC output (UDP) | ``output.vmc.port`` | 127.0.0.1:39539 |
+
+Each field carries its rule (``_spec``: a range, choices, an address, an endpoint, a
+file...), applied as the key is read; ``_check`` adds the rules across keys: off
+loopback needs ``allow_remote`` (and CURVE for control, a token for show control), a
+broadcast VMC target needs ``allow_broadcast``. A test walks these dataclasses and
+gives every key a wrong type, an out-of-range value and a misspelling.
 """
 
 from __future__ import annotations

@@ -10,7 +10,9 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import tomllib
 from collections.abc import Iterator
+from importlib import resources
 from pathlib import Path
 from typing import Any
 
@@ -186,3 +188,17 @@ def test_non_utf8_config_rig_and_face_config_one_line(
         err = capsys.readouterr().err
         assert err.count("\n") == 1 and "Traceback" not in err, err
         assert f"{where}: not UTF-8 text" in err, err
+
+
+def test_the_example_config_names_every_key() -> None:
+    example = resources.files("retargetd.daemon.live") / "retargetd.example.toml"
+    doc = tomllib.loads(example.read_text())
+
+    def flat(d: dict[str, Any], prefix: str = "") -> Iterator[str]:
+        for k, v in d.items():
+            if isinstance(v, dict):
+                yield from flat(v, f"{prefix}{k}.")
+            else:
+                yield f"{prefix}{k}"
+
+    assert set(flat(doc)) == set(LEAVES)
