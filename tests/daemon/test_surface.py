@@ -62,6 +62,7 @@ _take, _wait_until, RATE_HZ = _live._take, _live._wait_until, _live.RATE_HZ
 start_daemon = _live.start_daemon  # fixtures, re-exported for this module
 exact_calibration = _live.exact_calibration
 osc_source = _live.osc_source
+streamer = _live.streamer
 
 #: Comfortable walking speed (Bohannon 1997: 1.3-1.5 m/s).
 WALK_M_S = 1.3
@@ -230,14 +231,33 @@ def test_pending_calibration_expires_without_markers(
 
 
 def test_reload_flood_is_rate_limited_and_counted(
-    start_daemon: Callable[..., Any], udp_socket: Callable[..., socket.socket]
+    start_daemon: Callable[..., Any],
+    osc_source: Callable[..., Any],
+    udp_socket: Callable[..., socket.socket],
+    zmq_socket: Callable[[int], Any],
+    streamer: Callable[[Any], Any],
+    exact_calibration: Path,
 ) -> None:
-    live = start_daemon({"control": {"min_interval_s": 30.0}})
+    """200 ``/rtd/reload`` at ~200/s while streaming: one reload, 199 refused and
+    counted, one log line, and the pose stream never stops (it stopped 2.3 s)."""
+    live = start_daemon(
+        {
+            "performer": {"calibration": str(exact_calibration)},
+            "control": {"min_interval_s": 30.0},
+        }
+    )
+    sub = PoseSub(zmq_socket(zmq.SUB), live.tcp("zmq poses"))
+    feed = streamer(osc_source(live))
+    sub.wait(lambda: len(sub.poses) > 20, "the stream")
     sock, show = udp_socket(), live.udp("show control")
     for _ in range(200):
         sock.sendto(_osc("/rtd/reload"), show)
-        time.sleep(0.0005)
+        time.sleep(0.005)
+        sub.pump(0)
     _wait_until(lambda: sum(_refused(live).values()) == 199, "199 refusals")
+    n_before = len(sub.poses)
+    sub.wait(lambda: len(sub.poses) > n_before + 20, "poses after the flood")
+    feed.stop()
     assert _refused(live) == {"rate_limited": 199}
     assert sum(ln.startswith("reloaded rig") for ln in live.lines) == 1
     reply = live.ctl({"cmd": "reload"})
@@ -245,6 +265,11 @@ def test_reload_flood_is_rate_limited_and_counted(
     assert live.ctl({"cmd": "status"})["status"]["counters"]["rate_limited"] == 200
     # The refusals logged one line, not 199.
     assert sum("rate limited" in ln for ln in live.lines) == 1
+    gaps = np.diff([p.sent_ns for p in sub.poses]) * 1e-9
+    assert gaps.max() < 0.25, gaps.max()  # the source sends every ~5 ms
+    print(
+        f"\nreload flood: {len(sub.poses)} poses, longest gap {gaps.max() * 1e3:.0f} ms"
+    )
 
 
 def test_ready_bundles_are_logged_once_then_summarized(
@@ -270,6 +295,7 @@ def test_ready_bundles_are_logged_once_then_summarized(
     )
     size = sum(len(ln) + 1 for ln in live.lines)
     assert size < 10_000, size  # 200 x 50 lines were 1.26 MB
+    print(f"\n200 bundles of 50 Calib/Ready: {size} bytes of output in all")
 
 
 def test_rate_limited_log_and_limiter_units() -> None:
