@@ -74,6 +74,7 @@ def main() -> None:
             joint_centres=solve.joint_centres[t],
             world_from_bone_quat=solve.world_from_bone_quat[t],
             parent_from_bone_quat=solve.parent_from_bone_quat[t],
+            rest_from_bone_quat=solve.rest_from_bone_quat[t],
             root_pos=solve.root_pos[t],
             bone_quality=solve.bone_quality[t],
             bone_flags=solve.bone_flags[t],
@@ -100,7 +101,7 @@ def main() -> None:
     for f in range(n):
         rt.apply(poses[f], out)
         ref(rt, poses[f], ref_out, scratch)
-        for name in ("world_from_bone_quat", "parent_from_bone_quat", "root_pos"):
+        for name in ("world_from_bone_quat", "rest_from_bone_quat", "root_pos"):
             d = np.abs(getattr(out, name) - getattr(ref_out, name)).max()
             worst = max(worst, float(d))
         assert (out.flags == ref_out.flags).all()

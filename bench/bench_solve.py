@@ -283,7 +283,7 @@ def _agree(
             continue  # the baselines do not handle occlusion
         solver.reset()
         solver.solve_frame(frame, out)
-        got = np.concatenate([out.world_from_bone_quat, out.parent_from_bone_quat])
+        got = np.concatenate([out.world_from_bone_quat, out.rest_from_bone_quat])
         want = baseline(frame)
         sign = np.where(np.sum(got * want, axis=-1, keepdims=True) < 0, -1.0, 1.0)
         worst = max(worst, float(np.abs(got - sign * want).max()))

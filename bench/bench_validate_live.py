@@ -131,7 +131,7 @@ class Take:
         return (
             s.root_pos[t],
             s.world_from_bone_quat[t],
-            s.parent_from_bone_quat[t],
+            s.rest_from_bone_quat[t],
             s.joint_centres[t],
         )
 
@@ -156,7 +156,7 @@ def bench_baselines(take: Take, calls: int) -> tuple[np.ndarray, float]:
     def step(i: int) -> None:
         t = i % take.n
         checker.check(s.root_pos[t], s.world_from_bone_quat[t, root],
-                      s.parent_from_bone_quat[t])  # fmt: skip
+                      s.rest_from_bone_quat[t])  # fmt: skip
 
     us = _time_calls(step, calls)
     fit = fit_pairs(take.rig, s.joint_names)
@@ -279,7 +279,7 @@ def bench_gil(take: Take, rate_hz: float, seconds: float) -> None:
                         enc.encode(
                             tick, float("nan"), t0, t0, 0, solved.root_pos,
                             solved.world_from_bone_quat,
-                            solved.parent_from_bone_quat, weights, solved.bone_flags,
+                            solved.rest_from_bone_quat, weights, solved.bone_flags,
                         )  # fmt: skip
                         t1 = clock()
                         lt[i] = t0 - next_ns
@@ -292,7 +292,7 @@ def bench_gil(take: Take, rate_hz: float, seconds: float) -> None:
                         for _ in range(k):
                             v.submit(tick, t0, solved.root_pos,
                                      solved.world_from_bone_quat,
-                                     solved.parent_from_bone_quat,
+                                     solved.rest_from_bone_quat,
                                      solved.joint_centres)  # fmt: skip
                 finally:
                     gc.enable()

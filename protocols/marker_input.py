@@ -40,6 +40,11 @@ REASONS: tuple[str, ...] = (
     "duplicate",
     "stale",
     "unknown_label",
+    "implausible_jump",
+    "label_conflict",
+    "conflicting_labels",
+    "too_large",
+    "too_many_markers",
     "bad_length",
     "bad_address",
     "bad_typetags",
@@ -57,6 +62,7 @@ REASONS: tuple[str, ...] = (
     "count_mismatch",
     "duplicate_marker",
     "bad_label",
+    "no_3d",
     "other",
 )
 REASON_INDEX: dict[str, int] = {name: i for i, name in enumerate(REASONS)}
@@ -66,11 +72,46 @@ BACKWARDS = REASON_INDEX["backwards"]
 DUPLICATE = REASON_INDEX["duplicate"]
 STALE = REASON_INDEX["stale"]
 UNKNOWN_LABEL = REASON_INDEX["unknown_label"]
+IMPLAUSIBLE_JUMP = REASON_INDEX["implausible_jump"]
+LABEL_CONFLICT = REASON_INDEX["label_conflict"]
+CONFLICTING_LABELS = REASON_INDEX["conflicting_labels"]
+TOO_MANY_MARKERS = REASON_INDEX["too_many_markers"]
 OTHER = REASON_INDEX["other"]
 
 #: A frame number that goes back after this long without an accepted frame is a
 #: restarted source (1 s).
 RESTART_GAP_NS = 1_000_000_000
+
+#: The fastest a source's frame numbers can plausibly count. The fastest optical
+#: capture systems reach a few kHz only at reduced resolution: Vicon MX cameras up to
+#: 2,000 fps (Vicon MX Hardware System Reference, "Increased Frame Rates"), Qualisys
+#: Oqus high-speed cameras up to 10,000 fps (QTM manual, "Capture high-speed video").
+#: Configurable per input (``max_rate_hz``).
+MAX_RATE_HZ = 10_000.0
+
+#: Delivery jitter allowed on top of the elapsed receive time: two frames' one-way
+#: delays (network queues, the socket buffer while the loop is busy) may differ by
+#: this much. At 10 kHz it allows 1,000 extra frames, still 2^52 times below a
+#: spoofed 2^62; a larger real jump (frames lost in the kernel during a long stall)
+#: costs only ``JUMP_CONFIRM_FRAMES`` frames before it is adopted as a restart.
+JUMP_SLACK_NS = 100_000_000
+
+#: A frame sequence that does not continue the accepted one (an implausible jump
+#: forward, or backwards) is adopted, as a restart, once this many of its frames have
+#: arrived in a row, each a plausible successor of the one before, with no frame of
+#: the accepted sequence in between. One corrupted or spoofed packet never is; a
+#: source that really jumped (a take seeked, looped or restarted) loses 2 frames.
+JUMP_CONFIRM_FRAMES = 3
+
+#: Markers in one label set, every input. A compact OSC frame must fit one UDP
+#: datagram (65,507 bytes of IPv4 payload): (65,507 - 48) / 12 = 5,454 markers. The
+#: same bound on ZeroMQ keeps every label set carriable by both inputs.
+MAX_MARKERS = 5_454
+
+#: Largest message an input takes, bytes: the IPv4 UDP payload limit (65,535 - 8-byte
+#: UDP header - 20-byte IP header); a 5,454-marker ZeroMQ frame payload (65,448 bytes)
+#: fits. Configurable per input (``max_message_bytes``).
+MAX_MESSAGE_BYTES = 65_507
 
 
 @dataclass(frozen=True, slots=True)
@@ -109,6 +150,8 @@ class MarkerPacket:
         world_from_capture_scaled_mat: (3, 3) float64, read-only: ``world_from_capture``
             times the input's unit-to-metres factor.
         label_index: name -> row, for the simple (per-marker) form.
+        zero_is_occluded: an exact (0, 0, 0) row is occluded (many capture systems
+            send zeros, not NaN, for a marker they do not see).
     """
 
     frame: MarkerFrame
@@ -117,6 +160,7 @@ class MarkerPacket:
     unknown_labels: int
     world_from_capture_scaled_mat: F64Array
     label_index: dict[str, int]
+    zero_is_occluded: bool
     # Scratch, allocated with the frame: the matmul right-hand side (M^T), a per-value
     # mask, native float32 rows, the occlusion mask (and its column view), and the
     # staging rows of the simple form.
@@ -129,10 +173,15 @@ class MarkerPacket:
     _occluded_col: BoolArray = field(repr=False)
     _staged: F64Array = field(repr=False)
     _seen: BoolArray = field(repr=False)
+    _zero: BoolArray = field(repr=False)
 
     @classmethod
     def create(
-        cls, label_set: LabelSet, up_axis: str = "+Z", units: str = "m"
+        cls,
+        label_set: LabelSet,
+        up_axis: str = "+Z",
+        units: str = "m",
+        zero_is_occluded: bool = True,
     ) -> MarkerPacket:
         """Allocate a packet for ``label_set``.
 
@@ -140,13 +189,16 @@ class MarkerPacket:
             label_set: the expected labels (configured, or announced by the sender).
             up_axis: the sender's up axis (``"+Y"``, ``"+Z"`` ...), see conventions.
             units: the sender's length unit (``"mm"``, ``"m"`` ...).
+            zero_is_occluded: treat an exact (0, 0, 0) row as occluded.
         """
         mat = world_from_capture_mat(up_axis) * UNIT_TO_METRES[normalize_units(units)]
         mat.flags.writeable = False
-        return cls._allocate(label_set, mat)
+        return cls._allocate(label_set, mat, zero_is_occluded)
 
     @classmethod
-    def _allocate(cls, label_set: LabelSet, mat: F64Array) -> MarkerPacket:
+    def _allocate(
+        cls, label_set: LabelSet, mat: F64Array, zero_is_occluded: bool
+    ) -> MarkerPacket:
         n = len(label_set.labels)
         occluded = np.zeros(n, dtype=bool)
         mask = np.zeros((n, 3), dtype=bool)
@@ -157,6 +209,7 @@ class MarkerPacket:
             unknown_labels=0,
             world_from_capture_scaled_mat=mat,
             label_index={name: i for i, name in enumerate(label_set.labels)},
+            zero_is_occluded=zero_is_occluded,
             _rhs=np.ascontiguousarray(mat.T),
             _mask3=mask,
             _mask_cols=(mask[:, 0], mask[:, 1], mask[:, 2]),
@@ -166,6 +219,7 @@ class MarkerPacket:
             _occluded_col=occluded[:, None],
             _staged=np.full((n, 3), np.nan),
             _seen=np.zeros(n, dtype=bool),
+            _zero=np.zeros(n, dtype=bool),
         )
 
     def with_label_set(self, label_set: LabelSet) -> MarkerPacket:
@@ -174,7 +228,9 @@ class MarkerPacket:
         Not for the hot path: called when a new label set is announced.
         """
         if len(label_set.labels) != len(self.label_set.labels):
-            return MarkerPacket._allocate(label_set, self.world_from_capture_scaled_mat)
+            return MarkerPacket._allocate(
+                label_set, self.world_from_capture_scaled_mat, self.zero_is_occluded
+            )
         self.label_set = label_set
         self.label_index = {name: i for i, name in enumerate(label_set.labels)}
         return self
@@ -184,7 +240,8 @@ class MarkerPacket:
 
         Args:
             raw: (n, 3) float array (any byte order) in the sender's units and axes; a
-                row with any NaN is occluded and becomes all NaN.
+                row with any NaN is occluded and becomes all NaN, and so is an exact
+                (0, 0, 0) row (either sign of zero) when ``zero_is_occluded``.
 
         Raises:
             DecodeError: ``non_finite`` if any value is ±inf (``frame`` untouched).
@@ -199,6 +256,13 @@ class MarkerPacket:
         np.isnan(raw32, out=mask)
         np.logical_or(self._mask_cols[0], self._mask_cols[1], out=occluded)
         np.logical_or(occluded, self._mask_cols[2], out=occluded)
+        if self.zero_is_occluded:
+            np.equal(raw32, 0.0, out=mask)
+            if np.count_nonzero(mask):  # rare: skip the row test when no zero at all
+                zero, cols = self._zero, self._mask_cols
+                np.logical_and(cols[0], cols[1], out=zero)
+                np.logical_and(zero, cols[2], out=zero)
+                np.logical_or(occluded, zero, out=occluded)
         frame = self.frame
         np.logical_not(occluded, out=frame.valid)
         # Whole occluded rows become a quiet NaN: a signalling NaN from the wire would
@@ -244,50 +308,115 @@ class FrameSequencer:
     """Decides, from frame numbers alone, whether a decoded frame is accepted.
 
     Pure logic without a clock: the caller passes ``t_ns`` (``time.monotonic_ns()`` at
-    receive). Rules, against the last *accepted* frame:
+    receive). Rules, against the last *accepted* frame (number ``last``, received at
+    ``last_t``):
 
-    - a larger frame number: accepted;
+    - larger and *plausible*, ``frame - last <= (t_ns - last_t + JUMP_SLACK_NS) x
+      max_rate_hz + 1``: accepted;
+    - larger but implausible: a new label-set id makes it a restart (a new id is a
+      clean boundary); otherwise ``IMPLAUSIBLE_JUMP``, dropped;
     - not larger, and either ``t_ns`` is at least ``restart_gap_ns`` after the last
       accepted frame or the label-set id differs: a restarted source (``RESTART``:
       accepted, counted, state reset to this frame);
     - otherwise equal: ``DUPLICATE``, smaller: ``BACKWARDS`` (both dropped);
+    - dropped jumps and backwards frames are candidates of a new sequence: once
+      :data:`JUMP_CONFIRM_FRAMES` of them in a row continue each other plausibly, the
+      last is accepted as a ``RESTART`` (a seeked, looped or restarted source);
     - a frame number of -1 (a simple bundle without one) is accepted unordered.
     """
 
-    __slots__ = ("last_frame", "last_label_set_id", "last_t_ns", "restart_gap_ns")
+    __slots__ = (
+        "_cand_frame",
+        "_cand_n",
+        "_cand_t_ns",
+        "_rate_per_ns",
+        "_restart_next",
+        "_slack_frames",
+        "last_frame",
+        "last_label_set_id",
+        "last_t_ns",
+        "restart_gap_ns",
+    )
 
-    def __init__(self, restart_gap_ns: int = RESTART_GAP_NS) -> None:
+    def __init__(
+        self, restart_gap_ns: int = RESTART_GAP_NS, max_rate_hz: float = MAX_RATE_HZ
+    ) -> None:
+        if not max_rate_hz > 0.0:
+            raise ValueError(f"max_rate_hz must be > 0; got {max_rate_hz}")
         self.restart_gap_ns = restart_gap_ns
+        self._rate_per_ns = max_rate_hz * 1e-9
+        self._slack_frames = JUMP_SLACK_NS * self._rate_per_ns + 1.0
         self.last_frame = -1
         self.last_label_set_id = 0
         self.last_t_ns = 0
+        self._cand_n = 0  # frames of the candidate sequence so far
+        self._cand_frame = -1
+        self._cand_t_ns = 0
+        self._restart_next = False
 
     def reset(self) -> None:
         """Forget the last frame: the next one is accepted whatever its number."""
         self.last_frame = -1
+        self._cand_n = 0
+
+    def restart_next(self) -> None:
+        """Accept the next numbered frame as a ``RESTART`` whatever its number (the
+        label set changed under the same id)."""
+        self._restart_next = True
+
+    def _plausible(self, advance: int, elapsed_ns: int) -> bool:
+        return advance <= elapsed_ns * self._rate_per_ns + self._slack_frames
 
     def check(self, frame_id: int, label_set_id: int, t_ns: int) -> int:
         """Classify a frame and update the state when it is accepted.
 
         Returns:
-            ``ACCEPTED`` or ``RESTART`` (use the frame), ``DUPLICATE`` or ``BACKWARDS``
-            (drop it).
+            ``ACCEPTED`` or ``RESTART`` (use the frame), ``DUPLICATE``, ``BACKWARDS``
+            or ``IMPLAUSIBLE_JUMP`` (drop it).
         """
         code = ACCEPTED
-        if frame_id >= 0 and self.last_frame >= 0 and frame_id <= self.last_frame:
-            if (
-                label_set_id != self.last_label_set_id
-                or t_ns - self.last_t_ns >= self.restart_gap_ns
-            ):
+        last = self.last_frame
+        if frame_id >= 0 and self._restart_next:
+            code = RESTART
+        elif frame_id >= 0 and last >= 0:
+            new_set = label_set_id != self.last_label_set_id
+            if frame_id > last:
+                if not self._plausible(frame_id - last, t_ns - self.last_t_ns):
+                    if not new_set:
+                        return self._candidate(frame_id, t_ns, IMPLAUSIBLE_JUMP)
+                    code = RESTART
+            elif new_set or t_ns - self.last_t_ns >= self.restart_gap_ns:
                 code = RESTART
-            elif frame_id == self.last_frame:
+            elif frame_id == last:
                 return DUPLICATE
             else:
-                return BACKWARDS
+                return self._candidate(frame_id, t_ns, BACKWARDS)
         if frame_id >= 0:
             self.last_frame = frame_id
+            self._restart_next = False
+        self._cand_n = 0
         self.last_label_set_id = label_set_id
         self.last_t_ns = t_ns
+        return code
+
+    def _candidate(self, frame_id: int, t_ns: int, code: int) -> int:
+        """A frame off the accepted sequence: drop it (``code``), or adopt its
+        sequence once it has continued alone for ``JUMP_CONFIRM_FRAMES`` frames."""
+        n = self._cand_n
+        if (
+            n
+            and frame_id > self._cand_frame
+            and self._plausible(frame_id - self._cand_frame, t_ns - self._cand_t_ns)
+        ):
+            n += 1
+        else:
+            n = 1
+        if n >= JUMP_CONFIRM_FRAMES:
+            self._cand_n = 0
+            self.last_frame = frame_id
+            self.last_t_ns = t_ns
+            return RESTART
+        self._cand_n, self._cand_frame, self._cand_t_ns = n, frame_id, t_ns
         return code
 
 
@@ -298,12 +427,26 @@ class MarkerStream:
     ``current.frame`` is always the last accepted frame; a packet is decoded into a
     spare and swapped in only once decoded and accepted.
 
+    Label changes (``protocols/PROTOCOLS.md``, "Label sets"): an announcement with a
+    new id is adopted at once (its frames restart the sequence). One that changes the
+    names under the id in use (a frame carrying it accepted within ``restart_gap_ns``)
+    is a *conflict*: counted ``conflicting_labels``, kept as ``pending_labels``, and
+    every frame carrying the id is dropped (``label_conflict``) until a clean
+    boundary: the old names announced again (the conflicting one was stray), a new
+    id announced, or the new names announced again at least ``restart_gap_ns`` after
+    the conflict began with no frame of the old names accepted since (the sender
+    really changed them; adopted, the next frame a restart).
+
     Args:
         label_set: the configured labels (simple form), or None until the sender
             announces them (compact OSC, ZeroMQ).
         up_axis: the sender's up axis.
         units: the sender's length unit.
         restart_gap_ns: see :class:`FrameSequencer`.
+        max_rate_hz: see :class:`FrameSequencer`.
+        max_markers: label sets with more markers are refused
+            (``too_many_markers``).
+        zero_is_occluded: see :class:`MarkerPacket`.
     """
 
     def __init__(
@@ -312,21 +455,70 @@ class MarkerStream:
         up_axis: str = "+Z",
         units: str = "m",
         restart_gap_ns: int = RESTART_GAP_NS,
+        *,
+        max_rate_hz: float = MAX_RATE_HZ,
+        max_markers: int = MAX_MARKERS,
+        zero_is_occluded: bool = True,
     ) -> None:
         initial = label_set if label_set is not None else LabelSet(-1, ())
         self.label_set: LabelSet | None = label_set
-        self.current = MarkerPacket.create(initial, up_axis, units)
-        self._spare = MarkerPacket.create(initial, up_axis, units)
-        self.sequencer = FrameSequencer(restart_gap_ns)
+        self.current = MarkerPacket.create(initial, up_axis, units, zero_is_occluded)
+        self._spare = MarkerPacket.create(initial, up_axis, units, zero_is_occluded)
+        self.sequencer = FrameSequencer(restart_gap_ns, max_rate_hz)
         self.counters = DropCounters()
         self.last_error: DecodeError | None = None
+        self.max_markers = max_markers
+        self.pending_labels: LabelSet | None = None  # a conflicting announcement
+        self._pending_since_ns = 0
 
-    def set_labels(self, label_set: LabelSet) -> bool:
-        """Adopt an announced label set; True when it differs from the current one."""
-        if label_set == self.label_set:
+    def _in_use(self, t_ns: int | None) -> bool:
+        """Whether frames carrying the current id were accepted recently (within the
+        restart gap of ``t_ns``; ever, when ``t_ns`` is None)."""
+        seq = self.sequencer
+        assert self.label_set is not None
+        if seq.last_label_set_id != self.label_set.id:
             return False
+        counts = self.counters.counts
+        if not counts[ACCEPTED] + counts[RESTART]:
+            return False
+        return t_ns is None or t_ns - seq.last_t_ns < seq.restart_gap_ns
+
+    def set_labels(self, label_set: LabelSet, t_ns: int | None = None) -> bool:
+        """Take a label announcement; True when it is adopted as a new label set.
+
+        Args:
+            label_set: the announced set.
+            t_ns: ``time.monotonic_ns()`` at receive (None: offline, no clock).
+        """
+        if len(label_set.labels) > self.max_markers:
+            self.counters.add(TOO_MANY_MARKERS)
+            return False
+        current = self.label_set
+        if label_set == current:
+            self.pending_labels = None  # the sender confirms the names in use
+            return False
+        if current is None or label_set.id != current.id or not self._in_use(t_ns):
+            self._adopt(label_set)
+            return True
+        now = self.sequencer.last_t_ns if t_ns is None else t_ns
+        if (
+            label_set == self.pending_labels
+            and now - self._pending_since_ns >= self.sequencer.restart_gap_ns
+        ):
+            self._adopt(label_set)
+            return True
+        if label_set != self.pending_labels:
+            self.pending_labels = label_set
+            self._pending_since_ns = now
+        self.counters.add(CONFLICTING_LABELS)
+        return False
+
+    def _adopt(self, label_set: LabelSet) -> None:
+        same_id = self.label_set is not None and self.label_set.id == label_set.id
         self.label_set = label_set
-        return True
+        self.pending_labels = None
+        if same_id:  # new names, same id: the sequence restarts at the next frame
+            self.sequencer.restart_next()
 
     def feed(self, decode: Callable[..., MarkerPacket], *parts: Any, t_ns: int) -> int:
         """Decode one packet and classify it.
@@ -354,6 +546,9 @@ class MarkerStream:
             index = REASON_INDEX.get(exc.reason, OTHER)
             self.counters.add(index)
             return index
+        if self.pending_labels is not None:  # which names does it carry? unknown
+            self.counters.add(LABEL_CONFLICT)
+            return LABEL_CONFLICT
         code = self.sequencer.check(spare.frame.frame_id, spare.label_set_id, t_ns)
         self.counters.add(code)
         if code > RESTART:

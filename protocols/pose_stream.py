@@ -4,14 +4,18 @@ Byte layout in ``protocols/PROTOCOLS.md`` (section 6). All little-endian.
 
 Data message, two parts:
 
-- header, 68 bytes ``<4sHHqdqqqIHH3f``: magic ``RTDP``, version 1, names id uint16,
+- header, 68 bytes ``<4sHHqdqqqIHH3f``: magic ``RTDP``, version 2, names id uint16,
   frame number int64, source time float64 s (NaN = unknown), received / solved / sent
   ``time.monotonic_ns()`` of this host (int64), frame flags uint32, n_bones uint16,
   n_weights uint16, root position float32 x 3 (metres, world);
-- body: world_from_bone float32 (B, 4) (w, x, y, z), parent_from_bone float32 (B, 4)
-  (w, x, y, z), weights float32 (K,) in [0, 1], bone flags uint8 (B,), NUL-padded to a
-  multiple of 4. Bones in the rig's (solve NPZ) order; rotations in the internal world
-  (right-handed, +Z up).
+- body: world_from_bone float32 (B, 4) (w, x, y, z); parent_from_bone float32 (B, 4),
+  the rotation relative to the parent bone (the world for the root), so
+  ``world_from_parent * parent_from_bone = world_from_bone``; rest_from_bone float32
+  (B, 4), the same relative to the calibration pose (``conj(rest_parent_from_bone) *
+  parent_from_bone``, identity in the calibration pose); weights float32 (K,) in
+  [0, 1]; bone flags uint8 (B,), NUL-padded to a multiple of 4. Bones in the rig's
+  (solve NPZ) order; rotations in the internal world (right-handed, +Z up).
+  (Version 1 had no rest_from_bone and sent it under the name parent_from_bone.)
 
 A third part follows when the daemon solves a face (the stabilized "Mug"):
 ``<HHI7f`` n_face_markers uint16, reserved uint16, face flags uint32, world_from_head
@@ -52,7 +56,10 @@ from retargetd.protocols.frames import F32Array, F64Array, U8Array
 DATA_MAGIC = b"RTDP"
 NAMES_MAGIC = b"RTDN"
 VALIDATION_MAGIC = b"RTDV"
-VERSION = 1
+VERSION = 1  #: names and validation messages
+#: The data message (2: parent_from_bone is the true parent-relative rotation and
+#: rest_from_bone the calibration-relative one; version 1 sent only the latter).
+DATA_VERSION = 2
 HEADER = struct.Struct("<4sHHqdqqqIHH3f")  # 68 bytes
 NAMES_HEADER = struct.Struct("<4sHH")  # 8 bytes
 FACE_HEADER = struct.Struct("<HHI7f")  # 36 bytes, then (M, 3) float32
@@ -120,7 +127,7 @@ FACE_FLAG_BITS = {
 
 def body_size(n_bones: int, n_weights: int) -> int:
     """Bytes in the body of a data message for ``n_bones`` bones and ``n_weights``."""
-    return 32 * n_bones + 4 * n_weights + ((n_bones + 3) & ~3)
+    return 48 * n_bones + 4 * n_weights + ((n_bones + 3) & ~3)
 
 
 def face_size(n_face_markers: int) -> int:
@@ -170,8 +177,9 @@ class PoseEncoder:
         b, k = n_bones, n_weights
         self._world = np.frombuffer(self._body, _LE_F32, 4 * b, 0).reshape(b, 4)
         self._parent = np.frombuffer(self._body, _LE_F32, 4 * b, 16 * b).reshape(b, 4)
-        self._weights = np.frombuffer(self._body, _LE_F32, k, 32 * b)
-        self._bone_flags = np.frombuffer(self._body, np.uint8, b, 32 * b + 4 * k)
+        self._rest = np.frombuffer(self._body, _LE_F32, 4 * b, 32 * b).reshape(b, 4)
+        self._weights = np.frombuffer(self._body, _LE_F32, k, 48 * b)
+        self._bone_flags = np.frombuffer(self._body, np.uint8, b, 48 * b + 4 * k)
         self.parts = [memoryview(self._header), memoryview(self._body)]
         self.n_face_markers = n_face_markers
         if n_face_markers is not None:
@@ -195,6 +203,7 @@ class PoseEncoder:
         root_pos_world: F64Array,
         world_from_bone_quat: F64Array,
         parent_from_bone_quat: F64Array,
+        rest_from_bone_quat: F64Array,
         weights: F64Array,
         bone_flags: U8Array,
     ) -> list[memoryview]:
@@ -208,7 +217,10 @@ class PoseEncoder:
             flags: frame flag bits (``FRAME_*``).
             root_pos_world: (3,) float, metres, world frame.
             world_from_bone_quat: (n_bones, 4) float, (w, x, y, z), world frame.
-            parent_from_bone_quat: (n_bones, 4) float, (w, x, y, z).
+            parent_from_bone_quat: (n_bones, 4) float, (w, x, y, z), relative to the
+                parent bone (the world for the root).
+            rest_from_bone_quat: (n_bones, 4) float, (w, x, y, z), relative to the
+                calibration pose.
             weights: (n_weights,) float in [0, 1].
             bone_flags: (n_bones,) uint8 bone flag bits (``BONE_*``).
 
@@ -216,13 +228,14 @@ class PoseEncoder:
             :attr:`parts` (``[header, body]``).
         """
         HEADER.pack_into(
-            self._header, 0, DATA_MAGIC, VERSION, self.names_id, frame_id,
+            self._header, 0, DATA_MAGIC, DATA_VERSION, self.names_id, frame_id,
             source_time_s, received_ns, solved_ns, 0, flags, self.n_bones,
             self.n_weights,
             root_pos_world[0], root_pos_world[1], root_pos_world[2],
         )  # fmt: skip
         self._world[:] = world_from_bone_quat
         self._parent[:] = parent_from_bone_quat
+        self._rest[:] = rest_from_bone_quat
         self._weights[:] = weights
         self._bone_flags[:] = bone_flags
         return self.parts
@@ -261,7 +274,10 @@ class PoseMessage:
         flags: frame flag bits.
         root_pos_world: (3,) float32, metres, world.
         world_from_bone_quat: (n_bones, 4) float32, (w, x, y, z).
-        parent_from_bone_quat: (n_bones, 4) float32, (w, x, y, z).
+        parent_from_bone_quat: (n_bones, 4) float32, (w, x, y, z), relative to the
+            parent bone.
+        rest_from_bone_quat: (n_bones, 4) float32, (w, x, y, z), relative to the
+            calibration pose.
         weights: (n_weights,) float32.
         bone_flags: (n_bones,) uint8.
         names_id: the names message these bones are described by.
@@ -281,6 +297,7 @@ class PoseMessage:
     root_pos_world: F32Array
     world_from_bone_quat: F32Array
     parent_from_bone_quat: F32Array
+    rest_from_bone_quat: F32Array
     weights: F32Array
     bone_flags: U8Array
     names_id: int = 0
@@ -306,8 +323,8 @@ def decode_pose(parts: Sequence[bytes | bytearray | memoryview]) -> PoseMessage:
      x, y, z) = HEADER.unpack_from(header)  # fmt: skip
     if magic != DATA_MAGIC:
         raise DecodeError("bad_magic", f"expected {DATA_MAGIC!r}; got {magic!r}")
-    if version != VERSION:
-        raise DecodeError("bad_version", f"version {version}, expected {VERSION}")
+    if version != DATA_VERSION:
+        raise DecodeError("bad_version", f"version {version}, expected {DATA_VERSION}")
     if len(body) != body_size(b, k):
         raise DecodeError("bad_length", f"body of {len(body)} bytes for {b} bones, {k}")
     data = bytes(body)
@@ -328,8 +345,11 @@ def decode_pose(parts: Sequence[bytes | bytearray | memoryview]) -> PoseMessage:
         parent_from_bone_quat=np.frombuffer(data, _LE_F32, 4 * b, 16 * b)
         .reshape(b, 4)
         .copy(),
-        weights=np.frombuffer(data, _LE_F32, k, 32 * b).copy(),
-        bone_flags=np.frombuffer(data, np.uint8, b, 32 * b + 4 * k).copy(),
+        rest_from_bone_quat=np.frombuffer(data, _LE_F32, 4 * b, 32 * b)
+        .reshape(b, 4)
+        .copy(),
+        weights=np.frombuffer(data, _LE_F32, k, 48 * b).copy(),
+        bone_flags=np.frombuffer(data, np.uint8, b, 48 * b + 4 * k).copy(),
         names_id=names_id,
         **face,
     )

@@ -22,7 +22,7 @@ import struct
 import numpy as np
 
 from retargetd.protocols.errors import DecodeError
-from retargetd.protocols.marker_input import LabelSet, MarkerPacket
+from retargetd.protocols.marker_input import MAX_MARKERS, LabelSet, MarkerPacket
 
 FRAME_MAGIC = b"RTDM"
 LABELS_MAGIC = b"RTDL"
@@ -83,12 +83,18 @@ def decode_zmq_frame(
     return out
 
 
-def decode_zmq_labels(header: Buffer, payload: Buffer) -> LabelSet:
+def decode_zmq_labels(
+    header: Buffer, payload: Buffer, max_markers: int = MAX_MARKERS
+) -> LabelSet:
     """Decode a ZeroMQ label announcement (not hot).
 
+    The count in the header is checked against ``max_markers`` before the payload is
+    touched, so an oversized announcement costs no decoding.
+
     Raises:
-        DecodeError: ``bad_length``, ``bad_magic``, ``bad_version``, ``bad_string``
-            (not UTF-8), ``bad_count`` or ``bad_label``.
+        DecodeError: ``bad_length``, ``bad_magic``, ``bad_version``,
+            ``too_many_markers``, ``bad_string`` (not UTF-8), ``bad_count`` or
+            ``bad_label``.
     """
     if len(header) != LABELS_HEADER.size:
         raise DecodeError("bad_length", f"header of {len(header)} bytes, expected 16")
@@ -97,6 +103,8 @@ def decode_zmq_labels(header: Buffer, payload: Buffer) -> LabelSet:
         raise DecodeError("bad_magic", f"expected {LABELS_MAGIC!r}; got {magic!r}")
     if version != VERSION:
         raise DecodeError("bad_version", f"version {version}, expected {VERSION}")
+    if count > max_markers:
+        raise DecodeError("too_many_markers", f"{count} labels > {max_markers}")
     try:
         text = bytes(payload).decode()
     except UnicodeDecodeError as exc:

@@ -2,26 +2,17 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
 import pytest
+from paths import DATASETS, IN_CI, REPO_ROOT, require_datasets
 
-REPO_ROOT = Path(__file__).resolve().parent.parent
-#: Real takes live beside the project, never inside it (../shared/datasets).
-DATASETS = REPO_ROOT.parent / "shared" / "datasets"
-IN_CI = os.environ.get("CI", "").lower() in ("1", "true", "yes")
+#: The live-daemon harness's fixtures (``start_daemon``, ``exact_calibration``, ``vmc``,
+#: ``osc_source``) for every test; ``tests/helpers`` is on pytest's ``pythonpath``.
+pytest_plugins = ["live_harness"]
 
-
-def require_datasets() -> Path:
-    """The shared datasets folder; skip (outside CI) or fail (in CI) if absent."""
-    if DATASETS.is_dir():
-        return DATASETS
-    reason = f"shared datasets folder not found at {DATASETS}"
-    if IN_CI:
-        pytest.fail(f"{reason} (CI=true: nothing may skip)")
-    pytest.skip(reason)
+__all__ = ["DATASETS", "IN_CI", "REPO_ROOT", "require_datasets"]
 
 
 @pytest.fixture

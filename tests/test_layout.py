@@ -151,9 +151,9 @@ def test_no_runtime_module_imports_cli_and_commands_stand_alone() -> None:
     for module, path in _modules():
         for target, _in_func, line in _imports(path):
             where = f"{path.relative_to(REPO_ROOT)}:{line} imports {target}"
-            if _part(module) != "cli" and _part(target) == "cli":
-                if module != f"{PREFIX}.__main__":
-                    bad.append(f"{where} (a runtime module importing the CLI)")
+            runtime = _part(module) != "cli" and module != f"{PREFIX}.__main__"
+            if runtime and _part(target) == "cli":
+                bad.append(f"{where} (a runtime module importing the CLI)")
             if module in commands and target in commands and target != module:
                 bad.append(f"{where} (a command importing another command)")
     assert not bad, "\n".join(bad)
@@ -163,7 +163,9 @@ def test_no_import_cycles() -> None:
     graph: dict[str, set[str]] = {}
     for module, path in _modules():
         graph[module] = {
-            t for t, in_func, _ in _imports(path) if t.startswith(PREFIX) and t != module
+            t
+            for t, in_func, _ in _imports(path)
+            if t.startswith(PREFIX) and t != module
         }
     state: dict[str, int] = {}
     stack: list[str] = []
@@ -173,7 +175,7 @@ def test_no_import_cycles() -> None:
         stack.append(node)
         for nxt in sorted(graph.get(node, ())):
             if state.get(nxt) == 1:
-                cycle = stack[stack.index(nxt) :] + [nxt]
+                cycle = [*stack[stack.index(nxt) :], nxt]
                 raise AssertionError("import cycle: " + " -> ".join(cycle))
             if nxt in graph and not state.get(nxt):
                 visit(nxt)

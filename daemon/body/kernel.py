@@ -14,29 +14,93 @@ kernel walks it once per frame with no allocation:
 4. bones: +Y = unit(aim - origin), +X = the up reference made orthogonal to Y,
    +Z = X x Y; a bone whose points are missing or degenerate holds its last good
    rotation and is flagged;
-5. parent-relative rotations, relative to the calibration pose; joint centres; root.
+5. parent-relative rotations, and the same relative to the calibration pose; joint
+   centres; root.
 
 Why numba: a vectorized numpy version costs ~1-2 us per numpy call and a rig needs
 ~150 of them per frame; the compiled walk is one call (figures in bench/).
+
+The kernel takes three packed tuples (:class:`BodyPlan`: the rig program, read-only;
+:class:`BodyState`: scratch and what carries over between frames; :class:`BodyOut`:
+this frame's outputs), built once per stream by ``body.solve.BodySolver``. Its flag
+bits are the pose stream's bone flags (``protocols.pose_stream.BONE_*``), imported, not
+copied.
 """
 
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
-import numba
 import numpy as np
+
+from retargetd.daemon.compiled import (
+    horn_fit,
+    kernel,
+    quat_conj_mul_into,
+    quat_mul_into,
+)
+from retargetd.protocols import pose_stream
 
 OP_LINE = 0
 OP_RIGID = 1
 
-FLAG_HELD = 1  #: bone rotation held from the last good frame (too little data)
-FLAG_REBUILT = 2  #: a defining marker was rebuilt from its rigid segment
-FLAG_PARTIAL = 4  #: some defining marker was not seen (quality < 1)
-FLAG_NEVER = 8  #: no good value yet: the calibrated rest rotation is sent
+FLAG_HELD = pose_stream.BONE_HELD  #: rotation held from the last good frame
+FLAG_REBUILT = pose_stream.BONE_REBUILT  #: a defining marker rebuilt from its segment
+FLAG_PARTIAL = pose_stream.BONE_PARTIAL  #: some defining marker not seen (quality < 1)
+FLAG_NEVER = pose_stream.BONE_NEVER  #: no good value yet: the rest rotation is sent
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+class BodyPlan(NamedTuple):
+    """The rig compiled for one marker layout (read-only arrays; int64 indices)."""
+
+    marker_cols: np.ndarray  # (Mr,) stream column per rig marker, -1 absent
+    op_kind: np.ndarray  # (P,) OP_LINE / OP_RIGID
+    op_idx: np.ndarray  # (P, 3) indices into pts
+    op_u: np.ndarray  # (P,) float64 line parameter
+    op_off: np.ndarray  # (P, 3) float64 local offset (rigid)
+    seg_ptr: np.ndarray  # (S+1,)
+    seg_idx: np.ndarray  # (K,) marker indices
+    seg_layout: np.ndarray  # (K, 3) float64 calibrated layout
+    seg_w: np.ndarray  # (K,) float64 fit weights (1)
+    bone_pts: np.ndarray  # (B, 4) origin, aim, up1, up2 (-1: single point)
+    bone_parent: np.ndarray  # (B,) parents before children
+    bone_def_ptr: np.ndarray  # (B+1,)
+    bone_def_idx: np.ndarray  # (D,) defining marker indices
+    rest_pfb: np.ndarray  # (B, 4) calibrated parent_from_bone (w x y z)
+    joint_idx: np.ndarray  # (J,) indices into pts
+    root_point: int
+
+
+class BodyState(NamedTuple):
+    """Scratch and the state carried between frames (preallocated)."""
+
+    pts: np.ndarray  # (Mr + P, 3)
+    seen: np.ndarray  # (Mr + P,) bool
+    filled: np.ndarray  # (Mr + P,) bool
+    last_pfb: np.ndarray  # (B, 4) last good parent_from_bone (init: rest_pfb)
+    have_good: np.ndarray  # (B,) bool, a good value was seen
+    prev_wfb: np.ndarray  # (B, 4) previous frame's output; w = NaN: none
+    tmp4: np.ndarray  # (4,)
+    n44: np.ndarray  # (4, 4)
+    v44: np.ndarray  # (4, 4)
+    cen: np.ndarray  # (6,) fit centroids
+    last_root: np.ndarray  # (3,) last good root position (init: calibrated rest)
+
+
+class BodyOut(NamedTuple):
+    """One frame's outputs (or, for :func:`solve_many`, a take's: a leading T)."""
+
+    joints: np.ndarray  # (J, 3)
+    wfb: np.ndarray  # (B, 4) world_from_bone
+    pfb: np.ndarray  # (B, 4) parent_from_bone (the root's parent: the world)
+    rfb: np.ndarray  # (B, 4) rest_from_bone: relative to the calibration pose
+    root: np.ndarray  # (3,)
+    quality: np.ndarray  # (B,) float32
+    flags: np.ndarray  # (B,) uint8
+
+
+@kernel
 def _quat_from_axes(
     xx: float, xy: float, xz: float,
     yx: float, yy: float, yz: float,
@@ -81,128 +145,22 @@ def _quat_from_axes(
     out[3] = z / n
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
-def _conj_mul(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
-    # out = conj(a) * b (Hamilton), i.e. a^-1 b for unit a.
-    aw, ax, ay, az = a[0], -a[1], -a[2], -a[3]
-    bw, bx, by, bz = b[0], b[1], b[2], b[3]
-    out[0] = aw * bw - ax * bx - ay * by - az * bz
-    out[1] = aw * bx + ax * bw + ay * bz - az * by
-    out[2] = aw * by - ax * bz + ay * bw + az * bx
-    out[3] = aw * bz + ax * by - ay * bx + az * bw
-
-
-@numba.njit(cache=True, nogil=True, error_model="numpy")
-def _mul(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
-    # out = a * b (Hamilton); out may not alias a or b.
-    aw, ax, ay, az = a[0], a[1], a[2], a[3]
-    bw, bx, by, bz = b[0], b[1], b[2], b[3]
-    out[0] = aw * bw - ax * bx - ay * by - az * bz
-    out[1] = aw * bx + ax * bw + ay * bz - az * by
-    out[2] = aw * by - ax * bz + ay * bw + az * bx
-    out[3] = aw * bz + ax * by - ay * bx + az * bw
-
-
-@numba.njit(cache=True, nogil=True, error_model="numpy")
-def _jacobi_top_eigvec(a: np.ndarray, v: np.ndarray, out: np.ndarray) -> None:
-    # Eigenvector of the largest eigenvalue of the symmetric 4x4 ``a`` (destroyed),
-    # by cyclic Jacobi rotations on the scratch ``v`` (4, 4): no allocation.
-    for i in range(4):
-        for j in range(4):
-            v[i, j] = 1.0 if i == j else 0.0
-    for _sweep in range(30):
-        off = 0.0
-        for p in range(3):
-            for q in range(p + 1, 4):
-                off += a[p, q] * a[p, q]
-        if off < 1e-30:
-            break
-        for p in range(3):
-            for q in range(p + 1, 4):
-                apq = a[p, q]
-                if abs(apq) < 1e-300:
-                    continue
-                theta = (a[q, q] - a[p, p]) / (2.0 * apq)
-                t = 1.0 / (abs(theta) + math.sqrt(theta * theta + 1.0))
-                if theta < 0.0:
-                    t = -t
-                c = 1.0 / math.sqrt(t * t + 1.0)
-                s = t * c
-                for k in range(4):
-                    akp = a[k, p]
-                    akq = a[k, q]
-                    a[k, p] = c * akp - s * akq
-                    a[k, q] = s * akp + c * akq
-                for k in range(4):
-                    apk = a[p, k]
-                    aqk = a[q, k]
-                    a[p, k] = c * apk - s * aqk
-                    a[q, k] = s * apk + c * aqk
-                for k in range(4):
-                    vkp = v[k, p]
-                    vkq = v[k, q]
-                    v[k, p] = c * vkp - s * vkq
-                    v[k, q] = s * vkp + c * vkq
-    best = 0
-    for i in range(1, 4):
-        if a[i, i] > a[best, best]:
-            best = i
-    for k in range(4):
-        out[k] = v[k, best]
-
-
-@numba.njit(cache=True, nogil=True, error_model="numpy")
-def horn_rotation(
-    sxx: float, sxy: float, sxz: float,
-    syx: float, syy: float, syz: float,
-    szx: float, szy: float, szz: float,
-    n44: np.ndarray,
-    v44: np.ndarray,
-    q4: np.ndarray,
-) -> None:  # fmt: skip
-    """Horn's closed-form rigid fit: from the cross-covariance S = sum l_i c_i^T of
-    centred layout points l and current points c, the rotation R maximizing
-    sum c_i . R l_i is the top eigenvector of a symmetric 4x4 matrix built from S.
-    Writes R (3, 3) into ``n44[:3, :3]`` and its quaternion (w, x, y, z) into ``q4``
-    (scratch n44, v44 (4, 4); no allocation)."""
-    n44[0, 0] = sxx + syy + szz
-    n44[0, 1] = n44[1, 0] = syz - szy
-    n44[0, 2] = n44[2, 0] = szx - sxz
-    n44[0, 3] = n44[3, 0] = sxy - syx
-    n44[1, 1] = sxx - syy - szz
-    n44[1, 2] = n44[2, 1] = sxy + syx
-    n44[1, 3] = n44[3, 1] = szx + sxz
-    n44[2, 2] = -sxx + syy - szz
-    n44[2, 3] = n44[3, 2] = syz + szy
-    n44[3, 3] = -sxx - syy + szz
-    _jacobi_top_eigvec(n44, v44, q4)
-    w, x, y, z = q4[0], q4[1], q4[2], q4[3]
-    n44[0, 0] = 1.0 - 2.0 * (y * y + z * z)
-    n44[0, 1] = 2.0 * (x * y - w * z)
-    n44[0, 2] = 2.0 * (x * z + w * y)
-    n44[1, 0] = 2.0 * (x * y + w * z)
-    n44[1, 1] = 1.0 - 2.0 * (x * x + z * z)
-    n44[1, 2] = 2.0 * (y * z - w * x)
-    n44[2, 0] = 2.0 * (x * z - w * y)
-    n44[2, 1] = 2.0 * (y * z + w * x)
-    n44[2, 2] = 1.0 - 2.0 * (x * x + y * y)
-
-
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@kernel
 def _kabsch_fill(
     pts: np.ndarray,
     seen: np.ndarray,
     idx: np.ndarray,
     layout: np.ndarray,
+    weights: np.ndarray,
     filled: np.ndarray,
     n44: np.ndarray,
     v44: np.ndarray,
     q4: np.ndarray,
+    cen: np.ndarray,
 ) -> None:
-    # Fit the calibrated layout of one rigid segment to its visible markers (Horn's
-    # quaternion method: the rotation is the top eigenvector of a 4x4 matrix built
-    # from the cross-covariance) and put the missing ones where the fit says. Needs
-    # >= 3 visible markers not on one line. Scratch n44, v44 (4, 4) and q4 (4,).
+    # Fit the calibrated layout of one rigid segment to its visible markers (the
+    # shared Horn fit) and put the missing ones where the fit says. Needs >= 3
+    # visible markers not on one line.
     k = idx.shape[0]
     n = 0
     for i in range(k):
@@ -210,53 +168,9 @@ def _kabsch_fill(
             n += 1
     if n < 3 or n == k:
         return
-    clx = cly = clz = ccx = ccy = ccz = 0.0
-    for i in range(k):
-        if seen[idx[i]]:
-            m = idx[i]
-            clx += layout[i, 0]
-            cly += layout[i, 1]
-            clz += layout[i, 2]
-            ccx += pts[m, 0]
-            ccy += pts[m, 1]
-            ccz += pts[m, 2]
-    clx /= n
-    cly /= n
-    clz /= n
-    ccx /= n
-    ccy /= n
-    ccz /= n
-    sxx = sxy = sxz = syx = syy = syz = szx = szy = szz = 0.0
-    # Largest cross product of visible layout offsets: 0 when they are collinear.
-    area = 0.0
-    ref_x = ref_y = ref_z = 0.0
-    have_ref = False
-    for i in range(k):
-        if not seen[idx[i]]:
-            continue
-        m = idx[i]
-        lx, ly, lz = layout[i, 0] - clx, layout[i, 1] - cly, layout[i, 2] - clz
-        cx, cy, cz = pts[m, 0] - ccx, pts[m, 1] - ccy, pts[m, 2] - ccz
-        sxx += lx * cx
-        sxy += lx * cy
-        sxz += lx * cz
-        syx += ly * cx
-        syy += ly * cy
-        syz += ly * cz
-        szx += lz * cx
-        szy += lz * cy
-        szz += lz * cz
-        if not have_ref:
-            ref_x, ref_y, ref_z = lx, ly, lz
-            have_ref = True
-        else:
-            ax = ref_y * lz - ref_z * ly
-            ay = ref_z * lx - ref_x * lz
-            az = ref_x * ly - ref_y * lx
-            area = max(area, ax * ax + ay * ay + az * az)
-    if area < 1e-12:  # (1 mm x 1 mm)^2: the fit is not determined
+    if horn_fit(layout, pts, idx, seen, weights, n44, v44, q4, cen) == 0:
         return
-    horn_rotation(sxx, sxy, sxz, syx, syy, syz, szx, szy, szz, n44, v44, q4)
+    clx, cly, clz, ccx, ccy, ccz = cen[0], cen[1], cen[2], cen[3], cen[4], cen[5]
     r00, r01, r02 = n44[0, 0], n44[0, 1], n44[0, 2]
     r10, r11, r12 = n44[1, 0], n44[1, 1], n44[1, 2]
     r20, r21, r22 = n44[2, 0], n44[2, 1], n44[2, 2]
@@ -270,43 +184,40 @@ def _kabsch_fill(
             filled[m] = True
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
-def solve_one(
-    markers: np.ndarray,  # (M_stream, 3) world metres, NaN = occluded
-    marker_cols: np.ndarray,  # (Mr,) int64, stream column per rig marker, -1 absent
-    op_kind: np.ndarray,  # (P,) int64
-    op_idx: np.ndarray,  # (P, 3) int64 indices into pts
-    op_u: np.ndarray,  # (P,) float64
-    op_off: np.ndarray,  # (P, 3) float64 local offset (rigid)
-    seg_ptr: np.ndarray,  # (S+1,) int64
-    seg_idx: np.ndarray,  # (K,) int64 marker indices
-    seg_layout: np.ndarray,  # (K, 3) float64 calibrated layout
-    bone_pts: np.ndarray,  # (B, 4) int64: origin, aim, up1, up2 (-1: single point)
-    bone_parent: np.ndarray,  # (B,) int64, parents before children
-    bone_def_ptr: np.ndarray,  # (B+1,) int64
-    bone_def_idx: np.ndarray,  # (D,) int64 defining marker indices
-    rest_pfb: np.ndarray,  # (B, 4) calibrated parent_from_bone (w x y z)
-    joint_idx: np.ndarray,  # (J,) int64 indices into pts
-    root_point: int,
-    # scratch and state, preallocated
-    pts: np.ndarray,  # (Mr + P, 3)
-    seen: np.ndarray,  # (Mr + P,) bool
-    filled: np.ndarray,  # (Mr + P,) bool
-    last_pfb: np.ndarray,  # (B, 4) last good parent_from_bone (init: rest_pfb)
-    have_good: np.ndarray,  # (B,) bool, a good value was seen
-    prev_wfb: np.ndarray,  # (B, 4) previous frame's output; w = NaN: none
-    tmp4: np.ndarray,  # (4,)
-    n44: np.ndarray,  # (4, 4) scratch
-    v44: np.ndarray,  # (4, 4) scratch
-    last_root: np.ndarray,  # (3,) last good root position (init: calibrated rest)
-    # outputs for this frame
-    out_joints: np.ndarray,  # (J, 3)
-    out_wfb: np.ndarray,  # (B, 4)
-    out_pfb: np.ndarray,  # (B, 4)
-    out_root: np.ndarray,  # (3,)
-    out_quality: np.ndarray,  # (B,) float32
-    out_flags: np.ndarray,  # (B,) uint8
-) -> int:
+@kernel
+def solve_one(markers: np.ndarray, plan: BodyPlan, st: BodyState, out: BodyOut) -> int:
+    """Solve one frame. ``markers``: (M_stream, 3) world metres, NaN = occluded.
+    Writes ``out``; returns the number of bones held."""
+    marker_cols, op_kind, op_idx, op_u = (
+        plan.marker_cols,
+        plan.op_kind,
+        plan.op_idx,
+        plan.op_u,
+    )
+    op_off, seg_ptr, seg_idx, seg_layout = (
+        plan.op_off,
+        plan.seg_ptr,
+        plan.seg_idx,
+        plan.seg_layout,
+    )
+    bone_pts, bone_parent, bone_def_ptr, bone_def_idx = (
+        plan.bone_pts,
+        plan.bone_parent,
+        plan.bone_def_ptr,
+        plan.bone_def_idx,
+    )
+    rest_pfb, joint_idx, root_point = plan.rest_pfb, plan.joint_idx, plan.root_point
+    pts, seen, filled, last_pfb = st.pts, st.seen, st.filled, st.last_pfb
+    have_good, prev_wfb, tmp4, n44, v44 = (
+        st.have_good,
+        st.prev_wfb,
+        st.tmp4,
+        st.n44,
+        st.v44,
+    )
+    last_root = st.last_root
+    out_joints, out_wfb, out_pfb = out.joints, out.wfb, out.pfb
+    out_root, out_quality, out_flags = out.root, out.quality, out.flags
     n_markers = marker_cols.shape[0]
     nan = math.nan
     # 1. gather
@@ -331,7 +242,10 @@ def solve_one(
     # 2. rebuild occluded markers from their rigid segment
     for s in range(seg_ptr.shape[0] - 1):
         a, b = seg_ptr[s], seg_ptr[s + 1]
-        _kabsch_fill(pts, seen, seg_idx[a:b], seg_layout[a:b], filled, n44, v44, tmp4)
+        _kabsch_fill(
+            pts, seen, seg_idx[a:b], seg_layout[a:b], plan.seg_w[a:b], filled,
+            n44, v44, tmp4, st.cen,
+        )  # fmt: skip
     # 3. derived points (NaN propagates through the arithmetic)
     for p in range(op_kind.shape[0]):
         dst = n_markers + p
@@ -411,7 +325,7 @@ def solve_one(
                 for j in range(4):
                     last_pfb[b, j] = out_wfb[b, j]
             else:
-                _conj_mul(out_wfb[par], out_wfb[b], last_pfb[b])
+                quat_conj_mul_into(out_wfb[par], out_wfb[b], last_pfb[b])
             have_good[b] = True
         else:
             # Too little data: hold the last good parent-relative rotation (the
@@ -424,7 +338,7 @@ def solve_one(
                 for j in range(4):
                     out_wfb[b, j] = last_pfb[b, j]
             else:
-                _mul(out_wfb[par], last_pfb[b], out_wfb[b])
+                quat_mul_into(out_wfb[par], last_pfb[b], out_wfb[b])
         # Keep the sign continuous with the previous frame's (engines blend).
         if math.isfinite(prev_wfb[b, 0]):
             d = (
@@ -439,21 +353,23 @@ def solve_one(
         for j in range(4):
             prev_wfb[b, j] = out_wfb[b, j]
         out_flags[b] = flags
-    # 5. parent-relative, relative to the calibration pose:
-    #    out = conj(rest_pfb) * (conj(world_from_parent) * world_from_bone)
+    # 5. parent_from_bone = conj(world_from_parent) * world_from_bone (the root's
+    #    parent is the world), and relative to the calibration pose
+    #    rest_from_bone = conj(rest_parent_from_bone) * parent_from_bone.
+    out_rfb = out.rfb
     for b in range(bone_pts.shape[0]):
         par = bone_parent[b]
         if par < 0:
             for j in range(4):
-                tmp4[j] = out_wfb[b, j]
+                out_pfb[b, j] = out_wfb[b, j]
         else:
-            _conj_mul(out_wfb[par], out_wfb[b], tmp4)
-        _conj_mul(rest_pfb[b], tmp4, out_pfb[b])
-        # The relative rotation is near identity in normal use: keep w >= 0 so that
+            quat_conj_mul_into(out_wfb[par], out_wfb[b], out_pfb[b])
+        quat_conj_mul_into(rest_pfb[b], out_pfb[b], out_rfb[b])
+        # The rotation from rest is near identity in normal use: keep w >= 0 so that
         # it reads as the short way round.
-        if out_pfb[b, 0] < 0.0:
+        if out_rfb[b, 0] < 0.0:
             for j in range(4):
-                out_pfb[b, j] = -out_pfb[b, j]
+                out_rfb[b, j] = -out_rfb[b, j]
     for j in range(joint_idx.shape[0]):
         for c in range(3):
             out_joints[j, c] = pts[joint_idx[j], c]
@@ -468,49 +384,15 @@ def solve_one(
     return n_held
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
-def solve_many(
-    markers: np.ndarray,  # (T, M_stream, 3)
-    marker_cols: np.ndarray,
-    op_kind: np.ndarray,
-    op_idx: np.ndarray,
-    op_u: np.ndarray,
-    op_off: np.ndarray,
-    seg_ptr: np.ndarray,
-    seg_idx: np.ndarray,
-    seg_layout: np.ndarray,
-    bone_pts: np.ndarray,
-    bone_parent: np.ndarray,
-    bone_def_ptr: np.ndarray,
-    bone_def_idx: np.ndarray,
-    rest_pfb: np.ndarray,
-    joint_idx: np.ndarray,
-    root_point: int,
-    pts: np.ndarray,
-    seen: np.ndarray,
-    filled: np.ndarray,
-    last_pfb: np.ndarray,
-    have_good: np.ndarray,
-    prev_wfb: np.ndarray,
-    tmp4: np.ndarray,
-    n44: np.ndarray,
-    v44: np.ndarray,
-    last_root: np.ndarray,
-    out_joints: np.ndarray,  # (T, J, 3)
-    out_wfb: np.ndarray,  # (T, B, 4)
-    out_pfb: np.ndarray,  # (T, B, 4)
-    out_root: np.ndarray,  # (T, 3)
-    out_quality: np.ndarray,  # (T, B)
-    out_flags: np.ndarray,  # (T, B)
-) -> int:
+@kernel
+def solve_many(markers: np.ndarray, plan: BodyPlan, st: BodyState, out: BodyOut) -> int:
+    """Solve a take: ``markers`` (T, M_stream, 3); ``out`` arrays with a leading T.
+    Returns the number of held bone-frames."""
     held = 0
     for t in range(markers.shape[0]):
-        held += solve_one(
-            markers[t], marker_cols, op_kind, op_idx, op_u, op_off, seg_ptr,
-            seg_idx, seg_layout, bone_pts, bone_parent, bone_def_ptr, bone_def_idx,
-            rest_pfb, joint_idx, root_point, pts, seen, filled, last_pfb, have_good,
-            prev_wfb, tmp4, n44, v44, last_root,
-            out_joints[t], out_wfb[t], out_pfb[t], out_root[t], out_quality[t],
-            out_flags[t],
+        frame = BodyOut(
+            out.joints[t], out.wfb[t], out.pfb[t], out.rfb[t], out.root[t],
+            out.quality[t], out.flags[t],
         )  # fmt: skip
+        held += solve_one(markers[t], plan, st, frame)
     return held

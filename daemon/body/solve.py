@@ -8,10 +8,12 @@ the same kernel in a loop, so batch and live agree exactly).
 
 Outputs per frame (see README "Solve output"): joint centres (J, 3) metres world;
 ``world_from_bone_quat`` (B, 4); ``parent_from_bone_quat`` (B, 4) = the bone's rotation
-relative to its parent composed with the inverse of its calibrated value
+relative to its parent (``conj(world_from_parent) * world_from_bone``; the root's parent
+is the world), so ``world_from_parent * parent_from_bone = world_from_bone``;
+``rest_from_bone_quat`` (B, 4) = the same relative to its calibrated value
 (``conj(rest_parent_from_bone) * parent_from_bone``: identity in the calibration pose,
-expressed in the bone's own axes, +Y along the bone); root position (3,); per-bone
-quality (fraction of defining markers seen) and flags (``FLAG_*``).
+in the bone's own axes, +Y along the bone); root position (3,); per-bone quality
+(fraction of defining markers seen) and flags (``FLAG_*``).
 """
 
 from __future__ import annotations
@@ -60,7 +62,10 @@ class BodyPose:
     Attributes:
         joint_centres: (J, 3) float64, metres, world.
         world_from_bone_quat: (B, 4) float64, w x y z.
-        parent_from_bone_quat: (B, 4) float64, w x y z, relative to calibration.
+        parent_from_bone_quat: (B, 4) float64, w x y z, relative to the parent (the
+            world for the root).
+        rest_from_bone_quat: (B, 4) float64, w x y z, relative to the calibration
+            pose (``conj(rest_parent_from_bone) * parent_from_bone``, w >= 0).
         root_pos: (3,) float64, metres, world (the root bone's origin).
         bone_quality: (B,) float32, fraction of defining markers seen.
         bone_flags: (B,) uint8, ``FLAG_*`` bits.
@@ -70,10 +75,13 @@ class BodyPose:
     joint_centres: F64Array
     world_from_bone_quat: F64Array
     parent_from_bone_quat: F64Array
+    rest_from_bone_quat: F64Array
     root_pos: F64Array
     bone_quality: np.ndarray
     bone_flags: np.ndarray
     n_held: int = 0
+    #: The same buffers as the kernel's output tuple (built once, never per frame).
+    kernel_out: kernel.BodyOut | None = None
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -86,6 +94,7 @@ class BodySolve:
     joint_centres: F64Array  # (T, J, 3)
     world_from_bone_quat: F64Array  # (T, B, 4)
     parent_from_bone_quat: F64Array  # (T, B, 4)
+    rest_from_bone_quat: F64Array  # (T, B, 4)
     root_pos: F64Array  # (T, 3)
     bone_lengths: F64Array  # (B,)
     bone_quality: np.ndarray  # (T, B) float32
@@ -182,11 +191,23 @@ class BodySolver:
         self._n44 = np.zeros((4, 4))
         self._v44 = np.zeros((4, 4))
         self._last_root = np.zeros(3)
+        seg_w = np.ones(len(self.seg_idx))
         for arr in (self.marker_cols, self.op_kind, self.op_idx, self.op_u, self.op_off,
-                    self.seg_ptr, self.seg_idx, self.seg_layout, self.bone_pts,
+                    self.seg_ptr, self.seg_idx, self.seg_layout, seg_w, self.bone_pts,
                     self.bone_parent, self.bone_def_ptr, self.bone_def_idx,
                     self.rest_pfb, self.joint_idx):  # fmt: skip
             arr.flags.writeable = False
+        self.plan = kernel.BodyPlan(
+            self.marker_cols, self.op_kind, self.op_idx, self.op_u, self.op_off,
+            self.seg_ptr, self.seg_idx, self.seg_layout, seg_w, self.bone_pts,
+            self.bone_parent, self.bone_def_ptr, self.bone_def_idx, self.rest_pfb,
+            self.joint_idx, self.root_point,
+        )  # fmt: skip
+        self.state = kernel.BodyState(
+            self._pts, self._seen, self._filled, self._last_pfb, self._have_good,
+            self._prev_wfb, self._tmp4, self._n44, self._v44, np.zeros(6),
+            self._last_root,
+        )  # fmt: skip
         self.reset()
 
     def reset(self) -> None:
@@ -199,14 +220,17 @@ class BodySolver:
     def new_pose(self) -> BodyPose:
         """Allocate the buffers of one frame's output (once per stream)."""
         n_bones = len(self.bone_names)
-        return BodyPose(
+        pose = BodyPose(
             joint_centres=np.zeros((len(self.joint_names), 3)),
             world_from_bone_quat=np.zeros((n_bones, 4)),
             parent_from_bone_quat=np.zeros((n_bones, 4)),
+            rest_from_bone_quat=np.zeros((n_bones, 4)),
             root_pos=np.zeros(3),
             bone_quality=np.zeros(n_bones, dtype=np.float32),
             bone_flags=np.zeros(n_bones, dtype=np.uint8),
         )
+        pose.kernel_out = _kernel_out(pose)
+        return pose
 
     def solve_frame(self, markers_world: F64Array, out: BodyPose) -> BodyPose:
         """Solve one frame into ``out`` (no allocation).
@@ -219,16 +243,10 @@ class BodySolver:
         Returns:
             ``out``.
         """
-        out.n_held = kernel.solve_one(
-            markers_world, self.marker_cols, self.op_kind, self.op_idx, self.op_u,
-            self.op_off, self.seg_ptr, self.seg_idx, self.seg_layout, self.bone_pts,
-            self.bone_parent, self.bone_def_ptr, self.bone_def_idx, self.rest_pfb,
-            self.joint_idx, self.root_point, self._pts, self._seen, self._filled,
-            self._last_pfb, self._have_good, self._prev_wfb, self._tmp4, self._n44,
-            self._v44, self._last_root,
-            out.joint_centres, out.world_from_bone_quat, out.parent_from_bone_quat,
-            out.root_pos, out.bone_quality, out.bone_flags,
-        )  # fmt: skip
+        k_out = out.kernel_out
+        if k_out is None:  # a BodyPose made by hand: wrap it once
+            k_out = out.kernel_out = _kernel_out(out)
+        out.n_held = kernel.solve_one(markers_world, self.plan, self.state, k_out)
         return out
 
     def solve_take(self, positions: F64Array) -> BodySolve:
@@ -250,17 +268,13 @@ class BodySolver:
         joints = np.zeros((n, len(self.joint_names), 3))
         wfb = np.zeros((n, n_bones, 4))
         pfb = np.zeros((n, n_bones, 4))
+        rfb = np.zeros((n, n_bones, 4))
         root = np.zeros((n, 3))
         quality = np.zeros((n, n_bones), dtype=np.float32)
         flags = np.zeros((n, n_bones), dtype=np.uint8)
         kernel.solve_many(
-            positions, self.marker_cols, self.op_kind, self.op_idx, self.op_u,
-            self.op_off, self.seg_ptr, self.seg_idx, self.seg_layout, self.bone_pts,
-            self.bone_parent, self.bone_def_ptr, self.bone_def_idx, self.rest_pfb,
-            self.joint_idx, self.root_point, self._pts, self._seen, self._filled,
-            self._last_pfb, self._have_good, self._prev_wfb, self._tmp4, self._n44,
-            self._v44, self._last_root,
-            joints, wfb, pfb, root, quality, flags,
+            positions, self.plan, self.state,
+            kernel.BodyOut(joints, wfb, pfb, rfb, root, quality, flags),
         )  # fmt: skip
         return BodySolve(
             joint_names=self.joint_names,
@@ -269,11 +283,19 @@ class BodySolver:
             joint_centres=joints,
             world_from_bone_quat=wfb,
             parent_from_bone_quat=pfb,
+            rest_from_bone_quat=rfb,
             root_pos=root,
             bone_lengths=np.asarray(self.calibration.bone_lengths, dtype=np.float64),
             bone_quality=quality,
             bone_flags=flags,
         )
+
+
+def _kernel_out(pose: BodyPose) -> kernel.BodyOut:
+    return kernel.BodyOut(
+        pose.joint_centres, pose.world_from_bone_quat, pose.parent_from_bone_quat,
+        pose.rest_from_bone_quat, pose.root_pos, pose.bone_quality, pose.bone_flags,
+    )  # fmt: skip
 
 
 _WARM_RIG = """

@@ -11,7 +11,9 @@ The NPZ (``numpy.load(..., allow_pickle=False)``) holds, in rig order:
 ``joint_names`` (J,), ``joint_centres`` (T, J, 3) metres world; ``bone_names`` (B,),
 ``bone_parents`` (B,) int (-1 root), ``bone_humanoid`` (B,) ("" when unmapped),
 ``world_from_bone_quat`` (T, B, 4) w x y z, ``parent_from_bone_quat`` (T, B, 4) w x y z
-(relative to the calibration pose), ``root_pos`` (T, 3) metres, ``bone_lengths`` (B,)
+(relative to the parent bone: ``world_from_parent * parent_from_bone =
+world_from_bone``), ``rest_from_bone_quat`` (T, B, 4) w x y z (relative to the
+calibration pose), ``root_pos`` (T, 3) metres, ``bone_lengths`` (B,)
 metres as calibrated, ``bone_quality`` (T, B) float32, ``bone_flags`` (T, B) uint8,
 ``rate_hz``, ``world_from_capture`` (3, 3), ``first_frame``, ``rig_name``. See README
 "Solve output".
@@ -129,6 +131,7 @@ def run(args: argparse.Namespace) -> int:
             bone_humanoid=np.asarray([b.humanoid or "" for b in rig.bones], dtype=str),
             world_from_bone_quat=res.world_from_bone_quat,
             parent_from_bone_quat=res.parent_from_bone_quat,
+            rest_from_bone_quat=res.rest_from_bone_quat,
             root_pos=res.root_pos,
             bone_lengths=res.bone_lengths,
             bone_quality=res.bone_quality,

@@ -2,7 +2,7 @@
 
 ``solve_face_frame`` is one call per frame with every buffer passed in (no
 allocation): the weighted rigid fit of the head markers (Horn's quaternion method,
-the shared ``kernel.horn_rotation``), the facial markers mapped to
+the shared ``compiled.horn_fit``), the facial markers mapped to
 head coordinates, the restricted normal matrix rebuilt only when the occlusion
 pattern changes, and the box-constrained QP by block principal pivoting. The method
 and the frames are described in ``solve_face``.
@@ -12,25 +12,23 @@ from __future__ import annotations
 
 import math
 
-import numba
 import numpy as np
 
-# numba's on-disk cache does not track functions imported from other modules:
-# after changing kernel.horn_rotation, delete daemon/__pycache__/*.nb[ic]
-# (CI starts clean).
-from retargetd.daemon.body.kernel import horn_rotation
+from retargetd.daemon.compiled import horn_fit, kernel
+from retargetd.protocols import pose_stream
 
-FLAG_HEAD_PARTIAL = 1  #: a head marker was missing (fit from the others)
-FLAG_HEAD_LOST = 2  #: < 3 usable head markers: pose and weights held, markers NaN
-FLAG_NOT_CONVERGED = 4  #: the active-set iteration cap was hit (best iterate kept)
-FLAG_FACE_PARTIAL = 8  #: some facial marker was occluded (left out of the system)
-FLAG_NEVER = 16  #: no good frame yet: identity pose and zero weights are sent
+# The pose stream's face flags, imported (numba freezes them at compile time).
+FLAG_HEAD_PARTIAL = pose_stream.FACE_HEAD_PARTIAL  #: a head marker missing
+FLAG_HEAD_LOST = pose_stream.FACE_HEAD_LOST  #: < 3 head markers: pose, weights held
+FLAG_NOT_CONVERGED = pose_stream.FACE_NOT_CONVERGED  #: the iteration cap was hit
+FLAG_FACE_PARTIAL = pose_stream.FACE_PARTIAL  #: some facial marker occluded
+FLAG_NEVER = pose_stream.FACE_NEVER  #: no good frame yet: identity pose, zero weights
 
 #: Block exchanges without fewer infeasibilities before single (Murty) exchanges.
 _BPP_TRIES = 3
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@kernel
 def _fit_head(
     markers: np.ndarray,  # (N, 3) world
     valid: np.ndarray,  # (N,) bool
@@ -42,70 +40,14 @@ def _fit_head(
     q4: np.ndarray,
     rot: np.ndarray,  # (3, 3) out: world_from_head
     pos: np.ndarray,  # (3,) out
+    cen: np.ndarray,  # (6,) scratch: centroids
 ) -> int:
-    # Weighted Horn fit: max sum_i w_i c_i . R l_i over centred points. Returns the
-    # number of head markers used, 0 when the fit is not determined.
-    h = head_cols.shape[0]
-    wsum = clx = cly = clz = ccx = ccy = ccz = 0.0
-    n = 0
-    for i in range(h):
-        c = head_cols[i]
-        if c < 0 or not valid[c]:
-            continue
-        x, y, z = markers[c, 0], markers[c, 1], markers[c, 2]
-        if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
-            continue
-        w = head_w[i]
-        n += 1
-        wsum += w
-        clx += w * layout[i, 0]
-        cly += w * layout[i, 1]
-        clz += w * layout[i, 2]
-        ccx += w * x
-        ccy += w * y
-        ccz += w * z
-    if n < 3 or wsum <= 0.0:
+    # Weighted Horn fit (the shared one): max sum_i w_i c_i . R l_i over centred
+    # points. Returns the number of head markers used, 0 when not determined.
+    n = horn_fit(layout, markers, head_cols, valid, head_w, n44, v44, q4, cen)
+    if n == 0:
         return 0
-    clx /= wsum
-    cly /= wsum
-    clz /= wsum
-    ccx /= wsum
-    ccy /= wsum
-    ccz /= wsum
-    sxx = sxy = sxz = syx = syy = syz = szx = szy = szz = 0.0
-    area = 0.0
-    rx = ry = rz = 0.0
-    have_ref = False
-    for i in range(h):
-        c = head_cols[i]
-        if c < 0 or not valid[c]:
-            continue
-        x, y, z = markers[c, 0], markers[c, 1], markers[c, 2]
-        if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
-            continue
-        w = head_w[i]
-        lx, ly, lz = layout[i, 0] - clx, layout[i, 1] - cly, layout[i, 2] - clz
-        cx, cy, cz = w * (x - ccx), w * (y - ccy), w * (z - ccz)
-        sxx += lx * cx
-        sxy += lx * cy
-        sxz += lx * cz
-        syx += ly * cx
-        syy += ly * cy
-        syz += ly * cz
-        szx += lz * cx
-        szy += lz * cy
-        szz += lz * cz
-        if not have_ref:
-            rx, ry, rz = lx, ly, lz
-            have_ref = True
-        else:
-            ax = ry * lz - rz * ly
-            ay = rz * lx - rx * lz
-            az = rx * ly - ry * lx
-            area = max(area, ax * ax + ay * ay + az * az)
-    if area < 1e-12:  # (1 mm x 1 mm)^2: collinear, rotation about the line unknown
-        return 0
-    horn_rotation(sxx, sxy, sxz, syx, syy, syz, szx, szy, szz, n44, v44, q4)
+    clx, cly, clz, ccx, ccy, ccz = cen[0], cen[1], cen[2], cen[3], cen[4], cen[5]
     for r in range(3):
         for c in range(3):
             rot[r, c] = n44[r, c]
@@ -115,7 +57,7 @@ def _fit_head(
     return n
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@kernel
 def _solve_free(
     a: np.ndarray,
     b: np.ndarray,
@@ -165,7 +107,7 @@ def _solve_free(
     return nf
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@kernel
 def _box_qp(
     a: np.ndarray,  # (K, K) SPD
     b: np.ndarray,  # (K,)
@@ -250,7 +192,7 @@ def _box_qp(
     return -1
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@kernel
 def solve_face_frame(
     markers: np.ndarray,  # (N, 3) world, metres
     valid: np.ndarray,  # (N,) bool
@@ -277,6 +219,7 @@ def solve_face_frame(
     rot: np.ndarray,  # (3, 3) world_from_head, kept (held when lost)
     pos: np.ndarray,  # (3,) kept (held when lost)
     have_good: np.ndarray,  # (1,) bool
+    cen: np.ndarray,  # (6,) scratch: the head fit's centroids
     max_iter: int,
     out_markers: np.ndarray,  # (M, 3)
     out_w: np.ndarray,  # (K,)
@@ -287,7 +230,9 @@ def solve_face_frame(
     m = face_cols.shape[0]
     k = a.shape[0]
     flags = 0
-    used = _fit_head(markers, valid, head_cols, layout, head_w, n44, v44, q4, rot, pos)
+    used = _fit_head(
+        markers, valid, head_cols, layout, head_w, n44, v44, q4, rot, pos, cen
+    )
     if used == 0:
         flags |= FLAG_HEAD_LOST
         if not have_good[0]:

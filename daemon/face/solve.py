@@ -274,6 +274,7 @@ class FaceSolver:
         self._rot = np.eye(3)
         self._pos = np.zeros(3)
         self._have_good = np.zeros(1, dtype=np.bool_)
+        self._cen = np.zeros(6)
         self._layout = np.ascontiguousarray(training.head_layout, dtype=np.float64)
         self._neutral = np.ascontiguousarray(training.neutral, dtype=np.float64)
         if head_weights is None:
@@ -331,8 +332,8 @@ class FaceSolver:
             self._head_w, self._neutral, self._basis, self._a_full, self._a,
             self._last_seen, self._seen, self._b, self._w_prev, self._state, self._idx,
             self._chol, self._x, self._g, self._n44, self._v44, self._q4, self._rot,
-            self._pos, self._have_good, self.max_iter, out.markers_head, out.weights,
-            out.world_from_head_quat, out.world_from_head_pos, out.status,
+            self._pos, self._have_good, self._cen, self.max_iter, out.markers_head,
+            out.weights, out.world_from_head_quat, out.world_from_head_pos, out.status,
         )  # fmt: skip
         return out
 

@@ -46,6 +46,7 @@ from retargetd.daemon.live.surface import (
     parse_endpoint,
 )
 from retargetd.protocols.conventions import normalize_units, normalize_up_axis
+from retargetd.protocols.marker_input import MAX_MARKERS, MAX_MESSAGE_BYTES, MAX_RATE_HZ
 
 LOCALHOST = "127.0.0.1"
 
@@ -55,6 +56,11 @@ LOCALHOST = "127.0.0.1"
 #: seconds of stillness, and 10,000 frames of 200 markers are 48 MB at most (a count
 #: of 2^31 grew the daemon's memory without bound: issue 12).
 CALIBRATE_MAX_FRAMES = 10_000
+
+#: Ceiling for ``input.zmq.max_message_bytes``: the frame payload of the largest label
+#: set allowed (100,000 markers x 12 bytes = 1.2 MB), rounded up to 2 MiB. The input
+#: queue then holds at most RCVHWM (1,000) messages of 2 parts this size.
+_ZMQ_MAX_MESSAGE_BYTES = 2 << 20
 
 
 class ConfigError(ValueError):
@@ -116,6 +122,13 @@ class OscInputConfig:
     up: str = _spec("+Z", "up")
     # allowed source addresses, markers and show control (empty = any)
     allow: tuple[str, ...] = _spec((), "hosts")
+    # Input bounds (protocols/PROTOCOLS.md "Limits"): fastest plausible frame rate,
+    # markers per label set, bytes per datagram (UDP cannot carry more than
+    # MAX_MESSAGE_BYTES); zeros as occlusion.
+    max_rate_hz: float = _between(MAX_RATE_HZ, 1.0, 1e6)
+    max_markers: int = _between(MAX_MARKERS, 1, 100_000)
+    max_message_bytes: int = _between(MAX_MESSAGE_BYTES, 64, MAX_MESSAGE_BYTES)
+    zero_is_occluded: bool = True
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -128,6 +141,11 @@ class ZmqInputConfig:
     allow_remote: bool = False  # an endpoint other than loopback needs this
     units: str = _spec("m", "units")
     up: str = _spec("+Z", "up")
+    max_rate_hz: float = _between(MAX_RATE_HZ, 1.0, 1e6)
+    max_markers: int = _between(MAX_MARKERS, 1, 100_000)
+    # per message part (ZMQ_MAXMSGSIZE), up to _ZMQ_MAX_MESSAGE_BYTES
+    max_message_bytes: int = _between(MAX_MESSAGE_BYTES, 64, _ZMQ_MAX_MESSAGE_BYTES)
+    zero_is_occluded: bool = True
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -386,7 +404,9 @@ def _apply_rule(check: str, meta: Any, value: Any) -> None:
         lo, hi = meta["lo"], meta["hi"]
         if not ((lo < value) if meta["open_lo"] else (lo <= value)) or value > hi:
             brackets = "(" if meta["open_lo"] else "["
-            raise ValueError(f"expected {brackets}{lo:g}, {hi:g}]; got {value}")
+            raise ValueError(
+                f"expected {brackets}{_number(lo)}, {_number(hi)}]; got {value}"
+            )
     elif check == "port":
         if not meta["lo"] <= value <= meta["hi"]:
             raise ValueError(f"expected a port {meta['lo']}-{meta['hi']}; got {value}")
@@ -453,6 +473,11 @@ def _apply_rule(check: str, meta: Any, value: Any) -> None:
             load_public_key(path)
     elif check:  # pragma: no cover
         raise AssertionError(f"unknown config rule {check!r}")
+
+
+def _number(x: float) -> str:
+    """A bound as written: 1000000, 0.05 (never 1e+06)."""
+    return str(int(x)) if float(x).is_integer() else f"{x:g}"
 
 
 def _check_host(host: str) -> None:

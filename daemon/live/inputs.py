@@ -18,9 +18,20 @@ from retargetd.daemon.live.recording import (
 from retargetd.daemon.live.state import DaemonState
 from retargetd.protocols import osc_in, pose_stream, zmq_wire
 from retargetd.protocols.errors import DecodeError
-from retargetd.protocols.marker_input import ACCEPTED, RESTART, MarkerStream
+from retargetd.protocols.marker_input import (
+    ACCEPTED,
+    IMPLAUSIBLE_JUMP,
+    REASON_INDEX,
+    RESTART,
+    LabelSet,
+    MarkerStream,
+)
 
 logger = logging.getLogger(__name__)
+
+#: One log line per kind of input trouble and input at most this often (10 s): the
+#: counters carry the exact numbers, the log only says that it happens.
+LOG_INTERVAL_NS = 10_000_000_000
 
 
 class InputsMixin(DaemonState):
@@ -48,6 +59,8 @@ class InputsMixin(DaemonState):
                 newest, newest_ns = self.zmq_stream, got
         if newest is not None and not every:
             self._solve_and_send(newest, newest_ns)
+        if self._zmon is not None and self._zmon in events:
+            self._drain_zmq_monitor()
         if self._show is not None and self._show.fileno() in events:
             self._drain_show_control()
         if self._ctl is not None and self._ctl in events:
@@ -57,6 +70,16 @@ class InputsMixin(DaemonState):
         """Book-keeping for one decoded packet; returns its receive time when it was
         accepted and left for later (latest wins), else 0."""
         if code != ACCEPTED and code != RESTART:
+            if code == IMPLAUSIBLE_JUMP:
+                name = "osc" if stream is self.osc_stream else "zmq"
+                self._log_limited(
+                    f"{name}.implausible_jump",
+                    t_ns,
+                    "%s input: frame number jumped implausibly past %d (faster than "
+                    "max_rate_hz); dropped (implausible_jump)",
+                    name,
+                    stream.sequencer.last_frame,
+                )
             return 0
         self.stats.frames_in += 1
         stream.current.frame.t_ns = t_ns
@@ -85,15 +108,21 @@ class InputsMixin(DaemonState):
         assert self._osc is not None
         sock, buf, stream = self._osc, self._buf, self.osc_stream
         simple = self.config.input.osc.form == "simple"
+        limit = self.config.input.osc.max_message_bytes
         view = memoryview(buf)
         newest = 0  # receive time of the newest accepted frame not yet solved
         while True:
             try:
-                n, addr = sock.recvfrom_into(buf)
+                # One byte more than the limit: a larger datagram shows as n > limit
+                # (the kernel truncates it), refused before any decoding.
+                n, addr = sock.recvfrom_into(buf, limit + 1)
             except (BlockingIOError, InterruptedError):
                 break
             if self._allow and addr[0] not in self._allow:
                 self.stats.rejected_sources += 1
+                continue
+            if n > limit:
+                stream.counters.add_reason("too_large")
                 continue
             t_ns = time.monotonic_ns()
             packet = view[:n]
@@ -108,7 +137,7 @@ class InputsMixin(DaemonState):
                 except DecodeError as exc:
                     stream.counters.add_reason(exc.reason)
                     continue
-                stream.set_labels(label_set)
+                self._take_labels("osc", stream, label_set, t_ns)
                 continue
             else:
                 code = stream.feed(osc_in.decode_compact_frame, packet, t_ns=t_ns)
@@ -123,6 +152,7 @@ class InputsMixin(DaemonState):
     def _drain_zmq(self, every: bool) -> int:
         assert self._zin is not None
         sock, stream = self._zin, self.zmq_stream
+        limit = self.config.input.zmq.max_message_bytes
         newest = 0  # receive time of the newest accepted frame not yet solved
         while True:
             try:
@@ -137,11 +167,18 @@ class InputsMixin(DaemonState):
                 stream.counters.add_reason("bad_length")
                 continue
             header, payload = parts[0].buffer, parts[1].buffer
+            if payload.nbytes > limit or header.nbytes > limit:  # before decoding
+                stream.counters.add_reason("too_large")
+                continue
             if bytes(header[:4]) == zmq_wire.LABELS_MAGIC:
                 try:
-                    stream.set_labels(zmq_wire.decode_zmq_labels(header, payload))
+                    label_set = zmq_wire.decode_zmq_labels(
+                        header, payload, stream.max_markers
+                    )
                 except DecodeError as exc:
                     stream.counters.add_reason(exc.reason)
+                    continue
+                self._take_labels("zmq", stream, label_set, t_ns)
                 continue
             code = stream.feed(zmq_wire.decode_zmq_frame, header, payload, t_ns=t_ns)
             got = self._accept(stream, code, t_ns, every)
@@ -151,3 +188,62 @@ class InputsMixin(DaemonState):
                     self._frame_flags |= pose_stream.FRAME_INPUT_DROPPED
                 newest = got
         return newest
+
+    def _drain_zmq_monitor(self) -> None:
+        """Count the ZeroMQ input's disconnect events (a part over MAXMSGSIZE makes
+        libzmq drop the peer before buffering it; a sender closing does too)."""
+        assert self._zmon is not None
+        while True:
+            try:
+                self._zmon.recv_multipart(zmq.NOBLOCK)
+            except zmq.Again:
+                return
+            self.stats.zmq_disconnects += 1
+            self._log_limited(
+                "zmq.disconnect",
+                time.monotonic_ns(),
+                "zmq input: a peer was disconnected (a message part over "
+                "input.zmq.max_message_bytes = %d, or the peer closed)",
+                self.config.input.zmq.max_message_bytes,
+            )
+
+    def _take_labels(
+        self, name: str, stream: MarkerStream, label_set: LabelSet, t_ns: int
+    ) -> None:
+        """Hand an announcement to the stream; log a label conflict or refusal (one
+        line per input and kind every ``LOG_INTERVAL_NS``; the counters say how many).
+        """
+        before = stream.counters.counts.copy()  # announcements are rare: not hot
+        stream.set_labels(label_set, t_ns)
+        after = stream.counters
+        if after["conflicting_labels"] > before[_CONFLICTING]:
+            self._log_limited(
+                f"{name}.label_conflict",
+                t_ns,
+                "%s input: label set %d announced with other names while its frames "
+                "stream; they are dropped (label_conflict) until the old names are "
+                "announced again, a new id is, or the new names persist for 1 s",
+                name,
+                label_set.id,
+            )
+        if after["too_many_markers"] > before[_TOO_MANY]:
+            self._log_limited(
+                f"{name}.too_many_markers",
+                t_ns,
+                "%s input: label set %d of %d markers refused (max_markers %d)",
+                name,
+                label_set.id,
+                len(label_set.labels),
+                stream.max_markers,
+            )
+
+    def _log_limited(self, key: str, t_ns: int, msg: str, *args: Any) -> None:
+        """``logger.warning`` at most once per ``LOG_INTERVAL_NS`` for ``key``."""
+        if t_ns < self._log_after_ns.get(key, 0):
+            return
+        self._log_after_ns[key] = t_ns + LOG_INTERVAL_NS
+        logger.warning(msg, *args)
+
+
+_CONFLICTING = REASON_INDEX["conflicting_labels"]
+_TOO_MANY = REASON_INDEX["too_many_markers"]

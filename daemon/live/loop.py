@@ -111,14 +111,30 @@ class Daemon(InputsMixin, SendMixin, CalibrationMixin, StatusMixin, ControlMixin
         self._show: socket.socket | None = None
         self._vmc: socket.socket | None = None
         self._zin: zmq.Socket[bytes] | None = None
+        self._zmon: zmq.Socket[bytes] | None = None  # the input's disconnect events
         self._pub: zmq.Socket[bytes] | None = None
         self._ctl: zmq.Socket[bytes] | None = None
         osc_cfg, zmq_cfg = config.input.osc, config.input.zmq
         simple_labels = (
             LabelSet(0, osc_cfg.labels) if osc_cfg.form == "simple" else None
         )
-        self.osc_stream = MarkerStream(simple_labels, osc_cfg.up, osc_cfg.units)
-        self.zmq_stream = MarkerStream(None, zmq_cfg.up, zmq_cfg.units)
+        self.osc_stream = MarkerStream(
+            simple_labels,
+            osc_cfg.up,
+            osc_cfg.units,
+            max_rate_hz=osc_cfg.max_rate_hz,
+            max_markers=osc_cfg.max_markers,
+            zero_is_occluded=osc_cfg.zero_is_occluded,
+        )
+        self.zmq_stream = MarkerStream(
+            None,
+            zmq_cfg.up,
+            zmq_cfg.units,
+            max_rate_hz=zmq_cfg.max_rate_hz,
+            max_markers=zmq_cfg.max_markers,
+            zero_is_occluded=zmq_cfg.zero_is_occluded,
+        )
+        self._log_after_ns: dict[str, int] = {}  # rate-limited log lines, by key
         self._pipelines: dict[int, Pipeline] = {}  # id(MarkerStream) -> pipeline
         self._labels_of: dict[int, tuple[str, ...]] = {}
         self._names_id = 0
@@ -186,20 +202,27 @@ class Daemon(InputsMixin, SendMixin, CalibrationMixin, StatusMixin, ControlMixin
         if c.input.zmq.enabled:
             zin = c.input.zmq
             local = endpoint_is_local(zin.endpoint)
-            if zin.mode == "pull":
-                self._zin = self._ctx.socket(zmq.PULL)
-                self._zin.setsockopt(zmq.LINGER, 0)
-                self._zin.setsockopt(zmq.RCVHWM, 1000)
+            pull = zin.mode == "pull"
+            self._zin = self._ctx.socket(zmq.PULL if pull else zmq.SUB)
+            self._zin.setsockopt(zmq.LINGER, 0)
+            # Bounded queue: 1,000 messages of parts of at most max_message_bytes;
+            # libzmq drops the connection of a peer sending a larger part, before
+            # buffering it (inproc bypasses this: the drain checks sizes too).
+            self._zin.setsockopt(zmq.RCVHWM, 1000)
+            self._zin.setsockopt(zmq.MAXMSGSIZE, zin.max_message_bytes)
+            if pull:
                 self._zin.bind(zin.endpoint)
                 who = f"frames from {who_reaches(local, zin.endpoint)}"
             else:
-                self._zin = self._ctx.socket(zmq.SUB)
-                self._zin.setsockopt(zmq.LINGER, 0)
                 self._zin.setsockopt(zmq.SUBSCRIBE, b"RTD")
                 self._zin.connect(zin.endpoint)
                 who = f"frames from the publisher at {zin.endpoint}"
             self._poller.register(self._zin, zmq.POLLIN)
             self._sockets.append(self._zin)
+            self._zmon = self._zin.get_monitor_socket(zmq.EVENT_DISCONNECTED)
+            self._zmon.setsockopt(zmq.LINGER, 0)
+            self._poller.register(self._zmon, zmq.POLLIN)
+            self._sockets.append(self._zmon)
             ep = _last_endpoint(self._zin) or zin.endpoint
             self._announce("zmq markers", f"{ep} ({zin.mode}; {who})")
         if c.output.pose.enabled:

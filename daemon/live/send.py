@@ -135,7 +135,7 @@ class SendMixin(DaemonState):
             flags |= self._validation_bits
         # VMC: Unity frame, x y z w.
         engine_unity.unity_quat_xyzw_from_world(
-            tp.parent_from_bone_quat, pipe.bone_quat_xyzw
+            tp.rest_from_bone_quat, pipe.bone_quat_xyzw
         )
         engine_unity.unity_pos_from_world(tp.root_pos, pipe.root_pos_unity)
         t_s = (solved_ns - self._t0_ns) * 1e-9
@@ -163,7 +163,7 @@ class SendMixin(DaemonState):
             parts = pipe.pose_enc.encode(
                 frame.frame_id, frame.source_time_s, received_ns, solved_ns, flags,
                 pose.root_pos, pose.world_from_bone_quat, pose.parent_from_bone_quat,
-                pipe.weights, bone_flags,
+                pose.rest_from_bone_quat, pipe.weights, bone_flags,
             )  # fmt: skip
             if face is not None:
                 pipe.pose_enc.encode_face(
@@ -177,7 +177,7 @@ class SendMixin(DaemonState):
         # After the send: a copy into the validator's ring, never a wait.
         if validator is not None and not validator.submit(
             frame.frame_id, received_ns, pose.root_pos, pose.world_from_bone_quat,
-            pose.parent_from_bone_quat, pose.joint_centres,
+            pose.rest_from_bone_quat, pose.joint_centres,
         ):  # fmt: skip
             self.stats.validation_drops += 1
         if results:  # published after this frame's pose: never ahead of a send

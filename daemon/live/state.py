@@ -73,6 +73,7 @@ class DaemonState:
     _vmc: socket.socket | None
     _vmc_addr: tuple[str, int]
     _zin: zmq.Socket[bytes] | None
+    _zmon: zmq.Socket[bytes] | None
     _pub: zmq.Socket[bytes] | None
     _ctl: zmq.Socket[bytes] | None
     _pipelines: dict[int, Pipeline]
@@ -103,6 +104,7 @@ class DaemonState:
     _validation_bits: int
     _validation_bones: np.ndarray | None
     _validation_enc: pose_stream.ValidationEncoder | None
+    _log_after_ns: dict[str, int]
 
     def _start_validator(self) -> None:  # implemented by Daemon
         raise NotImplementedError

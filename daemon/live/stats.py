@@ -40,6 +40,9 @@ class LoopStats:
         validated: frames the live validator finished (results taken by the loop).
         validation_flagged: of those, frames with at least one check over threshold.
         validation_drops: sent frames the validator's queue had no room for.
+        zmq_disconnects: ZeroMQ marker peers disconnected: by libzmq for a message
+            part over ``input.zmq.max_message_bytes`` (never buffered, so not
+            counted by reason), or by the peer itself.
     """
 
     frames_in: int = 0
@@ -63,6 +66,7 @@ class LoopStats:
     validated: int = 0
     validation_flagged: int = 0
     validation_drops: int = 0
+    zmq_disconnects: int = 0
     rings: IntArray = field(
         default_factory=lambda: np.zeros((len(STAGES), RING), np.int64)
     )
@@ -98,6 +102,6 @@ class LoopStats:
                 "calibrations_refused", "calibrations_expired", "rate_limited",
                 "held_bone_frames", "occluded_samples", "rejected_sources",
                 "face_solved", "face_head_lost", "face_captures", "validated",
-                "validation_flagged", "validation_drops",
+                "validation_flagged", "validation_drops", "zmq_disconnects",
             )
         }  # fmt: skip

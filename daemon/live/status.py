@@ -10,6 +10,7 @@ import time
 from typing import Any
 
 from retargetd.daemon.body.solve import FLAG_HELD
+from retargetd.daemon.live.kernel_drops import udp_kernel_drops
 from retargetd.daemon.live.state import DaemonState
 
 logger = logging.getLogger(__name__)
@@ -53,6 +54,12 @@ class StatusMixin(DaemonState):
                 "osc": self.osc_stream.counters.as_dict(),
                 "zmq": self.zmq_stream.counters.as_dict(),
             },
+            # Datagrams the kernel dropped (receive buffer full), per UDP input;
+            # None where unknown (not Linux) or the input is off.
+            "kernel_drops": {
+                "osc": udp_kernel_drops(self._osc),
+                "show_control": udp_kernel_drops(self._show),
+            },
             "latency_us": latency,
             "occluded_markers": occluded,
             "held_bones": flagged,
@@ -94,6 +101,7 @@ class StatusMixin(DaemonState):
             f" | stale {c['stale']} overruns {c['overruns']} send drops "
             f"{c['send_drops']} | drops {drops or 0} | occluded "
             f"{len(s['occluded_markers'])} held {len(s['held_bones'])}"
+            f" | kernel_drops {sum(v for v in s['kernel_drops'].values() if v)}"
             + ("" if s["calibrated"] else " | NOT CALIBRATED")
             + (
                 f" | REC {s['record']['path']} dropped {s['record']['dropped']}"

@@ -14,17 +14,17 @@ docstring):
 
 Why numba: the vectorized numpy version took ~41 numpy calls per frame (~72 µs
 median on the menache rig); the compiled walk is one call (``bench/bench_retarget.py``).
-The numpy version stays as the test oracle (``target._reference_apply``).
+The numpy version stays as the test oracle (``tests/helpers/retarget_oracle.py``).
 """
 
 from __future__ import annotations
 
 import math
 
-import numba
 import numpy as np
 
 from retargetd.daemon.body.kernel import FLAG_HELD
+from retargetd.daemon.compiled import kernel, qmul
 
 #: Bit 0: filled by interpolation along the chain (the rig does not solve it).
 FLAG_FILLED = 1
@@ -49,7 +49,7 @@ P_HALF_LINEAR = 4
 N_PARAMS = 5
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@kernel
 def retarget_one(
     in_wfb: np.ndarray,  # (B, 4) rig world_from_bone (w x y z)
     in_root: np.ndarray,  # (3,) rig root position, metres world
@@ -71,12 +71,10 @@ def retarget_one(
         if prog[h, 0] != KIND_MAPPED:
             continue
         b = prog[h, 1]
-        aw, ax, ay, az = in_wfb[b, 0], in_wfb[b, 1], in_wfb[b, 2], in_wfb[b, 3]
-        bw, bx, by, bz = cst[h, 0], cst[h, 1], cst[h, 2], cst[h, 3]
-        e[h, 0] = aw * bw - ax * bx - ay * by - az * bz
-        e[h, 1] = aw * bx + ax * bw + ay * bz - az * by
-        e[h, 2] = aw * by - ax * bz + ay * bw + az * bx
-        e[h, 3] = aw * bz + ax * by - ay * bx + az * bw
+        e[h, 0], e[h, 1], e[h, 2], e[h, 3] = qmul(
+            in_wfb[b, 0], in_wfb[b, 1], in_wfb[b, 2], in_wfb[b, 3],
+            cst[h, 0], cst[h, 1], cst[h, 2], cst[h, 3],
+        )  # fmt: skip
         out_flags[h] = FLAG_SOURCE_HELD if in_flags[b] & FLAG_HELD else 0
     # 2. Filled bones, then L_h = Ē_parent ⊗ E_h and G_h = E_h ⊗ T_h, parents first.
     half_linear = params[P_HALF_LINEAR]
@@ -120,22 +118,13 @@ def retarget_one(
             for j in range(4):
                 out_pfb[h, j] = e[h, j]
         else:
-            aw, ax, ay, az = e[p, 0], -e[p, 1], -e[p, 2], -e[p, 3]
-            out_pfb[h, 0] = aw * bw - ax * bx - ay * by - az * bz
-            out_pfb[h, 1] = aw * bx + ax * bw + ay * bz - az * by
-            out_pfb[h, 2] = aw * by - ax * bz + ay * bw + az * bx
-            out_pfb[h, 3] = aw * bz + ax * by - ay * bx + az * bw
-        aw, ax, ay, az = bw, bx, by, bz
-        bw, bx, by, bz = (
-            cst[h, C_REST],
-            cst[h, C_REST + 1],
-            cst[h, C_REST + 2],
-            cst[h, C_REST + 3],
-        )
-        out_wfb[h, 0] = aw * bw - ax * bx - ay * by - az * bz
-        out_wfb[h, 1] = aw * bx + ax * bw + ay * bz - az * by
-        out_wfb[h, 2] = aw * by - ax * bz + ay * bw + az * bx
-        out_wfb[h, 3] = aw * bz + ax * by - ay * bx + az * bw
+            out_pfb[h, 0], out_pfb[h, 1], out_pfb[h, 2], out_pfb[h, 3] = qmul(
+                e[p, 0], -e[p, 1], -e[p, 2], -e[p, 3], bw, bx, by, bz
+            )
+        out_wfb[h, 0], out_wfb[h, 1], out_wfb[h, 2], out_wfb[h, 3] = qmul(
+            bw, bx, by, bz,
+            cst[h, C_REST], cst[h, C_REST + 1], cst[h, C_REST + 2], cst[h, C_REST + 3],
+        )  # fmt: skip
     # 3. Root: the scaled displacement since calibration; Hips above it.
     scale = params[P_SCALE]
     for c in range(3):

@@ -59,56 +59,54 @@ child joint, or the tip for a leaf, at rest, world axes).
 Everything is in the internal world (+Z up, metres); ``protocols/engine_unity``
 converts for VMC. :meth:`Retargeter.apply` is one call of the compiled kernel
 (``retargetd.daemon.target.kernel``) and allocates nothing in steady state; the numpy
-version it replaced, :func:`_reference_apply`, is the tests' oracle.
+version it replaced is the tests' oracle (``tests/helpers/retarget_oracle.py``).
 """
 
 from __future__ import annotations
 
 import logging
-from collections.abc import Collection, Mapping
-from dataclasses import dataclass, field
-from pathlib import Path
+from collections.abc import Collection
+from dataclasses import dataclass
 
 import numpy as np
 
 from retargetd.daemon import rotations as rot
 from retargetd.daemon.body.calibration import Calibration, check_calibration_fits
-from retargetd.daemon.body.kernel import FLAG_HELD
 from retargetd.daemon.body.rig import HUMANOID_BONES, Rig
 from retargetd.daemon.body.solve import BodyPose
 from retargetd.daemon.body.solve import warm_up as warm_up_body
 from retargetd.daemon.target import kernel as kt
-from retargetd.daemon.target.kernel import FLAG_FILLED, FLAG_SOURCE_HELD
-from retargetd.protocols.conventions import (
-    world_from_capture_mat,
-    world_from_capture_pos,
+from retargetd.daemon.target.kernel import FLAG_FILLED
+from retargetd.daemon.target.skeleton import (
+    _UP,
+    CHAIN_CHILD,
+    CMU_BVH_NAME_MAP,
+    DEFAULT_BVH_NAME_MAP,
+    TargetSkeleton,
+    _horizontal_unit,
+    _readonly,
+    bone_axes_from_world_axes,
+    default_humanoid,
 )
 from retargetd.protocols.frames import F64Array, U8Array
-from retargetd.protocols.humanoid import HUMANOID_PARENTS
-from retargetd.replay.bvh import read_bvh_hierarchy
+
+__all__ = [
+    "CHAIN_CHILD",
+    "CMU_BVH_NAME_MAP",
+    "COMPENSATED_BONES",
+    "DEFAULT_BVH_NAME_MAP",
+    "Retargeter",
+    "TargetPose",
+    "TargetSkeleton",
+    "bone_axes_from_world_axes",
+    "default_humanoid",
+    "joint_positions_world",
+    "performer_left_from_calibration",
+    "warm_up",
+]
 
 logger = logging.getLogger(__name__)
 
-#: The chain child of each bone: its aim, and the way down for filling.
-CHAIN_CHILD: dict[str, str] = {
-    "Hips": "Spine",
-    "Spine": "Chest",
-    "Chest": "UpperChest",
-    "UpperChest": "Neck",
-    "Neck": "Head",
-    **{
-        f"{s}{b}": f"{s}{c}"
-        for s in ("Left", "Right")
-        for b, c in (
-            ("Shoulder", "UpperArm"),
-            ("UpperArm", "LowerArm"),
-            ("LowerArm", "Hand"),
-            ("UpperLeg", "LowerLeg"),
-            ("LowerLeg", "Foot"),
-            ("Foot", "Toes"),
-        )
-    },
-}
 #: Bones whose own calibrated direction sets the base-pose compensation by default
 #: (module docstring, step 3); the others inherit their parent's.
 COMPENSATED_BONES = tuple(
@@ -117,83 +115,8 @@ COMPENSATED_BONES = tuple(
     for b in ("UpperArm", "LowerArm", "UpperLeg", "LowerLeg")
 )
 
-#: BVH joint name (after stripping a ``prefix:``) -> humanoid bone: Mixamo,
-#: MotionBuilder and most game rigs.
-DEFAULT_BVH_NAME_MAP: dict[str, str] = {
-    "Hips": "Hips",
-    "Spine": "Spine",
-    "Spine1": "Chest",
-    "Chest": "Chest",
-    "Spine2": "UpperChest",
-    "UpperChest": "UpperChest",
-    "Neck": "Neck",
-    "Head": "Head",
-    **{
-        f"{s}{k}": f"{s}{v}"
-        for s in ("Left", "Right")
-        for k, v in (
-            ("Shoulder", "Shoulder"),
-            ("Arm", "UpperArm"),
-            ("UpperArm", "UpperArm"),
-            ("ForeArm", "LowerArm"),
-            ("LowerArm", "LowerArm"),
-            ("Hand", "Hand"),
-            ("UpLeg", "UpperLeg"),
-            ("UpperLeg", "UpperLeg"),
-            ("Leg", "LowerLeg"),
-            ("LowerLeg", "LowerLeg"),
-            ("Foot", "Foot"),
-            ("ToeBase", "Toes"),
-            ("Toes", "Toes"),
-        )
-    },
-}
-#: The CMU BVH conversions (LowerBack, Spine, Spine1): used when a file has LowerBack.
-CMU_BVH_NAME_MAP: dict[str, str] = {
-    **DEFAULT_BVH_NAME_MAP,
-    "LowerBack": "Spine",
-    "Spine": "Chest",
-    "Spine1": "UpperChest",
-}
 
-_UP = np.array([0.0, 0.0, 1.0])
 _IDENTITY = np.array([1.0, 0.0, 0.0, 0.0])
-
-
-def _quat_product_tensor(conj_left: bool) -> F64Array:
-    """(4, 4, 4) ``T`` with ``(p ⊗ q)_i = Σ T_ijk p_j q_k`` (``p̄ ⊗ q`` if asked)."""
-    t = np.zeros((4, 4, 4))
-    # Hamilton: w = pw qw - pv.qv, v = pw qv + qw pv + pv x qv.
-    t[0, 0, 0] = 1.0
-    for a in range(3):
-        t[0, a + 1, a + 1] = -1.0
-        t[a + 1, 0, a + 1] = 1.0
-        t[a + 1, a + 1, 0] = 1.0
-    for a, b, c in ((0, 1, 2), (1, 2, 0), (2, 0, 1)):  # e_a x e_b = e_c
-        t[c + 1, a + 1, b + 1] = 1.0
-        t[c + 1, b + 1, a + 1] = -1.0
-    if conj_left:
-        t[:, 1:, :] *= -1.0
-    t.flags.writeable = False
-    return t
-
-
-_MUL = _quat_product_tensor(False)
-_CONJ_MUL = _quat_product_tensor(True)
-
-
-def _readonly(a: F64Array) -> F64Array:
-    a = np.array(a, dtype=np.float64)
-    a.flags.writeable = False
-    return a
-
-
-def _horizontal_unit(v: F64Array, what: str) -> F64Array:
-    h = np.array([v[0], v[1], 0.0])
-    n = float(np.linalg.norm(h))
-    if not n > 1e-6:
-        raise ValueError(f"{what} has no horizontal direction: {v}")
-    return h / n
 
 
 def _swing(a: F64Array, b: F64Array) -> F64Array:
@@ -208,267 +131,6 @@ def _swing(a: F64Array, b: F64Array) -> F64Array:
         return np.array([0.0, *(axis / np.linalg.norm(axis))])
     q = np.array([1.0 + d, *np.cross(a, b)])
     return q / np.linalg.norm(q)
-
-
-@dataclass(frozen=True, slots=True, kw_only=True)
-class TargetSkeleton:
-    """A target humanoid: the skeleton the engine animates (frozen, read-only arrays).
-
-    Attributes:
-        name: a label (``"default"``, or the BVH path).
-        bone_names: (N,) humanoid bone names, parents first, ``"Hips"`` first.
-        parents: (N,) parent index, -1 for Hips.
-        rest_offsets: (N, 3) float64, metres, world axes: each joint in its parent's
-            frame at rest (Hips: from the model root, the floor point under it).
-        aim_offsets: (N, 3) float64, metres, world axes: joint -> chain child (or
-            first child, or tip) at rest; the bone direction compensation aligns.
-        rest_world_from_bone_quat: (N, 4) w x y z, ``T_h``.
-        rest_parent_from_bone_quat: (N, 4) w x y z (identity for default and BVH).
-        hips_height: metres, Hips above the lowest joint or tip at rest.
-        forward_world: (3,) unit, horizontal: the way the target faces at rest.
-        source_joints: (N,) the file's joint each bone came from (``""`` default).
-    """
-
-    name: str
-    bone_names: tuple[str, ...]
-    parents: tuple[int, ...]
-    rest_offsets: F64Array
-    aim_offsets: F64Array
-    rest_world_from_bone_quat: F64Array
-    rest_parent_from_bone_quat: F64Array
-    hips_height: float
-    forward_world: F64Array
-    source_joints: tuple[str, ...] = field(default=())
-
-    def __post_init__(self) -> None:
-        n = len(self.bone_names)
-        bad = [b for b in self.bone_names if b not in HUMANOID_BONES]
-        if bad or len(set(self.bone_names)) != n:
-            raise ValueError(f"bone_names must be distinct humanoid bones; got {bad}")
-        if n == 0 or self.bone_names[0] != "Hips" or self.parents[0] != -1:
-            raise ValueError("a target's first bone must be Hips, the root")
-        if len(self.parents) != n or any(
-            not 0 <= p < i for i, p in enumerate(self.parents) if i
-        ):
-            raise ValueError(f"parents must come before children; got {self.parents}")
-        for arr, width, what in (
-            (self.rest_offsets, 3, "rest_offsets"),
-            (self.aim_offsets, 3, "aim_offsets"),
-            (self.rest_world_from_bone_quat, 4, "rest_world_from_bone_quat"),
-            (self.rest_parent_from_bone_quat, 4, "rest_parent_from_bone_quat"),
-        ):
-            if arr.shape != (n, width) or not np.isfinite(arr).all():
-                raise ValueError(f"{what} must be finite ({n}, {width}); {arr.shape}")
-            arr.flags.writeable = False
-        if not self.hips_height > 0.0:
-            raise ValueError(f"hips_height must be > 0 m; got {self.hips_height}")
-        self.forward_world.flags.writeable = False
-
-    @property
-    def left_world(self) -> F64Array:
-        """(3,) the target's left at rest: up x forward."""
-        return np.cross(_UP, self.forward_world)
-
-    def index(self, name: str) -> int:
-        """Index of a humanoid bone (ValueError naming it when absent)."""
-        try:
-            return self.bone_names.index(name)
-        except ValueError:
-            raise ValueError(f"target {self.name!r} has no bone {name!r}") from None
-
-    @classmethod
-    def from_bvh(
-        cls,
-        path: str | Path,
-        *,
-        units: str = "cm",
-        up: str = "+Y",
-        name_map: Mapping[str, str] | None = None,
-    ) -> TargetSkeleton:
-        """A target from a BVH hierarchy (rest pose = every joint at identity).
-
-        Positions go to world metres with ``world_from_capture_pos(p, up, units)``. The
-        rest world rotation of every bone is ``A = world_from_capture`` (a BVH joint's
-        rest frame is parallel to the file's axes), so rest parent-relative rotations
-        are identity. Joints the map does not name are skipped (their offsets add up
-        into the next mapped joint's).
-
-        Args:
-            path: the ``.bvh`` file.
-            units: the file's length unit (BVH does not say; usually ``"cm"``).
-            up: the file's up axis (usually ``"+Y"``).
-            name_map: joint name -> humanoid bone; keys match the full name or the
-                name after its last ``:`` (``mixamorig:Hips``). Default:
-                :data:`DEFAULT_BVH_NAME_MAP`, or :data:`CMU_BVH_NAME_MAP` when the
-                file has a ``LowerBack`` joint.
-
-        Raises:
-            ValueError: unreadable file, unknown humanoid names, duplicates, no
-                Hips, no left/right pair to find the forward axis.
-        """
-        sk = read_bvh_hierarchy(path)
-        short = [n.rsplit(":", 1)[-1] for n in sk.joint_names]
-        if name_map is None:
-            name_map = (
-                CMU_BVH_NAME_MAP if "LowerBack" in short else DEFAULT_BVH_NAME_MAP
-            )
-        human: dict[int, str] = {}
-        for j, (full, s) in enumerate(zip(sk.joint_names, short, strict=True)):
-            h = name_map.get(full, name_map.get(s))
-            if h is None:
-                continue
-            if h not in HUMANOID_BONES:
-                raise ValueError(f"{path}: name map sends {full!r} to unknown {h!r}")
-            if h in human.values():
-                raise ValueError(f"{path}: two joints map to humanoid {h!r}")
-            human[j] = h
-        if "Hips" not in human.values():
-            raise ValueError(f"{path}: no joint maps to Hips (joints: {short})")
-        pos = world_from_capture_pos(sk.rest_positions(), up, units)
-        ends = world_from_capture_pos(sk.end_sites, up, units)
-        tips = pos + ends  # NaN where no End Site
-        floor = min(pos[:, 2].min(), np.nanmin(tips[:, 2], initial=np.inf))
-        hips_j = next(j for j, h in human.items() if h == "Hips")
-        hips_height = float(pos[hips_j, 2] - floor)
-
-        def mapped_ancestor(j: int) -> int:
-            p = sk.parents[j]
-            while p >= 0 and p not in human:
-                p = sk.parents[p]
-            return p
-
-        def on_path(j: int, below: int) -> int | None:
-            """The direct child of j on the way to ``below`` (None if not below)."""
-            k = below
-            while k >= 0 and sk.parents[k] != j:
-                k = sk.parents[k]
-            return None if k < 0 else k
-
-        order = sorted(human)  # file order: parents first
-        names = [human[j] for j in order]
-        index = {j: i for i, j in enumerate(order)}
-        parents, offsets, aims = [], [], []
-        children = {j: [c for c, p in enumerate(sk.parents) if p == j] for j in order}
-        by_human = {h: j for j, h in human.items()}
-        for j in order:
-            h = human[j]
-            anc = mapped_ancestor(j)
-            if h == "Hips":
-                if anc >= 0:
-                    raise ValueError(f"{path}: Hips ({sk.joint_names[j]}) has a mapped "
-                                     "ancestor")  # fmt: skip
-                parents.append(-1)
-                offsets.append([0.0, 0.0, hips_height])
-            else:
-                if anc < 0:
-                    raise ValueError(
-                        f"{path}: {h} ({sk.joint_names[j]}) is not below Hips"
-                    )
-                parents.append(index[anc])
-                offsets.append(pos[j] - pos[anc])
-            chain = by_human.get(CHAIN_CHILD.get(h, ""), -1)
-            via = on_path(j, chain) if chain >= 0 else None
-            if via is None and children[j]:
-                via = children[j][0]
-            if via is not None:
-                aim = pos[via] - pos[j]
-            elif np.isfinite(ends[j]).all():
-                aim = ends[j]
-            else:
-                aim = np.asarray(offsets[-1], dtype=np.float64)
-            if not np.linalg.norm(aim) > 1e-9:
-                aim = np.asarray(offsets[-1], dtype=np.float64)
-            aims.append(aim)
-        forward = _forward_from_pairs({h: pos[by_human[h]] for h in names}, f"{path}")
-        a = rot.quat_from_mat(world_from_capture_mat(up))
-        n = len(names)
-        return cls(
-            name=str(path),
-            bone_names=tuple(names),
-            parents=tuple(parents),
-            rest_offsets=_readonly(np.asarray(offsets).reshape(n, 3)),
-            aim_offsets=_readonly(np.asarray(aims).reshape(n, 3)),
-            rest_world_from_bone_quat=_readonly(np.tile(a, (n, 1))),
-            rest_parent_from_bone_quat=_readonly(np.tile(_IDENTITY, (n, 1))),
-            hips_height=hips_height,
-            forward_world=_readonly(forward),
-            source_joints=tuple(sk.joint_names[j] for j in order),
-        )
-
-
-def _forward_from_pairs(pos: Mapping[str, F64Array], what: str) -> F64Array:
-    """Forward = left x up, left from the upper legs (else shoulders, upper arms)."""
-    for pair in ("UpperLeg", "Shoulder", "UpperArm"):
-        left, right = pos.get("Left" + pair), pos.get("Right" + pair)
-        if left is not None and right is not None:
-            lat = _horizontal_unit(left - right, f"{what}: Left{pair} - Right{pair}")
-            return np.cross(lat, _UP)
-    raise ValueError(f"{what}: no Left/Right UpperLeg, Shoulder or UpperArm pair")
-
-
-#: The default humanoid at rest, joint positions in the world (metres): a 1.70 m adult
-#: in T-pose (palms down), facing world +Y (Unity +Z), its left at world -X (Unity -X).
-_DEFAULT_JOINTS: dict[str, tuple[float, float, float]] = {
-    "Hips": (0.0, 0.0, 0.95),
-    "Spine": (0.0, 0.0, 1.05),
-    "Chest": (0.0, 0.0, 1.17),
-    "UpperChest": (0.0, 0.0, 1.29),
-    "Neck": (0.0, 0.0, 1.45),
-    "Head": (0.0, 0.0, 1.55),
-    **{
-        f"{s}{b}": (sx * x, y, z)
-        for s, sx in (("Left", -1.0), ("Right", 1.0))
-        for b, (x, y, z) in (
-            ("Shoulder", (0.03, 0.0, 1.41)),
-            ("UpperArm", (0.19, 0.0, 1.41)),
-            ("LowerArm", (0.46, 0.0, 1.41)),
-            ("Hand", (0.71, 0.0, 1.41)),
-            ("UpperLeg", (0.09, 0.0, 0.90)),
-            ("LowerLeg", (0.09, 0.0, 0.48)),
-            ("Foot", (0.09, 0.0, 0.08)),
-            ("Toes", (0.09, 0.13, 0.02)),
-        )
-    },
-}
-#: Tips of the leaves (head top, fingertips, toe tips), world metres.
-_DEFAULT_TIPS: dict[str, tuple[float, float, float]] = {
-    "Head": (0.0, 0.0, 1.70),
-    "LeftHand": (-0.89, 0.0, 1.41),
-    "RightHand": (0.89, 0.0, 1.41),
-    "LeftToes": (-0.09, 0.19, 0.0),
-    "RightToes": (0.09, 0.19, 0.0),
-}
-
-
-def default_humanoid() -> TargetSkeleton:
-    """The standard humanoid in T-pose, all rest rotations identity (VRM-normalized).
-
-    A 1.70 m adult (hips 0.95 m, shoulders 0.38 m apart, arm span 1.78 m) facing
-    world +Y, which Unity_from_world maps to Unity +Z, Unity's forward; its left is
-    world -X (Unity -X), arms along ±X, palms down. Bone order: :data:`HUMANOID_BONES`.
-    """
-    names = HUMANOID_BONES
-    pos = {k: np.asarray(v) for k, v in _DEFAULT_JOINTS.items()}
-    parents, offsets, aims = [], [], []
-    for h in names:
-        p = HUMANOID_PARENTS[h]
-        parents.append(-1 if p is None else names.index(p))
-        offsets.append(pos[h] if p is None else pos[h] - pos[p])
-        child = CHAIN_CHILD.get(h)
-        aims.append((pos[child] if child else np.asarray(_DEFAULT_TIPS[h])) - pos[h])
-    n = len(names)
-    return TargetSkeleton(
-        name="default",
-        bone_names=names,
-        parents=tuple(parents),
-        rest_offsets=_readonly(np.asarray(offsets)),
-        aim_offsets=_readonly(np.asarray(aims)),
-        rest_world_from_bone_quat=_readonly(np.tile(_IDENTITY, (n, 1))),
-        rest_parent_from_bone_quat=_readonly(np.tile(_IDENTITY, (n, 1))),
-        hips_height=0.95,
-        forward_world=_readonly(np.array([0.0, 1.0, 0.0])),
-        source_joints=("",) * n,
-    )
 
 
 def performer_left_from_calibration(rig: Rig, calibration: Calibration) -> F64Array:
@@ -523,7 +185,7 @@ class TargetPose:
     Attributes:
         world_from_bone_quat: (N, 4) float64, w x y z: ``world_from_bone`` of each
             target bone, ``G_h = E_h ⊗ T_h``.
-        parent_from_bone_quat: (N, 4) float64, w x y z, world axes: each bone's rotation
+        rest_from_bone_quat: (N, 4) float64, w x y z, world axes: each bone's rotation
             relative to its parent and its rest (``L_h = Ē_p ⊗ E_h``; Hips: its world
             rotation relative to rest). What VMC sends (after ``engine_unity``).
         root_pos: (3,) float64, metres, world: the model root (floor point under the
@@ -537,7 +199,7 @@ class TargetPose:
     """
 
     world_from_bone_quat: F64Array
-    parent_from_bone_quat: F64Array
+    rest_from_bone_quat: F64Array
     root_pos: F64Array
     hips_pos: F64Array
     rest_offsets: F64Array
@@ -718,7 +380,7 @@ class Retargeter:
         n = len(self.bone_names)
         return TargetPose(
             world_from_bone_quat=np.tile(_IDENTITY, (n, 1)),
-            parent_from_bone_quat=np.tile(_IDENTITY, (n, 1)),
+            rest_from_bone_quat=np.tile(_IDENTITY, (n, 1)),
             root_pos=np.zeros(3),
             hips_pos=np.zeros(3),
             rest_offsets=self.target.rest_offsets,
@@ -738,130 +400,25 @@ class Retargeter:
         """
         kt.retarget_one(
             pose.world_from_bone_quat, pose.root_pos, pose.bone_flags, self._prog,
-            self._cst, self._params, self._e, out.parent_from_bone_quat,
+            self._cst, self._params, self._e, out.rest_from_bone_quat,
             out.world_from_bone_quat, out.root_pos, out.hips_pos, out.rest_offsets,
             out.flags,
         )  # fmt: skip
         return out
 
 
-class _ReferenceScratch:
-    """Buffers of :func:`_reference_apply` (built once per retargeter)."""
-
-    def __init__(self, rt: Retargeter) -> None:
-        n, m, ni = len(rt.bone_names), len(rt._src), len(rt._i_t)
-        self.w = np.zeros((m, 4))
-        self.em = np.zeros((m, 4))
-        self.e = np.tile(_IDENTITY, (n + 1, 1))  # row n: identity, Hips' "parent"
-        self.e_n = self.e[:n]
-        self.ep = np.zeros((n, 4))
-        self.q0 = np.zeros((ni, 4))
-        self.q1 = np.zeros((ni, 4))
-        self.qi = np.zeros((ni, 4))
-        self.tmp4 = np.zeros((ni, 4))
-        self.dot = np.zeros(ni)
-        self.theta = np.zeros(ni)
-        self.sin = np.zeros(ni)
-        self.tmp = np.zeros(ni)
-        self.w0 = np.zeros(ni)
-        self.w1 = np.zeros(ni)
-        self.mask = np.zeros(ni, dtype=bool)
-        self.sgn = np.zeros(ni)
-        self.sgn_col = self.sgn[:, None]
-        self.norm_col = self.tmp[:, None]
-        self.w0_col = self.w0[:, None]
-        self.w1_col = self.w1[:, None]
-        self.ec = np.zeros((len(rt._c_t), 4))
-        self.fsrc = np.zeros(m, dtype=np.uint8)
-
-
-def _reference_apply(
-    rt: Retargeter, pose: BodyPose, out: TargetPose, s: _ReferenceScratch
-) -> TargetPose:
-    """:meth:`Retargeter.apply` in vectorized numpy (~41 calls): the test oracle of
-    the compiled kernel and the baseline of ``bench/bench_retarget.py``; not hot."""
-    e = s.e
-    # E_h = W_b(t) ⊗ K_h for the mapped bones.
-    np.take(pose.world_from_bone_quat, rt._src, axis=0, out=s.w)
-    np.einsum("ijk,nj,nk->ni", _MUL, s.w, rt._k, out=s.em)
-    e[rt._mapped_t] = s.em
-    if rt._i_t.size:
-        _reference_slerp_filled(rt, s)
-        e[rt._i_t] = s.qi
-    if rt._c_t.size:
-        np.take(e, rt._c_s, axis=0, out=s.ec)
-        e[rt._c_t] = s.ec
-    # L_h = Ē_parent ⊗ E_h (Hips' parent row is identity); G_h = E_h ⊗ T_h.
-    np.take(e, rt._parent, axis=0, out=s.ep)
-    np.einsum("ijk,nj,nk->ni", _CONJ_MUL, s.ep, s.e_n,
-              out=out.parent_from_bone_quat)  # fmt: skip
-    np.einsum("ijk,nj,nk->ni", _MUL, s.e_n, rt._rest_t,
-              out=out.world_from_bone_quat)  # fmt: skip
-    np.subtract(pose.root_pos, rt._root_rest, out=out.root_pos)
-    np.multiply(out.root_pos, rt.root_scale, out=out.root_pos)
-    np.add(out.root_pos, out.rest_offsets[0], out=out.hips_pos)
-    np.copyto(out.flags, rt._base_flags)
-    np.take(pose.bone_flags, rt._src, out=s.fsrc)
-    np.bitwise_and(s.fsrc, FLAG_HELD, out=s.fsrc)
-    np.minimum(s.fsrc, 1, out=s.fsrc)
-    np.multiply(s.fsrc, FLAG_SOURCE_HELD, out=s.fsrc)
-    out.flags[rt._mapped_t] = s.fsrc
-    return out
-
-
-def _reference_slerp_filled(rt: Retargeter, s: _ReferenceScratch) -> None:
-    """``s.qi = slerp(E[a], E[d], u)`` per filled bone, short arc, into buffers."""
-    q0, q1 = s.q0, s.q1
-    np.take(s.e, rt._i_a, axis=0, out=q0)
-    np.take(s.e, rt._i_d, axis=0, out=q1)
-    np.einsum("ij,ij->i", q0, q1, out=s.dot)
-    np.copysign(1.0, s.dot, out=s.sgn)  # short arc: q1 -> -q1 if dot < 0
-    np.multiply(q1, s.sgn_col, out=q1)
-    np.abs(s.dot, out=s.dot)
-    np.minimum(s.dot, 1.0, out=s.dot)
-    np.arccos(s.dot, out=s.theta)  # half the angle between the ends
-    np.sin(s.theta, out=s.sin)
-    np.greater(s.theta, 0.5 * rot.SLERP_LINEAR_BELOW_RAD, out=s.mask)
-    np.copyto(s.w0, rt._i_1mu)
-    np.copyto(s.w1, rt._i_u)
-    np.multiply(rt._i_1mu, s.theta, out=s.tmp)
-    np.sin(s.tmp, out=s.tmp)
-    np.divide(s.tmp, s.sin, out=s.w0, where=s.mask)
-    np.multiply(rt._i_u, s.theta, out=s.tmp)
-    np.sin(s.tmp, out=s.tmp)
-    np.divide(s.tmp, s.sin, out=s.w1, where=s.mask)
-    np.multiply(q0, s.w0_col, out=s.qi)
-    np.multiply(q1, s.w1_col, out=s.tmp4)
-    np.add(s.qi, s.tmp4, out=s.qi)
-    np.einsum("ij,ij->i", s.qi, s.qi, out=s.tmp)
-    np.sqrt(s.tmp, out=s.tmp)
-    np.divide(s.qi, s.norm_col, out=s.qi)
-
-
-def bone_axes_from_world_axes(
-    target: TargetSkeleton, parent_from_bone_quat: F64Array, out: F64Array | None = None
-) -> F64Array:
-    """Rotations relative to rest, from world axes to each bone's rest axes.
-
-    ``T̄_h ⊗ L_h ⊗ T_h`` = ``P̄_h^rest ⊗ Ḡ_p ⊗ G_h``: for a BVH target, the joint's
-    channel rotation in the file's axes (rest = identity); for the default humanoid
-    the input unchanged.
-
-    Args:
-        target: the target.
-        parent_from_bone_quat: (..., N, 4) w x y z, world axes
-            (``TargetPose.parent_from_bone_quat``).
-        out: optional (..., N, 4) destination.
-
-    Returns:
-        (..., N, 4) w x y z, each bone's rest axes.
-    """
-    t = target.rest_world_from_bone_quat
-    res = rot.quat_mul(rot.quat_conj(t), rot.quat_mul(parent_from_bone_quat, t))
-    if out is None:
-        return res
-    out[...] = res
-    return out
+def warm_up() -> None:
+    """Load (or compile) the body-solve and retarget kernels through the same code
+    paths as a real frame (``BodySolver.solve_frame``, ``Retargeter.apply``), so the
+    first live frame pays neither numba's cache load (~0.3 s) nor a compile."""
+    solver, pose = warm_up_body()
+    rt = Retargeter(
+        solver.rig,
+        solver.calibration,
+        performer_left_world=np.array([0.0, 1.0, 0.0]),
+        performer_hips_height=1.0,
+    )
+    rt.apply(pose, rt.new_pose())
 
 
 def joint_positions_world(
@@ -885,17 +442,3 @@ def joint_positions_world(
         p = target.parents[i]
         res[i] = res[p] + rot.quat_rotate(delta[p], target.rest_offsets[i])
     return res
-
-
-def warm_up() -> None:
-    """Load (or compile) the body-solve and retarget kernels through the same code
-    paths as a real frame (``BodySolver.solve_frame``, ``Retargeter.apply``), so the
-    first live frame pays neither numba's cache load (~0.3 s) nor a compile."""
-    solver, pose = warm_up_body()
-    rt = Retargeter(
-        solver.rig,
-        solver.calibration,
-        performer_left_world=np.array([0.0, 1.0, 0.0]),
-        performer_hips_height=1.0,
-    )
-    rt.apply(pose, rt.new_pose())

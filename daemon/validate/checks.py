@@ -6,7 +6,7 @@ rotates the body in its own frame, so the model poses
 
     wfb_b = wfb_p * rest_pfb_b * q_b  =>  q_b = conj(rest_pfb_b) * conj(wfb_p) * wfb_b,
 
-which is exactly the streamed ``parent_from_bone_quat`` (README "Solve output": the
+which is exactly the streamed ``rest_from_bone_quat`` (README "Solve output": the
 parent-relative rotation composed with the inverse of its calibrated value, in the
 bone's own axes). The root's free joint takes ``root_pos`` and the root's
 ``world_from_bone_quat`` (w x y z). The check poses the model from the parent-relative
@@ -330,7 +330,7 @@ def validate_take(
     skel_stream = skeleton_from_arrays(skel_model, solve.bone_lengths)
     wfb, pfb, root_pos = (
         solve.world_from_bone_quat,
-        solve.parent_from_bone_quat,
+        solve.rest_from_bone_quat,
         solve.root_pos,
     )
     n, n_bones = wfb.shape[:2]

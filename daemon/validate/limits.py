@@ -1,6 +1,6 @@
 """Anatomical joint limits as swing/twist about each bone's axis.
 
-A bone's streamed ``parent_from_bone_quat`` ``q`` is its rotation from the calibration
+A bone's streamed ``rest_from_bone_quat`` ``q`` is its rotation from the calibration
 pose, in the bone's own rest axes (+Y along the bone). It is split as
 ``q = swing * twist``: ``twist`` about +Y (the long-axis rotation, e.g. forearm
 pronation), ``swing`` about an axis perpendicular to the bone (its rotation vector
@@ -162,7 +162,7 @@ def limit_violation_deg(skel: Skeleton, pfb: F64Array) -> tuple[F64Array, np.nda
 
     Args:
         skel: the skeleton (segment kinds, rest rotations, performer's left).
-        pfb: (T, B, 4) streamed ``parent_from_bone_quat``.
+        pfb: (T, B, 4) streamed ``rest_from_bone_quat``.
 
     Returns:
         (T, B) degrees beyond the limit (0 inside), (T, B) str: the component most

@@ -5,7 +5,7 @@ One body per rig bone (parents first), its frame the bone's calibrated rest rota
 free joint at the root and a ball joint elsewhere. With these body frames the model's
 ``qpos`` is the solve's output as streamed (derived in ``validate.checks``):
 root position and ``world_from_bone_quat`` of the root, then each bone's streamed
-``parent_from_bone_quat`` (identity in the calibration pose) as its ball quaternion.
+``rest_from_bone_quat`` (identity in the calibration pose) as its ball quaternion.
 
 Segments: a capsule from the bone's origin to its aim (``fromto`` (0,0,0)-(0,L,0) in the
 body frame), a site ``<bone>_aim`` at the aim. Capsule radius = a per-segment factor

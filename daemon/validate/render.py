@@ -84,9 +84,7 @@ def _blamed_bones(
     flagged = [n for n, c in rep.checks.items() if c.flagged[t]]
     blamed: set[int] = set()
     if "limits" in flagged:
-        viol, _ = limit_violation_deg(
-            vm.skeleton, solve.parent_from_bone_quat[t : t + 1]
-        )
+        viol, _ = limit_violation_deg(vm.skeleton, solve.rest_from_bone_quat[t : t + 1])
         blamed |= {
             int(b) for b in np.flatnonzero(viol[0] > rep.checks["limits"].threshold)
         }
@@ -144,7 +142,7 @@ def snapshot_jobs(
         checker.check(
             solve.root_pos[t],
             solve.world_from_bone_quat[t, root],
-            solve.parent_from_bone_quat[t],
+            solve.rest_from_bone_quat[t],
         )
         blamed, flagged = _blamed_bones(vm, solve, rep, t, checker)
         rgba = np.tile(BONE_RGBA, (vm.model.ngeom, 1))

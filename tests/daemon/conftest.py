@@ -24,6 +24,7 @@ from typing import Any
 
 import pytest
 import zmq
+from paths import DATASETS
 
 
 @pytest.fixture
@@ -66,7 +67,7 @@ def zmq_socket() -> Iterator[Callable[[int], Any]]:
 # ---- the Plug-in Gait pair and daemons as subprocesses -----------------------------
 
 #: Same place as ``tests/conftest.py``'s DATASETS (a conftest can't be imported).
-DATASETS = Path(__file__).resolve().parents[2].parent / "shared" / "datasets"
+
 PIG_STATIC = "btkdata/PiG_Calibration-FlatFoot-Full.c3d"
 PIG_WALK = "btkdata/PiG_Motion-FlatFoot-Full.c3d"
 _ENDPOINT_LINE = re.compile(r"^(listening on|sending to) (\S+)(?: \(.*\))?: (.+)$")

@@ -101,7 +101,7 @@ def _marker_floor(rig: Rig, take: Take, bone: str) -> float:
 
 def _check_clean(rig: Rig, res: BodySolve, take: Take, name: str) -> None:
     assert np.isfinite(res.world_from_bone_quat).all()
-    assert np.isfinite(res.parent_from_bone_quat).all()
+    assert np.isfinite(res.rest_from_bone_quat).all()
     assert np.isfinite(res.root_pos).all()
     assert np.isfinite(res.joint_centres).all()
     held = (res.bone_flags & FLAG_HELD) != 0

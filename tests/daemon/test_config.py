@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from importlib import resources
 from pathlib import Path
 
@@ -59,3 +60,41 @@ def test_bad_config_is_one_line_naming_the_key(
     assert main(["run", "--config", str(path)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and message in err[0] and str(path) in err[0]
+
+
+@pytest.mark.parametrize(
+    ("toml", "message"),
+    [
+        (
+            "[input.osc]\nmax_rate_hz = 0",
+            "input.osc.max_rate_hz: expected [1, 1000000]",
+        ),
+        (
+            "[input.zmq]\nmax_rate_hz = 'fast'",
+            "input.zmq.max_rate_hz: expected a number",
+        ),
+        ("[input.osc]\nmax_markers = 0", "input.osc.max_markers: expected [1, 100000]"),
+        (
+            "[input.zmq]\nmax_markers = 2.5",
+            "input.zmq.max_markers: expected an integer",
+        ),
+        # UDP cannot carry more than 65,507 bytes; ZeroMQ may go to 2 MiB.
+        ("[input.osc]\nmax_message_bytes = 65508", "input.osc.max_message_bytes"),
+        ("[input.zmq]\nmax_message_bytes = 3000000", "input.zmq.max_message_bytes"),
+        ("[input.osc]\nzero_is_occluded = 1", "input.osc.zero_is_occluded: expected"),
+    ],
+)
+def test_input_limits_are_validated(tmp_path: Path, toml: str, message: str) -> None:
+    path = tmp_path / "bad.toml"
+    path.write_text(toml)
+    with pytest.raises(ConfigError, match=re.escape(message)):
+        DaemonConfig.from_toml(path)
+
+
+def test_input_limits_within_range_are_taken() -> None:
+    c = DaemonConfig.from_dict(
+        {"input": {"zmq": {"max_message_bytes": 2 << 20, "max_rate_hz": 240}}}
+    )
+    assert c.input.zmq.max_message_bytes == 2 << 20
+    assert c.input.zmq.max_rate_hz == 240.0
+    assert c.input.osc.zero_is_occluded and c.input.osc.max_markers == 5454

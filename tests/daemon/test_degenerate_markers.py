@@ -11,13 +11,12 @@ error model, and a bone whose points are degenerate holds and is flagged.
 from __future__ import annotations
 
 import itertools
-import os
-from pathlib import Path
 
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from paths import require_datasets
 
 from retargetd.daemon.body.calibration import calibrate
 from retargetd.daemon.body.rig import load_rig
@@ -25,21 +24,10 @@ from retargetd.daemon.body.solve import FLAG_HELD, BodyPose, BodySolver
 from retargetd.daemon.face import solve as sf
 from retargetd.replay.takes import load_take
 
-DATASETS = Path(__file__).resolve().parents[2].parent / "shared" / "datasets"
-
-
-def _datasets() -> Path:
-    if DATASETS.is_dir():
-        return DATASETS
-    reason = f"shared datasets folder not found at {DATASETS}"
-    if os.environ.get("CI", "").lower() in ("1", "true", "yes"):
-        pytest.fail(f"{reason} (CI=true: nothing may skip)")
-    pytest.skip(reason)
-
 
 @pytest.fixture(scope="module")
 def pig() -> tuple[BodySolver, np.ndarray]:
-    root = _datasets()
+    root = require_datasets()
     rig = load_rig("plug-in-gait")
     static = load_take(root / "btkdata/PiG_Calibration-FlatFoot-Full.c3d")
     cal = calibrate(rig, static.positions[:50], static.labels)
@@ -51,7 +39,7 @@ def _check(pose: BodyPose) -> None:
     q = pose.world_from_bone_quat
     assert np.isfinite(q).all()
     np.testing.assert_allclose(np.linalg.norm(q, axis=1), 1.0, atol=1e-9)
-    assert np.isfinite(pose.parent_from_bone_quat).all()
+    assert np.isfinite(pose.rest_from_bone_quat).all()
     assert np.isfinite(pose.root_pos).all()
 
 

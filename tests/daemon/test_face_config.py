@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from paths import DATASETS
 from scipy.spatial.transform import Rotation
 
 from retargetd.daemon.cli.main import main
@@ -19,8 +20,6 @@ from retargetd.daemon.face.config import (
     shipped_faces,
 )
 from retargetd.daemon.synth import face as fs
-
-DATASETS = Path(__file__).resolve().parents[2].parent / "shared" / "datasets"
 
 
 def test_presets_load_and_map() -> None:

@@ -34,6 +34,11 @@ from typing import Any
 import numpy as np
 import pytest
 
+# Fixtures and helpers from tests/daemon/conftest.py (pytest loads it; tests can't
+# import it by name under --import-mode=importlib, so the paths are repeated here).
+from paths import DATASETS
+
+from retargetd.daemon import rotations as rot
 from retargetd.daemon.body.calibration import load_calibration
 from retargetd.daemon.body.rig import load_rig
 from retargetd.daemon.body.solve import BodySolve, BodySolver
@@ -42,9 +47,6 @@ from retargetd.daemon.rotations import quat_angle, quat_conj, quat_mul
 from retargetd.replay.take import Take
 from retargetd.replay.takes import load_take
 
-# Fixtures and helpers from tests/daemon/conftest.py (pytest loads it; tests can't
-# import it by name under --import-mode=importlib, so the paths are repeated here).
-DATASETS = Path(__file__).resolve().parents[2].parent / "shared" / "datasets"
 WALK = DATASETS / "btkdata/PiG_Motion-FlatFoot-Full.c3d"
 TOL_RAD = 1e-6
 
@@ -102,7 +104,7 @@ def test_batch_oracle_is_retargetd_solve(pig_calibration: Path, tmp_path: Path) 
     assert main([*argv, "--calibration", str(pig_calibration), "--out", str(out)]) == 0
     res = _batch(pig_calibration, rounded=False)
     with np.load(out, allow_pickle=False) as npz:
-        for key in ("world_from_bone_quat", "parent_from_bone_quat", "root_pos"):
+        for key in ("world_from_bone_quat", "rest_from_bone_quat", "root_pos"):
             np.testing.assert_array_equal(npz[key], getattr(res, key), err_msg=key)
         np.testing.assert_array_equal(npz["bone_flags"], res.bone_flags)
 
@@ -149,19 +151,17 @@ def test_live_pose_stream_equals_batch_solve(
     assert names.bone_names == batch.bone_names
 
     live_wfb = np.stack([m.world_from_bone_quat for m in poses])
-    live_pfb = np.stack([m.parent_from_bone_quat for m in poses])
+    live_pfb = np.stack([m.rest_from_bone_quat for m in poses])
     live_root = np.stack([m.root_pos_world for m in poses])
     live_flags = np.stack([m.bone_flags for m in poses])
     wfb_rad = _angles(live_wfb, batch.world_from_bone_quat)
-    pfb_rad = _angles(live_pfb, batch.parent_from_bone_quat)
+    pfb_rad = _angles(live_pfb, batch.rest_from_bone_quat)
     # How far float32 rounding alone moves the batch quaternions (the floor).
     f32_wfb_rad = _angles(_f32(batch.world_from_bone_quat), batch.world_from_bone_quat)
-    f32_pfb_rad = _angles(
-        _f32(batch.parent_from_bone_quat), batch.parent_from_bone_quat
-    )
+    f32_pfb_rad = _angles(_f32(batch.rest_from_bone_quat), batch.rest_from_bone_quat)
     bitwise = np.array_equal(
         live_wfb, batch.world_from_bone_quat.astype(np.float32)
-    ) and np.array_equal(live_pfb, batch.parent_from_bone_quat.astype(np.float32))
+    ) and np.array_equal(live_pfb, batch.rest_from_bone_quat.astype(np.float32))
     print(
         f"\n{transport}: {len(poses)} frames x {live_wfb.shape[1]} bones; max angle "
         f"live vs batch: world_from_bone {wfb_rad.max():.3g} rad, parent_from_bone "
@@ -171,6 +171,15 @@ def test_live_pose_stream_equals_batch_solve(
         f"{np.abs(live_root - batch.root_pos).max():.3g} m"
     )
     assert wfb_rad.max() <= TOL_RAD and pfb_rad.max() <= TOL_RAD
+    # The true parent-relative rotation too, and its frames cancel on the wire
+    # (world_from_parent * parent_from_bone = world_from_bone, to float32 rounding).
+    live_par = np.stack([m.parent_from_bone_quat for m in poses]).astype(np.float64)
+    assert _angles(live_par, batch.parent_from_bone_quat).max() <= TOL_RAD
+    for b, par in enumerate(names.bone_parents):
+        if par < 0:
+            continue
+        composed = rot.quat_mul(live_wfb[:, par].astype(np.float64), live_par[:, b])
+        assert _angles(composed, live_wfb[:, b].astype(np.float64)).max() <= 2e-6
     # Same hemisphere too (the stream promises sign continuity, as the batch has).
     dots = np.sum(live_wfb * batch.world_from_bone_quat, axis=-1)
     assert (dots > 0).all()

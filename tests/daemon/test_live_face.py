@@ -13,14 +13,13 @@ offline :class:`FaceSolver` run on the same float32 frames.
 from __future__ import annotations
 
 import functools
-import importlib.util
 import socket
-import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import live_harness as _live
 import numpy as np
 import pytest
 import zmq
@@ -32,27 +31,8 @@ from retargetd.daemon.synth import face as fs
 from retargetd.protocols import pose_stream, vmc_out, zmq_wire
 from retargetd.protocols.marker_input import LabelSet
 
-
-def _load_live_harness() -> Any:
-    """``test_live.py`` (the live-daemon harness: daemon in a thread, VMC receiver,
-    the exact performer) as a module; tests import in importlib mode, so by path."""
-    name = "retargetd_tests_live_harness"
-    if name not in sys.modules:
-        spec = importlib.util.spec_from_file_location(
-            name, Path(__file__).with_name("test_live.py")
-        )
-        assert spec is not None and spec.loader is not None
-        module = importlib.util.module_from_spec(spec)
-        sys.modules[name] = module
-        spec.loader.exec_module(module)
-    return sys.modules[name]
-
-
-_live = _load_live_harness()
 Live, VmcReceiver = _live.Live, _live.VmcReceiver
 _f32, _take, _wait_until = _live._f32, _live._take, _live._wait_until
-start_daemon = _live.start_daemon  # fixtures, re-exported for this module
-exact_calibration = _live.exact_calibration
 
 HEAD = ("LFHD", "RFHD", "LBHD", "RBHD")
 

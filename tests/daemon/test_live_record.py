@@ -27,6 +27,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from paths import DATASETS
 
 from retargetd.daemon.cli.ctl import request
 from retargetd.daemon.cli.main import main
@@ -39,7 +40,6 @@ from retargetd.replay import recording as rf
 from retargetd.replay.take import Take
 from retargetd.replay.takes import load_take
 
-DATASETS = Path(__file__).resolve().parents[2].parent / "shared" / "datasets"
 WALK = DATASETS / "btkdata/PiG_Motion-FlatFoot-Full.c3d"
 #: Streamed before recording: walk rows 250..299 (frames 0..49); recorded: rows
 #: 0..199 (frames 50..249; the LFHD gap is rows 0..29).
@@ -171,7 +171,7 @@ def test_ctl_record_in_a_live_daemon_then_replay_reproduces_the_pose_stream(
         # recording started mid-stream, and the live daemon's sign continuity
         # carries its history from before the start (q and -q are one rotation).
         np.testing.assert_array_equal(
-            again.parent_from_bone_quat, live.parent_from_bone_quat
+            again.rest_from_bone_quat, live.rest_from_bone_quat
         )
         np.testing.assert_array_equal(again.root_pos_world, live.root_pos_world)
         np.testing.assert_array_equal(again.bone_flags, live.bone_flags)

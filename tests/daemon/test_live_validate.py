@@ -9,13 +9,12 @@ defect: the speed check must flag it, live, with the bone bits of the root.
 
 from __future__ import annotations
 
-import importlib.util
-import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import live_harness as _live
 import numpy as np
 import zmq
 
@@ -27,26 +26,8 @@ from retargetd.protocols import pose_stream as ps
 from retargetd.protocols import zmq_wire
 from retargetd.protocols.marker_input import LabelSet
 
-
-def _load_live_harness() -> Any:
-    """``test_live.py`` as a module (tests import in importlib mode, so by path)."""
-    name = "retargetd_tests_live_harness"
-    if name not in sys.modules:
-        spec = importlib.util.spec_from_file_location(
-            name, Path(__file__).with_name("test_live.py")
-        )
-        assert spec is not None and spec.loader is not None
-        module = importlib.util.module_from_spec(spec)
-        sys.modules[name] = module
-        spec.loader.exec_module(module)
-    return sys.modules[name]
-
-
-_live = _load_live_harness()
 Live = _live.Live
 _f32, _take, _wait_until = _live._f32, _live._take, _live._wait_until
-start_daemon = _live.start_daemon  # fixtures, re-exported for this module
-exact_calibration = _live.exact_calibration
 RATE_HZ = _live.RATE_HZ
 EXACT_RIG = _live.EXACT_RIG
 
@@ -149,7 +130,7 @@ def test_validation_bits_and_messages_flag_a_teleport(
         solver.solve_frame(f.astype(np.float64), pose)
         want = oracle.check_frame(
             fid0 + i, 0, pose.root_pos, pose.world_from_bone_quat,
-            pose.parent_from_bone_quat, pose.joint_centres,
+            pose.rest_from_bone_quat, pose.joint_centres,
         )  # fmt: skip
         got = checks[fid0 + i]
         np.testing.assert_allclose(got.values, want.values, rtol=1e-5, atol=1e-4)

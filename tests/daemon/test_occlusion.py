@@ -83,7 +83,7 @@ def _check_accounting(
         # A held bone keeps its last good parent-relative rotation (identity, i.e. the
         # calibrated rest, before any good frame).
         never = (flags[:, b] & FLAG_NEVER) != 0
-        pfb = res.parent_from_bone_quat[:, b]
+        pfb = res.rest_from_bone_quat[:, b]
         np.testing.assert_allclose(
             pfb[never], np.tile([1.0, 0, 0, 0], (never.sum(), 1)), atol=1e-12
         )
@@ -176,7 +176,7 @@ def test_walking2_whole_take(
 ) -> None:
     res = solved
     assert np.isfinite(res.world_from_bone_quat).all()
-    assert np.isfinite(res.parent_from_bone_quat).all()
+    assert np.isfinite(res.rest_from_bone_quat).all()
     assert np.isfinite(res.root_pos).all()
     seen = _rig_seen(rig, walking2.labels, walking2.positions)
     _check_accounting(rig, calibrated, res, seen)
@@ -270,7 +270,7 @@ def test_synthetic_dropouts() -> None:
     cal = calibrate(rig, base.markers_world[base.base_pose_frames], base.labels)
     res = BodySolver(rig, cal, take.labels).solve_take(take.markers_world)
     assert np.isfinite(res.world_from_bone_quat).all()
-    assert np.isfinite(res.parent_from_bone_quat).all()
+    assert np.isfinite(res.rest_from_bone_quat).all()
     seen = _rig_seen(rig, take.labels, take.markers_world)
     _check_accounting(rig, cal, res, seen)
     missing = ~seen

@@ -13,7 +13,7 @@ from retargetd.daemon.cli.main import main
 
 NPZ_KEYS = {
     "joint_names", "joint_centres", "bone_names", "bone_parents",
-    "world_from_bone_quat", "parent_from_bone_quat", "root_pos", "bone_lengths",
+    "world_from_bone_quat", "rest_from_bone_quat", "root_pos", "bone_lengths",
     "bone_quality", "bone_flags", "rate_hz", "world_from_capture",
 }  # fmt: skip
 
@@ -45,7 +45,7 @@ def test_calibrate_then_solve(
         assert npz["world_from_bone_quat"].shape == (n, b, 4)
         assert npz["bone_quality"].dtype == np.float32
         assert npz["bone_flags"].dtype == np.uint8
-        pfb = npz["parent_from_bone_quat"]
+        pfb = npz["rest_from_bone_quat"]
         assert np.isfinite(pfb).all()
         # Identity in the calibration pose (the static hold).
         assert np.degrees(rot.quat_angle(pfb[:120])).max() < 1e-6

@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from paths import DATASETS
 from scipy.optimize import lsq_linear
 from scipy.spatial.transform import Rotation
 
@@ -250,7 +251,6 @@ def test_stabilization_error_matches_monte_carlo(rng: np.random.Generator) -> No
 
 
 #: Same place as ``tests/conftest.py``'s DATASETS (a conftest can't be imported).
-DATASETS = Path(__file__).resolve().parents[2].parent / "shared" / "datasets"
 
 
 @pytest.fixture(scope="module", params=sorted(fs.MODELS))

@@ -15,17 +15,17 @@ loopback (the live harness of ``test_live.py``, daemons in threads, ephemeral po
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import os
 import socket
 import stat
-import sys
+import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
+import live_harness as _live
 import numpy as np
 import pytest
 import zmq
@@ -41,28 +41,50 @@ from retargetd.daemon.live.config import (
 )
 from retargetd.daemon.live.ratelog import RateLimitedLog, RateLimiter
 
-
-def _load_live_harness() -> Any:
-    """``test_live.py`` (the live-daemon harness) as a module, by path."""
-    name = "retargetd_tests_live_harness"
-    if name not in sys.modules:
-        spec = importlib.util.spec_from_file_location(
-            name, Path(__file__).with_name("test_live.py")
-        )
-        assert spec is not None and spec.loader is not None
-        module = importlib.util.module_from_spec(spec)
-        sys.modules[name] = module
-        spec.loader.exec_module(module)
-    return sys.modules[name]
-
-
-_live = _load_live_harness()
 Live, OscSource, PoseSub = _live.Live, _live.OscSource, _live.PoseSub
 _take, _wait_until, RATE_HZ = _live._take, _live._wait_until, _live.RATE_HZ
-start_daemon = _live.start_daemon  # fixtures, re-exported for this module
-exact_calibration = _live.exact_calibration
-osc_source = _live.osc_source
-streamer = _live.streamer
+# The harness's fixtures (start_daemon, exact_calibration, osc_source) come from
+# tests/conftest.py (pytest_plugins).
+
+
+class _Streamer(threading.Thread):
+    """Streams the T-pose hold at ~200 Hz until stopped (a live source)."""
+
+    def __init__(self, src: Any) -> None:
+        super().__init__(name="test-streamer", daemon=True)
+        self.src = src
+        self.stop_event = threading.Event()
+
+    def run(self) -> None:
+        hold = _take().markers_world[_take().base_pose_frames]
+        k = 0
+        while not self.stop_event.is_set():
+            if k % 100 == 0:
+                self.src.announce()
+            self.src.send(hold[k % len(hold)])
+            k += 1
+            time.sleep(0.005)
+
+    def stop(self) -> None:
+        self.stop_event.set()
+        self.join(timeout=2.0)
+        assert not self.is_alive()
+
+
+@pytest.fixture
+def streamer() -> Iterator[Callable[[Any], _Streamer]]:
+    made: list[_Streamer] = []
+
+    def make(src: Any) -> _Streamer:
+        s = _Streamer(src)
+        made.append(s)
+        s.start()
+        return s
+
+    yield make
+    for s in made:
+        s.stop()
+
 
 #: Comfortable walking speed (Bohannon 1997: 1.3-1.5 m/s).
 WALK_M_S = 1.3

@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import retarget_oracle
 
 from retargetd.daemon import rotations as rot
 from retargetd.daemon.body.calibration import Calibration, calibrate
@@ -34,8 +35,10 @@ from retargetd.daemon.body.rig import HUMANOID_BONES, Bone, Rig, load_rig
 from retargetd.daemon.body.solve import BodyPose, BodySolver
 from retargetd.daemon.synth import performer as pf
 from retargetd.daemon.target import retarget as tg
+from retargetd.daemon.target.kernel import FLAG_FILLED, FLAG_SOURCE_HELD
 from retargetd.protocols import engine_unity
 from retargetd.protocols.conventions import world_from_capture_mat
+from retargetd.protocols.humanoid import HUMANOID_PARENTS
 from retargetd.replay.bvh import read_bvh_hierarchy
 
 DATA = Path(__file__).resolve().parent.parent / "data"
@@ -63,9 +66,9 @@ def _hand_rig() -> Rig:
     names = [h for h in HUMANOID_BONES if h not in UNMAPPED]
     bones = []
     for h in names:
-        p = tg.HUMANOID_PARENTS[h]
+        p = HUMANOID_PARENTS[h]
         while p in UNMAPPED:
-            p = tg.HUMANOID_PARENTS[p]
+            p = HUMANOID_PARENTS[p]
         up = ("RHIP", "LHIP") if h == "Hips" else ("X",)
         bones.append(
             Bone(
@@ -120,7 +123,8 @@ def _pose(cal: Calibration) -> BodyPose:
     return BodyPose(
         joint_centres=np.zeros((0, 3)),
         world_from_bone_quat=cal.rest_world_from_bone_quat.copy(),
-        parent_from_bone_quat=np.tile([1.0, 0.0, 0.0, 0.0], (b, 1)),
+        parent_from_bone_quat=cal.rest_parent_from_bone_quat.copy(),
+        rest_from_bone_quat=np.tile([1.0, 0.0, 0.0, 0.0], (b, 1)),
         root_pos=cal.root_rest_pos.copy(),
         bone_quality=np.ones(b, dtype=np.float32),
         bone_flags=np.zeros(b, dtype=np.uint8),
@@ -159,9 +163,9 @@ def test_default_humanoid_shape() -> None:
     assert t.bone_names == HUMANOID_BONES and len(t.bone_names) == 22
     for h, p in zip(t.bone_names, t.parents, strict=True):
         assert (
-            (tg.HUMANOID_PARENTS[h] is None)
+            (HUMANOID_PARENTS[h] is None)
             if p < 0
-            else (t.bone_names[p] == tg.HUMANOID_PARENTS[h])
+            else (t.bone_names[p] == HUMANOID_PARENTS[h])
         )
     np.testing.assert_array_equal(t.forward_world, [0, 1, 0])
     np.testing.assert_array_equal(t.left_world, [-1, 0, 0])
@@ -191,7 +195,7 @@ def test_calibration_pose_is_identity(hand: tuple) -> None:
     assert _angle_deg(rt.compensation_quat).max() < 1e-6
     out = rt.apply(_pose(cal), rt.new_pose())
     _same_rotation(
-        out.parent_from_bone_quat, np.tile([1.0, 0, 0, 0], (22, 1)), atol=1e-12
+        out.rest_from_bone_quat, np.tile([1.0, 0, 0, 0], (22, 1)), atol=1e-12
     )
     _same_rotation(
         out.world_from_bone_quat, np.tile([1.0, 0, 0, 0], (22, 1)), atol=1e-12
@@ -205,10 +209,10 @@ def test_hips_yaw_plus_90(hand: tuple) -> None:
     pose = _pose(cal)
     _rotate_bones(pose, rig, _quat_z(90.0), list(rig.bone_names))  # all rigid
     out = rt.apply(pose, rt.new_pose())
-    _same_rotation(out.parent_from_bone_quat[0], [C, 0.0, 0.0, S])
-    _same_rotation(out.parent_from_bone_quat[1:], np.tile([1.0, 0, 0, 0], (21, 1)))
+    _same_rotation(out.rest_from_bone_quat[0], [C, 0.0, 0.0, S])
+    _same_rotation(out.rest_from_bone_quat[1:], np.tile([1.0, 0, 0, 0], (21, 1)))
     # Hand-worked Unity quaternion (module docstring): -90° about Unity +Y.
-    np.testing.assert_allclose(_unity(out.parent_from_bone_quat[0]), [0.0, -S, 0.0, C])
+    np.testing.assert_allclose(_unity(out.rest_from_bone_quat[0]), [0.0, -S, 0.0, C])
     # The avatar's left arm now points to world -Y (its front was +Y, turned left).
     pos = tg.joint_positions_world(rt.target, out)
     t = rt.target
@@ -223,10 +227,10 @@ def test_left_elbow_flexed_90(hand: tuple) -> None:
     out = rt.apply(pose, rt.new_pose())
     t = rt.target
     i = t.index("LeftLowerArm")
-    _same_rotation(out.parent_from_bone_quat[i], [C, 0.0, 0.0, -S])
-    np.testing.assert_allclose(_unity(out.parent_from_bone_quat[i]), [0.0, S, 0.0, C])
+    _same_rotation(out.rest_from_bone_quat[i], [C, 0.0, 0.0, -S])
+    np.testing.assert_allclose(_unity(out.rest_from_bone_quat[i]), [0.0, S, 0.0, C])
     others = [k for k in range(22) if k != i]
-    _same_rotation(out.parent_from_bone_quat[others], np.tile([1.0, 0, 0, 0], (21, 1)))
+    _same_rotation(out.rest_from_bone_quat[others], np.tile([1.0, 0, 0, 0], (21, 1)))
     pos = tg.joint_positions_world(t, out)
     fore = pos[t.index("LeftHand")] - pos[i]
     np.testing.assert_allclose(fore / np.linalg.norm(fore), [0, 1, 0], atol=1e-12)
@@ -249,11 +253,11 @@ def test_a_pose_calibration() -> None:
         i = t.index(side + "Hand")
         aim = rot.quat_rotate(out.world_from_bone_quat[i], t.aim_offsets[i])
         np.testing.assert_allclose(aim / np.linalg.norm(aim), want, atol=1e-12)
-        assert _angle_deg(out.parent_from_bone_quat[t.index(side + "UpperArm")]) == (
+        assert _angle_deg(out.rest_from_bone_quat[t.index(side + "UpperArm")]) == (
             pytest.approx(60.0)
         )
         for b in ("LowerArm", "Hand", "Shoulder"):
-            assert _angle_deg(out.parent_from_bone_quat[t.index(side + b)]) < 1e-6
+            assert _angle_deg(out.rest_from_bone_quat[t.index(side + b)]) < 1e-6
     # The performer raises the arms to a T-pose: the avatar is in its T-pose.
     pose = _pose(cal)
     for side, sx in (("left", 1.0), ("right", -1.0)):
@@ -261,11 +265,11 @@ def test_a_pose_calibration() -> None:
         _rotate_bones(pose, rig, up, [f"{side}{b}" for b in ("upperarm", "lowerarm",
                                                                "hand")])  # fmt: skip
     out = rt.apply(pose, out)
-    assert _angle_deg(out.parent_from_bone_quat).max() < 1e-6
+    assert _angle_deg(out.rest_from_bone_quat).max() < 1e-6
     # Without compensation the calibration pose shows the target's rest (T-pose).
     plain = tg.Retargeter(rig, cal, compensate_base_pose=False)
     out = plain.apply(_pose(cal), plain.new_pose())
-    assert _angle_deg(out.parent_from_bone_quat).max() < 1e-6
+    assert _angle_deg(out.rest_from_bone_quat).max() < 1e-6
 
 
 def test_unmapped_bones_filled_and_flagged(hand: tuple) -> None:
@@ -284,14 +288,14 @@ def test_unmapped_bones_filled_and_flagged(hand: tuple) -> None:
     uc = t.index("UpperChest")
     # Between Chest (40°) and Neck (80°) at u = 1/2: 60° in the world, 20° + 20°.
     _same_rotation(out.world_from_bone_quat[uc], _quat_z(60.0))
-    _same_rotation(out.parent_from_bone_quat[uc], _quat_z(20.0))
-    _same_rotation(out.parent_from_bone_quat[t.index("Neck")], _quat_z(20.0))
-    _same_rotation(out.parent_from_bone_quat[t.index("LeftShoulder")], _quat_z(20.0))
+    _same_rotation(out.rest_from_bone_quat[uc], _quat_z(20.0))
+    _same_rotation(out.rest_from_bone_quat[t.index("Neck")], _quat_z(20.0))
+    _same_rotation(out.rest_from_bone_quat[t.index("LeftShoulder")], _quat_z(20.0))
     for toes in ("LeftToes", "RightToes"):  # no mapped descendant: rigid on the foot
-        assert _angle_deg(out.parent_from_bone_quat[t.index(toes)]) < 1e-6
+        assert _angle_deg(out.rest_from_bone_quat[t.index(toes)]) < 1e-6
     want = np.zeros(22, dtype=np.uint8)
-    want[[t.index(h) for h in UNMAPPED]] = tg.FLAG_FILLED
-    want[t.index("LeftFoot")] = tg.FLAG_SOURCE_HELD
+    want[[t.index(h) for h in UNMAPPED]] = FLAG_FILLED
+    want[t.index("LeftFoot")] = FLAG_SOURCE_HELD
     np.testing.assert_array_equal(out.flags, want)
 
 
@@ -339,8 +343,8 @@ def test_heading_follows_the_performer(hand: tuple) -> None:
     assert rt.heading_deg == pytest.approx(-90.0)
     np.testing.assert_allclose(rt.performer_forward_world, [1, 0, 0], atol=1e-12)
     out = rt.apply(_pose(turned), rt.new_pose())
-    _same_rotation(out.parent_from_bone_quat[0], q)
-    _same_rotation(out.parent_from_bone_quat[1:], np.tile([1.0, 0, 0, 0], (21, 1)))
+    _same_rotation(out.rest_from_bone_quat[0], q)
+    _same_rotation(out.rest_from_bone_quat[1:], np.tile([1.0, 0, 0, 0], (21, 1)))
 
 
 def test_apply_returns_out_and_does_not_allocate(hand: tuple) -> None:
@@ -349,7 +353,7 @@ def test_apply_returns_out_and_does_not_allocate(hand: tuple) -> None:
     _rotate_bones(pose, rig, _quat_z(30.0), ["chest"])
     out = rt.new_pose()
     assert rt.apply(pose, out) is out
-    assert out.parent_from_bone_quat.dtype == np.float64 and out.flags.dtype == np.uint8
+    assert out.rest_from_bone_quat.dtype == np.float64 and out.flags.dtype == np.uint8
     for _ in range(10):
         rt.apply(pose, out)
     tracemalloc.start()
@@ -433,8 +437,8 @@ def _assert_matches_oracle(
 ) -> None:
     got, want = rt.new_pose(), rt.new_pose()
     assert rt.apply(pose, got) is got
-    tg._reference_apply(rt, pose, want, scratch)
-    for name in ("world_from_bone_quat", "parent_from_bone_quat", "root_pos",
+    retarget_oracle._reference_apply(rt, pose, want, scratch)
+    for name in ("world_from_bone_quat", "rest_from_bone_quat", "root_pos",
                  "hips_pos"):  # fmt: skip
         np.testing.assert_allclose(
             getattr(got, name), getattr(want, name), rtol=0, atol=1e-12,
@@ -448,7 +452,7 @@ def test_compiled_apply_equals_numpy_oracle() -> None:
     rng = np.random.default_rng(7)
     for what, rig, cal, rt in _oracle_cases():
         assert rt.filled, what
-        scratch = tg._ReferenceScratch(rt)
+        scratch = retarget_oracle._ReferenceScratch(rt)
         b = len(rig.bones)
         for trial in range(200):
             pose = _pose(cal)
@@ -474,7 +478,7 @@ def test_compiled_apply_equals_numpy_oracle_on_menache(synth: pf.SynthTake) -> N
     cal = calibrate(rig, synth.markers_world[synth.base_pose_frames], synth.labels)
     rt = tg.Retargeter(rig, cal)
     assert rt.filled
-    scratch = tg._ReferenceScratch(rt)
+    scratch = retarget_oracle._ReferenceScratch(rt)
     solver = BodySolver(rig, cal, synth.labels)
     bp = solver.new_pose()
     frames = np.array(synth.markers_world)
@@ -532,8 +536,8 @@ def test_exact_rig_tracks_the_truth() -> None:
     for f in range(take.markers_world.shape[0]):
         rt.apply(solver.solve_frame(take.markers_world[f], bp), out)
         if f == 0:
-            _same_rotation(out.parent_from_bone_quat[0], rt.heading_quat, atol=1e-9)
-            assert _angle_deg(out.parent_from_bone_quat[1:]).max() < 1e-6
+            _same_rotation(out.rest_from_bone_quat[0], rt.heading_quat, atol=1e-9)
+            assert _angle_deg(out.rest_from_bone_quat[1:]).max() < 1e-6
         delta = rot.quat_mul(out.world_from_bone_quat[mapped], h_conj)
         err = _angle_deg(
             rot.quat_mul(rot.quat_conj(take.world_from_segment_quat[f, seg]), delta)
@@ -559,7 +563,7 @@ def test_shipped_rigs_on_the_synthetic_performer(name: str) -> None:
     solver = BodySolver(rig, cal, take.labels)
     bp, out = solver.new_pose(), rt.new_pose()
     rt.apply(solver.solve_frame(take.markers_world[0], bp), out)
-    _same_rotation(out.parent_from_bone_quat[0], rt.heading_quat, atol=1e-6)
+    _same_rotation(out.rest_from_bone_quat[0], rt.heading_quat, atol=1e-6)
     # Feet fallback agrees with the pelvis axis.
     pelvis = rig.humanoid["Hips"]
     no_lat = dataclasses.replace(
@@ -692,8 +696,8 @@ def test_bvh_target_retarget_relative_to_its_rest(hand: tuple) -> None:
     out = rt.apply(pose, rt.new_pose())
     # Locals relative to the BVH's A-pose rest: the upper arm is raised 45°.
     up_l = t.index("LeftUpperArm")
-    assert _angle_deg(out.parent_from_bone_quat[up_l]) == pytest.approx(45.0)
-    assert _angle_deg(out.parent_from_bone_quat[t.index("LeftLowerArm")]) == (
+    assert _angle_deg(out.rest_from_bone_quat[up_l]) == pytest.approx(45.0)
+    assert _angle_deg(out.rest_from_bone_quat[t.index("LeftLowerArm")]) == (
         pytest.approx(90.0)
     )
     pos = tg.joint_positions_world(t, out)
@@ -702,7 +706,7 @@ def test_bvh_target_retarget_relative_to_its_rest(hand: tuple) -> None:
     d = pos[t.index("LeftHand")] - pos[t.index("LeftLowerArm")]
     np.testing.assert_allclose(d / np.linalg.norm(d), [0, 1, 0], atol=1e-12)
     # The BVH's own FK (file axes, cm) with the channel rotations gives the same joints.
-    chan = tg.bone_axes_from_world_axes(t, out.parent_from_bone_quat)
+    chan = tg.bone_axes_from_world_axes(t, out.rest_from_bone_quat)
     sk = read_bvh_hierarchy(BVH)
     rows = [sk.joint_names.index(j) for j in t.source_joints]
     q_file = np.tile([1.0, 0, 0, 0], (len(sk.joint_names), 1))

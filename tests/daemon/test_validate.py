@@ -83,13 +83,13 @@ def _rotate_bone(s: Any, bone: str, axis_world: np.ndarray, deg: float) -> BodyS
     axis = rot.quat_rotate(
         rot.quat_conj(s.skel.rest_world_from_bone_quat[b]), axis_world
     )
-    pfb = s.solve.parent_from_bone_quat.copy()
+    pfb = s.solve.rest_from_bone_quat.copy()
     n = DEFECT.stop - DEFECT.start
     bump = np.sin(np.pi * (np.arange(n) + 0.5) / n)
     turn = rot.quat_from_axis_angle(axis, np.radians(deg) * bump)
     pfb[DEFECT, b] = rot.quat_mul(turn, pfb[DEFECT, b])
     return _with(
-        s.solve, parent_from_bone_quat=pfb, world_from_bone_quat=_rechain(s, pfb)
+        s.solve, rest_from_bone_quat=pfb, world_from_bone_quat=_rechain(s, pfb)
     )
 
 
@@ -189,7 +189,7 @@ def test_xyzw_quaternions_fail_convention(clean: Any) -> None:
         _with(
             s,
             world_from_bone_quat=s.world_from_bone_quat[..., [1, 2, 3, 0]],
-            parent_from_bone_quat=s.parent_from_bone_quat[..., [1, 2, 3, 0]],
+            rest_from_bone_quat=s.rest_from_bone_quat[..., [1, 2, 3, 0]],
         ),
     )
     assert {"convention", "fit_median"} <= _flagged(rep)
@@ -198,7 +198,7 @@ def test_xyzw_quaternions_fail_convention(clean: Any) -> None:
 
 def test_world_rotations_as_parent_relative_fail_convention(clean: Any) -> None:
     s = clean.solve
-    rep = _run(clean, _with(s, parent_from_bone_quat=s.world_from_bone_quat))
+    rep = _run(clean, _with(s, rest_from_bone_quat=s.world_from_bone_quat))
     assert "convention" in _flagged(rep)
     assert rep.checks["convention"].n_flagged == s.root_pos.shape[0]
 
@@ -260,12 +260,12 @@ def test_one_frame_knee_glitch_is_a_transient(clean: Any) -> None:
         rot.quat_conj(clean.skel.rest_world_from_bone_quat[b]), clean.skel.left_world
     )
     for frames in ([60], [60, 61]):
-        pfb = clean.solve.parent_from_bone_quat.copy()
+        pfb = clean.solve.rest_from_bone_quat.copy()
         turn = rot.quat_from_axis_angle(axis, np.radians(-40.0))
         pfb[frames, b] = rot.quat_mul(turn, pfb[frames, b])
         solve = _with(
             clean.solve,
-            parent_from_bone_quat=pfb,
+            rest_from_bone_quat=pfb,
             world_from_bone_quat=_rechain(clean, pfb),
         )
         rep = _run(clean, _with(solve, joint_centres=_posed_joints(clean, solve)))
@@ -306,9 +306,9 @@ def test_legs_crossing_fail_self_penetration(clean: Any) -> None:
 
 def test_quaternion_norm(clean: Any) -> None:
     s = clean.solve
-    pfb = s.parent_from_bone_quat.copy()
+    pfb = s.rest_from_bone_quat.copy()
     pfb[DEFECT] *= 1.01  # MuJoCo normalises silently: poses unchanged
-    rep = _run(clean, _with(s, parent_from_bone_quat=pfb))
+    rep = _run(clean, _with(s, rest_from_bone_quat=pfb))
     assert _flagged(rep) == {"quat_norm"}
 
 

@@ -101,7 +101,7 @@ def test_standing_still_on_platform_is_supported(clean: Any) -> None:
         for name in (
             "joint_centres",
             "world_from_bone_quat",
-            "parent_from_bone_quat",
+            "rest_from_bone_quat",
             "root_pos",
             "bone_quality",
             "bone_flags",
@@ -158,7 +158,7 @@ def test_pig_walk_ghost_force(datasets: Path) -> None:
         vm,
         solve.root_pos,
         solve.world_from_bone_quat[:, root],
-        solve.parent_from_bone_quat,
+        solve.rest_from_bone_quat,
         walk.rate_hz,
         contacts,
     )

@@ -16,11 +16,11 @@ import os
 import threading
 import time
 from collections.abc import Callable, Iterator
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
+from paths import DATASETS
 from scipy.signal import butter, lfilter, lfilter_zi
 
 from retargetd.daemon import rotations as rot
@@ -43,8 +43,6 @@ CHECKS = ps.VALIDATION_CHECKS
 DEFECT = slice(20, 110)  # test_validate.py's frames of the T-pose hold with a defect
 T0_NS = 10**12  # an arbitrary receive clock origin
 #: ``../shared/datasets`` (as in ``tests/conftest.py``; a conftest can't be imported).
-DATASETS = Path(__file__).resolve().parents[2].parent / "shared" / "datasets"
-
 
 # ---- fixtures and helpers ----------------------------------------------------------
 
@@ -127,7 +125,7 @@ def _run_sync(v: vl.LiveValidator, s: BodySolve, rate_hz: float) -> Live:
                 _t_ns(t, rate_hz),
                 s.root_pos[t],
                 s.world_from_bone_quat[t],
-                s.parent_from_bone_quat[t],
+                s.rest_from_bone_quat[t],
                 s.joint_centres[t],
                 s.bone_lengths,
             )
@@ -265,7 +263,7 @@ def test_thread_equals_synchronous(
             0,
             s.root_pos[0],
             s.world_from_bone_quat[0],
-            s.parent_from_bone_quat[0],
+            s.rest_from_bone_quat[0],
             s.joint_centres[0],
         )
     got: list[vl.ValidationResult] = []
@@ -276,7 +274,7 @@ def test_thread_equals_synchronous(
             _t_ns(t, pig.rate_hz),
             s.root_pos[t],
             s.world_from_bone_quat[t],
-            s.parent_from_bone_quat[t],
+            s.rest_from_bone_quat[t],
             s.joint_centres[t],
         )
         got += v.results()
@@ -306,7 +304,7 @@ def test_thread_equals_synchronous(
         0,
         s.root_pos[0],
         s.world_from_bone_quat[0],
-        s.parent_from_bone_quat[0],
+        s.rest_from_bone_quat[0],
         s.joint_centres[0],
     )
     assert v.dropped == 1
@@ -344,7 +342,7 @@ def _submit_frame(v: vl.LiveValidator, s: BodySolve, t: int) -> tuple[bool, floa
         T0_NS + t,
         s.root_pos[t],
         s.world_from_bone_quat[t],
-        s.parent_from_bone_quat[t],
+        s.rest_from_bone_quat[t],
         s.joint_centres[t],
     )
     return ok, time.perf_counter() - t0
@@ -448,7 +446,7 @@ def test_speed_over_gaps(
             _t_ns(t, rate) if t_ns is None else t_ns,
             s.root_pos[t],
             s.world_from_bone_quat[t],
-            s.parent_from_bone_quat[t],
+            s.rest_from_bone_quat[t],
             s.joint_centres[t],
         )
         return float(r.values[speed])
@@ -473,7 +471,7 @@ def test_speed_over_gaps(
             _t_ns(t, rate),
             s.root_pos[t],
             s.world_from_bone_quat[t],
-            s.parent_from_bone_quat[t],
+            s.rest_from_bone_quat[t],
             s.joint_centres[t],
         )
         speeds.append(float(r.values[speed]))
@@ -510,13 +508,13 @@ def _rotate_bone(c: Any, bone: str, axis_world: np.ndarray, deg: float) -> BodyS
     axis = rot.quat_rotate(
         rot.quat_conj(c.skel.rest_world_from_bone_quat[b]), axis_world
     )
-    pfb = c.solve.parent_from_bone_quat.copy()
+    pfb = c.solve.rest_from_bone_quat.copy()
     n = DEFECT.stop - DEFECT.start
     bump = np.sin(np.pi * (np.arange(n) + 0.5) / n)
     turn = rot.quat_from_axis_angle(axis, np.radians(deg) * bump)
     pfb[DEFECT, b] = rot.quat_mul(turn, pfb[DEFECT, b])
     solve = dataclasses.replace(
-        c.solve, parent_from_bone_quat=pfb, world_from_bone_quat=_rechain(c, pfb)
+        c.solve, rest_from_bone_quat=pfb, world_from_bone_quat=_rechain(c, pfb)
     )
     origins, aims = pose_skeleton(c.skel, solve.root_pos, solve.world_from_bone_quat)
     points = np.concatenate([origins, aims], axis=1)
@@ -604,14 +602,14 @@ def test_xyzw_and_norms_flag_convention_and_quat_norm(
     xyzw = dataclasses.replace(
         s,
         world_from_bone_quat=s.world_from_bone_quat[..., [1, 2, 3, 0]],
-        parent_from_bone_quat=s.parent_from_bone_quat[..., [1, 2, 3, 0]],
+        rest_from_bone_quat=s.rest_from_bone_quat[..., [1, 2, 3, 0]],
     )
     live, _ = _defect(c, synth_live, xyzw)
     assert {"convention", "fit"} <= _bits(live.flags)
     assert np.median(live.values[:, CHECKS.index("convention")]) > 100.0
-    pfb = s.parent_from_bone_quat.copy()
+    pfb = s.rest_from_bone_quat.copy()
     pfb[DEFECT] *= 1.01
-    live, _ = _defect(c, synth_live, dataclasses.replace(s, parent_from_bone_quat=pfb))
+    live, _ = _defect(c, synth_live, dataclasses.replace(s, rest_from_bone_quat=pfb))
     assert _bits(live.flags) == {"quat_norm"}
 
 
@@ -629,7 +627,7 @@ def test_thread_counts_flags(
             _t_ns(t, c.rate_hz),
             s.root_pos[t],
             s.world_from_bone_quat[t],
-            s.parent_from_bone_quat[t],
+            s.rest_from_bone_quat[t],
             s.joint_centres[t],
         )
     _wait(lambda: v.validated == n)

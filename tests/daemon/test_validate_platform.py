@@ -110,7 +110,7 @@ def _pose(
     joints = s.joint_centres[frame0]
     joints[:, clean.fit[0]] = points[:, clean.fit[1]]
     return dataclasses.replace(
-        s, root_pos=root_pos, world_from_bone_quat=wfb, parent_from_bone_quat=pfb,
+        s, root_pos=root_pos, world_from_bone_quat=wfb, rest_from_bone_quat=pfb,
         joint_centres=joints, bone_quality=s.bone_quality[frame0],
         bone_flags=s.bone_flags[frame0],
     )  # fmt: skip

@@ -26,6 +26,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from paths import DATASETS
 
 from retargetd.daemon.body.calibration import calibrate
 from retargetd.daemon.body.rig import load_rig
@@ -44,7 +45,7 @@ from retargetd.replay.takes import load_take
 
 pytestmark = pytest.mark.usefixtures("mujoco_cwd")
 
-DATASETS = Path(__file__).resolve().parents[2].parent / "shared" / "datasets"
+
 PIG_STATIC = "btkdata/PiG_Calibration-FlatFoot-Full.c3d"
 PIG_WALK = "btkdata/PiG_Motion-FlatFoot-Full.c3d"
 BALLET = "btkdata/MOTEK_ballet_reduced.trc"

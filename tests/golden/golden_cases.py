@@ -18,11 +18,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from paths import DATASETS
 
 GOLDEN_DIR = Path(__file__).resolve().parent
 REPO_ROOT = GOLDEN_DIR.parent.parent
 #: Same place as ``tests/conftest.py``'s DATASETS (tests can't import conftest).
-DATASETS = REPO_ROOT.parent / "shared" / "datasets"
 
 FORMAT = "retargetd-golden"
 FORMAT_VERSION = 1
@@ -149,7 +149,7 @@ class Computed:
     first_frame: int
     rows: np.ndarray  # (N,) sampled rows
     world_from_bone_quat: np.ndarray  # (T, B, 4)
-    parent_from_bone_quat: np.ndarray  # (T, B, 4)
+    rest_from_bone_quat: np.ndarray  # (T, B, 4)
     joint_centres_mm: np.ndarray  # (T, J, 3)
     root_mm: np.ndarray  # (T, 3)
     bone_flags: np.ndarray  # (T, B) uint8
@@ -213,7 +213,7 @@ def compute(case: Case, datasets: Path = DATASETS) -> Computed:
         first_frame=int(first_frame),
         rows=np.arange(0, n, case.step),
         world_from_bone_quat=res.world_from_bone_quat,
-        parent_from_bone_quat=res.parent_from_bone_quat,
+        rest_from_bone_quat=res.rest_from_bone_quat,
         joint_centres_mm=1000.0 * res.joint_centres,
         root_mm=1000.0 * res.root_pos,
         bone_flags=res.bone_flags,
@@ -277,8 +277,8 @@ def to_golden(case: Case, c: Computed) -> dict[str, Any]:
                 "world_from_bone_quat": _rounded(
                     c.world_from_bone_quat[r], QUAT_DECIMALS
                 ),
-                "parent_from_bone_quat": _rounded(
-                    c.parent_from_bone_quat[r], QUAT_DECIMALS
+                "rest_from_bone_quat": _rounded(
+                    c.rest_from_bone_quat[r], QUAT_DECIMALS
                 ),
                 "joint_centres_mm": _rounded(c.joint_centres_mm[r], MM_DECIMALS),
             }
@@ -409,7 +409,7 @@ def compare(case: Case, doc: dict[str, Any], c: Computed) -> Comparison:
             off.append(
                 Offence(-1, -1, "flag_counts", bone, math.inf, f"{gold} -> {now}")
             )
-    max_angle = {"world_from_bone_quat": 0.0, "parent_from_bone_quat": 0.0}
+    max_angle = {"world_from_bone_quat": 0.0, "rest_from_bone_quat": 0.0}
     max_mm = {"joint_centres_mm": 0.0, "root_mm": 0.0}
     flag_changes = 0
     for fr in doc["frames"]:

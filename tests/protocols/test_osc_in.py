@@ -192,7 +192,7 @@ def test_simple_bundle_nested_and_other_addresses() -> None:
     other = build_message("/td/other", ",i", [5])
     number = build_message("/rtd/frame_number", ",i", [9])
     out = osc_in.decode_simple_bundle(
-        build_bundle([other, number, _marker("LASI"), inner]), _packet()
+        build_bundle([other, number, _marker("LASI", 0.5), inner]), _packet()
     )
     assert out.frame.frame_id == 9
     np.testing.assert_array_equal(out.frame.valid, [True, True])
@@ -257,7 +257,8 @@ def test_valid_compact_frames_decode_exactly(
     assert out.frame.source_time_s == t or (
         np.isnan(t) and np.isnan(out.frame.source_time_s)
     )
-    valid = ~np.isnan(pos).any(axis=1)
+    # NaN anywhere, or an exact (0, 0, 0) row (zero_is_occluded), is occluded.
+    valid = ~np.isnan(pos).any(axis=1) & (pos != 0).any(axis=1)
     np.testing.assert_array_equal(out.frame.valid, valid)
     np.testing.assert_array_equal(out.frame.markers_world[valid], pos[valid])
     assert np.isnan(out.frame.markers_world[~valid]).all()
@@ -273,7 +274,8 @@ def test_valid_simple_bundles_decode_exactly(pos: np.ndarray, frame: int) -> Non
             osc_in.decode_simple_bundle(packet, out)
         return
     osc_in.decode_simple_bundle(packet, out)
-    valid = ~np.isnan(pos).any(axis=1)
+    # NaN anywhere, or an exact (0, 0, 0) row (zero_is_occluded), is occluded.
+    valid = ~np.isnan(pos).any(axis=1) & (pos != 0).any(axis=1)
     np.testing.assert_array_equal(out.frame.valid, valid)
     np.testing.assert_array_equal(out.frame.markers_world[valid], pos[valid])
 

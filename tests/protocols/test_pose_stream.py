@@ -33,6 +33,7 @@ def _encode(rng: np.random.Generator, enc: ps.PoseEncoder) -> tuple[list, dict]:
         "root_pos_world": np.array([0.1, -0.2, 0.95]),
         "world_from_bone_quat": rng.normal(size=(b, 4)),
         "parent_from_bone_quat": rng.normal(size=(b, 4)),
+        "rest_from_bone_quat": rng.normal(size=(b, 4)),
         "weights": rng.uniform(size=k),
         "bone_flags": np.array([ps.BONE_HELD, 0, ps.BONE_NEVER][:b], dtype=np.uint8),
     }
@@ -45,11 +46,11 @@ def test_header_layout_is_pinned(rng: np.random.Generator) -> None:
     assert parts is enc.parts
     header = bytes(parts[0])
     assert ps.HEADER.size == 68 and len(header) == 68
-    assert header[:8] == b"RTDP\x01\x00\x00\x00"
+    assert header[:8] == b"RTDP\x02\x00\x00\x00"
     assert struct.unpack_from("<q", header, 8) == (41,)
     assert struct.unpack_from("<3q", header, 24) == (1_000, 2_000, 0)
     assert struct.unpack_from("<IHH", header, 48) == (3, 3, 2)
-    assert len(parts[1]) == ps.body_size(3, 2) == 32 * 3 + 4 * 2 + 4
+    assert len(parts[1]) == ps.body_size(3, 2) == 48 * 3 + 4 * 2 + 4
 
 
 def test_round_trip_and_sent_stamp(rng: np.random.Generator) -> None:
@@ -63,7 +64,12 @@ def test_round_trip_and_sent_stamp(rng: np.random.Generator) -> None:
     np.testing.assert_array_equal(
         msg.root_pos_world, np.float32(args["root_pos_world"])
     )
-    for key in ("world_from_bone_quat", "parent_from_bone_quat", "weights"):
+    for key in (
+        "world_from_bone_quat",
+        "parent_from_bone_quat",
+        "rest_from_bone_quat",
+        "weights",
+    ):
         np.testing.assert_array_equal(getattr(msg, key), np.float32(args[key]))
     np.testing.assert_array_equal(msg.bone_flags, args["bone_flags"])
 
@@ -146,7 +152,7 @@ def test_names_id_travels_in_data_and_names_messages() -> None:
     assert decode_pose_names(encode_pose_names(names)).names_id == 7
     enc = PoseEncoder(2, 0, names_id=7)
     q = np.tile([1.0, 0.0, 0.0, 0.0], (2, 1))
-    parts = enc.encode(1, 0.0, 1, 2, 0, np.zeros(3), q, q, np.zeros(0),
+    parts = enc.encode(1, 0.0, 1, 2, 0, np.zeros(3), q, q, q, np.zeros(0),
                        np.zeros(2, dtype=np.uint8))  # fmt: skip
     assert decode_pose([bytes(p) for p in parts]).names_id == 7
 

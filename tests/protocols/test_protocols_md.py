@@ -3,6 +3,7 @@ senders, run as written (only the port changed), are decoded by our decoders."""
 
 from __future__ import annotations
 
+import math
 import re
 import socket
 from pathlib import Path
@@ -35,11 +36,19 @@ def _hex(name: str) -> bytes:
 
 
 def _pose_parts() -> list[bytes]:
-    enc = pose_stream.PoseEncoder(1, 1)
+    # PROTOCOLS.md's worked example: the root (Hips) yawed +90 deg about world +Z,
+    # its child (Spine) bent +90 deg about its parent's x: world_from_spine =
+    # world_from_hips * hips_from_spine. The calibration had the Spine already bent
+    # so, so its rest_from_bone is the identity while its parent_from_bone is the bend.
+    c = s = math.sqrt(0.5)
+    wfb = np.array([[c, 0.0, 0.0, s], [0.5, 0.5, 0.5, 0.5]])
+    pfb = np.array([[c, 0.0, 0.0, s], [c, s, 0.0, 0.0]])
+    rfb = np.array([[c, 0.0, 0.0, s], [1.0, 0.0, 0.0, 0.0]])
+    enc = pose_stream.PoseEncoder(2, 1)
     parts = enc.encode(
         7, 0.5, 1000, 2000, pose_stream.FRAME_HELD, np.array([0.0, 0.0, 1.0]),
-        np.array([[1.0, 0, 0, 0]]), np.array([[1.0, 0, 0, 0]]), np.array([0.5]),
-        np.array([pose_stream.BONE_HELD], dtype=np.uint8),
+        wfb, pfb, rfb, np.array([0.5]),
+        np.array([0, pose_stream.BONE_HELD], dtype=np.uint8),
     )  # fmt: skip
     pose_stream.stamp_sent(parts[0], 3000)
     return [bytes(p) for p in parts]

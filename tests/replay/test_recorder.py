@@ -89,7 +89,7 @@ def test_classify_reads_source_frame_and_time() -> None:
     q = np.tile([1.0, 0.0, 0.0, 0.0], (2, 1))
     for n_face in (None, 3):
         enc = pose_stream.PoseEncoder(2, 0, n_face_markers=n_face)
-        parts = enc.encode(12, 0.5, 1, 2, 0, np.zeros(3), q, q, np.zeros(0),
+        parts = enc.encode(12, 0.5, 1, 2, 0, np.zeros(3), q, q, q, np.zeros(0),
                            np.zeros(2, dtype=np.uint8))  # fmt: skip
         got = rf.classify(rf.FORM_POSE, [bytes(x) for x in parts])
         assert (len(parts), got) == (

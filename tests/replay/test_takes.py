@@ -8,14 +8,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+# Same place as conftest's DATASETS (tests can't import conftest): used only to list
+# files at collection time; every test still takes the `datasets` fixture.
+from paths import DATASETS as _DATASETS
+
 from retargetd.replay.c3d import write_c3d
 from retargetd.replay.points import reference_kind, split_subjects
 from retargetd.replay.take import Take, TakeError
 from retargetd.replay.takes import load_take
 
-# Same place as conftest's DATASETS (tests can't import conftest): used only to list
-# files at collection time; every test still takes the `datasets` fixture.
-_DATASETS = Path(__file__).resolve().parents[2].parent / "shared" / "datasets"
 _FILES: list[str | None] = [
     str(p.relative_to(_DATASETS))
     for p in sorted(_DATASETS.rglob("*"))

@@ -1,0 +1,418 @@
+"""The live-daemon test harness (importable: ``tests/helpers`` is on pytest's
+``pythonpath``): the exact synthetic performer and its calibration, a daemon serving
+in a thread on ephemeral loopback ports (:func:`start_daemon`), marker senders
+(:class:`OscSource`, ZeroMQ), receivers (:class:`VmcReceiver`, :class:`PoseSub`) and
+the solve oracle. Every wait has a deadline; every socket is closed at teardown.
+
+The performer is the synthetic one wearing ``tests/data/synth-exact-markers.toml``,
+solved with ``tests/data/synth-exact-rig.toml`` (every bone rigid on one segment, so
+the solve is exact and poses can be worked by hand).
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import math
+import os
+import re
+import socket
+import threading
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import zmq
+from pythonosc.osc_bundle import OscBundle
+from pythonosc.osc_message import OscMessage
+
+from retargetd.daemon.body.calibration import calibrate, load_calibration
+from retargetd.daemon.body.rig import load_rig
+from retargetd.daemon.body.solve import BodySolver
+from retargetd.daemon.cli.ctl import request
+from retargetd.daemon.live.config import DaemonConfig
+from retargetd.daemon.live.loop import Daemon
+from retargetd.daemon.synth import performer as pf
+from retargetd.daemon.target.retarget import Retargeter, default_humanoid
+from retargetd.protocols import osc_in, pose_stream, vmc_out
+from retargetd.protocols.marker_input import LabelSet
+
+TESTS = Path(__file__).resolve().parents[1]
+REPO_ROOT = TESTS.parent
+DATA = TESTS / "data"
+EXACT_RIG = DATA / "synth-exact-rig.toml"
+EXACT_MARKERS = DATA / "synth-exact-markers.toml"
+RATE_HZ = 100.0
+C = S = math.sqrt(0.5)
+IN_CI = os.environ.get("CI", "").lower() in ("1", "true", "yes")
+VMC_FRAME = (
+    ["/VMC/Ext/Root/Pos"]
+    + ["/VMC/Ext/Bone/Pos"] * len(vmc_out.HUMANOID_BONES)
+    + ["/VMC/Ext/Blend/Apply", "/VMC/Ext/OK", "/VMC/Ext/T"]
+)
+ENDPOINT_LINE = re.compile(r"^(listening on|sending to) (\S+)(?: \(.*\))?: (.+)$")
+
+
+# ---- data --------------------------------------------------------------------------
+
+
+@functools.cache
+def _take() -> pf.SynthTake:
+    """1 s exact T-pose, then every motion; exact markers, no noise."""
+    return pf.synthesize(seconds=3.0, rate_hz=RATE_HZ, markerset=EXACT_MARKERS)
+
+
+def _f32(a: np.ndarray) -> np.ndarray:
+    """What the daemon decodes: float32 on the wire, float64 inside."""
+    return np.asarray(a, dtype=np.float32).astype(np.float64)
+
+
+def _rot_z(deg: float) -> np.ndarray:
+    a = math.radians(deg)
+    return np.array(
+        [[math.cos(a), -math.sin(a), 0.0], [math.sin(a), math.cos(a), 0.0], [0, 0, 1]]
+    )
+
+
+@pytest.fixture(scope="module")
+def exact_calibration(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A calibration of the exact rig on the take's T-pose hold (float32 markers)."""
+    take = _take()
+    rig = load_rig(EXACT_RIG)
+    cal = calibrate(rig, _f32(take.markers_world[take.base_pose_frames]), take.labels)
+    path = tmp_path_factory.mktemp("calibration") / "exact.json"
+    cal.save(path)
+    return path
+
+
+# ---- waiting -----------------------------------------------------------------------
+
+
+def _wait_until(pred: Callable[[], bool], what: str, timeout_s: float = 5.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not pred():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
+        time.sleep(0.002)
+
+
+# ---- the daemon in a thread --------------------------------------------------------
+
+
+def _deep_merge(base: dict[str, Any], extra: dict[str, Any]) -> dict[str, Any]:
+    out = dict(base)
+    for key, value in extra.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = _deep_merge(out[key], value)
+        else:
+            out[key] = value
+    return out
+
+
+def _unused_udp_port() -> int:
+    """A port nobody listens on (bound, then closed at once)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+def _ephemeral_doc(vmc_port: int) -> dict[str, Any]:
+    return {
+        "performer": {"rig": str(EXACT_RIG)},
+        "input": {
+            "osc": {"port": 0},
+            "zmq": {"endpoint": "tcp://127.0.0.1:*"},
+        },
+        "output": {
+            "vmc": {"port": vmc_port},
+            # Every pose reaches the test's subscriber (the default drops when slow).
+            "pose": {"endpoint": "tcp://127.0.0.1:*", "sndhwm": 1000},
+        },
+        "control": {"endpoint": "tcp://127.0.0.1:*"},
+        "show_control": {"port": 0},
+        "loop": {"poll_timeout_ms": 20, "stats_interval_s": 0.5},
+    }
+
+
+class Live:
+    """An opened daemon serving in a thread."""
+
+    def __init__(self, config: DaemonConfig) -> None:
+        self.lines: list[str] = []
+        self.daemon = Daemon(config, out=self.lines.append)
+        try:
+            self.daemon.open()
+        except BaseException:
+            self.daemon.close()
+            raise
+        self._stop = threading.Event()
+        self._errors: list[BaseException] = []
+        self.thread = threading.Thread(
+            target=self._run, name="live-daemon", daemon=True
+        )
+        self.thread.start()
+
+    def _run(self) -> None:
+        try:
+            self.daemon.run(self._stop.is_set)
+        except BaseException as exc:  # re-raised in the test thread by stop()
+            self._errors.append(exc)
+
+    def stop(self) -> None:
+        """Stop the loop (bounded), close every socket, re-raise a loop crash."""
+        self._stop.set()
+        self.thread.join(timeout=5.0)
+        alive = self.thread.is_alive()
+        if not alive:
+            self.daemon.close()
+        assert not alive, "the daemon loop did not stop within 5 s"
+        if self._errors:
+            raise self._errors[0]
+
+    @property
+    def running(self) -> bool:
+        return self.thread.is_alive()
+
+    def udp(self, what: str) -> tuple[str, int]:
+        where = self.daemon.endpoints[what].split()[0]  # "udp://host:port (form)"
+        host, port = where.removeprefix("udp://").rsplit(":", 1)
+        return host, int(port)
+
+    def tcp(self, what: str) -> str:
+        return self.daemon.endpoints[what].split()[0]
+
+    def ctl(self, req: dict[str, Any]) -> dict[str, Any]:
+        reply = request(self.tcp("control"), req, 2000)
+        assert reply is not None, f"no control reply to {req}"
+        return reply
+
+
+@pytest.fixture
+def start_daemon() -> Iterator[Callable[..., Live]]:
+    """``start(overrides, vmc_port=None)``: a daemon on ephemeral ports in a thread."""
+    lives: list[Live] = []
+
+    def start(overrides: dict[str, Any] | None = None, *, vmc_port: int = 0) -> Live:
+        doc = _deep_merge(
+            _ephemeral_doc(vmc_port or _unused_udp_port()), overrides or {}
+        )
+        live = Live(DaemonConfig.from_dict(doc, source="test"))
+        lives.append(live)
+        return live
+
+    yield start
+    errors = []
+    for live in lives:
+        try:
+            live.stop()
+        except BaseException as exc:
+            errors.append(exc)
+    if errors:
+        raise errors[0]
+
+
+# ---- senders and receivers ---------------------------------------------------------
+
+
+class OscSource:
+    """A compact-form OSC marker sender; remembers what it sent (for the oracle)."""
+
+    def __init__(
+        self, sock: socket.socket, addr: tuple[str, int], label_set_id: int = 1
+    ):
+        self.sock = sock
+        self.addr = addr
+        self.label_set = LabelSet(label_set_id, _take().labels)
+        self.next_id = 0
+        self.sent: list[tuple[int, np.ndarray]] = []
+
+    def announce(self, label_set_id: int | None = None) -> None:
+        if label_set_id is not None:
+            self.label_set = LabelSet(label_set_id, self.label_set.labels)
+        self.raw(osc_in.encode_labels(self.label_set))
+
+    def send(self, markers: np.ndarray, frame_id: int | None = None) -> int:
+        fid = self.next_id if frame_id is None else frame_id
+        self.next_id = fid + 1
+        self.raw(
+            osc_in.encode_compact_frame(fid, fid / RATE_HZ, self.label_set.id, markers)
+        )
+        self.sent.append((fid, _f32(markers)))
+        return fid
+
+    def raw(self, data: bytes) -> None:
+        self.sock.sendto(data, self.addr)
+
+
+class PoseSub:
+    """A SUB on the daemon's pose stream: data and names messages, decoded."""
+
+    def __init__(self, sock: Any, endpoint: str) -> None:
+        sock.setsockopt(zmq.SUBSCRIBE, b"RTD")
+        sock.setsockopt(zmq.RCVHWM, 10_000)
+        sock.connect(endpoint)
+        self.sock = sock
+        self.poses: list[pose_stream.PoseMessage] = []
+        self.names: list[pose_stream.PoseNames] = []
+        self.events: list[tuple[str, int]] = []  # ("names"|"data", names_id) in order
+
+    def clear(self) -> None:
+        for received in (self.poses, self.names, self.events):
+            received.clear()
+
+    def pump(self, timeout_ms: int = 0) -> None:
+        while self.sock.poll(timeout_ms):
+            timeout_ms = 0
+            parts = self.sock.recv_multipart()
+            if parts[0][:4] == pose_stream.DATA_MAGIC:
+                msg = pose_stream.decode_pose(parts)
+                self.poses.append(msg)
+                self.events.append(("data", msg.names_id))
+            else:
+                names = pose_stream.decode_pose_names(parts)
+                self.names.append(names)
+                self.events.append(("names", names.names_id))
+
+    def wait(self, pred: Callable[[], bool], what: str, timeout_s: float = 5.0) -> None:
+        deadline = time.monotonic() + timeout_s
+        while not pred():
+            if time.monotonic() > deadline:
+                raise AssertionError(
+                    f"timed out after {timeout_s} s waiting for {what}"
+                )
+            self.pump(5)
+
+
+def _prime(sub: PoseSub, send: Callable[[], int], timeout_s: float = 5.0) -> None:
+    """Send frames (``send`` returns the frame number) until the subscriber receives
+    one: poses published before its connection completes are lost (ZeroMQ's slow
+    joiner). Then one more, waited for, so every later pose arrives; forget what the
+    subscriber received so far."""
+    deadline = time.monotonic() + timeout_s
+    while not sub.poses:
+        assert time.monotonic() < deadline, "the pose stream never reached the SUB"
+        send()
+        sub.pump(20)
+    last = send()
+    sub.wait(lambda: sub.poses[-1].frame_id == last, "the last priming frame")
+    sub.clear()
+
+
+class VmcReceiver:
+    """Collects VMC datagrams; splits them into frames at ``/VMC/Ext/T`` with
+    python-osc's generic parser (``OscBundle`` / ``OscMessage``)."""
+
+    def __init__(self, sock: socket.socket) -> None:
+        self.sock = sock
+        self.port = int(sock.getsockname()[1])
+        self.datagrams: list[bytes] = []
+        self.frames: list[list[tuple[str, list[Any]]]] = []
+        self.frame_datagrams: list[int] = []
+        self._pending: list[tuple[str, list[Any]]] = []
+        self._pending_dgrams = 0
+
+    def pump(self) -> None:
+        """Read every datagram waiting (the first one waits up to the timeout)."""
+        try:
+            data = self.sock.recv(65536)
+        except TimeoutError:
+            return
+        while True:
+            self._parse(data)
+            try:
+                data = self.sock.recv(65536, socket.MSG_DONTWAIT)
+            except (BlockingIOError, TimeoutError):
+                return
+
+    def _parse(self, data: bytes) -> None:
+        self.datagrams.append(data)
+        self._pending_dgrams += 1
+        bundle = OscBundle(data)
+        for element in bundle:
+            assert isinstance(element, OscMessage), "VMC bundles hold messages only"
+            self._pending.append((element.address, list(element.params)))
+            if element.address == vmc_out.TIME_ADDRESS:
+                self.frames.append(self._pending)
+                self.frame_datagrams.append(self._pending_dgrams)
+                self._pending, self._pending_dgrams = [], 0
+
+    def wait_frames(self, n: int, timeout_s: float = 5.0) -> None:
+        deadline = time.monotonic() + timeout_s
+        while len(self.frames) < n:
+            if time.monotonic() > deadline:
+                raise AssertionError(
+                    f"timed out: {len(self.frames)} of {n} VMC frames received"
+                )
+            self.pump()
+
+
+def _vmc_bones(frame: list[tuple[str, list[Any]]]) -> dict[str, np.ndarray]:
+    """Bone name -> (7,) position xyz + quaternion xyzw, plus "root"."""
+    out = {}
+    for address, params in frame:
+        if address in (vmc_out.ROOT_ADDRESS, vmc_out.BONE_ADDRESS):
+            out[params[0]] = np.array(params[1:], dtype=np.float64)
+    return out
+
+
+def _vmc_quats(frame: list[tuple[str, list[Any]]]) -> np.ndarray:
+    """(1 + bones, 4) xyzw: root then bones, in message order."""
+    return np.array(
+        [p[4:] for a, p in frame if a in (vmc_out.ROOT_ADDRESS, vmc_out.BONE_ADDRESS)]
+    )
+
+
+@pytest.fixture
+def vmc(udp_socket: Callable[..., socket.socket]) -> VmcReceiver:
+    return VmcReceiver(udp_socket(bind=True))
+
+
+@pytest.fixture
+def osc_source(udp_socket: Callable[..., socket.socket]) -> Callable[..., OscSource]:
+    def make(live: Live, label_set_id: int = 1) -> OscSource:
+        return OscSource(udp_socket(), live.udp("osc markers"), label_set_id)
+
+    return make
+
+
+def _solve_oracle(
+    calibration: Path, frames: list[np.ndarray]
+) -> tuple[list[Any], Retargeter]:
+    """The BodySolver on the same frames, in the same order (copies per frame)."""
+    rig = load_rig(EXACT_RIG)
+    cal = load_calibration(calibration)
+    solver = BodySolver(rig, cal, _take().labels)
+    pose = solver.new_pose()
+    out = []
+    for markers in frames:
+        solver.solve_frame(markers, pose)
+        out.append(
+            (
+                pose.world_from_bone_quat.copy(),
+                pose.rest_from_bone_quat.copy(),
+                pose.root_pos.copy(),
+                pose.bone_flags.copy(),
+            )
+        )
+    return out, Retargeter(rig, cal, default_humanoid())
+
+
+def _json_strict(text: str) -> Any:
+    def reject(name: str) -> Any:
+        raise ValueError(f"not JSON: {name}")
+
+    return json.loads(text, parse_constant=reject)
+
+
+def _import_vmcp() -> tuple[Any, Any]:
+    try:
+        from osc4py3 import oscbuildparse
+        from vmcp import events
+    except ImportError as exc:  # the test extra is installed in CI
+        if IN_CI:
+            pytest.fail(f"vmcp/osc4py3 missing (CI=true: nothing may skip): {exc}")
+        pytest.skip(f"vmcp/osc4py3 not installed: {exc}")
+    return oscbuildparse, events
