@@ -419,6 +419,130 @@ def euler_from_quat(q: F64Array, order: str) -> F64Array:
     return np.where(angles > np.pi, angles - 2.0 * np.pi, angles)
 
 
+def mat_from_euler(angles_rad: F64Array, order: str) -> F64Array:
+    """Rotation matrices from Euler angles (DESIGN 5.40-5.46), scipy's convention.
+
+    The product of the three elemental matrices (5.40-5.42): intrinsic ``"XYZ"`` is
+    ``Rx(a) @ Ry(b) @ Rz(c)``, extrinsic ``"xyz"`` is ``Rz(c) @ Ry(b) @ Rx(a)``.
+
+    Args:
+        angles_rad: (..., 3) float64 angles in radians, in the order of ``order``.
+        order: any of the 12 sequences, lower case extrinsic, upper case intrinsic.
+
+    Returns:
+        (..., 3, 3) float64 rotation matrices, ``v_a = M @ v_b``.
+
+    Raises:
+        ValueError: naming the bad ``order``.
+    """
+    axes, intrinsic = _parse_order(order)
+    angles = _as_f64(angles_rad)
+    _check_last(angles, 3, "angles_rad")
+    cos, sin = np.cos(angles), np.sin(angles)
+    elem = np.zeros((3, *angles.shape[:-1], 3, 3))
+    for n, axis in enumerate(axes):
+        # Rows/columns of the two axes the elemental rotation mixes (5.40-5.42).
+        i, j = (axis + 1) % 3, (axis + 2) % 3
+        elem[n, ..., axis, axis] = 1.0
+        elem[n, ..., i, i] = cos[..., n]
+        elem[n, ..., j, j] = cos[..., n]
+        elem[n, ..., i, j] = -sin[..., n]
+        elem[n, ..., j, i] = sin[..., n]
+    if intrinsic:
+        return elem[0] @ elem[1] @ elem[2]
+    return elem[2] @ elem[1] @ elem[0]
+
+
+def euler_from_mat(m: F64Array, order: str) -> F64Array:
+    """Euler angles from rotation matrices (the decomposition of 5.47-5.58).
+
+    Goes through :func:`quat_from_mat` (the trace method with its robust branches)
+    and :func:`euler_from_quat`, so the ranges and the gimbal-lock rule are those of
+    :func:`euler_from_quat` (scipy's ``as_euler``).
+
+    Args:
+        m: (..., 3, 3) float64 rotation matrices.
+        order: any of the 12 sequences.
+
+    Returns:
+        (..., 3) float64 angles, radians, in the order of ``order``.
+
+    Raises:
+        ValueError: naming the bad ``order`` or a bad matrix shape.
+    """
+    _parse_order(order)
+    return euler_from_quat(quat_from_mat(m), order)
+
+
+def convert_euler_order(
+    angles_rad: F64Array, from_order: str, to_order: str
+) -> F64Array:
+    """Re-express Euler angles in another rotation order ("Switching the Order").
+
+    Args:
+        angles_rad: (..., 3) float64 angles, radians, in ``from_order``.
+        from_order: the sequence the angles are in (any of the 12, either case).
+        to_order: the sequence wanted.
+
+    Returns:
+        (..., 3) float64 angles, radians, in ``to_order`` (same rotation).
+
+    Raises:
+        ValueError: naming a bad order.
+    """
+    return euler_from_quat(quat_from_euler(angles_rad, from_order), to_order)
+
+
+def swing_twist(q: F64Array, axis: F64Array) -> tuple[F64Array, F64Array]:
+    """Swing-twist decomposition ``q = swing ⊗ twist`` about a child-frame axis.
+
+    ``twist`` rotates about ``axis`` (expressed in the frame ``q`` maps from, e.g. a
+    bone's long axis +Y in ``parent_from_bone``), applied first; ``swing`` rotates
+    about an axis perpendicular to it. The twist is the projection of ``q``'s vector
+    part on ``axis``, renormalized; when that projection and ``w`` both vanish (a
+    half-turn swing) the twist is undefined and returned as the identity.
+
+    Args:
+        q: (..., 4) float64 unit quaternions (w, x, y, z).
+        axis: (3,) float64 unit axis in the child frame.
+
+    Returns:
+        ``(swing, twist)``: (..., 4) float64 unit quaternions (w, x, y, z).
+    """
+    q = _as_f64(q)
+    _check_last(q, 4, "q")
+    axis = _as_f64(axis)
+    proj = np.sum(q[..., 1:] * axis, axis=-1)
+    twist = np.zeros(q.shape)
+    twist[..., 0] = q[..., 0]
+    twist[..., 1:] = proj[..., None] * axis
+    norm = np.sqrt(np.sum(twist * twist, axis=-1, keepdims=True))
+    degenerate = norm < 1e-12
+    twist = np.where(
+        degenerate, [1.0, 0.0, 0.0, 0.0], twist / np.where(degenerate, 1.0, norm)
+    )
+    swing = quat_mul(q, quat_conj(twist))
+    return swing, twist
+
+
+def twist_angle(q: F64Array, axis: F64Array) -> F64Array:
+    """Signed twist angle of ``q`` about a child-frame ``axis``, in (-π, π].
+
+    Args:
+        q: (..., 4) float64 unit quaternions (w, x, y, z).
+        axis: (3,) float64 unit axis in the child frame.
+
+    Returns:
+        (...) float64 angles, radians (right-hand rule about ``axis``).
+    """
+    q = _as_f64(q)
+    _check_last(q, 4, "q")
+    proj = np.sum(q[..., 1:] * _as_f64(axis), axis=-1)
+    sign = np.where(q[..., 0] < 0.0, -1.0, 1.0)
+    angle = 2.0 * np.arctan2(sign * proj, sign * q[..., 0])
+    return np.where(angle <= -np.pi, angle + 2.0 * np.pi, angle)
+
+
 def slerp(q0: F64Array, q1: F64Array, u: F64Array | float) -> F64Array:
     """Spherical linear interpolation along the shorter arc (DESIGN 5.86-5.87).
 

@@ -1,12 +1,24 @@
 """C3D takes: read any C3D into a :class:`~retargetd.replay.take.Take`, write markers.
 
-Reading uses ezc3d. What we take from the file:
+Reading: :func:`retargetd.replay.c3d_layout.inspect_c3d` first checks the sizes the
+file declares against its size, without reading data (an empty file, no points or no
+complete frame is a one-line error). ezc3d then reads the file, unless that check
+found something ezc3d cannot be trusted with (MIPS processor type, a parameter
+section it would misread or allocate gigabytes for, missing ``POINT:USED``, fewer
+frames than declared, a ``ROTATION`` section past the end of the file), or ezc3d
+fails; then the ``c3d`` package reads it (:mod:`retargetd.replay.c3d_fallback`).
+A file ezc3d reads is loaded exactly as before the fallback existed. ``Take.reader``
+names the reader, ``Take.repairs`` lists what had to be worked around. What we take
+from the file:
 
 - **Points:** ``POINT:LABELS`` (+ ``LABELS2``, ``LABELS3`` ... past 255 points), data
   as ezc3d gives it (``data/points`` (4, N, T), file units, capture frame). A sample is
   occluded when a coordinate is non-finite or its residual is < 0 (the C3D rule; ezc3d
   already turns those into NaN).
-- **Units:** ``POINT:UNITS`` (``"mm"`` when absent, as the C3D standard does).
+- **Units:** ``POINT:UNITS`` (``"mm"`` when absent, as the C3D standard does); a
+  spelled-out unit cut to 4 characters (``"mete"``) is read as that unit (a repair).
+- **Rate:** ``--take-rate`` when given, else ``POINT:RATE``, else (absent or 0) the
+  header's rate (a repair); when both are 0 the load fails naming ``--take-rate``.
 - **Up axis:** the axis *letter* of ``POINT:Y_SCREEN`` (the screen-up axis), always
   taken as positive; ``+Z`` (the C3D lab convention) when absent. The sign is ignored on
   purpose: QTM writes a viewing convention there, e.g. ``ezc3d-testfiles/Qualisys.c3d``
@@ -34,10 +46,14 @@ frame, optional ``Name:`` prefixes with a ``SUBJECTS`` group, and measurements i
 
 from __future__ import annotations
 
+import importlib.metadata
 import logging
+import math
 import os
 import re
+import struct
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -45,8 +61,10 @@ import ezc3d
 import numpy as np
 
 from retargetd.protocols import conventions as cv
-from retargetd.protocols.frames import F64Array
+from retargetd.protocols.frames import BoolArray, F64Array
 from retargetd.replay import points as pts
+from retargetd.replay.c3d_fallback import READER_NAME, layout_params, read_fallback
+from retargetd.replay.c3d_layout import inspect_c3d
 from retargetd.replay.take import Take, TakeError
 
 logger = logging.getLogger(__name__)
@@ -71,6 +89,20 @@ KIND_UNIT_PARAMS = {
 #: X_SCREEN written beside each Y_SCREEN (any axis orthogonal to up will do).
 _X_SCREEN_FOR_UP = {"+Z": "+X", "+Y": "+X", "+X": "+Y"}
 _AXIS = re.compile(r"([+-]?)([XYZ])")
+#: How ``take info`` names the first reader.
+EZC3D_READER = f"ezc3d {importlib.metadata.version('ezc3d')}"
+#: Spelled-out length units, for POINT:UNITS cut short ("mete").
+_SPELLED_UNITS = {
+    "meters": "m",
+    "metres": "m",
+    "millimeters": "mm",
+    "millimetres": "mm",
+    "centimeters": "cm",
+    "centimetres": "cm",
+    "decimeters": "dm",
+    "decimetres": "dm",
+    "inches": "in",
+}
 
 
 def _param(params: Mapping[str, Any], group: str, name: str) -> Any:
@@ -163,32 +195,21 @@ def _manufacturer(params: Mapping[str, Any]) -> str:
     return " ".join(p for p in (company, software, version) if p)
 
 
-def read_c3d(
-    path: str | os.PathLike[str],
-    *,
-    subject: str | None = None,
-    units: str | None = None,
-    up_axis: str | None = None,
-) -> Take:
-    """Load a C3D file as a take in world metres.
+@dataclass(frozen=True, slots=True, kw_only=True)
+class _Raw:
+    """One reader's output, before the take is assembled."""
 
-    Args:
-        path: the ``.c3d`` file.
-        subject: the subject to load (required when the file holds several).
-        units: override of the file's length unit (``--take-units``).
-        up_axis: override of the file's up axis (``--take-up``).
+    reader: str
+    params: Mapping[str, Any]
+    points: F64Array  # (T, N, 3) file units, capture frame
+    valid: BoolArray  # (T, N)
+    header_rate_hz: float
+    first_frame: int
 
-    Returns:
-        The take; markers (T, M, 3) float64 metres, world frame, NaN rows = occluded.
 
-    Raises:
-        TakeError: unreadable file, ambiguous or unknown subject, bad override.
-    """
-    name = str(path)
-    try:
-        c3d = ezc3d.c3d(name)
-    except (RuntimeError, OSError, ValueError, IndexError) as exc:
-        raise TakeError(f"take {name}: not a readable C3D file ({exc})") from None
+def _read_ezc3d(name: str) -> _Raw:
+    """Read with ezc3d exactly as before the fallback existed."""
+    c3d = ezc3d.c3d(name)
     params = c3d["parameters"]
     data = np.asarray(c3d["data"]["points"], dtype=np.float64)  # (4, N, T)
     n_points = data.shape[1]
@@ -197,36 +218,202 @@ def read_c3d(
     valid = np.asarray(np.isfinite(points).all(axis=-1), dtype=bool)
     if residuals.shape == (1, n_points, points.shape[0]):
         valid &= residuals[0].T >= 0
-    rate = _param(params, "POINT", "RATE")
-    rate_hz = (
-        float(np.ravel(rate)[0])
-        if isinstance(rate, np.ndarray) and rate.size
-        else float(c3d["header"]["points"]["frame_rate"])
+    return _Raw(
+        reader=EZC3D_READER,
+        params=params,
+        points=points,
+        valid=valid,
+        header_rate_hz=float(c3d["header"]["points"]["frame_rate"]),
+        first_frame=int(c3d["header"]["points"]["first_frame"]),
     )
+
+
+def _file_rate(params: Mapping[str, Any], header_rate_hz: float) -> tuple[float, str]:
+    """The frame rate the file gives, and where it came from."""
+    rate = _param(params, "POINT", "RATE")
+    if isinstance(rate, np.ndarray) and rate.size:
+        return float(np.ravel(rate)[0]), "file (POINT:RATE)"
+    return header_rate_hz, "file (header; no POINT:RATE)"
+
+
+def _resolve_rate(
+    name: str, params: Mapping[str, Any], header_rate_hz: float, override: float | None
+) -> tuple[float, str, tuple[str, ...]]:
+    """The frame rate: ``--take-rate``, else the file's, else the header's.
+
+    Returns:
+        ``(rate_hz, source, repairs)``.
+
+    Raises:
+        TakeError: no positive rate anywhere; the message names ``--take-rate``.
+    """
+    if override is not None:
+        if not (math.isfinite(override) and override > 0):
+            raise TakeError(f"take {name}: --take-rate must be > 0 Hz; got {override}")
+        return float(override), "override (--take-rate)", ()
+    rate_hz, source = _file_rate(params, header_rate_hz)
+    if math.isfinite(rate_hz) and rate_hz > 0:
+        if "no POINT:RATE" in source:
+            return (
+                rate_hz,
+                source,
+                (f"no POINT:RATE: the header's {rate_hz:g} Hz used",),
+            )
+        return rate_hz, source, ()
+    if math.isfinite(header_rate_hz) and header_rate_hz > 0:
+        return (
+            header_rate_hz,
+            "file (header)",
+            (f"POINT:RATE is {rate_hz:g} Hz: the header's {header_rate_hz:g} Hz used",),
+        )
+    raise TakeError(
+        f"take {name}: the frame rate is 0 Hz (POINT:RATE and the header); "
+        "pass --take-rate HZ with the capture rate"
+    )
+
+
+def _file_units(params: Mapping[str, Any]) -> tuple[str | None, str | None]:
+    """``POINT:UNITS`` as a known unit, repairing a unit name cut short.
+
+    Returns:
+        ``(units, repair)``: the unit text to resolve (None when absent) and a
+        one-line repair note, or None when nothing was repaired.
+    """
+    text = _first_string(_param(params, "POINT", "UNITS"))
+    if not text:
+        return text, None
+    try:
+        cv.normalize_units(text)
+    except ValueError:
+        pass
+    else:
+        return text, None
+    # Some writers store only the first 4 characters of a spelled-out unit
+    # (c3d.org sample15 FP1.C3D: "mete" for meters, its points reach 2.14).
+    low = text.strip().lower()
+    matches = {
+        unit
+        for long, unit in _SPELLED_UNITS.items()
+        if len(low) >= 4 and long.startswith(low)
+    }
+    if len(matches) == 1:
+        unit = matches.pop()
+        return unit, f"POINT:UNITS {text!r} read as {unit} (a unit name cut short)"
+    return text, None
+
+
+def read_c3d(
+    path: str | os.PathLike[str],
+    *,
+    subject: str | None = None,
+    units: str | None = None,
+    up_axis: str | None = None,
+    rate_hz: float | None = None,
+) -> Take:
+    """Load a C3D file as a take in world metres.
+
+    The file's declared sizes are checked first (:func:`inspect_c3d`); ezc3d reads
+    it unless that check says ezc3d cannot be trusted with it, or ezc3d fails; then
+    the ``c3d`` package reads it (:mod:`retargetd.replay.c3d_fallback`). The take
+    records which reader read it (``Take.reader``) and every repair
+    (``Take.repairs``).
+
+    Args:
+        path: the ``.c3d`` file.
+        subject: the subject to load (required when the file holds several).
+        units: override of the file's length unit (``--take-units``).
+        up_axis: override of the file's up axis (``--take-up``).
+        rate_hz: override of the file's frame rate, Hz (``--take-rate``); needed
+            when the file's rate is 0.
+
+    Returns:
+        The take; markers (T, M, 3) float64 metres, world frame, NaN rows = occluded.
+
+    Raises:
+        TakeError: unreadable file, no data, zero rate without ``rate_hz``,
+            ambiguous or unknown subject, bad override.
+    """
+    name = str(path)
+    layout = inspect_c3d(name)
+    raw: _Raw | None = None
+    if layout.ezc3d_problems:
+        why = "; ".join(layout.ezc3d_problems)
+    else:
+        try:
+            raw = _read_ezc3d(name)
+        except (RuntimeError, OSError, ValueError, IndexError) as exc:
+            why = f"ezc3d: {exc}"
+    repairs: list[str] = []
+    if raw is None:
+        params = layout_params(layout)
+        rate, rate_source, rate_repairs = _resolve_rate(
+            name, params, layout.header_rate_hz, rate_hz
+        )
+        # The package derives analog samples per frame from the rate: give it the
+        # file's own (a --take-rate override must not change the frame layout).
+        file_rate = _file_rate(params, layout.header_rate_hz)[0]
+        for layout_rate in (file_rate, layout.header_rate_hz, rate):
+            if math.isfinite(layout_rate) and layout_rate > 0:
+                break
+        try:
+            data = read_fallback(layout, layout_rate)
+        except (ValueError, KeyError, OSError, AssertionError, struct.error) as exc:
+            raise TakeError(
+                f"take {name}: not a readable C3D file (ezc3d not used: {why}; "
+                f"c3d package: {exc})"
+            ) from None
+        if data.points.shape[0] == 0:
+            raise TakeError(
+                f"take {name}: no frame could be read: the file holds no data to load"
+            )
+        repairs.append(f"ezc3d not used: {why}")
+        repairs += layout.notes
+        repairs += (f"c3d package: {w}" for w in data.warnings)
+        raw = _Raw(
+            reader=READER_NAME,
+            params=data.params,
+            points=data.points,
+            valid=data.valid,
+            header_rate_hz=layout.header_rate_hz,
+            first_frame=layout.first_frame,
+        )
+    else:
+        rate, rate_source, rate_repairs = _resolve_rate(
+            name, raw.params, raw.header_rate_hz, rate_hz
+        )
+    repairs += rate_repairs
+    params = raw.params
+    file_units, units_repair = _file_units(params)
+    if units_repair and units is None:
+        repairs.append(units_repair)
+    n_points = raw.points.shape[1]
     return pts.assemble_take(
         path=name,
         fmt="c3d",
         labels=_labels(params, n_points),
-        points=points,
-        valid=valid,
+        points=raw.points,
+        valid=raw.valid,
         subject=subject,
         units=pts.resolve_units(
             name,
             units,
-            _first_string(_param(params, "POINT", "UNITS")),
+            file_units,
             "file (POINT:UNITS)",
             "mm",
             "default (C3D: no POINT:UNITS)",
         ),
         up_axis=_up_axis(params, name, up_axis),
-        rate_hz=rate_hz,
-        first_frame=int(c3d["header"]["points"]["first_frame"]),
+        rate_hz=rate,
+        first_frame=raw.first_frame,
         declared_prefixes=_strings(_param(params, "SUBJECTS", "LABEL_PREFIXES")),
         declared_names=_strings(_param(params, "SUBJECTS", "NAMES")),
         declared_kinds=_declared_kinds(params),
         kind_units=_kind_units(params),
         measurements=_measurements(params),
         manufacturer=_manufacturer(params),
+        reader=raw.reader,
+        rate_source=rate_source,
+        repairs=tuple(repairs),
     )
 
 

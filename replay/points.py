@@ -258,6 +258,9 @@ def assemble_take(
     kind_units: Mapping[str, str] | None = None,
     measurements: Mapping[str, float] | None = None,
     manufacturer: str = "",
+    reader: str = "",
+    rate_source: str = "",
+    repairs: Sequence[str] = (),
 ) -> Take:
     """Build a :class:`Take` from a file's raw points.
 
@@ -278,6 +281,9 @@ def assemble_take(
         kind_units: reference kind -> unit of its values for non-position kinds.
         measurements: subject measurements, name -> value as written.
         manufacturer: the writing software.
+        reader: the reader that read the file (``Take.reader``).
+        rate_source: where ``rate_hz`` came from (``Take.rate_source``).
+        repairs: what the reader worked around (``Take.repairs``).
 
     Returns:
         The take: markers of the selected subject in world metres, references apart.
@@ -360,4 +366,7 @@ def assemble_take(
         measurements=dict(measurements or {}),
         manufacturer=manufacturer,
         unassigned_labels=tuple(unassigned),
+        reader=reader,
+        rate_source=rate_source,
+        repairs=tuple(repairs),
     )

@@ -10,15 +10,28 @@ it in the envelope (``retargetd.replay.recording``), tracks label sets and write
 MCAP. Layout: ``protocols/PROTOCOLS.md``, "Recordings (MCAP)".
 
 Crash safety: chunks are small and closed every ``flush_interval_s`` (0.25 s): the
-writer finishes the chunk in progress and flushes the file, so a recorder killed at
-any moment leaves a file whose data section is whole up to the last flush; only the
+writer finishes the chunk in progress and hands it to the kernel, so a recorder killed
+at any moment leaves a file whose data section is whole up to the last flush; only the
 footer and summary (indexes, statistics) are missing, and
-:func:`~retargetd.replay.recording.read_recording` reads it. ``fsync`` is not called:
-a killed process loses nothing that reached the kernel; a power cut may lose more.
+:func:`~retargetd.replay.recording.read_recording` reads it. The file is written with
+``os.write`` (no user-space buffer, :class:`RecordingFile`), so what a flush wrote has
+reached the kernel; ``fsync`` is not called: a killed process loses nothing that reached
+the kernel, a power cut may lose more.
+
+Truthful counts: :class:`RecorderStats` counts what reached the file, not what was
+queued. A message is counted when the chunk holding it has been written whole (with its
+message indexes); until then it is pending. A write error of any kind (a full disk, a
+read-only or vanished file system, any ``OSError`` on the writer thread) stops the
+recording at once: the file is cut back (``ftruncate``) to the end of the last whole
+chunk, so it ends on a record boundary and holds exactly the counted messages; the
+pending messages and whatever was still queued are counted in ``write_errors``;
+:attr:`Recorder.error` says what failed and one error line is logged; nothing more is
+accepted (``record_*`` return False).
 """
 
 from __future__ import annotations
 
+import errno
 import json
 import logging
 import os
@@ -26,7 +39,7 @@ import queue
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import Any, BinaryIO, Protocol
+from typing import Any, Protocol
 
 from retargetd.protocols import osc_in, zmq_wire
 from retargetd.protocols.errors import DecodeError
@@ -37,6 +50,10 @@ logger = logging.getLogger(__name__)
 #: Queue length: ~34 s of 120 Hz packets; a stalled disk drops beyond it.
 DEFAULT_QUEUE_SIZE = 4096
 DEFAULT_FLUSH_INTERVAL_S = 0.25
+#: The longest flush interval allowed: a killed recorder may lose at most 1 s (issue
+#: 12's requirement for crash loss), so the file is made crash-readable at least once
+#: a second.
+MAX_FLUSH_INTERVAL_S = 1.0
 #: Chunks close at this size even between flushes (bytes, uncompressed).
 DEFAULT_CHUNK_SIZE = 256 * 1024
 
@@ -99,9 +116,16 @@ class InputInfo:
 
 @dataclass(slots=True)
 class RecorderStats:
-    """What was written (counted on the writer thread) and dropped (producer side:
-    ``dropped`` when the queue was full, ``unrecordable`` for a ZeroMQ message of more
-    than 255 parts, which the envelope cannot hold)."""
+    """What reached the file (counted on the writer thread once the chunk holding it was
+    written whole), what was lost to a write error, and what was dropped on the
+    producer side (``dropped`` when the queue was full, ``unrecordable`` for a ZeroMQ
+    message of more than 255 parts, which the envelope cannot hold).
+
+    Attributes:
+        write_errors: items accepted into the queue but not in the file because a write
+            failed (those of the chunk being written, and those still queued).
+        accepted: items the producer queued (producer side).
+    """
 
     frames: int = 0
     label_packets: int = 0
@@ -112,6 +136,7 @@ class RecorderStats:
     dropped: int = 0
     unrecordable: int = 0
     write_errors: int = 0
+    accepted: int = 0
     first_t_ns: int = 0
     last_t_ns: int = 0
     per_input: dict[str, int] = field(default_factory=dict)
@@ -120,6 +145,26 @@ class RecorderStats:
     def seconds(self) -> float:
         """Receive time from the first to the last recorded packet."""
         return max(0, self.last_t_ns - self.first_t_ns) * 1e-9
+
+    @property
+    def items_written(self) -> int:
+        """Queue items (packets, poses, events) in the file."""
+        return sum((self.frames, self.label_packets, self.other_packets, self.poses,
+                    self.events))  # fmt: skip
+
+    def add(self, other: RecorderStats) -> None:
+        """Add ``other``'s written counts (a committed chunk) to these."""
+        self.frames += other.frames
+        self.label_packets += other.label_packets
+        self.other_packets += other.other_packets
+        self.label_sets += other.label_sets
+        self.poses += other.poses
+        self.events += other.events
+        if other.first_t_ns:
+            self.first_t_ns = min(self.first_t_ns or other.first_t_ns, other.first_t_ns)
+        self.last_t_ns = max(self.last_t_ns, other.last_t_ns)
+        for name, n in other.per_input.items():
+            self.per_input[name] = self.per_input.get(name, 0) + n
 
 
 class Sink(Protocol):
@@ -134,12 +179,68 @@ class Sink(Protocol):
     def close(self) -> None:
         """Finish the file (footer, summary) and close it."""
 
+    def abort(self) -> int:
+        """After a write error: cut the file back to what is counted, close it and
+        return how many written-but-uncounted items were lost."""
+
+
+class RecordingFile:
+    """The recording's file descriptor at the OS boundary: every :meth:`write` goes
+    straight to ``os.write`` (looping over short writes), so :attr:`position` is the
+    number of bytes the kernel accepted, and a full disk raises ``OSError`` here, in
+    the call that wrote the data, never later in a buffer flush.
+
+    Args:
+        fd: a file descriptor open for writing (closed by :meth:`close`).
+        name: the path, for messages.
+    """
+
+    def __init__(self, fd: int, name: str = "") -> None:
+        self.fd = fd
+        self.name = name
+        self.position = 0
+        self._closed = False
+
+    def write(self, data: Any) -> int:
+        """Write all of ``data`` (bytes-like); raises OSError on failure."""
+        view = memoryview(data).cast("B")
+        done = 0
+        while done < len(view):
+            n = os.write(self.fd, view[done:])
+            if n <= 0:  # a regular file never does this; be safe rather than spin
+                raise OSError(errno.EIO, f"os.write wrote {n} bytes")
+            done += n
+            self.position += n
+        return done
+
+    def tell(self) -> int:
+        """Bytes written so far (the mcap writer's offsets)."""
+        return self.position
+
+    def flush(self) -> None:
+        """Nothing is buffered here."""
+
+    def truncate(self, size: int) -> None:
+        """Cut the file to ``size`` bytes (shrinking needs no free space)."""
+        os.ftruncate(self.fd, size)
+        self.position = size
+
+    def close(self) -> None:
+        """Close the descriptor (idempotent)."""
+        if not self._closed:
+            self._closed = True
+            os.close(self.fd)
+
 
 class McapSink:
     """Writes queue items as MCAP (channels and schemas in PROTOCOLS.md).
 
+    Counts go to a pending :class:`RecorderStats` and move to ``stats`` when the
+    chunk holding them has been written whole (a chunk closed by size inside
+    ``add_message``, or by :meth:`flush`).
+
     Args:
-        out: a binary file opened for writing (closed by :meth:`close`).
+        out: the file (closed by :meth:`close` or :meth:`abort`).
         inputs: the marker inputs, stored in the metadata record.
         stats: counters to update.
         mono_anchor_ns / wall_anchor_ns: the same instant on ``time.monotonic_ns()``
@@ -150,7 +251,7 @@ class McapSink:
 
     def __init__(
         self,
-        out: BinaryIO,
+        out: RecordingFile,
         inputs: tuple[InputInfo, ...],
         stats: RecorderStats,
         *,
@@ -163,9 +264,13 @@ class McapSink:
 
         self._out = out
         self._stats = stats
+        self._pending = RecorderStats()
+        self._committed_pos = 0
         self._offset_ns = wall_anchor_ns - mono_anchor_ns
         self._writer = Writer(
-            out, chunk_size=chunk_size, compression=CompressionType.ZSTD
+            out,  # type: ignore[arg-type]  # write/tell/flush is all it uses
+            chunk_size=chunk_size,
+            compression=CompressionType.ZSTD,
         )
         w = self._writer
         w.start(profile=rf.PROFILE, library=software or "retargetd")
@@ -209,11 +314,26 @@ class McapSink:
         self.flush()
 
     def _add(self, channel: int, t_ns: int, data: bytes) -> None:
+        # The caller counts the message in self._pending first: a chunk closed by
+        # size inside add_message holds it.
         log_time = t_ns + self._offset_ns
         self._seq[channel] += 1
         self._writer.add_message(
             channel, log_time, data, log_time, sequence=self._seq[channel]
         )
+        if self._out.position != self._committed_pos:
+            self._commit()
+
+    def _commit(self) -> None:
+        """Everything pending is in the file: count it."""
+        self._stats.add(self._pending)
+        self._pending = RecorderStats()
+        self._committed_pos = self._out.position
+
+    @property
+    def pending_items(self) -> int:
+        """Queue items written to the chunk in progress, not yet in the file."""
+        return self._pending.items_written
 
     def _write_labels(
         self, name: str, t_ns: int, set_id: int, labels: tuple[str, ...]
@@ -224,16 +344,16 @@ class McapSink:
             "input": name, "form": form, "t_ns": t_ns, "label_set_id": set_id,
             "labels": list(labels),
         }  # fmt: skip
+        self._pending.label_sets += 1
         self._add(self._labels, t_ns, json.dumps(msg).encode())
-        self._stats.label_sets += 1
 
     def write(self, item: tuple[Any, ...]) -> None:
         """Write one queue item (see :class:`Recorder`)."""
         tag, t_ns = item[0], item[1]
-        st = self._stats
+        st = self._pending
         if tag == _EVENT:
-            self._add(self._control, t_ns, json.dumps(item[2]).encode())
             st.events += 1
+            self._add(self._control, t_ns, json.dumps(item[2]).encode())
             return
         if st.first_t_ns == 0:
             st.first_t_ns = t_ns
@@ -242,26 +362,27 @@ class McapSink:
             parts = item[2]
             kind, frame, time_s = rf.classify(rf.FORM_POSE, parts)
             packet = rf.Packet(t_ns, frame, time_s, rf.FORM_POSE, kind, "poses", parts)
-            self._add(self._poses, t_ns, rf.encode_packet(packet))
             st.poses += 1
+            self._add(self._poses, t_ns, rf.encode_packet(packet))
             return
         name, form, parts = item[2], item[3], item[4]
         kind, frame, time_s = rf.classify(form, parts)
+        if kind == rf.KIND_FRAME:
+            st.frames += 1
+            st.per_input[name] = st.per_input.get(name, 0) + 1
+        elif kind == rf.KIND_LABELS:
+            st.label_packets += 1
+        else:
+            st.other_packets += 1
         self._add(
             self._raw,
             t_ns,
             rf.encode_packet(rf.Packet(t_ns, frame, time_s, form, kind, name, parts)),
         )
-        if kind == rf.KIND_FRAME:
-            st.frames += 1
-            st.per_input[name] = st.per_input.get(name, 0) + 1
-            if form == rf.FORM_OSC_SIMPLE:
-                self._track_simple_labels(name, t_ns, parts[0])
+        if kind == rf.KIND_FRAME and form == rf.FORM_OSC_SIMPLE:
+            self._track_simple_labels(name, t_ns, parts[0])
         elif kind == rf.KIND_LABELS:
-            st.label_packets += 1
             self._track_announced_labels(name, form, t_ns, parts)
-        else:
-            st.other_packets += 1
 
     def _track_announced_labels(
         self, name: str, form: int, t_ns: int, parts: tuple[bytes, ...]
@@ -289,15 +410,33 @@ class McapSink:
             self._write_labels(name, t_ns, set_id + 1, (*labels, *new))
 
     def flush(self) -> None:
-        """Close the chunk in progress and flush the file."""
+        """Close the chunk in progress and write it to the file; count it."""
         self._writer.flush()
+        self._commit()
 
     def close(self) -> None:
-        """Write the summary and footer, and close the file."""
+        """Write the last chunk (counted), the summary and footer, and close the file.
+        On an OSError the caller calls :meth:`abort`."""
+        self.flush()
+        self._writer.finish()
+        self._out.close()
+
+    def abort(self) -> int:
+        """Cut the file back to the end of the last whole chunk (so it ends on a
+        record boundary and holds exactly the counted messages) and close it.
+
+        Returns:
+            The queue items written to the chunk that did not make it (pending).
+        """
+        lost = self._pending.items_written
+        self._pending = RecorderStats()
         try:
-            self._writer.finish()
+            self._out.truncate(self._committed_pos)
+        except OSError as exc:
+            logger.error("recorder: cannot cut %s back: %s", self._out.name, exc)
         finally:
             self._out.close()
+        return lost
 
 
 class Recorder:
@@ -307,6 +446,12 @@ class Recorder:
         sink_factory: builds the sink on :meth:`start`, given the stats to update.
         queue_size: items held before new ones are dropped (and counted).
         flush_interval_s: how often the writer makes the file crash-readable.
+        name: the recording's path, for the log line of a write error.
+
+    Attributes:
+        stats: the counts (:class:`RecorderStats`).
+        error: what stopped the recording (a write or open error), or "".
+        failed: True once a write error stopped the recording.
     """
 
     def __init__(
@@ -315,29 +460,39 @@ class Recorder:
         *,
         queue_size: int = DEFAULT_QUEUE_SIZE,
         flush_interval_s: float = DEFAULT_FLUSH_INTERVAL_S,
+        name: str = "",
     ) -> None:
         if queue_size < 1:
             raise ValueError(f"queue_size must be >= 1; got {queue_size}")
-        if not flush_interval_s > 0:
-            raise ValueError(f"flush_interval_s must be > 0 s; got {flush_interval_s}")
+        if not 0 < flush_interval_s <= MAX_FLUSH_INTERVAL_S:
+            raise ValueError(
+                f"flush_interval_s must be in (0, {MAX_FLUSH_INTERVAL_S:g}] s; got "
+                f"{flush_interval_s}"
+            )
         self.stats = RecorderStats()
         self._queue: queue.Queue[tuple[Any, ...]] = queue.Queue(queue_size)
         self._sink_factory = sink_factory
         self._flush_interval_s = flush_interval_s
+        self._name = name
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._sink: Sink | None = None
-        #: Why the sink could not be opened (``start(open_in_writer=True)``), or "".
         self.error = ""
+        self.failed = False
+        #: ``time.monotonic_ns()`` when the write error stopped the recording, or 0.
+        self.failed_ns = 0
 
     # ---- producer side (the live loop): never blocks --------------------------------
 
     def _put(self, item: tuple[Any, ...]) -> bool:
+        if self.failed:  # the recording has stopped: nothing more is part of it
+            return False
         try:
             self._queue.put_nowait(item)
         except queue.Full:
             self.stats.dropped += 1
             return False
+        self.stats.accepted += 1
         return True
 
     def record_packet(self, input_name: str, form: int, t_ns: int, *parts: Any) -> bool:
@@ -350,9 +505,12 @@ class Recorder:
             parts: the datagram, or the ZeroMQ parts (bytes-like).
 
         Returns:
-            False when the queue was full and the packet was dropped (counted), or
-            when it has more than 255 parts (``unrecordable``, counted).
+            False when the queue was full and the packet was dropped (counted), when
+            it has more than 255 parts (``unrecordable``, counted), or when a write
+            error has stopped the recording (:attr:`failed`).
         """
+        if self.failed:
+            return False
         if not 1 <= len(parts) <= 255:  # the envelope's part count is one byte
             self.stats.unrecordable += 1
             return False
@@ -362,12 +520,23 @@ class Recorder:
 
     def record_pose(self, t_ns: int, *parts: Any) -> bool:
         """Queue a pose-stream message (its two parts) sent at ``t_ns``."""
+        if self.failed:
+            return False
         return self._put((_POSE, t_ns, tuple(bytes(p) for p in parts)))
 
     def record_event(self, event: str, t_ns: int | None = None, **fields: Any) -> bool:
         """Queue a control event (``"calibrate"``, ``"reload"`` ...), JSON fields."""
         t = time.monotonic_ns() if t_ns is None else t_ns
         return self._put((_EVENT, t, {"event": event, "t_ns": t, **fields}))
+
+    @property
+    def queued(self) -> int:
+        """Items accepted and neither in the file nor lost yet (in the queue or in
+        the chunk being built)."""
+        if self.failed and self.finished:
+            return 0  # anything put while the writer was failing is not recorded
+        st = self.stats
+        return max(0, st.accepted - st.items_written - st.write_errors)
 
     # ---- lifecycle -------------------------------------------------------------------
 
@@ -377,9 +546,8 @@ class Recorder:
         Args:
             open_in_writer: build the sink (which writes the file's header) on the
                 writer thread rather than here, so the caller does no file I/O at all
-                (the live loop). A sink that fails to open (``OSError``) is then
-                reported in :attr:`error` and every queued item counts as a write
-                error.
+                (the live loop). A sink that fails to open (``OSError``) stops the
+                recording like a write error.
         """
         if not open_in_writer:
             self._sink = self._sink_factory(self.stats)
@@ -411,51 +579,70 @@ class Recorder:
         return self.stats
 
     def _run(self) -> None:
-        failed = False
-        if self._sink is None:
-            try:
-                self._sink = self._sink_factory(self.stats)
-            except OSError as exc:
-                self.error = str(exc)
-                logger.error("recorder: cannot open the recording: %s", exc)
-                failed = True
         sink = self._sink
+        if sink is None:
+            try:
+                sink = self._sink = self._sink_factory(self.stats)
+            except Exception as exc:
+                self._fail(None, exc, "cannot start the file")
+                return
         interval = self._flush_interval_s
         next_flush = time.monotonic() + interval
         dirty = False
-        while True:
-            try:
-                item: tuple[Any, ...] | None = self._queue.get(
-                    timeout=max(0.0, next_flush - time.monotonic())
-                )
-            except queue.Empty:
-                item = None
-            if item is not None and not failed and sink is not None:
+        try:
+            while True:
                 try:
+                    item: tuple[Any, ...] | None = self._queue.get(
+                        timeout=max(0.0, next_flush - time.monotonic())
+                    )
+                except queue.Empty:
+                    item = None
+                if item is not None:
                     sink.write(item)
                     dirty = True
-                except OSError as exc:  # disk full ...: keep draining, count
-                    failed = True
-                    logger.error("recorder: write failed, recording stops: %s", exc)
-            if item is not None and failed:
-                self.stats.write_errors += 1
-            now = time.monotonic()
-            if now >= next_flush:
-                if dirty and not failed and sink is not None:
-                    _try(sink.flush)
-                dirty = False
-                next_flush = now + interval
-            if self._stop.is_set() and self._queue.empty():
+                now = time.monotonic()
+                if now >= next_flush:
+                    if dirty:
+                        sink.flush()
+                    dirty = False
+                    next_flush = now + interval
+                if self._stop.is_set() and self._queue.empty():
+                    break
+            sink.close()
+        except Exception as exc:
+            self._fail(sink, exc, "write failed")
+
+    def _fail(self, sink: Sink | None, exc: BaseException, what: str) -> None:
+        """Stop the recording on a write error: cut the file back to what is
+        counted, count what is lost, say why (one log line)."""
+        self.failed_ns = time.monotonic_ns()
+        self.failed = True  # producers stop queueing from here on
+        lost = 0
+        if sink is not None:
+            try:
+                lost = sink.abort()
+            except Exception as abort_exc:
+                logger.debug("recorder: abort: %s", abort_exc)
+        while True:
+            try:
+                self._queue.get_nowait()
+            except queue.Empty:
                 break
-        if sink is not None and not failed:
-            _try(sink.close)
-
-
-def _try(call: Any) -> None:
-    try:
-        call()
-    except OSError as exc:
-        logger.error("recorder: %s", exc)
+            lost += 1
+        st = self.stats
+        st.write_errors += lost
+        detail = exc.strerror if isinstance(exc, OSError) and exc.strerror else exc
+        code = (
+            f" ({errno.errorcode.get(exc.errno, exc.errno)})"
+            if isinstance(exc, OSError) and exc.errno
+            else ""
+        )
+        self.error = f"{what}: {detail}{code}"
+        logger.error(
+            "recorder: recording %s stopped, %s; the file keeps %d frames "
+            "(%.2f s, up to the last whole chunk), %d items lost",
+            self._name or "(unnamed)", self.error, st.frames, st.seconds, lost,
+        )  # fmt: skip
 
 
 def open_recorder(
@@ -480,7 +667,9 @@ def open_recorder(
     Raises:
         OSError: the file cannot be created (or exists, with ``exclusive``).
     """
-    out = open(path, "xb" if exclusive else "wb")  # noqa: SIM115 (the sink closes it)
+    flags = os.O_WRONLY | os.O_CREAT | (os.O_EXCL if exclusive else os.O_TRUNC)
+    name = os.fspath(path)
+    out = RecordingFile(os.open(name, flags | getattr(os, "O_CLOEXEC", 0), 0o644), name)
     mono = time.monotonic_ns()
     wall = time.time_ns()
 
@@ -495,7 +684,7 @@ def open_recorder(
             raise
 
     recorder = Recorder(
-        factory, queue_size=queue_size, flush_interval_s=flush_interval_s
+        factory, queue_size=queue_size, flush_interval_s=flush_interval_s, name=name
     )
     try:
         recorder.start(open_in_writer=open_in_writer)

@@ -95,6 +95,12 @@ class Take:
         manufacturer: the writing software as found in the file, or "".
         unassigned_labels: labels as written that carry no subject prefix in a file
             whose other labels do; they belong to no subject and were left out.
+        reader: the reader that read the file (``"ezc3d 1.7.2"``, ``"c3d 0.6.0
+            (fallback)"``, ``"retargetd TRC reader"`` ...), or "".
+        rate_source: where ``rate_hz`` came from (``"file (POINT:RATE)"``,
+            ``"override (--take-rate)"`` ...), or "".
+        repairs: what the reader had to work around to read the file, one line each
+            (empty for a file read as written).
     """
 
     path: str
@@ -115,6 +121,9 @@ class Take:
     measurements: dict[str, float] = field(default_factory=dict)
     manufacturer: str = ""
     unassigned_labels: tuple[str, ...] = ()
+    reader: str = ""
+    rate_source: str = ""
+    repairs: tuple[str, ...] = ()
 
     @property
     def n_frames(self) -> int:

@@ -3,9 +3,10 @@
 :func:`load_take` dispatches on the file suffix (case-insensitive): ``.c3d`` to
 :func:`retargetd.replay.c3d.read_c3d`, ``.trc`` to
 :func:`retargetd.replay.trc.read_trc`.
-``units`` and ``up_axis`` are explicit overrides (the CLI's ``--take-units`` and
-``--take-up``); without them each reader takes the file's own values or the format's
-default and records where each came from (``Take.units_source``, ``Take.up_source``).
+``units``, ``up_axis`` and ``rate_hz`` are explicit overrides (the CLI's
+``--take-units``, ``--take-up`` and ``--take-rate``); without them each reader takes
+the file's own values or the format's default and records where each came from
+(``Take.units_source``, ``Take.up_source``, ``Take.rate_source``).
 """
 
 from __future__ import annotations
@@ -29,6 +30,8 @@ READERS: dict[str, _Reader] = {
     ".trc": read_trc,
     ".mcap": read_mcap_take,
 }
+#: Suffixes whose reader takes a frame-rate override (``--take-rate``).
+RATE_READERS = (".c3d", ".trc")
 
 
 def load_take(
@@ -37,6 +40,7 @@ def load_take(
     subject: str | None = None,
     units: str | None = None,
     up_axis: str | None = None,
+    rate_hz: float | None = None,
 ) -> Take:
     """Load a take file (C3D or TRC) in world metres.
 
@@ -45,6 +49,8 @@ def load_take(
         subject: the subject to load; required when the file holds several.
         units: override of the file's length unit ("mm", "m" ...).
         up_axis: override of the file's up axis ("+Z", "+Y" ...).
+        rate_hz: override of the file's frame rate, Hz (``--take-rate``; C3D and
+            TRC only); needed when the file's rate is 0.
 
     Returns:
         The take (markers (T, M, 3) float64 metres, world frame, NaN rows = occluded).
@@ -62,7 +68,17 @@ def load_take(
         )
     if not file.is_file():
         raise TakeError(f"take {file}: no such file")
-    take = reader(file, subject=subject, units=units, up_axis=up_axis)
+    if rate_hz is None:
+        take = reader(file, subject=subject, units=units, up_axis=up_axis)
+    elif file.suffix.lower() in RATE_READERS:
+        take = reader(
+            file, subject=subject, units=units, up_axis=up_axis, rate_hz=rate_hz
+        )
+    else:
+        raise TakeError(
+            f"take {file}: --take-rate applies to {', '.join(RATE_READERS)} takes; "
+            "a recording keeps its own timestamps"
+        )
     logger.info(
         "loaded %s: %d markers x %d frames at %g Hz (%s, %s up)",
         file,
@@ -72,4 +88,7 @@ def load_take(
         take.units,
         take.up_axis,
     )
+    for repair in take.repairs:
+        # `take info` prints these; other commands keep them in the log.
+        logger.info("%s (%s): %s", file, take.reader, repair)
     return take

@@ -10,7 +10,9 @@ Layout (tab-separated text, one record per line, CRLF or LF)::
     <optional blank line>
     1  0.000000  x  y  z  x  y  z  ...            (one row per frame)
 
-- Rate: the ``DataRate`` column of line 3 (Hz). Frame count: the data rows present
+- Rate: the ``DataRate`` column of line 3 (Hz); ``--take-rate`` overrides it and is
+  needed when it is 0. A file cut inside its 5-line header holds no data: one-line
+  error. Frame count: the data rows present
   (a ``NumFrames`` that disagrees is logged).
 - Units: the ``Units`` column (``"mm"`` when absent, with source "default").
 - Labels: line 4, column ``2 + 3k`` for marker ``k``; ``Name:`` prefixes are split into
@@ -47,6 +49,8 @@ logger = logging.getLogger(__name__)
 
 #: Up axis assumed for TRC files (they don't store one).
 TRC_DEFAULT_UP = "+Y"
+#: How ``take info`` names this reader.
+TRC_READER = "retargetd TRC reader"
 _HEADER_LINES = 5
 
 
@@ -73,6 +77,7 @@ def read_trc(
     subject: str | None = None,
     units: str | None = None,
     up_axis: str | None = None,
+    rate_hz: float | None = None,
 ) -> Take:
     """Load a TRC file as a take in world metres.
 
@@ -81,6 +86,8 @@ def read_trc(
         subject: the subject to load (required when labels carry several prefixes).
         units: override of the file's ``Units`` (``--take-units``).
         up_axis: the file's up axis (``--take-up``); ``+Y`` when not given.
+        rate_hz: override of ``DataRate``, Hz (``--take-rate``); needed when the
+            file's rate is 0.
 
     Returns:
         The take; markers (T, M, 3) float64 metres, world frame, NaN rows = occluded.
@@ -95,6 +102,11 @@ def read_trc(
     except OSError as exc:
         raise TakeError(f"take {name}: cannot read ({exc.strerror or exc})") from None
     lines = text.splitlines()  # handles CRLF
+    if lines and lines[0].startswith("PathFileType") and len(lines) < _HEADER_LINES:
+        raise TakeError(
+            f"take {name}: TRC file cut after {len(lines)} of {_HEADER_LINES} "
+            "header lines: the file holds no data to load"
+        )
     if len(lines) < _HEADER_LINES or not lines[0].startswith("PathFileType"):
         raise TakeError(
             f"take {name}: not a TRC file (needs a 5-line header starting with "
@@ -102,12 +114,23 @@ def read_trc(
         )
     keys = lines[1].split("\t")
     values = lines[2].split("\t")
-    rate_text = _header_value(keys, values, "DataRate")
-    if not rate_text:
-        raise TakeError(f"take {name}: line 3: no DataRate value")
-    rate_hz = _float(rate_text, name, 3, "DataRate")
-    if not (math.isfinite(rate_hz) and rate_hz > 0):
-        raise TakeError(f"take {name}: line 3: DataRate must be > 0; got {rate_text}")
+    rate_source = "file (DataRate)"
+    if rate_hz is not None:
+        if not (math.isfinite(rate_hz) and rate_hz > 0):
+            raise TakeError(f"take {name}: --take-rate must be > 0 Hz; got {rate_hz}")
+        rate_source = "override (--take-rate)"
+    else:
+        rate_text = _header_value(keys, values, "DataRate")
+        if not rate_text:
+            raise TakeError(
+                f"take {name}: line 3: no DataRate value; pass --take-rate HZ"
+            )
+        rate_hz = _float(rate_text, name, 3, "DataRate")
+        if not (math.isfinite(rate_hz) and rate_hz > 0):
+            raise TakeError(
+                f"take {name}: line 3: DataRate must be > 0; got {rate_text}; "
+                "pass --take-rate HZ with the capture rate"
+            )
 
     label_fields = lines[3].rstrip("\t").split("\t")
     if len(label_fields) < 2 or label_fields[0].strip() != "Frame#":
@@ -176,6 +199,8 @@ def read_trc(
         up_axis=up,
         rate_hz=rate_hz,
         first_frame=int(frame_numbers[0]),
+        reader=TRC_READER,
+        rate_source=rate_source,
     )
 
 

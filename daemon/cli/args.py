@@ -38,7 +38,10 @@ def parse_frames(text: str | None, n_frames: int, *, option: str) -> slice:
 
 
 def add_take_arguments(parser: argparse.ArgumentParser) -> None:
-    """Add ``--subject``, ``--take-units`` and ``--take-up`` (shared by commands)."""
+    """Add ``--subject``, ``--take-units``, ``--take-up`` and ``--take-rate``.
+
+    Shared by commands; pass :func:`take_overrides` to ``load_take``.
+    """
     parser.add_argument("--subject", metavar="NAME", help="subject to load")
     parser.add_argument(
         "--take-units", metavar="U", help="override the file's length unit (mm, m ...)"
@@ -46,6 +49,22 @@ def add_take_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--take-up", metavar="AXIS", help="override the file's up axis (+Z, +Y ...)"
     )
+    parser.add_argument(
+        "--take-rate",
+        metavar="HZ",
+        type=float,
+        help="override the file's frame rate (needed when the file says 0 Hz)",
+    )
+
+
+def take_overrides(args: argparse.Namespace) -> dict[str, Any]:
+    """``load_take`` keyword arguments from :func:`add_take_arguments`' options."""
+    return {
+        "subject": args.subject,
+        "units": args.take_units,
+        "up_axis": args.take_up,
+        "rate_hz": getattr(args, "take_rate", None),
+    }
 
 
 def add_rig_arguments(parser: argparse.ArgumentParser) -> None:
@@ -145,9 +164,7 @@ def solver_for_take(args: argparse.Namespace) -> tuple[Any, Any, Any, Any]:
     from retargetd.replay.takes import load_take
 
     rig = load_rig_or_fail(args.rig)
-    take = load_take(
-        args.take, subject=args.subject, units=args.take_units, up_axis=args.take_up
-    )
+    take = load_take(args.take, **take_overrides(args))
     try:
         if args.calibration is not None:
             cal = load_calibration(args.calibration)

@@ -18,6 +18,7 @@ from retargetd.daemon.cli.args import (
     calibrate_from_take,
     load_rig_or_fail,
     parse_measures,
+    take_overrides,
 )
 
 logger = logging.getLogger(__name__)
@@ -50,9 +51,7 @@ def run(args: argparse.Namespace) -> int:
 
     rig = load_rig_or_fail(args.rig)
     overrides = parse_measures(args.measure)
-    take = load_take(
-        args.static, subject=args.subject, units=args.take_units, up_axis=args.take_up
-    )
+    take = load_take(args.static, **take_overrides(args))
     frames = parse_frames(args.frames, take.n_frames, option="--frames")
     cal = calibrate_from_take(take, rig, frames, overrides)
     cal.save(args.out)

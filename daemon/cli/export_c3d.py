@@ -25,6 +25,7 @@ from typing import Any
 
 import numpy as np
 
+from retargetd.daemon.cli.args import take_overrides
 from retargetd.daemon.errors import UsageError
 
 logger = logging.getLogger(__name__)
@@ -74,9 +75,7 @@ def run(args: argparse.Namespace) -> int:
 
     if not args.out.lower().endswith(".c3d"):
         raise UsageError(f"--out: expected a .c3d file; got {args.out!r}")
-    take = load_take(
-        args.take, subject=args.subject, units=args.take_units, up_axis=args.take_up
-    )
+    take = load_take(args.take, **take_overrides(args))
     rows = parse_frames(args.frames, take.n_frames, option="--frames")
     labels = list(take.labels)
     positions = take.positions[rows]

@@ -20,6 +20,7 @@ import argparse
 import logging
 from typing import Any
 
+from retargetd.daemon.cli.args import take_overrides
 from retargetd.daemon.errors import UsageError
 
 logger = logging.getLogger(__name__)
@@ -80,9 +81,7 @@ def run(args: argparse.Namespace) -> int:
         face = load_face_config(args.face)
     except FaceConfigError as exc:
         raise UsageError(str(exc)) from None
-    take = load_take(
-        args.take, subject=args.subject, units=args.take_units, up_axis=args.take_up
-    )
+    take = load_take(args.take, **take_overrides(args))
     poses = parse_poses(args.poses, take.n_frames)
     unknown = [n for n, _ in poses if n != "neutral" and n not in face.expressions]
     if unknown:

@@ -61,8 +61,14 @@ def open_or_fail(daemon: Any, hint: str = "") -> None:
         raise UsageError(f"cannot open an endpoint{hint}: {exc}") from None
 
 
+#: The signals that stop a foreground command cleanly (the recording is finished,
+#: sockets closed): Ctrl-C, ``kill``/systemd/docker stop, and a closed terminal or
+#: SSH session (SIGHUP's default action would end the process with nothing closed).
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+
+
 def install_signal_handlers(stop: threading.Event) -> None:
-    """SIGINT/SIGTERM set ``stop``; a second SIGINT exits at once."""
+    """SIGINT, SIGTERM and SIGHUP set ``stop``; a second SIGINT exits at once."""
 
     def handler(signum: int, _frame: Any) -> None:
         if stop.is_set() and signum == signal.SIGINT:
@@ -70,21 +76,22 @@ def install_signal_handlers(stop: threading.Event) -> None:
             os._exit(130)
         stop.set()
 
-    signal.signal(signal.SIGINT, handler)
-    signal.signal(signal.SIGTERM, handler)
+    for s in STOP_SIGNALS:
+        signal.signal(s, handler)
 
 
 @contextlib.contextmanager
 def stop_on_signals(stop: threading.Event) -> Iterator[None]:
-    """SIGINT/SIGTERM set ``stop`` (a second SIGINT raises KeyboardInterrupt);
-    the previous handlers are restored on exit. Main thread only."""
+    """SIGINT, SIGTERM and SIGHUP set ``stop`` (a second SIGINT raises
+    KeyboardInterrupt); the previous handlers are restored on exit. Main thread
+    only."""
 
     def handler(signum: int, _frame: Any) -> None:
         if stop.is_set() and signum == signal.SIGINT:
             raise KeyboardInterrupt
         stop.set()
 
-    old = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
+    old = {s: signal.signal(s, handler) for s in STOP_SIGNALS}
     try:
         yield
     finally:

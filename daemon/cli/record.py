@@ -7,9 +7,11 @@ binds an ephemeral port; the "listening on" line names it. Every packet is recor
 as received, with its receive time, on a writer thread that never holds up the
 receive loop (``/markers/raw``; label sets on ``/markers/labels``). ``--poses
 zmq+sub://HOST:PORT`` also records a daemon's pose stream (``/poses``). SIGINT,
-SIGTERM or ``--seconds`` stop it cleanly: the file is finished (footer and index)
-and a summary is printed. A killed recorder leaves a readable file (all but the last
-~0.25 s). Layout: ``protocols/PROTOCOLS.md``, "Recordings (MCAP)".
+SIGTERM, SIGHUP or ``--seconds`` stop it cleanly: the file is finished (footer and
+index) and a summary is printed. A killed recorder leaves a readable file (all but the
+last ~0.25 s). A write error (a full disk ...) stops the recording: the file keeps
+every whole chunk, the summary counts what it holds, and the exit code is 1.
+Layout: ``protocols/PROTOCOLS.md``, "Recordings (MCAP)".
 """
 
 from __future__ import annotations
@@ -145,9 +147,11 @@ def run(args: argparse.Namespace) -> int:
     deadline = math.inf if args.seconds is None else time.monotonic() + args.seconds
     buf = bytearray(_UDP_MAX)
     view = memoryview(buf)
-    try:
-        with stop_on_signals(stop):
+    with stop_on_signals(stop):  # also during the close: a second signal waits
+        try:
             while not stop.is_set() and time.monotonic() < deadline:
+                if recorder.failed:
+                    break  # a write error stopped the recording (logged, reported)
                 events = dict(poller.poll(_POLL_MS))
                 if udp is not None and udp.fileno() in events:
                     while True:
@@ -164,13 +168,13 @@ def run(args: argparse.Namespace) -> int:
                     )
                 if zposes is not None and zposes in events:
                     _drain_zmq(zposes, lambda t, p: recorder.record_pose(t, *p))
-    finally:
-        recorder.record_event("record_stop")
-        for s in (udp, zin, zposes):
-            if s is not None:
-                s.close()
-        ctx.term()
-        st = recorder.close()
+        finally:
+            recorder.record_event("record_stop")
+            for s in (udp, zin, zposes):
+                if s is not None:
+                    s.close()
+            ctx.term()
+            st = recorder.close()
     print(
         f"recorded {st.frames} marker frames, {st.label_packets} label packets, "
         f"{st.other_packets} other packets ({st.label_sets} label sets"
@@ -179,8 +183,11 @@ def run(args: argparse.Namespace) -> int:
         f"(recorder queue full)",
         flush=True,
     )
-    if st.write_errors:
-        sys.stderr.write(f"retargetd record: {st.write_errors} packets not written\n")
+    if recorder.failed or st.write_errors:
+        sys.stderr.write(
+            f"retargetd record: the recording stopped early ({recorder.error}); "
+            f"{st.write_errors} packets not written\n"
+        )
         return 1
     return 0
 

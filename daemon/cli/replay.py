@@ -24,7 +24,7 @@ import sys
 import threading
 from typing import Any
 
-from retargetd.daemon.cli.args import add_take_arguments
+from retargetd.daemon.cli.args import add_take_arguments, take_overrides
 from retargetd.daemon.errors import UsageError
 
 
@@ -81,7 +81,7 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError("--form simple is an OSC form; ZeroMQ has one form")
 
     source: TakeSource | RecordingSource | None = None
-    overrides = args.subject or args.take_units or args.take_up
+    overrides = args.subject or args.take_units or args.take_up or args.take_rate
     if args.take.lower().endswith(".mcap") and not overrides:
         rec = rf.read_recording(args.take)
         name = rf.main_input(rec)
@@ -94,10 +94,7 @@ def run(args: argparse.Namespace) -> int:
             source = RecordingSource(packets, rows)
             what = f"{len(range(*rows.indices(n_frames)))} recorded {form} frames"
     if source is None:
-        take = load_take(
-            args.take, subject=args.subject, units=args.take_units,
-            up_axis=args.take_up,
-        )  # fmt: skip
+        take = load_take(args.take, **take_overrides(args))
         rows = parse_frames(args.frames, take.n_frames, option="--frames")
         source = TakeSource(take, ep.scheme, args.form or "compact", rows)
         form_text = f"osc {source.form}" if ep.scheme == "osc" else "zmq"

@@ -15,6 +15,7 @@ import sys
 from typing import Any
 
 from retargetd.daemon.body.rig import LinePoint, Rig, RigError, load_rig, shipped_rigs
+from retargetd.daemon.cli.args import take_overrides
 from retargetd.daemon.errors import UsageError
 
 
@@ -113,9 +114,7 @@ def _check_take(rig: Rig, args: argparse.Namespace) -> int:
     from retargetd.daemon.body.calibration import match_markers
     from retargetd.replay.takes import load_take
 
-    take = load_take(
-        args.take, subject=args.subject, units=args.take_units, up_axis=args.take_up
-    )
+    take = load_take(args.take, **take_overrides(args))
     out = sys.stdout.write
     cols = match_markers(rig, take.labels)
     missing = [m for m, c in zip(rig.markers, cols, strict=True) if c < 0]

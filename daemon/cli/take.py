@@ -1,9 +1,11 @@
 """``retargetd take``: inspect take files (C3D, TRC).
 
-``retargetd take info TAKE [--subject NAME] [--take-units U] [--take-up AXIS] [--json]``
-loads the take exactly as the daemon would and prints what was found: format,
-manufacturer, subjects, markers, rate and length, gaps, the units and up axis with
-where each came from, the rotation applied, vendor references and measurements.
+``retargetd take info TAKE [--subject NAME] [--take-units U] [--take-up AXIS]
+[--take-rate HZ] [--json]`` loads the take exactly as the daemon would and prints
+what was found: format, the reader that read it and what it had to repair,
+manufacturer, subjects, markers, rate and length, gaps, the units, up axis and rate
+with where each came from, the rotation applied, vendor references and measurements
+(with their units where the name says them).
 ``--json`` prints the same as one JSON object. ``take`` holds nested actions so that
 more (``take convert`` ...) can join ``info``.
 """
@@ -18,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from retargetd.daemon.cli.args import add_take_arguments
+from retargetd.daemon.cli.args import add_take_arguments, take_overrides
 from retargetd.protocols.frames import BoolArray
 from retargetd.replay.take import Take
 
@@ -42,6 +44,46 @@ def add_parser(subparsers: Any) -> None:
     add_take_arguments(info)
     info.add_argument("--json", action="store_true", help="print one JSON object")
     info.set_defaults(take_run=_run_info)
+
+
+#: Units of Vicon Plug-in Gait ``PROCESSING`` values, by name without the L/R side.
+#: Lengths are millimetres and Bodymass kilograms as Nexus writes them; the angles
+#: are radians (PiG_Motion-FlatFoot-Full.c3d: HeadOffset = 0.354, i.e. 20 deg, and
+#: LStaticPlantFlex = 0.116, i.e. 6.6 deg; as degrees they would be implausibly
+#: small offsets).
+PROCESSING_UNITS = {
+    "Bodymass": "kg",
+    "Height": "mm",
+    "InterAsisDistance": "mm",
+    "LegLength": "mm",
+    "AsisTrocanterDistance": "mm",
+    "KneeWidth": "mm",
+    "AnkleWidth": "mm",
+    "SoleDelta": "mm",
+    "ShoulderOffset": "mm",
+    "ElbowWidth": "mm",
+    "WristWidth": "mm",
+    "HandThickness": "mm",
+    "PelvisLength": "mm",
+    "PelvisOffset": "mm",
+    "TibialTorsion": "rad",
+    "ThighRotation": "rad",
+    "ShankRotation": "rad",
+    "StaticPlantFlex": "rad",
+    "StaticRotOff": "rad",
+    "AnkleAbAdd": "rad",
+    "HeadOffset": "rad",
+}
+
+
+def measurement_unit(name: str) -> str:
+    """Unit of a ``PROCESSING`` value by its name (Plug-in Gait), or "" if unknown."""
+    for key in (name, name[1:] if name[:1] in "LR" else name):
+        for prefix in ("Left", "Right"):
+            key = key.removeprefix(prefix)
+        if key in PROCESSING_UNITS:
+            return PROCESSING_UNITS[key]
+    return ""
 
 
 def run(args: argparse.Namespace) -> int:
@@ -95,12 +137,15 @@ def take_summary(take: Take) -> dict[str, Any]:
     return {
         "file": take.path,
         "format": take.format,
+        "reader": take.reader,
+        "repairs": list(take.repairs),
         "manufacturer": take.manufacturer,
         "subjects": list(take.subjects),
         "subject": take.subject,
         "markers": {"count": take.n_markers, "labels": list(take.labels)},
         "unassigned_labels": list(take.unassigned_labels),
         "rate_hz": take.rate_hz,
+        "rate_source": take.rate_source,
         "frames": take.n_frames,
         "duration_s": take.duration_s,
         "first_frame": take.first_frame,
@@ -120,6 +165,9 @@ def take_summary(take: Take) -> dict[str, Any]:
             "by_kind": by_kind,
         },
         "measurements": dict(take.measurements),
+        "measurement_units": {
+            name: measurement_unit(name) for name in take.measurements
+        },
     }
 
 
@@ -135,6 +183,9 @@ def _format_text(info: dict[str, Any]) -> str:
     lines = [
         f"file:          {info['file']}",
         f"format:        {info['format']}",
+        f"reader:        {info['reader'] or '(not recorded)'}",
+        f"repairs:       {len(info['repairs']) or '(none)'}",
+        *(f"  {repair}" for repair in info["repairs"]),
         f"manufacturer:  {info['manufacturer'] or '(not recorded)'}",
         f"subjects:      {subjects or '(none)'}",
         f"markers:       {info['markers']['count']}: "
@@ -145,7 +196,8 @@ def _format_text(info: dict[str, Any]) -> str:
             "unassigned:    " + " ".join(info["unassigned_labels"]) + " (left out)"
         )
     lines += [
-        f"rate:          {info['rate_hz']:g} Hz",
+        f"rate:          {info['rate_hz']:g} Hz"
+        + (f" ({info['rate_source']})" if info["rate_source"] else ""),
         f"frames:        {info['frames']} (first frame {info['first_frame']})",
         f"duration:      {info['duration_s']:.3f} s",
         f"gaps:          {100 * gaps['fraction']:.2f} % of samples; "
@@ -167,7 +219,11 @@ def _format_text(info: dict[str, Any]) -> str:
         lines.append(f"  {kind} ({len(labels)}): " + " ".join(labels))
     measurements = info["measurements"]
     lines.append(f"measurements:  {len(measurements) or '(none)'}")
-    lines += [f"  {name} = {value:g}" for name, value in measurements.items()]
+    units = info["measurement_units"]
+    lines += [
+        f"  {name} = {value:g} {units.get(name) or '(unit not known)'}"
+        for name, value in measurements.items()
+    ]
     return "\n".join(lines) + "\n"
 
 
@@ -175,9 +231,7 @@ def _run_info(args: argparse.Namespace) -> int:
     # Heavy imports (ezc3d) only when the command runs.
     from retargetd.replay.takes import load_take
 
-    take = load_take(
-        args.take, subject=args.subject, units=args.take_units, up_axis=args.take_up
-    )
+    take = load_take(args.take, **take_overrides(args))
     info = take_summary(take)
     if args.json:
         sys.stdout.write(json.dumps(info) + "\n")

@@ -22,6 +22,15 @@ may never repeat it). So :meth:`start` first records, per input, the label set t
 daemon is using, encoded as that input's announcement and stamped with the start time:
 the file is self-contained (``read_recording``, ``load_take``, ``retargetd replay``).
 The format is that of ``retargetd record``: ``protocols/PROTOCOLS.md`` section 7.
+
+A write error (full disk, read-only or vanished file system) stops the recording on the
+writer thread (``Recorder.failed``; one error line in the log, from the recorder): from
+then on the recorder accepts nothing, and the next :meth:`status` (the periodic stats
+line, ``ctl status``) or control command ends it here, so ``record.active`` turns false
+and ``record.last`` holds the error and the counts of what the file holds. The counts
+(``frames``, ``poses_written``, ``events``) are what reached the file, never what was
+queued: ``queued`` is what is on its way, ``dropped`` what a full queue refused,
+``write_errors`` what a write error lost.
 """
 
 from __future__ import annotations
@@ -58,6 +67,8 @@ class _Active:
     path: str
     poses: bool
     started_ns: int
+    stopped: str = ""
+    stopped_ns: int = 0
 
 
 class LiveRecording:
@@ -76,6 +87,8 @@ class LiveRecording:
         self._active: _Active | None = None
         self._finishing: list[_Active] = []
         self._last: dict[str, Any] | None = None
+        #: The last recording, when a write error ended it (for ``stop``'s reply).
+        self._failed: _Active | None = None
 
     @property
     def active(self) -> bool:
@@ -104,6 +117,7 @@ class LiveRecording:
         Raises:
             ValueError: already recording, or a bad path (the message says why).
         """
+        self._end_failed()
         if self._active is not None:
             raise ValueError(f"already recording to {self._active.path}")
         if not os.path.isabs(path):
@@ -124,6 +138,7 @@ class LiveRecording:
             ) from None
         now = time.monotonic_ns()
         self._active = _Active(recorder, path, poses, now)
+        self._failed = None
         self.packets = recorder
         self.poses = recorder if poses else None
         recorder.record_event(
@@ -137,6 +152,7 @@ class LiveRecording:
 
     def event(self, event: str, **fields: Any) -> None:
         """Queue a control event when recording (never blocks)."""
+        self._end_failed()
         if self.packets is not None:
             self.packets.record_event(event, **fields)
 
@@ -149,24 +165,49 @@ class LiveRecording:
         Raises:
             ValueError: nothing is being recorded.
         """
+        self._end_failed()
         active = self._active
         if active is None:
+            failed = self._failed
+            if failed is not None:
+                raise ValueError(
+                    f"not recording: the recording to {failed.path} stopped on a "
+                    f"write error ({failed.recorder.error})"
+                )
             raise ValueError("not recording")
         active.recorder.record_event("record_stop", reason=reason)
         active.recorder.stop()  # the writer finishes the file and exits on its own
-        self._active = None
-        self.packets = self.poses = None
-        self._finishing.append(active)
+        self._retire(active, reason)
         st = active.recorder.stats
-        seconds = (time.monotonic_ns() - active.started_ns) * 1e-9
+        seconds = (active.stopped_ns - active.started_ns) * 1e-9
         logger.info("recording to %s stopped (%s)", active.path, reason)
         return (
             f"stopped recording {active.path} after {seconds:.2f} s; dropped "
-            f"{st.dropped} so far; the file is finished in the background"
+            f"{st.dropped + st.unrecordable} so far; the file is finished in the "
+            f"background"
         )
+
+    def _retire(self, active: _Active, reason: str) -> None:
+        active.stopped = reason
+        active.stopped_ns = time.monotonic_ns()
+        self._active = None
+        self.packets = self.poses = None
+        self._finishing.append(active)
+
+    def _end_failed(self) -> _Active | None:
+        """End the active recording if a write error stopped its writer (the
+        recorder logged it); returns it, else None."""
+        a = self._active
+        if a is None or not a.recorder.failed:
+            return None
+        self._retire(a, "write error")
+        a.stopped_ns = a.recorder.failed_ns or a.stopped_ns  # when it failed
+        self._failed = a
+        return a
 
     def status(self) -> dict[str, Any]:
         """The ``record`` part of the status document (JSON-ready)."""
+        self._end_failed()
         self._reap()
         a = self._active
         doc: dict[str, Any] = {
@@ -179,7 +220,7 @@ class LiveRecording:
                 path=a.path,
                 poses=a.poses,
                 seconds=round((time.monotonic_ns() - a.started_ns) * 1e-9, 3),
-                **_counts(a.recorder.stats),
+                **_counts(a.recorder),
                 error=a.recorder.error,
             )
         return doc
@@ -189,8 +230,9 @@ class LiveRecording:
         for f in self._finishing:
             if f.recorder.finished:
                 self._last = {
-                    "path": f.path, **_counts(f.recorder.stats),
-                    "error": f.recorder.error,
+                    "path": f.path, "stopped": f.stopped,
+                    "seconds": round((f.stopped_ns - f.started_ns) * 1e-9, 3),
+                    **_counts(f.recorder), "error": f.recorder.error,
                 }  # fmt: skip
             else:
                 still.append(f)
@@ -199,6 +241,7 @@ class LiveRecording:
     def close(self, timeout_s: float = CLOSE_TIMEOUT_S) -> None:
         """Stop an active recording and wait (bounded, ``timeout_s`` in all) for
         every writer to finish its file. For shutdown, when the loop has stopped."""
+        self._end_failed()
         if self._active is not None:
             self.stop("shutdown")
         deadline = time.monotonic() + timeout_s
@@ -207,10 +250,18 @@ class LiveRecording:
         self._reap()
 
 
-def _counts(st: RecorderStats) -> dict[str, int]:
+def _counts(recorder: Recorder) -> dict[str, int | float]:
+    """What the file holds (``frames``, ``poses_written``, ``events``: written whole,
+    counted by the writer), what is on its way (``queued``), what a full queue refused
+    (``dropped_queue_full``) or the envelope cannot hold (``unrecordable``; both in
+    ``dropped``), what a write error lost (``write_errors``), and the receive-time
+    span of the packets in the file (``seconds_in_file``)."""
+    st: RecorderStats = recorder.stats
     return {
         "frames": st.frames, "poses_written": st.poses, "events": st.events,
-        "dropped": st.dropped + st.unrecordable, "write_errors": st.write_errors,
+        "queued": recorder.queued, "dropped": st.dropped + st.unrecordable,
+        "dropped_queue_full": st.dropped, "unrecordable": st.unrecordable,
+        "write_errors": st.write_errors, "seconds_in_file": round(st.seconds, 3),
     }  # fmt: skip
 
 

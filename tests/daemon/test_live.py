@@ -66,6 +66,7 @@ from live_harness import (  # the harness, and its fixtures
     _vmc_quats,
     _wait_until,
 )
+from paths import IN_CI
 from pythonosc.osc_bundle import OscBundle
 from pythonosc.osc_bundle_builder import IMMEDIATELY, OscBundleBuilder
 from pythonosc.osc_message_builder import OscMessageBuilder

@@ -373,10 +373,13 @@ def test_served_take_arrives_equal_with_faults_counted(
     # Replay: the recorded datagrams through a socket-free input, same frames.
     replay = natnet.NatNetInput(None, "+Y")
     again = []
+    pause_ns = 0
     for k, pkt in enumerate(loop.recorded):
-        t_ns = k * 10_000_000  # 10 ms apart: the restart's 1.2 s pause not kept
+        # 10 ms apart, and the restart's pause from its first frame on (the receive
+        # clock never goes back; frames after it come later still).
         if natnet.packet_info(pkt)[1] == take.first_frame and k > 10:
-            t_ns += 2_000_000_000
+            pause_ns = 2_000_000_000
+        t_ns = k * 10_000_000 + pause_ns
         if replay.feed(pkt, t_ns) in (ACCEPTED, RESTART):
             again.append(replay.stream.current.frame.frame_id)
     assert again == [f[0] for f in loop.frames]

@@ -243,11 +243,12 @@ def test_served_take_arrives_equal_with_faults_counted(take: Any) -> None:
     # Replay: the recorded packets through a source-free input, same frames.
     replay = qtm.QtmInput(None)
     again = []
+    pause_ns = 0
     for k, pkt in enumerate(loop.recorded):
         kind, frame_id, time_s = qtm.packet_info(pkt)
-        t_ns = k * 5_000_000
         if kind == 1 and frame_id == take.first_frame and k > 10:
-            t_ns += 2_000_000_000  # the restart's pause
+            pause_ns = 2_000_000_000  # the restart's pause (the clock never goes back)
+        t_ns = k * 5_000_000 + pause_ns
         if replay.feed(pkt, t_ns) in (ACCEPTED, RESTART):
             again.append((replay.stream.current.frame.frame_id, time_s))
     assert [a[0] for a in again] == [f[0] for f in loop.frames]

@@ -97,7 +97,7 @@ def test_y_up_file_is_rotated_plus_90_about_x(datasets: Path) -> None:
 @pytest.mark.parametrize(
     ("text", "match"),
     [
-        (HEADER.splitlines(keepends=True)[0], "not a TRC file"),
+        (HEADER.splitlines(keepends=True)[0], "cut after 1 of 5 header lines"),
         ("hello\nworld\n", "not a TRC file"),
         (HEADER + "1\t0.0\t1.0\tabc\t3.0\t4.0\t5.0\t6.0\n", r"line 7: field 'abc'"),
         (HEADER.replace("60.00\t60.00", "fast\t60.00") + "1\t0\t1\t2\t3\n", "DataRate"),

@@ -1,0 +1,299 @@
+"""``retargetd view``: the console page over a recorded sequence, with a timeline.
+
+:func:`load_sequence` reads a solved NPZ (``retargetd solve --out x.npz``; the
+skeleton drawn from its rig when the rig is a shipped one, else joint centres only)
+or a take (anything ``retargetd.replay.takes.load_take`` reads: markers only), and
+optionally overlays a take's markers on a solve. :func:`serve_offline` serves it: a
+frame slider (scrub), Play and Loop checkboxes and a speed choice; flagged frames
+(given, e.g. from a validation report, or every frame where a bone is flagged in the
+solve) are marked on the slider and reachable with "Next flagged".
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import threading
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from retargetd.daemon.body.rig import load_rig, shipped_rigs
+from retargetd.daemon.console.app import Console
+from retargetd.daemon.console.snapshot import (
+    ConsoleLayout,
+    SkeletonProgram,
+    SnapshotSlot,
+)
+from retargetd.protocols.frames import F64Array
+from retargetd.replay.takes import load_take
+
+logger = logging.getLogger(__name__)
+
+#: At most this many flagged-frame marks on the slider (runs are merged first).
+MAX_MARKS = 40
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class ViewSequence:
+    """A sequence of frames to view, arrays in :class:`ConsoleLayout` order.
+
+    Attributes:
+        layout: names and the skeleton program.
+        rate_hz: frame rate.
+        marker_pos: (T, M, 3) float64 metres world (M may be 0).
+        marker_valid: (T, M) bool.
+        joint_pos: (T, J, 3) float64 metres world (J may be 0).
+        world_from_bone_quat: (T, B, 4) float64 w x y z.
+        root_pos: (T, 3) float64 metres world.
+        bone_flags: (T, B) uint8.
+        flagged_frames: sorted frame indices (0-based) to mark on the timeline.
+    """
+
+    layout: ConsoleLayout
+    rate_hz: float
+    marker_pos: F64Array
+    marker_valid: np.ndarray
+    joint_pos: F64Array
+    world_from_bone_quat: F64Array
+    root_pos: F64Array
+    bone_flags: np.ndarray
+    flagged_frames: tuple[int, ...] = ()
+
+    @property
+    def n_frames(self) -> int:
+        """Number of frames T."""
+        return int(max(self.marker_pos.shape[0], self.joint_pos.shape[0]))
+
+
+def _program_for(rig_name: str, joint_names: tuple[str, ...], n_bones: int) -> Any:
+    if rig_name in shipped_rigs():
+        rig = load_rig(rig_name)
+        if len(rig.bones) == n_bones:
+            return SkeletonProgram.from_rig(rig, joint_names)
+    logger.warning("view: rig %r not shipped; drawing joint centres only", rig_name)
+    return None
+
+
+def load_sequence(
+    path: str | os.PathLike[str],
+    *,
+    take: str | os.PathLike[str] | None = None,
+    flagged_frames: Sequence[int] | None = None,
+) -> ViewSequence:
+    """Read a solved NPZ or a take for viewing.
+
+    Args:
+        path: ``.npz`` from ``retargetd solve``, or a take file.
+        take: with an NPZ, the take it was solved from, to show its markers too
+            (row ``i`` of the take is frame ``i`` of the solve).
+        flagged_frames: frames to mark (0-based); None: for a solve, every frame
+            where some bone is flagged.
+    """
+    p = Path(path)
+    if p.suffix.lower() == ".npz":
+        with np.load(p, allow_pickle=False) as z:
+            joint_names = tuple(str(n) for n in z["joint_names"])
+            bone_names = tuple(str(n) for n in z["bone_names"])
+            joints = np.asarray(z["joint_centres"], np.float64)
+            quats = np.asarray(z["world_from_bone_quat"], np.float64)
+            root = np.asarray(z["root_pos"], np.float64)
+            flags = np.asarray(z["bone_flags"], np.uint8)
+            lengths = np.asarray(z["bone_lengths"], np.float64)
+            parents = np.asarray(z["bone_parents"], np.int64)
+            rate = float(z["rate_hz"])
+            rig_name = str(z["rig_name"])
+        program = _program_for(rig_name, joint_names, len(bone_names))
+        if program is None:
+            program = SkeletonProgram.from_joint_pairs([])
+            bone_names, parents, lengths = (), parents[:0], lengths[:0]
+            quats, flags = quats[:, :0], flags[:, :0]
+        t = joints.shape[0]
+        labels: tuple[str, ...] = ()
+        markers = np.zeros((t, 0, 3))
+        valid = np.zeros((t, 0), bool)
+        if take is not None:
+            tk = load_take(take)
+            labels = tk.labels
+            markers = np.full((t, len(labels), 3), np.nan)
+            valid = np.zeros((t, len(labels)), bool)
+            n = min(t, tk.positions.shape[0])
+            markers[:n], valid[:n] = tk.positions[:n], tk.valid[:n]
+        if flagged_frames is None:
+            flagged_frames = np.flatnonzero(flags.any(axis=1)).tolist()
+    else:
+        tk = load_take(p)
+        labels, markers, valid, rate = tk.labels, tk.positions, tk.valid, tk.rate_hz
+        t = markers.shape[0]
+        joint_names, bone_names = (), ()
+        parents, lengths = np.zeros(0, np.int64), np.zeros(0)
+        program = SkeletonProgram.from_joint_pairs([])
+        joints, quats = np.zeros((t, 0, 3)), np.zeros((t, 0, 4))
+        root, flags = np.full((t, 3), np.nan), np.zeros((t, 0), np.uint8)
+    layout = ConsoleLayout(
+        marker_names=labels,
+        joint_names=joint_names,
+        bone_names=bone_names,
+        bone_parents=parents,
+        skeleton=program,
+        bone_lengths=lengths,
+    )
+    return ViewSequence(
+        layout=layout, rate_hz=rate, marker_pos=markers, marker_valid=valid,
+        joint_pos=joints, world_from_bone_quat=quats, root_pos=root, bone_flags=flags,
+        flagged_frames=tuple(sorted(int(f) for f in (flagged_frames or ()))),
+    )  # fmt: skip
+
+
+def _marks(frames: tuple[int, ...]) -> tuple[tuple[int, str], ...]:
+    """Slider marks: the first frame of each run of flagged frames, at most
+    :data:`MAX_MARKS` of them (evenly thinned)."""
+    starts = [f for i, f in enumerate(frames) if i == 0 or frames[i - 1] != f - 1]
+    if len(starts) > MAX_MARKS:
+        starts = [
+            starts[i] for i in np.linspace(0, len(starts) - 1, MAX_MARKS, dtype=int)
+        ]
+    return tuple((f, "!") for f in starts)
+
+
+class OfflineViewer:
+    """A :class:`Console` (view only) and a player thread publishing the timeline's
+    frame into its slot.
+
+    Args:
+        seq: what to show.
+        host / port: where to listen.
+    """
+
+    def __init__(self, seq: ViewSequence, *, host: str = "127.0.0.1", port: int = 8080):
+        self.seq = seq
+        self.slot = SnapshotSlot(seq.layout)
+        self.console = Console(self.slot, None, host=host, port=port, title="view")
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._dirty = threading.Event()
+
+    def start(self) -> None:
+        """Serve the page and start the player."""
+        self.console.start()
+        gui = self.console.server.gui
+        last = max(self.seq.n_frames - 1, 1)
+        with gui.add_folder("Timeline"):
+            self.frame = gui.add_slider(
+                "Frame", min=0, max=last, step=1, initial_value=0,
+                marks=_marks(self.seq.flagged_frames) or None,
+            )  # fmt: skip
+            self.play = gui.add_checkbox("Play", False)
+            self.loop = gui.add_checkbox("Loop", True)
+            self.speed = gui.add_dropdown(
+                "Speed", ("0.25", "0.5", "1", "2"), initial_value="1"
+            )
+            nxt = gui.add_button("Next flagged", disabled=not self.seq.flagged_frames)
+            gui.add_markdown(
+                f"{self.seq.n_frames} frames at {self.seq.rate_hz:g} Hz; "
+                f"{len(self.seq.flagged_frames)} flagged"
+            )
+        self.frame.on_update(lambda _e: self._dirty.set())
+        nxt.on_click(lambda _e: self._next_flagged())
+        self._publish(0)
+        self._thread = threading.Thread(target=self._run, name="view", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        """Stop the player and the page."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(5.0)
+        self.console.stop()
+
+    @property
+    def url(self) -> str:
+        """The page's address."""
+        return self.console.url
+
+    def _next_flagged(self) -> None:
+        after = [f for f in self.seq.flagged_frames if f > int(self.frame.value)]
+        if after or self.seq.flagged_frames:
+            self.frame.value = (after or self.seq.flagged_frames)[0]
+
+    def _publish(self, i: int) -> None:
+        q = self.seq
+        s = self.slot.begin()
+        s.frame, s.t_s = i, i / q.rate_hz
+        np.copyto(s.marker_pos, q.marker_pos[i])
+        np.copyto(s.marker_valid, q.marker_valid[i])
+        np.copyto(s.joint_pos, q.joint_pos[i])
+        np.copyto(s.world_from_bone_quat, q.world_from_bone_quat[i])
+        np.copyto(s.root_pos, q.root_pos[i])
+        np.copyto(s.bone_flags, q.bone_flags[i])
+        s.occluded = int(np.count_nonzero(~q.marker_valid[i]))
+        while not self.slot.commit() and not self._stop.is_set():
+            time.sleep(0.001)  # the player may wait; only the live loop may not
+
+    def _run(self) -> None:
+        n = self.seq.n_frames
+        shown = 0
+        t0, f0 = time.monotonic(), 0.0
+        while not self._stop.wait(1.0 / 60.0):
+            cur = int(self.frame.value)
+            if self.play.value:
+                if self._dirty.is_set() and cur != shown:  # scrubbed while playing
+                    t0, f0 = time.monotonic(), float(cur)
+                self._dirty.clear()
+                speed = float(self.speed.value)
+                f = f0 + (time.monotonic() - t0) * self.seq.rate_hz * speed
+                if f >= n:
+                    if self.loop.value:
+                        t0, f0, f = time.monotonic(), 0.0, 0.0
+                    else:
+                        self.play.value = False
+                        f = n - 1
+                cur = int(f)
+                if cur != shown:
+                    self.frame.value = cur
+                    self._dirty.clear()
+            else:
+                t0, f0 = time.monotonic(), float(cur)
+            if cur != shown:
+                self._publish(cur)
+                shown = cur
+
+
+def serve_offline(
+    path: str | os.PathLike[str],
+    *,
+    take: str | os.PathLike[str] | None = None,
+    flagged_frames: Sequence[int] | None = None,
+    host: str = "127.0.0.1",
+    port: int = 8080,
+    block: bool = True,
+) -> OfflineViewer:
+    """Serve ``path`` (solved NPZ or take) on the console page with a timeline.
+
+    Args:
+        path / take / flagged_frames: see :func:`load_sequence`.
+        host / port: where to listen (port 0: any free port).
+        block: serve until interrupted (Ctrl-C), then stop; False: return the
+            started viewer (call ``stop()``).
+
+    Returns:
+        The viewer (stopped when ``block``).
+    """
+    viewer = OfflineViewer(
+        load_sequence(path, take=take, flagged_frames=flagged_frames),
+        host=host, port=port,
+    )  # fmt: skip
+    viewer.start()
+    if block:
+        try:
+            while True:
+                time.sleep(1.0)
+        except KeyboardInterrupt:
+            pass
+        finally:
+            viewer.stop()
+    return viewer

@@ -1,0 +1,225 @@
+"""Distributed rotations with a shifting pivot point (the chapter's spine pseudocode).
+
+A vertebra turns only so far; the spine's rotation starts at the lowest one and, once
+it reaches its limit, carries over (rotation and pivot) to the next. One rotation
+group ``(rx, ry, rz)`` (intrinsic XYZ, y the longitudinal axis, as the listing
+assumes) becomes ``num_joints`` groups:
+
+- rx and rz are doubled "to approximate the result to a single pivot" (the prose:
+  spreading 36° over the vertebrae gives about half the single-pivot displacement),
+  then spread bottom-up, at most ``limit`` per joint, the rest carried over; what is
+  left after the last joint is dropped. A doubled rotation within the limit goes to
+  the first joint whole.
+- ry (the longitudinal twist) is split equally over the joints, undoubled.
+
+Reading of the listing. Its typesetting printed ``>`` as ``]`` and ``<`` as ``[``
+(``abs(rot_vector[0]) ] rot_joint_limit``, ``i [ num_joints``, ``rot_residual[0] [
+0``) and the minus of ``rot_joint_vector[i][0] - rot_joint_limit`` as an en dash
+(U+2013); we read them as ``>``, ``<`` and ``-``. ``rot_joint_vector`` is taken
+to start at 0 (the listing declares it without initializing it). The negative
+branch's over-limit correction ``rot_residual -= (rot_joint_vector[i] -
+rot_joint_limit)`` has the sign of the positive branch; its mirror is ``rot_residual
++= rot_joint_vector[i] + rot_joint_limit``, which is what :func:`_spread` does. With
+joints starting at 0 neither over-limit correction can fire (a joint receives at most
+one ``limit``), so the reading changes no result. The prose example (10° vertebrae,
+36° -> 10, 10, 10, 6) is :func:`distribute` without the doubling.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from retargetd.daemon.compiled import kernel
+from retargetd.protocols.frames import F64Array
+
+#: The listing's ``num_joints`` and ``rot_joint_limit`` (degrees): 3 joints, 15°.
+DEFAULT_JOINTS = 3
+DEFAULT_LIMIT_DEG = 15.0
+
+
+@kernel
+def _spread(
+    v: float, limit: float, out: F64Array, col: int
+) -> None:  # pragma: no cover - compiled
+    """The listing's distribution loop for one axis, into ``out[:, col]`` (zeroed)."""
+    n = out.shape[0]
+    if abs(v) > limit:
+        residual = v
+        i = 0
+        while abs(residual) > 0.0 and i < n:
+            if v > 0.0:
+                if abs(residual) < limit:
+                    out[i, col] += residual
+                else:
+                    out[i, col] += limit
+                if out[i, col] > limit:
+                    residual += out[i, col] - limit
+                    out[i, col] = limit
+                residual -= limit
+                if residual < 0.0:
+                    residual = 0.0
+            else:
+                if abs(residual) < limit:
+                    out[i, col] += residual
+                else:
+                    out[i, col] -= limit
+                if abs(out[i, col]) > limit:
+                    residual += out[i, col] + limit
+                    out[i, col] = -limit
+                residual += limit
+                if residual > 0.0:
+                    residual = 0.0
+            i += 1
+    else:
+        out[0, col] = v
+
+
+@kernel
+def _pivot(
+    rx: float, ry: float, rz: float, limit: float, double: bool, out: F64Array
+) -> None:  # pragma: no cover - compiled
+    n = out.shape[0]
+    scale = 2.0 if double else 1.0
+    for i in range(n):
+        out[i, 0] = 0.0
+        out[i, 1] = ry / n
+        out[i, 2] = 0.0
+    _spread(rx * scale, limit, out, 0)
+    _spread(rz * scale, limit, out, 2)
+
+
+@kernel
+def _pivot_quat(
+    q: F64Array, limit: float, double: bool, angles: F64Array, out: F64Array
+) -> None:  # pragma: no cover - compiled
+    w, x, y, z = q[0], q[1], q[2], q[3]
+    # Intrinsic XYZ, R = Rx(a) Ry(b) Rz(c): R02 = sin b, R12 = -sin a cos b,
+    # R22 = cos a cos b, R01 = -cos b sin c, R00 = cos b cos c.
+    r02 = 2.0 * (x * z + w * y)
+    r12 = 2.0 * (y * z - w * x)
+    r22 = 1.0 - 2.0 * (x * x + y * y)
+    r01 = 2.0 * (x * y - w * z)
+    r00 = 1.0 - 2.0 * (y * y + z * z)
+    a = math.atan2(-r12, r22)
+    b = math.asin(min(1.0, max(-1.0, r02)))
+    c = math.atan2(-r01, r00)
+    _pivot(a, b, c, limit, double, angles)
+    for i in range(out.shape[0]):
+        ca, sa = math.cos(0.5 * angles[i, 0]), math.sin(0.5 * angles[i, 0])
+        cb, sb = math.cos(0.5 * angles[i, 1]), math.sin(0.5 * angles[i, 1])
+        cc, sc = math.cos(0.5 * angles[i, 2]), math.sin(0.5 * angles[i, 2])
+        # qx(a) ⊗ qy(b) ⊗ qz(c), expanded.
+        out[i, 0] = ca * cb * cc - sa * sb * sc
+        out[i, 1] = sa * cb * cc + ca * sb * sc
+        out[i, 2] = ca * sb * cc - sa * cb * sc
+        out[i, 3] = ca * cb * sc + sa * sb * cc
+
+
+def _check_limit(limit: float) -> float:
+    limit = float(limit)
+    if not limit > 0.0 or not math.isfinite(limit):
+        raise ValueError(f"limit must be a positive finite angle; got {limit!r}")
+    return limit
+
+
+def distribute(total: float, limit: float, out: F64Array) -> F64Array:
+    """Spread one rotation bottom-up over ``len(out)`` joints with carry-over.
+
+    Args:
+        total: the rotation to spread (any unit, e.g. degrees).
+        limit: the most one joint takes, same unit (> 0).
+        out: (N,) float64 destination, one value per joint, lowest first.
+
+    Returns:
+        ``out``: ``min(limit, rest)`` per joint in turn while any rotation is left
+        (sign of ``total``); ``total`` whole on the first joint if within ``limit``.
+
+    Raises:
+        ValueError: a bad ``limit`` or ``out``.
+    """
+    limit = _check_limit(limit)
+    if out.ndim != 1 or out.shape[0] < 1:
+        raise ValueError(f"out must have shape (N,), N >= 1; got {out.shape}")
+    out[:] = 0.0
+    _spread(float(total), limit, out.reshape(-1, 1), 0)
+    return out
+
+
+def shifting_pivot(
+    rx: float, ry: float, rz: float, limit: float, out: F64Array, *, double: bool = True
+) -> F64Array:
+    """The listing: one rotation group into ``len(out)`` groups (module docstring).
+
+    Args:
+        rx: rotation about x (any angle unit, e.g. degrees).
+        ry: rotation about y, the longitudinal axis.
+        rz: rotation about z.
+        limit: most rotation per joint about x and z, same unit (> 0).
+        out: (N, 3) float64 destination, (rx, ry, rz) per joint, lowest first.
+        double: double rx and rz first, as the listing does.
+
+    Returns:
+        ``out``.
+
+    Raises:
+        ValueError: a bad ``limit`` or ``out``.
+    """
+    limit = _check_limit(limit)
+    if out.ndim != 2 or out.shape[1] != 3 or out.shape[0] < 1:
+        raise ValueError(f"out must have shape (N, 3), N >= 1; got {out.shape}")
+    _pivot(float(rx), float(ry), float(rz), limit, double, out)
+    return out
+
+
+class ShiftingPivot:
+    """Per-frame stage: a solved rotation group onto N spine joints.
+
+    E.g. the solved lumbar-to-thorax rotation onto a target's Spine, Chest and
+    UpperChest. Angles are the intrinsic XYZ Euler angles of the group (y the long
+    axis, the listing's order); each joint's rotation is built back in the same order.
+
+    Args:
+        n_joints: number of output joints N (>= 1), lowest first.
+        limit_deg: most rotation per joint about x and z, degrees.
+        double: double rx and rz (the listing's single-pivot approximation).
+
+    Raises:
+        ValueError: a bad ``n_joints`` or ``limit_deg``.
+    """
+
+    def __init__(
+        self,
+        n_joints: int = DEFAULT_JOINTS,
+        limit_deg: float = DEFAULT_LIMIT_DEG,
+        *,
+        double: bool = True,
+    ) -> None:
+        if int(n_joints) != n_joints or n_joints < 1:
+            raise ValueError(f"n_joints must be an integer >= 1; got {n_joints!r}")
+        self.n_joints = int(n_joints)
+        self.limit_rad = math.radians(_check_limit(limit_deg))
+        self.double = bool(double)
+        self._angles = np.zeros((self.n_joints, 3))
+
+    def apply(self, group_quat: F64Array, out: F64Array) -> F64Array:
+        """Distribute one rotation.
+
+        Args:
+            group_quat: (4,) float64 (w, x, y, z), unit: the group's rotation, e.g.
+                ``lumbar_from_thorax``.
+            out: (N, 4) float64 destination: ``parent_from_joint`` (w, x, y, z) per
+                joint, lowest first; their product approximates the group's rotation
+                (with the doubling: its single-pivot displacement).
+
+        Returns:
+            ``out``.
+        """
+        _pivot_quat(group_quat, self.limit_rad, self.double, self._angles, out)
+        return out
+
+    @property
+    def angles_rad(self) -> F64Array:
+        """(N, 3) float64: the last call's per-joint XYZ angles, radians."""
+        return self._angles
