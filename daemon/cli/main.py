@@ -31,6 +31,7 @@ SUBCOMMAND_MODULES: tuple[str, ...] = (
     "retargetd.daemon.cli.export_c3d",
     "retargetd.daemon.cli.run",
     "retargetd.daemon.cli.ctl",
+    "retargetd.daemon.cli.keys",
     "retargetd.daemon.cli.demo",
     "retargetd.daemon.cli.record",
     "retargetd.daemon.cli.replay",

@@ -18,8 +18,10 @@ from retargetd.daemon.body.rig import Rig
 from retargetd.daemon.body.solve import BodySolver
 from retargetd.daemon.live.config import DaemonConfig
 from retargetd.daemon.live.face import FaceStage, LiveFace
+from retargetd.daemon.live.ratelog import RateLimitedLog, RateLimiter
 from retargetd.daemon.live.recording import LiveRecording
 from retargetd.daemon.live.stats import LoopStats
+from retargetd.daemon.live.surface import CurveGuard
 from retargetd.protocols import pose_stream
 from retargetd.protocols.marker_input import MarkerStream
 from retargetd.protocols.vmc_out import VmcEncoder
@@ -90,6 +92,15 @@ class DaemonState:
     _calib_frames: list[np.ndarray]
     _calib_labels: tuple[str, ...]
     _calib_requested_by: str
+    _calib_times: list[tuple[float, int, int]]  # (source time s, frame id, t_ns)
+    _calib_last_ns: int  # the request or the last collected frame (timeout)
+    _calib_message: str  # how the last calibration ended ("" = none yet)
+    _calibrate_limit: RateLimiter
+    _reload_limit: RateLimiter
+    _log: RateLimitedLog
+    _show_counters: dict[str, int]  # show-control messages refused, by reason
+    _show_token_prefix: str  # "/TOKEN" when show_control.token is set, else ""
+    _guards: list[CurveGuard]
     _frame_flags: int
     _wake_ns: int
     _catch_up_ns: int

@@ -28,6 +28,9 @@ class LoopStats:
         vmc_errors: VMC datagrams the OS refused.
         restarts: sources restarted.
         calibrations: live calibrations applied.
+        calibrations_refused: live calibrations refused (the performer moved).
+        calibrations_expired: live calibrations that collected no frame in time.
+        rate_limited: reload and calibration requests refused as too frequent.
         held_bone_frames: bone-frames held (too little data).
         occluded_samples: rig-marker samples occluded in solved frames.
         rejected_sources: OSC datagrams from addresses not on the allow-list.
@@ -51,6 +54,9 @@ class LoopStats:
     vmc_errors: int = 0
     restarts: int = 0
     calibrations: int = 0
+    calibrations_refused: int = 0
+    calibrations_expired: int = 0
+    rate_limited: int = 0
     held_bone_frames: int = 0
     occluded_samples: int = 0
     rejected_sources: int = 0
@@ -93,6 +99,7 @@ class LoopStats:
             for name in (
                 "frames_in", "frames_solved", "frames_out", "stale", "overruns",
                 "send_drops", "vmc_errors", "restarts", "calibrations",
+                "calibrations_refused", "calibrations_expired", "rate_limited",
                 "held_bone_frames", "occluded_samples", "rejected_sources",
                 "face_solved", "face_head_lost", "face_captures", "validated",
                 "validation_flagged", "validation_drops", "zmq_disconnects",
