@@ -39,6 +39,7 @@ class SendMixin(DaemonState):
         if pipe is not None and self._labels_of.get(key) == labels:
             return pipe
         pipe = self._build_pipeline(labels)
+        self.stats.pipeline_builds += 1
         self._pipelines[key] = pipe
         self._labels_of[key] = labels
         return pipe
@@ -107,11 +108,14 @@ class SendMixin(DaemonState):
         )
 
     def _solve_and_send(self, stream: MarkerStream, received_ns: int) -> None:
+        # The clock starts before the pipeline lookup: a pipeline built here (the
+        # first frame after a new label set) shows its cost in this frame's solve
+        # stage and overrun check, not hidden before it.
+        t_start = time.monotonic_ns()
         pipe = self._pipeline(stream)
         if pipe is None:
             return
         frame = stream.current.frame
-        t_start = time.monotonic_ns()
         pose = pipe.solver.solve_frame(frame.markers_world, pipe.pose)
         tp = pipe.retargeter.apply(pose, pipe.target_pose)
         face = pipe.face
@@ -123,6 +127,7 @@ class SendMixin(DaemonState):
         solved_ns = time.monotonic_ns()
         self.stats.frames_solved += 1
         self.stats.held_bone_frames += pose.n_held
+        self.stats.occluded_samples += pose.n_occluded
         flags = self._frame_flags | (pose_stream.FRAME_HELD if pose.n_held else 0)
         self._frame_flags = 0
         validator = self.validator

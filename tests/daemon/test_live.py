@@ -1447,3 +1447,36 @@ def test_zmq_parts_over_the_limit_that_reach_the_loop_are_too_large(
     live.stop()
     assert stream.counters.as_dict() == {"too_large": 1}
     assert stream.label_set == LabelSet(5, take.labels)
+
+
+def test_occluded_samples_and_pipeline_builds_are_counted(
+    start_daemon: Callable[..., Live],
+    osc_source: Callable[..., OscSource],
+    exact_calibration: Path,
+) -> None:
+    """Issue 13 item 7: ``occluded_samples`` was published and never counted. Three
+    rig markers NaN in each of 20 frames count 60 (on top of the primed frames'
+    zero); the pipeline built for the announced label set is counted once."""
+    take = _take()
+    live = start_daemon(
+        {
+            "performer": {"calibration": str(exact_calibration)},
+            "loop": {"process_every_frame": True},
+        },
+    )
+    src = osc_source(live)
+    src.announce()
+    for row in range(5):
+        src.send(take.markers_world[row])
+    _wait_until(lambda: live.daemon.stats.frames_solved == 5, "the first 5 frames")
+    before = live.ctl({"cmd": "status"})["status"]["counters"]
+    assert before["occluded_samples"] == 0
+    assert before["pipeline_builds"] == 1
+    for row in range(5, 25):
+        m = take.markers_world[row].copy()
+        m[[0, 3, 7]] = np.nan
+        src.send(m)
+    _wait_until(lambda: live.daemon.stats.frames_solved == 25, "25 frames")
+    after = live.ctl({"cmd": "status"})["status"]["counters"]
+    assert after["occluded_samples"] == 60
+    assert after["pipeline_builds"] == 1
