@@ -112,5 +112,42 @@ class DaemonState:
     _validation_results: list[Any]  # reused by LiveValidator.drain_results
     _log_after_ns: dict[str, int]
 
-    def _start_validator(self) -> None:  # implemented by Daemon
+    # The parts call each other through the daemon; each is implemented by one mixin
+    # (or Daemon itself), declared here so every part type-checks on its own.
+    def _start_validator(self) -> None:  # Daemon
+        raise NotImplementedError
+
+    def _solve_and_send(self, stream: MarkerStream, received_ns: int) -> None:  # send
+        raise NotImplementedError
+
+    def _pipeline(self, stream: MarkerStream) -> Pipeline | None:  # send
+        raise NotImplementedError
+
+    def _drain_show_control(self) -> None:  # control
+        raise NotImplementedError
+
+    def _serve_control(self) -> None:  # control
+        raise NotImplementedError
+
+    def _collect_calibration_frame(self, stream: MarkerStream) -> None:  # calibrate
+        raise NotImplementedError
+
+    def _collect_face_frame(self, stream: MarkerStream) -> None:  # calibrate
+        raise NotImplementedError
+
+    def request_calibration(self, count: int | None = None, by: str = "") -> str:
+        raise NotImplementedError  # calibrate
+
+    def request_face_capture(
+        self, name: str, count: int | None = None, by: str = ""
+    ) -> str:
+        raise NotImplementedError  # calibrate
+
+    def reload(self) -> str:  # calibrate
+        raise NotImplementedError
+
+    def status(self) -> dict[str, Any]:  # status
+        raise NotImplementedError
+
+    def stats_line(self) -> str:  # status
         raise NotImplementedError
