@@ -155,13 +155,13 @@ class SendMixin(DaemonState):
                 except OSError:  # receiver absent, buffer full: never block, count
                     self.stats.vmc_errors += 1
         budget_ns = int(self.config.loop.solve_budget_ms * 1e6)
+        bone_flags = pose.bone_flags
         if self._pub is not None or self.recording.poses is not None:
             if solved_ns - self._last_names_ns >= 1_000_000_000:
                 self._send_pub(pipe.names_parts, solved_ns)
                 self._last_names_ns = solved_ns
             if time.monotonic_ns() - t_start > budget_ns:
                 flags |= pose_stream.FRAME_LATE
-            bone_flags = pose.bone_flags
             vb = self._validation_bones
             if vb is not None and len(vb) == len(bone_flags):
                 bone_flags = np.bitwise_or(bone_flags, vb, out=pipe.bone_flags)
@@ -188,6 +188,13 @@ class SendMixin(DaemonState):
         if n_results:  # published after this frame's pose: never ahead of a send
             self._publish_validation(results, n_results, pipe)
         self.stats.frames_out += 1
+        if self.console is not None:  # a decimated copy, only when one is due
+            self.console.publish(
+                sent_ns, self.rig, pipe.solver, frame, stream.current.label_set.labels,
+                pose, bone_flags,
+                pipe.face.weight_names if face is not None else (),
+                pipe.weights if face is not None else None, self.stats, self.status,
+            )  # fmt: skip
         if sent_ns - t_start > budget_ns:
             self.stats.overruns += 1
         self.stats.record(

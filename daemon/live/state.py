@@ -62,6 +62,7 @@ class DaemonState:
     recording: LiveRecording
     face: LiveFace | None
     validator: Any
+    console: Any  # live.console_feed.ConsoleFeed when [console] is on
     last_stats_line: str
     osc_stream: MarkerStream
     zmq_stream: MarkerStream
@@ -142,6 +143,9 @@ class DaemonState:
         self, name: str, count: int | None = None, by: str = ""
     ) -> str:
         raise NotImplementedError  # calibrate
+
+    def _record_control(self, req: dict[str, Any]) -> str:  # control
+        raise NotImplementedError
 
     def reload(self) -> str:  # calibrate
         raise NotImplementedError
