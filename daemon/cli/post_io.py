@@ -224,3 +224,71 @@ def check_bvh_order(option: str, value: str) -> str:
             f"listed order); got {value!r}. Proper Euler orders (XYX, ZXZ, ...) repeat "
             "an axis: use --out take.csv --euler-order ORDER for those"
         ) from None
+
+
+def solved_take(args: argparse.Namespace) -> tuple[Any, Any, Any, Any]:
+    """Solve ``args.take`` (:func:`retargetd.daemon.cli.args.solver_for_take`) and
+    apply ``--pipeline`` when given.
+
+    Returns:
+        ``(rig, take, calibration, solve)``.
+
+    Raises:
+        UsageError: bad input (one line, exit 2).
+    """
+    from retargetd.daemon.cli.args import solver_for_take
+
+    rig, take, cal, solver = solver_for_take(args)
+    res = solver.solve_take(take.positions)
+    if getattr(args, "pipeline", None) is not None:
+        res, _ = apply_pipeline_to_solve(args.pipeline, res, cal, take.rate_hz)
+    return rig, take, cal, res
+
+
+def solve_other_take(
+    args: argparse.Namespace, path: str, rig: Any, calibration: Any
+) -> tuple[Any, Any]:
+    """Solve a second take with the first one's rig and calibration (``blend``'s B).
+
+    Returns:
+        ``(take, solve)``.
+    """
+    from retargetd.daemon.body.calibration import CalibrationError
+    from retargetd.daemon.body.solve import BodySolver
+    from retargetd.daemon.cli.args import take_overrides
+    from retargetd.replay.takes import load_take
+
+    take = load_take(path, **take_overrides(args))
+    try:
+        solver = BodySolver(rig, calibration, take.labels)
+    except CalibrationError as exc:
+        raise UsageError(f"{path}: {exc}") from None
+    res = solver.solve_take(take.positions)
+    if getattr(args, "pipeline", None) is not None:
+        res, _ = apply_pipeline_to_solve(args.pipeline, res, calibration, take.rate_hz)
+    return take, res
+
+
+def clip_of(solve: Any, calibration: Any, rate_hz: float, what: str) -> Any:
+    """The solve as a :class:`~retargetd.daemon.post.interp.Clip`.
+
+    Raises:
+        UsageError: non-finite rotations or root (naming ``what``).
+    """
+    from retargetd.daemon.post.export_gltf import clip_from_solve
+
+    clip = clip_from_solve(solve, calibration, rate_hz)
+    if not (
+        np.isfinite(clip.parent_from_bone_quat).all()
+        and np.isfinite(clip.root_pos).all()
+    ):
+        raise UsageError(f"{what}: the solve has non-finite rotations or root")
+    return clip
+
+
+def pose_steps_deg(quat: Any) -> Any:
+    """(T-1,) float64 degrees: RMS rotation between consecutive poses (root
+    excluded, :func:`retargetd.daemon.post.interp.pose_distance`)."""
+    from retargetd.daemon.post.interp import pose_distance
+
+    return np.degrees(pose_distance(quat[:-1], quat[1:]))
