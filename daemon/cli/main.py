@@ -31,6 +31,7 @@ SUBCOMMAND_MODULES: tuple[str, ...] = (
     "retargetd.daemon.cli.reduce",
     "retargetd.daemon.cli.blend",
     "retargetd.daemon.cli.loop",
+    "retargetd.daemon.cli.retarget",
     "retargetd.daemon.cli.export_c3d",
     "retargetd.daemon.cli.run",
     "retargetd.daemon.cli.ctl",
