@@ -49,6 +49,7 @@ from pathlib import Path
 import numpy as np
 
 from retargetd.daemon import rotations as rot
+from retargetd.daemon.body.rig import load_rig, shipped_rigs
 from retargetd.daemon.target.skeleton import CMU_BVH_NAME_MAP, DEFAULT_BVH_NAME_MAP
 from retargetd.protocols.frames import F64Array
 from retargetd.replay.bvh import (
@@ -57,6 +58,7 @@ from retargetd.replay.bvh import (
     bvh_skeleton,
     split_bvh_motion,
 )
+from retargetd.replay.gltf import GltfChannel, write_glb
 
 _IDENTITY = np.array([1.0, 0.0, 0.0, 0.0])
 #: Rotation order given to target joints that have no rotation channels.
@@ -73,8 +75,6 @@ def _short(name: str) -> str:
 def rig_bone_humanoid_map() -> dict[str, str]:
     """Bone name -> humanoid bone over the shipped rigs (names two rigs disagree on
     are left out), so a BVH written by ``retargetd solve`` maps onto humanoid BVHs."""
-    from retargetd.daemon.body.rig import load_rig, shipped_rigs
-
     out: dict[str, str] = {}
     clash: set[str] = set()
     for name in shipped_rigs():
@@ -384,8 +384,6 @@ def write_retarget_glb(
         result: from :func:`retarget_bvh`.
         m_per_unit: metres per file unit (0.01 for centimetres).
     """
-    from retargetd.replay.gltf import GltfChannel, write_glb
-
     sk = result.skeleton
     n = len(sk.joint_names)
     times = np.arange(len(result.frames)) * result.frame_time_s
