@@ -1,6 +1,6 @@
 """``retargetd retarget IN.bvh --target TARGET.bvh --out OUT.bvh|OUT.glb
-[--map FILE.toml] [--root-scale X] [--units cm]``: map a BVH take onto another
-skeleton (rotational data in, the chapter's first section).
+[--map FILE.toml] [--root-scale X] [--spread] [--units cm]``: map a BVH take onto
+another skeleton (rotational data in, the chapter's first section).
 
 Joints are matched by ``--map`` first (a ``[joints]`` table, ``"source joint" =
 "target joint"``), then by equal names (ignoring a ``prefix:``), then through the
@@ -10,7 +10,9 @@ the chapter's "negative of the offset"), so every mapped bone points in the worl
 where its source bone points whatever the two rest poses; each joint's rotation order
 is read from the source's channels and written in the target's. The root's position
 is scaled by the ratio of the rest root heights (``--root-scale`` overrides). Both
-files are taken to share axes (+Y up, as BVH usually is). See
+files are taken to share axes (+Y up, as BVH usually is). Target joints that map to
+nothing keep their rest; with ``--spread`` those on a plain chain between two mapped
+joints (a target with more spine bones) share the rotation between them equally. See
 ``retargetd.daemon.target.bvh_retarget``.
 
 ``.glb``: the target's joints as glTF nodes (``--units``: the BVH length unit,
@@ -53,6 +55,12 @@ def add_parser(subparsers: Any) -> None:
         help="factor on the root position (default: rest root height ratio)",
     )
     parser.add_argument(
+        "--spread",
+        action="store_true",
+        help="unmapped joints on a chain between two mapped ones (extra spine "
+        "bones) share the rotation between them equally (default: they keep rest)",
+    )
+    parser.add_argument(
         "--units",
         default="cm",
         choices=sorted(M_PER_UNIT),
@@ -80,7 +88,11 @@ def _load_map(path: str) -> dict[str, str]:
 def run(args: argparse.Namespace) -> int:
     """Run ``retarget``."""
     from retargetd.daemon.cli.post_io import suffix_of
-    from retargetd.daemon.target.bvh_retarget import retarget_bvh, write_retarget_glb
+    from retargetd.daemon.target.bvh_retarget import (
+        retarget_bvh,
+        spread_chains,
+        write_retarget_glb,
+    )
     from retargetd.replay.bvh import read_bvh_hierarchy, write_bvh
 
     suffix = suffix_of(args.out, ("bvh", "glb"))
@@ -91,7 +103,11 @@ def run(args: argparse.Namespace) -> int:
         source = read_bvh_hierarchy(args.source, read_motion=True)
         target = read_bvh_hierarchy(args.target)
         result = retarget_bvh(
-            source, target, name_map=name_map, root_scale=args.root_scale
+            source,
+            target,
+            name_map=name_map,
+            root_scale=args.root_scale,
+            spread=args.spread,
         )
     except ValueError as exc:
         raise UsageError(str(exc)) from None
@@ -114,5 +130,10 @@ def run(args: argparse.Namespace) -> int:
         f"{result.root_scale:.4g}\n"
     )
     w("mapped: " + " ".join(mapped) + "\n")
-    w("unmapped (follow their parent): " + (" ".join(unmapped) or "none") + "\n")
+    w("unmapped (keep their rest): " + (" ".join(unmapped) or "none") + "\n")
+    if args.spread:
+        chains = spread_chains(target.parents, list(result.mapping))
+        spread = [target.joint_names[u] for u in sorted(chains)]
+        w("of those, sharing a chain's rotation: " + (" ".join(spread) or "none"))
+        w("\n")
     return 0

@@ -69,8 +69,9 @@ def add_parser(subparsers: Any) -> None:
     parser.add_argument(
         "--bvh-order",
         metavar="ORDER",
-        help="BVH: rotation channel order of every joint (default ZXY); BVH can "
-        "express only the 6 Tait-Bryan orders XYZ, XZY, YXZ, YZX, ZXY, ZYX",
+        help="BVH: rotation channel order of every joint, as the channels are "
+        "listed (case-insensitive; default ZXY); BVH can express only the 6 "
+        "Tait-Bryan orders XYZ, XZY, YXZ, YZX, ZXY, ZYX",
     )
     parser.add_argument(
         "--bvh-root-order",

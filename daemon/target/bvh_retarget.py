@@ -22,7 +22,10 @@ leaf: to its End Site). Two or more non-parallel pairs: the least-squares rotati
 (Kabsch / Wahba, an SVD); one pair: the shortest arc. So every mapped bone points, in
 the world, where its source bone points, whatever the two rest poses are; with one
 child the twist about the bone is the source's. A target joint that maps to nothing
-keeps its rest (local identity: it follows its parent).
+keeps its rest (local identity: it follows its parent), or with ``spread`` (``retarget
+--spread``), when it sits on a plain chain between two mapped joints (a target with
+more spine bones than the source), takes an equal share of the rotation between them
+(:func:`spread_chains`).
 
 The target root must map to a source joint; its position is that joint's, scaled by
 the ratio of the two rest root heights above the lowest rest point (joints and End
@@ -228,6 +231,46 @@ def _rest_height(sk: BvhSkeleton, root: int) -> float:
     return float(pos[root, 1] - floor)
 
 
+def spread_chains(
+    parents: tuple[int, ...], mapping: list[int]
+) -> dict[int, tuple[int, int, float]]:
+    """Unmapped joints that sit on a plain chain between two mapped joints.
+
+    A chain ``top -> u_1 -> ... -> u_k -> bottom``: ``top`` and ``bottom`` mapped,
+    every ``u_i`` unmapped with ``bottom``'s path as its only child (a target with
+    more spine bones than the source: Spine2, Spine3 between Chest and Neck). With
+    ``Q = conj(G'_top) G'_bottom``, joint ``u_i`` gets ``G'_top slerp(1, Q, i/(k+1))``:
+    the k + 1 joints share Q equally (each local rotation is ``Q^(1/(k+1))``), the
+    mapped joints' world rotations are unchanged.
+
+    Args:
+        parents: (J',) the target's parent indices.
+        mapping: (J',) source joint per target joint, -1 where none.
+
+    Returns:
+        ``{u: (top, bottom, i / (k + 1))}``.
+    """
+    children: list[list[int]] = [[] for _ in parents]
+    for c, p in enumerate(parents):
+        if p >= 0:
+            children[p].append(c)
+    out: dict[int, tuple[int, int, float]] = {}
+    for bottom, _ in enumerate(parents):
+        if mapping[bottom] < 0:
+            continue
+        path: list[int] = []
+        j = parents[bottom]
+        while j >= 0 and mapping[j] < 0 and len(children[j]) == 1:
+            path.append(j)
+            j = parents[j]
+        if not path or j < 0 or mapping[j] < 0:
+            continue
+        k = len(path)
+        for i, u in enumerate(reversed(path), start=1):
+            out[u] = (j, bottom, i / (k + 1))
+    return out
+
+
 @dataclass(frozen=True, slots=True, kw_only=True)
 class BvhRetarget:
     """A retargeted take on the target's hierarchy.
@@ -293,6 +336,7 @@ def retarget_bvh(
     *,
     name_map: Mapping[str, str] | None = None,
     root_scale: float | None = None,
+    spread: bool = False,
 ) -> BvhRetarget:
     """Map a BVH take onto another BVH skeleton (module docstring).
 
@@ -301,6 +345,9 @@ def retarget_bvh(
         target: the hierarchy to drive (its motion, if any, is ignored).
         name_map: explicit source -> target joint names, tried first.
         root_scale: factor on the root's position (default: the rest height ratio).
+        spread: share the rotation between two mapped joints over the unmapped
+            chain joints between them (:func:`spread_chains`) instead of leaving
+            them at their rest.
 
     Returns:
         The retargeted take.
@@ -327,9 +374,19 @@ def retarget_bvh(
             comp[j] = rest_compensation(*_aim_pairs(target, source, mapping, j))
     glob = np.empty((n_frames, n, 4))
     local = np.empty((n_frames, n, 4))
-    for j, p in enumerate(target.parents):
+    for j in range(n):
         if mapping[j] >= 0:
             glob[:, j] = rot.quat_mul(src_glob[:, mapping[j]], comp[j])
+    chains = spread_chains(target.parents, mapping) if spread else {}
+    for j, p in enumerate(target.parents):
+        if mapping[j] >= 0:
+            pass
+        elif j in chains:
+            top, bottom, u = chains[j]
+            rel = rot.quat_mul(rot.quat_conj(glob[:, top]), glob[:, bottom])
+            glob[:, j] = rot.quat_mul(
+                glob[:, top], rot.slerp(np.tile(_IDENTITY, (n_frames, 1)), rel, u)
+            )
         else:
             glob[:, j] = glob[:, p] if p >= 0 else _IDENTITY
         if p < 0:

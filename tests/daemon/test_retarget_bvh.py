@@ -249,3 +249,86 @@ def test_retarget_onto_mixamo_names_by_the_builtin_maps(
         assert np.degrees(err).max() < 1e-3
         checked += 1
     assert checked == len(names)
+
+
+def _with_extra_spine(src: BvhSkeleton, path: Path) -> BvhSkeleton:
+    """The source hierarchy with two joints inserted between chest and neck (in
+    thirds of the chest -> neck offset) and one between spine and chest: a target
+    with more spine bones than the rig solves."""
+    inserts = {"neck": ["chest_a", "chest_b"], "chest": ["spine_a"]}
+    names: list[str] = []
+    parents: list[int] = []
+    offsets: list[np.ndarray] = []
+    ends: list[np.ndarray] = []
+    index: dict[str, int] = {}
+    for j, name in enumerate(src.joint_names):
+        p = src.parents[j]
+        parent = -1 if p < 0 else index[src.joint_names[p]]
+        extra = inserts.get(name, [])
+        step = np.array(src.offsets[j]) / (len(extra) + 1)
+        for e in extra:
+            index[e] = len(names)
+            names.append(e)
+            parents.append(parent)
+            offsets.append(step if parent >= 0 else np.zeros(3))
+            ends.append(np.full(3, np.nan))
+            parent = index[e]
+        index[name] = len(names)
+        names.append(name)
+        parents.append(parent)
+        offsets.append(step if extra else np.array(src.offsets[j]))
+        ends.append(np.array(src.end_sites[j]))
+    n = len(names)
+    sk = bvh_skeleton(
+        joint_names=names,
+        parents=parents,
+        offsets=np.array(offsets),
+        rotation_orders=["YXZ"] * n,
+        end_sites=np.array(ends),
+    )
+    write_bvh(path, sk, bvh_motion(sk, np.zeros((1, n, 3)), np.zeros((1, n, 3))), 0.02)
+    return sk
+
+
+@pytest.mark.parametrize("spread", [False, True])
+def test_more_spine_bones_than_the_source(
+    source_bvh: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], spread: bool
+) -> None:
+    src = read_bvh_hierarchy(source_bvh, read_motion=True)
+    tgt_path, out_path = tmp_path / "target.bvh", tmp_path / "out.bvh"
+    _with_extra_spine(src, tgt_path)
+    args = ["retarget", str(source_bvh), "--target", str(tgt_path), "--out",
+            str(out_path)] + (["--spread"] if spread else [])  # fmt: skip
+    assert main(args) == 0
+    text = capsys.readouterr().out
+    assert "unmapped (keep their rest): spine_a chest_a chest_b" in text
+    out = read_bvh_hierarchy(out_path, read_motion=True)
+    assert out.frames is not None
+    # The mapped bones still point where the source's do (neck -> head, arms, legs).
+    assert _check_same_directions(src, out) >= 18 + 5 - 2
+    angles, _ = split_bvh_motion(out, out.frames)
+    local = {
+        name: Rotation.from_euler("YXZ", angles[:, j], degrees=True)
+        for j, name in enumerate(out.joint_names)
+    }
+    moved = np.degrees(local["neck"].magnitude()).max()
+    assert moved > 5.0  # the take bends the neck against the chest
+    if not spread:
+        for e in ("spine_a", "chest_a", "chest_b"):
+            assert np.degrees(local[e].magnitude()).max() < 1e-6
+        return
+    assert "sharing a chain's rotation: spine_a chest_a chest_b" in text
+    # chest -> chest_a -> chest_b -> neck: three equal shares of one rotation.
+    for a, b in (("chest_a", "chest_b"), ("chest_b", "neck")):
+        assert np.degrees((local[a].inv() * local[b]).magnitude()).max() < 1e-4
+    whole = local["chest_a"] * local["chest_b"] * local["neck"]
+    src_angles, _ = split_bvh_motion(src, src.frames)
+    k = src.joint_names.index("neck")
+    neck_src = Rotation.from_euler(
+        src.rotation_orders[k], src_angles[:, k], degrees=True
+    )
+    # The source's rest and the target's are the same here: the product is the
+    # source's chest -> neck rotation.
+    assert np.degrees((whole.inv() * neck_src).magnitude()).max() < 1e-4
+    for a, b in (("spine_a", "chest"),):
+        assert np.degrees((local[a].inv() * local[b]).magnitude()).max() < 1e-4
