@@ -204,3 +204,25 @@ def test_blend_and_loop_usage_errors(
         assert main(argv) == 2
         assert message in capsys.readouterr().err
     assert not list(tmp_path.iterdir())
+
+
+def test_reduce_with_a_pipeline_reduces_the_processed_take(
+    walk: tuple[Path, Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    take, cal, _ = walk
+    pipe = tmp_path / "pipe.toml"
+    pipe.write_text('[[pipeline]]\nkind = "twist"\nfractions = [0.5, 0.25, 0.25]\n')
+    base = ["--rig", "plug-in-gait", "--calibration", str(cal), "--pipeline", str(pipe)]
+    npz, glb = tmp_path / "t.npz", tmp_path / "t.glb"
+    assert main(["solve", str(take), *base, "--out", str(npz)]) == 0
+    assert main(["reduce", str(take), *base, "--out", str(glb)]) == 0
+    capsys.readouterr()
+    with np.load(npz) as z, np.load(walk[2]) as plain:
+        names = [str(n) for n in z["bone_names"]]
+        q, root = z["parent_from_bone_quat"], z["root_pos"]
+        up = names.index("lupperarm")
+        # The pipeline changed the take (else this would prove nothing).
+        a, b = q[:, up], plain["parent_from_bone_quat"][:, up]
+        d = 2 * np.arccos(np.clip(np.abs(np.sum(a * b, axis=-1)), 0.0, 1.0))
+        assert np.degrees(d).max() > 1.0
+    _check_reduced_glb(glb, names, q, root, 100.0, 0.5, 1.0)

@@ -184,3 +184,32 @@ def test_order_options_say_what_they_accept(
         assert main([*base, *extra]) == 2
         assert message in capsys.readouterr().err
     assert not list(tmp_path.iterdir())
+
+
+def test_pipeline_one_euro_offline_smooths_a_noisy_take(tmp_path: Path) -> None:
+    take, cal = tmp_path / "n.c3d", tmp_path / "cal.json"
+    assert main(["synth", "--markers", "plug-in-gait", "--motions", "walk",
+                 "--seconds", "3", "--rate", "100", "--base-pose-s", "1",
+                 "--noise-mm", "2", "--seed", "4",
+                 "--out", str(take)]) == 0  # fmt: skip
+    args = ["calibrate", str(take), "--rig", "plug-in-gait", "--frames", "0:100"]
+    assert main([*args, "--out", str(cal)]) == 0
+    pipe = tmp_path / "pipe.toml"
+    pipe.write_text(
+        '[[pipeline]]\nkind = "one_euro"\nmin_cutoff_hz = 1.0\nbeta_rot = 0.5\n'
+        "beta_pos = 5.0\n"
+    )
+    raw, smooth = tmp_path / "raw.npz", tmp_path / "smooth.npz"
+    _solve((take, cal), raw)
+    _solve((take, cal), smooth, "--pipeline", str(pipe))
+
+    def jitter_deg(path: Path) -> float:
+        with np.load(path) as z:
+            q = z["world_from_bone_quat"][100:]
+        # Rotation between consecutive frames, then its change: noise dominates.
+        step = rot.quat_mul(rot.quat_conj(q[:-1]), q[1:])
+        return float(np.degrees(rot.quat_angle(
+            rot.quat_mul(rot.quat_conj(step[:-1]), step[1:])
+        )).mean())  # fmt: skip
+
+    assert jitter_deg(smooth) < 0.7 * jitter_deg(raw)
