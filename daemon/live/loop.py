@@ -81,6 +81,7 @@ from retargetd.daemon.target.retarget import (
 from retargetd.daemon.validate.live import LiveValidator
 from retargetd.protocols import pose_stream
 from retargetd.protocols.marker_input import LabelSet, MarkerStream
+from retargetd.protocols.vmc_out import VmcEncoder
 
 logger = logging.getLogger(__name__)
 
@@ -182,6 +183,9 @@ class Daemon(InputsMixin, SendMixin, CalibrationMixin, StatusMixin, ControlMixin
         self._validation_bones: np.ndarray | None = None  # its bone bits
         self._validation_enc: pose_stream.ValidationEncoder | None = None  # RTDV
         self._validation_results: list[Any] = []  # sized when the validator starts
+        self._vmc_state = VmcEncoder(())  # the state datagram (no bones needed)
+        self._next_vmc_state_ns = 0
+        self._last_frame_ns = 0
         self.console: ConsoleFeed | None = (
             ConsoleFeed(config.console, self.out) if config.console.enabled else None
         )
@@ -409,6 +413,7 @@ class Daemon(InputsMixin, SendMixin, CalibrationMixin, StatusMixin, ControlMixin
                 if cmd is not None:
                     dispatch_console(self, cmd)
             self._calibration_tick(now)
+            self._send_vmc_state(now)
             self._log.flush(now)
             if now >= next_stats:
                 self.last_stats_line = self.stats_line()

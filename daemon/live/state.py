@@ -111,10 +111,16 @@ class DaemonState:
     _validation_bones: np.ndarray | None
     _validation_enc: pose_stream.ValidationEncoder | None
     _validation_results: list[Any]  # reused by LiveValidator.drain_results
+    _vmc_state: VmcEncoder  # the /VMC/Ext/OK state datagram (not calibrated yet)
+    _next_vmc_state_ns: int
+    _last_frame_ns: int
     _log_after_ns: dict[str, int]
 
     # The parts call each other through the daemon; each is implemented by one mixin
     # (or Daemon itself), declared here so every part type-checks on its own.
+    def _send_vmc_state(self, now_ns: int) -> None:  # send
+        raise NotImplementedError
+
     def _start_validator(self) -> None:  # Daemon
         raise NotImplementedError
 
