@@ -47,6 +47,8 @@ from retargetd.daemon.body.rig import load_rig
 from retargetd.daemon.body.solve import BodySolver
 from retargetd.daemon.body.solve_fit import FitSolver
 from retargetd.daemon.synth import performer as pf
+from retargetd.daemon.validate.limits import JOINT_LIMITS_DEG
+from retargetd.daemon.validate.model import SEGMENT_KIND
 
 DATASETS = Path(__file__).resolve().parent.parent.parent / "shared" / "datasets"
 PIG_MOTION = DATASETS / "btkdata" / "PiG_Motion-FlatFoot-Full.c3d"
@@ -72,7 +74,14 @@ def _menache(n_frames: int) -> Case:
     cal = calibrate(rig, base, take.labels)
     return Case(
         "menache",
-        FitSolver(rig, cal, take.labels, base_positions=base),
+        FitSolver(
+            rig,
+            cal,
+            take.labels,
+            joint_limits=JOINT_LIMITS_DEG,
+            segment_kind=SEGMENT_KIND,
+            base_positions=base,
+        ),
         BodySolver(rig, cal, take.labels),
         np.ascontiguousarray(take.markers_world),
         f"synthetic performer, 240 Hz, {take.n_frames} frames",
@@ -99,6 +108,8 @@ def _pig(n_frames: int) -> Case | None:
             rig,
             cal,
             walk.labels,
+            joint_limits=JOINT_LIMITS_DEG,
+            segment_kind=SEGMENT_KIND,
             base_positions=static.positions,
             base_labels=static.labels,
         ),

@@ -15,8 +15,10 @@
   construction's bone frames of each frame;
 - **joint centres**: each ``[joints]`` point rides a bone the same way (a bone's origin
   exactly, by construction);
-- **limits**: the validator's swing/twist table (``validate_limits.JOINT_LIMITS_DEG``)
-  per bone, for the fit's soft penalty.
+- **limits**: the validator's swing/twist table per bone, for the fit's soft penalty:
+  passed in by the caller (``validate.limits.JOINT_LIMITS_DEG`` and
+  ``validate.model.SEGMENT_KIND``; ``body`` may not import ``validate``), none when
+  not given.
 
 Which bone a marker rides (unless the rig's ``[fit.markers.NAME] segment`` says): the
 bones whose ``aim`` or ``up`` need the marker, and the parent of each bone whose
@@ -50,23 +52,23 @@ from __future__ import annotations
 import logging
 import math
 import tomllib
+from collections.abc import Mapping
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
 from retargetd.daemon import rotations as rot
 from retargetd.daemon.body.calibration import (
     Calibration,
+    bone_world_quats,
     check_calibration_fits,
     compute_points,
     match_markers,
 )
 from retargetd.daemon.body.rig import Rig, RigError, _Parser
-from retargetd.daemon.validate.limits import JOINT_LIMITS_DEG
-from retargetd.daemon.validate.model import SEGMENT_KIND
 from retargetd.protocols.frames import F64Array, IntArray
 
 logger = logging.getLogger(__name__)
@@ -428,8 +430,24 @@ def default_marker_bones(
     return tuple(out[m] for m in rig.markers)
 
 
+class JointLimitLike(Protocol):
+    """A row of the validator's limit table (``validate.limits.JointLimit``), deg."""
+
+    @property
+    def twist(self) -> tuple[float, float]: ...
+    @property
+    def sagittal(self) -> tuple[float, float] | None: ...
+    @property
+    def frontal(self) -> float | None: ...
+    @property
+    def cone(self) -> float | None: ...
+
+
 def _limit_rows(
-    rig: Rig, calibration: Calibration
+    rig: Rig,
+    calibration: Calibration,
+    joint_limits: Mapping[str, JointLimitLike],
+    segment_kind: Mapping[str, str],
 ) -> tuple[F64Array, F64Array, F64Array]:
     """The validator's limits per bone in radians, and its sagittal / frontal axes."""
     n_bones = len(rig.bones)
@@ -450,7 +468,7 @@ def _limit_rows(
     forward = np.cross(left, np.array([0.0, 0.0, 1.0]))
     rest_wfb = np.asarray(calibration.rest_world_from_bone_quat, dtype=np.float64)
     for b, bone in enumerate(rig.bones):
-        lim = JOINT_LIMITS_DEG.get(SEGMENT_KIND.get(bone.humanoid or "", "link"))
+        lim = joint_limits.get(segment_kind.get(bone.humanoid or "", "link"))
         if lim is None or bone.parent is None:
             continue
         bone_from_world = rot.quat_conj(rest_wfb[b])
@@ -475,6 +493,9 @@ def build_fit_model(
     base_positions: F64Array,
     base_labels: tuple[str, ...] | list[str],
     options: FitOptions | None = None,
+    *,
+    joint_limits: Mapping[str, JointLimitLike] | None = None,
+    segment_kind: Mapping[str, str] | None = None,
 ) -> FitModel:
     """Build the fit's rigid model (see module docstring).
 
@@ -485,6 +506,9 @@ def build_fit_model(
             calibration was made from (NaN rows = occluded).
         base_labels: (M,) their labels.
         options: the rig's ``[fit]`` keys (default: none).
+        joint_limits: the validator's table, segment kind -> limits
+            (``validate.limits.JOINT_LIMITS_DEG``); None: no limit penalty.
+        segment_kind: humanoid bone -> segment kind (``validate.model.SEGMENT_KIND``).
 
     Returns:
         The model.
@@ -492,8 +516,6 @@ def build_fit_model(
     Raises:
         ValueError: a calibration without rest bone origins, or the wrong rig.
     """
-    from retargetd.daemon.body.calibration import bone_world_quats
-
     check_calibration_fits(rig, calibration)
     if calibration.rest_bone_origin_pos is None:
         raise ValueError("calibration has no rest bone origins: recalibrate")
@@ -587,7 +609,9 @@ def build_fit_model(
     for name, bopt in options.bones.items():
         if bopt.dof == "hinge":
             hinge[rig.bone_names.index(name)] = bopt.axis
-    limits, left_b, fwd_b = _limit_rows(rig, calibration)
+    limits, left_b, fwd_b = _limit_rows(
+        rig, calibration, joint_limits or {}, segment_kind or {}
+    )
     penalty_cos = np.full(n_bones, -1.0)
     for b in range(n_bones):
         bounds = np.abs(limits[b][np.isfinite(limits[b])])

@@ -15,16 +15,22 @@ rejected; ``marker_rejected`` says which.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from retargetd.daemon.body import kernel_fit as kf
-from retargetd.daemon.body.calibration import Calibration
-from retargetd.daemon.body.fit_model import FitModel, FitOptions, build_fit_model
-from retargetd.daemon.body.rig import Rig
+from retargetd.daemon.body.calibration import Calibration, calibrate
+from retargetd.daemon.body.fit_model import (
+    FitModel,
+    FitOptions,
+    JointLimitLike,
+    build_fit_model,
+)
+from retargetd.daemon.body.rig import Rig, parse_rig
 from retargetd.daemon.body.solve import (
+    _WARM_RIG,
     FLAG_HELD,
     FLAG_PARTIAL,
     BodyPose,
@@ -185,6 +191,10 @@ class FitSolver:
             calibration was made from; ``base_labels`` (M0,) their labels (default
             ``labels``).
         options: the rig's ``[fit]`` keys (``fit_model.load_fit_rig``).
+        joint_limits, segment_kind: the validator's limit table and humanoid ->
+            segment kind map (``validate.limits.JOINT_LIMITS_DEG``,
+            ``validate.model.SEGMENT_KIND``), for the soft limit penalty; a higher
+            layer passes them (``body`` may not import ``validate``).
         params: weights and tests.
         model: a model already built (then base_positions is not needed).
     """
@@ -200,6 +210,8 @@ class FitSolver:
         options: FitOptions | None = None,
         params: FitParams | None = None,
         model: FitModel | None = None,
+        joint_limits: Mapping[str, JointLimitLike] | None = None,
+        segment_kind: Mapping[str, str] | None = None,
     ) -> None:
         if model is None:
             if base_positions is None:
@@ -210,6 +222,8 @@ class FitSolver:
                 base_positions,
                 tuple(base_labels if base_labels is not None else labels),
                 options,
+                joint_limits=joint_limits,
+                segment_kind=segment_kind,
             )
         self.model = model
         self.params = params or FitParams()
@@ -374,10 +388,6 @@ def warm_up() -> FitPose:
     Returns:
         The last warm-up frame's pose (finite; a check for the caller's tests).
     """
-    from retargetd.daemon.body.calibration import calibrate
-    from retargetd.daemon.body.rig import parse_rig
-    from retargetd.daemon.body.solve import _WARM_RIG
-
     rig = parse_rig(_WARM_RIG, source="warm-up")
     labels = ("A", "B", "C", "D")
     frame = np.array(

@@ -33,8 +33,8 @@ from retargetd.daemon.body.solve_fit import (
     warm_up,
 )
 from retargetd.daemon.synth import performer as pf
-from retargetd.daemon.validate.limits import limit_violation_deg
-from retargetd.daemon.validate.model import skeleton_from_calibration
+from retargetd.daemon.validate.limits import JOINT_LIMITS_DEG, limit_violation_deg
+from retargetd.daemon.validate.model import SEGMENT_KIND, skeleton_from_calibration
 from retargetd.replay.takes import load_take
 
 DATA = Path(__file__).resolve().parent.parent / "data"
@@ -48,7 +48,14 @@ def _fit(
 ) -> tuple[Calibration, FitSolver, FitSolve]:
     base = take.markers_world[take.base_pose_frames]
     cal = calibrate(rig, base, take.labels)
-    solver = FitSolver(rig, cal, take.labels, base_positions=base)
+    solver = FitSolver(
+        rig,
+        cal,
+        take.labels,
+        joint_limits=JOINT_LIMITS_DEG,
+        segment_kind=SEGMENT_KIND,
+        base_positions=base,
+    )
     pos = take.markers_world if positions is None else positions
     return cal, solver, solver.solve_take(pos)
 
@@ -237,7 +244,14 @@ def test_joint_past_its_limit_still_fails_the_limit_check() -> None:
             break
     else:
         pytest.fail("could not build a knee hyperextension")
-    solver = FitSolver(rig, cal, take.labels, base_positions=base)
+    solver = FitSolver(
+        rig,
+        cal,
+        take.labels,
+        joint_limits=JOINT_LIMITS_DEG,
+        segment_kind=SEGMENT_KIND,
+        base_positions=base,
+    )
     res = solver.solve_take(pos)
     viol, which = limit_violation_deg(skel, res.rest_from_bone_quat)
     print(
@@ -313,7 +327,14 @@ def test_one_frame_equals_batch_and_allocates_nothing() -> None:
     take = _exact_take(noise_mm=0.5, dropout=0.05, seconds=3.0)
     base = take.markers_world[take.base_pose_frames]
     cal = calibrate(rig, base, take.labels)
-    solver = FitSolver(rig, cal, take.labels, base_positions=base)
+    solver = FitSolver(
+        rig,
+        cal,
+        take.labels,
+        joint_limits=JOINT_LIMITS_DEG,
+        segment_kind=SEGMENT_KIND,
+        base_positions=base,
+    )
     batch = solver.solve_take(take.markers_world)
     solver.reset()
     pose = solver.new_pose()
@@ -365,6 +386,7 @@ def test_kernel_allocates_nothing_per_frame() -> None:
     frames[250:260] = np.nan
     base = take.markers_world[take.base_pose_frames]
     solver = FitSolver(rig, calibrate(rig, base, take.labels), take.labels,
+                       joint_limits=JOINT_LIMITS_DEG, segment_kind=SEGMENT_KIND,
                        base_positions=base)  # fmt: skip
 
     def allocs(pos: np.ndarray) -> int:
@@ -423,6 +445,8 @@ def test_pig_walk_joint_centres_against_vicon(datasets: Path) -> None:
         rig,
         cal,
         walk.labels,
+        joint_limits=JOINT_LIMITS_DEG,
+        segment_kind=SEGMENT_KIND,
         base_positions=static.positions,
         base_labels=static.labels,
     )
@@ -462,9 +486,14 @@ def test_pig_walk_swapped_labels_rejected(datasets: Path) -> None:
 
     def fit(pos: np.ndarray) -> FitSolve:
         solver = FitSolver(
-            rig, cal, walk.labels, base_positions=static.positions,
+            rig,
+            cal,
+            walk.labels,
+            joint_limits=JOINT_LIMITS_DEG,
+            segment_kind=SEGMENT_KIND,
+            base_positions=static.positions,
             base_labels=static.labels,
-        )  # fmt: skip
+        )
         return solver.solve_take(pos)
 
     clean = fit(walk.positions)
@@ -515,7 +544,14 @@ def test_walking2_streams_every_frame_without_nan(datasets: Path) -> None:
     cal = calibrate(
         rig, pos, take.labels, overrides={"InterAsisDistance": pw, "PelvisDepth": pd}
     )
-    solver = FitSolver(rig, cal, take.labels, base_positions=pos)
+    solver = FitSolver(
+        rig,
+        cal,
+        take.labels,
+        joint_limits=JOINT_LIMITS_DEG,
+        segment_kind=SEGMENT_KIND,
+        base_positions=pos,
+    )
     pose = solver.new_pose()
     held = 0
     for f in range(take.n_frames):
