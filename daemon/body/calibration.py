@@ -95,6 +95,9 @@ class Calibration:
     rest_bone_origin_pos: F64Array | None = None
     measurements: dict[str, MeasurementUsed] = field(default_factory=dict)
     base_pose: dict[str, Any] = field(default_factory=dict)
+    #: (Mr, 3) metres, world: each rig marker's mean position over the base pose
+    #: (NaN where never seen); the fit attaches the markers to their bones from it.
+    base_marker_pos: F64Array | None = None
 
     def to_json(self) -> dict[str, Any]:
         """A JSON-ready dict (the file format of ``retargetd calibrate``)."""
@@ -118,7 +121,19 @@ class Calibration:
             },
             "markers": {
                 n: {"seen": s}
-                for n, s in zip(self.marker_names, self.markers_seen, strict=False)
+                | (
+                    {}
+                    if self.base_marker_pos is None or not np.isfinite(pos).all()
+                    else {"base_m": [round(float(x), 9) for x in pos]}
+                )
+                for n, s, pos in zip(
+                    self.marker_names,
+                    self.markers_seen,
+                    self.base_marker_pos
+                    if self.base_marker_pos is not None
+                    else [None] * len(self.marker_names),
+                    strict=False,
+                )
             },
             "points": {
                 n: {"offset_m": [float(x) for x in off]}
@@ -227,6 +242,10 @@ def load_calibration(path: str | Path) -> Calibration:
                 for k, v in doc["measurements_mm"].items()
             },
             base_pose=dict(doc.get("base_pose", {})),
+            base_marker_pos=np.asarray(
+                [m.get("base_m", [np.nan] * 3) for m in doc["markers"].values()],
+                dtype=np.float64,
+            ).reshape(-1, 3),
         )
     except (KeyError, TypeError, ValueError) as exc:
         raise CalibrationError(f"{path}: malformed calibration ({exc!r})") from None
@@ -496,7 +515,20 @@ def calibrate(
         rest_bone_origin_pos=origins,
         measurements=meas,
         base_pose=dict(base_pose or {}, frames_used=int(n_frames)),
+        base_marker_pos=_nan_mean_rows(marker_pos),
     )
+
+
+def _nan_mean_rows(pos: F64Array) -> F64Array:
+    """(F, M, 3) -> (M, 3): the mean over frames of each marker's seen rows (NaN for a
+    marker never seen), without numpy's empty-slice warning."""
+    ok = np.asarray(np.isfinite(pos).all(axis=-1))
+    n: np.ndarray = ok.sum(axis=0)
+    total = np.where(ok[..., None], pos, 0.0).sum(axis=0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = total / n[:, None]
+    mean[n == 0] = np.nan
+    return mean
 
 
 def _bone_markers(rig: Rig, bone_name: str) -> list[str]:

@@ -795,9 +795,10 @@ def _seed_from_construction(markers: np.ndarray, m: tuple, s: tuple, c: tuple) -
         c[12], c[13], c[14], c[15],
     )  # fmt: skip
     cs = body_kernel.BodyState(
-        c[16], c[17], c[18], c[19], c[20], c[21], c[22], c[23], c[24], c[25], c[26]
-    )
-    co = body_kernel.BodyOut(c[27], c[28], c[29], c[30], c[31], c[32], c[33])
+        c[16], c[17], c[18], c[19], c[20], c[21], c[22], c[23], c[24], c[25], c[26],
+        c[27],
+    )  # fmt: skip
+    co = body_kernel.BodyOut(c[28], c[29], c[30], c[31], c[32], c[33], c[34])
     body_kernel.solve_one(markers, cp, cs, co)
     parent, root_of = m[0], m[1]
     q, t = s[0], s[1]

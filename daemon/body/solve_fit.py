@@ -325,6 +325,11 @@ class FitSolver:
             out.bone_quality, out.bone_flags, out.marker_residual,
             out.marker_rejected, out.stats,
         )  # fmt: skip
+        # Rig markers not seen this frame (their residual is NaN): the loop counts
+        # them as occluded samples.
+        out.n_occluded = len(out.marker_residual) - int(
+            np.count_nonzero(out.marker_residual == out.marker_residual)
+        )
         return out
 
     def solve_take(self, positions: F64Array) -> FitSolve:

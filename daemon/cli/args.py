@@ -132,8 +132,6 @@ def load_rig_or_fail(name: str) -> Any:
 def add_solve_arguments(parser: argparse.ArgumentParser) -> None:
     """TAKE, ``--rig``/``--measure``, ``--calibration FILE | --calibrate-frames a:b``
     and the take options: what every command that solves a take accepts."""
-    from retargetd.daemon.cli.args import add_take_arguments
-
     parser.add_argument("take", metavar="TAKE", help="a .c3d, .trc or .mcap take")
     add_rig_arguments(parser)
     group = parser.add_mutually_exclusive_group(required=True)
@@ -143,7 +141,21 @@ def add_solve_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="a:b",
         help="calibrate on these rows of the take itself (0-based, half-open)",
     )
+    add_method_argument(parser)
     add_take_arguments(parser)
+
+
+def add_method_argument(
+    parser: argparse.ArgumentParser, default: str | None = None
+) -> None:
+    """``--method construction|fit`` (README "Two ways to solve the body")."""
+    parser.add_argument(
+        "--method",
+        choices=("construction", "fit"),
+        default=default or "construction",
+        help="the body solve: the chapter's construction (default) or the "
+        "rigid-skeleton fit to every visible marker",
+    )
 
 
 def solver_for_take(args: argparse.Namespace) -> tuple[Any, Any, Any, Any]:
@@ -159,8 +171,10 @@ def solver_for_take(args: argparse.Namespace) -> tuple[Any, Any, Any, Any]:
         CalibrationError,
         load_calibration,
     )
-    from retargetd.daemon.body.solve import BodySolver
+    from retargetd.daemon.body.method import make_body_solver
     from retargetd.daemon.cli.args import parse_frames
+    from retargetd.daemon.validate.limits import JOINT_LIMITS_DEG
+    from retargetd.daemon.validate.model import SEGMENT_KIND
     from retargetd.replay.takes import load_take
 
     rig = load_rig_or_fail(args.rig)
@@ -173,7 +187,10 @@ def solver_for_take(args: argparse.Namespace) -> tuple[Any, Any, Any, Any]:
                 args.calibrate_frames, take.n_frames, option="--calibrate-frames"
             )
             cal = calibrate_from_take(take, rig, frames, parse_measures(args.measure))
-        solver = BodySolver(rig, cal, take.labels)
+        solver = make_body_solver(
+            getattr(args, "method", "construction"), rig, cal, take.labels,
+            joint_limits=JOINT_LIMITS_DEG, segment_kind=SEGMENT_KIND,
+        )  # fmt: skip
     except CalibrationError as exc:
         raise UsageError(str(exc)) from None
     return rig, take, cal, solver

@@ -63,6 +63,9 @@ def load_config(args: argparse.Namespace) -> Any:
     loop = config.loop
     if getattr(args, "process_every_frame", False):
         loop = dataclasses.replace(loop, process_every_frame=True)
+    solve = config.solve
+    if getattr(args, "method", None):
+        solve = dataclasses.replace(solve, method=args.method)
     console = config.console
     if getattr(args, "console", None) and not getattr(args, "no_console", False):
         host, port = parse_console(args.console)
@@ -75,7 +78,9 @@ def load_config(args: argparse.Namespace) -> Any:
             )  # fmt: skip
         except ConfigError as exc:
             raise UsageError(str(exc)) from None
-    return dataclasses.replace(config, performer=performer, loop=loop, console=console)
+    return dataclasses.replace(
+        config, performer=performer, loop=loop, console=console, solve=solve
+    )
 
 
 def make_daemon(config: Any) -> Any:

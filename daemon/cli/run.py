@@ -40,6 +40,12 @@ def add_parser(subparsers: Any) -> None:
         help="solve every accepted frame in order (offline replay), drop none",
     )
     add_console_argument(parser, None)
+    parser.add_argument(
+        "--method",
+        choices=("construction", "fit"),
+        default=None,
+        help="override solve.method: the chapter's construction or the fit",
+    )
     parser.set_defaults(run=run)
 
 

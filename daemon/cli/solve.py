@@ -186,6 +186,8 @@ def run(args: argparse.Namespace) -> int:
             world_from_capture=np.asarray(take.world_from_capture, dtype=np.float64),
             first_frame=np.int64(take.first_frame),
             rig_name=np.asarray(rig.name),
+            method=np.asarray(args.method),
+            **_fit_arrays(res),
         )
     out = sys.stdout.write
     n = take.n_frames
@@ -195,6 +197,19 @@ def run(args: argparse.Namespace) -> int:
     total = n * len(cols)
     out(f"wrote {args.out}: {n} frames at {take.rate_hz:g} Hz, rig {rig.name}, ")
     out(f"{len(res.bone_names)} bones, {len(res.joint_names)} joint centres\n")
+    rms = getattr(res, "marker_rms", None)
+    if rms is not None and len(rms):
+        finite = rms[np.isfinite(rms)] * 1e3
+        med, p95 = (
+            (np.median(finite), np.percentile(finite, 95))
+            if len(finite)
+            else (float("nan"), float("nan"))
+        )
+        out(
+            f"fit: marker residual RMS median {med:.1f} mm, p95 {p95:.1f} mm; "
+            f"outliers rejected {res.outliers_rejected} marker samples; reseeded "
+            f"{int(np.count_nonzero(res.reseeded))} frames\n"
+        )
     missing = n * int((cols < 0).sum())
     out(
         f"occluded rig-marker samples: {occluded + missing} of {total} "
@@ -277,3 +292,17 @@ def _write_bvh(args: argparse.Namespace, cal: Any, res: Any, rate_hz: float) -> 
         )  # fmt: skip
     except CalibrationError as exc:
         raise UsageError(str(exc)) from None
+
+
+def _fit_arrays(res: Any) -> dict[str, Any]:
+    """The fit's per-frame residuals for the NPZ (none for the construction)."""
+    if not hasattr(res, "marker_rms"):
+        return {}
+    return {
+        "marker_names": np.asarray(res.marker_names, dtype=str),
+        "marker_rms": res.marker_rms,
+        "marker_residual": res.marker_residual,
+        "marker_rejected": res.marker_rejected,
+        "fit_iterations": res.iterations,
+        "fit_reseeded": res.reseeded,
+    }

@@ -268,6 +268,13 @@ class ValidateSectionConfig:
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
+class SolveConfig:
+    """The body solve (README "Two ways to solve the body")."""
+
+    method: str = _one_of("construction", "construction", "fit")
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
 class ConsoleConfig:
     """The browser console (``retargetd run --console``): off unless asked."""
 
@@ -310,6 +317,7 @@ class DaemonConfig:
     validate: ValidateSectionConfig = field(default_factory=ValidateSectionConfig)
     record: RecordConfig = field(default_factory=RecordConfig)
     console: ConsoleConfig = field(default_factory=ConsoleConfig)
+    solve: SolveConfig = field(default_factory=SolveConfig)
 
     @classmethod
     def from_toml(cls, path: str | Path) -> DaemonConfig:

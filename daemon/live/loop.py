@@ -50,6 +50,7 @@ import zmq
 
 from retargetd.daemon.body.calibration import Calibration, load_calibration
 from retargetd.daemon.body.rig import Rig, load_rig
+from retargetd.daemon.body.solve_fit import warm_up as warm_up_fit
 from retargetd.daemon.live.calibrate import CalibrationMixin
 from retargetd.daemon.live.config import DaemonConfig
 from retargetd.daemon.live.console_feed import ConsoleFeed
@@ -306,6 +307,11 @@ class Daemon(InputsMixin, SendMixin, CalibrationMixin, StatusMixin, ControlMixin
         """Load the compiled kernel and run every stage once before the first frame
         arrives, so no streamed frame pays for it (numba's cache load is ~0.3 s)."""
         warm_up()
+        if self.config.solve.method == "fit":
+            self.out(
+                "loading the fit kernel (a first start compiles for about a minute)"
+            )
+            warm_up_fit()
         if self.face is not None:
             warm_up_face()
         if self.calibration is None:

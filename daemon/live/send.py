@@ -13,11 +13,13 @@ from typing import Any
 import numpy as np
 import zmq
 
-from retargetd.daemon.body.solve import BodySolver
+from retargetd.daemon.body.method import make_body_solver
 from retargetd.daemon.live.state import DaemonState, Pipeline
 from retargetd.daemon.target.retarget import (
     Retargeter,
 )
+from retargetd.daemon.validate.limits import JOINT_LIMITS_DEG
+from retargetd.daemon.validate.model import SEGMENT_KIND
 from retargetd.protocols import engine_unity, pose_stream
 from retargetd.protocols.marker_input import MarkerStream
 from retargetd.protocols.vmc_out import (
@@ -55,7 +57,10 @@ class SendMixin(DaemonState):
         self, labels: tuple[str, ...], *, with_face: bool = True
     ) -> Pipeline:
         assert self.calibration is not None
-        solver = BodySolver(self.rig, self.calibration, labels)
+        solver = make_body_solver(
+            self.config.solve.method, self.rig, self.calibration, labels,
+            joint_limits=JOINT_LIMITS_DEG, segment_kind=SEGMENT_KIND,
+        )  # fmt: skip
         if solver.missing_markers:
             logger.warning(
                 "rig %s markers not in the stream (occluded): %s",
@@ -199,7 +204,7 @@ class SendMixin(DaemonState):
             self.console.publish(
                 sent_ns, self.rig, pipe.solver, frame, stream.current.label_set.labels,
                 pose, bone_flags,
-                pipe.face.weight_names if face is not None else (),
+                face.weight_names if face is not None else (),
                 pipe.weights if face is not None else None, self.stats, self.status,
             )  # fmt: skip
         if sent_ns - t_start > budget_ns:

@@ -16,6 +16,7 @@ import zmq
 from retargetd.daemon.body.calibration import Calibration
 from retargetd.daemon.body.rig import Rig
 from retargetd.daemon.body.solve import BodySolver
+from retargetd.daemon.body.solve_fit import FitSolver
 from retargetd.daemon.live.config import DaemonConfig
 from retargetd.daemon.live.face import FaceStage, LiveFace
 from retargetd.daemon.live.ratelog import RateLimitedLog, RateLimiter
@@ -32,7 +33,7 @@ class Pipeline:
     """Everything that depends on (rig, calibration, label set); rebuilt off the hot
     path when one of them changes."""
 
-    solver: BodySolver
+    solver: BodySolver | FitSolver
     retargeter: Any
     pose: Any
     target_pose: Any

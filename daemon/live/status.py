@@ -9,6 +9,8 @@ import math
 import time
 from typing import Any
 
+import numpy as np
+
 from retargetd.daemon.body.solve import FLAG_HELD
 from retargetd.daemon.live.kernel_drops import udp_kernel_drops
 from retargetd.daemon.live.state import DaemonState
@@ -31,8 +33,12 @@ class StatusMixin(DaemonState):
         occluded: list[str] = []
         flagged: list[str] = []
         if pipe is not None:
-            solver = pipe.solver
-            pts_seen = solver._seen[: len(self.rig.markers)]
+            seen = getattr(pipe.solver, "_seen", None)  # the construction's markers
+            pts_seen = (
+                seen[: len(self.rig.markers)]
+                if seen is not None
+                else np.isfinite(pipe.pose.marker_residual)  # the fit's
+            )
             occluded = [
                 m for m, s in zip(self.rig.marker_names, pts_seen, strict=True) if not s
             ]

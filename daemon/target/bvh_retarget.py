@@ -443,7 +443,7 @@ def write_retarget_glb(
     """
     sk = result.skeleton
     n = len(sk.joint_names)
-    times = np.arange(len(result.frames)) * result.frame_time_s
+    times = np.asarray(np.arange(len(result.frames)) * result.frame_time_s, np.float64)
     channels = [
         GltfChannel(
             node=j,

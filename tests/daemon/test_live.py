@@ -1533,3 +1533,49 @@ def test_vmc_receivers_are_told_the_calibration_state(
         time.sleep(0.01)
     got = states()
     assert got and got[-1].calibration_state == cal.CALIBRATING
+
+
+@pytest.mark.timeout(300)
+def test_fit_method_live_equals_batch(
+    start_daemon: Callable[..., Live],
+    osc_source: Callable[..., OscSource],
+    zmq_socket: Callable[[int], Any],
+    exact_calibration: Path,
+) -> None:
+    """Issue 14: ``[solve] method = "fit"`` streams the rigid-skeleton fit; the poses
+    equal an offline :class:`FitSolver` on the same float32 frames (the same kernel,
+    to float32 on the wire)."""
+    from retargetd.daemon.body.method import make_body_solver
+    from retargetd.daemon.validate.limits import JOINT_LIMITS_DEG
+    from retargetd.daemon.validate.model import SEGMENT_KIND
+
+    take = _take()
+    live = start_daemon(
+        {
+            "performer": {"calibration": str(exact_calibration)},
+            "solve": {"method": "fit"},
+            "loop": {"process_every_frame": True},
+        },
+    )
+    sub = PoseSub(zmq_socket(zmq.SUB), live.tcp("zmq poses"))
+    src = osc_source(live)
+    src.announce()
+    _prime(sub, lambda: src.send(take.markers_world[0]))
+    n0 = len(src.sent)
+    rows = range(100, 160)
+    for row in rows:
+        src.send(take.markers_world[row])
+    sub.wait(lambda: len(sub.poses) >= len(rows), "the fitted poses", 30.0)
+    solver = make_body_solver(
+        "fit", load_rig(EXACT_RIG), load_calibration(exact_calibration), take.labels,
+        joint_limits=JOINT_LIMITS_DEG, segment_kind=SEGMENT_KIND,
+    )  # fmt: skip
+    pose = solver.new_pose()
+    want = []
+    for _fid, markers in src.sent:  # the primed frames too: the fit's state carries
+        solver.solve_frame(markers, pose)
+        want.append(pose.world_from_bone_quat.copy())
+    got = np.stack([p.world_from_bone_quat for p in sub.poses[-len(rows) :]])
+    ref = np.stack(want[n0:])
+    dots = np.abs(np.sum(got.astype(np.float64) * ref, axis=-1))
+    assert dots.min() > 1.0 - 1e-6, dots.min()
