@@ -34,7 +34,7 @@ its markers: Plug-in Gait's thorax markers ride the chest, not the spine whose a
 build), when there is one. A marker no bone uses rides the bone of the other markers
 of its group, else the nearest bone.
 
-Rig keys (a ``[fit]`` table, see ``daemon/body/rigs/RIGS-fit.md``), parsed here from the
+Rig keys (a ``[fit]`` table, see ``daemon/body/rigs/RIGS.md``), parsed here from the
 rig's raw TOML because :class:`Rig` does not carry them (yet):
 
 ```toml
