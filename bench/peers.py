@@ -90,8 +90,8 @@ OSIM = PEERS / "subject01_simbody.osim"
 OSIM_SETUP = PEERS / "subject01_Setup_IK.xml"
 OSIM_WALK = PEERS / "subject01_walk1.trc"
 OSIM_STATIC = DATASETS / "opensim-core" / "subject01_static.trc"
-RIG_BIOPTIM = REPO / "daemon" / "rigs" / "bioptim-wholebody.toml"
-RIG_OPENSIM = REPO / "daemon" / "rigs" / "opensim-gait2354.toml"
+RIG_BIOPTIM = REPO / "daemon" / "body" / "rigs" / "bioptim-wholebody.toml"
+RIG_OPENSIM = REPO / "daemon" / "body" / "rigs" / "opensim-gait2354.toml"
 #: OpenSim's constraint weight from subject01_Setup_IK.xml.
 OSIM_CONSTRAINT_WEIGHT = 20.0
 #: Accuracies asked for by issue 19 (1e-5 is subject01_Setup_IK.xml's own).
