@@ -10,7 +10,9 @@ process:
 * ``--scheduler dask``: an embedded Dask ``LocalCluster`` (``--workers`` processes of
   one thread each, on 127.0.0.1);
 * ``--scheduler tcp://HOST:PORT``: an existing Dask cluster (its workers must have
-  retargetd installed and see the take paths and ``--out`` under the same names);
+  retargetd installed, see the take paths and ``--out`` under the same names, and run
+  one thread each, ``dask worker --nthreads 1``: a job redirects its process's stdout
+  and stderr into its log);
 * ``--scheduler serial``: in this process, one take after the other.
 
 Rig and calibration per take come from ``--rig`` / ``--calibrate-frames`` /

@@ -29,10 +29,7 @@ import time
 import tomllib
 import traceback
 from collections.abc import Callable, Sequence
-from concurrent.futures import Future, ProcessPoolExecutor
-from concurrent.futures import as_completed as futures_as_completed
 from dataclasses import dataclass, field
-from multiprocessing import get_context
 from pathlib import Path
 from typing import Any, TextIO
 
@@ -510,6 +507,11 @@ def schedule(
             collect(job, functools.partial(run_job, job))
         return 1
     if scheduler == "processes":
+        # Imported here: ``retargetd --help`` registers this command's parser.
+        from concurrent.futures import Future, ProcessPoolExecutor
+        from concurrent.futures import as_completed as futures_as_completed
+        from multiprocessing import get_context
+
         ctx = get_context("spawn")  # no fork of a process holding threads
         with ProcessPoolExecutor(min(n_workers, len(todo)), mp_context=ctx) as pool:
             futs: dict[Future[dict[str, Any]], dict[str, Any]] = {

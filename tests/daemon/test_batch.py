@@ -291,3 +291,37 @@ def test_cli_batch_writes_summary(
         "retargetd batch: error: --scheduler: expected processes, serial, dask or "
         "tcp://HOST:PORT; got 'nowhere'"
     ]
+
+
+def test_validate_no_snapshots(library: Path, tmp_path: Path) -> None:
+    """``retargetd validate --no-snapshots``: the checks, report and plot, no render
+    (what every batch validate job runs without ``--snapshots``)."""
+    report = tmp_path / "report"
+    argv = ["validate", str(library / TAKES[2]), "--rig", "cmu41",
+            "--calibrate-frames", "0:50", "--report", str(report)]  # fmt: skip
+    assert main([*argv, "--no-snapshots"]) in (0, 1)
+    doc = json.loads((report / "report.json").read_text())
+    render = doc["visuals"]["render"]
+    assert render["skipped"] == SNAPSHOTS_OFF and render["backend"] is None
+    assert doc["visuals"]["snapshots"] == [] and not list(report.glob("snapshot_*"))
+    assert (report / "checks.png").read_bytes()[:4] == b"\x89PNG"
+    assert f"Snapshots skipped: {SNAPSHOTS_OFF}" in (report / "report.txt").read_text()
+    assert doc["checks"] and doc["frames"] > 0
+
+
+def test_rerun_replaces_the_take_folder_whole(library: Path, tmp_path: Path) -> None:
+    """A job writes into a fresh scratch folder and swaps it in: a forced rerun meets
+    none of the earlier run's files (whatever a command's overwrite policy) and
+    leaves no scratch behind."""
+    out = tmp_path / "out"
+    jobs = [j for j in _jobs(library, "solve", out) if j["id"].startswith("kinetics")]
+    first = batch.run_batch(jobs, scheduler="serial")["takes"][0]
+    take_dir = Path(jobs[0]["out_dir"])
+    (take_dir / "stale.txt").write_text("from an earlier run\n")
+    again = batch.run_batch(jobs, scheduler="serial", force=True)["takes"][0]
+    assert again["status"] == first["status"] == "ok"
+    assert again["checks"]["digest"] == first["checks"]["digest"]
+    assert sorted(p.name for p in take_dir.iterdir()) == [
+        "log.txt", "result.json", "solve.npz"
+    ]  # fmt: skip
+    assert [p.name for p in out.iterdir()] == [take_dir.name]
