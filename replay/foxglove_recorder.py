@@ -16,7 +16,7 @@ from __future__ import annotations
 import os
 import time
 from collections.abc import Callable, Sequence
-from typing import Any, BinaryIO
+from typing import Any
 
 import numpy as np
 
@@ -51,7 +51,7 @@ class FoxgloveMcapSink(McapSink):
 
     def __init__(
         self,
-        out: BinaryIO,
+        out: RecordingFile,
         inputs: tuple[InputInfo, ...],
         stats: RecorderStats,
         *,

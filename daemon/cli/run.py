@@ -13,6 +13,7 @@ import threading
 from typing import Any
 
 from retargetd.daemon.cli.launch import (
+    add_console_argument,
     install_signal_handlers,
     load_config,
     make_daemon,
@@ -38,6 +39,7 @@ def add_parser(subparsers: Any) -> None:
         action="store_true",
         help="solve every accepted frame in order (offline replay), drop none",
     )
+    add_console_argument(parser, None)
     parser.set_defaults(run=run)
 
 

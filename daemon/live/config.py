@@ -268,6 +268,18 @@ class ValidateSectionConfig:
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
+class ConsoleConfig:
+    """The browser console (``retargetd run --console``): off unless asked."""
+
+    enabled: bool = False
+    host: str = _spec(LOCALHOST, "host")
+    port: int = _spec(8080, "port", lo=0, hi=65535)
+    allow_remote: bool = False  # a host other than loopback needs this
+    # Snapshots published to the page per second (30: broadcast video's rate).
+    publish_hz: float = _between(30.0, 1.0, 120.0)
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
 class InputConfig:
     """Marker inputs."""
 
@@ -297,6 +309,7 @@ class DaemonConfig:
     face: FaceSectionConfig = field(default_factory=FaceSectionConfig)
     validate: ValidateSectionConfig = field(default_factory=ValidateSectionConfig)
     record: RecordConfig = field(default_factory=RecordConfig)
+    console: ConsoleConfig = field(default_factory=ConsoleConfig)
 
     @classmethod
     def from_toml(cls, path: str | Path) -> DaemonConfig:
@@ -502,6 +515,7 @@ def _check(c: DaemonConfig, source: str) -> None:
     for key, host, allowed in (
         ("input.osc.host", osc.host, osc.allow_remote),
         ("show_control.host", c.show_control.host, c.show_control.allow_remote),
+        ("console.host", c.console.host, c.console.allow_remote),
     ):
         if not is_loopback_host(host) and not allowed:
             raise fail(key, f"{remote}; got {host!r}")

@@ -52,6 +52,8 @@ from retargetd.daemon.body.calibration import Calibration, load_calibration
 from retargetd.daemon.body.rig import Rig, load_rig
 from retargetd.daemon.live.calibrate import CalibrationMixin
 from retargetd.daemon.live.config import DaemonConfig
+from retargetd.daemon.live.console_feed import ConsoleFeed
+from retargetd.daemon.live.console_feed import dispatch as dispatch_console
 from retargetd.daemon.live.control import CONTROL_MAX_BYTES, ControlMixin
 from retargetd.daemon.live.face import LiveFace
 from retargetd.daemon.live.face import warm_up as warm_up_face
@@ -79,6 +81,7 @@ from retargetd.daemon.target.retarget import (
 from retargetd.daemon.validate.live import LiveValidator
 from retargetd.protocols import pose_stream
 from retargetd.protocols.marker_input import LabelSet, MarkerStream
+from retargetd.protocols.vmc_out import VmcEncoder
 
 logger = logging.getLogger(__name__)
 
@@ -180,6 +183,12 @@ class Daemon(InputsMixin, SendMixin, CalibrationMixin, StatusMixin, ControlMixin
         self._validation_bones: np.ndarray | None = None  # its bone bits
         self._validation_enc: pose_stream.ValidationEncoder | None = None  # RTDV
         self._validation_results: list[Any] = []  # sized when the validator starts
+        self._vmc_state = VmcEncoder(())  # the state datagram (no bones needed)
+        self._next_vmc_state_ns = 0
+        self._last_frame_ns = 0
+        self.console: ConsoleFeed | None = (
+            ConsoleFeed(config.console, self.out) if config.console.enabled else None
+        )
 
     # ---- lifecycle -------------------------------------------------------------------
 
@@ -277,6 +286,9 @@ class Daemon(InputsMixin, SendMixin, CalibrationMixin, StatusMixin, ControlMixin
                 f"{'this machine' if is_loopback_host(vmc.host) else vmc.host} "
                 "and the network path to it)",
             )
+        if self.console is not None:
+            url = self.console.start(self.rig)
+            self._announce("console", f"{url} (browser; buttons act like ctl)")
         self._warm_up()
         self._start_validator()
         # Everything built so far lives as long as the daemon: keep it out of the
@@ -369,6 +381,8 @@ class Daemon(InputsMixin, SendMixin, CalibrationMixin, StatusMixin, ControlMixin
         """Stop an active recording (its file is finished, bounded wait) and close
         every socket (idempotent)."""
         self.recording.close()
+        if self.console is not None:
+            self.console.stop()
         if self.validator is not None:
             self.validator.close()
             self.validator = None
@@ -394,7 +408,12 @@ class Daemon(InputsMixin, SendMixin, CalibrationMixin, StatusMixin, ControlMixin
             if events:
                 self._service(events)
             now = time.monotonic_ns()
+            if self.console is not None:
+                cmd = self.console.commands.poll()  # nothing allocated when empty
+                if cmd is not None:
+                    dispatch_console(self, cmd)
             self._calibration_tick(now)
+            self._send_vmc_state(now)
             self._log.flush(now)
             if now >= next_stats:
                 self.last_stats_line = self.stats_line()

@@ -20,9 +20,16 @@ from retargetd.daemon.target.retarget import (
 )
 from retargetd.protocols import engine_unity, pose_stream
 from retargetd.protocols.marker_input import MarkerStream
-from retargetd.protocols.vmc_out import VmcEncoder
+from retargetd.protocols.vmc_out import (
+    CALIBRATION_CALIBRATING,
+    CALIBRATION_WAITING,
+    VmcEncoder,
+)
 
 logger = logging.getLogger(__name__)
+
+#: How often the VMC state is sent while nothing is streamed (0.5 s).
+VMC_STATE_INTERVAL_NS = 500_000_000
 
 
 class SendMixin(DaemonState):
@@ -155,13 +162,13 @@ class SendMixin(DaemonState):
                 except OSError:  # receiver absent, buffer full: never block, count
                     self.stats.vmc_errors += 1
         budget_ns = int(self.config.loop.solve_budget_ms * 1e6)
+        bone_flags = pose.bone_flags
         if self._pub is not None or self.recording.poses is not None:
             if solved_ns - self._last_names_ns >= 1_000_000_000:
                 self._send_pub(pipe.names_parts, solved_ns)
                 self._last_names_ns = solved_ns
             if time.monotonic_ns() - t_start > budget_ns:
                 flags |= pose_stream.FRAME_LATE
-            bone_flags = pose.bone_flags
             vb = self._validation_bones
             if vb is not None and len(vb) == len(bone_flags):
                 bone_flags = np.bitwise_or(bone_flags, vb, out=pipe.bone_flags)
@@ -188,6 +195,13 @@ class SendMixin(DaemonState):
         if n_results:  # published after this frame's pose: never ahead of a send
             self._publish_validation(results, n_results, pipe)
         self.stats.frames_out += 1
+        if self.console is not None:  # a decimated copy, only when one is due
+            self.console.publish(
+                sent_ns, self.rig, pipe.solver, frame, stream.current.label_set.labels,
+                pose, bone_flags,
+                pipe.face.weight_names if face is not None else (),
+                pipe.weights if face is not None else None, self.stats, self.status,
+            )  # fmt: skip
         if sent_ns - t_start > budget_ns:
             self.stats.overruns += 1
         self.stats.record(
@@ -234,3 +248,24 @@ class SendMixin(DaemonState):
             self._pub.send_multipart(parts, zmq.NOBLOCK, copy=False)
         except zmq.Again:
             self.stats.send_drops += 1
+
+    def _send_vmc_state(self, now_ns: int) -> None:
+        """Before a calibration, and while one collects frames, tell the VMC receiver
+        the state (``/VMC/Ext/OK`` calibration state 1 waiting or 2 calibrating, the
+        tracking flag) about twice a second: no pose is streamed then, and silence
+        reads as "no performer" in EVMC4U and VSeeFace."""
+        if self._vmc is None or now_ns < self._next_vmc_state_ns:
+            return
+        calibrating = self._calib_target > 0
+        if self.calibration is not None and not calibrating:
+            return
+        self._next_vmc_state_ns = now_ns + VMC_STATE_INTERVAL_NS
+        state = CALIBRATION_CALIBRATING if calibrating else CALIBRATION_WAITING
+        tracking = now_ns - self._last_frame_ns < 1_000_000_000
+        dgram = self._vmc_state.encode_state(
+            state, tracking, (now_ns - self._t0_ns) * 1e-9
+        )
+        try:
+            self._vmc.sendto(dgram, self._vmc_addr)
+        except OSError:  # receiver absent: never block, count
+            self.stats.vmc_errors += 1

@@ -62,6 +62,7 @@ class DaemonState:
     recording: LiveRecording
     face: LiveFace | None
     validator: Any
+    console: Any  # live.console_feed.ConsoleFeed when [console] is on
     last_stats_line: str
     osc_stream: MarkerStream
     zmq_stream: MarkerStream
@@ -110,7 +111,53 @@ class DaemonState:
     _validation_bones: np.ndarray | None
     _validation_enc: pose_stream.ValidationEncoder | None
     _validation_results: list[Any]  # reused by LiveValidator.drain_results
+    _vmc_state: VmcEncoder  # the /VMC/Ext/OK state datagram (not calibrated yet)
+    _next_vmc_state_ns: int
+    _last_frame_ns: int
     _log_after_ns: dict[str, int]
 
-    def _start_validator(self) -> None:  # implemented by Daemon
+    # The parts call each other through the daemon; each is implemented by one mixin
+    # (or Daemon itself), declared here so every part type-checks on its own.
+    def _send_vmc_state(self, now_ns: int) -> None:  # send
+        raise NotImplementedError
+
+    def _start_validator(self) -> None:  # Daemon
+        raise NotImplementedError
+
+    def _solve_and_send(self, stream: MarkerStream, received_ns: int) -> None:  # send
+        raise NotImplementedError
+
+    def _pipeline(self, stream: MarkerStream) -> Pipeline | None:  # send
+        raise NotImplementedError
+
+    def _drain_show_control(self) -> None:  # control
+        raise NotImplementedError
+
+    def _serve_control(self) -> None:  # control
+        raise NotImplementedError
+
+    def _collect_calibration_frame(self, stream: MarkerStream) -> None:  # calibrate
+        raise NotImplementedError
+
+    def _collect_face_frame(self, stream: MarkerStream) -> None:  # calibrate
+        raise NotImplementedError
+
+    def request_calibration(self, count: int | None = None, by: str = "") -> str:
+        raise NotImplementedError  # calibrate
+
+    def request_face_capture(
+        self, name: str, count: int | None = None, by: str = ""
+    ) -> str:
+        raise NotImplementedError  # calibrate
+
+    def _record_control(self, req: dict[str, Any]) -> str:  # control
+        raise NotImplementedError
+
+    def reload(self) -> str:  # calibrate
+        raise NotImplementedError
+
+    def status(self) -> dict[str, Any]:  # status
+        raise NotImplementedError
+
+    def stats_line(self) -> str:  # status
         raise NotImplementedError

@@ -195,7 +195,7 @@ def test_stream_vmc_and_pose_stream_match_the_solver(
         # The target's real rest offsets (Unity frame), never zeros, not even Hips'.
         np.testing.assert_array_equal(pos, rest_unity.astype(np.float32))
         assert (np.linalg.norm(pos, axis=1) > 0.05).all()
-        assert frame[-3][1] == [] and frame[-2][1] == [1]
+        assert frame[-3][1] == [] and frame[-2][1] == [1, 3, 0, 1]
         times.append(frame[-1][1][0])
         q = _vmc_quats(frame)
         np.testing.assert_allclose(np.linalg.norm(q, axis=1), 1.0, atol=1e-6)
@@ -1480,3 +1480,56 @@ def test_occluded_samples_and_pipeline_builds_are_counted(
     after = live.ctl({"cmd": "status"})["status"]["counters"]
     assert after["occluded_samples"] == 60
     assert after["pipeline_builds"] == 1
+
+
+def test_vmc_receivers_are_told_the_calibration_state(
+    start_daemon: Callable[..., Live],
+    osc_source: Callable[..., OscSource],
+    vmc: VmcReceiver,
+    exact_calibration: Path,
+) -> None:
+    """Issue 18 item 6: before a calibration the daemon sends ``/VMC/Ext/OK`` in the
+    VMC 2.5+ form (loaded, calibration state, mode, tracking), decoded here by
+    ``vmcp``: 1 "waiting for calibration" with no markers (tracking bad), then with
+    markers flowing (tracking ok), 2 "calibrating" while a calibration collects, and
+    the streamed frames carry 3 "calibrated"."""
+    oscbuildparse, events = _import_vmcp()
+
+    def states(timeout_s: float = 3.0) -> list[Any]:
+        got: list[Any] = []
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline and not got:
+            vmc.pump()
+            for dgram in vmc.datagrams:
+                for msg in oscbuildparse.decode_packet(dgram).elements:
+                    if msg.addrpattern == "/VMC/Ext/OK":
+                        got.append(
+                            events.StateEvent.from_message_data(
+                                "retargetd", msg.addrpattern, msg.arguments
+                            )
+                        )
+            vmc.datagrams.clear()
+            time.sleep(0.05)
+        return got
+
+    live = start_daemon(vmc_port=vmc.port)
+    first = states()
+    assert first, "no /VMC/Ext/OK before calibration"
+    cal = events.CalibrationState
+    assert first[0].model_state == events.ModelState.LOADED
+    assert first[0].calibration_state == cal.WAITING_FOR_CALIBRATING
+    assert first[0].tracking_state == events.TrackingState.BAD
+    take = _take()
+    src = osc_source(live)
+    src.announce()
+    hold = take.base_pose_frames
+    for row in range(hold.start, hold.start + 20):
+        src.send(take.markers_world[row])
+    got = states()
+    assert got and got[-1].tracking_state == events.TrackingState.OK
+    assert live.ctl({"cmd": "calibrate", "count": 600})["ok"]
+    for row in range(hold.start, hold.start + 20):
+        src.send(take.markers_world[row])
+        time.sleep(0.01)
+    got = states()
+    assert got and got[-1].calibration_state == cal.CALIBRATING

@@ -1,0 +1,671 @@
+"""The fit's model: a calibrated rig as a rigid kinematic chain with markers on it.
+
+:func:`build_fit_model` turns a :class:`~retargetd.daemon.rig.Rig`, its
+:class:`~retargetd.daemon.calibration.Calibration` and the base-pose frames into a
+:class:`FitModel`, the flat arrays ``kernel_fit`` walks:
+
+- **chain**: every bone is a rigid segment with the calibrated bone frame (+Y along the
+  bone, as the construction defines it); a bone's origin sits at its calibrated rest
+  offset in its parent's frame (``conj(rest_world_from_parent) (o_b - o_parent)``, the
+  joint), so bone lengths and joint positions are constant; a root bone has a free
+  position and rotation; every other joint is a ball joint (3 rotations) unless the rig
+  says ``dof = "hinge"``;
+- **markers**: every rig marker rides one bone at a local position, the mean over the
+  base-pose frames of ``conj(world_from_bone(f)) (m(f) - o_bone(f))`` with the
+  construction's bone frames of each frame;
+- **joint centres**: each ``[joints]`` point rides a bone the same way (a bone's origin
+  exactly, by construction);
+- **limits**: the validator's swing/twist table per bone, for the fit's soft penalty:
+  passed in by the caller (``validate.limits.JOINT_LIMITS_DEG`` and
+  ``validate.model.SEGMENT_KIND``; ``body`` may not import ``validate``), none when
+  not given.
+
+Which bone a marker rides (unless the rig's ``[fit.markers.NAME] segment`` says): the
+bones whose ``aim`` or ``up`` need the marker, and the parent of each bone whose
+``origin`` needs it (a joint centre is built from markers of the proximal segment);
+of those, the ones that use it most directly (the marker itself as the point, then as
+an input of the point, ...: menache's LSHOULDER is the scapula's up, while the
+shoulder bone's aim is only a point on a line from it); among those, the bone whose
+base-pose line (origin to aim) is nearest to the marker,
+the proximal one when two are within :data:`PROXIMAL_TIE_M` (a marker on a joint's
+condyle or malleolus rides the proximal bone). The markers of a ``[segments]`` group
+all ride the most proximal bone lying inside the group (origin and aim both built from
+its markers: Plug-in Gait's thorax markers ride the chest, not the spine whose aim they
+build), when there is one. A marker no bone uses rides the bone of the other markers
+of its group, else the nearest bone.
+
+Rig keys (a ``[fit]`` table, see ``daemon/body/rigs/RIGS-fit.md``), parsed here from the
+rig's raw TOML because :class:`Rig` does not carry them (yet):
+
+```toml
+[fit.markers.LKNE]
+segment = "lfemur"   # the bone the marker rides
+weight = 1.0         # residual weight (0 = ignored by the fit)
+[fit.bones.ltibia]
+dof = "hinge"        # "ball" (default) or "hinge"
+axis = "x"           # hinge axis in the bone's axes: "x", "y", "z" or [x, y, z]
+```
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import tomllib
+from collections.abc import Mapping
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+
+from retargetd.daemon import rotations as rot
+from retargetd.daemon.body.calibration import (
+    Calibration,
+    bone_world_quats,
+    check_calibration_fits,
+    compute_points,
+    match_markers,
+)
+from retargetd.daemon.body.rig import Rig, RigError, _Parser
+from retargetd.protocols.frames import F64Array, IntArray
+
+logger = logging.getLogger(__name__)
+
+#: Two candidate bones whose base-pose lines are this close to a marker count as a tie,
+#: broken towards the proximal bone: half the smallest joint width a rig puts a marker
+#: pair across (knee / ankle / wrist widths 50-110 mm, Plug-in Gait's measurements
+#: table; a marker on one condyle is ~half that from either bone's line).
+PROXIMAL_TIE_M = 0.025
+
+#: Limit table columns (radians; NaN = no such limit): twist lo, twist hi,
+#: sagittal lo, sagittal hi, frontal |max|, cone max.
+LIM_TWIST_LO, LIM_TWIST_HI, LIM_SAG_LO, LIM_SAG_HI, LIM_FRONTAL, LIM_CONE = range(6)
+
+_AXES = {"x": (1.0, 0.0, 0.0), "y": (0.0, 1.0, 0.0), "z": (0.0, 0.0, 1.0)}
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class MarkerFitOptions:
+    """Per-marker rig keys: the bone it rides (None: default) and its weight."""
+
+    segment: str | None = None
+    weight: float = 1.0
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class BoneFitOptions:
+    """Per-bone rig keys: ``dof`` "ball" or "hinge" and the hinge axis (bone axes)."""
+
+    dof: str = "ball"
+    axis: tuple[float, float, float] = (1.0, 0.0, 0.0)
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class FitOptions:
+    """The rig's ``[fit]`` table, parsed."""
+
+    markers: dict[str, MarkerFitOptions]
+    bones: dict[str, BoneFitOptions]
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class FitModel:
+    """The flat model ``kernel_fit`` runs (all arrays read-only, float64 / int64).
+
+    Attributes:
+        bone_names: (B,) rig order, parents first.
+        bone_parent: (B,) parent index, -1 for a root.
+        bone_root: (B,) ordinal of the root each bone hangs from (0 .. R-1).
+        off_parent: (B, 3) metres, the bone's origin in its parent's bone frame
+            (roots: zeros).
+        rest_pfb: (B, 4) calibrated parent_from_bone (root: world_from_bone), w x y z.
+        root_rest_pos: (R, 3) metres, world, each root's calibrated origin.
+        marker_names: (Mr,) rig markers; ``marker_bone`` (Mr,) the bone each rides
+            (-1: never seen in the base pose, unused); ``marker_local`` (Mr, 3) metres
+            in that bone's frame; ``marker_weight`` (Mr,) residual weights.
+        joint_names: (J,); ``joint_bone`` (J,), ``joint_local`` (J, 3) metres.
+        hinge_axis: (B, 3) unit hinge axis in the bone's rest axes, zeros = ball.
+        limits: (B, 6) radians (``LIM_*`` columns, NaN = none); ``limit_left`` and
+            ``limit_forward`` (B, 3): the performer's left and forward in each bone's
+            rest axes (the validator's sagittal and frontal axes).
+        penalty_cos: (B,) cos(theta_min / 2), theta_min the smallest limit of the
+            bone: a joint rotated by less than that (|w| above it) is inside all its
+            limits, since swing and twist angles never exceed the rotation's angle
+            (-1 for a bone without limits: never checked; 2 for a hinge: always).
+        anc_ptr, anc_idx: CSR, per bone its ancestors-or-self, self first.
+        n_dof: 3 B + 3 R unknowns: bone b's rotation at ``3 (B - 1 - b)``, root r's
+            translation at ``3 B + 3 r`` (children before parents: the elimination
+            order of the chain's Cholesky, which then has no fill-in).
+        node_ptr, node_idx: CSR over the Cholesky's 3 x 3 nodes (bone b's rotation
+            is node B - 1 - b, root r's translation node B + r), each node's
+            ancestors in ascending order: the only blocks its column reaches.
+    """
+
+    bone_names: tuple[str, ...]
+    bone_parent: IntArray
+    bone_root: IntArray
+    off_parent: F64Array
+    rest_pfb: F64Array
+    root_rest_pos: F64Array
+    marker_names: tuple[str, ...]
+    marker_bone: IntArray
+    marker_local: F64Array
+    marker_weight: F64Array
+    joint_names: tuple[str, ...]
+    joint_bone: IntArray
+    joint_local: F64Array
+    hinge_axis: F64Array
+    limits: F64Array
+    limit_left: F64Array
+    limit_forward: F64Array
+    anc_ptr: IntArray
+    anc_idx: IntArray
+    penalty_cos: F64Array
+    n_dof: int
+    node_ptr: IntArray
+    node_idx: IntArray
+
+    @property
+    def n_roots(self) -> int:
+        """Number of root bones R."""
+        return int(self.root_rest_pos.shape[0])
+
+
+# --- the rig's [fit] table --------------------------------------------------------
+
+
+def read_rig_document(name_or_path: str | Path) -> tuple[dict[str, Any], str]:
+    """The raw TOML of a rig (shipped name or path) and its source name.
+
+    Raises:
+        RigError: unreadable or not TOML.
+    """
+    text_name = str(name_or_path)
+    path = Path(text_name)
+    if path.suffix.lower() != ".toml" and "/" not in text_name and not path.exists():
+        resource = resources.files("retargetd.daemon.body.rigs") / f"{text_name}.toml"
+        if not resource.is_file():
+            raise RigError(f"no shipped rig named {text_name!r}")
+        text, source = resource.read_text(), f"{text_name} (shipped)"
+    else:
+        try:
+            text, source = path.read_text(), str(path)
+        except OSError as exc:
+            raise RigError(f"{path}: cannot read rig file: {exc.strerror}") from None
+    try:
+        return tomllib.loads(text), source
+    except tomllib.TOMLDecodeError as exc:
+        raise RigError(f"{source}: not valid TOML: {exc}") from None
+
+
+def load_fit_rig(name_or_path: str | Path) -> tuple[Rig, FitOptions]:
+    """Load a rig whose file may carry a ``[fit]`` table.
+
+    The construction's parser rejects unknown top-level tables, so the ``[fit]`` table
+    is taken out before the rest goes through it (until ``rig.py`` knows ``[fit]``).
+
+    Raises:
+        RigError: one line naming the file, the key and the bad value.
+    """
+    doc, source = read_rig_document(name_or_path)
+    fit = doc.pop("fit", {})
+    rig = _Parser(doc, source).parse()
+    return rig, parse_fit_options(rig, fit, source=source)
+
+
+def parse_fit_options(rig: Rig, table: Any, *, source: str) -> FitOptions:
+    """Validate a rig's ``[fit]`` table against the rig.
+
+    Raises:
+        RigError: naming ``source`` and the key.
+    """
+
+    def fail(key: str, message: str) -> RigError:
+        return RigError(f"{source}: fit.{key}: {message}")
+
+    if not isinstance(table, dict):
+        raise RigError(f"{source}: fit: expected a table")
+    for key in table:
+        if key not in ("markers", "bones"):
+            raise fail(key, "unknown key (expected one of: markers, bones)")
+    markers: dict[str, MarkerFitOptions] = {}
+    bones_t = table.get("bones", {})
+    markers_t = table.get("markers", {})
+    if not isinstance(markers_t, dict) or not isinstance(bones_t, dict):
+        raise fail("markers", "expected tables [fit.markers.NAME], [fit.bones.NAME]")
+    for name, spec in markers_t.items():
+        if name not in rig.markers:
+            raise fail(f"markers.{name}", "unknown marker")
+        if not isinstance(spec, dict):
+            raise fail(f"markers.{name}", "expected a table")
+        for k in spec:
+            if k not in ("segment", "weight"):
+                raise fail(f"markers.{name}.{k}", "unknown key (segment, weight)")
+        seg = spec.get("segment")
+        if seg is not None and seg not in rig.bone_names:
+            raise fail(f"markers.{name}.segment", f"unknown bone {seg!r}")
+        weight = spec.get("weight", 1.0)
+        if (
+            not isinstance(weight, int | float)
+            or isinstance(weight, bool)
+            or not math.isfinite(weight)
+            or weight < 0.0
+        ):
+            raise fail(f"markers.{name}.weight", f"expected a number >= 0: {weight!r}")
+        markers[name] = MarkerFitOptions(segment=seg, weight=float(weight))
+    bones: dict[str, BoneFitOptions] = {}
+    for name, spec in bones_t.items():
+        if name not in rig.bone_names:
+            raise fail(f"bones.{name}", "unknown bone")
+        if not isinstance(spec, dict):
+            raise fail(f"bones.{name}", "expected a table")
+        for k in spec:
+            if k not in ("dof", "axis"):
+                raise fail(f"bones.{name}.{k}", "unknown key (dof, axis)")
+        dof = spec.get("dof", "ball")
+        if dof not in ("ball", "hinge"):
+            raise fail(f"bones.{name}.dof", f"expected 'ball' or 'hinge': {dof!r}")
+        axis_v = spec.get("axis", "x")
+        if isinstance(axis_v, str) and axis_v in _AXES:
+            axis = _AXES[axis_v]
+        elif (
+            isinstance(axis_v, list)
+            and len(axis_v) == 3
+            and all(
+                isinstance(v, int | float) and not isinstance(v, bool) for v in axis_v
+            )
+            and math.hypot(*axis_v) > 0.0
+        ):
+            n = math.hypot(*axis_v)
+            axis = (axis_v[0] / n, axis_v[1] / n, axis_v[2] / n)
+        else:
+            raise fail(
+                f"bones.{name}.axis", f"expected x, y, z or [x, y, z]: {axis_v!r}"
+            )
+        if rig.bones[rig.bone_names.index(name)].parent is None and dof != "ball":
+            raise fail(f"bones.{name}.dof", "a root bone is free (no hinge)")
+        bones[name] = BoneFitOptions(dof=dof, axis=axis)
+    return FitOptions(markers=markers, bones=bones)
+
+
+# --- building the model -----------------------------------------------------------
+
+
+def _readonly(arr: np.ndarray) -> np.ndarray:
+    arr = np.ascontiguousarray(arr)
+    arr.flags.writeable = False
+    return arr
+
+
+def _quat_mats(q: F64Array) -> F64Array:
+    """(..., 3, 3) rotation matrices of (..., 4) quaternions (NaN passes through)."""
+    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    return np.stack(
+        [
+            np.stack(
+                [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1
+            ),
+            np.stack(
+                [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1
+            ),
+            np.stack(
+                [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1
+            ),
+        ],
+        axis=-2,
+    )
+
+
+def _local_mean(pos: F64Array, origin: F64Array, wfb: F64Array) -> tuple[F64Array, int]:
+    """Mean over frames of conj(wfb) (pos - origin), finite frames only.
+
+    Args:
+        pos, origin: (F, 3) metres, world; wfb: (F, 4).
+
+    Returns:
+        (3,) metres in the bone frame (NaN when no frame is usable), frames used.
+    """
+    mats = _quat_mats(wfb)  # (F, 3, 3)
+    local = np.einsum("fji,fj->fi", mats, pos - origin)
+    ok = np.isfinite(local).all(axis=-1)
+    if not ok.any():
+        return np.full(3, np.nan), 0
+    return local[ok].mean(axis=0), int(ok.sum())
+
+
+def _segment_distance(p: F64Array, a: F64Array, b: F64Array) -> float:
+    """Distance from point p to the segment a-b (metres)."""
+    ab = b - a
+    denom = float(ab @ ab)
+    u = 0.0 if denom <= 0.0 else float(np.clip((p - a) @ ab / denom, 0.0, 1.0))
+    return float(np.linalg.norm(p - (a + u * ab)))
+
+
+def default_marker_bones(
+    rig: Rig, marker_mean: F64Array, bone_origin: F64Array, bone_aim: F64Array
+) -> tuple[int, ...]:
+    """The bone each rig marker rides by default (see module docstring).
+
+    Args:
+        rig: the rig.
+        marker_mean: (Mr, 3) metres, world, base-pose mean of each marker (NaN: never
+            seen).
+        bone_origin, bone_aim: (B, 3) metres, world, base-pose bone ends.
+
+    Returns:
+        (Mr,) bone index per marker (-1 when the marker was never seen).
+    """
+    parents = rig.bone_parent_indices()
+    depth = [0] * len(parents)
+    for b, p in enumerate(parents):
+        depth[b] = 0 if p < 0 else depth[p] + 1
+    # candidate bone -> how directly the marker enters it (0: the point itself)
+    cand: dict[str, dict[int, int]] = {m: {} for m in rig.markers}
+    by_name = {p.name: p for p in rig.points}
+
+    def levels(point: str) -> dict[str, int]:
+        found: dict[str, int] = {}
+        frontier, level = [point], 0
+        while frontier:
+            nxt: list[str] = []
+            for item in frontier:
+                if item in rig.markers:
+                    found.setdefault(item, level)
+                elif item in by_name:
+                    nxt.extend(by_name[item].frame_inputs)
+            frontier, level = nxt, level + 1
+        return found
+
+    def add(b: int, point: str) -> None:
+        for m, level in levels(point).items():
+            cand[m][b] = min(cand[m].get(b, level), level)
+
+    for b, bone in enumerate(rig.bones):
+        for name in (bone.aim, *bone.up):
+            add(b, name)
+        add(b if parents[b] < 0 else parents[b], bone.origin)
+    dist = {
+        (m, b): _segment_distance(marker_mean[i], bone_origin[b], bone_aim[b])
+        for i, m in enumerate(rig.markers)
+        for b in range(len(parents))
+        if np.isfinite(marker_mean[i]).all()
+    }
+    out: dict[str, int] = {}
+    for i, m in enumerate(rig.markers):
+        if not np.isfinite(marker_mean[i]).all():
+            out[m] = -1
+        elif cand[m]:
+            direct = min(cand[m].values())
+            first = [b for b, level in cand[m].items() if level == direct]
+            best = min(first, key=lambda b: dist[(m, b)])
+            near = [
+                b for b in first if dist[(m, b)] <= dist[(m, best)] + PROXIMAL_TIE_M
+            ]
+            out[m] = min(near, key=lambda b: (depth[b], b))
+    for names in rig.segments.values():
+        # A rigid group rides, whole, the most proximal bone lying inside it (origin
+        # and aim both built from its markers), when there is one.
+        group = set(names)
+        inside = [
+            b
+            for b, bone in enumerate(rig.bones)
+            if group & set(rig.markers_of(bone.origin))
+            and group & set(rig.markers_of(bone.aim))
+        ]
+        if inside:
+            host = min(inside, key=lambda b: (depth[b], b))
+            for m in names:
+                if out.get(m, 0) >= 0:
+                    out[m] = host
+            continue
+        voted = [out[m] for m in names if m in out and out[m] >= 0]
+        for m in names:
+            if m not in out and voted:
+                out[m] = max(set(voted), key=voted.count)
+    for m in rig.markers:
+        if m not in out:
+            out[m] = min(range(len(parents)), key=lambda b: dist[(m, b)])
+    return tuple(out[m] for m in rig.markers)
+
+
+class JointLimitLike(Protocol):
+    """A row of the validator's limit table (``validate.limits.JointLimit``), deg."""
+
+    @property
+    def twist(self) -> tuple[float, float]: ...
+    @property
+    def sagittal(self) -> tuple[float, float] | None: ...
+    @property
+    def frontal(self) -> float | None: ...
+    @property
+    def cone(self) -> float | None: ...
+
+
+def _limit_rows(
+    rig: Rig,
+    calibration: Calibration,
+    joint_limits: Mapping[str, JointLimitLike],
+    segment_kind: Mapping[str, str],
+) -> tuple[F64Array, F64Array, F64Array]:
+    """The validator's limits per bone in radians, and its sagittal / frontal axes."""
+    n_bones = len(rig.bones)
+    limits = np.full((n_bones, 6), np.nan)
+    left_b = np.zeros((n_bones, 3))
+    fwd_b = np.zeros((n_bones, 3))
+    origins = np.asarray(calibration.rest_bone_origin_pos, dtype=np.float64)
+    humanoid = [b.humanoid or "" for b in rig.bones]
+    # The same performer's left as validate_model.skeleton_from_calibration.
+    left = np.array([0.0, 1.0, 0.0])
+    if "LeftUpperLeg" in humanoid and "RightUpperLeg" in humanoid:
+        left = (
+            origins[humanoid.index("LeftUpperLeg")]
+            - origins[humanoid.index("RightUpperLeg")]
+        )
+        left[2] = 0.0
+        left /= np.linalg.norm(left)
+    forward = np.cross(left, np.array([0.0, 0.0, 1.0]))
+    rest_wfb = np.asarray(calibration.rest_world_from_bone_quat, dtype=np.float64)
+    for b, bone in enumerate(rig.bones):
+        lim = joint_limits.get(segment_kind.get(bone.humanoid or "", "link"))
+        if lim is None or bone.parent is None:
+            continue
+        bone_from_world = rot.quat_conj(rest_wfb[b])
+        left_b[b] = rot.quat_rotate(bone_from_world, left)
+        fwd_b[b] = rot.quat_rotate(bone_from_world, forward)
+        if lim.twist[0] > -180.0 or lim.twist[1] < 180.0:
+            limits[b, LIM_TWIST_LO] = math.radians(lim.twist[0])
+            limits[b, LIM_TWIST_HI] = math.radians(lim.twist[1])
+        if lim.sagittal is not None:
+            limits[b, LIM_SAG_LO] = math.radians(lim.sagittal[0])
+            limits[b, LIM_SAG_HI] = math.radians(lim.sagittal[1])
+        if lim.frontal is not None:
+            limits[b, LIM_FRONTAL] = math.radians(lim.frontal)
+        if lim.cone is not None:
+            limits[b, LIM_CONE] = math.radians(lim.cone)
+    return limits, left_b, fwd_b
+
+
+def build_fit_model(
+    rig: Rig,
+    calibration: Calibration,
+    base_positions: F64Array,
+    base_labels: tuple[str, ...] | list[str],
+    options: FitOptions | None = None,
+    *,
+    joint_limits: Mapping[str, JointLimitLike] | None = None,
+    segment_kind: Mapping[str, str] | None = None,
+) -> FitModel:
+    """Build the fit's rigid model (see module docstring).
+
+    Args:
+        rig: the rig.
+        calibration: its calibrated skeleton (with rest bone origins).
+        base_positions: (F, M, 3) float64, metres, world: the base-pose frames the
+            calibration was made from (NaN rows = occluded).
+        base_labels: (M,) their labels.
+        options: the rig's ``[fit]`` keys (default: none).
+        joint_limits: the validator's table, segment kind -> limits
+            (``validate.limits.JOINT_LIMITS_DEG``); None: no limit penalty.
+        segment_kind: humanoid bone -> segment kind (``validate.model.SEGMENT_KIND``).
+
+    Returns:
+        The model.
+
+    Raises:
+        ValueError: a calibration without rest bone origins, or the wrong rig.
+    """
+    check_calibration_fits(rig, calibration)
+    if calibration.rest_bone_origin_pos is None:
+        raise ValueError("calibration has no rest bone origins: recalibrate")
+    options = options or FitOptions(markers={}, bones={})
+    base_positions = np.asarray(base_positions, dtype=np.float64)
+    cols = np.asarray(match_markers(rig, base_labels))
+    n_frames = base_positions.shape[0]
+    marker_pos = np.full((n_frames, len(cols), 3), np.nan)
+    have = cols >= 0
+    marker_pos[:, have] = base_positions[:, cols[have]]
+    pts = compute_points(rig, marker_pos, calibration.point_offsets)
+    wfb = bone_world_quats(rig, pts)  # (F, B, 4)
+    n_bones = len(rig.bones)
+    parents = np.asarray(rig.bone_parent_indices(), dtype=np.int64)
+    rest_wfb = np.asarray(calibration.rest_world_from_bone_quat, dtype=np.float64)
+    origins = np.asarray(calibration.rest_bone_origin_pos, dtype=np.float64)
+    lengths = np.asarray(calibration.bone_lengths, dtype=np.float64)
+    aims = origins + rot.quat_rotate(
+        rest_wfb, np.stack([np.zeros(n_bones), lengths, np.zeros(n_bones)], -1)
+    )
+    # The chain.
+    roots = [b for b in range(n_bones) if parents[b] < 0]
+    bone_root = np.zeros(n_bones, dtype=np.int64)
+    off_parent = np.zeros((n_bones, 3))
+    for b in range(n_bones):
+        p = parents[b]
+        if p < 0:
+            bone_root[b] = roots.index(b)
+        else:
+            bone_root[b] = bone_root[p]
+            off_parent[b] = rot.quat_rotate(
+                rot.quat_conj(rest_wfb[p]), origins[b] - origins[p]
+            )
+    # Markers on bones.
+    ok_frames = np.asarray(np.isfinite(marker_pos).all(axis=-1), dtype=bool)
+    with np.errstate(invalid="ignore"):
+        seen_any = np.asarray(ok_frames.any(axis=0), dtype=bool)
+        marker_mean = np.where(
+            seen_any[:, None],
+            np.nansum(np.where(ok_frames[..., None], marker_pos, 0.0), axis=0)
+            / np.maximum(ok_frames.sum(axis=0), 1)[:, None],
+            np.nan,
+        )
+    bones_of = list(default_marker_bones(rig, marker_mean, origins, aims))
+    weight = np.ones(len(rig.markers))
+    for i, m in enumerate(rig.markers):
+        opt = options.markers.get(m)
+        if opt is not None:
+            weight[i] = opt.weight
+            if opt.segment is not None and bones_of[i] >= 0:
+                bones_of[i] = rig.bone_names.index(opt.segment)
+    local = np.zeros((len(rig.markers), 3))
+    for i, m in enumerate(rig.markers):
+        b = bones_of[i]
+        if b < 0:
+            logger.warning("fit: marker %s never seen in the base pose: unused", m)
+            weight[i] = 0.0
+            bones_of[i] = 0
+            continue
+        bone = rig.bones[b]
+        loc, used = _local_mean(marker_pos[:, i], pts[bone.origin], wfb[:, b])
+        if used == 0:
+            loc = rot.quat_rotate(
+                rot.quat_conj(rest_wfb[b]), marker_mean[i] - origins[b]
+            )
+        local[i] = loc
+    # Joint centres on bones.
+    joint_bone = np.zeros(len(rig.joints), dtype=np.int64)
+    joint_local = np.zeros((len(rig.joints), 3))
+    origin_of = {bone.origin: b for b, bone in reversed(list(enumerate(rig.bones)))}
+    aim_of = {bone.aim: b for b, bone in reversed(list(enumerate(rig.bones)))}
+    for j, point in enumerate(rig.joints.values()):
+        if point in origin_of:
+            joint_bone[j] = origin_of[point]
+        elif point in aim_of:
+            b = aim_of[point]
+            joint_bone[j] = b
+            joint_local[j] = (0.0, lengths[b], 0.0)
+        elif point in rig.markers:
+            i = rig.marker_names.index(point)
+            joint_bone[j], joint_local[j] = bones_of[i], local[i]
+        else:
+            users = [
+                b for b, bone in enumerate(rig.bones) if point in (bone.aim, *bone.up)
+            ]
+            b = users[0] if users else 0
+            loc, used = _local_mean(pts[point], pts[rig.bones[b].origin], wfb[:, b])
+            joint_bone[j], joint_local[j] = b, (loc if used else np.zeros(3))
+    # Hinges.
+    hinge = np.zeros((n_bones, 3))
+    for name, bopt in options.bones.items():
+        if bopt.dof == "hinge":
+            hinge[rig.bone_names.index(name)] = bopt.axis
+    limits, left_b, fwd_b = _limit_rows(
+        rig, calibration, joint_limits or {}, segment_kind or {}
+    )
+    penalty_cos = np.full(n_bones, -1.0)
+    for b in range(n_bones):
+        bounds = np.abs(limits[b][np.isfinite(limits[b])])
+        if bounds.size:
+            penalty_cos[b] = math.cos(0.5 * float(bounds.min()))
+        if hinge[b].any():
+            penalty_cos[b] = 2.0
+    # Ancestors (self first) and the Cholesky structure.
+    anc_ptr = [0]
+    anc_idx: list[int] = []
+    for b in range(n_bones):
+        k = b
+        while k >= 0:
+            anc_idx.append(k)
+            k = int(parents[k])
+        anc_ptr.append(len(anc_idx))
+    n_dof = 3 * n_bones + 3 * len(roots)
+    # Cholesky nodes (3 unknowns each) in elimination order: bone b is node
+    # B - 1 - b, root r's translation node B + r; a node's ancestors come later.
+    node_ptr = [0]
+    node_idx: list[int] = []
+    for node in range(n_bones + len(roots)):
+        if node < n_bones:
+            b = n_bones - 1 - node
+            k = int(parents[b])
+            while k >= 0:
+                node_idx.append(n_bones - 1 - k)
+                k = int(parents[k])
+            node_idx.append(n_bones + int(bone_root[b]))
+        node_ptr.append(len(node_idx))
+    return FitModel(
+        bone_names=rig.bone_names,
+        bone_parent=_readonly(parents),
+        bone_root=_readonly(bone_root),
+        off_parent=_readonly(off_parent),
+        rest_pfb=_readonly(
+            np.asarray(calibration.rest_parent_from_bone_quat, dtype=np.float64)
+        ),
+        root_rest_pos=_readonly(origins[roots]),
+        marker_names=rig.marker_names,
+        marker_bone=_readonly(np.asarray(bones_of, dtype=np.int64)),
+        marker_local=_readonly(local),
+        marker_weight=_readonly(weight),
+        joint_names=tuple(rig.joints),
+        joint_bone=_readonly(joint_bone),
+        joint_local=_readonly(joint_local),
+        hinge_axis=_readonly(hinge),
+        limits=_readonly(limits),
+        limit_left=_readonly(left_b),
+        limit_forward=_readonly(fwd_b),
+        penalty_cos=_readonly(penalty_cos),
+        anc_ptr=_readonly(np.asarray(anc_ptr, dtype=np.int64)),
+        anc_idx=_readonly(np.asarray(anc_idx, dtype=np.int64)),
+        n_dof=n_dof,
+        node_ptr=_readonly(np.asarray(node_ptr, dtype=np.int64)),
+        node_idx=_readonly(np.asarray(node_idx, dtype=np.int64)),
+    )

@@ -1,0 +1,564 @@
+"""The rigid-skeleton fit (``solve_fit``) against the synthetic performer's truth, the
+validator's limits and real takes, and its kernel's contract.
+
+Truth: the exact rig (``tests/data/synth-exact-rig.toml``) makes every bone a
+performer segment up to a constant rotation, so ``world_from_bone *
+conj(rest_world_from_bone)`` must equal the segment's ``world_from_segment`` (see
+``test_solve_body``). For the shipped rigs the root's truth is the calibrated root
+point carried rigidly by the true pelvis. Run with ``pytest -s`` for the figures.
+"""
+
+from __future__ import annotations
+
+import functools
+import tracemalloc
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from retargetd.daemon import rotations as rot
+from retargetd.daemon.body.calibration import Calibration, calibrate, match_markers
+from retargetd.daemon.body.fit_model import (
+    build_fit_model,
+    load_fit_rig,
+    parse_fit_options,
+)
+from retargetd.daemon.body.rig import Rig, RigError, load_rig
+from retargetd.daemon.body.solve import BodySolver
+from retargetd.daemon.body.solve_fit import (
+    FLAG_HELD,
+    FitSolve,
+    FitSolver,
+    warm_up,
+)
+from retargetd.daemon.synth import performer as pf
+from retargetd.daemon.validate.limits import JOINT_LIMITS_DEG, limit_violation_deg
+from retargetd.daemon.validate.model import SEGMENT_KIND, skeleton_from_calibration
+from retargetd.replay.takes import load_take
+
+DATA = Path(__file__).resolve().parent.parent / "data"
+EXACT_RIG = DATA / "synth-exact-rig.toml"
+EXACT_MARKERS = DATA / "synth-exact-markers.toml"
+RATE_HZ = 120.0
+
+
+def _fit(
+    rig: Rig, take: pf.SynthTake, positions: np.ndarray | None = None
+) -> tuple[Calibration, FitSolver, FitSolve]:
+    base = take.markers_world[take.base_pose_frames]
+    cal = calibrate(rig, base, take.labels)
+    solver = FitSolver(
+        rig,
+        cal,
+        take.labels,
+        joint_limits=JOINT_LIMITS_DEG,
+        segment_kind=SEGMENT_KIND,
+        base_positions=base,
+    )
+    pos = take.markers_world if positions is None else positions
+    return cal, solver, solver.solve_take(pos)
+
+
+def _bone_errors_deg(
+    rig: Rig, cal: Calibration, res: FitSolve, take: pf.SynthTake
+) -> np.ndarray:
+    """(T, B) world-rotation error of each bone of the exact rig, degrees."""
+    seg = [take.segment_names.index(b) for b in rig.bone_names]
+    wfs = take.world_from_segment_quat[:, seg]
+    delta = rot.quat_mul(
+        res.world_from_bone_quat, rot.quat_conj(cal.rest_world_from_bone_quat)
+    )
+    return np.degrees(rot.quat_angle(rot.quat_mul(rot.quat_conj(wfs), delta)))
+
+
+@functools.cache
+def _exact_take(
+    noise_mm: float = 0.0, dropout: float = 0.0, seconds: float = 5.0
+) -> pf.SynthTake:
+    return pf.synthesize(
+        seconds=seconds,
+        rate_hz=RATE_HZ,
+        markerset=EXACT_MARKERS,
+        noise_mm=noise_mm,
+        dropout=dropout,
+        seed=3,
+    )
+
+
+# --- accuracy against the truth ---------------------------------------------------
+
+
+def test_exact_rig_noise_free_every_bone_within_0_05_deg() -> None:
+    rig, take = load_rig(EXACT_RIG), _exact_take()
+    cal, _, res = _fit(rig, take)
+    err = _bone_errors_deg(rig, cal, res, take)
+    print(
+        f"\nfit, exact rig, noise-free: max {err.max():.5f} deg, median "
+        f"{np.median(err):.6f}; iterations {np.bincount(res.iterations)}"
+    )
+    assert err.max() <= 0.05
+    # The motion is far from the calibration pose, so the fit had work to do.
+    assert np.degrees(rot.quat_angle(res.rest_from_bone_quat)).max() > 60.0
+    seg = [take.segment_names.index(j) for j in res.joint_names]
+    np.testing.assert_allclose(
+        res.joint_centres, take.joint_pos_world[:, seg], rtol=0, atol=1e-4
+    )
+    assert np.isfinite(res.marker_rms).all() and res.marker_rms.max() < 1e-4
+    assert res.outliers_rejected == 0
+
+
+def test_exact_rig_1mm_noise() -> None:
+    rig, take = load_rig(EXACT_RIG), _exact_take(noise_mm=1.0)
+    cal, _, res = _fit(rig, take)
+    err = _bone_errors_deg(rig, cal, res, take)
+    med, p95 = np.median(err), np.percentile(err, 95)
+    print(
+        f"\nfit, exact rig, 1 mm noise: median {med:.3f} deg, p95 {p95:.3f}, "
+        f"max {err.max():.3f}; residual RMS median "
+        f"{1000 * np.median(res.marker_rms):.2f} mm"
+    )
+    assert med <= 1.0 and p95 <= 3.0
+
+
+def test_dropouts_in_runs() -> None:
+    """10 % of samples occluded in runs (mean 0.1 s): median error <= 1.5 deg, and no
+    bone is flagged held while two of its own markers are seen."""
+    rig, take = load_rig(EXACT_RIG), _exact_take(noise_mm=0.5, dropout=0.10)
+    cal, solver, res = _fit(rig, take)
+    err = _bone_errors_deg(rig, cal, res, take)
+    print(
+        f"\nfit, 10 % dropouts ({100 * take.occluded_fraction:.1f} % occluded): "
+        f"median {np.median(err):.3f} deg, p95 {np.percentile(err, 95):.3f}, max "
+        f"{err.max():.3f}"
+    )
+    assert take.occluded_fraction > 0.08
+    assert np.median(err) <= 1.5
+    assert np.isfinite(res.world_from_bone_quat).all()
+    seen = np.isfinite(take.markers_world).all(axis=-1)  # (T, M), labels = rig order
+    cols = np.asarray(match_markers(rig, take.labels))
+    bones = solver.model.marker_bone
+    for b in range(len(rig.bones)):
+        own = seen[:, cols[bones == b]].sum(axis=1)
+        held = (res.bone_flags[:, b] & FLAG_HELD) != 0
+        assert not (held & (own >= 2)).any(), rig.bone_names[b]
+        assert (held == (own == 0)).all(), rig.bone_names[b]
+
+
+def _root_truth(cal: Calibration, take: pf.SynthTake) -> np.ndarray:
+    """(T, 3) the calibrated root point carried rigidly by the true pelvis."""
+    base = take.base_pose_frames
+    pelvis_q = take.world_from_segment_quat[:, 0]
+    local = rot.quat_rotate(
+        rot.quat_conj(pelvis_q[base.start]),
+        cal.root_rest_pos - take.joint_pos_world[base.start, 0],
+    )
+    return take.joint_pos_world[:, 0] + rot.quat_rotate(pelvis_q, local)
+
+
+@pytest.mark.parametrize(
+    ("markerset", "hip"), [("menache", "LHIP"), ("plug-in-gait", "LASI")]
+)
+def test_hip_marker_hidden_for_one_second(markerset: str, hip: str) -> None:
+    rig = load_rig(markerset)
+    take = pf.synthesize(seconds=6.0, rate_hz=RATE_HZ, markerset=markerset, seed=2)
+    pos = take.markers_world.copy()
+    gap = slice(int(3.0 * RATE_HZ), int(4.0 * RATE_HZ))
+    pos[gap, take.labels.index(hip)] = np.nan
+    cal, _, res = _fit(rig, take, pos)
+    truth = _root_truth(cal, take)
+    err = 1000 * np.linalg.norm(res.root_pos - truth, axis=-1)
+    step = np.linalg.norm(np.diff(res.root_pos, axis=0), axis=-1)
+    true_step = np.linalg.norm(np.diff(truth, axis=0), axis=-1)
+    con = BodySolver(rig, cal, take.labels).solve_take(pos)
+    con_err = 1000 * np.linalg.norm(con.root_pos - truth, axis=-1)
+    print(
+        f"\n{markerset}, {hip} hidden 1 s: root error max {err.max():.2f} mm (in the "
+        f"gap {err[gap].max():.2f}); construction max {con_err.max():.1f} mm; "
+        f"largest step ratio {(step / np.maximum(true_step, 1e-4)).max():.2f}"
+    )
+    assert err.max() <= 15.0
+    assert (step <= 2.0 * true_step + 1e-4).all()  # (+0.1 mm: rounding on a still root)
+
+
+def test_swapped_labels_rejected_and_counted() -> None:
+    rig, take = load_rig(EXACT_RIG), _exact_take(noise_mm=0.5)
+    pos = take.markers_world.copy()
+    a, b = take.labels.index("LKNL"), take.labels.index("LANL")
+    frames = slice(300, 303)
+    pos[frames, a], pos[frames, b] = (
+        take.markers_world[frames, b],
+        take.markers_world[frames, a],
+    )
+    cal, _, res = _fit(rig, take, pos)
+    err = _bone_errors_deg(rig, cal, res, take)
+    ra, rb = rig.marker_names.index("LKNL"), rig.marker_names.index("LANL")
+    print(
+        f"\nswapped LKNL/LANL for 3 frames: rejected {res.outliers_rejected}, bone "
+        f"error there max {err[frames].max():.3f} deg"
+    )
+    assert (
+        res.marker_rejected[frames, ra].all() and res.marker_rejected[frames, rb].all()
+    )
+    assert err[frames].max() <= 3.0
+    assert res.outliers_rejected >= 6
+    assert res.marker_rejected[: frames.start].sum() == 0
+    # the rejected markers leave their bones partly seen, never held
+    thigh, shank = rig.bone_names.index("l_thigh"), rig.bone_names.index("l_shank")
+    assert (res.bone_quality[frames, thigh] < 1.0).all()
+    assert (res.bone_quality[frames, shank] < 1.0).all()
+    assert not (res.bone_flags[frames] & FLAG_HELD).any()
+
+
+def test_joint_past_its_limit_still_fails_the_limit_check() -> None:
+    """Markers that hyperextend the left knee by 45 deg for 0.5 s: the fit's soft
+    penalty must not hide it from the validator's limit check."""
+    rig = load_rig(EXACT_RIG)
+    take = pf.synthesize(
+        seconds=2.0, rate_hz=RATE_HZ, markerset=EXACT_MARKERS, motions=()
+    )
+    pos = take.markers_world.copy()
+    shank = take.segment_names.index("l_shank")
+    below = [
+        i for i, s in enumerate(take.marker_segments)
+        if take.segment_names[s] in ("l_shank", "l_foot", "l_toes")
+    ]  # fmt: skip
+    frames = slice(int(1.25 * RATE_HZ), int(1.75 * RATE_HZ))
+    base = take.markers_world[take.base_pose_frames]
+    cal = calibrate(rig, base, take.labels)
+    skel = skeleton_from_calibration(rig, cal)
+    # hyperextension: a rotation of the shank about the performer's left, opposite to
+    # flexion (positive sagittal = flexion in the validator)
+    q = rot.quat_from_axis_angle(skel.left_world, np.radians(45.0))
+    knee = take.joint_pos_world[frames, shank][:, None, :]
+    for sign in (1.0, -1.0):
+        qs = q.copy()
+        qs[1:] *= sign
+        trial = pos.copy()
+        trial[frames, below] = knee + rot.quat_rotate(qs, pos[frames, below] - knee)
+        con = BodySolver(rig, cal, take.labels).solve_take(trial)
+        viol, which = limit_violation_deg(skel, con.rest_from_bone_quat)
+        b = rig.bone_names.index("l_shank")
+        if viol[frames, b].min() > 20.0 and "sagittal -" in which[frames.start, b]:
+            pos = trial
+            break
+    else:
+        pytest.fail("could not build a knee hyperextension")
+    solver = FitSolver(
+        rig,
+        cal,
+        take.labels,
+        joint_limits=JOINT_LIMITS_DEG,
+        segment_kind=SEGMENT_KIND,
+        base_positions=base,
+    )
+    res = solver.solve_take(pos)
+    viol, which = limit_violation_deg(skel, res.rest_from_bone_quat)
+    print(
+        f"\nknee hyperextended 45 deg: fit's violation {viol[frames, b].min():.1f}.."
+        f"{viol[frames, b].max():.1f} deg ({which[frames.start, b]})"
+    )
+    assert viol[frames, b].min() > 20.0
+    assert (viol[: frames.start, b] == 0).all()
+
+
+# --- rig keys ---------------------------------------------------------------------
+
+
+def test_fit_keys_parse_and_act(tmp_path: Path) -> None:
+    text = EXACT_RIG.read_text() + (
+        "\n[fit.markers.LTHI]\nweight = 0.0\n"
+        '[fit.markers.LKNL]\nsegment = "l_shank"\n'
+        '[fit.bones.l_shank]\ndof = "hinge"\naxis = "x"\n'
+    )
+    path = tmp_path / "rig.toml"
+    path.write_text(text)
+    with pytest.raises(RigError, match="unknown key"):
+        load_rig(path)  # the construction's parser does not know [fit] (yet)
+    rig, opts = load_fit_rig(path)
+    assert opts.markers["LTHI"].weight == 0.0
+    assert opts.markers["LKNL"].segment == "l_shank"
+    assert opts.bones["l_shank"].dof == "hinge"
+    take = _exact_take(noise_mm=2.0, seconds=3.0)  # the true knee is a pure hinge
+    base = take.markers_world[take.base_pose_frames]
+    cal = calibrate(rig, base, take.labels)
+    model = build_fit_model(rig, cal, base, take.labels, opts)
+    i_thi, i_knl = rig.marker_names.index("LTHI"), rig.marker_names.index("LKNL")
+    assert model.marker_weight[i_thi] == 0.0
+    assert model.marker_bone[i_knl] == rig.bone_names.index("l_shank")
+    b = rig.bone_names.index("l_shank")
+    np.testing.assert_allclose(model.hinge_axis[b], [1.0, 0.0, 0.0])
+    default = build_fit_model(rig, cal, base, take.labels)
+    # by default LKNL rides the thigh (it builds the knee centre, the thigh's aim)
+    assert default.marker_bone[i_knl] == rig.bone_names.index("l_thigh")
+    # the hinge holds: the knee's rotation off its axis stays small
+    res = FitSolver(rig, cal, take.labels, model=model).solve_take(take.markers_world)
+    rv = rot.rotvec_from_quat(res.rest_from_bone_quat[:, b])
+    off_axis = np.degrees(np.linalg.norm(rv[:, 1:], axis=-1))
+    free = FitSolver(rig, cal, take.labels, model=default).solve_take(
+        take.markers_world
+    )
+    rv_free = rot.rotvec_from_quat(free.rest_from_bone_quat[:, b])
+    free_off = np.degrees(np.linalg.norm(rv_free[:, 1:], axis=-1))
+    print(
+        f"\nhinge knee: off-axis max {off_axis.max():.2f} deg "
+        f"(ball: {free_off.max():.2f})"
+    )
+    assert np.median(free_off) > 0.2  # noise moves the free knee off its axis
+    assert np.percentile(off_axis, 95) < 0.25 * np.percentile(free_off, 95)
+    for bad, message in (
+        ({"markers": {"NOPE": {}}}, "unknown marker"),
+        ({"markers": {"LTHI": {"segment": "tail"}}}, "unknown bone"),
+        ({"markers": {"LTHI": {"weight": -1}}}, "weight"),
+        ({"bones": {"l_shank": {"dof": "slider"}}}, "dof"),
+        ({"bones": {"pelvis": {"dof": "hinge"}}}, "root"),
+        ({"bones": {"l_shank": {"axis": [0, 0, 0]}}}, "axis"),
+        ({"other": 1}, "unknown key"),
+    ):
+        with pytest.raises(RigError, match=message):
+            parse_fit_options(rig, bad, source="t.toml")
+
+
+# --- kernel contract --------------------------------------------------------------
+
+
+def test_one_frame_equals_batch_and_allocates_nothing() -> None:
+    rig = load_rig(EXACT_RIG)
+    take = _exact_take(noise_mm=0.5, dropout=0.05, seconds=3.0)
+    base = take.markers_world[take.base_pose_frames]
+    cal = calibrate(rig, base, take.labels)
+    solver = FitSolver(
+        rig,
+        cal,
+        take.labels,
+        joint_limits=JOINT_LIMITS_DEG,
+        segment_kind=SEGMENT_KIND,
+        base_positions=base,
+    )
+    batch = solver.solve_take(take.markers_world)
+    solver.reset()
+    pose = solver.new_pose()
+    wfb = np.zeros_like(batch.world_from_bone_quat)
+    for f in range(20):
+        solver.solve_frame(take.markers_world[f], pose)
+        wfb[f] = pose.world_from_bone_quat
+    tracemalloc.start()
+    try:
+        tracemalloc.reset_peak()
+        start, _ = tracemalloc.get_traced_memory()
+        for f in range(20, take.n_frames):
+            out = solver.solve_frame(take.markers_world[f], pose)
+        end, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert out is pose
+    kept, top = end - start, peak - start
+    print(f"\nsolve_frame: {kept} bytes kept, peak {top} bytes over the calls")
+    assert kept < 1024
+    # the peak is numba's boxing of one call's ~100 arguments (5.2 KB here); a
+    # per-frame (Mr, 3) float64 array more (1.7 KB) would cross the line
+    assert top < 6400
+    # one frame at a time is the batch, bit for bit
+    solver.reset()
+    for f in range(take.n_frames):
+        solver.solve_frame(take.markers_world[f], pose)
+        wfb[f] = pose.world_from_bone_quat
+    np.testing.assert_array_equal(wfb, batch.world_from_bone_quat)
+    np.testing.assert_array_equal(pose.root_pos, batch.root_pos[-1])
+    np.testing.assert_array_equal(pose.marker_residual, batch.marker_residual[-1])
+
+
+def _nrt_allocs() -> int:
+    nrt = pytest.importorskip("numba.core.runtime._nrt_python")
+    if not hasattr(nrt, "memsys_enable_stats"):
+        pytest.skip("numba has no NRT statistics switch")
+    nrt.memsys_enable_stats()
+    return int(nrt.memsys_get_stats_alloc())
+
+
+def test_kernel_allocates_nothing_per_frame() -> None:
+    """numba's own heap: the batch's allocations do not grow with the frames, through
+    dropouts, a label swap (gating) and a gap that forces a reseed."""
+    rig = load_rig(EXACT_RIG)
+    take = _exact_take(noise_mm=0.5, dropout=0.05, seconds=3.0)
+    frames = np.array(take.markers_world)
+    frames[200:203, [0, 30]] = frames[200:203, [30, 0]]
+    frames[250:260] = np.nan
+    base = take.markers_world[take.base_pose_frames]
+    solver = FitSolver(rig, calibrate(rig, base, take.labels), take.labels,
+                       joint_limits=JOINT_LIMITS_DEG, segment_kind=SEGMENT_KIND,
+                       base_positions=base)  # fmt: skip
+
+    def allocs(pos: np.ndarray) -> int:
+        solver.reset()
+        solver.solve_take(pos[:2])
+        solver.reset()
+        start = _nrt_allocs()
+        solver.solve_take(pos)
+        return _nrt_allocs() - start
+
+    assert allocs(frames) == allocs(frames[:1])
+
+
+def test_never_nan_with_everything_hidden() -> None:
+    rig, take = load_rig(EXACT_RIG), _exact_take(seconds=3.0)
+    pos = take.markers_world.copy()
+    pos[200:260] = np.nan  # half a second with no marker at all
+    pos[280:300, :40] = np.nan  # then half the body
+    _, _, res = _fit(rig, take, pos)
+    assert (
+        np.isfinite(res.world_from_bone_quat).all() and np.isfinite(res.root_pos).all()
+    )
+    assert np.isfinite(res.joint_centres).all()
+    assert ((res.bone_flags[200:260] & FLAG_HELD) != 0).all()
+    # everything held still: the pose of the last frame before the gap
+    held = np.broadcast_to(res.root_pos[199], (60, 3))
+    np.testing.assert_allclose(res.root_pos[200:260], held, rtol=0, atol=1e-3)
+
+
+def test_warm_up_runs_the_kernel() -> None:
+    pose = warm_up()
+    assert np.isfinite(pose.world_from_bone_quat).all()
+    assert np.isnan(pose.marker_residual[3])  # the hidden marker
+    np.testing.assert_allclose(pose.marker_residual[:3], 0.0, atol=1e-6)
+
+
+# --- real takes -------------------------------------------------------------------
+
+PIG_STATIC = "btkdata/PiG_Calibration-FlatFoot-Full.c3d"
+PIG_WALK = "btkdata/PiG_Motion-FlatFoot-Full.c3d"
+#: Our joint -> Vicon's point and median limit (mm), as test_pig_fidelity.
+PIG_REFERENCE = {
+    "HJC": ("FEP", 25.0), "KJC": ("FEO", 15.0), "AJC": ("TIO", 15.0),
+    "SJC": ("HUP", 30.0), "EJC": ("HUO", 15.0), "WJC": ("RAO", 15.0),
+}  # fmt: skip
+
+
+def test_pig_walk_joint_centres_against_vicon(datasets: Path) -> None:
+    rig = load_rig("plug-in-gait")
+    static = load_take(datasets / PIG_STATIC)
+    cal = calibrate(
+        rig, static.positions, static.labels, take_measurements=static.measurements
+    )
+    walk = load_take(datasets / PIG_WALK)
+    solver = FitSolver(
+        rig,
+        cal,
+        walk.labels,
+        joint_limits=JOINT_LIMITS_DEG,
+        segment_kind=SEGMENT_KIND,
+        base_positions=static.positions,
+        base_labels=static.labels,
+    )
+    res = solver.solve_take(walk.positions)
+    print(
+        f"\nfit, plug-in-gait walk ({walk.n_frames} frames): marker RMS median "
+        f"{1000 * np.nanmedian(res.marker_rms):.1f} mm, p95 "
+        f"{1000 * np.nanpercentile(res.marker_rms, 95):.1f}; rejected "
+        f"{res.outliers_rejected}; reseeded {int(res.reseeded.sum())}"
+    )
+    failures = []
+    for key, (ref, limit) in PIG_REFERENCE.items():
+        for side in "LR":
+            ours = res.joint_centres[:, res.joint_names.index(side + key)]
+            d = 1000 * np.linalg.norm(ours - walk.references.get(side + ref), axis=-1)
+            assert np.isfinite(d).all()
+            print(
+                f"  {side}{key}: median {np.median(d):5.1f} mm, p95 "
+                f"{np.percentile(d, 95):5.1f} (limit {limit:g})"
+            )
+            if np.median(d) > limit:
+                failures.append(f"{side}{key} {np.median(d):.1f} mm")
+    assert not failures, failures
+    assert np.isfinite(res.marker_rms).all()
+
+
+def test_pig_walk_swapped_labels_rejected(datasets: Path) -> None:
+    """LFHD and RFHD swapped (a left-right label swap) for 3 frames of the real walk:
+    both rejected in those frames, every bone within 3 deg of the fit of the
+    untouched take."""
+    rig = load_rig("plug-in-gait")
+    static = load_take(datasets / PIG_STATIC)
+    cal = calibrate(
+        rig, static.positions, static.labels, take_measurements=static.measurements
+    )
+    walk = load_take(datasets / PIG_WALK)
+
+    def fit(pos: np.ndarray) -> FitSolve:
+        solver = FitSolver(
+            rig,
+            cal,
+            walk.labels,
+            joint_limits=JOINT_LIMITS_DEG,
+            segment_kind=SEGMENT_KIND,
+            base_positions=static.positions,
+            base_labels=static.labels,
+        )
+        return solver.solve_take(pos)
+
+    clean = fit(walk.positions)
+    pos = walk.positions.copy()
+    a, b = walk.labels.index("LFHD"), walk.labels.index("RFHD")
+    frames = slice(150, 153)
+    assert np.isfinite(pos[frames, [a, b]]).all()
+    pos[frames, a], pos[frames, b] = (
+        walk.positions[frames, b],
+        walk.positions[frames, a],
+    )
+    res = fit(pos)
+    diff = rot.quat_mul(
+        rot.quat_conj(clean.world_from_bone_quat), res.world_from_bone_quat
+    )
+    err = np.degrees(rot.quat_angle(diff))
+    ra, rb = rig.marker_names.index("LFHD"), rig.marker_names.index("RFHD")
+    extra = res.outliers_rejected - clean.outliers_rejected
+    print(
+        f"\nPiG walk, LFHD/RFHD swapped for 3 frames: {extra} more rejected; largest "
+        f"bone change {err.max():.2f} deg "
+        f"({rig.bone_names[int(np.argmax(err.max(axis=0)))]})"
+    )
+    assert (
+        res.marker_rejected[frames, ra].all() and res.marker_rejected[frames, rb].all()
+    )
+    assert extra >= 6
+    assert err.max() <= 3.0
+
+
+def test_walking2_streams_every_frame_without_nan(datasets: Path) -> None:
+    take = load_take(datasets / "opensim-core" / "walking2.c3d")
+    rig = load_rig(DATA / "walking2-rig.toml")
+    cols = np.asarray(match_markers(rig, take.labels))
+    seen = np.isfinite(take.positions[:, cols]).all(axis=-1) & (cols >= 0)
+    full = np.flatnonzero(seen.all(axis=1))
+    start = next(i for i in full if (full[(full >= i) & (full < i + 10)].size == 10))
+    window = slice(start, start + 10)
+    pos = take.positions[window]
+
+    def mean(label: str) -> np.ndarray:
+        return pos[:, take.labels.index(label)].mean(axis=0)
+
+    pw = 1000 * np.linalg.norm(mean("LASI") - mean("RASI"))
+    pd = 1000 * np.linalg.norm(
+        (mean("LASI") + mean("RASI")) / 2 - (mean("LPSI") + mean("RPSI")) / 2
+    )
+    cal = calibrate(
+        rig, pos, take.labels, overrides={"InterAsisDistance": pw, "PelvisDepth": pd}
+    )
+    solver = FitSolver(
+        rig,
+        cal,
+        take.labels,
+        joint_limits=JOINT_LIMITS_DEG,
+        segment_kind=SEGMENT_KIND,
+        base_positions=pos,
+    )
+    pose = solver.new_pose()
+    held = 0
+    for f in range(take.n_frames):
+        solver.solve_frame(take.positions[f], pose)
+        assert np.isfinite(pose.world_from_bone_quat).all(), f
+        assert (
+            np.isfinite(pose.joint_centres).all() and np.isfinite(pose.root_pos).all()
+        )
+        held += pose.n_held
+    print(f"\nwalking2 streamed: {take.n_frames} frames, {held} bone-frames held")
