@@ -306,12 +306,27 @@ def retargetd_runs(
             if method == "fit":
                 raise SystemExit(f"--method fit: none of {FIT_MODULES} found")
             print(f"(retargetd fit: none of {FIT_MODULES} present; skipped)")
-        else:
+        elif method == "fit":
             runs.append(
                 run_retargetd(
                     "retargetd fit", problem, rig, cal, take, frames, cls, base
                 )
             )
+        else:
+            # With --method all, a fit solver that fails (a module in progress) is
+            # reported and skipped: the construction and the peers still run.
+            try:
+                runs.append(
+                    run_retargetd(
+                        "retargetd fit", problem, rig, cal, take, frames, cls, base
+                    )
+                )
+            except Exception as exc:
+                first = str(exc).strip().splitlines()
+                print(
+                    f"(retargetd fit: {cls.__module__}.{cls.__name__} failed, skipped: "
+                    f"{type(exc).__name__}: {first[-1] if first else ''})"
+                )
     return runs
 
 
