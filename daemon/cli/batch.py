@@ -61,6 +61,7 @@ import argparse
 import os
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -212,7 +213,7 @@ def run_batch(
         else:
             todo.append(job)
 
-    def collect(job: dict[str, Any], get: Any) -> None:
+    def collect(job: dict[str, Any], get: Callable[[], dict[str, Any]]) -> None:
         try:
             res = {**get(), "skipped": False}
         except Exception as exc:  # the worker died (killed, out of memory)

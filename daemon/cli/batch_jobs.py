@@ -59,6 +59,8 @@ PATH_KEYS = ("calibration", "static")
 NUMBER_KEYS = ("body_mass_kg", "take_rate")
 RESULT_NAME = "result.json"
 LOG_NAME = "log.txt"
+#: ``retargetd``'s exit code after Ctrl-C (``cli.main``: 128 + SIGINT).
+EXIT_INTERRUPTED = 130
 #: Statuses that mean "ran to the end" (skipped on resume).
 DONE = ("ok", "fail")
 
@@ -382,6 +384,8 @@ def _job_body(
         work.mkdir()
     for argv in job_commands(job, work, scratch):
         code, error = _retargetd(argv, log)
+        if code == EXIT_INTERRUPTED:  # Ctrl-C in a serial run: stop the batch
+            raise KeyboardInterrupt
         if code not in (0, 1) or (argv[0] == "calibrate" and code != 0):
             return code, error or f"retargetd {argv[0]}: exit code {code}", {}, 0.0
     if job["mode"] == "solve":
@@ -415,6 +419,9 @@ def run_job(job: dict[str, Any]) -> dict[str, Any]:
         except Exception as exc:  # a bug in one take must not stop the library
             code, error = 3, f"{type(exc).__name__}: {exc}"
             log.write(traceback.format_exc())
+        except BaseException:  # interrupted: no half-made folder left behind
+            shutil.rmtree(scratch, ignore_errors=True)
+            raise
     result = {
         "id": job["id"],
         "take": job["take"],
