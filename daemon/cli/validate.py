@@ -6,7 +6,9 @@ Writes ``DIR/report.json`` (per check: threshold, frames flagged, worst frames a
 values), ``DIR/report.txt`` (the same, readable) and ``DIR/model.xml`` (the model
 checked against), ``DIR/checks.png`` (every check over time) and
 ``DIR/snapshot_*.png`` (the worst frames rendered headless: EGL, else OSMesa; skipped,
-with the reason in the report, when neither works; ``validate_render``).
+with the reason in the report, when neither works; ``validate.render``).
+``--no-snapshots`` renders none (no GL subprocess; the report says ``snapshots off``):
+the checks, report and plot are unchanged.
 Body mass: the take's ``Bodymass`` when it has one, else 70 kg (``--body-mass-kg``
 overrides). Checks and thresholds: ``validate.checks``; the report's header
 says how each threshold was set (the literature and the PiG walk, the MOTEK ballet and
@@ -56,6 +58,11 @@ def add_parser(subparsers: Any) -> None:
     parser.add_argument("--report", required=True, metavar="DIR")
     parser.add_argument(
         "--body-mass-kg", type=float, metavar="KG", help="override the body mass"
+    )
+    parser.add_argument(
+        "--no-snapshots",
+        action="store_true",
+        help="render no worst-frame snapshots (checks, report and plot unchanged)",
     )
     parser.set_defaults(run=run)
 
@@ -130,7 +137,10 @@ def _validate(
     (report_dir / "report.json").write_text(json.dumps(doc, indent=1) + "\n")
     from retargetd.daemon.validate.render import visuals_text, write_visuals
 
-    doc["visuals"] = write_visuals(report_dir, vm, res, rep, take.rate_hz)
+    doc["visuals"] = write_visuals(
+        report_dir, vm, res, rep, take.rate_hz,
+        snapshots=not getattr(args, "no_snapshots", False),
+    )  # fmt: skip
     (report_dir / "report.json").write_text(json.dumps(doc, indent=1) + "\n")
     lines = [
         f"retargetd validate: {take.path} (rig {rig.name}, {rep.n_frames} frames at "

@@ -46,6 +46,8 @@ WIDTH, HEIGHT = 640, 480
 BACKENDS = ("egl", "osmesa")
 RENDER_TIMEOUT_S = 120.0
 PLOT_NAME = "checks.png"
+#: ``render.skipped`` when the caller turned the snapshots off (``--no-snapshots``).
+SNAPSHOTS_OFF = "snapshots off (--no-snapshots)"
 
 BONE_RGBA = (0.55, 0.62, 0.75, 1.0)
 BLAMED_RGBA = (0.9, 0.1, 0.1, 1.0)
@@ -283,16 +285,30 @@ def write_visuals(
     *,
     max_snapshots: int = MAX_SNAPSHOTS,
     backends: tuple[str, ...] | None = None,
+    snapshots: bool = True,
 ) -> dict[str, Any]:
     """Snapshots and the plot into ``report_dir``; a JSON-ready summary for the
     report (``plot``, ``snapshots`` with frame/file/checks/blamed bones, ``render``:
-    backend, timings, or why the snapshots were skipped)."""
+    backend, timings, or why the snapshots were skipped).
+
+    With ``snapshots=False`` nothing is rendered (no GL subprocess: at library scale
+    its start-up and frames dominate a take's validate); the plot still marks the
+    worst frames and ``render.skipped`` is :data:`SNAPSHOTS_OFF`."""
     report_dir = Path(report_dir)
     frames = worst_frames(rep, max_snapshots)
     plot_checks(rep, rate_hz, report_dir / PLOT_NAME, frames)
-    jobs = snapshot_jobs(vm, solve, rep, frames)
+    jobs = snapshot_jobs(vm, solve, rep, frames) if snapshots else []
     t0 = time.perf_counter()
-    render = render_snapshots(vm.xml, jobs, report_dir, backends=backends)
+    if snapshots:
+        render = render_snapshots(vm.xml, jobs, report_dir, backends=backends)
+    else:
+        render = {
+            "backend": None,
+            "skipped": SNAPSHOTS_OFF,
+            "seconds_start": None,
+            "seconds_per_snapshot": None,
+            "tried": {},
+        }
     render["seconds_total"] = time.perf_counter() - t0
     snaps = [
         {k: j[k] for k in ("frame", "file", "checks", "blamed_bones")}
