@@ -35,7 +35,7 @@ logger = logging.getLogger(__name__)
 
 def add_parser(subparsers: Any) -> None:
     """Register ``solve``."""
-    from retargetd.daemon.cli.args import add_solve_arguments
+    from retargetd.daemon.cli.args import add_force_argument, add_solve_arguments
 
     parser = subparsers.add_parser(
         "solve",
@@ -45,6 +45,7 @@ def add_parser(subparsers: Any) -> None:
     )
     add_solve_arguments(parser)
     parser.add_argument("--out", required=True, metavar="OUT.npz|OUT.bvh")
+    add_force_argument(parser)
     parser.add_argument(
         "--bvh-order",
         metavar="ORDER",
@@ -114,9 +115,10 @@ def reference_distances(
 def run(args: argparse.Namespace) -> int:
     """Run ``solve``."""
     from retargetd.daemon.body.solve import FLAG_HELD
-    from retargetd.daemon.cli.args import solver_for_take
+    from retargetd.daemon.cli.args import refuse_existing, solver_for_take
 
     out_format = _out_format(args)
+    refuse_existing(args.out, force=args.force)
     rig, take, cal, solver = solver_for_take(args)
     res = solver.solve_take(take.positions)
     if out_format == "bvh":

@@ -44,7 +44,7 @@ THRESHOLDS_NOTE = (
 
 def add_parser(subparsers: Any) -> None:
     """Register ``validate``."""
-    from retargetd.daemon.cli.args import add_solve_arguments
+    from retargetd.daemon.cli.args import add_force_argument, add_solve_arguments
 
     parser = subparsers.add_parser(
         "validate",
@@ -54,6 +54,7 @@ def add_parser(subparsers: Any) -> None:
     )
     add_solve_arguments(parser)
     parser.add_argument("--report", required=True, metavar="DIR")
+    add_force_argument(parser)
     parser.add_argument(
         "--body-mass-kg", type=float, metavar="KG", help="override the body mass"
     )
@@ -62,8 +63,9 @@ def add_parser(subparsers: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``validate``."""
-    from retargetd.daemon.cli.args import solver_for_take
+    from retargetd.daemon.cli.args import refuse_existing, solver_for_take
 
+    refuse_existing(args.report, force=args.force, option="--report")
     rig, take, cal, solver = solver_for_take(args)
     if cal.rest_bone_origin_pos is None:
         raise UsageError("calibration has no rest bone origins: recalibrate")
