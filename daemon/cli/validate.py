@@ -100,6 +100,7 @@ def _validate(
         fit_pairs,
         validate_take,
     )
+    from retargetd.daemon.validate.limits import LIMITS_SOURCES
     from retargetd.daemon.validate.model import (
         DEFAULT_BODY_MASS_KG,
         build_model,
@@ -120,6 +121,7 @@ def _validate(
         "body_mass_source": "default" if mass is None else "take or --body-mass-kg",
         "model": {"xml": "model.xml", "sha256": vm.digest, "floor_z_m": vm.floor_z},
         "thresholds_note": THRESHOLDS_NOTE,
+        "limits_note": f"joint limits: {LIMITS_SOURCES}",
         "thresholds": THRESHOLDS,
         "thresholds_basis": THRESHOLDS_BASIS,
         "seconds_per_frame": rep.seconds_per_frame,
@@ -140,6 +142,7 @@ def _validate(
         f"Result: {'PASS' if rep.passed else 'FAIL: ' + ', '.join(rep.failed())}",
         "",
         f"How the thresholds were set: {THRESHOLDS_NOTE}",
+        f"Joint limits: {LIMITS_SOURCES}",
         *(
             f"    {name}: {rep.checks[name].threshold:g} {rep.checks[name].unit}"
             f" - {basis}"
@@ -161,6 +164,7 @@ def _validate(
             f"  worst frames: {worst}{transients}"
         )
         lines.extend(f"    {d}" for d in c.detail)
+        lines.extend(f"    {w}" for w in c.warnings)
     lines.extend(["", *visuals_text(doc["visuals"])])
     text = "\n".join(lines) + "\n"
     (report_dir / "report.txt").write_text(text)
