@@ -82,7 +82,8 @@ serve, extreme values of the component that set the limit.
   at ~90 deg of abduction;
   here sagittal -150..45 (dance and a tucked deep squat), frontal 90 (a magnitude:
   adduction that far puts the thighs through each other, which self-penetration
-  reports), twist +-60. Takes: frontal 7.6 / 64.2 (the ballet's side kick, frame 62) / 35.2.
+  reports), twist +-60. Takes: frontal 7.6 / 64.2 (the ballet's side kick, frame 62)
+  / 35.2.
 - ankle (foot): dorsiflexion 20, plantarflexion 50, inversion 35, eversion 15;
   here sagittal -55..90 (stair descent, deep squat, lunge; en pointe), frontal 45,
   twist +-55: the foot's twist about the ankle-toe
