@@ -405,3 +405,64 @@ def check_bilateral(rig: Rig, cal: Calibration) -> list[str]:
 def check_calibration(rig: Rig, cal: Calibration, *, units: str) -> list[str]:
     """:func:`check_stature` and :func:`check_bilateral` on a calibration."""
     return [*check_stature(rig, cal, units=units), *check_bilateral(rig, cal)]
+
+
+#: The least distance, in the base pose, between a bone's up reference and the bone's
+#: axis (for ``up = [FROM, TO]``: the part of FROM->TO across the axis). The roll is
+#: the angle of that lever about the axis, so marker noise sigma across it turns the
+#: bone by about atan(sigma / lever): optical systems track markers to ~0.5-1 mm
+#: (Merriaux et al., Sensors 2017;17(7):1591), so 30 mm keeps the roll jitter under
+#: 2 deg from noise alone; skin movement moves markers by 10-30 mm more (Leardini et
+#: al., Gait Posture 2005;21(2):212-225), which only a longer lever tolerates.
+UP_LEVER_MIN_M = 0.030
+
+
+def up_levers(
+    rig: Rig, cal: Calibration, positions: F64Array, labels: Sequence[str]
+) -> dict[str, float]:
+    """Each bone's up lever in the base pose (see :data:`UP_LEVER_MIN_M`), metres.
+
+    Args:
+        rig: the rig the calibration was made for.
+        cal: the calibration.
+        positions: (F, M, 3) float64, metres, world: the base-pose frames.
+        labels: (M,) marker labels.
+
+    Returns:
+        bone name -> lever (bones whose points were not all seen are left out).
+    """
+    from retargetd.daemon.body.calibration import compute_points
+
+    pos = np.asarray(positions, dtype=np.float64)
+    cols = np.asarray(match_markers(rig, labels))
+    mean = _finite_mean(pos, axis=0)  # (M, 3)
+    marker_pos = np.full((1, len(cols), 3), np.nan)
+    have = cols >= 0
+    marker_pos[0, have] = mean[cols[have]]
+    pts = compute_points(rig, marker_pos, cal.point_offsets)
+    out: dict[str, float] = {}
+    for bone in rig.bones:
+        axis = pts[bone.aim][0] - pts[bone.origin][0]
+        if len(bone.up) == 1:
+            v = pts[bone.up[0]][0] - pts[bone.origin][0]
+        else:
+            v = pts[bone.up[1]][0] - pts[bone.up[0]][0]
+        n = float(np.linalg.norm(axis))
+        if not (np.isfinite(n) and n > 0 and np.isfinite(v).all()):
+            continue
+        y = axis / n
+        out[bone.name] = float(np.linalg.norm(v - (v @ y) * y))
+    return out
+
+
+def check_up_levers(
+    rig: Rig, cal: Calibration, positions: F64Array, labels: Sequence[str]
+) -> list[str]:
+    """One warning per bone whose up lever is under :data:`UP_LEVER_MIN_M`."""
+    return [
+        f"bone {name}: its up reference is {1000 * lever:.0f} mm off the bone's axis "
+        f"in the base pose (under {1000 * UP_LEVER_MIN_M:.0f} mm its roll follows "
+        f"marker noise): choose an up point farther from the axis"
+        for name, lever in up_levers(rig, cal, positions, labels).items()
+        if lever < UP_LEVER_MIN_M
+    ]
