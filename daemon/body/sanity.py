@@ -233,12 +233,11 @@ def check_units(
     Raises:
         SanityError: an extent no person in any unit of the file's could have.
     """
-    z = np.asarray(positions, dtype=np.float64)[..., 2]
-    with np.errstate(all="ignore"):
-        mean_z = (
-            np.nanmean(np.where(np.isfinite(z), z, np.nan), axis=0) if z.size else z
-        )
-    mean_z = mean_z[np.isfinite(mean_z)] if np.ndim(mean_z) else np.empty(0)
+    pos = np.asarray(positions, dtype=np.float64)
+    if pos.ndim != 3:
+        return []
+    mean_z = _finite_mean(pos[..., 2], axis=0)
+    mean_z = mean_z[np.isfinite(mean_z)]
     if mean_z.size < 2:
         return []
     extent = float(mean_z.max() - mean_z.min())

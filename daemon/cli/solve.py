@@ -24,6 +24,7 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
+import time
 from typing import Any
 
 import numpy as np
@@ -120,7 +121,9 @@ def run(args: argparse.Namespace) -> int:
     out_format = _out_format(args)
     refuse_existing(args.out, force=args.force)
     rig, take, cal, solver = solver_for_take(args)
+    started = time.perf_counter()
     res = solver.solve_take(take.positions)
+    solve_s = time.perf_counter() - started
     if out_format == "bvh":
         _write_bvh(args, cal, res, take.rate_hz)
     else:
@@ -151,6 +154,8 @@ def run(args: argparse.Namespace) -> int:
     total = n * len(cols)
     out(f"wrote {args.out}: {n} frames at {take.rate_hz:g} Hz, rig {rig.name}, ")
     out(f"{len(res.bone_names)} bones, {len(res.joint_names)} joint centres\n")
+    fps = n / solve_s if solve_s > 0 else float("inf")
+    out(f"solved in {solve_s:.2f} s: {fps:.0f} frames/s\n")
     missing = n * int((cols < 0).sum())
     out(
         f"occluded rig-marker samples: {occluded + missing} of {total} "

@@ -4,6 +4,7 @@ exit 2 unless ``--force`` (issue 16 item 3)."""
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import pytest
@@ -59,6 +60,8 @@ def test_solve_refuses_then_force_replaces(
     _refused(argv, out, capsys, "--out")
     assert main([*argv, "--force"]) == 0
     assert out.read_bytes() != SENTINEL
+    said = capsys.readouterr().out
+    assert re.search(r"^solved in \d+\.\d\d s: \d+ frames/s$", said, re.M), said
 
 
 def test_validate_refuses_a_report_folder_that_holds_a_report(

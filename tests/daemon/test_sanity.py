@@ -159,6 +159,11 @@ def test_synthetic_hold_is_still_and_its_motion_is_not(synth: SynthTake) -> None
 def test_units_from_the_marker_extent(synth: SynthTake) -> None:
     pos = synth.markers_world[:50]
     assert sanity.check_units(pos, units="m", units_source="file") == []
+    # A marker never seen (an all-NaN column) is left out, without a warning.
+    hole = pos.copy()
+    hole[:, 3] = np.nan
+    assert sanity.check_units(hole, units="m", units_source="file") == []
+    assert sanity.base_pose_motion(hole, synth.labels, 100.0).still
     with pytest.raises(sanity.SanityError, match=r"--take-units m$"):
         sanity.check_units(pos * 1e-3, units="mm", units_source="file")
     with pytest.raises(sanity.SanityError, match=r"--take-units mm$"):
