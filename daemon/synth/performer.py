@@ -138,6 +138,9 @@ class _Motion:
     plant: tuple[str, ...] = ()
     plant_weight: F64Array = field(default_factory=lambda: np.zeros(0))
     flight_m: F64Array = field(default_factory=lambda: np.zeros(0))
+    # Gaits: low-pass the floor-contact lift (Hz; 0 = off): the hard switch of the
+    # lowest sole from one foot to the other would drop the body faster than gravity.
+    floor_smooth_hz: float = 0.0
 
     def add(self, segment: str, axis: int, deg: F64Array) -> None:
         """Add ``deg`` (T,) degrees, already weighted, about one axis of one segment."""
@@ -343,31 +346,39 @@ def _kick(m: _Motion) -> None:
 
 
 def _jump(m: _Motion) -> None:
-    """Countermovement jumps in place, one every 2.5 s: crouch to hip flexion 80,
-    knee 100, ankle dorsiflexion 30 (landing: Decker et al. 2003), push-off, 0.40 s of
-    ballistic flight (20 cm) with the ankles pointed 30, land into the same crouch."""
+    """Countermovement jumps in place, one every 2.5 s: crouch to hip flexion 60,
+    knee 100, ankle dorsiflexion 40, arms forward 60 (landing: Decker et al. 2003, hip
+    ~60-90, knee ~90-100, ankle ~25-35), push-off, 0.40 s of ballistic flight (20 cm;
+    the lift frozen at take-off, the legs still but for the ankles pointing 30), then
+    the landing absorbed over 0.9 s into the same crouch. Feet planted."""
     period = 2.5
     tau = np.maximum(m.t, 0.0) % period
     flight_s = 0.40
     take_off = 1.0
-    crouch = m.w * (
-        _bump(2.0 * np.pi * (tau - 0.7) / period, 8)
-        + _bump(2.0 * np.pi * (tau - (take_off + flight_s + 0.25)) / period, 8)
-    )
-    air = (tau >= take_off) & (tau < take_off + flight_s)
+    landing = take_off + flight_s
+
+    def hump(centre: float, half: float) -> F64Array:
+        x = np.clip((tau - centre) / half, -1.0, 1.0)
+        return (0.5 * (1.0 + np.cos(np.pi * x))) ** 2
+
+    # Countermovement down and up (0.1-1.0 s), landing absorbed (1.4-2.3 s).
+    crouch = m.w * (hump(0.55, 0.45) + hump(landing + 0.45, 0.45))
+    air = (tau >= take_off) & (tau < landing)
     u = np.where(air, (tau - take_off) / flight_s, 0.0)
     point = m.w * np.where(air, np.sin(np.pi * u), 0.0)
     for side in ("l", "r"):
-        _legs(m, side, 80.0 * crouch, 100.0 * crouch, 30.0 * crouch - 30.0 * point)
-    m.add("abdomen", _Y, 15.0 * crouch)
-    m.add("thorax", _Y, 10.0 * crouch)
-    _arms_down(m, 40.0 * crouch)
+        _legs(m, side, 60.0 * crouch, 100.0 * crouch, 40.0 * crouch - 30.0 * point)
+    _arms_down(m, 60.0 * crouch)
     g = 9.81
     tf = np.where(air, tau - take_off, 0.0)
     m.flight_m = np.where(air, m.w * (0.5 * g * flight_s * tf - 0.5 * g * tf * tf), 0.0)
     m.floor_weight = m.w
     m.plant = ("l_foot", "r_foot")
     m.plant_weight = m.w
+
+
+#: Sharpness of a gait's stance knee-flexion bump (a power of the raised cosine).
+STANCE_POWER = 3
 
 
 def _gait(
@@ -381,19 +392,22 @@ def _gait(
     ankle_dorsi: float,
     ankle_plantar: float,
     trunk_deg: float,
+    smooth_hz: float = 4.0,
+    radius_m: float = WALK_RADIUS_M,
+    ramp_s: float = RAMP_S,
 ) -> None:
     """A gait round the walk circle with its own joint-angle profile: hip flexion
     ``hip[0] + hip[1] cos(phase)``, knee flexion bumps in stance and swing, ankle
     dorsiflexion in stance and plantarflexion at push-off; the lowest sole kept on
     the floor (the steps of a stair gait are not modelled: its angles are)."""
     t0 = np.maximum(m.t, 0.0)
-    dist = speed_m_s * RAMP_S * _smootherstep_integral(t0 / RAMP_S)
+    dist = speed_m_s * ramp_s * _smootherstep_integral(t0 / ramp_s)
     phase = 2.0 * np.pi * dist / stride_m
-    w = m.w
+    w = _smootherstep(m.t / ramp_s)  # the angles grow with the speed
     for side_phase, side in ((phase + np.pi, "l"), (phase, "r")):
         hip_flex = hip[0] + hip[1] * np.cos(side_phase)
         knee = knee_swing * _bump(side_phase - 4.6, 4) + knee_stance * _bump(
-            side_phase - 0.9, 6
+            side_phase - 0.9, STANCE_POWER
         )
         ankle = ankle_dorsi * _bump(side_phase - 2.4, 3) - ankle_plantar * _bump(
             side_phase - 3.9, 6
@@ -405,11 +419,12 @@ def _gait(
         "upper_arm", _Y, w * 25.0 * np.cos(phase), -w * 25.0 * np.cos(phase)
     )
     m.add_bilateral("forearm", _Z, -w * 60.0, -w * 60.0)
-    heading = dist / WALK_RADIUS_M
+    heading = dist / radius_m
     m.heading += heading
-    m.root_pos[:, 0] += WALK_RADIUS_M * np.sin(heading)
-    m.root_pos[:, 1] += WALK_RADIUS_M - WALK_RADIUS_M * np.cos(heading)
+    m.root_pos[:, 0] += radius_m * np.sin(heading)
+    m.root_pos[:, 1] += radius_m - radius_m * np.cos(heading)
     m.floor_weight = w
+    m.floor_smooth_hz = smooth_hz
 
 
 def _stair_ascent(m: _Motion) -> None:
@@ -446,6 +461,14 @@ def _stair_descent(m: _Motion) -> None:
     )
 
 
+#: The run's stance knee flexion, ankle dorsiflexion (deg) and floor smoothing (Hz).
+RUN_P = (45.0, 25.0, 5.0)
+#: The run's circle: at 3 m/s a 15 m radius asks 0.6 m/s^2 of centripetal
+#: acceleration, the walk's on its 1.5 m circle (0.67 m/s^2); on the walk's circle it
+#: would be 6 m/s^2, which a runner leans into and the synthetic one does not.
+RUN_RADIUS_M = 15.0
+
+
 def _run(m: _Motion) -> None:
     """Running (Novacheck 1998, running 3.2 m/s to sprinting): hip flexion 10..60
     about 25 +- 35 (extension 10 at toe-off), stance knee flexion 45, swing 120,
@@ -456,11 +479,14 @@ def _run(m: _Motion) -> None:
         speed_m_s=3.0,
         stride_m=2.4,
         hip=(25.0, 35.0),
-        knee_stance=45.0,
+        knee_stance=RUN_P[0],
         knee_swing=120.0,
-        ankle_dorsi=25.0,
+        ankle_dorsi=RUN_P[1],
         ankle_plantar=25.0,
         trunk_deg=10.0,
+        smooth_hz=RUN_P[2],
+        radius_m=RUN_RADIUS_M,
+        ramp_s=2.0,
     )
 
 
@@ -592,6 +618,15 @@ def load_truth(path: str | Path) -> SynthTake:
             else:
                 kwargs[name] = readonly(value)
     return SynthTake(**kwargs)  # type: ignore[arg-type]
+
+
+def _low_pass(x: F64Array, cutoff_hz: float, rate_hz: float) -> F64Array:
+    """Zero-phase 2nd-order Butterworth low-pass of ``x`` (T,)."""
+    from scipy.signal import butter, filtfilt
+
+    b, a = butter(2, min(cutoff_hz / (0.5 * rate_hz), 0.99))
+    pad = min(3 * max(len(a), len(b)), len(x) - 1)
+    return np.asarray(filtfilt(b, a, x, padlen=pad))
 
 
 def _softmin(z: F64Array, temperature: float) -> F64Array:
@@ -791,6 +826,15 @@ def synthesize(
         )
         rest_z = origin_world[2] + (skeleton.rest_pos[seg] + skeleton.sole_points)[:, 2]
         lift = _softmin(rest_z, _FLOOR_SOFTMIN_M) - _softmin(sole_z, _FLOOR_SOFTMIN_M)
+        if work.floor_smooth_hz > 0.0 and n_frames > 12:
+            lift = _low_pass(lift, work.floor_smooth_hz, rate_hz)
+        if work.flight_m.size:
+            # In flight the body is ballistic: the lift stays what it was at take-off.
+            air = np.flatnonzero(work.flight_m > 0.0)
+            if air.size:
+                starts = air[np.r_[True, np.diff(air) > 1]]
+                run_id = np.cumsum(np.r_[True, np.diff(air) > 1]) - 1
+                lift[air] = lift[np.maximum(starts - 1, 0)][run_id]
         joint_pos[..., 2] += (work.floor_weight * lift)[:, None]
     if work.plant:
         planted = [skeleton.index(s) for s in work.plant]
