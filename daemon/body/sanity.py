@@ -27,7 +27,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from retargetd.daemon.body.calibration import Calibration, match_markers
+from retargetd.daemon.body.calibration import (
+    Calibration,
+    compute_points,
+    match_markers,
+)
 from retargetd.daemon.body.rig import Rig
 from retargetd.protocols.conventions import UNIT_TO_METRES
 from retargetd.protocols.frames import F64Array
@@ -430,8 +434,6 @@ def up_levers(
     Returns:
         bone name -> lever (bones whose points were not all seen are left out).
     """
-    from retargetd.daemon.body.calibration import compute_points
-
     pos = np.asarray(positions, dtype=np.float64)
     cols = np.asarray(match_markers(rig, labels))
     mean = _finite_mean(pos, axis=0)  # (M, 3)

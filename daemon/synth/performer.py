@@ -32,6 +32,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from scipy.signal import butter, filtfilt
 
 from retargetd.daemon import rotations as rot
 from retargetd.daemon.synth.markerset import (
@@ -622,8 +623,6 @@ def load_truth(path: str | Path) -> SynthTake:
 
 def _low_pass(x: F64Array, cutoff_hz: float, rate_hz: float) -> F64Array:
     """Zero-phase 2nd-order Butterworth low-pass of ``x`` (T,)."""
-    from scipy.signal import butter, filtfilt
-
     b, a = butter(2, min(cutoff_hz / (0.5 * rate_hz), 0.99))
     pad = min(3 * max(len(a), len(b)), len(x) - 1)
     return np.asarray(filtfilt(b, a, x, padlen=pad))
