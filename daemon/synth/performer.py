@@ -474,7 +474,10 @@ def _run(m: _Motion) -> None:
     """Running (Novacheck 1998, running 3.2 m/s to sprinting): hip flexion 10..60
     about 25 +- 35 (extension 10 at toe-off), stance knee flexion 45, swing 120,
     ankle dorsiflexion 25, push-off plantarflexion 25, trunk forward 10; 3 m/s (the
-    lowest sole is kept on the floor: no flight phase; jump has one)."""
+    lowest sole is kept on the floor: no flight phase; jump has one), speeding up over
+    2 s on a 15 m circle. Known limit: the kinematic stride is not dynamically
+    consistent, ``validate`` finds a ghost force of ~0.9 BW at each step (its joint
+    angles pass the limits)."""
     _gait(
         m,
         speed_m_s=3.0,
