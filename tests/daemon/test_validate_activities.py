@@ -69,14 +69,7 @@ def _peak_deg(skel: Any, pfb: np.ndarray, bone: str, what: str) -> float:
         "deep_squat",
         "kick",
         "jump",
-        pytest.param(
-            "run",
-            marks=pytest.mark.xfail(
-                strict=True,
-                reason="the synthetic run is kinematic, not dynamically consistent: "
-                "its ghost force reaches ~0.9 BW at each step (limits pass)",
-            ),
-        ),
+        "run",
     ],
 )
 def test_activity_reaches_the_published_range_and_passes(motion: str) -> None:
