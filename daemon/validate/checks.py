@@ -127,10 +127,12 @@ THRESHOLDS_BASIS: dict[str, str] = {
     "fit_max": "per-frame max: PiG 31.3, ballet 56.2 (other-session calibration), "
     "tennis 106.5 mm (the serve bends the rigid thorax, knee marker slides)",
     "quat_norm": "solve writes unit quaternions to ~1e-15",
-    "limits": "per-joint table (validate_limits: AAOS, Norkin & White, Soucie 2011; "
-    "dancers Hamilton 1992; serve Fleisig 2003; skin markers Reinschmidt 1997, Benoit "
-    "2006): 0 deg beyond on all three takes; >= 2 consecutive frames (tennis 400, "
-    "744: one-frame marker glitches, reported as transients)",
+    "limits": "per-joint table (validate.limits: the widest published range across "
+    "activities - stairs, running, landing, deep squat, kicking, dance, throwing - "
+    "+ skin-marker margin; beyond the clinical norms AAOS, Norkin & White, Soucie "
+    "2011 + 10 deg: a warning only): 0 deg beyond on all three takes and the "
+    "synthetic activities; >= 2 consecutive frames (tennis 400, 744: one-frame "
+    "marker glitches, reported as transients)",
     "self_penetration": "lean capsules: max PiG 3.3, ballet 0, tennis 0 mm",
     "floor_penetration": "max PiG 19.2, ballet 28.7, tennis 53.1 mm (rigid shank vs "
     "sliding knee marker); body sunk 15 cm: 163",
