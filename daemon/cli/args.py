@@ -153,14 +153,14 @@ def calibrate_from_take(
             notes += sanity.check_calibration(rig, cal, units=take.units)
     except (CalibrationError, sanity.SanityError) as exc:
         raise UsageError(str(exc)) from None
-    held.release()
+    held.pass_on()
     for note in notes:
         sys.stderr.write(f"warning: {note}\n")
     return cal
 
 
 class _HeldRecords(logging.Handler):
-    """Keeps log records back until :meth:`release` (dropped if never released)."""
+    """Keeps log records back until :meth:`pass_on` (dropped if never passed on)."""
 
     def __init__(self, target: logging.Logger) -> None:
         super().__init__(logging.NOTSET)
@@ -170,8 +170,9 @@ class _HeldRecords(logging.Handler):
     def emit(self, record: logging.LogRecord) -> None:
         self.records.append(record)
 
-    def release(self) -> None:
-        """Pass the held records on to the handlers above the logger."""
+    def pass_on(self) -> None:
+        """Pass the held records on to the handlers above the logger (not named
+        ``release``: that is ``logging.Handler``'s lock release)."""
         records, self.records = self.records, []
         parent = self.target.parent
         for record in records:
@@ -182,7 +183,7 @@ class _HeldRecords(logging.Handler):
 @contextlib.contextmanager
 def held_log_warnings(name: str) -> Iterator[_HeldRecords]:
     """Hold back what logger ``name`` (and its children) logs inside the block;
-    call ``release()`` on the result to let it through (after the block)."""
+    call ``pass_on()`` on the result to let it through (after the block)."""
     target = logging.getLogger(name)
     handler = _HeldRecords(target)
     propagate = target.propagate
