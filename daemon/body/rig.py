@@ -35,6 +35,7 @@ from __future__ import annotations
 import ast
 import logging
 import math
+import re
 import tomllib
 from dataclasses import dataclass, field
 from importlib import resources
@@ -253,6 +254,14 @@ def load_rig(name_or_path: str | Path) -> Rig:
     return parse_rig(text, source=str(path))
 
 
+def _did_you_mean(name: str, known: set[str]) -> str:
+    """``" (did you mean 'X'?)"`` for the closest known name, else ``""``."""
+    import difflib
+
+    close = difflib.get_close_matches(name, sorted(known), n=1, cutoff=0.6)
+    return f" (did you mean {close[0]!r}?)" if close else ""
+
+
 def parse_linear(text: str | float | int, *, where: str) -> LinearExpr:
     """Parse a linear expression such as ``"LKneeWidth/2 + 7"`` or ``"0.5*A + 0.5*B"``.
 
@@ -281,7 +290,17 @@ def parse_linear(text: str | float | int, *, where: str) -> LinearExpr:
 def _linear(
     node: ast.expr, *, where: str, text: str
 ) -> tuple[float, list[tuple[str, float]]]:
-    bad = RigError(f"{where}: {text!r} is not a linear expression of names and numbers")
+    hint = ""
+    if isinstance(node, ast.Attribute) or any(
+        isinstance(n, ast.Attribute) for n in ast.walk(node)
+    ):
+        hint = (
+            "; names in an expression are letters, digits and _ only: give a dotted "
+            'label a plain rig name in [markers] (REIAS = "R.EIAS") and use that'
+        )
+    bad = RigError(
+        f"{where}: {text!r} is not a linear expression of names and numbers{hint}"
+    )
     if isinstance(node, ast.Constant) and isinstance(node.value, int | float):
         if isinstance(node.value, bool):
             raise bad
@@ -317,7 +336,16 @@ def parse_rig(text: str, *, source: str) -> Rig:
     try:
         doc = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
-        raise RigError(f"{source}: not valid TOML: {exc}") from None
+        hint = ""
+        dotted = re.search(r"^\s*([A-Za-z0-9_-]+)\.([A-Za-z0-9_.-]+)\s*=", text, re.M)
+        if dotted:
+            a, b = dotted.groups()
+            hint = (
+                f" (a bare key with a dot, {a}.{b}, is a TOML table: quote it, "
+                f'"{a}.{b}" = ..., or name the rig marker without dots, '
+                f'{a}{b.replace(".", "")} = "{a}.{b}")'
+            )
+        raise RigError(f"{source}: not valid TOML: {exc}{hint}") from None
     return _Parser(doc, source).parse()
 
 
@@ -411,7 +439,9 @@ class _Parser:
 
     def known_point(self, key: str, name: str, known: set[str]) -> None:
         if name not in known:
-            raise self.fail(key, f"unknown point or marker {name!r}")
+            raise self.fail(
+                key, f"unknown point or marker {name!r}{_did_you_mean(name, known)}"
+            )
 
     def parse_measurements(self) -> dict[str, Measurement]:
         out: dict[str, Measurement] = {}
@@ -442,6 +472,15 @@ class _Parser:
         table = self.table("markers", self.doc.get("markers", {}))
         if not table:
             raise self.fail("markers", "a rig needs at least one marker")
+        for m, v in table.items():
+            if isinstance(v, dict):
+                first = next(iter(v), "X")
+                raise self.fail(
+                    f"markers.{m}",
+                    f"TOML read the dotted key {m}.{first} as a table: name the rig "
+                    f"marker without dots and give the label as the value ({m}{first} "
+                    f'= "{m}.{first}"), or quote the key ("{m}.{first}" = ...)',
+                )
         return {m: self.strings(f"markers.{m}", v) for m, v in table.items()}
 
     def parse_segments(
@@ -457,7 +496,10 @@ class _Parser:
             names = self.strings(f"{key}.markers", spec.get("markers"))
             for m in names:
                 if m not in markers:
-                    raise self.fail(f"{key}.markers", f"unknown marker {m!r}")
+                    raise self.fail(
+                        f"{key}.markers",
+                        f"unknown marker {m!r}{_did_you_mean(m, set(markers))}",
+                    )
                 if m in owner:
                     raise self.fail(
                         f"{key}.markers", f"marker {m!r} is already in {owner[m]!r}"

@@ -7,6 +7,10 @@ into a solver. Heavy modules are imported inside the helpers so that ``retargetd
 from __future__ import annotations
 
 import argparse
+import contextlib
+import logging
+import sys
+from collections.abc import Iterator
 from typing import Any
 
 from retargetd.daemon.errors import UsageError
@@ -79,6 +83,11 @@ def add_rig_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="NAME=MM",
         help="override a subject measurement in mm (repeatable)",
     )
+    parser.add_argument(
+        "--allow-moving-base-pose",
+        action="store_true",
+        help="calibrate even when the markers move over the base-pose frames",
+    )
 
 
 def parse_measures(items: list[str]) -> dict[str, float]:
@@ -96,27 +105,95 @@ def parse_measures(items: list[str]) -> dict[str, float]:
 
 
 def calibrate_from_take(
-    take: Any, rig: Any, frames: slice, overrides: dict[str, float]
+    take: Any,
+    rig: Any,
+    frames: slice,
+    overrides: dict[str, float],
+    *,
+    allow_moving: bool = False,
 ) -> Any:
-    """Calibrate ``rig`` on ``take.positions[frames]``; errors become UsageError."""
+    """Calibrate ``rig`` on ``take.positions[frames]`` after the base-pose sanity
+    checks (``body.sanity``: up axis, units, stillness; then stature and left/right
+    symmetry of the result). Warnings go to stderr, one line each, only once the
+    calibration succeeded (a wrong rig gives its one error line alone).
+
+    Raises:
+        UsageError: a calibration error or a base pose that would give garbage.
+    """
+    from retargetd.daemon.body import sanity
     from retargetd.daemon.body.calibration import CalibrationError, calibrate
 
+    base = take.positions[frames]
     try:
-        return calibrate(
-            rig,
-            take.positions[frames],
-            take.labels,
-            take_measurements=take.measurements,
-            overrides=overrides,
-            base_pose={
-                "take": str(take.path),
-                "subject": take.subject,
-                "frames": f"{frames.start}:{frames.stop}",
-                "rate_hz": take.rate_hz,
-            },
-        )
-    except CalibrationError as exc:
+        with held_log_warnings("retargetd.daemon.body") as held:
+            notes = sanity.check_up_axis(
+                rig, base, take.labels,
+                up_axis=take.up_axis, up_source=take.up_source,
+                world_from_capture=take.world_from_capture,
+            )  # fmt: skip
+            notes += sanity.check_units(
+                base, units=take.units, units_source=take.units_source
+            )
+            notes += sanity.check_base_pose_still(
+                base, take.labels, take.rate_hz, allow_moving=allow_moving
+            )
+            cal = calibrate(
+                rig,
+                base,
+                take.labels,
+                take_measurements=take.measurements,
+                overrides=overrides,
+                base_pose={
+                    "take": str(take.path),
+                    "subject": take.subject,
+                    "frames": f"{frames.start}:{frames.stop}",
+                    "rate_hz": take.rate_hz,
+                },
+            )
+            notes += sanity.check_calibration(rig, cal, units=take.units)
+    except (CalibrationError, sanity.SanityError) as exc:
         raise UsageError(str(exc)) from None
+    held.pass_on()
+    for note in notes:
+        sys.stderr.write(f"warning: {note}\n")
+    return cal
+
+
+class _HeldRecords(logging.Handler):
+    """Keeps log records back until :meth:`pass_on` (dropped if never passed on)."""
+
+    def __init__(self, target: logging.Logger) -> None:
+        super().__init__(logging.NOTSET)
+        self.target = target
+        self.records: list[logging.LogRecord] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.records.append(record)
+
+    def pass_on(self) -> None:
+        """Pass the held records on to the handlers above the logger (not named
+        ``release``: that is ``logging.Handler``'s lock release)."""
+        records, self.records = self.records, []
+        parent = self.target.parent
+        for record in records:
+            if parent is not None and record.levelno >= parent.getEffectiveLevel():
+                parent.handle(record)
+
+
+@contextlib.contextmanager
+def held_log_warnings(name: str) -> Iterator[_HeldRecords]:
+    """Hold back what logger ``name`` (and its children) logs inside the block;
+    call ``pass_on()`` on the result to let it through (after the block)."""
+    target = logging.getLogger(name)
+    handler = _HeldRecords(target)
+    propagate = target.propagate
+    target.addHandler(handler)
+    target.propagate = False
+    try:
+        yield handler
+    finally:
+        target.removeHandler(handler)
+        target.propagate = propagate
 
 
 def load_rig_or_fail(name: str) -> Any:
@@ -186,7 +263,10 @@ def solver_for_take(args: argparse.Namespace) -> tuple[Any, Any, Any, Any]:
             frames = parse_frames(
                 args.calibrate_frames, take.n_frames, option="--calibrate-frames"
             )
-            cal = calibrate_from_take(take, rig, frames, parse_measures(args.measure))
+            cal = calibrate_from_take(
+                take, rig, frames, parse_measures(args.measure),
+                allow_moving=args.allow_moving_base_pose,
+            )  # fmt: skip
         solver = make_body_solver(
             getattr(args, "method", "construction"), rig, cal, take.labels,
             joint_limits=JOINT_LIMITS_DEG, segment_kind=SEGMENT_KIND,
@@ -194,3 +274,34 @@ def solver_for_take(args: argparse.Namespace) -> tuple[Any, Any, Any, Any]:
     except CalibrationError as exc:
         raise UsageError(str(exc)) from None
     return rig, take, cal, solver
+
+
+def add_force_argument(parser: argparse.ArgumentParser) -> None:
+    """``--force``: allow the command to replace an existing output."""
+    parser.add_argument(
+        "--force", action="store_true", help="replace an existing output"
+    )
+
+
+def refuse_existing(path: str, *, force: bool, option: str = "--out") -> None:
+    """Refuse to overwrite ``path`` unless ``force``: nothing is replaced silently.
+
+    A directory output (``validate --report``) counts as existing when it holds
+    anything; an empty directory is reused.
+
+    Raises:
+        UsageError: one line naming the option, the path and ``--force``.
+    """
+    from pathlib import Path
+
+    if force:
+        return
+    p = Path(path)
+    if p.is_dir():
+        if any(p.iterdir()):
+            raise UsageError(
+                f"{option}: {path} exists and is not empty; pass --force to replace it"
+            )
+        return
+    if p.exists() or p.is_symlink():
+        raise UsageError(f"{option}: {path} exists; pass --force to replace it")

@@ -53,7 +53,9 @@ def run(args: argparse.Namespace) -> int:
     overrides = parse_measures(args.measure)
     take = load_take(args.static, **take_overrides(args))
     frames = parse_frames(args.frames, take.n_frames, option="--frames")
-    cal = calibrate_from_take(take, rig, frames, overrides)
+    cal = calibrate_from_take(
+        take, rig, frames, overrides, allow_moving=args.allow_moving_base_pose
+    )
     cal.save(args.out)
     out = sys.stdout.write
     out(f"wrote {args.out}: rig {rig.name}, base pose {take.path} rows ")

@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from retargetd.daemon.cli.args import take_overrides
+from retargetd.daemon.cli.args import add_force_argument, take_overrides
 from retargetd.daemon.errors import UsageError
 
 logger = logging.getLogger(__name__)
@@ -43,6 +43,7 @@ def add_parser(subparsers: Any) -> None:
     )
     parser.add_argument("take", metavar="TAKE", help="a .c3d or .trc take")
     parser.add_argument("--out", required=True, metavar="FILE.c3d")
+    add_force_argument(parser)
     parser.add_argument(
         "--frames", metavar="a:b", help="rows to write (0-based, half-open; all)"
     )
@@ -68,13 +69,14 @@ def add_parser(subparsers: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``export-c3d``."""
-    from retargetd.daemon.cli.args import parse_frames
+    from retargetd.daemon.cli.args import parse_frames, refuse_existing
     from retargetd.replay.c3d import write_c3d
     from retargetd.replay.take import POSITION_KINDS
     from retargetd.replay.takes import load_take
 
     if not args.out.lower().endswith(".c3d"):
         raise UsageError(f"--out: expected a .c3d file; got {args.out!r}")
+    refuse_existing(args.out, force=args.force)
     take = load_take(args.take, **take_overrides(args))
     rows = parse_frames(args.frames, take.n_frames, option="--frames")
     labels = list(take.labels)

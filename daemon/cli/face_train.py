@@ -20,7 +20,7 @@ import argparse
 import logging
 from typing import Any
 
-from retargetd.daemon.cli.args import take_overrides
+from retargetd.daemon.cli.args import add_force_argument, take_overrides
 from retargetd.daemon.errors import UsageError
 
 logger = logging.getLogger(__name__)
@@ -43,6 +43,7 @@ def add_parser(subparsers: Any) -> None:
         help="frame range of each pose (0-based, half-open rows)",
     )  # fmt: skip
     parser.add_argument("--out", required=True, metavar="face.npz")
+    add_force_argument(parser)
     add_take_arguments(parser)
     parser.set_defaults(run=run)
 
@@ -77,6 +78,9 @@ def run(args: argparse.Namespace) -> int:
 
     if not args.out.lower().endswith(".npz"):
         raise UsageError(f"--out: expected a .npz file; got {args.out!r}")
+    from retargetd.daemon.cli.args import refuse_existing
+
+    refuse_existing(args.out, force=args.force)
     try:
         face = load_face_config(args.face)
     except FaceConfigError as exc:

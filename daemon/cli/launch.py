@@ -104,7 +104,36 @@ def open_or_fail(daemon: Any, hint: str = "") -> None:
         daemon.open()
     except (OSError, zmq.ZMQError) as exc:
         daemon.close()
-        raise UsageError(f"cannot open an endpoint{hint}: {exc}") from None
+        where = _failed_endpoint(daemon)
+        what = f"the {where[0]} endpoint {where[1]}" if where else "an endpoint"
+        raise UsageError(f"cannot open {what}{hint}: {exc}") from None
+
+
+def _failed_endpoint(daemon: Any) -> tuple[str, str] | None:
+    """(name, address) of the endpoint ``daemon.open()`` failed on: the first, in the
+    order it binds them, not announced in ``daemon.endpoints``."""
+    c = getattr(daemon, "config", None)
+    done = getattr(daemon, "endpoints", {})
+    if c is None:
+        return None
+    order: list[tuple[str, str]] = []
+    try:
+        if c.input.osc.enabled:
+            order.append(
+                ("osc markers", f"udp://{c.input.osc.host}:{c.input.osc.port}")
+            )
+        if c.show_control.enabled:
+            order.append(
+                ("show control", f"udp://{c.show_control.host}:{c.show_control.port}")
+            )
+        if c.input.zmq.enabled:
+            order.append(("zmq markers", str(c.input.zmq.endpoint)))
+        if c.output.pose.enabled:
+            order.append(("zmq poses", str(c.output.pose.endpoint)))
+        order.append(("control", str(c.control.endpoint)))
+    except AttributeError:
+        return None
+    return next(((n, a) for n, a in order if n not in done), None)
 
 
 #: The signals that stop a foreground command cleanly (the recording is finished,

@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import os
 import sys
 from collections.abc import Sequence
 
@@ -42,6 +43,20 @@ SUBCOMMAND_MODULES: tuple[str, ...] = (
     "retargetd.daemon.cli.validate",
     "retargetd.daemon.cli.batch",
 )
+
+
+#: Exit code after a broken pipe on stdout (128 + SIGPIPE, as a shell reports it).
+EXIT_BROKEN_PIPE = 141
+
+
+def _quiet_stdout() -> None:
+    """Replace stdout's descriptor with /dev/null (after a broken pipe)."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+    except (OSError, ValueError):
+        pass
 
 
 class _Parser(argparse.ArgumentParser):
@@ -85,6 +100,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     try:
         return int(args.run(args))
+    except BrokenPipeError:
+        # The reader went away (``retargetd take info X | head``): stop quietly, and
+        # point stdout at /dev/null so the interpreter's final flush does not raise
+        # again. 141 = 128 + SIGPIPE, what a shell reports for a killed writer.
+        _quiet_stdout()
+        return EXIT_BROKEN_PIPE
     except (UsageError, TakeError, OSError) as exc:
         # Input problems (bad file, bad value, ambiguous subject) are the user's to fix:
         # one line, exit 2. Anything else is a bug and crashes with a traceback (1).

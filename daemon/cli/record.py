@@ -24,6 +24,7 @@ import threading
 import time
 from typing import Any
 
+from retargetd.daemon.cli.args import add_force_argument, refuse_existing
 from retargetd.daemon.cli.launch import stop_on_signals
 from retargetd.daemon.errors import UsageError
 from retargetd.daemon.version import package_version
@@ -45,6 +46,7 @@ def add_parser(subparsers: Any) -> None:
         help="osc://HOST:PORT, zmq://HOST:PORT (bind a PULL) or zmq+sub://HOST:PORT",
     )  # fmt: skip
     parser.add_argument("--out", required=True, metavar="FILE.mcap")
+    add_force_argument(parser)
     parser.add_argument(
         "--form", choices=("compact", "simple"), default="compact",
         help="OSC form of the input (default compact)",
@@ -82,6 +84,7 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(str(exc)) from None
     if args.seconds is not None and not args.seconds > 0:
         raise UsageError(f"--seconds must be > 0; got {args.seconds:g}")
+    refuse_existing(args.out, force=args.force)
 
     ctx = zmq.Context()
     poller = zmq.Poller()

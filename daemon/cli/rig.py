@@ -33,6 +33,11 @@ def add_parser(subparsers: Any) -> None:
         "rig", metavar="RIG", help=f"shipped name ({', '.join(shipped_rigs())}) or path"
     )
     check.add_argument("take", metavar="TAKE", nargs="?", help="a take to match")
+    check.add_argument(
+        "--frames",
+        metavar="a:b",
+        help="the take's base-pose rows for the up-lever check (default: all)",
+    )
     from retargetd.daemon.cli.args import add_take_arguments
 
     add_take_arguments(check)
@@ -158,4 +163,32 @@ def _check_take(rig: Rig, args: argparse.Namespace) -> int:
         out(f"  points without data: {' '.join(dead_points)}\n")
         return 1
     out("  every bone can be built from this take\n")
+    _check_levers(rig, take, args)
     return 0
+
+
+def _check_levers(rig: Rig, take: Any, args: argparse.Namespace) -> None:
+    """Calibrate on the base-pose rows and print each bone's up lever; a warning
+    line for each under ``body.sanity.UP_LEVER_MIN_M``."""
+    from retargetd.daemon.body import sanity
+    from retargetd.daemon.body.calibration import CalibrationError, calibrate
+    from retargetd.daemon.cli.args import held_log_warnings, parse_frames
+
+    out = sys.stdout.write
+    rows = parse_frames(args.frames, take.n_frames, option="--frames")
+    base = take.positions[rows]
+    try:
+        with held_log_warnings("retargetd.daemon.body"):
+            cal = calibrate(rig, base, take.labels, take_measurements=take.measurements)
+    except CalibrationError as exc:
+        out(f"  up levers: not computed (calibration failed: {exc})\n")
+        return
+    levers = sanity.up_levers(rig, cal, base, take.labels)
+    out(
+        f"  up levers in the base pose (rows {rows.start}:{rows.stop}; at least "
+        f"{1000 * sanity.UP_LEVER_MIN_M:.0f} mm wanted): "
+        + ", ".join(f"{b} {1000 * v:.0f} mm" for b, v in levers.items())
+        + "\n"
+    )
+    for line in sanity.check_up_levers(rig, cal, base, take.labels):
+        out(f"  warning: {line}\n")

@@ -41,6 +41,7 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
+import time
 from typing import Any
 
 import numpy as np
@@ -52,7 +53,7 @@ logger = logging.getLogger(__name__)
 
 def add_parser(subparsers: Any) -> None:
     """Register ``solve``."""
-    from retargetd.daemon.cli.args import add_solve_arguments
+    from retargetd.daemon.cli.args import add_force_argument, add_solve_arguments
     from retargetd.daemon.cli.post_io import add_pipeline_argument
 
     parser = subparsers.add_parser(
@@ -66,6 +67,7 @@ def add_parser(subparsers: Any) -> None:
         "--out", required=True, metavar="OUT.npz|OUT.bvh|OUT.csv|OUT.glb"
     )
     add_pipeline_argument(parser)
+    add_force_argument(parser)
     parser.add_argument(
         "--bvh-order",
         metavar="ORDER",
@@ -146,11 +148,14 @@ def reference_distances(
 def run(args: argparse.Namespace) -> int:
     """Run ``solve``."""
     from retargetd.daemon.body.solve import FLAG_HELD
-    from retargetd.daemon.cli.args import solver_for_take
+    from retargetd.daemon.cli.args import refuse_existing, solver_for_take
 
     out_format = _out_format(args)
+    refuse_existing(args.out, force=args.force)
     rig, take, cal, solver = solver_for_take(args)
+    started = time.perf_counter()
     res = solver.solve_take(take.positions)
+    solve_s = time.perf_counter() - started
     kinds: tuple[str, ...] = ()
     if args.pipeline is not None:
         from retargetd.daemon.cli.post_io import apply_pipeline_to_solve
@@ -197,6 +202,8 @@ def run(args: argparse.Namespace) -> int:
     total = n * len(cols)
     out(f"wrote {args.out}: {n} frames at {take.rate_hz:g} Hz, rig {rig.name}, ")
     out(f"{len(res.bone_names)} bones, {len(res.joint_names)} joint centres\n")
+    fps = n / solve_s if solve_s > 0 else float("inf")
+    out(f"solved in {solve_s:.2f} s: {fps:.0f} frames/s\n")
     rms = getattr(res, "marker_rms", None)
     if rms is not None and len(rms):
         finite = rms[np.isfinite(rms)] * 1e3

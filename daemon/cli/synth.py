@@ -47,7 +47,11 @@ _UP_AXIS = {".c3d": "+Z", ".trc": "+Y"}
 
 def add_parser(subparsers: Any) -> None:
     """Register ``synth`` on the top-level subparsers."""
-    from retargetd.daemon.synth.performer import ALL_MOTIONS, DEFAULT_ORIGIN
+    from retargetd.daemon.synth.performer import (
+        ALL_MOTIONS,
+        DEFAULT_MOTIONS,
+        DEFAULT_ORIGIN,
+    )
 
     parser = subparsers.add_parser(
         "synth",
@@ -77,10 +81,11 @@ def add_parser(subparsers: Any) -> None:
     )
     parser.add_argument(
         "--motions",
-        default=",".join(ALL_MOTIONS),
+        default=",".join(DEFAULT_MOTIONS),
         metavar="LIST",
         help=f"comma-separated, from {','.join(ALL_MOTIONS)} "
-        "(default: all; 'none' for a static T-pose)",
+        "(default: the everyday ones, "
+        f"{','.join(DEFAULT_MOTIONS)}; 'none' for a static T-pose)",
     )
     parser.add_argument(
         "--noise-mm",

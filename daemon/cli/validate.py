@@ -46,7 +46,7 @@ THRESHOLDS_NOTE = (
 
 def add_parser(subparsers: Any) -> None:
     """Register ``validate``."""
-    from retargetd.daemon.cli.args import add_solve_arguments
+    from retargetd.daemon.cli.args import add_force_argument, add_solve_arguments
 
     parser = subparsers.add_parser(
         "validate",
@@ -56,6 +56,7 @@ def add_parser(subparsers: Any) -> None:
     )
     add_solve_arguments(parser)
     parser.add_argument("--report", required=True, metavar="DIR")
+    add_force_argument(parser)
     parser.add_argument(
         "--body-mass-kg", type=float, metavar="KG", help="override the body mass"
     )
@@ -69,8 +70,9 @@ def add_parser(subparsers: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``validate``."""
-    from retargetd.daemon.cli.args import solver_for_take
+    from retargetd.daemon.cli.args import refuse_existing, solver_for_take
 
+    refuse_existing(args.report, force=args.force, option="--report")
     rig, take, cal, solver = solver_for_take(args)
     if cal.rest_bone_origin_pos is None:
         raise UsageError("calibration has no rest bone origins: recalibrate")
@@ -105,6 +107,7 @@ def _validate(
         fit_pairs,
         validate_take,
     )
+    from retargetd.daemon.validate.limits import LIMITS_SOURCES
     from retargetd.daemon.validate.model import (
         DEFAULT_BODY_MASS_KG,
         build_model,
@@ -125,6 +128,7 @@ def _validate(
         "body_mass_source": "default" if mass is None else "take or --body-mass-kg",
         "model": {"xml": "model.xml", "sha256": vm.digest, "floor_z_m": vm.floor_z},
         "thresholds_note": THRESHOLDS_NOTE,
+        "limits_note": f"joint limits: {LIMITS_SOURCES}",
         "thresholds": THRESHOLDS,
         "thresholds_basis": THRESHOLDS_BASIS,
         "seconds_per_frame": rep.seconds_per_frame,
@@ -148,6 +152,7 @@ def _validate(
         f"Result: {'PASS' if rep.passed else 'FAIL: ' + ', '.join(rep.failed())}",
         "",
         f"How the thresholds were set: {THRESHOLDS_NOTE}",
+        f"Joint limits: {LIMITS_SOURCES}",
         *(
             f"    {name}: {rep.checks[name].threshold:g} {rep.checks[name].unit}"
             f" - {basis}"
@@ -169,6 +174,7 @@ def _validate(
             f"  worst frames: {worst}{transients}"
         )
         lines.extend(f"    {d}" for d in c.detail)
+        lines.extend(f"    {w}" for w in c.warnings)
     lines.extend(["", *visuals_text(doc["visuals"])])
     text = "\n".join(lines) + "\n"
     (report_dir / "report.txt").write_text(text)

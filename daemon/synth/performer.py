@@ -32,6 +32,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from scipy.signal import butter, filtfilt
 
 from retargetd.daemon import rotations as rot
 from retargetd.daemon.synth.markerset import (
@@ -50,7 +51,9 @@ from retargetd.protocols.conventions import MM_TO_M
 from retargetd.protocols.frames import BoolArray, F64Array, IntArray
 
 __all__ = [
+    "ACTIVITY_MOTIONS",
     "ALL_MOTIONS",
+    "DEFAULT_MOTIONS",
     "REFERENCE_HEIGHT_M",
     "SEGMENT_NAMES",
     "MarkerSet",
@@ -63,14 +66,28 @@ __all__ = [
     "synthesize",
 ]
 
-#: Motion components, in composition order.
-ALL_MOTIONS: tuple[str, ...] = (
+#: The everyday motion components, in composition order: the default of
+#: :func:`synthesize` (a walk round a circle with arm, forearm, spine and head motion).
+DEFAULT_MOTIONS: tuple[str, ...] = (
     "walk",
     "arm_raise",
     "forearm_twist",
     "spine",
     "head_turn",
 )
+#: Activities that reach the published ranges of motion the validator's joint limits
+#: come from (``validate.limits``), each meant to be synthesized alone (optionally
+#: with ``head_turn``): see :func:`_deep_squat` ... :func:`_jump`.
+ACTIVITY_MOTIONS: tuple[str, ...] = (
+    "stair_ascent",
+    "stair_descent",
+    "run",
+    "jump",
+    "deep_squat",
+    "kick",
+)
+#: Every motion component, in composition order.
+ALL_MOTIONS: tuple[str, ...] = DEFAULT_MOTIONS + ACTIVITY_MOTIONS
 #: Ramp from the base-pose hold into full motion, seconds.
 RAMP_S = 0.5
 #: Walk: circle radius, speed, stride length (one left + one right step).
@@ -115,6 +132,19 @@ class _Motion:
     heading: F64Array  # (T,) radians about world +Z
     motions: tuple[str, ...]
     walk_weight: F64Array = field(default_factory=lambda: np.zeros(0))
+    # Activities: keep the lowest sole on the floor with this weight (like the walk);
+    # translate the body horizontally so these segments' origins stay where they
+    # stood (a planted foot); add this vertical flight (metres) after both.
+    floor_weight: F64Array = field(default_factory=lambda: np.zeros(0))
+    plant: tuple[str, ...] = ()
+    plant_weight: F64Array = field(default_factory=lambda: np.zeros(0))
+    flight_m: F64Array = field(default_factory=lambda: np.zeros(0))
+    # Gaits: low-pass the floor-contact lift (Hz; 0 = off): the hard switch of the
+    # lowest sole from one foot to the other would drop the body faster than gravity.
+    floor_smooth_hz: float = 0.0
+    # Runs: the body never falls faster than gravity; where the floor contact would
+    # drop it faster, it flies (the feet leave the floor: a flight phase).
+    ballistic: bool = False
 
     def add(self, segment: str, axis: int, deg: F64Array) -> None:
         """Add ``deg`` (T,) degrees, already weighted, about one axis of one segment."""
@@ -246,12 +276,239 @@ def _head_turn(m: _Motion) -> None:
         m.add(segment, _X, -w * share * tilt)
 
 
+# --- activities that reach the published ranges of motion --------------------------
+#
+# Peak angles (degrees, from the standing calibration pose) are those the literature
+# reports for healthy adults; validate.limits cites the same papers. Legs: thigh -y =
+# hip flexion, shank +y = knee flexion, foot -y = ankle dorsiflexion (see _walk).
+
+
+def _cycle(m: _Motion, period_s: float) -> F64Array:
+    """0 -> 1 -> 0 over each ``period_s`` after the hold (raised cosine), weighted."""
+    return m.w * 0.5 * (1.0 - np.cos(2.0 * np.pi * np.maximum(m.t, 0.0) / period_s))
+
+
+def _legs(
+    m: _Motion, side: str, hip: F64Array, knee: F64Array, ankle: F64Array
+) -> None:
+    """Hip flexion, knee flexion, ankle dorsiflexion (deg, weighted) of one leg."""
+    m.add(f"{side}_thigh", _Y, -hip)
+    m.add(f"{side}_shank", _Y, knee)
+    m.add(f"{side}_foot", _Y, -ankle)
+
+
+def _arms_down(m: _Motion, forward_deg: F64Array | float = 0.0) -> None:
+    """Arms from the T-pose to hanging (72 deg down), raised forward by
+    ``forward_deg`` (already weighted; for balance), unless another component drives
+    them."""
+    if "arm_raise" not in m.motions:
+        m.add_bilateral("upper_arm", _X, -m.w * 72.0, -m.w * 72.0)
+        fwd = forward_deg * np.ones_like(m.w)
+        m.add_bilateral("upper_arm", _Z, -fwd, -fwd)
+
+
+def _deep_squat(m: _Motion) -> None:
+    """Full squat, heels down, one every 4 s: hip flexion 115, knee flexion 152,
+    ankle dorsiflexion 38, trunk flexion 30 (Hemmerich et al. 2006: squatting, knee
+    157 and ankle 38.5 deg); feet planted, arms forward for balance."""
+    s = _cycle(m, 4.0)
+    for side in ("l", "r"):
+        _legs(m, side, 115.0 * s, 152.0 * s, 38.0 * s)
+    for segment, share in (("abdomen", 0.5), ("thorax", 0.5)):
+        m.add(segment, _Y, share * 30.0 * s)
+    _arms_down(m, 80.0 * s)
+    m.floor_weight = m.w
+    m.plant = ("l_foot", "r_foot")
+    m.plant_weight = m.w
+
+
+#: One kick every this many seconds.
+KICK_PERIOD_S = 4.0
+
+
+def _kick(m: _Motion) -> None:
+    """Instep kick with the right leg, one every 3 s, standing on the left: backswing
+    hip extension 30 with knee flexion 100, then the swing to hip flexion 85 with the
+    knee straightening and the foot pointed (plantarflexion 45); the stance knee
+    flexes 25 (Nunome et al. 2002; Lees & Nolan 1998). Left foot planted."""
+    tau = (np.maximum(m.t, 0.0) % KICK_PERIOD_S) / KICK_PERIOD_S  # through one kick
+    back = m.w * _bump(2.0 * np.pi * (tau - 0.3), 4)  # backswing peak at 30 %
+    swing = m.w * _bump(2.0 * np.pi * (tau - 0.6), 4)  # follow-through at 60 %
+    _legs(m, "r", -30.0 * back + 85.0 * swing, 100.0 * back + 15.0 * swing,
+          -45.0 * np.maximum(back, swing))  # fmt: skip
+    stance = np.maximum(back, swing)
+    _legs(m, "l", 20.0 * stance, 25.0 * stance, 15.0 * stance)
+
+    m.add("abdomen", _Y, -10.0 * swing)  # the trunk leans back as the leg swings up
+    m.add("thorax", _Y, -5.0 * swing)
+    m.add("pelvis", _Z, 15.0 * swing - 10.0 * back)
+    _arms_down(m)
+    m.add_bilateral("upper_arm", _X, m.w * 40.0 * stance, m.w * 30.0 * stance)
+    m.floor_weight = m.w
+    m.plant = ("l_foot",)
+    m.plant_weight = m.w
+
+
+def _jump(m: _Motion) -> None:
+    """Countermovement jumps in place, one every 2.5 s: crouch to hip flexion 60,
+    knee 100, ankle dorsiflexion 40, arms forward 60 (landing: Decker et al. 2003, hip
+    ~60-90, knee ~90-100, ankle ~25-35), push-off, 0.40 s of ballistic flight (20 cm;
+    the lift frozen at take-off, the legs still but for the ankles pointing 30), then
+    the landing absorbed over 0.9 s into the same crouch. Feet planted."""
+    period = 2.5
+    tau = np.maximum(m.t, 0.0) % period
+    flight_s = 0.40
+    take_off = 1.0
+    landing = take_off + flight_s
+
+    def hump(centre: float, half: float) -> F64Array:
+        x = np.clip((tau - centre) / half, -1.0, 1.0)
+        return (0.5 * (1.0 + np.cos(np.pi * x))) ** 2
+
+    # Countermovement down and up (0.1-1.0 s), landing absorbed (1.4-2.3 s).
+    crouch = m.w * (hump(0.55, 0.45) + hump(landing + 0.45, 0.45))
+    air = (tau >= take_off) & (tau < landing)
+    u = np.where(air, (tau - take_off) / flight_s, 0.0)
+    point = m.w * np.where(air, np.sin(np.pi * u), 0.0)
+    for side in ("l", "r"):
+        _legs(m, side, 60.0 * crouch, 100.0 * crouch, 40.0 * crouch - 30.0 * point)
+    _arms_down(m, 60.0 * crouch)
+    g = 9.81
+    tf = np.where(air, tau - take_off, 0.0)
+    m.flight_m = np.where(air, m.w * (0.5 * g * flight_s * tf - 0.5 * g * tf * tf), 0.0)
+    m.floor_weight = m.w
+    m.plant = ("l_foot", "r_foot")
+    m.plant_weight = m.w
+
+
+#: Sharpness of a gait's stance knee-flexion bump (a power of the raised cosine).
+STANCE_POWER = 3
+
+
+def _gait(
+    m: _Motion,
+    *,
+    speed_m_s: float,
+    stride_m: float,
+    hip: tuple[float, float],
+    knee_stance: float,
+    knee_swing: float,
+    ankle_dorsi: float,
+    ankle_plantar: float,
+    trunk_deg: float,
+    smooth_hz: float = 4.0,
+    radius_m: float = WALK_RADIUS_M,
+    ramp_s: float = RAMP_S,
+    ballistic: bool = False,
+) -> None:
+    """A gait round the walk circle with its own joint-angle profile: hip flexion
+    ``hip[0] + hip[1] cos(phase)``, knee flexion bumps in stance and swing, ankle
+    dorsiflexion in stance and plantarflexion at push-off; the lowest sole kept on
+    the floor (the steps of a stair gait are not modelled: its angles are)."""
+    t0 = np.maximum(m.t, 0.0)
+    dist = speed_m_s * ramp_s * _smootherstep_integral(t0 / ramp_s)
+    phase = 2.0 * np.pi * dist / stride_m
+    w = _smootherstep(m.t / ramp_s)  # the angles grow with the speed
+    for side_phase, side in ((phase + np.pi, "l"), (phase, "r")):
+        hip_flex = hip[0] + hip[1] * np.cos(side_phase)
+        knee = knee_swing * _bump(side_phase - 4.6, 4) + knee_stance * _bump(
+            side_phase - 0.9, STANCE_POWER
+        )
+        ankle = ankle_dorsi * _bump(side_phase - 2.4, 3) - ankle_plantar * _bump(
+            side_phase - 3.9, 6
+        )
+        _legs(m, side, w * hip_flex, w * knee, w * ankle)
+    m.add("abdomen", _Y, w * trunk_deg)
+    _arms_down(m)
+    m.add_bilateral(
+        "upper_arm", _Y, w * 25.0 * np.cos(phase), -w * 25.0 * np.cos(phase)
+    )
+    m.add_bilateral("forearm", _Z, -w * 60.0, -w * 60.0)
+    heading = dist / radius_m
+    m.heading += heading
+    m.root_pos[:, 0] += radius_m * np.sin(heading)
+    m.root_pos[:, 1] += radius_m - radius_m * np.cos(heading)
+    m.floor_weight = w
+    m.floor_smooth_hz = smooth_hz
+    m.ballistic = ballistic
+
+
+def _stair_ascent(m: _Motion) -> None:
+    """Stair-ascent joint angles (McFadyen & Winter 1988; Protopapadaki et al. 2007):
+    hip flexion to 65, knee flexion to 95, ankle dorsiflexion 20, push-off
+    plantarflexion 15, trunk forward 10; 0.5 m/s."""
+    _gait(
+        m,
+        speed_m_s=0.5,
+        stride_m=0.6,
+        hip=(27.5, 37.5),
+        knee_stance=60.0,
+        knee_swing=95.0,
+        ankle_dorsi=20.0,
+        ankle_plantar=15.0,
+        trunk_deg=10.0,
+    )
+
+
+def _stair_descent(m: _Motion) -> None:
+    """Stair-descent joint angles (McFadyen & Winter 1988; the issue's stair walk):
+    hip flexion to 40, knee flexion to 100, ankle dorsiflexion to 45 as the stance
+    leg lowers the body, plantarflexion 30 reaching for the step below; 0.5 m/s."""
+    _gait(
+        m,
+        speed_m_s=0.5,
+        stride_m=0.6,
+        hip=(17.5, 22.5),
+        knee_stance=85.0,
+        knee_swing=100.0,
+        ankle_dorsi=45.0,
+        ankle_plantar=30.0,
+        trunk_deg=5.0,
+    )
+
+
+#: The run's circle: at 3 m/s a 15 m radius asks 0.6 m/s^2 of centripetal
+#: acceleration, the walk's on its 1.5 m circle (0.67 m/s^2); on the walk's circle it
+#: would be 6 m/s^2, which a runner leans into and the synthetic one does not.
+RUN_RADIUS_M = 15.0
+
+
+def _run(m: _Motion) -> None:
+    """Running (Novacheck 1998, running 3.2 m/s to sprinting): hip flexion 10..60
+    about 25 +- 35 (extension 10 at toe-off), stance knee flexion 45, swing 120,
+    ankle dorsiflexion 25, push-off plantarflexion 25, trunk forward 10; 3 m/s,
+    speeding up over 2 s, on a 15 m circle. The body never falls faster than gravity:
+    where the floor contact would drop it faster it flies, so each step has a flight
+    phase (~0.1 s)."""
+    _gait(
+        m,
+        speed_m_s=3.0,
+        stride_m=2.4,
+        hip=(25.0, 35.0),
+        knee_stance=45.0,
+        knee_swing=120.0,
+        ankle_dorsi=25.0,
+        ankle_plantar=25.0,
+        trunk_deg=10.0,
+        smooth_hz=0.0,
+        radius_m=RUN_RADIUS_M,
+        ramp_s=2.0,
+        ballistic=True,
+    )
+
+
 _COMPONENTS = {
     "walk": _walk,
     "arm_raise": _arm_raise,
     "forearm_twist": _forearm_twist,
     "spine": _spine,
     "head_turn": _head_turn,
+    "stair_ascent": _stair_ascent,
+    "stair_descent": _stair_descent,
+    "run": _run,
+    "jump": _jump,
+    "deep_squat": _deep_squat,
+    "kick": _kick,
 }
 
 
@@ -370,6 +627,23 @@ def load_truth(path: str | Path) -> SynthTake:
     return SynthTake(**kwargs)  # type: ignore[arg-type]
 
 
+def _no_faster_than_gravity(z: F64Array, rate_hz: float) -> F64Array:
+    """The least height curve >= ``z`` (T,) whose downward acceleration never exceeds
+    g (9.81 m/s^2): ballistic flight wherever ``z`` would fall faster."""
+    out = np.array(z, dtype=np.float64)
+    drop = 9.81 / (rate_hz * rate_hz)
+    for i in range(2, out.size):
+        out[i] = max(out[i], 2.0 * out[i - 1] - out[i - 2] - drop)
+    return out
+
+
+def _low_pass(x: F64Array, cutoff_hz: float, rate_hz: float) -> F64Array:
+    """Zero-phase 2nd-order Butterworth low-pass of ``x`` (T,)."""
+    b, a = butter(2, min(cutoff_hz / (0.5 * rate_hz), 0.99))
+    pad = min(3 * max(len(a), len(b)), len(x) - 1)
+    return np.asarray(filtfilt(b, a, x, padlen=pad))
+
+
 def _softmin(z: F64Array, temperature: float) -> F64Array:
     """Smooth minimum over the last axis, never above the true minimum."""
     low = z.min(axis=-1, keepdims=True)
@@ -456,7 +730,7 @@ def synthesize(
     seconds: float,
     rate_hz: float,
     markerset: str | Path | MarkerSet = "menache",
-    motions: Sequence[str] = ALL_MOTIONS,
+    motions: Sequence[str] = DEFAULT_MOTIONS,
     noise_mm: float = 0.0,
     dropout: float = 0.0,
     dropout_mean_frames: float | None = None,
@@ -558,6 +832,35 @@ def synthesize(
         rest_z = origin_world[2] + (skeleton.rest_pos[seg] + skeleton.sole_points)[:, 2]
         lift = _softmin(rest_z, _FLOOR_SOFTMIN_M) - _softmin(sole_z, _FLOOR_SOFTMIN_M)
         joint_pos[..., 2] += (work.walk_weight * lift)[:, None]
+    if work.floor_weight.size:
+        # Activities: the same floor contact, then planted feet, then flight.
+        seg = skeleton.sole_segments
+        sole_z = (
+            joint_pos[:, seg, 2]
+            + rot.quat_rotate(world_from_segment[:, seg], skeleton.sole_points)[..., 2]
+        )
+        rest_z = origin_world[2] + (skeleton.rest_pos[seg] + skeleton.sole_points)[:, 2]
+        lift = _softmin(rest_z, _FLOOR_SOFTMIN_M) - _softmin(sole_z, _FLOOR_SOFTMIN_M)
+        if work.floor_smooth_hz > 0.0 and n_frames > 12:
+            lift = _low_pass(lift, work.floor_smooth_hz, rate_hz)
+        if work.ballistic:
+            lift = _no_faster_than_gravity(lift, rate_hz)
+        if work.flight_m.size:
+            # In flight the body is ballistic: the lift stays what it was at take-off.
+            air = np.flatnonzero(work.flight_m > 0.0)
+            if air.size:
+                starts = air[np.r_[True, np.diff(air) > 1]]
+                run_id = np.cumsum(np.r_[True, np.diff(air) > 1]) - 1
+                lift[air] = lift[np.maximum(starts - 1, 0)][run_id]
+        joint_pos[..., 2] += (work.floor_weight * lift)[:, None]
+    if work.plant:
+        planted = [skeleton.index(s) for s in work.plant]
+        drift = joint_pos[:, planted, :2].mean(axis=1) - joint_pos[
+            :1, planted, :2
+        ].mean(axis=1)
+        joint_pos[..., :2] -= (work.plant_weight[:, None] * drift)[:, None, :]
+    if work.flight_m.size:
+        joint_pos[..., 2] += work.flight_m[:, None]
 
     marker_segments = np.array(
         [skeleton.index(s) for s in markerset.segments], dtype=np.int64

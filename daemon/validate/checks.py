@@ -38,7 +38,7 @@ from retargetd.daemon import rotations as rot
 from retargetd.daemon.body.rig import Rig
 from retargetd.daemon.body.solve import BodySolve
 from retargetd.daemon.validate import dynamics as vd
-from retargetd.daemon.validate.limits import limit_violation_deg
+from retargetd.daemon.validate.limits import TYPICAL_LIMITS_DEG, limit_violation_deg
 from retargetd.daemon.validate.model import (
     Skeleton,
     ValidationModel,
@@ -127,10 +127,12 @@ THRESHOLDS_BASIS: dict[str, str] = {
     "fit_max": "per-frame max: PiG 31.3, ballet 56.2 (other-session calibration), "
     "tennis 106.5 mm (the serve bends the rigid thorax, knee marker slides)",
     "quat_norm": "solve writes unit quaternions to ~1e-15",
-    "limits": "per-joint table (validate_limits: AAOS, Norkin & White, Soucie 2011; "
-    "dancers Hamilton 1992; serve Fleisig 2003; skin markers Reinschmidt 1997, Benoit "
-    "2006): 0 deg beyond on all three takes; >= 2 consecutive frames (tennis 400, "
-    "744: one-frame marker glitches, reported as transients)",
+    "limits": "per-joint table (validate.limits: the widest published range across "
+    "activities - stairs, running, landing, deep squat, kicking, dance, throwing - "
+    "+ skin-marker margin; beyond the clinical norms AAOS, Norkin & White, Soucie "
+    "2011 + 10 deg: a warning only): 0 deg beyond on all three takes and the "
+    "synthetic activities; >= 2 consecutive frames (tennis 400, 744: one-frame "
+    "marker glitches, reported as transients)",
     "self_penetration": "lean capsules: max PiG 3.3, ballet 0, tennis 0 mm",
     "floor_penetration": "max PiG 19.2, ballet 28.7, tennis 53.1 mm (rigid shank vs "
     "sliding knee marker); body sunk 15 cm: 163",
@@ -263,6 +265,8 @@ class CheckResult:
     detail: list[str] = field(default_factory=list)  # per worst frame
     # Frames beyond the threshold that do not fail the check (too short: limits).
     transients: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    # Warnings that do not fail the check (limits: beyond the typical range).
+    warnings: list[str] = field(default_factory=list)
 
     @property
     def n_flagged(self) -> int:
@@ -284,6 +288,7 @@ class CheckResult:
             "worst_frames": [int(i) for i in worst],
             "worst_values": [float(self.values[i]) for i in worst],
             "transient_frames": [int(i) for i in self.transients],
+            "warnings": list(self.warnings),
         }
 
 
@@ -427,11 +432,33 @@ def validate_take(
         f"transient, frame {t}: {names[worst_bone[t]]} {which[t, worst_bone[t]]}"
         for t in lim.transients[:5]
     ]
+    lim.warnings = _typical_warnings(skel_model, pfb, viol, rate_hz)
     checks["self_penetration"].detail = [
         f"frame {t}: {names[self_pairs[t, 0]]} / {names[self_pairs[t, 1]]}"
         for t in np.flatnonzero(checks["self_penetration"].flagged)[:5]
     ]
     return TakeReport(checks=checks, n_frames=n, seconds_per_frame=per_frame)
+
+
+def _typical_warnings(
+    skel: Any, pfb: F64Array, viol: F64Array, rate_hz: float
+) -> list[str]:
+    """One line per bone that goes beyond the typical range
+    (:data:`validate.limits.TYPICAL_LIMITS_DEG`) but not beyond the failure limits in
+    the same frames: a warning, not a failure."""
+    typ, which = limit_violation_deg(skel, pfb, TYPICAL_LIMITS_DEG)
+    out = []
+    for b, name in enumerate(skel.bone_names):
+        beyond = (typ[:, b] > 0.0) & (viol[:, b] <= 0.0)
+        if not beyond.any():
+            continue
+        t = int(np.argmax(np.where(beyond, typ[:, b], -1.0)))
+        out.append(
+            f"beyond the typical range (warning): {name} {which[t, b]}, "
+            f"{typ[t, b]:.1f} deg past it at frame {t}, "
+            f"{beyond.sum() / rate_hz:.2f} s in all"
+        )
+    return out
 
 
 def _speed(pos: F64Array, rate_hz: float) -> F64Array:

@@ -363,7 +363,7 @@ def clean_synth() -> CleanTake:
         seconds=4.0,
         rate_hz=rate_hz,
         markerset=data / "synth-exact-markers.toml",
-        motions=[m for m in pf.ALL_MOTIONS if m != "forearm_twist"],
+        motions=[m for m in pf.DEFAULT_MOTIONS if m != "forearm_twist"],
     )
     cal = calibrate(rig, take.markers_world[take.base_pose_frames], take.labels)
     solve = BodySolver(rig, cal, take.labels).solve_take(take.markers_world)

@@ -47,9 +47,9 @@ def test_c3d_round_trip_with_subject(
     assert b.rate_hz == 100.0 and b.first_frame == 5
     assert b.measurements == {"Bodymass": 70.0}
     # Prefix renamed, then dropped.
-    assert main([*args, "--out-subject", "Sam"]) == 0
+    assert main([*args, "--out-subject", "Sam", "--force"]) == 0
     assert load_take(out).subject == "Sam"
-    assert main([*args, "--out-subject", ""]) == 0
+    assert main([*args, "--out-subject", "", "--force"]) == 0
     assert load_take(out).subjects == () and load_take(out).labels == a.labels
 
 
@@ -81,7 +81,12 @@ def test_pig_references(
     a, b = load_take(src), load_take(out)
     _same(a, b)
     assert b.subject == a.subject == "BELT_C" and b.references.labels == ()
-    assert main(["export-c3d", str(src), "--out", str(out), "--with-references"]) == 0
+    assert (
+        main(
+            ["export-c3d", str(src), "--out", str(out), "--with-references", "--force"]
+        )
+        == 0
+    )
     assert "never written" in capsys.readouterr().out
     c = load_take(out)
     assert c.labels == a.labels

@@ -212,3 +212,58 @@ def test_rig_check_against_a_take(
     out = capsys.readouterr().out
     assert "missing (occluded in every frame): LHEAD RHEAD" in out
     assert "bones without data (held at rest, flagged): head" in out
+
+
+@pytest.mark.parametrize(
+    ("extra", "message"),
+    [
+        # A dotted label as a bare TOML key is a table: the error says how to fix it,
+        # whether the table's name is new or clashes with a marker (invalid TOML).
+        ('S.EIAS = "S.EIAS"', 'SEIAS = "S.EIAS"'),
+        ('R.EIAS = "R.EIAS"', 'REIAS = "R.EIAS"'),
+        ('"R.EIAS" = "R.EIAS"\n[points.Q]\nline = ["R", "R.EIAS"]', None),
+    ],
+)
+def test_dotted_marker_labels(extra: str, message: str | None) -> None:
+    text = MINIMAL.replace('B = "BM"\n', f'B = "BM"\n{extra.split(chr(10))[0]}\n')
+    text += "\n".join(extra.split("\n")[1:])
+    if message is None:
+        rig = parse_rig(text, source="dots.toml")
+        assert rig.markers["R.EIAS"] == ("R.EIAS",)
+        assert "Q" in rig.point_names
+        return
+    with pytest.raises(RigError) as info:
+        parse_rig(text, source="dots.toml")
+    assert message in str(info.value)
+    assert "markers.S" in str(info.value) or "not valid TOML" in str(info.value)
+
+
+def test_rig_errors_suggest_the_fix() -> None:
+    # A quoted dotted name cannot appear in an expression: the error says what can.
+    text = MINIMAL.replace('B = "BM"\n', 'B = "BM"\n"R.EIAS" = "R.EIAS"\n') + (
+        '\n[points.Y]\nrigid = ["R", "L", "B"]\n'
+        'rule = { height = "R.EIAS", width = "L", depth = "B" }\n'
+    )
+    with pytest.raises(RigError, match=r'REIAS = "R.EIAS"'):
+        parse_rig(text, source="dots.toml")
+    # A misspelt point or marker: the closest name is offered.
+    with pytest.raises(
+        RigError, match=r"unknown point or marker 'MDI' \(did you mean 'MID'\?\)"
+    ):
+        parse_rig(MINIMAL.replace('origin = "IN"', 'origin = "MDI"'), source="x.toml")
+
+
+def test_rig_check_reports_up_levers(
+    datasets: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """On the PiG static: every bone's up lever is printed; a bone under 30 mm (the
+    left foot's heel marker sits 25 mm off its ankle-toe line) gets a warning."""
+    static = datasets / "btkdata/PiG_Calibration-FlatFoot-Full.c3d"
+    assert main(["rig", "check", "plug-in-gait", str(static)]) == 0
+    out = capsys.readouterr().out
+    assert "up levers in the base pose (rows 0:94; at least 30 mm wanted)" in out
+    assert "pelvis 200 mm" in out
+    warned = [line for line in out.splitlines() if "warning: bone" in line]
+    assert warned and all("mm off the bone's axis" in line for line in warned)
+    assert any("lfoot" in line for line in warned)
+    assert not any("pelvis" in line for line in warned)

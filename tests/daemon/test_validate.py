@@ -373,4 +373,5 @@ def test_cli_exit_codes(
         raise RuntimeError("boom")
 
     monkeypatch.setattr(validate, "validate_take", boom)
-    assert main(argv) == 3
+    assert main(argv) == 2  # the report folder now holds a report: refused
+    assert main([*argv, "--force"]) == 3

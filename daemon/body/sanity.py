@@ -1,0 +1,469 @@
+"""Sanity checks on a base pose and its calibration, run before any solve.
+
+A take whose length unit or up axis is declared wrong, or a "base pose" taken while
+the performer walks, calibrates without an error and gives a skeleton that is garbage
+(bone lengths of 0 mm, a performer lying on the floor, left and right arms 30 %
+apart). These checks catch that from the base pose alone:
+
+- :func:`check_units`: the markers' vertical extent (before calibration) and the
+  stature the calibrated long bones imply (after) against the range of adult human
+  stature;
+- :func:`check_up_axis`: the head must be above the feet along the declared up axis;
+- :func:`base_pose_motion` / :func:`check_base_pose_still`: marker speeds over the
+  calibration frames against quiet-standing postural sway (the live calibrate can
+  call these on its buffered frames);
+- :func:`check_bilateral`: left and right calibrated bones within 10 %.
+
+Each returns the warnings (one line each) and raises :class:`SanityError` (one line
+naming the override) where the result would be garbage. Positions are (F, M, 3)
+float64 metres in the internal world (+Z up), NaN where occluded.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from retargetd.daemon.body.calibration import (
+    Calibration,
+    compute_points,
+    match_markers,
+)
+from retargetd.daemon.body.rig import Rig
+from retargetd.protocols.conventions import UNIT_TO_METRES
+from retargetd.protocols.frames import F64Array
+
+#: Plausible standing height of a performer, metres. Adult mean heights by country
+#: span about 1.50-1.83 m (NCD Risk Factor Collaboration, "A century of trends in
+#: adult human height", eLife 2016;5:e13410; Roser, Appel & Ritchie, "Human Height",
+#: Our World in Data, 2013/2019), with the spread within a population near 7 cm SD;
+#: 1.0 m (a child of about 4, WHO growth standards) to 2.3 m (beyond the tallest
+#: few per million) brackets every performer a studio will see.
+STATURE_RANGE_M = (1.0, 2.3)
+
+#: A unit confusion changes lengths by at least a factor of 2.54 (inch vs cm), usually
+#: 10 or 1000; a stature more than a factor of 2 outside :data:`STATURE_RANGE_M` is
+#: therefore a wrong unit, not an unusual person: refused (exit 2).
+UNITS_GARBAGE_FACTOR = 2.0
+
+#: Long-bone lengths as fractions of stature H (Drillis & Contini 1966, as tabulated in
+#: Winter, "Biomechanics and Motor Control of Human Movement", 4th ed. 2009, Fig. 4.1):
+#: thigh (hip to knee joint) 0.245 H, leg (knee to ankle) 0.246 H, upper arm (shoulder
+#: to elbow) 0.186 H, forearm (elbow to wrist) 0.146 H. Keyed by the humanoid bone
+#: name without its side.
+LONG_BONE_FRACTION_OF_STATURE = {
+    "UpperLeg": 0.245,
+    "LowerLeg": 0.246,
+    "UpperArm": 0.186,
+    "LowerArm": 0.146,
+}
+
+#: Marker speed above which the base pose is not "held": quiet standing sways the
+#: centre of pressure at a mean 8-15 mm/s in healthy adults (Prieto et al., IEEE Trans
+#: Biomed Eng 1996;43(9):956-966, mean velocity 11 mm/s eyes open; Lin et al., Gait &
+#: Posture 2008;28(2):337-342), the head at a few times that (inverted-pendulum
+#: lever: Winter et al., J Neurophysiol 1998;80:1211-1221). 0.10 m/s is several times
+#: any quiet-stance sway and a tenth of the slowest comfortable walking speed
+#: (1.0-1.4 m/s, Bohannon, Age Ageing 1997;26:15-19), so a walk or an arm swing
+#: exceeds it and standing still never does.
+STILL_SPEED_LIMIT_M_S = 0.10
+
+#: Marker speeds are displacements over this lag, not frame to frame: optical marker
+#: noise of ~0.5 mm RMS (Merriaux et al., Sensors 2017;17:1591, Vicon residuals
+#: under 1 mm) over 1/120 s would read as 85 mm/s of "motion"; over 0.1 s it is
+#: 7 mm/s, well under :data:`STILL_SPEED_LIMIT_M_S`.
+STILL_LAG_S = 0.1
+
+#: Left/right difference in a calibrated bone's length (relative to the mean of the
+#: two) above which a warning names the bones. Healthy adults' bilateral long-bone
+#: asymmetry is 1-3 % (humerus up to ~3 %, femur and tibia under 1-2 %: Auerbach &
+#: Ruff, Am J Phys Anthropol 2006;131(1):118-130); anatomic leg-length differences
+#: average ~5 mm (Knutson, Chiropr Osteopat 2005;13:11). 10 % is beyond anatomy:
+#: a marker moved, swapped or mislabelled, or a base pose that was not held.
+BILATERAL_LIMIT = 0.10
+
+#: The head above the feet: the angle between the declared up axis and the feet->head
+#: direction of the base pose above which the up axis is wrong. A person standing (or
+#: leaning in a T-pose) is within ~15 deg of vertical; a wrong axis is 90 or 180 deg.
+UP_ANGLE_LIMIT_DEG = 45.0
+
+
+class SanityError(ValueError):
+    """A base pose whose calibration would be garbage; the message names the
+    override (one line)."""
+
+
+@dataclass(frozen=True, slots=True)
+class BasePoseMotion:
+    """How much the markers moved over the calibration frames.
+
+    Attributes:
+        speed_m_s: the fastest marker's median speed over the frames, m/s (NaN when
+            there are too few frames to tell: fewer than the lag plus one).
+        marker: that marker's label ("" when NaN).
+        lag_frames: frames between the two positions of each displacement.
+    """
+
+    speed_m_s: float
+    marker: str
+    lag_frames: int
+
+    @property
+    def still(self) -> bool:
+        """Below :data:`STILL_SPEED_LIMIT_M_S` (or too short to tell)."""
+        return not self.speed_m_s > STILL_SPEED_LIMIT_M_S
+
+
+def base_pose_motion(
+    positions: F64Array, labels: Sequence[str], rate_hz: float
+) -> BasePoseMotion:
+    """Median marker speeds over base-pose frames (see :data:`STILL_LAG_S`).
+
+    Args:
+        positions: (F, M, 3) float64, metres, world; NaN rows = occluded.
+        labels: (M,) marker labels.
+        rate_hz: frame rate, Hz.
+
+    Returns:
+        The fastest marker's median speed (per marker, the median over frames of its
+        displacement over :data:`STILL_LAG_S` divided by the lag).
+    """
+    pos = np.asarray(positions, dtype=np.float64)
+    lag = max(1, round(STILL_LAG_S * rate_hz)) if rate_hz > 0 else 1
+    if pos.ndim != 3 or pos.shape[0] <= lag or not rate_hz > 0:
+        return BasePoseMotion(math.nan, "", lag)
+    step = np.linalg.norm(pos[lag:] - pos[:-lag], axis=-1)  # (F - lag, M)
+    finite = np.isfinite(step)
+    if not finite.any():
+        return BasePoseMotion(math.nan, "", lag)
+    step = np.where(finite, step, np.nan)
+    seen = finite.any(axis=0)
+    med = np.full(step.shape[1], -1.0)
+    med[seen] = np.nanmedian(step[:, seen], axis=0) * rate_hz / lag
+    m = int(np.argmax(med))
+    return BasePoseMotion(float(med[m]), labels[m], lag)
+
+
+def check_base_pose_still(
+    positions: F64Array,
+    labels: Sequence[str],
+    rate_hz: float,
+    *,
+    allow_moving: bool = False,
+    override: str = "--allow-moving-base-pose",
+) -> list[str]:
+    """Refuse a base pose the performer did not hold.
+
+    Args:
+        positions: (F, M, 3) float64, metres, world; NaN rows = occluded.
+        labels: (M,) marker labels.
+        rate_hz: frame rate, Hz.
+        allow_moving: warn instead of refusing.
+        override: the option or command that allows it, named in the message.
+
+    Returns:
+        Warnings (one line each).
+
+    Raises:
+        SanityError: a marker's median speed is over :data:`STILL_SPEED_LIMIT_M_S`.
+    """
+    motion = base_pose_motion(positions, labels, rate_hz)
+    if motion.still:
+        return []
+    text = (
+        f"the base pose is not still: marker {motion.marker} moves at "
+        f"{motion.speed_m_s:.2f} m/s over the calibration frames (quiet standing "
+        f"sways under {STILL_SPEED_LIMIT_M_S:g} m/s)"
+    )
+    if allow_moving:
+        return [f"{text}; calibrating anyway ({override})"]
+    raise SanityError(
+        f"{text}: choose frames where the performer holds the base pose, or pass "
+        f"{override}"
+    )
+
+
+def _units_hint(extent_m: float, units: str) -> str:
+    """The declared unit that would put ``extent_m`` nearest a 1.7 m person."""
+    in_file = extent_m / UNIT_TO_METRES.get(units, 1.0)
+    best = min(
+        ("mm", "cm", "m", "in"),
+        key=lambda u: abs(math.log(max(in_file * UNIT_TO_METRES[u], 1e-12) / 1.7)),
+    )
+    return best
+
+
+def _stature_bounds(factor: float) -> tuple[float, float]:
+    lo, hi = STATURE_RANGE_M
+    return lo / factor, hi * factor
+
+
+def _finite_mean(x: F64Array, axis: int) -> F64Array:
+    """Mean over ``axis`` of the finite values; NaN where there are none (no
+    warning)."""
+    ok = np.isfinite(x)
+    n = ok.sum(axis=axis)
+    s = np.where(ok, x, 0.0).sum(axis=axis)
+    return np.where(n > 0, s / np.maximum(n, 1), np.nan)
+
+
+def check_units(
+    positions: F64Array,
+    *,
+    units: str,
+    units_source: str,
+    override: str = "--take-units",
+) -> list[str]:
+    """Refuse a base pose whose size says its declared unit is wrong.
+
+    The markers' vertical extent (feet to head, about 0.9 of stature for a full
+    body set, half of it for a lower-body set) must lie within
+    :data:`STATURE_RANGE_M` widened by :data:`UNITS_GARBAGE_FACTOR` (and halved at the
+    bottom for a partial marker set).
+
+    Args:
+        positions: (F, M, 3) float64, metres, world (+Z up); NaN rows = occluded.
+        units: the unit the take was read in (``take.units``).
+        units_source: where it came from (``take.units_source``).
+        override: the option that sets the unit, named in the message.
+
+    Returns:
+        Warnings (none today: an extent inside the bounds is left to
+        :func:`check_calibration`).
+
+    Raises:
+        SanityError: an extent no person in any unit of the file's could have.
+    """
+    pos = np.asarray(positions, dtype=np.float64)
+    if pos.ndim != 3:
+        return []
+    mean_z = _finite_mean(pos[..., 2], axis=0)
+    mean_z = mean_z[np.isfinite(mean_z)]
+    if mean_z.size < 2:
+        return []
+    extent = float(mean_z.max() - mean_z.min())
+    lo, hi = _stature_bounds(UNITS_GARBAGE_FACTOR)
+    lo /= 2.0  # a lower-body marker set spans about half the stature
+    if lo <= extent <= hi:
+        return []
+    hint = _units_hint(extent, units)
+    raise SanityError(
+        f"the base pose's markers span {extent:.4g} m vertically read as {units} "
+        f"({units_source}); a person {STATURE_RANGE_M[0]:g}-{STATURE_RANGE_M[1]:g} m "
+        f"tall cannot: the file's unit looks wrong, try {override} {hint}"
+    )
+
+
+def _side_markers(rig: Rig, humanoid: Sequence[str]) -> list[str]:
+    out: list[str] = []
+    for bone in rig.bones:
+        if bone.humanoid in humanoid:
+            for p in bone.inputs:
+                out.extend(m for m in rig.markers_of(p, base_pose=True) if m not in out)
+    return out
+
+
+def check_up_axis(
+    rig: Rig,
+    positions: F64Array,
+    labels: Sequence[str],
+    *,
+    up_axis: str,
+    up_source: str,
+    world_from_capture: F64Array,
+    override: str = "--take-up",
+) -> list[str]:
+    """Refuse a base pose whose head is not above its feet along the declared up.
+
+    Head markers: those of the rig's ``humanoid = "Head"`` bone; feet: those of
+    ``LeftFoot``/``RightFoot``. Skipped (no warning) for a rig without them.
+
+    Args:
+        rig: the rig.
+        positions: (F, M, 3) float64, metres, world (+Z up); NaN rows = occluded.
+        labels: (M,) marker labels.
+        up_axis: the take's up axis (``take.up_axis``) and ``up_source`` where it
+            came from; an up axis the user gave (source ``override``) only warns.
+        world_from_capture: (3, 3) the rotation the take was read with.
+        override: the option that sets the up axis, named in the message.
+
+    Returns:
+        Warnings (one line each).
+
+    Raises:
+        SanityError: the feet->head direction is more than
+            :data:`UP_ANGLE_LIMIT_DEG` from +Z and the up axis was not given by the
+            user; the message names the capture axis the pose says is up.
+    """
+    cols = dict(zip(rig.marker_names, match_markers(rig, labels), strict=True))
+    head = [cols[m] for m in _side_markers(rig, ("Head",)) if cols[m] >= 0]
+    feet = [
+        cols[m] for m in _side_markers(rig, ("LeftFoot", "RightFoot")) if cols[m] >= 0
+    ]
+    if not head or not feet:
+        return []
+    pos = np.asarray(positions, dtype=np.float64)
+    h = _finite_mean(pos[:, head].reshape(-1, 3), axis=0)
+    f = _finite_mean(pos[:, feet].reshape(-1, 3), axis=0)
+    d = h - f
+    norm = float(np.linalg.norm(d))
+    if not np.isfinite(norm) or norm == 0.0:
+        return []
+    angle = math.degrees(math.acos(max(-1.0, min(1.0, d[2] / norm))))
+    if angle <= UP_ANGLE_LIMIT_DEG:
+        return []
+    capture = np.asarray(world_from_capture, dtype=np.float64).T @ d
+    k = int(np.argmax(np.abs(capture)))
+    detected = ("+" if capture[k] > 0 else "-") + "XYZ"[k]
+    text = (
+        f"up axis {up_axis} ({up_source}) puts the head {angle:.0f} deg from above "
+        f"the feet in the base pose; the pose says up is the file's {detected}"
+    )
+    if up_source.startswith("override"):
+        return [f"{text} (keeping {up_axis} as given)"]
+    raise SanityError(f"{text}: pass {override} {detected}")
+
+
+def _bone_lengths(rig: Rig, cal: Calibration) -> dict[str, tuple[str, float]]:
+    """humanoid name -> (bone name, length m) for mapped bones."""
+    by_name = {b.name: b for b in rig.bones}
+    out: dict[str, tuple[str, float]] = {}
+    for name, length in zip(cal.bone_names, cal.bone_lengths, strict=True):
+        bone = by_name.get(name)
+        if bone is not None and bone.humanoid:
+            out[bone.humanoid] = (name, float(length))
+    return out
+
+
+def estimated_stature_m(rig: Rig, cal: Calibration) -> float:
+    """Stature implied by the calibrated long bones (median over the mapped ones of
+    length / :data:`LONG_BONE_FRACTION_OF_STATURE`), metres; NaN without any."""
+    lengths = _bone_lengths(rig, cal)
+    est = [
+        lengths[f"{side}{kind}"][1] / frac
+        for kind, frac in LONG_BONE_FRACTION_OF_STATURE.items()
+        for side in ("Left", "Right")
+        if f"{side}{kind}" in lengths and lengths[f"{side}{kind}"][1] > 0
+    ]
+    return float(np.median(est)) if est else math.nan
+
+
+def check_stature(
+    rig: Rig, cal: Calibration, *, units: str, override: str = "--take-units"
+) -> list[str]:
+    """The stature the calibrated long bones imply against :data:`STATURE_RANGE_M`.
+
+    Returns:
+        A warning when outside the range.
+
+    Raises:
+        SanityError: more than :data:`UNITS_GARBAGE_FACTOR` outside it (a wrong unit).
+    """
+    h = estimated_stature_m(rig, cal)
+    if not math.isfinite(h):
+        return []
+    lo, hi = STATURE_RANGE_M
+    if lo <= h <= hi:
+        return []
+    text = (
+        f"the calibrated long bones imply a performer {h:.3g} m tall (read as "
+        f"{units}); a person is {lo:g}-{hi:g} m"
+    )
+    glo, ghi = _stature_bounds(UNITS_GARBAGE_FACTOR)
+    if glo <= h <= ghi:
+        return [f"{text}: check the file's unit ({override}) and the rig's markers"]
+    raise SanityError(f"{text}: the unit looks wrong, try {override} "
+                      f"{_units_hint(h, units)}")  # fmt: skip
+
+
+def check_bilateral(rig: Rig, cal: Calibration) -> list[str]:
+    """A warning for each left/right pair of long bones (humanoid ``UpperLeg``,
+    ``LowerLeg``, ``UpperArm``, ``LowerArm``: joint centre to joint centre) whose
+    calibrated lengths differ by more than :data:`BILATERAL_LIMIT` of their mean.
+
+    Short segments (hand, foot, shoulder, toes) are left out: their length runs to a
+    marker (a finger, toe or acromion marker) whose placement, not anatomy, sets it,
+    so the anatomical asymmetry figures say nothing about them.
+    """
+    lengths = _bone_lengths(rig, cal)
+    out = []
+    for kind in LONG_BONE_FRACTION_OF_STATURE:
+        lhs, rhs = lengths.get(f"Left{kind}"), lengths.get(f"Right{kind}")
+        if lhs is None or rhs is None:
+            continue
+        (left, a), (right, b) = lhs, rhs
+        mean = 0.5 * (a + b)
+        if mean > 0 and abs(a - b) / mean > BILATERAL_LIMIT:
+            out.append(
+                f"left/right bones differ by {100 * abs(a - b) / mean:.0f} %: "
+                f"{left} {1000 * a:.0f} mm, {right} {1000 * b:.0f} mm (healthy "
+                f"adults differ by 1-3 %): check those markers and the base pose"
+            )
+    return out
+
+
+def check_calibration(rig: Rig, cal: Calibration, *, units: str) -> list[str]:
+    """:func:`check_stature` and :func:`check_bilateral` on a calibration."""
+    return [*check_stature(rig, cal, units=units), *check_bilateral(rig, cal)]
+
+
+#: The least distance, in the base pose, between a bone's up reference and the bone's
+#: axis (for ``up = [FROM, TO]``: the part of FROM->TO across the axis). The roll is
+#: the angle of that lever about the axis, so marker noise sigma across it turns the
+#: bone by about atan(sigma / lever): optical systems track markers to ~0.5-1 mm
+#: (Merriaux et al., Sensors 2017;17(7):1591), so 30 mm keeps the roll jitter under
+#: 2 deg from noise alone; skin movement moves markers by 10-30 mm more (Leardini et
+#: al., Gait Posture 2005;21(2):212-225), which only a longer lever tolerates.
+UP_LEVER_MIN_M = 0.030
+
+
+def up_levers(
+    rig: Rig, cal: Calibration, positions: F64Array, labels: Sequence[str]
+) -> dict[str, float]:
+    """Each bone's up lever in the base pose (see :data:`UP_LEVER_MIN_M`), metres.
+
+    Args:
+        rig: the rig the calibration was made for.
+        cal: the calibration.
+        positions: (F, M, 3) float64, metres, world: the base-pose frames.
+        labels: (M,) marker labels.
+
+    Returns:
+        bone name -> lever (bones whose points were not all seen are left out).
+    """
+    pos = np.asarray(positions, dtype=np.float64)
+    cols = np.asarray(match_markers(rig, labels))
+    mean = _finite_mean(pos, axis=0)  # (M, 3)
+    marker_pos = np.full((1, len(cols), 3), np.nan)
+    have = cols >= 0
+    marker_pos[0, have] = mean[cols[have]]
+    pts = compute_points(rig, marker_pos, cal.point_offsets)
+    out: dict[str, float] = {}
+    for bone in rig.bones:
+        axis = pts[bone.aim][0] - pts[bone.origin][0]
+        if len(bone.up) == 1:
+            v = pts[bone.up[0]][0] - pts[bone.origin][0]
+        else:
+            v = pts[bone.up[1]][0] - pts[bone.up[0]][0]
+        n = float(np.linalg.norm(axis))
+        if not (np.isfinite(n) and n > 0 and np.isfinite(v).all()):
+            continue
+        y = axis / n
+        out[bone.name] = float(np.linalg.norm(v - (v @ y) * y))
+    return out
+
+
+def check_up_levers(
+    rig: Rig, cal: Calibration, positions: F64Array, labels: Sequence[str]
+) -> list[str]:
+    """One warning per bone whose up lever is under :data:`UP_LEVER_MIN_M`."""
+    return [
+        f"bone {name}: its up reference is {1000 * lever:.0f} mm off the bone's axis "
+        f"in the base pose (under {1000 * UP_LEVER_MIN_M:.0f} mm its roll follows "
+        f"marker noise): choose an up point farther from the axis"
+        for name, lever in up_levers(rig, cal, positions, labels).items()
+        if lever < UP_LEVER_MIN_M
+    ]
