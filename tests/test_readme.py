@@ -35,7 +35,7 @@ def test_readme_main_command_runs(
     monkeypatch: pytest.MonkeyPatch, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     main_cmd, _ = _first_commands()
-    job = main_cmd.split("&&", 1)[1].strip()
+    job = next(p for p in main_cmd.split("&&") if p.strip().startswith("retargetd"))
     argv = shlex.split(job)
     assert argv[:2] == ["retargetd", "demo"]
     # The README runs it for longer; 3 s shows the same path (calibration, streaming).
@@ -47,7 +47,7 @@ def test_readme_main_command_runs(
         "[output.pose]\nendpoint = 'tcp://127.0.0.1:*'\n"
         "[control]\nendpoint = 'tcp://127.0.0.1:*'\n[show_control]\nport = 0\n"
     )
-    argv += ["--config", str(config)]
+    argv += ["--config", str(config), "--console", "127.0.0.1:0"]
     monkeypatch.chdir(tmp_path)
     assert main(argv[1:]) == 0
     out = capsys.readouterr().out
