@@ -174,6 +174,9 @@ class MarkerPacket:
     _staged: F64Array = field(repr=False)
     _seen: BoolArray = field(repr=False)
     _zero: BoolArray = field(repr=False)
+    #: The simple form's layout cache (``osc_in.SimpleLayout``): None until a bundle
+    #: decoded; reset with the label set.
+    _simple: Any = field(default=None, repr=False)
 
     @classmethod
     def create(
@@ -233,6 +236,7 @@ class MarkerPacket:
             )
         self.label_set = label_set
         self.label_index = {name: i for i, name in enumerate(label_set.labels)}
+        self._simple = None  # the names moved: the layout cache no longer holds
         return self
 
     def store(self, raw: Any) -> None:

@@ -22,14 +22,17 @@ from __future__ import annotations
 import math
 import struct
 from collections.abc import Iterator, Sequence
-from typing import cast
+from dataclasses import dataclass
+from typing import Any, cast
 
 import numpy as np
 
 from retargetd.protocols.errors import DecodeError
 from retargetd.protocols.marker_input import LabelSet, MarkerPacket
 from retargetd.protocols.osc_wire import (
+    BUNDLE_HEADER_SIZE,
     BUNDLE_TAG,
+    ELEMENT_SIZE_PREFIX,
     MAX_BUNDLE_DEPTH,
     build_bundle,
     build_message,
@@ -138,17 +141,92 @@ def decode_labels(buf: bytes | bytearray | memoryview) -> LabelSet:
     return LabelSet(cast(int, label_set_id), tuple(str(name) for name in labels))
 
 
-def _walk(buf: bytes | memoryview, depth: int) -> Iterator[bytes]:
-    """Messages of a bundle, nested bundles flattened (timetags ignored)."""
+def _walk(buf: bytes, start: int, end: int, depth: int) -> Iterator[tuple[int, int]]:
+    """(start, end) offsets in ``buf`` of a bundle's messages, nested bundles
+    flattened (timetags ignored)."""
     if depth > MAX_BUNDLE_DEPTH:
         raise DecodeError(
             "bad_bundle", f"bundles nested deeper than {MAX_BUNDLE_DEPTH}"
         )
-    for element in iter_bundle_elements(buf):
-        if element[0:8] == BUNDLE_TAG:
-            yield from _walk(element, depth + 1)
+    offset = start + BUNDLE_HEADER_SIZE
+    for element in iter_bundle_elements(memoryview(buf)[start:end]):
+        n = len(element)
+        a = offset + ELEMENT_SIZE_PREFIX
+        offset = a + n
+        if buf[a : a + 8] == BUNDLE_TAG:
+            yield from _walk(buf, a, a + n, depth + 1)
         else:
-            yield bytes(element)
+            yield a, a + n
+
+
+@dataclass(slots=True, eq=False)
+class SimpleLayout:
+    """The layout of the last simple bundle a packet decoded, so that the next bundle
+    of the same layout (a sender sends the same names in the same order every frame)
+    is read straight from its value slots, with no Python object per marker.
+
+    Attributes:
+        length: the datagram's size, bytes.
+        template: (length / 4,) big-endian uint32 words of that datagram.
+        mask: (length / 4,) uint32: 0 at the value slots, all ones elsewhere (a
+            bundle matches when every other word equals the template's).
+        diff: (length / 4,) uint32 scratch.
+        slot_words: (K * 3,) intp word index of each known marker's x, y, z.
+        flat_rows: (K * 3,) intp index into the staged (n, 3) rows, flattened.
+        values: (K * 3,) big-endian float32 scratch.
+        frame_word: word index of the frame number, -1 when there is none.
+        frame_wide: the frame number is ``,h`` (int64, two words).
+        unknown: /rtd/marker messages with names not in the label set.
+        hits: bundles read through this layout (not parsed).
+    """
+
+    length: int
+    template: np.ndarray
+    mask: np.ndarray
+    diff: np.ndarray
+    slot_words: np.ndarray
+    flat_rows: np.ndarray
+    values: np.ndarray
+    frame_word: int
+    frame_wide: bool
+    unknown: int
+    hits: int = 0
+
+
+def _fast_simple(buf: Any, out: MarkerPacket, lay: SimpleLayout) -> bool:
+    """Decode ``buf`` with the cached layout; False when it is not that layout."""
+    if len(buf) != lay.length:
+        return False
+    words = np.frombuffer(buf, dtype=">u4")
+    np.bitwise_xor(words, lay.template, out=lay.diff)
+    np.bitwise_and(lay.diff, lay.mask, out=lay.diff)
+    if lay.diff.any():
+        return False
+    np.take(words.view(">f4"), lay.slot_words, out=lay.values)
+    if np.isinf(lay.values).any():
+        raise DecodeError("non_finite", "infinite coordinate in a simple bundle")
+    staged = out._staged
+    staged.fill(np.nan)
+    np.put(staged, lay.flat_rows, lay.values)
+    frame_id = -1
+    if lay.frame_word >= 0:
+        hi = int(words[lay.frame_word])
+        if lay.frame_wide:
+            frame_id = (hi << 32) | int(words[lay.frame_word + 1])
+            if frame_id >= 1 << 63:
+                frame_id -= 1 << 64
+        else:
+            frame_id = hi - (1 << 32) if hi >= 1 << 31 else hi
+        if frame_id < 0:
+            raise DecodeError("bad_frame_number", f"frame number {frame_id}")
+    out.store(staged)
+    frame = out.frame
+    frame.frame_id = frame_id
+    frame.source_time_s = math.nan
+    out.label_set_id = out.label_set.id
+    out.unknown_labels = lay.unknown
+    lay.hits += 1
+    return True
 
 
 def decode_simple_bundle(
@@ -176,6 +254,9 @@ def decode_simple_bundle(
             ``bad_typetags``, ``bad_frame_number``, ``non_finite``,
             ``duplicate_marker`` (a name twice) or ``no_markers`` (no /rtd/marker).
     """
+    lay = out._simple
+    if lay is not None and _fast_simple(buf, out, lay):
+        return out
     data = bytes(buf)
     if data[0:1] == b"/":
         raise DecodeError("not_bundle", "a bare message, not a bundle")
@@ -185,9 +266,14 @@ def decode_simple_bundle(
     seen.fill(False)
     index = out.label_index
     frame_id = -1
+    frame_at, frame_wide = -1, False
     n_markers = 0
     unknown = 0
-    for msg in _walk(data, 1):
+    slots: list[int] = []
+    rows: list[int] = []
+    ignored: list[int] = []
+    for a, b in _walk(data, 0, len(data), 1):
+        msg = data[a:b]
         address, offset = read_string(msg, 0)
         if address == MARKER_ADDRESS:
             if msg[offset : offset + 8] != _MARKER_TAGS:
@@ -202,11 +288,14 @@ def decode_simple_bundle(
             row = index.get(name)
             if row is None:
                 unknown += 1
+                ignored.append((a + offset) // 4)  # its values vary: masked too
                 continue
             if seen[row]:
                 raise DecodeError("duplicate_marker", f"{name!r} twice in one bundle")
             seen[row] = True
             staged[row] = xyz
+            slots.append((a + offset) // 4)
+            rows.append(row)
         elif address == FRAME_NUMBER_ADDRESS:
             fmt = _FRAME_NUMBER_FORMATS.get(msg[offset : offset + 4])
             if fmt is None:
@@ -219,6 +308,7 @@ def decode_simple_bundle(
             (frame_id,) = struct.unpack_from(fmt, msg, offset)
             if frame_id < 0:
                 raise DecodeError("bad_frame_number", f"frame number {frame_id}")
+            frame_at, frame_wide = (a + offset) // 4, fmt == ">q"
     if n_markers == 0:
         raise DecodeError("no_markers", "bundle holds no /rtd/marker message")
     out.store(staged)
@@ -227,7 +317,43 @@ def decode_simple_bundle(
     frame.source_time_s = math.nan
     out.label_set_id = out.label_set.id
     out.unknown_labels = unknown
+    out._simple = _layout_of(data, slots, rows, ignored, frame_at, frame_wide, unknown)
     return out
+
+
+def _layout_of(
+    data: bytes,
+    slots: list[int],
+    rows: list[int],
+    ignored: list[int],
+    frame_at: int,
+    frame_wide: bool,
+    unknown: int,
+) -> SimpleLayout | None:
+    """The layout cache of a decoded bundle (None when its size is not whole words):
+    built once per new layout, not per frame."""
+    if len(data) % 4:
+        return None
+    template = np.frombuffer(data, dtype=">u4").copy()
+    mask = np.full(len(template), 0xFFFFFFFF, dtype=">u4")
+    words = np.array([w + k for w in slots for k in range(3)], dtype=np.intp)
+    mask[words] = 0
+    for w in ignored:  # markers with names not in the label set
+        mask[w : w + 3] = 0
+    if frame_at >= 0:
+        mask[frame_at : frame_at + (2 if frame_wide else 1)] = 0
+    return SimpleLayout(
+        length=len(data),
+        template=template,
+        mask=mask,
+        diff=np.zeros(len(template), dtype=">u4"),
+        slot_words=words,
+        flat_rows=np.array([3 * r + k for r in rows for k in range(3)], np.intp),
+        values=np.zeros(len(words), dtype=">f4"),
+        frame_word=frame_at,
+        frame_wide=frame_wide,
+        unknown=unknown,
+    )
 
 
 def encode_compact_frame(

@@ -317,3 +317,56 @@ def test_every_osc_decoder_raises_only_decode_error(data: bytes) -> None:
         osc_in.decode_labels(data)
     except DecodeError as exc:
         assert exc.reason in REASON_INDEX
+
+
+def test_simple_form_layout_cache_equals_the_parse(rng: np.random.Generator) -> None:
+    """A sender repeats its layout (names, order, frame number form) every frame: the
+    second bundle on is read from the cached layout's value slots (issue 13: no
+    Python object per marker), and gives exactly what the full parse gives; a bundle
+    with another layout (a renamed, dropped or reordered marker) takes the parse."""
+    import tracemalloc
+
+    labels = tuple(f"M{i}" for i in range(40))
+    packet = MarkerPacket.create(LabelSet(0, labels), "+Z", "m")
+    reference = MarkerPacket.create(LabelSet(0, labels), "+Z", "m")
+    for frame in range(30):
+        pos = rng.normal(0.0, 1.0, (40, 3))
+        pos[frame % 40] = np.nan  # occluded: NaN values, the same layout
+        order = [*labels, "X"]  # an unknown name too
+        rows = np.vstack([pos, rng.normal(size=(1, 3))])
+        if frame == 20:  # another layout: reordered
+            order = order[::-1]
+            rows = rows[::-1]
+        buf = osc_in.encode_simple_bundle(order, rows, frame_id=1000 + frame)
+        osc_in.decode_simple_bundle(buf, packet)
+        reference._simple = None  # the full parse every time
+        osc_in.decode_simple_bundle(buf, reference)
+        np.testing.assert_array_equal(
+            packet.frame.markers_world, reference.frame.markers_world
+        )
+        np.testing.assert_array_equal(packet.frame.valid, reference.frame.valid)
+        assert packet.frame.frame_id == reference.frame.frame_id == 1000 + frame
+        assert packet.unknown_labels == reference.unknown_labels == 1
+        if frame in (0, 20, 21):  # a new layout: parsed, then cached
+            assert packet._simple.hits == 0
+        else:
+            assert packet._simple.hits >= 1
+    # The cached path keeps nothing per frame (the parse made a str, a tuple and a
+    # bytes object per marker: ~120 objects a frame here, 7x the time).
+    buf = osc_in.encode_simple_bundle(labels, rng.normal(size=(40, 3)), frame_id=5)
+    osc_in.decode_simple_bundle(buf, packet)
+    tracemalloc.start()
+    try:
+        for _ in range(50):  # tracemalloc's and numpy's first-use caches
+            osc_in.decode_simple_bundle(buf, packet)
+        tracemalloc.reset_peak()
+        start, _ = tracemalloc.get_traced_memory()
+        for _ in range(200):
+            osc_in.decode_simple_bundle(buf, packet)
+        end, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    # numpy keeps a small bounded cache for ``take`` (~28 x 120 B); nothing grows
+    # with the frames (200 frames of a per-frame object would be > 8 KB).
+    assert end - start < 8192
+    del peak  # (numpy's temporaries for the checks and the scatter: a few kB)
