@@ -27,7 +27,8 @@ The three-point frame of ``rigid = [A, B, C]``: origin A, x = unit(B - A),
 z = unit(x x (C - A)), y = z x x.
 
 Parsing validates everything and raises :class:`RigError` with one line naming the
-file, the key and the unknown or bad value (cycles included).
+file, the key and the unknown or bad value (cycles included); every numeric key has a
+range (:data:`RIG_RANGES`), and a value outside is named with the range allowed.
 """
 
 from __future__ import annotations
@@ -52,6 +53,66 @@ HUMANOID_BONES = _HUMANOID_BONES
 RULE_AXES = ("height", "width", "depth")
 
 _TOP_KEYS = ("rig", "measurements", "markers", "segments", "points", "bones", "joints")
+
+#: The greatest distance between two points of one body, mm. Stature is at most 2.3 m
+#: in the range the calibration's sanity check accepts (NCD-RisC 2016; ``body.sanity``)
+#: and the arm span is about the stature (Drillis & Contini, in Winter 2009); 2500 mm
+#: leaves a margin. No measurement of a body and no offset between two of its points
+#: exceeds it; a larger value is a unit slip (m for mm is 1000x, cm 10x) or a typo.
+BODY_EXTENT_MAX_MM = 2500.0
+
+
+@dataclass(frozen=True, slots=True)
+class NumberRange:
+    """The values a numeric rig key allows: ``low..high``, ``low`` excluded when
+    ``low_open``; never NaN or infinite. ``why`` says where the bounds come from."""
+
+    low: float
+    high: float
+    why: str
+    low_open: bool = False
+    unit: str = ""
+
+    def __contains__(self, value: float) -> bool:
+        if not math.isfinite(value) or value > self.high:
+            return False
+        return value > self.low if self.low_open else value >= self.low
+
+    def __str__(self) -> str:
+        text = f"{'(' if self.low_open else '['}{self.low:g}, {self.high:g}]"
+        return f"{text} {self.unit}" if self.unit else text
+
+
+#: Every numeric key of the rig format and its range, by key path (``*``: a name of
+#: the rig author's). ``[fit.markers.NAME] weight`` (>= 0, finite) is checked by
+#: ``body.fit_model``.
+RIG_RANGES: dict[str, NumberRange] = {
+    # A measurement is a length of the body (a width, a depth, a marker diameter, an
+    # offset): positive (Vicon writes 0 for "not measured", so 0 is no default) and
+    # within the body's extent.
+    "measurements.*.default": NumberRange(
+        0.0,
+        BODY_EXTENT_MAX_MM,
+        "a length of the body: positive, within a body's extent",
+        low_open=True,
+        unit="mm",
+    ),
+    # The chapter's line point (eq. 5.13-5.17) interpolates for 0 <= u <= 1 and
+    # extrapolates outside; up to one segment length beyond either end covers the
+    # reflection of an end through the other (u = 2, Plug-in Gait's TRXO). Farther, the
+    # point leaves the body part A-B spans and the markers' noise grows with |u|
+    # (sigma * sqrt((1 - u)^2 + u^2)).
+    "points.*.u": NumberRange(
+        -1.0, 2.0, "at most one segment length beyond either end of the line"
+    ),
+    # An offset between two points of one body, per axis of the three-point frame.
+    "points.*.offset_mm": NumberRange(
+        -BODY_EXTENT_MAX_MM,
+        BODY_EXTENT_MAX_MM,
+        "an offset within one body",
+        unit="mm",
+    ),
+}
 
 
 class RigError(ValueError):
@@ -384,6 +445,15 @@ class _Parser:
             raise self.fail(key, f"expected {n} names, got {len(value)}: {value!r}")
         return tuple(value)
 
+    def in_range(self, key: str, schema: str, value: float, shown: str = "") -> None:
+        """Raise naming ``key`` when ``value`` is outside ``RIG_RANGES[schema]``."""
+        rng = RIG_RANGES[schema]
+        if value not in rng:
+            raise self.fail(
+                key,
+                f"{shown or repr(value)} is out of range: allowed {rng} ({rng.why})",
+            )
+
     def unknown_keys(
         self, key: str, table: dict[str, Any], allowed: tuple[str, ...]
     ) -> None:
@@ -459,6 +529,7 @@ class _Parser:
                 or not math.isfinite(default)
             ):
                 raise self.fail(f"{key}.default", f"expected a number, got {default!r}")
+            self.in_range(f"{key}.default", "measurements.*.default", default)
             out[mname] = Measurement(
                 name=mname,
                 default_mm=float(default),
@@ -528,6 +599,7 @@ class _Parser:
                 u = spec.get("u", 0.5)
                 if not isinstance(u, int | float) or isinstance(u, bool):
                     raise self.fail(f"{key}.u", f"expected a number, got {u!r}")
+                self.in_range(f"{key}.u", "points.*.u", u)
                 parsed[pname] = LinePoint(name=pname, a=a, b=b, u=float(u))
             elif "rigid" in spec:
                 self.unknown_keys(
@@ -576,6 +648,19 @@ class _Parser:
                                     f"{key}.offset_mm[{i}]",
                                     f"unknown measurement {n!r}",
                                 )
+                        defaults = {n: measurements[n].default_mm for n in expr.names}
+                        value = expr.evaluate(defaults)
+                        shown = (
+                            f"{expr.text!r} = {value:g} at the measurements' defaults"
+                            if expr.names
+                            else ""
+                        )
+                        self.in_range(
+                            f"{key}.offset_mm[{i}]",
+                            "points.*.offset_mm",
+                            value,
+                            shown or repr(value),
+                        )
                     parsed[pname] = RigidPoint(
                         name=pname,
                         frame=(a, b, c),

@@ -1,8 +1,8 @@
 """Rig files and face configs, every key of the shipped ones mutated (generated from
-the documents, not listed by hand): a value of the wrong type and a misspelt key,
-and for face configs an out-of-range value, each give ``retargetd run --config``
-(the file named in ``performer.rig`` / ``face.config``) exit 2 and one line naming
-the key.
+the documents, not listed by hand): a value of the wrong type, a misspelt key and an
+out-of-range value (for a rig: every numeric leaf, each side of its range in
+``RIG_RANGES``, NaN and infinity), each give ``retargetd run --config`` (the file
+named in ``performer.rig`` / ``face.config``) exit 2 and one line naming the key.
 
 The rig format's free names (a marker, measurement, segment, point, bone or joint
 name: the key right under those tables) are the user's and cannot be misspelt;
@@ -22,7 +22,13 @@ from typing import Any
 
 import pytest
 
-from retargetd.daemon.body.rig import RigError, load_rig, shipped_rigs
+from retargetd.daemon.body.rig import (
+    RIG_RANGES,
+    NumberRange,
+    RigError,
+    load_rig,
+    shipped_rigs,
+)
 from retargetd.daemon.cli.main import main
 from retargetd.daemon.face.config import (
     FACE_KEYS,
@@ -50,12 +56,24 @@ def _dump(doc: dict[str, Any]) -> str:
         key = ".".join(json.dumps(k) for k in path)
         if isinstance(value, dict):
             text = "{}"
-        elif isinstance(value, float) and not math.isfinite(value):
+        elif isinstance(value, float) and math.isnan(value):
             text = "nan"
+        elif isinstance(value, float) and math.isinf(value):
+            text = "inf" if value > 0 else "-inf"
+        elif isinstance(value, list):
+            text = "[" + ", ".join(_dump_scalar(v) for v in value) + "]"
         else:
             text = json.dumps(value)
         lines.append(f"{key} = {text}\n")
     return "".join(lines)
+
+
+def _dump_scalar(value: Any) -> str:
+    if isinstance(value, float) and math.isnan(value):
+        return "nan"
+    if isinstance(value, float) and math.isinf(value):
+        return "inf" if value > 0 else "-inf"
+    return json.dumps(value)
 
 
 def _with(doc: dict[str, Any], path: tuple[str, ...], value: Any) -> dict[str, Any]:
@@ -215,3 +233,101 @@ def test_face_config_every_key_wrong_type_out_of_range_misspelt(
         )
     problems = [p for p in problems if p is not None]
     assert not problems, problems[:5]
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool)
+
+
+def _numeric_leaves(
+    doc: dict[str, Any],
+) -> Iterator[tuple[tuple[str, ...], int | None, float]]:
+    """(key path, index in a list or None, value) of every number in a rig."""
+    for path, value in _leaves(doc):
+        if _is_number(value):
+            yield path, None, value
+        elif isinstance(value, list):
+            for i, item in enumerate(value):
+                if _is_number(item):
+                    yield path, i, item
+
+
+def _schema_key(path: tuple[str, ...]) -> str:
+    """``RIG_RANGES`` key of a leaf: the author's name replaced by ``*``."""
+    parts = list(path)
+    if parts[0] in NAME_TABLES and len(parts) > 1:
+        parts[1] = "*"
+    if parts == ["measurements", "*"]:  # the short form NAME = default
+        parts.append("default")
+    return ".".join(parts)
+
+
+def _outside(rng: NumberRange) -> list[float]:
+    """Values just outside each end of the range, farther out, and non-finite."""
+    below = rng.low if rng.low_open else math.nextafter(rng.low, -math.inf)
+    above = math.nextafter(rng.high, math.inf)
+    span = rng.high - rng.low
+    return [below, rng.low - span, above, rng.high + span, math.nan, math.inf]
+
+
+def _inside(rng: NumberRange) -> list[float]:
+    """The range's ends that belong to it."""
+    low = math.nextafter(rng.low, math.inf) if rng.low_open else rng.low
+    return [low, rng.high]
+
+
+def _set_number(
+    doc: dict[str, Any], path: tuple[str, ...], index: int | None, value: float
+) -> dict[str, Any]:
+    if index is None:
+        return _with(doc, path, value)
+    table: Any = doc
+    for key in path:
+        table = table[key]
+    items = list(table)
+    items[index] = value
+    return _with(doc, path, items)
+
+
+def test_rig_ranges_cover_the_shipped_rigs_numbers() -> None:
+    """Every numeric key of the shipped rigs has a range, and every range is used."""
+    keys = {
+        _schema_key(path)
+        for rig in shipped_rigs()
+        for path, _, _ in _numeric_leaves(_shipped_rig(rig))
+    }
+    assert keys == set(RIG_RANGES)
+
+
+@pytest.mark.parametrize("rig", shipped_rigs())
+def test_rig_every_number_out_of_range(
+    rig: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    doc = _shipped_rig(rig)
+    problems: list[str | None] = []
+    n = 0
+    for path, index, _ in _numeric_leaves(doc):
+        n += 1
+        rng = RIG_RANGES[_schema_key(path)]
+        named = ".".join(path) + ("" if index is None else f"[{index}]")
+        for value in _inside(rng):  # the ends themselves pass this key's check
+            (tmp_path / "in.toml").write_text(
+                _dump(_set_number(doc, path, index, value))
+            )
+            try:  # (a measurement at its end may put an offset past its own)
+                load_rig(tmp_path / "in.toml")
+            except RigError as exc:
+                if f": {named}:" in str(exc):
+                    problems.append(f"{named} = {value!r}: refused: {exc}")
+        for value in _outside(rng):
+            text = _dump(_set_number(doc, path, index, value))
+            problem = _check(capsys, tmp_path, "performer", "rig", text, named)
+            if problem is None and math.isfinite(value):  # the range is named
+                (tmp_path / "out.toml").write_text(text)
+                with pytest.raises(RigError) as err:
+                    load_rig(tmp_path / "out.toml")
+                if str(rng) not in str(err.value):
+                    problem = f"{named} = {value!r}: no range in {err.value}"
+            problems.append(problem)
+    problems = [p for p in problems if p is not None]
+    assert n > 0 and not problems, problems[:5]
