@@ -165,6 +165,11 @@ class ValidateSectionConfig:
 class InputConfig:
     """Marker inputs."""
 
+    # A capture system the daemon connects to itself, beside the OSC/ZeroMQ inputs:
+    # "qtm://HOST[:PORT]" (Qualisys QTM, through qtm-rt) or "natnet://HOST[:PORT]
+    # [?data_port=N&multicast=1&group=G&local=A&up=+Z&sets=A,B]" (OptiTrack Motive);
+    # "" = none. README "Capture systems"; daemon/live/sources.py.
+    source: str = ""
     osc: OscInputConfig = field(default_factory=OscInputConfig)
     zmq: ZmqInputConfig = field(default_factory=ZmqInputConfig)
 
@@ -332,6 +337,7 @@ def _check(c: DaemonConfig, source: str) -> None:
     ):
         _check_endpoint(ep, name, source)
     _check_input_limits(c.input, source)
+    _check_capture_source(c.input.source, source)
     ctl = c.control.endpoint
     if ctl.startswith("tcp://") and not ctl.startswith(
         ("tcp://127.", "tcp://localhost")
@@ -408,6 +414,18 @@ def _check_input_limits(inputs: InputConfig, source: str) -> None:
                 f"{source}: {name}.max_message_bytes: expected [64, {most_bytes}]; "
                 f"got {section.max_message_bytes}"
             )
+
+
+def _check_capture_source(url: str, source: str) -> None:
+    """``input.source``: empty, or a URL the capture inputs parse."""
+    if not url:
+        return
+    from retargetd.daemon.live.sources import parse_source
+
+    try:
+        parse_source(url)
+    except ValueError as exc:
+        raise ConfigError(f"{source}: input.source: {exc}") from None
 
 
 def _check_face(f: FaceSectionConfig, source: str) -> None:

@@ -61,6 +61,7 @@ from retargetd.daemon.live.recording import (
     LiveRecording,
 )
 from retargetd.daemon.live.send import SendMixin
+from retargetd.daemon.live.sources import CaptureMixin
 from retargetd.daemon.live.state import Pipeline
 from retargetd.daemon.live.stats import LoopStats
 from retargetd.daemon.live.status import StatusMixin
@@ -78,7 +79,9 @@ logger = logging.getLogger(__name__)
 _UDP_MAX = 65536
 
 
-class Daemon(InputsMixin, SendMixin, CalibrationMixin, StatusMixin, ControlMixin):
+class Daemon(
+    InputsMixin, CaptureMixin, SendMixin, CalibrationMixin, StatusMixin, ControlMixin
+):
     """The live daemon (one performer). ``open()``, then ``run(should_exit)``.
 
     Args:
@@ -107,6 +110,7 @@ class Daemon(InputsMixin, SendMixin, CalibrationMixin, StatusMixin, ControlMixin
         self._zmon: zmq.Socket[bytes] | None = None  # the input's disconnect events
         self._pub: zmq.Socket[bytes] | None = None
         self._ctl: zmq.Socket[bytes] | None = None
+        self._capture: Any = None  # a capture system ([input] source), sources.py
         osc_cfg, zmq_cfg = config.input.osc, config.input.zmq
         simple_labels = (
             LabelSet(0, osc_cfg.labels) if osc_cfg.form == "simple" else None
@@ -190,6 +194,7 @@ class Daemon(InputsMixin, SendMixin, CalibrationMixin, StatusMixin, ControlMixin
             self._sockets.append(self._zmon)
             ep = _last_endpoint(self._zin) or c.input.zmq.endpoint
             self._announce("zmq markers", f"{ep} ({c.input.zmq.mode})")
+        self._open_capture()
         if c.output.pose.enabled:
             self._pub = self._ctx.socket(zmq.PUB)
             self._pub.setsockopt(zmq.LINGER, 0)
@@ -291,6 +296,7 @@ class Daemon(InputsMixin, SendMixin, CalibrationMixin, StatusMixin, ControlMixin
         """Stop an active recording (its file is finished, bounded wait) and close
         every socket (idempotent)."""
         self.recording.close()
+        self._close_capture()
         if self.validator is not None:
             self.validator.close()
             self.validator = None
@@ -312,6 +318,8 @@ class Daemon(InputsMixin, SendMixin, CalibrationMixin, StatusMixin, ControlMixin
             events = dict(self._poller.poll(timeout))
             if events:
                 self._service(events)
+            if self._capture is not None:
+                self._tick_capture()  # requests, lost check, held pose: never blocks
             now = time.monotonic_ns()
             if now >= next_stats:
                 self.last_stats_line = self.stats_line()

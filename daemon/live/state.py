@@ -94,6 +94,13 @@ class DaemonState:
     _validation_bones: np.ndarray | None
     _validation_enc: pose_stream.ValidationEncoder | None
     _log_after_ns: dict[str, int]
+    _capture: Any  # sources.CaptureInput when [input] source is set
 
     def _start_validator(self) -> None:  # implemented by Daemon
         raise NotImplementedError
+
+    def _drain_capture(self, events: dict[Any, int], every: bool) -> int:
+        raise NotImplementedError  # implemented by sources.CaptureMixin
+
+    def _capture_status(self) -> dict[str, Any] | None:
+        raise NotImplementedError  # implemented by sources.CaptureMixin
