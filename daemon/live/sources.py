@@ -24,7 +24,7 @@ a server that vanishes or stops sending (no accepted frame for
 :data:`SOURCE_SILENT_NS`) turns the source ``lost``: the last good pose is sent again
 every :data:`HOLD_RESEND_NS`, flagged ``held`` and ``source_lost``, until frames come
 back; an unknown protocol version, labels the rig does not know and a flood (frames
-superseded in one wake-up) are said and counted; reconnecting is the client's job
+drained in one wake-up) are said and counted; reconnecting is the client's job
 (NatNet: a request per second; QTM: the client thread's backoff), never the loop's.
 """
 
@@ -55,10 +55,16 @@ SOURCE_SILENT_NS = RESTART_GAP_NS
 #: poll timeout (``loop.poll_timeout_ms`` = 100), so a subscriber that joins late or
 #: watches for liveness sees the flagged pose within one poll period.
 HOLD_RESEND_NS = 100_000_000
-#: Frames superseded in one wake-up beyond which the capture input is said to flood:
-#: 10 frames is ~40 ms at Motive's and QTM's common 240 Hz, far past the jitter of a
-#: healthy stream (one or two frames arriving together).
-FLOOD_STALE = 10
+#: Frames drained in one wake-up beyond which the capture input is said to flood:
+#: 10 frames is ~40 ms of Motive's and QTM's common 240 Hz arriving at once, far past
+#: the jitter of a healthy stream (one or two frames arriving together).
+FLOOD_FRAMES = 10
+#: ... or when a window of this many frames arrived in less than FLOOD_RATIO of the
+#: time their source timestamps span: frames faster than twice the capture rate. Over
+#: 50 frames (~0.2 s at 240 Hz) network jitter averages out; a healthy stream arrives
+#: at its capture rate (ratio ~1).
+FLOOD_WINDOW = 50
+FLOOD_RATIO = 0.5
 #: Byte offset of the frame flags in the pose-stream data header (PROTOCOLS.md).
 _FLAGS_OFFSET = struct.calcsize("<4sHHqdqqq")
 _FLAGS = struct.Struct("<I")
@@ -97,7 +103,7 @@ class CaptureInput:
         counts: ``frames`` accepted, ``control`` packets, ``lost`` (times the source
             fell silent), ``held_poses`` (last good poses sent again),
             ``unknown_label_sets`` (label sets with labels the rig does not know),
-            ``floods`` (wake-ups with more than :data:`FLOOD_STALE` frames superseded).
+            ``floods`` (wake-ups that drained more than :data:`FLOOD_FRAMES` frames).
     """
 
     system: str
@@ -131,6 +137,9 @@ class CaptureInput:
     unknown_labels: tuple[str, ...] = ()
     control_packets: dict[int, bytes] = field(default_factory=dict)
     recorder_seen: Any = None
+    window_n: int = 0  # frames in the flood window so far
+    window_t_ns: int = 0  # receive time and source time at the window's start
+    window_src_s: float = 0.0
 
     @property
     def where(self) -> str:
@@ -242,6 +251,7 @@ class CaptureMixin(DaemonState):
         inp = cap.inp
         newest = 0
         superseded = 0
+        frames = 0
         for fd, read in cap.readers:
             if fd not in events:
                 continue
@@ -258,6 +268,10 @@ class CaptureMixin(DaemonState):
                 if stream.label_set is not cap.labels_seen:
                     self._check_capture_labels(cap, stream)
                 if code in (ACCEPTED, RESTART):
+                    frames += 1
+                    cap.window_n += 1
+                    if cap.window_n >= FLOOD_WINDOW:
+                        self._check_flood_window(cap, stream, t_ns)
                     cap.counts["frames"] += 1
                     cap.last_frame_ns = t_ns
                     cap.last_stream = stream
@@ -270,15 +284,37 @@ class CaptureMixin(DaemonState):
                         superseded += 1
                         self._frame_flags |= pose_stream.FRAME_INPUT_DROPPED
                     newest = got
-        if superseded > FLOOD_STALE:
-            cap.counts["floods"] += 1
-            self._say_limited(
-                f"{cap.system}.flood",
-                time.monotonic_ns(),
-                f"{cap.system}: {cap.where} floods: {superseded} frames superseded "
-                "in one wake-up (counted stale; the latest wins)",
+        if frames > FLOOD_FRAMES:
+            self._flood(
+                cap,
+                f"{frames} frames in one wake-up (solved while within the budget, "
+                f"then the latest wins: {superseded} stale here)",
             )
         return newest
+
+    def _check_flood_window(self, cap: CaptureInput, stream: Any, t_ns: int) -> None:
+        """Every FLOOD_WINDOW frames: did they come faster than the source's clock?"""
+        src_s = stream.current.frame.source_time_s
+        if cap.window_t_ns:
+            src_dt = src_s - cap.window_src_s
+            rx_dt = (t_ns - cap.window_t_ns) * 1e-9
+            if src_dt > 0 and rx_dt < src_dt * FLOOD_RATIO:
+                self._flood(
+                    cap,
+                    f"{cap.window_n} frames spanning {src_dt:.3f} s of its clock "
+                    f"arrived in {rx_dt:.3f} s",
+                )
+        cap.window_n = 0
+        cap.window_t_ns = t_ns
+        cap.window_src_s = src_s
+
+    def _flood(self, cap: CaptureInput, what: str) -> None:
+        cap.counts["floods"] += 1
+        self._say_limited(
+            f"{cap.system}.flood",
+            time.monotonic_ns(),
+            f"{cap.system}: {cap.where} floods: {what}; counted (status capture)",
+        )
 
     @staticmethod
     def _keep_control(cap: CaptureInput, pkt: memoryview) -> None:

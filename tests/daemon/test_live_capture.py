@@ -195,16 +195,14 @@ def test_live_from_capture_system_equals_batch_solve(
     )
 
     def live() -> list[Any]:
-        return [
-            m for m in cap.poses if m.names_id not in primed and not m.flags & LOST
-        ]
+        return [m for m in cap.poses if m.names_id not in primed and not m.flags & LOST]
 
     assert _wait(lambda: len(live()) >= n, cap, 40.0), (len(live()), daemon.lines)
     # The take ends: the source falls silent, the last good pose is sent again,
     # flagged held + source_lost, and the status says so.
-    assert _wait(
-        lambda: any(m.flags & LOST for m in cap.poses), cap, 10.0
-    ), daemon.lines
+    assert _wait(lambda: any(m.flags & LOST for m in cap.poses), cap, 10.0), (
+        daemon.lines
+    )
     poses = live()
     held = [m for m in cap.poses if m.flags & LOST]
     assert len(poses) == n, (len(poses), n)
@@ -265,16 +263,19 @@ def test_faults_are_said_counted_and_the_last_pose_held(
     daemon, cap, primed = _start(
         run_daemon, pose_capture, pig_calibration, server, "--process-every-frame"
     )
-    assert _wait(
-        lambda: any(m.flags & LOST for m in cap.poses), cap, 30.0
-    ), daemon.lines
+    assert _wait(lambda: any(m.flags & LOST for m in cap.poses), cap, 30.0), (
+        daemon.lines
+    )
     status = _capture_status(daemon)
     drops = status["drops"]
-    assert drops["bad_length"] + drops["bad_count"] >= 1, drops  # truncated/garbled
+    assert drops.get("bad_length", 0) + drops.get("bad_count", 0) >= 1, drops
     if system == "natnet":
-        assert drops["duplicate"] == 1 and drops["backwards"] == 1, drops
+        assert drops.get("duplicate") == 1 and drops.get("backwards") == 1, drops
     assert status["counts"]["unknown_label_sets"] >= 1, status
-    assert status["unknown_labels"] == ["renamed"], status
+    rig_markers = set(load_rig("plug-in-gait").marker_names)
+    renamed = ["renamed", *_walk().labels[1:]]  # the emulators rename marker 0
+    assert status["unknown_labels"] == [lb for lb in renamed if lb not in rig_markers]
+    assert "renamed" in status["unknown_labels"]
     assert _said(daemon, "not markers of rig plug-in-gait"), daemon.lines
     assert status["state"] == "lost" and status["counts"]["lost"] == 1, status
     # The loop never waits for the reconnect: control answers at once, repeatedly,
@@ -311,11 +312,13 @@ def test_unknown_protocol_version_is_said_and_counted(
     server = serve(system, faults=False, **scenario)
     daemon, cap, primed = _start(run_daemon, pose_capture, pig_calibration, server)
     key = "bad_control" if system == "natnet" else "bad_version"
-    assert _wait(
-        lambda: _capture_status(daemon)["client"][key] >= 1, cap, 20.0
-    ), daemon.lines
+    assert _wait(lambda: _capture_status(daemon)["client"][key] >= 1, cap, 20.0), (
+        daemon.lines
+    )
     status = _capture_status(daemon)
-    assert status["state"] in ("connecting", "waiting") and not status["counts"]["frames"]
+    assert (
+        status["state"] in ("connecting", "waiting") and not status["counts"]["frames"]
+    )
     said = "NatNet 2.9" if system == "natnet" else "refused RT protocol version"
     assert _said(daemon, said), daemon.lines
     assert daemon.ctl({"cmd": "status"}, timeout_ms=500) is not None
@@ -329,19 +332,28 @@ def test_flood_is_drained_latest_wins_and_said(
     serve: Any,
 ) -> None:
     """Motive sending the whole take at once: the loop drains it, solves what its
-    budget allows (latest wins), counts the rest stale and says it floods."""
+    budget allows (latest wins, the rest counted stale), says it floods and stays
+    up."""
     server = serve("natnet", faults=False, flood=True)
     daemon, cap, primed = _start(run_daemon, pose_capture, pig_calibration, server)
     assert _wait(
-        lambda: _capture_status(daemon)["counts"]["frames"] > 0
-        and any(m.flags & LOST for m in cap.poses),
+        lambda: (
+            _capture_status(daemon)["counts"]["frames"] > 0
+            and any(m.flags & LOST for m in cap.poses)
+        ),
         cap,
         20.0,
     ), daemon.lines
     status = _capture_status(daemon)
     counters = daemon.counters()
-    assert counters["stale"] > 0, counters
-    assert status["counts"]["floods"] >= 1, status
+    n = _walk().n_frames
+    assert status["counts"]["frames"] == n, status  # loopback: the kernel kept all
+    # Every accepted frame was solved or counted stale (latest wins), none lost.
+    assert (
+        counters["frames_in"] >= n
+        and counters["frames_out"] + counters["stale"] >= counters["frames_in"]
+    ), counters
+    assert status["counts"]["floods"] >= 1, "\n".join([str(status), *_lines(daemon)])
     assert _said(daemon, "floods"), daemon.lines
     assert daemon.ctl({"cmd": "status"}, timeout_ms=500) is not None
 
@@ -376,9 +388,11 @@ def test_record_keeps_the_packets_and_replay_decodes_them_alike(
     assert kinds.count(rf.KIND_FRAME) >= take.n_frames  # + truncated, garbled ...
     back = load_take(out)
     assert back.labels == take.labels
-    assert back.n_frames == take.n_frames, (back.n_frames, take.n_frames)
-    assert back.rate_hz == pytest.approx(take.rate_hz, rel=1e-3)
     expected = _wire_positions(system)
+    if system == "natnet":  # the swapped pair: frame 21 before 20, 20 dropped
+        expected = np.delete(expected, 20, axis=0)
+    assert back.n_frames == expected.shape[0], (back.n_frames, expected.shape)
+    assert back.rate_hz == pytest.approx(take.rate_hz, rel=1e-3)
     np.testing.assert_allclose(back.positions, expected, rtol=0, atol=1e-9)
     assert np.array_equal(np.isnan(back.positions), np.isnan(expected))
     assert "recorded" in done.stdout
