@@ -260,7 +260,7 @@ def test_faults_are_said_counted_and_the_last_pose_held(
     rig does not know, then the server vanishes: each said and counted; the daemon
     keeps answering and streams the last good pose flagged."""
     server = serve(system, faults=True, label_change_at=100, vanish_at=200)
-    daemon, cap, primed = _start(
+    daemon, cap, _ = _start(
         run_daemon, pose_capture, pig_calibration, server, "--process-every-frame"
     )
     assert _wait(lambda: any(m.flags & LOST for m in cap.poses), cap, 30.0), (
@@ -310,7 +310,7 @@ def test_unknown_protocol_version_is_said_and_counted(
 ) -> None:
     scenario = {"version": (2, 9)} if system == "natnet" else {"refuse_version": True}
     server = serve(system, faults=False, **scenario)
-    daemon, cap, primed = _start(run_daemon, pose_capture, pig_calibration, server)
+    daemon, cap, _ = _start(run_daemon, pose_capture, pig_calibration, server)
     key = "bad_control" if system == "natnet" else "bad_version"
     assert _wait(lambda: _capture_status(daemon)["client"][key] >= 1, cap, 20.0), (
         daemon.lines
@@ -335,7 +335,7 @@ def test_flood_is_drained_latest_wins_and_said(
     budget allows (latest wins, the rest counted stale), says it floods and stays
     up."""
     server = serve("natnet", faults=False, flood=True)
-    daemon, cap, primed = _start(run_daemon, pose_capture, pig_calibration, server)
+    daemon, cap, _ = _start(run_daemon, pose_capture, pig_calibration, server)
     assert _wait(
         lambda: (
             _capture_status(daemon)["counts"]["frames"] > 0
