@@ -31,6 +31,8 @@ from retargetd.daemon.face.config import FaceConfigError, load_face_config
 from retargetd.daemon.face.training import TrainingSet
 from retargetd.protocols.conventions import normalize_units, normalize_up_axis
 from retargetd.protocols.marker_input import MAX_MARKERS, MAX_MESSAGE_BYTES, MAX_RATE_HZ
+from retargetd.protocols.natnet import parse_natnet_url
+from retargetd.protocols.qtm import parse_qtm_url
 
 LOCALHOST = "127.0.0.1"
 
@@ -418,12 +420,15 @@ def _check_input_limits(inputs: InputConfig, source: str) -> None:
 
 def _check_capture_source(url: str, source: str) -> None:
     """``input.source``: empty, or a URL the capture inputs parse."""
-    if not url:
-        return
-    from retargetd.daemon.live.sources import parse_source
-
     try:
-        parse_source(url)
+        if url.startswith("natnet://"):
+            parse_natnet_url(url)
+        elif url.startswith("qtm://"):
+            parse_qtm_url(url)
+        elif url:
+            raise ValueError(
+                f"expected qtm://HOST[:PORT] or natnet://HOST[:PORT][?...]; got {url!r}"
+            )
     except ValueError as exc:
         raise ConfigError(f"{source}: input.source: {exc}") from None
 
