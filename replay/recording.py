@@ -423,7 +423,10 @@ def read_mcap_take(
     rec = read_recording(path)
     input_name = main_input(rec)
     declared = next((i for i in rec.inputs() if i.get("name") == input_name), {})
-    form_name = declared.get("form", "")
+    form_name = declared.get("form", "") or next(
+        (FORM_NAMES.get(p.form, "") for p in rec.packets() if p.input == input_name),
+        "",
+    )  # an input the metadata does not list: its packets' form
     simple = form_name == "osc-simple"
     # Decode in the capture frame (identity, metres): units and axes are applied by
     # assemble_take, as for the other formats, so overrides work the same way.

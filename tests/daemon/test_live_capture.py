@@ -396,3 +396,95 @@ def test_record_keeps_the_packets_and_replay_decodes_them_alike(
     np.testing.assert_allclose(back.positions, expected, rtol=0, atol=1e-9)
     assert np.array_equal(np.isnan(back.positions), np.isnan(expected))
     assert "recorded" in done.stdout
+
+
+@pytest.mark.timeout(120)
+def test_recording_started_mid_stream_decodes_on_its_own(
+    pig_calibration: Path,
+    run_daemon: Callable[..., Any],
+    pose_capture: Callable[[str], Any],
+    serve: Any,
+    tmp_path: Path,
+) -> None:
+    """``ctl record start`` while Motive streams: the daemon writes the server info
+    and model definitions it kept before the frames, so the file loads alone and
+    holds every frame from then on, decoded as live."""
+    from retargetd.replay import recording as rf
+
+    take = _walk()
+    server = serve("natnet", faults=False)
+    daemon, cap, _ = _start(
+        run_daemon, pose_capture, pig_calibration, server, "--process-every-frame"
+    )
+    assert _wait(
+        lambda: _capture_status(daemon)["counts"]["frames"] >= 60, cap, 30.0
+    ), daemon.lines
+    path = tmp_path / "mid.mcap"
+    reply = daemon.ctl({"cmd": "record", "action": "start", "path": str(path)})
+    assert reply is not None and reply["ok"], reply
+    assert _wait(lambda: any(m.flags & LOST for m in cap.poses), cap, 20.0), (
+        daemon.lines
+    )
+    reply = daemon.ctl({"cmd": "record", "action": "stop"})
+    assert reply is not None and reply["ok"], reply
+    deadline = time.monotonic() + 10.0
+    while not rf.read_recording(path).complete:
+        assert time.monotonic() < deadline, "recording never finished"
+        time.sleep(0.1)
+    packets = [p for p in rf.read_recording(path).packets() if p.input == "natnet"]
+    assert [p.kind for p in packets[:2]] == [rf.KIND_OTHER, rf.KIND_LABELS]  # seeds
+    back = load_take(path)
+    start = back.first_frame - take.first_frame
+    assert 60 <= start < take.n_frames - 50, start
+    assert back.labels == take.labels
+    assert back.n_frames == take.n_frames - start
+    expected = _wire_positions("natnet")[start:]
+    np.testing.assert_allclose(back.positions, expected, rtol=0, atol=1e-9)
+
+
+@pytest.mark.timeout(90)
+def test_replay_of_a_capture_recording_plays_the_decoded_frames(
+    retargetd: list[str],
+    tmp_path: Path,
+    serve: Any,
+    udp_socket: Callable[..., Any],
+) -> None:
+    """``retargetd replay natnet.mcap --to osc://…``: the recording decoded by the
+    NatNet input, sent as compact OSC frames, one per decoded frame, same markers."""
+    from retargetd.protocols import osc_in
+    from retargetd.protocols.marker_input import ACCEPTED, MarkerStream
+
+    server = serve("natnet", faults=False)
+    server.start()
+    out = tmp_path / "natnet.mcap"
+    argv = [*retargetd, "record", "--listen", server.url, "--out", str(out)]
+    done = subprocess.run(
+        [*argv, "--seconds", "6"], capture_output=True, text=True, timeout=60,
+        cwd=tmp_path,
+    )  # fmt: skip
+    assert done.returncode == 0, (done.stdout, done.stderr)
+    sink = udp_socket(bind=True, timeout_s=2.0)
+    host, port = sink.getsockname()
+    played = subprocess.run(
+        [*retargetd, "replay", str(out), "--to", f"osc://{host}:{port}", "--speed",
+         "4"],
+        capture_output=True, text=True, timeout=60, cwd=tmp_path,
+    )  # fmt: skip
+    assert played.returncode == 0, (played.stdout, played.stderr)
+    stream = MarkerStream(None)
+    rows = []
+    while True:
+        try:
+            data = sink.recv(65536)
+        except TimeoutError:
+            break
+        if data.startswith(b"/rtd/labels\0"):
+            stream.set_labels(osc_in.decode_labels(data))
+        elif (
+            stream.feed(osc_in.decode_compact_frame, data, t_ns=len(rows) * 10**7)
+            == ACCEPTED
+        ):
+            rows.append(stream.current.frame.markers_world.copy())
+    expected = _wire_positions("natnet")
+    assert len(rows) == expected.shape[0], (len(rows), played.stdout)
+    np.testing.assert_allclose(np.stack(rows), expected, rtol=0, atol=1e-6)
