@@ -78,7 +78,13 @@ class InputsMixin(DaemonState):
         accepted and left for later (latest wins), else 0."""
         if code != ACCEPTED and code != RESTART:
             if code == IMPLAUSIBLE_JUMP:
-                name = "osc" if stream is self.osc_stream else "zmq"
+                name = (
+                    "osc"
+                    if stream is self.osc_stream
+                    else "zmq"
+                    if stream is self.zmq_stream
+                    else "capture"
+                )
                 self._log_limited(
                     f"{name}.implausible_jump",
                     t_ns,

@@ -472,7 +472,7 @@ def test_replay_of_a_capture_recording_plays_the_decoded_frames(
     )  # fmt: skip
     assert played.returncode == 0, (played.stdout, played.stderr)
     stream = MarkerStream(None)
-    rows = []
+    rows: list[np.ndarray] = []
     while True:
         try:
             data = sink.recv(65536)
