@@ -93,12 +93,13 @@ def kernel(fn: Callable[..., Any] | None = None, **options: Any) -> Any:
     (``numba.config.CACHE_DIR`` is read then, and restored at once)."""
 
     def wrap(f: Callable[..., Any]) -> Any:
-        saved = numba.config.CACHE_DIR
-        numba.config.CACHE_DIR = str(CACHE_DIR)
+        cfg: Any = numba.config  # (CACHE_DIR is set at run time, untyped)
+        saved = cfg.CACHE_DIR
+        cfg.CACHE_DIR = str(CACHE_DIR)
         try:
             return numba.njit(cache=True, nogil=True, error_model="numpy", **options)(f)
         finally:
-            numba.config.CACHE_DIR = saved
+            cfg.CACHE_DIR = saved
 
     return wrap(fn) if fn is not None else wrap
 

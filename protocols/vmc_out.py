@@ -6,8 +6,15 @@ Per frame, in this order (``shared/reference/engines.md``, PROTOCOLS.md section 
     /VMC/Ext/Bone/Pos  ,sfffffff  NAME   px py pz qx qy qz qw     (every bone)
     /VMC/Ext/Blend/Val ,sf        NAME   value                     (every blendshape)
     /VMC/Ext/Blend/Apply ,
-    /VMC/Ext/OK        ,i         1  (model loaded)
+    /VMC/Ext/OK        ,iiii      1 3 0 1  (VMC 2.7: model loaded, calibrated,
+                                           normal calibration mode, tracking ok)
     /VMC/Ext/T         ,f         t  (sender time, seconds)
+
+Before a calibration (nothing to stream yet) and while one collects frames, the
+daemon sends :meth:`VmcEncoder.encode_state` instead, about twice a second: a bundle
+of ``/VMC/Ext/OK ,iiii 1 S 0 K`` (S = 1 waiting for calibration, 2 calibrating;
+K = 1 while markers arrive, else 0) and ``/VMC/Ext/T``, so receivers (EVMC4U, VSeeFace)
+show the state rather than silence.
 
 All values in Unity's frame (left-handed, +Y up, metres, x y z w; see
 ``engine_unity``). The messages are packed in order into bundles (time tag
@@ -45,6 +52,11 @@ BONE_ADDRESS = "/VMC/Ext/Bone/Pos"
 BLEND_VAL_ADDRESS = "/VMC/Ext/Blend/Val"
 BLEND_APPLY_ADDRESS = "/VMC/Ext/Blend/Apply"
 OK_ADDRESS = "/VMC/Ext/OK"
+#: ``/VMC/Ext/OK`` calibration states (VMC protocol 2.5+).
+CALIBRATION_UNCALIBRATED = 0
+CALIBRATION_WAITING = 1
+CALIBRATION_CALIBRATING = 2
+CALIBRATION_CALIBRATED = 3
 TIME_ADDRESS = "/VMC/Ext/T"
 _NAN7 = [float("nan")] * 7
 
@@ -113,7 +125,7 @@ class VmcEncoder:
         ]
         messages += [
             (build_message(BLEND_APPLY_ADDRESS, ",", []), 0),
-            (build_message(OK_ADDRESS, ",i", [1]), 0),
+            (build_message(OK_ADDRESS, ",iiii", [1, CALIBRATION_CALIBRATED, 0, 1]), 0),
             (build_message(TIME_ADDRESS, ",f", [0.0]), 1),
         ]
         self._buf, bounds, self._slots = _pack(messages)
@@ -122,6 +134,10 @@ class VmcEncoder:
         self._floats = np.frombuffer(self._buf, dtype=">f4")
         # Staging, in slot order: (root + bones) x 7, then blend values, then T.
         self._stage: F64Array = np.zeros(len(self._slots))
+        # The staging cast to the wire's dtype first, so the scatter into the
+        # datagrams copies like for like (a float64 -> >f4 scatter made a 4 KB
+        # temporary every frame).
+        self._stage_wire = np.zeros(len(self._slots), dtype=">f4")
         self._pose = self._stage[: 7 * n_pose].reshape(n_pose, 7)
         self._quat = self._pose[:, 3:7]
         self._blend = self._stage[7 * n_pose : 7 * n_pose + len(blends)]
@@ -130,7 +146,43 @@ class VmcEncoder:
         self._dot: F64Array = np.zeros(n_pose)
         self._flip: BoolArray = np.zeros(n_pose, dtype=bool)
         self._flip_col = self._flip[:, None]
+        # The state bundle (before and during a calibration): OK + T, prebuilt; the
+        # calibration state, the tracking flag and the time are patched in place.
+        state_ok = build_message(OK_ADDRESS, ",iiii", [1, 0, 0, 0])
+        state_t = build_message(TIME_ADDRESS, ",f", [0.0])
+        self._state = bytearray(
+            BUNDLE_HEADER
+            + (len(state_ok)).to_bytes(4, "big") + state_ok
+            + (len(state_t)).to_bytes(4, "big") + state_t
+        )  # fmt: skip
+        base = len(BUNDLE_HEADER) + 4
+        self._state_ints = np.frombuffer(
+            self._state, dtype=">i4", count=4, offset=base + len(state_ok) - 16
+        )
+        self._state_time = np.frombuffer(
+            self._state, dtype=">f4", count=1, offset=len(self._state) - 4
+        )
+        self.state_datagram = memoryview(self._state)
         self.reset_continuity()
+
+    def encode_state(
+        self, calibration_state: int, tracking_ok: bool, t_s: float
+    ) -> memoryview:
+        """The state datagram: ``/VMC/Ext/OK ,iiii 1 calibration_state 0 tracking``
+        then ``/VMC/Ext/T``, in one bundle (written in place; returns
+        :attr:`state_datagram`).
+
+        Args:
+            calibration_state: ``CALIBRATION_*`` (0-3).
+            tracking_ok: markers are arriving.
+            t_s: sender time in seconds.
+        """
+        if not 0 <= calibration_state <= 3:
+            raise ValueError(f"calibration_state must be 0-3; got {calibration_state}")
+        self._state_ints[1] = calibration_state
+        self._state_ints[3] = 1 if tracking_ok else 0
+        self._state_time[0] = t_s
+        return self.state_datagram
 
     def reset_continuity(self) -> None:
         """Forget the last quaternions sent (e.g. after a receiver restart): the next
@@ -179,5 +231,6 @@ class VmcEncoder:
         np.copyto(self._last_quat, quat)
         self._blend[:] = blend
         self._stage[-1] = t_s
-        self._floats[self._slots] = self._stage
+        np.copyto(self._stage_wire, self._stage)
+        self._floats[self._slots] = self._stage_wire
         return self.datagrams

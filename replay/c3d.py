@@ -345,7 +345,7 @@ def read_c3d(
             why = f"ezc3d: {exc}"
     repairs: list[str] = []
     if raw is None:
-        params = layout_params(layout)
+        params: Mapping[str, Any] = layout_params(layout)
         rate, rate_source, rate_repairs = _resolve_rate(
             name, params, layout.header_rate_hz, rate_hz
         )

@@ -168,7 +168,11 @@ class FoxgloveChannels:
 
         stamp = _stamp(t_ns)
         ok = np.isfinite(bone_ends).all(axis=(1, 2))
-        flags = np.zeros(len(ok), bool) if bone_flags is None else bone_flags != 0
+        flags: np.ndarray = (
+            np.zeros(ok.shape[0], dtype=np.bool_)
+            if bone_flags is None
+            else np.asarray(bone_flags) != 0
+        )
         # Shared sub-messages (copied into each message on encode).
         blue, red = (
             Color(r=c[0], g=c[1], b=c[2], a=c[3]) for c in (BONE_RGBA, FLAGGED_RGBA)
@@ -229,6 +233,7 @@ class FoxgloveChannels:
         trans = _rotate(inv, bone_ends[:, 0] - base)
         rot = _mul(inv, q)
         good = ok & np.isfinite(q).all(axis=1)
+        good = np.asarray(good)
         good &= root | good[pi]
         transforms = [
             FrameTransform(

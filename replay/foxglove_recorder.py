@@ -16,7 +16,7 @@ from __future__ import annotations
 import os
 import time
 from collections.abc import Callable, Sequence
-from typing import Any, BinaryIO
+from typing import Any
 
 import numpy as np
 
@@ -29,6 +29,7 @@ from retargetd.replay.recorder import (
     McapSink,
     Recorder,
     RecorderStats,
+    RecordingFile,
 )
 
 #: Queue item tag for a skeleton frame (the recorder's own tags are 0-2).
@@ -50,7 +51,7 @@ class FoxgloveMcapSink(McapSink):
 
     def __init__(
         self,
-        out: BinaryIO,
+        out: RecordingFile,
         inputs: tuple[InputInfo, ...],
         stats: RecorderStats,
         *,
@@ -141,7 +142,11 @@ def open_skeleton_recorder(
     Raises:
         OSError: the file cannot be created (or exists, with ``exclusive``).
     """
-    out = open(path, "xb" if exclusive else "wb")  # noqa: SIM115 (the sink closes it)
+    flags = os.O_WRONLY | os.O_CREAT | (os.O_EXCL if exclusive else os.O_TRUNC)
+    name = os.fspath(path)
+    # The recorder's own file at the OS boundary (write errors raise where they
+    # happen, counts are what the file holds): see ``recorder.RecordingFile``.
+    out = RecordingFile(os.open(name, flags | getattr(os, "O_CLOEXEC", 0), 0o644), name)
     mono = time.monotonic_ns()
     wall = time.time_ns()
 

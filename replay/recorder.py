@@ -389,7 +389,7 @@ class McapSink:
     ) -> None:
         try:
             if form == rf.FORM_ZMQ:
-                label_set = zmq_wire.decode_zmq_labels(*parts)
+                label_set = zmq_wire.decode_zmq_labels(parts[0], parts[1])
             else:
                 label_set = osc_in.decode_labels(parts[0])
         except DecodeError:

@@ -453,7 +453,9 @@ def read_mcap_take(
         elif p.kind == KIND_LABELS:
             try:
                 if p.form == FORM_ZMQ:
-                    stream.set_labels(zmq_wire.decode_zmq_labels(*p.parts), p.t_ns)
+                    stream.set_labels(
+                        zmq_wire.decode_zmq_labels(p.parts[0], p.parts[1]), p.t_ns
+                    )
                 else:
                     stream.set_labels(osc_in.decode_labels(p.parts[0]), p.t_ns)
             except DecodeError:

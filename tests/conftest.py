@@ -9,8 +9,9 @@ import pytest
 from paths import DATASETS, IN_CI, REPO_ROOT, require_datasets
 
 #: The live-daemon harness's fixtures (``start_daemon``, ``exact_calibration``, ``vmc``,
-#: ``osc_source``) for every test; ``tests/helpers`` is on pytest's ``pythonpath``.
-pytest_plugins = ["live_harness"]
+#: ``osc_source``) and the headless browser (``driver``) for every test;
+#: ``tests/helpers`` is on pytest's ``pythonpath``.
+pytest_plugins = ["live_harness", "browser"]
 
 __all__ = ["DATASETS", "IN_CI", "REPO_ROOT", "require_datasets"]
 

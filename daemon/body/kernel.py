@@ -86,6 +86,7 @@ class BodyState(NamedTuple):
     v44: np.ndarray  # (4, 4)
     cen: np.ndarray  # (6,) fit centroids
     last_root: np.ndarray  # (3,) last good root position (init: calibrated rest)
+    counts: np.ndarray  # (1,) int64 out: rig markers occluded this frame
 
 
 class BodyOut(NamedTuple):
@@ -221,6 +222,7 @@ def solve_one(markers: np.ndarray, plan: BodyPlan, st: BodyState, out: BodyOut) 
     n_markers = marker_cols.shape[0]
     nan = math.nan
     # 1. gather
+    n_occluded = 0
     for i in range(n_markers):
         col = marker_cols[i]
         ok = False
@@ -237,8 +239,10 @@ def solve_one(markers: np.ndarray, plan: BodyPlan, st: BodyState, out: BodyOut) 
             pts[i, 0] = nan
             pts[i, 1] = nan
             pts[i, 2] = nan
+            n_occluded += 1
         seen[i] = ok
         filled[i] = False
+    st.counts[0] = n_occluded
     # 2. rebuild occluded markers from their rigid segment
     for s in range(seg_ptr.shape[0] - 1):
         a, b = seg_ptr[s], seg_ptr[s + 1]

@@ -240,9 +240,16 @@ def load_rig(name_or_path: str | Path) -> Rig:
             )
         return parse_rig(resource.read_text(), source=f"{text_name} (shipped)")
     try:
-        text = path.read_text()
+        data = path.read_bytes()
     except OSError as exc:
         raise RigError(f"{path}: cannot read rig file: {exc.strerror}") from None
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise RigError(
+            f"{path}: not UTF-8 text (byte 0x{data[exc.start]:02x} at offset "
+            f"{exc.start})"
+        ) from None
     return parse_rig(text, source=str(path))
 
 
@@ -332,6 +339,12 @@ class _Parser:
             raise self.fail(key, f"expected a non-empty string, got {value!r}")
         return value
 
+    def text(self, key: str, value: Any) -> str:
+        """A free-text string (may be empty), e.g. a description."""
+        if not isinstance(value, str):
+            raise self.fail(key, f"expected a string, got {value!r}")
+        return value
+
     def strings(self, key: str, value: Any, n: int | None = None) -> tuple[str, ...]:
         if isinstance(value, str):
             value = [value]
@@ -359,7 +372,7 @@ class _Parser:
         head = self.table("rig", doc.get("rig", {}))
         self.unknown_keys("rig", head, ("name", "description", "lateral"))
         name = self.string("rig.name", head.get("name"))
-        description = str(head.get("description", ""))
+        description = self.text("rig.description", head.get("description", ""))
         measurements = self.parse_measurements()
         markers = self.parse_markers()
         points = self.parse_points(markers, measurements)
@@ -419,7 +432,9 @@ class _Parser:
             out[mname] = Measurement(
                 name=mname,
                 default_mm=float(default),
-                description=str(spec.get("description", "")),
+                description=self.text(
+                    f"{key}.description", spec.get("description", "")
+                ),
             )
         return out
 
@@ -525,6 +540,12 @@ class _Parser:
                         offset_mm=(exprs[0], exprs[1], exprs[2]),
                     )
             else:
+                # A misspelt 'line' or 'rigid' is named as the unknown key it is.
+                self.unknown_keys(
+                    key,
+                    spec,
+                    ("line", "u", "rigid", "rule", "offset_mm", "description"),
+                )
                 raise self.fail(key, "a point needs 'line' or 'rigid'")
         known = set(markers) | set(parsed)
         for p in parsed.values():

@@ -80,6 +80,8 @@ class BodyPose:
     bone_quality: np.ndarray
     bone_flags: np.ndarray
     n_held: int = 0
+    #: Rig markers occluded this frame (missing from the stream or not finite).
+    n_occluded: int = 0
     #: The same buffers as the kernel's output tuple (built once, never per frame).
     kernel_out: kernel.BodyOut | None = None
 
@@ -206,7 +208,7 @@ class BodySolver:
         self.state = kernel.BodyState(
             self._pts, self._seen, self._filled, self._last_pfb, self._have_good,
             self._prev_wfb, self._tmp4, self._n44, self._v44, np.zeros(6),
-            self._last_root,
+            self._last_root, np.zeros(1, dtype=np.int64),
         )  # fmt: skip
         self.reset()
 
@@ -247,6 +249,7 @@ class BodySolver:
         if k_out is None:  # a BodyPose made by hand: wrap it once
             k_out = out.kernel_out = _kernel_out(out)
         out.n_held = kernel.solve_one(markers_world, self.plan, self.state, k_out)
+        out.n_occluded = int(self.state.counts[0])
         return out
 
     def solve_take(self, positions: F64Array) -> BodySolve:

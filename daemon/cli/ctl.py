@@ -8,13 +8,19 @@ requests ``{"cmd": "status"}``, ``{"cmd": "calibrate", "count": N}``,
 ``{"cmd": "face-capture", "name": NAME, "count": N}``). ``record start`` makes the
 daemon record every marker packet it receives, its pose stream (unless
 ``--no-poses``) and control events to a new MCAP file, in the format of
-``retargetd record`` (``retargetd replay`` plays it back); FILE is sent as an absolute
-path (the daemon runs elsewhere) and must not exist yet. ``record stop`` returns at
+``retargetd record`` (``retargetd replay`` plays it back); FILE must not exist yet and
+lies under the daemon's recordings folder (``record.folder``, default ``recordings/``
+in the daemon's working directory): a relative FILE is taken inside that folder, an
+absolute one must be in it, and ``..`` is refused. ``record stop`` returns at
 once; the daemon finishes the file in the background (``status --json``: ``record``).
 ``face-capture NAME`` (``neutral`` first, then any expression of the face config)
 averages the next N frames into the face training set, which the daemon starts
 solving with at once and saves (``[face]`` in the daemon config; ``status --json``:
 ``face``).
+With the control socket under CURVE (``control.secret_key`` in the daemon's config),
+``--key NAME.key_secret`` is this client's key pair (``retargetd keys NAME``) and
+``--server-key`` the daemon's public key (default: ``daemon.key`` beside ``--key``);
+a client whose public key the daemon does not list gets no answer.
 Exit 0 on success, 1 when the daemon refuses or does not answer within
 ``--timeout-ms``, 2 for usage errors.
 """
@@ -45,6 +51,16 @@ def add_parser(subparsers: Any) -> None:
         help="the daemon's control endpoint (default %(default)s)",
     )
     parser.add_argument("--timeout-ms", type=int, default=2000)
+    parser.add_argument(
+        "--key",
+        metavar="FILE.key_secret",
+        help="CURVE: this client's secret key file (retargetd keys)",
+    )
+    parser.add_argument(
+        "--server-key",
+        metavar="FILE.key",
+        help="CURVE: the daemon's public key file (default: daemon.key beside --key)",
+    )
     sub = parser.add_subparsers(dest="ctl_command", metavar="ACTION", required=True)
     status = sub.add_parser("status", help="fps, drops, latency, occluded markers")
     status.add_argument("--json", action="store_true", help="the full JSON document")
@@ -72,10 +88,21 @@ def add_parser(subparsers: Any) -> None:
 
 
 def request(
-    endpoint: str, req: dict[str, Any], timeout_ms: int
+    endpoint: str,
+    req: dict[str, Any],
+    timeout_ms: int,
+    key: str | None = None,
+    server_key: str | None = None,
 ) -> dict[str, Any] | None:
-    """Send one request; the reply, or None on timeout."""
+    """Send one request; the reply, or None on timeout. With ``key`` (a secret key
+    file) the socket is a CURVE client of ``server_key`` (a public key file).
+
+    Raises:
+        KeyFileError: a key file that cannot be used.
+    """
     import zmq
+
+    from retargetd.daemon.live.surface import curve_client
 
     ctx: Any = zmq.Context.instance()
     sock = ctx.socket(zmq.REQ)
@@ -83,6 +110,9 @@ def request(
     sock.setsockopt(zmq.RCVTIMEO, timeout_ms)
     sock.setsockopt(zmq.SNDTIMEO, timeout_ms)
     try:
+        if key is not None:
+            server = server_key or os.path.join(os.path.dirname(key), "daemon.key")
+            curve_client(sock, key, server)
         sock.connect(endpoint)
         sock.send(json.dumps(req).encode())
         reply: dict[str, Any] = json.loads(sock.recv())
@@ -112,9 +142,14 @@ def run(args: argparse.Namespace) -> int:
                 raise UsageError(
                     f"record start: FILE must end in .mcap; got {args.file!r}"
                 )
-            req["path"] = os.path.abspath(args.file)
+            req["path"] = args.file  # relative: inside the daemon's recordings folder
             req["poses"] = not args.no_poses
-    reply = request(args.endpoint, req, args.timeout_ms)
+    from retargetd.daemon.live.surface import KeyFileError
+
+    try:
+        reply = request(args.endpoint, req, args.timeout_ms, args.key, args.server_key)
+    except KeyFileError as exc:
+        raise UsageError(str(exc)) from None
     if reply is None:
         sys.stderr.write(
             f"retargetd ctl: no daemon answered at {args.endpoint} "

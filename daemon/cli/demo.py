@@ -16,6 +16,7 @@ import threading
 import time
 from typing import Any
 
+from retargetd.daemon.cli.launch import add_console_argument
 from retargetd.daemon.errors import UsageError
 
 
@@ -31,6 +32,7 @@ def add_parser(subparsers: Any) -> None:
     parser.add_argument("--rate", type=float, default=120.0, help="marker rate (Hz)")
     parser.add_argument("--config", metavar="FILE.toml", help="daemon config (TOML)")
     parser.add_argument("--noise-mm", type=float, default=0.5)
+    add_console_argument(parser, "127.0.0.1:8080")
     parser.set_defaults(run=run)
 
 

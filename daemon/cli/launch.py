@@ -16,6 +16,35 @@ from typing import Any
 from retargetd.daemon.errors import UsageError
 
 
+def add_console_argument(parser: argparse.ArgumentParser, default: str | None) -> None:
+    """``--console [HOST:]PORT`` (the browser console; ``default`` None = off)."""
+    parser.add_argument(
+        "--console",
+        metavar="[HOST:]PORT",
+        default=default,
+        help="serve the browser console there (viser; 127.0.0.1 unless a host is "
+        "given, which then needs console.allow_remote)"
+        + (f"; default {default}" if default else "; off unless given"),
+    )
+    if default:
+        parser.add_argument(
+            "--no-console", action="store_true", help="run without the console"
+        )
+
+
+def parse_console(text: str) -> tuple[str, int]:
+    """``"[HOST:]PORT"`` -> (host, port); UsageError naming ``--console``."""
+    host, sep, port = text.rpartition(":")
+    host = host if sep else "127.0.0.1"
+    try:
+        number = int(port)
+    except ValueError:
+        raise UsageError(f"--console: expected [HOST:]PORT; got {text!r}") from None
+    if not 0 <= number <= 65535:
+        raise UsageError(f"--console: port must be in [0, 65535]; got {number}")
+    return host or "127.0.0.1", number
+
+
 def load_config(args: argparse.Namespace) -> Any:
     """The validated config with CLI overrides applied (ConfigError -> UsageError)."""
     import dataclasses
@@ -34,7 +63,19 @@ def load_config(args: argparse.Namespace) -> Any:
     loop = config.loop
     if getattr(args, "process_every_frame", False):
         loop = dataclasses.replace(loop, process_every_frame=True)
-    return dataclasses.replace(config, performer=performer, loop=loop)
+    console = config.console
+    if getattr(args, "console", None) and not getattr(args, "no_console", False):
+        host, port = parse_console(args.console)
+        console = dataclasses.replace(console, enabled=True, host=host, port=port)
+        try:  # the same checks as the file's (a host off loopback, say)
+            DaemonConfig.from_dict(
+                {"console": {"host": host, "port": port,
+                             "allow_remote": console.allow_remote}},
+                source="--console",
+            )  # fmt: skip
+        except ConfigError as exc:
+            raise UsageError(str(exc)) from None
+    return dataclasses.replace(config, performer=performer, loop=loop, console=console)
 
 
 def make_daemon(config: Any) -> Any:

@@ -15,6 +15,7 @@ import threading
 from typing import Any
 
 from retargetd.daemon.cli.launch import (
+    add_console_argument,
     install_signal_handlers,
     load_config,
     make_daemon,
@@ -48,6 +49,7 @@ def add_parser(subparsers: Any) -> None:
         "natnet://HOST[:PORT][?data_port=N&multicast=1&up=+Z...] (overrides "
         "[input] source)",
     )
+    add_console_argument(parser, None)
     parser.set_defaults(run=run)
 
 

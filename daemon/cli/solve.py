@@ -1,11 +1,28 @@
 """``retargetd solve TAKE --rig RIG (--calibration FILE | --calibrate-frames a:b)
---out OUT.npz|OUT.bvh [--bvh-order ZXY] [--bvh-root-order ORDER]``: solve every frame
-of a take. The ``--out`` suffix chooses the format.
+--out OUT.npz|OUT.bvh|OUT.csv|OUT.glb [--pipeline FILE.toml] [--bvh-order ZXY]
+[--bvh-root-order ORDER] [--euler-order ORDER] [--degrees]``: solve every frame of a
+take. The ``--out`` suffix chooses the format.
+
+``--pipeline FILE.toml``: the file's ``[[pipeline]]`` post stages (``twist``,
+``one_euro``; README "Post stages") run over every solved frame, in the order listed,
+before anything is written (every format below then holds the processed motion).
 
 ``.bvh``: the calibrated skeleton and the solved motion as BVH, centimetres, Y up,
-every joint's rotation channels in ``--bvh-order`` (default Z X Y; any of XYZ, XZY,
-YXZ, YZX, ZXY, ZYX), the root's in ``--bvh-root-order`` when given. See
+every joint's rotation channels in ``--bvh-order`` (default Z X Y), the root's in
+``--bvh-root-order`` when given. BVH can express only the 6 Tait-Bryan channel orders
+XYZ, XZY, YXZ, YZX, ZXY, ZYX (one channel per axis, composed in the listed order);
+the 6 proper Euler orders (XYX ...) repeat an axis and are only in the CSV. See
 ``retargetd.daemon.target.bvh``.
+
+``.csv``: one row per frame, spreadsheet-friendly: ``frame, time_s, root_x_m,
+root_y_m, root_z_m`` then three Euler angles per bone (``<bone>_1Z_deg`` ...) of the
+true parent-relative rotation in ``--euler-order`` (any of the 12: upper case
+intrinsic, ``ZXY`` = R_Z R_X R_Y about the moving axes; lower case extrinsic, about
+the fixed parent axes in that order; default ZXY), radians unless ``--degrees``,
+unwrapped over time. See ``retargetd.daemon.target.euler_csv``.
+
+``.glb``: glTF 2.0 binary, every frame as a key (bones as nodes, rotations LINEAR,
+i.e. slerp, root translation LINEAR). See ``retargetd.daemon.post.export_gltf``.
 
 The NPZ (``numpy.load(..., allow_pickle=False)``) holds, in rig order:
 ``joint_names`` (J,), ``joint_centres`` (T, J, 3) metres world; ``bone_names`` (B,),
@@ -36,24 +53,39 @@ logger = logging.getLogger(__name__)
 def add_parser(subparsers: Any) -> None:
     """Register ``solve``."""
     from retargetd.daemon.cli.args import add_solve_arguments
+    from retargetd.daemon.cli.post_io import add_pipeline_argument
 
     parser = subparsers.add_parser(
         "solve",
-        help="solve every frame of a take to the rig's skeleton (NPZ or BVH)",
+        help="solve every frame of a take to the rig's skeleton (NPZ, BVH, CSV, glTF)",
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     add_solve_arguments(parser)
-    parser.add_argument("--out", required=True, metavar="OUT.npz|OUT.bvh")
+    parser.add_argument(
+        "--out", required=True, metavar="OUT.npz|OUT.bvh|OUT.csv|OUT.glb"
+    )
+    add_pipeline_argument(parser)
     parser.add_argument(
         "--bvh-order",
         metavar="ORDER",
-        help="BVH: rotation channel order of every joint (default ZXY)",
+        help="BVH: rotation channel order of every joint, as the channels are "
+        "listed (case-insensitive; default ZXY); BVH can express only the 6 "
+        "Tait-Bryan orders XYZ, XZY, YXZ, YZX, ZXY, ZYX",
     )
     parser.add_argument(
         "--bvh-root-order",
         metavar="ORDER",
         help="BVH: rotation channel order of the root (default: --bvh-order)",
+    )
+    parser.add_argument(
+        "--euler-order",
+        metavar="ORDER",
+        help="CSV: Euler sequence, any of the 12 (XYZ ... ZXZ; upper case intrinsic, "
+        "lower case extrinsic; default ZXY)",
+    )
+    parser.add_argument(
+        "--degrees", action="store_true", help="CSV: angles in degrees (else radians)"
     )
     parser.set_defaults(run=run)
 
@@ -119,8 +151,22 @@ def run(args: argparse.Namespace) -> int:
     out_format = _out_format(args)
     rig, take, cal, solver = solver_for_take(args)
     res = solver.solve_take(take.positions)
+    kinds: tuple[str, ...] = ()
+    if args.pipeline is not None:
+        from retargetd.daemon.cli.post_io import apply_pipeline_to_solve
+
+        res, kinds = apply_pipeline_to_solve(args.pipeline, res, cal, take.rate_hz)
     if out_format == "bvh":
         _write_bvh(args, cal, res, take.rate_hz)
+    elif out_format == "csv":
+        from retargetd.daemon.target.euler_csv import write_euler_csv
+
+        write_euler_csv(
+            args.out, res.bone_names, res.parent_from_bone_quat, res.root_pos,
+            take.rate_hz, order=args.euler_order or "ZXY", degrees=args.degrees,
+        )  # fmt: skip
+    elif out_format == "glb":
+        _write_glb(args.out, cal, res, take.rate_hz)
     else:
         np.savez(
             args.out,
@@ -157,6 +203,8 @@ def run(args: argparse.Namespace) -> int:
     if solver.missing_markers:
         out(f"; not in the take: {' '.join(solver.missing_markers)}")
     out("\n")
+    if kinds:
+        out(f"pipeline {args.pipeline}: {' -> '.join(kinds)}\n")
     held = (res.bone_flags & FLAG_HELD) != 0
     flagged = [
         f"{name} {100.0 * held[:, b].mean():.1f} %"
@@ -178,12 +226,12 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _out_format(args: argparse.Namespace) -> str:
-    """``"npz"`` or ``"bvh"`` from the ``--out`` suffix; checks the BVH options."""
-    from retargetd.replay.bvh import normalize_rotation_order
+    """``"npz"``, ``"bvh"``, ``"csv"`` or ``"glb"`` from the ``--out`` suffix; checks
+    the format's options."""
+    from retargetd.daemon.cli.post_io import check_bvh_order, suffix_of
+    from retargetd.daemon.rotations import euler_from_quat
 
-    suffix = args.out.lower().rsplit(".", 1)[-1] if "." in args.out else ""
-    if suffix not in ("npz", "bvh"):
-        raise UsageError(f"--out: expected a .npz or .bvh file; got {args.out!r}")
+    suffix = suffix_of(args.out, ("npz", "bvh", "csv", "glb"))
     for option, value in (
         ("--bvh-order", args.bvh_order),
         ("--bvh-root-order", args.bvh_root_order),
@@ -192,11 +240,29 @@ def _out_format(args: argparse.Namespace) -> str:
             continue
         if suffix != "bvh":
             raise UsageError(f"{option} applies to .bvh output; --out is {args.out!r}")
+        check_bvh_order(option, value)
+    for option, given in (
+        ("--euler-order", args.euler_order is not None),
+        ("--degrees", args.degrees),
+    ):
+        if given and suffix != "csv":
+            raise UsageError(f"{option} applies to .csv output; --out is {args.out!r}")
+    if args.euler_order is not None:
         try:
-            normalize_rotation_order(value)
+            euler_from_quat(np.array([1.0, 0.0, 0.0, 0.0]), args.euler_order)
         except ValueError as exc:
-            raise UsageError(f"{option}: {exc}") from None
+            raise UsageError(f"--euler-order: {exc}") from None
     return suffix
+
+
+def _write_glb(path: str, cal: Any, res: Any, rate_hz: float) -> None:
+    from retargetd.daemon.body.calibration import CalibrationError
+    from retargetd.daemon.post.export_gltf import clip_from_solve, write_clip_glb
+
+    try:
+        write_clip_glb(path, clip_from_solve(res, cal, rate_hz), cal)
+    except CalibrationError as exc:
+        raise UsageError(str(exc)) from None
 
 
 def _write_bvh(args: argparse.Namespace, cal: Any, res: Any, rate_hz: float) -> None:

@@ -136,7 +136,9 @@ def parse_face_config(doc: dict[str, Any], src: str, default_name: str) -> FaceC
     facial = _names(src, doc, "facial_markers", required=False)
     both = sorted(set(head) & set(facial))
     if both:
-        raise FaceConfigError(f"{src}: markers both head and facial: {both}")
+        raise FaceConfigError(
+            f"{src}: facial_markers: markers also in head_markers: {both}"
+        )
     exprs = _names(src, doc, "expressions", required=True)
     if not exprs:
         raise FaceConfigError(f"{src}: expressions: empty")
@@ -195,7 +197,18 @@ def load_face_config(name_or_path: str | Path) -> FaceConfig:
             text_name,
         )
     elif path.is_file():
-        text, src, stem = path.read_text(encoding="utf-8"), str(path), path.stem
+        try:
+            data = path.read_bytes()
+        except OSError as exc:
+            raise FaceConfigError(f"{path}: cannot read: {exc.strerror}") from None
+        try:
+            text = data.decode("utf-8")
+        except UnicodeDecodeError as exc:
+            raise FaceConfigError(
+                f"{path}: not UTF-8 text (byte 0x{data[exc.start]:02x} at offset "
+                f"{exc.start})"
+            ) from None
+        src, stem = str(path), path.stem
     else:
         raise FaceConfigError(
             f"face config {text_name!r}: no such file or preset "

@@ -16,10 +16,17 @@ performer, run side by side):
 | control socket (ZeroMQ REP) | ``control.endpoint`` | tcp://127.0.0.1:39573 |
 | OSC show-control (UDP, VMC performer port) | ``show_control.port`` | 127.0.0.1:39540 |
 | VMC output (UDP) | ``output.vmc.port`` | 127.0.0.1:39539 |
+
+Each field carries its rule (``_spec``: a range, choices, an address, an endpoint, a
+file...), applied as the key is read; ``_check`` adds the rules across keys: off
+loopback needs ``allow_remote`` (and CURVE for control, a token for show control), a
+broadcast VMC target needs ``allow_broadcast``. A test walks these dataclasses and
+gives every key a wrong type, an out-of-range value and a misspelling.
 """
 
 from __future__ import annotations
 
+import difflib
 import ipaddress
 import math
 import tomllib
@@ -27,8 +34,17 @@ from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
+from retargetd.daemon.body.rig import RigError, load_rig
 from retargetd.daemon.face.config import FaceConfigError, load_face_config
 from retargetd.daemon.face.training import TrainingSet
+from retargetd.daemon.live.surface import (
+    check_token,
+    endpoint_is_local,
+    is_loopback_host,
+    load_public_key,
+    load_secret_key,
+    parse_endpoint,
+)
 from retargetd.protocols.conventions import normalize_units, normalize_up_axis
 from retargetd.protocols.marker_input import MAX_MARKERS, MAX_MESSAGE_BYTES, MAX_RATE_HZ
 from retargetd.protocols.natnet import parse_natnet_url
@@ -36,19 +52,61 @@ from retargetd.protocols.qtm import parse_qtm_url
 
 LOCALHOST = "127.0.0.1"
 
+#: The most frames a live calibration may average: 5 s at 2000 Hz, the fastest
+#: full-resolution optical capture rates (Vicon Vantage V16: up to 2000 Hz; Qualisys
+#: Arqus: 300 Hz full frame, higher windowed). An average gains nothing past a few
+#: seconds of stillness, and 10,000 frames of 200 markers are 48 MB at most (a count
+#: of 2^31 grew the daemon's memory without bound: issue 12).
+CALIBRATE_MAX_FRAMES = 10_000
+
+#: Ceiling for ``input.zmq.max_message_bytes``: the frame payload of the largest label
+#: set allowed (100,000 markers x 12 bytes = 1.2 MB), rounded up to 2 MiB. The input
+#: queue then holds at most RCVHWM (1,000) messages of 2 parts this size.
+_ZMQ_MAX_MESSAGE_BYTES = 2 << 20
+
 
 class ConfigError(ValueError):
     """A configuration problem, one line naming the key."""
+
+
+def _spec(default: Any, check: str = "", **limits: Any) -> Any:
+    """A config field with its validation rule (read by ``_check_field`` and by the
+    schema-generated test): ``check`` names the rule, ``limits`` its bounds."""
+    return field(default=default, metadata={"check": check, **limits})
+
+
+def _between(default: Any, lo: float, hi: float, *, open_lo: bool = False) -> Any:
+    return _spec(default, "range", lo=lo, hi=hi, open_lo=open_lo)
+
+
+def _one_of(default: str, *choices: str) -> Any:
+    return _spec(default, "choices", choices=choices)
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
 class PerformerConfig:
     """Who is solved, with what."""
 
-    rig: str = "menache"
-    calibration: str = ""  # a calibration JSON; "" = calibrate live before streaming
-    save_calibration: str = ""  # where a live calibration is saved ("" = next to it)
-    calibrate_frames: int = 60  # frames averaged by a live calibration
+    rig: str = _spec("menache", "rig")
+    # a calibration JSON; "" = calibrate live before streaming
+    calibration: str = _spec("", "file")
+    # where a live calibration is saved ("" = next to it)
+    save_calibration: str = _spec("", "out_path")
+    # Frames averaged by a live calibration. At least 3: the stillness check compares
+    # the first and last thirds of the window. At most CALIBRATE_MAX_FRAMES.
+    calibrate_frames: int = _between(60, 3, CALIBRATE_MAX_FRAMES)
+    # The fastest a marker may drift over the averaged frames (its net displacement
+    # between the first and last thirds of the window over the time between them).
+    # Quiet standing sways the centre of pressure at ~10 mm/s mean velocity (Prieto
+    # et al. 1996, IEEE TBME 43(9):956, young adults eyes open: 8-15 mm/s), the body's
+    # centre of mass slower still (Winter 1995, Gait & Posture 3:193); the slowest
+    # walking is ~0.4 m/s and comfortable gait 1.3-1.5 m/s (Bohannon 1997, Age Ageing
+    # 26:15). 50 mm/s is 3-5x quiet sway and an eighth of the slowest walk.
+    calibrate_max_speed_m_s: float = _between(0.05, 0.001, 1.0)
+    # A pending calibration that collects no frame for this long expires (the
+    # default is the marker input's restart gap: a source silent that long is a new
+    # session, protocols/marker_input.py RESTART_GAP_NS).
+    calibrate_timeout_s: float = _between(1.0, 0.05, 60.0)
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -56,19 +114,22 @@ class OscInputConfig:
     """OSC marker input (UDP)."""
 
     enabled: bool = True
-    host: str = LOCALHOST
-    port: int = 39570
-    form: str = "compact"  # "compact" or "simple"
-    labels: tuple[str, ...] = ()  # the simple form's marker names (compact: announced)
-    units: str = "m"
-    up: str = "+Z"
-    allow: tuple[str, ...] = ()  # allowed source addresses, markers and show control
-    # (empty = any)
+    host: str = _spec(LOCALHOST, "host")
+    allow_remote: bool = False  # a host other than loopback needs this
+    port: int = _spec(39570, "port", lo=0, hi=65535)
+    form: str = _one_of("compact", "compact", "simple")
+    # the simple form's marker names (compact: announced)
+    labels: tuple[str, ...] = _spec((), "names")
+    units: str = _spec("m", "units")
+    up: str = _spec("+Z", "up")
+    # allowed source addresses, markers and show control (empty = any)
+    allow: tuple[str, ...] = _spec((), "hosts")
     # Input bounds (protocols/PROTOCOLS.md "Limits"): fastest plausible frame rate,
-    # markers per label set, bytes per datagram; zeros as occlusion.
-    max_rate_hz: float = MAX_RATE_HZ
-    max_markers: int = MAX_MARKERS
-    max_message_bytes: int = MAX_MESSAGE_BYTES
+    # markers per label set, bytes per datagram (UDP cannot carry more than
+    # MAX_MESSAGE_BYTES); zeros as occlusion.
+    max_rate_hz: float = _between(MAX_RATE_HZ, 1.0, 1e6)
+    max_markers: int = _between(MAX_MARKERS, 1, 100_000)
+    max_message_bytes: int = _between(MAX_MESSAGE_BYTES, 64, MAX_MESSAGE_BYTES)
     zero_is_occluded: bool = True
 
 
@@ -77,13 +138,15 @@ class ZmqInputConfig:
     """ZeroMQ marker input: PULL bound locally, or SUB connecting to a publisher."""
 
     enabled: bool = True
-    mode: str = "pull"  # "pull" (bind) or "sub" (connect)
-    endpoint: str = f"tcp://{LOCALHOST}:39571"
-    units: str = "m"
-    up: str = "+Z"
-    max_rate_hz: float = MAX_RATE_HZ
-    max_markers: int = MAX_MARKERS
-    max_message_bytes: int = MAX_MESSAGE_BYTES  # per message part (ZMQ_MAXMSGSIZE)
+    mode: str = _one_of("pull", "pull", "sub")
+    endpoint: str = _spec(f"tcp://{LOCALHOST}:39571", "endpoint")
+    allow_remote: bool = False  # an endpoint other than loopback needs this
+    units: str = _spec("m", "units")
+    up: str = _spec("+Z", "up")
+    max_rate_hz: float = _between(MAX_RATE_HZ, 1.0, 1e6)
+    max_markers: int = _between(MAX_MARKERS, 1, 100_000)
+    # per message part (ZMQ_MAXMSGSIZE), up to _ZMQ_MAX_MESSAGE_BYTES
+    max_message_bytes: int = _between(MAX_MESSAGE_BYTES, 64, _ZMQ_MAX_MESSAGE_BYTES)
     zero_is_occluded: bool = True
 
 
@@ -92,8 +155,9 @@ class VmcOutputConfig:
     """VMC output (OSC over UDP) to a marionette (Unity EVMC4U, VMC4UE, VMC4B...)."""
 
     enabled: bool = True
-    host: str = LOCALHOST
-    port: int = 39539
+    host: str = _spec(LOCALHOST, "host")
+    port: int = _spec(39539, "port", lo=1, hi=65535)
+    allow_broadcast: bool = False  # a broadcast or multicast host needs this
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -101,15 +165,31 @@ class PoseOutputConfig:
     """The ZeroMQ pose stream (PUB)."""
 
     enabled: bool = True
-    endpoint: str = f"tcp://{LOCALHOST}:39572"
-    sndhwm: int = 4
+    endpoint: str = _spec(f"tcp://{LOCALHOST}:39572", "endpoint")
+    allow_remote: bool = False  # an endpoint other than loopback needs this
+    sndhwm: int = _between(4, 1, 1_000_000)
+    # CURVE: the daemon's .key_secret; set, only the client keys below subscribe
+    secret_key: str = _spec("", "secret_key")
+    client_keys: tuple[str, ...] = _spec((), "public_keys")
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
 class ControlConfig:
-    """The control socket (ZeroMQ REP, local only) for ``retargetd ctl``."""
+    """The control socket (ZeroMQ REP) for ``retargetd ctl``."""
 
-    endpoint: str = f"tcp://{LOCALHOST}:39573"
+    endpoint: str = _spec(f"tcp://{LOCALHOST}:39573", "endpoint")
+    # Off loopback: allow_remote and CURVE (secret_key + client_keys) both needed.
+    allow_remote: bool = False
+    secret_key: str = _spec("", "secret_key")
+    client_keys: tuple[str, ...] = _spec((), "public_keys")
+    calibrate: bool = True  # `ctl calibrate` allowed
+    reload: bool = True  # `ctl reload` allowed
+    # The least time between two accepted reloads, and between two accepted
+    # calibration requests, from any path (excess ones answered "rate limited").
+    # A reload parses the rig and rebuilds the pipelines and the validator (tens of
+    # ms, blocking the loop): once a second bounds that to a few per cent of the
+    # loop's time; an operator reloads after editing a file, seconds apart.
+    min_interval_s: float = _between(1.0, 0.01, 3600.0)
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -117,17 +197,32 @@ class ShowControlConfig:
     """OSC show-control input (VMC's performer port): calibrate, reload, status."""
 
     enabled: bool = True
-    host: str = LOCALHOST
-    port: int = 39540
+    host: str = _spec(LOCALHOST, "host")
+    port: int = _spec(39540, "port", lo=0, hi=65535)
+    # Off loopback: allow_remote and a token both needed.
+    allow_remote: bool = False
+    # Set: every message's address starts with /TOKEN (PROTOCOLS.md).
+    token: str = _spec("", "token")
+    calibrate: bool = True  # /VMC/Ext/Set/Calib/Exec and /rtd/calibrate allowed
+    reload: bool = True  # /rtd/reload allowed
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class RecordConfig:
+    """``ctl record start``: where recordings may be written."""
+
+    # Every recording goes under this folder (relative: the daemon's working
+    # directory); a path outside it or with ".." is refused.
+    folder: str = _spec("recordings", "folder")
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
 class TargetConfig:
     """The engine skeleton rotations are re-expressed for."""
 
-    skeleton: str = "humanoid"  # "humanoid" (T-pose) or a BVH file
-    bvh_units: str = "cm"
-    bvh_up: str = "+Y"
+    skeleton: str = _spec("humanoid", "skeleton")  # "humanoid" (T-pose) or a BVH
+    bvh_units: str = _spec("cm", "units")
+    bvh_up: str = _spec("+Y", "up")
     compensate_base_pose: bool = True
 
 
@@ -135,10 +230,13 @@ class TargetConfig:
 class LoopConfig:
     """The solve loop."""
 
-    solve_budget_ms: float = 2.0
+    solve_budget_ms: float = _between(2.0, 0.0, 1000.0, open_lo=True)
     process_every_frame: bool = False  # offline replay: solve every frame, drop none
-    stats_interval_s: float = 5.0
-    poll_timeout_ms: int = 100
+    stats_interval_s: float = _between(5.0, 0.1, 3600.0)
+    poll_timeout_ms: int = _between(100, 1, 10_000)
+    # A repeated log line (per reason) is printed once, then summarized with its
+    # count at most once per this interval (a flood cannot grow the log).
+    log_interval_s: float = _between(10.0, 0.1, 3600.0)
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -146,11 +244,16 @@ class FaceSectionConfig:
     """The stabilized face, solved from the same marker stream as the body."""
 
     enabled: bool = False
-    config: str = "arkit52"  # a face preset (arkit52, vrm0, vrm1) or a face TOML
-    training: str = ""  # face.npz (retargetd face-train); loaded when it exists
-    save_training: str = ""  # where live captures are written ("" = over training)
-    capture_frames: int = 60  # frames averaged by `ctl face-capture` (--count)
-    regularization: float = 1e-3  # unitless weight damping (solve_face)
+    # a face preset (arkit52, vrm0, vrm1) or a face TOML
+    config: str = _spec("arkit52", "face_config")
+    # face.npz (retargetd face-train); loaded when it exists
+    training: str = _spec("", "training")
+    # where live captures are written ("" = over training)
+    save_training: str = _spec("", "out_path")
+    # frames averaged by `ctl face-capture` (--count)
+    capture_frames: int = _between(60, 1, 100_000)
+    # unitless weight damping (solve_face)
+    regularization: float = _between(1e-3, 0.0, 1.0)
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -158,9 +261,24 @@ class ValidateSectionConfig:
     """The live validator: MuJoCo checks on their own thread, flags in the stream."""
 
     enabled: bool = False
-    queue: int = 16  # frames waiting for the validator; more are dropped, counted
-    body_mass_kg: float = 0.0  # 0 = 70 kg (the model's masses; no live check uses them)
-    rate_hz: float = 240.0  # the rate the source's frame numbers count at (speeds)
+    # frames waiting for the validator; more are dropped, counted
+    queue: int = _between(16, 1, 10_000)
+    # 0 = 70 kg (the model's masses; no live check uses them); else [20, 300]
+    body_mass_kg: float = _spec(0.0, "mass")
+    # the rate the source's frame numbers count at (speeds)
+    rate_hz: float = _between(240.0, 1.0, 10_000.0)
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class ConsoleConfig:
+    """The browser console (``retargetd run --console``): off unless asked."""
+
+    enabled: bool = False
+    host: str = _spec(LOCALHOST, "host")
+    port: int = _spec(8080, "port", lo=0, hi=65535)
+    allow_remote: bool = False  # a host other than loopback needs this
+    # Snapshots published to the page per second (30: broadcast video's rate).
+    publish_hz: float = _between(30.0, 1.0, 120.0)
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -171,7 +289,7 @@ class InputConfig:
     # "qtm://HOST[:PORT]" (Qualisys QTM, through qtm-rt) or "natnet://HOST[:PORT]
     # [?data_port=N&multicast=1&group=G&local=A&up=+Z&sets=A,B]" (OptiTrack Motive);
     # "" = none. README "Capture systems"; daemon/live/sources.py.
-    source: str = ""
+    source: str = _spec("", "capture_source")
     osc: OscInputConfig = field(default_factory=OscInputConfig)
     zmq: ZmqInputConfig = field(default_factory=ZmqInputConfig)
 
@@ -197,14 +315,23 @@ class DaemonConfig:
     loop: LoopConfig = field(default_factory=LoopConfig)
     face: FaceSectionConfig = field(default_factory=FaceSectionConfig)
     validate: ValidateSectionConfig = field(default_factory=ValidateSectionConfig)
+    record: RecordConfig = field(default_factory=RecordConfig)
+    console: ConsoleConfig = field(default_factory=ConsoleConfig)
 
     @classmethod
     def from_toml(cls, path: str | Path) -> DaemonConfig:
         """Read and validate a TOML config. Raises ConfigError naming the key."""
         try:
-            text = Path(path).read_text()
+            data = Path(path).read_bytes()
         except OSError as exc:
             raise ConfigError(f"{path}: cannot read config: {exc.strerror}") from None
+        try:
+            text = data.decode("utf-8")
+        except UnicodeDecodeError as exc:
+            raise ConfigError(
+                f"{path}: not UTF-8 text (byte 0x{data[exc.start]:02x} at offset "
+                f"{exc.start})"
+            ) from None
         try:
             doc = tomllib.loads(text)
         except tomllib.TOMLDecodeError as exc:
@@ -222,21 +349,25 @@ class DaemonConfig:
 def _build(kind: Any, doc: Any, prefix: str, source: str) -> Any:
     if not isinstance(doc, dict):
         raise ConfigError(
-            f"{source}: {prefix.rstrip('.') or '(top)'}: expected a table"
+            f"{source}: {prefix.rstrip('.') or '(top)'}: expected a table; got {doc!r}"
         )
     known = {f.name: f for f in fields(kind)}
     kwargs: dict[str, Any] = {}
     for key, value in doc.items():
         name = f"{prefix}{key}"
         if key not in known:
+            near = difflib.get_close_matches(key, known, n=1)
+            hint = f"did you mean {near[0]!r}? " if near else ""
             raise ConfigError(
-                f"{source}: {name}: unknown key (expected one of: {', '.join(known)})"
+                f"{source}: {name}: unknown key ({hint}expected one of: "
+                f"{', '.join(known)})"
             )
         default = getattr(kind(), key)
         if hasattr(default, "__dataclass_fields__"):
             kwargs[key] = _build(type(default), value, f"{name}.", source)
         else:
             kwargs[key] = _coerce(value, default, name, source)
+            _check_field(kwargs[key], known[key].metadata, name, source)
     return kind(**kwargs)
 
 
@@ -269,189 +400,181 @@ def _coerce(value: Any, default: Any, name: str, source: str) -> Any:
     raise bad(type(default).__name__)  # pragma: no cover
 
 
-def _check_host(host: str, name: str, source: str) -> None:
+def _check_field(value: Any, meta: Any, name: str, source: str) -> None:
+    """Apply a field's rule (its ``_spec`` metadata) to a value given in the file."""
+    check = meta.get("check", "")
+    try:
+        _apply_rule(check, meta, value)
+    except _ItemError as exc:  # one item of a list: input.osc.allow[0]: ...
+        raise ConfigError(f"{source}: {name}[{exc.index}]: {exc}") from None
+    except ValueError as exc:
+        raise ConfigError(f"{source}: {name}: {exc}") from None
+
+
+class _ItemError(ValueError):
+    """A rule failed on item ``index`` of a list value."""
+
+    def __init__(self, index: int, message: str) -> None:
+        super().__init__(message)
+        self.index = index
+
+
+def _apply_rule(check: str, meta: Any, value: Any) -> None:
+    if check == "range":
+        lo, hi = meta["lo"], meta["hi"]
+        if not ((lo < value) if meta["open_lo"] else (lo <= value)) or value > hi:
+            brackets = "(" if meta["open_lo"] else "["
+            raise ValueError(
+                f"expected {brackets}{_number(lo)}, {_number(hi)}]; got {value}"
+            )
+    elif check == "port":
+        if not meta["lo"] <= value <= meta["hi"]:
+            raise ValueError(f"expected a port {meta['lo']}-{meta['hi']}; got {value}")
+    elif check == "choices":
+        if value not in meta["choices"]:
+            options = " or ".join(repr(c) for c in meta["choices"])
+            raise ValueError(f"expected {options}; got {value!r}")
+    elif check == "host":
+        _check_host(value)
+    elif check == "hosts":
+        for i, host in enumerate(value):
+            try:
+                _check_host(host)
+            except ValueError as exc:
+                raise _ItemError(i, str(exc)) from None
+    elif check == "endpoint":
+        parse_endpoint(value)
+    elif check == "units":
+        normalize_units(value)
+    elif check == "up":
+        normalize_up_axis(value)
+    elif check == "names":
+        if any(not v for v in value) or len(set(value)) != len(value):
+            raise ValueError(f"expected distinct non-empty names; got {list(value)}")
+    elif check == "rig":
+        try:
+            load_rig(value)
+        except RigError as exc:
+            raise ValueError(str(exc)) from None
+    elif check == "file":
+        if value and not Path(value).is_file():
+            raise ValueError(f"no such file: {value!r}")
+    elif check == "out_path":
+        if value and not Path(value).resolve().parent.is_dir():
+            raise ValueError(f"the folder of {value!r} does not exist")
+    elif check == "folder":
+        if not value or (Path(value).exists() and not Path(value).is_dir()):
+            raise ValueError(f"expected a folder; got {value!r}")
+    elif check == "skeleton":
+        if value != "humanoid" and not Path(value).is_file():
+            raise ValueError(f"expected 'humanoid' or a BVH file; got {value!r}")
+    elif check == "face_config":
+        try:
+            load_face_config(value)
+        except FaceConfigError as exc:
+            raise ValueError(str(exc)) from None
+    elif check == "training":
+        if value and Path(value).exists():
+            try:
+                TrainingSet.load(value)
+            except (OSError, ValueError) as exc:
+                raise ValueError(str(exc)) from None
+    elif check == "capture_source":
+        _check_capture_source(value)
+    elif check == "mass":
+        if not (value == 0.0 or 20.0 <= value <= 300.0):
+            raise ValueError(f"expected 0 (70 kg) or [20, 300]; got {value}")
+    elif check == "token":
+        if value:
+            check_token(value)
+    elif check == "secret_key":
+        if value:
+            load_secret_key(value)
+    elif check == "public_keys":
+        for path in value:
+            load_public_key(path)
+    elif check:  # pragma: no cover
+        raise AssertionError(f"unknown config rule {check!r}")
+
+
+def _number(x: float) -> str:
+    """A bound as written: 1000000, 0.05 (never 1e+06)."""
+    return str(int(x)) if float(x).is_integer() else f"{x:g}"
+
+
+def _check_capture_source(url: str) -> None:
+    """``input.source``: empty, or a URL the capture inputs parse."""
+    if url.startswith("natnet://"):
+        parse_natnet_url(url)
+    elif url.startswith("qtm://"):
+        parse_qtm_url(url)
+    elif url:
+        raise ValueError(
+            f"expected qtm://HOST[:PORT] or natnet://HOST[:PORT][?...]; got {url!r}"
+        )
+
+
+def _check_host(host: str) -> None:
     try:
         ipaddress.ip_address(host)
     except ValueError:
-        raise ConfigError(
-            f"{source}: {name}: expected an IP address (e.g. 127.0.0.1); got {host!r}"
+        raise ValueError(
+            f"expected an IP address (e.g. 127.0.0.1); got {host!r}"
         ) from None
 
 
-def _check_port(port: int, name: str, source: str) -> None:
-    if not 0 <= port <= 65535:
-        raise ConfigError(f"{source}: {name}: expected a port 0-65535; got {port}")
-
-
-def _check_endpoint(endpoint: str, name: str, source: str) -> None:
-    if not endpoint.startswith(("tcp://", "ipc://", "inproc://")):
-        raise ConfigError(
-            f"{source}: {name}: expected tcp://HOST:PORT or ipc://PATH; "
-            f"got {endpoint!r}"
-        )
-
-
 def _check(c: DaemonConfig, source: str) -> None:
-    osc, zin = c.input.osc, c.input.zmq
-    if osc.form not in ("compact", "simple"):
-        raise ConfigError(
-            f"{source}: input.osc.form: expected 'compact' or 'simple'; "
-            f"got {osc.form!r}"
-        )
+    """Checks across keys (each key's own rule ran when it was read)."""
+
+    def fail(key: str, message: str) -> ConfigError:
+        return ConfigError(f"{source}: {key}: {message}")
+
+    osc = c.input.osc
     if osc.form == "simple" and osc.enabled and not osc.labels:
-        raise ConfigError(
-            f"{source}: input.osc.labels: the simple form needs the marker names"
-        )
-    if zin.mode not in ("pull", "sub"):
-        raise ConfigError(
-            f"{source}: input.zmq.mode: expected 'pull' or 'sub'; got {zin.mode!r}"
-        )
-    for units_key, units, up_key, up in (
-        ("input.osc.units", osc.units, "input.osc.up", osc.up),
-        ("input.zmq.units", zin.units, "input.zmq.up", zin.up),
-        ("target.bvh_units", c.target.bvh_units, "target.bvh_up", c.target.bvh_up),
+        raise fail("input.osc.labels", "the simple form needs the marker names")
+    remote = "binding off loopback needs allow_remote = true on this endpoint"
+    for key, host, allowed in (
+        ("input.osc.host", osc.host, osc.allow_remote),
+        ("show_control.host", c.show_control.host, c.show_control.allow_remote),
+        ("console.host", c.console.host, c.console.allow_remote),
     ):
-        try:
-            normalize_units(units)
-        except ValueError as exc:
-            raise ConfigError(f"{source}: {units_key}: {exc}") from None
-        try:
-            normalize_up_axis(up)
-        except ValueError as exc:
-            raise ConfigError(f"{source}: {up_key}: {exc}") from None
-    for name, host in (
-        ("input.osc.host", osc.host),
-        ("output.vmc.host", c.output.vmc.host),
-        ("show_control.host", c.show_control.host),
-        *((f"input.osc.allow[{i}]", a) for i, a in enumerate(osc.allow)),
+        if not is_loopback_host(host) and not allowed:
+            raise fail(key, f"{remote}; got {host!r}")
+    for key, ep, allowed in (
+        ("input.zmq.endpoint", c.input.zmq.endpoint, c.input.zmq.allow_remote),
+        ("output.pose.endpoint", c.output.pose.endpoint, c.output.pose.allow_remote),
+        ("control.endpoint", c.control.endpoint, c.control.allow_remote),
     ):
-        _check_host(host, name, source)
-    for name, port in (
-        ("input.osc.port", osc.port),
-        ("output.vmc.port", c.output.vmc.port),
-        ("show_control.port", c.show_control.port),
-    ):
-        _check_port(port, name, source)
-    for name, ep in (
-        ("input.zmq.endpoint", zin.endpoint),
-        ("output.pose.endpoint", c.output.pose.endpoint),
-        ("control.endpoint", c.control.endpoint),
-    ):
-        _check_endpoint(ep, name, source)
-    _check_input_limits(c.input, source)
-    _check_capture_source(c.input.source, source)
-    ctl = c.control.endpoint
-    if ctl.startswith("tcp://") and not ctl.startswith(
-        ("tcp://127.", "tcp://localhost")
-    ):
-        raise ConfigError(
-            f"{source}: control.endpoint: the control socket is local only "
-            f"(tcp://127.0.0.1:PORT or ipc://); got {ctl!r}"
-        )
-    loop = c.loop
-    if not 0.0 < loop.solve_budget_ms <= 1000.0:
-        raise ConfigError(
-            f"{source}: loop.solve_budget_ms: expected (0, 1000]; "
-            f"got {loop.solve_budget_ms}"
-        )
-    if not 0.1 <= loop.stats_interval_s <= 3600.0:
-        raise ConfigError(
-            f"{source}: loop.stats_interval_s: expected [0.1, 3600]; "
-            f"got {loop.stats_interval_s}"
-        )
-    if not 1 <= loop.poll_timeout_ms <= 10_000:
-        raise ConfigError(
-            f"{source}: loop.poll_timeout_ms: expected [1, 10000]; "
-            f"got {loop.poll_timeout_ms}"
-        )
-    if not 1 <= c.performer.calibrate_frames <= 100_000:
-        raise ConfigError(
-            f"{source}: performer.calibrate_frames: expected [1, 100000]; "
-            f"got {c.performer.calibrate_frames}"
-        )
-    if not 1 <= c.output.pose.sndhwm <= 1_000_000:
-        raise ConfigError(
-            f"{source}: output.pose.sndhwm: expected >= 1; got {c.output.pose.sndhwm}"
-        )
-    _check_face(c.face, source)
-    v = c.validate
-    if not 1 <= v.queue <= 10_000:
-        raise ConfigError(
-            f"{source}: validate.queue: expected [1, 10000]; got {v.queue}"
-        )
-    if not (v.body_mass_kg == 0.0 or 20.0 <= v.body_mass_kg <= 300.0):
-        raise ConfigError(
-            f"{source}: validate.body_mass_kg: expected 0 (70 kg) or "
-            f"[20, 300]; got {v.body_mass_kg}"
-        )
-    if not 1.0 <= v.rate_hz <= 10_000.0:
-        raise ConfigError(
-            f"{source}: validate.rate_hz: expected [1, 10000]; got {v.rate_hz}"
-        )
-
-
-#: Ceiling for ``input.zmq.max_message_bytes``: the frame payload of the largest label
-#: set allowed (100,000 markers x 12 bytes = 1.2 MB), rounded up to 2 MiB. The input
-#: queue then holds at most RCVHWM (1,000) messages of 2 parts this size.
-_ZMQ_MAX_MESSAGE_BYTES = 2 << 20
-
-
-def _check_input_limits(inputs: InputConfig, source: str) -> None:
-    for name, section, most_bytes in (
-        ("input.osc", inputs.osc, MAX_MESSAGE_BYTES),  # UDP cannot carry more
-        ("input.zmq", inputs.zmq, _ZMQ_MAX_MESSAGE_BYTES),
-    ):
-        if not 1.0 <= section.max_rate_hz <= 1e6:
-            raise ConfigError(
-                f"{source}: {name}.max_rate_hz: expected [1, 1000000]; "
-                f"got {section.max_rate_hz}"
+        if not endpoint_is_local(ep) and not allowed:
+            raise fail(key, f"{remote}; got {ep!r}")
+    for section, cfg in (("control", c.control), ("output.pose", c.output.pose)):
+        if cfg.secret_key and not cfg.client_keys:
+            raise fail(
+                f"{section}.client_keys",
+                "CURVE (secret_key set) needs the public keys of the allowed clients",
             )
-        if not 1 <= section.max_markers <= 100_000:
-            raise ConfigError(
-                f"{source}: {name}.max_markers: expected [1, 100000]; "
-                f"got {section.max_markers}"
-            )
-        if not 64 <= section.max_message_bytes <= most_bytes:
-            raise ConfigError(
-                f"{source}: {name}.max_message_bytes: expected [64, {most_bytes}]; "
-                f"got {section.max_message_bytes}"
-            )
-
-
-def _check_capture_source(url: str, source: str) -> None:
-    """``input.source``: empty, or a URL the capture inputs parse."""
-    try:
-        if url.startswith("natnet://"):
-            parse_natnet_url(url)
-        elif url.startswith("qtm://"):
-            parse_qtm_url(url)
-        elif url:
-            raise ValueError(
-                f"expected qtm://HOST[:PORT] or natnet://HOST[:PORT][?...]; got {url!r}"
-            )
-    except ValueError as exc:
-        raise ConfigError(f"{source}: input.source: {exc}") from None
-
-
-def _check_face(f: FaceSectionConfig, source: str) -> None:
-    if not 1 <= f.capture_frames <= 100_000:
-        raise ConfigError(
-            f"{source}: face.capture_frames: expected [1, 100000]; "
-            f"got {f.capture_frames}"
+        if cfg.client_keys and not cfg.secret_key:
+            raise fail(f"{section}.secret_key", "client_keys need the daemon's key")
+    if not endpoint_is_local(c.control.endpoint) and not c.control.secret_key:
+        raise fail(
+            "control.secret_key",
+            "the control socket off loopback needs CURVE: secret_key and "
+            "client_keys (retargetd keys)",
         )
-    if not 0.0 <= f.regularization <= 1.0:
-        raise ConfigError(
-            f"{source}: face.regularization: expected [0, 1]; got {f.regularization}"
+    show = c.show_control
+    if show.enabled and not is_loopback_host(show.host) and not show.token:
+        raise fail(
+            "show_control.token",
+            "show control off loopback needs a shared token (PROTOCOLS.md)",
         )
-    if not f.enabled:
-        return
-
-    try:
-        load_face_config(f.config)
-    except FaceConfigError as exc:
-        raise ConfigError(f"{source}: face.config: {exc}") from None
-    if f.training and Path(f.training).exists():
-        try:
-            TrainingSet.load(f.training)
-        except (OSError, ValueError) as exc:
-            raise ConfigError(f"{source}: face.training: {exc}") from None
+    vmc = c.output.vmc
+    target = ipaddress.ip_address(vmc.host)
+    broadcast = target.is_multicast or str(target) in ("255.255.255.255",)
+    if target.is_unspecified:
+        raise fail("output.vmc.host", f"expected a receiver's address; got {vmc.host}")
+    if broadcast and not vmc.allow_broadcast:
+        raise fail(
+            "output.vmc.host",
+            f"{vmc.host} is a broadcast/multicast address: VMC goes to one receiver "
+            "unless allow_broadcast = true",
+        )

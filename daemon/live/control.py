@@ -2,12 +2,24 @@
 calibrate, reload, record, face-capture) and OSC show-control messages on VMC's
 performer port (``/VMC/Ext/Set/Calib/Ready``, ``/VMC/Ext/Set/Calib/Exec``,
 ``/rtd/calibrate``, ``/rtd/reload``).
+
+Calibrate and reload can be switched off per path (``control.calibrate``,
+``show_control.calibrate`` ...); arguments are type-checked; with
+``show_control.token`` set every show-control address starts with ``/TOKEN``.
+Refused show-control messages are counted by reason (status ``show_control``) and
+logged through the rate-limited log. ``record start`` writes only under
+``record.folder``.
 """
 
 from __future__ import annotations
 
+import hmac
 import json
 import logging
+import os
+import time
+from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import zmq
@@ -62,11 +74,13 @@ class ControlMixin(DaemonState):
         if cmd == "status":
             return {"ok": True, "status": self.status(), "line": self.stats_line()}
         if cmd == "calibrate":
-            count = req.get("count")
-            if count is not None and (type(count) is not int or count < 1):
-                raise ValueError(f"count must be a positive integer; got {count!r}")
-            return {"ok": True, "message": self.request_calibration(count, "ctl")}
+            if not self.config.control.calibrate:
+                raise ValueError("calibrate is off on this path (control.calibrate)")
+            msg = self.request_calibration(req.get("count"), "ctl")
+            return {"ok": True, "message": msg}
         if cmd == "reload":
+            if not self.config.control.reload:
+                raise ValueError("reload is off on this path (control.reload)")
             msg = self.reload()
             return {"ok": not msg.startswith("reload failed"), "message": msg}
         if cmd == "record":
@@ -97,6 +111,7 @@ class ControlMixin(DaemonState):
         poses = req.get("poses", True)
         if not isinstance(path, str) or not path:
             raise ValueError(f"record start needs a 'path' string; got {path!r}")
+        path = recording_path(self.config.record.folder, path)
         if type(poses) is not bool:
             raise ValueError(f"'poses' must be true or false; got {poses!r}")
         announcements: list[tuple[str, int, tuple[bytes, ...]]] = []
@@ -126,35 +141,131 @@ class ControlMixin(DaemonState):
                 self.stats.rejected_sources += 1  # the same allow-list as the markers
                 continue
             packet = bytes(self._buf[:n])
-            for message in _osc_messages(packet):
+            for message in _osc_messages(packet, self._show_refused):
                 try:
                     address, _tags, args = parse_message(message)
-                except DecodeError:
+                except DecodeError as exc:
+                    self._show_refused(exc.reason, f"malformed OSC ({exc})", addr)
                     continue
                 self._show_control(address, args, addr)
 
+    def _show_refused(self, reason: str, why: str, addr: Any = None) -> None:
+        """Count a refused show-control message by reason; one rate-limited line."""
+        self._show_counters[reason] = self._show_counters.get(reason, 0) + 1
+        who = f" from {addr[0]}" if addr is not None else ""
+        self._log.line(
+            f"show control {reason}",
+            f"show control{who}: refused: {why}",
+            time.monotonic_ns(),
+        )
+
     def _show_control(self, address: str, args: list[Any], addr: Any) -> None:
+        prefix = self._show_token_prefix
+        if prefix:
+            # Constant-time on the token; the rest of the address is public.
+            head = address[: len(prefix)].encode()
+            if not (
+                hmac.compare_digest(head, prefix.encode())
+                and address[len(prefix) : len(prefix) + 1] == "/"
+            ):
+                self._show_refused("bad_token", "no or wrong token prefix", addr)
+                return
+            address = address[len(prefix) :]
+        cfg = self.config.show_control
+        by = f"show control {addr[0]}"
+        now = time.monotonic_ns()
         if address == "/VMC/Ext/Set/Calib/Ready":
-            self.out(f"show control {addr[0]}: calibration ready (hold the base pose)")
+            self._log.line(
+                "show control ready", f"{by}: calibration ready (hold the base pose)",
+                now,
+            )  # fmt: skip
         elif address in ("/VMC/Ext/Set/Calib/Exec", "/rtd/calibrate"):
-            count = args[0] if address == "/rtd/calibrate" and args else None
-            if type(count) is not int or count < 1:  # bool (OSC T/F) is not a count
-                count = None
-            self.out(self.request_calibration(count, f"show control {addr[0]}"))
+            if not cfg.calibrate:
+                self._show_refused("calibrate_off", f"{address}: off", addr)
+                return
+            count = None
+            if address == "/rtd/calibrate" and args:
+                # One int32 count; anything else (a string, -5, a bool, more
+                # arguments) is refused, never taken as "the default count".
+                if len(args) != 1 or type(args[0]) is not int:
+                    self._show_refused(
+                        "bad_argument", f"{address}: expected one integer count; "
+                        f"got {args!r}"[:200], addr,
+                    )  # fmt: skip
+                    return
+                count = args[0]
+            elif address == "/VMC/Ext/Set/Calib/Exec" and (
+                len(args) > 1 or (args and type(args[0]) is not int)
+            ):
+                # VMC's Calib/Exec carries at most one int (the calibration mode).
+                self._show_refused(
+                    "bad_argument", f"{address}: expected no argument or one int "
+                    f"mode; got {args!r}"[:200], addr,
+                )  # fmt: skip
+                return
+            try:
+                msg = self.request_calibration(count, by)
+            except ValueError as exc:
+                limited = str(exc).startswith("rate")
+                reason = "rate_limited" if limited else "bad_argument"
+                self._show_refused(reason, f"{address}: {exc}", addr)
+                return
+            self.out(msg)
         elif address == "/rtd/reload":
-            self.out(self.reload())
+            if not cfg.reload:
+                self._show_refused("reload_off", f"{address}: reload is off", addr)
+                return
+            try:
+                self.out(self.reload())
+            except ValueError as exc:
+                self._show_refused("rate_limited", f"{address}: {exc}", addr)
+        else:
+            self._show_refused("unknown_address", f"unknown address {address!r}"[:200],
+                               addr)  # fmt: skip
 
 
-def _osc_messages(packet: bytes, depth: int = 0) -> list[bytes]:
-    """The messages of an OSC packet (a message, or a bundle, flattened)."""
+def recording_path(folder: str, path: str) -> str:
+    """The absolute path a ``record start`` may write: ``path`` relative to the
+    recordings folder, or absolute inside it; never with a ``..`` component, never
+    through a symbolic link out of it. Creates the folder when missing.
+
+    Raises:
+        ValueError: the path is outside the folder (the message names both).
+    """
+    if ".." in Path(path).parts:
+        raise ValueError(f"a recording path may not contain '..'; got {path!r}")
+    root = Path(folder).resolve()
+    candidate = Path(path) if os.path.isabs(path) else root / path
+    resolved = Path(os.path.realpath(candidate))
+    if not resolved.is_relative_to(root):
+        raise ValueError(
+            f"recordings go under the folder {str(root)!r} (record.folder); "
+            f"got {path!r}"
+        )
+    try:
+        root.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ValueError(f"cannot create {str(root)!r}: {exc.strerror}") from None
+    return str(resolved)
+
+
+def _osc_messages(
+    packet: bytes,
+    refused: Callable[[str, str], None],
+    depth: int = 0,
+) -> list[bytes]:
+    """The messages of an OSC packet (a message, or a bundle, flattened); a bundle
+    that does not decode, or nests deeper than 4, is refused (counted)."""
     if not packet.startswith(b"#bundle\0"):
         return [packet]
     if depth > 4:
+        refused("bundle_too_deep", "a bundle nested deeper than 4")
         return []
     try:
         out: list[bytes] = []
         for element in iter_bundle_elements(packet):
-            out.extend(_osc_messages(bytes(element), depth + 1))
+            out.extend(_osc_messages(bytes(element), refused, depth + 1))
         return out
-    except DecodeError:
+    except DecodeError as exc:
+        refused(exc.reason, f"malformed bundle ({exc})")
         return []

@@ -39,16 +39,31 @@ class InputsMixin(DaemonState):
     count what is dropped, solve while within the budget, latest wins past it.
     """
 
-    def _service(self, events: dict[Any, int]) -> None:
+    def _service(self, events: list[tuple[Any, int]]) -> None:
         every = self.config.loop.process_every_frame
         self._wake_ns = time.monotonic_ns()
+        # Which sockets are readable: a scan of the poll result (no dict per wake-up).
+        osc = zin = zmon = show = ctl = False
+        osc_fd = self._osc.fileno() if self._osc is not None else -2
+        show_fd = self._show.fileno() if self._show is not None else -2
+        for sock, _flags in events:
+            if sock is self._zin:
+                zin = True
+            elif sock is self._ctl:
+                ctl = True
+            elif sock is self._zmon:
+                zmon = True
+            elif sock == osc_fd:
+                osc = True
+            elif sock == show_fd:
+                show = True
         newest: MarkerStream | None = None
         newest_ns = 0
-        if self._osc is not None and self._osc.fileno() in events:
+        if osc:
             got = self._drain_osc(every)
             if got:
                 newest, newest_ns = self.osc_stream, got
-        if self._zin is not None and self._zin in events:
+        if zin:
             got = self._drain_zmq(every)
             if got and newest is not None and not every:
                 # Both inputs delivered in one wake-up: only the newer one is solved,
@@ -66,11 +81,11 @@ class InputsMixin(DaemonState):
                 newest, newest_ns = self._capture.inp.stream, got
         if newest is not None and not every:
             self._solve_and_send(newest, newest_ns)
-        if self._zmon is not None and self._zmon in events:
+        if zmon:
             self._drain_zmq_monitor()
-        if self._show is not None and self._show.fileno() in events:
+        if show:
             self._drain_show_control()
-        if self._ctl is not None and self._ctl in events:
+        if ctl:
             self._serve_control()
 
     def _accept(self, stream: MarkerStream, code: int, t_ns: int, every: bool) -> int:
@@ -95,6 +110,7 @@ class InputsMixin(DaemonState):
                 )
             return 0
         self.stats.frames_in += 1
+        self._last_frame_ns = t_ns
         stream.current.frame.t_ns = t_ns
         if code == RESTART:
             self.stats.restarts += 1
@@ -166,24 +182,39 @@ class InputsMixin(DaemonState):
         assert self._zin is not None
         sock, stream = self._zin, self.zmq_stream
         limit = self.config.input.zmq.max_message_bytes
+        # Parts are received into preallocated buffers (``recv_into`` returns the
+        # part's full size, so a larger one shows as n > the buffer): no Frame objects,
+        # no bytes per message. Parts past the second go to a scratch buffer.
+        hbuf, pbuf, scratch = self._zbuf_header, self._zbuf_payload, self._zbuf_extra
+        hview, pview = self._zview_header, self._zview_payload
         newest = 0  # receive time of the newest accepted frame not yet solved
         while True:
             try:
-                parts = sock.recv_multipart(zmq.NOBLOCK, copy=False)
+                n0 = sock.recv_into(hbuf, flags=zmq.NOBLOCK)
             except zmq.Again:
                 break
+            n_parts, n1 = 1, 0
+            while sock.get(zmq.RCVMORE):  # the rest of a message is already here
+                if n_parts == 1:
+                    n1 = sock.recv_into(pbuf)
+                else:
+                    sock.recv_into(scratch)
+                n_parts += 1
             t_ns = time.monotonic_ns()
-            rec = self.recording.packets
-            if rec is not None:
-                rec.record_packet("zmq", FORM_ZMQ, t_ns, *(p.buffer for p in parts))
-            if len(parts) != 2:
-                stream.counters.add_reason("bad_length")
-                continue
-            header, payload = parts[0].buffer, parts[1].buffer
-            if payload.nbytes > limit or header.nbytes > limit:  # before decoding
+            if n0 > len(hbuf) or n1 > limit:  # before decoding
                 stream.counters.add_reason("too_large")
                 continue
-            if bytes(header[:4]) == zmq_wire.LABELS_MAGIC:
+            header, payload = hview[:n0], pview[:n1]
+            rec = self.recording.packets
+            if rec is not None:
+                if n_parts == 1:
+                    rec.record_packet("zmq", FORM_ZMQ, t_ns, header)
+                else:  # (parts past the second are not kept: malformed anyway)
+                    rec.record_packet("zmq", FORM_ZMQ, t_ns, header, payload)
+            if n_parts != 2:
+                stream.counters.add_reason("bad_length")
+                continue
+            if n0 >= 4 and hbuf.startswith(zmq_wire.LABELS_MAGIC):
                 try:
                     label_set = zmq_wire.decode_zmq_labels(
                         header, payload, stream.max_markers

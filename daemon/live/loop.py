@@ -52,10 +52,13 @@ from retargetd.daemon.body.calibration import Calibration, load_calibration
 from retargetd.daemon.body.rig import Rig, load_rig
 from retargetd.daemon.live.calibrate import CalibrationMixin
 from retargetd.daemon.live.config import DaemonConfig
+from retargetd.daemon.live.console_feed import ConsoleFeed
+from retargetd.daemon.live.console_feed import dispatch as dispatch_console
 from retargetd.daemon.live.control import CONTROL_MAX_BYTES, ControlMixin
 from retargetd.daemon.live.face import LiveFace
 from retargetd.daemon.live.face import warm_up as warm_up_face
 from retargetd.daemon.live.inputs import InputsMixin
+from retargetd.daemon.live.ratelog import RateLimitedLog, RateLimiter
 from retargetd.daemon.live.recording import (
     FORM_OSC,
     LiveRecording,
@@ -65,6 +68,12 @@ from retargetd.daemon.live.sources import CaptureMixin
 from retargetd.daemon.live.state import Pipeline
 from retargetd.daemon.live.stats import LoopStats
 from retargetd.daemon.live.status import StatusMixin
+from retargetd.daemon.live.surface import (
+    CurveGuard,
+    endpoint_is_local,
+    is_loopback_host,
+    who_reaches,
+)
 from retargetd.daemon.target.retarget import (
     TargetSkeleton,
     default_humanoid,
@@ -73,6 +82,7 @@ from retargetd.daemon.target.retarget import (
 from retargetd.daemon.validate.live import LiveValidator
 from retargetd.protocols import pose_stream
 from retargetd.protocols.marker_input import LabelSet, MarkerStream
+from retargetd.protocols.vmc_out import VmcEncoder
 
 logger = logging.getLogger(__name__)
 
@@ -138,11 +148,28 @@ class Daemon(
         self._last_names_ns = 0
         self._t0_ns = time.monotonic_ns()
         self._buf = bytearray(_UDP_MAX)
+        # ZeroMQ input parts, received in place: header (a frame's or a label set's
+        # is 32 / 16 bytes; 64 leaves room to see a wrong one), payload (the limit).
+        self._zbuf_header = bytearray(64)
+        self._zbuf_payload = bytearray(config.input.zmq.max_message_bytes)
+        self._zbuf_extra = bytearray(64)
+        self._zview_header = memoryview(self._zbuf_header)
+        self._zview_payload = memoryview(self._zbuf_payload)
         self._allow = frozenset(osc_cfg.allow)
         self._calib_target = 0  # frames still wanted by a live calibration
         self._calib_frames: list[np.ndarray] = []
         self._calib_labels: tuple[str, ...] = ()
         self._calib_requested_by = ""
+        self._calib_times: list[tuple[float, int, int]] = []
+        self._calib_last_ns = 0
+        self._calib_message = ""
+        self._calibrate_limit = RateLimiter(config.control.min_interval_s)
+        self._reload_limit = RateLimiter(config.control.min_interval_s)
+        self._log = RateLimitedLog(self.out, config.loop.log_interval_s)
+        self._show_counters: dict[str, int] = {}
+        token = config.show_control.token
+        self._show_token_prefix = f"/{token}" if token else ""
+        self._guards: list[CurveGuard] = []
         self._frame_flags = 0  # restarted / input dropped since the last pose sent
         self._wake_ns = 0  # when the current wake-up began
         self._catch_up_ns = int(config.loop.solve_budget_ms * 1e6)
@@ -159,63 +186,114 @@ class Daemon(
         self._validation_bits = 0  # frame bits of the latest validation result
         self._validation_bones: np.ndarray | None = None  # its bone bits
         self._validation_enc: pose_stream.ValidationEncoder | None = None  # RTDV
+        self._validation_results: list[Any] = []  # sized when the validator starts
+        self._vmc_state = VmcEncoder(())  # the state datagram (no bones needed)
+        self._next_vmc_state_ns = 0
+        self._last_frame_ns = 0
+        self.console: ConsoleFeed | None = (
+            ConsoleFeed(config.console, self.out) if config.console.enabled else None
+        )
 
     # ---- lifecycle -------------------------------------------------------------------
 
     def open(self) -> None:
-        """Bind every endpoint; prints one "listening on" line each."""
+        """Bind every endpoint; prints one line each saying who can reach it."""
         c = self.config
         if c.input.osc.enabled:
-            self._osc = self._udp_bind(c.input.osc.host, c.input.osc.port)
-            form = c.input.osc.form
-            self._announce("osc markers", f"udp://{self._addr(self._osc)} ({form})")
+            osc = c.input.osc
+            self._osc = self._udp_bind(osc.host, osc.port)
+            allow = f", sources {', '.join(osc.allow)} only" if osc.allow else ""
+            who = who_reaches(is_loopback_host(osc.host), osc.host)
+            self._announce(
+                "osc markers",
+                f"udp://{self._addr(self._osc)} ({osc.form}; frames from {who}{allow})",
+            )
         if c.show_control.enabled:
-            self._show = self._udp_bind(c.show_control.host, c.show_control.port)
-            self._announce("show control", f"udp://{self._addr(self._show)} (OSC)")
+            show = c.show_control
+            self._show = self._udp_bind(show.host, show.port)
+            can = [w for w, on in (("calibrate", show.calibrate),
+                                   ("reload", show.reload)) if on]  # fmt: skip
+            who = who_reaches(is_loopback_host(show.host), show.host)
+            token = ", token required" if show.token else ""
+            self._announce(
+                "show control",
+                f"udp://{self._addr(self._show)} (OSC; "
+                f"{' and '.join(can) or 'nothing but status'} from {who}{token})",
+            )
         if c.input.zmq.enabled:
-            pull = c.input.zmq.mode == "pull"
+            zin = c.input.zmq
+            local = endpoint_is_local(zin.endpoint)
+            pull = zin.mode == "pull"
             self._zin = self._ctx.socket(zmq.PULL if pull else zmq.SUB)
             self._zin.setsockopt(zmq.LINGER, 0)
             # Bounded queue: 1,000 messages of parts of at most max_message_bytes;
             # libzmq drops the connection of a peer sending a larger part, before
             # buffering it (inproc bypasses this: the drain checks sizes too).
             self._zin.setsockopt(zmq.RCVHWM, 1000)
-            self._zin.setsockopt(zmq.MAXMSGSIZE, c.input.zmq.max_message_bytes)
+            self._zin.setsockopt(zmq.MAXMSGSIZE, zin.max_message_bytes)
             if pull:
-                self._zin.bind(c.input.zmq.endpoint)
+                self._zin.bind(zin.endpoint)
+                who = f"frames from {who_reaches(local, zin.endpoint)}"
             else:
                 self._zin.setsockopt(zmq.SUBSCRIBE, b"RTD")
-                self._zin.connect(c.input.zmq.endpoint)
+                self._zin.connect(zin.endpoint)
+                who = f"frames from the publisher at {zin.endpoint}"
             self._poller.register(self._zin, zmq.POLLIN)
             self._sockets.append(self._zin)
             self._zmon = self._zin.get_monitor_socket(zmq.EVENT_DISCONNECTED)
             self._zmon.setsockopt(zmq.LINGER, 0)
             self._poller.register(self._zmon, zmq.POLLIN)
             self._sockets.append(self._zmon)
-            ep = _last_endpoint(self._zin) or c.input.zmq.endpoint
-            self._announce("zmq markers", f"{ep} ({c.input.zmq.mode})")
+            ep = _last_endpoint(self._zin) or zin.endpoint
+            self._announce("zmq markers", f"{ep} ({zin.mode}; {who})")
         self._open_capture()
         if c.output.pose.enabled:
-            self._pub = self._ctx.socket(zmq.PUB)
+            pose = c.output.pose
+            self._pub = self._server_socket(zmq.PUB, pose.secret_key, pose.client_keys)
             self._pub.setsockopt(zmq.LINGER, 0)
-            self._pub.setsockopt(zmq.SNDHWM, c.output.pose.sndhwm)
-            self._pub.bind(c.output.pose.endpoint)
+            self._pub.setsockopt(zmq.SNDHWM, pose.sndhwm)
+            self._pub.bind(pose.endpoint)
             self._sockets.append(self._pub)
             ep = _last_endpoint(self._pub)
-            self._announce("zmq poses", f"{ep} (pub)")
-        self._ctl = self._ctx.socket(zmq.REP)
+            who = who_reaches(endpoint_is_local(pose.endpoint), ep)
+            curve = (
+                f", CURVE encrypted to {len(pose.client_keys)} client key(s)"
+                if pose.secret_key
+                else ", plain"
+            )
+            self._announce("zmq poses", f"{ep} (pub; poses to {who}{curve})")
+        ctl = c.control
+        self._ctl = self._server_socket(zmq.REP, ctl.secret_key, ctl.client_keys)
         self._ctl.setsockopt(zmq.LINGER, 0)
         self._ctl.setsockopt(zmq.MAXMSGSIZE, CONTROL_MAX_BYTES)
-        self._ctl.bind(c.control.endpoint)
+        self._ctl.bind(ctl.endpoint)
         self._poller.register(self._ctl, zmq.POLLIN)
         self._sockets.append(self._ctl)
         ep = _last_endpoint(self._ctl)
-        self._announce("control", f"{ep} (retargetd ctl --endpoint {ep})")
+        who = who_reaches(endpoint_is_local(ctl.endpoint), ep)
+        curve = (
+            f", CURVE: {len(ctl.client_keys)} client key(s)" if ctl.secret_key else ""
+        )
+        self._announce(
+            "control", f"{ep} (retargetd ctl --endpoint {ep}; from {who}{curve})"
+        )
         if c.output.vmc.enabled:
+            vmc = c.output.vmc
             self._vmc = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
             self._vmc.setblocking(False)
-            self._vmc_addr = (c.output.vmc.host, c.output.vmc.port)
-            self._announce("vmc out", f"udp://{c.output.vmc.host}:{c.output.vmc.port}")
+            if vmc.allow_broadcast:  # without it the kernel refuses broadcast sends
+                self._vmc.setsockopt(socket.SOL_SOCKET, socket.SO_BROADCAST, 1)
+            self._vmc_addr = (vmc.host, vmc.port)
+            kind = "broadcast allowed" if vmc.allow_broadcast else "unicast"
+            self._announce(
+                "vmc out",
+                f"udp://{vmc.host}:{vmc.port} (plain OSC, {kind}; readable by "
+                f"{'this machine' if is_loopback_host(vmc.host) else vmc.host} "
+                "and the network path to it)",
+            )
+        if self.console is not None:
+            url = self.console.start(self.rig)
+            self._announce("console", f"{url} (browser; buttons act like ctl)")
         self._warm_up()
         self._start_validator()
         # Everything built so far lives as long as the daemon: keep it out of the
@@ -267,11 +345,23 @@ class Daemon(
             queue_size=v.queue,
         )
         validator.start()
+        self._validation_results = [None] * validator.results_capacity
         self.validator = validator
         self.out(
             f"live validator on: MuJoCo model {validator.vm.digest[:12]}, "
             f"queue {v.queue}, frame numbers at {v.rate_hz:g} Hz"
         )
+
+    def _server_socket(
+        self, kind: int, secret_key: str, client_keys: tuple[str, ...]
+    ) -> Any:
+        """A plain socket of the shared context, or, with a secret key, a CURVE
+        server in a guarded context letting in only ``client_keys``."""
+        if not secret_key:
+            return self._ctx.socket(kind)
+        guard = CurveGuard(f"{len(self._guards)}")
+        self._guards.append(guard)
+        return guard.server_socket(kind, secret_key, client_keys)
 
     def _announce(self, what: str, where: str) -> None:
         self.endpoints[what] = where
@@ -297,6 +387,8 @@ class Daemon(
         every socket (idempotent)."""
         self.recording.close()
         self._close_capture()
+        if self.console is not None:
+            self.console.stop()
         if self.validator is not None:
             self.validator.close()
             self.validator = None
@@ -308,6 +400,9 @@ class Daemon(
         if self._vmc is not None:
             self._vmc.close()
             self._vmc = None
+        for guard in self._guards:
+            guard.close()
+        self._guards.clear()
 
     def run(self, should_exit: Callable[[], bool]) -> None:
         """Serve until ``should_exit()`` is true (checked every poll timeout)."""
@@ -315,12 +410,19 @@ class Daemon(
         timeout = c.poll_timeout_ms
         next_stats = time.monotonic_ns() + int(c.stats_interval_s * 1e9)
         while not should_exit():
-            events = dict(self._poller.poll(timeout))
+            events = self._poller.poll(timeout)  # [(socket or fd, flags)]
             if events:
                 self._service(events)
             if self._capture is not None:
                 self._tick_capture()  # requests, lost check, held pose: never blocks
             now = time.monotonic_ns()
+            if self.console is not None:
+                cmd = self.console.commands.poll()  # nothing allocated when empty
+                if cmd is not None:
+                    dispatch_console(self, cmd)
+            self._calibration_tick(now)
+            self._send_vmc_state(now)
+            self._log.flush(now)
             if now >= next_stats:
                 self.last_stats_line = self.stats_line()
                 self._window = (now, self.stats.frames_in, self.stats.frames_out)

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -21,9 +20,16 @@ from retargetd.daemon.target.retarget import (
 )
 from retargetd.protocols import engine_unity, pose_stream
 from retargetd.protocols.marker_input import MarkerStream
-from retargetd.protocols.vmc_out import VmcEncoder
+from retargetd.protocols.vmc_out import (
+    CALIBRATION_CALIBRATING,
+    CALIBRATION_WAITING,
+    VmcEncoder,
+)
 
 logger = logging.getLogger(__name__)
+
+#: How often the VMC state is sent while nothing is streamed (0.5 s).
+VMC_STATE_INTERVAL_NS = 500_000_000
 
 
 class SendMixin(DaemonState):
@@ -40,6 +46,7 @@ class SendMixin(DaemonState):
         if pipe is not None and self._labels_of.get(key) == labels:
             return pipe
         pipe = self._build_pipeline(labels)
+        self.stats.pipeline_builds += 1
         self._pipelines[key] = pipe
         self._labels_of[key] = labels
         return pipe
@@ -108,11 +115,14 @@ class SendMixin(DaemonState):
         )
 
     def _solve_and_send(self, stream: MarkerStream, received_ns: int) -> None:
+        # The clock starts before the pipeline lookup: a pipeline built here (the
+        # first frame after a new label set) shows its cost in this frame's solve
+        # stage and overrun check, not hidden before it.
+        t_start = time.monotonic_ns()
         pipe = self._pipeline(stream)
         if pipe is None:
             return
         frame = stream.current.frame
-        t_start = time.monotonic_ns()
         pose = pipe.solver.solve_frame(frame.markers_world, pipe.pose)
         tp = pipe.retargeter.apply(pose, pipe.target_pose)
         face = pipe.face
@@ -124,14 +134,16 @@ class SendMixin(DaemonState):
         solved_ns = time.monotonic_ns()
         self.stats.frames_solved += 1
         self.stats.held_bone_frames += pose.n_held
+        self.stats.occluded_samples += pose.n_occluded
         flags = self._frame_flags | (pose_stream.FRAME_HELD if pose.n_held else 0)
         self._frame_flags = 0
         validator = self.validator
-        results: Sequence[Any] = ()
+        n_results = 0
+        results = self._validation_results
         if validator is not None:
-            results = validator.results()
-            if results:
-                self._take_validation_bits(results)
+            n_results = validator.drain_results(results)  # no allocation
+            if n_results:
+                self._take_validation_bits(results[n_results - 1])
             flags |= self._validation_bits
         # VMC: Unity frame, x y z w.
         engine_unity.unity_quat_xyzw_from_world(
@@ -150,13 +162,13 @@ class SendMixin(DaemonState):
                 except OSError:  # receiver absent, buffer full: never block, count
                     self.stats.vmc_errors += 1
         budget_ns = int(self.config.loop.solve_budget_ms * 1e6)
+        bone_flags = pose.bone_flags
         if self._pub is not None or self.recording.poses is not None:
             if solved_ns - self._last_names_ns >= 1_000_000_000:
                 self._send_pub(pipe.names_parts, solved_ns)
                 self._last_names_ns = solved_ns
             if time.monotonic_ns() - t_start > budget_ns:
                 flags |= pose_stream.FRAME_LATE
-            bone_flags = pose.bone_flags
             vb = self._validation_bones
             if vb is not None and len(vb) == len(bone_flags):
                 bone_flags = np.bitwise_or(bone_flags, vb, out=pipe.bone_flags)
@@ -180,9 +192,16 @@ class SendMixin(DaemonState):
             pose.rest_from_bone_quat, pose.joint_centres,
         ):  # fmt: skip
             self.stats.validation_drops += 1
-        if results:  # published after this frame's pose: never ahead of a send
-            self._publish_validation(results, pipe)
+        if n_results:  # published after this frame's pose: never ahead of a send
+            self._publish_validation(results, n_results, pipe)
         self.stats.frames_out += 1
+        if self.console is not None:  # a decimated copy, only when one is due
+            self.console.publish(
+                sent_ns, self.rig, pipe.solver, frame, stream.current.label_set.labels,
+                pose, bone_flags,
+                pipe.face.weight_names if face is not None else (),
+                pipe.weights if face is not None else None, self.stats, self.status,
+            )  # fmt: skip
         if sent_ns - t_start > budget_ns:
             self.stats.overruns += 1
         self.stats.record(
@@ -190,9 +209,8 @@ class SendMixin(DaemonState):
             sent_ns - received_ns,
         )  # fmt: skip
 
-    def _take_validation_bits(self, results: Sequence[Any]) -> None:
+    def _take_validation_bits(self, last: Any) -> None:
         """Keep the latest result's bits for this and the next poses."""
-        last = results[-1]
         self._validation_bits = last.frame_flags & pose_stream.FRAME_VALIDATION_MASK
         bones = last.bone_flags
         if self._validation_bones is None or len(self._validation_bones) != len(bones):
@@ -200,11 +218,12 @@ class SendMixin(DaemonState):
         np.bitwise_and(bones, pose_stream.BONE_VALIDATION_MASK,
                        out=self._validation_bones)  # fmt: skip
 
-    def _publish_validation(self, results: Sequence[Any], pipe: Pipeline) -> None:
-        """Count every result and publish it as an ``RTDV`` message (the frame it
-        belongs to, its values), written into a reused buffer. The validator sets
-        only the validation bits (frame bits 8-15, bone bits 4-7)."""
-        for r in results:
+    def _publish_validation(self, results: list[Any], n: int, pipe: Pipeline) -> None:
+        """Count the first ``n`` results and publish each as an ``RTDV`` message (the
+        frame it belongs to, its values), written into a reused buffer. The validator
+        sets only the validation bits (frame bits 8-15, bone bits 4-7)."""
+        for k in range(n):
+            r = results[k]
             self.stats.validated += 1
             if r.frame_flags:
                 self.stats.validation_flagged += 1
@@ -229,3 +248,24 @@ class SendMixin(DaemonState):
             self._pub.send_multipart(parts, zmq.NOBLOCK, copy=False)
         except zmq.Again:
             self.stats.send_drops += 1
+
+    def _send_vmc_state(self, now_ns: int) -> None:
+        """Before a calibration, and while one collects frames, tell the VMC receiver
+        the state (``/VMC/Ext/OK`` calibration state 1 waiting or 2 calibrating, the
+        tracking flag) about twice a second: no pose is streamed then, and silence
+        reads as "no performer" in EVMC4U and VSeeFace."""
+        if self._vmc is None or now_ns < self._next_vmc_state_ns:
+            return
+        calibrating = self._calib_target > 0
+        if self.calibration is not None and not calibrating:
+            return
+        self._next_vmc_state_ns = now_ns + VMC_STATE_INTERVAL_NS
+        state = CALIBRATION_CALIBRATING if calibrating else CALIBRATION_WAITING
+        tracking = now_ns - self._last_frame_ns < 1_000_000_000
+        dgram = self._vmc_state.encode_state(
+            state, tracking, (now_ns - self._t0_ns) * 1e-9
+        )
+        try:
+            self._vmc.sendto(dgram, self._vmc_addr)
+        except OSError:  # receiver absent: never block, count
+            self.stats.vmc_errors += 1

@@ -28,8 +28,14 @@ class LoopStats:
         vmc_errors: VMC datagrams the OS refused.
         restarts: sources restarted.
         calibrations: live calibrations applied.
+        calibrations_refused: live calibrations refused (the performer moved).
+        calibrations_expired: live calibrations that collected no frame in time.
+        rate_limited: reload and calibration requests refused as too frequent.
         held_bone_frames: bone-frames held (too little data).
         occluded_samples: rig-marker samples occluded in solved frames.
+        pipeline_builds: per-stream pipelines built (the first frame after a new
+            label set, a calibration or a reload); each one's cost is in that
+            frame's solve stage.
         rejected_sources: OSC datagrams from addresses not on the allow-list.
         face_solved: frames the face was solved on.
         face_head_lost: of those, frames with fewer than 3 head markers (face held).
@@ -51,8 +57,12 @@ class LoopStats:
     vmc_errors: int = 0
     restarts: int = 0
     calibrations: int = 0
+    calibrations_refused: int = 0
+    calibrations_expired: int = 0
+    rate_limited: int = 0
     held_bone_frames: int = 0
     occluded_samples: int = 0
+    pipeline_builds: int = 0
     rejected_sources: int = 0
     face_solved: int = 0
     face_head_lost: int = 0
@@ -93,7 +103,9 @@ class LoopStats:
             for name in (
                 "frames_in", "frames_solved", "frames_out", "stale", "overruns",
                 "send_drops", "vmc_errors", "restarts", "calibrations",
-                "held_bone_frames", "occluded_samples", "rejected_sources",
+                "calibrations_refused", "calibrations_expired", "rate_limited",
+                "held_bone_frames", "occluded_samples", "pipeline_builds",
+                "rejected_sources",
                 "face_solved", "face_head_lost", "face_captures", "validated",
                 "validation_flagged", "validation_drops", "zmq_disconnects",
             )

@@ -101,7 +101,12 @@ def write_reduced_glb(
     trans, quat = _skeleton(calibration)
     dt = 1.0 / reduced.rate_hz
     channels = [
-        GltfChannel(node=b, path="rotation", times_s=ch.frames * dt, values=ch.values)
+        GltfChannel(
+            node=b,
+            path="rotation",
+            times_s=np.asarray(ch.frames * dt, dtype=np.float64),
+            values=ch.values,
+        )
         for b, ch in enumerate(reduced.rotations)
     ]
     root = int(np.flatnonzero(np.asarray(calibration.bone_parents) < 0)[0])
@@ -109,7 +114,7 @@ def write_reduced_glb(
         GltfChannel(
             node=root,
             path="translation",
-            times_s=reduced.root.frames * dt,
+            times_s=np.asarray(reduced.root.frames * dt, dtype=np.float64),
             values=reduced.root.values,
         )
     )

@@ -185,7 +185,7 @@ def _yaw_quat(angle_rad: F64Array | float) -> F64Array:
 def _fade(n_frames: int) -> F64Array:
     # Weights strictly inside (0, 1): frame k of the fade is (k + 1) / (N + 1) of
     # the way, so neither take's own frame is repeated at either end.
-    return (np.arange(n_frames) + 1.0) / (n_frames + 1.0)
+    return np.asarray((np.arange(n_frames) + 1.0) / (n_frames + 1.0), dtype=np.float64)
 
 
 def blend(

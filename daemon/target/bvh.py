@@ -153,7 +153,29 @@ def bvh_frames_from_solve(
     Returns:
         (T, n_channels) float64: centimetres and degrees.
     """
-    wfb = np.asarray(solve.world_from_bone_quat, dtype=np.float64)
+    return bvh_frames_from_world(
+        calibration, solve.world_from_bone_quat, solve.root_pos, skeleton
+    )
+
+
+def bvh_frames_from_world(
+    calibration: Calibration,
+    world_from_bone_quat: F64Array,
+    root_pos: F64Array,
+    skeleton: BvhSkeleton,
+) -> F64Array:
+    """The motion lines of bone rotations in the world (see the module docstring).
+
+    Args:
+        calibration: the calibrated skeleton.
+        world_from_bone_quat: (T, B, 4) float64 (w, x, y, z).
+        root_pos: (T, 3) float64, metres, world.
+        skeleton: from :func:`bvh_skeleton_from_calibration` (its rotation orders).
+
+    Returns:
+        (T, n_channels) float64: centimetres and degrees.
+    """
+    wfb = np.asarray(world_from_bone_quat, dtype=np.float64)
     parents = np.asarray(calibration.bone_parents, dtype=np.int64)
     moved = quat_mul(wfb, quat_conj(calibration.rest_world_from_bone_quat))  # D
     moved_bvh = _bvh_from_world_quat(moved)  # G = M D M^T
@@ -165,8 +187,28 @@ def bvh_frames_from_solve(
         angles[:, cols] = euler_from_quat(rel[:, cols], order)
     angles_deg = np.unwrap(np.degrees(angles), period=360.0, axis=0)
     positions = np.full_like(angles_deg, np.nan)
-    positions[:, 0] = BVH_CM_PER_M * np.asarray(solve.root_pos) @ BVH_FROM_WORLD.T
+    positions[:, 0] = BVH_CM_PER_M * np.asarray(root_pos) @ BVH_FROM_WORLD.T
     return bvh_motion(skeleton, angles_deg, positions)
+
+
+def world_from_parent_chain(
+    parents: tuple[int, ...] | list[int], parent_from_bone_quat: F64Array
+) -> F64Array:
+    """Forward kinematics of rotations: ``world_from_bone`` down the chain.
+
+    Args:
+        parents: (B,) parent index per bone, -1 for a root; parents before children.
+        parent_from_bone_quat: (T, B, 4) float64 (w, x, y, z); a root's is
+            ``world_from_root``.
+
+    Returns:
+        (T, B, 4) float64 (w, x, y, z) ``world_from_bone``.
+    """
+    q = np.asarray(parent_from_bone_quat, dtype=np.float64)
+    out = np.empty_like(q)
+    for b, p in enumerate(parents):
+        out[:, b] = q[:, b] if p < 0 else quat_mul(out[:, p], q[:, b])
+    return out
 
 
 def posed_bone_origins(
@@ -233,5 +275,46 @@ def write_solve_bvh(
         root_rotation_order=root_rotation_order,
     )
     frames = bvh_frames_from_solve(calibration, solve, skeleton)
+    write_bvh(path, skeleton, frames, 1.0 / rate_hz)
+    return skeleton
+
+
+def write_clip_bvh(
+    path: str | Path,
+    calibration: Calibration,
+    parent_from_bone_quat: F64Array,
+    root_pos: F64Array,
+    rate_hz: float,
+    *,
+    rotation_order: str = DEFAULT_ROTATION_ORDER,
+    root_rotation_order: str | None = None,
+) -> BvhSkeleton:
+    """Write a clip (true parent-relative rotations, e.g. a blend or a loop) as BVH.
+
+    Args:
+        path: the ``.bvh`` file.
+        calibration: the calibrated skeleton the clip's bones are.
+        parent_from_bone_quat: (T, B, 4) float64 (w, x, y, z).
+        root_pos: (T, 3) float64, metres, world.
+        rate_hz: frame rate.
+        rotation_order: every joint's channel order (default ``"ZXY"``).
+        root_rotation_order: the root's, when it should differ.
+
+    Returns:
+        The hierarchy written.
+
+    Raises:
+        CalibrationError: no rest origins, or not exactly one root bone.
+        ValueError: a bad rotation order or rate.
+    """
+    if not (np.isfinite(rate_hz) and rate_hz > 0):
+        raise ValueError(f"rate_hz must be > 0; got {rate_hz}")
+    skeleton = bvh_skeleton_from_calibration(
+        calibration,
+        rotation_order=rotation_order,
+        root_rotation_order=root_rotation_order,
+    )
+    wfb = world_from_parent_chain(calibration.bone_parents, parent_from_bone_quat)
+    frames = bvh_frames_from_world(calibration, wfb, root_pos, skeleton)
     write_bvh(path, skeleton, frames, 1.0 / rate_hz)
     return skeleton

@@ -263,6 +263,19 @@ class LiveValidator:
         self._results: collections.deque[ValidationResult] = collections.deque(
             maxlen=maxlen
         )
+        # Result objects are pooled: the thread fills the next one in place (no
+        # allocation per frame). A result handed to the loop is reused only after
+        # ``len(pool)`` more results; between two drains at most ``queue_size`` finish
+        # (one per submitted frame) while at most ``maxlen`` wait, so this size never
+        # recycles one the loop may still be reading.
+        n_pool = 2 * maxlen + 2 * self.queue_size + 1
+        self._pool = [
+            ValidationResult(
+                0, 0, 0, 0, np.zeros(b, np.uint8), np.zeros(N_CHECKS, np.float32)
+            )
+            for _ in range(n_pool)
+        ]
+        self._next_pool = 0
         self._thread: threading.Thread | None = None
         self._closed = False
         self.submitted = 0
@@ -325,15 +338,44 @@ class LiveValidator:
         return True
 
     def results(self) -> Sequence[ValidationResult]:
-        """Results finished since the last call, oldest first (never waits; an empty
-        tuple, not a new list, when there are none)."""
+        """Results finished since the last call, oldest first, as copies the caller
+        may keep (never waits; an empty tuple when there are none). The loop uses the
+        allocation-free :meth:`drain_results` instead."""
         dq = self._results
         if not dq:
             return ()
         out = []
         while dq:
-            out.append(dq.popleft())
+            r = dq.popleft()
+            out.append(
+                ValidationResult(
+                    r.frame_id,
+                    r.t_ns,
+                    r.validated_ns,
+                    r.frame_flags,
+                    r.bone_flags.copy(),
+                    r.values.copy(),
+                )
+            )
         return out
+
+    def drain_results(self, out: list[ValidationResult | None]) -> int:
+        """Move the finished results into ``out`` (a list the caller keeps, of
+        length >= the results queue's), oldest first; returns how many (the loop's
+        allocation-free form of :meth:`results`). The results are the validator's
+        pooled objects: read them before the next drain."""
+        dq = self._results
+        n = 0
+        limit = len(out)
+        while dq and n < limit:
+            out[n] = dq.popleft()
+            n += 1
+        return n
+
+    @property
+    def results_capacity(self) -> int:
+        """The most results :meth:`drain_results` can move at once."""
+        return int(self._results.maxlen or 0)
 
     @property
     def pending(self) -> int:
@@ -428,17 +470,23 @@ class LiveValidator:
         pfb: F64Array,
         joints: F64Array,
         lengths: F64Array,
+        pooled: bool = True,
     ) -> ValidationResult:
         ck = self._checker
         flags = ck.check(frame_id, t_ns, root_pos, wfb, pfb, joints, lengths)
-        return ValidationResult(
-            frame_id,
-            t_ns,
-            time.monotonic_ns(),
-            flags,
-            ck.bone_bits.copy(),
-            ck.values.astype(np.float32),
-        )
+        if pooled:  # the thread: fill the next pooled result in place
+            pool = self._pool
+            r = pool[self._next_pool]
+            self._next_pool = (self._next_pool + 1) % len(pool)
+        else:  # a synchronous caller keeps what it gets
+            r = ValidationResult(
+                0, 0, 0, 0, ck.bone_bits.copy(), np.zeros(N_CHECKS, np.float32)
+            )
+        r.frame_id, r.t_ns, r.validated_ns = frame_id, t_ns, time.monotonic_ns()
+        r.frame_flags = flags
+        np.copyto(r.bone_flags, ck.bone_bits)
+        np.copyto(r.values, ck.values, casting="same_kind")
+        return r
 
     def _publish(self, result: ValidationResult) -> None:
         flags = result.frame_flags
@@ -507,6 +555,7 @@ class LiveValidator:
             np.ascontiguousarray(rest_from_bone_quat, dtype=np.float64),
             np.ascontiguousarray(joint_centres, dtype=np.float64),
             np.ascontiguousarray(lengths, dtype=np.float64),
+            pooled=False,
         )
 
     def reset_history(self) -> None:

@@ -42,7 +42,7 @@ def test_defaults_bind_loopback_only() -> None:
         ("[output.vmc]\nenabled = 'yes'", "output.vmc.enabled: expected true or false"),
         (
             "[control]\nendpoint = 'tcp://0.0.0.0:1'",
-            "control.endpoint: the control socket is local only",
+            "control.endpoint: binding off loopback needs allow_remote = true",
         ),
         ("[input.osc]\nallow = ['nope']", "input.osc.allow[0]: expected an IP address"),
         ("[loop\n", "not valid TOML"),

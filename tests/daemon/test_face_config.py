@@ -49,7 +49,7 @@ def test_presets_load_and_map() -> None:
         (
             'head_markers = ["A", "B", "C"]\nfacial_markers = ["A"]\n'
             'expressions = ["x"]',
-            "both head and facial",
+            "facial_markers: markers also in head_markers",
         ),
         (
             'head_markers = ["A", "B", "C"]\nexpressions = ["x"]\nbogus = 1',

@@ -195,7 +195,7 @@ def test_stream_vmc_and_pose_stream_match_the_solver(
         # The target's real rest offsets (Unity frame), never zeros, not even Hips'.
         np.testing.assert_array_equal(pos, rest_unity.astype(np.float32))
         assert (np.linalg.norm(pos, axis=1) > 0.05).all()
-        assert frame[-3][1] == [] and frame[-2][1] == [1]
+        assert frame[-3][1] == [] and frame[-2][1] == [1, 3, 0, 1]
         times.append(frame[-1][1][0])
         q = _vmc_quats(frame)
         np.testing.assert_allclose(np.linalg.norm(q, axis=1), 1.0, atol=1e-6)
@@ -436,7 +436,7 @@ def test_zmq_sub_input_connects_to_a_publisher(
             "loop": {"process_every_frame": True},
         },
     )
-    assert live.daemon.endpoints["zmq markers"] == f"{endpoint} (sub)"
+    assert live.daemon.endpoints["zmq markers"].startswith(f"{endpoint} (sub;")
     assert pub.poll(5000), "the daemon's SUB never subscribed"
     assert pub.recv() == b"\x01RTD"
     pub.send_multipart(zmq_wire.encode_zmq_labels(LabelSet(3, take.labels)))
@@ -724,7 +724,13 @@ def test_ctl_live_calibration_while_streaming_status_and_reload(
 ) -> None:
     cal_path = tmp_path / "performer.json"
     cal_path.write_bytes(exact_calibration.read_bytes())
-    live = start_daemon({"performer": {"calibration": str(cal_path)}})
+    live = start_daemon(
+        {
+            "performer": {"calibration": str(cal_path)},
+            # Requests back to back (the default allows one per second).
+            "control": {"min_interval_s": 0.01},
+        }
+    )
     ep = live.tcp("control")
     sub = PoseSub(zmq_socket(zmq.SUB), live.tcp("zmq poses"))
     src = osc_source(live)
@@ -1272,7 +1278,7 @@ def test_renamed_labels_under_the_id_in_use_never_reach_the_solve(
     # The poses after the conflict are the solve of the genuine frames.
     oracle, _ = _solve_oracle(exact_calibration, [m for _, m in src.sent])
     np.testing.assert_allclose(
-        sub.poses[-1].parent_from_bone_quat, oracle[-1][1].astype(np.float32), atol=1e-6
+        sub.poses[-1].rest_from_bone_quat, oracle[-1][1].astype(np.float32), atol=1e-6
     )
     assert len(disputed) == 8
 
@@ -1441,3 +1447,89 @@ def test_zmq_parts_over_the_limit_that_reach_the_loop_are_too_large(
     live.stop()
     assert stream.counters.as_dict() == {"too_large": 1}
     assert stream.label_set == LabelSet(5, take.labels)
+
+
+def test_occluded_samples_and_pipeline_builds_are_counted(
+    start_daemon: Callable[..., Live],
+    osc_source: Callable[..., OscSource],
+    exact_calibration: Path,
+) -> None:
+    """Issue 13 item 7: ``occluded_samples`` was published and never counted. Three
+    rig markers NaN in each of 20 frames count 60 (on top of the primed frames'
+    zero); the pipeline built for the announced label set is counted once."""
+    take = _take()
+    live = start_daemon(
+        {
+            "performer": {"calibration": str(exact_calibration)},
+            "loop": {"process_every_frame": True},
+        },
+    )
+    src = osc_source(live)
+    src.announce()
+    for row in range(5):
+        src.send(take.markers_world[row])
+    _wait_until(lambda: live.daemon.stats.frames_solved == 5, "the first 5 frames")
+    before = live.ctl({"cmd": "status"})["status"]["counters"]
+    assert before["occluded_samples"] == 0
+    assert before["pipeline_builds"] == 1
+    for row in range(5, 25):
+        m = take.markers_world[row].copy()
+        m[[0, 3, 7]] = np.nan
+        src.send(m)
+    _wait_until(lambda: live.daemon.stats.frames_solved == 25, "25 frames")
+    after = live.ctl({"cmd": "status"})["status"]["counters"]
+    assert after["occluded_samples"] == 60
+    assert after["pipeline_builds"] == 1
+
+
+def test_vmc_receivers_are_told_the_calibration_state(
+    start_daemon: Callable[..., Live],
+    osc_source: Callable[..., OscSource],
+    vmc: VmcReceiver,
+    exact_calibration: Path,
+) -> None:
+    """Issue 18 item 6: before a calibration the daemon sends ``/VMC/Ext/OK`` in the
+    VMC 2.5+ form (loaded, calibration state, mode, tracking), decoded here by
+    ``vmcp``: 1 "waiting for calibration" with no markers (tracking bad), then with
+    markers flowing (tracking ok), 2 "calibrating" while a calibration collects, and
+    the streamed frames carry 3 "calibrated"."""
+    oscbuildparse, events = _import_vmcp()
+
+    def states(timeout_s: float = 3.0) -> list[Any]:
+        got: list[Any] = []
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline and not got:
+            vmc.pump()
+            for dgram in vmc.datagrams:
+                for msg in oscbuildparse.decode_packet(dgram).elements:
+                    if msg.addrpattern == "/VMC/Ext/OK":
+                        got.append(
+                            events.StateEvent.from_message_data(
+                                "retargetd", msg.addrpattern, msg.arguments
+                            )
+                        )
+            vmc.datagrams.clear()
+            time.sleep(0.05)
+        return got
+
+    live = start_daemon(vmc_port=vmc.port)
+    first = states()
+    assert first, "no /VMC/Ext/OK before calibration"
+    cal = events.CalibrationState
+    assert first[0].model_state == events.ModelState.LOADED
+    assert first[0].calibration_state == cal.WAITING_FOR_CALIBRATING
+    assert first[0].tracking_state == events.TrackingState.BAD
+    take = _take()
+    src = osc_source(live)
+    src.announce()
+    hold = take.base_pose_frames
+    for row in range(hold.start, hold.start + 20):
+        src.send(take.markers_world[row])
+    got = states()
+    assert got and got[-1].tracking_state == events.TrackingState.OK
+    assert live.ctl({"cmd": "calibrate", "count": 600})["ok"]
+    for row in range(hold.start, hold.start + 20):
+        src.send(take.markers_world[row])
+        time.sleep(0.01)
+    got = states()
+    assert got and got[-1].calibration_state == cal.CALIBRATING

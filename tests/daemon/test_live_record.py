@@ -104,7 +104,7 @@ def test_ctl_record_in_a_live_daemon_then_replay_reproduces_the_pose_stream(
     try:
         sender.send_rows(BEFORE_ROWS)
         _wait(lambda: a.counters()["frames_out"] == len(BEFORE_ROWS), "frames before")
-        rec_path = tmp_path / "live.mcap"
+        rec_path = tmp_path / "recordings" / "live.mcap"  # the default folder
         assert main(["ctl", "--endpoint", ctl, "record", "start", str(rec_path)]) == 0
         assert capsys.readouterr().out.startswith(f"recording to {rec_path}")
         sender.sock.sendto(GARBAGE, sender.addr)  # recorded, and dropped as input
@@ -210,6 +210,7 @@ class InThread:
             "control": {"endpoint": "tcp://127.0.0.1:*"},
             "show_control": {"port": 0},
             "loop": {"poll_timeout_ms": 20, "process_every_frame": True},
+            "record": {"folder": str(tmp_path)},
         }  # fmt: skip
         self.lines: list[str] = []
         self.daemon = Daemon(
@@ -270,7 +271,8 @@ def test_record_replies_events_and_a_close_off_the_loop(
     refused({"action": "stop"}, "not recording")
     refused({"action": "pause"}, "'start' or 'stop'")
     refused({"action": "start"}, "needs a 'path'")
-    refused({"action": "start", "path": "rel.mcap"}, "must be absolute")
+    refused({"action": "start", "path": "../rel.mcap"}, "may not contain '..'")
+    refused({"action": "start", "path": "/tmp/x.mcap"}, "recordings go under the")
     refused({"action": "start", "path": str(tmp_path / "x.c3d")}, "end in .mcap")
     refused({"action": "start", "path": str(tmp_path / "no" / "x.mcap")}, "cannot")
     (tmp_path / "exists.mcap").write_bytes(b"keep me")
@@ -293,7 +295,7 @@ def test_record_replies_events_and_a_close_off_the_loop(
         _wait(lambda: live.daemon.stats.frames_out == 10, "10 frames")
         assert live.ctl({"cmd": "reload"})["ok"]
         assert live.ctl({"cmd": "calibrate", "count": 3})["ok"]
-        sender.send_rows(range(110, 115), period_s=0.0)
+        sender.send_rows([110] * 5, period_s=0.0)  # held still: calibrated on
         _wait(lambda: live.daemon.stats.calibrations == 1, "the live calibration")
 
         stop = live.ctl({"cmd": "record", "action": "stop"})  # answered at once ...

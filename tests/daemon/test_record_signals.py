@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import functools
 import io
+import json
 import re
 import selectors
 import signal
@@ -96,6 +97,11 @@ def sender_for() -> Iterator[Callable[[tuple[str, int]], Sender]]:
         s.close()
 
 
+def _record_folder(folder: Path) -> str:
+    """Config lines letting ``ctl record start`` write under ``folder``."""
+    return f"[record]\nfolder = {json.dumps(str(folder))}\n"
+
+
 def _record_status(daemon: Any) -> dict[str, Any]:
     reply = daemon.ctl({"cmd": "status"})
     assert reply is not None and reply["ok"], reply
@@ -144,7 +150,7 @@ def test_a_signal_finishes_the_daemon_recording(
     tmp_path: Path,
     capsys: pytest.CaptureFixture[str],
 ) -> None:
-    d = run_daemon(pig_calibration)
+    d = run_daemon(pig_calibration, extra=_record_folder(tmp_path))
     path = tmp_path / f"sig{int(sig)}.mcap"
     ctl = d.endpoints["control"]
     assert main(["ctl", "--endpoint", ctl, "record", "start", str(path)]) == 0
@@ -172,7 +178,7 @@ def test_sigkill_of_the_daemon_loses_at_most_a_second(
     sender_for: Callable[[tuple[str, int]], Sender],
     tmp_path: Path,
 ) -> None:
-    d = run_daemon(pig_calibration)
+    d = run_daemon(pig_calibration, extra=_record_folder(tmp_path))
     path = tmp_path / "killed.mcap"
     reply = d.ctl({"cmd": "record", "action": "start", "path": str(path)})
     assert reply is not None and reply["ok"], reply
@@ -208,7 +214,7 @@ def test_a_full_disk_stops_the_daemon_recording_and_status_tells(
     tmp_path: Path,
 ) -> None:
     with mounted_tmpfs(tmp_path / "small", 256 * 1024) as small:
-        d = run_daemon(pig_calibration)
+        d = run_daemon(pig_calibration, extra=_record_folder(small))
         path = small / "full.mcap"
         reply = d.ctl({"cmd": "record", "action": "start", "path": str(path)})
         assert reply is not None and reply["ok"], reply

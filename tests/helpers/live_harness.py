@@ -303,13 +303,16 @@ def _prime(sub: PoseSub, send: Callable[[], int], timeout_s: float = 5.0) -> Non
 
 class VmcReceiver:
     """Collects VMC datagrams; splits them into frames at ``/VMC/Ext/T`` with
-    python-osc's generic parser (``OscBundle`` / ``OscMessage``)."""
+    python-osc's generic parser (``OscBundle`` / ``OscMessage``); state bundles
+    (``/VMC/Ext/OK`` + ``/VMC/Ext/T`` only, sent before a calibration) go to
+    :attr:`states`."""
 
     def __init__(self, sock: socket.socket) -> None:
         self.sock = sock
         self.port = int(sock.getsockname()[1])
         self.datagrams: list[bytes] = []
         self.frames: list[list[tuple[str, list[Any]]]] = []
+        self.states: list[list[tuple[str, list[Any]]]] = []
         self.frame_datagrams: list[int] = []
         self._pending: list[tuple[str, list[Any]]] = []
         self._pending_dgrams = 0
@@ -335,8 +338,11 @@ class VmcReceiver:
             assert isinstance(element, OscMessage), "VMC bundles hold messages only"
             self._pending.append((element.address, list(element.params)))
             if element.address == vmc_out.TIME_ADDRESS:
-                self.frames.append(self._pending)
-                self.frame_datagrams.append(self._pending_dgrams)
+                if any(a == vmc_out.ROOT_ADDRESS for a, _ in self._pending):
+                    self.frames.append(self._pending)
+                    self.frame_datagrams.append(self._pending_dgrams)
+                else:  # a state bundle (OK + T, before a calibration): not a pose
+                    self.states.append(self._pending)
                 self._pending, self._pending_dgrams = [], 0
 
     def wait_frames(self, n: int, timeout_s: float = 5.0) -> None:

@@ -81,7 +81,7 @@ def test_python_osc_reads_every_message_in_order(
     blends = msgs[1 + len(bones) : 1 + len(bones) + len(BLENDS)]
     assert [p[0] for _, p in blends] == list(BLENDS)
     np.testing.assert_array_equal([p[1] for _, p in blends], blend.astype(np.float32))
-    assert msgs[-3][1] == [] and msgs[-2][1] == [1] and msgs[-1][1] == [12.5]
+    assert msgs[-3][1] == [] and msgs[-2][1] == [1, 3, 0, 1] and msgs[-1][1] == [12.5]
 
 
 def test_no_blendshapes_still_sends_apply(rng: np.random.Generator) -> None:

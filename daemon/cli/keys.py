@@ -1,0 +1,42 @@
+"""``retargetd keys NAME [--dir DIR]``: write a ZeroMQ CURVE key pair.
+
+Writes ``DIR/NAME.key`` (the public key: give it to the peer) and
+``DIR/NAME.key_secret`` (public and secret key: keep it), both with mode 0600; an
+existing file is never overwritten. The daemon's pair goes in its config
+(``control.secret_key = "DIR/daemon.key_secret"``), each operator's public key in
+``control.client_keys``; ``retargetd ctl --key DIR/operator.key_secret`` talks to it
+(README "Network surface"). The same for the pose stream (``output.pose``).
+"""
+
+from __future__ import annotations
+
+import argparse
+from typing import Any
+
+from retargetd.daemon.errors import UsageError
+
+
+def add_parser(subparsers: Any) -> None:
+    """Register ``keys``."""
+    parser = subparsers.add_parser(
+        "keys",
+        help="write a CURVE key pair for the control socket or the pose stream",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("name", metavar="NAME", help="e.g. daemon, operator, unity")
+    parser.add_argument("--dir", default=".", help="folder (default: here)")
+    parser.set_defaults(run=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Write the pair; print both paths."""
+    from retargetd.daemon.live.surface import KeyFileError, write_keypair
+
+    try:
+        public_path, secret_path = write_keypair(args.dir, args.name)
+    except KeyFileError as exc:
+        raise UsageError(str(exc)) from None
+    print(f"public key {public_path} (give it to the peer)")
+    print(f"secret key {secret_path} (mode 0600: keep it)")
+    return 0

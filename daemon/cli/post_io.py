@@ -1,0 +1,294 @@
+"""Shared by the offline post commands (``solve``, ``reduce``, ``blend``, ``loop``):
+the ``--pipeline FILE.toml`` option and applying its ``[[pipeline]]`` stages to a
+solved take, frame by frame, with the same stage objects the live path builds
+(:func:`retargetd.daemon.post.pipeline.build_pipeline`); and writing a clip (true
+parent-relative rotations and the root) as ``.glb``, ``.bvh`` or ``.npz``.
+
+Not a command module: commands import it, it imports no command. Heavy modules are
+imported inside the functions (the CLI's lazy-import rule).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import tomllib
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from retargetd.daemon.errors import UsageError
+
+#: Output suffixes a clip can be written as (``blend``, ``loop``).
+CLIP_SUFFIXES = ("glb", "bvh", "npz")
+
+
+def add_pipeline_argument(parser: argparse.ArgumentParser) -> None:
+    """``--pipeline FILE.toml`` (``[[pipeline]]`` tables, README "Post stages")."""
+    parser.add_argument(
+        "--pipeline",
+        metavar="FILE.toml",
+        help="apply the file's [[pipeline]] post stages (twist, one_euro) to every "
+        "solved frame, in the order listed, before writing",
+    )
+
+
+def load_pipeline_entries(path: str | Path) -> list[dict[str, Any]]:
+    """The ``[[pipeline]]`` tables of a TOML file (a daemon config works too).
+
+    Raises:
+        UsageError: unreadable TOML, or no ``pipeline`` array of tables.
+    """
+    try:
+        with open(path, "rb") as fh:
+            data = tomllib.load(fh)
+    except tomllib.TOMLDecodeError as exc:
+        raise UsageError(f"--pipeline {path}: {exc}") from None
+    entries = data.get("pipeline")
+    if not isinstance(entries, list) or not all(isinstance(e, dict) for e in entries):
+        raise UsageError(
+            f'--pipeline {path}: expected [[pipeline]] tables (kind = "twist" | '
+            '"one_euro", ...)'
+        )
+    return entries
+
+
+def apply_pipeline_to_solve(
+    path: str | Path, solve: Any, calibration: Any, rate_hz: float
+) -> tuple[Any, tuple[str, ...]]:
+    """Run a pipeline file's stages over every frame of a solve.
+
+    Each frame goes through :meth:`Pipeline.apply` on one :class:`PoseBuffer` (the
+    live path's objects; ``t_s = frame / rate_hz``). The solve's
+    ``parent_from_bone_quat`` (the true parent-relative rotation) is what the stages
+    read and write; ``world_from_bone_quat`` (forward kinematics, sign-continuous)
+    and ``rest_from_bone_quat`` (``conj(rest_parent_from_bone) * parent_from_bone``,
+    w >= 0) are recomputed from it; ``root_pos`` is the filtered root.
+
+    Args:
+        path: the TOML file with ``[[pipeline]]`` tables.
+        solve: the :class:`~retargetd.daemon.body.solve.BodySolve`.
+        calibration: the calibration it was solved with (rest rotations).
+        rate_hz: the take's frame rate.
+
+    Returns:
+        ``(solve, kinds)``: a new solve and the stage kinds applied, in order.
+
+    Raises:
+        UsageError: a bad file, kind, key or value (naming the entry).
+    """
+    from retargetd.daemon import rotations as rot
+    from retargetd.daemon.post.pipeline import build_pipeline
+    from retargetd.daemon.post.pose import PoseBuffer
+    from retargetd.daemon.target.bvh import world_from_parent_chain
+
+    entries = load_pipeline_entries(path)
+    try:
+        pipe = build_pipeline(
+            entries,
+            bone_names=solve.bone_names,
+            bone_parents=solve.bone_parents,
+            rest_parent_from_bone_quat=np.asarray(
+                calibration.rest_parent_from_bone_quat, dtype=np.float64
+            ),
+        )
+    except ValueError as exc:
+        raise UsageError(f"--pipeline {path}: {exc}") from None
+    q_in = np.asarray(solve.parent_from_bone_quat, dtype=np.float64)
+    p_in = np.asarray(solve.root_pos, dtype=np.float64)
+    q_out = np.empty_like(q_in)
+    p_out = np.empty_like(p_in)
+    pose = PoseBuffer.new(q_in.shape[1])
+    for t in range(len(q_in)):
+        pose.t_s = t / rate_hz
+        np.copyto(pose.parent_from_bone_quat, q_in[t])
+        np.copyto(pose.root_pos, p_in[t])
+        pipe.apply(pose, pose)
+        q_out[t] = pose.parent_from_bone_quat
+        p_out[t] = pose.root_pos
+    wfb = sign_continuous(world_from_parent_chain(solve.bone_parents, q_out))
+    rest = np.asarray(calibration.rest_parent_from_bone_quat, dtype=np.float64)
+    rfb = rot.quat_mul(rot.quat_conj(rest), q_out)
+    rfb *= np.where(rfb[..., :1] < 0.0, -1.0, 1.0)
+    new = dataclasses.replace(
+        solve,
+        parent_from_bone_quat=q_out,
+        world_from_bone_quat=wfb,
+        rest_from_bone_quat=rfb,
+        root_pos=p_out,
+    )
+    return new, pipe.kinds
+
+
+def sign_continuous(q: Any) -> Any:
+    """(T, B, 4) quaternions with each frame's sign in the hemisphere of the last."""
+    out = np.array(q, dtype=np.float64)
+    for t in range(1, len(out)):
+        flip = np.sum(out[t] * out[t - 1], axis=-1) < 0.0
+        out[t, flip] *= -1.0
+    return out
+
+
+def suffix_of(path: str, allowed: tuple[str, ...], *, option: str = "--out") -> str:
+    """The lower-case suffix of ``path`` if allowed, else a UsageError listing them."""
+    suffix = path.lower().rsplit(".", 1)[-1] if "." in Path(path).name else ""
+    if suffix not in allowed:
+        dotted = [f".{s}" for s in allowed]
+        listed = (
+            dotted[0]
+            if len(dotted) == 1
+            else ", ".join(dotted[:-1]) + f" or {dotted[-1]}"
+        )
+        raise UsageError(f"{option}: expected a {listed} file; got {path!r}")
+    return suffix
+
+
+def write_clip(
+    path: str,
+    clip: Any,
+    calibration: Any,
+    *,
+    bvh_order: str | None = None,
+    travel_m: Any = None,
+) -> None:
+    """Write a clip as ``.glb`` (every frame), ``.bvh`` or ``.npz``.
+
+    NPZ (``numpy.load(..., allow_pickle=False)``): ``bone_names`` (B,),
+    ``bone_parents`` (B,) int64, ``parent_from_bone_quat`` (T, B, 4) w x y z (true
+    parent-relative), ``world_from_bone_quat`` (T, B, 4) w x y z, ``root_pos`` (T, 3)
+    metres world, ``rate_hz``, and for a loop ``travel_m`` (3,) metres (the root's
+    travel per cycle).
+
+    Args:
+        path: the output file; its suffix picks the format.
+        clip: a :class:`~retargetd.daemon.post.interp.Clip` of the calibration's bones.
+        calibration: the calibrated skeleton.
+        bvh_order: BVH channel order (default ZXY).
+        travel_m: optional (3,) float64 metres, stored in the NPZ.
+
+    Raises:
+        UsageError: a bad suffix, or a calibration that cannot be exported.
+    """
+    from retargetd.daemon.body.calibration import CalibrationError
+    from retargetd.daemon.post.export_gltf import write_clip_glb
+    from retargetd.daemon.target.bvh import (
+        DEFAULT_ROTATION_ORDER,
+        world_from_parent_chain,
+        write_clip_bvh,
+    )
+
+    suffix = suffix_of(path, CLIP_SUFFIXES)
+    try:
+        if suffix == "glb":
+            write_clip_glb(path, clip, calibration)
+        elif suffix == "bvh":
+            write_clip_bvh(
+                path, calibration, clip.parent_from_bone_quat, clip.root_pos,
+                clip.rate_hz, rotation_order=bvh_order or DEFAULT_ROTATION_ORDER,
+            )  # fmt: skip
+        else:
+            arrays: dict[str, Any] = {
+                "bone_names": np.asarray(calibration.bone_names, dtype=str),
+                "bone_parents": np.asarray(calibration.bone_parents, dtype=np.int64),
+                "parent_from_bone_quat": clip.parent_from_bone_quat,
+                "world_from_bone_quat": world_from_parent_chain(
+                    calibration.bone_parents, clip.parent_from_bone_quat
+                ),
+                "root_pos": clip.root_pos,
+                "rate_hz": np.float64(clip.rate_hz),
+            }
+            if travel_m is not None:
+                arrays["travel_m"] = np.asarray(travel_m, dtype=np.float64)
+            np.savez(path, **arrays)
+    except CalibrationError as exc:
+        raise UsageError(str(exc)) from None
+
+
+def check_bvh_order(option: str, value: str) -> str:
+    """The canonical BVH channel order, or a UsageError that says which BVH can hold.
+
+    BVH lists one rotation channel per axis (``Zrotation Xrotation Yrotation``,
+    composed ``R = R_Z R_X R_Y`` in the listed order), so it can express only the 6
+    Tait-Bryan orders, read as channel orders (intrinsic); the 6 proper Euler orders
+    repeat an axis and need three channels about two axes, which BVH has not.
+    """
+    from retargetd.replay.bvh import ROTATION_ORDERS, normalize_rotation_order
+
+    try:
+        return normalize_rotation_order(value)
+    except ValueError:
+        raise UsageError(
+            f"{option}: BVH can express only the 6 Tait-Bryan channel orders "
+            f"{', '.join(ROTATION_ORDERS)} (one channel per axis, composed in the "
+            f"listed order); got {value!r}. Proper Euler orders (XYX, ZXZ, ...) repeat "
+            "an axis: use --out take.csv --euler-order ORDER for those"
+        ) from None
+
+
+def solved_take(args: argparse.Namespace) -> tuple[Any, Any, Any, Any]:
+    """Solve ``args.take`` (:func:`retargetd.daemon.cli.args.solver_for_take`) and
+    apply ``--pipeline`` when given.
+
+    Returns:
+        ``(rig, take, calibration, solve)``.
+
+    Raises:
+        UsageError: bad input (one line, exit 2).
+    """
+    from retargetd.daemon.cli.args import solver_for_take
+
+    rig, take, cal, solver = solver_for_take(args)
+    res = solver.solve_take(take.positions)
+    if getattr(args, "pipeline", None) is not None:
+        res, _ = apply_pipeline_to_solve(args.pipeline, res, cal, take.rate_hz)
+    return rig, take, cal, res
+
+
+def solve_other_take(
+    args: argparse.Namespace, path: str, rig: Any, calibration: Any
+) -> tuple[Any, Any]:
+    """Solve a second take with the first one's rig and calibration (``blend``'s B).
+
+    Returns:
+        ``(take, solve)``.
+    """
+    from retargetd.daemon.body.calibration import CalibrationError
+    from retargetd.daemon.body.solve import BodySolver
+    from retargetd.daemon.cli.args import take_overrides
+    from retargetd.replay.takes import load_take
+
+    take = load_take(path, **take_overrides(args))
+    try:
+        solver = BodySolver(rig, calibration, take.labels)
+    except CalibrationError as exc:
+        raise UsageError(f"{path}: {exc}") from None
+    res = solver.solve_take(take.positions)
+    if getattr(args, "pipeline", None) is not None:
+        res, _ = apply_pipeline_to_solve(args.pipeline, res, calibration, take.rate_hz)
+    return take, res
+
+
+def clip_of(solve: Any, calibration: Any, rate_hz: float, what: str) -> Any:
+    """The solve as a :class:`~retargetd.daemon.post.interp.Clip`.
+
+    Raises:
+        UsageError: non-finite rotations or root (naming ``what``).
+    """
+    from retargetd.daemon.post.export_gltf import clip_from_solve
+
+    clip = clip_from_solve(solve, calibration, rate_hz)
+    if not (
+        np.isfinite(clip.parent_from_bone_quat).all()
+        and np.isfinite(clip.root_pos).all()
+    ):
+        raise UsageError(f"{what}: the solve has non-finite rotations or root")
+    return clip
+
+
+def pose_steps_deg(quat: Any) -> Any:
+    """(T-1,) float64 degrees: RMS rotation between consecutive poses (root
+    excluded, :func:`retargetd.daemon.post.interp.pose_distance`)."""
+    from retargetd.daemon.post.interp import pose_distance
+
+    return np.degrees(pose_distance(quat[:-1], quat[1:]))

@@ -1,0 +1,139 @@
+"""``retargetd retarget IN.bvh --target TARGET.bvh --out OUT.bvh|OUT.glb
+[--map FILE.toml] [--root-scale X] [--spread] [--units cm]``: map a BVH take onto
+another skeleton (rotational data in, the chapter's first section).
+
+Joints are matched by ``--map`` first (a ``[joints]`` table, ``"source joint" =
+"target joint"``), then by equal names (ignoring a ``prefix:``), then through the
+humanoid bone maps (Mixamo/MotionBuilder and CMU BVH names, the shipped rigs' bone
+names). The rest-pose offsets are compensated (``R'_j = conj(C_parent) R_j C_j``,
+the chapter's "negative of the offset"), so every mapped bone points in the world
+where its source bone points whatever the two rest poses; each joint's rotation order
+is read from the source's channels and written in the target's. The root's position
+is scaled by the ratio of the rest root heights (``--root-scale`` overrides). Both
+files are taken to share axes (+Y up, as BVH usually is). Target joints that map to
+nothing keep their rest; with ``--spread`` those on a plain chain between two mapped
+joints (a target with more spine bones) share the rotation between them equally. See
+``retargetd.daemon.target.bvh_retarget``.
+
+``.glb``: the target's joints as glTF nodes (``--units``: the BVH length unit,
+default cm, for glTF's metres), every frame as a LINEAR key.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tomllib
+from typing import Any
+
+from retargetd.daemon.errors import UsageError
+
+#: Metres per BVH length unit accepted by ``--units``.
+M_PER_UNIT = {"mm": 0.001, "cm": 0.01, "m": 1.0, "in": 0.0254}
+
+
+def add_parser(subparsers: Any) -> None:
+    """Register ``retarget``."""
+    parser = subparsers.add_parser(
+        "retarget",
+        help="map a BVH take onto another BVH skeleton (BVH or glTF out)",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("source", metavar="IN.bvh", help="the BVH take")
+    parser.add_argument(
+        "--target", required=True, metavar="TARGET.bvh", help="the skeleton to drive"
+    )
+    parser.add_argument("--out", required=True, metavar="OUT.bvh|OUT.glb")
+    parser.add_argument(
+        "--map", metavar="FILE.toml", help='[joints] "source joint" = "target joint"'
+    )
+    parser.add_argument(
+        "--root-scale",
+        type=float,
+        metavar="X",
+        help="factor on the root position (default: rest root height ratio)",
+    )
+    parser.add_argument(
+        "--spread",
+        action="store_true",
+        help="unmapped joints on a chain between two mapped ones (extra spine "
+        "bones) share the rotation between them equally (default: they keep rest)",
+    )
+    parser.add_argument(
+        "--units",
+        default="cm",
+        choices=sorted(M_PER_UNIT),
+        help="the BVH length unit, for .glb metres (default cm)",
+    )
+    parser.set_defaults(run=run)
+
+
+def _load_map(path: str) -> dict[str, str]:
+    try:
+        with open(path, "rb") as fh:
+            data = tomllib.load(fh)
+    except tomllib.TOMLDecodeError as exc:
+        raise UsageError(f"--map {path}: {exc}") from None
+    joints = data.get("joints")
+    if not isinstance(joints, dict) or not all(
+        isinstance(v, str) for v in joints.values()
+    ):
+        raise UsageError(
+            f'--map {path}: expected a [joints] table of "source" = "target" names'
+        )
+    return dict(joints)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``retarget``."""
+    from retargetd.daemon.cli.post_io import suffix_of
+    from retargetd.daemon.target.bvh_retarget import (
+        retarget_bvh,
+        spread_chains,
+        write_retarget_glb,
+    )
+    from retargetd.replay.bvh import read_bvh_hierarchy, write_bvh
+
+    suffix = suffix_of(args.out, ("bvh", "glb"))
+    name_map = _load_map(args.map) if args.map is not None else None
+    if args.root_scale is not None and not args.root_scale > 0.0:
+        raise UsageError(f"--root-scale: expected > 0; got {args.root_scale}")
+    try:
+        source = read_bvh_hierarchy(args.source, read_motion=True)
+        target = read_bvh_hierarchy(args.target)
+        result = retarget_bvh(
+            source,
+            target,
+            name_map=name_map,
+            root_scale=args.root_scale,
+            spread=args.spread,
+        )
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+    if suffix == "bvh":
+        write_bvh(args.out, result.skeleton, result.frames, result.frame_time_s)
+    else:
+        write_retarget_glb(args.out, result, M_PER_UNIT[args.units])
+    w = sys.stdout.write
+    mapped = [
+        f"{target.joint_names[j]}<-{source.joint_names[s]}"
+        for j, s in enumerate(result.mapping)
+        if s >= 0
+    ]
+    unmapped = [
+        n for n, s in zip(target.joint_names, result.mapping, strict=True) if s < 0
+    ]
+    w(
+        f"wrote {args.out}: {len(result.frames)} frames, {len(mapped)} of "
+        f"{len(target.joint_names)} target joints driven, root scale "
+        f"{result.root_scale:.4g}\n"
+    )
+    w("mapped: " + " ".join(mapped) + "\n")
+    w("unmapped (keep their rest): " + (" ".join(unmapped) or "none") + "\n")
+    if args.spread:
+        chains = spread_chains(target.parents, list(result.mapping))
+        spread = [target.joint_names[u] for u in sorted(chains)]
+        w("of those, sharing a chain's rotation: " + (" ".join(spread) or "none"))
+        w("\n")
+    return 0

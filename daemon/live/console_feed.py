@@ -1,0 +1,202 @@
+"""The live daemon's side of the browser console (``[console]``, ``run --console``).
+
+The console (``retargetd.daemon.console``: a ``viser`` page on its own thread) never
+touches the loop's state. The loop publishes a decimated copy (``publish_hz``, 30 by
+default) into the console's two-buffer :class:`SnapshotSlot` with a non-blocking
+commit (a publish the console is reading at that instant is skipped and counted), and
+drains the console's bounded :class:`CommandQueue` once per pass of the loop (a
+``get_nowait`` that allocates nothing when it is empty). Button presses become the
+same requests as ``retargetd ctl``: calibrate (after the page's countdown; the
+stillness check runs on the frames as for any calibration), record start/stop (under
+the configured recordings folder), face capture, reload.
+
+The retargeted humanoid is not drawn live yet (its forward kinematics would run on the
+loop thread); the page shows the markers, the solved skeleton with flagged bones in
+red, face weights when the face is on, and the health plots.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from retargetd.daemon.body.rig import Rig
+from retargetd.daemon.body.solve import BodyPose, BodySolver
+from retargetd.daemon.console.app import Console
+from retargetd.daemon.console.snapshot import (
+    CMD_CALIBRATE,
+    CMD_FACE_CAPTURE,
+    CMD_RECORD_START,
+    CMD_RECORD_STOP,
+    CMD_RELOAD,
+    CommandQueue,
+    ConsoleLayout,
+    SkeletonProgram,
+    SnapshotSlot,
+)
+from retargetd.daemon.live.config import ConsoleConfig
+from retargetd.daemon.live.stats import STAGES, LoopStats
+from retargetd.protocols.frames import MarkerFrame
+
+logger = logging.getLogger(__name__)
+
+#: The health plots' refresh (0.5 s): the stats line's figures, not per frame.
+HEALTH_INTERVAL_NS = 500_000_000
+
+
+def _health(status: dict[str, Any]) -> dict[str, Any]:
+    drops = 0
+    for counts in status.get("drops", {}).values():
+        drops += sum(v for k, v in counts.items() if k not in ("accepted", "restart"))
+    return {
+        "recording": bool(status.get("record", {}).get("active")),
+        "fps_in": float(status.get("fps_in") or 0.0),
+        "drops": drops,
+        "latency_us": {
+            k: tuple(float("nan") if x is None else float(x) for x in v)
+            for k, v in status.get("latency_us", {}).items()
+        },
+    }
+
+
+def _layout(
+    rig: Rig, solver: BodySolver, labels: tuple[str, ...], face_names: tuple[str, ...]
+) -> ConsoleLayout:
+    return ConsoleLayout(
+        marker_names=labels,
+        joint_names=solver.joint_names,
+        bone_names=rig.bone_names,
+        bone_parents=np.asarray(rig.bone_parent_indices(), dtype=np.int64),
+        skeleton=SkeletonProgram.from_rig(rig, solver.joint_names),
+        bone_lengths=np.asarray(solver.calibration.bone_lengths, dtype=np.float64),
+        face_names=face_names,
+        stage_names=STAGES,
+    )
+
+
+class ConsoleFeed:
+    """The console server plus what the loop publishes to it.
+
+    Args:
+        config: the ``[console]`` section (host, port, publish rate).
+        out: where the daemon's lines go (the console's URL is printed there).
+    """
+
+    def __init__(self, config: ConsoleConfig, out: Callable[[str], None]) -> None:
+        self.config = config
+        self.out = out
+        self.commands = CommandQueue()
+        self.slot: SnapshotSlot | None = None
+        self.console: Console | None = None
+        self._layout_key: tuple[int, tuple[str, ...]] | None = None
+        self._p50 = np.zeros(len(STAGES))
+        self._p99 = np.zeros(len(STAGES))
+        self._health: dict[str, Any] = {}
+        self._health_ns = 0
+        self.published = 0
+
+    def start(self, rig: Rig) -> str:
+        """Start the page (an empty layout until the first solved frame); its URL."""
+        empty = ConsoleLayout(
+            marker_names=(),
+            joint_names=(),
+            bone_names=(),
+            bone_parents=np.zeros(0, np.int64),
+            skeleton=SkeletonProgram.from_joint_pairs([], 0),
+            bone_lengths=np.zeros(0),
+            stage_names=STAGES,
+        )
+        del rig
+        self.slot = SnapshotSlot(empty, publish_hz=self.config.publish_hz)
+        self.console = Console(
+            self.slot, self.commands, host=self.config.host, port=self.config.port
+        )
+        self.console.start()
+        return self.console.url
+
+    def stop(self) -> None:
+        """Stop the page (bounded)."""
+        if self.console is not None:
+            self.console.stop()
+            self.console = None
+
+    def publish(
+        self,
+        now_ns: int,
+        rig: Rig,
+        solver: BodySolver,
+        frame: MarkerFrame,
+        labels: tuple[str, ...],
+        pose: BodyPose,
+        bone_flags: np.ndarray,
+        face_names: tuple[str, ...],
+        face_weights: np.ndarray | None,
+        stats: LoopStats,
+        status_fn: Callable[[], dict[str, Any]],
+    ) -> None:
+        """Publish this frame when one is due (``publish_hz``); never waits. The
+        health figures (``status_fn``, the status document) are refreshed at most
+        every :data:`HEALTH_INTERVAL_NS`: their percentiles are not per-frame work."""
+        slot = self.slot
+        if slot is None or not slot.due(now_ns):
+            return
+        if now_ns - self._health_ns >= HEALTH_INTERVAL_NS:
+            self._health, self._health_ns = _health(status_fn()), now_ns
+        status = self._health
+        key = (id(solver), labels)
+        if key != self._layout_key:  # a new pipeline: the page's layout (not hot)
+            slot.set_layout(_layout(rig, solver, labels, face_names))
+            self._layout_key = key
+        s = slot.begin()
+        if s.marker_pos.shape != frame.markers_world.shape:
+            return  # the layout is being swapped
+        s.frame = frame.frame_id
+        s.t_s = now_ns * 1e-9
+        np.copyto(s.marker_pos, frame.markers_world)
+        np.copyto(s.marker_valid, frame.valid)
+        np.copyto(s.joint_pos, pose.joint_centres)
+        np.copyto(s.world_from_bone_quat, pose.world_from_bone_quat)
+        np.copyto(s.root_pos, pose.root_pos)
+        np.copyto(s.bone_flags, bone_flags)
+        s.face_on = face_weights is not None and len(face_weights) > 0
+        if s.face_on and face_weights is not None:
+            np.copyto(s.face_weights, face_weights, casting="same_kind")
+        s.calibrated = True
+        s.recording = bool(status.get("recording"))
+        s.input_rate_hz = float(status.get("fps_in", 0.0))
+        s.drops = int(status.get("drops", 0))
+        for k, name in enumerate(STAGES):
+            p50, p99 = status["latency_us"].get(name, (float("nan"), float("nan")))
+            self._p50[k], self._p99[k] = p50 * 1e-3, p99 * 1e-3
+        np.copyto(s.latency_p50_ms, self._p50)
+        np.copyto(s.latency_p99_ms, self._p99)
+        s.occluded = int(len(frame.valid) - np.count_nonzero(frame.valid))
+        s.validation_flags = stats.validation_flagged
+        if slot.commit():
+            self.published += 1
+
+
+def dispatch(daemon: Any, cmd: Any) -> None:
+    """Turn one console command into the daemon request it stands for; a refused one
+    is printed (the page shows the stats line), never raised."""
+    try:
+        if cmd.kind == CMD_CALIBRATE:
+            msg = daemon.request_calibration(None, "console")
+        elif cmd.kind == CMD_RECORD_START:
+            msg = daemon._record_control(
+                {"cmd": "record", "action": "start", "path": cmd.arg or "console.mcap"}
+            )
+        elif cmd.kind == CMD_RECORD_STOP:
+            msg = daemon._record_control({"cmd": "record", "action": "stop"})
+        elif cmd.kind == CMD_FACE_CAPTURE:
+            msg = daemon.request_face_capture(cmd.arg or "neutral", None, "console")
+        elif cmd.kind == CMD_RELOAD:
+            msg = daemon.reload()
+        else:
+            msg = f"console: unknown command {cmd.kind!r}"
+    except (ValueError, TypeError, OSError) as exc:
+        msg = f"console {cmd.kind}: {exc}"
+    daemon.out(str(msg))

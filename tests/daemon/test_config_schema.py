@@ -1,0 +1,205 @@
+"""Every key of the daemon config, generated from the schema (the dataclasses of
+``daemon/live/config.py`` and each field's rule), given a wrong type, an
+out-of-range value and a misspelling: ``retargetd run --config`` exits 2 with one
+line on stderr naming the key, before any socket opens. Undecodable bytes too, in
+the daemon config, a rig file and a face config (issue 12: a non-UTF-8 byte gave a
+traceback).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import tomllib
+from collections.abc import Iterator
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from retargetd.daemon.cli.main import main
+from retargetd.daemon.live.config import ConfigError, DaemonConfig
+
+
+def _leaves(kind: Any, prefix: str = "") -> Iterator[tuple[str, dataclasses.Field]]:
+    """(dotted key, field) of every leaf of the schema, walking nested sections."""
+    instance = kind()
+    for f in dataclasses.fields(kind):
+        value = getattr(instance, f.name)
+        if dataclasses.is_dataclass(value):
+            yield from _leaves(type(value), f"{prefix}{f.name}.")
+        else:
+            yield f"{prefix}{f.name}", f
+
+
+def _sections(kind: Any, prefix: str = "") -> Iterator[str]:
+    instance = kind()
+    for f in dataclasses.fields(kind):
+        value = getattr(instance, f.name)
+        if dataclasses.is_dataclass(value):
+            yield f"{prefix}{f.name}"
+            yield from _sections(type(value), f"{prefix}{f.name}.")
+
+
+LEAVES = dict(_leaves(DaemonConfig))
+SECTIONS = list(_sections(DaemonConfig))
+
+
+def _wrong_type(default: Any) -> Any:
+    """A TOML value of another type than the key's."""
+    if isinstance(default, bool):
+        return "yes"
+    if isinstance(default, int | float):
+        return "1"
+    if isinstance(default, str):
+        return 5
+    if isinstance(default, tuple):
+        return "a"
+    raise AssertionError(f"no wrong type for {default!r}")
+
+
+def _out_of_range(f: dataclasses.Field, tmp: Path) -> Any:
+    """A value of the right type that the key's rule refuses (None for a bool:
+    true and false are its whole range)."""
+    meta = f.metadata
+    check = meta.get("check", "")
+    missing = str(tmp / "missing" / "file")
+    values: dict[str, Any] = {
+        "port": meta.get("hi", 0) + 1,
+        "host": "localhost",  # a name, not an address
+        "hosts": ["127.0.0.1", "nope"],
+        "endpoint": "tcp://127.0.0.1:99999",
+        "units": "furlong",
+        "up": "north",
+        "names": ["A", "A"],
+        "rig": missing,
+        "file": missing,
+        "out_path": missing,
+        "folder": "/dev/null",
+        "skeleton": missing,
+        "face_config": missing,
+        "training": str(tmp),  # exists, but is no training set
+        "mass": 10.0,
+        "capture_source": "vicon://10.0.0.1",
+        "token": "short",
+        "secret_key": missing,
+        "public_keys": [missing],
+    }
+    if check == "range":
+        hi = meta["hi"]
+        return type(f.default)(hi * 2 + 1)
+    if check == "choices":
+        return "zzz"
+    if check in values:
+        return values[check]
+    assert check == "" and isinstance(f.default, bool), (
+        f"{f.name}: every key but a bool needs a rule (config._spec)"
+    )
+    return None
+
+
+def _misspelled(key: str) -> str:
+    """The last part of the key with two letters swapped (never another key)."""
+    *head, last = key.split(".")
+    i = 1 if len(last) > 2 else 0
+    wrong = last[:i] + last[i + 1] + last[i] + last[i + 2 :]
+    if wrong == last:
+        wrong = last + "s"
+    return ".".join([*head, wrong])
+
+
+def _toml(key: str, value: Any) -> str:
+    """A one-key TOML document (JSON scalars and arrays are TOML too)."""
+    *section, name = key.split(".")
+    head = f"[{'.'.join(section)}]\n" if section else ""
+    return f"{head}{name} = {json.dumps(value)}\n"
+
+
+CASES = [
+    pytest.param(key, kind, id=f"{key}-{kind}")
+    for key in LEAVES
+    for kind in ("wrong_type", "out_of_range", "misspelled")
+] + [pytest.param(s, "misspelled", id=f"[{s}]-misspelled") for s in SECTIONS]
+
+
+def test_the_schema_is_walked() -> None:
+    # Sanity: the walk reaches nested sections and every kind of key.
+    assert "input.osc.port" in LEAVES and "output.pose.client_keys" in LEAVES
+    assert "performer.calibrate_max_speed_m_s" in LEAVES
+    assert {"input", "input.osc", "output.vmc", "record"} <= set(SECTIONS)
+    assert len(LEAVES) >= 60
+
+
+@pytest.mark.parametrize(("key", "kind"), CASES)
+def test_every_key_bad_gives_exit_2_and_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], key: str, kind: str
+) -> None:
+    if kind == "misspelled":
+        wrong = _misspelled(key)
+        if key in SECTIONS:
+            *parent, last = wrong.split(".")
+            text = f"[{'.'.join([*parent, last])}]\nx = 1\n"
+        else:
+            text = _toml(wrong, 1)
+        named = wrong
+    else:
+        f = LEAVES[key]
+        value = _wrong_type(f.default) if kind == "wrong_type" else None
+        if kind == "out_of_range":
+            value = _out_of_range(f, tmp_path)
+            if value is None:
+                assert isinstance(f.default, bool)
+                return  # a bool has no out-of-range value (its wrong type is tested)
+        text = _toml(key, value)
+        named = key
+    path = tmp_path / "bad.toml"
+    path.write_text(text)
+    # In process first: a document that were accepted would start a daemon below.
+    with pytest.raises(ConfigError) as info:
+        DaemonConfig.from_toml(path)
+    assert f": {named}" in str(info.value), (text, str(info.value))
+    assert main(["run", "--config", str(path)]) == 2
+    out, err = capsys.readouterr()
+    assert err.count("\n") == 1 and err.endswith("\n"), err
+    assert err.startswith("retargetd run: error: ") and named in err, err
+    assert "listening on" not in out
+
+
+def test_non_utf8_config_rig_and_face_config_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    bad = b'[performer]\nrig = "caf\xe9"\n'
+    config = tmp_path / "bad.toml"
+    config.write_bytes(bad)
+    rig = tmp_path / "rig.toml"
+    rig.write_bytes(b"[rig]\nname = '\xff\xfe'\n")
+    face = tmp_path / "face.toml"
+    face.write_bytes(b"name = '\xc3'\n")
+    for text, where in (
+        (None, config),
+        (f"[performer]\nrig = {json.dumps(str(rig))}\n", rig),
+        (f"[face]\nconfig = {json.dumps(str(face))}\n", face),
+    ):
+        path = config
+        if text is not None:
+            path = tmp_path / "ok.toml"
+            path.write_text(text)
+        assert main(["run", "--config", str(path)]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and "Traceback" not in err, err
+        assert f"{where}: not UTF-8 text" in err, err
+
+
+def test_the_example_config_names_every_key() -> None:
+    example = resources.files("retargetd.daemon.live") / "retargetd.example.toml"
+    doc = tomllib.loads(example.read_text())
+
+    def flat(d: dict[str, Any], prefix: str = "") -> Iterator[str]:
+        for k, v in d.items():
+            if isinstance(v, dict):
+                yield from flat(v, f"{prefix}{k}.")
+            else:
+                yield f"{prefix}{k}"
+
+    assert set(flat(doc)) == set(LEAVES)

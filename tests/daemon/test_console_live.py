@@ -1,0 +1,122 @@
+"""The console on a live daemon, in a real headless Chromium (issue 18, item 3).
+
+A daemon with ``[console]`` on (port 0) receives the exact synthetic performer's
+T-pose over loopback OSC, uncalibrated. The page loads; Calibrate is clicked through
+the page; the daemon's calibration count rises (the command went console -> queue ->
+loop -> the same request as ``ctl calibrate``); then the solved skeleton is drawn:
+pixels of the bone colour at the projection of the solved joint centres' bone
+midpoints (the page's camera is set, and the client's reported camera used).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import live_harness as lh
+import numpy as np
+import pytest
+from browser import _blue, _near, _project
+
+
+@pytest.mark.timeout(180)
+def test_live_console_calibrate_and_skeleton(
+    driver: Any,
+    start_daemon: Callable[..., lh.Live],
+    osc_source: Callable[..., lh.OscSource],
+    tmp_path: Path,
+) -> None:
+    import matplotlib.image as mpimg
+    from selenium.webdriver.common.by import By
+    from selenium.webdriver.support import expected_conditions as ec
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    live = start_daemon({"console": {"enabled": True, "port": 0}})
+    feed = live.daemon.console
+    assert feed is not None and feed.console is not None
+    url = live.daemon.endpoints["console"].split()[0]
+    take = lh._take()
+    hold = take.base_pose_frames
+    src = osc_source(live)
+    src.announce()
+    stop = threading.Event()
+
+    def stream() -> None:  # the T-pose hold, looped, at 100 Hz
+        k = 0
+        while not stop.is_set():
+            src.send(take.markers_world[hold.start + k % (hold.stop - hold.start)])
+            k += 1
+            time.sleep(0.01)
+
+    sender = threading.Thread(target=stream, daemon=True)
+    sender.start()
+    try:
+        server = feed.console.server
+        root = take.markers_world[hold.start].mean(axis=0)
+        cam = server.initial_camera
+        cam.position = root + np.array([0.0, -4.6, 0.2])
+        cam.look_at = root
+        cam.up = (0.0, 0.0, 1.0)
+        cam.fov = np.deg2rad(50.0)
+        driver.get(url)
+        wait = WebDriverWait(driver, 60)
+        wait.until(ec.presence_of_element_located((By.TAG_NAME, "canvas")))
+        assert live.daemon.stats.calibrations == 0
+        button = wait.until(
+            ec.element_to_be_clickable(
+                (By.XPATH, "//button[contains(normalize-space(.), 'Calibrate')]")
+            )
+        )
+        button.click()
+        lh._wait_until(
+            lambda: live.daemon.stats.calibrations >= 1, "a calibration", 30.0
+        )
+        lh._wait_until(lambda: feed.published >= 10, "published snapshots", 30.0)
+        deadline = time.monotonic() + 60
+        client = None
+        while time.monotonic() < deadline:
+            clients = server.get_clients()
+            client = next(iter(clients.values()), None)
+            if (
+                client is not None
+                and client.camera.update_timestamp
+                and np.allclose(client.camera.look_at, cam.look_at, atol=1e-3)
+            ):
+                break
+            time.sleep(0.1)
+        assert client is not None
+        time.sleep(2.0)  # a few frames rendered
+        png = driver.get_screenshot_as_png()
+        (tmp_path / "live-console.png").write_bytes(png)
+        import io
+
+        img = (mpimg.imread(io.BytesIO(png), format="png")[..., :3] * 255).astype(
+            np.uint8
+        )
+        pipe = next(iter(live.daemon._pipelines.values()))
+        joints = pipe.pose.joint_centres
+        names = pipe.solver.joint_names
+        mids = []
+        for bone in pipe.solver.rig.bones:  # bones between two named joint centres
+            j = [
+                names.index(n)
+                for n, p in pipe.solver.rig.joints.items()
+                if p in (bone.origin, bone.aim)
+            ]
+            if len(j) == 2:
+                mids.append(0.5 * (joints[j[0]] + joints[j[1]]))
+        assert len(mids) >= 4
+        h, w = img.shape[:2]
+        px = _project(client.camera, np.asarray(mids), w, h)
+        inside = (
+            (px[:, 0] > 5) & (px[:, 0] < w - 5) & (px[:, 1] > 5) & (px[:, 1] < h - 5)
+        )
+        hits = _near(img, px[inside], _blue)
+        print(f"\nlive console: {hits.sum()} of {inside.sum()} bone midpoints blue")
+        assert inside.sum() >= 4 and hits.mean() >= 0.6, (hits, px)
+    finally:
+        stop.set()
+        sender.join(timeout=2.0)

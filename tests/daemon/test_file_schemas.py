@@ -1,0 +1,217 @@
+"""Rig files and face configs, every key of the shipped ones mutated (generated from
+the documents, not listed by hand): a value of the wrong type and a misspelt key,
+and for face configs an out-of-range value, each give ``retargetd run --config``
+(the file named in ``performer.rig`` / ``face.config``) exit 2 and one line naming
+the key.
+
+The rig format's free names (a marker, measurement, segment, point, bone or joint
+name: the key right under those tables) are the user's and cannot be misspelt;
+every other key is the format's own.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import math
+import tomllib
+from collections.abc import Iterator
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from retargetd.daemon.body.rig import RigError, load_rig, shipped_rigs
+from retargetd.daemon.cli.main import main
+from retargetd.daemon.face.config import (
+    FACE_KEYS,
+    FaceConfigError,
+    load_face_config,
+    shipped_faces,
+)
+
+#: Tables whose keys are names chosen by the rig's author (RIGS.md).
+NAME_TABLES = ("markers", "measurements", "segments", "points", "bones", "joints")
+
+
+def _leaves(doc: dict[str, Any], path: tuple[str, ...] = ()) -> Iterator[Any]:
+    for key, value in doc.items():
+        if isinstance(value, dict) and value:
+            yield from _leaves(value, (*path, key))
+        else:
+            yield (*path, key), value
+
+
+def _dump(doc: dict[str, Any]) -> str:
+    """TOML text of a document as dotted keys (scalars and arrays of scalars)."""
+    lines = []
+    for path, value in _leaves(doc):
+        key = ".".join(json.dumps(k) for k in path)
+        if isinstance(value, dict):
+            text = "{}"
+        elif isinstance(value, float) and not math.isfinite(value):
+            text = "nan"
+        else:
+            text = json.dumps(value)
+        lines.append(f"{key} = {text}\n")
+    return "".join(lines)
+
+
+def _with(doc: dict[str, Any], path: tuple[str, ...], value: Any) -> dict[str, Any]:
+    out = copy.deepcopy(doc)
+    table = out
+    for key in path[:-1]:
+        table = table[key]
+    table[path[-1]] = value
+    return out
+
+
+def _renamed(doc: dict[str, Any], path: tuple[str, ...], new: str) -> dict[str, Any]:
+    out = copy.deepcopy(doc)
+    table = out
+    for key in path[:-1]:
+        table = table[key]
+    table[new] = table.pop(path[-1])
+    return out
+
+
+def _wrong_type(value: Any) -> Any:
+    if isinstance(value, str | list | dict):
+        return True
+    return "x"  # a number or a bool
+
+
+def _misspelt(name: str) -> str:
+    if len(name) < 2:
+        return name + "s"
+    i = 1 if len(name) > 2 else 0
+    wrong = name[:i] + name[i + 1] + name[i] + name[i + 2 :]
+    return wrong if wrong != name else name + "s"
+
+
+def _loads(section: str, path: Path) -> bool:
+    """True when the file loads (then ``run`` would start a daemon: not run)."""
+    try:
+        if section == "performer":
+            load_rig(path)
+        else:
+            load_face_config(path)
+    except (RigError, FaceConfigError):
+        return False
+    return True
+
+
+def _check(
+    capsys: pytest.CaptureFixture[str],
+    tmp_path: Path,
+    section: str,
+    key: str,
+    text: str,
+    named: str,
+) -> str | None:
+    """None when the run exits 2 with one line naming ``named``; else what is
+    wrong."""
+    target = tmp_path / "file.toml"
+    target.write_text(text)
+    if _loads(section, target):
+        return f"{named}: accepted"
+    config = tmp_path / "daemon.toml"
+    config.write_text(f"[{section}]\n{key} = {json.dumps(str(target))}\n")
+    rc = main(["run", "--config", str(config)])
+    err = capsys.readouterr().err
+    if rc != 2 or err.count("\n") != 1 or named not in err:
+        return f"{named}: rc {rc}, stderr {err!r}"
+    return None
+
+
+def _shipped_rig(name: str) -> dict[str, Any]:
+    folder = resources.files("retargetd.daemon.body.rigs")
+    return tomllib.loads((folder / f"{name}.toml").read_text())
+
+
+def _shipped_face(name: str) -> dict[str, Any]:
+    folder = resources.files("retargetd.daemon.face.faces")
+    return tomllib.loads((folder / f"{name}.toml").read_text())
+
+
+@pytest.mark.parametrize("rig", shipped_rigs())
+def test_rig_every_key_wrong_type_and_misspelt(
+    rig: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    doc = _shipped_rig(rig)
+    (tmp_path / "ok.toml").write_text(_dump(doc))
+    assert _loads("performer", tmp_path / "ok.toml")  # the dump itself is valid
+    problems = []
+    n = 0
+    for path, value in _leaves(doc):
+        n += 1
+        bad = _with(doc, path, _wrong_type(value))
+        problems.append(
+            _check(capsys, tmp_path, "performer", "rig", _dump(bad), ".".join(path))
+        )
+        for i, part in enumerate(path):
+            if i == 1 and path[0] in NAME_TABLES:
+                continue  # a name of the author's
+            wrong = _misspelt(part)
+            renamed = _renamed(doc, path[: i + 1], wrong)
+            named = ".".join((*path[:i], wrong))
+            problems.append(
+                _check(capsys, tmp_path, "performer", "rig", _dump(renamed), named)
+            )
+    problems = [p for p in problems if p is not None]
+    assert n > 100 and not problems, problems[:5]
+
+
+def _face_out_of_range(key: str, value: Any) -> Any:
+    """A value of the right type the face config refuses."""
+    if key == "name":
+        return ""
+    if key == "head_weights":
+        return [-1.0, 1.0, 1.0, 1.0]
+    if key == "output":
+        return {"x": "noSuchExpression"}
+    if key == "expressions":
+        return []
+    if key == "head_markers":
+        return ["A", "B"]  # fewer than 3
+    if key == "facial_markers":
+        return ["LFHD"]  # a head marker too
+    raise AssertionError(f"no out-of-range value for face key {key!r}")
+
+
+@pytest.mark.parametrize("face", shipped_faces())
+def test_face_config_every_key_wrong_type_out_of_range_misspelt(
+    face: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    doc = _shipped_face(face)
+    doc.setdefault("head_weights", [1.0] * len(doc["head_markers"]))
+    doc.setdefault("output", {e: e for e in doc["expressions"]})
+    assert set(doc) == set(FACE_KEYS)  # every key of the schema is exercised
+    section, key = "face", "config"
+    (tmp_path / "ok.toml").write_text(_dump(doc))
+    assert _loads(section, tmp_path / "ok.toml")  # the dump itself is valid
+    problems = []
+    for name in FACE_KEYS:
+        value = doc[name]
+        for bad in (
+            _with(doc, (name,), _wrong_type(value)),
+            _with(doc, (name,), _face_out_of_range(name, value)),
+        ):
+            text = _dump(bad)
+            if name == "output" and not bad["output"]:
+                text = text.replace('"output" = {}', "output = {}")
+            problems.append(_check(capsys, tmp_path, section, key, text, name))
+        wrong = _misspelt(name)
+        problems.append(
+            _check(
+                capsys,
+                tmp_path,
+                section,
+                key,
+                _dump(_renamed(doc, (name,), wrong)),
+                wrong,
+            )
+        )
+    problems = [p for p in problems if p is not None]
+    assert not problems, problems[:5]

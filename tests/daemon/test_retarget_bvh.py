@@ -1,0 +1,334 @@
+"""``retargetd retarget IN.bvh --target TARGET.bvh --out OUT.bvh|.glb``: a BVH written
+by our own solve, mapped onto targets with another rest pose (every joint turned, the
+lengths scaled, a root OFFSET) and other rotation orders, gives the same world bone
+directions within 0.1°, by equal names, by a ``--map`` file and by the built-in
+humanoid maps. Both files are posed with an independent forward kinematics (scipy).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pygltflib
+import pytest
+from scipy.spatial.transform import Rotation
+
+from retargetd.daemon.cli.main import main
+from retargetd.daemon.target.bvh_retarget import rig_bone_humanoid_map
+from retargetd.daemon.target.skeleton import DEFAULT_BVH_NAME_MAP
+from retargetd.replay.bvh import (
+    BvhSkeleton,
+    bvh_motion,
+    bvh_skeleton,
+    read_bvh_hierarchy,
+    split_bvh_motion,
+    write_bvh,
+)
+
+ORDERS = ("YXZ", "XZY", "ZYX", "YZX", "XYZ")
+
+
+@pytest.fixture(scope="module")
+def source_bvh(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A BVH written by ``retargetd solve`` (synthetic Plug-in Gait take, ZXY)."""
+    d = tmp_path_factory.mktemp("src")
+    take, bvh = d / "s.c3d", d / "s.bvh"
+    assert main(["synth", "--markers", "plug-in-gait", "--seconds", "3", "--rate",
+                 "50", "--base-pose-s", "1", "--out", str(take)]) == 0  # fmt: skip
+    args = ["solve", str(take), "--rig", "plug-in-gait", "--calibrate-frames", "0:50"]
+    assert main([*args, "--out", str(bvh)]) == 0
+    return bvh
+
+
+def _fk(sk: BvhSkeleton) -> list[Rotation]:
+    """Global rotation per joint (T frames each): parent * R_1 R_2 R_3 (scipy)."""
+    assert sk.frames is not None
+    angles, _ = split_bvh_motion(sk, sk.frames)
+    glob: list[Rotation] = []
+    for j, p in enumerate(sk.parents):
+        local = Rotation.from_euler(sk.rotation_orders[j], angles[:, j], degrees=True)
+        glob.append(local if p < 0 else glob[p] * local)
+    return glob
+
+
+def _directions(sk: BvhSkeleton) -> dict[tuple[str, str], np.ndarray]:
+    """(joint, child or "end") -> (T, 3) unit world direction of that bone."""
+    glob = _fk(sk)
+    out = {}
+    for c, p in enumerate(sk.parents):
+        if p >= 0:
+            d = glob[p].apply(np.array(sk.offsets[c]))
+            out[(sk.joint_names[p], sk.joint_names[c])] = d
+    for j, end in enumerate(sk.end_sites):
+        if np.isfinite(end).all():
+            out[(sk.joint_names[j], "end")] = glob[j].apply(np.array(end))
+    return {k: v / np.linalg.norm(v, axis=-1, keepdims=True) for k, v in out.items()}
+
+
+def _posed_target(
+    src: BvhSkeleton, path: Path, *, names: list[str] | None = None, seed: int = 3
+) -> BvhSkeleton:
+    """The source hierarchy with another rest pose: each joint turned by a random
+    rotation (up to ~60°), lengths x1.1, a root OFFSET, other rotation orders."""
+    rng = np.random.default_rng(seed)
+    n = len(src.joint_names)
+    local = Rotation.from_rotvec(rng.normal(scale=0.6, size=(n, 3)))
+    glob: list[Rotation] = []
+    for j, p in enumerate(src.parents):
+        glob.append(local[j] if p < 0 else glob[p] * local[j])
+    offsets = np.array(src.offsets, dtype=np.float64)
+    for c, p in enumerate(src.parents):
+        if p >= 0:
+            offsets[c] = 1.1 * glob[p].apply(np.array(src.offsets[c]))
+    offsets[0] = [3.0, 95.0, -2.0]
+    ends = np.array(src.end_sites, dtype=np.float64)
+    for j in range(n):
+        if np.isfinite(ends[j]).all():
+            ends[j] = 1.1 * glob[j].apply(np.array(ends[j]))
+    orders = ["XZY"] + [ORDERS[j % len(ORDERS)] for j in range(1, n)]
+    sk = bvh_skeleton(
+        joint_names=names or src.joint_names,
+        parents=src.parents,
+        offsets=offsets,
+        rotation_orders=orders,
+        end_sites=ends,
+    )
+    frames = bvh_motion(sk, np.zeros((1, n, 3)), np.zeros((1, n, 3)))
+    write_bvh(path, sk, frames, 0.02)
+    return sk
+
+
+def _check_same_directions(
+    src: BvhSkeleton, out: BvhSkeleton, rename: dict[str, str] | None = None
+) -> int:
+    """Every bone of ``out`` whose joints map (by ``rename``: target -> source)
+    points where the source's does; returns how many bones were compared."""
+    back = rename or {n: n for n in out.joint_names}
+    d_src = _directions(src)
+    d_out = _directions(out)
+    compared = 0
+    for (a, b), d in d_out.items():
+        key = (back.get(a), "end" if b == "end" else back.get(b))
+        if key not in d_src:
+            continue
+        cos = np.clip(np.sum(d * d_src[key], axis=-1), -1.0, 1.0)
+        assert np.degrees(np.arccos(cos)).max() < 0.1, (a, b)
+        compared += 1
+    return compared
+
+
+def test_retarget_onto_another_rest_pose_and_orders(
+    source_bvh: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    src = read_bvh_hierarchy(source_bvh, read_motion=True)
+    tgt_path, out_path = tmp_path / "target.bvh", tmp_path / "out.bvh"
+    tgt = _posed_target(src, tgt_path)
+    assert main(["retarget", str(source_bvh), "--target", str(tgt_path),
+                 "--out", str(out_path)]) == 0  # fmt: skip
+    assert "19 of 19 target joints driven" in capsys.readouterr().out
+    out = read_bvh_hierarchy(out_path, read_motion=True)
+    assert out.rotation_orders == tgt.rotation_orders  # written in the target's
+    np.testing.assert_allclose(out.offsets, tgt.offsets, atol=1e-6)
+    assert out.n_frames == src.n_frames
+    # Sanity: the rest poses really differ (a naive copy of angles would fail).
+    d0 = _directions(src)
+    tgt_rest = {k: v for k, v in _directions_rest(tgt).items()}
+    assert (
+        max(
+            np.degrees(np.arccos(np.clip(np.dot(d0[k][0], tgt_rest[k]), -1, 1)))
+            for k in tgt_rest
+            if k in d0
+        )
+        > 20.0
+    )
+    # Every bone, including the pelvis -> hip and leaf End Site ones.
+    assert _check_same_directions(src, out) == 18 + 5  # bones and leaf End Sites
+
+
+def _directions_rest(sk: BvhSkeleton) -> dict[tuple[str, str], np.ndarray]:
+    out = {}
+    for c, p in enumerate(sk.parents):
+        if p >= 0:
+            out[(sk.joint_names[p], sk.joint_names[c])] = sk.offsets[c]
+    for j, end in enumerate(sk.end_sites):
+        if np.isfinite(end).all():
+            out[(sk.joint_names[j], "end")] = end
+    return {k: v / np.linalg.norm(v) for k, v in out.items()}
+
+
+def test_root_position_scaled(source_bvh: Path, tmp_path: Path) -> None:
+    src = read_bvh_hierarchy(source_bvh, read_motion=True)
+    tgt_path, out_path = tmp_path / "target.bvh", tmp_path / "out.bvh"
+    tgt = _posed_target(src, tgt_path, seed=5)
+    assert main(["retarget", str(source_bvh), "--target", str(tgt_path),
+                 "--root-scale", "1.1", "--out", str(out_path)]) == 0  # fmt: skip
+    out = read_bvh_hierarchy(out_path, read_motion=True)
+    assert src.frames is not None and out.frames is not None
+    _, p_src = split_bvh_motion(src, src.frames)
+    _, p_out = split_bvh_motion(out, out.frames)
+    # Root position = OFFSET + channels, on both sides.
+    np.testing.assert_allclose(
+        tgt.offsets[0] + p_out[:, 0], 1.1 * (src.offsets[0] + p_src[:, 0]), atol=2e-6
+    )
+
+
+def test_retarget_with_a_map_file(
+    source_bvh: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    src = read_bvh_hierarchy(source_bvh, read_motion=True)
+    names = [f"J{k:02d}" for k in range(len(src.joint_names))]
+    tgt_path, out_path = tmp_path / "target.bvh", tmp_path / "out.bvh"
+    _posed_target(src, tgt_path, names=names, seed=7)
+    map_path = tmp_path / "map.toml"
+    map_path.write_text(
+        "[joints]\n"
+        + "".join(
+            f'"{s}" = "{t}"\n' for s, t in zip(src.joint_names, names, strict=True)
+        )
+    )
+    base = ["retarget", str(source_bvh), "--target", str(tgt_path), "--out"]
+    # Without the map nothing matches: the root is unmapped.
+    assert main([*base, str(out_path)]) == 2
+    assert "maps to no source joint" in capsys.readouterr().err
+    assert main([*base, str(out_path), "--map", str(map_path)]) == 0
+    out = read_bvh_hierarchy(out_path, read_motion=True)
+    rename = dict(zip(names, src.joint_names, strict=True))
+    assert (
+        _check_same_directions(src, out, rename) == 18 + 5
+    )  # bones and leaf End Sites
+    map_path.write_text('[joints]\n"pelvis" = "nope"\n')
+    assert main([*base, str(out_path), "--map", str(map_path)]) == 2
+    assert "the target has no joint 'nope'" in capsys.readouterr().err
+
+
+def test_retarget_onto_mixamo_names_by_the_builtin_maps(
+    source_bvh: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    src = read_bvh_hierarchy(source_bvh, read_motion=True)
+    humanoid = rig_bone_humanoid_map()
+    mixamo: dict[str, str] = {}
+    for bvh_name, h in DEFAULT_BVH_NAME_MAP.items():
+        mixamo.setdefault(h, bvh_name)
+    names = [
+        f"mixamorig:{mixamo[humanoid[n]]}" if humanoid.get(n) in mixamo else f"x_{n}"
+        for n in src.joint_names
+    ]
+    assert names[0] == "mixamorig:Hips"
+    tgt_path, out_path = tmp_path / "target.bvh", tmp_path / "out.glb"
+    _posed_target(src, tgt_path, names=names, seed=11)
+    bvh_out = tmp_path / "out.bvh"
+    assert main(["retarget", str(source_bvh), "--target", str(tgt_path),
+                 "--out", str(bvh_out)]) == 0  # fmt: skip
+    text = capsys.readouterr().out
+    assert "mixamorig:LeftForeArm<-llowerarm" in text
+    out = read_bvh_hierarchy(bvh_out, read_motion=True)
+    rename = dict(zip(names, src.joint_names, strict=True))
+    n_mapped = sum(not n.startswith("x_") for n in names)
+    assert n_mapped >= 15
+    assert _check_same_directions(src, out, rename) >= 15
+    # The same take as glTF: node rotations are the BVH's local rotations.
+    assert main(["retarget", str(source_bvh), "--target", str(tgt_path),
+                 "--out", str(out_path)]) == 0  # fmt: skip
+    gltf = pygltflib.GLTF2().load(str(out_path))
+    assert out.frames is not None
+    angles, _ = split_bvh_motion(out, out.frames)
+    blob = gltf.binary_blob()
+    anim = gltf.animations[0]
+    checked = 0
+    for ch in anim.channels:
+        if ch.target.path != "rotation":
+            continue
+        j = out.joint_names.index(gltf.nodes[ch.target.node].name)
+        acc = gltf.accessors[anim.samplers[ch.sampler].output]
+        view = gltf.bufferViews[acc.bufferView]
+        start = (view.byteOffset or 0) + (acc.byteOffset or 0)
+        xyzw = np.frombuffer(blob, np.float32, acc.count * 4, start).reshape(-1, 4)
+        local = Rotation.from_euler(out.rotation_orders[j], angles[:, j], degrees=True)
+        err = (Rotation.from_quat(xyzw.astype(np.float64)).inv() * local).magnitude()
+        assert np.degrees(err).max() < 1e-3
+        checked += 1
+    assert checked == len(names)
+
+
+def _with_extra_spine(src: BvhSkeleton, path: Path) -> BvhSkeleton:
+    """The source hierarchy with two joints inserted between chest and neck (in
+    thirds of the chest -> neck offset) and one between spine and chest: a target
+    with more spine bones than the rig solves."""
+    inserts = {"neck": ["chest_a", "chest_b"], "chest": ["spine_a"]}
+    names: list[str] = []
+    parents: list[int] = []
+    offsets: list[np.ndarray] = []
+    ends: list[np.ndarray] = []
+    index: dict[str, int] = {}
+    for j, name in enumerate(src.joint_names):
+        p = src.parents[j]
+        parent = -1 if p < 0 else index[src.joint_names[p]]
+        extra = inserts.get(name, [])
+        step = np.array(src.offsets[j]) / (len(extra) + 1)
+        for e in extra:
+            index[e] = len(names)
+            names.append(e)
+            parents.append(parent)
+            offsets.append(step if parent >= 0 else np.zeros(3))
+            ends.append(np.full(3, np.nan))
+            parent = index[e]
+        index[name] = len(names)
+        names.append(name)
+        parents.append(parent)
+        offsets.append(step if extra else np.array(src.offsets[j]))
+        ends.append(np.array(src.end_sites[j]))
+    n = len(names)
+    sk = bvh_skeleton(
+        joint_names=names,
+        parents=parents,
+        offsets=np.array(offsets),
+        rotation_orders=["YXZ"] * n,
+        end_sites=np.array(ends),
+    )
+    write_bvh(path, sk, bvh_motion(sk, np.zeros((1, n, 3)), np.zeros((1, n, 3))), 0.02)
+    return sk
+
+
+@pytest.mark.parametrize("spread", [False, True])
+def test_more_spine_bones_than_the_source(
+    source_bvh: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], spread: bool
+) -> None:
+    src = read_bvh_hierarchy(source_bvh, read_motion=True)
+    tgt_path, out_path = tmp_path / "target.bvh", tmp_path / "out.bvh"
+    _with_extra_spine(src, tgt_path)
+    args = ["retarget", str(source_bvh), "--target", str(tgt_path), "--out",
+            str(out_path)] + (["--spread"] if spread else [])  # fmt: skip
+    assert main(args) == 0
+    text = capsys.readouterr().out
+    assert "unmapped (keep their rest): spine_a chest_a chest_b" in text
+    out = read_bvh_hierarchy(out_path, read_motion=True)
+    assert out.frames is not None
+    # The mapped bones still point where the source's do (neck -> head, arms, legs).
+    assert _check_same_directions(src, out) >= 18 + 5 - 2
+    angles, _ = split_bvh_motion(out, out.frames)
+    local = {
+        name: Rotation.from_euler("YXZ", angles[:, j], degrees=True)
+        for j, name in enumerate(out.joint_names)
+    }
+    moved = np.degrees(local["neck"].magnitude()).max()
+    assert moved > 5.0  # the take bends the neck against the chest
+    if not spread:
+        for e in ("spine_a", "chest_a", "chest_b"):
+            assert np.degrees(local[e].magnitude()).max() < 1e-6
+        return
+    assert "sharing a chain's rotation: spine_a chest_a chest_b" in text
+    # chest -> chest_a -> chest_b -> neck: three equal shares of one rotation.
+    for a, b in (("chest_a", "chest_b"), ("chest_b", "neck")):
+        assert np.degrees((local[a].inv() * local[b]).magnitude()).max() < 1e-4
+    whole = local["chest_a"] * local["chest_b"] * local["neck"]
+    src_angles, _ = split_bvh_motion(src, src.frames)
+    k = src.joint_names.index("neck")
+    neck_src = Rotation.from_euler(
+        src.rotation_orders[k], src_angles[:, k], degrees=True
+    )
+    # The source's rest and the target's are the same here: the product is the
+    # source's chest -> neck rotation.
+    assert np.degrees((whole.inv() * neck_src).magnitude()).max() < 1e-4
+    for a, b in (("spine_a", "chest"),):
+        assert np.degrees((local[a].inv() * local[b]).magnitude()).max() < 1e-4
