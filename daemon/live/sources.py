@@ -236,7 +236,7 @@ class CaptureMixin(DaemonState):
         cap.close()
         self._capture = None
 
-    def _drain_capture(self, events: dict[Any, int], every: bool) -> int:
+    def _drain_capture(self, events: list[tuple[Any, int]], every: bool) -> int:
         """Read, record and decode every waiting packet; the receive time of the
         newest accepted frame left unsolved (latest wins), else 0."""
         cap = self._capture
@@ -253,7 +253,12 @@ class CaptureMixin(DaemonState):
         superseded = 0
         frames = 0
         for fd, read in cap.readers:
-            if fd not in events:
+            ready = False
+            for sock, _flags in events:  # a scan of the poll result, no allocation
+                if sock == fd:
+                    ready = True
+                    break
+            if not ready:
                 continue
             while (pkt := read()) is not None:
                 t_ns = time.monotonic_ns()

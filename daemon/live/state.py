@@ -163,7 +163,7 @@ class DaemonState:
     def stats_line(self) -> str:  # status
         raise NotImplementedError
 
-    def _drain_capture(self, events: dict[Any, int], every: bool) -> int:
+    def _drain_capture(self, events: list[tuple[Any, int]], every: bool) -> int:
         raise NotImplementedError  # implemented by sources.CaptureMixin
 
     def _capture_status(self) -> dict[str, Any] | None:

@@ -197,7 +197,7 @@ def test_live_from_capture_system_equals_batch_solve(
     def live() -> list[Any]:
         return [m for m in cap.poses if m.names_id not in primed and not m.flags & LOST]
 
-    assert _wait(lambda: len(live()) >= n, cap, 40.0), (len(live()), daemon.lines)
+    assert _wait(lambda: len(live()) >= n, cap, 40.0), "\n".join(_lines(daemon))
     # The take ends: the source falls silent, the last good pose is sent again,
     # flagged held + source_lost, and the status says so.
     assert _wait(lambda: any(m.flags & LOST for m in cap.poses), cap, 10.0), (
