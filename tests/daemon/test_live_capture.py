@@ -419,7 +419,7 @@ def test_recording_started_mid_stream_decodes_on_its_own(
     assert _wait(
         lambda: _capture_status(daemon)["counts"]["frames"] >= 60, cap, 30.0
     ), daemon.lines
-    path = tmp_path / "mid.mcap"
+    path = tmp_path / "recordings" / "mid.mcap"  # the default record.folder
     reply = daemon.ctl({"cmd": "record", "action": "start", "path": str(path)})
     assert reply is not None and reply["ok"], reply
     assert _wait(lambda: any(m.flags & LOST for m in cap.poses), cap, 20.0), (
