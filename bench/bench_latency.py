@@ -52,6 +52,17 @@ stabilizes 40 markers, solves 52 weights and sends 52 VMC blendshapes and the Mu
 ``validate`` (``[validate]`` on: the live validator's thread checks every frame
 beside the loop) and ``face+validate``.
 
+Capture-system transports (``--transports natnet,qtm``, README "Capture systems"):
+the sender process is the capture system, the emulators of ``tests/protocols`` (their
+encoders and command handling) driven by the same pacing. ``natnet``: a NatNet 4.1
+server on a UDP command port that answers the daemon's connect and model-definition
+request, then sends each frame of data unicast to it (Motive's metres, Y up); ``qtm``:
+a QTM RT 1.25 server on TCP that answers ``qtm-rt``'s commands, then sends data
+packets with 3D and residuals (millimetres). The daemon connects to it (``[input]
+source``), so its latency includes the decoder, and for QTM the ``qtm-rt`` thread and
+the socketpair hand-over. Frame numbers and source timestamps are the frame count at
+the case rate.
+
 Speed is printed, never asserted (STYLE.md section 10).
 """
 
@@ -95,6 +106,10 @@ ADDED_P99_TARGET_US = 1000.0
 # ---- child processes -----------------------------------------------------------------
 
 
+#: Transports whose sender is a capture system the daemon connects to.
+CAPTURE_TRANSPORTS = ("natnet", "qtm")
+
+
 def _pace(
     rate_hz: float, frames: range, prepare: Any, send: Any, out_ns: np.ndarray
 ) -> int:
@@ -124,6 +139,117 @@ def _pace(
             t_next = float(t) + half
             slips += 1
     return slips
+
+
+def _emulator(name: str) -> Any:
+    """A protocol emulator module of ``tests/protocols`` (not a package: by path)."""
+    import importlib.util
+
+    path = Path(__file__).resolve().parent.parent / "tests" / "protocols" / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(f"bench_{name}", path)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses look their module up
+    spec.loader.exec_module(module)
+    return module
+
+
+def _capture_sender(spec: dict[str, Any], conn: Connection) -> None:
+    """Sender process as a capture system (``natnet`` / ``qtm``): bind, say the port,
+    answer the daemon's client until it asks for frames, then pace them as
+    :func:`_sender` does."""
+    mode, rate = spec["mode"], spec["rate_hz"]
+    positions: np.ndarray = spec["positions"]
+    labels = list(spec["labels"])
+    n_take = len(positions)
+    current: list[bytes] = [b""]
+    if mode == "natnet":
+        em = _emulator("natnet_emulator")
+        motive = positions @ em.MOTIVE_FROM_WORLD.T
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        sock.bind((LOCALHOST, 0))
+        sock.settimeout(0.05)
+        conn.send(("port", sock.getsockname()[1]))
+        client = None
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:  # connect, then model definitions
+            try:
+                data, addr = sock.recvfrom(65536)
+            except TimeoutError:
+                continue
+            msg_id = struct.unpack_from("<H", data)[0]
+            if msg_id == em.NAT_CONNECT:
+                sock.sendto(em.server_info((4, 1), sock.getsockname()[1]), addr)
+            elif msg_id == em.NAT_REQUEST_MODELDEF:
+                sock.sendto(em.model_defs((4, 1), labels), addr)
+                client = addr
+                break
+        if client is None:
+            raise RuntimeError("the daemon never asked for model definitions")
+        sock.setblocking(False)
+
+        def prepare(frame: int) -> None:
+            with contextlib.suppress(BlockingIOError):
+                while True:
+                    sock.recv(65536)  # keep-alives
+            row = frame % n_take
+            current[0] = em.frame_of_data((4, 1), frame, motive[row], frame / rate)
+
+        def send(_frame: int) -> None:
+            sock.sendto(current[0], client)
+
+        closer: Any = sock
+    else:
+        em = _emulator("qtm_emulator")
+        server = em.QtmEmulator(positions, labels, rate, 0, em.Scenario(faults=False))
+        conn.send(("port", server.port))
+        server.listener.settimeout(60)
+        tcp, _ = server.listener.accept()
+        tcp.setblocking(False)
+        tcp.sendall(em.rt_string(em.PACKET_COMMAND, "QTM RT Interface connected"))
+        buf = bytearray()
+        deadline = time.monotonic() + 60
+        streaming = False
+        while not streaming and time.monotonic() < deadline:
+            cmd = server._read_command(tcp, buf)
+            if cmd is None:
+                time.sleep(0.002)
+                continue
+            streaming = server._answer(tcp, cmd) == "stream"
+        if not streaming:
+            raise RuntimeError("qtm-rt never asked for frames")
+        markers_mm = positions * 1000.0
+
+        def prepare(frame: int) -> None:
+            with contextlib.suppress(BlockingIOError):
+                tcp.recv(65536)  # nothing expected; never let it fill
+            row = frame % n_take
+            current[0] = em.data_packet(
+                frame, round(frame * 1e6 / rate), markers_mm[row]
+            )
+
+        def send(_frame: int) -> None:
+            tcp.sendall(current[0])
+
+        closer = tcp
+    try:
+        frame0 = spec["frame0"]
+        n_warm = max(1, round(spec["warmup_s"] * rate))
+        gc.disable()
+        warm = range(frame0, frame0 + n_warm)
+        _pace(rate, warm, prepare, send, np.zeros(n_warm, np.int64))
+        conn.send(("warm", warm.stop))
+        if conn.recv() != "go":
+            return
+        n = max(1, round(spec["seconds"] * rate))
+        sent_ns = np.zeros(n, np.int64)
+        timed = range(warm.stop, warm.stop + n)
+        slips = _pace(rate, timed, prepare, send, sent_ns)
+        gc.enable()
+        conn.send(("done", timed.start, sent_ns, slips))
+        conn.recv()  # hold the connection until the case is over
+    finally:
+        closer.close()
 
 
 def _sender(spec: dict[str, Any], conn: Connection) -> None:
@@ -343,7 +469,12 @@ def _face_stream(take: Any, rng: np.random.Generator) -> tuple[Any, Any, Any]:
 
 
 def _config_toml(
-    calibration: Path, transport: str, vmc_port: int, variant: str, face_npz: Path
+    calibration: Path,
+    transport: str,
+    vmc_port: int,
+    variant: str,
+    face_npz: Path,
+    source: str = "",
 ) -> str:
     face = "face" in variant
     validate = "validate" in variant
@@ -351,6 +482,8 @@ def _config_toml(
 [performer]
 rig = "plug-in-gait"
 calibration = "{calibration}"
+[input]
+source = "{source}"
 [input.osc]
 enabled = {str(transport == "osc").lower()}
 port = 0
@@ -500,6 +633,20 @@ def run_case(
             "raw_size": 48 + 12 * len(labels),  # the OSC compact frame's size
             "frame0": 0,
         }
+        capture = transport in CAPTURE_TRANSPORTS
+        source = ""
+        if capture:  # the capture system runs first; the daemon connects to it
+            sender = ctx.Process(target=_capture_sender, args=(spec, send_child))
+            sender.start()
+            procs.append(sender)
+            if not send_conn.poll(30):
+                raise RuntimeError("capture sender did not bind")
+            _, server_port = send_conn.recv()
+            source = (
+                f"natnet://{LOCALHOST}:{server_port}?local={LOCALHOST}"
+                if transport == "natnet"
+                else f"qtm://{LOCALHOST}:{server_port}"
+            )
         if transport == "raw":
             spec["port"] = port
         else:
@@ -507,7 +654,9 @@ def run_case(
             stem = f"{transport}_{rate_hz:g}_{variant}"
             config = tmp / f"{stem}.toml"
             config.write_text(
-                _config_toml(calibration, transport, port, variant, tmp / "face.npz")
+                _config_toml(
+                    calibration, transport, port, variant, tmp / "face.npz", source
+                )
             )
             daemon = Daemon(config, tmp / f"{stem}.log")
             daemon.wait_ready()
@@ -515,11 +664,12 @@ def run_case(
             recv_conn.recv()
             if transport == "osc":
                 spec["port"] = int(daemon.endpoints["osc markers"].rsplit(":", 1)[1])
-            else:
+            elif transport == "zmq":
                 spec["endpoint"] = daemon.endpoints["zmq markers"]
-        sender = ctx.Process(target=_sender, args=(spec, send_child))
-        sender.start()
-        procs.append(sender)
+        if not capture:
+            sender = ctx.Process(target=_sender, args=(spec, send_child))
+            sender.start()
+            procs.append(sender)
         if not send_conn.poll(60):
             raise RuntimeError("sender did not finish its warm-up")
         send_conn.recv()
@@ -531,6 +681,8 @@ def run_case(
         _, frame0, sent_ns, slips = send_conn.recv()
         time.sleep(0.3)  # stragglers
         counters1 = daemon.status() if daemon else None
+        if capture:
+            send_conn.send("end")
         recv_conn.send(("stop",))
         if not recv_conn.poll(30):
             raise RuntimeError("receiver did not answer")
@@ -664,6 +816,11 @@ def summarize(r: Result) -> Summary:
         for reason, v in r.counters1.get("drops", {}).get(src, {}).items():
             if reason != "accepted" and v - d0.get(reason, 0):
                 s.input_drops[f"{src}.{reason}"] = v - d0.get(reason, 0)
+    cap0 = (r.counters0.get("capture") or {}).get("drops", {})
+    cap1 = r.counters1.get("capture") or {}
+    for reason, v in cap1.get("drops", {}).items():
+        if reason != "accepted" and v - cap0.get(reason, 0):
+            s.input_drops[f"{cap1['system']}.{reason}"] = v - cap0.get(reason, 0)
     return s
 
 
@@ -782,7 +939,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seconds", type=float, default=10.0, help="timed s per case")
     parser.add_argument("--warmup", type=float, default=0.5, help="untimed s per case")
     parser.add_argument("--rates", default="240,1000", help="send rates, Hz")
-    parser.add_argument("--transports", default="osc,zmq", help="osc, zmq or both")
+    parser.add_argument(
+        "--transports",
+        default="osc,zmq",
+        help="osc, zmq, natnet, qtm (comma-separated)",
+    )
     parser.add_argument(
         "--variants", default="body,face",
         help="body, face, validate, face+validate (comma-separated)",
@@ -796,11 +957,12 @@ def main(argv: list[str] | None = None) -> int:
         or args.warmup < 0
         or not rates
         or any(not 1 <= r <= 10_000 for r in rates)
-        or any(t not in ("osc", "zmq") for t in transports)
+        or any(t not in ("osc", "zmq", *CAPTURE_TRANSPORTS) for t in transports)
         or any(v not in ("body", "face", "validate", "face+validate") for v in variants)
     ):
         parser.error(
-            "--seconds > 0, --warmup >= 0, rates in [1, 10000], osc/zmq, variants "
+            "--seconds > 0, --warmup >= 0, rates in [1, 10000], osc/zmq/natnet/qtm, "
+            "variants "
             "body/face/validate/face+validate"
         )
     if not (PIG_MOTION.is_file() and PIG_CALIBRATION.is_file()):

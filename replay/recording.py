@@ -36,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-from retargetd.protocols import osc_in, zmq_wire
+from retargetd.protocols import natnet, osc_in, qtm, zmq_wire
 from retargetd.protocols.errors import DecodeError
 from retargetd.protocols.marker_input import ACCEPTED, RESTART, LabelSet, MarkerStream
 from retargetd.protocols.osc_wire import BUNDLE_TAG, iter_bundle_elements, read_string
@@ -62,11 +62,15 @@ FORM_OSC_COMPACT = 1
 FORM_OSC_SIMPLE = 2
 FORM_ZMQ = 3
 FORM_POSE = 4
+FORM_NATNET = 5  # one NatNet datagram from Motive, as received (PROTOCOLS.md 9)
+FORM_QTM = 6  # one QTM RT packet, header included, as qtm-rt got it (PROTOCOLS.md 10)
 FORM_NAMES: dict[int, str] = {
     FORM_OSC_COMPACT: "osc-compact",
     FORM_OSC_SIMPLE: "osc-simple",
     FORM_ZMQ: "zmq",
     FORM_POSE: "pose-stream",
+    FORM_NATNET: "natnet",
+    FORM_QTM: "qtm",
 }
 FORM_CODES: dict[str, int] = {name: code for code, name in FORM_NAMES.items()}
 #: ... and ``kind`` (what the bytes are, classified by their header).
@@ -137,6 +141,10 @@ def classify(form: int, parts: Sequence[bytes]) -> tuple[int, int, float]:
         if magic in (zmq_wire.FRAME_MAGIC, b"RTDP") and len(first) >= 24:
             frame, time_s = _ZMQ_SOURCE.unpack_from(first, 8)
             return KIND_FRAME, frame, time_s
+    elif form == FORM_NATNET and len(parts) == 1:
+        return natnet.packet_info(first)  # kinds 1 frame, 2 model defs, 0 other
+    elif form == FORM_QTM and len(parts) == 1:
+        return qtm.packet_info(first)  # kinds 1 data, 2 parameters XML, 0 other
     return KIND_OTHER, -1, math.nan
 
 
@@ -415,7 +423,10 @@ def read_mcap_take(
     rec = read_recording(path)
     input_name = main_input(rec)
     declared = next((i for i in rec.inputs() if i.get("name") == input_name), {})
-    form_name = declared.get("form", "")
+    form_name = declared.get("form", "") or next(
+        (FORM_NAMES.get(p.form, "") for p in rec.packets() if p.input == input_name),
+        "",
+    )  # an input the metadata does not list: its packets' form
     simple = form_name == "osc-simple"
     # Decode in the capture frame (identity, metres): units and axes are applied by
     # assemble_take, as for the other formats, so overrides work the same way.
@@ -425,10 +436,21 @@ def read_mcap_take(
     frame_ids: list[int] = []
     times_s: list[float] = []
     t_ns: list[int] = []
+    # A capture system's packets (Motive, QTM) go through the live input, control
+    # packets included: it converts to world metres itself (NatNet's up axis is not
+    # in the stream: the recording's declared one, or the override).
+    capture = _capture_input(form_name, up_axis or declared.get("up", "+Y"))
     for p in rec.packets():
         if p.input != input_name:
             continue
-        if p.kind == KIND_LABELS:
+        if capture is not None:
+            if len(p.parts) != 1 or capture.feed(p.parts[0], p.t_ns) not in (
+                ACCEPTED,
+                RESTART,
+            ):
+                continue
+            stream = capture.stream
+        elif p.kind == KIND_LABELS:
             try:
                 if p.form == FORM_ZMQ:
                     stream.set_labels(
@@ -439,16 +461,17 @@ def read_mcap_take(
             except DecodeError:
                 pass
             continue
-        if p.kind != KIND_FRAME:
-            continue
-        if p.form == FORM_ZMQ:
-            code = stream.feed(zmq_wire.decode_zmq_frame, *p.parts, t_ns=p.t_ns)
-        elif p.form == FORM_OSC_SIMPLE:
-            code = stream.feed(osc_in.decode_simple_bundle, p.parts[0], t_ns=p.t_ns)
         else:
-            code = stream.feed(osc_in.decode_compact_frame, p.parts[0], t_ns=p.t_ns)
-        if code not in (ACCEPTED, RESTART):
-            continue
+            if p.kind != KIND_FRAME:
+                continue
+            if p.form == FORM_ZMQ:
+                code = stream.feed(zmq_wire.decode_zmq_frame, *p.parts, t_ns=p.t_ns)
+            elif p.form == FORM_OSC_SIMPLE:
+                code = stream.feed(osc_in.decode_simple_bundle, p.parts[0], t_ns=p.t_ns)
+            else:
+                code = stream.feed(osc_in.decode_compact_frame, p.parts[0], t_ns=p.t_ns)
+            if code not in (ACCEPTED, RESTART):
+                continue
         frame = stream.current.frame
         cols = np.array(
             [
@@ -467,13 +490,17 @@ def read_mcap_take(
     for i, (cols, xyz) in enumerate(rows):
         points[i, cols] = xyz
     valid = np.asarray(np.isfinite(points).all(axis=-1), dtype=bool)
-    unit = pts.resolve_units(
-        name, units, declared.get("units", "m"), "file (recording input)", "m",
-        "default (m)",
-    )  # fmt: skip
-    up = pts.resolve_up_axis(name, up_axis) or pts.Resolved(
-        declared.get("up", "+Z"), "file (recording input)"
-    )
+    if capture is not None:  # already world metres (the input converted them)
+        unit = pts.resolve_units(name, None, "m", "file (capture input)", "m", "m")
+        up = pts.Resolved("+Z", "file (capture input, converted)")
+    else:
+        unit = pts.resolve_units(
+            name, units, declared.get("units", "m"), "file (recording input)", "m",
+            "default (m)",
+        )  # fmt: skip
+        up = pts.resolve_up_axis(name, up_axis) or pts.Resolved(
+            declared.get("up", "+Z"), "file (recording input)"
+        )
     return pts.assemble_take(
         path=name,
         fmt="mcap",
@@ -487,6 +514,18 @@ def read_mcap_take(
         first_frame=max(frame_ids[0], 0),
         manufacturer=rec.metadata.get(METADATA_NAME, {}).get("software", ""),
     )
+
+
+def _capture_input(form_name: str, up_axis: str) -> Any:
+    """The live input of a capture system's recording (``natnet``, ``qtm``), fed the
+    recorded packets socket-free; None for the other forms."""
+    if form_name == "natnet":
+        from retargetd.protocols.conventions import normalize_up_axis
+
+        return natnet.NatNetInput(None, normalize_up_axis(up_axis), out=logger.info)
+    if form_name == "qtm":
+        return qtm.QtmInput(None, out=logger.info)
+    return None
 
 
 def _rate_hz(frame_ids: list[int], times_s: list[float], t_ns: list[int]) -> float:

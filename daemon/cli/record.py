@@ -1,15 +1,18 @@
 """``retargetd record --listen URL --out FILE.mcap``: record a marker input, no solving.
 
-``--listen`` takes ``osc://HOST:PORT`` (a UDP socket bound there; ``--form compact``
-or ``simple``), ``zmq://HOST:PORT`` (a PULL bound there: a player's or bridge's PUSH
-connects) or ``zmq+sub://HOST:PORT`` (a SUB connecting to a publisher). Port 0
-binds an ephemeral port; the "listening on" line names it. Every packet is recorded
-as received, with its receive time, on a writer thread that never holds up the
-receive loop (``/markers/raw``; label sets on ``/markers/labels``). ``--poses
-zmq+sub://HOST:PORT`` also records a daemon's pose stream (``/poses``). SIGINT,
-SIGTERM, SIGHUP or ``--seconds`` stop it cleanly: the file is finished (footer and
-index) and a summary is printed. A killed recorder leaves a readable file (all but the
-last ~0.25 s). A write error (a full disk ...) stops the recording: the file keeps
+``--listen`` takes ``osc://HOST:PORT`` (a UDP socket bound there; ``--form compact`` or
+``simple``), ``zmq://HOST:PORT`` (a PULL bound there: a player's or bridge's PUSH
+connects) or ``zmq+sub://HOST:PORT`` (a SUB connecting to a publisher). Port 0 binds an
+ephemeral port; the "listening on" line names it. ``qtm://HOST[:PORT]`` and
+``natnet://HOST[:PORT][?...]`` connect to a capture system (QTM through ``qtm-rt``,
+Motive over NatNet) and record its packets as they came, control packets included
+(envelope forms ``qtm`` / ``natnet``); replay decodes them with the live decoders. Every
+packet is recorded as received, with its receive time, on a writer thread that never
+holds up the receive loop (``/markers/raw``; label sets on ``/markers/labels``).
+``--poses zmq+sub://HOST:PORT`` also records a daemon's pose stream (``/poses``).
+SIGINT, SIGTERM, SIGHUP or ``--seconds`` stop it cleanly: the file is finished (footer
+and index) and a summary is printed. A killed recorder leaves a readable file (all but
+the last ~0.25 s). A write error (a full disk ...) stops the recording: the file keeps
 every whole chunk, the summary counts what it holds, and the exit code is 1.
 Layout: ``protocols/PROTOCOLS.md``, "Recordings (MCAP)".
 """
@@ -43,7 +46,8 @@ def add_parser(subparsers: Any) -> None:
     )
     parser.add_argument(
         "--listen", required=True, metavar="URL",
-        help="osc://HOST:PORT, zmq://HOST:PORT (bind a PULL) or zmq+sub://HOST:PORT",
+        help="osc://HOST:PORT, zmq://HOST:PORT (bind a PULL), zmq+sub://HOST:PORT, "
+        "qtm://HOST[:PORT] or natnet://HOST[:PORT][?...] (connect to a capture system)",
     )  # fmt: skip
     parser.add_argument("--out", required=True, metavar="FILE.mcap")
     add_force_argument(parser)
@@ -68,13 +72,22 @@ def run(args: argparse.Namespace) -> int:
     """Record until stopped; returns the exit code."""
     import zmq
 
+    from retargetd.daemon.live import sources
     from retargetd.protocols import conventions as cv
     from retargetd.replay import recording as rf
     from retargetd.replay.player import parse_endpoint
     from retargetd.replay.recorder import InputInfo, open_recorder
 
+    capture_url = args.listen if args.listen.startswith(("qtm://", "natnet://")) else ""
     try:
-        ep = parse_endpoint(args.listen, ("osc", "zmq", "zmq+sub"), allow_port_0=True)
+        if capture_url:
+            system, opts = sources.parse_source(capture_url)
+            capture_up = opts.up_axis if system == "natnet" else "+Z"
+            ep = None
+        else:
+            ep = parse_endpoint(
+                args.listen, ("osc", "zmq", "zmq+sub"), allow_port_0=True
+            )
         poses_ep = (
             parse_endpoint(args.poses, ("zmq+sub",)) if args.poses is not None else None
         )
@@ -91,8 +104,20 @@ def run(args: argparse.Namespace) -> int:
     udp: socket.socket | None = None
     zin: Any = None
     zposes: Any = None
+    cap: Any = None
     try:
-        if ep.scheme == "osc":
+        if ep is None:
+            cap = sources.open_capture(capture_url, _say)
+            for fd, _ in cap.readers:
+                poller.register(fd, zmq.POLLIN)
+            where = f"{capture_url} ({cap.system})"
+            info = InputInfo(
+                name=cap.system, form=cap.system,
+                units="m" if cap.system == "natnet" else "mm",
+                up=capture_up, endpoint=capture_url,
+            )  # fmt: skip
+            form = cap.form
+        elif ep.scheme == "osc":
             udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
             udp.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)
             udp.bind((ep.host, ep.port))
@@ -128,7 +153,7 @@ def run(args: argparse.Namespace) -> int:
             zposes.connect(poses_ep.tcp)
             poller.register(zposes, zmq.POLLIN)
     except (OSError, zmq.ZMQError) as exc:
-        for s in (udp, zin, zposes):
+        for s in (udp, zin, zposes, cap):
             if s is not None:
                 s.close()
         ctx.term()
@@ -139,13 +164,14 @@ def run(args: argparse.Namespace) -> int:
             args.out, (info,), software=f"retargetd {package_version()}"
         )
     except OSError:
-        for s in (udp, zin, zposes):
+        for s in (udp, zin, zposes, cap):
             if s is not None:
                 s.close()
         ctx.term()
         raise
     recorder.record_event("record_start", listen=where, form=info.form)
-    print(f"listening on {where}: recording to {args.out}", flush=True)
+    verb = "connecting to" if cap is not None else "listening on"
+    print(f"{verb} {where}: recording to {args.out}", flush=True)
     stop = threading.Event()
     deadline = math.inf if args.seconds is None else time.monotonic() + args.seconds
     buf = bytearray(_UDP_MAX)
@@ -156,6 +182,8 @@ def run(args: argparse.Namespace) -> int:
                 if recorder.failed:
                     break  # a write error stopped the recording (logged, reported)
                 events = dict(poller.poll(_POLL_MS))
+                if cap is not None:
+                    _drain_capture(cap, events, recorder)
                 if udp is not None and udp.fileno() in events:
                     while True:
                         try:
@@ -173,7 +201,7 @@ def run(args: argparse.Namespace) -> int:
                     _drain_zmq(zposes, lambda t, p: recorder.record_pose(t, *p))
         finally:
             recorder.record_event("record_stop")
-            for s in (udp, zin, zposes):
+            for s in (udp, zin, zposes, cap):
                 if s is not None:
                     s.close()
             ctx.term()
@@ -204,3 +232,22 @@ def _drain_zmq(sock: Any, record: Any) -> None:
         except zmq.Again:
             return
         record(time.monotonic_ns(), [p.buffer for p in parts])
+
+
+def _drain_capture(cap: Any, events: dict[Any, int], recorder: Any) -> None:
+    """Record every waiting capture-system packet as it came, then hand it to the
+    input (the NatNet client asks for the model definitions once the server
+    answered); the NatNet client's requests are sent on every wake-up."""
+    if cap.client is not None:
+        cap.client.tick()
+    for fd, read in cap.readers:
+        if fd not in events:
+            continue
+        while (pkt := read()) is not None:
+            t_ns = time.monotonic_ns()
+            recorder.record_packet(cap.system, cap.form, t_ns, pkt)
+            cap.inp.feed(pkt, t_ns)
+
+
+def _say(line: str) -> None:
+    print(line, flush=True)

@@ -3,6 +3,8 @@
 The config is validated before any socket opens (a bad key: one line, exit 2). SIGINT
 or SIGTERM ends it cleanly (sockets closed, exit 0, within the poll timeout); a second
 SIGINT forces the exit. Endpoints and their defaults: README "Live daemon".
+``--listen qtm://HOST[:PORT]`` or ``--listen natnet://HOST[:PORT][?...]`` connects to a
+capture system (overrides ``[input] source``; README "Capture systems").
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from retargetd.daemon.cli.launch import (
     make_daemon,
     open_or_fail,
 )
+from retargetd.daemon.errors import UsageError
 
 logger = logging.getLogger(__name__)
 
@@ -39,6 +42,13 @@ def add_parser(subparsers: Any) -> None:
         action="store_true",
         help="solve every accepted frame in order (offline replay), drop none",
     )
+    parser.add_argument(
+        "--listen",
+        metavar="URL",
+        help="a capture system to connect to: qtm://HOST[:PORT] or "
+        "natnet://HOST[:PORT][?data_port=N&multicast=1&up=+Z...] (overrides "
+        "[input] source)",
+    )
     add_console_argument(parser, None)
     parser.add_argument(
         "--method",
@@ -52,6 +62,18 @@ def add_parser(subparsers: Any) -> None:
 def run(args: argparse.Namespace) -> int:
     """Run the daemon until SIGINT/SIGTERM."""
     config = load_config(args)
+    if getattr(args, "listen", None):
+        import dataclasses
+
+        from retargetd.daemon.live.sources import parse_source
+
+        try:
+            parse_source(args.listen)
+        except ValueError as exc:
+            raise UsageError(f"--listen: {exc}") from None
+        config = dataclasses.replace(
+            config, input=dataclasses.replace(config.input, source=args.listen)
+        )
     daemon = make_daemon(config)
     stop = threading.Event()
     install_signal_handlers(stop)

@@ -47,6 +47,8 @@ from retargetd.daemon.live.surface import (
 )
 from retargetd.protocols.conventions import normalize_units, normalize_up_axis
 from retargetd.protocols.marker_input import MAX_MARKERS, MAX_MESSAGE_BYTES, MAX_RATE_HZ
+from retargetd.protocols.natnet import parse_natnet_url
+from retargetd.protocols.qtm import parse_qtm_url
 
 LOCALHOST = "127.0.0.1"
 
@@ -290,6 +292,11 @@ class ConsoleConfig:
 class InputConfig:
     """Marker inputs."""
 
+    # A capture system the daemon connects to itself, beside the OSC/ZeroMQ inputs:
+    # "qtm://HOST[:PORT]" (Qualisys QTM, through qtm-rt) or "natnet://HOST[:PORT]
+    # [?data_port=N&multicast=1&group=G&local=A&up=+Z&sets=A,B]" (OptiTrack Motive);
+    # "" = none. README "Capture systems"; daemon/live/sources.py.
+    source: str = _spec("", "capture_source")
     osc: OscInputConfig = field(default_factory=OscInputConfig)
     zmq: ZmqInputConfig = field(default_factory=ZmqInputConfig)
 
@@ -480,6 +487,8 @@ def _apply_rule(check: str, meta: Any, value: Any) -> None:
                 TrainingSet.load(value)
             except (OSError, ValueError) as exc:
                 raise ValueError(str(exc)) from None
+    elif check == "capture_source":
+        _check_capture_source(value)
     elif check == "mass":
         if not (value == 0.0 or 20.0 <= value <= 300.0):
             raise ValueError(f"expected 0 (70 kg) or [20, 300]; got {value}")
@@ -499,6 +508,18 @@ def _apply_rule(check: str, meta: Any, value: Any) -> None:
 def _number(x: float) -> str:
     """A bound as written: 1000000, 0.05 (never 1e+06)."""
     return str(int(x)) if float(x).is_integer() else f"{x:g}"
+
+
+def _check_capture_source(url: str) -> None:
+    """``input.source``: empty, or a URL the capture inputs parse."""
+    if url.startswith("natnet://"):
+        parse_natnet_url(url)
+    elif url.startswith("qtm://"):
+        parse_qtm_url(url)
+    elif url:
+        raise ValueError(
+            f"expected qtm://HOST[:PORT] or natnet://HOST[:PORT][?...]; got {url!r}"
+        )
 
 
 def _check_host(host: str) -> None:

@@ -72,6 +72,13 @@ class InputsMixin(DaemonState):
                 self._frame_flags |= pose_stream.FRAME_INPUT_DROPPED
             if got and got >= newest_ns:
                 newest, newest_ns = self.zmq_stream, got
+        if self._capture is not None:
+            got = self._drain_capture(events, every)
+            if got and newest is not None and not every:
+                self.stats.stale += 1  # two inputs in one wake-up, as above
+                self._frame_flags |= pose_stream.FRAME_INPUT_DROPPED
+            if got and got >= newest_ns:
+                newest, newest_ns = self._capture.inp.stream, got
         if newest is not None and not every:
             self._solve_and_send(newest, newest_ns)
         if zmon:
@@ -86,7 +93,13 @@ class InputsMixin(DaemonState):
         accepted and left for later (latest wins), else 0."""
         if code != ACCEPTED and code != RESTART:
             if code == IMPLAUSIBLE_JUMP:
-                name = "osc" if stream is self.osc_stream else "zmq"
+                name = (
+                    "osc"
+                    if stream is self.osc_stream
+                    else "zmq"
+                    if stream is self.zmq_stream
+                    else "capture"
+                )
                 self._log_limited(
                     f"{name}.implausible_jump",
                     t_ns,

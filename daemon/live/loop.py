@@ -65,6 +65,7 @@ from retargetd.daemon.live.recording import (
     LiveRecording,
 )
 from retargetd.daemon.live.send import SendMixin
+from retargetd.daemon.live.sources import CaptureMixin
 from retargetd.daemon.live.state import Pipeline
 from retargetd.daemon.live.stats import LoopStats
 from retargetd.daemon.live.status import StatusMixin
@@ -89,7 +90,9 @@ logger = logging.getLogger(__name__)
 _UDP_MAX = 65536
 
 
-class Daemon(InputsMixin, SendMixin, CalibrationMixin, StatusMixin, ControlMixin):
+class Daemon(
+    InputsMixin, CaptureMixin, SendMixin, CalibrationMixin, StatusMixin, ControlMixin
+):
     """The live daemon (one performer). ``open()``, then ``run(should_exit)``.
 
     Args:
@@ -118,6 +121,7 @@ class Daemon(InputsMixin, SendMixin, CalibrationMixin, StatusMixin, ControlMixin
         self._zmon: zmq.Socket[bytes] | None = None  # the input's disconnect events
         self._pub: zmq.Socket[bytes] | None = None
         self._ctl: zmq.Socket[bytes] | None = None
+        self._capture: Any = None  # a capture system ([input] source), sources.py
         osc_cfg, zmq_cfg = config.input.osc, config.input.zmq
         simple_labels = (
             LabelSet(0, osc_cfg.labels) if osc_cfg.form == "simple" else None
@@ -243,6 +247,7 @@ class Daemon(InputsMixin, SendMixin, CalibrationMixin, StatusMixin, ControlMixin
             self._sockets.append(self._zmon)
             ep = _last_endpoint(self._zin) or zin.endpoint
             self._announce("zmq markers", f"{ep} ({zin.mode}; {who})")
+        self._open_capture()
         if c.output.pose.enabled:
             pose = c.output.pose
             self._pub = self._server_socket(zmq.PUB, pose.secret_key, pose.client_keys)
@@ -387,6 +392,7 @@ class Daemon(InputsMixin, SendMixin, CalibrationMixin, StatusMixin, ControlMixin
         """Stop an active recording (its file is finished, bounded wait) and close
         every socket (idempotent)."""
         self.recording.close()
+        self._close_capture()
         if self.console is not None:
             self.console.stop()
         if self.validator is not None:
@@ -413,6 +419,8 @@ class Daemon(InputsMixin, SendMixin, CalibrationMixin, StatusMixin, ControlMixin
             events = self._poller.poll(timeout)  # [(socket or fd, flags)]
             if events:
                 self._service(events)
+            if self._capture is not None:
+                self._tick_capture()  # requests, lost check, held pose: never blocks
             now = time.monotonic_ns()
             if self.console is not None:
                 cmd = self.console.commands.poll()  # nothing allocated when empty

@@ -44,6 +44,7 @@ from typing import Any
 
 from retargetd.daemon.version import package_version
 from retargetd.protocols.conventions import normalize_units, normalize_up_axis
+from retargetd.protocols.natnet import parse_natnet_url
 from retargetd.replay import recording as rf
 from retargetd.replay.recorder import (
     DEFAULT_QUEUE_SIZE,
@@ -286,6 +287,16 @@ def input_infos(config: Any, endpoints: dict[str, str]) -> tuple[InputInfo, ...]
                 endpoint=endpoints.get("zmq markers", "").split(" ")[0],
             )
         )  # fmt: skip
+    source = config.input.source
+    if source.startswith("natnet://"):  # Motive: metres, the configured up axis
+        up = parse_natnet_url(source).up_axis
+        out.append(
+            InputInfo(name="natnet", form="natnet", units="m", up=up, endpoint=source)
+        )
+    elif source.startswith("qtm://"):  # QTM: millimetres; its XML holds the axis
+        out.append(
+            InputInfo(name="qtm", form="qtm", units="mm", up="+Z", endpoint=source)
+        )
     return tuple(out)
 
 

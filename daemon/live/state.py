@@ -116,6 +116,7 @@ class DaemonState:
     _next_vmc_state_ns: int
     _last_frame_ns: int
     _log_after_ns: dict[str, int]
+    _capture: Any  # sources.CaptureInput when [input] source is set
 
     # The parts call each other through the daemon; each is implemented by one mixin
     # (or Daemon itself), declared here so every part type-checks on its own.
@@ -162,3 +163,9 @@ class DaemonState:
 
     def stats_line(self) -> str:  # status
         raise NotImplementedError
+
+    def _drain_capture(self, events: list[tuple[Any, int]], every: bool) -> int:
+        raise NotImplementedError  # implemented by sources.CaptureMixin
+
+    def _capture_status(self) -> dict[str, Any] | None:
+        raise NotImplementedError  # implemented by sources.CaptureMixin

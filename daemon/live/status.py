@@ -13,6 +13,7 @@ import numpy as np
 
 from retargetd.daemon.body.solve import FLAG_HELD
 from retargetd.daemon.live.kernel_drops import udp_kernel_drops
+from retargetd.daemon.live.sources import capture_stats
 from retargetd.daemon.live.state import DaemonState
 
 logger = logging.getLogger(__name__)
@@ -73,6 +74,7 @@ class StatusMixin(DaemonState):
             "record": self.recording.status(),
             "face": self.face.status() if self.face is not None else None,
             "validate": self._validate_status(),
+            "capture": self._capture_status(),
         }
 
     def _validate_status(self) -> dict[str, Any] | None:
@@ -108,6 +110,7 @@ class StatusMixin(DaemonState):
             f"{c['send_drops']} | drops {drops or 0} | occluded "
             f"{len(s['occluded_markers'])} held {len(s['held_bones'])}"
             f" | kernel_drops {sum(v for v in s['kernel_drops'].values() if v)}"
+            + capture_stats(s["capture"])
             + ("" if s["calibrated"] else " | NOT CALIBRATED")
             + (
                 f" | REC {s['record']['path']} dropped {s['record']['dropped']}"

@@ -81,6 +81,7 @@ def _out_of_range(f: dataclasses.Field, tmp: Path) -> Any:
         "face_config": missing,
         "training": str(tmp),  # exists, but is no training set
         "mass": 10.0,
+        "capture_source": "vicon://10.0.0.1",
         "token": "short",
         "secret_key": missing,
         "public_keys": [missing],

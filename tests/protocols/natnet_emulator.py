@@ -269,6 +269,8 @@ class NatNetEmulator:
         while not self._stop.is_set() and self.modeldef_requests == 0:
             self._serve_commands()
         order = list(range(self.positions.shape[0]))
+        if self.sc.flood:  # no 10 ms wait for commands between frames
+            self.sock.settimeout(0.0)
         if self.sc.faults and len(order) > 40:
             order[20], order[21] = order[21], order[20]  # swapped pair
         start = time.monotonic()
@@ -311,6 +313,7 @@ class NatNetEmulator:
                 if delay > 0:
                     time.sleep(delay)
         # Keep answering commands until closed.
+        self.sock.settimeout(0.01)
         self.done.set()
         while not self._stop.is_set():
             self._serve_commands()

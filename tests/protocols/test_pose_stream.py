@@ -81,7 +81,7 @@ def test_flag_bits_do_not_overlap_validation() -> None:
     assert frame_bits & ps.FRAME_VALIDATION_MASK == 0
     bone_bits = ps.BONE_HELD | ps.BONE_REBUILT | ps.BONE_PARTIAL | ps.BONE_NEVER
     assert bone_bits & ps.BONE_VALIDATION_MASK == 0
-    assert {1 << b for b in ps.FRAME_FLAG_BITS.values()} == {1, 2, 4, 8}
+    assert {1 << b for b in ps.FRAME_FLAG_BITS.values()} == {1, 2, 4, 8, 16}
 
 
 def test_names_round_trip() -> None:
