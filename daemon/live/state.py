@@ -120,6 +120,12 @@ class DaemonState:
 
     # The parts call each other through the daemon; each is implemented by one mixin
     # (or Daemon itself), declared here so every part type-checks on its own.
+    def _accept(self, stream: MarkerStream, code: int, t_ns: int, every: bool) -> int:
+        raise NotImplementedError  # inputs
+
+    def _send_pub(self, parts: list[Any], t_ns: int) -> None:  # send
+        raise NotImplementedError
+
     def _send_vmc_state(self, now_ns: int) -> None:  # send
         raise NotImplementedError
 
