@@ -39,6 +39,20 @@ class ControlMixin(DaemonState):
             parts = self._ctl.recv_multipart(zmq.NOBLOCK)
         except zmq.Again:
             return
+        reply = self.control_reply(parts)
+        try:
+            self._ctl.send(json.dumps(reply).encode(), zmq.NOBLOCK)
+        except zmq.ZMQError as exc:  # the requester vanished: nothing to answer
+            logger.warning("control reply not sent: %s", exc)
+
+    def control_reply(self, parts: list[bytes]) -> dict[str, Any]:
+        """The reply to one control request (every part of one ZeroMQ message).
+
+        Never raises: a malformed request gets ``{"ok": false, "error": ...}``.
+        Counted: ``control_requests`` every request, ``control_errors`` those whose
+        reply is not ok.
+        """
+        self.stats.control_requests += 1
         try:
             if len(parts) != 1:
                 raise ValueError(
@@ -52,10 +66,9 @@ class ControlMixin(DaemonState):
             reply = {"ok": False, "error": "request nested too deeply"}
         except (ValueError, TypeError) as exc:
             reply = {"ok": False, "error": str(exc)}
-        try:
-            self._ctl.send(json.dumps(reply).encode(), zmq.NOBLOCK)
-        except zmq.ZMQError as exc:  # the requester vanished: nothing to answer
-            logger.warning("control reply not sent: %s", exc)
+        if reply.get("ok") is not True:
+            self.stats.control_errors += 1
+        return reply
 
     def _control(self, req: dict[str, Any]) -> dict[str, Any]:
         cmd = req.get("cmd")
@@ -125,12 +138,11 @@ class ControlMixin(DaemonState):
             if self._allow and addr[0] not in self._allow:
                 self.stats.rejected_sources += 1  # the same allow-list as the markers
                 continue
-            packet = bytes(self._buf[:n])
-            for message in _osc_messages(packet):
-                try:
-                    address, _tags, args = parse_message(message)
-                except DecodeError:
-                    continue
+            self.stats.show_control_in += 1
+            messages, malformed = parse_show_control(bytes(self._buf[:n]))
+            if malformed:
+                self.stats.show_control_malformed += 1
+            for address, args in messages:
                 self._show_control(address, args, addr)
 
     def _show_control(self, address: str, args: list[Any], addr: Any) -> None:
@@ -145,16 +157,44 @@ class ControlMixin(DaemonState):
             self.out(self.reload())
 
 
-def _osc_messages(packet: bytes, depth: int = 0) -> list[bytes]:
-    """The messages of an OSC packet (a message, or a bundle, flattened)."""
+def parse_show_control(packet: bytes) -> tuple[list[tuple[str, list[Any]]], int]:
+    """The OSC messages of a show-control datagram (a message, or a bundle flattened,
+    nested at most 4 deep), and how many of its elements were malformed.
+
+    Never raises: a malformed message is skipped and counted; a malformed bundle
+    (bad element sizes, nested too deep) counts 1 and none of its messages is used.
+
+    Returns:
+        ``([(address, args), ...], malformed)``.
+    """
+    raw: list[bytes] = []
+    malformed = _osc_messages(packet, raw)
+    good: list[tuple[str, list[Any]]] = []
+    for message in raw:
+        try:
+            address, _tags, args = parse_message(message)
+        except DecodeError:
+            malformed += 1
+            continue
+        good.append((address, args))
+    return good, malformed
+
+
+def _osc_messages(packet: bytes, out: list[bytes], depth: int = 0) -> int:
+    """Append the messages of an OSC packet to ``out`` (a bundle flattened; a bundle
+    that does not parse whole contributes nothing); returns the number of malformed
+    bundles met."""
     if not packet.startswith(b"#bundle\0"):
-        return [packet]
+        out.append(packet)
+        return 0
     if depth > 4:
-        return []
+        return 1
+    inner: list[bytes] = []
+    bad = 0
     try:
-        out: list[bytes] = []
         for element in iter_bundle_elements(packet):
-            out.extend(_osc_messages(bytes(element), depth + 1))
-        return out
+            bad += _osc_messages(bytes(element), inner, depth + 1)
     except DecodeError:
-        return []
+        return bad + 1
+    out.extend(inner)
+    return bad

@@ -109,7 +109,8 @@ class SendMixin(DaemonState):
 
     def _solve_and_send(self, stream: MarkerStream, received_ns: int) -> None:
         pipe = self._pipeline(stream)
-        if pipe is None:
+        if pipe is None:  # no calibration yet: counted, never silent
+            self.stats.unsolved += 1
             return
         frame = stream.current.frame
         t_start = time.monotonic_ns()
