@@ -87,6 +87,8 @@ class Faults:
     labels_every_s: float = 1.0
     #: fuzz mode: mutated inputs per second on every input in the flood window.
     flood_hz: float = 0.0
+    #: fuzz mode: label announcements among the mutated OSC and ZeroMQ inputs.
+    flood_labels: bool = True
     flood_window: tuple[float, float] = (0.0, 0.0)  # fractions of the run
 
 
@@ -365,14 +367,18 @@ class Driver:
         osc_corpus = [
             osc_in.encode_compact_frame(i, i / RATE_HZ, LABEL_SET_ID, row)
             for i, row in enumerate(rows)
-        ] + [
-            osc_in.encode_labels(LabelSet(i, ls))
-            for i, ls in fuzz._label_variants(labels.labels)
         ]
+        if self.f.flood_labels:
+            osc_corpus += [
+                osc_in.encode_labels(LabelSet(i, ls))
+                for i, ls in fuzz._label_variants(labels.labels)
+            ]
         zmq_corpus = [
             zmq_wire.encode_zmq_frame(i, i / RATE_HZ, LABEL_SET_ID, row)
             for i, row in enumerate(rows)
-        ] + [zmq_wire.encode_zmq_labels(labels)]
+        ]
+        if self.f.flood_labels:
+            zmq_corpus.append(zmq_wire.encode_zmq_labels(labels))
         show_corpus = fuzz.show_control_corpus()
         ctl_corpus = fuzz.control_corpus()
         udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -581,7 +587,7 @@ def accounting(status: dict[str, Any], sent: Sent) -> dict[str, Any]:
         "frames_in": c["frames_in"], "frames_solved": c["frames_solved"],
         "stale": c["stale"], "unsolved": c["unsolved"],
         "frames_ok": frames_left == 0, "markers_ignored": markers_ignored,
-        "drops": osc,
+        "drops": osc, "zmq_drops": zmq,
     }  # fmt: skip
 
 
