@@ -41,6 +41,7 @@ import random
 import struct
 import sys
 import tempfile
+import threading
 import time
 from collections import Counter
 from collections.abc import Callable
@@ -377,6 +378,60 @@ def fuzz_control(n: int, seed: int, daemon: Any, folder: Path) -> Tally:
     return tally
 
 
+def fuzz_control_req(n: int, seed: int, daemon: Any, folder: Path) -> Tally:
+    """The same requests as :func:`fuzz_control`, over a real REQ socket to
+    ``daemon`` serving in a thread: every request answered with strict JSON, and
+    the daemon's ``control_requests`` counts them all."""
+    import zmq
+
+    r = random.Random(seed)
+    corpus = control_corpus()
+    tally = Tally("control (REQ)")
+    stop = threading.Event()
+    errors: list[BaseException] = []
+
+    def serve() -> None:
+        try:
+            daemon.run(stop.is_set)
+        except BaseException as exc:  # reported as escaped below
+            errors.append(exc)
+
+    thread = threading.Thread(target=serve, daemon=True)
+    thread.start()
+    ctx = zmq.Context()
+    req = ctx.socket(zmq.REQ)
+    req.setsockopt(zmq.LINGER, 0)
+    req.setsockopt(zmq.RCVTIMEO, 5000)
+    req.connect(daemon.endpoints["control"].split()[0])
+    before = daemon.stats.control_requests
+    try:
+
+        def one(_i: int) -> None:
+            k = r.choice((1, 1, 1, 1, 1, 1, 1, 2, 3))
+            req.send_multipart([mutate(r, corpus) for _ in range(k)])
+            reply = json.loads(req.recv(), parse_constant=_no_constant)
+            if not isinstance(reply, dict) or type(reply.get("ok")) is not bool:
+                raise AssertionError(f"not a control reply: {reply!r}")
+            tally.outcomes["ok" if reply["ok"] else "error"] += 1
+
+        _run(tally, n, one)
+    finally:
+        stop.set()
+        thread.join(timeout=10.0)
+        req.close()
+        ctx.term()
+        if daemon.recording.status()["active"]:
+            daemon.recording.stop("fuzz")
+    for exc in errors:
+        tally.escaped[f"daemon loop: {type(exc).__name__}: {exc}"] += 1
+    tally.counted = daemon.stats.control_requests - before
+    return tally
+
+
+def _no_constant(name: str) -> Any:
+    raise ValueError(f"not strict JSON: {name}")
+
+
 def show_control_corpus() -> list[bytes]:
     from retargetd.protocols.osc_wire import build_bundle, build_message
 
@@ -508,7 +563,7 @@ def calibrate_pig(folder: Path) -> Path:
 
 TARGETS = (
     "osc-compact", "osc-simple", "osc-labels", "zmq-frames", "zmq-labels",
-    "show-control", "recordings", "control",
+    "show-control", "recordings", "control", "control-req",
 )  # fmt: skip
 
 
@@ -535,11 +590,14 @@ def fuzz_decoders(
     }
     tallies = []
     for name in targets:
-        if name == "control":
+        if name in ("control", "control-req"):
             cwd = os.getcwd()
             daemon = in_process_daemon(calibration, folder)
             try:
-                tallies.append(fuzz_control(n, seed + 7, daemon, folder))
+                if name == "control":
+                    tallies.append(fuzz_control(n, seed + 7, daemon, folder))
+                else:
+                    tallies.append(fuzz_control_req(n, seed + 8, daemon, folder))
             finally:
                 daemon.close()
                 os.chdir(cwd)

@@ -89,6 +89,22 @@ def test_control_handler_at_volume(
     assert daemon.stats.control_errors == tally.outcomes["error"]
 
 
+def test_control_over_req_at_volume(
+    fuzz: ModuleType, pig_calibration: Path, tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:  # fmt: skip
+    monkeypatch.chdir(tmp_path)
+    daemon = fuzz.in_process_daemon(pig_calibration, tmp_path)
+    try:
+        tally = fuzz.fuzz_control_req(N_INPUTS, 16, daemon, tmp_path)
+    finally:
+        daemon.close()
+    print(f"\n{tally.name}: {tally.as_dict()}")
+    assert not tally.escaped, dict(tally.escaped)
+    assert tally.counted == tally.inputs == N_INPUTS
+    assert tally.outcomes["ok"] > 0 and tally.outcomes["error"] > 0
+
+
 @pytest.mark.timeout(300)
 def test_flood_at_a_running_daemon(fuzz: ModuleType) -> None:
     """15 s of the walk at 240 Hz; the middle 5 s mutated inputs on every input."""
