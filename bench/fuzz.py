@@ -22,11 +22,13 @@ real REQ socket fired at it. Printed: the pose rate before, during and after the
 flood, the daemon's RSS at each point, and the accounting (datagrams sent = counted
 by the daemon, per input).
 
-Run from the repository root (the long run, ~1 h on a quiet 2-core machine)::
+Run from the repository root (the long run: ~10 min for the message decoders and
+control, ~50 min for the recordings at ~3 ms a file, then the live part)::
 
     python bench/fuzz.py
     python bench/fuzz.py --inputs 20000 --live-seconds 15       # quick
     python bench/fuzz.py --json out.json                        # figures as JSON
+    python bench/fuzz.py --targets recordings --inputs 100000 --seed 7 --live-seconds 0
 
 Exit code 0 when every check passed, 1 otherwise.
 """
