@@ -473,6 +473,10 @@ class MarkerStream:
         self.last_error: DecodeError | None = None
         self.max_markers = max_markers
         self.pending_labels: LabelSet | None = None  # a conflicting announcement
+        #: Announcements taken: adopted, or confirming the names in use (the refused
+        #: and conflicting ones are counted by reason), so packets in = counts -
+        #: ``unknown_label`` (markers, not packets) + ``labels_taken``.
+        self.labels_taken = 0
         self._pending_since_ns = 0
 
     def _in_use(self, t_ns: int | None) -> bool:
@@ -500,6 +504,7 @@ class MarkerStream:
         current = self.label_set
         if label_set == current:
             self.pending_labels = None  # the sender confirms the names in use
+            self.labels_taken += 1
             return False
         if current is None or label_set.id != current.id or not self._in_use(t_ns):
             self._adopt(label_set)
@@ -518,6 +523,7 @@ class MarkerStream:
         return False
 
     def _adopt(self, label_set: LabelSet) -> None:
+        self.labels_taken += 1
         same_id = self.label_set is not None and self.label_set.id == label_set.id
         self.label_set = label_set
         self.pending_labels = None

@@ -272,9 +272,19 @@ class Recording:
         return [json.loads(m.data) for m in self.messages if m.topic == topic]
 
     def inputs(self) -> list[dict[str, Any]]:
-        """The inputs declared in the recording's metadata."""
+        """The inputs declared in the recording's metadata.
+
+        Raises:
+            TakeError: the metadata's ``inputs`` is not a JSON list of objects.
+        """
         meta = self.metadata.get(METADATA_NAME, {})
-        return list(json.loads(meta.get("inputs", "[]")))
+        try:
+            inputs = json.loads(meta.get("inputs", "[]"))
+        except ValueError as exc:  # JSONDecodeError, or a number too long to parse
+            raise TakeError(f"recording {self.path}: bad inputs metadata") from exc
+        if not isinstance(inputs, list) or not all(isinstance(i, dict) for i in inputs):
+            raise TakeError(f"recording {self.path}: inputs metadata is not a list")
+        return inputs
 
 
 def read_recording(path: str | os.PathLike[str]) -> Recording:
@@ -298,6 +308,7 @@ def read_recording(path: str | os.PathLike[str]) -> Recording:
     except OSError as exc:
         raise TakeError(f"recording {name}: cannot read ({exc.strerror})") from None
     with f:
+        size = os.fstat(f.fileno()).st_size
         if f.read(8) != _MAGIC:
             raise TakeError(f"recording {name}: not an MCAP file (bad magic)")
         offset = 8
@@ -307,7 +318,9 @@ def read_recording(path: str | os.PathLike[str]) -> Recording:
                 rec.stop_reason = "end of file without a footer"
                 break
             opcode, length = struct.unpack("<BQ", head)
-            body = f.read(length)
+            # A length past the end of the file (a torn or damaged record) is never
+            # read: f.read of 2^63 bytes raises MemoryError or OverflowError.
+            body = f.read(length) if length <= size - offset - 9 else b""
             if len(body) < length:
                 rec.stop_reason = f"record cut short at byte {offset}"
                 break
@@ -417,8 +430,25 @@ def read_mcap_take(
         The take; rate from the source timestamps (else the receive times).
 
     Raises:
-        TakeError: not a recording, no marker frames, bad override or subject.
+        TakeError: not a recording, no marker frames, bad override or subject, or a
+            record whose contents are damaged (a packet envelope, the declared units
+            or up axis).
     """
+    try:
+        return _read_mcap_take(path, subject, units, up_axis)
+    except TakeError:
+        raise
+    except ValueError as exc:  # a damaged envelope or declared input (checked CRCs
+        # do not cover unchunked records, and a chunk's CRC may be 0: unchecked)
+        raise TakeError(f"recording {path}: damaged: {exc}") from exc
+
+
+def _read_mcap_take(
+    path: str | os.PathLike[str],
+    subject: str | None,
+    units: str | None,
+    up_axis: str | None,
+) -> Take:
     name = str(path)
     rec = read_recording(path)
     input_name = main_input(rec)

@@ -18,7 +18,6 @@ import json
 import logging
 import os
 import time
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -51,6 +50,20 @@ class ControlMixin(DaemonState):
             parts = self._ctl.recv_multipart(zmq.NOBLOCK)
         except zmq.Again:
             return
+        reply = self.control_reply(parts)
+        try:
+            self._ctl.send(json.dumps(reply).encode(), zmq.NOBLOCK)
+        except zmq.ZMQError as exc:  # the requester vanished: nothing to answer
+            logger.warning("control reply not sent: %s", exc)
+
+    def control_reply(self, parts: list[bytes]) -> dict[str, Any]:
+        """The reply to one control request (every part of one ZeroMQ message).
+
+        Never raises: a malformed request gets ``{"ok": false, "error": ...}``.
+        Counted: ``control_requests`` every request, ``control_errors`` those whose
+        reply is not ok.
+        """
+        self.stats.control_requests += 1
         try:
             if len(parts) != 1:
                 raise ValueError(
@@ -64,10 +77,9 @@ class ControlMixin(DaemonState):
             reply = {"ok": False, "error": "request nested too deeply"}
         except (ValueError, TypeError) as exc:
             reply = {"ok": False, "error": str(exc)}
-        try:
-            self._ctl.send(json.dumps(reply).encode(), zmq.NOBLOCK)
-        except zmq.ZMQError as exc:  # the requester vanished: nothing to answer
-            logger.warning("control reply not sent: %s", exc)
+        if reply.get("ok") is not True:
+            self.stats.control_errors += 1
+        return reply
 
     def _control(self, req: dict[str, Any]) -> dict[str, Any]:
         cmd = req.get("cmd")
@@ -140,13 +152,12 @@ class ControlMixin(DaemonState):
             if self._allow and addr[0] not in self._allow:
                 self.stats.rejected_sources += 1  # the same allow-list as the markers
                 continue
-            packet = bytes(self._buf[:n])
-            for message in _osc_messages(packet, self._show_refused):
-                try:
-                    address, _tags, args = parse_message(message)
-                except DecodeError as exc:
-                    self._show_refused(exc.reason, f"malformed OSC ({exc})", addr)
-                    continue
+            self.stats.show_control_in += 1
+            messages, malformed = parse_show_control(bytes(self._buf[:n]))
+            if malformed:
+                self.stats.show_control_malformed += 1
+                self._show_refused("malformed", f"{malformed} malformed OSC", addr)
+            for address, args in messages:
                 self._show_control(address, args, addr)
 
     def _show_refused(self, reason: str, why: str, addr: Any = None) -> None:
@@ -249,23 +260,44 @@ def recording_path(folder: str, path: str) -> str:
     return str(resolved)
 
 
-def _osc_messages(
-    packet: bytes,
-    refused: Callable[[str, str], None],
-    depth: int = 0,
-) -> list[bytes]:
-    """The messages of an OSC packet (a message, or a bundle, flattened); a bundle
-    that does not decode, or nests deeper than 4, is refused (counted)."""
+def parse_show_control(packet: bytes) -> tuple[list[tuple[str, list[Any]]], int]:
+    """The OSC messages of a show-control datagram (a message, or a bundle flattened,
+    nested at most 4 deep), and how many of its elements were malformed.
+
+    Never raises: a malformed message is skipped and counted; a malformed bundle
+    (bad element sizes, nested too deep) counts 1 and none of its messages is used.
+
+    Returns:
+        ``([(address, args), ...], malformed)``.
+    """
+    raw: list[bytes] = []
+    malformed = _osc_messages(packet, raw)
+    good: list[tuple[str, list[Any]]] = []
+    for message in raw:
+        try:
+            address, _tags, args = parse_message(message)
+        except DecodeError:
+            malformed += 1
+            continue
+        good.append((address, args))
+    return good, malformed
+
+
+def _osc_messages(packet: bytes, out: list[bytes], depth: int = 0) -> int:
+    """Append the messages of an OSC packet to ``out`` (a bundle flattened; a bundle
+    that does not parse whole contributes nothing); returns the number of malformed
+    bundles met."""
     if not packet.startswith(b"#bundle\0"):
-        return [packet]
+        out.append(packet)
+        return 0
     if depth > 4:
-        refused("bundle_too_deep", "a bundle nested deeper than 4")
-        return []
+        return 1
+    inner: list[bytes] = []
+    bad = 0
     try:
-        out: list[bytes] = []
         for element in iter_bundle_elements(packet):
-            out.extend(_osc_messages(bytes(element), refused, depth + 1))
-        return out
-    except DecodeError as exc:
-        refused(exc.reason, f"malformed bundle ({exc})")
-        return []
+            bad += _osc_messages(bytes(element), inner, depth + 1)
+    except DecodeError:
+        return bad + 1
+    out.extend(inner)
+    return bad

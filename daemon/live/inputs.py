@@ -257,6 +257,7 @@ class InputsMixin(DaemonState):
         """Hand an announcement to the stream; log a label conflict or refusal (one
         line per input and kind every ``LOG_INTERVAL_NS``; the counters say how many).
         """
+        self.stats.labels_in += 1
         before = stream.counters.counts.copy()  # announcements are rare: not hot
         stream.set_labels(label_set, t_ns)
         after = stream.counters

@@ -125,7 +125,8 @@ class SendMixin(DaemonState):
         # stage and overrun check, not hidden before it.
         t_start = time.monotonic_ns()
         pipe = self._pipeline(stream)
-        if pipe is None:
+        if pipe is None:  # no calibration yet: counted, never silent
+            self.stats.unsolved += 1
             return
         frame = stream.current.frame
         pose = pipe.solver.solve_frame(frame.markers_world, pipe.pose)

@@ -46,6 +46,14 @@ class LoopStats:
         zmq_disconnects: ZeroMQ marker peers disconnected: by libzmq for a message
             part over ``input.zmq.max_message_bytes`` (never buffered, so not
             counted by reason), or by the peer itself.
+        unsolved: accepted frames not solved because no calibration is loaded yet
+            (so ``frames_in = frames_solved + stale + unsolved``).
+        labels_in: label announcements decoded (any outcome; per input the adopted
+            and confirming ones are ``MarkerStream.labels_taken``).
+        show_control_in: show-control datagrams received (allow-list passed).
+        show_control_malformed: of those, datagrams with a malformed element.
+        control_requests: control requests answered.
+        control_errors: of those, answered with ``ok: false``.
     """
 
     frames_in: int = 0
@@ -71,6 +79,12 @@ class LoopStats:
     validation_flagged: int = 0
     validation_drops: int = 0
     zmq_disconnects: int = 0
+    unsolved: int = 0
+    labels_in: int = 0
+    show_control_in: int = 0
+    show_control_malformed: int = 0
+    control_requests: int = 0
+    control_errors: int = 0
     rings: IntArray = field(
         default_factory=lambda: np.zeros((len(STAGES), RING), np.int64)
     )
@@ -108,5 +122,7 @@ class LoopStats:
                 "rejected_sources",
                 "face_solved", "face_head_lost", "face_captures", "validated",
                 "validation_flagged", "validation_drops", "zmq_disconnects",
+                "unsolved", "labels_in", "show_control_in", "show_control_malformed",
+                "control_requests", "control_errors",
             )
         }  # fmt: skip

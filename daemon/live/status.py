@@ -61,6 +61,11 @@ class StatusMixin(DaemonState):
                 "osc": self.osc_stream.counters.as_dict(),
                 "zmq": self.zmq_stream.counters.as_dict(),
             },
+            # Label announcements adopted or confirming (not in "drops"), per input.
+            "labels_taken": {
+                "osc": self.osc_stream.labels_taken,
+                "zmq": self.zmq_stream.labels_taken,
+            },
             # Datagrams the kernel dropped (receive buffer full), per UDP input;
             # None where unknown (not Linux) or the input is off.
             "kernel_drops": {
