@@ -434,12 +434,14 @@ class MarkerStream:
     Label changes (``protocols/PROTOCOLS.md``, "Label sets"): an announcement with a
     new id is adopted at once (its frames restart the sequence). One that changes the
     names under the id in use (a frame carrying it accepted within ``restart_gap_ns``)
-    is a *conflict*: counted ``conflicting_labels``, kept as ``pending_labels``, and
-    every frame carrying the id is dropped (``label_conflict``) until a clean
-    boundary: the old names announced again (the conflicting one was stray), a new
-    id announced, or the new names announced again at least ``restart_gap_ns`` after
-    the conflict began with no frame of the old names accepted since (the sender
-    really changed them; adopted, the next frame a restart).
+    is a *conflict*: counted ``conflicting_labels`` and kept as ``pending_labels``;
+    the names in use stay in effect, so frames carrying the id go on being decoded
+    with them (no gap in the stream), until a clean boundary: the old names
+    announced again (the conflicting one was stray), a new id announced, or the new
+    names announced again at least ``restart_gap_ns`` after the conflict began (the
+    sender really changed them; adopted, the next frame a restart). A sender that
+    changes its names must use a new id (PROTOCOLS.md): until it does, its frames are
+    read with the names it announced first.
 
     Args:
         label_set: the configured labels (simple form), or None until the sender
@@ -556,9 +558,8 @@ class MarkerStream:
             index = REASON_INDEX.get(exc.reason, OTHER)
             self.counters.add(index)
             return index
-        if self.pending_labels is not None:  # which names does it carry? unknown
-            self.counters.add(LABEL_CONFLICT)
-            return LABEL_CONFLICT
+        # A conflicting announcement pending: the names in use stay in effect (the
+        # new ones take effect only at a clean boundary), so the stream goes on.
         code = self.sequencer.check(spare.frame.frame_id, spare.label_set_id, t_ns)
         self.counters.add(code)
         if code > RESTART:

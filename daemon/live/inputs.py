@@ -266,8 +266,9 @@ class InputsMixin(DaemonState):
                 f"{name}.label_conflict",
                 t_ns,
                 "%s input: label set %d announced with other names while its frames "
-                "stream; they are dropped (label_conflict) until the old names are "
-                "announced again, a new id is, or the new names persist for 1 s",
+                "stream (conflicting_labels); the names in use stay until the old "
+                "names are announced again, a new id is, or the new names persist "
+                "for 1 s",
                 name,
                 label_set.id,
             )

@@ -1242,9 +1242,10 @@ def test_renamed_labels_under_the_id_in_use_never_reach_the_solve(
     caplog: pytest.LogCaptureFixture,
 ) -> None:
     """Today's hijack: the same id with the names rotated by one gave 0.7 s of poses
-    with bones off by up to 180°, nothing counted. Now the frames under the disputed
-    id are dropped and counted until the sender announces its names again; logged
-    once for two conflicting announcements."""
+    with bones off by up to 180°, nothing counted. Now the rotated names take effect
+    only at a clean boundary: the frames go on being read with the names in use (no
+    gap in the stream, every pose the solve of the genuine frames), the conflicting
+    announcements are counted and logged once."""
     take = _take()
     live = start_daemon(
         {
@@ -1256,6 +1257,7 @@ def test_renamed_labels_under_the_id_in_use_never_reach_the_solve(
     src = osc_source(live)
     src.announce()
     _prime(sub, lambda: src.send(take.markers_world[0]))
+    n_primed = len(src.sent)
     labels = take.labels
     rotated = LabelSet(1, labels[1:] + labels[:1])
     src.raw(osc_in.encode_labels(rotated))
@@ -1263,23 +1265,29 @@ def test_renamed_labels_under_the_id_in_use_never_reach_the_solve(
     src.raw(osc_in.encode_labels(rotated))
     disputed += [src.send(take.markers_world[row]) for row in range(105, 108)]
     stream = live.daemon.osc_stream
-    _wait_until(lambda: stream.counters["label_conflict"] == 8, "8 disputed frames")
     src.announce()  # the genuine sender repeats its names: the conflict ends
     resumed = [src.send(take.markers_world[row]) for row in range(108, 112)]
-    sub.wait(lambda: len(sub.poses) == len(resumed), "the frames after the conflict")
+    want = disputed + resumed
+    sub.wait(lambda: len(sub.poses) == len(want), "every frame, disputed or not")
     sub.pump(50)
     live.stop()
-    assert [p.frame_id for p in sub.poses] == resumed  # none of the disputed ones
+    assert [p.frame_id for p in sub.poses] == want  # no gap
     assert stream.counters["conflicting_labels"] == 2
+    assert stream.counters["label_conflict"] == 0
     assert stream.label_set == LabelSet(1, labels)
-    conflict_lines = [r for r in caplog.records if "label_conflict" in r.getMessage()]
+    conflict_lines = [
+        r for r in caplog.records if "conflicting_labels" in r.getMessage()
+    ]
     assert len(conflict_lines) == 1, conflict_lines
     assert "label set 1" in conflict_lines[0].getMessage()
-    # The poses after the conflict are the solve of the genuine frames.
+    # Every pose, disputed or not, is the solve of the genuine frames.
     oracle, _ = _solve_oracle(exact_calibration, [m for _, m in src.sent])
-    np.testing.assert_allclose(
-        sub.poses[-1].rest_from_bone_quat, oracle[-1][1].astype(np.float32), atol=1e-6
-    )
+    for k, pose in enumerate(sub.poses):
+        np.testing.assert_allclose(
+            pose.rest_from_bone_quat,
+            oracle[n_primed + k][1].astype(np.float32),
+            atol=1e-6,
+        )
     assert len(disputed) == 8
 
 

@@ -48,6 +48,8 @@ def test_soak_with_faults() -> None:
     # confirmation, or the loop not scheduled on a loaded host (loop_late: timing,
     # printed with the load, never asserted).
     assert not result["gaps"]["other"], result["gaps"]
+    # A conflicting announcement keeps the names in use: no gap from it.
+    assert not result["gaps"]["label_conflict"], result["gaps"]
     assert result["poses"] > 0.5 * SECONDS * soak.RATE_HZ
     # The recording replays to the same poses.
     replay = result["replay"]

@@ -202,24 +202,27 @@ def test_renamed_labels_under_an_id_in_use_are_a_conflict_until_reannounced() ->
     assert not stream.set_labels(mi.LabelSet(1, ROTATED), 3 * MS)
     assert stream.label_set == mi.LabelSet(1, NAMES)  # not adopted
     assert stream.pending_labels == mi.LabelSet(1, ROTATED)
-    assert stream.feed(feed, frames[3], t_ns=4 * MS) == mi.LABEL_CONFLICT
-    assert stream.current.frame.frame_id == 2  # the last good frame stays
+    # The names in use stay in effect: the frame is read with them, no gap.
+    assert stream.feed(feed, frames[3], t_ns=4 * MS) == mi.ACCEPTED
+    assert stream.current.frame.frame_id == 3
+    assert stream.current.label_set.labels == NAMES
     # The sender announces its real names again: the conflict is over.
     assert not stream.set_labels(mi.LabelSet(1, NAMES), 5 * MS)
     assert stream.pending_labels is None
     assert stream.feed(feed, frames[4], t_ns=6 * MS) == mi.ACCEPTED
     assert stream.counters["conflicting_labels"] == 1
-    assert stream.counters["label_conflict"] == 1
+    assert stream.counters["label_conflict"] == 0  # nothing dropped
 
 
 def test_renamed_labels_that_persist_are_adopted_with_a_restart() -> None:
     stream, frames = _stream_with_frames()
     feed = osc_in.decode_compact_frame
     assert not stream.set_labels(mi.LabelSet(1, ROTATED), 3 * MS)
-    assert stream.feed(feed, frames[3], t_ns=4 * MS) == mi.LABEL_CONFLICT
+    assert stream.feed(feed, frames[3], t_ns=4 * MS) == mi.ACCEPTED  # old names
     # Announced again under 1 s later: still a conflict.
     assert not stream.set_labels(mi.LabelSet(1, ROTATED), 500 * MS)
-    assert stream.feed(feed, frames[4], t_ns=501 * MS) == mi.LABEL_CONFLICT
+    assert stream.feed(feed, frames[4], t_ns=501 * MS) == mi.ACCEPTED
+    assert stream.current.label_set.labels == NAMES
     # Again >= 1 s after the conflict began, no old-name frame accepted since.
     assert stream.set_labels(mi.LabelSet(1, ROTATED), 3 * MS + SEC)
     assert stream.label_set == mi.LabelSet(1, ROTATED)
