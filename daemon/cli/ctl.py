@@ -1,5 +1,5 @@
 """``retargetd ctl [--endpoint E] status [--json] | calibrate [--count N] | reload |
-record start FILE.mcap [--no-poses] | record stop | face-capture NAME [--count N]``.
+record start FILE.mcap [--no-poses] [--force] | record stop | face-capture NAME [--count N]``.
 
 Talks to a running daemon over its local control socket (ZeroMQ REQ/REP, JSON
 requests ``{"cmd": "status"}``, ``{"cmd": "calibrate", "count": N}``,
@@ -74,6 +74,9 @@ def add_parser(subparsers: Any) -> None:
     start.add_argument(
         "--no-poses", action="store_true", help="record markers and events only"
     )
+    start.add_argument(
+        "--force", action="store_true", help="replace FILE when it exists"
+    )
     rec_sub.add_parser(
         "stop",
         help="stop recording (returns at once; the file is finished in the background)",
@@ -144,6 +147,8 @@ def run(args: argparse.Namespace) -> int:
                 )
             req["path"] = args.file  # relative: inside the daemon's recordings folder
             req["poses"] = not args.no_poses
+            if args.force:
+                req["force"] = True
     from retargetd.daemon.live.surface import KeyFileError
 
     try:

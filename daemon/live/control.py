@@ -136,9 +136,13 @@ class ControlMixin(DaemonState):
         if self._zin is not None and self.zmq_stream.label_set is not None:
             parts = tuple(zmq_wire.encode_zmq_labels(self.zmq_stream.label_set))
             announcements.append(("zmq", FORM_ZMQ, parts))
+        force = req.get("force", False)
+        if type(force) is not bool:
+            raise ValueError(f"'force' must be true or false; got {force!r}")
         msg = self.recording.start(
-            path, poses, input_infos(self.config, self.endpoints), announcements
-        )
+            path, poses, input_infos(self.config, self.endpoints), announcements,
+            force=force,
+        )  # fmt: skip
         self._last_names_ns = 0  # the names message opens the recorded pose stream
         return msg
 

@@ -102,12 +102,15 @@ class LiveRecording:
         poses: bool,
         inputs: tuple[InputInfo, ...],
         announcements: list[tuple[str, int, tuple[bytes, ...]]],
+        force: bool = False,
     ) -> str:
-        """Start recording to ``path`` (absolute, ``.mcap``, not existing).
+        """Start recording to ``path`` (absolute, ``.mcap``; an existing file is
+        refused unless ``force``).
 
         Args:
             path: the file to create.
             poses: also record the pose stream.
+            force: replace an existing file (``ctl record start --force``).
             inputs: the marker inputs (stored in the file's metadata).
             announcements: (input name, form code, parts) of each input's current
                 label-set announcement, recorded first.
@@ -128,10 +131,12 @@ class LiveRecording:
             )
         if Path(path).suffix.lower() != ".mcap":
             raise ValueError(f"path must end in .mcap; got {path!r}")
+        if os.path.exists(path) and not force:
+            raise ValueError(f"{path} exists: record start --force replaces it")
         try:
             recorder = open_recorder(
                 path, inputs, software=f"retargetd {package_version()}",
-                queue_size=QUEUE_SIZE, exclusive=True, open_in_writer=True,
+                queue_size=QUEUE_SIZE, exclusive=not force, open_in_writer=True,
             )  # fmt: skip
         except OSError as exc:
             raise ValueError(

@@ -278,6 +278,10 @@ def test_record_replies_events_and_a_close_off_the_loop(
     (tmp_path / "exists.mcap").write_bytes(b"keep me")
     refused({"action": "start", "path": str(tmp_path / "exists.mcap")}, "exists")
     assert (tmp_path / "exists.mcap").read_bytes() == b"keep me"
+    refused(
+        {"action": "start", "path": str(tmp_path / "exists.mcap"), "force": "yes"},
+        "true or false",
+    )
     path = tmp_path / "events.mcap"
     refused({"action": "start", "path": str(path), "poses": 1}, "true or false")
 
@@ -339,3 +343,26 @@ def test_ctl_record_usage(capsys: pytest.CaptureFixture[str]) -> None:
     assert exc.value.code == 2
     assert main(["ctl", "record", "start", "take.c3d"]) == 2
     assert "end in .mcap" in capsys.readouterr().err
+
+
+def test_ctl_record_start_force_replaces_an_existing_file(
+    in_thread: Any, tmp_path: Path
+) -> None:
+    """Issue 16 item 3: ``ctl record start`` refuses an existing file unless
+    ``--force`` (``"force": true``), which replaces it with a new recording."""
+    live = in_thread
+    old = tmp_path / "take.mcap"
+    old.write_bytes(b"an old take")
+    reply = live.ctl({"cmd": "record", "action": "start", "path": str(old)})
+    assert not reply["ok"] and "--force" in reply["error"], reply
+    assert old.read_bytes() == b"an old take"
+    reply = live.ctl(
+        {"cmd": "record", "action": "start", "path": str(old), "force": True}
+    )
+    assert reply["ok"], reply
+    assert live.ctl({"cmd": "record", "action": "stop"})["ok"]
+    _wait(lambda: not live.ctl({"cmd": "status"})["status"]["record"]["active"], "stop")
+    deadline = time.monotonic() + 10.0
+    while old.read_bytes()[:8] == b"an old t" and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert old.read_bytes().startswith(b"\x89MCAP"), old.read_bytes()[:16]
