@@ -1,5 +1,6 @@
 """``retargetd ctl [--endpoint E] status [--json] | calibrate [--count N] | reload |
-record start FILE.mcap [--no-poses] [--force] | record stop | face-capture NAME [--count N]``.
+record start FILE.mcap [--no-poses] [--force] | record stop |
+face-capture NAME [--count N]``.
 
 Talks to a running daemon over its local control socket (ZeroMQ REQ/REP, JSON
 requests ``{"cmd": "status"}``, ``{"cmd": "calibrate", "count": N}``,
