@@ -186,7 +186,9 @@ def _kabsch_fill(
 
 
 @kernel
-def solve_one(markers: np.ndarray, plan: BodyPlan, st: BodyState, out: BodyOut) -> int:
+def solve_one_nt(
+    markers: np.ndarray, plan: BodyPlan, st: BodyState, out: BodyOut
+) -> int:
     """Solve one frame. ``markers``: (M_stream, 3) world metres, NaN = occluded.
     Writes ``out``; returns the number of bones held."""
     marker_cols, op_kind, op_idx, op_u = (
@@ -389,14 +391,27 @@ def solve_one(markers: np.ndarray, plan: BodyPlan, st: BodyState, out: BodyOut) 
 
 
 @kernel
-def solve_many(markers: np.ndarray, plan: BodyPlan, st: BodyState, out: BodyOut) -> int:
-    """Solve a take: ``markers`` (T, M_stream, 3); ``out`` arrays with a leading T.
-    Returns the number of held bone-frames."""
+def solve_one(markers: np.ndarray, plan: tuple, st: tuple, out: tuple) -> int:
+    """Solve one frame: the plan, state and output as *plain* tuples of the
+    :class:`BodyPlan`, :class:`BodyState` and :class:`BodyOut` fields (numba's
+    dispatcher types a plain tuple in C; a NamedTuple argument goes through Python
+    and cost ~3 us a call), named again here. Returns the number of bones held in
+    the low 32 bits and of rig markers occluded above them."""
+    held = solve_one_nt(markers, BodyPlan(*plan), BodyState(*st), BodyOut(*out))
+    # Bones held and rig markers occluded in one int (no numpy read in Python).
+    return held | (st[11][0] << 32)
+
+
+@kernel
+def solve_many(markers: np.ndarray, plan_t: tuple, st_t: tuple, out_t: tuple) -> int:
+    """Solve a take: ``markers`` (T, M_stream, 3); the output arrays with a leading
+    T; plain tuples as :func:`solve_one`. Returns the number of held bone-frames."""
+    plan, st, out = BodyPlan(*plan_t), BodyState(*st_t), BodyOut(*out_t)
     held = 0
     for t in range(markers.shape[0]):
         frame = BodyOut(
             out.joints[t], out.wfb[t], out.pfb[t], out.rfb[t], out.root[t],
             out.quality[t], out.flags[t],
         )  # fmt: skip
-        held += solve_one(markers[t], plan, st, frame)
+        held += solve_one_nt(markers[t], plan, st, frame)
     return held

@@ -799,7 +799,7 @@ def _seed_from_construction(markers: np.ndarray, m: tuple, s: tuple, c: tuple) -
         c[27],
     )  # fmt: skip
     co = body_kernel.BodyOut(c[28], c[29], c[30], c[31], c[32], c[33], c[34])
-    body_kernel.solve_one(markers, cp, cs, co)
+    body_kernel.solve_one_nt(markers, cp, cs, co)
     parent, root_of = m[0], m[1]
     q, t = s[0], s[1]
     cw, croot = co.wfb, co.root

@@ -83,7 +83,7 @@ class BodyPose:
     #: Rig markers occluded this frame (missing from the stream or not finite).
     n_occluded: int = 0
     #: The same buffers as the kernel's output tuple (built once, never per frame).
-    kernel_out: kernel.BodyOut | None = None
+    kernel_out: tuple[np.ndarray, ...] | None = None
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -210,6 +210,9 @@ class BodySolver:
             self._prev_wfb, self._tmp4, self._n44, self._v44, np.zeros(6),
             self._last_root, np.zeros(1, dtype=np.int64),
         )  # fmt: skip
+        # Plain tuples for the kernel's argument (see ``kernel.solve_one``).
+        self._plan_t = tuple(self.plan)
+        self._state_t = tuple(self.state)
         self.reset()
 
     def reset(self) -> None:
@@ -248,7 +251,7 @@ class BodySolver:
         k_out = out.kernel_out
         if k_out is None:  # a BodyPose made by hand: wrap it once
             k_out = out.kernel_out = _kernel_out(out)
-        out.n_held = kernel.solve_one(markers_world, self.plan, self.state, k_out)
+        out.n_held = kernel.solve_one(markers_world, self._plan_t, self._state_t, k_out)
         out.n_occluded = int(self.state.counts[0])
         return out
 
@@ -276,8 +279,8 @@ class BodySolver:
         quality = np.zeros((n, n_bones), dtype=np.float32)
         flags = np.zeros((n, n_bones), dtype=np.uint8)
         kernel.solve_many(
-            positions, self.plan, self.state,
-            kernel.BodyOut(joints, wfb, pfb, rfb, root, quality, flags),
+            positions, self._plan_t, self._state_t,
+            (joints, wfb, pfb, rfb, root, quality, flags),
         )  # fmt: skip
         return BodySolve(
             joint_names=self.joint_names,
@@ -294,8 +297,9 @@ class BodySolver:
         )
 
 
-def _kernel_out(pose: BodyPose) -> kernel.BodyOut:
-    return kernel.BodyOut(
+def _kernel_out(pose: BodyPose) -> tuple[np.ndarray, ...]:
+    # The BodyOut fields as a plain tuple (see ``kernel.solve_one``).
+    return (
         pose.joint_centres, pose.world_from_bone_quat, pose.parent_from_bone_quat,
         pose.rest_from_bone_quat, pose.root_pos, pose.bone_quality, pose.bone_flags,
     )  # fmt: skip
