@@ -207,7 +207,10 @@ def _fast_simple(buf: Any, out: MarkerPacket, lay: SimpleLayout) -> bool:
         raise DecodeError("non_finite", "infinite coordinate in a simple bundle")
     staged = out._staged
     staged.fill(np.nan)
-    np.put(staged, lay.flat_rows, lay.values)
+    # A signalling NaN (any NaN bit pattern is a hidden marker on the wire) raises
+    # numpy's "invalid" flag when widened to float64; the value is still NaN.
+    with np.errstate(invalid="ignore"):
+        np.put(staged, lay.flat_rows, lay.values)
     frame_id = -1
     if lay.frame_word >= 0:
         hi = int(words[lay.frame_word])

@@ -47,7 +47,7 @@ def _check(tally: Any, *expected: str) -> None:
     [
         (("osc", "compact"), ("accepted", "bad_length", "implausible_jump")),
         (("osc", "simple"), ("accepted", "bad_bundle", "not_bundle")),
-        (("osc", "labels"), ("labels_taken", "conflicting_labels", "label_conflict")),
+        (("osc", "labels"), ("labels_taken", "conflicting_labels")),
         (("zmq", "frames"), ("accepted", "bad_magic", "bad_length")),
         (("zmq", "labels"), ("labels_taken", "too_many_markers", "bad_count")),
     ],

@@ -370,3 +370,22 @@ def test_simple_form_layout_cache_equals_the_parse(rng: np.random.Generator) -> 
     # with the frames (200 frames of a per-frame object would be > 8 KB).
     assert end - start < 8192
     del peak  # (numpy's temporaries for the checks and the scatter: a few kB)
+
+
+def test_signalling_nan_hides_a_marker_on_both_paths() -> None:
+    """Any NaN bit pattern is a hidden marker; a signalling NaN (0x7f800001) widened
+    to float64 on the cached path raised numpy's "invalid" warning (found by the
+    volume fuzz). Warnings are errors here: both paths read it as hidden, silently."""
+    import warnings
+
+    packet = MarkerPacket.create(LABELS, "+Z", "m")
+    good = osc_in.encode_simple_bundle(LABELS.labels, POSITIONS, 7)
+    signalling = good.replace(b"\x7f\xc0\x00\x00", b"\x7f\x80\x00\x01")
+    assert signalling != good
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        for buf in (signalling, good, signalling):  # parse, cache, cached path
+            osc_in.decode_simple_bundle(buf, packet)
+            assert packet.frame.valid.tolist() == [True, False]
+            np.testing.assert_array_equal(packet.frame.markers_world[0], [1, 2, 3])
+    assert packet._simple.hits >= 1
