@@ -22,9 +22,10 @@ its own.
 Faults, each a line on the daemon's output and a counter in ``status["capture"]``:
 a server that vanishes or stops sending (no accepted frame for
 :data:`SOURCE_SILENT_NS`) turns the source ``lost``: the last good pose is sent again
-every :data:`HOLD_RESEND_NS`, flagged ``held`` and ``source_lost``, until frames come
-back; an unknown protocol version, labels the rig does not know and a flood (frames
-drained in one wake-up) are said and counted; reconnecting is the client's job
+every :data:`HOLD_RESEND_NS`, flagged ``held`` and ``source_lost``, and VMC hears
+``/VMC/Ext/OK 1 3 0 0`` (calibrated, tracking lost) as often, until frames come back;
+an unknown protocol version, labels the rig does not know and a flood (frames drained
+in one wake-up) are said and counted; reconnecting is the client's job
 (NatNet: a request per second; QTM: the client thread's backoff), never the loop's.
 """
 
@@ -43,6 +44,7 @@ import zmq
 from retargetd.daemon.live.state import DaemonState
 from retargetd.protocols import natnet, pose_stream, qtm
 from retargetd.protocols.marker_input import ACCEPTED, RESTART, RESTART_GAP_NS
+from retargetd.protocols.vmc_out import CALIBRATION_CALIBRATED
 from retargetd.replay import recording as rf
 
 logger = logging.getLogger(__name__)
@@ -101,7 +103,8 @@ class CaptureInput:
         source: the QTM source (None for NatNet).
         readers: (fd, read) pairs: poll ``fd``, ``read()`` until None.
         counts: ``frames`` accepted, ``control`` packets, ``lost`` (times the source
-            fell silent), ``held_poses`` (last good poses sent again),
+            fell silent), ``held_poses`` (last good poses sent again on the pose
+            stream), ``held_vmc`` (VMC "calibrated, tracking lost" states sent),
             ``unknown_label_sets`` (label sets with labels the rig does not know),
             ``floods`` (wake-ups that drained more than :data:`FLOOD_FRAMES` frames).
     """
@@ -122,6 +125,7 @@ class CaptureInput:
                 "control",
                 "lost",
                 "held_poses",
+                "held_vmc",
                 "unknown_label_sets",
                 "floods",
             ),
@@ -390,7 +394,22 @@ class CaptureMixin(DaemonState):
         """The last pose message sent again (its encoder's buffers still hold it),
         flagged held and source_lost, with a new sent time."""
         pipe = self._pipelines.get(id(cap.last_stream))
-        if pipe is None or (self._pub is None and self.recording.poses is None):
+        if pipe is None:
+            return
+        if self._vmc is not None:
+            # VMC has no frame flags; its own word for this is /VMC/Ext/OK with
+            # tracking 0 (VMC 2.7): the model is loaded and calibrated, tracking is
+            # lost. Receivers keep the last pose they got and hear the performer is
+            # still there (silence reads as "no performer" in EVMC4U and VSeeFace).
+            dgram = self._vmc_state.encode_state(
+                CALIBRATION_CALIBRATED, False, (now_ns - self._t0_ns) * 1e-9
+            )
+            try:
+                self._vmc.sendto(dgram, self._vmc_addr)
+            except OSError:  # receiver absent: never block, count
+                self.stats.vmc_errors += 1
+            cap.counts["held_vmc"] += 1
+        if self._pub is None and self.recording.poses is None:
             return
         parts = pipe.pose_enc.parts
         header = parts[0]

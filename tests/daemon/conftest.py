@@ -97,10 +97,14 @@ def retargetd_argv() -> list[str]:
     return [sys.executable, "-m", "retargetd.daemon"]
 
 
-def daemon_config(path: Path, calibration: Path, extra: str = "") -> Path:
+def daemon_config(
+    path: Path, calibration: Path, extra: str = "", vmc_port: int = 0
+) -> Path:
     """A ``retargetd run`` config for the plug-in-gait rig: every endpoint ephemeral
-    on 127.0.0.1, VMC off, a pose stream that queues (not drops) for a slow SUB."""
+    on 127.0.0.1, VMC off (or to 127.0.0.1:``vmc_port``), a pose stream that queues
+    (not drops) for a slow SUB."""
     q = json.dumps  # a JSON string is a valid TOML basic string for these paths
+    vmc = f'host = "127.0.0.1"\nport = {vmc_port}' if vmc_port else "enabled = false"
     path.write_text(
         f"""[performer]
 rig = "plug-in-gait"
@@ -110,7 +114,7 @@ port = 0
 [input.zmq]
 endpoint = "tcp://127.0.0.1:*"
 [output.vmc]
-enabled = false
+{vmc}
 [output.pose]
 endpoint = "tcp://127.0.0.1:*"
 sndhwm = 100000
@@ -213,13 +217,16 @@ def retargetd() -> list[str]:
 
 @pytest.fixture
 def run_daemon(tmp_path: Path) -> Iterator[Callable[..., DaemonProc]]:
-    """``start(calibration, *args, extra="")``: ``retargetd run --config C ARGS`` in
-    ``tmp_path``, C from :func:`daemon_config`; killed at teardown if still running."""
+    """``start(calibration, *args, extra="", vmc_port=0)``: ``retargetd run --config C
+    ARGS`` in ``tmp_path``, C from :func:`daemon_config`; killed at teardown if still
+    running."""
     procs: list[DaemonProc] = []
 
-    def start(calibration: Path, *args: str, extra: str = "") -> DaemonProc:
+    def start(
+        calibration: Path, *args: str, extra: str = "", vmc_port: int = 0
+    ) -> DaemonProc:
         config = daemon_config(
-            tmp_path / f"daemon{len(procs)}.toml", calibration, extra
+            tmp_path / f"daemon{len(procs)}.toml", calibration, extra, vmc_port
         )
         proc = DaemonProc(["--config", str(config), *args], tmp_path)
         procs.append(proc)

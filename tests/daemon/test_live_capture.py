@@ -21,16 +21,19 @@ from __future__ import annotations
 import functools
 import importlib.util
 import queue
+import socket
 import subprocess
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
 from paths import DATASETS
+from pythonosc.osc_bundle import OscBundle
+from pythonosc.osc_message import OscMessage
 
 from retargetd.daemon.body.calibration import load_calibration
 from retargetd.daemon.body.rig import load_rig
@@ -133,9 +136,15 @@ def _start(
     calibration: Path,
     server: _Server,
     *args: str,
+    vmc_port: int = 0,
 ) -> tuple[Any, Any, set[int]]:
     daemon = run_daemon(
-        calibration, *args, "--listen", server.url, extra="stats_interval_s = 0.5\n"
+        calibration,
+        *args,
+        "--listen",
+        server.url,
+        extra="stats_interval_s = 0.5\n",
+        vmc_port=vmc_port,
     )
     cap = pose_capture(daemon.endpoints["zmq poses"])
     take = _walk()
@@ -174,6 +183,29 @@ def _wait(cond: Callable[[], bool], cap: Any, timeout_s: float) -> bool:
     return cond()
 
 
+def _vmc_tracking_lost(sock: socket.socket, timeout_s: float) -> bool:
+    """Drain ``sock`` (the VMC target) until a ``/VMC/Ext/OK 1 3 0 0`` arrives."""
+
+    def messages(dgram: bytes) -> Iterator[OscMessage]:
+        if OscBundle.dgram_is_bundle(dgram):
+            for item in OscBundle(dgram):
+                yield from messages(item.dgram)
+        else:
+            yield OscMessage(dgram)
+
+    deadline = time.monotonic() + timeout_s
+    sock.settimeout(0.2)
+    while time.monotonic() < deadline:
+        try:
+            dgram = sock.recv(65536)
+        except TimeoutError:
+            continue
+        for msg in messages(dgram):
+            if msg.address == "/VMC/Ext/OK" and list(msg.params) == [1, 3, 0, 0]:
+                return True
+    return False
+
+
 def _angles(live: np.ndarray, batch: np.ndarray) -> np.ndarray:
     return quat_angle(quat_mul(quat_conj(np.asarray(live, np.float64)), batch))
 
@@ -186,13 +218,18 @@ def test_live_from_capture_system_equals_batch_solve(
     pose_capture: Callable[[str], Any],
     serve: Any,
     system: str,
+    request: pytest.FixtureRequest,
 ) -> None:
     take = _walk()
     n = take.n_frames
     server = serve(system, faults=False)
+    vmc_rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    request.addfinalizer(vmc_rx.close)
+    vmc_rx.bind(("127.0.0.1", 0))
     daemon, cap, primed = _start(
-        run_daemon, pose_capture, pig_calibration, server, "--process-every-frame"
-    )
+        run_daemon, pose_capture, pig_calibration, server, "--process-every-frame",
+        vmc_port=vmc_rx.getsockname()[1],
+    )  # fmt: skip
 
     def live() -> list[Any]:
         return [m for m in cap.poses if m.names_id not in primed and not m.flags & LOST]
@@ -233,6 +270,10 @@ def test_live_from_capture_system_equals_batch_solve(
     assert status["system"] == system and status["state"] == "lost", status
     assert status["counts"]["frames"] == n and status["counts"]["lost"] == 1, status
     assert status["counts"]["held_poses"] >= len(held)
+    # VMC has no frame flags: while lost its target hears "calibrated, tracking lost"
+    # (/VMC/Ext/OK 1 3 0 0, VMC 2.7), read here with python-osc, not our decoder.
+    assert _vmc_tracking_lost(vmc_rx, 5.0), "no /VMC/Ext/OK 1 3 0 0 while lost"
+    assert _capture_status(daemon)["counts"]["held_vmc"] >= 1
     connected = (
         "connected to Motive"
         if system == "natnet"
