@@ -63,11 +63,12 @@ class Sender:
     first and once a second, like a capture system."""
 
     def __init__(self, addr: tuple[str, int]) -> None:
+        # The take first: a take that fails to load leaves no socket open.
+        self.labels = osc_in.encode_labels(LabelSet(1, _walk().labels))
+        self._pos = np.asarray(_walk().positions, dtype=np.float32)
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.addr = addr
         self.sent: list[bytes] = []
-        self.labels = osc_in.encode_labels(LabelSet(1, _walk().labels))
-        self._pos = np.asarray(_walk().positions, dtype=np.float32)
 
     def send(self, seconds: float, rate_hz: float) -> None:
         start = time.perf_counter()
