@@ -183,6 +183,22 @@ def _jacobi_top_eigvec(a: np.ndarray, v: np.ndarray, out: np.ndarray) -> None:
 
 
 @kernel
+def mat_from_unit_quat(q: np.ndarray, m: np.ndarray) -> None:
+    """Rotation matrix of the unit quaternion ``q`` (w, x, y, z) into ``m[:3, :3]``
+    (``v_a = M @ v_b``; ``m`` may be larger, e.g. a 4x4 scratch)."""
+    w, x, y, z = q[0], q[1], q[2], q[3]
+    m[0, 0] = 1.0 - 2.0 * (y * y + z * z)
+    m[0, 1] = 2.0 * (x * y - w * z)
+    m[0, 2] = 2.0 * (x * z + w * y)
+    m[1, 0] = 2.0 * (x * y + w * z)
+    m[1, 1] = 1.0 - 2.0 * (x * x + z * z)
+    m[1, 2] = 2.0 * (y * z - w * x)
+    m[2, 0] = 2.0 * (x * z - w * y)
+    m[2, 1] = 2.0 * (y * z + w * x)
+    m[2, 2] = 1.0 - 2.0 * (x * x + y * y)
+
+
+@kernel
 def horn_rotation(
     sxx: float, sxy: float, sxz: float,
     syx: float, syy: float, syz: float,
@@ -207,16 +223,7 @@ def horn_rotation(
     n44[2, 3] = n44[3, 2] = syz + szy
     n44[3, 3] = -sxx - syy + szz
     _jacobi_top_eigvec(n44, v44, q4)
-    w, x, y, z = q4[0], q4[1], q4[2], q4[3]
-    n44[0, 0] = 1.0 - 2.0 * (y * y + z * z)
-    n44[0, 1] = 2.0 * (x * y - w * z)
-    n44[0, 2] = 2.0 * (x * z + w * y)
-    n44[1, 0] = 2.0 * (x * y + w * z)
-    n44[1, 1] = 1.0 - 2.0 * (x * x + z * z)
-    n44[1, 2] = 2.0 * (y * z - w * x)
-    n44[2, 0] = 2.0 * (x * z - w * y)
-    n44[2, 1] = 2.0 * (y * z + w * x)
-    n44[2, 2] = 1.0 - 2.0 * (x * x + y * y)
+    mat_from_unit_quat(q4, n44)
 
 
 @kernel

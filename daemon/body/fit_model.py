@@ -299,25 +299,6 @@ def _readonly(arr: np.ndarray) -> np.ndarray:
     return arr
 
 
-def _quat_mats(q: F64Array) -> F64Array:
-    """(..., 3, 3) rotation matrices of (..., 4) quaternions (NaN passes through)."""
-    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    return np.stack(
-        [
-            np.stack(
-                [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1
-            ),
-            np.stack(
-                [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1
-            ),
-            np.stack(
-                [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1
-            ),
-        ],
-        axis=-2,
-    )
-
-
 def _local_mean(pos: F64Array, origin: F64Array, wfb: F64Array) -> tuple[F64Array, int]:
     """Mean over frames of conj(wfb) (pos - origin), finite frames only.
 
@@ -327,7 +308,7 @@ def _local_mean(pos: F64Array, origin: F64Array, wfb: F64Array) -> tuple[F64Arra
     Returns:
         (3,) metres in the bone frame (NaN when no frame is usable), frames used.
     """
-    mats = _quat_mats(wfb)  # (F, 3, 3)
+    mats = rot.mat_from_quat(wfb)  # (F, 3, 3); NaN rows stay NaN
     local = np.einsum("fji,fj->fi", mats, pos - origin)
     ok = np.isfinite(local).all(axis=-1)
     if not ok.any():

@@ -42,7 +42,7 @@ import math
 import numpy as np
 
 from retargetd.daemon.body import kernel as body_kernel
-from retargetd.daemon.compiled import kernel
+from retargetd.daemon.compiled import kernel, mat_from_unit_quat
 
 # Bone flags: the construction's bits with the same meaning (the pose stream's bone
 # flags have no free bit for the fit: bits 4-7 carry validation results on main);
@@ -141,20 +141,6 @@ def _cp1(dst: np.ndarray, src: np.ndarray) -> None:
 
 
 @kernel
-def _mat(q: np.ndarray, m: np.ndarray) -> None:
-    w, x, y, z = q[0], q[1], q[2], q[3]
-    m[0, 0] = 1.0 - 2.0 * (y * y + z * z)
-    m[0, 1] = 2.0 * (x * y - w * z)
-    m[0, 2] = 2.0 * (x * z + w * y)
-    m[1, 0] = 2.0 * (x * y + w * z)
-    m[1, 1] = 1.0 - 2.0 * (x * x + z * z)
-    m[1, 2] = 2.0 * (y * z - w * x)
-    m[2, 0] = 2.0 * (x * z - w * y)
-    m[2, 1] = 2.0 * (y * z + w * x)
-    m[2, 2] = 1.0 - 2.0 * (x * x + y * y)
-
-
-@kernel
 def _fk(
     parent: np.ndarray, root_of: np.ndarray, off: np.ndarray,
     q: np.ndarray, t: np.ndarray, wq: np.ndarray, wm: np.ndarray, o: np.ndarray,
@@ -181,7 +167,7 @@ def _fk(
                     + wm[p, j, 1] * off[b, 1]
                     + wm[p, j, 2] * off[b, 2]
                 )
-        _mat(wq[b], wm[b])
+        mat_from_unit_quat(wq[b], wm[b])
 
 
 @kernel
