@@ -20,9 +20,10 @@ kernel walks it once per frame with no allocation:
 Why numba: a vectorized numpy version costs ~1-2 us per numpy call and a rig needs
 ~150 of them per frame; the compiled walk is one call (figures in bench/).
 
-The kernel takes three packed tuples (:class:`BodyPlan`: the rig program, read-only;
+The kernel reads three records (:class:`BodyPlan`: the rig program, read-only;
 :class:`BodyState`: scratch and what carries over between frames; :class:`BodyOut`:
-this frame's outputs), built once per stream by ``body.solve.BodySolver``. Its flag
+this frame's outputs), built once per stream by ``body.solve.BodySolver`` as views of a
+few flat buffers, which is how the live call passes them (:func:`solve_one`). Its flag
 bits are the pose stream's bone flags (``protocols.pose_stream.BONE_*``), imported, not
 copied.
 """
@@ -390,15 +391,154 @@ def solve_one_nt(
     return n_held
 
 
+# -- The packed form: a handful of flat buffers instead of 35 arrays. -------------
+#
+# numba's dispatcher types and unboxes every array of an argument, ~60-100 ns each, so
+# passing the plan, state and output as 35 arrays cost ~2 us a call, half of a frame's
+# solve (bench/bench_solve.py). The live path passes them as nine flat buffers instead;
+# the functions below are the one definition of how the fields tile those buffers,
+# used by the kernel and, from Python, by ``BodySolver`` to fill them (the NamedTuples
+# Python holds are views of the same memory).
+#
+# ``plan_i`` starts with the sizes header ``PLAN_HEADER`` (Mr, P, S, K, B, D, J,
+# root_point); every other size follows from it.
+
+PLAN_HEADER = 8
+
+
 @kernel
-def solve_one(markers: np.ndarray, plan: tuple, st: tuple, out: tuple) -> int:
-    """Solve one frame: the plan, state and output as *plain* tuples of the
-    :class:`BodyPlan`, :class:`BodyState` and :class:`BodyOut` fields (numba's
-    dispatcher types a plain tuple in C; a NamedTuple argument goes through Python
-    and cost ~3 us a call), named again here. Returns the number of bones held in
-    the low 32 bits and of rig markers occluded above them."""
+def plan_sizes(h: np.ndarray) -> tuple[int, int]:
+    """Lengths of the int64 and float64 plan buffers for the sizes header ``h``."""
+    mr, p, s, k, b, d, j = h[0], h[1], h[2], h[3], h[4], h[5], h[6]
+    n_i = PLAN_HEADER + mr + p + 3 * p + (s + 1) + k + 4 * b + b + (b + 1) + d + j
+    n_f = p + 3 * p + 3 * k + k + 4 * b
+    return n_i, n_f
+
+
+@kernel
+def plan_views(pi: np.ndarray, pf: np.ndarray) -> BodyPlan:
+    """The :class:`BodyPlan` fields as views of the packed buffers."""
+    mr, p, s, k, b, d, j = pi[0], pi[1], pi[2], pi[3], pi[4], pi[5], pi[6]
+    o = PLAN_HEADER
+    marker_cols = pi[o : o + mr]
+    o += mr
+    op_kind = pi[o : o + p]
+    o += p
+    op_idx = pi[o : o + 3 * p].reshape((p, 3))
+    o += 3 * p
+    seg_ptr = pi[o : o + s + 1]
+    o += s + 1
+    seg_idx = pi[o : o + k]
+    o += k
+    bone_pts = pi[o : o + 4 * b].reshape((b, 4))
+    o += 4 * b
+    bone_parent = pi[o : o + b]
+    o += b
+    bone_def_ptr = pi[o : o + b + 1]
+    o += b + 1
+    bone_def_idx = pi[o : o + d]
+    o += d
+    joint_idx = pi[o : o + j]
+    f = 0
+    op_u = pf[f : f + p]
+    f += p
+    op_off = pf[f : f + 3 * p].reshape((p, 3))
+    f += 3 * p
+    seg_layout = pf[f : f + 3 * k].reshape((k, 3))
+    f += 3 * k
+    seg_w = pf[f : f + k]
+    f += k
+    rest_pfb = pf[f : f + 4 * b].reshape((b, 4))
+    return BodyPlan(
+        marker_cols, op_kind, op_idx, op_u, op_off, seg_ptr, seg_idx, seg_layout,
+        seg_w, bone_pts, bone_parent, bone_def_ptr, bone_def_idx, rest_pfb,
+        joint_idx, pi[7],
+    )  # fmt: skip
+
+
+@kernel
+def state_sizes(pi: np.ndarray) -> tuple[int, int, int]:
+    """Lengths of the float64, bool and int64 state buffers."""
+    n_pts, b = pi[0] + pi[1], pi[4]
+    return 3 * n_pts + 4 * b + 4 * b + 4 + 16 + 16 + 6 + 3, 2 * n_pts + b, 1
+
+
+@kernel
+def state_views(
+    pi: np.ndarray, sf: np.ndarray, sb: np.ndarray, si: np.ndarray
+) -> BodyState:
+    """The :class:`BodyState` fields as views of the packed buffers."""
+    n_pts, b = pi[0] + pi[1], pi[4]
+    f = 0
+    pts = sf[f : f + 3 * n_pts].reshape((n_pts, 3))
+    f += 3 * n_pts
+    last_pfb = sf[f : f + 4 * b].reshape((b, 4))
+    f += 4 * b
+    prev_wfb = sf[f : f + 4 * b].reshape((b, 4))
+    f += 4 * b
+    tmp4 = sf[f : f + 4]
+    f += 4
+    n44 = sf[f : f + 16].reshape((4, 4))
+    f += 16
+    v44 = sf[f : f + 16].reshape((4, 4))
+    f += 16
+    cen = sf[f : f + 6]
+    f += 6
+    last_root = sf[f : f + 3]
+    return BodyState(
+        pts, sb[:n_pts], sb[n_pts : 2 * n_pts], last_pfb, sb[2 * n_pts : 2 * n_pts + b],
+        prev_wfb, tmp4, n44, v44, cen, last_root, si[:1],
+    )  # fmt: skip
+
+
+@kernel
+def out_size(pi: np.ndarray) -> int:
+    """Length of the float64 output buffer (the float32 quality and uint8 flags
+    buffers are (B,))."""
+    return 3 * pi[6] + 3 * 4 * pi[4] + 3
+
+
+@kernel
+def out_views(
+    pi: np.ndarray, of: np.ndarray, oq: np.ndarray, ofl: np.ndarray
+) -> BodyOut:
+    """The :class:`BodyOut` fields as views of the packed buffers."""
+    b, j = pi[4], pi[6]
+    f = 0
+    joints = of[f : f + 3 * j].reshape((j, 3))
+    f += 3 * j
+    wfb = of[f : f + 4 * b].reshape((b, 4))
+    f += 4 * b
+    pfb = of[f : f + 4 * b].reshape((b, 4))
+    f += 4 * b
+    rfb = of[f : f + 4 * b].reshape((b, 4))
+    f += 4 * b
+    return BodyOut(joints, wfb, pfb, rfb, of[f : f + 3], oq, ofl)
+
+
+@kernel
+def solve_one(
+    markers: np.ndarray,
+    pi: np.ndarray, pf: np.ndarray,
+    sf: np.ndarray, sb: np.ndarray, si: np.ndarray,
+    of: np.ndarray, oq: np.ndarray, ofl: np.ndarray,
+) -> int:  # fmt: skip
+    """Solve one frame: the plan, state and output packed (see :func:`plan_views`,
+    :func:`state_views`, :func:`out_views`). Returns the number of bones held in the
+    low 32 bits and of rig markers occluded above them (no numpy read in Python)."""
+    held = solve_one_nt(
+        markers, plan_views(pi, pf), state_views(pi, sf, sb, si),
+        out_views(pi, of, oq, ofl),
+    )  # fmt: skip
+    return held | (si[0] << 32)
+
+
+@kernel
+def solve_one_t(markers: np.ndarray, plan: tuple, st: tuple, out: tuple) -> int:
+    """:func:`solve_one` for outputs that are not views of one buffer (a ``BodyPose``
+    built by hand): the fields as plain tuples (numba types a plain tuple in C; a
+    NamedTuple argument goes through Python)."""
     held = solve_one_nt(markers, BodyPlan(*plan), BodyState(*st), BodyOut(*out))
-    # Bones held and rig markers occluded in one int (no numpy read in Python).
     return held | (st[11][0] << 32)
 
 

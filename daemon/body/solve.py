@@ -84,6 +84,9 @@ class BodyPose:
     n_occluded: int = 0
     #: The same buffers as the kernel's output tuple (built once, never per frame).
     kernel_out: tuple[np.ndarray, ...] | None = None
+    #: The flat float64, float32 and uint8 buffers the fields are views of, when
+    #: :meth:`BodySolver.new_pose` made them (the fast call, ``kernel.solve_one``).
+    kernel_buffers: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -182,35 +185,46 @@ class BodySolver:
         )
         self.root_point = int(index[rig.bones[0].origin])
         self.bone_names = rig.bone_names
-        # Scratch and state.
-        self._pts = np.zeros((n_markers + n_points, 3))
-        self._seen = np.zeros(n_markers + n_points, dtype=bool)
-        self._filled = np.zeros(n_markers + n_points, dtype=bool)
-        self._last_pfb = np.zeros((n_bones, 4))
-        self._have_good = np.zeros(n_bones, dtype=bool)
-        self._prev_wfb = np.zeros((n_bones, 4))
-        self._tmp4 = np.zeros(4)
-        self._n44 = np.zeros((4, 4))
-        self._v44 = np.zeros((4, 4))
-        self._last_root = np.zeros(3)
         seg_w = np.ones(len(self.seg_idx))
-        for arr in (self.marker_cols, self.op_kind, self.op_idx, self.op_u, self.op_off,
-                    self.seg_ptr, self.seg_idx, self.seg_layout, seg_w, self.bone_pts,
-                    self.bone_parent, self.bone_def_ptr, self.bone_def_idx,
-                    self.rest_pfb, self.joint_idx):  # fmt: skip
-            arr.flags.writeable = False
-        self.plan = kernel.BodyPlan(
+        # The plan, state and output live in a few flat buffers (what the live call
+        # passes: see ``kernel.solve_one``); the NamedTuples here are views of them.
+        header = np.array(
+            [n_markers, n_points, len(self.seg_ptr) - 1, len(self.seg_idx), n_bones,
+             len(self.bone_def_idx), len(self.joint_idx), self.root_point],
+            dtype=np.int64,
+        )  # fmt: skip
+        n_i, n_f = kernel.plan_sizes(header)
+        self._pi = np.zeros(n_i, dtype=np.int64)
+        self._pi[: kernel.PLAN_HEADER] = header
+        self._pf = np.zeros(n_f)
+        source = kernel.BodyPlan(
             self.marker_cols, self.op_kind, self.op_idx, self.op_u, self.op_off,
             self.seg_ptr, self.seg_idx, self.seg_layout, seg_w, self.bone_pts,
             self.bone_parent, self.bone_def_ptr, self.bone_def_idx, self.rest_pfb,
             self.joint_idx, self.root_point,
         )  # fmt: skip
-        self.state = kernel.BodyState(
-            self._pts, self._seen, self._filled, self._last_pfb, self._have_good,
-            self._prev_wfb, self._tmp4, self._n44, self._v44, np.zeros(6),
-            self._last_root, np.zeros(1, dtype=np.int64),
-        )  # fmt: skip
-        # Plain tuples for the kernel's argument (see ``kernel.solve_one``).
+        views = kernel.plan_views(self._pi, self._pf)
+        for dst, src in zip(views, source, strict=True):
+            if isinstance(dst, np.ndarray):
+                dst[...] = src
+        self._pi.flags.writeable = False
+        self._pf.flags.writeable = False
+        self.plan = kernel.plan_views(self._pi, self._pf)
+        for name in kernel.BodyPlan._fields:  # one copy: the attributes are the views
+            if name != "seg_w" and hasattr(self, name):
+                setattr(self, name, getattr(self.plan, name))
+        n_sf, n_sb, n_si = kernel.state_sizes(self._pi)
+        self._sf = np.zeros(n_sf)
+        self._sb = np.zeros(n_sb, dtype=bool)
+        self._si = np.zeros(n_si, dtype=np.int64)
+        self.state = kernel.state_views(self._pi, self._sf, self._sb, self._si)
+        self._pts = self.state.pts  # the kernel's scratch: rig markers, then points
+        self._seen = self.state.seen  # which of them were seen this frame
+        self._last_pfb = self.state.last_pfb
+        self._have_good = self.state.have_good
+        self._prev_wfb = self.state.prev_wfb
+        self._last_root = self.state.last_root
+        # Plain tuples for the batch kernel and hand-made poses (``solve_one_t``).
         self._plan_t = tuple(self.plan)
         self._state_t = tuple(self.state)
         self.reset()
@@ -225,17 +239,31 @@ class BodySolver:
     def new_pose(self) -> BodyPose:
         """Allocate the buffers of one frame's output (once per stream)."""
         n_bones = len(self.bone_names)
-        pose = BodyPose(
-            joint_centres=np.zeros((len(self.joint_names), 3)),
-            world_from_bone_quat=np.zeros((n_bones, 4)),
-            parent_from_bone_quat=np.zeros((n_bones, 4)),
-            rest_from_bone_quat=np.zeros((n_bones, 4)),
-            root_pos=np.zeros(3),
-            bone_quality=np.zeros(n_bones, dtype=np.float32),
-            bone_flags=np.zeros(n_bones, dtype=np.uint8),
+        buffers = (
+            np.zeros(kernel.out_size(self._pi)),
+            np.zeros(n_bones, dtype=np.float32),
+            np.zeros(n_bones, dtype=np.uint8),
         )
-        pose.kernel_out = _kernel_out(pose)
+        out = kernel.out_views(self._pi, *buffers)
+        pose = BodyPose(
+            joint_centres=out.joints,
+            world_from_bone_quat=out.wfb,
+            parent_from_bone_quat=out.pfb,
+            rest_from_bone_quat=out.rfb,
+            root_pos=out.root,
+            bone_quality=out.quality,
+            bone_flags=out.flags,
+        )
+        pose.kernel_out = tuple(out)
+        pose.kernel_buffers = buffers
         return pose
+
+    def packed_buffers(self, pose: BodyPose) -> tuple[np.ndarray, ...]:
+        """The plan, state and ``pose``'s output buffers as ``kernel.solve_one`` takes
+        them (for a kernel that runs this solve inside its own call)."""
+        if pose.kernel_buffers is None:
+            raise ValueError("the pose was not made by new_pose()")
+        return (self._pi, self._pf, self._sf, self._sb, self._si, *pose.kernel_buffers)
 
     def solve_frame(self, markers_world: F64Array, out: BodyPose) -> BodyPose:
         """Solve one frame into ``out`` (no allocation).
@@ -248,11 +276,21 @@ class BodySolver:
         Returns:
             ``out``.
         """
-        k_out = out.kernel_out
-        if k_out is None:  # a BodyPose made by hand: wrap it once
-            k_out = out.kernel_out = _kernel_out(out)
-        out.n_held = kernel.solve_one(markers_world, self._plan_t, self._state_t, k_out)
-        out.n_occluded = int(self.state.counts[0])
+        buffers = out.kernel_buffers
+        if buffers is not None:
+            of, oq, ofl = buffers
+            both = kernel.solve_one(
+                markers_world, self._pi, self._pf, self._sf, self._sb, self._si,
+                of, oq, ofl,
+            )  # fmt: skip (positional: the fastest dispatch)
+        else:  # a BodyPose made by hand: its arrays as a plain tuple, built once
+            if out.kernel_out is None:
+                out.kernel_out = _kernel_out(out)
+            both = kernel.solve_one_t(
+                markers_world, self._plan_t, self._state_t, out.kernel_out
+            )
+        out.n_held = both & 0xFFFFFFFF
+        out.n_occluded = both >> 32
         return out
 
     def solve_take(self, positions: F64Array) -> BodySolve:

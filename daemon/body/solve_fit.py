@@ -274,9 +274,10 @@ class FitSolver:
             z(n_b, 4), z(n_r, 3), z(n_b, 4), z(n_r, 3),
         )  # fmt: skip
         self._con_pose = con.new_pose()
-        assert self._con_pose.kernel_out is not None
-        # flat: NamedTuple arguments cost Python allocations at every dispatch
-        self._con = (*con.plan, *con.state, *self._con_pose.kernel_out)
+        assert self._con_pose.kernel_buffers is not None
+        # The construction's packed buffers (``body.kernel.solve_one``): a NamedTuple
+        # argument costs Python allocations at every dispatch, each array ~80 ns.
+        self._con = con.packed_buffers(self._con_pose)
         self.reset()
 
     def reset(self) -> None:

@@ -378,6 +378,50 @@ def test_one_frame_at_a_time_equals_batch_with_dropouts(exact_rig: Rig) -> None:
     assert np.isfinite(wfb).all() and np.isfinite(batch.rest_from_bone_quat).all()
 
 
+def test_frame_counts_and_both_output_forms_agree(exact_rig: Rig) -> None:
+    """``n_held`` is the frame's held bones and ``n_occluded`` its unseen rig markers
+    (the kernel returns both packed in one int; before the packed plan, ``n_held`` kept
+    the occluded count in its high bits), and a ``BodyPose`` built by hand (plain-tuple
+    call) gives exactly what the packed buffers of ``new_pose`` give."""
+    clean = pf.synthesize(seconds=2.0, rate_hz=120.0, markerset=EXACT_MARKERS)
+    cal = calibrate(
+        exact_rig, clean.markers_world[clean.base_pose_frames], clean.labels
+    )
+    take = pf.synthesize(
+        seconds=2.0, rate_hz=120.0, markerset=EXACT_MARKERS, noise_mm=0.5,
+        dropout=0.1, dropout_mean_frames=12, seed=5,
+    )  # fmt: skip
+    packed, by_hand = BodySolver(exact_rig, cal, take.labels), BodySolver(
+        exact_rig, cal, take.labels
+    )
+    out = packed.new_pose()
+    made = packed.new_pose()
+    hand = type(made)(
+        joint_centres=made.joint_centres.copy(),
+        world_from_bone_quat=made.world_from_bone_quat.copy(),
+        parent_from_bone_quat=made.parent_from_bone_quat.copy(),
+        rest_from_bone_quat=made.rest_from_bone_quat.copy(),
+        root_pos=made.root_pos.copy(),
+        bone_quality=made.bone_quality.copy(),
+        bone_flags=made.bone_flags.copy(),
+    )
+    cols = packed.marker_cols
+    n_held_total = 0
+    for t in range(take.n_frames):
+        m = take.markers_world[t]
+        packed.solve_frame(m, out)
+        by_hand.solve_frame(m, hand)
+        seen = cols >= 0
+        seen[seen] = np.isfinite(m[cols[seen]]).all(axis=1)
+        assert out.n_occluded == int((~seen).sum())
+        assert out.n_held == int(((out.bone_flags & FLAG_HELD) != 0).sum())
+        n_held_total += out.n_held
+        assert (hand.n_held, hand.n_occluded) == (out.n_held, out.n_occluded)
+        for name in _ARRAYS:
+            np.testing.assert_array_equal(getattr(hand, name), getattr(out, name))
+    assert n_held_total > 0  # the dropouts held some bones
+
+
 def test_held_bone_keeps_its_parent_relative_rotation_and_recovers(
     exact_rig: Rig,
     exact_take: pf.SynthTake,
