@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from retargetd.protocols import kernels
 from retargetd.protocols.conventions import (
     UNIT_TO_METRES,
     normalize_units,
@@ -161,19 +162,13 @@ class MarkerPacket:
     world_from_capture_scaled_mat: F64Array
     label_index: dict[str, int]
     zero_is_occluded: bool
-    # Scratch, allocated with the frame: the matmul right-hand side (M^T), a per-value
-    # mask, native float32 rows, the occlusion mask (and its column view), and the
-    # staging rows of the simple form.
+    # Scratch, allocated with the frame: the conversion's right-hand side (M^T), native
+    # float32 rows, the occlusion mask, and the staging rows of the simple form.
     _rhs: F64Array = field(repr=False)
-    _mask3: BoolArray = field(repr=False)
-    _mask_cols: tuple[BoolArray, BoolArray, BoolArray] = field(repr=False)
     _raw32: F32Array = field(repr=False)
-    _raw64: F64Array = field(repr=False)
     _occluded: BoolArray = field(repr=False)
-    _occluded_col: BoolArray = field(repr=False)
     _staged: F64Array = field(repr=False)
     _seen: BoolArray = field(repr=False)
-    _zero: BoolArray = field(repr=False)
     #: The simple form's layout cache (``osc_in.SimpleLayout``): None until a bundle
     #: decoded; reset with the label set.
     _simple: Any = field(default=None, repr=False)
@@ -203,8 +198,6 @@ class MarkerPacket:
         cls, label_set: LabelSet, mat: F64Array, zero_is_occluded: bool
     ) -> MarkerPacket:
         n = len(label_set.labels)
-        occluded = np.zeros(n, dtype=bool)
-        mask = np.zeros((n, 3), dtype=bool)
         return cls(
             frame=MarkerFrame.empty(n),
             label_set=label_set,
@@ -214,15 +207,10 @@ class MarkerPacket:
             label_index={name: i for i, name in enumerate(label_set.labels)},
             zero_is_occluded=zero_is_occluded,
             _rhs=np.ascontiguousarray(mat.T),
-            _mask3=mask,
-            _mask_cols=(mask[:, 0], mask[:, 1], mask[:, 2]),
             _raw32=np.zeros((n, 3), dtype=np.float32),
-            _raw64=np.zeros((n, 3)),
-            _occluded=occluded,
-            _occluded_col=occluded[:, None],
+            _occluded=np.zeros(n, dtype=bool),
             _staged=np.full((n, 3), np.nan),
             _seen=np.zeros(n, dtype=bool),
-            _zero=np.zeros(n, dtype=bool),
         )
 
     def with_label_set(self, label_set: LabelSet) -> MarkerPacket:
@@ -250,32 +238,19 @@ class MarkerPacket:
         Raises:
             DecodeError: ``non_finite`` if any value is ±inf (``frame`` untouched).
         """
-        raw32, mask, occluded = self._raw32, self._mask3, self._occluded
+        raw32 = self._raw32
         np.copyto(raw32, raw)  # a byte swap, no arithmetic
-        np.isinf(raw32, out=mask)
-        if np.count_nonzero(mask):
+        # One compiled pass (``kernels.store_rows``): the inf check first (nothing
+        # written), then occlusion and the fused rotation to the world and unit scale
+        # (M = R * scale, a scaled signed permutation: an all-NaN row stays all NaN).
+        frame = self.frame
+        if not kernels.store_rows(
+            raw32, self.zero_is_occluded, self._rhs, self._occluded, frame.valid,
+            frame.markers_world,
+        ):  # fmt: skip
             raise DecodeError(
                 "non_finite", "infinite value (NaN is occluded, inf is not)"
             )
-        np.isnan(raw32, out=mask)
-        np.logical_or(self._mask_cols[0], self._mask_cols[1], out=occluded)
-        np.logical_or(occluded, self._mask_cols[2], out=occluded)
-        if self.zero_is_occluded:
-            np.equal(raw32, 0.0, out=mask)
-            if np.count_nonzero(mask):  # rare: skip the row test when no zero at all
-                zero, cols = self._zero, self._mask_cols
-                np.logical_and(cols[0], cols[1], out=zero)
-                np.logical_and(zero, cols[2], out=zero)
-                np.logical_or(occluded, zero, out=occluded)
-        frame = self.frame
-        np.logical_not(occluded, out=frame.valid)
-        # Whole occluded rows become a quiet NaN: a signalling NaN from the wire would
-        # raise "invalid value" in the cast below.
-        np.copyto(raw32, np.nan, where=self._occluded_col)
-        np.copyto(self._raw64, raw32)
-        # One fused conversion: rotation to the world and unit scale (M = R * scale).
-        # M is a scaled signed permutation, so an all-NaN row stays all NaN.
-        np.dot(self._raw64, self._rhs, out=frame.markers_world)
 
 
 class DropCounters:

@@ -33,7 +33,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from retargetd.protocols.frames import BoolArray, F64Array, IntArray
+from retargetd.protocols import kernels
+from retargetd.protocols.frames import F64Array, IntArray
 from retargetd.protocols.humanoid import HUMANOID_BONES
 from retargetd.protocols.osc_wire import (
     BUNDLE_HEADER,
@@ -131,21 +132,14 @@ class VmcEncoder:
         self._buf, bounds, self._slots = _pack(messages)
         view = memoryview(self._buf)
         self.datagrams = [view[a:b] for a, b in itertools.pairwise(bounds)]
-        self._floats = np.frombuffer(self._buf, dtype=">f4")
-        # Staging, in slot order: (root + bones) x 7, then blend values, then T.
-        self._stage: F64Array = np.zeros(len(self._slots))
-        # The staging cast to the wire's dtype first, so the scatter into the
-        # datagrams copies like for like (a float64 -> >f4 scatter made a 4 KB
-        # temporary every frame).
-        self._stage_wire = np.zeros(len(self._slots), dtype=">f4")
-        self._pose = self._stage[: 7 * n_pose].reshape(n_pose, 7)
-        self._quat = self._pose[:, 3:7]
-        self._blend = self._stage[7 * n_pose : 7 * n_pose + len(blends)]
+        # One compiled call writes a frame (``kernels.vmc_pack``): the floats staged
+        # as float32 in slot order ((root + bones) x 7, the blend values, T), each
+        # written big-endian at its byte offset in the datagrams.
+        self._wire = np.frombuffer(self._buf, dtype=np.uint8)
+        self._offsets = np.ascontiguousarray(self._slots * 4, dtype=np.int64)
+        self._stage32 = np.zeros(len(self._slots), dtype=np.float32)
+        self._stage_bits = self._stage32.view(np.uint32)
         self._last_quat: F64Array = np.zeros((n_pose, 4))
-        self._prod: F64Array = np.zeros((n_pose, 4))
-        self._dot: F64Array = np.zeros(n_pose)
-        self._flip: BoolArray = np.zeros(n_pose, dtype=bool)
-        self._flip_col = self._flip[:, None]
         # The state bundle (before and during a calibration): OK + T, prebuilt; the
         # calibration state, the tracking flag and the time are patched in place.
         state_ok = build_message(OK_ADDRESS, ",iiii", [1, 0, 0, 0])
@@ -218,19 +212,9 @@ class VmcEncoder:
         Returns:
             :attr:`datagrams`, in send order.
         """
-        pose = self._pose
-        pose[0, 0:3] = root_pos_unity
-        pose[0, 3:7] = root_quat_xyzw
-        pose[1:, 0:3] = bone_pos_unity
-        pose[1:, 3:7] = bone_quat_xyzw
-        quat = self._quat
-        np.multiply(quat, self._last_quat, out=self._prod)
-        np.sum(self._prod, axis=1, out=self._dot)
-        np.less(self._dot, 0.0, out=self._flip)
-        np.negative(quat, out=quat, where=self._flip_col)
-        np.copyto(self._last_quat, quat)
-        self._blend[:] = blend
-        self._stage[-1] = t_s
-        np.copyto(self._stage_wire, self._stage)
-        self._floats[self._slots] = self._stage_wire
+        kernels.vmc_pack(
+            root_pos_unity, root_quat_xyzw, bone_pos_unity, bone_quat_xyzw, blend,
+            t_s, self._last_quat, self._stage32, self._stage_bits, self._offsets,
+            self._wire,
+        )  # fmt: skip
         return self.datagrams
