@@ -12,15 +12,15 @@ to a UDP socket this script drains, the ZeroMQ pose stream to a SUB this script 
 It is then driven one wake-up at a time, exactly as ``Daemon.run`` does (``poll`` then
 ``_service``), one frame per wake-up: each frame is sent, then the loop wakes for it.
 
-Each stage of the frame is timed by a wrapper put around the call on the live objects
-(``time.perf_counter_ns`` before and after): the poll, the decode and book-keeping of the
-input (``_service`` minus ``_solve_and_send``), the body solve, the retarget, the face,
-the engine-frame conversion, the VMC encode and its ``sendto`` calls, the pose encode and
-its send, the validator's submit; "glue" is ``_solve_and_send`` minus the stages inside
-it (attribute reads, flags, the budget checks, the stats record, which is also timed
-alone on the same object after the run: a slotted object cannot be wrapped in place). The wrapper's own cost
-(measured on an empty call, same run) is subtracted from each stage and printed. Medians
-and p99 per stage in µs, and what share of the median frame each one is.
+Each stage of the frame is timed by a wrapper put around the call on the live
+objects (``time.perf_counter_ns`` before and after): the poll, the decode and
+book-keeping of the input (``_service`` minus ``_solve_and_send``), the body solve, the
+retarget, the engine-frame conversion, the VMC encode and its ``sendto`` calls, the pose
+encode and its send, the validator's submit; "glue" is ``_solve_and_send`` minus the
+stages inside it (attribute reads, flags, the budget checks, the stats record, which is
+also timed alone on the same object after the run: a slotted object cannot be wrapped
+in place). The wrapper's own cost (measured on an empty call, same run) is subtracted
+from each stage and printed. Medians and p99 per stage in µs, and what share of the median frame each one is.
 
 This is CPU time on the loop's thread: the wake-up latency of the scheduler, which
 dominates the end-to-end p99 on a loaded machine, is measured by
@@ -269,7 +269,8 @@ def profile(
         a = us[k]
         med, p99 = float(np.median(a)), float(np.percentile(a, 99))
         share = (
-            "" if k in ("solve_and_send", "service", "stats record")
+            ""
+            if k in ("solve_and_send", "service", "stats record")
             else f"{100 * med / total:6.1f}%"
         )
         print(f"{k:30s} {med:10.1f} {p99:9.1f} {share:>7s}")
@@ -289,8 +290,10 @@ def main(argv: list[str] | None = None) -> int:
     )  # fmt: skip
     args = ap.parse_args(argv)
     la = os.getloadavg()
-    print(f"profile_loop  [load average {la[0]:.2f} {la[1]:.2f} {la[2]:.2f} "
-          f"({os.cpu_count()} cpus)]")
+    print(
+        f"profile_loop  [load average {la[0]:.2f} {la[1]:.2f} {la[2]:.2f} "
+        f"({os.cpu_count()} cpus)]"
+    )
     for transport in args.transports.split(","):
         profile(
             transport.strip(), args.frames, args.warmup, args.method, args.validate,

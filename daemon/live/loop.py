@@ -81,6 +81,7 @@ from retargetd.daemon.target.retarget import (
     warm_up,
 )
 from retargetd.daemon.validate.live import LiveValidator
+from retargetd.protocols import kernels as protocol_kernels
 from retargetd.protocols import pose_stream
 from retargetd.protocols.marker_input import LabelSet, MarkerStream
 from retargetd.protocols.vmc_out import VmcEncoder
@@ -312,6 +313,7 @@ class Daemon(
         """Load the compiled kernel and run every stage once before the first frame
         arrives, so no streamed frame pays for it (numba's cache load is ~0.3 s)."""
         warm_up()
+        protocol_kernels.warm_up()
         if self.config.solve.method == "fit":
             self.out(
                 "loading the fit kernel (a first start compiles for about a minute)"

@@ -51,7 +51,9 @@ def test_store_rows_equals_the_numpy_form(
         raw[rng.random(n) < 0.05, 1] = 0.0  # a zero in one axis only: visible
         packet.store(raw)
         want_world, want_valid = _store_reference(raw, mat, zero_is_occluded)
-        np.testing.assert_array_equal(packet.frame.valid, want_valid, err_msg=str(trial))
+        np.testing.assert_array_equal(
+            packet.frame.valid, want_valid, err_msg=str(trial)
+        )
         np.testing.assert_array_equal(packet.frame.markers_world, want_world)
         np.testing.assert_array_equal(packet._occluded, ~want_valid)
 
