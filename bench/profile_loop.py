@@ -20,7 +20,8 @@ encode and its send, the validator's submit; "glue" is ``_solve_and_send`` minus
 stages inside it (attribute reads, flags, the budget checks, the stats record, which is
 also timed alone on the same object after the run: a slotted object cannot be wrapped
 in place). The wrapper's own cost (measured on an empty call, same run) is subtracted
-from each stage and printed. Medians and p99 per stage in µs, and what share of the median frame each one is.
+from each stage and printed. Medians and p99 per stage in µs, and what share of the
+median frame each one is.
 
 This is CPU time on the loop's thread: the wake-up latency of the scheduler, which
 dominates the end-to-end p99 on a loaded machine, is measured by
