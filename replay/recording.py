@@ -36,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-from retargetd.protocols import natnet, osc_in, qtm, zmq_wire
+from retargetd.protocols import natnet, natnet_client, osc_in, qtm, zmq_wire
 from retargetd.protocols.errors import DecodeError
 from retargetd.protocols.marker_input import ACCEPTED, RESTART, LabelSet, MarkerStream
 from retargetd.protocols.osc_wire import BUNDLE_TAG, iter_bundle_elements, read_string
@@ -552,7 +552,9 @@ def _capture_input(form_name: str, up_axis: str) -> Any:
     if form_name == "natnet":
         from retargetd.protocols.conventions import normalize_up_axis
 
-        return natnet.NatNetInput(None, normalize_up_axis(up_axis), out=logger.info)
+        return natnet_client.NatNetInput(
+            None, normalize_up_axis(up_axis), out=logger.info
+        )
     if form_name == "qtm":
         return qtm.QtmInput(None, out=logger.info)
     return None

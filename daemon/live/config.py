@@ -47,7 +47,7 @@ from retargetd.daemon.live.surface import (
 )
 from retargetd.protocols.conventions import normalize_units, normalize_up_axis
 from retargetd.protocols.marker_input import MAX_MARKERS, MAX_MESSAGE_BYTES, MAX_RATE_HZ
-from retargetd.protocols.natnet import parse_natnet_url
+from retargetd.protocols.natnet_client import parse_natnet_url
 from retargetd.protocols.qtm import parse_qtm_url
 
 LOCALHOST = "127.0.0.1"

@@ -44,7 +44,7 @@ from typing import Any
 
 from retargetd.daemon.version import package_version
 from retargetd.protocols.conventions import normalize_units, normalize_up_axis
-from retargetd.protocols.natnet import parse_natnet_url
+from retargetd.protocols.natnet_client import parse_natnet_url
 from retargetd.replay import recording as rf
 from retargetd.replay.recorder import (
     DEFAULT_QUEUE_SIZE,

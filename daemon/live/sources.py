@@ -42,7 +42,7 @@ from typing import Any
 import zmq
 
 from retargetd.daemon.live.state import DaemonState
-from retargetd.protocols import natnet, pose_stream, qtm
+from retargetd.protocols import natnet, natnet_client, pose_stream, qtm
 from retargetd.protocols.marker_input import ACCEPTED, RESTART, RESTART_GAP_NS
 from retargetd.protocols.vmc_out import CALIBRATION_CALIBRATED
 from retargetd.replay import recording as rf
@@ -82,7 +82,7 @@ def parse_source(url: str) -> tuple[str, Any]:
     """
     scheme = url.split("://", 1)[0] if "://" in url else ""
     if scheme == "natnet":
-        return "natnet", natnet.parse_natnet_url(url)
+        return "natnet", natnet_client.parse_natnet_url(url)
     if scheme == "qtm":
         return "qtm", qtm.parse_qtm_url(url)
     raise ValueError(
@@ -113,7 +113,7 @@ class CaptureInput:
     url: str
     form: int
     inp: Any
-    client: natnet.NatNetClient | None = None
+    client: natnet_client.NatNetClient | None = None
     source: qtm.QtmSource | None = None
     readers: list[tuple[int, Callable[[], memoryview | None]]] = field(
         default_factory=list
@@ -188,7 +188,8 @@ def open_capture(url: str, out: Callable[[str], None]) -> CaptureInput:
     if system == "natnet":
         client = opts.client(out)
         cap = CaptureInput(
-            "natnet", url, rf.FORM_NATNET, natnet.NatNetInput(client, opts.up_axis),
+            "natnet", url, rf.FORM_NATNET,
+            natnet_client.NatNetInput(client, opts.up_axis),
             client=client,
         )  # fmt: skip
         for sock in client.fds():
@@ -205,7 +206,7 @@ def open_capture(url: str, out: Callable[[str], None]) -> CaptureInput:
 
 
 def _natnet_reader(
-    client: natnet.NatNetClient, sock: Any
+    client: natnet_client.NatNetClient, sock: Any
 ) -> Callable[[], memoryview | None]:
     return lambda: client.read(sock)
 

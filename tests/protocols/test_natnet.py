@@ -21,7 +21,7 @@ import pytest
 import zmq
 from natnet.packet_buffer import PacketBuffer
 
-from retargetd.protocols import natnet
+from retargetd.protocols import natnet, natnet_client
 from retargetd.protocols.errors import DecodeError
 from retargetd.protocols.marker_input import (
     ACCEPTED,
@@ -231,11 +231,11 @@ def test_count_change_is_count_mismatch_and_asks_again(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     """A marker set that grew: dropped as count_mismatch, model definitions asked."""
-    client = natnet.NatNetClient("127.0.0.1", 9, local="127.0.0.1")
+    client = natnet_client.NatNetClient("127.0.0.1", 9, local="127.0.0.1")
     asked: list[int] = []
     try:
         monkeypatch.setattr(client, "request_models", lambda: asked.append(1))
-        inp = natnet.NatNetInput(client)
+        inp = natnet_client.NatNetInput(client)
         inp.session.adopt_models(
             natnet.decode_model_defs(
                 em.model_defs((4, 1), ["A", "B"]), natnet.Version(4, 1)
@@ -252,7 +252,9 @@ def test_count_change_is_count_mismatch_and_asks_again(
 def test_multicast_client_joins_the_group_without_sending() -> None:
     """The multicast data socket is bound to the data port and joined; nothing is
     sent here (traffic stays on 127.0.0.1)."""
-    client = natnet.NatNetClient("127.0.0.1", 9, 0, multicast=True, local="127.0.0.1")
+    client = natnet_client.NatNetClient(
+        "127.0.0.1", 9, 0, multicast=True, local="127.0.0.1"
+    )
     try:
         assert client.data is not None and len(client.fds()) == 2
         assert client.data.getsockname()[1] > 0
@@ -261,17 +263,17 @@ def test_multicast_client_joins_the_group_without_sending() -> None:
 
 
 def test_natnet_urls() -> None:
-    opts = natnet.parse_natnet_url("natnet://10.0.0.5")
+    opts = natnet_client.parse_natnet_url("natnet://10.0.0.5")
     assert (opts.host, opts.command_port, opts.data_port) == ("10.0.0.5", 1510, 1511)
     assert not opts.multicast and opts.up_axis == "+Y" and opts.sets is None
-    opts = natnet.parse_natnet_url(
+    opts = natnet_client.parse_natnet_url(
         "natnet://motive:1600?data_port=1601&multicast=1&up=z&sets=Performer,Wand"
     )
     assert (opts.command_port, opts.data_port, opts.multicast) == (1600, 1601, True)
     assert opts.up_axis == "+Z" and opts.sets == ("Performer", "Wand")
     for bad in ("qtm://x", "natnet://", "natnet://x?speed=1", "natnet://x?up=w"):
         with pytest.raises(ValueError):
-            natnet.parse_natnet_url(bad)
+            natnet_client.parse_natnet_url(bad)
 
 
 def test_unknown_version_is_refused() -> None:
@@ -286,9 +288,9 @@ def test_unknown_version_is_refused() -> None:
 class _Loop:
     """A stand-in for the daemon's loop: a zmq.Poller on the client's sockets."""
 
-    def __init__(self, client: natnet.NatNetClient, up: str = "+Y") -> None:
+    def __init__(self, client: natnet_client.NatNetClient, up: str = "+Y") -> None:
         self.client = client
-        self.input = natnet.NatNetInput(client, up)
+        self.input = natnet_client.NatNetInput(client, up)
         self.poller = zmq.Poller()
         for sock in client.fds():
             self.poller.register(sock, zmq.POLLIN)
@@ -340,7 +342,7 @@ def test_served_take_arrives_equal_with_faults_counted(
     scenario = em.Scenario(version=version, label_change_at=150, restart_at=250)
     server = _serve(take, scenario)
     lines: list[str] = []
-    client = natnet.NatNetClient(
+    client = natnet_client.NatNetClient(
         "127.0.0.1", server.command_port, local="127.0.0.1", out=lines.append
     )
     loop = _Loop(client)
@@ -371,7 +373,7 @@ def test_served_take_arrives_equal_with_faults_counted(
     assert len(loop.frames) >= n + 250 - 10
     assert any("connected to Motive" in line for line in lines)
     # Replay: the recorded datagrams through a socket-free input, same frames.
-    replay = natnet.NatNetInput(None, "+Y")
+    replay = natnet_client.NatNetInput(None, "+Y")
     again = []
     pause_ns = 0
     for k, pkt in enumerate(loop.recorded):
@@ -389,7 +391,7 @@ def test_served_take_arrives_equal_with_faults_counted(
 def test_vanished_server_is_reported_once_and_never_blocks(take: Any) -> None:
     server = _serve(take, em.Scenario(faults=False, vanish_at=50))
     lines: list[str] = []
-    client = natnet.NatNetClient(
+    client = natnet_client.NatNetClient(
         "127.0.0.1", server.command_port, local="127.0.0.1", out=lines.append
     )
     loop = _Loop(client)
@@ -413,7 +415,7 @@ def test_vanished_server_is_reported_once_and_never_blocks(take: Any) -> None:
 def test_unknown_protocol_version_is_said_and_counted(take: Any) -> None:
     server = _serve(take, em.Scenario(faults=False, version=(2, 9)))
     lines: list[str] = []
-    client = natnet.NatNetClient(
+    client = natnet_client.NatNetClient(
         "127.0.0.1", server.command_port, local="127.0.0.1", out=lines.append
     )
     loop = _Loop(client)
@@ -432,7 +434,9 @@ def test_unknown_protocol_version_is_said_and_counted(take: Any) -> None:
 @pytest.mark.timeout(30)
 def test_flood_is_drained_and_counted(take: Any) -> None:
     server = _serve(take, em.Scenario(faults=False, flood=True))
-    client = natnet.NatNetClient("127.0.0.1", server.command_port, local="127.0.0.1")
+    client = natnet_client.NatNetClient(
+        "127.0.0.1", server.command_port, local="127.0.0.1"
+    )
     loop = _Loop(client)
     try:
         loop.run_until(lambda: server.done.is_set(), 10)
