@@ -1,0 +1,458 @@
+"""The synthetic performer's motion: each named component adds joint angles (and root
+motion) that are smooth functions of time, weighted by a ramp that is exactly 0 during
+the base-pose hold; :mod:`retargetd.daemon.synth.performer` composes them, poses the
+skeleton and places the markers (its docstring describes the motion as a whole).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from retargetd.daemon.synth.skeleton import Skeleton
+from retargetd.protocols.frames import F64Array
+
+#: The everyday motion components, in composition order: the default of
+#: :func:`synthesize` (a walk round a circle with arm, forearm, spine and head motion).
+DEFAULT_MOTIONS: tuple[str, ...] = (
+    "walk",
+    "arm_raise",
+    "forearm_twist",
+    "spine",
+    "head_turn",
+)
+#: Activities that reach the published ranges of motion the validator's joint limits
+#: come from (``validate.limits``), each meant to be synthesized alone (optionally
+#: with ``head_turn``): see :func:`_deep_squat` ... :func:`_jump`.
+ACTIVITY_MOTIONS: tuple[str, ...] = (
+    "stair_ascent",
+    "stair_descent",
+    "run",
+    "jump",
+    "deep_squat",
+    "kick",
+)
+#: Every motion component, in composition order.
+ALL_MOTIONS: tuple[str, ...] = DEFAULT_MOTIONS + ACTIVITY_MOTIONS
+#: Ramp from the base-pose hold into full motion, seconds.
+RAMP_S = 0.5
+#: Walk: circle radius, speed, stride length (one left + one right step).
+WALK_RADIUS_M = 1.5
+WALK_SPEED_M_S = 1.0
+WALK_STRIDE_M = 1.1
+#: Default floor point under the pelvis: the walk circle is then centred at the lab
+#: origin.
+DEFAULT_ORIGIN = (0.0, -WALK_RADIUS_M, 0.0)
+#: Soft-minimum temperature for the floor contact (metres).
+FLOOR_SOFTMIN_M = 0.003
+_X, _Y, _Z = 0, 1, 2
+
+# --- motion ----------------------------------------------------------------------
+
+
+def smootherstep(u: F64Array) -> F64Array:
+    u = np.clip(u, 0.0, 1.0)
+    return u * u * u * (u * (6.0 * u - 15.0) + 10.0)
+
+
+def _smootherstep_integral(u: F64Array) -> F64Array:
+    """Integral of the smootherstep from 0 to ``u`` (u clipped to [0, 1] first)."""
+    v = np.clip(u, 0.0, 1.0)
+    return v**6 - 3.0 * v**5 + 2.5 * v**4 + np.maximum(u - 1.0, 0.0)
+
+
+def _bump(x: F64Array, power: int) -> F64Array:
+    """A smooth 2π-periodic bump peaking at x = 0 with height 1."""
+    return (0.5 * (1.0 + np.cos(x))) ** power
+
+
+@dataclass(slots=True, eq=False)
+class Motion:
+    """Working buffers the motion components add into."""
+
+    skeleton: Skeleton
+    t: F64Array  # (T,) seconds since the motion started (negative during the hold)
+    w: F64Array  # (T,) ramp weight in [0, 1]
+    angles: F64Array  # (T, S, 3) radians about the segment's x, y, z
+    root_pos: F64Array  # (T, 3) metres, world
+    heading: F64Array  # (T,) radians about world +Z
+    motions: tuple[str, ...]
+    walk_weight: F64Array = field(default_factory=lambda: np.zeros(0))
+    # Activities: keep the lowest sole on the floor with this weight (like the walk);
+    # translate the body horizontally so these segments' origins stay where they
+    # stood (a planted foot); add this vertical flight (metres) after both.
+    floor_weight: F64Array = field(default_factory=lambda: np.zeros(0))
+    plant: tuple[str, ...] = ()
+    plant_weight: F64Array = field(default_factory=lambda: np.zeros(0))
+    flight_m: F64Array = field(default_factory=lambda: np.zeros(0))
+    # Gaits: low-pass the floor-contact lift (Hz; 0 = off): the hard switch of the
+    # lowest sole from one foot to the other would drop the body faster than gravity.
+    floor_smooth_hz: float = 0.0
+    # Runs: the body never falls faster than gravity; where the floor contact would
+    # drop it faster, it flies (the feet leave the floor: a flight phase).
+    ballistic: bool = False
+
+    def add(self, segment: str, axis: int, deg: F64Array) -> None:
+        """Add ``deg`` (T,) degrees, already weighted, about one axis of one segment."""
+        self.angles[:, self.skeleton.index(segment), axis] += np.deg2rad(deg)
+
+    def add_bilateral(
+        self, kind: str, axis: int, left_deg: F64Array, right_deg: F64Array
+    ) -> None:
+        """Add anatomical left/right angles; the right is mirrored (x, z negated)."""
+        self.add("l_" + kind, axis, left_deg)
+        self.add("r_" + kind, axis, right_deg if axis == _Y else -right_deg)
+
+    def osc(self, freq_hz: float, phase: float = 0.0) -> F64Array:
+        """``sin(2π f t + phase) - sin(phase)``: 0 at the start of the motion."""
+        arg = 2.0 * np.pi * freq_hz * self.t
+        return np.sin(arg + phase) - np.sin(phase)
+
+
+def _walk(m: Motion) -> None:
+    t0 = np.maximum(m.t, 0.0)
+    # Distance walked: the speed follows the ramp, so the gait phase starts at rest.
+    dist = WALK_SPEED_M_S * RAMP_S * _smootherstep_integral(t0 / RAMP_S)
+    phase = 2.0 * np.pi * dist / WALK_STRIDE_M  # right heel strike at 0 mod 2π
+    w = m.w
+    right, left = phase, phase + np.pi
+    for side_phase, side in ((left, "l"), (right, "r")):
+        sign = 1.0 if side == "l" else -1.0  # mirror x/z for the right side
+        hip_flex = 8.0 + 22.0 * np.cos(side_phase)
+        knee_flex = (
+            5.0 + 55.0 * _bump(side_phase - 4.6, 4) + 12.0 * _bump(side_phase - 0.9, 8)
+        )
+        ankle_dorsi = (
+            8.0 * _bump(side_phase - 2.8, 2)
+            - 18.0 * _bump(side_phase - 3.9, 6)
+            + 5.0 * _bump(side_phase - 5.0, 4)
+        )
+        toe_ext = 25.0 * _bump(side_phase - 3.6, 6)
+        m.add(f"{side}_thigh", _Y, -w * hip_flex)  # flexion: knee forward = -y
+        m.add(f"{side}_thigh", _X, sign * w * 3.0 * np.sin(side_phase))  # ab/adduction
+        m.add(f"{side}_shank", _Y, w * knee_flex)  # flexion: ankle backward = +y
+        m.add(f"{side}_foot", _Y, -w * ankle_dorsi)  # dorsiflexion: toes up = -y
+        m.add(f"{side}_toes", _Y, -w * toe_ext)
+    # Pelvis: rotation toward the forward leg, list (swing side drops), slight tilt.
+    m.add("pelvis", _Z, w * 6.0 * np.cos(right))
+    m.add("pelvis", _X, -w * 4.0 * np.sin(right))
+    m.add("pelvis", _Y, w * (2.0 + 2.0 * np.cos(2.0 * right)))
+    # Trunk counter-rotation keeps the chest facing ahead.
+    m.add("abdomen", _Z, -w * 2.5 * np.cos(right))
+    m.add("thorax", _Z, -w * 4.0 * np.cos(right))
+    # Arms hang (unless arm_raise drives them) and counter-swing with the legs.
+    if "arm_raise" not in m.motions:
+        m.add_bilateral("upper_arm", _X, -w * 72.0, -w * 72.0)
+    m.add_bilateral(
+        "upper_arm", _Y, w * 20.0 * np.cos(right), -w * 20.0 * np.cos(right)
+    )
+    m.add_bilateral(
+        "forearm",
+        _Z,
+        -w * (15.0 - 8.0 * np.cos(right)),
+        -w * (15.0 + 8.0 * np.cos(right)),
+    )
+    # Root: round the circle (counter-clockwise, turning left), swaying over the stance
+    # foot. The vertical bob is added after forward kinematics (floor contact).
+    heading = dist / WALK_RADIUS_M
+    sway = -0.02 * w * np.sin(right)  # + = to the performer's left
+    m.heading += heading
+    m.root_pos[:, 0] += (WALK_RADIUS_M - sway) * np.sin(heading)
+    m.root_pos[:, 1] += WALK_RADIUS_M - (WALK_RADIUS_M - sway) * np.cos(heading)
+    m.walk_weight = w
+
+
+def _arm_raise(m: Motion) -> None:
+    w = m.w
+    s2, s3, s5 = np.sqrt(2.0), np.sqrt(3.0), np.sqrt(5.0)
+    # Elevation from the T-pose (+ = up): near the side to near overhead, the right
+    # arm at another frequency and starting downward.
+    elev_l = 75.0 * np.sin(2.0 * np.pi * 0.19 * m.t)
+    elev_r = -70.0 * np.sin(2.0 * np.pi * 0.19 * s2 / 1.2 * m.t)
+    horiz_l = 35.0 * np.sin(2.0 * np.pi * 0.11 * s3 * m.t)  # + = forward
+    horiz_r = 30.0 * np.sin(2.0 * np.pi * 0.11 * s5 / 1.5 * m.t)
+    flex_l = 30.0 * np.sin(2.0 * np.pi * 0.13 * s5 / 2.0 * m.t)  # + = forward
+    flex_r = -30.0 * np.sin(2.0 * np.pi * 0.13 * s3 / 1.5 * m.t)
+    m.add_bilateral("upper_arm", _X, w * elev_l, w * elev_r)  # elevation: up = +x
+    m.add_bilateral("upper_arm", _Z, -w * horiz_l, -w * horiz_r)  # forward = -z
+    m.add_bilateral("upper_arm", _Y, -w * flex_l, -w * flex_r)  # flexion: fwd = -y
+    # The shoulder girdle follows: clavicle elevation and protraction.
+    m.add_bilateral("clavicle", _X, w * 0.2 * elev_l, w * 0.2 * elev_r)
+    m.add_bilateral("clavicle", _Z, -w * 0.2 * horiz_l, -w * 0.2 * horiz_r)
+
+
+def _forearm_twist(m: Motion) -> None:
+    w = m.w
+    s2, s3 = np.sqrt(2.0), np.sqrt(3.0)
+    # Pronation/supination about the forearm's long axis (y), +-70 deg.
+    twist_l = 70.0 * np.sin(2.0 * np.pi * 0.37 * m.t)
+    twist_r = 70.0 * np.sin(2.0 * np.pi * 0.37 * s2 / 1.3 * m.t)
+    m.add_bilateral("forearm", _Y, w * twist_l, w * twist_r)
+    # Elbow flexion 10..80 deg (about the upper arm's z; forward = -z for the left).
+    flex_l = 45.0 - 35.0 * np.cos(2.0 * np.pi * 0.23 * m.t)
+    flex_r = 45.0 - 35.0 * np.cos(2.0 * np.pi * 0.23 * s3 / 1.6 * m.t)
+    m.add_bilateral("forearm", _Z, -w * flex_l, -w * flex_r)
+    # Wrist flexion (fingers down = -x) and radial deviation (thumb side = -z).
+    m.add_bilateral(
+        "hand", _X, -w * 25.0 * m.osc(0.29), -w * 25.0 * m.osc(0.29 * s3 / 1.6)
+    )
+    m.add_bilateral("hand", _Z, -w * 10.0 * m.osc(0.31 * s2), -w * 10.0 * m.osc(0.41))
+
+
+def _spine(m: Motion) -> None:
+    w = m.w
+    s2, s3, s5 = np.sqrt(2.0), np.sqrt(3.0), np.sqrt(5.0)
+    flexion = 18.0 - 18.0 * np.cos(2.0 * np.pi * 0.09 * s2 * m.t)  # 0..36 deg forward
+    lateral = 15.0 * m.osc(0.07 * s3)  # + = bend to the left
+    twist = 25.0 * m.osc(0.06 * s5)  # + = face turns left
+    for segment, share in (("abdomen", 0.4), ("thorax", 0.6)):
+        m.add(segment, _Y, w * share * flexion)
+        m.add(segment, _X, -w * share * lateral)
+        m.add(segment, _Z, w * share * twist)
+
+
+def _head_turn(m: Motion) -> None:
+    w = m.w
+    yaw = 60.0 * m.osc(0.17 * np.sqrt(3.0))  # + = look left
+    nod = 15.0 * m.osc(0.21 * np.sqrt(5.0) / 2.0)  # + = chin down
+    tilt = 8.0 * m.osc(0.13 * np.sqrt(7.0) / 2.0)
+    for segment, share in (("neck", 0.3), ("head", 0.7)):
+        m.add(segment, _Z, w * share * yaw)
+        m.add(segment, _Y, w * share * nod)
+        m.add(segment, _X, -w * share * tilt)
+
+
+# --- activities that reach the published ranges of motion --------------------------
+#
+# Peak angles (degrees, from the standing calibration pose) are those the literature
+# reports for healthy adults; validate.limits cites the same papers. Legs: thigh -y =
+# hip flexion, shank +y = knee flexion, foot -y = ankle dorsiflexion (see _walk).
+
+
+def _cycle(m: Motion, period_s: float) -> F64Array:
+    """0 -> 1 -> 0 over each ``period_s`` after the hold (raised cosine), weighted."""
+    return m.w * 0.5 * (1.0 - np.cos(2.0 * np.pi * np.maximum(m.t, 0.0) / period_s))
+
+
+def _legs(m: Motion, side: str, hip: F64Array, knee: F64Array, ankle: F64Array) -> None:
+    """Hip flexion, knee flexion, ankle dorsiflexion (deg, weighted) of one leg."""
+    m.add(f"{side}_thigh", _Y, -hip)
+    m.add(f"{side}_shank", _Y, knee)
+    m.add(f"{side}_foot", _Y, -ankle)
+
+
+def _arms_down(m: Motion, forward_deg: F64Array | float = 0.0) -> None:
+    """Arms from the T-pose to hanging (72 deg down), raised forward by
+    ``forward_deg`` (already weighted; for balance), unless another component drives
+    them."""
+    if "arm_raise" not in m.motions:
+        m.add_bilateral("upper_arm", _X, -m.w * 72.0, -m.w * 72.0)
+        fwd = forward_deg * np.ones_like(m.w)
+        m.add_bilateral("upper_arm", _Z, -fwd, -fwd)
+
+
+def _deep_squat(m: Motion) -> None:
+    """Full squat, heels down, one every 4 s: hip flexion 115, knee flexion 152,
+    ankle dorsiflexion 38, trunk flexion 30 (Hemmerich et al. 2006: squatting, knee
+    157 and ankle 38.5 deg); feet planted, arms forward for balance."""
+    s = _cycle(m, 4.0)
+    for side in ("l", "r"):
+        _legs(m, side, 115.0 * s, 152.0 * s, 38.0 * s)
+    for segment, share in (("abdomen", 0.5), ("thorax", 0.5)):
+        m.add(segment, _Y, share * 30.0 * s)
+    _arms_down(m, 80.0 * s)
+    m.floor_weight = m.w
+    m.plant = ("l_foot", "r_foot")
+    m.plant_weight = m.w
+
+
+#: One kick every this many seconds.
+KICK_PERIOD_S = 4.0
+
+
+def _kick(m: Motion) -> None:
+    """Instep kick with the right leg, one every 3 s, standing on the left: backswing
+    hip extension 30 with knee flexion 100, then the swing to hip flexion 85 with the
+    knee straightening and the foot pointed (plantarflexion 45); the stance knee
+    flexes 25 (Nunome et al. 2002; Lees & Nolan 1998). Left foot planted."""
+    tau = (np.maximum(m.t, 0.0) % KICK_PERIOD_S) / KICK_PERIOD_S  # through one kick
+    back = m.w * _bump(2.0 * np.pi * (tau - 0.3), 4)  # backswing peak at 30 %
+    swing = m.w * _bump(2.0 * np.pi * (tau - 0.6), 4)  # follow-through at 60 %
+    _legs(m, "r", -30.0 * back + 85.0 * swing, 100.0 * back + 15.0 * swing,
+          -45.0 * np.maximum(back, swing))  # fmt: skip
+    stance = np.maximum(back, swing)
+    _legs(m, "l", 20.0 * stance, 25.0 * stance, 15.0 * stance)
+
+    m.add("abdomen", _Y, -10.0 * swing)  # the trunk leans back as the leg swings up
+    m.add("thorax", _Y, -5.0 * swing)
+    m.add("pelvis", _Z, 15.0 * swing - 10.0 * back)
+    _arms_down(m)
+    m.add_bilateral("upper_arm", _X, m.w * 40.0 * stance, m.w * 30.0 * stance)
+    m.floor_weight = m.w
+    m.plant = ("l_foot",)
+    m.plant_weight = m.w
+
+
+def _jump(m: Motion) -> None:
+    """Countermovement jumps in place, one every 2.5 s: crouch to hip flexion 60,
+    knee 100, ankle dorsiflexion 40, arms forward 60 (landing: Decker et al. 2003, hip
+    ~60-90, knee ~90-100, ankle ~25-35), push-off, 0.40 s of ballistic flight (20 cm;
+    the lift frozen at take-off, the legs still but for the ankles pointing 30), then
+    the landing absorbed over 0.9 s into the same crouch. Feet planted."""
+    period = 2.5
+    tau = np.maximum(m.t, 0.0) % period
+    flight_s = 0.40
+    take_off = 1.0
+    landing = take_off + flight_s
+
+    def hump(centre: float, half: float) -> F64Array:
+        x = np.clip((tau - centre) / half, -1.0, 1.0)
+        return (0.5 * (1.0 + np.cos(np.pi * x))) ** 2
+
+    # Countermovement down and up (0.1-1.0 s), landing absorbed (1.4-2.3 s).
+    crouch = m.w * (hump(0.55, 0.45) + hump(landing + 0.45, 0.45))
+    air = (tau >= take_off) & (tau < landing)
+    u = np.where(air, (tau - take_off) / flight_s, 0.0)
+    point = m.w * np.where(air, np.sin(np.pi * u), 0.0)
+    for side in ("l", "r"):
+        _legs(m, side, 60.0 * crouch, 100.0 * crouch, 40.0 * crouch - 30.0 * point)
+    _arms_down(m, 60.0 * crouch)
+    g = 9.81
+    tf = np.where(air, tau - take_off, 0.0)
+    m.flight_m = np.where(air, m.w * (0.5 * g * flight_s * tf - 0.5 * g * tf * tf), 0.0)
+    m.floor_weight = m.w
+    m.plant = ("l_foot", "r_foot")
+    m.plant_weight = m.w
+
+
+#: Sharpness of a gait's stance knee-flexion bump (a power of the raised cosine).
+STANCE_POWER = 3
+
+
+def _gait(
+    m: Motion,
+    *,
+    speed_m_s: float,
+    stride_m: float,
+    hip: tuple[float, float],
+    knee_stance: float,
+    knee_swing: float,
+    ankle_dorsi: float,
+    ankle_plantar: float,
+    trunk_deg: float,
+    smooth_hz: float = 4.0,
+    radius_m: float = WALK_RADIUS_M,
+    ramp_s: float = RAMP_S,
+    ballistic: bool = False,
+) -> None:
+    """A gait round the walk circle with its own joint-angle profile: hip flexion
+    ``hip[0] + hip[1] cos(phase)``, knee flexion bumps in stance and swing, ankle
+    dorsiflexion in stance and plantarflexion at push-off; the lowest sole kept on
+    the floor (the steps of a stair gait are not modelled: its angles are)."""
+    t0 = np.maximum(m.t, 0.0)
+    dist = speed_m_s * ramp_s * _smootherstep_integral(t0 / ramp_s)
+    phase = 2.0 * np.pi * dist / stride_m
+    w = smootherstep(m.t / ramp_s)  # the angles grow with the speed
+    for side_phase, side in ((phase + np.pi, "l"), (phase, "r")):
+        hip_flex = hip[0] + hip[1] * np.cos(side_phase)
+        knee = knee_swing * _bump(side_phase - 4.6, 4) + knee_stance * _bump(
+            side_phase - 0.9, STANCE_POWER
+        )
+        ankle = ankle_dorsi * _bump(side_phase - 2.4, 3) - ankle_plantar * _bump(
+            side_phase - 3.9, 6
+        )
+        _legs(m, side, w * hip_flex, w * knee, w * ankle)
+    m.add("abdomen", _Y, w * trunk_deg)
+    _arms_down(m)
+    m.add_bilateral(
+        "upper_arm", _Y, w * 25.0 * np.cos(phase), -w * 25.0 * np.cos(phase)
+    )
+    m.add_bilateral("forearm", _Z, -w * 60.0, -w * 60.0)
+    heading = dist / radius_m
+    m.heading += heading
+    m.root_pos[:, 0] += radius_m * np.sin(heading)
+    m.root_pos[:, 1] += radius_m - radius_m * np.cos(heading)
+    m.floor_weight = w
+    m.floor_smooth_hz = smooth_hz
+    m.ballistic = ballistic
+
+
+def _stair_ascent(m: Motion) -> None:
+    """Stair-ascent joint angles (McFadyen & Winter 1988; Protopapadaki et al. 2007):
+    hip flexion to 65, knee flexion to 95, ankle dorsiflexion 20, push-off
+    plantarflexion 15, trunk forward 10; 0.5 m/s."""
+    _gait(
+        m,
+        speed_m_s=0.5,
+        stride_m=0.6,
+        hip=(27.5, 37.5),
+        knee_stance=60.0,
+        knee_swing=95.0,
+        ankle_dorsi=20.0,
+        ankle_plantar=15.0,
+        trunk_deg=10.0,
+    )
+
+
+def _stair_descent(m: Motion) -> None:
+    """Stair-descent joint angles (McFadyen & Winter 1988; the issue's stair walk):
+    hip flexion to 40, knee flexion to 100, ankle dorsiflexion to 45 as the stance
+    leg lowers the body, plantarflexion 30 reaching for the step below; 0.5 m/s."""
+    _gait(
+        m,
+        speed_m_s=0.5,
+        stride_m=0.6,
+        hip=(17.5, 22.5),
+        knee_stance=85.0,
+        knee_swing=100.0,
+        ankle_dorsi=45.0,
+        ankle_plantar=30.0,
+        trunk_deg=5.0,
+    )
+
+
+#: The run's circle: at 3 m/s a 15 m radius asks 0.6 m/s^2 of centripetal
+#: acceleration, the walk's on its 1.5 m circle (0.67 m/s^2); on the walk's circle it
+#: would be 6 m/s^2, which a runner leans into and the synthetic one does not.
+RUN_RADIUS_M = 15.0
+
+
+def _run(m: Motion) -> None:
+    """Running (Novacheck 1998, running 3.2 m/s to sprinting): hip flexion 10..60
+    about 25 +- 35 (extension 10 at toe-off), stance knee flexion 45, swing 120,
+    ankle dorsiflexion 25, push-off plantarflexion 25, trunk forward 10; 3 m/s,
+    speeding up over 2 s, on a 15 m circle. The body never falls faster than gravity:
+    where the floor contact would drop it faster it flies, so each step has a flight
+    phase (~0.1 s)."""
+    _gait(
+        m,
+        speed_m_s=3.0,
+        stride_m=2.4,
+        hip=(25.0, 35.0),
+        knee_stance=45.0,
+        knee_swing=120.0,
+        ankle_dorsi=25.0,
+        ankle_plantar=25.0,
+        trunk_deg=10.0,
+        smooth_hz=0.0,
+        radius_m=RUN_RADIUS_M,
+        ramp_s=2.0,
+        ballistic=True,
+    )
+
+
+COMPONENTS: dict[str, Callable[[Motion], None]] = {
+    "walk": _walk,
+    "arm_raise": _arm_raise,
+    "forearm_twist": _forearm_twist,
+    "spine": _spine,
+    "head_turn": _head_turn,
+    "stair_ascent": _stair_ascent,
+    "stair_descent": _stair_descent,
+    "run": _run,
+    "jump": _jump,
+    "deep_squat": _deep_squat,
+    "kick": _kick,
+}
