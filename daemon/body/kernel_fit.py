@@ -774,17 +774,11 @@ def _score(m: tuple, s: tuple) -> tuple[float, int, int]:
 @kernel
 def _seed_from_construction(markers: np.ndarray, m: tuple, s: tuple, c: tuple) -> None:
     # Run the construction kernel on this frame and take its bone rotations and root.
-    # c: the fields of its plan, state and output, flat (NamedTuples built here: a
+    # c: its plan, state and output as three plain tuples (NamedTuples built here: a
     # NamedTuple argument costs Python allocations at every call's dispatch).
-    cp = body_kernel.BodyPlan(
-        c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7], c[8], c[9], c[10], c[11],
-        c[12], c[13], c[14], c[15],
-    )  # fmt: skip
-    cs = body_kernel.BodyState(
-        c[16], c[17], c[18], c[19], c[20], c[21], c[22], c[23], c[24], c[25], c[26],
-        c[27],
-    )  # fmt: skip
-    co = body_kernel.BodyOut(c[28], c[29], c[30], c[31], c[32], c[33], c[34])
+    cp = body_kernel.BodyPlan(*c[0])
+    cs = body_kernel.BodyState(*c[1])
+    co = body_kernel.BodyOut(*c[2])
     body_kernel.solve_one_nt(markers, cp, cs, co)
     parent, root_of = m[0], m[1]
     q, t = s[0], s[1]
@@ -810,7 +804,7 @@ def fit_one(
     markers: np.ndarray,  # (M_stream, 3) world metres, NaN = occluded
     m: tuple,  # the model (solve_fit.FitSolver._model)
     s: tuple,  # state and scratch (solve_fit.FitSolver._state)
-    c: tuple,  # the construction kernel's plan, state and output fields, flat
+    c: tuple,  # the construction kernel's (plan, state, output) plain tuples
     out_joints: np.ndarray,  # (J, 3)
     out_wfb: np.ndarray,  # (B, 4)
     out_pfb: np.ndarray,  # (B, 4) parent_from_bone
