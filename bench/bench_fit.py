@@ -21,11 +21,18 @@ For each case it prints
   ``--scipy-frames`` frames: median, p99 and the ratio of medians.
 
 Cases: ``menache`` on the synthetic performer at 240 Hz (calibrated on its T-pose
-hold); ``plug-in-gait`` on the real walk ``PiG_Motion-FlatFoot-Full.c3d`` calibrated on
-``PiG_Calibration-FlatFoot-Full.c3d`` (``../shared/datasets/btkdata``), played forward
-then backward to fill ``--frames`` (no jump at the seam). Without the datasets the
-second case is skipped (said in the output). The machine's load average is printed
-beside the figures. Speed is printed, never asserted.
+hold); ``dense-75``, the issue's larger rig: the tests' exact rig
+(``tests/data/synth-exact-rig.toml``, 21 bones) worn with 3 more markers (75) and
+hinge knees (``[fit.bones] dof = "hinge"``), on the same performer with 0.5 mm noise:
+62 degrees of freedom counted the biomechanical way (6 for the root, 3 per ball joint,
+1 per hinge; the kernel solves 3 per bone, 66 unknowns), more than the 34 the issue
+names, so an upper bound for it (the performer's 21 segments leave no 34-DoF chain
+that fits it without a model error); ``plug-in-gait`` on the real walk
+``PiG_Motion-FlatFoot-Full.c3d`` calibrated on ``PiG_Calibration-FlatFoot-Full.c3d``
+(``../shared/datasets/btkdata``), played forward then backward to fill ``--frames``
+(no jump at the seam). Without the datasets the PiG case is skipped (said in the
+output). The machine's load average is printed beside the figures. Speed is printed,
+never asserted.
 """
 
 from __future__ import annotations
@@ -33,6 +40,7 @@ from __future__ import annotations
 import argparse
 import gc
 import os
+import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -51,6 +59,14 @@ from retargetd.daemon.validate.limits import JOINT_LIMITS_DEG
 from retargetd.daemon.validate.model import SEGMENT_KIND
 
 DATASETS = Path(__file__).resolve().parent.parent.parent / "shared" / "datasets"
+TESTS_DATA = Path(__file__).resolve().parent.parent / "tests" / "data"
+#: The dense case's three extra markers: segment, offset (mm, the segment's frame as
+#: in tests/data/synth-exact-markers.toml), and the rig segment group they join.
+DENSE_EXTRA = (
+    ("LTHF", "l_thigh", (60, 40, -150)),
+    ("RTHF", "r_thigh", (60, -40, -150)),
+    ("STRN", "thorax", (110, 0, 120)),
+)
 PIG_MOTION = DATASETS / "btkdata" / "PiG_Motion-FlatFoot-Full.c3d"
 PIG_CALIBRATION = DATASETS / "btkdata" / "PiG_Calibration-FlatFoot-Full.c3d"
 
@@ -85,6 +101,47 @@ def _menache(n_frames: int) -> Case:
         BodySolver(rig, cal, take.labels),
         np.ascontiguousarray(take.markers_world),
         f"synthetic performer, 240 Hz, {take.n_frames} frames",
+    )
+
+
+def _dense(n_frames: int, folder: Path) -> Case:
+    """The exact rig with 75 markers and hinge knees (module docstring)."""
+    markers = (TESTS_DATA / "synth-exact-markers.toml").read_text()
+    rig_text = (TESTS_DATA / "synth-exact-rig.toml").read_text()
+    for name, seg, off in DENSE_EXTRA:
+        markers += (
+            f'\n[markers.{name}]\nsegment = "{seg}"\noffset_mm = {list(off)}\n'
+            f'description = "bench_fit: extra {seg} marker"\n'
+        )
+        rig_text = rig_text.replace("[markers]\n", f'[markers]\n{name} = "{name}"\n', 1)
+        group = f"[segments.{seg}]\nmarkers = ["
+        rig_text = rig_text.replace(group, f'{group}"{name}", ', 1)
+    rig_text += '\n[fit.bones.l_shank]\ndof = "hinge"\n'
+    rig_text += '[fit.bones.r_shank]\ndof = "hinge"\n'
+    (folder / "dense-markers.toml").write_text(markers)
+    (folder / "dense-rig.toml").write_text(rig_text)
+    rate_hz = 240.0
+    take = pf.synthesize(
+        seconds=n_frames / rate_hz, rate_hz=rate_hz,
+        markerset=folder / "dense-markers.toml", noise_mm=0.5,
+    )  # fmt: skip
+    rig = load_rig(folder / "dense-rig.toml")
+    base = take.markers_world[take.base_pose_frames]
+    cal = calibrate(rig, base, take.labels)
+    solver = FitSolver(
+        rig, cal, take.labels, joint_limits=JOINT_LIMITS_DEG,
+        segment_kind=SEGMENT_KIND, base_positions=base,
+    )  # fmt: skip
+    n_hinge = sum(b.dof == "hinge" for b in rig.fit.bones.values())
+    n_ball = len(rig.bones) - 1 - n_hinge
+    return Case(
+        "dense-75",
+        solver,
+        BodySolver(rig, cal, take.labels),
+        np.ascontiguousarray(take.markers_world),
+        f"synthetic performer with the exact rig + 3 markers, 0.5 mm noise, 240 Hz, "
+        f"{take.n_frames} frames; {len(rig.bones)} bones, {6 + 3 * n_ball + n_hinge} "
+        f"DoF ({n_hinge} hinges)",
     )
 
 
@@ -291,6 +348,8 @@ def main() -> None:
     args = ap.parse_args()
     print(f"bench_fit  [{_load()}]")
     run(_menache(args.frames), args)
+    with tempfile.TemporaryDirectory() as folder:
+        run(_dense(args.frames, Path(folder)), args)
     pig = _pig(args.frames)
     if pig is None:
         print(f"\n== plug-in-gait: skipped, {PIG_MOTION} not found")
