@@ -21,11 +21,23 @@ For each case it prints
   ``--scipy-frames`` frames: median, p99 and the ratio of medians.
 
 Cases: ``menache`` on the synthetic performer at 240 Hz (calibrated on its T-pose
-hold); ``plug-in-gait`` on the real walk ``PiG_Motion-FlatFoot-Full.c3d`` calibrated on
-``PiG_Calibration-FlatFoot-Full.c3d`` (``../shared/datasets/btkdata``), played forward
-then backward to fill ``--frames`` (no jump at the seam). Without the datasets the
-second case is skipped (said in the output). The machine's load average is printed
-beside the figures. Speed is printed, never asserted.
+hold); ``dense-75``, the issue's larger rig: the tests' exact rig
+(``tests/data/synth-exact-rig.toml``, 21 bones) worn with 3 more markers (75) and
+hinge knees (``[fit.bones] dof = "hinge"``), on the same performer with 0.5 mm noise:
+62 degrees of freedom counted the biomechanical way (6 for the root, 3 per ball joint,
+1 per hinge; the kernel solves 3 per bone, 66 unknowns), more than the 34 of the
+issue's figure (biorbd's 34-DoF, 75-marker model, the Kalman filter's published time
+in ``../shared/reference/peers.md``), so an upper bound for it (the performer's 21
+segments leave no 34-DoF chain that fits it without a model error); ``plug-in-gait``
+on the real walk
+``PiG_Motion-FlatFoot-Full.c3d`` calibrated on ``PiG_Calibration-FlatFoot-Full.c3d``
+(``../shared/datasets/btkdata``), played forward then backward to fill ``--frames``
+(no jump at the seam); ``bioptim-wholebody``, the shipped rig for biorbd's
+whole-body model (75 markers) on its gait take ``../shared/datasets/peers/
+bioptim_gait_wholebody.c3d``, calibrated on its first 10 rows, forward and back.
+Without the datasets those cases are skipped (said in the output). The
+machine's load average is printed beside the figures. Speed is printed, never
+asserted.
 """
 
 from __future__ import annotations
@@ -33,6 +45,7 @@ from __future__ import annotations
 import argparse
 import gc
 import os
+import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -51,8 +64,17 @@ from retargetd.daemon.validate.limits import JOINT_LIMITS_DEG
 from retargetd.daemon.validate.model import SEGMENT_KIND
 
 DATASETS = Path(__file__).resolve().parent.parent.parent / "shared" / "datasets"
+TESTS_DATA = Path(__file__).resolve().parent.parent / "tests" / "data"
+#: The dense case's three extra markers: segment, offset (mm, the segment's frame as
+#: in tests/data/synth-exact-markers.toml), and the rig segment group they join.
+DENSE_EXTRA = (
+    ("LTHF", "l_thigh", (60, 40, -150)),
+    ("RTHF", "r_thigh", (60, -40, -150)),
+    ("STRN", "thorax", (110, 0, 120)),
+)
 PIG_MOTION = DATASETS / "btkdata" / "PiG_Motion-FlatFoot-Full.c3d"
 PIG_CALIBRATION = DATASETS / "btkdata" / "PiG_Calibration-FlatFoot-Full.c3d"
+BIOPTIM_TAKE = DATASETS / "peers" / "bioptim_gait_wholebody.c3d"
 
 
 @dataclass(slots=True)
@@ -86,6 +108,86 @@ def _menache(n_frames: int) -> Case:
         np.ascontiguousarray(take.markers_world),
         f"synthetic performer, 240 Hz, {take.n_frames} frames",
     )
+
+
+def _dense(n_frames: int, folder: Path) -> Case:
+    """The exact rig with 75 markers and hinge knees (module docstring)."""
+    markers = (TESTS_DATA / "synth-exact-markers.toml").read_text()
+    rig_text = (TESTS_DATA / "synth-exact-rig.toml").read_text()
+    for name, seg, off in DENSE_EXTRA:
+        markers += (
+            f'\n[markers.{name}]\nsegment = "{seg}"\noffset_mm = {list(off)}\n'
+            f'description = "bench_fit: extra {seg} marker"\n'
+        )
+        rig_text = rig_text.replace("[markers]\n", f'[markers]\n{name} = "{name}"\n', 1)
+        group = f"[segments.{seg}]\nmarkers = ["
+        rig_text = rig_text.replace(group, f'{group}"{name}", ', 1)
+    rig_text += '\n[fit.bones.l_shank]\ndof = "hinge"\n'
+    rig_text += '[fit.bones.r_shank]\ndof = "hinge"\n'
+    (folder / "dense-markers.toml").write_text(markers)
+    (folder / "dense-rig.toml").write_text(rig_text)
+    rate_hz = 240.0
+    take = pf.synthesize(
+        seconds=n_frames / rate_hz, rate_hz=rate_hz,
+        markerset=folder / "dense-markers.toml", noise_mm=0.5,
+    )  # fmt: skip
+    rig = load_rig(folder / "dense-rig.toml")
+    base = take.markers_world[take.base_pose_frames]
+    cal = calibrate(rig, base, take.labels)
+    solver = FitSolver(
+        rig, cal, take.labels, joint_limits=JOINT_LIMITS_DEG,
+        segment_kind=SEGMENT_KIND, base_positions=base,
+    )  # fmt: skip
+    n_hinge = sum(b.dof == "hinge" for b in rig.fit.bones.values())
+    n_ball = len(rig.bones) - 1 - n_hinge
+    return Case(
+        "dense-75",
+        solver,
+        BodySolver(rig, cal, take.labels),
+        np.ascontiguousarray(take.markers_world),
+        f"synthetic performer with the exact rig + 3 markers, 0.5 mm noise, 240 Hz, "
+        f"{take.n_frames} frames; {len(rig.bones)} bones, {6 + 3 * n_ball + n_hinge} "
+        f"DoF ({n_hinge} hinges)",
+    )
+
+
+def _bioptim(n_frames: int) -> Case | None:
+    """The shipped ``bioptim-wholebody`` rig (75 markers) on the bioptim gait take,
+    calibrated on its first 10 rows with Harrington's pelvis width and depth measured
+    there (as ``bench/peers.py`` does: the take has no static)."""
+    if not BIOPTIM_TAKE.exists():
+        return None
+    from retargetd.replay.takes import load_take
+
+    take = load_take(BIOPTIM_TAKE)
+    rig = load_rig("bioptim-wholebody")
+    base = take.positions[:10]
+    col = {n: i for i, n in enumerate(take.labels)}
+    right, left = base[:, col["RASIS"]], base[:, col["LASIS"]]
+    back = 0.5 * (base[:, col["RPSIS"]] + base[:, col["LPSIS"]])
+    meas = {
+        "PelvisWidth": float(
+            1000 * np.nanmedian(np.linalg.norm(left - right, axis=-1))
+        ),
+        "PelvisDepth": float(
+            1000 * np.nanmedian(np.linalg.norm(0.5 * (left + right) - back, axis=-1))
+        ),
+    }
+    cal = calibrate(rig, base, take.labels, overrides=meas)
+    loop = np.concatenate([take.positions, take.positions[::-1]])
+    reps = -(-n_frames // loop.shape[0])
+    frames = np.ascontiguousarray(np.concatenate([loop] * reps)[:n_frames])
+    return Case(
+        "bioptim-wholebody",
+        FitSolver(
+            rig, cal, take.labels, joint_limits=JOINT_LIMITS_DEG,
+            segment_kind=SEGMENT_KIND, base_positions=base,
+        ),
+        BodySolver(rig, cal, take.labels),
+        frames,
+        f"real gait {BIOPTIM_TAKE.name} (biorbd's 34-DoF, 75-marker problem), "
+        f"forward and back, {frames.shape[0]} frames; {len(rig.bones)} bones",
+    )  # fmt: skip
 
 
 def _pig(n_frames: int) -> Case | None:
@@ -291,6 +393,13 @@ def main() -> None:
     args = ap.parse_args()
     print(f"bench_fit  [{_load()}]")
     run(_menache(args.frames), args)
+    with tempfile.TemporaryDirectory() as folder:
+        run(_dense(args.frames, Path(folder)), args)
+    bioptim = _bioptim(args.frames)
+    if bioptim is None:
+        print(f"\n== bioptim-wholebody: skipped, {BIOPTIM_TAKE} not found")
+    else:
+        run(bioptim, args)
     pig = _pig(args.frames)
     if pig is None:
         print(f"\n== plug-in-gait: skipped, {PIG_MOTION} not found")

@@ -3,7 +3,7 @@
 Run from the repository root::
 
     python bench/bench_latency.py [--seconds S] [--rates 240,1000]
-        [--transports osc,zmq] [--warmup W] [--variants body,face,face+validate]
+        [--transports osc,zmq] [--warmup W] [--variants body,fit,face,face+validate]
 
 Every case runs its own processes, all bound to 127.0.0.1 and all terminated at the
 end, even on error:
@@ -50,7 +50,9 @@ markers LFHD RFHD LBHD RBHD with known weights and 0.5 mm noise, occluded in fra
 where a head marker is; ``[face]`` on with that training set, so every frame also
 stabilizes 40 markers, solves 52 weights and sends 52 VMC blendshapes and the Mug),
 ``validate`` (``[validate]`` on: the live validator's thread checks every frame
-beside the loop) and ``face+validate``.
+beside the loop), ``fit`` (``[solve] method = "fit"``: the rigid-skeleton fit instead
+of the construction, README "Two ways to solve the body") and any of them joined by
+``+`` (``face+validate``, ``fit+validate``, ``fit+face``).
 
 Capture-system transports (``--transports natnet,qtm``, README "Capture systems"):
 the sender process is the capture system, the emulators of ``tests/protocols`` (their
@@ -478,7 +480,10 @@ def _config_toml(
 ) -> str:
     face = "face" in variant
     validate = "validate" in variant
+    method = "fit" if "fit" in variant.split("+") else "construction"
     return f"""\
+[solve]
+method = "{method}"
 [performer]
 rig = "plug-in-gait"
 calibration = "{calibration}"
@@ -933,6 +938,15 @@ def _calibrate(tmp: Path) -> Path:
     return out
 
 
+def _valid_variant(variant: str) -> bool:
+    """``body``, or ``fit``, ``face``, ``validate`` joined by ``+``."""
+    parts = variant.split("+")
+    return variant == "body" or (
+        len(set(parts)) == len(parts)
+        and all(p in ("fit", "face", "validate") for p in parts)
+    )
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run the benchmark; returns the exit code."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -946,7 +960,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument(
         "--variants", default="body,face",
-        help="body, face, validate, face+validate (comma-separated)",
+        help="body, fit, face, validate, or joined by + (comma-separated)",
     )  # fmt: skip
     args = parser.parse_args(argv)
     variants = [v for v in args.variants.split(",") if v]
@@ -958,12 +972,12 @@ def main(argv: list[str] | None = None) -> int:
         or not rates
         or any(not 1 <= r <= 10_000 for r in rates)
         or any(t not in ("osc", "zmq", *CAPTURE_TRANSPORTS) for t in transports)
-        or any(v not in ("body", "face", "validate", "face+validate") for v in variants)
+        or any(not _valid_variant(v) for v in variants)
     ):
         parser.error(
             "--seconds > 0, --warmup >= 0, rates in [1, 10000], osc/zmq/natnet/qtm, "
             "variants "
-            "body/face/validate/face+validate"
+            "body, or fit/face/validate joined by +"
         )
     if not (PIG_MOTION.is_file() and PIG_CALIBRATION.is_file()):
         print(f"datasets not found at {DATASETS / 'btkdata'}", file=sys.stderr)

@@ -74,9 +74,11 @@ FRAME_HELD = 1 << 1  # at least one bone holds its last good value
 FRAME_RESTARTED = 1 << 2  # the marker source restarted (frame numbers reset)
 FRAME_INPUT_DROPPED = 1 << 3  # input frames were dropped since the last pose
 FRAME_SOURCE_LOST = 1 << 4  # the capture system is gone: the last good pose, resent
+FRAME_RESEEDED = 1 << 5  # the fit lost track and was reseeded from the construction
 FRAME_VALIDATION_MASK = 0x0000_FF00  # bits 8-15: validation results (below)
 FRAME_FLAG_BITS = {
     "late": 0, "held": 1, "restarted": 2, "input_dropped": 3, "source_lost": 4,
+    "reseeded": 5,
 }  # fmt: skip
 
 # Validation frame bits (8-15), set by the daemon's live validator (``[validate]``):

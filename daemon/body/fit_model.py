@@ -34,8 +34,8 @@ its markers: Plug-in Gait's thorax markers ride the chest, not the spine whose a
 build), when there is one. A marker no bone uses rides the bone of the other markers
 of its group, else the nearest bone.
 
-Rig keys (a ``[fit]`` table, see ``daemon/body/rigs/RIGS.md``), parsed here from the
-rig's raw TOML because :class:`Rig` does not carry them (yet):
+Rig keys (a ``[fit]`` table, see ``daemon/body/rigs/RIGS.md``), parsed with the rig
+(``Rig.fit``, ``body.rig_fit``) and used by default:
 
 ```toml
 [fit.markers.LKNE]
@@ -51,10 +51,8 @@ from __future__ import annotations
 
 import logging
 import math
-import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass
-from importlib import resources
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -68,7 +66,23 @@ from retargetd.daemon.body.calibration import (
     compute_points,
     match_markers,
 )
-from retargetd.daemon.body.rig import Rig, RigError, _Parser
+from retargetd.daemon.body.rig import Rig, RigError, load_rig
+from retargetd.daemon.body.rig_fit import (
+    BoneFitOptions,
+    FitOptions,
+    MarkerFitOptions,
+    parse_fit_table,
+)
+
+__all__ = [
+    "BoneFitOptions",
+    "FitModel",
+    "FitOptions",
+    "MarkerFitOptions",
+    "build_fit_model",
+    "load_fit_rig",
+    "parse_fit_options",
+]
 from retargetd.protocols.frames import F64Array, IntArray
 
 logger = logging.getLogger(__name__)
@@ -82,32 +96,6 @@ PROXIMAL_TIE_M = 0.025
 #: Limit table columns (radians; NaN = no such limit): twist lo, twist hi,
 #: sagittal lo, sagittal hi, frontal |max|, cone max.
 LIM_TWIST_LO, LIM_TWIST_HI, LIM_SAG_LO, LIM_SAG_HI, LIM_FRONTAL, LIM_CONE = range(6)
-
-_AXES = {"x": (1.0, 0.0, 0.0), "y": (0.0, 1.0, 0.0), "z": (0.0, 0.0, 1.0)}
-
-
-@dataclass(frozen=True, slots=True, kw_only=True)
-class MarkerFitOptions:
-    """Per-marker rig keys: the bone it rides (None: default) and its weight."""
-
-    segment: str | None = None
-    weight: float = 1.0
-
-
-@dataclass(frozen=True, slots=True, kw_only=True)
-class BoneFitOptions:
-    """Per-bone rig keys: ``dof`` "ball" or "hinge" and the hinge axis (bone axes)."""
-
-    dof: str = "ball"
-    axis: tuple[float, float, float] = (1.0, 0.0, 0.0)
-
-
-@dataclass(frozen=True, slots=True, kw_only=True)
-class FitOptions:
-    """The rig's ``[fit]`` table, parsed."""
-
-    markers: dict[str, MarkerFitOptions]
-    bones: dict[str, BoneFitOptions]
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -176,118 +164,30 @@ class FitModel:
 # --- the rig's [fit] table --------------------------------------------------------
 
 
-def read_rig_document(name_or_path: str | Path) -> tuple[dict[str, Any], str]:
-    """The raw TOML of a rig (shipped name or path) and its source name.
-
-    Raises:
-        RigError: unreadable or not TOML.
-    """
-    text_name = str(name_or_path)
-    path = Path(text_name)
-    if path.suffix.lower() != ".toml" and "/" not in text_name and not path.exists():
-        resource = resources.files("retargetd.daemon.body.rigs") / f"{text_name}.toml"
-        if not resource.is_file():
-            raise RigError(f"no shipped rig named {text_name!r}")
-        text, source = resource.read_text(), f"{text_name} (shipped)"
-    else:
-        try:
-            text, source = path.read_text(), str(path)
-        except OSError as exc:
-            raise RigError(f"{path}: cannot read rig file: {exc.strerror}") from None
-    try:
-        return tomllib.loads(text), source
-    except tomllib.TOMLDecodeError as exc:
-        raise RigError(f"{source}: not valid TOML: {exc}") from None
-
-
 def load_fit_rig(name_or_path: str | Path) -> tuple[Rig, FitOptions]:
-    """Load a rig whose file may carry a ``[fit]`` table.
-
-    The construction's parser rejects unknown top-level tables, so the ``[fit]`` table
-    is taken out before the rest goes through it (until ``rig.py`` knows ``[fit]``).
+    """Load a rig and its ``[fit]`` keys (``Rig.fit``; kept for callers that want
+    the pair).
 
     Raises:
         RigError: one line naming the file, the key and the bad value.
     """
-    doc, source = read_rig_document(name_or_path)
-    fit = doc.pop("fit", {})
-    rig = _Parser(doc, source).parse()
-    return rig, parse_fit_options(rig, fit, source=source)
+    rig = load_rig(name_or_path)
+    return rig, rig.fit
 
 
 def parse_fit_options(rig: Rig, table: Any, *, source: str) -> FitOptions:
-    """Validate a rig's ``[fit]`` table against the rig.
+    """Validate a ``[fit]`` table against ``rig`` (as the rig parser does).
 
     Raises:
         RigError: naming ``source`` and the key.
     """
-
-    def fail(key: str, message: str) -> RigError:
-        return RigError(f"{source}: fit.{key}: {message}")
-
-    if not isinstance(table, dict):
-        raise RigError(f"{source}: fit: expected a table")
-    for key in table:
-        if key not in ("markers", "bones"):
-            raise fail(key, "unknown key (expected one of: markers, bones)")
-    markers: dict[str, MarkerFitOptions] = {}
-    bones_t = table.get("bones", {})
-    markers_t = table.get("markers", {})
-    if not isinstance(markers_t, dict) or not isinstance(bones_t, dict):
-        raise fail("markers", "expected tables [fit.markers.NAME], [fit.bones.NAME]")
-    for name, spec in markers_t.items():
-        if name not in rig.markers:
-            raise fail(f"markers.{name}", "unknown marker")
-        if not isinstance(spec, dict):
-            raise fail(f"markers.{name}", "expected a table")
-        for k in spec:
-            if k not in ("segment", "weight"):
-                raise fail(f"markers.{name}.{k}", "unknown key (segment, weight)")
-        seg = spec.get("segment")
-        if seg is not None and seg not in rig.bone_names:
-            raise fail(f"markers.{name}.segment", f"unknown bone {seg!r}")
-        weight = spec.get("weight", 1.0)
-        if (
-            not isinstance(weight, int | float)
-            or isinstance(weight, bool)
-            or not math.isfinite(weight)
-            or weight < 0.0
-        ):
-            raise fail(f"markers.{name}.weight", f"expected a number >= 0: {weight!r}")
-        markers[name] = MarkerFitOptions(segment=seg, weight=float(weight))
-    bones: dict[str, BoneFitOptions] = {}
-    for name, spec in bones_t.items():
-        if name not in rig.bone_names:
-            raise fail(f"bones.{name}", "unknown bone")
-        if not isinstance(spec, dict):
-            raise fail(f"bones.{name}", "expected a table")
-        for k in spec:
-            if k not in ("dof", "axis"):
-                raise fail(f"bones.{name}.{k}", "unknown key (dof, axis)")
-        dof = spec.get("dof", "ball")
-        if dof not in ("ball", "hinge"):
-            raise fail(f"bones.{name}.dof", f"expected 'ball' or 'hinge': {dof!r}")
-        axis_v = spec.get("axis", "x")
-        if isinstance(axis_v, str) and axis_v in _AXES:
-            axis = _AXES[axis_v]
-        elif (
-            isinstance(axis_v, list)
-            and len(axis_v) == 3
-            and all(
-                isinstance(v, int | float) and not isinstance(v, bool) for v in axis_v
-            )
-            and math.hypot(*axis_v) > 0.0
-        ):
-            n = math.hypot(*axis_v)
-            axis = (axis_v[0] / n, axis_v[1] / n, axis_v[2] / n)
-        else:
-            raise fail(
-                f"bones.{name}.axis", f"expected x, y, z or [x, y, z]: {axis_v!r}"
-            )
-        if rig.bones[rig.bone_names.index(name)].parent is None and dof != "ball":
-            raise fail(f"bones.{name}.dof", "a root bone is free (no hinge)")
-        bones[name] = BoneFitOptions(dof=dof, axis=axis)
-    return FitOptions(markers=markers, bones=bones)
+    return parse_fit_table(
+        table,
+        markers=rig.markers,
+        bones=rig.bone_names,
+        roots=[b.name for b in rig.bones if b.parent is None],
+        fail=lambda key, message: RigError(f"{source}: {key}: {message}"),
+    )
 
 
 # --- building the model -----------------------------------------------------------
@@ -486,7 +386,7 @@ def build_fit_model(
         base_positions: (F, M, 3) float64, metres, world: the base-pose frames the
             calibration was made from (NaN rows = occluded).
         base_labels: (M,) their labels.
-        options: the rig's ``[fit]`` keys (default: none).
+        options: ``[fit]`` keys (default: the rig's own, ``rig.fit``).
         joint_limits: the validator's table, segment kind -> limits
             (``validate.limits.JOINT_LIMITS_DEG``); None: no limit penalty.
         segment_kind: humanoid bone -> segment kind (``validate.model.SEGMENT_KIND``).
@@ -500,7 +400,7 @@ def build_fit_model(
     check_calibration_fits(rig, calibration)
     if calibration.rest_bone_origin_pos is None:
         raise ValueError("calibration has no rest bone origins: recalibrate")
-    options = options or FitOptions(markers={}, bones={})
+    options = options if options is not None else rig.fit
     base_positions = np.asarray(base_positions, dtype=np.float64)
     cols = np.asarray(match_markers(rig, base_labels))
     n_frames = base_positions.shape[0]

@@ -12,8 +12,11 @@ kernel walks it once per frame with no allocation:
    p = a + R_abc @ offset with the three-point frame x = unit(b - a),
    z = unit(x x (c - a)), y = z x x;
 4. bones: +Y = unit(aim - origin), +X = the up reference made orthogonal to Y,
-   +Z = X x Y; a bone whose points are missing or degenerate holds its last good
-   rotation and is flagged;
+   +Z = X x Y; a bone whose up reference lies within ``bone_up_min`` of its axis
+   keeps the new +Y and takes its roll from the previous frame relative to its
+   parent (the parent's axes now, times the last good parent-relative rotation,
+   turned by the least rotation onto the new +Y), flagged ``FLAG_PARTIAL``; a bone
+   whose points are missing holds its last good rotation and is flagged held;
 5. parent-relative rotations, and the same relative to the calibration pose; joint
    centres; root.
 
@@ -38,6 +41,7 @@ import numpy as np
 from retargetd.daemon.compiled import (
     horn_fit,
     kernel,
+    qmul,
     quat_conj_mul_into,
     quat_mul_into,
 )
@@ -48,7 +52,9 @@ OP_RIGID = 1
 
 FLAG_HELD = pose_stream.BONE_HELD  #: rotation held from the last good frame
 FLAG_REBUILT = pose_stream.BONE_REBUILT  #: a defining marker rebuilt from its segment
-FLAG_PARTIAL = pose_stream.BONE_PARTIAL  #: some defining marker not seen (quality < 1)
+#: some defining marker not seen (quality < 1), or, with quality 1, the up reference
+#: too near the bone's axis: the roll taken from the previous frame
+FLAG_PARTIAL = pose_stream.BONE_PARTIAL
 FLAG_NEVER = pose_stream.BONE_NEVER  #: no good value yet: the rest rotation is sent
 
 
@@ -71,6 +77,7 @@ class BodyPlan(NamedTuple):
     rest_pfb: np.ndarray  # (B, 4) calibrated parent_from_bone (w x y z)
     joint_idx: np.ndarray  # (J,) indices into pts
     root_point: int
+    bone_up_min: np.ndarray  # (B,) float64 m: roll from the last frame under this
 
 
 class BodyState(NamedTuple):
@@ -313,15 +320,63 @@ def solve_one_nt(
             uy = pts[iu1, 1] - pts[io, 1]
             uz = pts[iu1, 2] - pts[io, 2]
         good = math.isfinite(ny) and ny > 1e-9
+        near = False
         if good:
             yx, yy, yz = yx / ny, yy / ny, yz / ny
             dot = ux * yx + uy * yy + uz * yz
             xx, xy, xz = ux - dot * yx, uy - dot * yy, uz - dot * yz
             nx = math.sqrt(xx * xx + xy * xy + xz * xz)
             nu = math.sqrt(ux * ux + uy * uy + uz * uz)
-            # The up reference must stand off the bone axis (> ~0.6 deg).
-            good = math.isfinite(nx) and nx > 1e-2 * nu and nx > 1e-9
+            if not math.isfinite(nx):
+                good = False
+            elif nx < plan.bone_up_min[b] or not (nx > 1e-2 * nu and nx > 1e-9):
+                # The up reference is seen but too near the axis (within the rig's
+                # up_min_mm, or closer than ~0.6 deg): its roll is noise.
+                good = False
+                near = True
         par = bone_parent[b]
+        if near:
+            # Keep the new axis; the roll is the previous frame's relative to the
+            # parent (its last good parent_from_bone, the calibrated one before any;
+            # a root's: its last world rotation), carried by the parent's motion and
+            # turned by the least rotation that takes its +Y onto the new +Y. (The
+            # previous frame's world axes turned the same way would drift: a least
+            # rotation never turns about the axis, so a foot held that way for 0.4 s
+            # of walking missed the shank's 14 deg of axial turn and jumped by it
+            # when the heel came back.)
+            if par < 0:
+                for j in range(4):
+                    tmp4[j] = last_pfb[b, j]
+            else:
+                quat_mul_into(out_wfb[par], last_pfb[b], tmp4)
+            rw, rx, ry, rz = tmp4[0], tmp4[1], tmp4[2], tmp4[3]
+            # the reference's +Y: the middle column of its rotation matrix
+            px = 2.0 * (rx * ry - rw * rz)
+            py = 1.0 - 2.0 * (rx * rx + rz * rz)
+            pz = 2.0 * (ry * rz + rw * rx)
+            # swing (1 + p.y, p x y), normalized, is the least rotation p -> y
+            sw = 1.0 + px * yx + py * yy + pz * yz
+            sx = py * yz - pz * yy
+            sy = pz * yx - px * yz
+            sz = px * yy - py * yx
+            ns = math.sqrt(sw * sw + sx * sx + sy * sy + sz * sz)
+            if sw > 1e-6 and math.isfinite(ns):
+                sw, sx, sy, sz = sw / ns, sx / ns, sy / ns, sz / ns
+                ow, ox, oy, oz = qmul(sw, sx, sy, sz, rw, rx, ry, rz)
+                no = math.sqrt(ow * ow + ox * ox + oy * oy + oz * oz)
+                out_wfb[b, 0] = ow / no
+                out_wfb[b, 1] = ox / no
+                out_wfb[b, 2] = oy / no
+                out_wfb[b, 3] = oz / no
+                flags |= FLAG_PARTIAL
+                if par < 0:
+                    for j in range(4):
+                        last_pfb[b, j] = out_wfb[b, j]
+                else:
+                    quat_conj_mul_into(out_wfb[par], out_wfb[b], last_pfb[b])
+                have_good[b] = True
+            else:  # the axis turned half a turn in one frame: no roll to carry
+                near = False
         if good:
             xx, xy, xz = xx / nx, xy / nx, xz / nx
             zx = xy * yz - xz * yy
@@ -334,7 +389,7 @@ def solve_one_nt(
             else:
                 quat_conj_mul_into(out_wfb[par], out_wfb[b], last_pfb[b])
             have_good[b] = True
-        else:
+        elif not near:
             # Too little data: hold the last good parent-relative rotation (the
             # calibrated rest one before any), so the bone follows its parent.
             flags |= FLAG_HELD
@@ -411,7 +466,7 @@ def plan_sizes(h: np.ndarray) -> tuple[int, int]:
     """Lengths of the int64 and float64 plan buffers for the sizes header ``h``."""
     mr, p, s, k, b, d, j = h[0], h[1], h[2], h[3], h[4], h[5], h[6]
     n_i = PLAN_HEADER + mr + p + 3 * p + (s + 1) + k + 4 * b + b + (b + 1) + d + j
-    n_f = p + 3 * p + 3 * k + k + 4 * b
+    n_f = p + 3 * p + 3 * k + k + 4 * b + b
     return n_i, n_f
 
 
@@ -449,10 +504,12 @@ def plan_views(pi: np.ndarray, pf: np.ndarray) -> BodyPlan:
     seg_w = pf[f : f + k]
     f += k
     rest_pfb = pf[f : f + 4 * b].reshape((b, 4))
+    f += 4 * b
+    bone_up_min = pf[f : f + b]
     return BodyPlan(
         marker_cols, op_kind, op_idx, op_u, op_off, seg_ptr, seg_idx, seg_layout,
         seg_w, bone_pts, bone_parent, bone_def_ptr, bone_def_idx, rest_pfb,
-        joint_idx, pi[7],
+        joint_idx, pi[7], bone_up_min,
     )  # fmt: skip
 
 

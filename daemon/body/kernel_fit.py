@@ -805,7 +805,7 @@ def fit_one(
     markers: np.ndarray,  # (M_stream, 3) world metres, NaN = occluded
     m: tuple,  # the model (solve_fit.FitSolver._model)
     s: tuple,  # state and scratch (solve_fit.FitSolver._state)
-    c: tuple,  # the construction kernel's plan, state and output fields, flat
+    c: tuple,  # the construction kernel's (plan, state, output) plain tuples
     out_joints: np.ndarray,  # (J, 3)
     out_wfb: np.ndarray,  # (B, 4)
     out_pfb: np.ndarray,  # (B, 4) parent_from_bone

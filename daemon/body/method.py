@@ -22,8 +22,9 @@ from retargetd.daemon.body.rig import Rig
 from retargetd.daemon.body.solve import BodySolver
 from retargetd.daemon.body.solve_fit import FitSolver
 
-#: The methods, the default first (the fit becomes the default once every live and
-#: golden path is measured with it; see the README).
+#: The methods, the default first. The fit is not the default yet: with ``cmu41`` it
+#: does not validate the ballet or the tennis serve (README "Two ways to solve the
+#: body"; ``tests/daemon/test_validate_takes.py`` ``FIT_ON_CMU41``).
 METHODS = ("construction", "fit")
 
 

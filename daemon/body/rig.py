@@ -4,7 +4,9 @@ A rig is a TOML file (reference: ``daemon/body/rigs/RIGS.md``) declaring
 
 - ``[rig]``: name, description, and ``lateral = [RIGHT, LEFT]``, the two points whose
   horizontal direction (right to left) gives the body's width axis in the base pose
-  (height is world +Z, depth = width x height, i.e. forward);
+  (height is world +Z, depth = width x height, i.e. forward); optional ``up_min_mm``
+  (default :data:`UP_MIN_MM`): a bone whose up reference comes nearer its axis than
+  this takes its roll from the previous frame;
 - ``[measurements]``: named subject measurements in mm, each with a default;
 - ``[markers]``: rig marker name -> take label, or a list of accepted labels;
 - ``[segments.NAME]``: ``markers = [...]``, markers moving as one rigid body, used to
@@ -21,7 +23,8 @@ A rig is a TOML file (reference: ``daemon/body/rigs/RIGS.md``) declaring
   the direction A->B) and optional ``humanoid`` (standard humanoid bone name). Bone
   axes: +Y from origin to aim, +X towards the up reference (made orthogonal to Y),
   +Z = X x Y;
-- ``[joints]``: named joint centres, name -> point.
+- ``[joints]``: named joint centres, name -> point;
+- ``[fit]``: the rigid-skeleton fit's keys per marker and bone (``body.rig_fit``).
 
 The three-point frame of ``rigid = [A, B, C]``: origin A, x = unit(B - A),
 z = unit(x x (C - A)), y = z x x.
@@ -43,6 +46,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
+from retargetd.daemon.body.rig_fit import FitOptions, parse_fit_table
 from retargetd.protocols.humanoid import HUMANOID_BONES as _HUMANOID_BONES
 
 logger = logging.getLogger(__name__)
@@ -52,7 +56,26 @@ HUMANOID_BONES = _HUMANOID_BONES
 
 RULE_AXES = ("height", "width", "depth")
 
-_TOP_KEYS = ("rig", "measurements", "markers", "segments", "points", "bones", "joints")
+_TOP_KEYS = (
+    "rig", "measurements", "markers", "segments", "points", "bones", "joints", "fit",
+)  # fmt: skip
+
+#: The keys of ``[rig]`` (RIGS.md documents each; a test keeps them equal).
+RIG_KEYS = ("name", "description", "lateral", "up_min_mm")
+
+#: Default ``[rig] up_min_mm``: a bone whose up reference is seen nearer its axis than
+#: this (the up point's distance from the origin->aim line; for ``up = [FROM, TO]``
+#: the part of FROM->TO across it) keeps its new axis and takes its roll from the
+#: previous frame (``body.kernel``, step 4), flagged ``partial``. Marker noise sigma
+#: across a lever d turns the bone by atan(sigma / d); at sigma = 1 mm, the top of
+#: what optical systems track to (Merriaux et al., "A study of Vicon system
+#: positioning performance", Sensors 17(7):1591, 2017: < 1 mm), d = 11 mm turns it
+#: 5.2 deg, the roll change between frames the issue's evidence allows (issue 14).
+#: 11 mm is also under the 14 mm diameter of the markers Plug-in Gait assumes
+#: (``MarkerDiameter``): the up marker sits within its own size of the axis. It is well
+#: under the 30 mm ``calibrate`` asks of a base-pose lever (``body.sanity``), so a
+#: rig that passes that check holds a roll only when the lever collapses mid-take.
+UP_MIN_MM = 11.0
 
 #: The greatest distance between two points of one body, mm. Stature is at most 2.3 m
 #: in the range the calibration's sanity check accepts (NCD-RisC 2016; ``body.sanity``)
@@ -87,6 +110,12 @@ class NumberRange:
 #: the rig author's). ``[fit.markers.NAME] weight`` (>= 0, finite) is checked by
 #: ``body.fit_model``.
 RIG_RANGES: dict[str, NumberRange] = {
+    # 0 turns the roll hold off; above 100 mm, more than a limb's radius (a thigh's
+    # girth is ~0.5-0.6 m, a radius under 100 mm: Gordon et al., ANSUR II 2014), a
+    # limb bone's up marker would never count as off its axis.
+    "rig.up_min_mm": NumberRange(
+        0.0, 100.0, "0 = off; at most a limb's radius", unit="mm"
+    ),
     # A measurement is a length of the body (a width, a depth, a marker diameter, an
     # offset): positive (Vicon writes 0 for "not measured", so 0 is no default) and
     # within the body's extent.
@@ -231,6 +260,10 @@ class Rig:
     bones: tuple[Bone, ...]
     joints: dict[str, str]
     humanoid: dict[str, str] = field(default_factory=dict)
+    #: ``[rig] up_min_mm`` (see :data:`UP_MIN_MM`).
+    up_min_mm: float = UP_MIN_MM
+    #: The ``[fit]`` table (``body.rig_fit``).
+    fit: FitOptions = field(default_factory=FitOptions)
 
     @property
     def marker_names(self) -> tuple[str, ...]:
@@ -468,8 +501,12 @@ class _Parser:
         doc = self.doc
         self.unknown_keys("", doc, _TOP_KEYS)
         head = self.table("rig", doc.get("rig", {}))
-        self.unknown_keys("rig", head, ("name", "description", "lateral"))
+        self.unknown_keys("rig", head, RIG_KEYS)
         name = self.string("rig.name", head.get("name"))
+        up_min = head.get("up_min_mm", UP_MIN_MM)
+        if not isinstance(up_min, int | float) or isinstance(up_min, bool):
+            raise self.fail("rig.up_min_mm", f"expected a number, got {up_min!r}")
+        self.in_range("rig.up_min_mm", "rig.up_min_mm", up_min)
         description = self.text("rig.description", head.get("description", ""))
         measurements = self.parse_measurements()
         markers = self.parse_markers()
@@ -493,6 +530,13 @@ class _Parser:
                         f"{humanoid[bone.humanoid]!r}",
                     )
                 humanoid[bone.humanoid] = bone.name
+        fit = parse_fit_table(
+            doc.get("fit", {}),
+            markers=markers,
+            bones={b.name for b in bones},
+            roots={b.name for b in bones if b.parent is None},
+            fail=self.fail,
+        )
         return Rig(
             name=name,
             source=self.src,
@@ -505,6 +549,8 @@ class _Parser:
             bones=bones,
             joints=joints,
             humanoid=humanoid,
+            up_min_mm=float(up_min),
+            fit=fit,
         )
 
     def known_point(self, key: str, name: str, known: set[str]) -> None:

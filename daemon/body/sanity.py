@@ -467,3 +467,34 @@ def check_up_levers(
         for name, lever in up_levers(rig, cal, positions, labels).items()
         if lever < UP_LEVER_MIN_M
     ]
+
+
+#: A bone whose up lever is already short in the base pose would, with the rig's
+#: ``up_min_mm`` alone, hold its roll in every frame (menache's torso takes its roll
+#: from LONECK->C7, 4 mm across its axis). Such a bone takes its roll from the previous
+#: frame only once its lever falls to this fraction of its base-pose lever: there the
+#: noise on its roll is twice what the calibration saw (atan(sigma / d), see
+#: :data:`UP_LEVER_MIN_M`), a collapse of the lever rather than the rig's design.
+ROLL_HOLD_BASE_FRACTION = 0.5
+
+
+def roll_hold_levels_m(rig: Rig, cal: Calibration) -> F64Array:
+    """Per bone, the up lever (m) under which the construction keeps the bone's new
+    axis and takes its roll from the previous frame (``body.kernel``, step 4): the
+    rig's ``up_min_mm``, or :data:`ROLL_HOLD_BASE_FRACTION` of the bone's base-pose
+    lever when that is less (from ``cal.base_marker_pos``; a calibration without it
+    gives ``up_min_mm`` for every bone).
+
+    Returns:
+        (B,) float64, metres, in rig bone order.
+    """
+    levels = np.full(len(rig.bones), rig.up_min_mm * 1e-3)
+    base = cal.base_marker_pos
+    if base is None:
+        return levels
+    levers = up_levers(rig, cal, np.asarray(base)[None], cal.marker_names)
+    for b, bone in enumerate(rig.bones):
+        lever = levers.get(bone.name)
+        if lever is not None:
+            levels[b] = min(levels[b], ROLL_HOLD_BASE_FRACTION * lever)
+    return levels

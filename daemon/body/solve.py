@@ -39,6 +39,7 @@ from retargetd.daemon.body.kernel import (
     FLAG_REBUILT,
 )
 from retargetd.daemon.body.rig import LinePoint, Rig, parse_rig
+from retargetd.daemon.body.sanity import roll_hold_levels_m
 from retargetd.protocols.frames import F64Array
 
 logger = logging.getLogger(__name__)
@@ -82,6 +83,9 @@ class BodyPose:
     n_held: int = 0
     #: Rig markers occluded this frame (missing from the stream or not finite).
     n_occluded: int = 0
+    #: Frame flag bits the solve sets (``protocols.pose_stream.FRAME_*``): the fit's
+    #: ``FRAME_RESEEDED``; 0 from the construction.
+    frame_flags: int = 0
     #: The same buffers as the kernel's output tuple (built once, never per frame).
     kernel_out: tuple[np.ndarray, ...] | None = None
     #: The flat float64, float32 and uint8 buffers the fields are views of, when
@@ -186,6 +190,10 @@ class BodySolver:
         self.root_point = int(index[rig.bones[0].origin])
         self.bone_names = rig.bone_names
         seg_w = np.ones(len(self.seg_idx))
+        # A bone's up lever under this takes the roll from the previous frame
+        # (``kernel``, step 4): the rig's up_min_mm, less for a bone whose lever is
+        # short already in the base pose.
+        self.bone_up_min = roll_hold_levels_m(rig, calibration)
         # The plan, state and output live in a few flat buffers (what the live call
         # passes: see ``kernel.solve_one``); the NamedTuples here are views of them.
         header = np.array(
@@ -201,7 +209,7 @@ class BodySolver:
             self.marker_cols, self.op_kind, self.op_idx, self.op_u, self.op_off,
             self.seg_ptr, self.seg_idx, self.seg_layout, seg_w, self.bone_pts,
             self.bone_parent, self.bone_def_ptr, self.bone_def_idx, self.rest_pfb,
-            self.joint_idx, self.root_point,
+            self.joint_idx, self.root_point, self.bone_up_min,
         )  # fmt: skip
         views = kernel.plan_views(self._pi, self._pf)
         for dst, src in zip(views, source, strict=True):

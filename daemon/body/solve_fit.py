@@ -10,7 +10,8 @@ Flags (``bone_flags`` bits, the construction's, same meaning): ``FLAG_HELD`` no
 marker of the bone's own seen (the bone is carried by its neighbours and the pull to
 the last frame); ``FLAG_PARTIAL`` some not seen. Per frame, ``FitPose.stats`` says
 whether the frame was reseeded from the construction and how many markers the gate
-rejected; ``marker_rejected`` says which.
+rejected; ``marker_rejected`` says which; ``frame_flags`` carries
+``pose_stream.FRAME_RESEEDED`` to the pose stream when the frame was reseeded.
 """
 
 from __future__ import annotations
@@ -38,6 +39,7 @@ from retargetd.daemon.body.solve import (
     BodySolver,
 )
 from retargetd.protocols.frames import F64Array
+from retargetd.protocols.pose_stream import FRAME_RESEEDED
 
 
 def _empty() -> np.ndarray:
@@ -326,6 +328,7 @@ class FitSolver:
             out.bone_quality, out.bone_flags, out.marker_residual,
             out.marker_rejected, out.stats,
         )  # fmt: skip
+        out.frame_flags = FRAME_RESEEDED if out.stats[kf.S_RESEEDED] else 0
         # Rig markers not seen this frame (their residual is NaN): the loop counts
         # them as occluded samples.
         out.n_occluded = len(out.marker_residual) - int(

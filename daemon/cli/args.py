@@ -113,9 +113,10 @@ def calibrate_from_take(
     allow_moving: bool = False,
 ) -> Any:
     """Calibrate ``rig`` on ``take.positions[frames]`` after the base-pose sanity
-    checks (``body.sanity``: up axis, units, stillness; then stature and left/right
-    symmetry of the result). Warnings go to stderr, one line each, only once the
-    calibration succeeded (a wrong rig gives its one error line alone).
+    checks (``body.sanity``: up axis, units, stillness; then stature, left/right
+    symmetry and each bone's up lever of the result). Warnings go to stderr, one line
+    each, only once the calibration succeeded (a wrong rig gives its one error line
+    alone).
 
     Raises:
         UsageError: a calibration error or a base pose that would give garbage.
@@ -151,6 +152,8 @@ def calibrate_from_take(
                 },
             )
             notes += sanity.check_calibration(rig, cal, units=take.units)
+            # a bone whose roll would follow noise: named, with its lever
+            notes += sanity.check_up_levers(rig, cal, base, take.labels)
     except (CalibrationError, sanity.SanityError) as exc:
         raise UsageError(str(exc)) from None
     held.pass_on()

@@ -141,7 +141,11 @@ class SendMixin(DaemonState):
         self.stats.frames_solved += 1
         self.stats.held_bone_frames += pose.n_held
         self.stats.occluded_samples += pose.n_occluded
-        flags = self._frame_flags | (pose_stream.FRAME_HELD if pose.n_held else 0)
+        flags = (
+            self._frame_flags
+            | pose.frame_flags  # the fit's reseeded bit
+            | (pose_stream.FRAME_HELD if pose.n_held else 0)
+        )
         self._frame_flags = 0
         validator = self.validator
         n_results = 0

@@ -122,7 +122,9 @@ Single-frame excursions: ``validate`` counts a frame beyond the table only when 
 excursion lasts at least ``THRESHOLDS["limit_min_frames"]`` consecutive frames; shorter
 ones are reported as transients (marker glitches: in the tennis serve, frame 400 has
 LWRA and LWRB labelled on one marker, frame 744 a wrist bar 119 mm long against 101 mm
-either side; the forearm and hand twists jump by 120-160 deg for that one frame).
+either side; the forearm and hand twists jump by 120-160 deg for that one frame). Frame
+400 no longer shows since the construction keeps a bone's roll when its up reference
+collapses onto its axis (``body.kernel`` step 4, RIGS.md ``up_min_mm``).
 
 The root and bones with no humanoid mapping are not limited.
 """

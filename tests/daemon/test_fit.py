@@ -20,6 +20,7 @@ import pytest
 from retargetd.daemon import rotations as rot
 from retargetd.daemon.body.calibration import Calibration, calibrate, match_markers
 from retargetd.daemon.body.fit_model import (
+    FitOptions,
     build_fit_model,
     load_fit_rig,
     parse_fit_options,
@@ -273,9 +274,8 @@ def test_fit_keys_parse_and_act(tmp_path: Path) -> None:
     )
     path = tmp_path / "rig.toml"
     path.write_text(text)
-    with pytest.raises(RigError, match="unknown key"):
-        load_rig(path)  # the construction's parser does not know [fit] (yet)
     rig, opts = load_fit_rig(path)
+    assert load_rig(path).fit == opts == rig.fit  # the rig parser reads [fit]
     assert opts.markers["LTHI"].weight == 0.0
     assert opts.markers["LKNL"].segment == "l_shank"
     assert opts.bones["l_shank"].dof == "hinge"
@@ -288,7 +288,11 @@ def test_fit_keys_parse_and_act(tmp_path: Path) -> None:
     assert model.marker_bone[i_knl] == rig.bone_names.index("l_shank")
     b = rig.bone_names.index("l_shank")
     np.testing.assert_allclose(model.hinge_axis[b], [1.0, 0.0, 0.0])
-    default = build_fit_model(rig, cal, base, take.labels)
+    # without options the model takes the rig's own [fit] keys
+    own = build_fit_model(rig, cal, base, take.labels)
+    assert own.marker_bone[i_knl] == model.marker_bone[i_knl]
+    np.testing.assert_array_equal(own.hinge_axis, model.hinge_axis)
+    default = build_fit_model(rig, cal, base, take.labels, FitOptions())
     # by default LKNL rides the thigh (it builds the knee centre, the thigh's aim)
     assert default.marker_bone[i_knl] == rig.bone_names.index("l_thigh")
     # the hinge holds: the knee's rotation off its axis stays small
@@ -317,6 +321,11 @@ def test_fit_keys_parse_and_act(tmp_path: Path) -> None:
     ):
         with pytest.raises(RigError, match=message):
             parse_fit_options(rig, bad, source="t.toml")
+    # the same errors from the rig file itself, naming the file and the key
+    bad_file = tmp_path / "bad.toml"
+    bad_file.write_text(text.replace('dof = "hinge"', 'dof = "slider"'))
+    with pytest.raises(RigError, match=r"bad.toml: fit.bones.l_shank.dof: expected"):
+        load_rig(bad_file)
 
 
 # --- kernel contract --------------------------------------------------------------

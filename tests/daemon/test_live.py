@@ -1552,7 +1552,9 @@ def test_fit_method_live_equals_batch(
 ) -> None:
     """Issue 14: ``[solve] method = "fit"`` streams the rigid-skeleton fit; the poses
     equal an offline :class:`FitSolver` on the same float32 frames (the same kernel,
-    to float32 on the wire)."""
+    to float32 on the wire), and the frame flags say when the fit reseeded
+    (``FRAME_RESEEDED``): the performer turned half round between two frames makes
+    the fit lose track, as the batch does on the same frames."""
     from retargetd.daemon.body.method import make_body_solver
     from retargetd.daemon.validate.limits import JOINT_LIMITS_DEG
     from retargetd.daemon.validate.model import SEGMENT_KIND
@@ -1571,8 +1573,13 @@ def test_fit_method_live_equals_batch(
     _prime(sub, lambda: src.send(take.markers_world[0]))
     n0 = len(src.sent)
     rows = range(100, 160)
+    turned = _rot_z(180.0)
+    centre = take.markers_world[130].mean(axis=0)
     for row in rows:
-        src.send(take.markers_world[row])
+        markers = take.markers_world[row]
+        if row >= 130:  # half a turn about the vertical: the fit loses track
+            markers = (markers - centre) @ turned.T + centre
+        src.send(markers)
     sub.wait(lambda: len(sub.poses) >= len(rows), "the fitted poses", 30.0)
     solver = make_body_solver(
         "fit", load_rig(EXACT_RIG), load_calibration(exact_calibration), take.labels,
@@ -1580,10 +1587,17 @@ def test_fit_method_live_equals_batch(
     )  # fmt: skip
     pose = solver.new_pose()
     want = []
+    want_flags = []
     for _fid, markers in src.sent:  # the primed frames too: the fit's state carries
         solver.solve_frame(markers, pose)
         want.append(pose.world_from_bone_quat.copy())
+        want_flags.append(pose.frame_flags)
     got = np.stack([p.world_from_bone_quat for p in sub.poses[-len(rows) :]])
     ref = np.stack(want[n0:])
     dots = np.abs(np.sum(got.astype(np.float64) * ref, axis=-1))
     assert dots.min() > 1.0 - 1e-6, dots.min()
+    reseeded = pose_stream.FRAME_RESEEDED
+    got_flags = [p.flags & reseeded for p in sub.poses[-len(rows) :]]
+    assert got_flags == [f & reseeded for f in want_flags[n0:]]
+    assert got_flags[130 - rows.start] == reseeded  # the turn
+    assert not any(got_flags[: 130 - rows.start])  # tracking before it

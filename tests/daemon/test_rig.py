@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import pytest
 
+from retargetd.daemon.body import rig_fit
 from retargetd.daemon.body.rig import (
     HUMANOID_BONES,
+    RIG_KEYS,
     LinePoint,
     RigError,
     RigidPoint,
@@ -17,6 +20,8 @@ from retargetd.daemon.body.rig import (
     shipped_rigs,
 )
 from retargetd.daemon.cli.main import main
+
+REPO = Path(__file__).resolve().parents[2]
 
 MINIMAL = """
 [rig]
@@ -267,3 +272,17 @@ def test_rig_check_reports_up_levers(
     assert warned and all("mm off the bone's axis" in line for line in warned)
     assert any("lfoot" in line for line in warned)
     assert not any("pelvis" in line for line in warned)
+
+
+def test_rigs_md_documents_every_key_the_parser_takes() -> None:
+    """RIGS.md's key tables for ``[rig]``, ``[fit.markers.NAME]`` and
+    ``[fit.bones.NAME]`` name exactly the keys the parser accepts."""
+    doc = (REPO / "daemon/body/rigs/RIGS.md").read_text()
+    for heading, keys in (
+        ("### `[rig]`", RIG_KEYS),
+        ("### `[fit.markers.NAME]`", rig_fit.MARKER_KEYS),
+        ("### `[fit.bones.NAME]`", rig_fit.BONE_KEYS),
+    ):
+        section = doc.split(heading, 1)[1].split("\n#", 1)[0]
+        documented = re.findall(r"^\| `(\w+)` \|", section, re.M)
+        assert documented == list(keys), heading

@@ -5,6 +5,7 @@ on real takes and on the synthetic performer."""
 from __future__ import annotations
 
 import dataclasses
+import re
 from pathlib import Path
 
 import numpy as np
@@ -32,6 +33,28 @@ def _calibrate(argv: list[str], tmp_path: Path) -> list[str]:
     return ["calibrate", *argv, "--out", str(tmp_path / "cal.json")]
 
 
+#: The up-lever warnings the real base poses do give (``check_up_levers``): the feet
+#: of Plug-in Gait and cmu41 take their roll from the heel, 13-26 mm off the
+#: ankle->toe line (RIGS.md "How much lever an up reference needs").
+LEVER_WARNINGS = {
+    PIG_STATIC: {"lfoot"},
+    "btkdata/MOTEK_T.trc": {"lfoot", "rfoot"},
+    "kineticstoolkit/kinematics_tennis_serve.c3d": set(),
+}
+
+
+def _warnings(err: str) -> tuple[list[str], set[str]]:
+    """The warning lines other than up-lever ones, and the bones those name."""
+    other, bones = [], set()
+    for line in err.splitlines():
+        m = re.match(r"warning: bone (\S+): its up reference is \d+ mm off", line)
+        if m:
+            bones.add(m.group(1))
+        elif "warning" in line:
+            other.append(line)
+    return other, bones
+
+
 # --- real takes ----------------------------------------------------------------------
 
 
@@ -54,7 +77,7 @@ def test_metres_labelled_mm_is_refused_naming_take_units(
     line = _one_error(capsys)
     assert "--take-units m" in line and "mm" in line
     assert main(_calibrate([*argv, "--take-units", "m"], tmp_path)) == 0
-    assert "warning" not in capsys.readouterr().err
+    assert _warnings(capsys.readouterr().err) == ([], LEVER_WARNINGS[PIG_STATIC])
 
 
 def test_z_up_trc_read_as_y_up_is_refused_naming_take_up(
@@ -70,7 +93,7 @@ def test_z_up_trc_read_as_y_up_is_refused_naming_take_up(
     line = _one_error(capsys)
     assert "--take-up +Z" in line and "+Y" in line
     assert main(_calibrate([*argv, "--take-up", "+Z"], tmp_path)) == 0
-    assert "warning" not in capsys.readouterr().err
+    assert _warnings(capsys.readouterr().err) == ([], LEVER_WARNINGS[PIG_STATIC])
 
 
 def test_calibrating_on_walking_frames_is_refused(
@@ -111,7 +134,8 @@ def test_real_base_poses_pass_every_check(
     argv = [str(datasets / path), "--rig", rig]
     argv += ["--frames", frames] if frames else []
     assert main(_calibrate(argv, tmp_path)) == 0
-    assert "warning" not in capsys.readouterr().err
+    # only the up-lever warnings, each naming its bone
+    assert _warnings(capsys.readouterr().err) == ([], LEVER_WARNINGS[path])
     take = load_take(datasets / path)
     rows = slice(0, 50) if frames else slice(None)
     motion = sanity.base_pose_motion(take.positions[rows], take.labels, take.rate_hz)

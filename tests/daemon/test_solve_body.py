@@ -20,6 +20,7 @@ a time equals the batch; sign continuity; held bones; recovery after a gap.
 
 from __future__ import annotations
 
+import dataclasses
 import tracemalloc
 from pathlib import Path
 
@@ -244,6 +245,10 @@ def test_kernel_matches_numpy_and_scipy_oracles(rig_name: str) -> None:
     rig = load_rig("menache")
     if rig_name == "exact":
         rig, markerset = load_rig(EXACT_RIG), EXACT_MARKERS
+    # The oracles build every bone from its points alone: the roll hold (a bone whose
+    # up reference the 10 mm jitter brings within up_min_mm of its axis takes its
+    # roll from the parent, tests/daemon/test_roll_hold.py) is off here.
+    rig = dataclasses.replace(rig, up_min_mm=0.0)
     take = pf.synthesize(seconds=3.0, rate_hz=60.0, markerset=markerset)
     cal, solver, _ = _solve(rig, take)
     poses = _random_poses(take, 200, seed=7)

@@ -29,8 +29,8 @@ import pytest
 from paths import DATASETS
 
 from retargetd.daemon.body.calibration import calibrate
+from retargetd.daemon.body.method import make_body_solver
 from retargetd.daemon.body.rig import load_rig
-from retargetd.daemon.body.solve import BodySolver
 from retargetd.daemon.cli.main import main
 from retargetd.daemon.validate.checks import (
     THRESHOLDS,
@@ -39,7 +39,12 @@ from retargetd.daemon.validate.checks import (
     fit_pairs,
     validate_take,
 )
-from retargetd.daemon.validate.model import build_model, skeleton_from_calibration
+from retargetd.daemon.validate.limits import JOINT_LIMITS_DEG
+from retargetd.daemon.validate.model import (
+    SEGMENT_KIND,
+    build_model,
+    skeleton_from_calibration,
+)
 from retargetd.replay import recording as rf
 from retargetd.replay.takes import load_take
 
@@ -52,21 +57,40 @@ BALLET = "btkdata/MOTEK_ballet_reduced.trc"
 MOTEK_T = "btkdata/MOTEK_T.trc"
 TENNIS = "kineticstoolkit/kinematics_tennis_serve.c3d"
 #: The tennis serve's one-frame labelling glitches: 400 (LWRA and LWRB on one marker),
-#: 744 (the wrist bar 119 mm long against 101 mm either side).
-TENNIS_GLITCHES = [400, 744]
+#: 744 (the wrist bar 119 mm long against 101 mm either side). Since the roll hold
+#: (issue 14 item 3) frame 400 is no transient: the forearm's and hand's up direction
+#: (LWRB->LWRA) collapses there, so they keep their roll (flagged partial).
+TENNIS_GLITCHES = [744]
+#: The fit on cmu41 does not validate yet (issue 14 item 5, measured): on the serve
+#: the left clavicle (one marker, LSHO, so its twist is free) drifts past its twist
+#: limit on 366 frames (to 88 deg), with self-penetration to 108 mm and an effector
+#: at 35.9 m/s once (marker RMS median 9.3 mm, 1881 samples gated, 24 reseeds); the
+#: ballet floor-penetrates up to 108 mm (26 frames) and self-penetrates 19 mm (5).
+FIT_ON_CMU41 = pytest.param(
+    "fit",
+    marks=pytest.mark.xfail(
+        reason="the fit does not validate cmu41 takes yet (FIT_ON_CMU41)", strict=True
+    ),
+)
 
 
-def _validate(static: Path, frames: slice, take_path: Path) -> TakeReport:
+def _validate(
+    static: Path, frames: slice, take_path: Path, method: str = "construction"
+) -> TakeReport:
     rig = load_rig("cmu41")
     base = load_take(static)
     cal = calibrate(
         rig, base.positions[frames], base.labels, take_measurements=base.measurements
     )
     take = base if take_path == static else load_take(take_path)
-    solve = BodySolver(rig, cal, take.labels).solve_take(take.positions)
+    solver = make_body_solver(
+        method, rig, cal, take.labels,
+        joint_limits=JOINT_LIMITS_DEG, segment_kind=SEGMENT_KIND,
+    )  # fmt: skip
+    solve = solver.solve_take(take.positions)
     vm = build_model(skeleton_from_calibration(rig, cal))
     rep = validate_take(vm, solve, take.rate_hz, fit=fit_pairs(rig, solve.joint_names))
-    print(f"\n{take_path.name}")
+    print(f"\n{take_path.name} ({method})")
     for name, c in rep.checks.items():
         v = c.values[np.isfinite(c.values)]
         print(
@@ -76,8 +100,9 @@ def _validate(static: Path, frames: slice, take_path: Path) -> TakeReport:
     return rep
 
 
-def test_motek_ballet_passes(datasets: Path) -> None:
-    rep = _validate(datasets / MOTEK_T, slice(None), datasets / BALLET)
+@pytest.mark.parametrize("method", ["construction", FIT_ON_CMU41])
+def test_motek_ballet_passes(datasets: Path, method: str) -> None:
+    rep = _validate(datasets / MOTEK_T, slice(None), datasets / BALLET, method)
     assert rep.passed, {n: c.summary() for n, c in rep.checks.items() if c.n_flagged}
     assert rep.checks["limits"].transients.size == 0
     # The checks the ballet came closest to (see THRESHOLDS): MOTEK_T is another
@@ -85,11 +110,15 @@ def test_motek_ballet_passes(datasets: Path) -> None:
     assert 40.0 < rep.checks["fit_max"].values.max() < 70.0  # mm
 
 
-def test_tennis_serve_passes(datasets: Path) -> None:
+@pytest.mark.parametrize("method", ["construction", FIT_ON_CMU41])
+def test_tennis_serve_passes(datasets: Path, method: str) -> None:
+    """With the fit (issue 14), the serve's one-frame label glitches should be gated
+    out and no longer show as limit transients (not yet: FIT_ON_CMU41)."""
     path = datasets / TENNIS
-    rep = _validate(path, slice(0, 50), path)
+    rep = _validate(path, slice(0, 50), path, method)
     assert rep.passed, {n: c.summary() for n, c in rep.checks.items() if c.n_flagged}
-    assert rep.checks["limits"].transients.tolist() == TENNIS_GLITCHES
+    want = TENNIS_GLITCHES if method == "construction" else []
+    assert rep.checks["limits"].transients.tolist() == want
     assert 0.3 < np.nanmax(rep.checks["ghost_force"].values) < 0.75  # serve flight
 
 
