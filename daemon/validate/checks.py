@@ -288,8 +288,16 @@ class CheckResult:
             "worst_frames": [int(i) for i in worst],
             "worst_values": [float(self.values[i]) for i in worst],
             "transient_frames": [int(i) for i in self.transients],
+            "flagged_runs": _runs(self.flagged),
             "warnings": list(self.warnings),
         }
+
+
+def _runs(mask: np.ndarray) -> list[list[int]]:
+    """[[start, stop), ...] of the True runs of a (T,) bool mask (0-based frames)."""
+    m = np.concatenate([[False], np.asarray(mask, bool), [False]])
+    edges = np.flatnonzero(m[1:] != m[:-1])
+    return [[int(a), int(b)] for a, b in zip(edges[::2], edges[1::2], strict=True)]
 
 
 @dataclass(slots=True)
