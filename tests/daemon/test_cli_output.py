@@ -170,7 +170,7 @@ def test_validate_rig_check_calibrate_json(take: Path, tmp_path: Path) -> None:
     doc = json.loads(p.stdout)
     saved = json.loads(cal.read_text())
     assert doc["command"] == "calibrate" and doc["frames"] == [0, 60]
-    lengths = dict(zip(saved["bone_names"], saved["bone_lengths"], strict=True))
+    lengths = {name: b["length_m"] for name, b in saved["bones"].items()}
     assert doc["bone_lengths_m"] == lengths
 
 
