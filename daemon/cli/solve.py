@@ -214,12 +214,17 @@ def run(args: argparse.Namespace) -> int:
         )
         if out_format == "mcap":
             from retargetd.daemon.console.export import write_solve_foxglove
+            from retargetd.daemon.progress import Progress
             from retargetd.daemon.version import package_version
 
-            write_solve_foxglove(
-                args.out, arrays, rig, markers=take.positions, marker_valid=take.valid,
-                library=f"retargetd {package_version()}",
-            )  # fmt: skip
+            with Progress(
+                take.n_frames, "write mcap", unit="frames", enabled=not args.quiet
+            ) as bar:
+                write_solve_foxglove(
+                    args.out, arrays, rig, markers=take.positions,
+                    marker_valid=take.valid, library=f"retargetd {package_version()}",
+                    progress=bar.update,
+                )  # fmt: skip
         else:
             np.savez(args.out, **arrays)
     if args.json:
