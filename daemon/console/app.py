@@ -34,6 +34,7 @@ from retargetd.daemon.console.snapshot import (
     Snapshot,
     SnapshotSlot,
     bone_endpoints,
+    humanoid_positions,
 )
 
 logger = logging.getLogger(__name__)
@@ -312,6 +313,10 @@ class Console:
             )  # fmt: skip
             # The retargeted humanoid, beside the performer.
             if len(layout.humanoid_pairs):
+                if len(layout.humanoid_parents):  # posed here, off the loop
+                    humanoid_positions(
+                        layout, s.humanoid_quat, s.humanoid_hips, s.humanoid_pos
+                    )
                 h = s.humanoid_pos[layout.humanoid_pairs] + layout.humanoid_offset_m
                 hok = np.isfinite(h).all(axis=(1, 2))
                 colors = np.broadcast_to(HUMANOID_RGB, (int(hok.sum()), 2, 3))

@@ -10,9 +10,11 @@ same requests as ``retargetd ctl``: calibrate (after the page's countdown; the
 stillness check runs on the frames as for any calibration), record start/stop (under
 the configured recordings folder), face capture, reload.
 
-The retargeted humanoid is not drawn live yet (its forward kinematics would run on the
-loop thread); the page shows the markers, the solved skeleton with flagged bones in
-red, face weights when the face is on, and the health plots.
+The page shows the markers, the solved skeleton with flagged bones in red, the
+retargeted humanoid beside it (the loop copies the target's bone rotations and hips
+position, ``TargetPose``; the console thread poses the joints,
+``console.snapshot.humanoid_positions``), face weights when the face is on, and the
+health plots.
 """
 
 from __future__ import annotations
@@ -63,8 +65,26 @@ def _health(status: dict[str, Any]) -> dict[str, Any]:
 
 
 def _layout(
-    rig: Rig, solver: BodySolver, labels: tuple[str, ...], face_names: tuple[str, ...]
+    rig: Rig,
+    solver: BodySolver,
+    labels: tuple[str, ...],
+    face_names: tuple[str, ...],
+    target: Any = None,
 ) -> ConsoleLayout:
+    humanoid: dict[str, Any] = {}
+    if target is not None:  # a TargetSkeleton: its bones joint to joint
+        par = np.asarray(target.parents, dtype=np.int64)
+        humanoid = {
+            "humanoid_names": tuple(target.bone_names),
+            "humanoid_pairs": np.array(
+                [(p, i) for i, p in enumerate(par.tolist()) if p >= 0], np.int64
+            ).reshape(-1, 2),
+            "humanoid_parents": par,
+            "humanoid_rest_offsets": np.asarray(target.rest_offsets, np.float64),
+            "humanoid_rest_quat": np.asarray(
+                target.rest_world_from_bone_quat, np.float64
+            ),
+        }
     return ConsoleLayout(
         marker_names=labels,
         joint_names=solver.joint_names,
@@ -74,6 +94,7 @@ def _layout(
         bone_lengths=np.asarray(solver.calibration.bone_lengths, dtype=np.float64),
         face_names=face_names,
         stage_names=STAGES,
+        **humanoid,
     )
 
 
@@ -136,10 +157,14 @@ class ConsoleFeed:
         face_weights: np.ndarray | None,
         stats: LoopStats,
         status_fn: Callable[[], dict[str, Any]],
+        target: Any = None,
+        target_pose: Any = None,
     ) -> None:
         """Publish this frame when one is due (``publish_hz``); never waits. The
         health figures (``status_fn``, the status document) are refreshed at most
-        every :data:`HEALTH_INTERVAL_NS`: their percentiles are not per-frame work."""
+        every :data:`HEALTH_INTERVAL_NS`: their percentiles are not per-frame work.
+        ``target`` (``TargetSkeleton``) and ``target_pose`` (``TargetPose``): the
+        retargeted humanoid, copied as rotations (posed on the console thread)."""
         slot = self.slot
         if slot is None or not slot.due(now_ns):
             return
@@ -148,7 +173,7 @@ class ConsoleFeed:
         status = self._health
         key = (id(solver), labels)
         if key != self._layout_key:  # a new pipeline: the page's layout (not hot)
-            slot.set_layout(_layout(rig, solver, labels, face_names))
+            slot.set_layout(_layout(rig, solver, labels, face_names, target))
             self._layout_key = key
         s = slot.begin()
         if s.marker_pos.shape != frame.markers_world.shape:
@@ -161,6 +186,9 @@ class ConsoleFeed:
         np.copyto(s.world_from_bone_quat, pose.world_from_bone_quat)
         np.copyto(s.root_pos, pose.root_pos)
         np.copyto(s.bone_flags, bone_flags)
+        if target_pose is not None and s.humanoid_quat.shape[0]:
+            np.copyto(s.humanoid_quat, target_pose.world_from_bone_quat)
+            np.copyto(s.humanoid_hips, target_pose.hips_pos)
         s.face_on = face_weights is not None and len(face_weights) > 0
         if s.face_on and face_weights is not None:
             np.copyto(s.face_weights, face_weights, casting="same_kind")

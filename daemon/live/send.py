@@ -207,6 +207,7 @@ class SendMixin(DaemonState):
                 pose, bone_flags,
                 face.weight_names if face is not None else (),
                 pipe.weights if face is not None else None, self.stats, self.status,
+                self.target, tp,
             )  # fmt: skip
         if sent_ns - t_start > budget_ns:
             self.stats.overruns += 1

@@ -5,7 +5,8 @@ T-pose over loopback OSC, uncalibrated. The page loads; Calibrate is clicked thr
 the page; the daemon's calibration count rises (the command went console -> queue ->
 loop -> the same request as ``ctl calibrate``); then the solved skeleton is drawn:
 pixels of the bone colour at the projection of the solved joint centres' bone
-midpoints (the page's camera is set, and the client's reported camera used).
+midpoints (the page's camera is set, and the client's reported camera used), and the
+retargeted humanoid beside it in its colour.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from typing import Any
 import live_harness as lh
 import numpy as np
 import pytest
-from browser import _blue, _near, _project
+from browser import _blue, _green, _near, _project
 
 
 @pytest.mark.timeout(180)
@@ -117,6 +118,24 @@ def test_live_console_calibrate_and_skeleton(
         hits = _near(img, px[inside], _blue)
         print(f"\nlive console: {hits.sum()} of {inside.sum()} bone midpoints blue")
         assert inside.sum() >= 4 and hits.mean() >= 0.6, (hits, px)
+        # The retargeted humanoid beside it: the target's own forward kinematics of
+        # the daemon's retargeted pose, shifted by the layout's offset.
+        from retargetd.daemon.target.retarget import joint_positions_world
+
+        layout = feed.slot.layout
+        assert len(layout.humanoid_pairs) == len(live.daemon.target.bone_names) - 1
+        hj = joint_positions_world(live.daemon.target, pipe.target_pose)
+        hmid = hj[layout.humanoid_pairs].mean(axis=1) + layout.humanoid_offset_m
+        hpx = _project(client.camera, hmid, w, h)
+        hin = (
+            (hpx[:, 0] > 5)
+            & (hpx[:, 0] < w - 5)
+            & (hpx[:, 1] > 5)
+            & (hpx[:, 1] < h - 5)
+        )
+        green = _near(img, hpx[hin], _green)
+        print(f"live console: {green.sum()} of {hin.sum()} humanoid midpoints green")
+        assert hin.sum() >= 8 and green.mean() >= 0.6, (green, hpx)
     finally:
         stop.set()
         sender.join(timeout=2.0)
