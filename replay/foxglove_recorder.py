@@ -162,7 +162,7 @@ def open_skeleton_recorder(
             raise
 
     recorder = SkeletonRecorder(
-        factory, queue_size=queue_size, flush_interval_s=flush_interval_s
+        factory, queue_size=queue_size, flush_interval_s=flush_interval_s, name=name
     )
     try:
         recorder.start(open_in_writer=open_in_writer)

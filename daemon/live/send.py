@@ -192,6 +192,15 @@ class SendMixin(DaemonState):
             pose_stream.stamp_sent(parts[0], sent_ns)
             self._send_pub(parts, sent_ns)
         sent_ns = time.monotonic_ns()
+        if self.recording.skeleton is not None:  # Foxglove channels: a queued copy
+            self.recording.record_skeleton(
+                pipe.solver,
+                received_ns,
+                pose,
+                bone_flags,
+                frame.markers_world,
+                frame.valid,
+            )
         # After the send: a copy into the validator's ring, never a wait.
         if validator is not None and not validator.submit(
             frame.frame_id, received_ns, pose.root_pos, pose.world_from_bone_quat,
