@@ -327,7 +327,9 @@ class Console:
                 self._face_folder.visible = s.face_on
                 if s.face_on:
                     self._face_html.content = _face_bars(layout.face_names, s)
-            self._status.content = _status_text(self._title, s)
+            self._status.content = _status_text(
+                self._title, s, live=self.commands is not None
+            )
             self._recording = s.recording
             button = self._buttons.get("record")
             label = "Record stop" if s.recording else "Record start"
@@ -373,12 +375,13 @@ class Console:
             handle.data = tuple(np.asarray(c, np.float64) for c in self._history[title])
 
 
-def _status_text(title: str, s: Snapshot) -> str:
+def _status_text(title: str, s: Snapshot, *, live: bool = True) -> str:
     state = "calibrated" if s.calibrated else "not calibrated"
     rec = ", recording" if s.recording else ""
+    rate = f"input {s.input_rate_hz:.0f} Hz, " if live else ""
     return (
         f"**{html.escape(title)}**: frame {s.frame}, t = {s.t_s:.2f} s, {state}{rec}"
-        f"  \ninput {s.input_rate_hz:.0f} Hz, {s.occluded} occluded, "
+        f"  \n{rate}{s.occluded} occluded, "
         f"{int(np.count_nonzero(s.bone_flags))} bones flagged"
     )
 

@@ -41,10 +41,15 @@ from retargetd.daemon.console.snapshot import (
 )
 from retargetd.daemon.live.config import ConsoleConfig
 from retargetd.daemon.live.stats import STAGES, LoopStats
+from retargetd.daemon.target.retarget import performer_left_from_calibration
 from retargetd.protocols.frames import MarkerFrame
 
 logger = logging.getLogger(__name__)
 
+#: How far to the performer's right the retargeted humanoid is drawn, metres: two
+#: T-poses side by side clear each other (half arm spans of ~0.9 m each for 1.8 m
+#: figures: arm span is about body height, Vitruvian proportion).
+HUMANOID_BESIDE_M = 2.0
 #: The health plots' refresh (0.5 s): the stats line's figures, not per frame.
 HEALTH_INTERVAL_NS = 500_000_000
 
@@ -74,7 +79,17 @@ def _layout(
     humanoid: dict[str, Any] = {}
     if target is not None:  # a TargetSkeleton: its bones joint to joint
         par = np.asarray(target.parents, dtype=np.int64)
-        humanoid = {
+        # The humanoid's root moves by the performer's displacement since
+        # calibration (TargetPose.root_pos): put it where the performer stood then,
+        # and beside it, to its right.
+        cal = solver.calibration
+        at = np.array([cal.root_rest_pos[0], cal.root_rest_pos[1], 0.0])
+        try:
+            left = performer_left_from_calibration(rig, cal)
+            humanoid["humanoid_offset_m"] = at - HUMANOID_BESIDE_M * left
+        except ValueError:
+            pass  # the layout's default offset
+        humanoid |= {
             "humanoid_names": tuple(target.bone_names),
             "humanoid_pairs": np.array(
                 [(p, i) for i, p in enumerate(par.tolist()) if p >= 0], np.int64

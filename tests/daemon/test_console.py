@@ -319,6 +319,16 @@ def test_humanoid_posed_on_the_console_thread_matches_the_target() -> None:
     rt = Retargeter(rig, cal, target)
     layout = _layout(rig, solver, take.labels, (), target)
     assert len(layout.humanoid_pairs) == len(target.bone_names) - 1
+    # Drawn 2 m to the right of where the performer stood at calibration (left =
+    # RHIP -> LHIP in the base pose; the humanoid's root is the displacement since).
+    hips = take.markers_world[
+        hold.start, [take.labels.index("LHIP"), take.labels.index("RHIP")]
+    ]
+    left = hips[0] - hips[1]
+    left[2] = 0.0
+    left /= np.linalg.norm(left)
+    at = np.array([*cal.root_rest_pos[:2], 0.0])
+    np.testing.assert_allclose(layout.humanoid_offset_m, at - 2.0 * left, atol=0.02)
     pose, tp = solver.new_pose(), rt.new_pose()
     out = np.zeros((len(target.bone_names), 3))
     moved = 0.0

@@ -11,6 +11,7 @@ retargeted humanoid beside it in its colour.
 
 from __future__ import annotations
 
+import os
 import threading
 import time
 from collections.abc import Callable
@@ -57,9 +58,16 @@ def test_live_console_calibrate_and_skeleton(
     try:
         server = feed.console.server
         root = take.markers_world[hold.start].mean(axis=0)
+        # Facing the performer (forward = left x up, left = RHIP -> LHIP), looking
+        # between it and the humanoid drawn 2 m to its right.
+        hip = [take.labels.index(n) for n in ("LHIP", "RHIP")]
+        left = np.subtract(*take.markers_world[hold.start, hip])
+        left[2] = 0.0
+        left /= np.linalg.norm(left)
+        fwd = np.cross(left, [0.0, 0.0, 1.0])
         cam = server.initial_camera
-        cam.position = root + np.array([0.0, -4.6, 0.2])
-        cam.look_at = root
+        cam.look_at = root - 1.0 * left
+        cam.position = cam.look_at + 5.5 * fwd + np.array([0.0, 0.0, 0.2])
         cam.up = (0.0, 0.0, 1.0)
         cam.fov = np.deg2rad(50.0)
         driver.get(url)
@@ -90,8 +98,16 @@ def test_live_console_calibrate_and_skeleton(
             time.sleep(0.1)
         assert client is not None
         time.sleep(2.0)  # a few frames rendered
+        for b in driver.find_elements(
+            By.CSS_SELECTOR, "button.mantine-Notification-closeButton"
+        ):
+            b.click()  # viser's "software WebGL" notice
+        time.sleep(1.0)
         png = driver.get_screenshot_as_png()
         (tmp_path / "live-console.png").write_bytes(png)
+        if os.environ.get("RETARGETD_DOCS_SCREENSHOT") == "1":  # the README's picture
+            docs = Path(__file__).resolve().parents[2] / "docs"
+            (docs / "console-live.png").write_bytes(png)
         import io
 
         img = (mpimg.imread(io.BytesIO(png), format="png")[..., :3] * 255).astype(

@@ -27,11 +27,13 @@ def _read_all(fd: int) -> str:
 def test_bar_on_a_pty() -> None:
     master, slave = pty.openpty()
     try:
-        with open(slave, "w", closefd=False) as tty:
-            with Progress(10, "solve", unit="frames", stream=tty) as bar:
-                assert bar.active
-                for _ in range(10):
-                    bar.update()
+        with (
+            open(slave, "w", closefd=False) as tty,
+            Progress(10, "solve", unit="frames", stream=tty) as bar,
+        ):
+            assert bar.active
+            for _ in range(10):
+                bar.update()
         seen = _read_all(master)
     finally:
         os.close(master)
@@ -51,9 +53,11 @@ def test_nothing_when_not_a_terminal_or_quiet() -> None:
     assert pipe.getvalue() == ""
     master, slave = pty.openpty()
     try:
-        with open(slave, "w", closefd=False) as tty:
-            with Progress(5, "solve", stream=tty, enabled=False) as bar:
-                bar.update(5)
+        with (
+            open(slave, "w", closefd=False) as tty,
+            Progress(5, "solve", stream=tty, enabled=False) as bar,
+        ):
+            bar.update(5)
         assert _read_all(master) == ""
     finally:
         os.close(master)

@@ -135,6 +135,11 @@ def test_view_serves_a_solve_and_scrubs_in_chromium(
         status = f"frame {last},"
         wait.until(lambda d: status in d.find_element(By.TAG_NAME, "body").text)
         time.sleep(2.0)  # a few frames rendered
+        for b in driver.find_elements(
+            By.CSS_SELECTOR, "button.mantine-Notification-closeButton"
+        ):
+            b.click()  # viser's "software WebGL" notice, over the page's corner
+        time.sleep(1.0)  # the notification fades out
         png = driver.get_screenshot_as_png()
         img = (mpimg.imread(io.BytesIO(png), format="png")[..., :3] * 255).astype(
             np.uint8
