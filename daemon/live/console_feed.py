@@ -113,6 +113,19 @@ def _layout(
     )
 
 
+def _markers_layout(labels: tuple[str, ...]) -> ConsoleLayout:
+    """A layout of markers alone (before a calibration, or empty at start)."""
+    return ConsoleLayout(
+        marker_names=labels,
+        joint_names=(),
+        bone_names=(),
+        bone_parents=np.zeros(0, np.int64),
+        skeleton=SkeletonProgram.from_joint_pairs([], 0),
+        bone_lengths=np.zeros(0),
+        stage_names=STAGES,
+    )
+
+
 class ConsoleFeed:
     """The console server plus what the loop publishes to it.
 
@@ -136,15 +149,7 @@ class ConsoleFeed:
 
     def start(self, rig: Rig) -> str:
         """Start the page (an empty layout until the first solved frame); its URL."""
-        empty = ConsoleLayout(
-            marker_names=(),
-            joint_names=(),
-            bone_names=(),
-            bone_parents=np.zeros(0, np.int64),
-            skeleton=SkeletonProgram.from_joint_pairs([], 0),
-            bone_lengths=np.zeros(0),
-            stage_names=STAGES,
-        )
+        empty = _markers_layout(())
         del rig
         self.slot = SnapshotSlot(empty, publish_hz=self.config.publish_hz)
         self.console = Console(
@@ -208,11 +213,52 @@ class ConsoleFeed:
         if s.face_on and face_weights is not None:
             np.copyto(s.face_weights, face_weights, casting="same_kind")
         s.calibrated = True
+        self._commit_health(slot, s, status, frame, stats)
+
+    def publish_markers(
+        self,
+        now_ns: int,
+        frame: MarkerFrame,
+        labels: tuple[str, ...],
+        stats: LoopStats,
+        status_fn: Callable[[], dict[str, Any]],
+    ) -> None:
+        """Before a calibration: publish the markers alone when one is due (the
+        operator sees the performer take the base pose); never waits."""
+        slot = self.slot
+        if slot is None or not slot.due(now_ns):
+            return
+        if now_ns - self._health_ns >= HEALTH_INTERVAL_NS:
+            self._health, self._health_ns = _health(status_fn()), now_ns
+        key = (0, labels)
+        if key != self._layout_key:  # markers only, until a pipeline exists
+            slot.set_layout(_markers_layout(labels))
+            self._layout_key = key
+        s = slot.begin()
+        if s.marker_pos.shape != frame.markers_world.shape:
+            return
+        s.frame = frame.frame_id
+        s.t_s = now_ns * 1e-9
+        np.copyto(s.marker_pos, frame.markers_world)
+        np.copyto(s.marker_valid, frame.valid)
+        s.face_on = False
+        s.calibrated = False
+        self._commit_health(slot, s, self._health, frame, stats)
+
+    def _commit_health(
+        self,
+        slot: SnapshotSlot,
+        s: Any,
+        status: dict[str, Any],
+        frame: MarkerFrame,
+        stats: LoopStats,
+    ) -> None:
         s.recording = bool(status.get("recording"))
         s.input_rate_hz = float(status.get("fps_in", 0.0))
         s.drops = int(status.get("drops", 0))
         for k, name in enumerate(STAGES):
-            p50, p99 = status["latency_us"].get(name, (float("nan"), float("nan")))
+            lat = status.get("latency_us", {})
+            p50, p99 = lat.get(name, (float("nan"), float("nan")))
             self._p50[k], self._p99[k] = p50 * 1e-3, p99 * 1e-3
         np.copyto(s.latency_p50_ms, self._p50)
         np.copyto(s.latency_p99_ms, self._p99)

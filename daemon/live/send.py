@@ -127,6 +127,11 @@ class SendMixin(DaemonState):
         pipe = self._pipeline(stream)
         if pipe is None:  # no calibration yet: counted, never silent
             self.stats.unsolved += 1
+            if self.console is not None:  # the markers, for the base pose
+                self.console.publish_markers(
+                    t_start, stream.current.frame, stream.current.label_set.labels,
+                    self.stats, self.status,
+                )  # fmt: skip
             return
         frame = stream.current.frame
         pose = pipe.solver.solve_frame(frame.markers_world, pipe.pose)
