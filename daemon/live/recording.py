@@ -68,6 +68,9 @@ logger = logging.getLogger(__name__)
 
 #: Writer queue length (items: packets, poses, events); ~8 s of 240 Hz frames + poses.
 QUEUE_SIZE = DEFAULT_QUEUE_SIZE
+#: Health samples on ``/foxglove/health`` every 0.5 s (the stats line's figures; a
+#: plot is read by eye).
+HEALTH_INTERVAL_NS = 500_000_000
 #: Shutdown waits this long, in all, for the writers to finish their files.
 CLOSE_TIMEOUT_S = 5.0
 
@@ -134,6 +137,7 @@ class LiveRecording:
         #: The active recorder while recording (Foxglove channels), else None.
         self.skeleton: SkeletonRecorder | None = None
         self._bone_ends: BoneEnds | None = None
+        self._health_ns = 0
         self._active: _Active | None = None
         self._finishing: list[_Active] = []
         self._last: dict[str, Any] | None = None
@@ -242,6 +246,22 @@ class LiveRecording:
             bone_flags, markers, marker_valid,
         )  # fmt: skip
 
+    def record_health(
+        self,
+        t_ns: int,
+        status_fn: Any,
+        occluded: int,
+        validation_flags: int,
+    ) -> None:
+        """Queue a ``/foxglove/health`` sample when one is due (every
+        :data:`HEALTH_INTERVAL_NS`; ``status_fn()``, the status document, is called
+        only then). Call only while :attr:`skeleton` is set."""
+        rec = self.skeleton
+        if rec is None or t_ns - self._health_ns < HEALTH_INTERVAL_NS:
+            return
+        self._health_ns = t_ns
+        rec.record_health(t_ns, health_figures(status_fn(), occluded, validation_flags))
+
     def event(self, event: str, **fields: Any) -> None:
         """Queue a control event when recording (never blocks)."""
         self._end_failed()
@@ -342,6 +362,29 @@ class LiveRecording:
         for f in self._finishing:
             f.recorder.close(max(0.0, deadline - time.monotonic()))
         self._reap()
+
+
+def health_figures(
+    status: dict[str, Any], occluded: int, validation_flags: int
+) -> dict[str, Any]:
+    """The ``/foxglove/health`` figures from the status document (JSON-ready:
+    unknown latencies are None)."""
+    drops = 0
+    for counts in status.get("drops", {}).values():
+        drops += sum(v for k, v in counts.items() if k not in ("accepted", "restart"))
+
+    def ms(us: Any) -> float | None:
+        return None if us is None else round(float(us) * 1e-3, 4)
+
+    lat = status.get("latency_us", {})
+    return {
+        "input_rate_hz": float(status.get("fps_in") or 0.0),
+        "drops": int(drops),
+        "occluded": int(occluded),
+        "validation_flags": int(validation_flags),
+        "latency_p50_ms": {k: ms(v[0]) for k, v in lat.items()},
+        "latency_p99_ms": {k: ms(v[1]) for k, v in lat.items()},
+    }
 
 
 def _no_bones(joints: np.ndarray, quats: np.ndarray, root: np.ndarray) -> np.ndarray:

@@ -206,6 +206,9 @@ class SendMixin(DaemonState):
                 frame.markers_world,
                 frame.valid,
             )
+            self.recording.record_health(
+                received_ns, self.status, pose.n_occluded, self.stats.validation_flagged
+            )
         # After the send: a copy into the validator's ring, never a wait.
         if validator is not None and not validator.submit(
             frame.frame_id, received_ns, pose.root_pos, pose.world_from_bone_quat,

@@ -109,6 +109,15 @@ def _check_foxglove_channels(path: Path, poses: list[pose_stream.PoseMessage]) -
         ):
             (scene if channel.topic == "/foxglove/scene" else tf).append(msg)
     assert len(scene) == len(tf) == len(poses)
+    # Health samples for Foxglove's plots: JSON under the file's JSON schema.
+    rec = rf.read_recording(path)
+    health = rec.json("/foxglove/health")
+    assert health, "no health samples"
+    t = [h["t_ns"] for h in health]
+    assert t == sorted(t) and len(set(t)) == len(t)
+    for h in health:
+        assert h["input_rate_hz"] >= 0.0 and h["drops"] >= 0 and h["occluded"] >= 0
+        assert set(h["latency_p50_ms"]) == set(h["latency_p99_ms"]) >= {"solve"}
     checked = 0
     for k in (0, len(poses) // 2, len(poses) - 1):
         frames = {t.child_frame_id: t for t in tf[k].transforms}
