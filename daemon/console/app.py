@@ -7,7 +7,8 @@ markers (seen: orange; occluded: grey at their last seen position), the solved
 skeleton (bones blue, flagged bones red), the retargeted humanoid beside it (green),
 the face weights as bars when the face is live, and rolling plots of the health
 figures. Buttons queue :class:`Command` items (calibrate after a countdown, record
-start/stop with a file name, face capture, reload); nothing here calls into the loop.
+start/stop with a file name, face capture under a pose name, reload); nothing here
+calls into the loop.
 
 Offline (:mod:`retargetd.daemon.console.offline`) the same page runs with
 ``commands=None`` (no buttons, no plots) and a timeline added by the player.
@@ -156,8 +157,14 @@ class Console:
                 b = gui.add_button("Record start")
                 b.on_click(lambda _e: self._press_record())
                 self._buttons["record"] = b
-                b = gui.add_button("Face capture")
-                b.on_click(lambda _e: self._put(CMD_FACE_CAPTURE))
+                # The training set's order: neutral first, then each expression.
+                self._face_name = gui.add_text("Face pose", "neutral")
+                b = gui.add_button("Face capture", hint="average the next frames")
+                b.on_click(
+                    lambda _e: self._put(
+                        CMD_FACE_CAPTURE, self._face_name.value.strip() or "neutral"
+                    )
+                )
                 self._buttons["face"] = b
                 b = gui.add_button("Reload")
                 b.on_click(lambda _e: self._put(CMD_RELOAD))
