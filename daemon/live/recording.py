@@ -66,7 +66,8 @@ from retargetd.replay.recorder import (
 
 logger = logging.getLogger(__name__)
 
-#: Writer queue length (items: packets, poses, events); ~8 s of 240 Hz frames + poses.
+#: Writer queue length (items: packets, poses, skeleton frames, health, events): ~5.7 s
+#: of 240 Hz frames (three items each) before a stalled disk drops.
 QUEUE_SIZE = DEFAULT_QUEUE_SIZE
 #: Health samples on ``/foxglove/health`` every 0.5 s (the stats line's figures; a
 #: plot is read by eye).
