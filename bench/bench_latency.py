@@ -52,7 +52,11 @@ stabilizes 40 markers, solves 52 weights and sends 52 VMC blendshapes and the Mu
 ``validate`` (``[validate]`` on: the live validator's thread checks every frame
 beside the loop), ``fit`` (``[solve] method = "fit"``: the rigid-skeleton fit instead
 of the construction, README "Two ways to solve the body") and any of them joined by
-``+`` (``face+validate``, ``fit+validate``, ``fit+face``).
+``+`` (``face+validate``, ``fit+validate``, ``fit+face``); ``console`` (the body with
+``[console]`` on: the browser console served on a free port, its thread drawing every
+published snapshot, no browser) and ``console+browser`` (the same with a headless
+Chromium, Debian's ``chromium`` driven by selenium, showing the page for the whole
+case; skipped when Chromium or its driver is absent).
 
 Capture-system transports (``--transports natnet,qtm``, README "Capture systems"):
 the sender process is the capture system, the emulators of ``tests/protocols`` (their
@@ -76,6 +80,7 @@ import gc
 import multiprocessing as mp
 import os
 import re
+import shutil
 import signal
 import socket
 import struct
@@ -470,6 +475,9 @@ def _face_stream(take: Any, rng: np.random.Generator) -> tuple[Any, Any, Any]:
     return training, labels, np.concatenate([take.positions, face], axis=1)
 
 
+#: The variants ``--variants`` takes (module docstring).
+
+
 def _config_toml(
     calibration: Path,
     transport: str,
@@ -481,6 +489,7 @@ def _config_toml(
     face = "face" in variant
     validate = "validate" in variant
     method = "fit" if "fit" in variant.split("+") else "construction"
+    console = variant.startswith("console")
     return f"""\
 [solve]
 method = "{method}"
@@ -513,6 +522,9 @@ config = "arkit52"
 training = "{face_npz}"
 [validate]
 enabled = {str(validate).lower()}
+[console]
+enabled = {str(console).lower()}
+port = 0
 """
 
 
@@ -543,6 +555,10 @@ class Daemon:
             time.sleep(0.05)
         while self.status(timeout_ms=500) is None:
             self._check_alive(deadline)
+        for line in self.log.read_text().splitlines():  # the endpoints after control
+            m = _LISTENING.match(line)
+            if m:
+                self.endpoints[m.group(2)] = m.group(1)
 
     def _check_alive(self, deadline: float) -> None:
         if self.proc.poll() is not None or time.monotonic() > deadline:
@@ -619,6 +635,7 @@ def run_case(
     send_conn, send_child = ctx.Pipe()
     procs: list[Any] = []
     daemon: Daemon | None = None
+    browser: Any = None
     try:
         receiver = ctx.Process(
             target=_receiver, args=(capacity, transport == "raw", recv_child)
@@ -665,6 +682,8 @@ def run_case(
             )
             daemon = Daemon(config, tmp / f"{stem}.log")
             daemon.wait_ready()
+            if variant == "console+browser":
+                browser = _open_browser(daemon.endpoints["console"], tmp)
             recv_conn.send(("sub", daemon.endpoints["zmq poses"]))
             recv_conn.recv()
             if transport == "osc":
@@ -698,8 +717,37 @@ def run_case(
         )  # fmt: skip
     finally:
         _terminate(procs)
+        if browser is not None:
+            browser.quit()
         if daemon is not None:
             daemon.stop()
+
+
+def _open_browser(url: str, tmp: Path) -> Any:
+    """A headless Chromium showing ``url`` (the console) until ``quit()``."""
+    from selenium import webdriver
+    from selenium.webdriver.chrome.service import Service
+    from selenium.webdriver.common.by import By
+    from selenium.webdriver.support import expected_conditions as ec
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    opts = webdriver.ChromeOptions()
+    opts.binary_location = shutil.which("chromium") or "/usr/bin/chromium"
+    for flag in (
+        "--headless", "--no-sandbox", "--disable-gpu", "--no-first-run",
+        "--enable-unsafe-swiftshader", "--window-size=1000,640",
+        f"--user-data-dir={tmp / 'chromium'}",
+    ):  # fmt: skip
+        opts.add_argument(flag)
+    driver = webdriver.Chrome(
+        options=opts,
+        service=Service(shutil.which("chromedriver") or "/usr/bin/chromedriver"),
+    )
+    driver.get(url)
+    WebDriverWait(driver, 60).until(
+        ec.presence_of_element_located((By.TAG_NAME, "canvas"))
+    )
+    return driver
 
 
 # ---- analysis ------------------------------------------------------------------------
@@ -939,9 +987,10 @@ def _calibrate(tmp: Path) -> Path:
 
 
 def _valid_variant(variant: str) -> bool:
-    """``body``, or ``fit``, ``face``, ``validate`` joined by ``+``."""
+    """``body``, ``console``, ``console+browser``, or ``fit``, ``face``, ``validate``
+    joined by ``+``."""
     parts = variant.split("+")
-    return variant == "body" or (
+    return variant in ("body", "console", "console+browser") or (
         len(set(parts)) == len(parts)
         and all(p in ("fit", "face", "validate") for p in parts)
     )
@@ -960,7 +1009,8 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument(
         "--variants", default="body,face",
-        help="body, fit, face, validate, or joined by + (comma-separated)",
+        help="body, fit, face, validate, or joined by +; console, console+browser "
+        "(comma-separated)",
     )  # fmt: skip
     args = parser.parse_args(argv)
     variants = [v for v in args.variants.split(",") if v]
@@ -977,8 +1027,13 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(
             "--seconds > 0, --warmup >= 0, rates in [1, 10000], osc/zmq/natnet/qtm, "
             "variants "
-            "body, or fit/face/validate joined by +"
+            "body, or fit/face/validate joined by +, console, console+browser"
         )
+    if "console+browser" in variants and not (
+        shutil.which("chromium") and shutil.which("chromedriver")
+    ):
+        print("console+browser skipped: chromium / chromedriver not installed")
+        variants = [v for v in variants if v != "console+browser"]
     if not (PIG_MOTION.is_file() and PIG_CALIBRATION.is_file()):
         print(f"datasets not found at {DATASETS / 'btkdata'}", file=sys.stderr)
         return 1

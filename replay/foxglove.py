@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import json
 import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -271,6 +271,7 @@ def write_solve_mcap(
     marker_valid: np.ndarray | None = None,
     start_ns: int = 0,
     library: str = "retargetd",
+    progress: Callable[[int], None] | None = None,
 ) -> int:
     """Write a solved take as an MCAP of Foxglove channels (``solve --out x.mcap``).
 
@@ -284,6 +285,7 @@ def write_solve_mcap(
         markers / marker_valid: (T, M, 3) metres and (T, M) bool, or None.
         start_ns: log time of frame 0, nanoseconds.
         library: the MCAP header's library string.
+        progress: called with 1 after each frame written (a progress bar).
 
     Returns:
         The number of frames written.
@@ -305,6 +307,8 @@ def write_solve_mcap(
                 markers=None if markers is None else markers[i],
                 marker_valid=None if marker_valid is None else marker_valid[i],
             )
+            if progress is not None:
+                progress(1)
         w.finish()
     return n
 

@@ -32,8 +32,10 @@ from retargetd.replay.recorder import (
     RecordingFile,
 )
 
-#: Queue item tag for a skeleton frame (the recorder's own tags are 0-2).
+#: Queue item tags for a skeleton frame and a health sample (the recorder's own
+#: tags are 0-2).
 _SKELETON = 16
+_HEALTH = 17
 
 #: ``bone_ends_fn(joint_pos (J, 3), world_from_bone_quat (B, 4), root_pos (3,))``
 #: -> (B, 2, 3) metres world.
@@ -68,6 +70,10 @@ class FoxgloveMcapSink(McapSink):
 
     def write(self, item: tuple[Any, ...]) -> None:
         """Write one queue item (a skeleton frame, or the recorder's own)."""
+        if item[0] == _HEALTH:
+            _, t_ns, figures = item
+            self.foxglove.write_health(t_ns + self._offset_ns, figures)
+            return
         if item[0] != _SKELETON:
             super().write(item)
             return
@@ -119,6 +125,20 @@ class SkeletonRecorder(Recorder):
             )
         )  # fmt: skip
 
+    def record_health(self, t_ns: int, figures: dict[str, Any]) -> bool:
+        """Queue one health sample for ``/foxglove/health`` (never blocks).
+
+        Args:
+            t_ns: ``time.monotonic_ns()`` of the sample.
+            figures: JSON-ready figures (finite numbers or None): ``input_rate_hz``,
+                ``drops``, ``occluded``, ``validation_flags``, ``latency_p50_ms`` and
+                ``latency_p99_ms`` (stage -> ms).
+
+        Returns:
+            False when the queue was full (dropped, counted).
+        """
+        return self._put((_HEALTH, t_ns, figures))
+
 
 def open_skeleton_recorder(
     path: str | os.PathLike[str],
@@ -162,7 +182,7 @@ def open_skeleton_recorder(
             raise
 
     recorder = SkeletonRecorder(
-        factory, queue_size=queue_size, flush_interval_s=flush_interval_s
+        factory, queue_size=queue_size, flush_interval_s=flush_interval_s, name=name
     )
     try:
         recorder.start(open_in_writer=open_in_writer)

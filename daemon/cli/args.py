@@ -308,3 +308,92 @@ def refuse_existing(path: str, *, force: bool, option: str = "--out") -> None:
         return
     if p.exists() or p.is_symlink():
         raise UsageError(f"{option}: {path} exists; pass --force to replace it")
+
+
+def add_output_arguments(parser: argparse.ArgumentParser, *, json: bool) -> None:
+    """``--quiet`` (no progress bar, no summary) and, when ``json``, ``--json`` (the
+    summary as one JSON object on stdout; README "Machine-readable output")."""
+    parser.add_argument(
+        "--quiet",
+        action="store_true",
+        help="no progress bar on stderr and no summary on stdout (errors still)",
+    )
+    if json:
+        parser.add_argument(
+            "--json",
+            action="store_true",
+            help="print the summary as one JSON object (README: stable keys)",
+        )
+
+
+def print_json(doc: dict[str, Any]) -> None:
+    """One JSON object and a newline on stdout (NaN written as null)."""
+    import json
+    import math
+    import sys
+
+    def clean(v: Any) -> Any:
+        if isinstance(v, float) and not math.isfinite(v):
+            return None
+        if isinstance(v, dict):
+            return {str(k): clean(x) for k, x in v.items()}
+        if isinstance(v, list | tuple):
+            return [clean(x) for x in v]
+        return v
+
+    sys.stdout.write(json.dumps(clean(doc), allow_nan=False) + "\n")
+
+
+#: BodySolve / FitSolve fields that hold one value for the take (not per frame).
+_PER_TAKE_FIELDS = frozenset({"bone_lengths"})
+#: Progress: at most this many chunks per take, each at least this many frames.
+_MAX_CHUNKS, _MIN_CHUNK = 100, 32
+
+
+def solve_take_chunked(
+    solver: Any, positions: Any, step: int, on_chunk: Any = None
+) -> Any:
+    """Solve a take in consecutive chunks of ``step`` frames and join the results.
+
+    The solver carries its state from one ``solve_take`` call to the next (held
+    bones, the fit's previous pose), so the joined arrays equal one call's.
+    ``on_chunk(n_frames)`` is called after each chunk.
+    """
+    import dataclasses
+
+    import numpy as np
+
+    n = int(positions.shape[0])
+    parts = []
+    for a in range(0, n, step):
+        parts.append(solver.solve_take(positions[a : a + step]))
+        if on_chunk is not None:
+            on_chunk(min(step, n - a))
+    first = parts[0]
+    joined = {}
+    for f in dataclasses.fields(first):
+        v = getattr(first, f.name)
+        if isinstance(v, np.ndarray) and v.ndim and f.name not in _PER_TAKE_FIELDS:
+            joined[f.name] = np.concatenate([getattr(p, f.name) for p in parts])
+    return dataclasses.replace(first, **joined)
+
+
+def solve_take_progress(
+    solver: Any, positions: Any, *, quiet: bool = False, desc: str = "solve"
+) -> Any:
+    """``solver.solve_take(positions)`` with a progress bar on a terminal.
+
+    With a bar the take is solved in up to :data:`_MAX_CHUNKS` chunks
+    (:func:`solve_take_chunked`: the same arrays as one call); without one
+    (``quiet``, stderr not a TTY) it is one call.
+    """
+    from retargetd.daemon.progress import Progress
+
+    n = int(positions.shape[0])
+    with Progress(n, desc, unit="frames", enabled=False if quiet else None) as bar:
+        if not bar.active or n <= _MIN_CHUNK:
+            res = solver.solve_take(positions)
+            bar.update(n)
+            return res
+        step = max(_MIN_CHUNK, -(-n // _MAX_CHUNKS))
+        return solve_take_chunked(solver, positions, step, bar.update)

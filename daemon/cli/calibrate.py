@@ -4,6 +4,7 @@ The performer holds the base pose over the selected frames (0-based, half-open r
 the take as loaded; default: the whole take). The result is a calibrated skeleton
 (point offsets, bone lengths, rest orientations, measurements used with their source,
 rig identity) loaded by ``retargetd solve --calibration`` and by the daemon.
+``--json`` prints the summary as one JSON object (README "Machine-readable output").
 """
 
 from __future__ import annotations
@@ -41,6 +42,11 @@ def add_parser(subparsers: Any) -> None:
     from retargetd.daemon.cli.args import add_take_arguments
 
     add_take_arguments(parser)
+    parser.add_argument(
+        "--json",
+        action="store_true",
+        help="print the summary as one JSON object (README: stable keys)",
+    )
     parser.set_defaults(run=run)
 
 
@@ -57,6 +63,9 @@ def run(args: argparse.Namespace) -> int:
         take, rig, frames, overrides, allow_moving=args.allow_moving_base_pose
     )
     cal.save(args.out)
+    if args.json:
+        _print_json(args, rig, take, frames, cal)
+        return 0
     out = sys.stdout.write
     out(f"wrote {args.out}: rig {rig.name}, base pose {take.path} rows ")
     out(f"{frames.start}:{frames.stop} ({frames.stop - frames.start} frames)\n")
@@ -85,3 +94,32 @@ def run(args: argparse.Namespace) -> int:
         + "\n"
     )
     return 0
+
+
+def _print_json(
+    args: argparse.Namespace, rig: Any, take: Any, frames: slice, cal: Any
+) -> None:
+    from retargetd.daemon.cli.args import print_json
+
+    print_json(
+        {
+            "command": "calibrate",
+            "out": args.out,
+            "rig": rig.name,
+            "take": str(take.path),
+            "frames": [frames.start, frames.stop],
+            "markers_unseen": [
+                m
+                for m, s in zip(cal.marker_names, cal.markers_seen, strict=False)
+                if s == 0.0
+            ],
+            "measurements_mm": {
+                k: {"value": v.value_mm, "source": v.source}
+                for k, v in cal.measurements.items()
+            },
+            "bone_lengths_m": {
+                n: float(length)
+                for n, length in zip(cal.bone_names, cal.bone_lengths, strict=False)
+            },
+        }
+    )

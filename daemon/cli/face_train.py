@@ -45,6 +45,9 @@ def add_parser(subparsers: Any) -> None:
     parser.add_argument("--out", required=True, metavar="face.npz")
     add_force_argument(parser)
     add_take_arguments(parser)
+    from retargetd.daemon.cli.args import add_output_arguments
+
+    add_output_arguments(parser, json=False)
     parser.set_defaults(run=run)
 
 
@@ -74,6 +77,7 @@ def run(args: argparse.Namespace) -> int:
 
     from retargetd.daemon.face.config import FaceConfigError, load_face_config
     from retargetd.daemon.face.solve import observability, train
+    from retargetd.daemon.progress import Progress
     from retargetd.replay.takes import load_take
 
     if not args.out.lower().endswith(".npz"):
@@ -102,15 +106,23 @@ def run(args: argparse.Namespace) -> int:
     pos = np.where(take.valid[..., None], take.positions, np.nan)
     head_world = pos[:, [col[n] for n in face.head_markers]]
     face_world = pos[:, [col[n] for n in facial]]
-    try:
-        training = train(
-            head_world, face_world, poses,
-            head_names=face.head_markers, marker_names=facial,
-        )  # fmt: skip
-    except ValueError as exc:
-        raise UsageError(str(exc)) from None
-    training.save(args.out)
-    obs = observability(training)
+    with Progress(3, "face-train: train", unit="steps", enabled=not args.quiet) as bar:
+        try:
+            training = train(
+                head_world, face_world, poses,
+                head_names=face.head_markers, marker_names=facial,
+            )  # fmt: skip
+        except ValueError as exc:
+            raise UsageError(str(exc)) from None
+        bar.update()
+        bar.set_description("face-train: save")
+        training.save(args.out)
+        bar.update()
+        bar.set_description("face-train: observability")
+        obs = observability(training)
+        bar.update()
+    if args.quiet:
+        return 0
     print(
         f"wrote {args.out}: {len(training.head_names)} head markers, "
         f"{len(training.marker_names)} facial markers, {training.k} expressions"

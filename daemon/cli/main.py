@@ -41,6 +41,7 @@ SUBCOMMAND_MODULES: tuple[str, ...] = (
     "retargetd.daemon.cli.record",
     "retargetd.daemon.cli.replay",
     "retargetd.daemon.cli.validate",
+    "retargetd.daemon.cli.view",
     "retargetd.daemon.cli.batch",
 )
 

@@ -236,10 +236,11 @@ def solved_take(args: argparse.Namespace) -> tuple[Any, Any, Any, Any]:
     Raises:
         UsageError: bad input (one line, exit 2).
     """
-    from retargetd.daemon.cli.args import solver_for_take
+    from retargetd.daemon.cli.args import solve_take_progress, solver_for_take
 
     rig, take, cal, solver = solver_for_take(args)
-    res = solver.solve_take(take.positions)
+    quiet = getattr(args, "quiet", False)
+    res = solve_take_progress(solver, take.positions, quiet=quiet)
     if getattr(args, "pipeline", None) is not None:
         res, _ = apply_pipeline_to_solve(args.pipeline, res, cal, take.rate_hz)
     return rig, take, cal, res
@@ -263,7 +264,11 @@ def solve_other_take(
         solver = BodySolver(rig, calibration, take.labels)
     except CalibrationError as exc:
         raise UsageError(f"{path}: {exc}") from None
-    res = solver.solve_take(take.positions)
+    from retargetd.daemon.cli.args import solve_take_progress
+
+    res = solve_take_progress(
+        solver, take.positions, quiet=getattr(args, "quiet", False)
+    )
     if getattr(args, "pipeline", None) is not None:
         res, _ = apply_pipeline_to_solve(args.pipeline, res, calibration, take.rate_hz)
     return take, res

@@ -55,6 +55,9 @@ def add_parser(subparsers: Any) -> None:
     )
     add_pipeline_argument(parser)
     parser.add_argument("--out", required=True, metavar="OUT.glb")
+    from retargetd.daemon.cli.args import add_output_arguments
+
+    add_output_arguments(parser, json=False)
     parser.set_defaults(run=run)
 
 
@@ -64,6 +67,7 @@ def run(args: argparse.Namespace) -> int:
     from retargetd.daemon.cli.post_io import clip_of, solved_take, suffix_of
     from retargetd.daemon.post.export_gltf import write_reduced_glb
     from retargetd.daemon.post.reduce import describe, reduce_clip
+    from retargetd.daemon.progress import Progress
 
     suffix_of(args.out, ("glb",))
     for option, value in (
@@ -76,13 +80,19 @@ def run(args: argparse.Namespace) -> int:
     clip = clip_of(res, cal, take.rate_hz, args.take)
     if clip.n_frames < 2:
         raise UsageError(f"{args.take}: needs at least 2 frames to reduce")
-    reduced = reduce_clip(
-        clip, tolerance_deg=args.tolerance_deg, tolerance_mm=args.tolerance_mm
-    )
-    try:
-        write_reduced_glb(args.out, reduced, cal)
-    except CalibrationError as exc:
-        raise UsageError(str(exc)) from None
+    with Progress(2, "reduce: fit keys", unit="steps", enabled=not args.quiet) as bar:
+        reduced = reduce_clip(
+            clip, tolerance_deg=args.tolerance_deg, tolerance_mm=args.tolerance_mm
+        )
+        bar.update()
+        bar.set_description("reduce: write")
+        try:
+            write_reduced_glb(args.out, reduced, cal)
+        except CalibrationError as exc:
+            raise UsageError(str(exc)) from None
+        bar.update()
+    if args.quiet:
+        return 0
     out = sys.stdout.write
     out(
         f"wrote {args.out}: {clip.n_frames} frames at {take.rate_hz:g} Hz, rig "

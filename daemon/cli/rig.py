@@ -6,11 +6,13 @@ stripped, extra labels ignored, missing rig markers occluded) and which points a
 bones the missing markers leave without data. Exit 0 when the rig is valid (and, with a
 take, every bone can be built from the take's labels), 1 when the take leaves bones
 without data, 2 for a bad rig or take (one line naming file, key and value).
+``--json`` prints one JSON object instead (README "Machine-readable output").
 """
 
 from __future__ import annotations
 
 import argparse
+import io
 import sys
 from typing import Any
 
@@ -41,6 +43,11 @@ def add_parser(subparsers: Any) -> None:
     from retargetd.daemon.cli.args import add_take_arguments
 
     add_take_arguments(check)
+    check.add_argument(
+        "--json",
+        action="store_true",
+        help="print the result as one JSON object (README: stable keys)",
+    )
     check.set_defaults(run=run)
 
 
@@ -64,7 +71,30 @@ def run(args: argparse.Namespace) -> int:
         rig = load_rig(args.rig)
     except RigError as exc:
         raise UsageError(str(exc)) from None
-    out = sys.stdout.write
+    doc: dict[str, Any] = {
+        "command": "rig check",
+        "rig": rig.name,
+        "source": str(rig.source),
+        "valid": True,
+        "markers": list(rig.markers),
+        "points": [p.name for p in rig.points],
+        "bones": [
+            {"name": b.name, "parent": b.parent, "humanoid": b.humanoid or None}
+            for b in rig.bones
+        ],
+        "joint_centres": dict(rig.joints),
+        "take": None,
+    }
+    out = io.StringIO().write if args.json else sys.stdout.write
+    rc = _describe(rig, args, out, doc)
+    if args.json:
+        from retargetd.daemon.cli.args import print_json
+
+        print_json(doc)
+    return rc
+
+
+def _describe(rig: Rig, args: argparse.Namespace, out: Any, doc: dict[str, Any]) -> int:
     out(f"rig {rig.name} ({rig.source}): valid\n")
     if rig.description:
         out(f"  {rig.description}\n")
@@ -104,9 +134,10 @@ def run(args: argparse.Namespace) -> int:
     out(" ".join(f"{j}={p}" for j, p in rig.joints.items()) + "\n")
     unmapped = [h for h in _humanoid_order() if h not in rig.humanoid]
     out(f"humanoid: {len(rig.humanoid)} mapped; not solved: {' '.join(unmapped)}\n")
+    doc["humanoid_unmapped"] = unmapped
     if args.take is None:
         return 0
-    return _check_take(rig, args)
+    return _check_take(rig, args, out, doc)
 
 
 def _humanoid_order() -> tuple[str, ...]:
@@ -115,12 +146,13 @@ def _humanoid_order() -> tuple[str, ...]:
     return HUMANOID_BONES
 
 
-def _check_take(rig: Rig, args: argparse.Namespace) -> int:
+def _check_take(
+    rig: Rig, args: argparse.Namespace, out: Any, doc: dict[str, Any]
+) -> int:
     from retargetd.daemon.body.calibration import match_markers
     from retargetd.replay.takes import load_take
 
     take = load_take(args.take, **take_overrides(args))
-    out = sys.stdout.write
     cols = match_markers(rig, take.labels)
     missing = [m for m, c in zip(rig.markers, cols, strict=True) if c < 0]
     used = {c for c in cols if c >= 0}
@@ -154,6 +186,13 @@ def _check_take(rig: Rig, args: argparse.Namespace) -> int:
             need |= set(rig.markers_of(p))
         if need & lost:
             dead_bones.append(b.name)
+    doc["take"] = str(take.path)
+    doc["matched_markers"] = len(rig.markers) - len(missing)
+    doc["missing_markers"] = missing
+    doc["extra_labels"] = extra
+    doc["rebuilt_markers"] = sorted(rebuildable)
+    doc["bones_without_data"] = dead_bones
+    doc["up_levers_m"] = None
     if lost_points:
         out(f"  points using missing markers: {' '.join(lost_points)}\n")
     if rebuildable:
@@ -163,18 +202,20 @@ def _check_take(rig: Rig, args: argparse.Namespace) -> int:
         out(f"  points without data: {' '.join(dead_points)}\n")
         return 1
     out("  every bone can be built from this take\n")
-    _check_levers(rig, take, args)
+    doc["up_levers_m"] = _check_levers(rig, take, args, out)
     return 0
 
 
-def _check_levers(rig: Rig, take: Any, args: argparse.Namespace) -> None:
+def _check_levers(
+    rig: Rig, take: Any, args: argparse.Namespace, out: Any
+) -> dict[str, float] | None:
     """Calibrate on the base-pose rows and print each bone's up lever; a warning
-    line for each under ``body.sanity.UP_LEVER_MIN_M``."""
+    line for each under ``body.sanity.UP_LEVER_MIN_M``. Returns the levers (metres),
+    None when the calibration failed."""
     from retargetd.daemon.body import sanity
     from retargetd.daemon.body.calibration import CalibrationError, calibrate
     from retargetd.daemon.cli.args import held_log_warnings, parse_frames
 
-    out = sys.stdout.write
     rows = parse_frames(args.frames, take.n_frames, option="--frames")
     base = take.positions[rows]
     try:
@@ -182,7 +223,7 @@ def _check_levers(rig: Rig, take: Any, args: argparse.Namespace) -> None:
             cal = calibrate(rig, base, take.labels, take_measurements=take.measurements)
     except CalibrationError as exc:
         out(f"  up levers: not computed (calibration failed: {exc})\n")
-        return
+        return None
     levers = sanity.up_levers(rig, cal, base, take.labels)
     out(
         f"  up levers in the base pose (rows {rows.start}:{rows.stop}; at least "
@@ -192,3 +233,4 @@ def _check_levers(rig: Rig, take: Any, args: argparse.Namespace) -> None:
     )
     for line in sanity.check_up_levers(rig, cal, base, take.labels):
         out(f"  warning: {line}\n")
+    return {b: float(v) for b, v in levers.items()}

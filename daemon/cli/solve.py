@@ -1,7 +1,11 @@
 """``retargetd solve TAKE --rig RIG (--calibration FILE | --calibrate-frames a:b)
---out OUT.npz|OUT.bvh|OUT.csv|OUT.glb [--pipeline FILE.toml] [--bvh-order ZXY]
-[--bvh-root-order ORDER] [--euler-order ORDER] [--degrees]``: solve every frame of a
-take. The ``--out`` suffix chooses the format.
+--out OUT.npz|OUT.bvh|OUT.csv|OUT.glb|OUT.mcap [--pipeline FILE.toml] [--bvh-order ZXY]
+[--bvh-root-order ORDER] [--euler-order ORDER] [--degrees] [--json] [--quiet]``: solve
+every frame of a take. The ``--out`` suffix chooses the format.
+
+``--json`` prints the summary as one JSON object (keys in README "Machine-readable
+output"); ``--quiet`` prints nothing on success. On a terminal a progress bar runs on
+stderr (never into a pipe or a file, none with ``--quiet``).
 
 ``--pipeline FILE.toml``: the file's ``[[pipeline]]`` post stages (``twist``,
 ``one_euro``; README "Post stages") run over every solved frame, in the order listed,
@@ -23,6 +27,11 @@ unwrapped over time. See ``retargetd.daemon.target.euler_csv``.
 
 ``.glb``: glTF 2.0 binary, every frame as a key (bones as nodes, rotations LINEAR,
 i.e. slerp, root translation LINEAR). See ``retargetd.daemon.post.export_gltf``.
+
+``.mcap``: Foxglove channels alone (``/foxglove/scene`` skeleton and markers,
+``/foxglove/tf`` bone frames, ``/foxglove/health``), Foxglove's published schemas
+written with its SDK: Foxglove's 3D panel shows the take with no layout work. See
+``retargetd.replay.foxglove`` and ``protocols/PROTOCOLS.md``.
 
 The NPZ (``numpy.load(..., allow_pickle=False)``) holds, in rig order:
 ``joint_names`` (J,), ``joint_centres`` (T, J, 3) metres world; ``bone_names`` (B,),
@@ -53,19 +62,25 @@ logger = logging.getLogger(__name__)
 
 def add_parser(subparsers: Any) -> None:
     """Register ``solve``."""
-    from retargetd.daemon.cli.args import add_force_argument, add_solve_arguments
+    from retargetd.daemon.cli.args import (
+        add_force_argument,
+        add_output_arguments,
+        add_solve_arguments,
+    )
     from retargetd.daemon.cli.post_io import add_pipeline_argument
 
     parser = subparsers.add_parser(
         "solve",
-        help="solve every frame of a take to the rig's skeleton (NPZ, BVH, CSV, glTF)",
+        help="solve every frame of a take to the rig's skeleton (NPZ, BVH, CSV, glTF, "
+        "Foxglove MCAP)",
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     add_solve_arguments(parser)
     parser.add_argument(
-        "--out", required=True, metavar="OUT.npz|OUT.bvh|OUT.csv|OUT.glb"
+        "--out", required=True, metavar="OUT.npz|OUT.bvh|OUT.csv|OUT.glb|OUT.mcap"
     )
+    add_output_arguments(parser, json=True)
     add_pipeline_argument(parser)
     add_force_argument(parser)
     parser.add_argument(
@@ -148,13 +163,17 @@ def reference_distances(
 def run(args: argparse.Namespace) -> int:
     """Run ``solve``."""
     from retargetd.daemon.body.solve import FLAG_HELD
-    from retargetd.daemon.cli.args import refuse_existing, solver_for_take
+    from retargetd.daemon.cli.args import (
+        refuse_existing,
+        solve_take_progress,
+        solver_for_take,
+    )
 
     out_format = _out_format(args)
     refuse_existing(args.out, force=args.force)
     rig, take, cal, solver = solver_for_take(args)
     started = time.perf_counter()
-    res = solver.solve_take(take.positions)
+    res = solve_take_progress(solver, take.positions, quiet=args.quiet)
     solve_s = time.perf_counter() - started
     kinds: tuple[str, ...] = ()
     if args.pipeline is not None:
@@ -173,8 +192,7 @@ def run(args: argparse.Namespace) -> int:
     elif out_format == "glb":
         _write_glb(args.out, cal, res, take.rate_hz)
     else:
-        np.savez(
-            args.out,
+        arrays = dict(
             joint_names=np.asarray(res.joint_names, dtype=str),
             joint_centres=res.joint_centres,
             bone_names=np.asarray(res.bone_names, dtype=str),
@@ -194,6 +212,26 @@ def run(args: argparse.Namespace) -> int:
             method=np.asarray(args.method),
             **_fit_arrays(res),
         )
+        if out_format == "mcap":
+            from retargetd.daemon.console.export import write_solve_foxglove
+            from retargetd.daemon.progress import Progress
+            from retargetd.daemon.version import package_version
+
+            with Progress(
+                take.n_frames, "write mcap", unit="frames", enabled=not args.quiet
+            ) as bar:
+                write_solve_foxglove(
+                    args.out, arrays, rig, markers=take.positions,
+                    marker_valid=take.valid, library=f"retargetd {package_version()}",
+                    progress=bar.update,
+                )  # fmt: skip
+        else:
+            np.savez(args.out, **arrays)
+    if args.json:
+        _print_json_summary(args, rig, take, solver, res, solve_s, kinds)
+        return 0
+    if args.quiet:
+        return 0
     out = sys.stdout.write
     n = take.n_frames
     cols = solver.marker_cols
@@ -248,12 +286,12 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _out_format(args: argparse.Namespace) -> str:
-    """``"npz"``, ``"bvh"``, ``"csv"`` or ``"glb"`` from the ``--out`` suffix; checks
-    the format's options."""
+    """``"npz"``, ``"bvh"``, ``"csv"``, ``"glb"`` or ``"mcap"`` from the ``--out``
+    suffix; checks the format's options."""
     from retargetd.daemon.cli.post_io import check_bvh_order, suffix_of
     from retargetd.daemon.rotations import euler_from_quat
 
-    suffix = suffix_of(args.out, ("npz", "bvh", "csv", "glb"))
+    suffix = suffix_of(args.out, ("npz", "bvh", "csv", "glb", "mcap"))
     for option, value in (
         ("--bvh-order", args.bvh_order),
         ("--bvh-root-order", args.bvh_root_order),
@@ -313,3 +351,71 @@ def _fit_arrays(res: Any) -> dict[str, Any]:
         "fit_iterations": res.iterations,
         "fit_reseeded": res.reseeded,
     }
+
+
+def _print_json_summary(
+    args: argparse.Namespace,
+    rig: Any,
+    take: Any,
+    solver: Any,
+    res: Any,
+    solve_s: float,
+    kinds: tuple[str, ...],
+) -> None:
+    """The summary as one JSON object (README "Machine-readable output")."""
+    from retargetd.daemon.body.solve import FLAG_HELD
+    from retargetd.daemon.cli.args import print_json
+
+    n = take.n_frames
+    cols = solver.marker_cols
+    present = cols[cols >= 0]
+    occluded = int((~take.valid[:, present]).sum()) + n * int((cols < 0).sum())
+    held = (res.bone_flags & FLAG_HELD) != 0
+    fit = None
+    rms = getattr(res, "marker_rms", None)
+    if rms is not None:
+        finite = rms[np.isfinite(rms)] * 1e3
+        fit = {
+            "rms_median_mm": float(np.median(finite)) if len(finite) else None,
+            "rms_p95_mm": float(np.percentile(finite, 95)) if len(finite) else None,
+            "outliers_rejected": int(res.outliers_rejected),
+            "reseeded_frames": int(np.count_nonzero(res.reseeded)),
+        }
+    print_json(
+        {
+            "command": "solve",
+            "take": str(take.path),
+            "out": args.out,
+            "format": _out_format(args),
+            "rig": rig.name,
+            "method": args.method,
+            "frames": n,
+            "rate_hz": float(take.rate_hz),
+            "bones": len(res.bone_names),
+            "joint_centres": len(res.joint_names),
+            "solve_s": solve_s,
+            "frames_per_s": n / solve_s if solve_s > 0 else None,
+            "rig_marker_samples": n * len(cols),
+            "occluded_samples": occluded,
+            "missing_markers": list(solver.missing_markers),
+            "pipeline": list(kinds),
+            "bones_held_fraction": {
+                name: float(held[:, b].mean())
+                for b, name in enumerate(res.bone_names)
+                if held[:, b].any()
+            },
+            "fit": fit,
+            "segment_stability": [
+                {"bone": b, "mean_m": m, "cv_pct": cv}
+                for b, m, cv in segment_stability(
+                    rig, res.joint_names, res.joint_centres
+                )
+            ],
+            "reference_distances": [
+                {"joint": j, "reference": r, "median_mm": med, "p95_mm": p95}
+                for j, r, med, p95 in reference_distances(
+                    take, res.joint_names, res.joint_centres
+                )
+            ],
+        }
+    )

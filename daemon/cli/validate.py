@@ -15,6 +15,10 @@ says how each threshold was set (the literature and the PiG walk, the MOTEK ball
 the tennis serve). A joint-limit excursion of a single frame is listed as a transient
 (a marker glitch), not failed.
 
+``--json`` prints a summary as one JSON object instead of the text (README
+"Machine-readable output"); ``--quiet`` prints nothing (the files are written as
+always). On a terminal, progress bars (solve, checks) run on stderr.
+
 Exit code: 0 every check passes, 1 a check fails, 2 bad input, 3 internal error.
 """
 
@@ -46,7 +50,11 @@ THRESHOLDS_NOTE = (
 
 def add_parser(subparsers: Any) -> None:
     """Register ``validate``."""
-    from retargetd.daemon.cli.args import add_force_argument, add_solve_arguments
+    from retargetd.daemon.cli.args import (
+        add_force_argument,
+        add_output_arguments,
+        add_solve_arguments,
+    )
 
     parser = subparsers.add_parser(
         "validate",
@@ -56,6 +64,7 @@ def add_parser(subparsers: Any) -> None:
     )
     add_solve_arguments(parser)
     parser.add_argument("--report", required=True, metavar="DIR")
+    add_output_arguments(parser, json=True)
     add_force_argument(parser)
     parser.add_argument(
         "--body-mass-kg", type=float, metavar="KG", help="override the body mass"
@@ -101,6 +110,8 @@ def _validate(
     mass: float | None,
     report_dir: Path,
 ) -> int:
+    from retargetd.daemon.cli.args import print_json, solve_take_progress
+    from retargetd.daemon.progress import Progress
     from retargetd.daemon.validate.checks import (
         THRESHOLDS,
         THRESHOLDS_BASIS,
@@ -114,11 +125,17 @@ def _validate(
         skeleton_from_calibration,
     )
 
-    res = solver.solve_take(take.positions)
+    res = solve_take_progress(solver, take.positions, quiet=args.quiet)
     body_mass = DEFAULT_BODY_MASS_KG if mass is None else mass
     vm = build_model(skeleton_from_calibration(rig, cal), body_mass)
     (report_dir / "model.xml").write_text(vm.xml)
-    rep = validate_take(vm, res, take.rate_hz, fit=fit_pairs(rig, res.joint_names))
+    with Progress(
+        take.n_frames, "checks", unit="frames", enabled=False if args.quiet else None
+    ) as bar:
+        rep = validate_take(
+            vm, res, take.rate_hz, fit=fit_pairs(rig, res.joint_names),
+            progress=bar.update,
+        )  # fmt: skip
     doc = {
         "take": str(take.path),
         "rig": rig.name,
@@ -178,5 +195,30 @@ def _validate(
     lines.extend(["", *visuals_text(doc["visuals"])])
     text = "\n".join(lines) + "\n"
     (report_dir / "report.txt").write_text(text)
-    sys.stdout.write(text)
+    if args.json:
+        print_json(
+            {
+                "command": "validate",
+                "take": str(take.path),
+                "rig": rig.name,
+                "report": str(report_dir / "report.json"),
+                "frames": rep.n_frames,
+                "rate_hz": float(take.rate_hz),
+                "body_mass_kg": body_mass,
+                "passed": rep.passed,
+                "failed": rep.failed(),
+                "checks": {
+                    n: {
+                        "frames_flagged": c.n_flagged,
+                        "threshold": c.threshold,
+                        "unit": c.unit,
+                        "max": doc["checks"][n]["max"],
+                        "first_flagged": doc["checks"][n]["first_flagged"],
+                    }
+                    for n, c in rep.checks.items()
+                },
+            }
+        )
+    elif not args.quiet:
+        sys.stdout.write(text)
     return EXIT_PASS if rep.passed else EXIT_FAIL

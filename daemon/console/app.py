@@ -7,7 +7,8 @@ markers (seen: orange; occluded: grey at their last seen position), the solved
 skeleton (bones blue, flagged bones red), the retargeted humanoid beside it (green),
 the face weights as bars when the face is live, and rolling plots of the health
 figures. Buttons queue :class:`Command` items (calibrate after a countdown, record
-start/stop with a file name, face capture, reload); nothing here calls into the loop.
+start/stop with a file name, face capture under a pose name, reload); nothing here
+calls into the loop.
 
 Offline (:mod:`retargetd.daemon.console.offline`) the same page runs with
 ``commands=None`` (no buttons, no plots) and a timeline added by the player.
@@ -34,6 +35,7 @@ from retargetd.daemon.console.snapshot import (
     Snapshot,
     SnapshotSlot,
     bone_endpoints,
+    humanoid_positions,
 )
 
 logger = logging.getLogger(__name__)
@@ -155,8 +157,14 @@ class Console:
                 b = gui.add_button("Record start")
                 b.on_click(lambda _e: self._press_record())
                 self._buttons["record"] = b
-                b = gui.add_button("Face capture")
-                b.on_click(lambda _e: self._put(CMD_FACE_CAPTURE))
+                # The training set's order: neutral first, then each expression.
+                self._face_name = gui.add_text("Face pose", "neutral")
+                b = gui.add_button("Face capture", hint="average the next frames")
+                b.on_click(
+                    lambda _e: self._put(
+                        CMD_FACE_CAPTURE, self._face_name.value.strip() or "neutral"
+                    )
+                )
                 self._buttons["face"] = b
                 b = gui.add_button("Reload")
                 b.on_click(lambda _e: self._put(CMD_RELOAD))
@@ -312,6 +320,10 @@ class Console:
             )  # fmt: skip
             # The retargeted humanoid, beside the performer.
             if len(layout.humanoid_pairs):
+                if len(layout.humanoid_parents):  # posed here, off the loop
+                    humanoid_positions(
+                        layout, s.humanoid_quat, s.humanoid_hips, s.humanoid_pos
+                    )
                 h = s.humanoid_pos[layout.humanoid_pairs] + layout.humanoid_offset_m
                 hok = np.isfinite(h).all(axis=(1, 2))
                 colors = np.broadcast_to(HUMANOID_RGB, (int(hok.sum()), 2, 3))
@@ -322,7 +334,9 @@ class Console:
                 self._face_folder.visible = s.face_on
                 if s.face_on:
                     self._face_html.content = _face_bars(layout.face_names, s)
-            self._status.content = _status_text(self._title, s)
+            self._status.content = _status_text(
+                self._title, s, live=self.commands is not None
+            )
             self._recording = s.recording
             button = self._buttons.get("record")
             label = "Record stop" if s.recording else "Record start"
@@ -368,12 +382,13 @@ class Console:
             handle.data = tuple(np.asarray(c, np.float64) for c in self._history[title])
 
 
-def _status_text(title: str, s: Snapshot) -> str:
+def _status_text(title: str, s: Snapshot, *, live: bool = True) -> str:
     state = "calibrated" if s.calibrated else "not calibrated"
     rec = ", recording" if s.recording else ""
+    rate = f"input {s.input_rate_hz:.0f} Hz, " if live else ""
     return (
         f"**{html.escape(title)}**: frame {s.frame}, t = {s.t_s:.2f} s, {state}{rec}"
-        f"  \ninput {s.input_rate_hz:.0f} Hz, {s.occluded} occluded, "
+        f"  \n{rate}{s.occluded} occluded, "
         f"{int(np.count_nonzero(s.bone_flags))} bones flagged"
     )
 

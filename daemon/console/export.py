@@ -9,7 +9,7 @@ daemon, so the bone ends are placed here).
 from __future__ import annotations
 
 import os
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import numpy as np
@@ -44,6 +44,7 @@ def write_solve_foxglove(
     markers: np.ndarray | None = None,
     marker_valid: np.ndarray | None = None,
     library: str = "retargetd",
+    progress: Callable[[int], None] | None = None,
 ) -> int:
     """Write a solve as an MCAP of Foxglove channels.
 
@@ -54,6 +55,7 @@ def write_solve_foxglove(
         markers: (T, M, 3) metres world, the take's markers (shown as spheres).
         marker_valid: (T, M) bool.
         library: the MCAP header's library string (``"retargetd 0.1.0"``).
+        progress: called with 1 after each frame written.
 
     Returns:
         Frames written.
@@ -69,4 +71,5 @@ def write_solve_foxglove(
         markers=markers,
         marker_valid=marker_valid,
         library=library,
+        progress=progress,
     )

@@ -15,7 +15,7 @@ import logging
 import os
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -36,6 +36,11 @@ logger = logging.getLogger(__name__)
 
 #: At most this many flagged-frame marks on the slider (runs are merged first).
 MAX_MARKS = 40
+#: The first view's distance from the performer, metres (see :func:`camera_for`).
+CAMERA_DISTANCE_M = 4.6
+#: The first view's vertical field of view (viser's default is 75 degrees; 50 keeps
+#: a 2 m figure large on the page).
+CAMERA_FOV_DEG = 50.0
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -70,13 +75,99 @@ class ViewSequence:
         return int(max(self.marker_pos.shape[0], self.joint_pos.shape[0]))
 
 
-def _program_for(rig_name: str, joint_names: tuple[str, ...], n_bones: int) -> Any:
-    if rig_name in shipped_rigs():
+def _program_for(
+    rig: Any, rig_name: str, joint_names: tuple[str, ...], n_bones: int
+) -> Any:
+    if rig is None and rig_name in shipped_rigs():
         rig = load_rig(rig_name)
-        if len(rig.bones) == n_bones:
-            return SkeletonProgram.from_rig(rig, joint_names)
+    if rig is not None and len(rig.bones) == n_bones:
+        return SkeletonProgram.from_rig(rig, joint_names)
     logger.warning("view: rig %r not shipped; drawing joint centres only", rig_name)
     return None
+
+
+def sequence_from_solve(
+    arrays: Mapping[str, Any],
+    *,
+    rig: Any = None,
+    take: Any = None,
+    flagged_frames: Sequence[int] | None = None,
+) -> ViewSequence:
+    """A solve (the NPZ keys of ``retargetd solve``, as arrays) for viewing.
+
+    Args:
+        arrays: ``joint_names``, ``joint_centres``, ``bone_names``,
+            ``world_from_bone_quat``, ``root_pos``, ``bone_flags``, ``bone_lengths``,
+            ``bone_parents``, ``rate_hz``, ``rig_name``.
+        rig: the rig it was solved with (``body.rig.Rig``; None: the shipped rig
+            named ``rig_name``, else joint centres only).
+        take: the take it was solved from (``replay.take.Take``), to show its
+            markers too (row ``i`` of the take is frame ``i`` of the solve).
+        flagged_frames: frames to mark (0-based); None: every frame where some bone
+            is flagged.
+    """
+    joint_names = tuple(str(n) for n in arrays["joint_names"])
+    bone_names = tuple(str(n) for n in arrays["bone_names"])
+    joints = np.asarray(arrays["joint_centres"], np.float64)
+    quats = np.asarray(arrays["world_from_bone_quat"], np.float64)
+    root = np.asarray(arrays["root_pos"], np.float64)
+    flags = np.asarray(arrays["bone_flags"], np.uint8)
+    lengths = np.asarray(arrays["bone_lengths"], np.float64)
+    parents = np.asarray(arrays["bone_parents"], np.int64)
+    rate = float(arrays["rate_hz"])
+    program = _program_for(rig, str(arrays["rig_name"]), joint_names, len(bone_names))
+    if program is None:
+        program = SkeletonProgram.from_joint_pairs([])
+        bone_names, parents, lengths = (), parents[:0], lengths[:0]
+        quats, flags = quats[:, :0], flags[:, :0]
+    t = joints.shape[0]
+    labels: tuple[str, ...] = ()
+    markers = np.zeros((t, 0, 3))
+    valid = np.zeros((t, 0), bool)
+    if take is not None:
+        labels = take.labels
+        markers = np.full((t, len(labels), 3), np.nan)
+        valid = np.zeros((t, len(labels)), bool)
+        n = min(t, take.positions.shape[0])
+        markers[:n], valid[:n] = take.positions[:n], take.valid[:n]
+    if flagged_frames is None:
+        flagged_frames = np.flatnonzero(flags.any(axis=1)).tolist()
+    layout = ConsoleLayout(
+        marker_names=labels,
+        joint_names=joint_names,
+        bone_names=bone_names,
+        bone_parents=parents,
+        skeleton=program,
+        bone_lengths=lengths,
+    )
+    return ViewSequence(
+        layout=layout, rate_hz=rate, marker_pos=markers, marker_valid=valid,
+        joint_pos=joints, world_from_bone_quat=quats, root_pos=root, bone_flags=flags,
+        flagged_frames=tuple(sorted({int(f) for f in flagged_frames})),
+    )  # fmt: skip
+
+
+def sequence_from_take(
+    take: Any, *, flagged_frames: Sequence[int] | None = None
+) -> ViewSequence:
+    """A take's markers alone (``replay.take.Take``) for viewing."""
+    labels, markers, valid = take.labels, take.positions, take.valid
+    t = markers.shape[0]
+    layout = ConsoleLayout(
+        marker_names=labels,
+        joint_names=(),
+        bone_names=(),
+        bone_parents=np.zeros(0, np.int64),
+        skeleton=SkeletonProgram.from_joint_pairs([]),
+        bone_lengths=np.zeros(0),
+    )
+    return ViewSequence(
+        layout=layout, rate_hz=float(take.rate_hz), marker_pos=markers,
+        marker_valid=valid, joint_pos=np.zeros((t, 0, 3)),
+        world_from_bone_quat=np.zeros((t, 0, 4)), root_pos=np.full((t, 3), np.nan),
+        bone_flags=np.zeros((t, 0), np.uint8),
+        flagged_frames=tuple(sorted({int(f) for f in (flagged_frames or ())})),
+    )  # fmt: skip
 
 
 def load_sequence(
@@ -95,58 +186,42 @@ def load_sequence(
             where some bone is flagged.
     """
     p = Path(path)
-    if p.suffix.lower() == ".npz":
-        with np.load(p, allow_pickle=False) as z:
-            joint_names = tuple(str(n) for n in z["joint_names"])
-            bone_names = tuple(str(n) for n in z["bone_names"])
-            joints = np.asarray(z["joint_centres"], np.float64)
-            quats = np.asarray(z["world_from_bone_quat"], np.float64)
-            root = np.asarray(z["root_pos"], np.float64)
-            flags = np.asarray(z["bone_flags"], np.uint8)
-            lengths = np.asarray(z["bone_lengths"], np.float64)
-            parents = np.asarray(z["bone_parents"], np.int64)
-            rate = float(z["rate_hz"])
-            rig_name = str(z["rig_name"])
-        program = _program_for(rig_name, joint_names, len(bone_names))
-        if program is None:
-            program = SkeletonProgram.from_joint_pairs([])
-            bone_names, parents, lengths = (), parents[:0], lengths[:0]
-            quats, flags = quats[:, :0], flags[:, :0]
-        t = joints.shape[0]
-        labels: tuple[str, ...] = ()
-        markers = np.zeros((t, 0, 3))
-        valid = np.zeros((t, 0), bool)
-        if take is not None:
-            tk = load_take(take)
-            labels = tk.labels
-            markers = np.full((t, len(labels), 3), np.nan)
-            valid = np.zeros((t, len(labels)), bool)
-            n = min(t, tk.positions.shape[0])
-            markers[:n], valid[:n] = tk.positions[:n], tk.valid[:n]
-        if flagged_frames is None:
-            flagged_frames = np.flatnonzero(flags.any(axis=1)).tolist()
-    else:
-        tk = load_take(p)
-        labels, markers, valid, rate = tk.labels, tk.positions, tk.valid, tk.rate_hz
-        t = markers.shape[0]
-        joint_names, bone_names = (), ()
-        parents, lengths = np.zeros(0, np.int64), np.zeros(0)
-        program = SkeletonProgram.from_joint_pairs([])
-        joints, quats = np.zeros((t, 0, 3)), np.zeros((t, 0, 4))
-        root, flags = np.full((t, 3), np.nan), np.zeros((t, 0), np.uint8)
-    layout = ConsoleLayout(
-        marker_names=labels,
-        joint_names=joint_names,
-        bone_names=bone_names,
-        bone_parents=parents,
-        skeleton=program,
-        bone_lengths=lengths,
+    if p.suffix.lower() != ".npz":
+        return sequence_from_take(load_take(p), flagged_frames=flagged_frames)
+    with np.load(p, allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files}
+    return sequence_from_solve(
+        arrays,
+        take=None if take is None else load_take(take),
+        flagged_frames=flagged_frames,
     )
-    return ViewSequence(
-        layout=layout, rate_hz=rate, marker_pos=markers, marker_valid=valid,
-        joint_pos=joints, world_from_bone_quat=quats, root_pos=root, bone_flags=flags,
-        flagged_frames=tuple(sorted(int(f) for f in (flagged_frames or ()))),
-    )  # fmt: skip
+
+
+def flagged_frames_from_report(doc: Mapping[str, Any]) -> list[int]:
+    """Every frame a validation report (``retargetd validate``'s ``report.json``)
+    flags, over all its checks: each check's ``flagged_runs`` ([start, stop) frame
+    ranges); a report without them (older) gives each failing check's
+    ``worst_frames``."""
+    frames: set[int] = set()
+    for check in doc.get("checks", {}).values():
+        runs = check.get("flagged_runs")
+        if runs is not None:
+            for a, b in runs:
+                frames.update(range(int(a), int(b)))
+        elif check.get("frames_flagged"):
+            frames.update(int(f) for f in check.get("worst_frames", ()))
+    return sorted(frames)
+
+
+def camera_for(seq: ViewSequence) -> tuple[F64Array, F64Array]:
+    """(position, look_at) metres world of the page's first view: level with the
+    performer's mean position, 4.6 m off along -Y (a 50 degree vertical field of
+    view then holds a 2 m figure with margin), so the whole take is in frame."""
+    pts = [seq.joint_pos.reshape(-1, 3), seq.marker_pos.reshape(-1, 3)]
+    allp = np.concatenate(pts) if any(len(p) for p in pts) else np.zeros((0, 3))
+    allp = allp[np.isfinite(allp).all(axis=1)]
+    centre = allp.mean(axis=0) if len(allp) else np.array([0.0, 0.0, 1.0])
+    return centre + np.array([0.0, -CAMERA_DISTANCE_M, 0.0]), centre
 
 
 def _marks(frames: tuple[int, ...]) -> tuple[tuple[int, str], ...]:
@@ -180,6 +255,10 @@ class OfflineViewer:
     def start(self) -> None:
         """Serve the page and start the player."""
         self.console.start()
+        cam = self.console.server.initial_camera
+        cam.position, cam.look_at = camera_for(self.seq)
+        cam.up = (0.0, 0.0, 1.0)
+        cam.fov = float(np.deg2rad(CAMERA_FOV_DEG))
         gui = self.console.server.gui
         last = max(self.seq.n_frames - 1, 1)
         with gui.add_folder("Timeline"):
@@ -231,6 +310,7 @@ class OfflineViewer:
         np.copyto(s.root_pos, q.root_pos[i])
         np.copyto(s.bone_flags, q.bone_flags[i])
         s.occluded = int(np.count_nonzero(~q.marker_valid[i]))
+        s.calibrated = bool(q.layout.joint_names)  # a solve: a calibrated skeleton
         while not self.slot.commit() and not self._stop.is_set():
             time.sleep(0.001)  # the player may wait; only the live loop may not
 

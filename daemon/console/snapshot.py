@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from retargetd.daemon.rotations import quat_rotate
+from retargetd.daemon.rotations import quat_conj, quat_mul, quat_rotate
 from retargetd.protocols.frames import F64Array, IntArray
 
 #: Console refresh rate: 30 Hz is the frame rate of broadcast video (and above the
@@ -204,6 +204,36 @@ def bone_endpoints(
     return np.stack([pts[..., o, :], pts[..., t, :]], axis=-2)
 
 
+def humanoid_positions(
+    layout: ConsoleLayout,
+    world_from_bone_quat: F64Array,
+    hips_pos: F64Array,
+    out: F64Array,
+) -> F64Array:
+    """Forward kinematics of the retargeted humanoid (on the console thread).
+
+    ``x_h = x_p + E_p o_h`` with ``E_p = G_p ⊗ T̄_p`` (the parent's world rotation
+    from rest) and ``x_root = hips_pos``: the target's own definition
+    (``retargetd.daemon.target.retarget.joint_positions_world``).
+
+    Args:
+        layout: with ``humanoid_parents`` (parents before children),
+            ``humanoid_rest_offsets`` and ``humanoid_rest_quat``.
+        world_from_bone_quat: (H, 4) w x y z.
+        hips_pos: (3,) metres world.
+        out: (H, 3) float64, overwritten.
+
+    Returns:
+        ``out``, metres world.
+    """
+    par = layout.humanoid_parents
+    delta = quat_mul(world_from_bone_quat, quat_conj(layout.humanoid_rest_quat))
+    step = quat_rotate(delta[np.maximum(par, 0)], layout.humanoid_rest_offsets)
+    for i, p in enumerate(par.tolist()):
+        out[i] = hips_pos if p < 0 else out[p] + step[i]
+    return out
+
+
 @dataclass(frozen=True, slots=True, kw_only=True)
 class ConsoleLayout:
     """What stays fixed between reloads: names, sizes and the skeletons' programs.
@@ -219,6 +249,14 @@ class ConsoleLayout:
         humanoid_pairs: (K, 2) int64 humanoid joint index pairs drawn as bones.
         humanoid_offset_m: (3,) where the humanoid is drawn relative to the
             performer's world positions (beside it, metres).
+        humanoid_parents: (H,) int64 parent joint, -1 for the root; with the two
+            below, the humanoid is posed on the console thread from the
+            snapshot's ``humanoid_quat`` and ``humanoid_hips``
+            (:func:`humanoid_positions`); empty: ``humanoid_pos`` is given.
+        humanoid_rest_offsets: (H, 3) float64 metres, world axes: each joint's
+            offset from its parent in the target's rest pose.
+        humanoid_rest_quat: (H, 4) float64 w x y z: each bone's rest
+            ``world_from_bone``.
         face_names: (F,) face weight names (empty: no face).
         stage_names: names of the timed pipeline stages (latency plots).
     """
@@ -234,6 +272,9 @@ class ConsoleLayout:
     humanoid_offset_m: F64Array = field(
         default_factory=lambda: np.array([1.2, 0.0, 0.0])
     )
+    humanoid_parents: IntArray = field(default_factory=lambda: np.zeros(0, np.int64))
+    humanoid_rest_offsets: F64Array = field(default_factory=lambda: np.zeros((0, 3)))
+    humanoid_rest_quat: F64Array = field(default_factory=lambda: np.zeros((0, 4)))
     face_names: tuple[str, ...] = ()
     stage_names: tuple[str, ...] = ()
 
@@ -259,7 +300,11 @@ class Snapshot:
         world_from_bone_quat: (B, 4) float64 w x y z.
         root_pos: (3,) float64 metres world.
         bone_flags: (B,) uint8 ``FLAG_*`` bits (non-zero = drawn red).
-        humanoid_pos: (H, 3) float64 metres, the retargeted humanoid's joints.
+        humanoid_pos: (H, 3) float64 metres, the retargeted humanoid's joints
+            (filled by the console thread when the layout poses the humanoid).
+        humanoid_quat: (H, 4) float64 w x y z, the retargeted ``world_from_bone``
+            of each target bone (``TargetPose.world_from_bone_quat``).
+        humanoid_hips: (3,) float64 metres world, the target's Hips joint.
         face_weights: (F,) float32 in [0, 1].
         face_on: the face weights are live.
         calibrated: a calibration is loaded.
@@ -281,6 +326,8 @@ class Snapshot:
     root_pos: F64Array
     bone_flags: np.ndarray
     humanoid_pos: F64Array
+    humanoid_quat: F64Array
+    humanoid_hips: F64Array
     face_weights: np.ndarray
     face_on: bool
     calibrated: bool
@@ -311,6 +358,8 @@ class Snapshot:
             root_pos=np.full(3, np.nan),
             bone_flags=np.zeros(b, np.uint8),
             humanoid_pos=np.full((h, 3), np.nan),
+            humanoid_quat=np.tile([1.0, 0.0, 0.0, 0.0], (h, 1)),
+            humanoid_hips=np.full(3, np.nan),
             face_weights=np.zeros(len(layout.face_names), np.float32),
             face_on=False,
             calibrated=False,
@@ -335,6 +384,8 @@ class Snapshot:
         np.copyto(self.root_pos, other.root_pos)
         np.copyto(self.bone_flags, other.bone_flags)
         np.copyto(self.humanoid_pos, other.humanoid_pos)
+        np.copyto(self.humanoid_quat, other.humanoid_quat)
+        np.copyto(self.humanoid_hips, other.humanoid_hips)
         np.copyto(self.face_weights, other.face_weights)
         self.face_on = other.face_on
         self.calibrated = other.calibrated

@@ -10,9 +10,11 @@ same requests as ``retargetd ctl``: calibrate (after the page's countdown; the
 stillness check runs on the frames as for any calibration), record start/stop (under
 the configured recordings folder), face capture, reload.
 
-The retargeted humanoid is not drawn live yet (its forward kinematics would run on the
-loop thread); the page shows the markers, the solved skeleton with flagged bones in
-red, face weights when the face is on, and the health plots.
+The page shows the markers, the solved skeleton with flagged bones in red, the
+retargeted humanoid beside it (the loop copies the target's bone rotations and hips
+position, ``TargetPose``; the console thread poses the joints,
+``console.snapshot.humanoid_positions``), face weights when the face is on, and the
+health plots.
 """
 
 from __future__ import annotations
@@ -39,10 +41,15 @@ from retargetd.daemon.console.snapshot import (
 )
 from retargetd.daemon.live.config import ConsoleConfig
 from retargetd.daemon.live.stats import STAGES, LoopStats
+from retargetd.daemon.target.retarget import performer_left_from_calibration
 from retargetd.protocols.frames import MarkerFrame
 
 logger = logging.getLogger(__name__)
 
+#: How far to the performer's right the retargeted humanoid is drawn, metres: two
+#: T-poses side by side clear each other (half arm spans of ~0.9 m each for 1.8 m
+#: figures: arm span is about body height, Vitruvian proportion).
+HUMANOID_BESIDE_M = 2.0
 #: The health plots' refresh (0.5 s): the stats line's figures, not per frame.
 HEALTH_INTERVAL_NS = 500_000_000
 
@@ -63,8 +70,36 @@ def _health(status: dict[str, Any]) -> dict[str, Any]:
 
 
 def _layout(
-    rig: Rig, solver: BodySolver, labels: tuple[str, ...], face_names: tuple[str, ...]
+    rig: Rig,
+    solver: BodySolver,
+    labels: tuple[str, ...],
+    face_names: tuple[str, ...],
+    target: Any = None,
 ) -> ConsoleLayout:
+    humanoid: dict[str, Any] = {}
+    if target is not None:  # a TargetSkeleton: its bones joint to joint
+        par = np.asarray(target.parents, dtype=np.int64)
+        # The humanoid's root moves by the performer's displacement since
+        # calibration (TargetPose.root_pos): put it where the performer stood then,
+        # and beside it, to its right.
+        cal = solver.calibration
+        at = np.array([cal.root_rest_pos[0], cal.root_rest_pos[1], 0.0])
+        try:
+            left = performer_left_from_calibration(rig, cal)
+            humanoid["humanoid_offset_m"] = at - HUMANOID_BESIDE_M * left
+        except ValueError:
+            pass  # the layout's default offset
+        humanoid |= {
+            "humanoid_names": tuple(target.bone_names),
+            "humanoid_pairs": np.array(
+                [(p, i) for i, p in enumerate(par.tolist()) if p >= 0], np.int64
+            ).reshape(-1, 2),
+            "humanoid_parents": par,
+            "humanoid_rest_offsets": np.asarray(target.rest_offsets, np.float64),
+            "humanoid_rest_quat": np.asarray(
+                target.rest_world_from_bone_quat, np.float64
+            ),
+        }
     return ConsoleLayout(
         marker_names=labels,
         joint_names=solver.joint_names,
@@ -73,6 +108,20 @@ def _layout(
         skeleton=SkeletonProgram.from_rig(rig, solver.joint_names),
         bone_lengths=np.asarray(solver.calibration.bone_lengths, dtype=np.float64),
         face_names=face_names,
+        stage_names=STAGES,
+        **humanoid,
+    )
+
+
+def _markers_layout(labels: tuple[str, ...]) -> ConsoleLayout:
+    """A layout of markers alone (before a calibration, or empty at start)."""
+    return ConsoleLayout(
+        marker_names=labels,
+        joint_names=(),
+        bone_names=(),
+        bone_parents=np.zeros(0, np.int64),
+        skeleton=SkeletonProgram.from_joint_pairs([], 0),
+        bone_lengths=np.zeros(0),
         stage_names=STAGES,
     )
 
@@ -100,15 +149,7 @@ class ConsoleFeed:
 
     def start(self, rig: Rig) -> str:
         """Start the page (an empty layout until the first solved frame); its URL."""
-        empty = ConsoleLayout(
-            marker_names=(),
-            joint_names=(),
-            bone_names=(),
-            bone_parents=np.zeros(0, np.int64),
-            skeleton=SkeletonProgram.from_joint_pairs([], 0),
-            bone_lengths=np.zeros(0),
-            stage_names=STAGES,
-        )
+        empty = _markers_layout(())
         del rig
         self.slot = SnapshotSlot(empty, publish_hz=self.config.publish_hz)
         self.console = Console(
@@ -136,10 +177,14 @@ class ConsoleFeed:
         face_weights: np.ndarray | None,
         stats: LoopStats,
         status_fn: Callable[[], dict[str, Any]],
+        target: Any = None,
+        target_pose: Any = None,
     ) -> None:
         """Publish this frame when one is due (``publish_hz``); never waits. The
         health figures (``status_fn``, the status document) are refreshed at most
-        every :data:`HEALTH_INTERVAL_NS`: their percentiles are not per-frame work."""
+        every :data:`HEALTH_INTERVAL_NS`: their percentiles are not per-frame work.
+        ``target`` (``TargetSkeleton``) and ``target_pose`` (``TargetPose``): the
+        retargeted humanoid, copied as rotations (posed on the console thread)."""
         slot = self.slot
         if slot is None or not slot.due(now_ns):
             return
@@ -148,7 +193,7 @@ class ConsoleFeed:
         status = self._health
         key = (id(solver), labels)
         if key != self._layout_key:  # a new pipeline: the page's layout (not hot)
-            slot.set_layout(_layout(rig, solver, labels, face_names))
+            slot.set_layout(_layout(rig, solver, labels, face_names, target))
             self._layout_key = key
         s = slot.begin()
         if s.marker_pos.shape != frame.markers_world.shape:
@@ -161,15 +206,59 @@ class ConsoleFeed:
         np.copyto(s.world_from_bone_quat, pose.world_from_bone_quat)
         np.copyto(s.root_pos, pose.root_pos)
         np.copyto(s.bone_flags, bone_flags)
+        if target_pose is not None and s.humanoid_quat.shape[0]:
+            np.copyto(s.humanoid_quat, target_pose.world_from_bone_quat)
+            np.copyto(s.humanoid_hips, target_pose.hips_pos)
         s.face_on = face_weights is not None and len(face_weights) > 0
         if s.face_on and face_weights is not None:
             np.copyto(s.face_weights, face_weights, casting="same_kind")
         s.calibrated = True
+        self._commit_health(slot, s, status, frame, stats)
+
+    def publish_markers(
+        self,
+        now_ns: int,
+        frame: MarkerFrame,
+        labels: tuple[str, ...],
+        stats: LoopStats,
+        status_fn: Callable[[], dict[str, Any]],
+    ) -> None:
+        """Before a calibration: publish the markers alone when one is due (the
+        operator sees the performer take the base pose); never waits."""
+        slot = self.slot
+        if slot is None or not slot.due(now_ns):
+            return
+        if now_ns - self._health_ns >= HEALTH_INTERVAL_NS:
+            self._health, self._health_ns = _health(status_fn()), now_ns
+        key = (0, labels)
+        if key != self._layout_key:  # markers only, until a pipeline exists
+            slot.set_layout(_markers_layout(labels))
+            self._layout_key = key
+        s = slot.begin()
+        if s.marker_pos.shape != frame.markers_world.shape:
+            return
+        s.frame = frame.frame_id
+        s.t_s = now_ns * 1e-9
+        np.copyto(s.marker_pos, frame.markers_world)
+        np.copyto(s.marker_valid, frame.valid)
+        s.face_on = False
+        s.calibrated = False
+        self._commit_health(slot, s, self._health, frame, stats)
+
+    def _commit_health(
+        self,
+        slot: SnapshotSlot,
+        s: Any,
+        status: dict[str, Any],
+        frame: MarkerFrame,
+        stats: LoopStats,
+    ) -> None:
         s.recording = bool(status.get("recording"))
         s.input_rate_hz = float(status.get("fps_in", 0.0))
         s.drops = int(status.get("drops", 0))
         for k, name in enumerate(STAGES):
-            p50, p99 = status["latency_us"].get(name, (float("nan"), float("nan")))
+            lat = status.get("latency_us", {})
+            p50, p99 = lat.get(name, (float("nan"), float("nan")))
             self._p50[k], self._p99[k] = p50 * 1e-3, p99 * 1e-3
         np.copyto(s.latency_p50_ms, self._p50)
         np.copyto(s.latency_p99_ms, self._p99)

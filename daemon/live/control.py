@@ -141,7 +141,7 @@ class ControlMixin(DaemonState):
             raise ValueError(f"'force' must be true or false; got {force!r}")
         msg = self.recording.start(
             path, poses, input_infos(self.config, self.endpoints), announcements,
-            force=force,
+            force=force, rig=self.rig,
         )  # fmt: skip
         self._last_names_ns = 0  # the names message opens the recorded pose stream
         return msg

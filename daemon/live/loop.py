@@ -75,6 +75,7 @@ from retargetd.daemon.live.surface import (
     is_loopback_host,
     who_reaches,
 )
+from retargetd.daemon.progress import Progress
 from retargetd.daemon.target.retarget import (
     TargetSkeleton,
     default_humanoid,
@@ -311,16 +312,25 @@ class Daemon(
 
     def _warm_up(self) -> None:
         """Load the compiled kernel and run every stage once before the first frame
-        arrives, so no streamed frame pays for it (numba's cache load is ~0.3 s)."""
-        warm_up()
-        protocol_kernels.warm_up()
-        if self.config.solve.method == "fit":
-            self.out(
-                "loading the fit kernel (a first start compiles for about a minute)"
-            )
-            warm_up_fit()
-        if self.face is not None:
-            warm_up_face()
+        arrives, so no streamed frame pays for it (numba's cache load is ~0.3 s; a
+        first start compiles, seconds to a minute: a progress bar on a terminal)."""
+        fit = self.config.solve.method == "fit"
+        steps = 1 + fit + (self.face is not None)
+        with Progress(steps, "kernels: body", unit="kernels") as bar:
+            warm_up()
+            protocol_kernels.warm_up()
+            bar.update()
+            if fit:
+                self.out(
+                    "loading the fit kernel (a first start compiles for about a minute)"
+                )
+                bar.set_description("kernels: fit")
+                warm_up_fit()
+                bar.update()
+            if self.face is not None:
+                bar.set_description("kernels: face")
+                warm_up_face()
+                bar.update()
         if self.calibration is None:
             return
         pipe = self._build_pipeline(self.rig.marker_names, with_face=False)

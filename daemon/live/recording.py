@@ -23,6 +23,13 @@ daemon is using, encoded as that input's announcement and stamped with the start
 the file is self-contained (``read_recording``, ``load_take``, ``retargetd replay``).
 The format is that of ``retargetd record``: ``protocols/PROTOCOLS.md`` section 7.
 
+Beside those, the recording carries the Foxglove channels (``/foxglove/scene``,
+``/foxglove/tf``, ``/foxglove/health``; ``retargetd.replay.foxglove``): while it runs,
+the loop queues a copy of each solved frame (:meth:`LiveRecording.record_skeleton`:
+joint centres, bone rotations, root, flags, markers) and the writer thread places the
+bones (:class:`BoneEnds`, the console's skeleton program) and encodes them, so
+Foxglove shows the performer in 3D with no layout work.
+
 A write error (full disk, read-only or vanished file system) stops the recording on the
 writer thread (``Recorder.failed``; one error line in the log, from the recorder): from
 then on the recorder accepts nothing, and the next :meth:`status` (the periodic stats
@@ -42,24 +49,67 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
+from retargetd.daemon.console.snapshot import SkeletonProgram, bone_endpoints
 from retargetd.daemon.version import package_version
 from retargetd.protocols.conventions import normalize_units, normalize_up_axis
 from retargetd.protocols.natnet_client import parse_natnet_url
 from retargetd.replay import recording as rf
+from retargetd.replay.foxglove_recorder import SkeletonRecorder, open_skeleton_recorder
 from retargetd.replay.recorder import (
     DEFAULT_QUEUE_SIZE,
     InputInfo,
     Recorder,
     RecorderStats,
-    open_recorder,
 )
 
 logger = logging.getLogger(__name__)
 
-#: Writer queue length (items: packets, poses, events); ~8 s of 240 Hz frames + poses.
+#: Writer queue length (items: packets, poses, skeleton frames, health, events): ~5.7 s
+#: of 240 Hz frames (three items each) before a stalled disk drops.
 QUEUE_SIZE = DEFAULT_QUEUE_SIZE
+#: Health samples on ``/foxglove/health`` every 0.5 s (the stats line's figures; a
+#: plot is read by eye).
+HEALTH_INTERVAL_NS = 500_000_000
 #: Shutdown waits this long, in all, for the writers to finish their files.
 CLOSE_TIMEOUT_S = 5.0
+
+
+class BoneEnds:
+    """Both ends of every bone from a solved frame, for the recording's writer thread.
+
+    Follows the daemon's current pipeline: :meth:`follow` (loop thread, only when
+    the solver changes) swaps in the skeleton program and the calibrated bone
+    lengths as one tuple; :meth:`__call__` (writer thread) reads that tuple once.
+
+    Args:
+        rig: the rig (``body.rig.Rig``) whose bones are recorded.
+    """
+
+    def __init__(self, rig: Any) -> None:
+        self.rig = rig
+        self._solver_id = 0
+        self._state: tuple[SkeletonProgram, np.ndarray, int] | None = None
+
+    def follow(self, solver: Any) -> None:
+        """Use ``solver``'s joint names and calibration (a no-op for the same one)."""
+        if id(solver) == self._solver_id:
+            return
+        self._solver_id = id(solver)
+        program = SkeletonProgram.from_rig(self.rig, solver.joint_names)
+        lengths = np.asarray(solver.calibration.bone_lengths, dtype=np.float64)
+        self._state = (program, lengths, len(solver.joint_names))
+
+    def __call__(
+        self, joints: np.ndarray, quats: np.ndarray, root: np.ndarray
+    ) -> np.ndarray:
+        """(B, 2, 3) metres world (NaN where undetermined)."""
+        state = self._state
+        if state is None or joints.shape[0] != state[2]:
+            return np.full((len(self.rig.bones), 2, 3), np.nan)
+        program, lengths, _ = state
+        return bone_endpoints(program, joints, quats, root, lengths)
 
 
 @dataclass(slots=True)
@@ -85,6 +135,10 @@ class LiveRecording:
     def __init__(self) -> None:
         self.packets: Recorder | None = None
         self.poses: Recorder | None = None
+        #: The active recorder while recording (Foxglove channels), else None.
+        self.skeleton: SkeletonRecorder | None = None
+        self._bone_ends: BoneEnds | None = None
+        self._health_ns = 0
         self._active: _Active | None = None
         self._finishing: list[_Active] = []
         self._last: dict[str, Any] | None = None
@@ -103,6 +157,7 @@ class LiveRecording:
         inputs: tuple[InputInfo, ...],
         announcements: list[tuple[str, int, tuple[bytes, ...]]],
         force: bool = False,
+        rig: Any = None,
     ) -> str:
         """Start recording to ``path`` (absolute, ``.mcap``; an existing file is
         refused unless ``force``).
@@ -114,6 +169,8 @@ class LiveRecording:
             inputs: the marker inputs (stored in the file's metadata).
             announcements: (input name, form code, parts) of each input's current
                 label-set announcement, recorded first.
+            rig: the daemon's rig: its bones go out on the Foxglove channels
+                (:meth:`record_skeleton`); None: no skeleton channels.
 
         Returns:
             A one-line message for the control reply.
@@ -133,10 +190,14 @@ class LiveRecording:
             raise ValueError(f"path must end in .mcap; got {path!r}")
         if os.path.exists(path) and not force:
             raise ValueError(f"{path} exists: record start --force replaces it")
+        bone_ends = BoneEnds(rig) if rig is not None else None
         try:
-            recorder = open_recorder(
+            recorder = open_skeleton_recorder(
                 path, inputs, software=f"retargetd {package_version()}",
                 queue_size=QUEUE_SIZE, exclusive=not force, open_in_writer=True,
+                bone_names=rig.bone_names if rig is not None else (),
+                bone_parents=rig.bone_parent_indices() if rig is not None else (),
+                bone_ends_fn=bone_ends if bone_ends is not None else _no_bones,
             )  # fmt: skip
         except OSError as exc:
             raise ValueError(
@@ -147,6 +208,8 @@ class LiveRecording:
         self._failed = None
         self.packets = recorder
         self.poses = recorder if poses else None
+        self.skeleton = recorder if bone_ends is not None else None
+        self._bone_ends = bone_ends
         recorder.record_event(
             "record_start", now, path=path, poses=poses,
             inputs=[i.name for i in inputs],
@@ -155,6 +218,50 @@ class LiveRecording:
             recorder.record_packet(name, form, now, *parts)
         logger.info("recording to %s (poses %s)", path, "on" if poses else "off")
         return f"recording to {path}" + ("" if poses else " (no poses)")
+
+    def record_skeleton(
+        self,
+        solver: Any,
+        t_ns: int,
+        pose: Any,
+        bone_flags: np.ndarray,
+        markers: np.ndarray,
+        marker_valid: np.ndarray,
+    ) -> None:
+        """Queue one solved frame for the Foxglove channels (copies; never blocks;
+        a full queue drops and counts it). Call only while :attr:`skeleton` is set.
+
+        Args:
+            solver: the pipeline's body solver (its joint names and calibration).
+            t_ns: ``time.monotonic_ns()`` of the frame.
+            pose: the solve's ``BodyPose``.
+            bone_flags: (B,) uint8.
+            markers: (M, 3) metres world; marker_valid: (M,) bool.
+        """
+        rec, ends = self.skeleton, self._bone_ends
+        if rec is None or ends is None:
+            return
+        ends.follow(solver)
+        rec.record_skeleton(
+            t_ns, pose.joint_centres, pose.world_from_bone_quat, pose.root_pos,
+            bone_flags, markers, marker_valid,
+        )  # fmt: skip
+
+    def record_health(
+        self,
+        t_ns: int,
+        status_fn: Any,
+        occluded: int,
+        validation_flags: int,
+    ) -> None:
+        """Queue a ``/foxglove/health`` sample when one is due (every
+        :data:`HEALTH_INTERVAL_NS`; ``status_fn()``, the status document, is called
+        only then). Call only while :attr:`skeleton` is set."""
+        rec = self.skeleton
+        if rec is None or t_ns - self._health_ns < HEALTH_INTERVAL_NS:
+            return
+        self._health_ns = t_ns
+        rec.record_health(t_ns, health_figures(status_fn(), occluded, validation_flags))
 
     def event(self, event: str, **fields: Any) -> None:
         """Queue a control event when recording (never blocks)."""
@@ -198,6 +305,8 @@ class LiveRecording:
         active.stopped_ns = time.monotonic_ns()
         self._active = None
         self.packets = self.poses = None
+        self.skeleton = None
+        self._bone_ends = None
         self._finishing.append(active)
 
     def _end_failed(self) -> _Active | None:
@@ -254,6 +363,33 @@ class LiveRecording:
         for f in self._finishing:
             f.recorder.close(max(0.0, deadline - time.monotonic()))
         self._reap()
+
+
+def health_figures(
+    status: dict[str, Any], occluded: int, validation_flags: int
+) -> dict[str, Any]:
+    """The ``/foxglove/health`` figures from the status document (JSON-ready:
+    unknown latencies are None)."""
+    drops = 0
+    for counts in status.get("drops", {}).values():
+        drops += sum(v for k, v in counts.items() if k not in ("accepted", "restart"))
+
+    def ms(us: Any) -> float | None:
+        return None if us is None else round(float(us) * 1e-3, 4)
+
+    lat = status.get("latency_us", {})
+    return {
+        "input_rate_hz": float(status.get("fps_in") or 0.0),
+        "drops": int(drops),
+        "occluded": int(occluded),
+        "validation_flags": int(validation_flags),
+        "latency_p50_ms": {k: ms(v[0]) for k, v in lat.items()},
+        "latency_p99_ms": {k: ms(v[1]) for k, v in lat.items()},
+    }
+
+
+def _no_bones(joints: np.ndarray, quats: np.ndarray, root: np.ndarray) -> np.ndarray:
+    return np.zeros((0, 2, 3))
 
 
 def _counts(recorder: Recorder) -> dict[str, int | float]:

@@ -127,6 +127,11 @@ class SendMixin(DaemonState):
         pipe = self._pipeline(stream)
         if pipe is None:  # no calibration yet: counted, never silent
             self.stats.unsolved += 1
+            if self.console is not None:  # the markers, for the base pose
+                self.console.publish_markers(
+                    t_start, stream.current.frame, stream.current.label_set.labels,
+                    self.stats, self.status,
+                )  # fmt: skip
             return
         frame = stream.current.frame
         pose = pipe.solver.solve_frame(frame.markers_world, pipe.pose)
@@ -196,6 +201,18 @@ class SendMixin(DaemonState):
             pose_stream.stamp_sent(parts[0], sent_ns)
             self._send_pub(parts, sent_ns)
         sent_ns = time.monotonic_ns()
+        if self.recording.skeleton is not None:  # Foxglove channels: a queued copy
+            self.recording.record_skeleton(
+                pipe.solver,
+                received_ns,
+                pose,
+                bone_flags,
+                frame.markers_world,
+                frame.valid,
+            )
+            self.recording.record_health(
+                received_ns, self.status, pose.n_occluded, self.stats.validation_flagged
+            )
         # After the send: a copy into the validator's ring, never a wait.
         if validator is not None and not validator.submit(
             frame.frame_id, received_ns, pose.root_pos, pose.world_from_bone_quat,
@@ -211,6 +228,7 @@ class SendMixin(DaemonState):
                 pose, bone_flags,
                 face.weight_names if face is not None else (),
                 pipe.weights if face is not None else None, self.stats, self.status,
+                self.target, tp,
             )  # fmt: skip
         if sent_ns - t_start > budget_ns:
             self.stats.overruns += 1

@@ -28,6 +28,7 @@ inferred foot contacts cannot explain, in body weights).
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -288,8 +289,16 @@ class CheckResult:
             "worst_frames": [int(i) for i in worst],
             "worst_values": [float(self.values[i]) for i in worst],
             "transient_frames": [int(i) for i in self.transients],
+            "flagged_runs": _runs(self.flagged),
             "warnings": list(self.warnings),
         }
+
+
+def _runs(mask: np.ndarray) -> list[list[int]]:
+    """[[start, stop), ...] of the True runs of a (T,) bool mask (0-based frames)."""
+    m = np.concatenate([[False], np.asarray(mask, bool), [False]])
+    edges = np.flatnonzero(m[1:] != m[:-1])
+    return [[int(a), int(b)] for a, b in zip(edges[::2], edges[1::2], strict=True)]
 
 
 @dataclass(slots=True)
@@ -308,6 +317,10 @@ class TakeReport:
         return [n for n, c in self.checks.items() if c.n_flagged]
 
 
+#: Frames between two ``progress`` calls of :func:`validate_take`.
+PROGRESS_FRAMES = 64
+
+
 def validate_take(
     vm: ValidationModel,
     solve: BodySolve,
@@ -316,6 +329,7 @@ def validate_take(
     fit: tuple[np.ndarray, np.ndarray] | None = None,
     thresholds: dict[str, float] | None = None,
     dynamics: bool = True,
+    progress: Callable[[int], None] | None = None,
 ) -> TakeReport:
     """Run every check on a solved take.
 
@@ -326,6 +340,9 @@ def validate_take(
         fit: (joint index, point index) from :func:`fit_pairs`; None skips "fit".
         thresholds: overrides of :data:`THRESHOLDS`.
         dynamics: run the ghost-force check (offline inverse dynamics).
+        progress: called with the number of frames checked since the last call
+            (every :data:`PROGRESS_FRAMES` frames of the per-frame MuJoCo loop;
+            a progress bar).
 
     Returns:
         The report.
@@ -355,6 +372,10 @@ def validate_take(
         self_depth[t] = fc.self_depth
         self_pairs[t] = fc.self_pair
         floor_depth[t] = fc.floor_depth
+        if progress is not None and (t + 1) % PROGRESS_FRAMES == 0:
+            progress(PROGRESS_FRAMES)
+    if progress is not None and n % PROGRESS_FRAMES:
+        progress(n % PROGRESS_FRAMES)
     per_frame = (time.perf_counter() - t0) / max(n, 1)
 
     checks: dict[str, CheckResult] = {}

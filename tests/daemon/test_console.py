@@ -300,3 +300,47 @@ def test_offline_viewer_shows_a_take_alone(solved: tuple[Path, Path]) -> None:
         assert drawn(2) == 2
     finally:
         viewer.stop()
+
+
+def test_humanoid_posed_on_the_console_thread_matches_the_target() -> None:
+    """The console's forward kinematics of the retargeted humanoid equals the
+    target's own (``target.retarget.joint_positions_world``) on a real solve."""
+    from retargetd.daemon.console.snapshot import humanoid_positions
+    from retargetd.daemon.live.console_feed import _layout
+    from retargetd.daemon.target.retarget import Retargeter, joint_positions_world
+    from retargetd.daemon.target.skeleton import default_humanoid
+
+    take = synthesize(seconds=2.0, rate_hz=60.0, seed=1)
+    rig = load_rig("menache")
+    hold = take.base_pose_frames
+    cal = calibrate(rig, take.markers_world[hold], take.labels)
+    solver = BodySolver(rig, cal, take.labels)
+    target = default_humanoid()
+    rt = Retargeter(rig, cal, target)
+    layout = _layout(rig, solver, take.labels, (), target)
+    assert len(layout.humanoid_pairs) == len(target.bone_names) - 1
+    # Drawn 2 m to the right of where the performer stood at calibration (left =
+    # RHIP -> LHIP in the base pose; the humanoid's root is the displacement since).
+    hips = take.markers_world[
+        hold.start, [take.labels.index("LHIP"), take.labels.index("RHIP")]
+    ]
+    left = hips[0] - hips[1]
+    left[2] = 0.0
+    left /= np.linalg.norm(left)
+    at = np.array([*cal.root_rest_pos[:2], 0.0])
+    np.testing.assert_allclose(layout.humanoid_offset_m, at - 2.0 * left, atol=0.02)
+    pose, tp = solver.new_pose(), rt.new_pose()
+    out = np.zeros((len(target.bone_names), 3))
+    moved = 0.0
+    for f in (hold.stop + 10, take.n_frames - 1):
+        solver.solve_frame(take.markers_world[f], pose)
+        rt.apply(pose, tp)
+        want = joint_positions_world(target, tp)
+        got = humanoid_positions(layout, tp.world_from_bone_quat, tp.hips_pos, out)
+        assert got is out
+        np.testing.assert_allclose(got, want, atol=1e-12)
+        rest = humanoid_positions(
+            layout, layout.humanoid_rest_quat, tp.hips_pos, np.zeros_like(out)
+        )
+        moved = max(moved, float(np.abs(got - rest).max()))
+    assert moved > 0.05  # the performer moved the humanoid off its rest pose

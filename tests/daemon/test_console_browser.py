@@ -200,6 +200,19 @@ def test_console_in_chromium(driver: Any) -> None:
         stop.click()
         cmd = commands.get(timeout_s=15.0)
         assert cmd is not None and cmd.kind == "record_stop"
+
+        # Face capture under the pose name typed in the page.
+        pose = driver.find_element(By.XPATH, "//input[@value='neutral']")
+        pose.clear()
+        pose.send_keys("jawOpen")
+        t_end = time.monotonic() + 15
+        while console._face_name.value != "jawOpen" and time.monotonic() < t_end:
+            time.sleep(0.05)
+        driver.find_element(
+            By.XPATH, "//button[contains(normalize-space(.), 'Face capture')]"
+        ).click()
+        cmd = commands.get(timeout_s=15.0)
+        assert cmd is not None and (cmd.kind, cmd.arg) == ("face_capture", "jawOpen")
     finally:
         console.stop()
 

@@ -89,6 +89,60 @@ def _decode_poses(packets: list[rf.Packet]) -> list[pose_stream.PoseMessage]:
     ]
 
 
+def _check_foxglove_channels(path: Path, poses: list[pose_stream.PoseMessage]) -> None:
+    """The recording carries the Foxglove channels beside its own: decoded with the
+    protobuf schemas the file declares, one scene and one transform message per
+    recorded pose, and the bone frames composed from ``world`` down give each bone's
+    ``world_from_bone`` of the recorded pose stream."""
+    from mcap.reader import make_reader
+    from mcap_protobuf.decoder import DecoderFactory
+    from scipy.spatial.transform import Rotation
+
+    from retargetd.daemon.body.rig import load_rig
+
+    rig = load_rig("plug-in-gait")
+    with open(path, "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        scene, tf = [], []
+        for _, channel, _, msg in reader.iter_decoded_messages(
+            topics=["/foxglove/scene", "/foxglove/tf"]
+        ):
+            (scene if channel.topic == "/foxglove/scene" else tf).append(msg)
+    assert len(scene) == len(tf) == len(poses)
+    # Health samples for Foxglove's plots: JSON under the file's JSON schema.
+    rec = rf.read_recording(path)
+    health = rec.json("/foxglove/health")
+    assert health, "no health samples"
+    t = [h["t_ns"] for h in health]
+    assert t == sorted(t) and len(set(t)) == len(t)
+    for h in health:
+        assert h["input_rate_hz"] >= 0.0 and h["drops"] >= 0 and h["occluded"] >= 0
+        assert set(h["latency_p50_ms"]) == set(h["latency_p99_ms"]) >= {"solve"}
+    checked = 0
+    for k in (0, len(poses) // 2, len(poses) - 1):
+        frames = {t.child_frame_id: t for t in tf[k].transforms}
+        lines = {e.id: e for e in scene[k].entities}["skeleton"].lines[0].points
+        assert len(lines) == 2 * len(frames)  # both ends of every determined bone
+
+        def world(name: str, frames: dict = frames) -> Rotation:  # type: ignore[type-arg]
+            t = frames[name]
+            r = Rotation.from_quat(
+                [t.rotation.x, t.rotation.y, t.rotation.z, t.rotation.w]
+            )
+            up = t.parent_frame_id
+            return r if up == "world" else world(up) * r
+
+        for b, bone in enumerate(rig.bones):
+            name = f"bone/{bone.name}"
+            if name not in frames:
+                continue
+            want = poses[k].world_from_bone_quat[b].astype(np.float64)
+            got = world(name).as_quat(scalar_first=True)
+            assert abs(abs(float(np.dot(got, want))) - 1.0) < 1e-5, (k, bone.name)
+            checked += 1
+    assert checked >= len(rig.bones)  # every bone, in three frames
+
+
 def test_ctl_record_in_a_live_daemon_then_replay_reproduces_the_pose_stream(
     pig_calibration: Path,
     run_daemon: Callable[..., Any],
@@ -146,6 +200,7 @@ def test_ctl_record_in_a_live_daemon_then_replay_reproduces_the_pose_stream(
     assert [e["event"] for e in events] == ["record_start", "record_stop"]
     assert events[0]["path"] == str(rec_path) and events[0]["poses"] is True
     assert events[1]["reason"] == "ctl"
+    _check_foxglove_channels(rec_path, recorded_poses)
     # As a take: the recorded rows, float32 as sent.
     as_take = load_take(rec_path)
     want = np.asarray(take.positions[RECORDED_ROWS.start : RECORDED_ROWS.stop])

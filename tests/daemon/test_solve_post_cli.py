@@ -178,7 +178,8 @@ def test_order_options_say_what_they_accept(
         (["--out", str(tmp_path / "x.npz"), "--euler-order", "ZXY"],
          "--euler-order applies to .csv"),
         (["--out", str(tmp_path / "x.glb"), "--degrees"], "--degrees applies to .csv"),
-        (["--out", str(tmp_path / "x.fbx")], "expected a .npz, .bvh, .csv or .glb"),
+        (["--out", str(tmp_path / "x.fbx")],
+         "expected a .npz, .bvh, .csv, .glb or .mcap"),
     ]  # fmt: skip
     for extra, message in cases:
         assert main([*base, *extra]) == 2
