@@ -50,7 +50,10 @@ markers LFHD RFHD LBHD RBHD with known weights and 0.5 mm noise, occluded in fra
 where a head marker is; ``[face]`` on with that training set, so every frame also
 stabilizes 40 markers, solves 52 weights and sends 52 VMC blendshapes and the Mug),
 ``validate`` (``[validate]`` on: the live validator's thread checks every frame
-beside the loop) and ``face+validate``.
+beside the loop), ``face+validate``, and ``pipeline`` (the body with ``[[pipeline]]``
+post stages twist + One Euro between the solve and the target mapping: the daemon's
+own per-stage figures, ``post.twist`` and ``post.one_euro`` from ``ctl status``, are
+printed after the tables; ``+pipeline`` adds them to any variant).
 
 Capture-system transports (``--transports natnet,qtm``, README "Capture systems"):
 the sender process is the capture system, the emulators of ``tests/protocols`` (their
@@ -478,6 +481,7 @@ def _config_toml(
 ) -> str:
     face = "face" in variant
     validate = "validate" in variant
+    stages = PIPELINE_TOML if "pipeline" in variant else ""
     return f"""\
 [performer]
 rig = "plug-in-gait"
@@ -508,6 +512,18 @@ config = "arkit52"
 training = "{face_npz}"
 [validate]
 enabled = {str(validate).lower()}
+{stages}"""
+
+
+#: The ``pipeline`` variant's post stages (README "Post stages").
+PIPELINE_TOML = """
+[[pipeline]]
+kind = "twist"
+[[pipeline]]
+kind = "one_euro"
+min_cutoff_hz = 1.0
+beta_rot = 2.0
+beta_pos = 20.0
 """
 
 
@@ -767,6 +783,8 @@ class Summary:
     vmc_unmatched: int = 0
     vmc: tuple[float, float] = (float("nan"), float("nan"))
     stages: dict[str, tuple[float, float]] = field(default_factory=dict)
+    # The daemon's own latency_us (ctl status) at the end: its post.<kind> stages.
+    daemon_latency: dict[str, Any] = field(default_factory=dict)
     counters: dict[str, int] = field(default_factory=dict)
     input_drops: dict[str, int] = field(default_factory=dict)
 
@@ -809,6 +827,7 @@ def summarize(r: Result) -> Summary:
     s.vmc_unmatched = int(np.count_nonzero(~ok))
     d = lat(frame[idx[ok]], r.recv["t_ns"][ok])
     s.vmc_recv, s.vmc = len(d), _pct(d)
+    s.daemon_latency = dict(r.counters1.get("latency_us", {}))
     c0, c1 = r.counters0.get("counters", {}), r.counters1.get("counters", {})
     s.counters = {key: c1.get(key, 0) - c0.get(key, 0) for key in c1}
     for src in ("osc", "zmq"):
@@ -822,6 +841,10 @@ def summarize(r: Result) -> Summary:
         if reason != "accepted" and v - cap0.get(reason, 0):
             s.input_drops[f"{cap1['system']}.{reason}"] = v - cap0.get(reason, 0)
     return s
+
+
+def _num(x: Any) -> float:
+    return float("nan") if x is None else float(x)
 
 
 def _f(x: float) -> str:
@@ -900,6 +923,19 @@ def print_report(summaries: list[Summary], args: argparse.Namespace) -> None:
             for k in ("in", "solve", "send", "out")
         )
         print(f"{s.name:<24} {cols}")
+    post = [(s, k, v) for s in cases for k, v in s.daemon_latency.items()
+            if k.startswith("post.")]  # fmt: skip
+    if post:
+        print(
+            "\n[[pipeline]] stages, µs p50 / p99, the daemon's own timing (ctl status "
+            "latency_us, last 4096 frames; each a part of its solve stage)"
+        )
+        for s, k, v in post:
+            solve = s.daemon_latency.get("solve", [None, None])
+            print(
+                f"{s.name:<24} {k:<16} {_f(_num(v[0])):>5} / {_f(_num(v[1])):<5} "
+                f"(solve {_f(_num(solve[0]))} / {_f(_num(solve[1]))})"
+            )
     print()
     for s in cases:
         b = raw.get(s.rate_hz)
@@ -946,7 +982,8 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument(
         "--variants", default="body,face",
-        help="body, face, validate, face+validate (comma-separated)",
+        help="body, face, validate, face+validate, pipeline (comma-separated; "
+        "+pipeline adds the post stages to any)",
     )  # fmt: skip
     args = parser.parse_args(argv)
     variants = [v for v in args.variants.split(",") if v]
@@ -958,7 +995,11 @@ def main(argv: list[str] | None = None) -> int:
         or not rates
         or any(not 1 <= r <= 10_000 for r in rates)
         or any(t not in ("osc", "zmq", *CAPTURE_TRANSPORTS) for t in transports)
-        or any(v not in ("body", "face", "validate", "face+validate") for v in variants)
+        or any(
+            v.removesuffix("+pipeline")
+            not in ("body", "face", "validate", "face+validate", "pipeline")
+            for v in variants
+        )
     ):
         parser.error(
             "--seconds > 0, --warmup >= 0, rates in [1, 10000], osc/zmq/natnet/qtm, "

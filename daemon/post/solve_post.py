@@ -42,12 +42,19 @@ RESTART_GAP_S = 1.0
 
 
 @kernel
-def _finite(q: F64Array, pos: F64Array) -> bool:  # pragma: no cover - compiled
-    total = 0.0
+def _load(
+    q: F64Array, pos: F64Array, buf_q: F64Array, buf_pos: F64Array
+) -> bool:  # pragma: no cover - compiled
+    """Copy the pose into the buffer; False (nothing copied) if any value is not
+    finite."""
+    total = pos[0] + pos[1] + pos[2]
     for b in range(q.shape[0]):
         total += q[b, 0] + q[b, 1] + q[b, 2] + q[b, 3]
-    total += pos[0] + pos[1] + pos[2]
-    return bool(np.isfinite(total * 0.0))
+    if not np.isfinite(total * 0.0):
+        return False
+    buf_q[:, :] = q
+    buf_pos[:] = pos
+    return True
 
 
 @kernel
@@ -60,9 +67,15 @@ def _refresh(
     rfb: F64Array,
     last: F64Array,
     first: bool,
+    buf_q: F64Array,
+    buf_pos: F64Array,
+    pos: F64Array,
 ) -> None:  # pragma: no cover - compiled
-    """Forward kinematics into ``wfb``, sign-continuous with ``last`` (the previous
-    output, then updated) unless ``first``, and the rotations from rest."""
+    """The processed pose back (``buf_*`` into ``pfb``, ``pos``), forward kinematics
+    into ``wfb``, sign-continuous with ``last`` (the previous output, then updated)
+    unless ``first``, and the rotations from rest."""
+    pfb[:, :] = buf_q
+    pos[:] = buf_pos
     for i in range(order.shape[0]):
         b = order[i]
         p = parents[b]
@@ -181,7 +194,8 @@ class SolvePost:
             ``pose``.
         """
         pfb = pose.parent_from_bone_quat
-        if not _finite(pfb, pose.root_pos):
+        buf = self._buf
+        if not _load(pfb, pose.root_pos, buf.parent_from_bone_quat, buf.root_pos):
             self.non_finite += 1
             self.stage_ns[:] = 0
             if self._started:
@@ -193,17 +207,12 @@ class SolvePost:
             if not 0.0 <= dt <= RESTART_GAP_S:
                 self.restarts += 1
                 self.reset()
-        buf = self._buf
         buf.t_s = t_s
-        np.copyto(buf.parent_from_bone_quat, pfb)
-        np.copyto(buf.root_pos, pose.root_pos)
         self.pipeline.apply(buf, buf)
-        np.copyto(pfb, buf.parent_from_bone_quat)
-        np.copyto(pose.root_pos, buf.root_pos)
         _refresh(
             self._order, self._parents, pfb, self._rest,
             pose.world_from_bone_quat, pose.rest_from_bone_quat, self._last_wfb,
-            not self._signed,
+            not self._signed, buf.parent_from_bone_quat, buf.root_pos, pose.root_pos,
         )  # fmt: skip
         self._started = self._signed = True
         self._last_t_s = t_s
