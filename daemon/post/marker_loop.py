@@ -42,7 +42,7 @@ def fade_weights(n_frames: int) -> F64Array:
     """(N,) float64: ``(k + 1) / (N + 1)``, the weight of the head frame in fade frame
     ``k`` (strictly inside (0, 1): neither take's own frame is repeated); the
     weights of :func:`~retargetd.daemon.post.interp.loop` and ``blend``."""
-    return (np.arange(n_frames) + 1.0) / (n_frames + 1.0)
+    return np.asarray((np.arange(n_frames) + 1.0) / (n_frames + 1.0), np.float64)
 
 
 def floor_motion(from_pos: F64Array, to_pos: F64Array) -> tuple[F64Array, F64Array]:
