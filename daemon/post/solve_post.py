@@ -18,6 +18,15 @@ This is exactly what ``retargetd solve --pipeline`` does to a whole take
 the offline solve of the same frames agree. ``joint_centres`` stay the solve's (a
 filter moves rotations, not the measured joints).
 
+With ``output_rate_hz`` the processed poses then go through a
+:class:`~retargetd.daemon.post.interp.RateResampler`: output ticks every ``1 /
+output_rate_hz`` on the stream's clock from its first pose, each the slerp (root:
+lerp) between the two processed poses around it. :meth:`SolvePost.apply` says
+whether the pose just solved completed a tick: if not, nothing is to be sent for it;
+if so, the pose buffers hold the tick (the latest, when one input completed several:
+above the input's rate the output cannot be faster than the input, one send per
+input frame), at most one input period behind the input.
+
 Stateful stages (the One Euro filter) restart when the stream's clock goes backwards
 or jumps forward by more than :data:`RESTART_GAP_S` (a source restart, a replayed take
 looping round), and when a pose is not finite (nothing non-finite is let into the
@@ -32,6 +41,7 @@ import numpy as np
 
 from retargetd.daemon.body.solve import BodyPose
 from retargetd.daemon.compiled import kernel, qmul
+from retargetd.daemon.post.interp import RateResampler
 from retargetd.daemon.post.pipeline import Pipeline
 from retargetd.daemon.post.pose import PoseBuffer
 from retargetd.protocols.frames import F64Array, IntArray
@@ -127,9 +137,13 @@ class SolvePost:
         bone_parents: (B,) parent index per bone, -1 for the root.
         rest_parent_from_bone_quat: (B, 4) float64 (w, x, y, z): the calibration's
             rest rotations.
+        output_rate_hz: > 0: after the stages, resample to this rate
+            (:class:`~retargetd.daemon.post.interp.RateResampler`, ticks on the
+            stream's clock from its first pose): :meth:`apply` then says whether a
+            tick fell due (module docstring); 0 = every pose goes out.
 
     Raises:
-        ValueError: an empty pipeline, or shapes that disagree.
+        ValueError: no stage and no resampling, a bad rate, or shapes that disagree.
     """
 
     def __init__(
@@ -137,9 +151,10 @@ class SolvePost:
         pipeline: Pipeline,
         bone_parents: Sequence[int],
         rest_parent_from_bone_quat: F64Array,
+        output_rate_hz: float = 0.0,
     ) -> None:
-        if not pipeline.stages:
-            raise ValueError("SolvePost needs at least one stage")
+        if not pipeline.stages and not output_rate_hz > 0.0:
+            raise ValueError("SolvePost needs a stage or an output rate")
         n = len(bone_parents)
         rest = np.array(rest_parent_from_bone_quat, dtype=np.float64)
         if rest.shape != (n, 4):
@@ -152,6 +167,15 @@ class SolvePost:
         self._order = _chain_order(bone_parents)
         self._rest = rest
         self._buf = PoseBuffer.new(n)
+        self._tick = PoseBuffer.new(n)
+        self.resampler = (
+            RateResampler(n, output_rate_hz) if output_rate_hz > 0.0 else None
+        )
+        #: The time of the pose last written (a resampled tick's, else the input's).
+        self.t_s = 0.0
+        #: Output ticks merged into a later one (more ticks than input poses: above
+        #: the input's rate only the latest tick of each input pose is sent).
+        self.merged_ticks = 0
         self._last_wfb = np.zeros((n, 4))
         self._started = False  # the stateful stages have seen a pose
         self._signed = False  # world_from_bone_quat holds an output to follow
@@ -180,9 +204,11 @@ class SolvePost:
             reset = getattr(stage, "reset", None)
             if reset is not None:
                 reset()
+        if self.resampler is not None:
+            self.resampler.reset()
         self._started = False
 
-    def apply(self, pose: BodyPose, t_s: float) -> BodyPose:
+    def apply(self, pose: BodyPose, t_s: float) -> bool:
         """Run the stages on one solved pose, in place.
 
         Args:
@@ -191,7 +217,10 @@ class SolvePost:
             t_s: the pose's time, seconds (only differences matter).
 
         Returns:
-            ``pose``.
+            True when ``pose`` holds a pose to send (always, without resampling): the
+            processed pose, or with ``output_rate_hz`` the latest output tick that
+            fell due (``t_s`` its time); False when no tick fell due (``pose`` is then
+            left as solved, not to be sent).
         """
         pfb = pose.parent_from_bone_quat
         buf = self._buf
@@ -201,7 +230,8 @@ class SolvePost:
             if self._started:
                 self.restarts += 1
                 self.reset()
-            return pose
+            self.t_s = t_s
+            return True
         if self._started:
             dt = t_s - self._last_t_s
             if not 0.0 <= dt <= RESTART_GAP_S:
@@ -209,11 +239,23 @@ class SolvePost:
                 self.reset()
         buf.t_s = t_s
         self.pipeline.apply(buf, buf)
+        self._started = True
+        self._last_t_s = t_s
+        res = self.resampler
+        if res is not None:
+            res.push(buf)
+            if not res.pending():
+                return False
+            res.pop(self._tick)
+            while res.pending():
+                self.merged_ticks += 1
+                res.pop(self._tick)
+            buf = self._tick
+        self.t_s = buf.t_s
         _refresh(
             self._order, self._parents, pfb, self._rest,
             pose.world_from_bone_quat, pose.rest_from_bone_quat, self._last_wfb,
             not self._signed, buf.parent_from_bone_quat, buf.root_pos, pose.root_pos,
         )  # fmt: skip
-        self._started = self._signed = True
-        self._last_t_s = t_s
-        return pose
+        self._signed = True
+        return True

@@ -27,6 +27,7 @@ from live_harness import (
     PoseSub,
     _take,
     _unused_udp_port,
+    _wait_until,
 )
 
 from retargetd.daemon.body.calibration import load_calibration
@@ -36,7 +37,9 @@ from retargetd.daemon.cli.main import main
 from retargetd.daemon.cli.post_io import apply_pipeline_to_solve
 from retargetd.daemon.live.config import ConfigError, DaemonConfig
 from retargetd.daemon.live.loop import Daemon
+from retargetd.daemon.post.interp import resample
 from retargetd.daemon.rotations import quat_angle, quat_conj, quat_mul
+from retargetd.daemon.target.bvh import world_from_parent_chain
 from retargetd.protocols import zmq_wire
 from retargetd.protocols.marker_input import LabelSet
 
@@ -283,3 +286,102 @@ def test_a_rig_without_arms_refuses_twist_at_start(
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "pipeline[0] (twist)" in err, err
     assert "no arm chains" in err, err
+
+
+@pytest.mark.timeout(90)
+def test_live_output_rate_resamples_to_the_engine_rate(
+    start_daemon: Callable[..., Live],
+    osc_source: Callable[..., OscSource],
+    zmq_socket: Callable[[int], Any],
+    exact_calibration: Path,
+) -> None:
+    """``loop.output_rate_hz = 60`` with a twist stage, the 100 Hz synthetic performer
+    over OSC: the pose stream carries a pose per 1/60 s tick of the source clock (its
+    ``source_time_s`` the tick's), each the slerp of the processed poses around it:
+    equal to the offline ``interp.resample`` of the offline pipeline's output."""
+    take = _take()
+    live = start_daemon(
+        {
+            "performer": {"calibration": str(exact_calibration)},
+            "loop": {"process_every_frame": True, "output_rate_hz": 60.0},
+            "pipeline": [{"kind": "twist"}],
+        }
+    )
+    sub = PoseSub(zmq_socket(zmq.SUB), live.tcp("zmq poses"))
+    push = zmq_socket(zmq.PUSH)
+    push.connect(live.tcp("zmq markers"))
+    push.send_multipart(zmq_wire.encode_zmq_labels(LabelSet(9, take.labels)))
+    deadline, k = time.monotonic() + 5.0, 0
+    while not sub.poses:
+        assert time.monotonic() < deadline, "the pose stream never reached the SUB"
+        push.send_multipart(
+            zmq_wire.encode_zmq_frame(k, k / RATE_HZ, 9, take.markers_world[0])
+        )
+        k += 1
+        sub.pump(20)
+    sub.pump(100)
+    priming = {p.names_id for p in sub.poses}
+    sub.clear()
+    n_primed = k
+    _wait_until(
+        lambda: live.daemon.zmq_stream.counters.as_dict().get("accepted") == n_primed,
+        "every priming frame taken",
+    )
+    time.sleep(0.05)  # and solved
+    before = live.daemon.stats.counters()
+    src = osc_source(live)
+    src.announce()
+    for row in range(60, 60 + FRAMES):
+        src.send(take.markers_world[row])
+        sub.pump()
+        time.sleep(0.004)
+    n_ticks = int(np.floor((FRAMES - 1) / RATE_HZ * 60.0 + 1e-9)) + 1
+    sub.wait(
+        lambda: sum(p.names_id not in priming for p in sub.poses) == n_ticks,
+        f"{n_ticks} poses",
+    )
+    live.stop()
+    after = live.daemon.stats.counters()
+    poses = [p for p in sub.poses if p.names_id not in priming]
+    times = np.array([p.source_time_s for p in poses])
+    np.testing.assert_allclose(times, np.arange(n_ticks) / 60.0, atol=1e-12)
+    # Each tick goes out with the input frame that completed it (at most one input
+    # period behind the input).
+    ids = np.array([p.frame_id for p in poses])
+    assert (ids / RATE_HZ >= times - 1e-9).all() and (
+        ids / RATE_HZ < times + 0.01
+    ).all()
+    skipped = after["resample_skipped"] - before["resample_skipped"]
+    assert skipped == FRAMES - n_ticks, (skipped, FRAMES, n_ticks)
+
+    cal = load_calibration(exact_calibration)
+    rig = load_rig(EXACT_RIG)
+    raw = BodySolver(rig, cal, take.labels).solve_take(
+        np.stack([m for _, m in src.sent])
+    )
+    assert [e["kind"] for e in live.daemon.config.pipeline] == ["twist"]
+    done, _ = _offline(raw, cal, tmp_toml='[[pipeline]]\nkind = "twist"\n')
+    t_in = np.arange(FRAMES) / RATE_HZ
+    out_t, q, p = resample(t_in, done.parent_from_bone_quat, done.root_pos, 60.0)
+    assert len(out_t) == n_ticks
+    live_q = np.stack([m.parent_from_bone_quat for m in poses])
+    worst = float(_angles(live_q, q).max())
+    live_root = np.stack([m.root_pos_world for m in poses])
+    print(
+        f"\nlive 100 -> 60 Hz: {n_ticks} ticks from {FRAMES} frames ({skipped} not "
+        f"sent); worst angle to offline resample {worst:.1e} rad"
+    )
+    assert worst < TOL_RAD, worst
+    np.testing.assert_allclose(live_root, p, rtol=0, atol=2e-7)
+    wfb = np.stack([m.world_from_bone_quat for m in poses])
+    fk = world_from_parent_chain(rig.bone_parent_indices(), q)
+    assert float(_angles(wfb, fk).max()) < TOL_RAD
+
+
+def _offline(raw: Any, cal: Any, *, tmp_toml: str) -> tuple[Any, tuple[str, ...]]:
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as d:
+        path = Path(d) / "p.toml"
+        path.write_text(tmp_toml)
+        return apply_pipeline_to_solve(path, raw, cal, RATE_HZ)
