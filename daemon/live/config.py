@@ -22,6 +22,10 @@ file...), applied as the key is read; ``_check`` adds the rules across keys: off
 loopback needs ``allow_remote`` (and CURVE for control, a token for show control), a
 broadcast VMC target needs ``allow_broadcast``. A test walks these dataclasses and
 gives every key a wrong type, an out-of-range value and a misspelling.
+
+``[[pipeline]]`` (``DaemonConfig.pipeline``) is the one array of tables: each entry's
+kind and keys are checked as it is read (a misspelt key is named with the kind's
+keys), and the stages are built once for the rig in ``_check`` (values, arm chains).
 """
 
 from __future__ import annotations
