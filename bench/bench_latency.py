@@ -56,7 +56,11 @@ of the construction, README "Two ways to solve the body") and any of them joined
 ``[console]`` on: the browser console served on a free port, its thread drawing every
 published snapshot, no browser) and ``console+browser`` (the same with a headless
 Chromium, Debian's ``chromium`` driven by selenium, showing the page for the whole
-case; skipped when Chromium or its driver is absent).
+case; skipped when Chromium or its driver is absent);
+``pipeline`` (the body with ``[[pipeline]]`` post stages twist + One Euro between the
+solve and the target mapping: the daemon's own per-stage figures, ``post.twist`` and
+``post.one_euro`` from ``ctl status``, are printed after the tables; ``+pipeline``
+adds them to any variant).
 
 Capture-system transports (``--transports natnet,qtm``, README "Capture systems"):
 the sender process is the capture system, the emulators of ``tests/protocols`` (their
@@ -490,6 +494,7 @@ def _config_toml(
     validate = "validate" in variant
     method = "fit" if "fit" in variant.split("+") else "construction"
     console = variant.startswith("console")
+    stages = PIPELINE_TOML if "pipeline" in variant else ""
     return f"""\
 [solve]
 method = "{method}"
@@ -525,6 +530,18 @@ enabled = {str(validate).lower()}
 [console]
 enabled = {str(console).lower()}
 port = 0
+{stages}"""
+
+
+#: The ``pipeline`` variant's post stages (README "Post stages").
+PIPELINE_TOML = """
+[[pipeline]]
+kind = "twist"
+[[pipeline]]
+kind = "one_euro"
+min_cutoff_hz = 1.0
+beta_rot = 2.0
+beta_pos = 20.0
 """
 
 
@@ -820,6 +837,8 @@ class Summary:
     vmc_unmatched: int = 0
     vmc: tuple[float, float] = (float("nan"), float("nan"))
     stages: dict[str, tuple[float, float]] = field(default_factory=dict)
+    # The daemon's own latency_us (ctl status) at the end: its post.<kind> stages.
+    daemon_latency: dict[str, Any] = field(default_factory=dict)
     counters: dict[str, int] = field(default_factory=dict)
     input_drops: dict[str, int] = field(default_factory=dict)
 
@@ -862,6 +881,7 @@ def summarize(r: Result) -> Summary:
     s.vmc_unmatched = int(np.count_nonzero(~ok))
     d = lat(frame[idx[ok]], r.recv["t_ns"][ok])
     s.vmc_recv, s.vmc = len(d), _pct(d)
+    s.daemon_latency = dict(r.counters1.get("latency_us", {}))
     c0, c1 = r.counters0.get("counters", {}), r.counters1.get("counters", {})
     s.counters = {key: c1.get(key, 0) - c0.get(key, 0) for key in c1}
     for src in ("osc", "zmq"):
@@ -875,6 +895,10 @@ def summarize(r: Result) -> Summary:
         if reason != "accepted" and v - cap0.get(reason, 0):
             s.input_drops[f"{cap1['system']}.{reason}"] = v - cap0.get(reason, 0)
     return s
+
+
+def _num(x: Any) -> float:
+    return float("nan") if x is None else float(x)
 
 
 def _f(x: float) -> str:
@@ -953,6 +977,19 @@ def print_report(summaries: list[Summary], args: argparse.Namespace) -> None:
             for k in ("in", "solve", "send", "out")
         )
         print(f"{s.name:<24} {cols}")
+    post = [(s, k, v) for s in cases for k, v in s.daemon_latency.items()
+            if k.startswith("post.")]  # fmt: skip
+    if post:
+        print(
+            "\n[[pipeline]] stages, µs p50 / p99, the daemon's own timing (ctl status "
+            "latency_us, last 4096 frames; each a part of its solve stage)"
+        )
+        for s, k, v in post:
+            solve = s.daemon_latency.get("solve", [None, None])
+            print(
+                f"{s.name:<24} {k:<16} {_f(_num(v[0])):>5} / {_f(_num(v[1])):<5} "
+                f"(solve {_f(_num(solve[0]))} / {_f(_num(solve[1]))})"
+            )
     print()
     for s in cases:
         b = raw.get(s.rate_hz)
@@ -987,10 +1024,11 @@ def _calibrate(tmp: Path) -> Path:
 
 
 def _valid_variant(variant: str) -> bool:
-    """``body``, ``console``, ``console+browser``, or ``fit``, ``face``, ``validate``
-    joined by ``+``."""
+    """``body``, ``pipeline``, ``console``, ``console+browser``, or ``fit``, ``face``,
+    ``validate`` joined by ``+``; any of them ``+pipeline``."""
+    variant = variant.removesuffix("+pipeline")
     parts = variant.split("+")
-    return variant in ("body", "console", "console+browser") or (
+    return variant in ("body", "pipeline", "console", "console+browser") or (
         len(set(parts)) == len(parts)
         and all(p in ("fit", "face", "validate") for p in parts)
     )
@@ -1009,8 +1047,8 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument(
         "--variants", default="body,face",
-        help="body, fit, face, validate, or joined by +; console, console+browser "
-        "(comma-separated)",
+        help="body, fit, face, validate, or joined by +; console, console+browser; "
+        "pipeline (+pipeline adds the post stages to any) (comma-separated)",
     )  # fmt: skip
     args = parser.parse_args(argv)
     variants = [v for v in args.variants.split(",") if v]

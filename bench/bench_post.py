@@ -18,9 +18,11 @@ warm-up), the jitter the RMS error left at that lag. The unfiltered noisy take i
 the baseline row.
 
 Cost: ``time.perf_counter_ns`` around each ``apply`` after a warm-up, one frame at a
-time as the loop calls them; median and p99 in microseconds, and the ratio of
-medians to ``PoseBuffer.copy_from`` (the least any stage does: copy one pose),
-measured in the same run. Speed is printed, never asserted (STYLE.md section 10).
+time as the loop calls them (``live: SolvePost.apply`` is the live loop's stage:
+the pipeline on a body-solve pose in place, with its copies and forward kinematics;
+then each stage as the daemon itself times it); median and p99 in microseconds, and
+the ratio of medians to ``PoseBuffer.copy_from`` (the least any stage does: copy one
+pose), measured in the same run. Speed is printed, never asserted (STYLE.md section 10).
 """
 
 from __future__ import annotations
@@ -31,6 +33,7 @@ import os
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -46,6 +49,7 @@ from retargetd.daemon.post.pipeline import build_pipeline
 from retargetd.daemon.post.pivot import ShiftingPivot
 from retargetd.daemon.post.pose import PoseBuffer
 from retargetd.daemon.post.reduce import reduce_clip
+from retargetd.daemon.post.solve_post import SolvePost
 from retargetd.daemon.post.twist import TwistDistribution, arm_chains
 from retargetd.replay.takes import load_take
 
@@ -57,19 +61,21 @@ WALK = DATASETS / "btkdata/PiG_Motion-FlatFoot-Full.c3d"
 SETTINGS = ((1.0, 0.0, 0.0), (1.0, 0.5, 5.0), (1.0, 2.0, 20.0), (3.0, 1.0, 10.0))
 
 
-def _solve() -> tuple[Clip, list[int], tuple[str, ...], Calibration]:
+def _solve() -> tuple[Clip, list[int], tuple[str, ...], Calibration, Any]:
     rig = load_rig("plug-in-gait")
     static = load_take(STATIC)
     cal = calibrate(
         rig, static.positions, static.labels, take_measurements=static.measurements
     )
     take = load_take(WALK)
-    res = BodySolver(rig, cal, take.labels).solve_take(take.positions)
+    solver = BodySolver(rig, cal, take.labels)
+    res = solver.solve_take(take.positions)
     return (
         clip_from_solve(res, cal, take.rate_hz),
         list(cal.bone_parents),
         cal.bone_names,
         cal,
+        (solver, res),
     )
 
 
@@ -135,7 +141,7 @@ def main() -> None:
     ap.add_argument("--noise-mm", type=float, default=2.0)
     args = ap.parse_args()
     print(f"load average {os.getloadavg()[0]:.2f} {os.getloadavg()[1]:.2f}")
-    clip, parents, names, cal = _solve()
+    clip, parents, names, cal, (solver, res) = _solve()
     q, p = clip.parent_from_bone_quat, clip.root_pos
     n, b = q.shape[:2]
     rng = np.random.default_rng(0)
@@ -191,6 +197,34 @@ def main() -> None:
         rest_parent_from_bone_quat=cal.rest_parent_from_bone_quat,
     )
 
+    # The live loop's stage (daemon/live/send.py): the same pipeline on the body
+    # solve's pose in place, with the copies in and out and the forward kinematics.
+    body = solver.new_pose()
+    live_post = SolvePost(
+        build_pipeline(
+            [
+                {"kind": "twist"},
+                {"kind": "one_euro", "beta_rot": 2.0, "beta_pos": 20.0},
+            ],
+            bone_names=names,
+            bone_parents=parents,
+            rest_parent_from_bone_quat=cal.rest_parent_from_bone_quat,
+        ),
+        parents,
+        cal.rest_parent_from_bone_quat,
+    )
+    body_q = np.ascontiguousarray(res.parent_from_bone_quat)
+    body_p = np.ascontiguousarray(res.root_pos)
+
+    def load_body(i: int) -> Any:
+        body.parent_from_bone_quat[:] = body_q[i % n]
+        body.root_pos[:] = body_p[i % n]
+        return body
+
+    def live_step(i: int) -> None:
+        # A take's wrap-around is a clock step back: keep the clock going instead.
+        live_post.apply(load_body(i), i / clip.rate_hz)
+
     def resample_step(i: int) -> None:
         res60.push(load(i))
         while res60.pending():
@@ -210,6 +244,7 @@ def main() -> None:
         ("RateResampler push+pop (100->60 Hz)", resample_step),
         ("OneEuroFilter.apply (19 bones)", lambda i: euro.apply(load(i), out)),
         ("Pipeline.apply (twist, one_euro)", lambda i: pipe.apply(load(i), out)),
+        ("live: SolvePost.apply (twist, one_euro)", live_step),
     ]
     load_only = np.median(_time(load, args.calls))
     print(
@@ -235,6 +270,19 @@ def main() -> None:
     print(
         f"\noffline: reduce_clip (0.5 deg, 1 mm) {1e3 * (t1 - t0):.1f} ms, keeps "
         f"{kept} of {n * b} rotation keys; resample to 60 Hz {1e3 * (t2 - t1):.1f} ms"
+    )
+    stage_us = {k: [] for k in live_post.stage_names}
+    for i in range(args.calls):
+        live_step(i)
+        for k, v in zip(live_post.stage_names, live_post.stage_ns, strict=True):
+            stage_us[k].append(v / 1000.0)
+    print(
+        "live stages as the daemon times them (Pipeline.stage_ns, perf_counter_ns "
+        "around each stage; status latency_us post.<kind>): "
+        + ", ".join(
+            f"{k} {np.median(v):.2f} / {np.percentile(v, 99):.2f} us"
+            for k, v in stage_us.items()
+        )
     )
     print(f"load average {os.getloadavg()[0]:.2f} {os.getloadavg()[1]:.2f}")
 

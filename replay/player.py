@@ -183,9 +183,20 @@ class TakeSource:
         transport: ``"osc"`` or ``"zmq"``.
         form: ``"compact"`` or ``"simple"`` (OSC only; ZeroMQ has one form).
         rows: the window of rows to send (0-based, half-open).
+        pass_motion: ``(mat (3, 3), pos (3,))``, a rigid motion ``A(x) = mat x +
+            pos`` (metres, world): pass ``k`` is sent moved by ``A^{-k}`` (a looped
+            take that walks on, ``replay --loop --blend-frames``); None = every pass
+            as recorded.
     """
 
-    def __init__(self, take: Take, transport: str, form: str, rows: slice) -> None:
+    def __init__(
+        self,
+        take: Take,
+        transport: str,
+        form: str,
+        rows: slice,
+        pass_motion: tuple[np.ndarray, np.ndarray] | None = None,
+    ) -> None:
         if form not in ("compact", "simple"):
             raise ValueError(f"form must be compact or simple; got {form!r}")
         self.take = take
@@ -195,6 +206,7 @@ class TakeSource:
         self.period_s = 1.0 / take.rate_hz
         self.duration_s = len(self.rows) * self.period_s
         self._positions = np.asarray(take.positions, dtype=np.float32)
+        self._motion = pass_motion
         labels = LabelSet(LABEL_SET_ID, tuple(take.labels))
         self.labels: tuple[bytes, ...] | None = None
         if transport == "zmq":
@@ -207,9 +219,16 @@ class TakeSource:
         offset = k * len(self.rows)
         rate = self.take.rate_hz
         labels = self.take.labels
+        positions = self._positions
+        if self._motion is not None and k:
+            mat, shift = _inverse_power(*self._motion, k)
+            window = np.asarray(positions[self.rows.start : self.rows.stop], np.float64)
+            moved = np.empty_like(positions)
+            moved[self.rows.start : self.rows.stop] = window @ mat.T + shift
+            positions = moved
         for i, row in enumerate(self.rows):
             frame = row + offset
-            pos = self._positions[row]
+            pos = positions[row]
             if self.transport == "zmq":
                 parts = tuple(zmq_wire.encode_zmq_frame(frame, frame / rate, 1, pos))
             elif self.form == "compact":
@@ -217,6 +236,18 @@ class TakeSource:
             else:
                 parts = (osc_in.encode_simple_bundle(labels, pos, frame),)
             yield i * self.period_s, parts, rf.KIND_FRAME
+
+
+def _inverse_power(
+    mat: np.ndarray, pos: np.ndarray, k: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """``A^{-k}`` of ``A(x) = mat x + pos`` as ``(mat', pos')``."""
+    inv_mat = np.asarray(mat, np.float64).T
+    inv_pos = -inv_mat @ np.asarray(pos, np.float64)
+    out_mat, out_pos = np.eye(3), np.zeros(3)
+    for _ in range(k):  # x -> A^{-1}(A^{-(j)} x)
+        out_mat, out_pos = inv_mat @ out_mat, inv_mat @ out_pos + inv_pos
+    return out_mat, out_pos
 
 
 class RecordingSource:

@@ -83,15 +83,17 @@ def load_config(args: argparse.Namespace) -> Any:
     )
 
 
-def make_daemon(config: Any) -> Any:
-    """Build a Daemon, turning rig/calibration problems into UsageError."""
+def make_daemon(config: Any, config_path: str | None = None) -> Any:
+    """Build a Daemon, turning rig/calibration/pipeline problems into UsageError
+    (``config_path``: the file ``reload`` re-reads the ``[[pipeline]]`` of)."""
     from retargetd.daemon.body.calibration import CalibrationError
     from retargetd.daemon.body.rig import RigError
+    from retargetd.daemon.live.config import ConfigError
     from retargetd.daemon.live.loop import Daemon
 
     try:
-        return Daemon(config)
-    except (RigError, CalibrationError) as exc:
+        return Daemon(config, config_path=config_path)
+    except (RigError, CalibrationError, ConfigError) as exc:
         raise UsageError(str(exc)) from None
 
 

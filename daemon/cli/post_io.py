@@ -121,6 +121,53 @@ def apply_pipeline_to_solve(
     return new, pipe.kinds
 
 
+def fill_held_gaps(solve: Any, calibration: Any, max_frames: int) -> tuple[Any, int]:
+    """Fill each bone's short runs of held frames by slerp (DESIGN "Slerp at work").
+
+    A bone the solve held (``FLAG_HELD``: too little data) keeps its last good
+    rotation and jumps when data returns; a run of at most ``max_frames`` held frames
+    with a solved frame on each side is replaced by the slerp of the true
+    parent-relative rotation between those two frames
+    (:func:`~retargetd.daemon.post.interp.fill_gaps`), the root's position by a line
+    when the root bone was held. ``world_from_bone_quat`` (forward kinematics,
+    sign-continuous) and ``rest_from_bone_quat`` are recomputed; flags and joint
+    centres are kept. Longer runs, and runs at either end of the take, stay held.
+
+    Returns:
+        ``(solve, filled)``: the new solve and the bone-frames filled.
+
+    Raises:
+        UsageError: ``max_frames`` < 1.
+    """
+    from retargetd.daemon import rotations as rot
+    from retargetd.daemon.body.solve import FLAG_HELD
+    from retargetd.daemon.post.interp import fill_gaps, fill_gaps_linear
+    from retargetd.daemon.target.bvh import world_from_parent_chain
+
+    if max_frames < 1:
+        raise UsageError(f"--fill-gaps: expected >= 1 frames; got {max_frames}")
+    valid = (np.asarray(solve.bone_flags) & FLAG_HELD) == 0
+    q, filled = fill_gaps(
+        np.asarray(solve.parent_from_bone_quat, np.float64), valid, max_frames
+    )
+    root = int(list(solve.bone_parents).index(-1))
+    pos, _ = fill_gaps_linear(
+        np.asarray(solve.root_pos, np.float64), valid[:, root], max_frames
+    )
+    wfb = sign_continuous(world_from_parent_chain(solve.bone_parents, q))
+    rest = np.asarray(calibration.rest_parent_from_bone_quat, dtype=np.float64)
+    rfb = rot.quat_mul(rot.quat_conj(rest), q)
+    rfb *= np.where(rfb[..., :1] < 0.0, -1.0, 1.0)
+    new = dataclasses.replace(
+        solve,
+        parent_from_bone_quat=q,
+        world_from_bone_quat=wfb,
+        rest_from_bone_quat=rfb,
+        root_pos=pos,
+    )
+    return new, int(np.count_nonzero(filled))
+
+
 def sign_continuous(q: Any) -> Any:
     """(T, B, 4) quaternions with each frame's sign in the hemisphere of the last."""
     out = np.array(q, dtype=np.float64)

@@ -7,6 +7,13 @@ as fast as possible. ``--loop`` starts over at the end (frame numbers keep
 increasing) until Ctrl-C or ``--seconds``. ``--frames a:b`` picks rows (0-based,
 half-open; for a recording, its marker frames).
 
+``--loop --blend-frames N`` makes the loop seamless: the window's last N frames are
+cross-faded into its first N (the loop N frames shorter), per marker, after the tail
+is carried onto the head by one rigid motion of the floor (a turn about +Z and a
+shift); each pass is sent moved on by that motion, so a walk walks on instead of
+jumping back (``retargetd.daemon.post.marker_loop``). Pick a window that holds whole
+cycles plus N frames (``--frames a:b``). A recording is decoded to a take for it.
+
 C3D and TRC takes are sent in world metres (the daemon input's default ``units = "m"``,
 ``up = "+Z"``), frame number = row, source timestamp = row / rate, labels announced
 first and every second. An MCAP recording is re-sent as recorded: the same bytes, at
@@ -47,6 +54,11 @@ def add_parser(subparsers: Any) -> None:
     parser.add_argument("--loop", action="store_true", help="start over at the end")
     parser.add_argument("--frames", metavar="a:b", help="rows to send (0-based)")
     parser.add_argument(
+        "--blend-frames", type=int, metavar="N",
+        help="with --loop: cross-fade the window's last N frames into its first N "
+        "(seamless loop; the loop is N frames shorter)",
+    )  # fmt: skip
+    parser.add_argument(
         "--form", choices=("compact", "simple"),
         help="OSC form (default compact; for a recording: as recorded)",
     )  # fmt: skip
@@ -79,10 +91,15 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"--seconds must be > 0; got {args.seconds:g}")
     if ep.scheme == "zmq" and args.form == "simple":
         raise UsageError("--form simple is an OSC form; ZeroMQ has one form")
+    blend = args.blend_frames
+    if blend is not None and not args.loop:
+        raise UsageError("--blend-frames needs --loop (it blends the loop's seam)")
+    if blend is not None and blend < 1:
+        raise UsageError(f"--blend-frames must be >= 1; got {blend}")
 
     source: TakeSource | RecordingSource | None = None
     overrides = args.subject or args.take_units or args.take_up or args.take_rate
-    if args.take.lower().endswith(".mcap") and not overrides:
+    if args.take.lower().endswith(".mcap") and not overrides and blend is None:
         rec = rf.read_recording(args.take)
         name = rf.main_input(rec)
         packets = [p for p in rec.packets() if p.input == name]
@@ -96,11 +113,16 @@ def run(args: argparse.Namespace) -> int:
     if source is None:
         take = load_take(args.take, **take_overrides(args))
         rows = parse_frames(args.frames, take.n_frames, option="--frames")
-        source = TakeSource(take, ep.scheme, args.form or "compact", rows)
+        motion = None
+        blended = ""
+        if blend is not None:
+            take, motion, blended = _blended_loop(take, rows, blend)
+            rows = slice(None)
+        source = TakeSource(take, ep.scheme, args.form or "compact", rows, motion)
         form_text = f"osc {source.form}" if ep.scheme == "osc" else "zmq"
         what = (
             f"{len(source.rows)} frames of {take.n_markers} markers at "
-            f"{take.rate_hz:g} Hz ({form_text})"
+            f"{take.rate_hz:g} Hz ({form_text}){blended}"
         )
     print(
         f"replaying {args.take}: {what}, {source.duration_s:.2f} s, to {ep} at speed "
@@ -135,3 +157,34 @@ def run(args: argparse.Namespace) -> int:
     )
     sys.stdout.flush()
     return 0
+
+
+def _blended_loop(take: Any, rows: slice, n: int) -> tuple[Any, Any, str]:
+    """The take cut to ``rows`` and made a seamless loop over ``n`` frames.
+
+    Returns:
+        ``(take, (mat, pos), what)``: the loop take (``valid`` recomputed), the
+        per-pass floor motion, and a phrase for the first line.
+    """
+    import dataclasses
+
+    import numpy as np
+
+    from retargetd.daemon.post.marker_loop import loop_markers
+
+    window = np.asarray(take.positions[rows], dtype=np.float64)
+    try:
+        positions, mat, pos = loop_markers(window, n)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+    looped = dataclasses.replace(
+        take, positions=positions, valid=np.isfinite(positions).all(axis=-1)
+    )
+    # Each pass is moved by A^-1 (x -> mat^T (x - pos)) from the one before.
+    yaw = -math.degrees(math.atan2(mat[1, 0], mat[0, 0]))
+    shift = -mat.T @ pos
+    what = (
+        f"; looped: last {n} frames blended into the first {n}, each pass moved on "
+        f"by {yaw:.1f} deg about +Z then ({shift[0]:.3f}, {shift[1]:.3f}) m"
+    )
+    return looped, (mat, pos), what

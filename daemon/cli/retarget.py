@@ -1,5 +1,6 @@
 """``retargetd retarget IN.bvh --target TARGET.bvh --out OUT.bvh|OUT.glb
-[--map FILE.toml] [--root-scale X] [--spread] [--units cm]``: map a BVH take onto
+[--map FILE.toml] [--root-scale X] [--spread [equal|pivot]] [--pivot-limit-deg 15]
+[--units cm]``: map a BVH take onto
 another skeleton (rotational data in, the chapter's first section).
 
 Joints are matched by ``--map`` first (a ``[joints]`` table, ``"source joint" =
@@ -12,8 +13,11 @@ is read from the source's channels and written in the target's. The root's posit
 is scaled by the ratio of the rest root heights (``--root-scale`` overrides). Both
 files are taken to share axes (+Y up, as BVH usually is). Target joints that map to
 nothing keep their rest; with ``--spread`` those on a plain chain between two mapped
-joints (a target with more spine bones) share the rotation between them equally. See
-``retargetd.daemon.target.bvh_retarget``.
+joints (a target with more spine bones) share the rotation between them equally, or
+with ``--spread pivot`` by the chapter's shifting pivot (rx and rz doubled, at most
+``--pivot-limit-deg`` a joint, the rest carried up the chain, ry shared equally; the
+chain's lower mapped end takes the last share). See
+``retargetd.daemon.target.bvh_retarget`` and ``retargetd.daemon.post.pivot``.
 
 ``.glb``: the target's joints as glTF nodes (``--units``: the BVH length unit,
 default cm, for glTF's metres), every frame as a LINEAR key.
@@ -22,6 +26,7 @@ default cm, for glTF's metres), every frame as a LINEAR key.
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import tomllib
 from typing import Any
@@ -56,9 +61,20 @@ def add_parser(subparsers: Any) -> None:
     )
     parser.add_argument(
         "--spread",
-        action="store_true",
+        nargs="?",
+        const="equal",
+        choices=("equal", "pivot"),
         help="unmapped joints on a chain between two mapped ones (extra spine "
-        "bones) share the rotation between them equally (default: they keep rest)",
+        "bones) share the rotation between them: equally (--spread, --spread "
+        "equal) or by the shifting pivot (--spread pivot); default: they keep rest",
+    )
+    parser.add_argument(
+        "--pivot-limit-deg",
+        type=float,
+        default=15.0,
+        metavar="DEG",
+        help="--spread pivot: the most rotation a joint takes about x and z "
+        "(default 15, the chapter's)",
     )
     parser.add_argument(
         "--units",
@@ -99,6 +115,16 @@ def run(args: argparse.Namespace) -> int:
     name_map = _load_map(args.map) if args.map is not None else None
     if args.root_scale is not None and not args.root_scale > 0.0:
         raise UsageError(f"--root-scale: expected > 0; got {args.root_scale}")
+    limit = args.pivot_limit_deg
+    if not (math.isfinite(limit) and 0.0 < limit <= 180.0):
+        raise UsageError(f"--pivot-limit-deg: expected (0, 180]; got {limit}")
+    distribute = None
+    if args.spread == "pivot":
+        from retargetd.daemon.post.pivot import pivot_chains
+
+        def distribute(glob: Any, chains: Any) -> None:
+            pivot_chains(glob, chains, limit)
+
     try:
         source = read_bvh_hierarchy(args.source, read_motion=True)
         target = read_bvh_hierarchy(args.target)
@@ -107,7 +133,8 @@ def run(args: argparse.Namespace) -> int:
             target,
             name_map=name_map,
             root_scale=args.root_scale,
-            spread=args.spread,
+            spread=args.spread is not None,
+            distribute=distribute,
         )
     except ValueError as exc:
         raise UsageError(str(exc)) from None
@@ -134,6 +161,11 @@ def run(args: argparse.Namespace) -> int:
     if args.spread:
         chains = spread_chains(target.parents, list(result.mapping))
         spread = [target.joint_names[u] for u in sorted(chains)]
-        w("of those, sharing a chain's rotation: " + (" ".join(spread) or "none"))
+        how = (
+            f" (shifting pivot, {limit:g} deg a joint)"
+            if args.spread == "pivot"
+            else ""
+        )
+        w(f"of those, sharing a chain's rotation{how}: " + (" ".join(spread) or "none"))
         w("\n")
     return 0

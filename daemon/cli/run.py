@@ -74,7 +74,7 @@ def run(args: argparse.Namespace) -> int:
         config = dataclasses.replace(
             config, input=dataclasses.replace(config.input, source=args.listen)
         )
-    daemon = make_daemon(config)
+    daemon = make_daemon(config, args.config)
     stop = threading.Event()
     install_signal_handlers(stop)
     open_or_fail(daemon)

@@ -1,11 +1,15 @@
 """``retargetd solve TAKE --rig RIG (--calibration FILE | --calibrate-frames a:b)
---out OUT.npz|OUT.bvh|OUT.csv|OUT.glb|OUT.mcap [--pipeline FILE.toml] [--bvh-order ZXY]
-[--bvh-root-order ORDER] [--euler-order ORDER] [--degrees] [--json] [--quiet]``: solve
-every frame of a take. The ``--out`` suffix chooses the format.
+--out OUT.npz|OUT.bvh|OUT.csv|OUT.glb|OUT.mcap [--fill-gaps N] [--pipeline FILE.toml]
+[--bvh-order ZXY] [--bvh-root-order ORDER] [--euler-order ORDER] [--degrees] [--json]
+[--quiet]``: solve every frame of a take. The ``--out`` suffix chooses the format.
 
 ``--json`` prints the summary as one JSON object (keys in README "Machine-readable
 output"); ``--quiet`` prints nothing on success. On a terminal a progress bar runs on
 stderr (never into a pipe or a file, none with ``--quiet``).
+
+``--fill-gaps N``: a bone held (too little data) for at most N frames, with solved
+frames on both sides, is slerped across the gap instead of holding and then jumping
+(``retargetd.daemon.post.interp.fill_gaps``); done before the pipeline.
 
 ``--pipeline FILE.toml``: the file's ``[[pipeline]]`` post stages (``twist``,
 ``one_euro``; README "Post stages") run over every solved frame, in the order listed,
@@ -82,6 +86,13 @@ def add_parser(subparsers: Any) -> None:
     )
     add_output_arguments(parser, json=True)
     add_pipeline_argument(parser)
+    parser.add_argument(
+        "--fill-gaps",
+        type=int,
+        metavar="N",
+        help="slerp each bone across runs of at most N held frames (solved frames "
+        "on both sides) instead of holding it",
+    )
     add_force_argument(parser)
     parser.add_argument(
         "--bvh-order",
@@ -170,12 +181,19 @@ def run(args: argparse.Namespace) -> int:
     )
 
     out_format = _out_format(args)
+    if args.fill_gaps is not None and args.fill_gaps < 1:
+        raise UsageError(f"--fill-gaps: expected >= 1 frames; got {args.fill_gaps}")
     refuse_existing(args.out, force=args.force)
     rig, take, cal, solver = solver_for_take(args)
     started = time.perf_counter()
     res = solve_take_progress(solver, take.positions, quiet=args.quiet)
     solve_s = time.perf_counter() - started
     kinds: tuple[str, ...] = ()
+    n_filled = None
+    if args.fill_gaps is not None:
+        from retargetd.daemon.cli.post_io import fill_held_gaps
+
+        res, n_filled = fill_held_gaps(res, cal, args.fill_gaps)
     if args.pipeline is not None:
         from retargetd.daemon.cli.post_io import apply_pipeline_to_solve
 
@@ -263,6 +281,8 @@ def run(args: argparse.Namespace) -> int:
     if solver.missing_markers:
         out(f"; not in the take: {' '.join(solver.missing_markers)}")
     out("\n")
+    if n_filled is not None:
+        out(f"gaps filled (<= {args.fill_gaps} held frames): {n_filled} bone-frames\n")
     if kinds:
         out(f"pipeline {args.pipeline}: {' -> '.join(kinds)}\n")
     held = (res.bone_flags & FLAG_HELD) != 0

@@ -13,6 +13,7 @@ requests and reloads are rate limited (``control.min_interval_s``).
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import time
@@ -22,7 +23,11 @@ import numpy as np
 from retargetd.daemon.body.calibration import calibrate, load_calibration
 from retargetd.daemon.body.rig import load_rig
 from retargetd.daemon.body.solve import BodySolver
-from retargetd.daemon.live.config import CALIBRATE_MAX_FRAMES
+from retargetd.daemon.live.config import (
+    CALIBRATE_MAX_FRAMES,
+    DaemonConfig,
+    check_pipeline,
+)
 from retargetd.daemon.live.state import DaemonState
 from retargetd.protocols.marker_input import MarkerStream
 
@@ -203,8 +208,10 @@ class CalibrationMixin(DaemonState):
         self.out(msg)
 
     def reload(self) -> str:
-        """Reload the rig file and the calibration file from disk (at most once per
-        ``control.min_interval_s``: it blocks the loop while it parses and rebuilds).
+        """Reload the rig file, the calibration file and the config file's
+        ``[[pipeline]]`` stages from disk (at most once per ``control.min_interval_s``:
+        it blocks the loop while it parses and rebuilds). The other config keys need a
+        restart; a file that no longer validates keeps everything as it was.
 
         Raises:
             ValueError: rate limited (counted).
@@ -223,15 +230,24 @@ class CalibrationMixin(DaemonState):
             )
             if cal is not None:
                 BodySolver(rig, cal, ())  # checks the calibration fits the rig
+            stages = self.config.pipeline
+            if self.config_path:  # the file's [[pipeline]] as it is now
+                stages = DaemonConfig.from_toml(self.config_path).pipeline
+            check_pipeline(stages, rig, str(self.config_path or "config"))
         except ValueError as exc:
             msg = f"reload failed, kept the running rig and calibration: {exc}"
             self.recording.event("reload", ok=False, message=msg)
             return msg
         self.rig, self.calibration = rig, cal
+        self.config = dataclasses.replace(self.config, pipeline=stages)
         self._pipelines.clear()
         self._labels_of.clear()
+        self.stats.set_post_stages(())  # named again as the pipelines are rebuilt
         self._start_validator()
         msg = f"reloaded rig {rig.name}" + (" and calibration" if cal else "")
+        if stages:
+            msg += f", pipeline {' -> '.join(str(e['kind']) for e in stages)}"
+
         self.recording.event("reload", ok=True, message=msg)
         return msg
 

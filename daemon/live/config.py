@@ -22,6 +22,10 @@ file...), applied as the key is read; ``_check`` adds the rules across keys: off
 loopback needs ``allow_remote`` (and CURVE for control, a token for show control), a
 broadcast VMC target needs ``allow_broadcast``. A test walks these dataclasses and
 gives every key a wrong type, an out-of-range value and a misspelling.
+
+``[[pipeline]]`` (``DaemonConfig.pipeline``) is the one array of tables: each entry's
+kind and keys are checked as it is read (a misspelt key is named with the kind's
+keys), and the stages are built once for the rig in ``_check`` (values, arm chains).
 """
 
 from __future__ import annotations
@@ -45,6 +49,7 @@ from retargetd.daemon.live.surface import (
     load_secret_key,
     parse_endpoint,
 )
+from retargetd.daemon.post.pipeline import KINDS, build_pipeline
 from retargetd.protocols.conventions import normalize_units, normalize_up_axis
 from retargetd.protocols.marker_input import MAX_MARKERS, MAX_MESSAGE_BYTES, MAX_RATE_HZ
 from retargetd.protocols.natnet_client import parse_natnet_url
@@ -237,6 +242,11 @@ class LoopConfig:
     # A repeated log line (per reason) is printed once, then summarized with its
     # count at most once per this interval (a flood cannot grow the log).
     log_interval_s: float = _between(10.0, 0.1, 3600.0)
+    # Resample the output to the engine's rate (slerp between the two latest
+    # processed poses, on the source's clock; README "Post stages"); 0 = send every
+    # solved frame. At most one send per input frame: above the input's rate the
+    # output stays at the input's.
+    output_rate_hz: float = _between(0.0, 0.0, 10_000.0)
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -325,6 +335,9 @@ class DaemonConfig:
     record: RecordConfig = field(default_factory=RecordConfig)
     console: ConsoleConfig = field(default_factory=ConsoleConfig)
     solve: SolveConfig = field(default_factory=SolveConfig)
+    # [[pipeline]] post stages between the body solve and the target mapping, in the
+    # order listed (README "Post stages"): tables with ``kind`` and its keys.
+    pipeline: tuple[dict[str, Any], ...] = _spec((), "pipeline")
 
     @classmethod
     def from_toml(cls, path: str | Path) -> DaemonConfig:
@@ -371,7 +384,9 @@ def _build(kind: Any, doc: Any, prefix: str, source: str) -> Any:
                 f"{', '.join(known)})"
             )
         default = getattr(kind(), key)
-        if hasattr(default, "__dataclass_fields__"):
+        if known[key].metadata.get("check") == "pipeline":
+            kwargs[key] = _pipeline_tables(value, name, source)
+        elif hasattr(default, "__dataclass_fields__"):
             kwargs[key] = _build(type(default), value, f"{name}.", source)
         else:
             kwargs[key] = _coerce(value, default, name, source)
@@ -406,6 +421,51 @@ def _coerce(value: Any, default: Any, name: str, source: str) -> Any:
             raise bad("a list of strings")
         return tuple(value)
     raise bad(type(default).__name__)  # pragma: no cover
+
+
+def _pipeline_tables(value: Any, name: str, source: str) -> tuple[dict[str, Any], ...]:
+    """``[[pipeline]]``: an array of tables, each with a known ``kind`` and only that
+    kind's keys (values are checked when the stages are built for the rig)."""
+    if not isinstance(value, list) or not all(isinstance(v, dict) for v in value):
+        raise ConfigError(
+            f"{source}: {name}: expected [[{name}]] tables (kind = "
+            f"{' | '.join(repr(k) for k in sorted(KINDS))}, ...); got {value!r}"
+        )
+    for n, entry in enumerate(value):
+        kind = entry.get("kind")
+        if kind not in KINDS:
+            raise ConfigError(
+                f"{source}: {name}[{n}].kind: expected one of {sorted(KINDS)}; "
+                f"got {kind!r}"
+            )
+        allowed = KINDS[kind][0]
+        unknown = sorted(set(entry) - allowed - {"kind"})
+        if unknown:
+            near = difflib.get_close_matches(unknown[0], allowed, n=1)
+            hint = f"did you mean {near[0]!r}? " if near else ""
+            raise ConfigError(
+                f"{source}: {name}[{n}].{unknown[0]}: unknown key for kind {kind!r} "
+                f"({hint}expected one of: {', '.join(sorted(allowed))})"
+            )
+    return tuple(dict(v) for v in value)
+
+
+def check_pipeline(
+    entries: tuple[dict[str, Any], ...], rig: Any, source: str = "config"
+) -> None:
+    """Build the ``[[pipeline]]`` stages once for ``rig``'s bones: every value
+    checked (a fraction, a cutoff) and the rig able to carry each stage (a twist
+    needs arm chains). Raises ConfigError naming the entry."""
+    if not entries:
+        return
+    try:
+        build_pipeline(
+            entries,
+            bone_names=rig.bone_names,
+            bone_parents=rig.bone_parent_indices(),
+        )
+    except ValueError as exc:
+        raise ConfigError(f"{source}: {exc} (rig {rig.name})") from None
 
 
 def _check_field(value: Any, meta: Any, name: str, source: str) -> None:
@@ -537,6 +597,7 @@ def _check(c: DaemonConfig, source: str) -> None:
     def fail(key: str, message: str) -> ConfigError:
         return ConfigError(f"{source}: {key}: {message}")
 
+    check_pipeline(c.pipeline, load_rig(c.performer.rig), source)
     osc = c.input.osc
     if osc.form == "simple" and osc.enabled and not osc.labels:
         raise fail("input.osc.labels", "the simple form needs the marker names")

@@ -52,7 +52,7 @@ from retargetd.daemon.body.calibration import Calibration, load_calibration
 from retargetd.daemon.body.rig import Rig, load_rig
 from retargetd.daemon.body.solve_fit import warm_up as warm_up_fit
 from retargetd.daemon.live.calibrate import CalibrationMixin
-from retargetd.daemon.live.config import DaemonConfig
+from retargetd.daemon.live.config import DaemonConfig, check_pipeline
 from retargetd.daemon.live.console_feed import ConsoleFeed
 from retargetd.daemon.live.console_feed import dispatch as dispatch_console
 from retargetd.daemon.live.control import CONTROL_MAX_BYTES, ControlMixin
@@ -100,15 +100,25 @@ class Daemon(
     Args:
         config: validated configuration.
         out: where the "listening on" and stats lines go (``print`` by default).
+        config_path: the file ``config`` was read from: ``reload`` re-reads its
+            ``[[pipeline]]`` stages (None: the stages stay as given).
+
+    Raises:
+        ConfigError: ``[[pipeline]]`` stages the rig cannot carry.
     """
 
     def __init__(
-        self, config: DaemonConfig, out: Callable[[str], None] | None = None
+        self,
+        config: DaemonConfig,
+        out: Callable[[str], None] | None = None,
+        config_path: str | Path | None = None,
     ) -> None:
         self.config = config
+        self.config_path = config_path  # re-read by reload for [[pipeline]]
         self.out = out or (lambda line: print(line, flush=True))
         self.stats = LoopStats()
         self.rig: Rig = load_rig(config.performer.rig)
+        check_pipeline(config.pipeline, self.rig)  # the rig after any --rig
         self.calibration: Calibration | None = None
         if config.performer.calibration:
             self.calibration = load_calibration(config.performer.calibration)

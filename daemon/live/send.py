@@ -7,6 +7,7 @@ live validator after the send, and the per-stage latency record.
 from __future__ import annotations
 
 import logging
+import math
 import time
 from typing import Any
 
@@ -15,6 +16,8 @@ import zmq
 
 from retargetd.daemon.body.method import make_body_solver
 from retargetd.daemon.live.state import DaemonState, Pipeline
+from retargetd.daemon.post.pipeline import build_pipeline
+from retargetd.daemon.post.solve_post import SolvePost
 from retargetd.daemon.target.retarget import (
     Retargeter,
 )
@@ -117,7 +120,26 @@ class SendMixin(DaemonState):
             weights=face.weights if face is not None else np.zeros(0),
             bone_flags=np.zeros(n_bones, dtype=np.uint8),
             face=face,
+            post=self._build_post(),
         )
+
+    def _build_post(self) -> SolvePost | None:
+        """The ``[[pipeline]]`` stages for this rig and calibration (fresh state)."""
+        rate = self.config.loop.output_rate_hz
+        if not self.config.pipeline and not rate > 0.0:
+            return None
+        assert self.calibration is not None
+        parents = self.rig.bone_parent_indices()
+        rest = np.asarray(self.calibration.rest_parent_from_bone_quat, np.float64)
+        stages = build_pipeline(
+            self.config.pipeline,
+            bone_names=self.rig.bone_names,
+            bone_parents=parents,
+            rest_parent_from_bone_quat=rest,
+        )
+        post = SolvePost(stages, parents, rest, output_rate_hz=rate)
+        self.stats.set_post_stages(post.stage_names)
+        return post
 
     def _solve_and_send(self, stream: MarkerStream, received_ns: int) -> None:
         # The clock starts before the pipeline lookup: a pipeline built here (the
@@ -135,6 +157,25 @@ class SendMixin(DaemonState):
             return
         frame = stream.current.frame
         pose = pipe.solver.solve_frame(frame.markers_world, pipe.pose)
+        post = pipe.post
+        source_t = frame.source_time_s
+        if post is not None:  # [[pipeline]]: on the source's clock when it has one
+            counts = post.restarts, post.merged_ticks
+            due = post.apply(
+                pose,
+                source_t
+                if math.isfinite(source_t)
+                else (received_ns - self._t0_ns) * 1e-9,
+            )
+            self.stats.post_restarts += post.restarts - counts[0]
+            self.stats.resample_merged += post.merged_ticks - counts[1]
+            self.stats.record_post(post.stage_ns)
+            if not due:  # output_rate_hz: no output tick in this frame
+                self.stats.frames_solved += 1
+                self.stats.resample_skipped += 1
+                return
+            if post.resampler is not None and math.isfinite(source_t):
+                source_t = post.t_s  # the tick's time
         tp = pipe.retargeter.apply(pose, pipe.target_pose)
         face = pipe.face
         if face is not None:
@@ -188,7 +229,7 @@ class SendMixin(DaemonState):
             if vb is not None and len(vb) == len(bone_flags):
                 bone_flags = np.bitwise_or(bone_flags, vb, out=pipe.bone_flags)
             parts = pipe.pose_enc.encode(
-                frame.frame_id, frame.source_time_s, received_ns, solved_ns, flags,
+                frame.frame_id, source_t, received_ns, solved_ns, flags,
                 pose.root_pos, pose.world_from_bone_quat, pose.parent_from_bone_quat,
                 pose.rest_from_bone_quat, pipe.weights, bone_flags,
             )  # fmt: skip

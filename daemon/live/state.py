@@ -23,6 +23,7 @@ from retargetd.daemon.live.ratelog import RateLimitedLog, RateLimiter
 from retargetd.daemon.live.recording import LiveRecording
 from retargetd.daemon.live.stats import LoopStats
 from retargetd.daemon.live.surface import CurveGuard
+from retargetd.daemon.post.solve_post import SolvePost
 from retargetd.protocols import pose_stream
 from retargetd.protocols.marker_input import MarkerStream
 from retargetd.protocols.vmc_out import VmcEncoder
@@ -48,12 +49,14 @@ class Pipeline:
     weights: np.ndarray
     bone_flags: np.ndarray  # sent bone flags: the solve's | the latest validation's
     face: FaceStage | None = None
+    post: SolvePost | None = None  # the [[pipeline]] stages (None: none configured)
 
 
 class DaemonState:
     """Attribute declarations of the daemon (set in ``Daemon.__init__``/``open``)."""
 
     config: DaemonConfig
+    config_path: Any  # str | Path | None: the config file (reload re-reads it)
     out: Callable[[str], None]
     stats: LoopStats
     rig: Rig

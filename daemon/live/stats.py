@@ -12,6 +12,9 @@ from retargetd.protocols.frames import IntArray
 #: Latency stages, in pipeline order (ns rings).
 STAGES = ("receive_to_solved", "solve", "encode_send", "receive_to_sent")
 RING = 4096
+#: The ``[[pipeline]]`` post stages are reported as ``post.<kind>`` (a repeated kind
+#: ``post.<kind>#2``), each a part of ``solve``.
+POST_PREFIX = "post."
 
 
 @dataclass(slots=True)
@@ -36,6 +39,13 @@ class LoopStats:
         pipeline_builds: per-stream pipelines built (the first frame after a new
             label set, a calibration or a reload); each one's cost is in that
             frame's solve stage.
+        post_restarts: ``[[pipeline]]`` filter restarts (the source's clock went
+            back or jumped over a second, or a pose was not finite).
+        resample_skipped: solved frames not sent because no output tick fell due
+            (``loop.output_rate_hz`` below the input's rate; counted in
+            ``frames_solved``, not in ``frames_out``).
+        resample_merged: output ticks merged into a later one (``output_rate_hz``
+            above the input's rate: one send per input frame).
         rejected_sources: OSC datagrams from addresses not on the allow-list.
         face_solved: frames the face was solved on.
         face_head_lost: of those, frames with fewer than 3 head markers (face held).
@@ -85,11 +95,36 @@ class LoopStats:
     show_control_malformed: int = 0
     control_requests: int = 0
     control_errors: int = 0
+    post_restarts: int = 0
+    resample_skipped: int = 0
+    resample_merged: int = 0
     rings: IntArray = field(
         default_factory=lambda: np.zeros((len(STAGES), RING), np.int64)
     )
     ring_pos: int = 0
     ring_count: int = 0
+    post_names: tuple[str, ...] = ()
+    post_rings: IntArray = field(default_factory=lambda: np.zeros((0, RING), np.int64))
+    post_pos: int = 0
+    post_count: int = 0
+
+    def set_post_stages(self, names: tuple[str, ...]) -> None:
+        """Name the post stages timed from now on (new names: their rings restart)."""
+        if names != self.post_names:
+            self.post_names = names
+            self.post_rings = np.zeros((len(names), RING), np.int64)
+            self.post_pos = self.post_count = 0
+
+    def record_post(self, stage_ns: IntArray) -> None:
+        """Store one frame's post-stage durations (ns), in :attr:`post_names` order."""
+        rings = self.post_rings
+        if len(stage_ns) != rings.shape[0]:
+            return  # a stream whose stages are not the named ones (being rebuilt)
+        i = self.post_pos
+        rings[:, i] = stage_ns
+        self.post_pos = (i + 1) % RING
+        if self.post_count < RING:
+            self.post_count += 1
 
     def record(self, *durations_ns: int) -> None:
         """Store one frame's stage durations (ns), in :data:`STAGES` order."""
@@ -103,12 +138,23 @@ class LoopStats:
 
     def latency_us(self) -> dict[str, tuple[float, float]]:
         """Per stage (p50, p99) in microseconds over the last frames."""
+        nan = (float("nan"), float("nan"))
         n = self.ring_count
-        if n == 0:
-            return {s: (float("nan"), float("nan")) for s in STAGES}
-        data = self.rings[:, :n] / 1000.0
-        p = np.percentile(data, [50.0, 99.0], axis=1)
-        return {s: (float(p[0, i]), float(p[1, i])) for i, s in enumerate(STAGES)}
+        out = {s: nan for s in STAGES}
+        if n:
+            p = np.percentile(self.rings[:, :n] / 1000.0, [50.0, 99.0], axis=1)
+            out = {s: (float(p[0, i]), float(p[1, i])) for i, s in enumerate(STAGES)}
+        m = self.post_count
+        pp = (
+            np.percentile(self.post_rings[:, :m] / 1000.0, [50.0, 99.0], axis=1)
+            if m and self.post_names
+            else None
+        )
+        for i, name in enumerate(self.post_names):
+            out[POST_PREFIX + name] = (
+                nan if pp is None else (float(pp[0, i]), float(pp[1, i]))
+            )
+        return out
 
     def counters(self) -> dict[str, int]:
         """All integer counters by name."""
@@ -123,6 +169,7 @@ class LoopStats:
                 "face_solved", "face_head_lost", "face_captures", "validated",
                 "validation_flagged", "validation_drops", "zmq_disconnects",
                 "unsolved", "labels_in", "show_control_in", "show_control_malformed",
-                "control_requests", "control_errors",
+                "control_requests", "control_errors", "post_restarts",
+                "resample_skipped", "resample_merged",
             )
         }  # fmt: skip

@@ -15,6 +15,7 @@ from retargetd.daemon.body.solve import FLAG_HELD
 from retargetd.daemon.live.kernel_drops import udp_kernel_drops
 from retargetd.daemon.live.sources import capture_stats
 from retargetd.daemon.live.state import DaemonState
+from retargetd.daemon.live.stats import POST_PREFIX
 
 logger = logging.getLogger(__name__)
 
@@ -111,7 +112,8 @@ class StatusMixin(DaemonState):
             f"solve {_us(lat['solve'][0])}/{_us(lat['solve'][1])} "
             f"recv->sent {_us(lat['receive_to_sent'][0])}/"
             f"{_us(lat['receive_to_sent'][1])}"
-            f" | stale {c['stale']} overruns {c['overruns']} send drops "
+            + _post_stages(lat)
+            + f" | stale {c['stale']} overruns {c['overruns']} send drops "
             f"{c['send_drops']} | drops {drops or 0} | occluded "
             f"{len(s['occluded_markers'])} held {len(s['held_bones'])}"
             f" | kernel_drops {sum(v for v in s['kernel_drops'].values() if v)}"
@@ -134,6 +136,16 @@ class StatusMixin(DaemonState):
                 else ""
             )
         )
+
+
+def _post_stages(latency: dict[str, Any]) -> str:
+    """`` | post twist 2/3 one_euro 3/4``: each ``[[pipeline]]`` stage's p50/p99 µs."""
+    parts = [
+        f"{k[len(POST_PREFIX) :]} {_us(v[0])}/{_us(v[1])}"
+        for k, v in latency.items()
+        if k.startswith(POST_PREFIX)
+    ]
+    return f" | post {' '.join(parts)}" if parts else ""
 
 
 def _round_or_none(value: float) -> float | None:

@@ -12,4 +12,7 @@ takes (resampling, gap filling, blending, loops, keyframe reduction) are functio
   blend, loop; :class:`~retargetd.daemon.post.interp.RateResampler` for live output.
 - :mod:`~retargetd.daemon.post.one_euro`: the One Euro filter, quaternion-aware.
 - :mod:`~retargetd.daemon.post.reduce`: keyframe reduction with least-squares refit.
+- :mod:`~retargetd.daemon.post.pipeline`: ``[[pipeline]]`` stages, in order, timed.
+- :mod:`~retargetd.daemon.post.solve_post`: a pipeline on a body-solve pose in place
+  (the live loop's stage, between the body solve and the target mapping).
 """

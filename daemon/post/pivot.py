@@ -31,6 +31,7 @@ import math
 
 import numpy as np
 
+from retargetd.daemon import rotations as rot
 from retargetd.daemon.compiled import kernel
 from retargetd.protocols.frames import F64Array
 
@@ -223,3 +224,50 @@ class ShiftingPivot:
     def angles_rad(self) -> F64Array:
         """(N, 3) float64: the last call's per-joint XYZ angles, radians."""
         return self._angles
+
+
+def pivot_chains(
+    glob: F64Array,
+    chains: dict[int, tuple[int, int, float]],
+    limit_deg: float = DEFAULT_LIMIT_DEG,
+) -> list[tuple[int, ...]]:
+    """The shifting pivot on every spread chain, into ``glob`` in place.
+
+    For a chain ``top -> u_1 .. u_k -> bottom`` the whole rotation between the two
+    mapped joints, ``Q = conj(G'_top) G'_bottom`` (in ``top``'s frame: for a BVH
+    spine, at rest parallel to the file's axes, +Y along the spine, the listing's
+    longitudinal y), is spread bottom-up over the k + 1 joints ``u_1 .. u_k,
+    bottom`` by :class:`ShiftingPivot` (rx and rz doubled, at most ``limit_deg`` a
+    joint, the rest carried to the next; ry shared equally): ``G'_{u_i} = G'_top p_1
+    .. p_i``. ``bottom`` takes the last share, so its
+    world rotation becomes the distributed approximation of the single pivot (its
+    mapped children keep their own, their local rotations absorb the difference).
+    This is how the chapter emits Spine, Chest and UpperChest from one solved
+    lumbar-to-thorax rotation.
+
+    Args:
+        glob: (T, J', 4) float64 (w, x, y, z) world rotations of the target joints,
+            the mapped ones set; the chains' joints are written.
+        chains: from :func:`retargetd.daemon.target.bvh_retarget.spread_chains`.
+        limit_deg: the most rotation per joint about x and z, degrees.
+
+    Returns:
+        The chains, each ``(top, u_1, .., u_k, bottom)``.
+    """
+    by_ends: dict[tuple[int, int], list[tuple[float, int]]] = {}
+    for u, (top, bottom, frac) in chains.items():
+        by_ends.setdefault((top, bottom), []).append((frac, u))
+    out: list[tuple[int, ...]] = []
+    for (top, bottom), members in sorted(by_ends.items()):
+        joints = [u for _, u in sorted(members)] + [bottom]
+        stage = ShiftingPivot(len(joints), limit_deg)
+        group = rot.quat_mul(rot.quat_conj(glob[:, top]), glob[:, bottom])
+        shares = np.empty((len(joints), 4))
+        for t in range(len(glob)):
+            stage.apply(np.ascontiguousarray(group[t]), shares)
+            acc = glob[t, top]
+            for j, share in zip(joints, shares, strict=True):
+                acc = rot.quat_mul(acc, share)
+                glob[t, j] = acc
+        out.append((top, *joints))
+    return out

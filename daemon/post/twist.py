@@ -49,10 +49,13 @@ DEFAULT_FRACTIONS = (1.0 / 3.0, 1.0 / 3.0, 1.0 / 3.0)
 #: Bone long axis in the bone's own frame (RIGS.md "Bone axes": +Y origin -> aim).
 LONG_AXIS = (0.0, 1.0, 0.0)
 
-#: Arm chains (shoulder, elbow, wrist bones) of the shipped rigs and the synthetic
-#: performer, by bone name.
+#: Arm chains (shoulder, elbow, wrist bones) of the shipped rigs (plug-in-gait and
+#: cmu41 share the first names, menache has its own) and the synthetic performer, by
+#: bone name.
 ARM_CHAINS: dict[str, tuple[tuple[str, str, str], ...]] = {
     "rig": (("lupperarm", "llowerarm", "lhand"), ("rupperarm", "rlowerarm", "rhand")),
+    # menache's hand hangs on the ulna (the radius is its own bone, a sibling).
+    "menache": (("lupperarm", "lulna", "lhand"), ("rupperarm", "rulna", "rhand")),
     "performer": (
         ("l_upper_arm", "l_forearm", "l_hand"),
         ("r_upper_arm", "r_forearm", "r_hand"),

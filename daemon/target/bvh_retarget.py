@@ -25,7 +25,9 @@ child the twist about the bone is the source's. A target joint that maps to noth
 keeps its rest (local identity: it follows its parent), or with ``spread`` (``retarget
 --spread``), when it sits on a plain chain between two mapped joints (a target with
 more spine bones than the source), takes an equal share of the rotation between them
-(:func:`spread_chains`).
+(:func:`spread_chains`), or shares given by a ``distribute`` function (``retarget
+--spread pivot``: the chapter's shifting pivot,
+:func:`retargetd.daemon.post.pivot.pivot_chains`).
 
 The target root must map to a source joint; its position is that joint's, scaled by
 the ratio of the two rest root heights above the lowest rest point (joints and End
@@ -45,7 +47,7 @@ from __future__ import annotations
 
 import functools
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -337,6 +339,8 @@ def retarget_bvh(
     name_map: Mapping[str, str] | None = None,
     root_scale: float | None = None,
     spread: bool = False,
+    distribute: Callable[[F64Array, dict[int, tuple[int, int, float]]], object]
+    | None = None,
 ) -> BvhRetarget:
     """Map a BVH take onto another BVH skeleton (module docstring).
 
@@ -347,7 +351,12 @@ def retarget_bvh(
         root_scale: factor on the root's position (default: the rest height ratio).
         spread: share the rotation between two mapped joints over the unmapped
             chain joints between them (:func:`spread_chains`) instead of leaving
-            them at their rest.
+            them at their rest, in equal shares unless ``distribute`` is given.
+        distribute: with ``spread``, ``distribute(glob, chains)`` writes the world
+            rotations of every chain joint between the mapped ends (``glob`` (T,
+            J', 4) with the mapped joints set, ``chains`` from
+            :func:`spread_chains`), e.g. the shifting pivot
+            (:func:`retargetd.daemon.post.pivot.pivot_chains`).
 
     Returns:
         The retargeted take.
@@ -378,8 +387,12 @@ def retarget_bvh(
         if mapping[j] >= 0:
             glob[:, j] = rot.quat_mul(src_glob[:, mapping[j]], comp[j])
     chains = spread_chains(target.parents, mapping) if spread else {}
+    pivot = bool(chains) and distribute is not None
+    if pivot:
+        assert distribute is not None
+        distribute(glob, chains)
     for j, p in enumerate(target.parents):
-        if mapping[j] >= 0:
+        if mapping[j] >= 0 or (pivot and j in chains):
             pass
         elif j in chains:
             top, bottom, u = chains[j]

@@ -85,6 +85,7 @@ def _out_of_range(f: dataclasses.Field, tmp: Path) -> Any:
         "token": "short",
         "secret_key": missing,
         "public_keys": [missing],
+        "pipeline": [{"kind": "nope"}],
     }
     if check == "range":
         hi = meta["hi"]
@@ -110,8 +111,14 @@ def _misspelled(key: str) -> str:
 
 
 def _toml(key: str, value: Any) -> str:
-    """A one-key TOML document (JSON scalars and arrays are TOML too)."""
+    """A one-key TOML document (JSON scalars and arrays are TOML too; a list of
+    tables is written as ``[[key]]`` tables)."""
     *section, name = key.split(".")
+    if isinstance(value, list) and value and isinstance(value[0], dict):
+        return "".join(
+            f"[[{key}]]\n" + "".join(f"{k} = {json.dumps(v)}\n" for k, v in t.items())
+            for t in value
+        )
     head = f"[{'.'.join(section)}]\n" if section else ""
     return f"{head}{name} = {json.dumps(value)}\n"
 

@@ -2,7 +2,8 @@
 
 The daemon is driven here one wake-up at a time (``poll`` then ``_service``, exactly
 what ``Daemon.run`` does) on real loopback sockets, compact OSC and ZeroMQ, with the
-live validator on, after a warm-up. tracemalloc measures, per frame, the peak of
+live validator, the face and ``[[pipeline]]`` post stages (twist, One Euro) on, after
+a warm-up. tracemalloc measures, per frame, the peak of
 memory above the frame's start (``reset_peak``), and what is kept over all frames.
 
 What a frame may not avoid, measured in the same test: the compiled kernels' own
@@ -62,6 +63,11 @@ def daemon(exact_calibration: Path, tmp_path: Path, datasets: Path) -> Iterator[
                 "config": "arkit52",
                 "training": str(tmp_path / "face.npz"),
             },
+            # [[pipeline]] post stages on too (issue 15 item 1): twist + One Euro.
+            "pipeline": [
+                {"kind": "twist"},
+                {"kind": "one_euro", "beta_rot": 2.0, "beta_pos": 20.0},
+            ],
         },
     )
     d = Daemon(DaemonConfig.from_dict(doc, source="test"), out=lambda _line: None)
@@ -167,6 +173,8 @@ def test_a_frame_allocates_nothing_beyond_the_kernels(
             tracemalloc.stop()
         assert daemon.stats.frames_solved - solved_before == FRAMES
         assert daemon.stats.face_solved >= FRAMES  # the face was solved every frame
+        assert pipe.post is not None and pipe.post.stage_names == ("twist", "one_euro")
+        assert daemon.stats.post_count >= FRAMES  # the stages ran every frame
     finally:
         tx.close()
     # Medians: the validator thread's own work (MuJoCo calls, its ints) lands in a

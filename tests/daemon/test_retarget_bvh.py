@@ -15,6 +15,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from retargetd.daemon.cli.main import main
+from retargetd.daemon.post.pivot import ShiftingPivot
 from retargetd.daemon.target.bvh_retarget import rig_bone_humanoid_map
 from retargetd.daemon.target.skeleton import DEFAULT_BVH_NAME_MAP
 from retargetd.replay.bvh import (
@@ -332,3 +333,65 @@ def test_more_spine_bones_than_the_source(
     assert np.degrees((whole.inv() * neck_src).magnitude()).max() < 1e-4
     for a, b in (("spine_a", "chest"),):
         assert np.degrees((local[a].inv() * local[b]).magnitude()).max() < 1e-4
+
+
+def test_spread_pivot_emits_the_chain_by_the_shifting_pivot(
+    source_bvh: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``--spread pivot``: the rotation between two mapped joints (chest -> neck, and
+    spine -> chest) goes over the chain's joints by the chapter's shifting pivot
+    (rx, rz doubled, 15 deg a joint, carry-over; ry shared), the listing applied to
+    each frame's whole rotation; the mapped joints below keep their world rotation."""
+    src = read_bvh_hierarchy(source_bvh, read_motion=True)
+    tgt_path = tmp_path / "target.bvh"
+    _with_extra_spine(src, tgt_path)
+    outs = {}
+    for how in ("equal", "pivot"):
+        out_path = tmp_path / f"{how}.bvh"
+        argv = ["retarget", str(source_bvh), "--target", str(tgt_path), "--out",
+                str(out_path), "--spread", how]  # fmt: skip
+        assert main(argv) == 0
+        text = capsys.readouterr().out
+        out = read_bvh_hierarchy(out_path, read_motion=True)
+        assert out.frames is not None
+        angles, _ = split_bvh_motion(out, out.frames)
+        outs[how] = {
+            name: Rotation.from_euler("YXZ", angles[:, j], degrees=True)
+            for j, name in enumerate(out.joint_names)
+        }
+    assert "sharing a chain's rotation (shifting pivot, 15 deg a joint)" in text
+    eq, pv = outs["equal"], outs["pivot"]
+    worst = 0.0
+    # Spine -> chest first (the equal shares multiply back to the whole rotation),
+    # then chest -> neck from the chest the pivot made: conj(G_chest') G_neck.
+    lower = eq["spine_a"] * eq["chest"]
+    upper = (pv["spine_a"] * pv["chest"]).inv() * lower
+    upper = upper * eq["chest_a"] * eq["chest_b"] * eq["neck"]
+    for chain, group in ((("spine_a", "chest"), lower),
+                         (("chest_a", "chest_b", "neck"), upper)):  # fmt: skip
+        stage = ShiftingPivot(len(chain), 15.0)
+        shares = np.empty((len(chain), 4))
+        for t in range(len(group)):
+            stage.apply(group[t].as_quat(scalar_first=True), shares)
+            for k, j in enumerate(chain):
+                want = Rotation.from_quat(shares[k], scalar_first=True)
+                err = np.degrees((pv[j][t].inv() * want).magnitude())
+                worst = max(worst, float(err))
+    assert worst < 1e-3, worst
+    # Where a chain's rotation exceeds one joint's limit the shares differ from the
+    # equal ones (the test sees the pivot, not the equal spread).
+    diff = np.degrees((pv["chest_a"].inv() * eq["chest_a"]).magnitude()).max()
+    assert diff > 0.1, diff
+
+    # The head (mapped, below the chains) keeps its world rotation: the product
+    # down from the spine is the same in both.
+    def down(r: dict[str, Rotation]) -> Rotation:
+        chain = ("spine_a", "chest", "chest_a", "chest_b", "neck", "head")
+        out = r[chain[0]]
+        for j in chain[1:]:
+            out = out * r[j]
+        return out
+
+    err = np.degrees((down(pv).inv() * down(eq)).magnitude()).max()
+    assert err < 1e-3, err
+    print(f"\n--spread pivot: shares equal the listing's within {worst:.1e} deg")

@@ -214,3 +214,53 @@ def test_pipeline_one_euro_offline_smooths_a_noisy_take(tmp_path: Path) -> None:
         )).mean())  # fmt: skip
 
     assert jitter_deg(smooth) < 0.7 * jitter_deg(raw)
+
+
+def test_fill_gaps_slerps_short_held_runs(
+    pig_synth: tuple[Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``solve --fill-gaps N`` (issue 15 item 6): a take with occlusion runs, solved
+    with the clean take's calibration; every run of <= N held frames between solved
+    frames becomes the slerp across it, everything else is the plain solve's."""
+    _take, cal = pig_synth
+    drop = tmp_path / "drop.c3d"
+    assert main(["synth", "--markers", "plug-in-gait", "--seconds", "3", "--rate",
+                 "100", "--base-pose-s", "1", "--dropout", "0.1", "--seed", "3",
+                 "--out", str(drop)]) == 0  # fmt: skip
+    plain, filled = tmp_path / "plain.npz", tmp_path / "filled.npz"
+    _solve((drop, cal), plain)
+    capsys.readouterr()
+    _solve((drop, cal), filled, "--fill-gaps", "8")
+    text = capsys.readouterr().out
+    with np.load(plain) as a, np.load(filled) as b:
+        q0, q1 = a["parent_from_bone_quat"], b["parent_from_bone_quat"]
+        held = (a["bone_flags"] & 1) != 0  # FLAG_HELD
+        np.testing.assert_array_equal(a["bone_flags"], b["bone_flags"])
+        parents = a["bone_parents"]
+        wfb = b["world_from_bone_quat"]
+    n = len(q0)
+    expect = q0.copy()
+    runs = count = 0
+    for bone in range(q0.shape[1]):
+        edges = np.diff(np.concatenate([[0], held[:, bone].astype(int), [0]]))
+        for start, stop in zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1),
+                               strict=True):  # fmt: skip
+            if start == 0 or stop == n or stop - start > 8:
+                continue
+            u = (np.arange(start, stop) - (start - 1)) / (stop - start + 1)
+            expect[start:stop, bone] = rot.slerp(q0[start - 1, bone], q0[stop, bone], u)
+            runs += 1
+            count += stop - start
+    assert runs >= 5, runs
+    assert f"gaps filled (<= 8 held frames): {count} bone-frames" in text, text
+    np.testing.assert_allclose(q1, expect, atol=1e-12)
+    # world_from_bone follows: forward kinematics of the filled rotations.
+    for bone, p in enumerate(parents):
+        if p >= 0:
+            fk = rot.quat_mul(wfb[:, p], q1[:, bone])
+            dot = np.abs(np.sum(fk * wfb[:, bone], axis=-1))
+            assert (dot > 1.0 - 1e-9).all()
+    assert main(["solve", "x.c3d", "--rig", "plug-in-gait", "--calibration",
+                 str(cal), "--out", str(tmp_path / "x.npz"), "--fill-gaps",
+                 "0"]) == 2  # fmt: skip
+    assert "--fill-gaps: expected >= 1" in capsys.readouterr().err
