@@ -2,8 +2,9 @@
 
 A daemon with ``[console]`` on (port 0) receives the exact synthetic performer's
 T-pose over loopback OSC, uncalibrated. The page loads and shows the markers alone
-(the markers' colour at their projections); Calibrate is clicked through the page; the daemon's calibration count rises (the command went console -> queue ->
-loop -> the same request as ``ctl calibrate``); then the solved skeleton is drawn:
+(the markers' colour at their projections); Calibrate is clicked through the page;
+the daemon's calibration count rises (the command went console -> queue -> loop ->
+the same request as ``ctl calibrate``); then the solved skeleton is drawn:
 pixels of the bone colour at the projection of the solved joint centres' bone
 midpoints (the page's camera is set, and the client's reported camera used), and the
 retargeted humanoid beside it in its colour.
