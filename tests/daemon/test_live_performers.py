@@ -13,6 +13,7 @@ import json
 import socket
 import threading
 import time
+import tomllib
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -90,6 +91,17 @@ def test_performer_tables_refused_with_the_key_named(
     with pytest.raises(ConfigError) as info:
         DaemonConfig.from_dict(doc, source="t")
     assert f"t: {key}: " in str(info.value) and words in str(info.value)
+
+
+def test_the_readme_example_loads() -> None:
+    readme = (Path(__file__).resolve().parents[2] / "README.md").read_text()
+    section = readme.split("### Several performers", 1)[1]
+    text = section.split("```toml\n", 1)[1].split("```", 1)[0]
+    c = DaemonConfig.from_dict(tomllib.loads(text), source="README")
+    assert [(p.name, p.prefix, p.vmc) for p in c.performers] == [
+        ("A", "A:", "127.0.0.1:39541"),
+        ("B", "B:", "127.0.0.1:39542"),
+    ]
 
 
 # ---- the label split ----------------------------------------------------------------
@@ -366,8 +378,11 @@ def test_performers_on_separate_inputs_and_the_unprefixed_labels(
     for k in range(20):
         src.send(hold[k % len(hold)])
         time.sleep(0.003)
-    _pump_until([va, vb], lambda: len(va.frames) >= 20, "the OSC performer's frames")
+    # (Latest wins: on a loaded machine a few of the 20 may be dropped as stale.)
+    _pump_until([va, vb], lambda: len(va.frames) >= 10, "the OSC performer's frames")
+    time.sleep(0.2)
+    va.pump()
     vb.pump()
     assert not vb.frames  # the ZeroMQ performer got none of the OSC frames
-    doc = live.daemon.status()["performers"]
-    assert [d["frames_out"] for d in doc] == [20, 0]
+    doc = live.ctl({"cmd": "status"})["status"]["performers"]
+    assert [d["frames_out"] for d in doc] == [len(va.frames), 0]
