@@ -8,7 +8,8 @@ labels that start with its ``prefix`` (``"A:LASI"``; the longest matching prefix
 wins, ``""`` takes those no other prefix claims) on its ``input``: a
 :class:`StreamView` holds, per label set, the column index of those labels and a
 frame of its own, built when the label set is announced (off the hot path); per
-frame it copies its rows with two ``np.take(..., out=)`` calls, nothing allocated.
+frame it copies its rows into it (two slice copies when its labels are one run, the
+usual case, else two ``take(..., out=)`` calls), no array allocated.
 The solve, calibration and face see the view exactly as they see a stream:
 ``current.frame`` and ``current.label_set`` (the labels with the prefix stripped).
 """
@@ -77,7 +78,9 @@ class StreamView:
             included): a label belongs to the longest one it starts with.
     """
 
-    __slots__ = ("_layouts", "_source", "cols", "current", "prefix", "rivals", "stream")
+    __slots__ = (
+        "_layouts", "_source", "cols", "current", "prefix", "rivals", "rows", "stream",
+    )  # fmt: skip
 
     def __init__(
         self, stream: MarkerStream, prefix: str, rivals: tuple[str, ...]
@@ -87,8 +90,13 @@ class StreamView:
         self.rivals = rivals
         self.current = ViewPacket(MarkerFrame.empty(0), LabelSet(-1, ()))
         self.cols: IntArray = np.zeros(0, dtype=np.intp)
+        # The same rows as a slice when they are one run (a subject's markers sent
+        # together, the usual case): a slice copy is ~4x cheaper than a take.
+        self.rows: slice | None = None
         self._source: LabelSet | None = None
-        self._layouts: dict[int, tuple[LabelSet, IntArray, ViewPacket]] = {}
+        self._layouts: dict[
+            int, tuple[LabelSet, IntArray, slice | None, ViewPacket]
+        ] = {}
 
     def owns(self, label: str) -> bool:
         """Whether ``label`` is this performer's (the longest matching prefix)."""
@@ -110,8 +118,10 @@ class StreamView:
         if len(self._layouts) >= _LAYOUTS_KEPT:
             self._layouts.clear()
         index = np.array(cols, dtype=np.intp)
+        run = bool(cols) and cols[-1] - cols[0] == len(cols) - 1
+        rows = slice(cols[0], cols[-1] + 1) if run else None
         self._layouts[id(source)] = (
-            source, index, ViewPacket(MarkerFrame.empty(len(cols)), labels)
+            source, index, rows, ViewPacket(MarkerFrame.empty(len(cols)), labels)
         )  # fmt: skip
 
     def refresh(self) -> bool:
@@ -121,14 +131,19 @@ class StreamView:
         if src.label_set is not self._source:
             source = src.label_set
             self.prepare(source)
-            _, self.cols, self.current = self._layouts[id(source)]
+            _, self.cols, self.rows, self.current = self._layouts[id(source)]
             self._source = source
         cols = self.cols
         if not len(cols):
             return False
         f, out = src.frame, self.current.frame
-        np.take(f.markers_world, cols, axis=0, out=out.markers_world)
-        np.take(f.valid, cols, out=out.valid)
+        rows = self.rows
+        if rows is not None:
+            out.markers_world[:] = f.markers_world[rows]
+            out.valid[:] = f.valid[rows]
+        else:  # the method: np.take's wrapper costs ~1 us more per call
+            f.markers_world.take(cols, axis=0, out=out.markers_world)
+            f.valid.take(cols, out=out.valid)
         out.frame_id = f.frame_id
         out.t_ns = f.t_ns
         out.source_time_s = f.source_time_s
