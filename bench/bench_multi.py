@@ -308,8 +308,9 @@ def per_performer(m: dict[str, Any], n: int) -> list[dict[str, Any]]:
 def micro(take: Any, n: int, calls: int = 20_000) -> None:
     """In process: what the split adds per performer and frame
     (``StreamView.refresh``: two slice copies, the labels being one run) against
-    fancy indexing of the same rows (allocating), and a per-performer attribute read (``OfPerformer``,
-    e.g. ``daemon.calibration``) against a plain attribute, same run."""
+    fancy indexing of the same rows (allocating), and a per-performer attribute
+    read (``OfPerformer``, e.g. ``daemon.calibration``) against a plain attribute,
+    same run."""
     from retargetd.daemon.live.performer import StreamView
     from retargetd.daemon.live.state import OfPerformer
     from retargetd.protocols.marker_input import LabelSet, MarkerStream
