@@ -642,9 +642,17 @@ def _check_performers(c: DaemonConfig, source: str) -> None:
                     'each performer its own vmc = "HOST:PORT"'
                 )
             destinations[dest] = p.name
-            if p.vmc and ipaddress.ip_address(dest[0]).is_unspecified:
+            target = ipaddress.ip_address(dest[0])
+            if p.vmc and target.is_unspecified:
                 raise ConfigError(
                     f"{source}: {key}.vmc: expected a receiver's address; got {p.vmc}"
+                )
+            broadcast = target.is_multicast or dest[0] == "255.255.255.255"
+            if broadcast and not c.output.vmc.allow_broadcast:
+                raise ConfigError(
+                    f"{source}: {key}.vmc: {dest[0]} is a broadcast/multicast "
+                    "address: VMC goes to one receiver unless output.vmc."
+                    "allow_broadcast = true"
                 )
 
 

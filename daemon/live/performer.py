@@ -141,9 +141,10 @@ class StreamView:
         if rows is not None:
             out.markers_world[:] = f.markers_world[rows]
             out.valid[:] = f.valid[rows]
-        else:  # the method: np.take's wrapper costs ~1 us more per call
-            f.markers_world.take(cols, axis=0, out=out.markers_world)
-            f.valid.take(cols, out=out.valid)
+        else:  # the method (np.take's wrapper costs ~1 us more); mode "clip": the
+            # indices are valid, and "raise" buffers ``out`` (a copy per call)
+            f.markers_world.take(cols, axis=0, out=out.markers_world, mode="clip")
+            f.valid.take(cols, out=out.valid, mode="clip")
         out.frame_id = f.frame_id
         out.t_ns = f.t_ns
         out.source_time_s = f.source_time_s

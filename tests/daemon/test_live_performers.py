@@ -14,6 +14,7 @@ import socket
 import threading
 import time
 import tomllib
+import tracemalloc
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -37,7 +38,7 @@ from pythonosc.osc_message_builder import OscMessageBuilder
 
 from retargetd.daemon.cli.main import main as cli_main
 from retargetd.daemon.live.config import ConfigError, DaemonConfig
-from retargetd.daemon.live.performer import StreamView
+from retargetd.daemon.live.performer import StreamView, build_performers
 from retargetd.protocols import pose_stream
 from retargetd.protocols.marker_input import LabelSet, MarkerStream
 
@@ -82,6 +83,8 @@ def test_performer_tables_parse_with_default_prefixes() -> None:
         (_doc({"name": "A", "vmc": "0.0.0.0:5"}), "performer[0].vmc",
          "a receiver's address"),
         ({"performer": []}, "performer", "at least one"),
+        (_doc({"name": "A", "vmc": "239.1.2.3:5"}), "performer[0].vmc",
+         "allow_broadcast"),
         ({"performers": []}, "performers", "[[performer]]"),
     ],
 )  # fmt: skip
@@ -102,6 +105,30 @@ def test_the_readme_example_loads() -> None:
         ("A", "A:", "127.0.0.1:39541"),
         ("B", "B:", "127.0.0.1:39542"),
     ]
+
+
+def test_each_performer_its_own_rig_face_and_destination(
+    exact_calibration: Path,
+) -> None:
+    c = DaemonConfig.from_dict(
+        _doc(
+            {"name": "A", "rig": str(EXACT_RIG), "calibration": str(exact_calibration),
+             "vmc": "127.0.0.1:40001", "face": "vrm1"},
+            {"name": "B", "rig": "plug-in-gait", "vmc": "127.0.0.1:40002"},
+            face={"enabled": True, "capture_frames": 7},
+        )
+    )  # fmt: skip
+    a, b = build_performers(c)
+    assert (a.index, a.name, b.index, b.name) == (0, "A", 1, "B")
+    assert a.rig.name == "synth-exact" and b.rig.name == "plug-in-gait"
+    assert a.calibration is not None and b.calibration is None
+    assert a.face is not None and b.face is None  # B has no face config
+    assert a.face.face.name == "vrm1" and a.face.settings.capture_frames == 7
+    assert (a.vmc_addr, b.vmc_addr) == (("127.0.0.1", 40001), ("127.0.0.1", 40002))
+    assert a.rivals_by_input["osc"] == ("A:", "B:")
+    # No [[performer]]: the one performer of [performer], every label its own.
+    (one,) = build_performers(DaemonConfig.from_dict({}))
+    assert (one.name, one.prefix, one.face) == ("", "", None)
 
 
 # ---- the label split ----------------------------------------------------------------
@@ -135,6 +162,31 @@ def test_stream_view_takes_its_prefix_longest_match_no_allocation() -> None:
     # A label set without a performer's markers: nothing to solve for it.
     stream.current = type(stream.current).create(LabelSet(4, ("B:X",)))
     assert not views["A:"].refresh() and views["B:"].refresh()
+
+
+@pytest.mark.parametrize("interleaved", [False, True])
+def test_stream_view_refresh_allocates_nothing(interleaved: bool) -> None:
+    # 35 markers each for A and B, as one run each (slice copies) or interleaved
+    # (take). What 1000 refreshes keep is nothing; the peak stays under one copy of
+    # B's rows (35 x 3 float64 = 840 B, what fancy indexing would allocate).
+    names = [f"M{i}" for i in range(35)]
+    if interleaved:
+        labels = tuple(x for n in names for x in (f"A:{n}", f"B:{n}"))
+    else:
+        labels = tuple(f"A:{n}" for n in names) + tuple(f"B:{n}" for n in names)
+    stream = MarkerStream(LabelSet(1, labels))
+    view = StreamView(stream, "B:", ("A:", "B:"))
+    assert view.refresh() and (view.rows is None) == interleaved
+    tracemalloc.start()
+    try:
+        start = tracemalloc.get_traced_memory()[0]
+        tracemalloc.reset_peak()
+        for _ in range(1000):
+            view.refresh()
+        now, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert now - start < 64 and peak - start < 840, (now - start, peak - start)
 
 
 # ---- the pose header's performer byte ----------------------------------------------
