@@ -241,6 +241,9 @@ class PerformersMixin(DaemonState):
                     "occluded_markers": occluded,
                     "held_bones": held,
                     "face": perf.face.status() if perf.face is not None else None,
+                    "validate": (
+                        perf.validator.status() if perf.validator is not None else None
+                    ),
                 }
             )
         return docs

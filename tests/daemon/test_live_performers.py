@@ -438,3 +438,47 @@ def test_performers_on_separate_inputs_and_the_unprefixed_labels(
     assert not vb.frames  # the ZeroMQ performer got none of the OSC frames
     doc = live.ctl({"cmd": "status"})["status"]["performers"]
     assert [d["frames_out"] for d in doc] == [len(va.frames), 0]
+
+
+def test_two_performers_each_with_its_validator_and_face(
+    start_daemon: Callable[..., Live],
+    udp_socket: Callable[..., socket.socket],
+    exact_calibration: Path,
+) -> None:
+    # [validate] runs one live validator per performer (each its own MuJoCo model
+    # and thread); [face] is on for the performer that names a face config only.
+    va = VmcReceiver(udp_socket(bind=True, timeout_s=0.01))
+    vb = VmcReceiver(udp_socket(bind=True, timeout_s=0.01))
+    base = {"rig": str(EXACT_RIG), "calibration": str(exact_calibration)}
+    live = start_daemon(
+        {
+            "performer": [
+                {"name": "A", **base, "vmc": f"127.0.0.1:{va.port}", "face": "arkit52"},
+                {"name": "B", **base, "vmc": f"127.0.0.1:{vb.port}"},
+            ],
+            "validate": {"enabled": True},
+            "face": {"enabled": True},
+        }
+    )
+    assert sum("live validator on" in ln for ln in live.lines) == 2
+    src = OscSource(udp_socket(), live.udp("osc markers"))
+    take = _take()
+    src.label_set = LabelSet(
+        1, tuple(f"A:{n}" for n in take.labels) + tuple(f"B:{n}" for n in take.labels)
+    )
+    src.announce()
+    hold = take.markers_world[take.base_pose_frames]
+    for k in range(60):
+        src.send(np.concatenate([hold[k % len(hold)], hold[k % len(hold)] + B_OFFSET]))
+        time.sleep(0.004)
+    _pump_until([va, vb], lambda: len(va.frames) >= 30 and len(vb.frames) >= 30,
+                "both performers' frames")  # fmt: skip
+
+    def validated() -> list[int]:
+        docs = live.ctl({"cmd": "status"})["status"]["performers"]
+        return [d["validate"]["validated"] if d["validate"] else -1 for d in docs]
+
+    _wait_until(lambda: min(validated()) > 0, "both validators' results")
+    docs = live.ctl({"cmd": "status"})["status"]["performers"]
+    assert docs[0]["face"] is not None and docs[1]["face"] is None
+    assert docs[0]["validate"]["model"] == docs[1]["validate"]["model"]  # same body
