@@ -166,7 +166,11 @@ class Daemon(
         self._show_token_prefix = f"/{token}" if token else ""
         self._guards: list[CurveGuard] = []
         self._wake_ns = 0  # when the current wake-up began
-        self._catch_up_ns = int(config.loop.solve_budget_ms * 1e6)
+        # A wake-up solves the frames that arrived together while within the budget
+        # of their solves: a frame of N performers is N solves, each with the budget.
+        self._catch_up_ns = int(config.loop.solve_budget_ms * 1e6) * len(
+            self.performers
+        )
         # (t_ns, frames_in, frames_out) at the last stats line: fps over that window.
         self._window = (self._t0_ns, 0, 0)
         self.last_stats_line = ""
