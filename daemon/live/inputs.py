@@ -66,17 +66,26 @@ class InputsMixin(DaemonState):
         if zin:
             got = self._drain_zmq(every)
             if got and newest is not None and not every:
-                # Both inputs delivered in one wake-up: only the newer one is solved,
-                # so the other's newest frame is stale too (counted, never silent).
-                self.stats.stale += 1
-                self._flag_frames(pose_stream.FRAME_INPUT_DROPPED)
+                if self._multi:  # several performers: each input's own latest
+                    self._solve(newest, newest_ns)
+                    newest, newest_ns = None, 0
+                else:
+                    # Both inputs delivered in one wake-up: only the newer one is
+                    # solved, so the other's newest frame is stale too (counted,
+                    # never silent).
+                    self.stats.stale += 1
+                    self._flag_frames(pose_stream.FRAME_INPUT_DROPPED)
             if got and got >= newest_ns:
                 newest, newest_ns = self.zmq_stream, got
         if self._capture is not None:
             got = self._drain_capture(events, every)
             if got and newest is not None and not every:
-                self.stats.stale += 1  # two inputs in one wake-up, as above
-                self._flag_frames(pose_stream.FRAME_INPUT_DROPPED)
+                if self._multi:  # as above
+                    self._solve(newest, newest_ns)
+                    newest, newest_ns = None, 0
+                else:
+                    self.stats.stale += 1  # two inputs in one wake-up, as above
+                    self._flag_frames(pose_stream.FRAME_INPUT_DROPPED)
             if got and got >= newest_ns:
                 newest, newest_ns = self._capture.inp.stream, got
         if newest is not None and not every:

@@ -19,6 +19,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
+import live_harness as lh
 import numpy as np
 import pytest
 import zmq
@@ -38,8 +39,9 @@ from pythonosc.osc_message_builder import OscMessageBuilder
 
 from retargetd.daemon.cli.main import main as cli_main
 from retargetd.daemon.live.config import ConfigError, DaemonConfig
+from retargetd.daemon.live.loop import Daemon
 from retargetd.daemon.live.performer import StreamView, build_performers
-from retargetd.protocols import pose_stream
+from retargetd.protocols import osc_in, pose_stream, zmq_wire
 from retargetd.protocols.marker_input import LabelSet, MarkerStream
 
 pytestmark = pytest.mark.timeout(120)
@@ -482,3 +484,62 @@ def test_two_performers_each_with_its_validator_and_face(
     docs = live.ctl({"cmd": "status"})["status"]["performers"]
     assert docs[0]["face"] is not None and docs[1]["face"] is None
     assert docs[0]["validate"]["model"] == docs[1]["validate"]["model"]  # same body
+
+
+@pytest.mark.parametrize("several", [False, True])
+def test_behind_each_input_keeps_its_own_latest_with_several_performers(
+    exact_calibration: Path, several: bool
+) -> None:
+    # The loop behind (catch-up window 0: every accepted frame waits for the end of
+    # the wake-up, latest wins). An OSC and a ZeroMQ frame in one wake-up: with one
+    # performer only the newer is solved (the other is stale); with a performer per
+    # input each input's latest is its own performer's, so both are solved.
+    doc = lh._deep_merge(lh._ephemeral_doc(lh._unused_udp_port()), {})
+    base = {"rig": str(EXACT_RIG), "calibration": str(exact_calibration)}
+    if several:
+        doc["performer"] = [
+            {"name": "osc", "input": "osc", "prefix": "", **base,
+             "vmc": f"127.0.0.1:{lh._unused_udp_port()}"},
+            {"name": "zmq", "input": "zmq", "prefix": "", **base,
+             "vmc": f"127.0.0.1:{lh._unused_udp_port()}"},
+        ]  # fmt: skip
+    else:
+        doc["performer"] = base
+    d = Daemon(DaemonConfig.from_dict(doc, source="test"), out=lambda _line: None)
+    tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    push = zmq.Context.instance().socket(zmq.PUSH)
+    push.setsockopt(zmq.LINGER, 0)
+    try:
+        d.open()
+        host, port = d.endpoints["osc markers"].split()[0][6:].rsplit(":", 1)
+        push.connect(d.endpoints["zmq markers"].split()[0])
+        take = _take()
+        labels = LabelSet(1, take.labels)
+        tx.sendto(osc_in.encode_labels(labels), (host, int(port)))
+        push.send_multipart(zmq_wire.encode_zmq_labels(labels))
+        hold = take.markers_world[take.base_pose_frames]
+        d._catch_up_ns = 0
+        for k in range(3):
+            tx.sendto(
+                osc_in.encode_compact_frame(k, k / 100, 1, hold[k]), (host, int(port))
+            )
+            push.send_multipart(zmq_wire.encode_zmq_frame(k, k / 100, 1, hold[k]))
+            time.sleep(0.05)  # both waiting: one wake-up drains both inputs
+            deadline = time.monotonic() + 2.0
+            before = d.stats.frames_in
+            while d.stats.frames_in < before + 2:  # both frames, one or more wake-ups
+                assert time.monotonic() < deadline, "frames did not arrive"
+                events = d._poller.poll(20)
+                if events:
+                    d._service(events)
+        s = d.status()
+        c = s["counters"]
+        if several:
+            assert [p["frames_out"] for p in s["performers"]] == [3, 3]
+            assert c["stale"] == 0
+        else:  # (a frame late on a loaded machine gets a wake-up of its own)
+            assert c["stale"] >= 1 and c["frames_out"] + c["stale"] == 6, c
+    finally:
+        tx.close()
+        push.close()
+        d.close()
