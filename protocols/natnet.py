@@ -338,7 +338,10 @@ def _check_version(version: Version) -> None:
 
 
 def label_set_from_models(
-    models: ModelDefs, label_set_id: int, sets: Sequence[str] | None = None
+    models: ModelDefs,
+    label_set_id: int,
+    sets: Sequence[str] | None = None,
+    subjects: bool = False,
 ) -> LabelSet:
     """The label set of the marker sets in ``models``.
 
@@ -350,6 +353,8 @@ def label_set_from_models(
         models: decoded model definitions.
         label_set_id: the id to give the set (a new one whenever the names change).
         sets: the marker sets to use (all but ``all`` when None).
+        subjects: every label is ``<set>:<name>`` (the subject convention several
+            performers on one daemon split by; ``natnet://...?subjects=1``).
     """
     labels: list[str] = []
     taken: set[str] = set()
@@ -357,7 +362,7 @@ def label_set_from_models(
         prefix = set_name + "_"
         for name in names:
             label = name[len(prefix) :] if name.startswith(prefix) else name
-            if label in taken:
+            if subjects or label in taken:
                 label = f"{set_name}:{label}"
             taken.add(label)
             labels.append(label)
@@ -650,6 +655,7 @@ class NatNetSession:
 
     Args:
         sets: the marker sets to read (all but ``all`` when None).
+        subjects: label every marker ``<set>:<name>`` (:func:`label_set_from_models`).
         version: the bitstream version assumed until a server info says otherwise
             (replay of a recording that starts without one).
         out: where status lines go.
@@ -669,8 +675,10 @@ class NatNetSession:
         version: Version = Version(4, 1),
         out: Callable[[str], None] | None = None,
         where: str = "",
+        subjects: bool = False,
     ) -> None:
         self.sets = sets
+        self.subjects = subjects
         self.version = version
         self._say = out or logger.info
         self.where = where
@@ -715,7 +723,9 @@ class NatNetSession:
     def adopt_models(self, models: ModelDefs) -> None:
         """Build the decoder for ``models`` (a new label-set id when names change)."""
         self.counts["model_defs"] += 1
-        labels = label_set_from_models(models, self._next_label_id, self.sets)
+        labels = label_set_from_models(
+            models, self._next_label_id, self.sets, self.subjects
+        )
         if self.label_set is not None and labels.labels == self.label_set.labels:
             labels = self.label_set
         else:
@@ -750,6 +760,7 @@ class NatNetClient:
         group: the multicast group.
         local: the local interface address for the binds and the group join.
         sets: the marker sets to read (all but ``all`` when None).
+        subjects: label every marker ``<set>:<name>``.
         version: bitstream version asked for in ``NAT_CONNECT``.
         out: where status lines go.
 
@@ -768,13 +779,14 @@ class NatNetClient:
         group: str = DEFAULT_MULTICAST_GROUP,
         local: str = "0.0.0.0",
         sets: Sequence[str] | None = None,
+        subjects: bool = False,
         version: Version = Version(4, 1),
         out: Callable[[str], None] | None = None,
     ) -> None:
         self.server = (host, command_port)
         self.requested = version
         self._say = out or logger.info
-        self.session = NatNetSession(sets, version, self._say, host)
+        self.session = NatNetSession(sets, version, self._say, host, subjects)
         self.timeouts = 0
         self.cmd = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.cmd.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)
@@ -876,6 +888,7 @@ class NatNetOptions:
         multicast / group / local: transmission type, group, local interface.
         up_axis: Motive's streaming up axis (``+Y`` default).
         sets: the marker sets to read (None: all but ``all``).
+        subjects: label every marker ``<set>:<name>`` (``subjects=1``).
     """
 
     host: str
@@ -886,6 +899,7 @@ class NatNetOptions:
     local: str = "0.0.0.0"
     up_axis: str = "+Y"
     sets: tuple[str, ...] | None = None
+    subjects: bool = False
 
     def client(self, out: Callable[[str], None] | None = None) -> NatNetClient:
         """A client for these options."""
@@ -897,13 +911,14 @@ class NatNetOptions:
             group=self.group,
             local=self.local,
             sets=self.sets,
+            subjects=self.subjects,
             out=out,
         )
 
 
 def parse_natnet_url(url: str) -> NatNetOptions:
     """``natnet://HOST[:COMMAND_PORT][?data_port=N&multicast=1&group=G&local=A
-    &up=+Z&sets=A,B]`` -> options.
+    &up=+Z&sets=A,B&subjects=1]`` -> options.
 
     Raises:
         ValueError: naming the part that is wrong.
@@ -916,7 +931,7 @@ def parse_natnet_url(url: str) -> NatNetOptions:
     if parts.scheme != "natnet" or not parts.hostname:
         raise ValueError(f"expected natnet://HOST[:PORT][?...]; got {url!r}")
     query = {k: v[-1] for k, v in parse_qs(parts.query, strict_parsing=False).items()}
-    known = {"data_port", "multicast", "group", "local", "up", "sets"}
+    known = {"data_port", "multicast", "group", "local", "up", "sets", "subjects"}
     if set(query) - known:
         raise ValueError(f"unknown natnet:// option(s) {sorted(set(query) - known)}")
     try:
@@ -925,6 +940,7 @@ def parse_natnet_url(url: str) -> NatNetOptions:
     except ValueError as exc:
         raise ValueError(f"bad port in {url!r}: {exc}") from None
     multicast = query.get("multicast", "0").lower() in ("1", "true", "yes", "on")
+    subjects = query.get("subjects", "0").lower() in ("1", "true", "yes", "on")
     sets = tuple(query["sets"].split(",")) if query.get("sets") else None
     return NatNetOptions(
         parts.hostname,
@@ -935,6 +951,7 @@ def parse_natnet_url(url: str) -> NatNetOptions:
         query.get("local", "0.0.0.0"),
         normalize_up_axis(query.get("up", "+Y")),
         sets,
+        subjects,
     )
 
 
@@ -949,7 +966,7 @@ class NatNetInput:
         up_axis: Motive's streaming "Up Axis" (``"+Y"`` by default; the stream does
             not announce it).
         restart_gap_ns: see :class:`~retargetd.protocols.marker_input.FrameSequencer`.
-        sets / out: for the replay session (the client has its own).
+        sets / subjects / out: for the replay session (the client has its own).
 
     Attributes:
         stream: the :class:`MarkerStream` (``stream.current.frame`` is the last
@@ -964,6 +981,7 @@ class NatNetInput:
         restart_gap_ns: int | None = None,
         *,
         sets: Sequence[str] | None = None,
+        subjects: bool = False,
         out: Callable[[str], None] | None = None,
     ) -> None:
         from retargetd.protocols.marker_input import RESTART_GAP_NS, MarkerStream
@@ -972,7 +990,7 @@ class NatNetInput:
         self.session = (
             client.session
             if client is not None
-            else NatNetSession(sets, out=out, where="recording")
+            else NatNetSession(sets, out=out, where="recording", subjects=subjects)
         )
         self.stream = MarkerStream(
             None,

@@ -323,7 +323,7 @@ class InputConfig:
 
     # A capture system the daemon connects to itself, beside the OSC/ZeroMQ inputs:
     # "qtm://HOST[:PORT]" (Qualisys QTM, through qtm-rt) or "natnet://HOST[:PORT]
-    # [?data_port=N&multicast=1&group=G&local=A&up=+Z&sets=A,B]" (OptiTrack Motive);
+    # [?data_port=N&multicast=1&group=G&local=A&up=+Z&sets=A,B&subjects=1]" (Motive);
     # "" = none. README "Capture systems"; daemon/live/sources.py.
     source: str = _spec("", "capture_source")
     osc: OscInputConfig = field(default_factory=OscInputConfig)

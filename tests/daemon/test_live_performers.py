@@ -41,8 +41,9 @@ from retargetd.daemon.cli.main import main as cli_main
 from retargetd.daemon.live.config import ConfigError, DaemonConfig
 from retargetd.daemon.live.loop import Daemon
 from retargetd.daemon.live.performer import StreamView, build_performers
-from retargetd.protocols import osc_in, pose_stream, zmq_wire
+from retargetd.protocols import natnet, osc_in, pose_stream, zmq_wire
 from retargetd.protocols.marker_input import LabelSet, MarkerStream
+from retargetd.replay.recording import _capture_input
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -189,6 +190,39 @@ def test_stream_view_refresh_allocates_nothing(interleaved: bool) -> None:
     finally:
         tracemalloc.stop()
     assert now - start < 64 and peak - start < 840, (now - start, peak - start)
+
+
+def test_natnet_subjects_label_every_set_for_the_split() -> None:
+    # Motive's skeleton markers "A_LASI" in set "A": by default the first set's
+    # names stay plain ("LASI") and only later conflicting ones get "B:"; with
+    # subjects=1 every label is <set>:<name>, the prefixes [[performer]] split by.
+    models = natnet.ModelDefs(
+        natnet.Version(4, 1),
+        (("A", ("A_LASI", "A_RASI")), ("B", ("B_LASI", "B_HEAD")), ("all", ("x",))),
+    )
+    plain = natnet.label_set_from_models(models, 1).labels
+    assert plain == ("LASI", "RASI", "B:LASI", "HEAD")
+    subjects = natnet.label_set_from_models(models, 1, subjects=True).labels
+    assert subjects == ("A:LASI", "A:RASI", "B:LASI", "B:HEAD")
+    stream = MarkerStream(LabelSet(1, subjects))
+    views = [StreamView(stream, p, ("A:", "B:")) for p in ("A:", "B:")]
+    assert [v.refresh() and v.current.label_set.labels for v in views] == [
+        ("LASI", "RASI"),
+        ("LASI", "HEAD"),
+    ]
+    opts = natnet.parse_natnet_url(
+        "natnet://127.0.0.1?subjects=1&sets=A,B&local=127.0.0.1"
+    )
+    assert opts.subjects and opts.sets == ("A", "B")
+    client = opts.client()
+    try:
+        assert client.session.subjects
+    finally:
+        client.close()
+    assert not natnet.parse_natnet_url("natnet://10.0.0.2").subjects
+    # A recording made so is read back so (its source URL in the metadata).
+    inp = _capture_input("natnet", "+Y", "natnet://10.0.0.2?subjects=1")
+    assert inp.session.subjects and not _capture_input("natnet", "+Y").session.subjects
 
 
 # ---- the pose header's performer byte ----------------------------------------------
