@@ -625,6 +625,17 @@ def _check_performers(c: DaemonConfig, source: str) -> None:
         if p.name in names:
             raise ConfigError(f"{source}: {key}.name: {p.name!r} is taken")
         names.add(p.name)
+        enabled = {
+            "osc": c.input.osc.enabled,
+            "zmq": c.input.zmq.enabled,
+            "source": bool(c.input.source),
+        }
+        if p.input != "any" and not enabled[p.input]:
+            where = "input.source" if p.input == "source" else f"input.{p.input}"
+            raise ConfigError(
+                f"{source}: {key}.input: {p.input!r} is off ({where}): this "
+                "performer would never get a frame"
+            )
         inputs = PERFORMER_INPUTS[1:] if p.input == "any" else (p.input,)
         for inp in inputs:
             if (inp, p.prefix) in claims:

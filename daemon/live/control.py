@@ -143,7 +143,8 @@ class ControlMixin(DaemonState):
             path, poses, input_infos(self.config, self.endpoints), announcements,
             force=force,
         )  # fmt: skip
-        self._last_names_ns = 0  # the names message opens the recorded pose stream
+        for perf in self.performers:  # names messages open the recorded pose stream
+            perf.last_names_ns = 0
         return msg
 
     def _drain_show_control(self) -> None:

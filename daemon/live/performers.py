@@ -148,12 +148,12 @@ class PerformersMixin(DaemonState):
 
     @contextmanager
     def _acting_for(self, perf: Performer) -> Iterator[None]:
-        """Make ``perf`` the current performer (the first one again after)."""
-        self._perf = perf
+        """Make ``perf`` the current performer (the one before again after)."""
+        before, self._perf = self._perf, perf
         try:
             yield
         finally:
-            self._perf = self.performers[0]
+            self._perf = before
 
     # ---- control -----------------------------------------------------------------
 
