@@ -136,6 +136,16 @@ def test_each_performer_its_own_rig_face_and_destination(
     assert (one.name, one.prefix, one.face) == ("", "", None)
 
 
+def test_run_rig_and_calibration_flags_refused_with_performer_tables(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path = tmp_path / "two.toml"
+    path.write_text('[[performer]]\nname = "A"\n')
+    assert cli_main(["run", "--config", str(path), "--rig", "cmu41"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "[[performer]]" in err, err
+
+
 # ---- the label split ----------------------------------------------------------------
 
 
