@@ -373,6 +373,79 @@ def micro(take: Any, n: int, calls: int = 20_000) -> None:
     )
 
 
+def in_process(take: Any, n: int, calibration: Path, frames: int = 3000) -> None:
+    """The loop's own work per frame, in process (no scheduling between processes):
+    ``Daemon._solve`` of an OSC frame fed to the stream (the decode not timed):
+    every performer's solve, retarget, VMC and pose encode and send; 1 performer
+    ([performer]) against N ([[performer]]) in the same run, after 500 frames of
+    warm-up."""
+    from retargetd.daemon.live.config import DaemonConfig
+    from retargetd.daemon.live.loop import Daemon
+    from retargetd.protocols import osc_in
+    from retargetd.protocols.marker_input import LabelSet
+
+    figures = []
+    for count in (0, n):
+        if count == 0:
+            doc: dict[str, Any] = {
+                "performer": {"rig": "plug-in-gait", "calibration": str(calibration)}
+            }
+            labels, positions = take.labels, take.positions
+        else:
+            sinks = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(n)]
+            for sink in sinks:
+                sink.bind((LOCALHOST, 0))
+            doc = {"performer": [
+                {"name": f"P{k}", "rig": "plug-in-gait",
+                 "calibration": str(calibration),
+                 "vmc": f"{LOCALHOST}:{sinks[k].getsockname()[1]}"}
+                for k in range(n)
+            ]}  # fmt: skip
+            labels, positions = _stream(take, n)
+        doc.update(
+            {
+                "input": {"osc": {"port": 0}, "zmq": {"enabled": False}},
+                "output": {"pose": {"endpoint": f"tcp://{LOCALHOST}:*"}},
+                "control": {"endpoint": f"tcp://{LOCALHOST}:*"},
+                "show_control": {"enabled": False},
+            }
+        )
+        d = Daemon(DaemonConfig.from_dict(doc, source="bench"), out=lambda _: None)
+        try:
+            d.open()
+            stream = d.osc_stream
+            label_set = LabelSet(1, tuple(labels))
+            stream.set_labels(label_set)
+            d._prepare_views(stream, label_set)
+            packets = [
+                osc_in.encode_compact_frame(
+                    i, i / 240, 1, positions[i % len(positions)]
+                )
+                for i in range(frames)
+            ]
+            cost = np.zeros(frames, np.int64)
+            for i, packet in enumerate(packets):
+                t_ns = time.monotonic_ns()
+                stream.feed(osc_in.decode_compact_frame, packet, t_ns=t_ns)
+                t0 = time.perf_counter_ns()
+                d._solve(stream, t_ns)
+                cost[i] = time.perf_counter_ns() - t0
+        finally:
+            d.close()
+            if count:
+                for sink in sinks:
+                    sink.close()
+        us = cost[500:] / 1e3
+        figures.append((float(np.median(us)), float(np.percentile(us, 99))))
+    (m1, p1), (mn, pn) = figures
+    print(
+        f"in process, the loop's work per frame (solve, retarget, VMC + pose send of "
+        f"every performer), µs median / p99: 1 performer {m1:.0f} / {p1:.0f}, {n} "
+        f"performers {mn:.0f} / {pn:.0f} (ratio of medians {mn / m1:.2f}; the 240 Hz "
+        f"frame period is 4167 µs)"
+    )
+
+
 def _f(x: float) -> str:
     return "-" if not np.isfinite(x) else f"{x:.0f}"
 
@@ -409,6 +482,7 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory(prefix="bench_multi_") as tmp_name:
         tmp = Path(tmp_name)
         calibration = _calibrate(tmp)
+        in_process(take, n, calibration)
         stream = _stream(take, n)
         raw = summarize(
             run_case(ctx, "raw", args.rate, args, take, None, tmp, "body", stream)
