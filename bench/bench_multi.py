@@ -34,6 +34,11 @@ single-performer daemon (``[performer]``) on the plain walk runs too, for scale.
 Performers are solved in config order for each frame, so performer k's latency
 includes the solves of performers 0..k-1 of the same frame.
 
+In process first, for the figures the machine's scheduling does not blur: the label
+split per performer and frame (``StreamView.refresh``) against fancy indexing, a
+per-performer attribute read against a plain one, and the loop's own work per frame
+(``Daemon._solve``) with 1 performer against N.
+
 Speed is printed, never asserted (STYLE.md section 10).
 """
 
