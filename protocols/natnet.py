@@ -327,7 +327,10 @@ def _check_version(version: Version) -> None:
 
 
 def label_set_from_models(
-    models: ModelDefs, label_set_id: int, sets: Sequence[str] | None = None
+    models: ModelDefs,
+    label_set_id: int,
+    sets: Sequence[str] | None = None,
+    subjects: bool = False,
 ) -> LabelSet:
     """The label set of the marker sets in ``models``.
 
@@ -339,6 +342,8 @@ def label_set_from_models(
         models: decoded model definitions.
         label_set_id: the id to give the set (a new one whenever the names change).
         sets: the marker sets to use (all but ``all`` when None).
+        subjects: every label is ``<set>:<name>`` (the subject convention several
+            performers on one daemon split by; ``natnet://...?subjects=1``).
     """
     labels: list[str] = []
     taken: set[str] = set()
@@ -346,7 +351,7 @@ def label_set_from_models(
         prefix = set_name + "_"
         for name in names:
             label = name[len(prefix) :] if name.startswith(prefix) else name
-            if label in taken:
+            if subjects or label in taken:
                 label = f"{set_name}:{label}"
             taken.add(label)
             labels.append(label)
@@ -630,6 +635,7 @@ class NatNetSession:
 
     Args:
         sets: the marker sets to read (all but ``all`` when None).
+        subjects: label every marker ``<set>:<name>`` (:func:`label_set_from_models`).
         version: the bitstream version assumed until a server info says otherwise
             (replay of a recording that starts without one).
         out: where status lines go.
@@ -646,11 +652,13 @@ class NatNetSession:
     def __init__(
         self,
         sets: Sequence[str] | None = None,
-        version: Version = Version(4, 1),
+        version: Version = REQUESTED_VERSION,
         out: Callable[[str], None] | None = None,
         where: str = "",
+        subjects: bool = False,
     ) -> None:
         self.sets = sets
+        self.subjects = subjects
         self.version = version
         self._say = out or logger.info
         self.where = where
@@ -695,7 +703,9 @@ class NatNetSession:
     def adopt_models(self, models: ModelDefs) -> None:
         """Build the decoder for ``models`` (a new label-set id when names change)."""
         self.counts["model_defs"] += 1
-        labels = label_set_from_models(models, self._next_label_id, self.sets)
+        labels = label_set_from_models(
+            models, self._next_label_id, self.sets, self.subjects
+        )
         if self.label_set is not None and labels.labels == self.label_set.labels:
             labels = self.label_set
         else:

@@ -80,6 +80,7 @@ class NatNetClient:
         group: the multicast group.
         local: the local interface address for the binds and the group join.
         sets: the marker sets to read (all but ``all`` when None).
+        subjects: label every marker ``<set>:<name>``.
         version: bitstream version asked for in ``NAT_CONNECT``.
         out: where status lines go.
 
@@ -98,13 +99,14 @@ class NatNetClient:
         group: str = DEFAULT_MULTICAST_GROUP,
         local: str = "0.0.0.0",
         sets: Sequence[str] | None = None,
+        subjects: bool = False,
         version: Version = REQUESTED_VERSION,
         out: Callable[[str], None] | None = None,
     ) -> None:
         self.server = (host, command_port)
         self.requested = version
         self._say = out or logger.info
-        self.session = NatNetSession(sets, version, self._say, host)
+        self.session = NatNetSession(sets, version, self._say, host, subjects)
         self.timeouts = 0
         self.cmd = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.cmd.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)
@@ -206,6 +208,7 @@ class NatNetOptions:
         multicast / group / local: transmission type, group, local interface.
         up_axis: Motive's streaming up axis (``+Y`` default).
         sets: the marker sets to read (None: all but ``all``).
+        subjects: label every marker ``<set>:<name>`` (``subjects=1``).
     """
 
     host: str
@@ -216,6 +219,7 @@ class NatNetOptions:
     local: str = "0.0.0.0"
     up_axis: str = "+Y"
     sets: tuple[str, ...] | None = None
+    subjects: bool = False
 
     def client(self, out: Callable[[str], None] | None = None) -> NatNetClient:
         """A client for these options."""
@@ -227,13 +231,14 @@ class NatNetOptions:
             group=self.group,
             local=self.local,
             sets=self.sets,
+            subjects=self.subjects,
             out=out,
         )
 
 
 def parse_natnet_url(url: str) -> NatNetOptions:
     """``natnet://HOST[:COMMAND_PORT][?data_port=N&multicast=1&group=G&local=A
-    &up=+Z&sets=A,B]`` -> options.
+    &up=+Z&sets=A,B&subjects=1]`` -> options.
 
     Raises:
         ValueError: naming the part that is wrong.
@@ -246,7 +251,7 @@ def parse_natnet_url(url: str) -> NatNetOptions:
     if parts.scheme != "natnet" or not parts.hostname:
         raise ValueError(f"expected natnet://HOST[:PORT][?...]; got {url!r}")
     query = {k: v[-1] for k, v in parse_qs(parts.query, strict_parsing=False).items()}
-    known = {"data_port", "multicast", "group", "local", "up", "sets"}
+    known = {"data_port", "multicast", "group", "local", "up", "sets", "subjects"}
     if set(query) - known:
         raise ValueError(f"unknown natnet:// option(s) {sorted(set(query) - known)}")
     try:
@@ -255,6 +260,7 @@ def parse_natnet_url(url: str) -> NatNetOptions:
     except ValueError as exc:
         raise ValueError(f"bad port in {url!r}: {exc}") from None
     multicast = query.get("multicast", "0").lower() in ("1", "true", "yes", "on")
+    subjects = query.get("subjects", "0").lower() in ("1", "true", "yes", "on")
     sets = tuple(query["sets"].split(",")) if query.get("sets") else None
     return NatNetOptions(
         parts.hostname,
@@ -265,6 +271,7 @@ def parse_natnet_url(url: str) -> NatNetOptions:
         query.get("local", "0.0.0.0"),
         normalize_up_axis(query.get("up", "+Y")),
         sets,
+        subjects,
     )
 
 
@@ -279,7 +286,7 @@ class NatNetInput:
         up_axis: Motive's streaming "Up Axis" (``"+Y"`` by default; the stream does
             not announce it).
         restart_gap_ns: see :class:`~retargetd.protocols.marker_input.FrameSequencer`.
-        sets / out: for the replay session (the client has its own).
+        sets / subjects / out: for the replay session (the client has its own).
 
     Attributes:
         stream: the :class:`MarkerStream` (``stream.current.frame`` is the last
@@ -294,6 +301,7 @@ class NatNetInput:
         restart_gap_ns: int | None = None,
         *,
         sets: Sequence[str] | None = None,
+        subjects: bool = False,
         out: Callable[[str], None] | None = None,
     ) -> None:
         from retargetd.protocols.marker_input import RESTART_GAP_NS, MarkerStream
@@ -302,7 +310,7 @@ class NatNetInput:
         self.session = (
             client.session
             if client is not None
-            else NatNetSession(sets, out=out, where="recording")
+            else NatNetSession(sets, out=out, where="recording", subjects=subjects)
         )
         self.stream = MarkerStream(
             None,

@@ -6,7 +6,8 @@ Data message, two parts:
 
 - header, 68 bytes ``<4sHHqdqqqIHH3f``: magic ``RTDP``, version 2, names id uint16,
   frame number int64, source time float64 s (NaN = unknown), received / solved / sent
-  ``time.monotonic_ns()`` of this host (int64), frame flags uint32, n_bones uint16,
+  ``time.monotonic_ns()`` of this host (int64), frame flags uint32 (bits 16-23, byte
+  50: the performer id, 0 with one performer), n_bones uint16,
   n_weights uint16, root position float32 x 3 (metres, world);
 - body: world_from_bone float32 (B, 4) (w, x, y, z); parent_from_bone float32 (B, 4),
   the rotation relative to the parent bone (the world for the root), so
@@ -65,6 +66,12 @@ NAMES_HEADER = struct.Struct("<4sHH")  # 8 bytes
 FACE_HEADER = struct.Struct("<HHI7f")  # 36 bytes, then (M, 3) float32
 VALIDATION_HEADER = struct.Struct("<4sHHqqqIHH")  # 40 bytes
 SENT_NS_OFFSET = 40
+#: The performer id: byte 50 of the header, bits 16-23 of the uint32 at offset 48
+#: (reserved before several performers shared a stream; 0 with one performer).
+PERFORMER_OFFSET = 50
+PERFORMER_SHIFT = 16
+PERFORMER_MASK = 0x00FF_0000
+MAX_PERFORMERS = 256
 _SENT_NS = struct.Struct("<q")
 _LE_F32 = np.dtype("<f4")
 
@@ -154,6 +161,8 @@ class PoseEncoder:
         names_id: the id of the names message describing these bones (0-65535).
         n_face_markers: stabilized facial markers in the face part; None = no face
             part (two-part messages).
+        performer: the performer id written at byte 50 (0-255; 0 with one
+            performer).
 
     Attributes:
         parts: ``[header, body]`` (``[header, body, face]`` with a face) memoryviews,
@@ -166,7 +175,14 @@ class PoseEncoder:
         n_weights: int,
         names_id: int = 0,
         n_face_markers: int | None = None,
+        performer: int = 0,
     ) -> None:
+        if not 0 <= performer < MAX_PERFORMERS:
+            raise ValueError(
+                f"performer must be in [0, {MAX_PERFORMERS - 1}]; got {performer}"
+            )
+        self.performer = performer
+        self._performer_bits = performer << PERFORMER_SHIFT
         if not (0 <= n_bones <= 0xFFFF and 0 <= n_weights <= 0xFFFF):
             raise ValueError(
                 "n_bones and n_weights must be in [0, 65535]; "
@@ -234,7 +250,8 @@ class PoseEncoder:
         """
         HEADER.pack_into(
             self._header, 0, DATA_MAGIC, DATA_VERSION, self.names_id, frame_id,
-            source_time_s, received_ns, solved_ns, 0, flags, self.n_bones,
+            source_time_s, received_ns, solved_ns, 0,
+            (flags & ~PERFORMER_MASK) | self._performer_bits, self.n_bones,
             self.n_weights,
             root_pos_world[0], root_pos_world[1], root_pos_world[2],
         )  # fmt: skip
@@ -286,6 +303,7 @@ class PoseMessage:
         weights: (n_weights,) float32.
         bone_flags: (n_bones,) uint8.
         names_id: the names message these bones are described by.
+        performer: the performer id (byte 50; 0 with one performer).
         face_flags: face flag bits (``FACE_*``); 0 without a face part.
         world_from_head_quat: (4,) float32 (w, x, y, z), or None without a face.
         head_pos_world: (3,) float32 metres, or None without a face.
@@ -306,6 +324,7 @@ class PoseMessage:
     weights: F32Array
     bone_flags: U8Array
     names_id: int = 0
+    performer: int = 0
     face_flags: int = 0
     world_from_head_quat: F32Array | None = None
     head_pos_world: F32Array | None = None
@@ -342,7 +361,7 @@ def decode_pose(parts: Sequence[bytes | bytearray | memoryview]) -> PoseMessage:
         received_ns=received,
         solved_ns=solved,
         sent_ns=sent,
-        flags=flags,
+        flags=flags & ~PERFORMER_MASK,
         root_pos_world=np.array([x, y, z], dtype=np.float32),
         world_from_bone_quat=np.frombuffer(data, _LE_F32, 4 * b, 0)
         .reshape(b, 4)
@@ -356,6 +375,7 @@ def decode_pose(parts: Sequence[bytes | bytearray | memoryview]) -> PoseMessage:
         weights=np.frombuffer(data, _LE_F32, k, 48 * b).copy(),
         bone_flags=np.frombuffer(data, np.uint8, b, 48 * b + 4 * k).copy(),
         names_id=names_id,
+        performer=(flags & PERFORMER_MASK) >> PERFORMER_SHIFT,
         **face,
     )
 
@@ -389,6 +409,9 @@ class PoseNames:
         names_id: echoed in every data message these names describe (0-65535).
         face_markers: the face part's stabilized marker names, in order (empty
             without a face).
+        performer: the performer's name ("" with one performer: then the JSON
+            has no ``performer`` keys).
+        performer_id: its id, as at byte 50 of the data header.
     """
 
     rig: str
@@ -397,6 +420,8 @@ class PoseNames:
     weight_names: tuple[str, ...]
     names_id: int = 0
     face_markers: tuple[str, ...] = ()
+    performer: str = ""
+    performer_id: int = 0
 
     def __post_init__(self) -> None:
         n = len(self.bone_names)
@@ -429,6 +454,9 @@ def encode_pose_names(names: PoseNames) -> list[bytes]:
         "face_markers": list(names.face_markers),
         "face_flag_bits": FACE_FLAG_BITS,
     }
+    if names.performer:  # several performers share the stream
+        doc["performer"] = names.performer
+        doc["performer_id"] = names.performer_id
     body = json.dumps(doc, separators=(",", ":"), ensure_ascii=False).encode()
     return [NAMES_HEADER.pack(NAMES_MAGIC, VERSION, names.names_id), body]
 
@@ -469,6 +497,10 @@ def decode_pose_names(parts: Sequence[bytes | bytearray | memoryview]) -> PoseNa
     ):
         raise DecodeError("bad_json", "'parents' must be a list of integers")
     has_face = "face_markers" in doc
+    performer = doc.get("performer", "")
+    performer_id = doc.get("performer_id", 0)
+    if not isinstance(performer, str) or type(performer_id) is not int:
+        raise DecodeError("bad_json", "'performer' must be a string, its id an int")
     try:
         return PoseNames(
             rig=doc["rig"],
@@ -477,6 +509,8 @@ def decode_pose_names(parts: Sequence[bytes | bytearray | memoryview]) -> PoseNa
             weight_names=_str_list(doc, "weights"),
             names_id=names_id,
             face_markers=_str_list(doc, "face_markers") if has_face else (),
+            performer=performer,
+            performer_id=performer_id,
         )
     except ValueError as exc:
         if isinstance(exc, DecodeError):

@@ -24,6 +24,7 @@ decodes a recording's marker packets with the live decoders into a
 
 from __future__ import annotations
 
+import contextlib
 import io
 import json
 import logging
@@ -469,7 +470,9 @@ def _read_mcap_take(
     # A capture system's packets (Motive, QTM) go through the live input, control
     # packets included: it converts to world metres itself (NatNet's up axis is not
     # in the stream: the recording's declared one, or the override).
-    capture = _capture_input(form_name, up_axis or declared.get("up", "+Y"))
+    capture = _capture_input(
+        form_name, up_axis or declared.get("up", "+Y"), declared.get("endpoint", "")
+    )
     for p in rec.packets():
         if p.input != input_name:
             continue
@@ -546,15 +549,23 @@ def _read_mcap_take(
     )
 
 
-def _capture_input(form_name: str, up_axis: str) -> Any:
+def _capture_input(form_name: str, up_axis: str, endpoint: str = "") -> Any:
     """The live input of a capture system's recording (``natnet``, ``qtm``), fed the
-    recorded packets socket-free; None for the other forms."""
+    recorded packets socket-free; None for the other forms. A NatNet recording's
+    source URL (``endpoint``) gives the marker sets and the labelling it was read
+    with (``sets``, ``subjects``)."""
     if form_name == "natnet":
         from retargetd.protocols.conventions import normalize_up_axis
 
+        sets, subjects = None, False
+        if endpoint.startswith("natnet://"):
+            with contextlib.suppress(ValueError):  # a URL of another version
+                opts = natnet_client.parse_natnet_url(endpoint)
+                sets, subjects = opts.sets, opts.subjects
         return natnet_client.NatNetInput(
-            None, normalize_up_axis(up_axis), out=logger.info
-        )
+            None, normalize_up_axis(up_axis), sets=sets, subjects=subjects,
+            out=logger.info,
+        )  # fmt: skip
     if form_name == "qtm":
         return qtm.QtmInput(None, out=logger.info)
     return None

@@ -1,14 +1,19 @@
-"""``retargetd ctl [--endpoint E] status [--json] | calibrate [--count N] | reload |
+"""``retargetd ctl [--endpoint E] status [--json] |
+calibrate [--count N] [--performer NAME] | reload |
 record start FILE.mcap [--no-poses] [--force] | record stop |
-face-capture NAME [--count N]``.
+face-capture NAME [--count N] [--performer NAME]``.
 
 Talks to a running daemon over its local control socket (ZeroMQ REQ/REP, JSON
 requests ``{"cmd": "status"}``, ``{"cmd": "calibrate", "count": N}``,
 ``{"cmd": "reload"}``, ``{"cmd": "record", "action": "start", "path": FILE,
 "poses": true}``, ``{"cmd": "record", "action": "stop"}``,
-``{"cmd": "face-capture", "name": NAME, "count": N}``). ``record start`` makes the
-daemon record every marker packet it receives, its pose stream (unless
-``--no-poses``) and control events to a new MCAP file, in the format of
+``{"cmd": "face-capture", "name": NAME, "count": N}``; calibrate and face-capture
+take ``"performer": NAME``). With several performers (``[[performer]]`` in the
+daemon's config) ``calibrate`` and ``face-capture`` act for the one ``--performer``
+names (it may be left out when there is one); an unknown name is refused, the reply
+naming the daemon's performers; ``status`` lists every performer.
+``record start`` makes the daemon record every marker packet it receives, its pose
+stream (unless ``--no-poses``) and control events to a new MCAP file, in the format of
 ``retargetd record`` (``retargetd replay`` plays it back); FILE must not exist yet and
 lies under the daemon's recordings folder (``record.folder``, default ``recordings/``
 in the daemon's working directory): a relative FILE is taken inside that folder, an
@@ -67,6 +72,11 @@ def add_parser(subparsers: Any) -> None:
     status.add_argument("--json", action="store_true", help="the full JSON document")
     cal = sub.add_parser("calibrate", help="calibrate live on the next N frames")
     cal.add_argument("--count", type=int, default=None, metavar="N")
+    cal.add_argument(
+        "--performer",
+        metavar="NAME",
+        help="the performer to calibrate (several performers: [[performer]] name)",
+    )
     sub.add_parser("reload", help="reload the rig and calibration files")
     rec = sub.add_parser("record", help="record inside the daemon: start FILE | stop")
     rec_sub = rec.add_subparsers(dest="record_action", metavar="ACTION", required=True)
@@ -88,6 +98,7 @@ def add_parser(subparsers: Any) -> None:
     )
     face.add_argument("name", metavar="NAME", help="neutral or an expression name")
     face.add_argument("--count", type=int, default=None, metavar="N")
+    face.add_argument("--performer", metavar="NAME", help="whose face")
     parser.set_defaults(run=run)
 
 
@@ -137,6 +148,8 @@ def run(args: argparse.Namespace) -> int:
     req: dict[str, Any] = {"cmd": args.ctl_command}
     if counted and args.count is not None:
         req["count"] = args.count
+    if counted and args.performer is not None:
+        req["performer"] = args.performer
     if args.ctl_command == "face-capture":
         req["name"] = args.name
     if args.ctl_command == "record":

@@ -56,6 +56,12 @@ def load_config(args: argparse.Namespace) -> Any:
     except ConfigError as exc:
         raise UsageError(str(exc)) from None
     performer = config.performer
+    if config.performers and (getattr(args, "rig", None) or
+                              getattr(args, "calibration", None)):  # fmt: skip
+        raise UsageError(
+            "--rig and --calibration set [performer]'s; with [[performer]] tables "
+            "give each performer its rig and calibration in the config"
+        )
     if getattr(args, "rig", None):
         performer = dataclasses.replace(performer, rig=args.rig)
     if getattr(args, "calibration", None):

@@ -28,8 +28,8 @@ from retargetd.daemon.live.config import (
     DaemonConfig,
     check_pipeline,
 )
+from retargetd.daemon.live.performer import FrameSource
 from retargetd.daemon.live.state import DaemonState
-from retargetd.protocols.marker_input import MarkerStream
 
 logger = logging.getLogger(__name__)
 
@@ -50,7 +50,7 @@ class CalibrationMixin(DaemonState):
                 pending calibration, if any, goes on untouched.
         """
         if count is None:
-            n = self.config.performer.calibrate_frames
+            n = self._perf.config.calibrate_frames
         elif type(count) is not int or not 3 <= count <= CALIBRATE_MAX_FRAMES:
             raise ValueError(
                 f"count must be an integer in [3, {CALIBRATE_MAX_FRAMES}]; "
@@ -75,7 +75,7 @@ class CalibrationMixin(DaemonState):
         logger.info("calibration requested (%s): averaging %d frames", by, n)
         return f"calibrating over the next {n} frames: hold the base pose"
 
-    def _collect_calibration_frame(self, stream: MarkerStream) -> None:
+    def _collect_calibration_frame(self, stream: FrameSource) -> None:
         labels = stream.current.label_set.labels
         if self._calib_labels and labels != self._calib_labels:
             self._calib_frames = []  # the marker layout changed: start again
@@ -95,7 +95,7 @@ class CalibrationMixin(DaemonState):
         ``performer.calibrate_timeout_s`` (nothing changes; one line says so)."""
         if not self._calib_target:
             return
-        timeout_s = self.config.performer.calibrate_timeout_s
+        timeout_s = self._perf.config.calibrate_timeout_s
         if now_ns - self._calib_last_ns < int(timeout_s * 1e9):
             return
         got, wanted = len(self._calib_frames), self._calib_target
@@ -109,9 +109,9 @@ class CalibrationMixin(DaemonState):
         )
         self._calib_message = msg
         self.recording.event("calibration_expired", collected=got, count=wanted)
-        self.out(msg)
+        self.out(self._named(msg))
 
-    def _collect_face_frame(self, stream: MarkerStream) -> None:
+    def _collect_face_frame(self, stream: FrameSource) -> None:
         assert self.face is not None
         labels = stream.current.label_set.labels
         done = self.face.collect(stream.current.frame.markers_world, labels)
@@ -124,11 +124,11 @@ class CalibrationMixin(DaemonState):
             self.stats.face_captures += 1
             self._pipelines.clear()
             self._labels_of.clear()
-            for s in (self.osc_stream, self.zmq_stream):
+            for s in self._own_streams():
                 if s.current.label_set.labels == labels:
                     self._pipeline(s)
         self.recording.event("face_capture", ok=ok, message=msg)
-        self.out(msg)
+        self.out(self._named(msg))
 
     def request_face_capture(
         self, name: str, count: int | None = None, by: str = ""
@@ -147,7 +147,7 @@ class CalibrationMixin(DaemonState):
         self._calib_target = 0
         self._calib_frames = []
         self._calib_times = []
-        limit = self.config.performer.calibrate_max_speed_m_s
+        limit = self._perf.config.calibrate_max_speed_m_s
         speeds = marker_drift_speeds_m_s(
             frames, _window_times_s(times, self.config.validate.rate_hz)
         )
@@ -163,7 +163,7 @@ class CalibrationMixin(DaemonState):
             self.stats.calibrations_refused += 1
             self._calib_message = msg
             self.recording.event("calibration_refused", message=msg)
-            self.out(msg)
+            self.out(self._named(msg))
             return
         try:
             cal = calibrate(
@@ -177,21 +177,19 @@ class CalibrationMixin(DaemonState):
             logger.warning("live calibration failed: %s", exc)
             self.recording.event("calibration_failed", error=str(exc))
             self._calib_message = f"calibration failed: {exc}"
-            self.out(self._calib_message)
+            self.out(self._named(self._calib_message))
             return
         # Atomic: the loop thread is the only reader; the next frame uses the new one,
         # with its pipeline built now rather than on the next frame.
         self.calibration = cal
         self._pipelines.clear()
         self._labels_of.clear()
-        for stream in (self.osc_stream, self.zmq_stream):
+        for stream in self._own_streams():
             if stream.current.label_set.labels == labels:
                 self._pipeline(stream)
         self._start_validator()
         self.stats.calibrations += 1
-        path = (
-            self.config.performer.save_calibration or self.config.performer.calibration
-        )
+        path = self._perf.config.save_calibration or self._perf.config.calibration
         self.recording.event(
             "calibrated", frames=int(frames.shape[0]), by=self._calib_requested_by,
             path=path or "",
@@ -205,7 +203,11 @@ class CalibrationMixin(DaemonState):
         else:
             msg = f"calibrated on {frames.shape[0]} frames (not saved: no path)"
         self._calib_message = msg
-        self.out(msg)
+        self.out(self._named(msg))
+
+    def _named(self, msg: str) -> str:
+        """A calibration line, naming the performer when there are several."""
+        return f"{self._perf.name}: {msg}" if self._perf.name else msg
 
     def reload(self) -> str:
         """Reload the rig file, the calibration file and the config file's
@@ -221,11 +223,25 @@ class CalibrationMixin(DaemonState):
             raise ValueError(
                 f"rate limited: one reload per {self.config.control.min_interval_s:g} s"
             )
+        if len(self.performers) == 1:
+            return self._reload_performer()
+        first = self.performers[0]
+        msgs = []
         try:
-            rig = load_rig(self.config.performer.rig)
+            for perf in self.performers:  # each its own rig and calibration
+                self._perf = perf
+                msgs.append(f"{perf.name}: {self._reload_performer()}")
+        finally:
+            self._perf = first
+        return "; ".join(msgs)
+
+    def _reload_performer(self) -> str:
+        """Reload the current performer's rig and calibration files."""
+        try:
+            rig = load_rig(self._perf.config.rig)
             cal = (
-                load_calibration(self.config.performer.calibration)
-                if self.config.performer.calibration
+                load_calibration(self._perf.config.calibration)
+                if self._perf.config.calibration
                 else self.calibration
             )
             if cal is not None:

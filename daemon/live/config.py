@@ -33,8 +33,9 @@ from __future__ import annotations
 import difflib
 import ipaddress
 import math
+import re
 import tomllib
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
@@ -53,6 +54,7 @@ from retargetd.daemon.post.pipeline import KINDS, build_pipeline
 from retargetd.protocols.conventions import normalize_units, normalize_up_axis
 from retargetd.protocols.marker_input import MAX_MARKERS, MAX_MESSAGE_BYTES, MAX_RATE_HZ
 from retargetd.protocols.natnet_client import parse_natnet_url
+from retargetd.protocols.pose_stream import MAX_PERFORMERS
 from retargetd.protocols.qtm import parse_qtm_url
 
 LOCALHOST = "127.0.0.1"
@@ -112,6 +114,33 @@ class PerformerConfig:
     # default is the marker input's restart gap: a source silent that long is a new
     # session, protocols/marker_input.py RESTART_GAP_NS).
     calibrate_timeout_s: float = _between(1.0, 0.05, 60.0)
+
+
+#: The inputs a ``[[performer]]`` may be tied to (``input``): any, or one of them.
+PERFORMER_INPUTS = ("any", "osc", "zmq", "source")
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class NamedPerformerConfig(PerformerConfig):
+    """One of several performers on one daemon (a ``[[performer]]`` table): the
+    keys of ``[performer]`` plus who it is, which markers are its own and where its
+    avatar goes (README "Several performers")."""
+
+    # Unique; ``ctl calibrate --performer NAME``, status and the pose stream name it.
+    name: str = _spec("", "performer_name")
+    # Its markers: the labels starting with this (stripped before the solve). Left
+    # out, NAME + ":" (the C3D / Vicon subject convention "NAME:LASI"); "" = the
+    # labels no other performer's prefix claims (e.g. a NatNet stream's first set).
+    prefix: str = _spec("", "prefix")
+    # The input its frames come from ("any", "osc", "zmq" or "source").
+    input: str = _one_of("any", *PERFORMER_INPUTS)
+    # Its VMC destination "HOST:PORT" (VMC is one avatar per port); "" = the
+    # [output.vmc] host and port (one performer at most).
+    vmc: str = _spec("", "host_port")
+    # Its face config (a preset or a face TOML) when [face] is on; "" = no face.
+    face: str = _spec("", "performer_face")
+    # Its face training set (face.npz; live captures are saved over it).
+    face_training: str = _spec("", "training")
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -304,7 +333,7 @@ class InputConfig:
 
     # A capture system the daemon connects to itself, beside the OSC/ZeroMQ inputs:
     # "qtm://HOST[:PORT]" (Qualisys QTM, through qtm-rt) or "natnet://HOST[:PORT]
-    # [?data_port=N&multicast=1&group=G&local=A&up=+Z&sets=A,B]" (OptiTrack Motive);
+    # [?data_port=N&multicast=1&group=G&local=A&up=+Z&sets=A,B&subjects=1]" (Motive);
     # "" = none. README "Capture systems"; daemon/live/sources.py.
     source: str = _spec("", "capture_source")
     osc: OscInputConfig = field(default_factory=OscInputConfig)
@@ -338,6 +367,10 @@ class DaemonConfig:
     # [[pipeline]] post stages between the body solve and the target mapping, in the
     # order listed (README "Post stages"): tables with ``kind`` and its keys.
     pipeline: tuple[dict[str, Any], ...] = _spec((), "pipeline")
+    # The [[performer]] tables (empty: one performer, [performer]). Read from the
+    # TOML key ``performer`` when it is an array of tables; ``performer`` is then
+    # the first of them.
+    performers: tuple[NamedPerformerConfig, ...] = _spec((), "performer_list")
 
     @classmethod
     def from_toml(cls, path: str | Path) -> DaemonConfig:
@@ -362,8 +395,21 @@ class DaemonConfig:
     @classmethod
     def from_dict(cls, doc: dict[str, Any], *, source: str = "config") -> DaemonConfig:
         """Build from a parsed document. Raises ConfigError naming the key."""
+        if "performers" in doc:
+            raise ConfigError(
+                f"{source}: performers: unknown key (several performers are "
+                "[[performer]] tables)"
+            )
+        entries = doc.get("performer")
+        performers: tuple[NamedPerformerConfig, ...] = ()
+        if isinstance(entries, list):
+            performers = _build_performers(entries, source)
+            doc = {k: v for k, v in doc.items() if k != "performer"}
         config = _build(cls, doc, "", source)
+        if performers:
+            config = replace(config, performer=performers[0], performers=performers)
         _check(config, source)
+        _check_performers(config, source)
         return config
 
 
@@ -561,8 +607,124 @@ def _apply_rule(check: str, meta: Any, value: Any) -> None:
     elif check == "public_keys":
         for path in value:
             load_public_key(path)
+    elif check == "performer_name":
+        if not _NAME_RE.fullmatch(value):
+            raise ValueError(
+                "expected a name of letters, digits, '_', '-' or '.' (1-64); "
+                f"got {value!r}"
+            )
+    elif check == "prefix":
+        if any(c in value for c in "\0\n") or len(value) > 64:
+            raise ValueError(
+                f"expected a label prefix of <= 64 characters; got {value!r}"
+            )
+    elif check == "host_port":
+        if value:
+            parse_host_port(value)
+    elif check == "performer_face":
+        if value:
+            try:
+                load_face_config(value)
+            except FaceConfigError as exc:
+                raise ValueError(str(exc)) from None
     elif check:  # pragma: no cover
         raise AssertionError(f"unknown config rule {check!r}")
+
+
+_NAME_RE = re.compile(r"[A-Za-z0-9_.-]{1,64}")
+
+
+def parse_host_port(value: str) -> tuple[str, int]:
+    """``"HOST:PORT"`` (an IP address and a port 1-65535) as ``(host, port)``.
+
+    Raises:
+        ValueError: anything else (the message shows the value).
+    """
+    host, sep, port = value.rpartition(":")
+    if not sep or not port.isdigit() or not 1 <= int(port) <= 65535:
+        raise ValueError(f"expected HOST:PORT (port 1-65535); got {value!r}")
+    _check_host(host)
+    return host, int(port)
+
+
+def _build_performers(
+    entries: list[Any], source: str
+) -> tuple[NamedPerformerConfig, ...]:
+    """The ``[[performer]]`` tables, each checked like ``[performer]``; ``prefix``
+    left out is NAME + ":"."""
+    if not entries:
+        raise ConfigError(f"{source}: performer: expected at least one [[performer]]")
+    out = []
+    for i, entry in enumerate(entries):
+        key = f"performer[{i}]"
+        if not isinstance(entry, dict):
+            raise ConfigError(f"{source}: {key}: expected a table; got {entry!r}")
+        perf = _build(NamedPerformerConfig, entry, f"{key}.", source)
+        if "name" not in entry:
+            raise ConfigError(f"{source}: {key}.name: every [[performer]] needs a name")
+        if "prefix" not in entry:
+            perf = replace(perf, prefix=f"{perf.name}:")
+        out.append(perf)
+    return tuple(out)
+
+
+def _check_performers(c: DaemonConfig, source: str) -> None:
+    """Across ``[[performer]]`` tables: distinct names, prefixes (per input) and VMC
+    destinations."""
+    if len(c.performers) > MAX_PERFORMERS:
+        raise ConfigError(
+            f"{source}: performer: at most {MAX_PERFORMERS} performers (the pose "
+            f"stream's performer id is one byte); got {len(c.performers)}"
+        )
+    names: set[str] = set()
+    claims: set[tuple[str, str]] = set()
+    destinations: dict[tuple[str, int], str] = {}
+    default_vmc = (c.output.vmc.host, c.output.vmc.port)
+    for i, p in enumerate(c.performers):
+        key = f"performer[{i}]"
+        if p.name in names:
+            raise ConfigError(f"{source}: {key}.name: {p.name!r} is taken")
+        names.add(p.name)
+        enabled = {
+            "osc": c.input.osc.enabled,
+            "zmq": c.input.zmq.enabled,
+            "source": bool(c.input.source),
+        }
+        if p.input != "any" and not enabled[p.input]:
+            where = "input.source" if p.input == "source" else f"input.{p.input}"
+            raise ConfigError(
+                f"{source}: {key}.input: {p.input!r} is off ({where}): this "
+                "performer would never get a frame"
+            )
+        inputs = PERFORMER_INPUTS[1:] if p.input == "any" else (p.input,)
+        for inp in inputs:
+            if (inp, p.prefix) in claims:
+                raise ConfigError(
+                    f"{source}: {key}.prefix: {p.prefix!r} on input {inp} is "
+                    "another performer's (each performer's markers are its own)"
+                )
+            claims.add((inp, p.prefix))
+        if c.output.vmc.enabled:
+            dest = parse_host_port(p.vmc) if p.vmc else default_vmc
+            if dest in destinations:
+                raise ConfigError(
+                    f"{source}: {key}.vmc: {dest[0]}:{dest[1]} is performer "
+                    f"{destinations[dest]!r}'s too: VMC is one avatar per port, give "
+                    'each performer its own vmc = "HOST:PORT"'
+                )
+            destinations[dest] = p.name
+            target = ipaddress.ip_address(dest[0])
+            if p.vmc and target.is_unspecified:
+                raise ConfigError(
+                    f"{source}: {key}.vmc: expected a receiver's address; got {p.vmc}"
+                )
+            broadcast = target.is_multicast or dest[0] == "255.255.255.255"
+            if broadcast and not c.output.vmc.allow_broadcast:
+                raise ConfigError(
+                    f"{source}: {key}.vmc: {dest[0]} is a broadcast/multicast "
+                    "address: VMC goes to one receiver unless output.vmc."
+                    "allow_broadcast = true"
+                )
 
 
 def _number(x: float) -> str:

@@ -72,7 +72,7 @@ class ControlMixin(DaemonState):
             req = json.loads(parts[0])
             if not isinstance(req, dict):
                 raise ValueError("request must be a JSON object")
-            reply = self._control(req)
+            reply = self._control_for(req)  # the performer it names, if any
         except RecursionError:  # nesting deeper than the parser's stack
             reply = {"ok": False, "error": "request nested too deeply"}
         except (ValueError, TypeError) as exc:
@@ -94,7 +94,7 @@ class ControlMixin(DaemonState):
             if not self.config.control.reload:
                 raise ValueError("reload is off on this path (control.reload)")
             msg = self.reload()
-            return {"ok": not msg.startswith("reload failed"), "message": msg}
+            return {"ok": "reload failed" not in msg, "message": msg}
         if cmd == "record":
             return {"ok": True, "message": self._record_control(req)}
         if cmd == "face-capture":
@@ -143,7 +143,8 @@ class ControlMixin(DaemonState):
             path, poses, input_infos(self.config, self.endpoints), announcements,
             force=force, rig=self.rig,
         )  # fmt: skip
-        self._last_names_ns = 0  # the names message opens the recorded pose stream
+        for perf in self.performers:  # names messages open the recorded pose stream
+            perf.last_names_ns = 0
         return msg
 
     def _drain_show_control(self) -> None:
@@ -199,16 +200,19 @@ class ControlMixin(DaemonState):
                 self._show_refused("calibrate_off", f"{address}: off", addr)
                 return
             count = None
+            performer = None
             if address == "/rtd/calibrate" and args:
-                # One int32 count; anything else (a string, -5, a bool, more
-                # arguments) is refused, never taken as "the default count".
-                if len(args) != 1 or type(args[0]) is not int:
+                # [performer name string,] one int32 count; anything else (-5, a
+                # bool, more arguments) is refused, never taken as "the default".
+                if isinstance(args[0], str):
+                    performer, args = args[0], args[1:]
+                if len(args) > 1 or (args and type(args[0]) is not int):
                     self._show_refused(
-                        "bad_argument", f"{address}: expected one integer count; "
-                        f"got {args!r}"[:200], addr,
+                        "bad_argument", f"{address}: expected [a performer name,] "
+                        f"one integer count; got {args!r}"[:200], addr,
                     )  # fmt: skip
                     return
-                count = args[0]
+                count = args[0] if args else None
             elif address == "/VMC/Ext/Set/Calib/Exec" and (
                 len(args) > 1 or (args and type(args[0]) is not int)
             ):
@@ -219,7 +223,7 @@ class ControlMixin(DaemonState):
                 )  # fmt: skip
                 return
             try:
-                msg = self.request_calibration(count, by)
+                msg = self.calibrate_performer(performer, count, by)
             except ValueError as exc:
                 limited = str(exc).startswith("rate")
                 reason = "rate_limited" if limited else "bad_argument"

@@ -66,21 +66,30 @@ class InputsMixin(DaemonState):
         if zin:
             got = self._drain_zmq(every)
             if got and newest is not None and not every:
-                # Both inputs delivered in one wake-up: only the newer one is solved,
-                # so the other's newest frame is stale too (counted, never silent).
-                self.stats.stale += 1
-                self._frame_flags |= pose_stream.FRAME_INPUT_DROPPED
+                if self._multi:  # several performers: each input's own latest
+                    self._solve(newest, newest_ns)
+                    newest, newest_ns = None, 0
+                else:
+                    # Both inputs delivered in one wake-up: only the newer one is
+                    # solved, so the other's newest frame is stale too (counted,
+                    # never silent).
+                    self.stats.stale += 1
+                    self._flag_frames(pose_stream.FRAME_INPUT_DROPPED)
             if got and got >= newest_ns:
                 newest, newest_ns = self.zmq_stream, got
         if self._capture is not None:
             got = self._drain_capture(events, every)
             if got and newest is not None and not every:
-                self.stats.stale += 1  # two inputs in one wake-up, as above
-                self._frame_flags |= pose_stream.FRAME_INPUT_DROPPED
+                if self._multi:  # as above
+                    self._solve(newest, newest_ns)
+                    newest, newest_ns = None, 0
+                else:
+                    self.stats.stale += 1  # two inputs in one wake-up, as above
+                    self._flag_frames(pose_stream.FRAME_INPUT_DROPPED)
             if got and got >= newest_ns:
                 newest, newest_ns = self._capture.inp.stream, got
         if newest is not None and not every:
-            self._solve_and_send(newest, newest_ns)
+            self._solve(newest, newest_ns)
         if zmon:
             self._drain_zmq_monitor()
         if show:
@@ -114,22 +123,14 @@ class InputsMixin(DaemonState):
         stream.current.frame.t_ns = t_ns
         if code == RESTART:
             self.stats.restarts += 1
-            self._frame_flags |= pose_stream.FRAME_RESTARTED
-            pipe = self._pipelines.get(id(stream))
-            if pipe is not None:
-                pipe.solver.reset()
-                pipe.vmc.reset_continuity()
-                if pipe.face is not None:
-                    pipe.face.solver.reset()
-        if self._calib_target:
-            self._collect_calibration_frame(stream)
-        if self.face is not None and self.face.capturing:
-            self._collect_face_frame(stream)
+            self._flag_frames(pose_stream.FRAME_RESTARTED)
+            self._restart_pipelines(stream)
+        self._collect(stream)  # live calibrations and face captures
         # Solve at once while this wake-up is within the budget (frames that merely
         # arrived together are all solved); past it the loop is behind, and the
         # latest frame wins: this one waits and is dropped if a newer one comes.
         if every or time.monotonic_ns() - self._wake_ns < self._catch_up_ns:
-            self._solve_and_send(stream, t_ns)
+            self._solve(stream, t_ns)  # every performer on this input
             return 0
         return t_ns
 
@@ -174,7 +175,7 @@ class InputsMixin(DaemonState):
             if got:
                 if newest:  # a newer frame supersedes the unsolved one: stale
                     self.stats.stale += 1
-                    self._frame_flags |= pose_stream.FRAME_INPUT_DROPPED
+                    self._flag_frames(pose_stream.FRAME_INPUT_DROPPED)
                 newest = got
         return newest
 
@@ -229,7 +230,7 @@ class InputsMixin(DaemonState):
             if got:
                 if newest:  # a newer frame supersedes the unsolved one: stale
                     self.stats.stale += 1
-                    self._frame_flags |= pose_stream.FRAME_INPUT_DROPPED
+                    self._flag_frames(pose_stream.FRAME_INPUT_DROPPED)
                 newest = got
         return newest
 
@@ -260,6 +261,7 @@ class InputsMixin(DaemonState):
         self.stats.labels_in += 1
         before = stream.counters.counts.copy()  # announcements are rare: not hot
         stream.set_labels(label_set, t_ns)
+        self._prepare_views(stream, label_set)  # performers' columns, built now
         after = stream.counters
         if after["conflicting_labels"] > before[_CONFLICTING]:
             self._log_limited(

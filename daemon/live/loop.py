@@ -48,17 +48,16 @@ from typing import Any
 import numpy as np
 import zmq
 
-from retargetd.daemon.body.calibration import Calibration, load_calibration
-from retargetd.daemon.body.rig import Rig, load_rig
 from retargetd.daemon.body.solve_fit import warm_up as warm_up_fit
 from retargetd.daemon.live.calibrate import CalibrationMixin
 from retargetd.daemon.live.config import DaemonConfig, check_pipeline
 from retargetd.daemon.live.console_feed import ConsoleFeed
 from retargetd.daemon.live.console_feed import dispatch as dispatch_console
 from retargetd.daemon.live.control import CONTROL_MAX_BYTES, ControlMixin
-from retargetd.daemon.live.face import LiveFace
 from retargetd.daemon.live.face import warm_up as warm_up_face
 from retargetd.daemon.live.inputs import InputsMixin
+from retargetd.daemon.live.performer import build_performers
+from retargetd.daemon.live.performers import PerformersMixin
 from retargetd.daemon.live.ratelog import RateLimitedLog, RateLimiter
 from retargetd.daemon.live.recording import (
     FORM_OSC,
@@ -66,7 +65,6 @@ from retargetd.daemon.live.recording import (
 )
 from retargetd.daemon.live.send import SendMixin
 from retargetd.daemon.live.sources import CaptureMixin
-from retargetd.daemon.live.state import Pipeline
 from retargetd.daemon.live.stats import LoopStats
 from retargetd.daemon.live.status import StatusMixin
 from retargetd.daemon.live.surface import (
@@ -83,7 +81,6 @@ from retargetd.daemon.target.retarget import (
 )
 from retargetd.daemon.validate.live import LiveValidator
 from retargetd.protocols import kernels as protocol_kernels
-from retargetd.protocols import pose_stream
 from retargetd.protocols.marker_input import LabelSet, MarkerStream
 from retargetd.protocols.vmc_out import VmcEncoder
 
@@ -93,9 +90,16 @@ _UDP_MAX = 65536
 
 
 class Daemon(
-    InputsMixin, CaptureMixin, SendMixin, CalibrationMixin, StatusMixin, ControlMixin
+    InputsMixin,
+    CaptureMixin,
+    SendMixin,
+    CalibrationMixin,
+    StatusMixin,
+    ControlMixin,
+    PerformersMixin,
 ):
-    """The live daemon (one performer). ``open()``, then ``run(should_exit)``.
+    """The live daemon (one performer, or several: ``[[performer]]``). ``open()``,
+    then ``run(should_exit)``.
 
     Args:
         config: validated configuration.
@@ -117,11 +121,13 @@ class Daemon(
         self.config_path = config_path  # re-read by reload for [[pipeline]]
         self.out = out or (lambda line: print(line, flush=True))
         self.stats = LoopStats()
-        self.rig: Rig = load_rig(config.performer.rig)
-        check_pipeline(config.pipeline, self.rig)  # the rig after any --rig
-        self.calibration: Calibration | None = None
-        if config.performer.calibration:
-            self.calibration = load_calibration(config.performer.calibration)
+        # Each performer's rig, calibration, face, VMC destination... (performer.py);
+        # the attributes of one (self.rig, self.calibration ...) are the current's.
+        self.performers = build_performers(config)
+        for perf in self.performers:  # each performer's rig, after any --rig
+            check_pipeline(config.pipeline, perf.rig)
+        self._perf = self.performers[0]
+        self._multi = bool(config.performers)
         self.target = _load_target(config)
         self._ctx: Any = zmq.Context.instance()
         self._poller = zmq.Poller()
@@ -155,10 +161,7 @@ class Daemon(
             zero_is_occluded=zmq_cfg.zero_is_occluded,
         )
         self._log_after_ns: dict[str, int] = {}  # rate-limited log lines, by key
-        self._pipelines: dict[int, Pipeline] = {}  # id(MarkerStream) -> pipeline
-        self._labels_of: dict[int, tuple[str, ...]] = {}
         self._names_id = 0
-        self._last_names_ns = 0
         self._t0_ns = time.monotonic_ns()
         self._buf = bytearray(_UDP_MAX)
         # ZeroMQ input parts, received in place: header (a frame's or a label set's
@@ -169,41 +172,28 @@ class Daemon(
         self._zview_header = memoryview(self._zbuf_header)
         self._zview_payload = memoryview(self._zbuf_payload)
         self._allow = frozenset(osc_cfg.allow)
-        self._calib_target = 0  # frames still wanted by a live calibration
-        self._calib_frames: list[np.ndarray] = []
-        self._calib_labels: tuple[str, ...] = ()
-        self._calib_requested_by = ""
-        self._calib_times: list[tuple[float, int, int]] = []
-        self._calib_last_ns = 0
-        self._calib_message = ""
-        self._calibrate_limit = RateLimiter(config.control.min_interval_s)
         self._reload_limit = RateLimiter(config.control.min_interval_s)
         self._log = RateLimitedLog(self.out, config.loop.log_interval_s)
         self._show_counters: dict[str, int] = {}
         token = config.show_control.token
         self._show_token_prefix = f"/{token}" if token else ""
         self._guards: list[CurveGuard] = []
-        self._frame_flags = 0  # restarted / input dropped since the last pose sent
         self._wake_ns = 0  # when the current wake-up began
-        self._catch_up_ns = int(config.loop.solve_budget_ms * 1e6)
+        # A wake-up solves the frames that arrived together while within the budget
+        # of their solves: a frame of N performers is N solves, each with the budget.
+        self._catch_up_ns = int(config.loop.solve_budget_ms * 1e6) * len(
+            self.performers
+        )
         # (t_ns, frames_in, frames_out) at the last stats line: fps over that window.
         self._window = (self._t0_ns, 0, 0)
         self.last_stats_line = ""
         self.endpoints: dict[str, str] = {}
         self.recording = LiveRecording()
         self._osc_form = FORM_OSC[osc_cfg.form]
-        self.face: LiveFace | None = None
-        if config.face.enabled:
-            self.face = LiveFace(config.face, self.rig.marker_names)
-        self.validator: Any = None  # LiveValidator when [validate] is on
-        self._validation_bits = 0  # frame bits of the latest validation result
-        self._validation_bones: np.ndarray | None = None  # its bone bits
-        self._validation_enc: pose_stream.ValidationEncoder | None = None  # RTDV
-        self._validation_results: list[Any] = []  # sized when the validator starts
         self._vmc_state = VmcEncoder(())  # the state datagram (no bones needed)
-        self._next_vmc_state_ns = 0
         self._last_frame_ns = 0
-        self.console: ConsoleFeed | None = (
+        # The console shows the first performer (its buttons act for that one).
+        self.console = (
             ConsoleFeed(config.console, self.out) if config.console.enabled else None
         )
 
@@ -296,29 +286,41 @@ class Daemon(
             self._vmc.setblocking(False)
             if vmc.allow_broadcast:  # without it the kernel refuses broadcast sends
                 self._vmc.setsockopt(socket.SOL_SOCKET, socket.SO_BROADCAST, 1)
-            self._vmc_addr = (vmc.host, vmc.port)
             kind = "broadcast allowed" if vmc.allow_broadcast else "unicast"
-            self._announce(
-                "vmc out",
-                f"udp://{vmc.host}:{vmc.port} (plain OSC, {kind}; readable by "
-                f"{'this machine' if is_loopback_host(vmc.host) else vmc.host} "
-                "and the network path to it)",
-            )
+            for perf in self.performers:  # one avatar per destination
+                host, port = perf.vmc_addr
+                self._announce(
+                    f"vmc out {perf.name}" if perf.name else "vmc out",
+                    f"udp://{host}:{port} (plain OSC, {kind}; readable by "
+                    f"{'this machine' if is_loopback_host(host) else host} "
+                    "and the network path to it)",
+                )
         if self.console is not None:
             url = self.console.start(self.rig)
             self._announce("console", f"{url} (browser; buttons act like ctl)")
         self._warm_up()
-        self._start_validator()
+        for perf in self.performers:
+            with self._acting_for(perf):
+                self._start_validator()
         # Everything built so far lives as long as the daemon: keep it out of the
         # garbage collector's full passes (one took ~50 ms here, holding the GIL).
         gc.collect()
         gc.freeze()
-        if self.calibration is None:
-            self.out(
-                "no calibration loaded: streaming starts after 'retargetd ctl "
-                "calibrate' (or /VMC/Ext/Set/Calib/Exec) with the performer in the "
-                "base pose"
-            )
+        for perf in self.performers:
+            if perf.calibration is not None:
+                continue
+            if not perf.name:
+                self.out(
+                    "no calibration loaded: streaming starts after 'retargetd ctl "
+                    "calibrate' (or /VMC/Ext/Set/Calib/Exec) with the performer in "
+                    "the base pose"
+                )
+            else:
+                self.out(
+                    f"performer {perf.name}: no calibration loaded: its streaming "
+                    f"starts after 'retargetd ctl calibrate --performer {perf.name}' "
+                    f'(or /rtd/calibrate "{perf.name}") with it in the base pose'
+                )
 
     def _warm_up(self) -> None:
         """Load the compiled kernel and run every stage once before the first frame
@@ -393,8 +395,8 @@ class Daemon(
 
     def _announce(self, what: str, where: str) -> None:
         self.endpoints[what] = where
-        self.out(f"listening on {where}: {what}" if what != "vmc out" else
-                 f"sending to {where}: {what}")  # fmt: skip
+        self.out(f"listening on {where}: {what}" if not what.startswith("vmc out")
+                 else f"sending to {where}: {what}")  # fmt: skip
 
     def _udp_bind(self, host: str, port: int) -> socket.socket:
         sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -417,9 +419,10 @@ class Daemon(
         self._close_capture()
         if self.console is not None:
             self.console.stop()
-        if self.validator is not None:
-            self.validator.close()
-            self.validator = None
+        for perf in self.performers:
+            if perf.validator is not None:
+                perf.validator.close()
+                perf.validator = None
         for sock in self._sockets:
             with contextlib.suppress(KeyError):
                 self._poller.unregister(sock)
@@ -448,8 +451,8 @@ class Daemon(
                 cmd = self.console.commands.poll()  # nothing allocated when empty
                 if cmd is not None:
                     dispatch_console(self, cmd)
-            self._calibration_tick(now)
-            self._send_vmc_state(now)
+            self._each_performer(self._calibration_tick, now)
+            self._each_performer(self._send_vmc_state, now)
             self._log.flush(now)
             if now >= next_stats:
                 self.last_stats_line = self.stats_line()

@@ -15,6 +15,7 @@ import numpy as np
 import zmq
 
 from retargetd.daemon.body.method import make_body_solver
+from retargetd.daemon.live.performer import FrameSource
 from retargetd.daemon.live.state import DaemonState, Pipeline
 from retargetd.daemon.post.pipeline import build_pipeline
 from retargetd.daemon.post.solve_post import SolvePost
@@ -24,7 +25,6 @@ from retargetd.daemon.target.retarget import (
 from retargetd.daemon.validate.limits import JOINT_LIMITS_DEG
 from retargetd.daemon.validate.model import SEGMENT_KIND
 from retargetd.protocols import engine_unity, pose_stream
-from retargetd.protocols.marker_input import MarkerStream
 from retargetd.protocols.vmc_out import (
     CALIBRATION_CALIBRATING,
     CALIBRATION_WAITING,
@@ -42,7 +42,7 @@ class SendMixin(DaemonState):
     one frame.
     """
 
-    def _pipeline(self, stream: MarkerStream) -> Pipeline | None:
+    def _pipeline(self, stream: FrameSource) -> Pipeline | None:
         if self.calibration is None:
             return None
         labels = stream.current.label_set.labels
@@ -98,6 +98,8 @@ class SendMixin(DaemonState):
             weight_names=weight_names,
             names_id=self._names_id,
             face_markers=face_markers,
+            performer=self._perf.name,
+            performer_id=self._perf.index,
         )
         return Pipeline(
             solver=solver,
@@ -115,6 +117,7 @@ class SendMixin(DaemonState):
                 len(weight_names),
                 names_id=self._names_id,
                 n_face_markers=len(face_markers) if face is not None else None,
+                performer=self._perf.index,
             ),
             names_parts=pose_stream.encode_pose_names(names_msg),
             weights=face.weights if face is not None else np.zeros(0),
@@ -141,7 +144,7 @@ class SendMixin(DaemonState):
         self.stats.set_post_stages(post.stage_names)
         return post
 
-    def _solve_and_send(self, stream: MarkerStream, received_ns: int) -> None:
+    def _solve_and_send(self, stream: FrameSource, received_ns: int) -> None:
         # The clock starts before the pipeline lookup: a pipeline built here (the
         # first frame after a new label set) shows its cost in this frame's solve
         # stage and overrun check, not hidden before it.

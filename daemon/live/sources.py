@@ -292,7 +292,7 @@ class CaptureMixin(DaemonState):
                     if newest:  # a newer frame supersedes the unsolved one: stale
                         self.stats.stale += 1
                         superseded += 1
-                        self._frame_flags |= pose_stream.FRAME_INPUT_DROPPED
+                        self._flag_frames(pose_stream.FRAME_INPUT_DROPPED)
                     newest = got
         if frames > FLOOD_FRAMES:
             self._flood(
@@ -347,14 +347,18 @@ class CaptureMixin(DaemonState):
         cap.labels_seen = stream.label_set
         if stream.label_set is None:
             return
-        known = set(self.rig.marker_names)
+        known = {  # every performer's markers, as the stream names them
+            p.prefix + m for p in self.performers for m in p.rig.marker_names
+        }
         unknown = tuple(lb for lb in stream.label_set.labels if lb not in known)
         if unknown and unknown != cap.unknown_labels:
             cap.counts["unknown_label_sets"] += 1
             shown = ", ".join(unknown[:8]) + (" ..." if len(unknown) > 8 else "")
             self.out(
                 f"{cap.system}: {len(unknown)} of {len(stream.label_set.labels)} "
-                f"labels are not markers of rig {self.rig.name} (ignored): {shown}"
+                f"labels are not markers of rig "
+                f"{', '.join(sorted({p.rig.name for p in self.performers}))} "
+                f"(ignored): {shown}"
             )
         cap.unknown_labels = unknown
 
@@ -389,12 +393,20 @@ class CaptureMixin(DaemonState):
             )
         if cap.lost and now >= cap.next_hold_ns:
             cap.next_hold_ns = now + HOLD_RESEND_NS
-            self._resend_held(cap, now)
+            for perf in self.performers:  # each performer's last pose
+                key = id(cap.last_stream)
+                view = perf.views.get(key)
+                self._perf = perf
+                try:
+                    self._resend_held(cap, now, key if view is None else id(view))
+                finally:
+                    self._perf = self.performers[0]
 
-    def _resend_held(self, cap: CaptureInput, now_ns: int) -> None:
-        """The last pose message sent again (its encoder's buffers still hold it),
-        flagged held and source_lost, with a new sent time."""
-        pipe = self._pipelines.get(id(cap.last_stream))
+    def _resend_held(self, cap: CaptureInput, now_ns: int, key: int) -> None:
+        """The current performer's last pose message on the pipeline ``key`` sent
+        again (its encoder's buffers still hold it), flagged held and source_lost,
+        with a new sent time."""
+        pipe = self._pipelines.get(key)
         if pipe is None:
             return
         if self._vmc is not None:

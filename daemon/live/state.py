@@ -1,14 +1,22 @@
 """The state every part of the live loop shares: the attributes of
 :class:`~retargetd.daemon.live.loop.Daemon`, declared once for the mixins that
 implement its parts (inputs, send, calibrate, status, control), and the per-stream
-:class:`Pipeline`. The loop thread is the only one that touches any of it."""
+:class:`Pipeline`. The loop thread is the only one that touches any of it.
+
+The attributes of one performer (rig, calibration, face, pipelines, live
+calibration, VMC destination...) are :class:`OfPerformer` descriptors: they read
+and write the *current* performer (``_perf``, a
+:class:`~retargetd.daemon.live.performer.Performer`), which is the first one except
+while the loop works for another (``performers.py`` switches it around a solve, a
+calibration frame or a control command and back). With one performer every part
+reads exactly what it read before there were several."""
 
 from __future__ import annotations
 
 import socket
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Generic, TypeVar, overload
 
 import numpy as np
 import zmq
@@ -19,6 +27,7 @@ from retargetd.daemon.body.solve import BodySolver
 from retargetd.daemon.body.solve_fit import FitSolver
 from retargetd.daemon.live.config import DaemonConfig
 from retargetd.daemon.live.face import FaceStage, LiveFace
+from retargetd.daemon.live.performer import FrameSource, Performer
 from retargetd.daemon.live.ratelog import RateLimitedLog, RateLimiter
 from retargetd.daemon.live.recording import LiveRecording
 from retargetd.daemon.live.stats import LoopStats
@@ -52,6 +61,37 @@ class Pipeline:
     post: SolvePost | None = None  # the [[pipeline]] stages (None: none configured)
 
 
+T = TypeVar("T")
+
+
+class OfPerformer(Generic[T]):
+    """An attribute of the current performer: ``daemon.rig`` is
+    ``daemon._perf.rig`` (a leading ``_`` dropped: ``_pipelines`` is
+    ``pipelines``)."""
+
+    __slots__ = ("_attr",)
+
+    def __init__(self) -> None:
+        self._attr = ""
+
+    def __set_name__(self, owner: type, name: str) -> None:
+        self._attr = name.lstrip("_")
+
+    @overload
+    def __get__(self, obj: None, owner: type | None = None) -> OfPerformer[T]: ...
+
+    @overload
+    def __get__(self, obj: object, owner: type | None = None) -> T: ...
+
+    def __get__(self, obj: object, owner: type | None = None) -> Any:
+        if obj is None:
+            return self
+        return getattr(obj._perf, self._attr)  # type: ignore[attr-defined]
+
+    def __set__(self, obj: object, value: T) -> None:
+        setattr(obj._perf, self._attr, value)  # type: ignore[attr-defined]
+
+
 class DaemonState:
     """Attribute declarations of the daemon (set in ``Daemon.__init__``/``open``)."""
 
@@ -59,14 +99,41 @@ class DaemonState:
     config_path: Any  # str | Path | None: the config file (reload re-reads it)
     out: Callable[[str], None]
     stats: LoopStats
-    rig: Rig
-    calibration: Calibration | None
+    performers: list[Performer]  # one, or one per [[performer]] table
+    _perf: Performer  # the current performer (see the module docstring)
+    _multi: bool  # [[performer]] tables: views, per-performer status
+    # Of the current performer:
+    rig: OfPerformer[Rig] = OfPerformer()
+    calibration: OfPerformer[Calibration | None] = OfPerformer()
+    face: OfPerformer[LiveFace | None] = OfPerformer()
+    validator: OfPerformer[Any] = OfPerformer()
+    # live.console_feed.ConsoleFeed when [console] is on (the first performer's)
+    console: OfPerformer[Any] = OfPerformer()
+    _pipelines: OfPerformer[dict[int, Pipeline]] = OfPerformer()
+    _labels_of: OfPerformer[dict[int, tuple[str, ...]]] = OfPerformer()
+    _last_names_ns: OfPerformer[int] = OfPerformer()
+    _frame_flags: OfPerformer[int] = OfPerformer()  # set for all: _flag_frames
+    _vmc_addr: OfPerformer[tuple[str, int]] = OfPerformer()
+    _next_vmc_state_ns: OfPerformer[int] = OfPerformer()
+    _calib_target: OfPerformer[int] = OfPerformer()  # frames still wanted
+    _calib_frames: OfPerformer[list[np.ndarray]] = OfPerformer()
+    _calib_labels: OfPerformer[tuple[str, ...]] = OfPerformer()
+    _calib_requested_by: OfPerformer[str] = OfPerformer()
+    # (source time s, frame id, t_ns)
+    _calib_times: OfPerformer[list[tuple[float, int, int]]] = OfPerformer()
+    # the request or the last collected frame (timeout)
+    _calib_last_ns: OfPerformer[int] = OfPerformer()
+    # how the last calibration ended ("" = none yet)
+    _calib_message: OfPerformer[str] = OfPerformer()
+    _calibrate_limit: OfPerformer[RateLimiter] = OfPerformer()
+    _validation_bits: OfPerformer[int] = OfPerformer()
+    _validation_bones: OfPerformer[np.ndarray | None] = OfPerformer()
+    _validation_enc: OfPerformer[pose_stream.ValidationEncoder | None] = OfPerformer()
+    # reused by LiveValidator.drain_results
+    _validation_results: OfPerformer[list[Any]] = OfPerformer()
     target: Any
     endpoints: dict[str, str]
     recording: LiveRecording
-    face: LiveFace | None
-    validator: Any
-    console: Any  # live.console_feed.ConsoleFeed when [console] is on
     last_stats_line: str
     osc_stream: MarkerStream
     zmq_stream: MarkerStream
@@ -76,15 +143,11 @@ class DaemonState:
     _osc: socket.socket | None
     _show: socket.socket | None
     _vmc: socket.socket | None
-    _vmc_addr: tuple[str, int]
     _zin: zmq.Socket[bytes] | None
     _zmon: zmq.Socket[bytes] | None
     _pub: zmq.Socket[bytes] | None
     _ctl: zmq.Socket[bytes] | None
-    _pipelines: dict[int, Pipeline]
-    _labels_of: dict[int, tuple[str, ...]]
     _names_id: int
-    _last_names_ns: int
     _t0_ns: int
     _buf: bytearray
     _zbuf_header: bytearray
@@ -93,30 +156,16 @@ class DaemonState:
     _zview_header: memoryview
     _zview_payload: memoryview
     _allow: frozenset[str]
-    _calib_target: int
-    _calib_frames: list[np.ndarray]
-    _calib_labels: tuple[str, ...]
-    _calib_requested_by: str
-    _calib_times: list[tuple[float, int, int]]  # (source time s, frame id, t_ns)
-    _calib_last_ns: int  # the request or the last collected frame (timeout)
-    _calib_message: str  # how the last calibration ended ("" = none yet)
-    _calibrate_limit: RateLimiter
     _reload_limit: RateLimiter
     _log: RateLimitedLog
     _show_counters: dict[str, int]  # show-control messages refused, by reason
     _show_token_prefix: str  # "/TOKEN" when show_control.token is set, else ""
     _guards: list[CurveGuard]
-    _frame_flags: int
     _wake_ns: int
     _catch_up_ns: int
     _window: tuple[int, int, int]
     _osc_form: int
-    _validation_bits: int
-    _validation_bones: np.ndarray | None
-    _validation_enc: pose_stream.ValidationEncoder | None
-    _validation_results: list[Any]  # reused by LiveValidator.drain_results
     _vmc_state: VmcEncoder  # the /VMC/Ext/OK state datagram (not calibrated yet)
-    _next_vmc_state_ns: int
     _last_frame_ns: int
     _log_after_ns: dict[str, int]
     _capture: Any  # sources.CaptureInput when [input] source is set
@@ -135,10 +184,10 @@ class DaemonState:
     def _start_validator(self) -> None:  # Daemon
         raise NotImplementedError
 
-    def _solve_and_send(self, stream: MarkerStream, received_ns: int) -> None:  # send
+    def _solve_and_send(self, stream: FrameSource, received_ns: int) -> None:  # send
         raise NotImplementedError
 
-    def _pipeline(self, stream: MarkerStream) -> Pipeline | None:  # send
+    def _pipeline(self, stream: FrameSource) -> Pipeline | None:  # send
         raise NotImplementedError
 
     def _drain_show_control(self) -> None:  # control
@@ -147,13 +196,13 @@ class DaemonState:
     def _serve_control(self) -> None:  # control
         raise NotImplementedError
 
-    def _collect_calibration_frame(self, stream: MarkerStream) -> None:  # calibrate
+    def _collect_calibration_frame(self, stream: FrameSource) -> None:  # calibrate
         raise NotImplementedError
 
-    def _collect_face_frame(self, stream: MarkerStream) -> None:  # calibrate
+    def _collect_face_frame(self, stream: FrameSource) -> None:  # calibrate
         raise NotImplementedError
 
-    def request_calibration(self, count: int | None = None, by: str = "") -> str:
+    def request_calibration(self, count: object = None, by: str = "") -> str:
         raise NotImplementedError  # calibrate
 
     def request_face_capture(
@@ -162,6 +211,52 @@ class DaemonState:
         raise NotImplementedError  # calibrate
 
     def _record_control(self, req: dict[str, Any]) -> str:  # control
+        raise NotImplementedError
+
+    def _control(self, req: dict[str, Any]) -> dict[str, Any]:  # control
+        raise NotImplementedError
+
+    def _occluded_and_held(self) -> tuple[list[str], list[str]]:  # status
+        raise NotImplementedError
+
+    def _calibration_tick(self, now_ns: int) -> None:  # calibrate
+        raise NotImplementedError
+
+    # performers.PerformersMixin
+    def _solve(self, stream: MarkerStream, t_ns: int) -> None:
+        raise NotImplementedError
+
+    def _collect(self, stream: MarkerStream) -> None:
+        raise NotImplementedError
+
+    def _restart_pipelines(self, stream: MarkerStream) -> None:
+        raise NotImplementedError
+
+    def _flag_frames(self, bits: int) -> None:
+        raise NotImplementedError
+
+    def _prepare_views(self, stream: MarkerStream, label_set: Any) -> None:
+        raise NotImplementedError
+
+    def _own_streams(self) -> list[FrameSource]:
+        raise NotImplementedError
+
+    def _each_performer(self, fn: Callable[[int], None], now_ns: int) -> None:
+        raise NotImplementedError
+
+    def performer_named(self, name: object) -> Performer:
+        raise NotImplementedError
+
+    def _control_for(self, req: dict[str, Any]) -> dict[str, Any]:
+        raise NotImplementedError
+
+    def calibrate_performer(self, name: object, count: object, by: str) -> str:
+        raise NotImplementedError
+
+    def performers_status(self) -> list[dict[str, Any]]:
+        raise NotImplementedError
+
+    def performers_line(self, docs: list[dict[str, Any]]) -> str:
         raise NotImplementedError
 
     def reload(self) -> str:  # calibrate

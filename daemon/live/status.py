@@ -31,28 +31,15 @@ class StatusMixin(DaemonState):
             for k, (p50, p99) in self.stats.latency_us().items()
         }
         up_s = (time.monotonic_ns() - self._t0_ns) * 1e-9
-        pipe = next(iter(self._pipelines.values()), None)
-        occluded: list[str] = []
-        flagged: list[str] = []
-        if pipe is not None:
-            seen = getattr(pipe.solver, "_seen", None)  # the construction's markers
-            pts_seen = (
-                seen[: len(self.rig.markers)]
-                if seen is not None
-                else np.isfinite(pipe.pose.marker_residual)  # the fit's
-            )
-            occluded = [
-                m for m, s in zip(self.rig.marker_names, pts_seen, strict=True) if not s
-            ]
-            flags = pipe.pose.bone_flags
-            names = self.rig.bone_names
-            flagged = [b for b, f in zip(names, flags, strict=True) if f & FLAG_HELD]
+        occluded, flagged = self._occluded_and_held()
+        performers = self.performers_status()
         return {
             "uptime_s": round(up_s, 3),
-            "rig": self.rig.name,
-            "calibrated": self.calibration is not None,
-            "calibrating": self._calib_target > 0,
+            "rig": self.rig.name,  # the first performer's (all: "performers")
+            "calibrated": all(p["calibrated"] for p in performers),
+            "calibrating": any(p["calibrating"] for p in performers),
             "calibration_message": self._calib_message,
+            "performers": performers,
             "endpoints": self.endpoints,
             "counters": self.stats.counters(),
             "fps_in": self._fps(self.stats.frames_in, 1),
@@ -82,6 +69,27 @@ class StatusMixin(DaemonState):
             "validate": self._validate_status(),
             "capture": self._capture_status(),
         }
+
+    def _occluded_and_held(self) -> tuple[list[str], list[str]]:
+        """The current performer's occluded rig markers and held bones, from the
+        last frame its (first) pipeline solved."""
+        pipe = next(iter(self._pipelines.values()), None)
+        occluded: list[str] = []
+        flagged: list[str] = []
+        if pipe is not None:
+            seen = getattr(pipe.solver, "_seen", None)  # the construction's markers
+            pts_seen = (
+                seen[: len(self.rig.markers)]
+                if seen is not None
+                else np.isfinite(pipe.pose.marker_residual)  # the fit's
+            )
+            occluded = [
+                m for m, s in zip(self.rig.marker_names, pts_seen, strict=True) if not s
+            ]
+            flags = pipe.pose.bone_flags
+            names = self.rig.bone_names
+            flagged = [b for b, f in zip(names, flags, strict=True) if f & FLAG_HELD]
+        return occluded, flagged
 
     def _validate_status(self) -> dict[str, Any] | None:
         v = self.validator
@@ -118,7 +126,8 @@ class StatusMixin(DaemonState):
             f"{len(s['occluded_markers'])} held {len(s['held_bones'])}"
             f" | kernel_drops {sum(v for v in s['kernel_drops'].values() if v)}"
             + capture_stats(s["capture"])
-            + ("" if s["calibrated"] else " | NOT CALIBRATED")
+            + self.performers_line(s["performers"])
+            + ("" if s["calibrated"] or self._multi else " | NOT CALIBRATED")
             + (
                 f" | REC {s['record']['path']} dropped {s['record']['dropped']}"
                 if s["record"]["active"]

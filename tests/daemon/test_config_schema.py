@@ -19,7 +19,11 @@ from typing import Any
 import pytest
 
 from retargetd.daemon.cli.main import main
-from retargetd.daemon.live.config import ConfigError, DaemonConfig
+from retargetd.daemon.live.config import (
+    ConfigError,
+    DaemonConfig,
+    NamedPerformerConfig,
+)
 
 
 def _leaves(kind: Any, prefix: str = "") -> Iterator[tuple[str, dataclasses.Field]]:
@@ -42,7 +46,9 @@ def _sections(kind: Any, prefix: str = "") -> Iterator[str]:
             yield from _sections(type(value), f"{prefix}{f.name}.")
 
 
-LEAVES = dict(_leaves(DaemonConfig))
+# ``performers`` is read from [[performer]] tables (PERFORMER_LEAVES below).
+LEAVES = {k: f for k, f in _leaves(DaemonConfig) if k != "performers"}
+PERFORMER_LEAVES = {f.name: f for f in dataclasses.fields(NamedPerformerConfig)}
 SECTIONS = list(_sections(DaemonConfig))
 
 
@@ -86,6 +92,10 @@ def _out_of_range(f: dataclasses.Field, tmp: Path) -> Any:
         "secret_key": missing,
         "public_keys": [missing],
         "pipeline": [{"kind": "nope"}],
+        "performer_name": "a b",
+        "prefix": "x" * 65,
+        "host_port": "127.0.0.1:0",
+        "performer_face": missing,
     }
     if check == "range":
         hi = meta["hi"]
@@ -171,6 +181,44 @@ def test_every_key_bad_gives_exit_2_and_one_line(
     assert err.count("\n") == 1 and err.endswith("\n"), err
     assert err.startswith("retargetd run: error: ") and named in err, err
     assert "listening on" not in out
+
+
+@pytest.mark.parametrize(
+    ("key", "kind"),
+    [
+        pytest.param(key, kind, id=f"performer[0].{key}-{kind}")
+        for key in PERFORMER_LEAVES
+        for kind in ("wrong_type", "out_of_range", "misspelled")
+    ],
+)
+def test_every_performer_key_bad_gives_exit_2_and_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], key: str, kind: str
+) -> None:
+    # The keys of a [[performer]] table, named performer[i].KEY in the error.
+    f = PERFORMER_LEAVES[key]
+    head = "[[performer]]\n" + ("" if key == "name" else 'name = "A"\n')
+    if kind == "misspelled":
+        wrong = _misspelled(key)
+        text = f"{head}{wrong} = 1\n"
+        named = f"performer[0].{wrong}"
+    else:
+        value = (
+            _wrong_type(f.default)
+            if kind == "wrong_type"
+            else _out_of_range(f, tmp_path)
+        )
+        if value is None:
+            return  # a bool has no out-of-range value (its wrong type is tested)
+        text = f"{head}{key} = {json.dumps(value)}\n"
+        named = f"performer[0].{key}"
+    path = tmp_path / "bad.toml"
+    path.write_text(text)
+    with pytest.raises(ConfigError) as info:
+        DaemonConfig.from_toml(path)
+    assert f": {named}" in str(info.value), (text, str(info.value))
+    assert main(["run", "--config", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and named in err, err
 
 
 def test_non_utf8_config_rig_and_face_config_one_line(

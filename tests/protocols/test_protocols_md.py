@@ -35,7 +35,7 @@ def _hex(name: str) -> bytes:
     return bytes(data)
 
 
-def _pose_parts() -> list[bytes]:
+def _pose_parts(performer: int = 0) -> list[bytes]:
     # PROTOCOLS.md's worked example: the root (Hips) yawed +90 deg about world +Z,
     # its child (Spine) bent +90 deg about its parent's x: world_from_spine =
     # world_from_hips * hips_from_spine. The calibration had the Spine already bent
@@ -44,7 +44,7 @@ def _pose_parts() -> list[bytes]:
     wfb = np.array([[c, 0.0, 0.0, s], [0.5, 0.5, 0.5, 0.5]])
     pfb = np.array([[c, 0.0, 0.0, s], [c, s, 0.0, 0.0]])
     rfb = np.array([[c, 0.0, 0.0, s], [1.0, 0.0, 0.0, 0.0]])
-    enc = pose_stream.PoseEncoder(2, 1)
+    enc = pose_stream.PoseEncoder(2, 1, performer=performer)
     parts = enc.encode(
         7, 0.5, 1000, 2000, pose_stream.FRAME_HELD, np.array([0.0, 0.0, 1.0]),
         wfb, pfb, rfb, np.array([0.5]),
@@ -88,6 +88,7 @@ def test_hex_examples_match_the_encoders() -> None:
         ),
         "pose_header": _pose_parts()[0],
         "pose_body": _pose_parts()[1],
+        "pose_header_performer": _pose_parts(performer=1)[0],
         "pose_face": _face_part(),
         "validation_header": _validation_parts()[0],
         "validation_body": _validation_parts()[1],
