@@ -27,6 +27,16 @@ from retargetd.daemon.cli.main import main
 CAL = ["--rig", "menache", "--calibrate-frames", "0:60"]
 
 
+def _no_warnings(err: str) -> str:
+    """stderr without calibration warnings (``warning: bone ...``: the rig's short up
+    levers, which calibrate reports whatever the output options)."""
+    return "".join(
+        line
+        for line in err.splitlines(keepends=True)
+        if not line.startswith("warning:")
+    )
+
+
 def _synth(d: Path, dropout: float) -> Path:
     path = d / f"s{dropout:g}.c3d"
     argv = ["synth", "--seconds", "4", "--rate", "60", "--dropout", str(dropout)]
@@ -138,7 +148,7 @@ def test_solve_json_summary(gappy: Path, tmp_path: Path) -> None:
     assert (doc["frames"], doc["bones"], doc["joint_centres"]) == (t, n_bones, n_joints)
     assert doc["rate_hz"] == 60.0 and doc["rig"] == "menache"
     assert 0 < doc["occluded_samples"] < doc["rig_marker_samples"]
-    assert p.stderr == ""  # no bar: stderr is a pipe
+    assert _no_warnings(p.stderr) == ""  # no bar: stderr is a pipe
 
 
 def test_validate_rig_check_calibrate_json(take: Path, tmp_path: Path) -> None:
@@ -178,7 +188,7 @@ def test_quiet_prints_nothing(take: Path, tmp_path: Path) -> None:
     out = tmp_path / "q.npz"
     p = _run("solve", str(take), *CAL, "--out", str(out), "--quiet", cwd=tmp_path)
     assert p.returncode == 0 and out.is_file()
-    assert p.stdout == "" and p.stderr == ""
+    assert p.stdout == "" and _no_warnings(p.stderr) == ""
 
 
 def _pty_run(argv: list[str], cwd: Path, timeout_s: float = 240.0) -> tuple[int, str]:
@@ -223,7 +233,7 @@ def test_progress_bar_on_a_terminal_only(take: Path, tmp_path: Path) -> None:
     rc, seen = _pty_run([*argv, "--out", str(tmp_path / "b.npz"), "--quiet"], tmp_path)
     assert rc == 0 and "frames" not in seen, seen
     p = _run(*argv, "--out", str(tmp_path / "c.npz"), cwd=tmp_path)
-    assert p.returncode == 0 and p.stderr == ""
+    assert p.returncode == 0 and _no_warnings(p.stderr) == ""
 
 
 @pytest.mark.parametrize("step", [32, 77])
