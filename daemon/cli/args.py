@@ -71,11 +71,14 @@ def take_overrides(args: argparse.Namespace) -> dict[str, Any]:
     }
 
 
-def add_rig_arguments(parser: argparse.ArgumentParser) -> None:
-    """``--rig`` and ``--measure`` (shared by calibrate and solve)."""
-    parser.add_argument(
-        "--rig", required=True, metavar="RIG", help="shipped rig name or a rig file"
-    )
+def add_rig_arguments(
+    parser: argparse.ArgumentParser,
+    required: bool = True,
+    rig_help: str = "shipped rig name or a rig file",
+) -> None:
+    """``--rig``, ``--measure`` and ``--allow-moving-base-pose`` (shared by calibrate,
+    solve and view, where the rig is optional)."""
+    parser.add_argument("--rig", required=required, metavar="RIG", help=rig_help)
     parser.add_argument(
         "--measure",
         action="append",

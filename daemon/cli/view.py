@@ -30,6 +30,7 @@ from typing import Any
 
 from retargetd.daemon.cli.args import (
     add_method_argument,
+    add_rig_arguments,
     add_take_arguments,
     take_overrides,
 )
@@ -48,21 +49,10 @@ def add_parser(subparsers: Any) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("path", metavar="TAKE|RECORDING|SOLVE.npz", help="what to show")
-    parser.add_argument(
-        "--rig", metavar="RIG", help="solve a take with this rig (shipped name or file)"
-    )
-    parser.add_argument(
-        "--measure",
-        action="append",
-        default=[],
-        metavar="NAME=MM",
-        help="override a subject measurement in mm (repeatable)",
-    )
-    parser.add_argument(
-        "--allow-moving-base-pose",
-        action="store_true",
-        help="calibrate even when the markers move over the base-pose frames",
-    )
+    add_rig_arguments(
+        parser, required=False,
+        rig_help="solve a take with this rig (shipped name or file)",
+    )  # fmt: skip
     group = parser.add_mutually_exclusive_group()
     group.add_argument("--calibration", metavar="FILE.json", help="calibrated skeleton")
     group.add_argument(
