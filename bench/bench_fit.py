@@ -54,7 +54,7 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from retargetd.daemon.body import kernel_fit as kf
+from retargetd.daemon.body import fit_terms as ft
 from retargetd.daemon.body.calibration import calibrate
 from retargetd.daemon.body.rig import load_rig
 from retargetd.daemon.body.solve import BodySolver
@@ -332,9 +332,9 @@ def run(case: Case, args: argparse.Namespace) -> None:
             t0 = time.perf_counter_ns()
             fit.solve_frame(frame, pose)
             times[k] = time.perf_counter_ns() - t0
-            iters[k] = pose.stats[kf.S_ITER]
-            solves[k] = pose.stats[kf.S_SOLVES]
-            reseeds += int(pose.stats[kf.S_RESEEDED])
+            iters[k] = pose.stats[ft.S_ITER]
+            solves[k] = pose.stats[ft.S_SOLVES]
+            reseeds += int(pose.stats[ft.S_RESEEDED])
     finally:
         gc.enable()
     med, p99, worst = _pct(times)

@@ -42,7 +42,30 @@ import math
 import numpy as np
 
 from retargetd.daemon.body import kernel as body_kernel
-from retargetd.daemon.compiled import kernel, mat_from_unit_quat
+from retargetd.daemon.body.fit_normal import apply_step, build_normal, solve_step
+from retargetd.daemon.body.fit_terms import (
+    INF,
+    P_FTOL,
+    P_GATE_K,
+    P_GATE_M,
+    P_MAX_ITER,
+    P_RESEED_REJECT_FRAC,
+    P_RESEED_RMS_M,
+    P_TOL,
+    S_COST,
+    S_ITER,
+    S_REJECTED,
+    S_RESEEDED,
+    S_RMS,
+    S_SOLVES,
+    cp1,
+    cp2,
+    cp3,
+    fk,
+    marker_cost,
+    reg_cost,
+)
+from retargetd.daemon.compiled import kernel, qmul
 
 # Bone flags: the construction's bits with the same meaning (the pose stream's bone
 # flags have no free bit for the fit: bits 4-7 carry validation results on main);
@@ -53,578 +76,11 @@ FLAG_HELD = (
 )  #: no marker of the bone's own seen: carried by the fit
 FLAG_PARTIAL = body_kernel.FLAG_PARTIAL  #: some marker of the bone not seen
 
-# params (float64 array) slots
-P_LAM_ROT = 0
-P_LAM_TRANS = 1
-P_KAPPA_LIMIT = 2
-P_KAPPA_HINGE = 3
-P_CAUCHY_M = 4
-P_GATE_M = 5
-P_GATE_K = 6
-P_RESEED_RMS_M = 7
-P_MAX_ITER = 8
-P_TOL = 9
-P_RESEED_REJECT_FRAC = 10
-P_FTOL = 11
-N_PARAMS = 12
-
-# stats (float64 array) slots
-S_RMS = 0
-S_REJECTED = 1
-S_ITER = 2
-S_RESEEDED = 3
-S_COST = 4
-S_SOLVES = 5
-N_STATS = 6
-
-_INF = 1e300
-
-
-@kernel
-def _qmul(
-    aw: float, ax: float, ay: float, az: float,
-    bw: float, bx: float, by: float, bz: float,
-) -> tuple[float, float, float, float]:  # fmt: skip
-    return (
-        aw * bw - ax * bx - ay * by - az * bz,
-        aw * bx + ax * bw + ay * bz - az * by,
-        aw * by - ax * bz + ay * bw + az * bx,
-        aw * bz + ax * by - ay * bx + az * bw,
-    )
-
-
-@kernel
-def _qexp(vx: float, vy: float, vz: float) -> tuple[float, float, float, float]:
-    th = math.sqrt(vx * vx + vy * vy + vz * vz)
-    if th < 1e-12:
-        w, s = 1.0, 0.5
-    else:
-        w, s = math.cos(0.5 * th), math.sin(0.5 * th) / th
-    n = (
-        math.sqrt(w * w + s * s * th * th)
-        if th >= 1e-12
-        else math.sqrt(1.0 + 0.25 * th * th)
-    )
-    return w / n, s * vx / n, s * vy / n, s * vz / n
-
-
-@kernel
-def _qlog(w: float, x: float, y: float, z: float) -> tuple[float, float, float]:
-    if w < 0.0:
-        w, x, y, z = -w, -x, -y, -z
-    s = math.sqrt(x * x + y * y + z * z)
-    if s < 1e-12:
-        return 2.0 * x, 2.0 * y, 2.0 * z
-    k = 2.0 * math.atan2(s, w) / s
-    return k * x, k * y, k * z
-
-
-@kernel
-def _cp2(dst: np.ndarray, src: np.ndarray) -> None:
-    for i in range(dst.shape[0]):
-        for j in range(dst.shape[1]):
-            dst[i, j] = src[i, j]
-
-
-@kernel
-def _cp3(dst: np.ndarray, src: np.ndarray) -> None:
-    for i in range(dst.shape[0]):
-        for j in range(dst.shape[1]):
-            for k in range(dst.shape[2]):
-                dst[i, j, k] = src[i, j, k]
-
-
-@kernel
-def _cp1(dst: np.ndarray, src: np.ndarray) -> None:
-    for i in range(dst.shape[0]):
-        dst[i] = src[i]
-
-
-@kernel
-def _fk(
-    parent: np.ndarray, root_of: np.ndarray, off: np.ndarray,
-    q: np.ndarray, t: np.ndarray, wq: np.ndarray, wm: np.ndarray, o: np.ndarray,
-) -> None:  # fmt: skip
-    # World rotation (quat wq, matrix wm) and origin o of every bone.
-    for b in range(parent.shape[0]):
-        p = parent[b]
-        if p < 0:
-            for j in range(4):
-                wq[b, j] = q[b, j]
-            r = root_of[b]
-            for j in range(3):
-                o[b, j] = t[r, j]
-        else:
-            a = _qmul(wq[p, 0], wq[p, 1], wq[p, 2], wq[p, 3],
-                      q[b, 0], q[b, 1], q[b, 2], q[b, 3])  # fmt: skip
-            n = math.sqrt(a[0] * a[0] + a[1] * a[1] + a[2] * a[2] + a[3] * a[3])
-            for j in range(4):
-                wq[b, j] = a[j] / n
-            for j in range(3):
-                o[b, j] = (
-                    o[p, j]
-                    + wm[p, j, 0] * off[b, 0]
-                    + wm[p, j, 1] * off[b, 1]
-                    + wm[p, j, 2] * off[b, 2]
-                )
-        mat_from_unit_quat(wq[b], wm[b])
-
-
-@kernel
-def _pen_components(
-    qw: float, qx: float, qy: float, qz: float,
-    lim: np.ndarray, left: np.ndarray, fwd: np.ndarray, hinge: np.ndarray,
-    s_lim: float, s_hinge: float, out: np.ndarray,
-) -> None:  # fmt: skip
-    # Residuals of one joint's penalties for its calibration-relative rotation q:
-    # out[0] twist, out[1] sagittal, out[2] frontal or cone excess (the validator's
-    # swing/twist split, validate_limits.swing_twist), out[3:6] the rotation off the
-    # hinge axis; each scaled by the square root of its weight.
-    if qw < 0.0:
-        qw, qx, qy, qz = -qw, -qx, -qy, -qz
-    for k in range(6):
-        out[k] = 0.0
-    tw = 2.0 * math.atan2(qy, qw)
-    tw = (tw + math.pi) % (2.0 * math.pi) - math.pi
-    if math.isfinite(lim[0]):
-        if tw > lim[1]:
-            out[0] = s_lim * (tw - lim[1])
-        elif tw < lim[0]:
-            out[0] = s_lim * (tw - lim[0])
-    if math.isfinite(lim[2]) or math.isfinite(lim[4]) or math.isfinite(lim[5]):
-        h = 0.5 * tw
-        # swing = q * conj(twist), twist = (cos h, 0, sin h, 0)
-        sw, sx, sy, sz = _qmul(qw, qx, qy, qz, math.cos(h), 0.0, -math.sin(h), 0.0)
-        vx, vy, vz = _qlog(sw, sx, sy, sz)
-        if math.isfinite(lim[2]):
-            sag = vx * left[0] + vy * left[1] + vz * left[2]
-            if sag > lim[3]:
-                out[1] = s_lim * (sag - lim[3])
-            elif sag < lim[2]:
-                out[1] = s_lim * (sag - lim[2])
-        if math.isfinite(lim[4]):
-            fro = vx * fwd[0] + vy * fwd[1] + vz * fwd[2]
-            if fro > lim[4]:
-                out[2] = s_lim * (fro - lim[4])
-            elif fro < -lim[4]:
-                out[2] = s_lim * (fro + lim[4])
-        elif math.isfinite(lim[5]):
-            cone = math.sqrt(vx * vx + vy * vy + vz * vz)
-            if cone > lim[5]:
-                out[2] = s_lim * (cone - lim[5])
-    if hinge[0] != 0.0 or hinge[1] != 0.0 or hinge[2] != 0.0:
-        vx, vy, vz = _qlog(qw, qx, qy, qz)
-        d = vx * hinge[0] + vy * hinge[1] + vz * hinge[2]
-        out[3] = s_hinge * (vx - d * hinge[0])
-        out[4] = s_hinge * (vy - d * hinge[1])
-        out[5] = s_hinge * (vz - d * hinge[2])
-
-
-@kernel
-def _marker_cost(
-    m: tuple, s: tuple, wm: np.ndarray, o: np.ndarray, pm: np.ndarray,
-    res: np.ndarray, wrob: np.ndarray, gate: float,
-) -> float:  # fmt: skip
-    # Model marker positions pm, residuals res, IRLS weights wrob; returns the
-    # robust marker cost 1/2 sum w c^2 log(1 + |r|^2 / c^2) (constant past the gate).
-    mk_bone, mk_local, mk_weight = m[5], m[6], m[7]
-    params = m[18]
-    meas, vis = s[12], s[13]
-    c2 = params[P_CAUCHY_M] * params[P_CAUCHY_M]
-    g2 = gate * gate
-    cost = 0.0
-    for i in range(mk_bone.shape[0]):
-        b = mk_bone[i]
-        for j in range(3):
-            pm[i, j] = (
-                o[b, j]
-                + wm[b, j, 0] * mk_local[i, 0]
-                + wm[b, j, 1] * mk_local[i, 1]
-                + wm[b, j, 2] * mk_local[i, 2]
-            )
-        if not vis[i]:
-            wrob[i] = 0.0
-            continue
-        n2 = 0.0
-        for j in range(3):
-            res[i, j] = pm[i, j] - meas[i, j]
-            n2 += res[i, j] * res[i, j]
-        w = mk_weight[i]
-        if n2 > g2:
-            wrob[i] = 0.0
-            cost += 0.5 * w * c2 * math.log1p(g2 / c2)
-        else:
-            wrob[i] = w / (1.0 + n2 / c2)
-            cost += 0.5 * w * c2 * math.log1p(n2 / c2)
-    return cost
-
-
-@kernel
-def _reg_cost(m: tuple, s: tuple, q: np.ndarray, t: np.ndarray) -> float:
-    # Prior (pull to the last frame) and joint penalties at (q, t).
-    parent, rest_pfb = m[0], m[3]
-    hinge, lim, left, fwd = m[10], m[11], m[12], m[13]
-    params = m[18]
-    qprev, tprev = s[2], s[3]
-    pen = s[26]
-    pen_cos = m[19]
-    lam = params[P_LAM_ROT]
-    s_lim = math.sqrt(params[P_KAPPA_LIMIT])
-    s_hinge = math.sqrt(params[P_KAPPA_HINGE])
-    cost = 0.0
-    for b in range(parent.shape[0]):
-        d = _qmul(qprev[b, 0], -qprev[b, 1], -qprev[b, 2], -qprev[b, 3],
-                  q[b, 0], q[b, 1], q[b, 2], q[b, 3])  # fmt: skip
-        vx, vy, vz = _qlog(d[0], d[1], d[2], d[3])
-        cost += 0.5 * lam * (vx * vx + vy * vy + vz * vz)
-        if parent[b] >= 0:
-            r = _qmul(rest_pfb[b, 0], -rest_pfb[b, 1], -rest_pfb[b, 2], -rest_pfb[b, 3],
-                      q[b, 0], q[b, 1], q[b, 2], q[b, 3])  # fmt: skip
-            if abs(r[0]) > pen_cos[b]:
-                continue
-            _pen_components(r[0], r[1], r[2], r[3], lim[b], left[b], fwd[b],
-                            hinge[b], s_lim, s_hinge, pen)  # fmt: skip
-            for k in range(6):
-                cost += 0.5 * pen[k] * pen[k]
-    lt = params[P_LAM_TRANS]
-    for rr in range(t.shape[0]):
-        for j in range(3):
-            dt = t[rr, j] - tprev[rr, j]
-            cost += 0.5 * lt * dt * dt
-    return cost
-
-
-@kernel
-def _build(m: tuple, s: tuple) -> None:
-    # Normal equations H (lower triangle, elimination order) and gradient g at the
-    # current state (s: wm, o, pm, res, wrob of the current iterate).
-    parent, root_of, rest_pfb = m[0], m[1], m[3]
-    mk_bone = m[5]
-    hinge, lim, left, fwd = m[10], m[11], m[12], m[13]
-    anc_ptr, anc_idx = m[14], m[15]
-    params = m[18]
-    q, t, qprev, tprev = s[0], s[1], s[2], s[3]
-    wm, o, pm, res, wrob = s[8], s[9], s[10], s[14], s[15]
-    s0, sa, sm, sr, sc = s[16], s[17], s[18], s[19], s[20]
-    hh, g = s[21], s[23]
-    pen, pen2, jac = s[26], s[27], s[28]
-    n_b = parent.shape[0]
-    n = g.shape[0]
-    for i in range(n):
-        g[i] = 0.0
-        for j in range(n):
-            hh[i, j] = 0.0
-    for b in range(n_b):
-        s0[b] = 0.0
-        for j in range(3):
-            sa[b, j] = 0.0
-            sr[b, j] = 0.0
-            sc[b, j] = 0.0
-            for k in range(3):
-                sm[b, j, k] = 0.0
-    # Moments of the weighted markers (positions about bone 0's origin, for
-    # conditioning) summed over each bone's subtree: the block of H coupling a bone
-    # k with an ancestor l sums over exactly the markers below k.
-    c0x, c0y, c0z = o[0, 0], o[0, 1], o[0, 2]
-    for i in range(mk_bone.shape[0]):
-        w = wrob[i]
-        if w <= 0.0:
-            continue
-        b = mk_bone[i]
-        px = pm[i, 0] - c0x
-        py = pm[i, 1] - c0y
-        pz = pm[i, 2] - c0z
-        rx, ry, rz = res[i, 0], res[i, 1], res[i, 2]
-        s0[b] += w
-        sa[b, 0] += w * px
-        sa[b, 1] += w * py
-        sa[b, 2] += w * pz
-        sr[b, 0] += w * rx
-        sr[b, 1] += w * ry
-        sr[b, 2] += w * rz
-        sc[b, 0] += w * (py * rz - pz * ry)
-        sc[b, 1] += w * (pz * rx - px * rz)
-        sc[b, 2] += w * (px * ry - py * rx)
-        sm[b, 0, 0] += w * px * px
-        sm[b, 0, 1] += w * px * py
-        sm[b, 0, 2] += w * px * pz
-        sm[b, 1, 1] += w * py * py
-        sm[b, 1, 2] += w * py * pz
-        sm[b, 2, 2] += w * pz * pz
-    for b in range(n_b - 1, -1, -1):
-        sm[b, 1, 0] = sm[b, 0, 1]
-        sm[b, 2, 0] = sm[b, 0, 2]
-        sm[b, 2, 1] = sm[b, 1, 2]
-        p = parent[b]
-        if p >= 0 and s0[b] > 0.0:
-            s0[p] += s0[b]
-            for j in range(3):
-                sa[p, j] += sa[b, j]
-                sr[p, j] += sr[b, j]
-                sc[p, j] += sc[b, j]
-            for j in range(3):
-                for k2 in range(j, 3):
-                    sm[p, j, k2] += sm[b, j, k2]
-    for k in range(n_b):
-        w0 = s0[k]
-        if w0 <= 0.0:
-            continue
-        okx, oky, okz = o[k, 0] - c0x, o[k, 1] - c0y, o[k, 2] - c0z
-        ok0 = (okx, oky, okz)
-        mx, my, mz = sa[k, 0], sa[k, 1], sa[k, 2]
-        m1 = (mx, my, mz)
-        rk = 3 * (n_b - 1 - k)
-        tb = 3 * n_b + 3 * root_of[k]
-        # gradient: sum w (p - o_k) x r = C - o_k x R
-        g[rk + 0] += sc[k, 0] - (oky * sr[k, 2] - okz * sr[k, 1])
-        g[rk + 1] += sc[k, 1] - (okz * sr[k, 0] - okx * sr[k, 2])
-        g[rk + 2] += sc[k, 2] - (okx * sr[k, 1] - oky * sr[k, 0])
-        # translation block: rows t, cols k: -[v]x, v = sum w (p - o_k)
-        vx = mx - w0 * okx
-        vy = my - w0 * oky
-        vz = mz - w0 * okz
-        hh[tb + 0, rk + 1] += vz
-        hh[tb + 0, rk + 2] -= vy
-        hh[tb + 1, rk + 0] -= vz
-        hh[tb + 1, rk + 2] += vx
-        hh[tb + 2, rk + 0] += vy
-        hh[tb + 2, rk + 1] -= vx
-        for jj in range(anc_ptr[k], anc_ptr[k + 1]):
-            la = anc_idx[jj]
-            olx, oly, olz = o[la, 0] - c0x, o[la, 1] - c0y, o[la, 2] - c0z
-            ol0 = (olx, oly, olz)
-            rl = 3 * (n_b - 1 - la)
-            # G = sum w (p - o_k)(p - o_l)^T; rows l, cols k: trace(G) I - G
-            tt = (
-                sm[k, 0, 0] + sm[k, 1, 1] + sm[k, 2, 2]
-                - (mx * (okx + olx) + my * (oky + oly) + mz * (okz + olz))
-                + w0 * (okx * olx + oky * oly + okz * olz)
-            )  # fmt: skip
-            for i in range(3):
-                for j in range(3):
-                    gij = (
-                        sm[k, i, j]
-                        - m1[i] * ol0[j]
-                        - ok0[i] * m1[j]
-                        + w0 * ok0[i] * ol0[j]
-                    )
-                    hh[rl + i, rk + j] += (tt if i == j else 0.0) - gij
-        if parent[k] < 0:
-            for j in range(3):
-                hh[tb + j, tb + j] += w0
-                g[tb + j] += sr[k, j]
-    # Prior: lambda I on every rotation block, gradient lambda W phi.
-    lam = params[P_LAM_ROT]
-    s_lim = math.sqrt(params[P_KAPPA_LIMIT])
-    s_hinge = math.sqrt(params[P_KAPPA_HINGE])
-    eps = 1e-6
-    for b in range(n_b):
-        rb = 3 * (n_b - 1 - b)
-        d = _qmul(qprev[b, 0], -qprev[b, 1], -qprev[b, 2], -qprev[b, 3],
-                  q[b, 0], q[b, 1], q[b, 2], q[b, 3])  # fmt: skip
-        px, py, pz = _qlog(d[0], d[1], d[2], d[3])
-        for j in range(3):
-            hh[rb + j, rb + j] += lam
-            g[rb + j] += lam * (wm[b, j, 0] * px + wm[b, j, 1] * py + wm[b, j, 2] * pz)
-        if parent[b] < 0:
-            continue
-        r = _qmul(rest_pfb[b, 0], -rest_pfb[b, 1], -rest_pfb[b, 2], -rest_pfb[b, 3],
-                  q[b, 0], q[b, 1], q[b, 2], q[b, 3])  # fmt: skip
-        if abs(r[0]) > m[19][b]:
-            continue
-        _pen_components(r[0], r[1], r[2], r[3], lim[b], left[b], fwd[b], hinge[b],
-                        s_lim, s_hinge, pen)  # fmt: skip
-        active = False
-        for k in range(6):
-            if pen[k] != 0.0:
-                active = True
-        if not active:
-            continue
-        # Numerical Jacobian of the penalty residuals w.r.t. the bone's own increment.
-        for c in range(3):
-            e = _qexp(eps if c == 0 else 0.0, eps if c == 1 else 0.0,
-                      eps if c == 2 else 0.0)  # fmt: skip
-            rp = _qmul(r[0], r[1], r[2], r[3], e[0], e[1], e[2], e[3])
-            _pen_components(rp[0], rp[1], rp[2], rp[3], lim[b], left[b], fwd[b],
-                            hinge[b], s_lim, s_hinge, pen2)  # fmt: skip
-            for k in range(6):
-                dk = (pen2[k] - pen[k]) / eps
-                # a twist wrapping through +-pi is not a derivative
-                jac[k, c] = dk if abs(dk) < 1e3 else 0.0
-        # In world increments: d pen / d omega = jac W^T; H += (jac W^T)^T (jac W^T).
-        for k in range(6):
-            u0 = (
-                jac[k, 0] * wm[b, 0, 0]
-                + jac[k, 1] * wm[b, 0, 1]
-                + jac[k, 2] * wm[b, 0, 2]
-            )
-            u1 = (
-                jac[k, 0] * wm[b, 1, 0]
-                + jac[k, 1] * wm[b, 1, 1]
-                + jac[k, 2] * wm[b, 1, 2]
-            )
-            u2 = (
-                jac[k, 0] * wm[b, 2, 0]
-                + jac[k, 1] * wm[b, 2, 1]
-                + jac[k, 2] * wm[b, 2, 2]
-            )
-            u = (u0, u1, u2)
-            for i in range(3):
-                g[rb + i] += u[i] * pen[k]
-                for j in range(3):
-                    hh[rb + i, rb + j] += u[i] * u[j]
-    lt = params[P_LAM_TRANS]
-    for rr in range(t.shape[0]):
-        tb = 3 * n_b + 3 * rr
-        for j in range(3):
-            hh[tb + j, tb + j] += lt
-            g[tb + j] += lt * (t[rr, j] - tprev[rr, j])
-
-
-@kernel
-def _solve_step(m: tuple, s: tuple, mu: float) -> float:
-    # x = -(H + mu I)^-1 g by a Cholesky over 3 x 3 nodes in elimination order
-    # (children first): a node's column only reaches its ancestors, so the factor
-    # has the kinematic tree's pattern and no fill-in. Returns max |x|.
-    node_ptr, node_idx = m[16], m[17]
-    hh, ll, g, x = s[21], s[22], s[23], s[24]
-    n_nodes = node_ptr.shape[0] - 1
-    # copy the lower blocks the factorization touches
-    for k in range(n_nodes):
-        rk = 3 * k
-        for i in range(3):
-            for j in range(i + 1):
-                ll[rk + i, rk + j] = hh[rk + i, rk + j]
-            ll[rk + i, rk + i] += mu
-        for p in range(node_ptr[k], node_ptr[k + 1]):
-            ra = 3 * node_idx[p]
-            for i in range(3):
-                for j in range(3):
-                    ll[ra + i, rk + j] = hh[ra + i, rk + j]
-    for k in range(n_nodes):
-        rk = 3 * k
-        # 3 x 3 Cholesky of the diagonal block
-        a00 = ll[rk, rk]
-        l00 = math.sqrt(a00 if a00 > 1e-300 else 1e-300)
-        l10 = ll[rk + 1, rk] / l00
-        l20 = ll[rk + 2, rk] / l00
-        a11 = ll[rk + 1, rk + 1] - l10 * l10
-        l11 = math.sqrt(a11 if a11 > 1e-300 else 1e-300)
-        l21 = (ll[rk + 2, rk + 1] - l20 * l10) / l11
-        a22 = ll[rk + 2, rk + 2] - l20 * l20 - l21 * l21
-        l22 = math.sqrt(a22 if a22 > 1e-300 else 1e-300)
-        ll[rk, rk], ll[rk + 1, rk], ll[rk + 2, rk] = l00, l10, l20
-        ll[rk + 1, rk + 1], ll[rk + 2, rk + 1], ll[rk + 2, rk + 2] = l11, l21, l22
-        ll[rk, rk + 1] = 0.0
-        ll[rk, rk + 2] = 0.0
-        ll[rk + 1, rk + 2] = 0.0
-        p0, p1 = node_ptr[k], node_ptr[k + 1]
-        # L_ak = A_ak L_kk^-T (forward substitution along each row)
-        for p in range(p0, p1):
-            ra = 3 * node_idx[p]
-            for i in range(3):
-                y0 = ll[ra + i, rk] / l00
-                y1 = (ll[ra + i, rk + 1] - l10 * y0) / l11
-                y2 = (ll[ra + i, rk + 2] - l20 * y0 - l21 * y1) / l22
-                ll[ra + i, rk] = y0
-                ll[ra + i, rk + 1] = y1
-                ll[ra + i, rk + 2] = y2
-        # A_ab -= L_ak L_bk^T for ancestors b <= a
-        for p in range(p0, p1):
-            ra = 3 * node_idx[p]
-            for p2 in range(p0, p + 1):
-                rb = 3 * node_idx[p2]
-                diag = p2 == p
-                for i in range(3):
-                    ui0, ui1, ui2 = (
-                        ll[ra + i, rk],
-                        ll[ra + i, rk + 1],
-                        ll[ra + i, rk + 2],
-                    )
-                    for j in range(3):
-                        if diag and j > i:
-                            break
-                        ll[ra + i, rb + j] -= (
-                            ui0 * ll[rb + j, rk]
-                            + ui1 * ll[rb + j, rk + 1]
-                            + ui2 * ll[rb + j, rk + 2]
-                        )
-    for e in range(g.shape[0]):
-        x[e] = -g[e]
-    # forward: L y = b
-    for k in range(n_nodes):
-        rk = 3 * k
-        y0 = x[rk] / ll[rk, rk]
-        y1 = (x[rk + 1] - ll[rk + 1, rk] * y0) / ll[rk + 1, rk + 1]
-        y2 = (x[rk + 2] - ll[rk + 2, rk] * y0 - ll[rk + 2, rk + 1] * y1) / ll[
-            rk + 2, rk + 2
-        ]
-        x[rk], x[rk + 1], x[rk + 2] = y0, y1, y2
-        for p in range(node_ptr[k], node_ptr[k + 1]):
-            ra = 3 * node_idx[p]
-            for i in range(3):
-                x[ra + i] -= (
-                    ll[ra + i, rk] * y0
-                    + ll[ra + i, rk + 1] * y1
-                    + ll[ra + i, rk + 2] * y2
-                )
-    # backward: L^T x = y
-    big = 0.0
-    for k in range(n_nodes - 1, -1, -1):
-        rk = 3 * k
-        c0, c1, c2 = x[rk], x[rk + 1], x[rk + 2]
-        for p in range(node_ptr[k], node_ptr[k + 1]):
-            ra = 3 * node_idx[p]
-            xa0, xa1, xa2 = x[ra], x[ra + 1], x[ra + 2]
-            c0 -= ll[ra, rk] * xa0 + ll[ra + 1, rk] * xa1 + ll[ra + 2, rk] * xa2
-            c1 -= (
-                ll[ra, rk + 1] * xa0
-                + ll[ra + 1, rk + 1] * xa1
-                + ll[ra + 2, rk + 1] * xa2
-            )
-            c2 -= (
-                ll[ra, rk + 2] * xa0
-                + ll[ra + 1, rk + 2] * xa1
-                + ll[ra + 2, rk + 2] * xa2
-            )
-        x2 = c2 / ll[rk + 2, rk + 2]
-        x1 = (c1 - ll[rk + 2, rk + 1] * x2) / ll[rk + 1, rk + 1]
-        x0 = (c0 - ll[rk + 1, rk] * x1 - ll[rk + 2, rk] * x2) / ll[rk, rk]
-        x[rk], x[rk + 1], x[rk + 2] = x0, x1, x2
-        for v in (x0, x1, x2):
-            if abs(v) > big:
-                big = abs(v)
-    return big
-
-
-@kernel
-def _apply(m: tuple, s: tuple) -> None:
-    # Trial state (qt, tt) = current state + step x.
-    parent = m[0]
-    q, t, qt, tt, wm, x = s[0], s[1], s[6], s[7], s[8], s[24]
-    n_b = parent.shape[0]
-    for b in range(n_b):
-        rb = 3 * (n_b - 1 - b)
-        ox, oy, oz = x[rb], x[rb + 1], x[rb + 2]
-        # bone-axis increment: conj(W_b) omega
-        ex = wm[b, 0, 0] * ox + wm[b, 1, 0] * oy + wm[b, 2, 0] * oz
-        ey = wm[b, 0, 1] * ox + wm[b, 1, 1] * oy + wm[b, 2, 1] * oz
-        ez = wm[b, 0, 2] * ox + wm[b, 1, 2] * oy + wm[b, 2, 2] * oz
-        e = _qexp(ex, ey, ez)
-        r = _qmul(q[b, 0], q[b, 1], q[b, 2], q[b, 3], e[0], e[1], e[2], e[3])
-        n = math.sqrt(r[0] * r[0] + r[1] * r[1] + r[2] * r[2] + r[3] * r[3])
-        for j in range(4):
-            qt[b, j] = r[j] / n
-    for rr in range(t.shape[0]):
-        tb = 3 * n_b + 3 * rr
-        for j in range(3):
-            tt[rr, j] = t[rr, j] + x[tb + j]
-
 
 @kernel
 def _evaluate_current(m: tuple, s: tuple, gate: float) -> float:
-    _fk(m[0], m[1], m[2], s[0], s[1], s[29], s[8], s[9])
-    return _marker_cost(m, s, s[8], s[9], s[10], s[14], s[15], gate) + _reg_cost(
+    fk(m[0], m[1], m[2], s[0], s[1], s[29], s[8], s[9])
+    return marker_cost(m, s, s[8], s[9], s[10], s[14], s[15], gate) + reg_cost(
         m, s, s[0], s[1]
     )
 
@@ -647,7 +103,7 @@ def _lm(m: tuple, s: tuple, gate: float, max_iter: int) -> tuple[int, bool, floa
     it = 0
     while it < max_iter:
         it += 1
-        _build(m, s)
+        build_normal(m, s)
         dmax = 0.0
         for e in range(hh.shape[0]):
             if hh[e, e] > dmax:
@@ -657,7 +113,7 @@ def _lm(m: tuple, s: tuple, gate: float, max_iter: int) -> tuple[int, bool, floa
         step = 0.0
         for _try in range(8):
             mu = mu_scale * dmax
-            step = _solve_step(m, s, mu)
+            step = solve_step(m, s, mu)
             s[36][1] += 1.0
             # decrease the quadratic model predicts: with (H + mu I) x = -g,
             # -g.x - x.H.x / 2 = (-g.x + mu |x|^2) / 2
@@ -667,9 +123,9 @@ def _lm(m: tuple, s: tuple, gate: float, max_iter: int) -> tuple[int, bool, floa
                 gx += g[e] * x[e]
                 xx += x[e] * x[e]
             pred = 0.5 * (mu * xx - gx)
-            _apply(m, s)
-            _fk(m[0], m[1], m[2], qt, tt, wqt, wmt, ot)
-            ct = _marker_cost(m, s, wmt, ot, pmt, rest, wrobt, gate) + _reg_cost(
+            apply_step(m, s)
+            fk(m[0], m[1], m[2], qt, tt, wqt, wmt, ot)
+            ct = marker_cost(m, s, wmt, ot, pmt, rest, wrobt, gate) + reg_cost(
                 m, s, qt, tt
             )
             # (a step at the optimum may raise the cost by rounding: no retries then)
@@ -680,14 +136,14 @@ def _lm(m: tuple, s: tuple, gate: float, max_iter: int) -> tuple[int, bool, floa
                 cost_before = cost
                 small = cost - ct <= params[P_FTOL] * cost
                 cost = ct
-                _cp2(q, qt)
-                _cp2(t, tt)
-                _cp2(wq, wqt)
-                _cp3(wm, wmt)
-                _cp2(o, ot)
-                _cp2(pm, pmt)
-                _cp2(res, rest)
-                _cp1(wrob, wrobt)
+                cp2(q, qt)
+                cp2(t, tt)
+                cp2(wq, wqt)
+                cp3(wm, wmt)
+                cp2(o, ot)
+                cp2(pm, pmt)
+                cp2(res, rest)
+                cp1(wrob, wrobt)
                 # Nielsen's update from the gain ratio (Madsen, Nielsen & Tingleff,
                 # "Methods for non-linear least squares problems", DTU 2004, 3.2)
                 rho = (cost_before - ct) / pred if pred > 0.0 else 1.0
@@ -730,9 +186,9 @@ def _fit_phases(m: tuple, s: tuple) -> tuple[int, bool, float]:
     # residual is beyond it.
     params = m[18]
     max_iter = int(params[P_MAX_ITER])
-    _cp2(s[43], s[0])
-    _cp2(s[44], s[1])
-    it1, conv1, cost = _lm(m, s, _INF, max_iter)
+    cp2(s[43], s[0])
+    cp2(s[44], s[1])
+    it1, conv1, cost = _lm(m, s, INF, max_iter)
     gate = max(params[P_GATE_M], params[P_GATE_K] * _median_residual(s))
     vis, res = s[13], s[14]
     g2 = gate * gate
@@ -744,8 +200,8 @@ def _fit_phases(m: tuple, s: tuple) -> tuple[int, bool, float]:
     if not beyond:
         return it1, conv1, cost
     # the outliers pulled phase 1 away: start again from the warm start without them
-    _cp2(s[0], s[43])
-    _cp2(s[1], s[44])
+    cp2(s[0], s[43])
+    cp2(s[1], s[44])
     it2, conv2, cost = _lm(m, s, gate, max_iter)
     return it1 + it2, conv2, cost
 
@@ -793,7 +249,7 @@ def _seed_from_construction(markers: np.ndarray, m: tuple, s: tuple, c: tuple) -
                 for j in range(3):
                     t[root_of[b], j] = croot[j]
         else:
-            r = _qmul(cw[p, 0], -cw[p, 1], -cw[p, 2], -cw[p, 3],
+            r = qmul(cw[p, 0], -cw[p, 1], -cw[p, 2], -cw[p, 3],
                       cw[b, 0], cw[b, 1], cw[b, 2], cw[b, 3])  # fmt: skip
             n = math.sqrt(r[0] * r[0] + r[1] * r[1] + r[2] * r[2] + r[3] * r[3])
             for j in range(4):
@@ -851,16 +307,16 @@ def fit_one(
     reseeded = False
     if have[0] == 0:
         _seed_from_construction(markers, m, s, c)
-        _cp2(qprev, q)
-        _cp2(tprev, t)
+        cp2(qprev, q)
+        cp2(tprev, t)
         reseeded = True
     elif have[0] >= 2:
         # warm start: the last frame, advanced by its joint-angle velocity
         q2, t2 = s[41], s[42]
         for b in range(n_b):
-            d = _qmul(q2[b, 0], -q2[b, 1], -q2[b, 2], -q2[b, 3],
+            d = qmul(q2[b, 0], -q2[b, 1], -q2[b, 2], -q2[b, 3],
                       q[b, 0], q[b, 1], q[b, 2], q[b, 3])  # fmt: skip
-            r = _qmul(q[b, 0], q[b, 1], q[b, 2], q[b, 3], d[0], d[1], d[2], d[3])
+            r = qmul(q[b, 0], q[b, 1], q[b, 2], q[b, 3], d[0], d[1], d[2], d[3])
             nr = math.sqrt(r[0] * r[0] + r[1] * r[1] + r[2] * r[2] + r[3] * r[3])
             for j in range(4):
                 q[b, j] = r[j] / nr
@@ -876,8 +332,8 @@ def fit_one(
         or ((not conv) and rms > 0.5 * params[P_RESEED_RMS_M])
     )
     if lost and have[0] != 0 and n_seen > 0:
-        _cp2(qb, q)
-        _cp2(tb, t)
+        cp2(qb, q)
+        cp2(tb, t)
         gate_b = s[36][0]
         _seed_from_construction(markers, m, s, c)
         it2, _conv2, _cost2 = _fit_phases(m, s)
@@ -887,8 +343,8 @@ def fit_one(
             reseeded = True
             ss, n_in, n_rej = ss2, n_in2, n_rej2
         else:
-            _cp2(q, qb)
-            _cp2(t, tb)
+            cp2(q, qb)
+            cp2(t, tb)
             s[36][0] = gate_b
             _evaluate_current(m, s, gate_b)
     # never NaN: a non-finite state (cannot happen with finite inputs) falls back
@@ -898,8 +354,8 @@ def fit_one(
             if not math.isfinite(q[b, j]):
                 finite = False
     if not finite:
-        _cp2(q, qprev)
-        _cp2(t, tprev)
+        cp2(q, qprev)
+        cp2(t, tprev)
         _evaluate_current(m, s, s[36][0])
     # 3. outputs
     g2 = s[36][0] ** 2
@@ -954,11 +410,11 @@ def fit_one(
                 out_pfb[b, j] = out_wfb[b, j]
         else:
             wp, wb = out_wfb[p], out_wfb[b]
-            a = _qmul(wp[0], -wp[1], -wp[2], -wp[3], wb[0], wb[1], wb[2], wb[3])
+            a = qmul(wp[0], -wp[1], -wp[2], -wp[3], wb[0], wb[1], wb[2], wb[3])
             for j in range(4):
                 out_pfb[b, j] = a[j]
         rp, pb = rest_pfb[b], out_pfb[b]
-        r = _qmul(rp[0], -rp[1], -rp[2], -rp[3], pb[0], pb[1], pb[2], pb[3])
+        r = qmul(rp[0], -rp[1], -rp[2], -rp[3], pb[0], pb[1], pb[2], pb[3])
         sg = -1.0 if r[0] < 0.0 else 1.0
         for j in range(4):
             out_rfb[b, j] = sg * r[j]
@@ -980,10 +436,10 @@ def fit_one(
     out_stats[S_COST] = cost
     out_stats[S_SOLVES] = s[36][1]
     # 4. this frame is the next one's warm start and prior
-    _cp2(s[41], qprev)
-    _cp2(s[42], tprev)
-    _cp2(qprev, q)
-    _cp2(tprev, t)
+    cp2(s[41], qprev)
+    cp2(s[42], tprev)
+    cp2(qprev, q)
+    cp2(tprev, t)
     have[0] = 2 if have[0] >= 1 else 1
     return n_held
 

@@ -288,8 +288,15 @@ class BodySolver:
         if buffers is not None:
             of, oq, ofl = buffers
             both = kernel.solve_one(
-                markers_world, self._pi, self._pf, self._sf, self._sb, self._si,
-                of, oq, ofl,
+                markers_world,
+                self._pi,
+                self._pf,
+                self._sf,
+                self._sb,
+                self._si,
+                of,
+                oq,
+                ofl,
             )  # fmt: skip (positional: the fastest dispatch)
         else:  # a BodyPose made by hand: its arrays as a plain tuple, built once
             if out.kernel_out is None:

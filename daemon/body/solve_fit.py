@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from retargetd.daemon.body import fit_terms as ft
 from retargetd.daemon.body import kernel_fit as kf
 from retargetd.daemon.body.calibration import Calibration, calibrate
 from retargetd.daemon.body.fit_model import (
@@ -123,19 +124,19 @@ class FitParams:
 
     def array(self) -> F64Array:
         """The kernel's params array (``kernel_fit.P_*`` slots)."""
-        out = np.zeros(kf.N_PARAMS)
-        out[kf.P_LAM_ROT] = self.lambda_rot
-        out[kf.P_LAM_TRANS] = self.lambda_trans
-        out[kf.P_KAPPA_LIMIT] = self.kappa_limit
-        out[kf.P_KAPPA_HINGE] = self.kappa_hinge
-        out[kf.P_CAUCHY_M] = self.cauchy_m
-        out[kf.P_GATE_M] = self.gate_m
-        out[kf.P_GATE_K] = self.gate_k
-        out[kf.P_RESEED_RMS_M] = self.reseed_rms_m
-        out[kf.P_MAX_ITER] = self.max_iter
-        out[kf.P_TOL] = self.tol
-        out[kf.P_RESEED_REJECT_FRAC] = self.reseed_reject_frac
-        out[kf.P_FTOL] = self.ftol
+        out = np.zeros(ft.N_PARAMS)
+        out[ft.P_LAM_ROT] = self.lambda_rot
+        out[ft.P_LAM_TRANS] = self.lambda_trans
+        out[ft.P_KAPPA_LIMIT] = self.kappa_limit
+        out[ft.P_KAPPA_HINGE] = self.kappa_hinge
+        out[ft.P_CAUCHY_M] = self.cauchy_m
+        out[ft.P_GATE_M] = self.gate_m
+        out[ft.P_GATE_K] = self.gate_k
+        out[ft.P_RESEED_RMS_M] = self.reseed_rms_m
+        out[ft.P_MAX_ITER] = self.max_iter
+        out[ft.P_TOL] = self.tol
+        out[ft.P_RESEED_REJECT_FRAC] = self.reseed_reject_frac
+        out[ft.P_FTOL] = self.ftol
         return out
 
 
@@ -307,7 +308,7 @@ class FitSolver:
             bone_flags=np.zeros(n_b, dtype=np.uint8),
             marker_residual=np.zeros(n_m),
             marker_rejected=np.zeros(n_m, dtype=bool),
-            stats=np.zeros(kf.N_STATS),
+            stats=np.zeros(ft.N_STATS),
         )
 
     def solve_frame(self, markers_world: F64Array, out: FitPose) -> FitPose:
@@ -328,7 +329,7 @@ class FitSolver:
             out.bone_quality, out.bone_flags, out.marker_residual,
             out.marker_rejected, out.stats,
         )  # fmt: skip
-        out.frame_flags = FRAME_RESEEDED if out.stats[kf.S_RESEEDED] else 0
+        out.frame_flags = FRAME_RESEEDED if out.stats[ft.S_RESEEDED] else 0
         # Rig markers not seen this frame (their residual is NaN): the loop counts
         # them as occluded samples.
         out.n_occluded = len(out.marker_residual) - int(
@@ -363,7 +364,7 @@ class FitSolver:
         flags = np.zeros((n, n_b), dtype=np.uint8)
         resid = np.zeros((n, n_m))
         rejected = np.zeros((n, n_m), dtype=bool)
-        stats = np.zeros((n, kf.N_STATS))
+        stats = np.zeros((n, ft.N_STATS))
         kf.fit_many(
             positions, self._model, self._state, self._con, joints, wfb, pfb, rfb,
             root, quality, flags, resid, rejected, stats,
@@ -381,11 +382,11 @@ class FitSolver:
             bone_quality=quality,
             bone_flags=flags,
             marker_names=self.marker_names,
-            marker_rms=stats[:, kf.S_RMS].copy(),
+            marker_rms=stats[:, ft.S_RMS].copy(),
             marker_residual=resid,
             marker_rejected=rejected,
-            iterations=stats[:, kf.S_ITER].astype(np.int64),
-            reseeded=stats[:, kf.S_RESEEDED] > 0.5,
+            iterations=stats[:, ft.S_ITER].astype(np.int64),
+            reseeded=stats[:, ft.S_RESEEDED] > 0.5,
         )
 
 

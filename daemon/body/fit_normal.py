@@ -1,0 +1,350 @@
+"""The rigid-skeleton fit's linear algebra (numba): the normal equations from per-bone
+marker moments, their tree-ordered Cholesky solve with Levenberg-Marquardt damping,
+and the step applied to the state.
+
+The unknowns, the ordering (children first, no fill-in) and the blocks are described
+in :mod:`retargetd.daemon.body.kernel_fit`'s docstring; the terms come from
+:mod:`retargetd.daemon.body.fit_terms`.
+"""
+
+from __future__ import annotations
+
+import math
+
+from retargetd.daemon.body.fit_terms import (
+    P_KAPPA_HINGE,
+    P_KAPPA_LIMIT,
+    P_LAM_ROT,
+    P_LAM_TRANS,
+    pen_components,
+    qexp,
+    qlog,
+)
+from retargetd.daemon.compiled import kernel, qmul
+
+
+@kernel
+def build_normal(m: tuple, s: tuple) -> None:
+    # Normal equations H (lower triangle, elimination order) and gradient g at the
+    # current state (s: wm, o, pm, res, wrob of the current iterate).
+    parent, root_of, rest_pfb = m[0], m[1], m[3]
+    mk_bone = m[5]
+    hinge, lim, left, fwd = m[10], m[11], m[12], m[13]
+    anc_ptr, anc_idx = m[14], m[15]
+    params = m[18]
+    q, t, qprev, tprev = s[0], s[1], s[2], s[3]
+    wm, o, pm, res, wrob = s[8], s[9], s[10], s[14], s[15]
+    s0, sa, sm, sr, sc = s[16], s[17], s[18], s[19], s[20]
+    hh, g = s[21], s[23]
+    pen, pen2, jac = s[26], s[27], s[28]
+    n_b = parent.shape[0]
+    n = g.shape[0]
+    for i in range(n):
+        g[i] = 0.0
+        for j in range(n):
+            hh[i, j] = 0.0
+    for b in range(n_b):
+        s0[b] = 0.0
+        for j in range(3):
+            sa[b, j] = 0.0
+            sr[b, j] = 0.0
+            sc[b, j] = 0.0
+            for k in range(3):
+                sm[b, j, k] = 0.0
+    # Moments of the weighted markers (positions about bone 0's origin, for
+    # conditioning) summed over each bone's subtree: the block of H coupling a bone
+    # k with an ancestor l sums over exactly the markers below k.
+    c0x, c0y, c0z = o[0, 0], o[0, 1], o[0, 2]
+    for i in range(mk_bone.shape[0]):
+        w = wrob[i]
+        if w <= 0.0:
+            continue
+        b = mk_bone[i]
+        px = pm[i, 0] - c0x
+        py = pm[i, 1] - c0y
+        pz = pm[i, 2] - c0z
+        rx, ry, rz = res[i, 0], res[i, 1], res[i, 2]
+        s0[b] += w
+        sa[b, 0] += w * px
+        sa[b, 1] += w * py
+        sa[b, 2] += w * pz
+        sr[b, 0] += w * rx
+        sr[b, 1] += w * ry
+        sr[b, 2] += w * rz
+        sc[b, 0] += w * (py * rz - pz * ry)
+        sc[b, 1] += w * (pz * rx - px * rz)
+        sc[b, 2] += w * (px * ry - py * rx)
+        sm[b, 0, 0] += w * px * px
+        sm[b, 0, 1] += w * px * py
+        sm[b, 0, 2] += w * px * pz
+        sm[b, 1, 1] += w * py * py
+        sm[b, 1, 2] += w * py * pz
+        sm[b, 2, 2] += w * pz * pz
+    for b in range(n_b - 1, -1, -1):
+        sm[b, 1, 0] = sm[b, 0, 1]
+        sm[b, 2, 0] = sm[b, 0, 2]
+        sm[b, 2, 1] = sm[b, 1, 2]
+        p = parent[b]
+        if p >= 0 and s0[b] > 0.0:
+            s0[p] += s0[b]
+            for j in range(3):
+                sa[p, j] += sa[b, j]
+                sr[p, j] += sr[b, j]
+                sc[p, j] += sc[b, j]
+            for j in range(3):
+                for k2 in range(j, 3):
+                    sm[p, j, k2] += sm[b, j, k2]
+    for k in range(n_b):
+        w0 = s0[k]
+        if w0 <= 0.0:
+            continue
+        okx, oky, okz = o[k, 0] - c0x, o[k, 1] - c0y, o[k, 2] - c0z
+        ok0 = (okx, oky, okz)
+        mx, my, mz = sa[k, 0], sa[k, 1], sa[k, 2]
+        m1 = (mx, my, mz)
+        rk = 3 * (n_b - 1 - k)
+        tb = 3 * n_b + 3 * root_of[k]
+        # gradient: sum w (p - o_k) x r = C - o_k x R
+        g[rk + 0] += sc[k, 0] - (oky * sr[k, 2] - okz * sr[k, 1])
+        g[rk + 1] += sc[k, 1] - (okz * sr[k, 0] - okx * sr[k, 2])
+        g[rk + 2] += sc[k, 2] - (okx * sr[k, 1] - oky * sr[k, 0])
+        # translation block: rows t, cols k: -[v]x, v = sum w (p - o_k)
+        vx = mx - w0 * okx
+        vy = my - w0 * oky
+        vz = mz - w0 * okz
+        hh[tb + 0, rk + 1] += vz
+        hh[tb + 0, rk + 2] -= vy
+        hh[tb + 1, rk + 0] -= vz
+        hh[tb + 1, rk + 2] += vx
+        hh[tb + 2, rk + 0] += vy
+        hh[tb + 2, rk + 1] -= vx
+        for jj in range(anc_ptr[k], anc_ptr[k + 1]):
+            la = anc_idx[jj]
+            olx, oly, olz = o[la, 0] - c0x, o[la, 1] - c0y, o[la, 2] - c0z
+            ol0 = (olx, oly, olz)
+            rl = 3 * (n_b - 1 - la)
+            # G = sum w (p - o_k)(p - o_l)^T; rows l, cols k: trace(G) I - G
+            tt = (
+                sm[k, 0, 0] + sm[k, 1, 1] + sm[k, 2, 2]
+                - (mx * (okx + olx) + my * (oky + oly) + mz * (okz + olz))
+                + w0 * (okx * olx + oky * oly + okz * olz)
+            )  # fmt: skip
+            for i in range(3):
+                for j in range(3):
+                    gij = (
+                        sm[k, i, j]
+                        - m1[i] * ol0[j]
+                        - ok0[i] * m1[j]
+                        + w0 * ok0[i] * ol0[j]
+                    )
+                    hh[rl + i, rk + j] += (tt if i == j else 0.0) - gij
+        if parent[k] < 0:
+            for j in range(3):
+                hh[tb + j, tb + j] += w0
+                g[tb + j] += sr[k, j]
+    # Prior: lambda I on every rotation block, gradient lambda W phi.
+    lam = params[P_LAM_ROT]
+    s_lim = math.sqrt(params[P_KAPPA_LIMIT])
+    s_hinge = math.sqrt(params[P_KAPPA_HINGE])
+    eps = 1e-6
+    for b in range(n_b):
+        rb = 3 * (n_b - 1 - b)
+        d = qmul(qprev[b, 0], -qprev[b, 1], -qprev[b, 2], -qprev[b, 3],
+                  q[b, 0], q[b, 1], q[b, 2], q[b, 3])  # fmt: skip
+        px, py, pz = qlog(d[0], d[1], d[2], d[3])
+        for j in range(3):
+            hh[rb + j, rb + j] += lam
+            g[rb + j] += lam * (wm[b, j, 0] * px + wm[b, j, 1] * py + wm[b, j, 2] * pz)
+        if parent[b] < 0:
+            continue
+        r = qmul(rest_pfb[b, 0], -rest_pfb[b, 1], -rest_pfb[b, 2], -rest_pfb[b, 3],
+                  q[b, 0], q[b, 1], q[b, 2], q[b, 3])  # fmt: skip
+        if abs(r[0]) > m[19][b]:
+            continue
+        pen_components(r[0], r[1], r[2], r[3], lim[b], left[b], fwd[b], hinge[b],
+                        s_lim, s_hinge, pen)  # fmt: skip
+        active = False
+        for k in range(6):
+            if pen[k] != 0.0:
+                active = True
+        if not active:
+            continue
+        # Numerical Jacobian of the penalty residuals w.r.t. the bone's own increment.
+        for c in range(3):
+            e = qexp(eps if c == 0 else 0.0, eps if c == 1 else 0.0,
+                      eps if c == 2 else 0.0)  # fmt: skip
+            rp = qmul(r[0], r[1], r[2], r[3], e[0], e[1], e[2], e[3])
+            pen_components(rp[0], rp[1], rp[2], rp[3], lim[b], left[b], fwd[b],
+                            hinge[b], s_lim, s_hinge, pen2)  # fmt: skip
+            for k in range(6):
+                dk = (pen2[k] - pen[k]) / eps
+                # a twist wrapping through +-pi is not a derivative
+                jac[k, c] = dk if abs(dk) < 1e3 else 0.0
+        # In world increments: d pen / d omega = jac W^T; H += (jac W^T)^T (jac W^T).
+        for k in range(6):
+            u0 = (
+                jac[k, 0] * wm[b, 0, 0]
+                + jac[k, 1] * wm[b, 0, 1]
+                + jac[k, 2] * wm[b, 0, 2]
+            )
+            u1 = (
+                jac[k, 0] * wm[b, 1, 0]
+                + jac[k, 1] * wm[b, 1, 1]
+                + jac[k, 2] * wm[b, 1, 2]
+            )
+            u2 = (
+                jac[k, 0] * wm[b, 2, 0]
+                + jac[k, 1] * wm[b, 2, 1]
+                + jac[k, 2] * wm[b, 2, 2]
+            )
+            u = (u0, u1, u2)
+            for i in range(3):
+                g[rb + i] += u[i] * pen[k]
+                for j in range(3):
+                    hh[rb + i, rb + j] += u[i] * u[j]
+    lt = params[P_LAM_TRANS]
+    for rr in range(t.shape[0]):
+        tb = 3 * n_b + 3 * rr
+        for j in range(3):
+            hh[tb + j, tb + j] += lt
+            g[tb + j] += lt * (t[rr, j] - tprev[rr, j])
+
+
+@kernel
+def solve_step(m: tuple, s: tuple, mu: float) -> float:
+    # x = -(H + mu I)^-1 g by a Cholesky over 3 x 3 nodes in elimination order
+    # (children first): a node's column only reaches its ancestors, so the factor
+    # has the kinematic tree's pattern and no fill-in. Returns max |x|.
+    node_ptr, node_idx = m[16], m[17]
+    hh, ll, g, x = s[21], s[22], s[23], s[24]
+    n_nodes = node_ptr.shape[0] - 1
+    # copy the lower blocks the factorization touches
+    for k in range(n_nodes):
+        rk = 3 * k
+        for i in range(3):
+            for j in range(i + 1):
+                ll[rk + i, rk + j] = hh[rk + i, rk + j]
+            ll[rk + i, rk + i] += mu
+        for p in range(node_ptr[k], node_ptr[k + 1]):
+            ra = 3 * node_idx[p]
+            for i in range(3):
+                for j in range(3):
+                    ll[ra + i, rk + j] = hh[ra + i, rk + j]
+    for k in range(n_nodes):
+        rk = 3 * k
+        # 3 x 3 Cholesky of the diagonal block
+        a00 = ll[rk, rk]
+        l00 = math.sqrt(a00 if a00 > 1e-300 else 1e-300)
+        l10 = ll[rk + 1, rk] / l00
+        l20 = ll[rk + 2, rk] / l00
+        a11 = ll[rk + 1, rk + 1] - l10 * l10
+        l11 = math.sqrt(a11 if a11 > 1e-300 else 1e-300)
+        l21 = (ll[rk + 2, rk + 1] - l20 * l10) / l11
+        a22 = ll[rk + 2, rk + 2] - l20 * l20 - l21 * l21
+        l22 = math.sqrt(a22 if a22 > 1e-300 else 1e-300)
+        ll[rk, rk], ll[rk + 1, rk], ll[rk + 2, rk] = l00, l10, l20
+        ll[rk + 1, rk + 1], ll[rk + 2, rk + 1], ll[rk + 2, rk + 2] = l11, l21, l22
+        ll[rk, rk + 1] = 0.0
+        ll[rk, rk + 2] = 0.0
+        ll[rk + 1, rk + 2] = 0.0
+        p0, p1 = node_ptr[k], node_ptr[k + 1]
+        # L_ak = A_ak L_kk^-T (forward substitution along each row)
+        for p in range(p0, p1):
+            ra = 3 * node_idx[p]
+            for i in range(3):
+                y0 = ll[ra + i, rk] / l00
+                y1 = (ll[ra + i, rk + 1] - l10 * y0) / l11
+                y2 = (ll[ra + i, rk + 2] - l20 * y0 - l21 * y1) / l22
+                ll[ra + i, rk] = y0
+                ll[ra + i, rk + 1] = y1
+                ll[ra + i, rk + 2] = y2
+        # A_ab -= L_ak L_bk^T for ancestors b <= a
+        for p in range(p0, p1):
+            ra = 3 * node_idx[p]
+            for p2 in range(p0, p + 1):
+                rb = 3 * node_idx[p2]
+                diag = p2 == p
+                for i in range(3):
+                    ui0, ui1, ui2 = (
+                        ll[ra + i, rk],
+                        ll[ra + i, rk + 1],
+                        ll[ra + i, rk + 2],
+                    )
+                    for j in range(3):
+                        if diag and j > i:
+                            break
+                        ll[ra + i, rb + j] -= (
+                            ui0 * ll[rb + j, rk]
+                            + ui1 * ll[rb + j, rk + 1]
+                            + ui2 * ll[rb + j, rk + 2]
+                        )
+    for e in range(g.shape[0]):
+        x[e] = -g[e]
+    # forward: L y = b
+    for k in range(n_nodes):
+        rk = 3 * k
+        y0 = x[rk] / ll[rk, rk]
+        y1 = (x[rk + 1] - ll[rk + 1, rk] * y0) / ll[rk + 1, rk + 1]
+        y2 = (x[rk + 2] - ll[rk + 2, rk] * y0 - ll[rk + 2, rk + 1] * y1) / ll[
+            rk + 2, rk + 2
+        ]
+        x[rk], x[rk + 1], x[rk + 2] = y0, y1, y2
+        for p in range(node_ptr[k], node_ptr[k + 1]):
+            ra = 3 * node_idx[p]
+            for i in range(3):
+                x[ra + i] -= (
+                    ll[ra + i, rk] * y0
+                    + ll[ra + i, rk + 1] * y1
+                    + ll[ra + i, rk + 2] * y2
+                )
+    # backward: L^T x = y
+    big = 0.0
+    for k in range(n_nodes - 1, -1, -1):
+        rk = 3 * k
+        c0, c1, c2 = x[rk], x[rk + 1], x[rk + 2]
+        for p in range(node_ptr[k], node_ptr[k + 1]):
+            ra = 3 * node_idx[p]
+            xa0, xa1, xa2 = x[ra], x[ra + 1], x[ra + 2]
+            c0 -= ll[ra, rk] * xa0 + ll[ra + 1, rk] * xa1 + ll[ra + 2, rk] * xa2
+            c1 -= (
+                ll[ra, rk + 1] * xa0
+                + ll[ra + 1, rk + 1] * xa1
+                + ll[ra + 2, rk + 1] * xa2
+            )
+            c2 -= (
+                ll[ra, rk + 2] * xa0
+                + ll[ra + 1, rk + 2] * xa1
+                + ll[ra + 2, rk + 2] * xa2
+            )
+        x2 = c2 / ll[rk + 2, rk + 2]
+        x1 = (c1 - ll[rk + 2, rk + 1] * x2) / ll[rk + 1, rk + 1]
+        x0 = (c0 - ll[rk + 1, rk] * x1 - ll[rk + 2, rk] * x2) / ll[rk, rk]
+        x[rk], x[rk + 1], x[rk + 2] = x0, x1, x2
+        for v in (x0, x1, x2):
+            if abs(v) > big:
+                big = abs(v)
+    return big
+
+
+@kernel
+def apply_step(m: tuple, s: tuple) -> None:
+    # Trial state (qt, tt) = current state + step x.
+    parent = m[0]
+    q, t, qt, tt, wm, x = s[0], s[1], s[6], s[7], s[8], s[24]
+    n_b = parent.shape[0]
+    for b in range(n_b):
+        rb = 3 * (n_b - 1 - b)
+        ox, oy, oz = x[rb], x[rb + 1], x[rb + 2]
+        # bone-axis increment: conj(W_b) omega
+        ex = wm[b, 0, 0] * ox + wm[b, 1, 0] * oy + wm[b, 2, 0] * oz
+        ey = wm[b, 0, 1] * ox + wm[b, 1, 1] * oy + wm[b, 2, 1] * oz
+        ez = wm[b, 0, 2] * ox + wm[b, 1, 2] * oy + wm[b, 2, 2] * oz
+        e = qexp(ex, ey, ez)
+        r = qmul(q[b, 0], q[b, 1], q[b, 2], q[b, 3], e[0], e[1], e[2], e[3])
+        n = math.sqrt(r[0] * r[0] + r[1] * r[1] + r[2] * r[2] + r[3] * r[3])
+        for j in range(4):
+            qt[b, j] = r[j] / n
+    for rr in range(t.shape[0]):
+        tb = 3 * n_b + 3 * rr
+        for j in range(3):
+            tt[rr, j] = t[rr, j] + x[tb + j]

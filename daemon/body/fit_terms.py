@@ -1,0 +1,243 @@
+"""The rigid-skeleton fit's terms (numba): its parameter and statistics slots, small
+quaternion helpers (exp and log of rotation vectors), forward kinematics, the soft
+joint-limit penalty and the cost of the marker and regularization terms.
+
+Used by :mod:`retargetd.daemon.body.fit_normal` (the normal equations) and
+:mod:`retargetd.daemon.body.kernel_fit` (the Levenberg-Marquardt loop and the entry
+points); the cost itself is described in ``kernel_fit``'s docstring.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from retargetd.daemon.compiled import kernel, mat_from_unit_quat, qmul
+
+# params (float64 array) slots
+P_LAM_ROT = 0
+P_LAM_TRANS = 1
+P_KAPPA_LIMIT = 2
+P_KAPPA_HINGE = 3
+P_CAUCHY_M = 4
+P_GATE_M = 5
+P_GATE_K = 6
+P_RESEED_RMS_M = 7
+P_MAX_ITER = 8
+P_TOL = 9
+P_RESEED_REJECT_FRAC = 10
+P_FTOL = 11
+N_PARAMS = 12
+
+# stats (float64 array) slots
+S_RMS = 0
+S_REJECTED = 1
+S_ITER = 2
+S_RESEEDED = 3
+S_COST = 4
+S_SOLVES = 5
+N_STATS = 6
+
+INF = 1e300
+
+
+@kernel
+def qexp(vx: float, vy: float, vz: float) -> tuple[float, float, float, float]:
+    th = math.sqrt(vx * vx + vy * vy + vz * vz)
+    if th < 1e-12:
+        w, s = 1.0, 0.5
+    else:
+        w, s = math.cos(0.5 * th), math.sin(0.5 * th) / th
+    n = (
+        math.sqrt(w * w + s * s * th * th)
+        if th >= 1e-12
+        else math.sqrt(1.0 + 0.25 * th * th)
+    )
+    return w / n, s * vx / n, s * vy / n, s * vz / n
+
+
+@kernel
+def qlog(w: float, x: float, y: float, z: float) -> tuple[float, float, float]:
+    if w < 0.0:
+        w, x, y, z = -w, -x, -y, -z
+    s = math.sqrt(x * x + y * y + z * z)
+    if s < 1e-12:
+        return 2.0 * x, 2.0 * y, 2.0 * z
+    k = 2.0 * math.atan2(s, w) / s
+    return k * x, k * y, k * z
+
+
+@kernel
+def cp2(dst: np.ndarray, src: np.ndarray) -> None:
+    for i in range(dst.shape[0]):
+        for j in range(dst.shape[1]):
+            dst[i, j] = src[i, j]
+
+
+@kernel
+def cp3(dst: np.ndarray, src: np.ndarray) -> None:
+    for i in range(dst.shape[0]):
+        for j in range(dst.shape[1]):
+            for k in range(dst.shape[2]):
+                dst[i, j, k] = src[i, j, k]
+
+
+@kernel
+def cp1(dst: np.ndarray, src: np.ndarray) -> None:
+    for i in range(dst.shape[0]):
+        dst[i] = src[i]
+
+
+@kernel
+def fk(
+    parent: np.ndarray, root_of: np.ndarray, off: np.ndarray,
+    q: np.ndarray, t: np.ndarray, wq: np.ndarray, wm: np.ndarray, o: np.ndarray,
+) -> None:  # fmt: skip
+    # World rotation (quat wq, matrix wm) and origin o of every bone.
+    for b in range(parent.shape[0]):
+        p = parent[b]
+        if p < 0:
+            for j in range(4):
+                wq[b, j] = q[b, j]
+            r = root_of[b]
+            for j in range(3):
+                o[b, j] = t[r, j]
+        else:
+            a = qmul(wq[p, 0], wq[p, 1], wq[p, 2], wq[p, 3],
+                      q[b, 0], q[b, 1], q[b, 2], q[b, 3])  # fmt: skip
+            n = math.sqrt(a[0] * a[0] + a[1] * a[1] + a[2] * a[2] + a[3] * a[3])
+            for j in range(4):
+                wq[b, j] = a[j] / n
+            for j in range(3):
+                o[b, j] = (
+                    o[p, j]
+                    + wm[p, j, 0] * off[b, 0]
+                    + wm[p, j, 1] * off[b, 1]
+                    + wm[p, j, 2] * off[b, 2]
+                )
+        mat_from_unit_quat(wq[b], wm[b])
+
+
+@kernel
+def pen_components(
+    qw: float, qx: float, qy: float, qz: float,
+    lim: np.ndarray, left: np.ndarray, fwd: np.ndarray, hinge: np.ndarray,
+    s_lim: float, s_hinge: float, out: np.ndarray,
+) -> None:  # fmt: skip
+    # Residuals of one joint's penalties for its calibration-relative rotation q:
+    # out[0] twist, out[1] sagittal, out[2] frontal or cone excess (the validator's
+    # swing/twist split, validate_limits.swing_twist), out[3:6] the rotation off the
+    # hinge axis; each scaled by the square root of its weight.
+    if qw < 0.0:
+        qw, qx, qy, qz = -qw, -qx, -qy, -qz
+    for k in range(6):
+        out[k] = 0.0
+    tw = 2.0 * math.atan2(qy, qw)
+    tw = (tw + math.pi) % (2.0 * math.pi) - math.pi
+    if math.isfinite(lim[0]):
+        if tw > lim[1]:
+            out[0] = s_lim * (tw - lim[1])
+        elif tw < lim[0]:
+            out[0] = s_lim * (tw - lim[0])
+    if math.isfinite(lim[2]) or math.isfinite(lim[4]) or math.isfinite(lim[5]):
+        h = 0.5 * tw
+        # swing = q * conj(twist), twist = (cos h, 0, sin h, 0)
+        sw, sx, sy, sz = qmul(qw, qx, qy, qz, math.cos(h), 0.0, -math.sin(h), 0.0)
+        vx, vy, vz = qlog(sw, sx, sy, sz)
+        if math.isfinite(lim[2]):
+            sag = vx * left[0] + vy * left[1] + vz * left[2]
+            if sag > lim[3]:
+                out[1] = s_lim * (sag - lim[3])
+            elif sag < lim[2]:
+                out[1] = s_lim * (sag - lim[2])
+        if math.isfinite(lim[4]):
+            fro = vx * fwd[0] + vy * fwd[1] + vz * fwd[2]
+            if fro > lim[4]:
+                out[2] = s_lim * (fro - lim[4])
+            elif fro < -lim[4]:
+                out[2] = s_lim * (fro + lim[4])
+        elif math.isfinite(lim[5]):
+            cone = math.sqrt(vx * vx + vy * vy + vz * vz)
+            if cone > lim[5]:
+                out[2] = s_lim * (cone - lim[5])
+    if hinge[0] != 0.0 or hinge[1] != 0.0 or hinge[2] != 0.0:
+        vx, vy, vz = qlog(qw, qx, qy, qz)
+        d = vx * hinge[0] + vy * hinge[1] + vz * hinge[2]
+        out[3] = s_hinge * (vx - d * hinge[0])
+        out[4] = s_hinge * (vy - d * hinge[1])
+        out[5] = s_hinge * (vz - d * hinge[2])
+
+
+@kernel
+def marker_cost(
+    m: tuple, s: tuple, wm: np.ndarray, o: np.ndarray, pm: np.ndarray,
+    res: np.ndarray, wrob: np.ndarray, gate: float,
+) -> float:  # fmt: skip
+    # Model marker positions pm, residuals res, IRLS weights wrob; returns the
+    # robust marker cost 1/2 sum w c^2 log(1 + |r|^2 / c^2) (constant past the gate).
+    mk_bone, mk_local, mk_weight = m[5], m[6], m[7]
+    params = m[18]
+    meas, vis = s[12], s[13]
+    c2 = params[P_CAUCHY_M] * params[P_CAUCHY_M]
+    g2 = gate * gate
+    cost = 0.0
+    for i in range(mk_bone.shape[0]):
+        b = mk_bone[i]
+        for j in range(3):
+            pm[i, j] = (
+                o[b, j]
+                + wm[b, j, 0] * mk_local[i, 0]
+                + wm[b, j, 1] * mk_local[i, 1]
+                + wm[b, j, 2] * mk_local[i, 2]
+            )
+        if not vis[i]:
+            wrob[i] = 0.0
+            continue
+        n2 = 0.0
+        for j in range(3):
+            res[i, j] = pm[i, j] - meas[i, j]
+            n2 += res[i, j] * res[i, j]
+        w = mk_weight[i]
+        if n2 > g2:
+            wrob[i] = 0.0
+            cost += 0.5 * w * c2 * math.log1p(g2 / c2)
+        else:
+            wrob[i] = w / (1.0 + n2 / c2)
+            cost += 0.5 * w * c2 * math.log1p(n2 / c2)
+    return cost
+
+
+@kernel
+def reg_cost(m: tuple, s: tuple, q: np.ndarray, t: np.ndarray) -> float:
+    # Prior (pull to the last frame) and joint penalties at (q, t).
+    parent, rest_pfb = m[0], m[3]
+    hinge, lim, left, fwd = m[10], m[11], m[12], m[13]
+    params = m[18]
+    qprev, tprev = s[2], s[3]
+    pen = s[26]
+    pen_cos = m[19]
+    lam = params[P_LAM_ROT]
+    s_lim = math.sqrt(params[P_KAPPA_LIMIT])
+    s_hinge = math.sqrt(params[P_KAPPA_HINGE])
+    cost = 0.0
+    for b in range(parent.shape[0]):
+        d = qmul(qprev[b, 0], -qprev[b, 1], -qprev[b, 2], -qprev[b, 3],
+                  q[b, 0], q[b, 1], q[b, 2], q[b, 3])  # fmt: skip
+        vx, vy, vz = qlog(d[0], d[1], d[2], d[3])
+        cost += 0.5 * lam * (vx * vx + vy * vy + vz * vz)
+        if parent[b] >= 0:
+            r = qmul(rest_pfb[b, 0], -rest_pfb[b, 1], -rest_pfb[b, 2], -rest_pfb[b, 3],
+                      q[b, 0], q[b, 1], q[b, 2], q[b, 3])  # fmt: skip
+            if abs(r[0]) > pen_cos[b]:
+                continue
+            pen_components(r[0], r[1], r[2], r[3], lim[b], left[b], fwd[b],
+                            hinge[b], s_lim, s_hinge, pen)  # fmt: skip
+            for k in range(6):
+                cost += 0.5 * pen[k] * pen[k]
+    lt = params[P_LAM_TRANS]
+    for rr in range(t.shape[0]):
+        for j in range(3):
+            dt = t[rr, j] - tprev[rr, j]
+            cost += 0.5 * lt * dt * dt
+    return cost
