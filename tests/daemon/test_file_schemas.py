@@ -22,13 +22,8 @@ from typing import Any
 
 import pytest
 
-from retargetd.daemon.body.rig import (
-    RIG_RANGES,
-    NumberRange,
-    RigError,
-    load_rig,
-    shipped_rigs,
-)
+from retargetd.daemon.body.rig import RigError, load_rig, shipped_rigs
+from retargetd.daemon.body.rig_model import RIG_RANGES, NumberRange
 from retargetd.daemon.cli.main import main
 from retargetd.daemon.face.config import (
     FACE_KEYS,
