@@ -14,7 +14,7 @@ never a higher one nor another subpackage of its own layer::
 Also: no import cycle between modules; no import of a ``retargetd`` module inside a
 function (the one way to hide a cycle) except in ``cli/``, whose commands load heavy
 modules lazily so that ``retargetd --help`` stays fast; no runtime module imports
-``cli``; no command imports another command.
+``cli``; no command imports another command; no shipped module over 500 lines of code.
 """
 
 from __future__ import annotations
@@ -194,3 +194,51 @@ def test_imports_are_absolute() -> None:
             if isinstance(node, ast.ImportFrom) and node.level:
                 bad.append(f"{path.relative_to(REPO_ROOT)}:{node.lineno}")
     assert not bad, "relative imports: " + ", ".join(bad)
+
+
+#: The most lines of code a shipped module may hold (issue 13: "none over ~500 lines
+#: of code"); blank lines, comments and docstrings do not count.
+MAX_CODE_LINES = 500
+
+
+def code_lines(source: str) -> int:
+    """Lines of ``source`` that hold code: not blank, not only a comment, not part of
+    a module, class or function docstring."""
+    docstring_lines: set[int] = set()
+    for node in ast.walk(ast.parse(source)):
+        if not isinstance(
+            node, ast.Module | ast.ClassDef | ast.FunctionDef | ast.AsyncFunctionDef
+        ):
+            continue
+        first = node.body[0] if node.body else None
+        if (
+            isinstance(first, ast.Expr)
+            and isinstance(first.value, ast.Constant)
+            and isinstance(first.value.value, str)
+        ):
+            docstring_lines.update(range(first.lineno, (first.end_lineno or 0) + 1))
+    return sum(
+        1
+        for number, line in enumerate(source.splitlines(), 1)
+        if line.strip()
+        and not line.strip().startswith("#")
+        and number not in docstring_lines
+    )
+
+
+def test_code_lines_counts_only_code() -> None:
+    source = (
+        '"""Doc\n\nmore doc."""\n\n# comment\nx = 1\n\n\n'
+        'def f():\n    """Doc."""\n    return x  # trailing\n'
+    )
+    assert code_lines(source) == 3
+
+
+def test_no_shipped_module_is_over_the_size_limit() -> None:
+    over = []
+    for package in ("daemon", "protocols", "replay"):
+        for path in sorted((REPO_ROOT / package).rglob("*.py")):
+            n = code_lines(path.read_text(encoding="utf-8"))
+            if n > MAX_CODE_LINES:
+                over.append(f"{path.relative_to(REPO_ROOT)}: {n}")
+    assert not over, f"modules over {MAX_CODE_LINES} lines of code: {over}"

@@ -23,11 +23,8 @@ import numpy as np
 from retargetd.daemon.body.calibration import calibrate, load_calibration
 from retargetd.daemon.body.rig import load_rig
 from retargetd.daemon.body.solve import BodySolver
-from retargetd.daemon.live.config import (
-    CALIBRATE_MAX_FRAMES,
-    DaemonConfig,
-    check_pipeline,
-)
+from retargetd.daemon.live.config import DaemonConfig, check_pipeline
+from retargetd.daemon.live.config_schema import CALIBRATE_MAX_FRAMES
 from retargetd.daemon.live.performer import FrameSource
 from retargetd.daemon.live.state import DaemonState
 

@@ -1,5 +1,5 @@
 """Every key of the daemon config, generated from the schema (the dataclasses of
-``daemon/live/config.py`` and each field's rule), given a wrong type, an
+``daemon/live/config_schema.py`` and each field's rule), given a wrong type, an
 out-of-range value and a misspelling: ``retargetd run --config`` exits 2 with one
 line on stderr naming the key, before any socket opens. Undecodable bytes too, in
 the daemon config, a rig file and a face config (issue 12: a non-UTF-8 byte gave a
@@ -105,7 +105,7 @@ def _out_of_range(f: dataclasses.Field, tmp: Path) -> Any:
     if check in values:
         return values[check]
     assert check == "" and isinstance(f.default, bool), (
-        f"{f.name}: every key but a bool needs a rule (config._spec)"
+        f"{f.name}: every key but a bool needs a rule (config_schema.spec)"
     )
     return None
 

@@ -396,8 +396,9 @@ def test_frame_counts_and_both_output_forms_agree(exact_rig: Rig) -> None:
         seconds=2.0, rate_hz=120.0, markerset=EXACT_MARKERS, noise_mm=0.5,
         dropout=0.1, dropout_mean_frames=12, seed=5,
     )  # fmt: skip
-    packed, by_hand = BodySolver(exact_rig, cal, take.labels), BodySolver(
-        exact_rig, cal, take.labels
+    packed, by_hand = (
+        BodySolver(exact_rig, cal, take.labels),
+        BodySolver(exact_rig, cal, take.labels),
     )
     out = packed.new_pose()
     made = packed.new_pose()

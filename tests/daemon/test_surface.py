@@ -34,11 +34,8 @@ from pythonosc.osc_message_builder import OscMessageBuilder
 
 from retargetd.daemon.cli.ctl import request
 from retargetd.daemon.cli.main import main as cli_main
-from retargetd.daemon.live.config import (
-    CALIBRATE_MAX_FRAMES,
-    ConfigError,
-    DaemonConfig,
-)
+from retargetd.daemon.live.config import ConfigError, DaemonConfig
+from retargetd.daemon.live.config_schema import CALIBRATE_MAX_FRAMES
 from retargetd.daemon.live.ratelog import RateLimitedLog, RateLimiter
 
 Live, OscSource, PoseSub = _live.Live, _live.OscSource, _live.PoseSub
