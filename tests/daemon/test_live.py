@@ -1163,7 +1163,7 @@ def test_demo_subprocess_streams_poses(
     deadline = time.monotonic() + 30.0
     while proc.p.poll() is None and time.monotonic() < deadline:
         sub.pump(20)
-        vmc_rx.pump()
+        vmc_rx.pump(max_datagrams=256)
     rc, err = proc.finish(timeout_s=5.0)
     sub.pump(50)
     vmc_rx.pump()
@@ -1507,7 +1507,7 @@ def test_vmc_receivers_are_told_the_calibration_state(
         got: list[Any] = []
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline and not got:
-            vmc.pump()
+            vmc.pump(max_datagrams=256)
             for dgram in vmc.datagrams:
                 for msg in oscbuildparse.decode_packet(dgram).elements:
                     if msg.addrpattern == "/VMC/Ext/OK":

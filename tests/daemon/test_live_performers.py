@@ -325,7 +325,7 @@ def _pump_until(
         if time.monotonic() > deadline:
             raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
         for r in recv:
-            r.pump()
+            r.pump(max_datagrams=256)
 
 
 def test_two_performers_calibrated_apart_each_to_its_own_vmc_port(

@@ -317,18 +317,27 @@ class VmcReceiver:
         self._pending: list[tuple[str, list[Any]]] = []
         self._pending_dgrams = 0
 
-    def pump(self) -> None:
-        """Read every datagram waiting (the first one waits up to the timeout)."""
+    def pump(self, max_datagrams: int | None = None) -> None:
+        """Read the datagrams waiting (the first one waits up to the timeout), at
+        most ``max_datagrams`` when given. A loop that pumps while the daemon still
+        sends must give a cap: on a loaded machine python-osc's parser can be slower
+        than the daemon sends, and reading "until none is waiting" then never
+        returns to the loop's deadline or predicate (a CI run hung here until
+        pytest's 120 s timeout). Without a cap, for a drain after the sender stopped.
+        """
         try:
             data = self.sock.recv(65536)
         except TimeoutError:
             return
-        while True:
-            self._parse(data)
+        self._parse(data)
+        left = -1 if max_datagrams is None else max_datagrams - 1
+        while left != 0:
+            left -= 1
             try:
                 data = self.sock.recv(65536, socket.MSG_DONTWAIT)
             except (BlockingIOError, TimeoutError):
                 return
+            self._parse(data)
 
     def _parse(self, data: bytes) -> None:
         self.datagrams.append(data)
