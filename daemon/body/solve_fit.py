@@ -123,7 +123,7 @@ class FitParams:
     ftol: float = 1e-5
 
     def array(self) -> F64Array:
-        """The kernel's params array (``kernel_fit.P_*`` slots)."""
+        """The kernel's params array (``fit_terms.P_*`` slots)."""
         out = np.zeros(ft.N_PARAMS)
         out[ft.P_LAM_ROT] = self.lambda_rot
         out[ft.P_LAM_TRANS] = self.lambda_trans
@@ -149,7 +149,7 @@ class FitPose(BodyPose):
             NaN where not seen.
         marker_rejected: (Mr,) bool, rejected by the gate this frame.
         stats: (6,) float64: inlier residual RMS (m), markers rejected, iterations,
-            reseeded (0/1), final cost, linear solves (``kernel_fit.S_*``).
+            reseeded (0/1), final cost, linear solves (``fit_terms.S_*``).
     """
 
     marker_residual: F64Array = field(default_factory=_empty)
