@@ -115,13 +115,16 @@ class FitModel:
             in that bone's frame; ``marker_weight`` (Mr,) residual weights.
         joint_names: (J,); ``joint_bone`` (J,), ``joint_local`` (J, 3) metres.
         hinge_axis: (B, 3) unit hinge axis in the bone's rest axes, zeros = ball.
+        twist_lock: (B,) 1.0 for a swing joint (no rotation about the bone's own +Y
+            relative to its calibration pose), else 0.0.
         limits: (B, 6) radians (``LIM_*`` columns, NaN = none); ``limit_left`` and
             ``limit_forward`` (B, 3): the performer's left and forward in each bone's
             rest axes (the validator's sagittal and frontal axes).
         penalty_cos: (B,) cos(theta_min / 2), theta_min the smallest limit of the
             bone: a joint rotated by less than that (|w| above it) is inside all its
             limits, since swing and twist angles never exceed the rotation's angle
-            (-1 for a bone without limits: never checked; 2 for a hinge: always).
+            (-1 for a bone without limits: never checked; 2 for a hinge or a swing
+            joint: always).
         anc_ptr, anc_idx: CSR, per bone its ancestors-or-self, self first.
         n_dof: 3 B + 3 R unknowns: bone b's rotation at ``3 (B - 1 - b)``, root r's
             translation at ``3 B + 3 r`` (children before parents: the elimination
@@ -145,6 +148,7 @@ class FitModel:
     joint_bone: IntArray
     joint_local: F64Array
     hinge_axis: F64Array
+    twist_lock: F64Array
     limits: F64Array
     limit_left: F64Array
     limit_forward: F64Array
@@ -487,9 +491,12 @@ def build_fit_model(
             joint_bone[j], joint_local[j] = b, (loc if used else np.zeros(3))
     # Hinges.
     hinge = np.zeros((n_bones, 3))
+    twist_lock = np.zeros(n_bones)
     for name, bopt in options.bones.items():
         if bopt.dof == "hinge":
             hinge[rig.bone_names.index(name)] = bopt.axis
+        elif bopt.dof == "swing":
+            twist_lock[rig.bone_names.index(name)] = 1.0
     limits, left_b, fwd_b = _limit_rows(
         rig, calibration, joint_limits or {}, segment_kind or {}
     )
@@ -498,7 +505,7 @@ def build_fit_model(
         bounds = np.abs(limits[b][np.isfinite(limits[b])])
         if bounds.size:
             penalty_cos[b] = math.cos(0.5 * float(bounds.min()))
-        if hinge[b].any():
+        if hinge[b].any() or twist_lock[b]:
             penalty_cos[b] = 2.0
     # Ancestors (self first) and the Cholesky structure.
     anc_ptr = [0]
@@ -540,6 +547,7 @@ def build_fit_model(
         joint_bone=_readonly(joint_bone),
         joint_local=_readonly(joint_local),
         hinge_axis=_readonly(hinge),
+        twist_lock=_readonly(twist_lock),
         limits=_readonly(limits),
         limit_left=_readonly(left_b),
         limit_forward=_readonly(fwd_b),

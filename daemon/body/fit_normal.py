@@ -31,7 +31,7 @@ def build_normal(m: tuple, s: tuple) -> None:
     mk_bone = m[5]
     hinge, lim, left, fwd = m[10], m[11], m[12], m[13]
     anc_ptr, anc_idx = m[14], m[15]
-    params = m[18]
+    params, lock = m[18], m[20]
     q, t, qprev, tprev = s[0], s[1], s[2], s[3]
     wm, o, pm, res, wrob = s[8], s[9], s[10], s[14], s[15]
     s0, sa, sm, sr, sc = s[16], s[17], s[18], s[19], s[20]
@@ -162,7 +162,7 @@ def build_normal(m: tuple, s: tuple) -> None:
         if abs(r[0]) > m[19][b]:
             continue
         pen_components(r[0], r[1], r[2], r[3], lim[b], left[b], fwd[b], hinge[b],
-                        s_lim, s_hinge, pen)  # fmt: skip
+                        lock[b], s_lim, s_hinge, pen)  # fmt: skip
         active = False
         for k in range(6):
             if pen[k] != 0.0:
@@ -175,7 +175,7 @@ def build_normal(m: tuple, s: tuple) -> None:
                       eps if c == 2 else 0.0)  # fmt: skip
             rp = qmul(r[0], r[1], r[2], r[3], e[0], e[1], e[2], e[3])
             pen_components(rp[0], rp[1], rp[2], rp[3], lim[b], left[b], fwd[b],
-                            hinge[b], s_lim, s_hinge, pen2)  # fmt: skip
+                            hinge[b], lock[b], s_lim, s_hinge, pen2)  # fmt: skip
             for k in range(6):
                 dk = (pen2[k] - pen[k]) / eps
                 # a twist wrapping through +-pi is not a derivative

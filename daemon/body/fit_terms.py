@@ -28,7 +28,8 @@ P_MAX_ITER = 8
 P_TOL = 9
 P_RESEED_REJECT_FRAC = 10
 P_FTOL = 11
-N_PARAMS = 12
+P_GATE_MEMORY = 12
+N_PARAMS = 13
 
 # stats (float64 array) slots
 S_RMS = 0
@@ -123,12 +124,13 @@ def fk(
 def pen_components(
     qw: float, qx: float, qy: float, qz: float,
     lim: np.ndarray, left: np.ndarray, fwd: np.ndarray, hinge: np.ndarray,
-    s_lim: float, s_hinge: float, out: np.ndarray,
+    lock: float, s_lim: float, s_hinge: float, out: np.ndarray,
 ) -> None:  # fmt: skip
     # Residuals of one joint's penalties for its calibration-relative rotation q:
     # out[0] twist, out[1] sagittal, out[2] frontal or cone excess (the validator's
     # swing/twist split, validate_limits.swing_twist), out[3:6] the rotation off the
-    # hinge axis; each scaled by the square root of its weight.
+    # hinge axis, or out[3] a swing joint's twist (lock != 0); each scaled by the
+    # square root of its weight.
     if qw < 0.0:
         qw, qx, qy, qz = -qw, -qx, -qy, -qz
     for k in range(6):
@@ -161,7 +163,11 @@ def pen_components(
             cone = math.sqrt(vx * vx + vy * vy + vz * vz)
             if cone > lim[5]:
                 out[2] = s_lim * (cone - lim[5])
-    if hinge[0] != 0.0 or hinge[1] != 0.0 or hinge[2] != 0.0:
+    if lock != 0.0:
+        # Zero twist about +Y <=> q_y = 0 <=> the rotation's axis is perpendicular to
+        # the bone: a pure swing.
+        out[3] = s_hinge * tw
+    elif hinge[0] != 0.0 or hinge[1] != 0.0 or hinge[2] != 0.0:
         vx, vy, vz = qlog(qw, qx, qy, qz)
         d = vx * hinge[0] + vy * hinge[1] + vz * hinge[2]
         out[3] = s_hinge * (vx - d * hinge[0])
@@ -172,15 +178,15 @@ def pen_components(
 @kernel
 def marker_cost(
     m: tuple, s: tuple, wm: np.ndarray, o: np.ndarray, pm: np.ndarray,
-    res: np.ndarray, wrob: np.ndarray, gate: float,
+    res: np.ndarray, wrob: np.ndarray, gated: bool,
 ) -> float:  # fmt: skip
     # Model marker positions pm, residuals res, IRLS weights wrob; returns the
-    # robust marker cost 1/2 sum w c^2 log(1 + |r|^2 / c^2) (constant past the gate).
+    # robust marker cost 1/2 sum w c^2 log(1 + |r|^2 / c^2) over the visible markers
+    # (gated: without those the gate rejected this frame, s[45]).
     mk_bone, mk_local, mk_weight = m[5], m[6], m[7]
     params = m[18]
-    meas, vis = s[12], s[13]
+    meas, vis, rej = s[12], s[13], s[45]
     c2 = params[P_CAUCHY_M] * params[P_CAUCHY_M]
-    g2 = gate * gate
     cost = 0.0
     for i in range(mk_bone.shape[0]):
         b = mk_bone[i]
@@ -199,9 +205,8 @@ def marker_cost(
             res[i, j] = pm[i, j] - meas[i, j]
             n2 += res[i, j] * res[i, j]
         w = mk_weight[i]
-        if n2 > g2:
+        if gated and rej[i]:
             wrob[i] = 0.0
-            cost += 0.5 * w * c2 * math.log1p(g2 / c2)
         else:
             wrob[i] = w / (1.0 + n2 / c2)
             cost += 0.5 * w * c2 * math.log1p(n2 / c2)
@@ -216,7 +221,7 @@ def reg_cost(m: tuple, s: tuple, q: np.ndarray, t: np.ndarray) -> float:
     params = m[18]
     qprev, tprev = s[2], s[3]
     pen = s[26]
-    pen_cos = m[19]
+    pen_cos, lock = m[19], m[20]
     lam = params[P_LAM_ROT]
     s_lim = math.sqrt(params[P_KAPPA_LIMIT])
     s_hinge = math.sqrt(params[P_KAPPA_HINGE])
@@ -232,7 +237,7 @@ def reg_cost(m: tuple, s: tuple, q: np.ndarray, t: np.ndarray) -> float:
             if abs(r[0]) > pen_cos[b]:
                 continue
             pen_components(r[0], r[1], r[2], r[3], lim[b], left[b], fwd[b],
-                            hinge[b], s_lim, s_hinge, pen)  # fmt: skip
+                            hinge[b], lock[b], s_lim, s_hinge, pen)  # fmt: skip
             for k in range(6):
                 cost += 0.5 * pen[k] * pen[k]
     lt = params[P_LAM_TRANS]

@@ -11,6 +11,8 @@ the fit minimizes
   + 1/2 lambda_trans sum_r |t_r - t_r^prev|^2
   + 1/2 kappa_limit |excess past the validator's swing/twist limits|^2   (soft)
   + 1/2 kappa_hinge |rotation off a hinge's axis|^2   (bones the rig makes hinges)
+  + 1/2 kappa_hinge twist^2                          (swing joints: no twist about
+                                                      the bone's own long axis)
 
 by Levenberg-Marquardt (compiled with ``compiled.kernel``). Increments are rotation
 vectors in world axes at each joint (``omega_b``; a bone's own increment is
@@ -44,10 +46,10 @@ import numpy as np
 from retargetd.daemon.body import kernel as body_kernel
 from retargetd.daemon.body.fit_normal import apply_step, build_normal, solve_step
 from retargetd.daemon.body.fit_terms import (
-    INF,
     P_FTOL,
     P_GATE_K,
     P_GATE_M,
+    P_GATE_MEMORY,
     P_MAX_ITER,
     P_RESEED_REJECT_FRAC,
     P_RESEED_RMS_M,
@@ -78,15 +80,15 @@ FLAG_PARTIAL = body_kernel.FLAG_PARTIAL  #: some marker of the bone not seen
 
 
 @kernel
-def _evaluate_current(m: tuple, s: tuple, gate: float) -> float:
+def _evaluate_current(m: tuple, s: tuple, gated: bool) -> float:
     fk(m[0], m[1], m[2], s[0], s[1], s[29], s[8], s[9])
-    return marker_cost(m, s, s[8], s[9], s[10], s[14], s[15], gate) + reg_cost(
+    return marker_cost(m, s, s[8], s[9], s[10], s[14], s[15], gated) + reg_cost(
         m, s, s[0], s[1]
     )
 
 
 @kernel
-def _lm(m: tuple, s: tuple, gate: float, max_iter: int) -> tuple[int, bool, float]:
+def _lm(m: tuple, s: tuple, gated: bool, max_iter: int) -> tuple[int, bool, float]:
     # Levenberg-Marquardt from the current state; returns (iterations, converged,
     # cost). The state (q, t and its FK / residual buffers) ends at the best iterate.
     params = m[18]
@@ -96,7 +98,7 @@ def _lm(m: tuple, s: tuple, gate: float, max_iter: int) -> tuple[int, bool, floa
     wqt, wmt, ot, pmt, rest, wrobt = s[30], s[31], s[32], s[33], s[34], s[35]
     hh = s[21]
     g, x = s[23], s[24]
-    cost = _evaluate_current(m, s, gate)
+    cost = _evaluate_current(m, s, gated)
     mu_scale = 1e-8
     nu = 2.0
     converged = False
@@ -125,7 +127,7 @@ def _lm(m: tuple, s: tuple, gate: float, max_iter: int) -> tuple[int, bool, floa
             pred = 0.5 * (mu * xx - gx)
             apply_step(m, s)
             fk(m[0], m[1], m[2], qt, tt, wqt, wmt, ot)
-            ct = marker_cost(m, s, wmt, ot, pmt, rest, wrobt, gate) + reg_cost(
+            ct = marker_cost(m, s, wmt, ot, pmt, rest, wrobt, gated) + reg_cost(
                 m, s, qt, tt
             )
             # (a step at the optimum may raise the cost by rounding: no retries then)
@@ -181,35 +183,60 @@ def _median_residual(s: tuple) -> float:
 
 
 @kernel
+def _mark_outliers(m: tuple, s: tuple, gate: float) -> bool:
+    # The gate, on the ungated fit's residuals: a visible marker is rejected when its
+    # residual exceeds the gate and, if it has a reference (its residual vector at
+    # its last accepted frame, at most P_GATE_MEMORY frames ago), has also moved from
+    # it by more than the gate. A swapped label or a ghost jumps by a marker spacing;
+    # skin sliding or a loose fit grows a residual over many frames and keeps it.
+    params = m[18]
+    vis, res, rej, rref, rage = s[13], s[14], s[45], s[47], s[48]
+    memory = params[P_GATE_MEMORY]
+    g2 = gate * gate
+    beyond = False
+    for i in range(vis.shape[0]):
+        rej[i] = False
+        if not vis[i]:
+            continue
+        n2 = res[i, 0] ** 2 + res[i, 1] ** 2 + res[i, 2] ** 2
+        if n2 <= g2:
+            continue
+        if rage[i] <= memory:
+            d0 = res[i, 0] - rref[i, 0]
+            d1 = res[i, 1] - rref[i, 1]
+            d2 = res[i, 2] - rref[i, 2]
+            if d0 * d0 + d1 * d1 + d2 * d2 <= g2:
+                continue
+        rej[i] = True
+        beyond = True
+    return beyond
+
+
+@kernel
 def _fit_phases(m: tuple, s: tuple) -> tuple[int, bool, float]:
-    # Phase 1 ungated; phase 2 with the gate, from the same start, when some
-    # residual is beyond it.
+    # Phase 1 ungated; phase 2 without the markers the gate rejects, from the same
+    # start, when there are any.
     params = m[18]
     max_iter = int(params[P_MAX_ITER])
     cp2(s[43], s[0])
     cp2(s[44], s[1])
-    it1, conv1, cost = _lm(m, s, INF, max_iter)
+    it1, conv1, cost = _lm(m, s, False, max_iter)
     gate = max(params[P_GATE_M], params[P_GATE_K] * _median_residual(s))
-    vis, res = s[13], s[14]
-    g2 = gate * gate
-    beyond = False
-    for i in range(vis.shape[0]):
-        if vis[i] and res[i, 0] ** 2 + res[i, 1] ** 2 + res[i, 2] ** 2 > g2:
-            beyond = True
     s[36][0] = gate
-    if not beyond:
+    if not _mark_outliers(m, s, gate):
         return it1, conv1, cost
     # the outliers pulled phase 1 away: start again from the warm start without them
     cp2(s[0], s[43])
     cp2(s[1], s[44])
-    it2, conv2, cost = _lm(m, s, gate, max_iter)
+    it2, conv2, cost = _lm(m, s, True, max_iter)
     return it1 + it2, conv2, cost
 
 
 @kernel
 def _score(m: tuple, s: tuple) -> tuple[float, int, int]:
-    # Inlier sum of squares, number of inliers, number rejected (beyond the gate).
-    vis, res, wt = s[13], s[14], m[7]
+    # Inlier sum of squares (a rejected marker counts as the gate squared), number
+    # of inliers, number rejected.
+    vis, res, wt, rej = s[13], s[14], m[7], s[45]
     g2 = s[36][0] ** 2
     ss = 0.0
     n_in = 0
@@ -217,13 +244,12 @@ def _score(m: tuple, s: tuple) -> tuple[float, int, int]:
     for i in range(vis.shape[0]):
         if not vis[i] or wt[i] <= 0.0:
             continue
-        n2 = res[i, 0] ** 2 + res[i, 1] ** 2 + res[i, 2] ** 2
-        if n2 > g2:
+        if rej[i]:
             n_rej += 1
             ss += g2
         else:
             n_in += 1
-            ss += n2
+            ss += res[i, 0] ** 2 + res[i, 1] ** 2 + res[i, 2] ** 2
     return ss, n_in, n_rej
 
 
@@ -334,6 +360,7 @@ def fit_one(
     if lost and have[0] != 0 and n_seen > 0:
         cp2(qb, q)
         cp2(tb, t)
+        cp1(s[46], s[45])
         gate_b = s[36][0]
         _seed_from_construction(markers, m, s, c)
         it2, _conv2, _cost2 = _fit_phases(m, s)
@@ -345,8 +372,9 @@ def fit_one(
         else:
             cp2(q, qb)
             cp2(t, tb)
+            cp1(s[45], s[46])
             s[36][0] = gate_b
-            _evaluate_current(m, s, gate_b)
+            _evaluate_current(m, s, True)
     # never NaN: a non-finite state (cannot happen with finite inputs) falls back
     finite = True
     for b in range(n_b):
@@ -356,9 +384,9 @@ def fit_one(
     if not finite:
         cp2(q, qprev)
         cp2(t, tprev)
-        _evaluate_current(m, s, s[36][0])
+        _evaluate_current(m, s, True)
     # 3. outputs
-    g2 = s[36][0] ** 2
+    rej, rref, rage = s[45], s[47], s[48]
     n_rej = 0
     sq = 0.0
     n_in = 0
@@ -376,7 +404,7 @@ def fit_one(
             continue
         n2 = res[i, 0] ** 2 + res[i, 1] ** 2 + res[i, 2] ** 2
         out_resid[i] = math.sqrt(n2)
-        if n2 > g2:
+        if rej[i]:
             out_rejected[i] = True
             n_rej += 1
         else:
@@ -435,7 +463,14 @@ def fit_one(
     out_stats[S_RESEEDED] = 1.0 if reseeded else 0.0
     out_stats[S_COST] = cost
     out_stats[S_SOLVES] = s[36][1]
-    # 4. this frame is the next one's warm start and prior
+    # 4. this frame is the next one's warm start and prior, and the gate's references
+    for i in range(n_mk):
+        if vis[i] and not rej[i]:
+            for j in range(3):
+                rref[i, j] = res[i, j]
+            rage[i] = 0.0
+        else:
+            rage[i] += 1.0
     cp2(s[41], qprev)
     cp2(s[42], tprev)
     cp2(qprev, q)

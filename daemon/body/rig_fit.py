@@ -6,7 +6,7 @@ and per bone (reference: ``daemon/body/rigs/RIGS.md``, "``[fit]``").
 segment = "lfemur"   # the bone the marker rides (default: from the bones using it)
 weight = 1.0         # residual weight (0 = ignored by the fit)
 [fit.bones.ltibia]
-dof = "hinge"        # "ball" (default) or "hinge"
+dof = "hinge"        # "ball" (default), "hinge" or "swing"
 axis = "x"           # hinge axis in the bone's axes: "x", "y", "z" or [x, y, z]
 ```
 
@@ -25,7 +25,7 @@ from typing import Any
 FIT_KEYS = ("markers", "bones")
 MARKER_KEYS = ("segment", "weight")
 BONE_KEYS = ("dof", "axis")
-DOFS = ("ball", "hinge")
+DOFS = ("ball", "hinge", "swing")
 
 _AXES = {"x": (1.0, 0.0, 0.0), "y": (0.0, 1.0, 0.0), "z": (0.0, 0.0, 1.0)}
 
@@ -40,7 +40,11 @@ class MarkerFitOptions:
 
 @dataclass(frozen=True, slots=True, kw_only=True)
 class BoneFitOptions:
-    """Per-bone rig keys: ``dof`` "ball" or "hinge" and the hinge axis (bone axes)."""
+    """Per-bone rig keys: ``dof`` and the hinge axis (bone axes).
+
+    ``dof``: "ball" (three rotations), "hinge" (one, about ``axis``) or "swing" (two:
+    a ball joint without rotation about the bone's own long axis, +Y).
+    """
 
     dof: str = "ball"
     axis: tuple[float, float, float] = (1.0, 0.0, 0.0)
@@ -124,7 +128,9 @@ def parse_fit_table(
                 )
         dof = spec.get("dof", "ball")
         if dof not in DOFS:
-            raise fail(f"{key}.dof", f"expected 'ball' or 'hinge': {dof!r}")
+            raise fail(f"{key}.dof", f"expected 'ball', 'hinge' or 'swing': {dof!r}")
+        if "axis" in spec and dof != "hinge":
+            raise fail(f"{key}.axis", "only a hinge has an axis")
         axis_v = spec.get("axis", "x")
         if isinstance(axis_v, str) and axis_v in _AXES:
             axis = _AXES[axis_v]
@@ -139,6 +145,6 @@ def parse_fit_table(
         else:
             raise fail(f"{key}.axis", f"expected x, y, z or [x, y, z]: {axis_v!r}")
         if name in roots and dof != "ball":
-            raise fail(f"{key}.dof", "a root bone is free (no hinge)")
+            raise fail(f"{key}.dof", "a root bone is free (ball)")
         out_b[name] = BoneFitOptions(dof=dof, axis=axis)
     return FitOptions(markers=out_m, bones=out_b)

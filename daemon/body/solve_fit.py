@@ -16,6 +16,7 @@ rejected; ``marker_rejected`` says which; ``frame_flags`` carries
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
@@ -86,7 +87,9 @@ class FitParams:
             21(2):212-225, 2005: 10-30 mm), so artefact is down-weighted mildly and a
             swapped label (residual >= marker spacing) strongly.
         gate_m: a visible marker whose residual exceeds max(gate_m, gate_k x the
-            frame's median residual) after the ungated fit is rejected for the frame:
+            frame's median residual) after the ungated fit is rejected for the frame
+            (unless it moved less than that since its last accepted frame, see
+            gate_memory):
             40 mm, past the largest soft-tissue artefact in the same review, below
             the 50-100 mm spacing of markers on one segment. (A Cauchy scale as
             large as the gate halves the iterations on the real walk but lets a
@@ -95,6 +98,15 @@ class FitParams:
             the root 38 mm with an ASIS hidden.)
         gate_k: see gate_m (5: a factor that keeps the gate above the fit's own
             residual level when the model fits a performer loosely).
+        gate_memory: frames. A marker past the gate is rejected only if its residual
+            has also moved by more than the gate since its last accepted frame, when
+            that frame is at most this many frames old (else on the level alone): a
+            swapped label or a ghost jumps by a marker spacing, while skin sliding
+            over a joint grows a residual over many frames (the acromion marker of
+            the tennis serve as the arm rises: rejected on its level, the clavicle
+            lost its only marker and drifted). 30 frames
+            (0.125-0.5 s at 240-60 Hz); past it a swap is still caught on its
+            level, since its residual is a marker spacing.
         reseed_rms_m: inlier RMS above which the fit has lost track: 25 mm, beyond
             the artefact level above.
         reseed_reject_frac: the fit has lost track when more than this fraction of
@@ -116,6 +128,7 @@ class FitParams:
     cauchy_m: float = 0.020
     gate_m: float = 0.040
     gate_k: float = 5.0
+    gate_memory: int = 30
     reseed_rms_m: float = 0.025
     reseed_reject_frac: float = 0.25
     max_iter: int = 10
@@ -132,6 +145,7 @@ class FitParams:
         out[ft.P_CAUCHY_M] = self.cauchy_m
         out[ft.P_GATE_M] = self.gate_m
         out[ft.P_GATE_K] = self.gate_k
+        out[ft.P_GATE_MEMORY] = self.gate_memory
         out[ft.P_RESEED_RMS_M] = self.reseed_rms_m
         out[ft.P_MAX_ITER] = self.max_iter
         out[ft.P_TOL] = self.tol
@@ -253,7 +267,7 @@ class FitSolver:
             model.marker_weight, model.joint_bone, model.joint_local,
             model.hinge_axis, model.limits, model.limit_left, model.limit_forward,
             model.anc_ptr, model.anc_idx, model.node_ptr, model.node_idx,
-            self._params_arr, model.penalty_cos,
+            self._params_arr, model.penalty_cos, model.twist_lock,
         )  # fmt: skip
 
         def z(*shape: int) -> np.ndarray:
@@ -275,7 +289,9 @@ class FitSolver:
             z(n_m), z(2), z(n_b, 4), z(n_r, 3),
             np.zeros(n_b, dtype=np.int64), np.zeros(n_b, dtype=np.int64),
             z(n_b, 4), z(n_r, 3), z(n_b, 4), z(n_r, 3),
+            np.zeros(n_m, dtype=bool), np.zeros(n_m, dtype=bool), z(n_m, 3), z(n_m),
         )  # fmt: skip
+        self._gate_age = self._state[48]
         self._con_pose = con.new_pose()
         assert self._con_pose.kernel_buffers is not None
         # The construction's packed buffers (``body.kernel.solve_one``): a NamedTuple
@@ -293,6 +309,7 @@ class FitSolver:
         self._tprev[:] = self._t
         self._prev_out[:] = 0.0
         self._have[0] = 0
+        self._gate_age[:] = math.inf  # no marker has a gate reference yet
 
     def new_pose(self) -> FitPose:
         """Allocate the buffers of one frame's output (once per stream)."""

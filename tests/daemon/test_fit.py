@@ -29,6 +29,7 @@ from retargetd.daemon.body.rig import Rig, RigError, load_rig
 from retargetd.daemon.body.solve import BodySolver
 from retargetd.daemon.body.solve_fit import (
     FLAG_HELD,
+    FitParams,
     FitSolve,
     FitSolver,
     warm_up,
@@ -211,6 +212,47 @@ def test_swapped_labels_rejected_and_counted() -> None:
     assert not (res.bone_flags[frames] & FLAG_HELD).any()
 
 
+def test_sliding_marker_kept_jumping_marker_rejected() -> None:
+    """The gate rejects residuals that jump, not residuals that grow: a marker whose
+    skin slides 80 mm over 40 frames (2 mm a frame) stays in the fit, while a swap
+    during the slide is still rejected. With the level rule alone (no reference,
+    ``gate_memory=-1``) the sliding marker is rejected once past the gate."""
+    rig, take = load_rig(EXACT_RIG), _exact_take(noise_mm=0.5)
+    pos = take.markers_world.copy()
+    i = take.labels.index("LTHI")
+    start, ramp = 200, 40
+    slide = np.clip((np.arange(len(pos)) - start) / ramp, 0.0, 1.0) * 0.080
+    pos[:, i, 2] += slide
+    a, b = take.labels.index("RKNL"), take.labels.index("RANL")
+    swap = slice(300, 303)
+    truth = take.markers_world
+    pos[swap, a], pos[swap, b] = truth[swap, b], truth[swap, a]
+    base = take.markers_world[take.base_pose_frames]
+    cal = calibrate(rig, base, take.labels)
+
+    def solve(**kw: float) -> FitSolve:
+        return FitSolver(
+            rig, cal, take.labels, base_positions=base, params=FitParams(**kw)
+        ).solve_take(pos)
+
+    res, level = solve(), solve(gate_memory=-1)
+    ri = rig.marker_names.index("LTHI")
+    ra, rb = rig.marker_names.index("RKNL"), rig.marker_names.index("RANL")
+    late = slice(start + ramp, start + ramp + 120)
+    print(
+        f"\nLTHI slid 80 mm: residual there median "
+        f"{1e3 * np.median(res.marker_residual[late, ri]):.1f} mm, rejected on "
+        f"{res.marker_rejected[:, ri].sum()} frames (level rule: "
+        f"{level.marker_rejected[:, ri].sum()}); swap rejected on "
+        f"{res.marker_rejected[swap, [ra, rb]].sum()} of 6 samples"
+    )
+    assert np.median(res.marker_residual[late, ri]) > 0.040  # past the gate
+    assert not res.marker_rejected[:, ri].any()
+    assert level.marker_rejected[late, ri].all()
+    assert res.marker_rejected[swap, ra].all() and res.marker_rejected[swap, rb].all()
+    assert np.isfinite(res.world_from_bone_quat).all()
+
+
 def test_joint_past_its_limit_still_fails_the_limit_check() -> None:
     """Markers that hyperextend the left knee by 45 deg for 0.5 s: the fit's soft
     penalty must not hide it from the validator's limit check."""
@@ -316,7 +358,9 @@ def test_fit_keys_parse_and_act(tmp_path: Path) -> None:
         ({"markers": {"LTHI": {"weight": -1}}}, "weight"),
         ({"bones": {"l_shank": {"dof": "slider"}}}, "dof"),
         ({"bones": {"pelvis": {"dof": "hinge"}}}, "root"),
-        ({"bones": {"l_shank": {"axis": [0, 0, 0]}}}, "axis"),
+        ({"bones": {"l_shank": {"dof": "hinge", "axis": [0, 0, 0]}}}, "axis"),
+        ({"bones": {"l_shank": {"dof": "swing", "axis": "x"}}}, "only a hinge"),
+        ({"bones": {"pelvis": {"dof": "swing"}}}, "root"),
         ({"other": 1}, "unknown key"),
     ):
         with pytest.raises(RigError, match=message):
@@ -326,6 +370,48 @@ def test_fit_keys_parse_and_act(tmp_path: Path) -> None:
     bad_file.write_text(text.replace('dof = "hinge"', 'dof = "slider"'))
     with pytest.raises(RigError, match=r"bad.toml: fit.bones.l_shank.dof: expected"):
         load_rig(bad_file)
+
+
+def _twist_deg(q: np.ndarray) -> np.ndarray:
+    """Twist about the bone's own +Y of (..., 4) w x y z rotations, degrees."""
+    q = np.where(q[..., :1] < 0.0, -q, q)
+    return np.degrees(2.0 * np.arctan2(q[..., 2], q[..., 0]))
+
+
+def test_swing_joint_has_no_twist(tmp_path: Path) -> None:
+    """``dof = "swing"``: the joint keeps two rotations; its twist about the bone's
+    long axis stays at the calibration's (a clavicle whose one marker cannot see its
+    axial rotation), while the same bones as ball joints follow the truth's twist."""
+    bones = ("l_forearm", "r_forearm")
+    text = EXACT_RIG.read_text() + "".join(
+        f'\n[fit.bones.{b}]\ndof = "swing"\n' for b in bones
+    )
+    path = tmp_path / "rig.toml"
+    path.write_text(text)
+    rig, opts = load_fit_rig(path)
+    assert all(opts.bones[b].dof == "swing" for b in bones)
+    take = _exact_take(noise_mm=0.5, seconds=3.0)
+    base = take.markers_world[take.base_pose_frames]
+    cal = calibrate(rig, base, take.labels)
+    model = build_fit_model(rig, cal, base, take.labels, opts)
+    idx = [rig.bone_names.index(b) for b in bones]
+    assert (model.twist_lock[idx] == 1.0).all() and model.twist_lock.sum() == 2.0
+    res = FitSolver(rig, cal, take.labels, model=model).solve_take(take.markers_world)
+    ball = FitSolver(
+        rig, cal, take.labels, model=build_fit_model(rig, cal, base, take.labels,
+                                                     FitOptions())
+    ).solve_take(take.markers_world)  # fmt: skip
+    locked = np.abs(_twist_deg(res.rest_from_bone_quat[:, idx]))
+    free = np.abs(_twist_deg(ball.rest_from_bone_quat[:, idx]))
+    print(
+        f"\nswing forearms: twist max {locked.max():.3f} deg (ball: p95 "
+        f"{np.percentile(free, 95):.1f}, max {free.max():.1f}); marker RMS median "
+        f"{1e3 * np.nanmedian(res.marker_rms):.2f} mm (ball "
+        f"{1e3 * np.nanmedian(ball.marker_rms):.2f})"
+    )
+    assert np.percentile(free, 95) > 5.0  # the performer's forearms do twist
+    assert locked.max() < 0.5
+    assert np.isfinite(res.world_from_bone_quat).all()
 
 
 # --- kernel contract --------------------------------------------------------------

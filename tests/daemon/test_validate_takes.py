@@ -61,22 +61,27 @@ TENNIS = "kineticstoolkit/kinematics_tennis_serve.c3d"
 #: (issue 14 item 3) frame 400 is no transient: the forearm's and hand's up direction
 #: (LWRB->LWRA) collapses there, so they keep their roll (flagged partial).
 TENNIS_GLITCHES = [744]
-#: The fit on cmu41 does not validate yet (issue 14 item 5, measured): on the serve
-#: the left clavicle (one marker, LSHO, so its twist is free) drifts past its twist
-#: limit on 366 frames (to 88 deg), with self-penetration to 108 mm and an effector
-#: at 35.9 m/s once (marker RMS median 9.3 mm, 1881 samples gated, 24 reseeds); the
-#: ballet floor-penetrates up to 108 mm (26 frames) and self-penetrates 19 mm (5).
-FIT_ON_CMU41 = pytest.param(
+#: The fit on cmu41 does not validate the serve yet (issue 14 item 5, measured with
+#: the jump gate and swing clavicles): as the left arm rises overhead its acromion
+#: marker LSHO and the arm's markers disagree, under the rigid chain, by about 100 mm
+#: (the fit reseeded from the construction at frame 157 leaves LSHO 96 mm off). Kept
+#: (its residual grows, it does not jump), the marker lifts the clavicle past its
+#: 60 deg cone on 259 frames (to 26 deg past) and once 10.4 mm into the head;
+#: rejected on its level, as before the jump gate, the clavicle followed the arm
+#: alone and drifted (ball: twist to 88 deg, 366 frames). The construction places the
+#: shoulder from LSHO, so its upper arm shortens 13 % (265 to 230 mm) instead.
+FIT_ON_TENNIS = pytest.param(
     "fit",
     marks=pytest.mark.xfail(
-        reason="the fit does not validate cmu41 takes yet (FIT_ON_CMU41)", strict=True
+        reason="the fit does not validate the tennis serve yet (FIT_ON_TENNIS)",
+        strict=True,
     ),
 )
 
 
 def _validate(
     static: Path, frames: slice, take_path: Path, method: str = "construction"
-) -> TakeReport:
+) -> tuple[TakeReport, np.ndarray]:
     rig = load_rig("cmu41")
     base = load_take(static)
     cal = calibrate(
@@ -91,31 +96,47 @@ def _validate(
     vm = build_model(skeleton_from_calibration(rig, cal))
     rep = validate_take(vm, solve, take.rate_hz, fit=fit_pairs(rig, solve.joint_names))
     print(f"\n{take_path.name} ({method})")
+    if method == "fit":
+        rms = 1e3 * solve.marker_rms[np.isfinite(solve.marker_rms)]
+        print(
+            f"  marker RMS median {np.median(rms):.1f} p95 {np.percentile(rms, 95):.1f}"
+            f" mm, {solve.outliers_rejected} samples rejected, "
+            f"{int(solve.reseeded.sum())} frames reseeded"
+        )
+    else:
+        rms = np.full(0, np.nan)
     for name, c in rep.checks.items():
         v = c.values[np.isfinite(c.values)]
         print(
             f"  {name:18s} median {np.median(v):9.3g} max {v.max():9.3g} {c.unit}"
             f" (threshold {c.threshold:g}) transients {c.transients.tolist()}"
         )
-    return rep
+    return rep, rms
 
 
-@pytest.mark.parametrize("method", ["construction", FIT_ON_CMU41])
+@pytest.mark.parametrize("method", ["construction", "fit"])
 def test_motek_ballet_passes(datasets: Path, method: str) -> None:
-    rep = _validate(datasets / MOTEK_T, slice(None), datasets / BALLET, method)
+    rep, rms = _validate(datasets / MOTEK_T, slice(None), datasets / BALLET, method)
     assert rep.passed, {n: c.summary() for n, c in rep.checks.items() if c.n_flagged}
     assert rep.checks["limits"].transients.size == 0
-    # The checks the ballet came closest to (see THRESHOLDS): MOTEK_T is another
-    # session, the right arm's SHO-ELB 35 mm longer in the ballet.
-    assert 40.0 < rep.checks["fit_max"].values.max() < 70.0  # mm
+    if method == "construction":
+        # The checks the ballet came closest to (see THRESHOLDS): MOTEK_T is another
+        # session, the right arm's SHO-ELB 35 mm longer in the ballet.
+        assert 40.0 < rep.checks["fit_max"].values.max() < 70.0  # mm
+    else:
+        # The fit's skeleton is rigid, so its joint centres are the skeleton's; the
+        # session mismatch shows in the marker residuals instead, which stay under
+        # the gate (40 mm, the largest soft-tissue artefact: FitParams.gate_m).
+        assert rep.checks["fit_max"].values.max() < 1e-6
+        assert np.median(rms) < 40.0
 
 
-@pytest.mark.parametrize("method", ["construction", FIT_ON_CMU41])
+@pytest.mark.parametrize("method", ["construction", FIT_ON_TENNIS])
 def test_tennis_serve_passes(datasets: Path, method: str) -> None:
     """With the fit (issue 14), the serve's one-frame label glitches should be gated
-    out and no longer show as limit transients (not yet: FIT_ON_CMU41)."""
+    out and no longer show as limit transients (not yet: FIT_ON_TENNIS)."""
     path = datasets / TENNIS
-    rep = _validate(path, slice(0, 50), path, method)
+    rep, _ = _validate(path, slice(0, 50), path, method)
     assert rep.passed, {n: c.summary() for n, c in rep.checks.items() if c.n_flagged}
     want = TENNIS_GLITCHES if method == "construction" else []
     assert rep.checks["limits"].transients.tolist() == want
