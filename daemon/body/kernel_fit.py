@@ -99,7 +99,9 @@ def _lm(m: tuple, s: tuple, gated: bool, max_iter: int) -> tuple[int, bool, floa
     hh = s[21]
     g, x = s[23], s[24]
     cost = _evaluate_current(m, s, gated)
-    mu_scale = 1e-8
+    # damping from where the last fit left it (a stretch of frames whose markers
+    # leave a direction nearly flat needs it every frame), decayed once
+    mu_scale = max(1e-8, s[36][2])
     nu = 2.0
     converged = False
     it = 0
@@ -158,6 +160,7 @@ def _lm(m: tuple, s: tuple, gated: bool, max_iter: int) -> tuple[int, bool, floa
         if not accepted or step < tol or small:
             converged = True
             break
+    s[36][2] = mu_scale / 3.0
     return it, converged, cost
 
 

@@ -286,12 +286,13 @@ class FitSolver:
             z(n_b), z(n_b, 3), z(n_b, 3, 3), z(n_b, 3), z(n_b, 3),
             z(n, n), z(n, n), z(n), z(n), z(n_m), z(6), z(6), z(6, 3),
             z(n_b, 4), z(n_b, 4), z(n_b, 3, 3), z(n_b, 3), z(n_m, 3), z(n_m, 3),
-            z(n_m), z(2), z(n_b, 4), z(n_r, 3),
+            z(n_m), z(3), z(n_b, 4), z(n_r, 3),
             np.zeros(n_b, dtype=np.int64), np.zeros(n_b, dtype=np.int64),
             z(n_b, 4), z(n_r, 3), z(n_b, 4), z(n_r, 3),
             np.zeros(n_m, dtype=bool), np.zeros(n_m, dtype=bool), z(n_m, 3), z(n_m),
         )  # fmt: skip
         self._gate_age = self._state[48]
+        self._lm_scalars = self._state[36]  # gate, linear solves, damping carried
         self._con_pose = con.new_pose()
         assert self._con_pose.kernel_buffers is not None
         # The construction's packed buffers (``body.kernel.solve_one``): a NamedTuple
@@ -310,6 +311,7 @@ class FitSolver:
         self._prev_out[:] = 0.0
         self._have[0] = 0
         self._gate_age[:] = math.inf  # no marker has a gate reference yet
+        self._lm_scalars[2] = 0.0
 
     def new_pose(self) -> FitPose:
         """Allocate the buffers of one frame's output (once per stream)."""
