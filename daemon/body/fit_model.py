@@ -117,6 +117,8 @@ class FitModel:
         hinge_axis: (B, 3) unit hinge axis in the bone's rest axes, zeros = ball.
         twist_lock: (B,) 1.0 for a swing joint (no rotation about the bone's own +Y
             relative to its calibration pose), else 0.0.
+        rest_pull: (B,) m^2 / rad^2, weight of the pull towards the calibration pose
+            (``stiffness_mm`` squared, in metres), 0 for none.
         limits: (B, 6) radians (``LIM_*`` columns, NaN = none); ``limit_left`` and
             ``limit_forward`` (B, 3): the performer's left and forward in each bone's
             rest axes (the validator's sagittal and frontal axes).
@@ -149,6 +151,7 @@ class FitModel:
     joint_local: F64Array
     hinge_axis: F64Array
     twist_lock: F64Array
+    rest_pull: F64Array
     limits: F64Array
     limit_left: F64Array
     limit_forward: F64Array
@@ -492,7 +495,9 @@ def build_fit_model(
     # Hinges.
     hinge = np.zeros((n_bones, 3))
     twist_lock = np.zeros(n_bones)
+    rest_pull = np.zeros(n_bones)
     for name, bopt in options.bones.items():
+        rest_pull[rig.bone_names.index(name)] = (1e-3 * bopt.stiffness_mm) ** 2
         if bopt.dof == "hinge":
             hinge[rig.bone_names.index(name)] = bopt.axis
         elif bopt.dof == "swing":
@@ -548,6 +553,7 @@ def build_fit_model(
         joint_local=_readonly(joint_local),
         hinge_axis=_readonly(hinge),
         twist_lock=_readonly(twist_lock),
+        rest_pull=_readonly(rest_pull),
         limits=_readonly(limits),
         limit_left=_readonly(left_b),
         limit_forward=_readonly(fwd_b),

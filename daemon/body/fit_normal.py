@@ -159,6 +159,15 @@ def build_normal(m: tuple, s: tuple) -> None:
             continue
         r = qmul(rest_pfb[b, 0], -rest_pfb[b, 1], -rest_pfb[b, 2], -rest_pfb[b, 3],
                   q[b, 0], q[b, 1], q[b, 2], q[b, 3])  # fmt: skip
+        wr = m[21][b]
+        if wr > 0.0:
+            # pull to the calibration pose: the prior's form about the rest rotation
+            sg = -1.0 if r[0] < 0.0 else 1.0
+            vx, vy, vz = qlog(sg * r[0], sg * r[1], sg * r[2], sg * r[3])
+            for j in range(3):
+                hh[rb + j, rb + j] += wr
+                wv = wm[b, j, 0] * vx + wm[b, j, 1] * vy + wm[b, j, 2] * vz
+                g[rb + j] += wr * wv
         if abs(r[0]) > m[19][b]:
             continue
         pen_components(r[0], r[1], r[2], r[3], lim[b], left[b], fwd[b], hinge[b],

@@ -234,6 +234,10 @@ def reg_cost(m: tuple, s: tuple, q: np.ndarray, t: np.ndarray) -> float:
         if parent[b] >= 0:
             r = qmul(rest_pfb[b, 0], -rest_pfb[b, 1], -rest_pfb[b, 2], -rest_pfb[b, 3],
                       q[b, 0], q[b, 1], q[b, 2], q[b, 3])  # fmt: skip
+            if m[21][b] > 0.0:
+                sg = -1.0 if r[0] < 0.0 else 1.0
+                vx, vy, vz = qlog(sg * r[0], sg * r[1], sg * r[2], sg * r[3])
+                cost += 0.5 * m[21][b] * (vx * vx + vy * vy + vz * vz)
             if abs(r[0]) > pen_cos[b]:
                 continue
             pen_components(r[0], r[1], r[2], r[3], lim[b], left[b], fwd[b],

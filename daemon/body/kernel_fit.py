@@ -13,6 +13,9 @@ the fit minimizes
   + 1/2 kappa_hinge |rotation off a hinge's axis|^2   (bones the rig makes hinges)
   + 1/2 kappa_hinge twist^2                          (swing joints: no twist about
                                                       the bone's own long axis)
+  + 1/2 k_b |log(conj(R_b) Q_b)|^2                   (bones the rig gives a
+                                                      stiffness: pull to the
+                                                      calibration pose R_b)
 
 by Levenberg-Marquardt (compiled with ``compiled.kernel``). Increments are rotation
 vectors in world axes at each joint (``omega_b``; a bone's own increment is

@@ -8,6 +8,7 @@ weight = 1.0         # residual weight (0 = ignored by the fit)
 [fit.bones.ltibia]
 dof = "hinge"        # "ball" (default), "hinge" or "swing"
 axis = "x"           # hinge axis in the bone's axes: "x", "y", "z" or [x, y, z]
+stiffness_mm = 0     # pull towards the calibration pose, mm of residual per radian
 ```
 
 ``body.rig`` parses the table with :func:`parse_fit_table` into the rig's
@@ -24,7 +25,9 @@ from typing import Any
 #: The keys of each table, in the order errors list them.
 FIT_KEYS = ("markers", "bones")
 MARKER_KEYS = ("segment", "weight")
-BONE_KEYS = ("dof", "axis")
+BONE_KEYS = ("dof", "axis", "stiffness_mm")
+#: ``stiffness_mm`` at most a hinge's stiffness (FitParams.kappa_hinge: 1 m/rad).
+STIFFNESS_MAX_MM = 1000.0
 DOFS = ("ball", "hinge", "swing")
 
 _AXES = {"x": (1.0, 0.0, 0.0), "y": (0.0, 1.0, 0.0), "z": (0.0, 0.0, 1.0)}
@@ -44,10 +47,13 @@ class BoneFitOptions:
 
     ``dof``: "ball" (three rotations), "hinge" (one, about ``axis``) or "swing" (two:
     a ball joint without rotation about the bone's own long axis, +Y).
+    ``stiffness_mm``: a pull of the joint towards its calibration pose, in mm of
+    marker residual per radian (0: none), like OpenSim IK's coordinate tasks.
     """
 
     dof: str = "ball"
     axis: tuple[float, float, float] = (1.0, 0.0, 0.0)
+    stiffness_mm: float = 0.0
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -146,5 +152,17 @@ def parse_fit_table(
             raise fail(f"{key}.axis", f"expected x, y, z or [x, y, z]: {axis_v!r}")
         if name in roots and dof != "ball":
             raise fail(f"{key}.dof", "a root bone is free (ball)")
-        out_b[name] = BoneFitOptions(dof=dof, axis=axis)
+        stiff = spec.get("stiffness_mm", 0.0)
+        if not (
+            _is_number(stiff)
+            and math.isfinite(stiff)
+            and 0.0 <= stiff <= STIFFNESS_MAX_MM
+        ):
+            raise fail(
+                f"{key}.stiffness_mm",
+                f"expected a number in [0, {STIFFNESS_MAX_MM:g}] mm/rad: {stiff!r}",
+            )
+        if name in roots and stiff:
+            raise fail(f"{key}.stiffness_mm", "a root bone is free (no stiffness)")
+        out_b[name] = BoneFitOptions(dof=dof, axis=axis, stiffness_mm=float(stiff))
     return FitOptions(markers=out_m, bones=out_b)

@@ -267,7 +267,7 @@ class FitSolver:
             model.marker_weight, model.joint_bone, model.joint_local,
             model.hinge_axis, model.limits, model.limit_left, model.limit_forward,
             model.anc_ptr, model.anc_idx, model.node_ptr, model.node_idx,
-            self._params_arr, model.penalty_cos, model.twist_lock,
+            self._params_arr, model.penalty_cos, model.twist_lock, model.rest_pull,
         )  # fmt: skip
 
         def z(*shape: int) -> np.ndarray:

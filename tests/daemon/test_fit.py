@@ -361,6 +361,10 @@ def test_fit_keys_parse_and_act(tmp_path: Path) -> None:
         ({"bones": {"l_shank": {"dof": "hinge", "axis": [0, 0, 0]}}}, "axis"),
         ({"bones": {"l_shank": {"dof": "swing", "axis": "x"}}}, "only a hinge"),
         ({"bones": {"pelvis": {"dof": "swing"}}}, "root"),
+        ({"bones": {"pelvis": {"stiffness_mm": 10}}}, "root"),
+        ({"bones": {"l_shank": {"stiffness_mm": -1}}}, "stiffness_mm"),
+        ({"bones": {"l_shank": {"stiffness_mm": 1e9}}}, "stiffness_mm"),
+        ({"bones": {"l_shank": {"stiffness_mm": "stiff"}}}, "stiffness_mm"),
         ({"other": 1}, "unknown key"),
     ):
         with pytest.raises(RigError, match=message):
@@ -412,6 +416,52 @@ def test_swing_joint_has_no_twist(tmp_path: Path) -> None:
     assert np.percentile(free, 95) > 5.0  # the performer's forearms do twist
     assert locked.max() < 0.5
     assert np.isfinite(res.world_from_bone_quat).all()
+
+
+def test_stiffness_pulls_towards_the_calibration_pose(tmp_path: Path) -> None:
+    """``stiffness_mm``: a pull of the joint towards its calibration pose. At a
+    hinge's stiffness (1000 mm/rad) the forearms stay near their calibration pose
+    while their markers move them; at 0 the model is the default one."""
+    bones = ("l_forearm", "r_forearm")
+    take = _exact_take(noise_mm=0.5, seconds=3.0)
+    base = take.markers_world[take.base_pose_frames]
+    results = {}
+    for stiff in (0, 1000):
+        path = tmp_path / f"rig{stiff}.toml"
+        path.write_text(
+            EXACT_RIG.read_text()
+            + "".join(f"\n[fit.bones.{b}]\nstiffness_mm = {stiff}\n" for b in bones)
+        )
+        rig, opts = load_fit_rig(path)
+        cal = calibrate(rig, base, take.labels)
+        model = build_fit_model(rig, cal, base, take.labels, opts)
+        idx = [rig.bone_names.index(b) for b in bones]
+        assert np.allclose(model.rest_pull[idx], (stiff / 1000.0) ** 2)
+        assert model.rest_pull.sum() == pytest.approx(2 * (stiff / 1000.0) ** 2)
+        res = FitSolver(rig, cal, take.labels, model=model).solve_take(
+            take.markers_world
+        )
+        results[stiff] = (
+            np.degrees(rot.quat_angle(res.rest_from_bone_quat[:, idx])),
+            res,
+        )
+    free, stiff_ = results[0][0], results[1000][0]
+    print(
+        f"\nforearms from their calibration pose: free median {np.median(free):.1f}"
+        f" deg, at 1000 mm/rad {np.median(stiff_):.1f} deg"
+    )
+    assert np.median(free) > 20.0  # the performer's elbows flex
+    assert np.median(stiff_) < 0.5 * np.median(free)
+    # stiffness 0 is the default model, frame for frame
+    default = FitSolver(
+        load_rig(EXACT_RIG),
+        calibrate(load_rig(EXACT_RIG), base, take.labels),
+        take.labels,
+        base_positions=base,
+    ).solve_take(take.markers_world)
+    np.testing.assert_array_equal(
+        default.world_from_bone_quat, results[0][1].world_from_bone_quat
+    )
 
 
 # --- kernel contract --------------------------------------------------------------
