@@ -111,6 +111,7 @@ def run(args: argparse.Namespace) -> int:
     """Run ``retarget``."""
     from retargetd.daemon.cli.post_io import suffix_of
     from retargetd.daemon.target.bvh_retarget import (
+        SpineCurve,
         retarget_bvh,
         spread_chains,
         write_retarget_glb,
@@ -131,9 +132,11 @@ def run(args: argparse.Namespace) -> int:
         def distribute(glob: Any, chains: Any) -> None:
             pivot_chains(glob, chains, limit)
 
-    spine_curve = None
+    spine_curve: SpineCurve | None = None
     if args.spread == "hermite":
-        from retargetd.daemon.post.hermite import hermite_chain as spine_curve
+        from retargetd.daemon.post.hermite import hermite_chain
+
+        spine_curve = hermite_chain
     try:
         source = read_bvh_hierarchy(args.source, read_motion=True)
         target = read_bvh_hierarchy(args.target)
