@@ -190,6 +190,7 @@ def main() -> None:
     spine_out = np.empty((5, 3))
     euro = OneEuroFilter(b, beta_rot=0.5, beta_pos=5.0)
     res60 = RateResampler(b, 60.0)
+    res120 = RateResampler(b, 120.0)  # above the input's rate: 1-2 ticks a frame
     pipe = build_pipeline(
         [{"kind": "twist"}, {"kind": "one_euro", "beta_rot": 0.5, "beta_pos": 5.0}],
         bone_names=names,
@@ -230,6 +231,12 @@ def main() -> None:
         while res60.pending():
             res60.pop(out)
 
+    def upsample_step(i: int) -> None:
+        now = i * 10_000_000  # 100 Hz arrivals; every queued tick sent by the next
+        res120.push(load(i), now)
+        while res120.due(now + 9_999_999):
+            res120.pop(out)
+
     rows = [
         ("baseline: PoseBuffer.copy_from", lambda i: out.copy_from(load(i))),
         ("TwistDistribution.apply (2 arms)", lambda i: twist.apply(load(i), out)),
@@ -242,6 +249,7 @@ def main() -> None:
             lambda i: (load(i), spine.apply(spine_pts, spine_out)),
         ),
         ("RateResampler push+pop (100->60 Hz)", resample_step),
+        ("RateResampler push+pop (100->120 Hz)", upsample_step),
         ("OneEuroFilter.apply (19 bones)", lambda i: euro.apply(load(i), out)),
         ("Pipeline.apply (twist, one_euro)", lambda i: pipe.apply(load(i), out)),
         ("live: SolvePost.apply (twist, one_euro)", live_step),

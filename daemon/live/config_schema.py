@@ -225,10 +225,10 @@ class LoopConfig:
     # A repeated log line (per reason) is printed once, then summarized with its
     # count at most once per this interval (a flood cannot grow the log).
     log_interval_s: float = between(10.0, 0.1, 3600.0)
-    # Resample the output to the engine's rate (slerp between the two latest
-    # processed poses, on the source's clock; README "Post stages"); 0 = send every
-    # solved frame. At most one send per input frame: above the input's rate the
-    # output stays at the input's.
+    # Resample the output to the engine's rate (slerp between the two processed
+    # poses around each tick, on the source's clock; README "Post stages"); 0 = send
+    # every solved frame. Above the input's rate the loop's timer sends the ticks
+    # between input frames, each one input period less one output period behind.
     output_rate_hz: float = between(0.0, 0.0, 10_000.0)
 
 

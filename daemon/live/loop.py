@@ -436,12 +436,22 @@ class Daemon(
         self._guards.clear()
 
     def run(self, should_exit: Callable[[], bool]) -> None:
-        """Serve until ``should_exit()`` is true (checked every poll timeout)."""
+        """Serve until ``should_exit()`` is true (checked every poll timeout).
+
+        The poll waits at most ``poll_timeout_ms``, less when a resampled output
+        tick (``output_rate_hz``) is queued: it wakes at the tick's send time
+        (rounded up to the next millisecond), and the tick goes out from here.
+        """
         c = self.config.loop
         timeout = c.poll_timeout_ms
         next_stats = time.monotonic_ns() + int(c.stats_interval_s * 1e9)
         while not should_exit():
-            events = self._poller.poll(timeout)  # [(socket or fd, flags)]
+            wait = timeout
+            tick_ns = self.next_tick_ns()  # output_rate_hz: a resampled tick queued
+            if tick_ns >= 0:  # wake for it (rounded up to the poll's 1 ms)
+                left_ms = -(-(tick_ns - time.monotonic_ns()) // 1_000_000)
+                wait = max(0, min(timeout, left_ms))
+            events = self._poller.poll(wait)  # [(socket or fd, flags)]
             if events:
                 self._service(events)
             if self._capture is not None:
@@ -453,6 +463,7 @@ class Daemon(
                     dispatch_console(self, cmd)
             self._each_performer(self._calibration_tick, now)
             self._each_performer(self._send_vmc_state, now)
+            self._each_performer(self._send_due_ticks, time.monotonic_ns())
             self._log.flush(now)
             if now >= next_stats:
                 self.last_stats_line = self.stats_line()

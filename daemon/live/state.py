@@ -59,6 +59,7 @@ class Pipeline:
     bone_flags: np.ndarray  # sent bone flags: the solve's | the latest validation's
     face: FaceStage | None = None
     post: SolvePost | None = None  # the [[pipeline]] stages (None: none configured)
+    tick_source_clock: bool = True  # resampled ticks' times are the source's clock
 
 
 T = TypeVar("T")

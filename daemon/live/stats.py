@@ -44,8 +44,10 @@ class LoopStats:
         resample_skipped: solved frames not sent because no output tick fell due
             (``loop.output_rate_hz`` below the input's rate; counted in
             ``frames_solved``, not in ``frames_out``).
-        resample_merged: output ticks merged into a later one (``output_rate_hz``
-            above the input's rate: one send per input frame).
+        resample_dropped: output ticks dropped unsent from a full queue
+            (``interp.QUEUE_TICKS`` ticks waiting for their send time).
+        resample_timer: output ticks sent from the loop's timer, between input
+            frames (``output_rate_hz`` above the input's rate).
         rejected_sources: OSC datagrams from addresses not on the allow-list.
         face_solved: frames the face was solved on.
         face_head_lost: of those, frames with fewer than 3 head markers (face held).
@@ -97,7 +99,8 @@ class LoopStats:
     control_errors: int = 0
     post_restarts: int = 0
     resample_skipped: int = 0
-    resample_merged: int = 0
+    resample_dropped: int = 0
+    resample_timer: int = 0
     rings: IntArray = field(
         default_factory=lambda: np.zeros((len(STAGES), RING), np.int64)
     )
@@ -170,6 +173,6 @@ class LoopStats:
                 "validation_flagged", "validation_drops", "zmq_disconnects",
                 "unsolved", "labels_in", "show_control_in", "show_control_malformed",
                 "control_requests", "control_errors", "post_restarts",
-                "resample_skipped", "resample_merged",
+                "resample_skipped", "resample_dropped", "resample_timer",
             )
         }  # fmt: skip

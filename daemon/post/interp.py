@@ -349,14 +349,36 @@ def _slerp_pose(
         out_p[d] = p0[d] + u * (p1[d] - p0[d])
 
 
+#: Output ticks a :class:`RateResampler` holds computed and waiting for their send
+#: time: one input period's worth at 16 times the input's rate (e.g. 10 -> 160 Hz);
+#: beyond that the oldest are dropped (counted).
+QUEUE_TICKS = 16
+
+
 class RateResampler:
     """Live resampling of the pose stream to the engine's rate (``output_rate_hz``).
 
-    Output ticks run every ``1 / output_rate_hz`` from the first pose pushed; each is
-    slerped between the two latest input poses around it (never extrapolated, so the
-    output lags the input by at most one input period).
+    Output ticks run every ``1 / output_rate_hz`` on the stream's clock from the first
+    pose pushed; each is slerped (root: a line) between the two input poses around
+    it, never extrapolated, so a tick is computed when the input after it arrives:
+    the values equal :func:`resample` of the same poses.
 
-    Per input pose: ``r.push(pose)``, then ``while r.pending(): send(r.pop(out))``.
+    Send times (``now_ns``: ``time.monotonic_ns()``). The ticks an input pose
+    completes, ``t_1 < .. < t_m`` (those in ``(t_prev, t_k]``), are queued with send
+    times ``w + (t_i - t_1)``, ``w`` the pose's arrival: the first at once, the rest
+    spaced by the output period, so above the input's rate (60 Hz captured, 120 Hz
+    sent) ticks go out between input frames, from the loop's timer
+    (:meth:`next_due_ns`, :meth:`due`), and below it (one tick at most per input)
+    every tick goes out on its input's arrival as before. A tick at ``t_i`` leaves
+    ``t_k - t_1`` behind the source instant it shows (``t_k - t_i`` of source time
+    plus ``t_i - t_1`` of waiting): the added latency, between 0 and one input period
+    less one output period (60 -> 120 Hz: 8.3 ms on every tick; 100 -> 60 Hz: 0 to
+    10 ms, the tick's age at its input's arrival). Ticks still queued when the next
+    input pose arrives (a late loop, input jitter) are due at once.
+
+    Per input pose: ``r.push(pose, now_ns)``, then ``while r.due(now_ns):
+    send(r.pop(out))``; and from the loop's timer the same ``while`` when
+    :meth:`next_due_ns` has passed. ``pending()`` says whether any tick is queued.
 
     Args:
         n_bones: bones B of the stream.
@@ -375,18 +397,44 @@ class RateResampler:
         self._count = 0
         self._tick_index = 0
         self._t0_s = 0.0
+        self._queue = [PoseBuffer.new(n_bones) for _ in range(QUEUE_TICKS)]
+        #: (QUEUE_TICKS,) int64 ns: each queued tick's send time.
+        self._due_ns = np.zeros(QUEUE_TICKS, dtype=np.int64)
+        #: (QUEUE_TICKS,) int64: each queued tick's tag (the caller's, from push).
+        self._tags = np.zeros(QUEUE_TICKS, dtype=np.int64)
+        #: (QUEUE_TICKS,) int64 ns: the arrival of the input that completed it.
+        self._arrival_ns = np.zeros(QUEUE_TICKS, dtype=np.int64)
+        self._head = 0
+        self._queued = 0
+        #: Ticks the last push completed.
+        self.completed = 0
+        #: Ticks dropped from a full queue (never sent).
+        self.dropped = 0
+        #: The tag of the tick :meth:`pop` wrote last.
+        self.popped_tag = 0
+        #: The arrival (``now_ns`` of its push) of that tick's input.
+        self.popped_arrival_ns = 0
 
     def reset(self) -> None:
-        """Forget the stream (e.g. after a source restart)."""
+        """Forget the stream and the queued ticks (e.g. after a source restart)."""
         self._count = 0
         self._tick_index = 0
+        self._queued = 0
+        self.completed = 0
 
-    def push(self, pose: PoseBuffer) -> None:
-        """Take the next input pose (times must increase; an older one is ignored).
+    def _next_tick_s(self) -> float:
+        return self._t0_s + self._tick_index * self.period_s
+
+    def push(self, pose: PoseBuffer, now_ns: int = 0, tag: int = 0) -> None:
+        """Take the next input pose and queue the ticks it completes.
 
         Args:
-            pose: the pose (copied).
+            pose: the pose (copied); times must increase (an older one is ignored).
+            now_ns: its arrival, ``time.monotonic_ns()`` (the send times' origin).
+            tag: an integer kept with each tick it completes (e.g. the input frame's
+                number), read back as :attr:`popped_tag`.
         """
+        self.completed = 0
         if self._count and pose.t_s <= self._last.t_s:
             return
         self._prev, self._last = self._last, self._prev
@@ -394,38 +442,65 @@ class RateResampler:
         if self._count == 0:
             self._t0_s = pose.t_s
         self._count += 1
-
-    def _next_tick_s(self) -> float:
-        return self._t0_s + self._tick_index * self.period_s
+        for k in range(self._queued):  # overdue: due at once
+            self._due_ns[(self._head + k) % QUEUE_TICKS] = now_ns
+        prev, last = self._prev, self._last
+        t_first = self._next_tick_s()
+        while self._next_tick_s() <= last.t_s + 1e-12:
+            t = self._next_tick_s()
+            self._tick_index += 1
+            if self._queued == QUEUE_TICKS:
+                self._head = (self._head + 1) % QUEUE_TICKS
+                self._queued -= 1
+                self.dropped += 1
+            slot = (self._head + self._queued) % QUEUE_TICKS
+            out = self._queue[slot]
+            if self._count < 2 or t >= last.t_s:
+                out.copy_from(last)
+            else:
+                u = max(0.0, (t - prev.t_s) / (last.t_s - prev.t_s))
+                _slerp_pose(
+                    prev.parent_from_bone_quat,
+                    last.parent_from_bone_quat,
+                    prev.root_pos,
+                    last.root_pos,
+                    u,
+                    out.parent_from_bone_quat,
+                    out.root_pos,
+                )
+            out.t_s = t
+            self._due_ns[slot] = now_ns + round((t - t_first) * 1e9)
+            self._tags[slot] = tag
+            self._arrival_ns[slot] = now_ns
+            self._queued += 1
+            self.completed += 1
 
     def pending(self) -> bool:
-        """Whether an output tick falls within the input received so far."""
-        return self._count > 0 and self._next_tick_s() <= self._last.t_s + 1e-12
+        """Whether any computed tick is queued (due or not)."""
+        return self._queued > 0
+
+    def next_due_ns(self) -> int:
+        """The oldest queued tick's send time (``time.monotonic_ns()``), -1 if none."""
+        return int(self._due_ns[self._head]) if self._queued else -1
+
+    def due(self, now_ns: int) -> bool:
+        """Whether the oldest queued tick's send time has come."""
+        return self._queued > 0 and self._due_ns[self._head] <= now_ns
 
     def pop(self, out: PoseBuffer) -> PoseBuffer:
-        """Write the next tick's pose (call only while :meth:`pending`).
+        """Write the oldest queued tick (call only while :meth:`pending`).
 
         Args:
             out: the destination (B bones).
 
         Returns:
-            ``out`` with ``t_s`` the tick time.
+            ``out`` with ``t_s`` the tick time; :attr:`popped_tag` its tag,
+            :attr:`popped_arrival_ns` its input's arrival.
         """
-        t = self._next_tick_s()
-        self._tick_index += 1
-        prev, last = self._prev, self._last
-        if self._count < 2 or t >= last.t_s:
-            out.copy_from(last)
-        else:
-            u = max(0.0, (t - prev.t_s) / (last.t_s - prev.t_s))
-            _slerp_pose(
-                prev.parent_from_bone_quat,
-                last.parent_from_bone_quat,
-                prev.root_pos,
-                last.root_pos,
-                u,
-                out.parent_from_bone_quat,
-                out.root_pos,
-            )
-        out.t_s = t
+        slot = self._head
+        out.copy_from(self._queue[slot])
+        self.popped_tag = int(self._tags[slot])
+        self.popped_arrival_ns = int(self._arrival_ns[slot])
+        self._head = (slot + 1) % QUEUE_TICKS
+        self._queued -= 1
         return out
