@@ -25,7 +25,7 @@ from retargetd.daemon import rotations as rot
 from retargetd.daemon.compiled import kernel
 from retargetd.daemon.post._kernels import slerp_q
 from retargetd.daemon.post.pose import PoseBuffer
-from retargetd.protocols.frames import BoolArray, F64Array
+from retargetd.protocols.frames import BoolArray, F64Array, IntArray
 
 _UP = np.array([0.0, 0.0, 1.0])  # world +Z (STYLE §3)
 
@@ -354,6 +354,65 @@ def _slerp_pose(
 #: beyond that the oldest are dropped (counted).
 QUEUE_TICKS = 16
 
+# RateResampler._state slots.
+_S_TICK, _S_HEAD, _S_QUEUED, _S_DROPPED, _S_COMPLETED = 0, 1, 2, 3, 4
+
+
+@kernel
+def _queue_ticks(
+    prev_q: F64Array,
+    last_q: F64Array,
+    prev_p: F64Array,
+    last_p: F64Array,
+    prev_t: float,
+    last_t: float,
+    interpolate: bool,
+    t0: float,
+    period: float,
+    now_ns: int,
+    tag: int,
+    q: F64Array,
+    p: F64Array,
+    t: F64Array,
+    due: IntArray,
+    tags: IntArray,
+    arrival: IntArray,
+    state: IntArray,
+) -> None:  # pragma: no cover - compiled
+    """Queue every tick in (prev_t, last_t]: slerp (root: lerp) between the two
+    poses, send times ``now + (t - t_first)``; still-queued ticks due at once."""
+    n_slots = q.shape[0]
+    head, queued = state[_S_HEAD], state[_S_QUEUED]
+    for k in range(queued):  # overdue: due at once
+        due[(head + k) % n_slots] = now_ns
+    completed = 0
+    tick = state[_S_TICK]
+    t_first = t0 + tick * period
+    while t0 + tick * period <= last_t + 1e-12:
+        tt = t0 + tick * period
+        tick += 1
+        if queued == n_slots:
+            head = (head + 1) % n_slots
+            queued -= 1
+            state[_S_DROPPED] += 1
+        slot = (head + queued) % n_slots
+        if not interpolate or tt >= last_t:
+            q[slot, :, :] = last_q
+            p[slot, :] = last_p
+        else:
+            u = max(0.0, (tt - prev_t) / (last_t - prev_t))
+            _slerp_pose(prev_q, last_q, prev_p, last_p, u, q[slot], p[slot])
+        t[slot] = tt
+        due[slot] = now_ns + np.int64(round((tt - t_first) * 1e9))
+        tags[slot] = tag
+        arrival[slot] = now_ns
+        queued += 1
+        completed += 1
+    state[_S_TICK] = tick
+    state[_S_HEAD] = head
+    state[_S_QUEUED] = queued
+    state[_S_COMPLETED] = completed
+
 
 class RateResampler:
     """Live resampling of the pose stream to the engine's rate (``output_rate_hz``).
@@ -395,35 +454,42 @@ class RateResampler:
         self._prev = PoseBuffer.new(n_bones)
         self._last = PoseBuffer.new(n_bones)
         self._count = 0
-        self._tick_index = 0
         self._t0_s = 0.0
-        self._queue = [PoseBuffer.new(n_bones) for _ in range(QUEUE_TICKS)]
-        #: (QUEUE_TICKS,) int64 ns: each queued tick's send time.
+        # The queue: each tick's rotations, root, time, send time (ns), tag and its
+        # input's arrival (ns); head, count and counters in _state (int64).
+        self._q = np.zeros((QUEUE_TICKS, n_bones, 4))
+        self._p = np.zeros((QUEUE_TICKS, 3))
+        self._t = np.zeros(QUEUE_TICKS)
         self._due_ns = np.zeros(QUEUE_TICKS, dtype=np.int64)
-        #: (QUEUE_TICKS,) int64: each queued tick's tag (the caller's, from push).
         self._tags = np.zeros(QUEUE_TICKS, dtype=np.int64)
-        #: (QUEUE_TICKS,) int64 ns: the arrival of the input that completed it.
         self._arrival_ns = np.zeros(QUEUE_TICKS, dtype=np.int64)
+        self._state = np.zeros(5, dtype=np.int64)
+        # Mirrors of the queue's head and length and the oldest tick's send time as
+        # Python ints (numpy scalar reads cost ~0.2 us each on the loop's every turn).
         self._head = 0
         self._queued = 0
-        #: Ticks the last push completed.
-        self.completed = 0
-        #: Ticks dropped from a full queue (never sent).
-        self.dropped = 0
+        self._next_due_ns = -1
         #: The tag of the tick :meth:`pop` wrote last.
         self.popped_tag = 0
         #: The arrival (``now_ns`` of its push) of that tick's input.
         self.popped_arrival_ns = 0
 
+    @property
+    def completed(self) -> int:
+        """Ticks the last push completed."""
+        return int(self._state[_S_COMPLETED])
+
+    @property
+    def dropped(self) -> int:
+        """Ticks dropped from a full queue (never sent)."""
+        return int(self._state[_S_DROPPED])
+
     def reset(self) -> None:
         """Forget the stream and the queued ticks (e.g. after a source restart)."""
         self._count = 0
-        self._tick_index = 0
-        self._queued = 0
-        self.completed = 0
-
-    def _next_tick_s(self) -> float:
-        return self._t0_s + self._tick_index * self.period_s
+        st = self._state
+        st[_S_TICK] = st[_S_QUEUED] = st[_S_COMPLETED] = 0
+        self._queued, self._next_due_ns = 0, -1
 
     def push(self, pose: PoseBuffer, now_ns: int = 0, tag: int = 0) -> None:
         """Take the next input pose and queue the ticks it completes.
@@ -434,7 +500,7 @@ class RateResampler:
             tag: an integer kept with each tick it completes (e.g. the input frame's
                 number), read back as :attr:`popped_tag`.
         """
-        self.completed = 0
+        self._state[_S_COMPLETED] = 0
         if self._count and pose.t_s <= self._last.t_s:
             return
         self._prev, self._last = self._last, self._prev
@@ -442,38 +508,16 @@ class RateResampler:
         if self._count == 0:
             self._t0_s = pose.t_s
         self._count += 1
-        for k in range(self._queued):  # overdue: due at once
-            self._due_ns[(self._head + k) % QUEUE_TICKS] = now_ns
-        prev, last = self._prev, self._last
-        t_first = self._next_tick_s()
-        while self._next_tick_s() <= last.t_s + 1e-12:
-            t = self._next_tick_s()
-            self._tick_index += 1
-            if self._queued == QUEUE_TICKS:
-                self._head = (self._head + 1) % QUEUE_TICKS
-                self._queued -= 1
-                self.dropped += 1
-            slot = (self._head + self._queued) % QUEUE_TICKS
-            out = self._queue[slot]
-            if self._count < 2 or t >= last.t_s:
-                out.copy_from(last)
-            else:
-                u = max(0.0, (t - prev.t_s) / (last.t_s - prev.t_s))
-                _slerp_pose(
-                    prev.parent_from_bone_quat,
-                    last.parent_from_bone_quat,
-                    prev.root_pos,
-                    last.root_pos,
-                    u,
-                    out.parent_from_bone_quat,
-                    out.root_pos,
-                )
-            out.t_s = t
-            self._due_ns[slot] = now_ns + round((t - t_first) * 1e9)
-            self._tags[slot] = tag
-            self._arrival_ns[slot] = now_ns
-            self._queued += 1
-            self.completed += 1
+        prev, last, st = self._prev, self._last, self._state
+        st[_S_HEAD], st[_S_QUEUED] = self._head, self._queued
+        _queue_ticks(
+            prev.parent_from_bone_quat, last.parent_from_bone_quat, prev.root_pos,
+            last.root_pos, prev.t_s, last.t_s, self._count >= 2, self._t0_s,
+            self.period_s, now_ns, tag, self._q, self._p, self._t, self._due_ns,
+            self._tags, self._arrival_ns, st,
+        )  # fmt: skip
+        self._head, self._queued = int(st[_S_HEAD]), int(st[_S_QUEUED])
+        self._next_due_ns = int(self._due_ns[self._head]) if self._queued else -1
 
     def pending(self) -> bool:
         """Whether any computed tick is queued (due or not)."""
@@ -481,11 +525,11 @@ class RateResampler:
 
     def next_due_ns(self) -> int:
         """The oldest queued tick's send time (``time.monotonic_ns()``), -1 if none."""
-        return int(self._due_ns[self._head]) if self._queued else -1
+        return self._next_due_ns
 
     def due(self, now_ns: int) -> bool:
         """Whether the oldest queued tick's send time has come."""
-        return self._queued > 0 and self._due_ns[self._head] <= now_ns
+        return self._queued > 0 and self._next_due_ns <= now_ns
 
     def pop(self, out: PoseBuffer) -> PoseBuffer:
         """Write the oldest queued tick (call only while :meth:`pending`).
@@ -498,9 +542,12 @@ class RateResampler:
             :attr:`popped_arrival_ns` its input's arrival.
         """
         slot = self._head
-        out.copy_from(self._queue[slot])
+        np.copyto(out.parent_from_bone_quat, self._q[slot])
+        np.copyto(out.root_pos, self._p[slot])
+        out.t_s = float(self._t[slot])
         self.popped_tag = int(self._tags[slot])
         self.popped_arrival_ns = int(self._arrival_ns[slot])
-        self._head = (slot + 1) % QUEUE_TICKS
+        self._head = head = (slot + 1) % QUEUE_TICKS
         self._queued -= 1
+        self._next_due_ns = int(self._due_ns[head]) if self._queued else -1
         return out
