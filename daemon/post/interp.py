@@ -354,39 +354,57 @@ def _slerp_pose(
 #: beyond that the oldest are dropped (counted).
 QUEUE_TICKS = 16
 
-# RateResampler._state slots.
-_S_TICK, _S_HEAD, _S_QUEUED, _S_DROPPED, _S_COMPLETED = 0, 1, 2, 3, 4
+# RateResampler._ints slots: the state, then send times, tags and arrivals per slot.
+_S_TICK, _S_HEAD, _S_QUEUED, _S_DROPPED, _S_COMPLETED, _S_LAST = 0, 1, 2, 3, 4, 5
+_S_TAG, _S_ARRIVAL = 6, 7  # the tick popped last
+_N_STATE = 8
+# RateResampler._floats slots: the two input poses' times, t0, the period, the time
+# of the tick popped last, then the queued ticks' times.
+_F_T0, _F_PERIOD, _F_POPPED, _N_FLOATS = 2, 3, 4, 5
+
+
+@kernel
+def _next_due(ints: IntArray) -> int:  # pragma: no cover - compiled
+    if ints[_S_QUEUED] == 0:
+        return -1
+    return ints[_N_STATE + ints[_S_HEAD]]
 
 
 @kernel
 def _queue_ticks(
-    prev_q: F64Array,
-    last_q: F64Array,
-    prev_p: F64Array,
-    last_p: F64Array,
-    prev_t: float,
-    last_t: float,
-    interpolate: bool,
-    t0: float,
-    period: float,
-    now_ns: int,
-    tag: int,
+    pose_q: F64Array,
+    pose_p: F64Array,
+    pose_t: float,
+    in_q: F64Array,
+    in_p: F64Array,
     q: F64Array,
     p: F64Array,
-    t: F64Array,
-    due: IntArray,
-    tags: IntArray,
-    arrival: IntArray,
-    state: IntArray,
-) -> None:  # pragma: no cover - compiled
-    """Queue every tick in (prev_t, last_t]: slerp (root: lerp) between the two
-    poses, send times ``now + (t - t_first)``; still-queued ticks due at once."""
+    floats: F64Array,
+    ints: IntArray,
+    now_ns: int,
+    tag: int,
+) -> int:  # pragma: no cover - compiled
+    """Take the pose as the last input (the other row becomes prev) and queue every
+    tick in (prev_t, last_t]: slerp (root: lerp) between the two, send times ``now
+    + (t - t_first)``; ticks still queued are due at once. Returns the oldest queued
+    tick's send time (-1: none). One call with few arguments: numba's dispatch costs
+    per argument, and this runs on every input frame."""
     n_slots = q.shape[0]
-    head, queued = state[_S_HEAD], state[_S_QUEUED]
+    due, tags, arrival = _N_STATE, _N_STATE + n_slots, _N_STATE + 2 * n_slots
+    last = 1 - ints[_S_LAST]
+    prev = 1 - last
+    ints[_S_LAST] = last
+    in_q[last, :, :] = pose_q
+    in_p[last, :] = pose_p
+    floats[last] = pose_t
+    interpolate = floats[prev] < pose_t  # a pose before (the first has none)
+    prev_t, last_t = floats[prev], pose_t
+    t0, period = floats[_F_T0], floats[_F_PERIOD]
+    head, queued = ints[_S_HEAD], ints[_S_QUEUED]
     for k in range(queued):  # overdue: due at once
-        due[(head + k) % n_slots] = now_ns
+        ints[due + (head + k) % n_slots] = now_ns
     completed = 0
-    tick = state[_S_TICK]
+    tick = ints[_S_TICK]
     t_first = t0 + tick * period
     while t0 + tick * period <= last_t + 1e-12:
         tt = t0 + tick * period
@@ -394,24 +412,49 @@ def _queue_ticks(
         if queued == n_slots:
             head = (head + 1) % n_slots
             queued -= 1
-            state[_S_DROPPED] += 1
+            ints[_S_DROPPED] += 1
         slot = (head + queued) % n_slots
         if not interpolate or tt >= last_t:
-            q[slot, :, :] = last_q
-            p[slot, :] = last_p
+            q[slot, :, :] = in_q[last]
+            p[slot, :] = in_p[last]
         else:
             u = max(0.0, (tt - prev_t) / (last_t - prev_t))
-            _slerp_pose(prev_q, last_q, prev_p, last_p, u, q[slot], p[slot])
-        t[slot] = tt
-        due[slot] = now_ns + np.int64(round((tt - t_first) * 1e9))
-        tags[slot] = tag
-        arrival[slot] = now_ns
+            _slerp_pose(in_q[prev], in_q[last], in_p[prev], in_p[last], u, q[slot],
+                        p[slot])  # fmt: skip
+        floats[_N_FLOATS + slot] = tt
+        ints[due + slot] = now_ns + np.int64(round((tt - t_first) * 1e9))
+        ints[tags + slot] = tag
+        ints[arrival + slot] = now_ns
         queued += 1
         completed += 1
-    state[_S_TICK] = tick
-    state[_S_HEAD] = head
-    state[_S_QUEUED] = queued
-    state[_S_COMPLETED] = completed
+    ints[_S_TICK] = tick
+    ints[_S_HEAD] = head
+    ints[_S_QUEUED] = queued
+    ints[_S_COMPLETED] = completed
+    return _next_due(ints)
+
+
+@kernel
+def _pop_tick(
+    q: F64Array,
+    p: F64Array,
+    floats: F64Array,
+    ints: IntArray,
+    out_q: F64Array,
+    out_p: F64Array,
+) -> int:  # pragma: no cover - compiled
+    """The oldest queued tick into ``out_*`` (its time, tag and arrival into the
+    popped slots); returns the next one's send time (-1: none)."""
+    n_slots = q.shape[0]
+    slot = ints[_S_HEAD]
+    out_q[:, :] = q[slot]
+    out_p[:] = p[slot]
+    floats[_F_POPPED] = floats[_N_FLOATS + slot]
+    ints[_S_TAG] = ints[_N_STATE + n_slots + slot]
+    ints[_S_ARRIVAL] = ints[_N_STATE + 2 * n_slots + slot]
+    ints[_S_HEAD] = (slot + 1) % n_slots
+    ints[_S_QUEUED] -= 1
+    return _next_due(ints)
 
 
 class RateResampler:
@@ -451,77 +494,77 @@ class RateResampler:
         if not output_rate_hz > 0.0 or not math.isfinite(output_rate_hz):
             raise ValueError(f"output_rate_hz must be > 0; got {output_rate_hz!r}")
         self.period_s = 1.0 / float(output_rate_hz)
-        self._prev = PoseBuffer.new(n_bones)
-        self._last = PoseBuffer.new(n_bones)
-        self._count = 0
-        self._t0_s = 0.0
-        # The queue: each tick's rotations, root, time, send time (ns), tag and its
-        # input's arrival (ns); head, count and counters in _state (int64).
-        self._q = np.zeros((QUEUE_TICKS, n_bones, 4))
-        self._p = np.zeros((QUEUE_TICKS, 3))
-        self._t = np.zeros(QUEUE_TICKS)
-        self._due_ns = np.zeros(QUEUE_TICKS, dtype=np.int64)
-        self._tags = np.zeros(QUEUE_TICKS, dtype=np.int64)
-        self._arrival_ns = np.zeros(QUEUE_TICKS, dtype=np.int64)
-        self._state = np.zeros(5, dtype=np.int64)
-        # Mirrors of the queue's head and length and the oldest tick's send time as
-        # Python ints (numpy scalar reads cost ~0.2 us each on the loop's every turn).
-        self._head = 0
-        self._queued = 0
+        n = QUEUE_TICKS
+        # The two latest input poses (rows; _ints[_S_LAST] the last), the queue's
+        # ticks (rotations, root), times (_floats) and state, send times, tags and
+        # input arrivals (_ints): a handful of arrays for the kernels' calls.
+        self._in_q = np.zeros((2, n_bones, 4))
+        self._in_p = np.zeros((2, 3))
+        self._q = np.zeros((n, n_bones, 4))
+        self._p = np.zeros((n, 3))
+        self._floats = np.zeros(_N_FLOATS + n)
+        self._floats[_F_PERIOD] = self.period_s
+        self._ints = np.zeros(_N_STATE + 3 * n, dtype=np.int64)
+        self._started = False
+        self._last_t_s = 0.0
+        # The oldest queued tick's send time as a Python int (-1: none queued): what
+        # the loop asks on its every turn, without a numpy scalar read.
         self._next_due_ns = -1
-        #: The tag of the tick :meth:`pop` wrote last.
-        self.popped_tag = 0
-        #: The arrival (``now_ns`` of its push) of that tick's input.
-        self.popped_arrival_ns = 0
 
     @property
     def completed(self) -> int:
         """Ticks the last push completed."""
-        return int(self._state[_S_COMPLETED])
+        return int(self._ints[_S_COMPLETED])
 
     @property
     def dropped(self) -> int:
         """Ticks dropped from a full queue (never sent)."""
-        return int(self._state[_S_DROPPED])
+        return int(self._ints[_S_DROPPED])
+
+    @property
+    def popped_tag(self) -> int:
+        """The tag of the tick :meth:`pop` wrote last."""
+        return int(self._ints[_S_TAG])
+
+    @property
+    def popped_arrival_ns(self) -> int:
+        """The arrival (``now_ns`` of its push) of that tick's input."""
+        return int(self._ints[_S_ARRIVAL])
 
     def reset(self) -> None:
         """Forget the stream and the queued ticks (e.g. after a source restart)."""
-        self._count = 0
-        st = self._state
+        self._started = False
+        st = self._ints
         st[_S_TICK] = st[_S_QUEUED] = st[_S_COMPLETED] = 0
-        self._queued, self._next_due_ns = 0, -1
+        self._next_due_ns = -1
 
     def push(self, pose: PoseBuffer, now_ns: int = 0, tag: int = 0) -> None:
         """Take the next input pose and queue the ticks it completes.
 
         Args:
             pose: the pose (copied); times must increase (an older one is ignored).
-            now_ns: its arrival, ``time.monotonic_ns()`` (the send times' origin).
+            now_ns: its arrival, ``time.monotonic_ns()`` (>= 0; the send times'
+                origin).
             tag: an integer kept with each tick it completes (e.g. the input frame's
                 number), read back as :attr:`popped_tag`.
         """
-        self._state[_S_COMPLETED] = 0
-        if self._count and pose.t_s <= self._last.t_s:
+        if self._started and pose.t_s <= self._last_t_s:
+            self._ints[_S_COMPLETED] = 0
             return
-        self._prev, self._last = self._last, self._prev
-        self._last.copy_from(pose)
-        if self._count == 0:
-            self._t0_s = pose.t_s
-        self._count += 1
-        prev, last, st = self._prev, self._last, self._state
-        st[_S_HEAD], st[_S_QUEUED] = self._head, self._queued
-        _queue_ticks(
-            prev.parent_from_bone_quat, last.parent_from_bone_quat, prev.root_pos,
-            last.root_pos, prev.t_s, last.t_s, self._count >= 2, self._t0_s,
-            self.period_s, now_ns, tag, self._q, self._p, self._t, self._due_ns,
-            self._tags, self._arrival_ns, st,
+        if not self._started:  # the first pose: ticks from its time, none before
+            f = self._floats
+            f[_F_T0] = pose.t_s
+            f[0] = f[1] = math.inf  # no pose before: the kernel copies, never slerps
+            self._started = True
+        self._last_t_s = pose.t_s
+        self._next_due_ns = _queue_ticks(
+            pose.parent_from_bone_quat, pose.root_pos, pose.t_s, self._in_q,
+            self._in_p, self._q, self._p, self._floats, self._ints, now_ns, tag,
         )  # fmt: skip
-        self._head, self._queued = int(st[_S_HEAD]), int(st[_S_QUEUED])
-        self._next_due_ns = int(self._due_ns[self._head]) if self._queued else -1
 
     def pending(self) -> bool:
         """Whether any computed tick is queued (due or not)."""
-        return self._queued > 0
+        return self._next_due_ns >= 0
 
     def next_due_ns(self) -> int:
         """The oldest queued tick's send time (``time.monotonic_ns()``), -1 if none."""
@@ -529,7 +572,7 @@ class RateResampler:
 
     def due(self, now_ns: int) -> bool:
         """Whether the oldest queued tick's send time has come."""
-        return self._queued > 0 and self._next_due_ns <= now_ns
+        return 0 <= self._next_due_ns <= now_ns
 
     def pop(self, out: PoseBuffer) -> PoseBuffer:
         """Write the oldest queued tick (call only while :meth:`pending`).
@@ -541,13 +584,9 @@ class RateResampler:
             ``out`` with ``t_s`` the tick time; :attr:`popped_tag` its tag,
             :attr:`popped_arrival_ns` its input's arrival.
         """
-        slot = self._head
-        np.copyto(out.parent_from_bone_quat, self._q[slot])
-        np.copyto(out.root_pos, self._p[slot])
-        out.t_s = float(self._t[slot])
-        self.popped_tag = int(self._tags[slot])
-        self.popped_arrival_ns = int(self._arrival_ns[slot])
-        self._head = head = (slot + 1) % QUEUE_TICKS
-        self._queued -= 1
-        self._next_due_ns = int(self._due_ns[head]) if self._queued else -1
+        self._next_due_ns = _pop_tick(
+            self._q, self._p, self._floats, self._ints, out.parent_from_bone_quat,
+            out.root_pos,
+        )  # fmt: skip
+        out.t_s = float(self._floats[_F_POPPED])
         return out
