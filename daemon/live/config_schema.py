@@ -212,6 +212,12 @@ class TargetConfig:
     bvh_units: str = spec("cm", "units")
     bvh_up: str = spec("+Y", "up")
     compensate_base_pose: bool = True
+    # How the target's Spine, Chest and UpperChest are emitted: "mapped" (each from
+    # the rig bone mapped to it, UpperChest slerp-filled) or "pivot" (the chapter's
+    # shifting pivot: the Hips-to-thorax bend spread bottom-up, rx and rz doubled, at
+    # most spine_pivot_limit_deg a joint; post/pivot.py SpinePivot; README).
+    spine: str = one_of("mapped", "mapped", "pivot")
+    spine_pivot_limit_deg: float = between(15.0, 0.0, 180.0, open_lo=True)
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)

@@ -15,9 +15,11 @@ import numpy as np
 import zmq
 
 from retargetd.daemon.body.method import make_body_solver
+from retargetd.daemon.live.config_schema import TargetConfig
 from retargetd.daemon.live.performer import FrameSource
 from retargetd.daemon.live.state import DaemonState, Pipeline
 from retargetd.daemon.post.pipeline import build_pipeline
+from retargetd.daemon.post.pivot import SpinePivot
 from retargetd.daemon.post.solve_post import SolvePost
 from retargetd.daemon.target.retarget import (
     Retargeter,
@@ -35,6 +37,27 @@ logger = logging.getLogger(__name__)
 
 #: How often the VMC state is sent while nothing is streamed (0.5 s).
 VMC_STATE_INTERVAL_NS = 500_000_000
+
+
+def spine_stage(config: TargetConfig, target: Any, rig: Any) -> SpinePivot | None:
+    """The ``[target] spine = "pivot"`` stage for ``target`` driven by ``rig`` (None
+    for ``"mapped"``).
+
+    Why a target option and not a ``[[pipeline]]`` kind: the pipeline's stages act
+    on the solved rig's pose (``PoseBuffer``, the rig's B bones), and the bones the
+    pivot writes are the target's: UpperChest exists on no shipped rig (the rigs
+    solve pelvis, lumbar, thorax), so the shares can only be written once the pose
+    is mapped onto the target, after ``Retargeter.apply``.
+
+    Raises:
+        ValueError: the target has no spine chain or the rig drives none of it.
+    """
+    if config.spine != "pivot":
+        return None
+    return SpinePivot(
+        target.bone_names, target.parents, target.rest_world_from_bone_quat,
+        set(rig.humanoid), target.left_world, config.spine_pivot_limit_deg,
+    )  # fmt: skip
 
 
 class SendMixin(DaemonState):
@@ -124,6 +147,7 @@ class SendMixin(DaemonState):
             bone_flags=np.zeros(n_bones, dtype=np.uint8),
             face=face,
             post=self._build_post(),
+            spine=spine_stage(self.config.target, self.target, self.rig),
         )
 
     def _build_post(self) -> SolvePost | None:
@@ -240,6 +264,10 @@ class SendMixin(DaemonState):
         fresh = stream is not None
         frame = stream.current.frame if stream is not None else None
         tp = pipe.retargeter.apply(pose, pipe.target_pose)
+        if pipe.spine is not None:  # [target] spine = "pivot", timed as post.pivot
+            t0 = time.perf_counter_ns()
+            pipe.spine.apply(tp.world_from_bone_quat, tp.rest_from_bone_quat)
+            self.stats.record_spine(time.perf_counter_ns() - t0)
         face = pipe.face
         fo = face.out if face is not None else None
         if face is not None and frame is not None:

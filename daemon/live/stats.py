@@ -110,6 +110,17 @@ class LoopStats:
     post_rings: IntArray = field(default_factory=lambda: np.zeros((0, RING), np.int64))
     post_pos: int = 0
     post_count: int = 0
+    spine_ring: IntArray = field(default_factory=lambda: np.zeros(RING, np.int64))
+    spine_pos: int = 0
+    spine_count: int = 0
+
+    def record_spine(self, ns: int) -> None:
+        """Store one frame's ``[target] spine = "pivot"`` duration (ns): reported as
+        ``post.pivot`` with the ``[[pipeline]]`` stages."""
+        self.spine_ring[self.spine_pos] = ns
+        self.spine_pos = (self.spine_pos + 1) % RING
+        if self.spine_count < RING:
+            self.spine_count += 1
 
     def set_post_stages(self, names: tuple[str, ...]) -> None:
         """Name the post stages timed from now on (new names: their rings restart)."""
@@ -157,6 +168,10 @@ class LoopStats:
             out[POST_PREFIX + name] = (
                 nan if pp is None else (float(pp[0, i]), float(pp[1, i]))
             )
+        k = self.spine_count
+        if k:
+            sp = np.percentile(self.spine_ring[:k] / 1000.0, [50.0, 99.0])
+            out[POST_PREFIX + "pivot"] = (float(sp[0]), float(sp[1]))
         return out
 
     def counters(self) -> dict[str, int]:

@@ -25,8 +25,11 @@ from live_harness import (
     Live,
     OscSource,
     PoseSub,
+    VmcReceiver,
+    _prime,
     _take,
     _unused_udp_port,
+    _vmc_bones,
     _wait_until,
 )
 
@@ -34,13 +37,14 @@ from retargetd.daemon.body.calibration import load_calibration
 from retargetd.daemon.body.rig import load_rig
 from retargetd.daemon.body.solve import BodySolver
 from retargetd.daemon.cli.main import main
-from retargetd.daemon.cli.post_io import apply_pipeline_to_solve
+from retargetd.daemon.cli.post_io import apply_pipeline_to_solve, retarget_solve
 from retargetd.daemon.live.config import ConfigError, DaemonConfig
+from retargetd.daemon.live.config_schema import TargetConfig
 from retargetd.daemon.live.loop import Daemon
 from retargetd.daemon.post.interp import resample
 from retargetd.daemon.rotations import quat_angle, quat_conj, quat_mul
 from retargetd.daemon.target.bvh import world_from_parent_chain
-from retargetd.protocols import zmq_wire
+from retargetd.protocols import engine_unity, zmq_wire
 from retargetd.protocols.marker_input import LabelSet
 
 PIPELINE_TOML = """
@@ -488,6 +492,102 @@ def test_live_output_rate_above_the_input_rate(
     )
     assert lag_ms.min() >= 1000 / 60 - 1000 / 120 - 0.01
     assert between.mean() >= 0.8, between.mean()
+
+
+@pytest.mark.timeout(90)
+def test_live_spine_pivot_equals_offline(
+    start_daemon: Callable[..., Live],
+    osc_source: Callable[..., OscSource],
+    zmq_socket: Callable[[int], Any],
+    vmc: VmcReceiver,
+    exact_calibration: Path,
+) -> None:
+    """``[target] spine = "pivot"`` with a twist stage: the VMC bones (Unity frame,
+    float32) equal the offline mapping of ``solve --pipeline`` (``retarget_solve``,
+    the same ``SpinePivot``) within 1e-6 rad on every bone; Spine, Chest and
+    UpperChest differ from the plain mapping's (the stage acted); the stage is timed
+    as ``post.pivot``."""
+    take = _take()
+    live = start_daemon(
+        {
+            "performer": {"calibration": str(exact_calibration)},
+            "loop": {"process_every_frame": True},
+            "target": {"spine": "pivot", "spine_pivot_limit_deg": 5.0},
+            "pipeline": [{"kind": "twist"}],
+        },
+        vmc_port=vmc.port,
+    )
+    sub = PoseSub(zmq_socket(zmq.SUB), live.tcp("zmq poses"))
+    src = osc_source(live)
+    src.announce()
+    _prime(sub, lambda: src.send(take.markers_world[0]))
+    k = len(src.sent)
+    for row in range(60, 60 + 150):
+        src.send(take.markers_world[row])
+        sub.pump()
+        time.sleep(0.004)
+    n = len(src.sent)
+    vmc.wait_frames(n)
+    status = live.daemon.status()
+    line = live.daemon.stats_line()
+    live.stop()
+    frames = vmc.frames[k:n]
+    names = [b for b in _vmc_bones(frames[0]) if b != "root"]
+
+    cal = load_calibration(exact_calibration)
+    rig = load_rig(EXACT_RIG)
+    raw = BodySolver(rig, cal, take.labels).solve_take(
+        np.stack([m for _, m in src.sent])
+    )
+    done, _ = _offline(raw, cal, tmp_toml='[[pipeline]]\nkind = "twist"\n')
+    cfg = TargetConfig(spine="pivot", spine_pivot_limit_deg=5.0)
+    pivot = retarget_solve(done, rig, cal, cfg)
+    plain = retarget_solve(done, rig, cal, TargetConfig())
+    assert [str(b) for b in pivot["target_bone_names"]] == names
+    unity = np.zeros((len(names), 4))
+    worst, moved = 0.0, 0.0
+    spine = [names.index(b) for b in ("Spine", "Chest", "UpperChest")]
+    for t, frame in enumerate(frames, start=k):
+        bones = _vmc_bones(frame)
+        got = np.array([bones[b][3:] for b in names])  # x y z w, Unity
+        engine_unity.unity_quat_xyzw_from_world(
+            pivot["target_rest_from_bone_quat"][t], unity
+        )
+        # The angle between them (atan2 of the relative quaternion: arccos of the
+        # dot product would turn float32 rounding into 1e-4 rad); xyzw -> wxyz.
+        err = _angles(np.roll(got, 1, axis=-1), np.roll(unity, 1, axis=-1))
+        worst = max(worst, float(err.max()))
+        rel = quat_mul(
+            quat_conj(pivot["target_rest_from_bone_quat"][t, spine]),
+            plain["target_rest_from_bone_quat"][t, spine],
+        )
+        moved = max(moved, float(quat_angle(rel).max()))
+    print(
+        f"\nlive spine pivot over {len(frames)} VMC frames: worst angle to offline "
+        f"{worst:.1e} rad; the pivot moved Spine/Chest/UpperChest by up to "
+        f"{np.degrees(moved):.1f} deg; post.pivot {status['latency_us']['post.pivot']}"
+    )
+    assert worst < TOL_RAD, worst
+    assert moved > np.radians(1.0), "the pivot changed nothing"
+    p50, p99 = status["latency_us"]["post.pivot"]
+    assert 0 < p50 <= p99, status["latency_us"]
+    assert " pivot " in line, line
+
+
+def test_spine_pivot_the_rig_cannot_drive_is_one_line(
+    tmp_path: Path, exact_calibration: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A rig that maps none of Spine, Chest, UpperChest: refused at start, exit 2."""
+    rig_text = EXACT_RIG.read_text()
+    bare = tmp_path / "no-spine-rig.toml"
+    bare.write_text(
+        rig_text.replace('humanoid = "Spine"', "").replace('humanoid = "Chest"', "")
+    )
+    path = _config_file(tmp_path, exact_calibration, '[target]\nspine = "pivot"\n')
+    assert main(["run", "--config", str(path), "--rig", str(bare)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "target.spine" in err, err
+    assert "the rig must drive one of them" in err, err
 
 
 def _offline(raw: Any, cal: Any, *, tmp_toml: str) -> tuple[Any, tuple[str, ...]]:
