@@ -46,11 +46,13 @@ from retargetd.daemon.post.hermite import HermiteSpine
 from retargetd.daemon.post.interp import Clip, RateResampler, resample
 from retargetd.daemon.post.one_euro import OneEuroFilter
 from retargetd.daemon.post.pipeline import build_pipeline
-from retargetd.daemon.post.pivot import ShiftingPivot
+from retargetd.daemon.post.pivot import ShiftingPivot, SpinePivot
 from retargetd.daemon.post.pose import PoseBuffer
 from retargetd.daemon.post.reduce import reduce_clip
 from retargetd.daemon.post.solve_post import SolvePost
 from retargetd.daemon.post.twist import TwistDistribution, arm_chains
+from retargetd.daemon.target.retarget import Retargeter
+from retargetd.daemon.target.skeleton import default_humanoid
 from retargetd.replay.takes import load_take
 
 DATASETS = Path(__file__).resolve().parent.parent.parent / "shared" / "datasets"
@@ -190,6 +192,7 @@ def main() -> None:
     spine_out = np.empty((5, 3))
     euro = OneEuroFilter(b, beta_rot=0.5, beta_pos=5.0)
     res60 = RateResampler(b, 60.0)
+    res120 = RateResampler(b, 120.0)  # above the input's rate: 1-2 ticks a frame
     pipe = build_pipeline(
         [{"kind": "twist"}, {"kind": "one_euro", "beta_rot": 0.5, "beta_pos": 5.0}],
         bone_names=names,
@@ -230,6 +233,37 @@ def main() -> None:
         while res60.pending():
             res60.pop(out)
 
+    # [target] spine = "pivot" (live/send.py): on each frame mapped onto the humanoid.
+    humanoid = default_humanoid()
+    retargeter = Retargeter(solver.rig, cal, humanoid)
+    tpose = retargeter.new_pose()
+    spine_pivot = SpinePivot(
+        humanoid.bone_names, humanoid.parents, humanoid.rest_world_from_bone_quat,
+        set(solver.rig.humanoid), humanoid.left_world,
+    )  # fmt: skip
+    body_w = np.ascontiguousarray(res.world_from_bone_quat)
+    body_f = np.ascontiguousarray(res.bone_flags)
+    mapped_w = np.empty((n, len(humanoid.bone_names), 4))
+    mapped_r = np.empty_like(mapped_w)
+    for i in range(n):
+        body.world_from_bone_quat[:] = body_w[i]
+        body.root_pos[:] = body_p[i]
+        body.bone_flags[:] = body_f[i]
+        retargeter.apply(body, tpose)
+        mapped_w[i], mapped_r[i] = tpose.world_from_bone_quat, tpose.rest_from_bone_quat
+    spine_g, spine_r = np.empty_like(mapped_w[0]), np.empty_like(mapped_r[0])
+
+    def spine_step(i: int) -> None:
+        np.copyto(spine_g, mapped_w[i % n])
+        np.copyto(spine_r, mapped_r[i % n])
+        spine_pivot.apply(spine_g, spine_r)
+
+    def upsample_step(i: int) -> None:
+        now = i * 10_000_000  # 100 Hz arrivals; every queued tick sent by the next
+        res120.push(load(i), now)
+        while res120.due(now + 9_999_999):
+            res120.pop(out)
+
     rows = [
         ("baseline: PoseBuffer.copy_from", lambda i: out.copy_from(load(i))),
         ("TwistDistribution.apply (2 arms)", lambda i: twist.apply(load(i), out)),
@@ -241,7 +275,9 @@ def main() -> None:
             "HermiteSpine.apply (4 pts, 5 joints)",
             lambda i: (load(i), spine.apply(spine_pts, spine_out)),
         ),
+        ("SpinePivot.apply (humanoid, 3 joints)", spine_step),
         ("RateResampler push+pop (100->60 Hz)", resample_step),
+        ("RateResampler push+pop (100->120 Hz)", upsample_step),
         ("OneEuroFilter.apply (19 bones)", lambda i: euro.apply(load(i), out)),
         ("Pipeline.apply (twist, one_euro)", lambda i: pipe.apply(load(i), out)),
         ("live: SolvePost.apply (twist, one_euro)", live_step),

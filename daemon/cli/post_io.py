@@ -34,17 +34,41 @@ def add_pipeline_argument(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def _read_toml(path: str | Path) -> dict[str, Any]:
+    try:
+        with open(path, "rb") as fh:
+            return tomllib.load(fh)
+    except tomllib.TOMLDecodeError as exc:
+        raise UsageError(f"--pipeline {path}: {exc}") from None
+
+
+def load_target_section(path: str | Path) -> Any:
+    """The file's ``[target]`` table as a ``TargetConfig`` (None when it has none).
+
+    Raises:
+        UsageError: unreadable TOML or a bad key or value (named).
+    """
+    from retargetd.daemon.live.config import ConfigError, parse_target
+
+    table = _read_toml(path).get("target")
+    if table is None:
+        return None
+    try:
+        return parse_target(table, f"--pipeline {path}")
+    except ConfigError as exc:
+        raise UsageError(str(exc)) from None
+
+
 def load_pipeline_entries(path: str | Path) -> list[dict[str, Any]]:
-    """The ``[[pipeline]]`` tables of a TOML file (a daemon config works too).
+    """The ``[[pipeline]]`` tables of a TOML file (a daemon config works too); none
+    when the file has only a ``[target]`` table (its ``spine``).
 
     Raises:
         UsageError: unreadable TOML, or no ``pipeline`` array of tables.
     """
-    try:
-        with open(path, "rb") as fh:
-            data = tomllib.load(fh)
-    except tomllib.TOMLDecodeError as exc:
-        raise UsageError(f"--pipeline {path}: {exc}") from None
+    data = _read_toml(path)
+    if "pipeline" not in data and "target" in data:
+        return []
     entries = data.get("pipeline")
     if not isinstance(entries, list) or not all(isinstance(e, dict) for e in entries):
         raise UsageError(
@@ -119,6 +143,79 @@ def apply_pipeline_to_solve(
         root_pos=p_out,
     )
     return new, pipe.kinds
+
+
+def retarget_solve(
+    solve: Any, rig: Any, calibration: Any, target_config: Any
+) -> dict[str, np.ndarray]:
+    """A solve mapped onto the ``[target]`` skeleton frame by frame, as the live loop
+    maps it before VMC: :class:`~retargetd.daemon.target.retarget.Retargeter` (the
+    same ``compensate_base_pose``), then, with ``spine = "pivot"``, the same
+    :class:`~retargetd.daemon.post.pivot.SpinePivot`
+    (:func:`retargetd.daemon.live.send.spine_stage`).
+
+    Args:
+        solve: the (processed) :class:`~retargetd.daemon.body.solve.BodySolve`.
+        rig: its rig.
+        calibration: its calibration.
+        target_config: a ``TargetConfig`` (:func:`load_target_section`).
+
+    Returns:
+        NPZ arrays: ``target_bone_names`` (N,), ``target_world_from_bone_quat`` and
+        ``target_rest_from_bone_quat`` (T, N, 4) w x y z (the latter what VMC sends,
+        world axes), ``target_root_pos`` (T, 3) metres world, ``target_spine``.
+
+    Raises:
+        UsageError: a target the spine pivot does not fit, or a bad BVH target.
+    """
+    from types import SimpleNamespace
+
+    from retargetd.daemon.live.send import spine_stage
+    from retargetd.daemon.target.retarget import (
+        Retargeter,
+        TargetSkeleton,
+        default_humanoid,
+    )
+
+    t = target_config
+    try:
+        target = (
+            default_humanoid()
+            if t.skeleton == "humanoid"
+            else TargetSkeleton.from_bvh(Path(t.skeleton), units=t.bvh_units,
+                                         up=t.bvh_up)
+        )  # fmt: skip
+        spine = spine_stage(t, target, rig)
+    except ValueError as exc:
+        raise UsageError(f"[target]: {exc} (rig {rig.name})") from None
+    rt = Retargeter(
+        rig, calibration, target, compensate_base_pose=t.compensate_base_pose
+    )
+    out = rt.new_pose()
+    n_frames, n = len(solve.world_from_bone_quat), len(target.bone_names)
+    wfb, rfb = np.empty((n_frames, n, 4)), np.empty((n_frames, n, 4))
+    root = np.empty((n_frames, 3))
+    for k in range(n_frames):
+        frame = SimpleNamespace(
+            world_from_bone_quat=np.ascontiguousarray(solve.world_from_bone_quat[k]),
+            root_pos=np.ascontiguousarray(solve.root_pos[k]),
+            bone_flags=np.ascontiguousarray(solve.bone_flags[k]),
+        )
+        rt.apply(frame, out)  # type: ignore[arg-type]
+        if spine is not None:
+            spine.apply(out.world_from_bone_quat, out.rest_from_bone_quat)
+        wfb[k], rfb[k], root[k] = (
+            out.world_from_bone_quat,
+            out.rest_from_bone_quat,
+            out.root_pos,
+        )
+    return {
+        "target_bone_names": np.asarray(target.bone_names, dtype=str),
+        "target_world_from_bone_quat": wfb,
+        "target_rest_from_bone_quat": rfb,
+        "target_root_pos": root,
+        "target_spine": np.asarray(t.spine),
+    }
 
 
 def fill_held_gaps(solve: Any, calibration: Any, max_frames: int) -> tuple[Any, int]:

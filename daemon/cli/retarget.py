@@ -16,8 +16,12 @@ nothing keep their rest; with ``--spread`` those on a plain chain between two ma
 joints (a target with more spine bones) share the rotation between them equally, or
 with ``--spread pivot`` by the chapter's shifting pivot (rx and rz doubled, at most
 ``--pivot-limit-deg`` a joint, the rest carried up the chain, ry shared equally; the
-chain's lower mapped end takes the last share). See
-``retargetd.daemon.target.bvh_retarget`` and ``retargetd.daemon.post.pivot``.
+chain's lower mapped end takes the last share). ``--spread hermite`` places the
+whole spine, from the joint mapped to Hips to the one mapped to Neck (else Head),
+along the chapter's Hermite curve (5.60-5.61) through the source's spine joints: K
+target joints at equal arc length, each bone aimed along the curve, the twist shared
+equally (other chains spread equally). See ``retargetd.daemon.target.bvh_retarget``,
+``retargetd.daemon.post.pivot`` and ``retargetd.daemon.post.hermite``.
 
 ``.glb``: the target's joints as glTF nodes (``--units``: the BVH length unit,
 default cm, for glTF's metres), every frame as a LINEAR key.
@@ -63,10 +67,12 @@ def add_parser(subparsers: Any) -> None:
         "--spread",
         nargs="?",
         const="equal",
-        choices=("equal", "pivot"),
+        choices=("equal", "pivot", "hermite"),
         help="unmapped joints on a chain between two mapped ones (extra spine "
         "bones) share the rotation between them: equally (--spread, --spread "
-        "equal) or by the shifting pivot (--spread pivot); default: they keep rest",
+        "equal) or by the shifting pivot (--spread pivot); or the whole spine "
+        "along a Hermite curve through the source's (--spread hermite); default: "
+        "they keep rest",
     )
     parser.add_argument(
         "--pivot-limit-deg",
@@ -105,6 +111,7 @@ def run(args: argparse.Namespace) -> int:
     """Run ``retarget``."""
     from retargetd.daemon.cli.post_io import suffix_of
     from retargetd.daemon.target.bvh_retarget import (
+        SpineCurve,
         retarget_bvh,
         spread_chains,
         write_retarget_glb,
@@ -125,6 +132,11 @@ def run(args: argparse.Namespace) -> int:
         def distribute(glob: Any, chains: Any) -> None:
             pivot_chains(glob, chains, limit)
 
+    spine_curve: SpineCurve | None = None
+    if args.spread == "hermite":
+        from retargetd.daemon.post.hermite import hermite_chain
+
+        spine_curve = hermite_chain
     try:
         source = read_bvh_hierarchy(args.source, read_motion=True)
         target = read_bvh_hierarchy(args.target)
@@ -135,6 +147,7 @@ def run(args: argparse.Namespace) -> int:
             root_scale=args.root_scale,
             spread=args.spread is not None,
             distribute=distribute,
+            spine_curve=spine_curve,
         )
     except ValueError as exc:
         raise UsageError(str(exc)) from None
@@ -158,8 +171,12 @@ def run(args: argparse.Namespace) -> int:
     )
     w("mapped: " + " ".join(mapped) + "\n")
     w("unmapped (keep their rest): " + (" ".join(unmapped) or "none") + "\n")
+    if result.spine:
+        inner = " ".join(target.joint_names[j] for j in result.spine[1:-1])
+        w(f"on the Hermite spine curve: {inner}\n")
     if args.spread:
         chains = spread_chains(target.parents, list(result.mapping))
+        chains = {u: c for u, c in chains.items() if u not in result.spine}
         spread = [target.joint_names[u] for u in sorted(chains)]
         how = (
             f" (shifting pivot, {limit:g} deg a joint)"

@@ -13,7 +13,14 @@ frames on both sides, is slerped across the gap instead of holding and then jump
 
 ``--pipeline FILE.toml``: the file's ``[[pipeline]]`` post stages (``twist``,
 ``one_euro``; README "Post stages") run over every solved frame, in the order listed,
-before anything is written (every format below then holds the processed motion).
+before anything is written (every format below then holds the processed motion). A
+``[target]`` table with ``spine = "pivot"`` (the shifting pivot on Spine, Chest,
+UpperChest; a daemon config's works too) also maps the processed solve onto the
+target skeleton as the live loop does before VMC, that stage included: ``.npz``
+only, as
+``target_bone_names``, ``target_world_from_bone_quat``, ``target_rest_from_bone_quat``
+(T, N, 4) w x y z (what VMC sends, world axes), ``target_root_pos`` and
+``target_spine``.
 
 ``.bvh``: the calibrated skeleton and the solved motion as BVH, centimetres, Y up,
 every joint's rotation channels in ``--bvh-order`` (default Z X Y), the root's in
@@ -184,6 +191,19 @@ def run(args: argparse.Namespace) -> int:
     if args.fill_gaps is not None and args.fill_gaps < 1:
         raise UsageError(f"--fill-gaps: expected >= 1 frames; got {args.fill_gaps}")
     refuse_existing(args.out, force=args.force)
+    target_cfg = None
+    if args.pipeline is not None:  # checked before the solve
+        from retargetd.daemon.cli.post_io import load_target_section
+
+        target_cfg = load_target_section(args.pipeline)
+        if target_cfg is not None and target_cfg.spine != "pivot":
+            target_cfg = None  # a daemon config's [target]: nothing to emit offline
+        if target_cfg is not None and out_format != "npz":
+            raise UsageError(
+                f"--pipeline {args.pipeline}: a [target] table maps the solve onto "
+                'the target skeleton (spine = "pivot" ...), written in .npz only '
+                f"(target_* arrays); got --out {args.out}"
+            )
     rig, take, cal, solver = solver_for_take(args)
     started = time.perf_counter()
     res = solve_take_progress(solver, take.positions, quiet=args.quiet)
@@ -194,10 +214,15 @@ def run(args: argparse.Namespace) -> int:
         from retargetd.daemon.cli.post_io import fill_held_gaps
 
         res, n_filled = fill_held_gaps(res, cal, args.fill_gaps)
+    target_arrays: dict[str, Any] = {}
     if args.pipeline is not None:
         from retargetd.daemon.cli.post_io import apply_pipeline_to_solve
 
         res, kinds = apply_pipeline_to_solve(args.pipeline, res, cal, take.rate_hz)
+        if target_cfg is not None:
+            from retargetd.daemon.cli.post_io import retarget_solve
+
+            target_arrays = retarget_solve(res, rig, cal, target_cfg)
     if out_format == "bvh":
         _write_bvh(args, cal, res, take.rate_hz)
     elif out_format == "csv":
@@ -229,6 +254,7 @@ def run(args: argparse.Namespace) -> int:
             rig_name=np.asarray(rig.name),
             method=np.asarray(args.method),
             **_fit_arrays(res),
+            **target_arrays,
         )
         if out_format == "mcap":
             from retargetd.daemon.console.export import write_solve_foxglove

@@ -26,6 +26,7 @@ from retargetd.daemon.body.solve import BodySolver
 from retargetd.daemon.live.config import DaemonConfig, check_pipeline
 from retargetd.daemon.live.config_schema import CALIBRATE_MAX_FRAMES
 from retargetd.daemon.live.performer import FrameSource
+from retargetd.daemon.live.send import spine_stage
 from retargetd.daemon.live.state import DaemonState
 
 logger = logging.getLogger(__name__)
@@ -247,6 +248,7 @@ class CalibrationMixin(DaemonState):
             if self.config_path:  # the file's [[pipeline]] as it is now
                 stages = DaemonConfig.from_toml(self.config_path).pipeline
             check_pipeline(stages, rig, str(self.config_path or "config"))
+            spine_stage(self.config.target, self.target, rig)  # its spine fits
         except ValueError as exc:
             msg = f"reload failed, kept the running rig and calibration: {exc}"
             self.recording.event("reload", ok=False, message=msg)

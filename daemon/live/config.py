@@ -167,6 +167,16 @@ def _build(kind: Any, doc: Any, prefix: str, source: str) -> Any:
     return kind(**kwargs)
 
 
+def parse_target(table: Any, source: str = "config") -> TargetConfig:
+    """A ``[target]`` table alone (``solve --pipeline FILE.toml``), every key checked.
+
+    Raises:
+        ConfigError: naming the key.
+    """
+    config: TargetConfig = _build(TargetConfig, table, "target.", source)
+    return config
+
+
 def _coerce(value: Any, default: Any, name: str, source: str) -> Any:
     def bad(expected: str) -> ConfigError:
         return ConfigError(f"{source}: {name}: expected {expected}; got {value!r}")

@@ -212,6 +212,12 @@ class TargetConfig:
     bvh_units: str = spec("cm", "units")
     bvh_up: str = spec("+Y", "up")
     compensate_base_pose: bool = True
+    # How the target's Spine, Chest and UpperChest are emitted: "mapped" (each from
+    # the rig bone mapped to it, UpperChest slerp-filled) or "pivot" (the chapter's
+    # shifting pivot: the Hips-to-thorax bend spread bottom-up, rx and rz doubled, at
+    # most spine_pivot_limit_deg a joint; post/pivot.py SpinePivot; README).
+    spine: str = one_of("mapped", "mapped", "pivot")
+    spine_pivot_limit_deg: float = between(15.0, 0.0, 180.0, open_lo=True)
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -225,10 +231,10 @@ class LoopConfig:
     # A repeated log line (per reason) is printed once, then summarized with its
     # count at most once per this interval (a flood cannot grow the log).
     log_interval_s: float = between(10.0, 0.1, 3600.0)
-    # Resample the output to the engine's rate (slerp between the two latest
-    # processed poses, on the source's clock; README "Post stages"); 0 = send every
-    # solved frame. At most one send per input frame: above the input's rate the
-    # output stays at the input's.
+    # Resample the output to the engine's rate (slerp between the two processed
+    # poses around each tick, on the source's clock; README "Post stages"); 0 = send
+    # every solved frame. Above the input's rate the loop's timer sends the ticks
+    # between input frames, each one input period less one output period behind.
     output_rate_hz: float = between(0.0, 0.0, 10_000.0)
 
 

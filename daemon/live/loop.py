@@ -50,7 +50,7 @@ import zmq
 
 from retargetd.daemon.body.solve_fit import warm_up as warm_up_fit
 from retargetd.daemon.live.calibrate import CalibrationMixin
-from retargetd.daemon.live.config import DaemonConfig, check_pipeline
+from retargetd.daemon.live.config import ConfigError, DaemonConfig, check_pipeline
 from retargetd.daemon.live.console_feed import ConsoleFeed
 from retargetd.daemon.live.console_feed import dispatch as dispatch_console
 from retargetd.daemon.live.control import CONTROL_MAX_BYTES, ControlMixin
@@ -63,7 +63,7 @@ from retargetd.daemon.live.recording import (
     FORM_OSC,
     LiveRecording,
 )
-from retargetd.daemon.live.send import SendMixin
+from retargetd.daemon.live.send import SendMixin, spine_stage
 from retargetd.daemon.live.sources import CaptureMixin
 from retargetd.daemon.live.stats import LoopStats
 from retargetd.daemon.live.status import StatusMixin
@@ -73,6 +73,8 @@ from retargetd.daemon.live.surface import (
     is_loopback_host,
     who_reaches,
 )
+from retargetd.daemon.post.interp import RateResampler
+from retargetd.daemon.post.pose import PoseBuffer
 from retargetd.daemon.progress import Progress
 from retargetd.daemon.target.retarget import (
     TargetSkeleton,
@@ -129,6 +131,15 @@ class Daemon(
         self._perf = self.performers[0]
         self._multi = bool(config.performers)
         self.target = _load_target(config)
+        for perf in self.performers:  # [target] spine = "pivot": target and rig fit
+            try:
+                spine = spine_stage(config.target, self.target, perf.rig)
+                if spine is not None:  # load (or compile) its kernel now, not live
+                    rest = np.array(self.target.rest_world_from_bone_quat)
+                    spine.apply(rest.copy(), rest)
+            except ValueError as exc:
+                msg = f"target.spine: {exc} (rig {perf.rig.name})"
+                raise ConfigError(msg) from None
         self._ctx: Any = zmq.Context.instance()
         self._poller = zmq.Poller()
         self._sockets: list[Any] = []
@@ -343,6 +354,11 @@ class Daemon(
                 bar.set_description("kernels: face")
                 warm_up_face()
                 bar.update()
+        if self.config.loop.output_rate_hz > 0.0:  # the resampler's queue kernel
+            res, probe = RateResampler(1, 100.0), PoseBuffer.new(1)
+            for t_s in (0.0, 0.02):  # a tick on a pose and one between two
+                probe.t_s = t_s
+                res.push(probe)
         if self.calibration is None:
             return
         pipe = self._build_pipeline(self.rig.marker_names, with_face=False)
@@ -436,12 +452,22 @@ class Daemon(
         self._guards.clear()
 
     def run(self, should_exit: Callable[[], bool]) -> None:
-        """Serve until ``should_exit()`` is true (checked every poll timeout)."""
+        """Serve until ``should_exit()`` is true (checked every poll timeout).
+
+        The poll waits at most ``poll_timeout_ms``, less when a resampled output
+        tick (``output_rate_hz``) is queued: it wakes at the tick's send time
+        (rounded up to the next millisecond), and the tick goes out from here.
+        """
         c = self.config.loop
         timeout = c.poll_timeout_ms
         next_stats = time.monotonic_ns() + int(c.stats_interval_s * 1e9)
         while not should_exit():
-            events = self._poller.poll(timeout)  # [(socket or fd, flags)]
+            wait = timeout
+            tick_ns = self.next_tick_ns()  # output_rate_hz: a resampled tick queued
+            if tick_ns >= 0:  # wake for it (rounded up to the poll's 1 ms)
+                left_ms = -(-(tick_ns - time.monotonic_ns()) // 1_000_000)
+                wait = max(0, min(timeout, left_ms))
+            events = self._poller.poll(wait)  # [(socket or fd, flags)]
             if events:
                 self._service(events)
             if self._capture is not None:
@@ -453,6 +479,7 @@ class Daemon(
                     dispatch_console(self, cmd)
             self._each_performer(self._calibration_tick, now)
             self._each_performer(self._send_vmc_state, now)
+            self._each_performer(self._send_due_ticks, time.monotonic_ns())
             self._log.flush(now)
             if now >= next_stats:
                 self.last_stats_line = self.stats_line()

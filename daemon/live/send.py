@@ -15,9 +15,11 @@ import numpy as np
 import zmq
 
 from retargetd.daemon.body.method import make_body_solver
+from retargetd.daemon.live.config_schema import TargetConfig
 from retargetd.daemon.live.performer import FrameSource
 from retargetd.daemon.live.state import DaemonState, Pipeline
 from retargetd.daemon.post.pipeline import build_pipeline
+from retargetd.daemon.post.pivot import SpinePivot
 from retargetd.daemon.post.solve_post import SolvePost
 from retargetd.daemon.target.retarget import (
     Retargeter,
@@ -35,6 +37,27 @@ logger = logging.getLogger(__name__)
 
 #: How often the VMC state is sent while nothing is streamed (0.5 s).
 VMC_STATE_INTERVAL_NS = 500_000_000
+
+
+def spine_stage(config: TargetConfig, target: Any, rig: Any) -> SpinePivot | None:
+    """The ``[target] spine = "pivot"`` stage for ``target`` driven by ``rig`` (None
+    for ``"mapped"``).
+
+    Why a target option and not a ``[[pipeline]]`` kind: the pipeline's stages act
+    on the solved rig's pose (``PoseBuffer``, the rig's B bones), and the bones the
+    pivot writes are the target's: UpperChest exists on no shipped rig (the rigs
+    solve pelvis, lumbar, thorax), so the shares can only be written once the pose
+    is mapped onto the target, after ``Retargeter.apply``.
+
+    Raises:
+        ValueError: the target has no spine chain or the rig drives none of it.
+    """
+    if config.spine != "pivot":
+        return None
+    return SpinePivot(
+        target.bone_names, target.parents, target.rest_world_from_bone_quat,
+        set(rig.humanoid), target.left_world, config.spine_pivot_limit_deg,
+    )  # fmt: skip
 
 
 class SendMixin(DaemonState):
@@ -124,6 +147,7 @@ class SendMixin(DaemonState):
             bone_flags=np.zeros(n_bones, dtype=np.uint8),
             face=face,
             post=self._build_post(),
+            spine=spine_stage(self.config.target, self.target, self.rig),
         )
 
     def _build_post(self) -> SolvePost | None:
@@ -162,47 +186,110 @@ class SendMixin(DaemonState):
         pose = pipe.solver.solve_frame(frame.markers_world, pipe.pose)
         post = pipe.post
         source_t = frame.source_time_s
+        frame_id, arrival_ns = frame.frame_id, received_ns
         if post is not None:  # [[pipeline]]: on the source's clock when it has one
-            counts = post.restarts, post.merged_ticks
+            counts = post.restarts, post.dropped_ticks
+            pipe.tick_source_clock = math.isfinite(source_t)
             due = post.apply(
                 pose,
                 source_t
-                if math.isfinite(source_t)
+                if pipe.tick_source_clock
                 else (received_ns - self._t0_ns) * 1e-9,
+                received_ns,
+                frame.frame_id,
             )
             self.stats.post_restarts += post.restarts - counts[0]
-            self.stats.resample_merged += post.merged_ticks - counts[1]
+            self.stats.resample_dropped += post.dropped_ticks - counts[1]
             self.stats.record_post(post.stage_ns)
             if not due:  # output_rate_hz: no output tick in this frame
                 self.stats.frames_solved += 1
                 self.stats.resample_skipped += 1
                 return
-            if post.resampler is not None and math.isfinite(source_t):
-                source_t = post.t_s  # the tick's time
+            if post.resampler is not None:  # the tick's time and its input's
+                if pipe.tick_source_clock:
+                    source_t = post.t_s
+                frame_id, arrival_ns = post.tag, post.arrival_ns
+        self.stats.frames_solved += 1
+        self.stats.held_bone_frames += pose.n_held
+        self.stats.occluded_samples += pose.n_occluded
+        self._emit(pipe, stream, frame_id, source_t, arrival_ns, t_start)
+        if post is not None and post.resampler is not None:
+            self._send_due_ticks_of(pipe, time.monotonic_ns())  # overdue ones too
+
+    def _send_due_ticks(self, now_ns: int) -> None:
+        """From the loop's timer: every resampled output tick whose send time has
+        come (``output_rate_hz`` above the input's rate: between input frames)."""
+        for pipe in self._pipelines.values():
+            post = pipe.post
+            if post is not None and post.resampler is not None:
+                self._send_due_ticks_of(pipe, now_ns)
+
+    def _send_due_ticks_of(self, pipe: Pipeline, now_ns: int) -> None:
+        post = pipe.post
+        assert post is not None
+        while post.pop_due(pipe.pose, now_ns):
+            self.stats.resample_timer += 1
+            source_t = post.t_s if pipe.tick_source_clock else math.nan
+            self._emit(pipe, None, post.tag, source_t, post.arrival_ns, now_ns)
+
+    def next_tick_ns(self) -> int:
+        """The earliest send time of a queued output tick over every performer's
+        pipelines (``time.monotonic_ns()``), -1 when none is queued: the loop's
+        poll wakes up for it."""
+        best = -1
+        for perf in self.performers:
+            for pipe in perf.pipelines.values():
+                post = pipe.post
+                if post is None or post.resampler is None:
+                    continue
+                due = post.next_due_ns()
+                if due >= 0 and (best < 0 or due < best):
+                    best = due
+        return best
+
+    def _emit(
+        self,
+        pipe: Pipeline,
+        stream: FrameSource | None,
+        frame_id: int,
+        source_t: float,
+        received_ns: int,
+        t_start: int,
+    ) -> None:
+        """Retarget and send the pose in ``pipe.pose``: for ``stream``'s current
+        frame (solved now: the face solved, the validator, recording and console fed,
+        the latency recorded) or, with ``stream`` None, a resampled tick from the
+        timer (VMC and the pose stream only; ``received_ns`` its input's arrival)."""
+        pose = pipe.pose
+        fresh = stream is not None
+        frame = stream.current.frame if stream is not None else None
         tp = pipe.retargeter.apply(pose, pipe.target_pose)
+        if pipe.spine is not None:  # [target] spine = "pivot", timed as post.pivot
+            t0 = time.perf_counter_ns()
+            pipe.spine.apply(tp.world_from_bone_quat, tp.rest_from_bone_quat)
+            self.stats.record_spine(time.perf_counter_ns() - t0)
         face = pipe.face
-        if face is not None:
+        fo = face.out if face is not None else None
+        if face is not None and frame is not None:
             fo = face.solve(frame.markers_world, frame.valid)
             self.stats.face_solved += 1
             if fo.status[0] & pose_stream.FACE_HEAD_LOST:
                 self.stats.face_head_lost += 1
         solved_ns = time.monotonic_ns()
-        self.stats.frames_solved += 1
-        self.stats.held_bone_frames += pose.n_held
-        self.stats.occluded_samples += pose.n_occluded
         flags = (
             self._frame_flags
             | pose.frame_flags  # the fit's reseeded bit
             | (pose_stream.FRAME_HELD if pose.n_held else 0)
         )
         self._frame_flags = 0
-        validator = self.validator
+        validator = self.validator if fresh else None
         n_results = 0
         results = self._validation_results
         if validator is not None:
             n_results = validator.drain_results(results)  # no allocation
             if n_results:
                 self._take_validation_bits(results[n_results - 1])
+        if self.validator is not None:
             flags |= self._validation_bits
         # VMC: Unity frame, x y z w.
         engine_unity.unity_quat_xyzw_from_world(
@@ -232,11 +319,11 @@ class SendMixin(DaemonState):
             if vb is not None and len(vb) == len(bone_flags):
                 bone_flags = np.bitwise_or(bone_flags, vb, out=pipe.bone_flags)
             parts = pipe.pose_enc.encode(
-                frame.frame_id, source_t, received_ns, solved_ns, flags,
+                frame_id, source_t, received_ns, solved_ns, flags,
                 pose.root_pos, pose.world_from_bone_quat, pose.parent_from_bone_quat,
                 pose.rest_from_bone_quat, pipe.weights, bone_flags,
             )  # fmt: skip
-            if face is not None:
+            if fo is not None:
                 pipe.pose_enc.encode_face(
                     fo.flags, fo.world_from_head_quat, fo.world_from_head_pos,
                     fo.markers_head,
@@ -245,6 +332,9 @@ class SendMixin(DaemonState):
             pose_stream.stamp_sent(parts[0], sent_ns)
             self._send_pub(parts, sent_ns)
         sent_ns = time.monotonic_ns()
+        self.stats.frames_out += 1
+        if frame is None or stream is None:  # a timer tick: sent, nothing else
+            return
         if self.recording.skeleton is not None:  # Foxglove channels: a queued copy
             self.recording.record_skeleton(
                 pipe.solver,
@@ -265,7 +355,6 @@ class SendMixin(DaemonState):
             self.stats.validation_drops += 1
         if n_results:  # published after this frame's pose: never ahead of a send
             self._publish_validation(results, n_results, pipe)
-        self.stats.frames_out += 1
         if self.console is not None:  # a decimated copy, only when one is due
             self.console.publish(
                 sent_ns, self.rig, pipe.solver, frame, stream.current.label_set.labels,

@@ -32,6 +32,7 @@ from retargetd.daemon.live.ratelog import RateLimitedLog, RateLimiter
 from retargetd.daemon.live.recording import LiveRecording
 from retargetd.daemon.live.stats import LoopStats
 from retargetd.daemon.live.surface import CurveGuard
+from retargetd.daemon.post.pivot import SpinePivot
 from retargetd.daemon.post.solve_post import SolvePost
 from retargetd.protocols import pose_stream
 from retargetd.protocols.marker_input import MarkerStream
@@ -59,6 +60,8 @@ class Pipeline:
     bone_flags: np.ndarray  # sent bone flags: the solve's | the latest validation's
     face: FaceStage | None = None
     post: SolvePost | None = None  # the [[pipeline]] stages (None: none configured)
+    tick_source_clock: bool = True  # resampled ticks' times are the source's clock
+    spine: SpinePivot | None = None  # [target] spine = "pivot", after the retarget
 
 
 T = TypeVar("T")

@@ -44,8 +44,10 @@ class LoopStats:
         resample_skipped: solved frames not sent because no output tick fell due
             (``loop.output_rate_hz`` below the input's rate; counted in
             ``frames_solved``, not in ``frames_out``).
-        resample_merged: output ticks merged into a later one (``output_rate_hz``
-            above the input's rate: one send per input frame).
+        resample_dropped: output ticks dropped unsent from a full queue
+            (``interp.QUEUE_TICKS`` ticks waiting for their send time).
+        resample_timer: output ticks sent from the loop's timer, between input
+            frames (``output_rate_hz`` above the input's rate).
         rejected_sources: OSC datagrams from addresses not on the allow-list.
         face_solved: frames the face was solved on.
         face_head_lost: of those, frames with fewer than 3 head markers (face held).
@@ -97,7 +99,8 @@ class LoopStats:
     control_errors: int = 0
     post_restarts: int = 0
     resample_skipped: int = 0
-    resample_merged: int = 0
+    resample_dropped: int = 0
+    resample_timer: int = 0
     rings: IntArray = field(
         default_factory=lambda: np.zeros((len(STAGES), RING), np.int64)
     )
@@ -107,6 +110,17 @@ class LoopStats:
     post_rings: IntArray = field(default_factory=lambda: np.zeros((0, RING), np.int64))
     post_pos: int = 0
     post_count: int = 0
+    spine_ring: IntArray = field(default_factory=lambda: np.zeros(RING, np.int64))
+    spine_pos: int = 0
+    spine_count: int = 0
+
+    def record_spine(self, ns: int) -> None:
+        """Store one frame's ``[target] spine = "pivot"`` duration (ns): reported as
+        ``post.pivot`` with the ``[[pipeline]]`` stages."""
+        self.spine_ring[self.spine_pos] = ns
+        self.spine_pos = (self.spine_pos + 1) % RING
+        if self.spine_count < RING:
+            self.spine_count += 1
 
     def set_post_stages(self, names: tuple[str, ...]) -> None:
         """Name the post stages timed from now on (new names: their rings restart)."""
@@ -154,6 +168,10 @@ class LoopStats:
             out[POST_PREFIX + name] = (
                 nan if pp is None else (float(pp[0, i]), float(pp[1, i]))
             )
+        k = self.spine_count
+        if k:
+            sp = np.percentile(self.spine_ring[:k] / 1000.0, [50.0, 99.0])
+            out[POST_PREFIX + "pivot"] = (float(sp[0]), float(sp[1]))
         return out
 
     def counters(self) -> dict[str, int]:
@@ -170,6 +188,6 @@ class LoopStats:
                 "validation_flagged", "validation_drops", "zmq_disconnects",
                 "unsolved", "labels_in", "show_control_in", "show_control_malformed",
                 "control_requests", "control_errors", "post_restarts",
-                "resample_skipped", "resample_merged",
+                "resample_skipped", "resample_dropped", "resample_timer",
             )
         }  # fmt: skip

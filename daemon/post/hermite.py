@@ -20,6 +20,11 @@ Joints are placed at equal arc length from the first point to the last (uniform
 separation, as the shifting pivot also assumes), the arc length tabulated on
 :data:`SAMPLES_PER_SEGMENT` chords per segment; the first and last joints are the end
 points exactly.
+
+:func:`hermite_chain` drives a target's spine from the curve (``retargetd retarget
+--spread hermite``): K target joints at equal arc length along the curve through the
+P solved spine points, each chain joint's world rotation turned (by the shortest
+arc) so its bone points along the chord to the next placed joint.
 """
 
 from __future__ import annotations
@@ -28,6 +33,7 @@ import math
 
 import numpy as np
 
+from retargetd.daemon import rotations as rot
 from retargetd.daemon.compiled import kernel
 from retargetd.protocols.frames import F64Array
 
@@ -177,3 +183,96 @@ class HermiteSpine:
         a, b, c, d = self.coeffs[segment]
         u = np.asarray(u, dtype=np.float64)[..., None]
         return ((a * u + b) * u + c) * u + d, (3.0 * a * u + 2.0 * b) * u + c
+
+
+def _unit(v: F64Array) -> F64Array:
+    n = np.linalg.norm(v, axis=-1, keepdims=True)
+    return np.asarray(v / np.where(n > 0.0, n, 1.0), dtype=np.float64)
+
+
+def _shortest_arc(a: F64Array, b: F64Array) -> F64Array:
+    """(..., 4) rotations taking unit ``a`` onto unit ``b`` (..., 3); (w, x, y, z).
+
+    Exactly opposite directions (a bone half a turn from its equal-spread reference,
+    which a spine never is) give the identity rather than an undefined axis."""
+    dot = np.sum(a * b, axis=-1, keepdims=True)
+    q = np.concatenate([1.0 + dot, np.cross(a, b)], axis=-1)
+    n = np.linalg.norm(q, axis=-1, keepdims=True)
+    ok = n > 1e-12
+    q = np.where(ok, q / np.where(ok, n, 1.0), np.array([1.0, 0.0, 0.0, 0.0]))
+    return np.asarray(q, dtype=np.float64)
+
+
+def hermite_chain(
+    glob: F64Array,
+    source_pos: F64Array,
+    source_path: list[int],
+    target_path: list[int],
+    target_rest_pos: F64Array,
+) -> F64Array:
+    """A target spine chain along the Hermite curve through the source's spine points.
+
+    Per frame, the curve goes through the source joints ``source_path`` (P >= 2
+    points, lowest first); the K = ``len(target_path)`` target joints are placed on it
+    at equal arc length (:class:`HermiteSpine`; the first and last on the end points).
+    Each chain joint ``u_k`` between the ends (k = 1 .. K-2), in order, gets the
+    world rotation
+
+        G_k = arc(R_k d_k -> x_{k+1} - y_k) ⊗ R_k,
+        R_k = G_top ⊗ slerp(1, conj(G_top) G_bottom, s_k)
+
+    with ``d_k`` its rest bone direction (to the next chain joint), ``x`` the placed
+    joints, ``y_k`` where the target's joint ``u_k`` actually is (forward kinematics
+    from the curve's first point, the target's rest lengths scaled to the placed
+    polyline's) and ``s_k`` its rest arc-length fraction along the chain: the equal
+    spread of the chain's rotation (which carries the twist about the spine) swung so
+    the bone points at the next placed joint, so an offset of one joint from the
+    curve is not passed on down the chain. The ends (``top``: its rotation drives
+    the legs; ``bottom``: mapped) keep theirs, so the first bone runs where ``top``
+    points it; only directions are written, so the skeletons' sizes may differ.
+
+    Args:
+        glob: (T, J', 4) float64 (w, x, y, z) target world rotations (file axes),
+            the ends set; the chain's inner joints are written.
+        source_pos: (T, J, 3) float64 source joint positions (file axes, its unit).
+        source_path: the source joints through which the curve runs, lowest first.
+        target_path: the target chain ``top, u_1 .. u_{K-2}, bottom``.
+        target_rest_pos: (J', 3) float64 target rest joint positions (file axes).
+
+    Returns:
+        ``glob``.
+
+    Raises:
+        ValueError: fewer than 2 points or 3 chain joints.
+    """
+    if len(source_path) < 2 or len(target_path) < 3:
+        raise ValueError(
+            "hermite_chain needs >= 2 source points and >= 3 target chain joints; got "
+            f"{len(source_path)} and {len(target_path)}"
+        )
+    n_frames = glob.shape[0]
+    k_joints = len(target_path)
+    spine = HermiteSpine(len(source_path), k_joints)
+    placed = np.empty((n_frames, k_joints, 3))
+    for t in range(n_frames):
+        spine.apply(np.ascontiguousarray(source_pos[t, source_path]), placed[t])
+    rest = np.asarray(target_rest_pos, dtype=np.float64)[target_path]
+    seg = np.linalg.norm(np.diff(rest, axis=0), axis=-1)
+    frac = np.concatenate([[0.0], np.cumsum(seg)]) / max(float(seg.sum()), 1e-300)
+    top, bottom = glob[:, target_path[0]], glob[:, target_path[-1]]
+    rel = rot.quat_mul(rot.quat_conj(top), bottom)
+    ident = np.tile(np.array([1.0, 0.0, 0.0, 0.0]), (n_frames, 1))
+    # The target's joints in the curve's unit: its rest lengths scaled to the
+    # placed polyline's, walked from the curve's first point down the chain.
+    chords = np.linalg.norm(np.diff(placed, axis=1), axis=-1).sum(axis=1)
+    scale = (chords / max(float(seg.sum()), 1e-300))[:, None]
+    at = placed[:, 0] + scale * rot.quat_rotate(top, rest[1] - rest[0])
+    for k in range(1, k_joints - 1):
+        ref = rot.quat_mul(top, rot.slerp(ident, rel, float(frac[k])))
+        bone = rest[k + 1] - rest[k]
+        now = rot.quat_rotate(ref, _unit(bone))
+        aim = _unit(placed[:, k + 1] - at)
+        g = rot.quat_mul(_shortest_arc(_unit(now), aim), ref)
+        glob[:, target_path[k]] = g
+        at = at + scale * rot.quat_rotate(g, bone)
+    return glob

@@ -25,7 +25,7 @@ from retargetd.daemon import rotations as rot
 from retargetd.daemon.compiled import kernel
 from retargetd.daemon.post._kernels import slerp_q
 from retargetd.daemon.post.pose import PoseBuffer
-from retargetd.protocols.frames import BoolArray, F64Array
+from retargetd.protocols.frames import BoolArray, F64Array, IntArray
 
 _UP = np.array([0.0, 0.0, 1.0])  # world +Z (STYLE §3)
 
@@ -349,14 +349,138 @@ def _slerp_pose(
         out_p[d] = p0[d] + u * (p1[d] - p0[d])
 
 
+#: Output ticks a :class:`RateResampler` holds computed and waiting for their send
+#: time: one input period's worth at 16 times the input's rate (e.g. 10 -> 160 Hz);
+#: beyond that the oldest are dropped (counted).
+QUEUE_TICKS = 16
+
+# RateResampler._ints slots: the state, then send times, tags and arrivals per slot.
+_S_TICK, _S_HEAD, _S_QUEUED, _S_DROPPED, _S_COMPLETED, _S_LAST = 0, 1, 2, 3, 4, 5
+_S_TAG, _S_ARRIVAL = 6, 7  # the tick popped last
+_N_STATE = 8
+# RateResampler._floats slots: the two input poses' times, t0, the period, the time
+# of the tick popped last, then the queued ticks' times.
+_F_T0, _F_PERIOD, _F_POPPED, _N_FLOATS = 2, 3, 4, 5
+
+
+@kernel
+def _next_due(ints: IntArray) -> int:  # pragma: no cover - compiled
+    if ints[_S_QUEUED] == 0:
+        return -1
+    return ints[_N_STATE + ints[_S_HEAD]]
+
+
+@kernel
+def _queue_ticks(
+    pose_q: F64Array,
+    pose_p: F64Array,
+    pose_t: float,
+    in_q: F64Array,
+    in_p: F64Array,
+    q: F64Array,
+    p: F64Array,
+    floats: F64Array,
+    ints: IntArray,
+    now_ns: int,
+    tag: int,
+) -> int:  # pragma: no cover - compiled
+    """Take the pose as the last input (the other row becomes prev) and queue every
+    tick in (prev_t, last_t]: slerp (root: lerp) between the two, send times ``now
+    + (t - t_first)``; ticks still queued are due at once. Returns the oldest queued
+    tick's send time (-1: none). One call with few arguments: numba's dispatch costs
+    per argument, and this runs on every input frame."""
+    n_slots = q.shape[0]
+    due, tags, arrival = _N_STATE, _N_STATE + n_slots, _N_STATE + 2 * n_slots
+    last = 1 - ints[_S_LAST]
+    prev = 1 - last
+    ints[_S_LAST] = last
+    in_q[last, :, :] = pose_q
+    in_p[last, :] = pose_p
+    floats[last] = pose_t
+    interpolate = floats[prev] < pose_t  # a pose before (the first has none)
+    prev_t, last_t = floats[prev], pose_t
+    t0, period = floats[_F_T0], floats[_F_PERIOD]
+    head, queued = ints[_S_HEAD], ints[_S_QUEUED]
+    for k in range(queued):  # overdue: due at once
+        ints[due + (head + k) % n_slots] = now_ns
+    completed = 0
+    tick = ints[_S_TICK]
+    t_first = t0 + tick * period
+    while t0 + tick * period <= last_t + 1e-12:
+        tt = t0 + tick * period
+        tick += 1
+        if queued == n_slots:
+            head = (head + 1) % n_slots
+            queued -= 1
+            ints[_S_DROPPED] += 1
+        slot = (head + queued) % n_slots
+        if not interpolate or tt >= last_t:
+            q[slot, :, :] = in_q[last]
+            p[slot, :] = in_p[last]
+        else:
+            u = max(0.0, (tt - prev_t) / (last_t - prev_t))
+            _slerp_pose(in_q[prev], in_q[last], in_p[prev], in_p[last], u, q[slot],
+                        p[slot])  # fmt: skip
+        floats[_N_FLOATS + slot] = tt
+        ints[due + slot] = now_ns + np.int64(round((tt - t_first) * 1e9))
+        ints[tags + slot] = tag
+        ints[arrival + slot] = now_ns
+        queued += 1
+        completed += 1
+    ints[_S_TICK] = tick
+    ints[_S_HEAD] = head
+    ints[_S_QUEUED] = queued
+    ints[_S_COMPLETED] = completed
+    return _next_due(ints)
+
+
+@kernel
+def _pop_tick(
+    q: F64Array,
+    p: F64Array,
+    floats: F64Array,
+    ints: IntArray,
+    out_q: F64Array,
+    out_p: F64Array,
+) -> int:  # pragma: no cover - compiled
+    """The oldest queued tick into ``out_*`` (its time, tag and arrival into the
+    popped slots); returns the next one's send time (-1: none)."""
+    n_slots = q.shape[0]
+    slot = ints[_S_HEAD]
+    out_q[:, :] = q[slot]
+    out_p[:] = p[slot]
+    floats[_F_POPPED] = floats[_N_FLOATS + slot]
+    ints[_S_TAG] = ints[_N_STATE + n_slots + slot]
+    ints[_S_ARRIVAL] = ints[_N_STATE + 2 * n_slots + slot]
+    ints[_S_HEAD] = (slot + 1) % n_slots
+    ints[_S_QUEUED] -= 1
+    return _next_due(ints)
+
+
 class RateResampler:
     """Live resampling of the pose stream to the engine's rate (``output_rate_hz``).
 
-    Output ticks run every ``1 / output_rate_hz`` from the first pose pushed; each is
-    slerped between the two latest input poses around it (never extrapolated, so the
-    output lags the input by at most one input period).
+    Output ticks run every ``1 / output_rate_hz`` on the stream's clock from the first
+    pose pushed; each is slerped (root: a line) between the two input poses around
+    it, never extrapolated, so a tick is computed when the input after it arrives:
+    the values equal :func:`resample` of the same poses.
 
-    Per input pose: ``r.push(pose)``, then ``while r.pending(): send(r.pop(out))``.
+    Send times (``now_ns``: ``time.monotonic_ns()``). The ticks an input pose
+    completes, ``t_1 < .. < t_m`` (those in ``(t_prev, t_k]``), are queued with send
+    times ``w + (t_i - t_1)``, ``w`` the pose's arrival: the first at once, the rest
+    spaced by the output period, so above the input's rate (60 Hz captured, 120 Hz
+    sent) ticks go out between input frames, from the loop's timer
+    (:meth:`next_due_ns`, :meth:`due`), and below it (one tick at most per input)
+    every tick goes out on its input's arrival as before. A tick at ``t_i`` leaves
+    ``t_k - t_1`` behind the source instant it shows (``t_k - t_i`` of source time
+    plus ``t_i - t_1`` of waiting): the added latency, between 0 and one input period
+    less one output period (60 -> 120 Hz: 8.3 ms on every tick; 100 -> 60 Hz: 0 to
+    10 ms, the tick's age at its input's arrival). Ticks still queued when the next
+    input pose arrives (a late loop, input jitter) are due at once.
+
+    Per input pose: ``r.push(pose, now_ns)``, then ``while r.due(now_ns):
+    send(r.pop(out))``; and from the loop's timer the same ``while`` when
+    :meth:`next_due_ns` has passed. ``pending()`` says whether any tick is queued.
 
     Args:
         n_bones: bones B of the stream.
@@ -370,62 +494,99 @@ class RateResampler:
         if not output_rate_hz > 0.0 or not math.isfinite(output_rate_hz):
             raise ValueError(f"output_rate_hz must be > 0; got {output_rate_hz!r}")
         self.period_s = 1.0 / float(output_rate_hz)
-        self._prev = PoseBuffer.new(n_bones)
-        self._last = PoseBuffer.new(n_bones)
-        self._count = 0
-        self._tick_index = 0
-        self._t0_s = 0.0
+        n = QUEUE_TICKS
+        # The two latest input poses (rows; _ints[_S_LAST] the last), the queue's
+        # ticks (rotations, root), times (_floats) and state, send times, tags and
+        # input arrivals (_ints): a handful of arrays for the kernels' calls.
+        self._in_q = np.zeros((2, n_bones, 4))
+        self._in_p = np.zeros((2, 3))
+        self._q = np.zeros((n, n_bones, 4))
+        self._p = np.zeros((n, 3))
+        self._floats = np.zeros(_N_FLOATS + n)
+        self._floats[_F_PERIOD] = self.period_s
+        self._ints = np.zeros(_N_STATE + 3 * n, dtype=np.int64)
+        self._started = False
+        self._last_t_s = 0.0
+        # The oldest queued tick's send time as a Python int (-1: none queued): what
+        # the loop asks on its every turn, without a numpy scalar read.
+        self._next_due_ns = -1
+
+    @property
+    def completed(self) -> int:
+        """Ticks the last push completed."""
+        return int(self._ints[_S_COMPLETED])
+
+    @property
+    def dropped(self) -> int:
+        """Ticks dropped from a full queue (never sent)."""
+        return int(self._ints[_S_DROPPED])
+
+    @property
+    def popped_tag(self) -> int:
+        """The tag of the tick :meth:`pop` wrote last."""
+        return int(self._ints[_S_TAG])
+
+    @property
+    def popped_arrival_ns(self) -> int:
+        """The arrival (``now_ns`` of its push) of that tick's input."""
+        return int(self._ints[_S_ARRIVAL])
 
     def reset(self) -> None:
-        """Forget the stream (e.g. after a source restart)."""
-        self._count = 0
-        self._tick_index = 0
+        """Forget the stream and the queued ticks (e.g. after a source restart)."""
+        self._started = False
+        st = self._ints
+        st[_S_TICK] = st[_S_QUEUED] = st[_S_COMPLETED] = 0
+        self._next_due_ns = -1
 
-    def push(self, pose: PoseBuffer) -> None:
-        """Take the next input pose (times must increase; an older one is ignored).
+    def push(self, pose: PoseBuffer, now_ns: int = 0, tag: int = 0) -> None:
+        """Take the next input pose and queue the ticks it completes.
 
         Args:
-            pose: the pose (copied).
+            pose: the pose (copied); times must increase (an older one is ignored).
+            now_ns: its arrival, ``time.monotonic_ns()`` (>= 0; the send times'
+                origin).
+            tag: an integer kept with each tick it completes (e.g. the input frame's
+                number), read back as :attr:`popped_tag`.
         """
-        if self._count and pose.t_s <= self._last.t_s:
+        if self._started and pose.t_s <= self._last_t_s:
+            self._ints[_S_COMPLETED] = 0
             return
-        self._prev, self._last = self._last, self._prev
-        self._last.copy_from(pose)
-        if self._count == 0:
-            self._t0_s = pose.t_s
-        self._count += 1
-
-    def _next_tick_s(self) -> float:
-        return self._t0_s + self._tick_index * self.period_s
+        if not self._started:  # the first pose: ticks from its time, none before
+            f = self._floats
+            f[_F_T0] = pose.t_s
+            f[0] = f[1] = math.inf  # no pose before: the kernel copies, never slerps
+            self._started = True
+        self._last_t_s = pose.t_s
+        self._next_due_ns = _queue_ticks(
+            pose.parent_from_bone_quat, pose.root_pos, pose.t_s, self._in_q,
+            self._in_p, self._q, self._p, self._floats, self._ints, now_ns, tag,
+        )  # fmt: skip
 
     def pending(self) -> bool:
-        """Whether an output tick falls within the input received so far."""
-        return self._count > 0 and self._next_tick_s() <= self._last.t_s + 1e-12
+        """Whether any computed tick is queued (due or not)."""
+        return self._next_due_ns >= 0
+
+    def next_due_ns(self) -> int:
+        """The oldest queued tick's send time (``time.monotonic_ns()``), -1 if none."""
+        return self._next_due_ns
+
+    def due(self, now_ns: int) -> bool:
+        """Whether the oldest queued tick's send time has come."""
+        return 0 <= self._next_due_ns <= now_ns
 
     def pop(self, out: PoseBuffer) -> PoseBuffer:
-        """Write the next tick's pose (call only while :meth:`pending`).
+        """Write the oldest queued tick (call only while :meth:`pending`).
 
         Args:
             out: the destination (B bones).
 
         Returns:
-            ``out`` with ``t_s`` the tick time.
+            ``out`` with ``t_s`` the tick time; :attr:`popped_tag` its tag,
+            :attr:`popped_arrival_ns` its input's arrival.
         """
-        t = self._next_tick_s()
-        self._tick_index += 1
-        prev, last = self._prev, self._last
-        if self._count < 2 or t >= last.t_s:
-            out.copy_from(last)
-        else:
-            u = max(0.0, (t - prev.t_s) / (last.t_s - prev.t_s))
-            _slerp_pose(
-                prev.parent_from_bone_quat,
-                last.parent_from_bone_quat,
-                prev.root_pos,
-                last.root_pos,
-                u,
-                out.parent_from_bone_quat,
-                out.root_pos,
-            )
-        out.t_s = t
+        self._next_due_ns = _pop_tick(
+            self._q, self._p, self._floats, self._ints, out.parent_from_bone_quat,
+            out.root_pos,
+        )  # fmt: skip
+        out.t_s = float(self._floats[_F_POPPED])
         return out

@@ -19,10 +19,13 @@ Kinds and their keys (all optional; defaults as in the stage's module):
 - ``one_euro``: ``min_cutoff_hz``, ``beta_rot``, ``beta_pos``, ``d_cutoff_hz``.
 
 These act on the solved skeleton's pose (:class:`PoseBuffer`, B bones) in place. The
-shifting pivot and the Hermite spine map onto a target's spine bones and the output
-rate changes the number of poses, so they are not pipeline kinds: see
-:mod:`~retargetd.daemon.post.pivot`, :mod:`~retargetd.daemon.post.hermite` and
-:class:`~retargetd.daemon.post.interp.RateResampler`.
+shifting pivot and the Hermite spine write a target's spine bones (UpperChest is on no
+rig), and the output rate changes the number of poses, so they are not pipeline
+kinds: the pivot is the target option ``[target] spine = "pivot"``
+(:class:`~retargetd.daemon.post.pivot.SpinePivot`, after the target mapping), the
+Hermite spine ``retarget --spread hermite``
+(:func:`~retargetd.daemon.post.hermite.hermite_chain`), the rate ``output_rate_hz``
+(:class:`~retargetd.daemon.post.interp.RateResampler`).
 """
 
 from __future__ import annotations

@@ -28,12 +28,13 @@ one ``limit``), so the reading changes no result. The prose example (10° verteb
 from __future__ import annotations
 
 import math
+from collections.abc import Collection, Sequence
 
 import numpy as np
 
 from retargetd.daemon import rotations as rot
-from retargetd.daemon.compiled import kernel
-from retargetd.protocols.frames import F64Array
+from retargetd.daemon.compiled import kernel, qmul
+from retargetd.protocols.frames import F64Array, IntArray
 
 #: The listing's ``num_joints`` and ``rot_joint_limit`` (degrees): 3 joints, 15°.
 DEFAULT_JOINTS = 3
@@ -271,3 +272,172 @@ def pivot_chains(
                 glob[t, j] = acc
         out.append((top, *joints))
     return out
+
+
+#: The target bones the spine pivot writes, lowest first (VMC / VRM humanoid names),
+#: and the bone below them that the group is measured from.
+SPINE_BONES = ("Spine", "Chest", "UpperChest")
+SPINE_BASE = "Hips"
+
+
+@kernel
+def _spine_pivot(
+    g: F64Array,
+    rfb: F64Array,
+    rest: F64Array,
+    plan: IntArray,
+    m: F64Array,
+    limit: float,
+    double: bool,
+    angles: F64Array,
+    shares: F64Array,
+    e_chain: F64Array,
+) -> None:  # pragma: no cover - compiled
+    """``plan``: row 0 (hips, end, n_chain, n_kids), rows 1..n_chain (chain bone),
+    then n_kids rows (kid bone, its parent's chain position)."""
+    hips, end, n_chain, n_kids = plan[0, 0], plan[0, 1], plan[0, 2], plan[0, 3]
+    # E_h = G_h ⊗ conj(T_h), the world delta since calibration.
+    hw, hx, hy, hz = qmul(
+        g[hips, 0], g[hips, 1], g[hips, 2], g[hips, 3],
+        rest[hips, 0], -rest[hips, 1], -rest[hips, 2], -rest[hips, 3],
+    )  # fmt: skip
+    ew, ex, ey, ez = qmul(
+        g[end, 0], g[end, 1], g[end, 2], g[end, 3],
+        rest[end, 0], -rest[end, 1], -rest[end, 2], -rest[end, 3],
+    )  # fmt: skip
+    # The group conj(E_hips) ⊗ E_end, in the spine frame S: conj(m) ⊗ . ⊗ m.
+    qw, qx, qy, qz = qmul(hw, -hx, -hy, -hz, ew, ex, ey, ez)
+    qw, qx, qy, qz = qmul(m[0], -m[1], -m[2], -m[3], qw, qx, qy, qz)
+    qw, qx, qy, qz = qmul(qw, qx, qy, qz, m[0], m[1], m[2], m[3])
+    group = e_chain[n_chain]  # scratch row
+    group[0], group[1], group[2], group[3] = qw, qx, qy, qz
+    _pivot_quat(group, limit, double, angles, shares)
+    aw, ax, ay, az = hw, hx, hy, hz
+    for i in range(n_chain):
+        j = plan[1 + i, 0]
+        s = shares[i]
+        # The share back in world axes: m ⊗ p ⊗ conj(m).
+        pw, px, py, pz = qmul(m[0], m[1], m[2], m[3], s[0], s[1], s[2], s[3])
+        pw, px, py, pz = qmul(pw, px, py, pz, m[0], -m[1], -m[2], -m[3])
+        bw, bx, by, bz = qmul(aw, ax, ay, az, pw, px, py, pz)
+        # L_j = conj(E_parent) ⊗ E_j = the share; G_j = E_j ⊗ T_j.
+        rfb[j, 0], rfb[j, 1], rfb[j, 2], rfb[j, 3] = pw, px, py, pz
+        r = qmul(bw, bx, by, bz, rest[j, 0], rest[j, 1], rest[j, 2], rest[j, 3])
+        g[j, 0], g[j, 1], g[j, 2], g[j, 3] = r
+        e_chain[i, 0], e_chain[i, 1], e_chain[i, 2], e_chain[i, 3] = bw, bx, by, bz
+        aw, ax, ay, az = bw, bx, by, bz
+    for k in range(n_kids):
+        c, pos = plan[1 + n_chain + k, 0], plan[1 + n_chain + k, 1]
+        cw, cx, cy, cz = qmul(
+            g[c, 0], g[c, 1], g[c, 2], g[c, 3],
+            rest[c, 0], -rest[c, 1], -rest[c, 2], -rest[c, 3],
+        )  # fmt: skip
+        p = e_chain[pos]
+        r = qmul(p[0], -p[1], -p[2], -p[3], cw, cx, cy, cz)
+        rfb[c, 0], rfb[c, 1], rfb[c, 2], rfb[c, 3] = r
+
+
+class SpinePivot:
+    """Per-frame target stage: a target's Spine, Chest and UpperChest from the solved
+    lumbar-to-thorax rotation by the shifting pivot (``[target] spine = "pivot"``).
+
+    On a retargeted frame (``retargetd.daemon.target.retarget``: world deltas since
+    calibration ``E_h = G_h ⊗ conj(T_h)``, rotations relative to rest along world axes
+    ``L_h = conj(E_parent) ⊗ E_h``), the group is the whole bend from the Hips to the
+    highest spine bone the rig solves (the thorax on the shipped rigs: ``Q =
+    conj(E_Hips) ⊗ E_end``). It is expressed in the spine frame S (x the target's
+    left, y world up: the listing's longitudinal axis, z = x cross y: forward), spread
+    by :class:`ShiftingPivot` over the target's spine bones present (lowest first: rx
+    and rz doubled, at most ``limit_deg`` a joint, the rest carried up; ry shared)
+    and written back: each joint's ``L`` is its share (in world axes), ``E``
+    accumulates from the Hips, ``G = E ⊗ T``. Every other bone keeps its world
+    rotation; the children of the spine bones (Neck, the shoulders) get their ``L``
+    recomputed against their new parent. The flags are left as the mapping set them.
+
+    Args:
+        bone_names: (N,) the target's humanoid bone names (Hips first).
+        parents: (N,) parent index per bone, -1 for Hips.
+        rest_world_from_bone_quat: (N, 4) float64 (w, x, y, z), ``T_h``.
+        mapped: the target bones the rig drives (the group's end: the highest of
+            :data:`SPINE_BONES` among them).
+        left_world: (3,) the target's left, world (its forward is left x up).
+        limit_deg: the most rotation a joint takes about x and z, degrees.
+        double: double rx and rz (the listing's single-pivot approximation).
+
+    Raises:
+        ValueError: the target has no spine bone on a chain from Hips, or the rig maps
+            none of them.
+    """
+
+    def __init__(
+        self,
+        bone_names: Sequence[str],
+        parents: Sequence[int],
+        rest_world_from_bone_quat: F64Array,
+        mapped: Collection[str],
+        left_world: F64Array,
+        limit_deg: float = DEFAULT_LIMIT_DEG,
+        *,
+        double: bool = True,
+    ) -> None:
+        index = {n: i for i, n in enumerate(bone_names)}
+        if SPINE_BASE not in index:
+            raise ValueError(f"spine pivot: the target has no {SPINE_BASE}")
+        chain = [index[n] for n in SPINE_BONES if n in index]
+        below = index[SPINE_BASE]
+        for j in chain:
+            if parents[j] != below:
+                raise ValueError(
+                    f"spine pivot: {bone_names[j]} is not the child of "
+                    f"{bone_names[below]} (the target's spine bones "
+                    f"{[bone_names[c] for c in chain]} must be a chain from Hips)"
+                )
+            below = j
+        ends = [j for j in chain if bone_names[j] in mapped]
+        if not chain or not ends:
+            raise ValueError(
+                f"spine pivot: the target needs {' / '.join(SPINE_BONES)} bones and "
+                f"the rig must drive one of them; target has "
+                f"{[bone_names[c] for c in chain]}, the rig drives "
+                f"{sorted(set(mapped) & set(SPINE_BONES))}"
+            )
+        in_chain = {j: i for i, j in enumerate(chain)}
+        kids = [
+            (c, in_chain[p])
+            for c, p in enumerate(parents)
+            if p in in_chain and c not in in_chain
+        ]
+        plan = np.zeros((1 + len(chain) + len(kids), 2 + 2), dtype=np.int64)
+        plan[0] = (index[SPINE_BASE], ends[-1], len(chain), len(kids))
+        for i, j in enumerate(chain):
+            plan[1 + i, 0] = j
+        for k, (c, pos) in enumerate(kids):
+            plan[1 + len(chain) + k, :2] = (c, pos)
+        plan.flags.writeable = False
+        left = np.asarray(left_world, dtype=np.float64)
+        left = left / np.linalg.norm(left)
+        up = np.array([0.0, 0.0, 1.0])
+        world_from_s = np.stack([left, up, np.cross(left, up)], axis=1)
+        self.bones = tuple(bone_names[j] for j in chain)
+        self.end = bone_names[ends[-1]]
+        self.stage = ShiftingPivot(len(chain), limit_deg, double=double)
+        self._plan = plan
+        self._m = rot.quat_from_mat(world_from_s)
+        self._rest = np.ascontiguousarray(rest_world_from_bone_quat, dtype=np.float64)
+        self._shares = np.zeros((len(chain), 4))
+        self._e = np.zeros((len(chain) + 1, 4))
+
+    def apply(
+        self, world_from_bone_quat: F64Array, rest_from_bone_quat: F64Array
+    ) -> None:
+        """Rewrite one retargeted frame's spine, in place.
+
+        Args:
+            world_from_bone_quat: (N, 4) float64 (w, x, y, z), ``G_h``.
+            rest_from_bone_quat: (N, 4) float64 (w, x, y, z), ``L_h`` (world axes).
+        """
+        st = self.stage
+        _spine_pivot(
+            world_from_bone_quat, rest_from_bone_quat, self._rest, self._plan,
+            self._m, st.limit_rad, st.double, st._angles, self._shares, self._e,
+        )  # fmt: skip

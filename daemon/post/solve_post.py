@@ -21,11 +21,13 @@ filter moves rotations, not the measured joints).
 With ``output_rate_hz`` the processed poses then go through a
 :class:`~retargetd.daemon.post.interp.RateResampler`: output ticks every ``1 /
 output_rate_hz`` on the stream's clock from its first pose, each the slerp (root:
-lerp) between the two processed poses around it. :meth:`SolvePost.apply` says
-whether the pose just solved completed a tick: if not, nothing is to be sent for it;
-if so, the pose buffers hold the tick (the latest, when one input completed several:
-above the input's rate the output cannot be faster than the input, one send per
-input frame), at most one input period behind the input.
+lerp) between the two processed poses around it, queued with a send time (the
+first tick an input pose completes at once, the next ones spaced by the output
+period). :meth:`SolvePost.apply` writes the first tick due, if any, and says
+whether it did; :meth:`SolvePost.pop_due` writes each further tick when its time has
+come, from the loop's timer (:meth:`SolvePost.next_due_ns`): above the input's rate
+(60 Hz captured, 120 Hz sent) ticks go out between input frames, each at most one
+input period less one output period behind the source (60 -> 120 Hz: 8.3 ms).
 
 Stateful stages (the One Euro filter) restart when the stream's clock goes backwards
 or jumps forward by more than :data:`RESTART_GAP_S` (a source restart, a replayed take
@@ -173,9 +175,12 @@ class SolvePost:
         )
         #: The time of the pose last written (a resampled tick's, else the input's).
         self.t_s = 0.0
-        #: Output ticks merged into a later one (more ticks than input poses: above
-        #: the input's rate only the latest tick of each input pose is sent).
-        self.merged_ticks = 0
+        #: The tag (the caller's, from :meth:`apply`) of the pose last written: for a
+        #: resampled tick, that of the input pose that completed it.
+        self.tag = 0
+        #: The arrival (``now_ns`` of :meth:`apply`) of the pose last written: for a
+        #: resampled tick, that of the input pose that completed it.
+        self.arrival_ns = 0
         self._last_wfb = np.zeros((n, 4))
         self._started = False  # the stateful stages have seen a pose
         self._signed = False  # world_from_bone_quat holds an output to follow
@@ -208,22 +213,33 @@ class SolvePost:
             self.resampler.reset()
         self._started = False
 
-    def apply(self, pose: BodyPose, t_s: float) -> bool:
+    @property
+    def dropped_ticks(self) -> int:
+        """Output ticks dropped unsent from the resampler's full queue."""
+        return self.resampler.dropped if self.resampler is not None else 0
+
+    def apply(self, pose: BodyPose, t_s: float, now_ns: int = 0, tag: int = 0) -> bool:
         """Run the stages on one solved pose, in place.
 
         Args:
             pose: the body solve's frame (``parent_from_bone_quat``, ``root_pos`` read;
                 those and ``world_from_bone_quat``, ``rest_from_bone_quat`` written).
             t_s: the pose's time, seconds (only differences matter).
+            now_ns: its arrival, ``time.monotonic_ns()``: the origin of its resampled
+                ticks' send times (the first is due then).
+            tag: an integer kept with the pose and its ticks (:attr:`tag`), e.g. the
+                input frame's number.
 
         Returns:
             True when ``pose`` holds a pose to send (always, without resampling): the
-            processed pose, or with ``output_rate_hz`` the latest output tick that
-            fell due (``t_s`` its time); False when no tick fell due (``pose`` is then
-            left as solved, not to be sent).
+            processed pose, or with ``output_rate_hz`` the oldest output tick due
+            (``t_s`` its time); False when none is due (``pose`` is then left as
+            solved, not to be sent; a later tick may fall due: :meth:`pop_due`).
         """
         pfb = pose.parent_from_bone_quat
         buf = self._buf
+        self.tag = tag
+        self.arrival_ns = now_ns
         if not _load(pfb, pose.root_pos, buf.parent_from_bone_quat, buf.root_pos):
             self.non_finite += 1
             self.stage_ns[:] = 0
@@ -241,21 +257,42 @@ class SolvePost:
         self.pipeline.apply(buf, buf)
         self._started = True
         self._last_t_s = t_s
+        if self.resampler is not None:
+            self.resampler.push(buf, now_ns, tag)
+            return self.pop_due(pose, now_ns)
+        self._write(pose, buf)
+        return True
+
+    def next_due_ns(self) -> int:
+        """The next queued output tick's send time (``time.monotonic_ns()``), -1 for
+        none (or no resampling)."""
+        return self.resampler.next_due_ns() if self.resampler is not None else -1
+
+    def pop_due(self, pose: BodyPose, now_ns: int) -> bool:
+        """Write the oldest queued output tick into ``pose`` if its time has come.
+
+        Args:
+            pose: the body solve's frame buffers (as for :meth:`apply`).
+            now_ns: ``time.monotonic_ns()``.
+
+        Returns:
+            Whether a tick was written (its time :attr:`t_s`, its input's
+            :attr:`tag` and :attr:`arrival_ns`).
+        """
         res = self.resampler
-        if res is not None:
-            res.push(buf)
-            if not res.pending():
-                return False
-            res.pop(self._tick)
-            while res.pending():
-                self.merged_ticks += 1
-                res.pop(self._tick)
-            buf = self._tick
+        if res is None or not res.due(now_ns):
+            return False
+        res.pop(self._tick)
+        self.tag = res.popped_tag
+        self.arrival_ns = res.popped_arrival_ns
+        self._write(pose, self._tick)
+        return True
+
+    def _write(self, pose: BodyPose, buf: PoseBuffer) -> None:
         self.t_s = buf.t_s
         _refresh(
-            self._order, self._parents, pfb, self._rest,
+            self._order, self._parents, pose.parent_from_bone_quat, self._rest,
             pose.world_from_bone_quat, pose.rest_from_bone_quat, self._last_wfb,
             not self._signed, buf.parent_from_bone_quat, buf.root_pos, pose.root_pos,
         )  # fmt: skip
         self._signed = True
-        return True

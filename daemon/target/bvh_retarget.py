@@ -27,7 +27,12 @@ keeps its rest (local identity: it follows its parent), or with ``spread`` (``re
 more spine bones than the source), takes an equal share of the rotation between them
 (:func:`spread_chains`), or shares given by a ``distribute`` function (``retarget
 --spread pivot``: the chapter's shifting pivot,
-:func:`retargetd.daemon.post.pivot.pivot_chains`).
+:func:`retargetd.daemon.post.pivot.pivot_chains`). With a ``spine_curve`` function
+(``retarget --spread hermite``) the whole spine, from the target joint mapped to the
+source's Hips to the one mapped to its Neck (else Head), is placed along a curve
+through the source's spine joints (:func:`spine_paths`; the chapter's Hermite spine,
+:func:`retargetd.daemon.post.hermite.hermite_chain`): a target with more spine bones
+than the source gets a smooth bend, not the source's corners.
 
 The target root must map to a source joint; its position is that joint's, scaled by
 the ratio of the two rest root heights above the lowest rest point (joints and End
@@ -273,6 +278,46 @@ def spread_chains(
     return out
 
 
+def spine_paths(
+    source: BvhSkeleton, target: BvhSkeleton, mapping: list[int]
+) -> tuple[list[int], list[int]] | None:
+    """The spine in both skeletons: from the joint mapped to Hips to the one mapped
+    to Neck (else Head), by the source's humanoid names (:func:`match_joints`' maps).
+
+    Args:
+        source: the take's hierarchy.
+        target: the skeleton mapped onto.
+        mapping: (J',) source joint per target joint, -1 where none.
+
+    Returns:
+        ``(source_path, target_path)``, each lowest first, ends included; None when
+        either end is missing or the target's upper end is not below its lower one.
+    """
+    names = _humanoid_names(source.joint_names)
+    ends: list[int] = []
+    for wanted in (("Hips",), ("Neck", "Head")):
+        found = [i for w in wanted for i, h in enumerate(names) if h == w]
+        if not found or found[0] not in mapping:
+            return None
+        ends.append(found[0])
+
+    def path(parents: tuple[int, ...], top: int, bottom: int) -> list[int] | None:
+        out = [bottom]
+        while out[-1] != top:
+            if parents[out[-1]] < 0:
+                return None
+            out.append(parents[out[-1]])
+        return out[::-1]
+
+    tgt = path(target.parents, mapping.index(ends[0]), mapping.index(ends[1]))
+    src = path(source.parents, ends[0], ends[1])
+    return None if tgt is None or src is None else (src, tgt)
+
+
+#: ``spine_curve(glob, source_pos, source_path, target_path, target_rest_pos)``.
+SpineCurve = Callable[[F64Array, F64Array, list[int], list[int], F64Array], object]
+
+
 @dataclass(frozen=True, slots=True, kw_only=True)
 class BvhRetarget:
     """A retargeted take on the target's hierarchy.
@@ -287,6 +332,8 @@ class BvhRetarget:
         mapping: (J',) source joint per target joint, -1 where none.
         root_scale: the factor applied to the source root's position.
         frame_time_s: seconds per frame (the source's).
+        spine: the target chain placed along the spine curve (``spine_curve``),
+            ends included; empty without.
     """
 
     skeleton: BvhSkeleton
@@ -296,6 +343,7 @@ class BvhRetarget:
     mapping: tuple[int, ...]
     root_scale: float
     frame_time_s: float
+    spine: tuple[int, ...] = ()
 
 
 def global_rotations(sk: BvhSkeleton) -> tuple[F64Array, F64Array]:
@@ -341,6 +389,7 @@ def retarget_bvh(
     spread: bool = False,
     distribute: Callable[[F64Array, dict[int, tuple[int, int, float]]], object]
     | None = None,
+    spine_curve: SpineCurve | None = None,
 ) -> BvhRetarget:
     """Map a BVH take onto another BVH skeleton (module docstring).
 
@@ -357,12 +406,17 @@ def retarget_bvh(
             J', 4) with the mapped joints set, ``chains`` from
             :func:`spread_chains`), e.g. the shifting pivot
             (:func:`retargetd.daemon.post.pivot.pivot_chains`).
+        spine_curve: places the target's spine (:func:`spine_paths`, inner joints
+            mapped or not) from the source's spine joint positions, e.g.
+            :func:`retargetd.daemon.post.hermite.hermite_chain`; other chains are
+            spread as ``spread`` says.
 
     Returns:
         The retargeted take.
 
     Raises:
-        ValueError: no motion, a bad map, or a target root that maps to nothing.
+        ValueError: no motion, a bad map, a target root that maps to nothing, or a
+            ``spine_curve`` with no spine of at least one inner joint.
     """
     if source.frames is None or len(source.frames) == 0:
         raise ValueError(f"{source.source}: the take has no motion frames")
@@ -387,12 +441,25 @@ def retarget_bvh(
         if mapping[j] >= 0:
             glob[:, j] = rot.quat_mul(src_glob[:, mapping[j]], comp[j])
     chains = spread_chains(target.parents, mapping) if spread else {}
+    placed: set[int] = set()
+    spine: tuple[int, ...] = ()
+    if spine_curve is not None:
+        paths = spine_paths(source, target, mapping)
+        if paths is None or len(paths[1]) < 3:
+            raise ValueError(
+                "spine curve: the target has no joint between the ones mapped to the "
+                "source's Hips and Neck (or Head)"
+            )
+        spine = tuple(paths[1])
+        placed = set(spine[1:-1])
+        chains = {u: c for u, c in chains.items() if u not in placed}
+        spine_curve(glob, src_pos, paths[0], paths[1], target.rest_positions())
     pivot = bool(chains) and distribute is not None
     if pivot:
         assert distribute is not None
         distribute(glob, chains)
     for j, p in enumerate(target.parents):
-        if mapping[j] >= 0 or (pivot and j in chains):
+        if j in placed or mapping[j] >= 0 or (pivot and j in chains):
             pass
         elif j in chains:
             top, bottom, u = chains[j]
@@ -437,6 +504,7 @@ def retarget_bvh(
         mapping=tuple(mapping),
         root_scale=float(root_scale),
         frame_time_s=float(frame_time),
+        spine=spine,
     )
 
 

@@ -25,8 +25,11 @@ from live_harness import (
     Live,
     OscSource,
     PoseSub,
+    VmcReceiver,
+    _prime,
     _take,
     _unused_udp_port,
+    _vmc_bones,
     _wait_until,
 )
 
@@ -34,13 +37,14 @@ from retargetd.daemon.body.calibration import load_calibration
 from retargetd.daemon.body.rig import load_rig
 from retargetd.daemon.body.solve import BodySolver
 from retargetd.daemon.cli.main import main
-from retargetd.daemon.cli.post_io import apply_pipeline_to_solve
+from retargetd.daemon.cli.post_io import apply_pipeline_to_solve, retarget_solve
 from retargetd.daemon.live.config import ConfigError, DaemonConfig
+from retargetd.daemon.live.config_schema import TargetConfig
 from retargetd.daemon.live.loop import Daemon
 from retargetd.daemon.post.interp import resample
 from retargetd.daemon.rotations import quat_angle, quat_conj, quat_mul
 from retargetd.daemon.target.bvh import world_from_parent_chain
-from retargetd.protocols import zmq_wire
+from retargetd.protocols import engine_unity, zmq_wire
 from retargetd.protocols.marker_input import LabelSet
 
 PIPELINE_TOML = """
@@ -376,6 +380,214 @@ def test_live_output_rate_resamples_to_the_engine_rate(
     wfb = np.stack([m.world_from_bone_quat for m in poses])
     fk = world_from_parent_chain(rig.bone_parent_indices(), q)
     assert float(_angles(wfb, fk).max()) < TOL_RAD
+
+
+@pytest.mark.timeout(90)
+def test_live_output_rate_above_the_input_rate(
+    start_daemon: Callable[..., Live],
+    osc_source: Callable[..., OscSource],
+    zmq_socket: Callable[[int], Any],
+    exact_calibration: Path,
+) -> None:
+    """A 60 Hz capture (source times frame / 60, sent every 1/60 s) into
+    ``output_rate_hz = 120`` with a twist stage: a pose per 1/120 s tick, each equal
+    to the offline ``interp.resample`` at 120 Hz of ``solve --pipeline`` (float32,
+    1e-6 rad), unit quaternions; every input frame's second tick is sent by the
+    loop's timer between input frames. The added latency (how far behind the source
+    each tick goes out: its wait plus the source time between it and its input) is
+    one input period less one output period, 8.3 ms, plus the loop's timer slack."""
+    take = _take()
+    live = start_daemon(
+        {
+            "performer": {"calibration": str(exact_calibration)},
+            "loop": {"process_every_frame": True, "output_rate_hz": 120.0},
+            "pipeline": [{"kind": "twist"}],
+        }
+    )
+    sub = PoseSub(zmq_socket(zmq.SUB), live.tcp("zmq poses"))
+    push = zmq_socket(zmq.PUSH)
+    push.connect(live.tcp("zmq markers"))
+    push.send_multipart(zmq_wire.encode_zmq_labels(LabelSet(9, take.labels)))
+    deadline, k = time.monotonic() + 5.0, 0
+    while not sub.poses:
+        assert time.monotonic() < deadline, "the pose stream never reached the SUB"
+        push.send_multipart(
+            zmq_wire.encode_zmq_frame(k, k / 60.0, 9, take.markers_world[0])
+        )
+        k += 1
+        sub.pump(20)
+    sub.pump(100)
+    priming = {p.names_id for p in sub.poses}
+    sub.clear()
+    time.sleep(0.05)
+    before = live.daemon.stats.counters()
+    src = osc_source(live)
+    src.rate_hz = 60.0
+    src.announce()
+    n_frames = 90
+    period_s = 1.0 / 60.0
+    start = time.monotonic()
+    for i, row in enumerate(range(60, 60 + n_frames)):
+        while time.monotonic() < start + i * period_s:  # the capture's own pace
+            sub.pump(1)
+        src.send(take.markers_world[row])
+    n_ticks = 2 * n_frames - 1
+    sub.wait(
+        lambda: sum(p.names_id not in priming for p in sub.poses) == n_ticks,
+        f"{n_ticks} poses",
+    )
+    live.stop()
+    after = live.daemon.stats.counters()
+    poses = [p for p in sub.poses if p.names_id not in priming]
+    times = np.array([p.source_time_s for p in poses])
+    np.testing.assert_allclose(times, np.arange(n_ticks) / 120.0, atol=1e-9)
+    ids = np.array([p.frame_id for p in poses])
+    np.testing.assert_array_equal(ids, np.ceil(np.arange(n_ticks) / 2))
+    timer = after["resample_timer"] - before["resample_timer"]
+    assert timer == n_frames - 1, timer
+    assert after["resample_dropped"] == before["resample_dropped"]
+
+    cal = load_calibration(exact_calibration)
+    rig = load_rig(EXACT_RIG)
+    raw = BodySolver(rig, cal, take.labels).solve_take(
+        np.stack([m for _, m in src.sent])
+    )
+    done, _ = _offline(raw, cal, tmp_toml='[[pipeline]]\nkind = "twist"\n')
+    out_t, q, p = resample(
+        np.arange(n_frames) / 60.0, done.parent_from_bone_quat, done.root_pos, 120.0
+    )
+    assert len(out_t) == n_ticks
+    live_q = np.stack([m.parent_from_bone_quat for m in poses])
+    worst = float(_angles(live_q, q).max())
+    live_wfb = np.stack([m.world_from_bone_quat for m in poses])
+    norm_err = float(
+        np.abs(np.linalg.norm(live_q.astype(np.float64), axis=-1) - 1).max()
+    )
+    norm_err = max(
+        norm_err,
+        float(np.abs(np.linalg.norm(live_wfb.astype(np.float64), axis=-1) - 1).max()),
+    )
+    assert worst < TOL_RAD, worst
+    assert norm_err < 1e-6, norm_err  # float32 on the wire
+    np.testing.assert_allclose(
+        np.stack([m.root_pos_world for m in poses]), p, rtol=0, atol=2e-7
+    )
+    # Latency behind the source, per tick: (sent - its input's arrival) + (the
+    # input's source time - the tick's).
+    sent = np.array([m.sent_ns for m in poses], dtype=np.int64)
+    recv = np.array([m.received_ns for m in poses], dtype=np.int64)
+    lag_ms = (sent - recv) * 1e-6 + (ids / 60.0 - times) * 1e3
+    lag_ms = lag_ms[1:]  # the first tick has no input before it
+    second = np.arange(2, n_ticks, 2)  # each input's second tick: from the timer
+    first_of_next = second + 1
+    between = (sent[second[:-1]] > recv[second[:-1]]) & (
+        sent[second[:-1]] < recv[first_of_next[:-1]]
+    )
+    print(
+        f"\nlive 60 -> 120 Hz: {n_ticks} ticks from {n_frames} frames, {timer} from "
+        f"the timer ({between.mean():.0%} between their input and the next); worst "
+        f"angle to offline resample {worst:.1e} rad; added latency "
+        f"{np.median(lag_ms):.2f} ms median, {np.percentile(lag_ms, 99):.2f} ms p99, "
+        f"min {lag_ms.min():.2f} ms (8.33 ms by design)"
+    )
+    assert lag_ms.min() >= 1000 / 60 - 1000 / 120 - 0.01
+    assert between.mean() >= 0.8, between.mean()
+
+
+@pytest.mark.timeout(90)
+def test_live_spine_pivot_equals_offline(
+    start_daemon: Callable[..., Live],
+    osc_source: Callable[..., OscSource],
+    zmq_socket: Callable[[int], Any],
+    vmc: VmcReceiver,
+    exact_calibration: Path,
+) -> None:
+    """``[target] spine = "pivot"`` with a twist stage: the VMC bones (Unity frame,
+    float32) equal the offline mapping of ``solve --pipeline`` (``retarget_solve``,
+    the same ``SpinePivot``) within 1e-6 rad on every bone; Spine, Chest and
+    UpperChest differ from the plain mapping's (the stage acted); the stage is timed
+    as ``post.pivot``."""
+    take = _take()
+    live = start_daemon(
+        {
+            "performer": {"calibration": str(exact_calibration)},
+            "loop": {"process_every_frame": True},
+            "target": {"spine": "pivot", "spine_pivot_limit_deg": 5.0},
+            "pipeline": [{"kind": "twist"}],
+        },
+        vmc_port=vmc.port,
+    )
+    sub = PoseSub(zmq_socket(zmq.SUB), live.tcp("zmq poses"))
+    src = osc_source(live)
+    src.announce()
+    _prime(sub, lambda: src.send(take.markers_world[0]))
+    k = len(src.sent)
+    for row in range(60, 60 + 150):
+        src.send(take.markers_world[row])
+        sub.pump()
+        time.sleep(0.004)
+    n = len(src.sent)
+    vmc.wait_frames(n)
+    status = live.daemon.status()
+    line = live.daemon.stats_line()
+    live.stop()
+    frames = vmc.frames[k:n]
+    names = [b for b in _vmc_bones(frames[0]) if b != "root"]
+
+    cal = load_calibration(exact_calibration)
+    rig = load_rig(EXACT_RIG)
+    raw = BodySolver(rig, cal, take.labels).solve_take(
+        np.stack([m for _, m in src.sent])
+    )
+    done, _ = _offline(raw, cal, tmp_toml='[[pipeline]]\nkind = "twist"\n')
+    cfg = TargetConfig(spine="pivot", spine_pivot_limit_deg=5.0)
+    pivot = retarget_solve(done, rig, cal, cfg)
+    plain = retarget_solve(done, rig, cal, TargetConfig())
+    assert [str(b) for b in pivot["target_bone_names"]] == names
+    unity = np.zeros((len(names), 4))
+    worst, moved = 0.0, 0.0
+    spine = [names.index(b) for b in ("Spine", "Chest", "UpperChest")]
+    for t, frame in enumerate(frames, start=k):
+        bones = _vmc_bones(frame)
+        got = np.array([bones[b][3:] for b in names])  # x y z w, Unity
+        engine_unity.unity_quat_xyzw_from_world(
+            pivot["target_rest_from_bone_quat"][t], unity
+        )
+        # The angle between them (atan2 of the relative quaternion: arccos of the
+        # dot product would turn float32 rounding into 1e-4 rad); xyzw -> wxyz.
+        err = _angles(np.roll(got, 1, axis=-1), np.roll(unity, 1, axis=-1))
+        worst = max(worst, float(err.max()))
+        rel = quat_mul(
+            quat_conj(pivot["target_rest_from_bone_quat"][t, spine]),
+            plain["target_rest_from_bone_quat"][t, spine],
+        )
+        moved = max(moved, float(quat_angle(rel).max()))
+    print(
+        f"\nlive spine pivot over {len(frames)} VMC frames: worst angle to offline "
+        f"{worst:.1e} rad; the pivot moved Spine/Chest/UpperChest by up to "
+        f"{np.degrees(moved):.1f} deg; post.pivot {status['latency_us']['post.pivot']}"
+    )
+    assert worst < TOL_RAD, worst
+    assert moved > np.radians(1.0), "the pivot changed nothing"
+    p50, p99 = status["latency_us"]["post.pivot"]
+    assert 0 < p50 <= p99, status["latency_us"]
+    assert " pivot " in line, line
+
+
+def test_spine_pivot_the_rig_cannot_drive_is_one_line(
+    tmp_path: Path, exact_calibration: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A rig that maps none of Spine, Chest, UpperChest: refused at start, exit 2."""
+    rig_text = EXACT_RIG.read_text()
+    bare = tmp_path / "no-spine-rig.toml"
+    bare.write_text(
+        rig_text.replace('humanoid = "Spine"', "").replace('humanoid = "Chest"', "")
+    )
+    path = _config_file(tmp_path, exact_calibration, '[target]\nspine = "pivot"\n')
+    assert main(["run", "--config", str(path), "--rig", str(bare)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "target.spine" in err, err
+    assert "the rig must drive one of them" in err, err
 
 
 def _offline(raw: Any, cal: Any, *, tmp_toml: str) -> tuple[Any, tuple[str, ...]]:

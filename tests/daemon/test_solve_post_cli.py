@@ -264,3 +264,59 @@ def test_fill_gaps_slerps_short_held_runs(
                  str(cal), "--out", str(tmp_path / "x.npz"), "--fill-gaps",
                  "0"]) == 2  # fmt: skip
     assert "--fill-gaps: expected >= 1" in capsys.readouterr().err
+
+
+def test_pipeline_target_spine_pivot_offline(
+    pig_synth: tuple[Path, Path], plain: Path, tmp_path: Path
+) -> None:
+    """``solve --pipeline FILE.toml`` with ``[target] spine = "pivot"``: the NPZ gains
+    the take mapped onto the humanoid with the shifting pivot on Spine, Chest and
+    UpperChest (``target_*``); the other bones are the plain mapping's. Other
+    formats are refused before solving (exit 2, one line)."""
+    from retargetd.daemon.body.calibration import load_calibration
+    from retargetd.daemon.body.rig import load_rig
+    from retargetd.daemon.cli.post_io import retarget_solve
+    from retargetd.daemon.live.config_schema import TargetConfig
+
+    toml = tmp_path / "spine.toml"
+    toml.write_text('[target]\nspine = "pivot"\nspine_pivot_limit_deg = 10.0\n')
+    out = tmp_path / "pivot.npz"
+    _solve(pig_synth, out, "--pipeline", str(toml))
+    with np.load(out, allow_pickle=False) as npz:
+        names = [str(n) for n in npz["target_bone_names"]]
+        rfb = npz["target_rest_from_bone_quat"]
+        assert str(npz["target_spine"]) == "pivot"
+        assert rfb.shape == (len(npz["root_pos"]), len(names), 4)
+        processed = npz["parent_from_bone_quat"]
+    with np.load(plain, allow_pickle=False) as npz:
+        np.testing.assert_array_equal(processed, npz["parent_from_bone_quat"])
+    # Against the mapping without the pivot: the spine differs, the limbs do not.
+    rig, cal = load_rig("plug-in-gait"), load_calibration(pig_synth[1])
+    with np.load(plain, allow_pickle=False) as npz:
+        from types import SimpleNamespace
+
+        keys = ("world_from_bone_quat", "root_pos", "bone_flags")
+        solve = SimpleNamespace(**{k: npz[k] for k in keys})
+    mapped = retarget_solve(solve, rig, cal, TargetConfig())
+    plain_rfb = mapped["target_rest_from_bone_quat"]
+
+    def angle(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        return rot.quat_angle(rot.quat_mul(rot.quat_conj(a), b))
+
+    spine = [names.index(b) for b in ("Spine", "Chest", "UpperChest")]
+    limbs = [names.index(b) for b in ("LeftLowerArm", "RightUpperLeg", "Head")]
+    assert np.degrees(angle(rfb[:, spine], plain_rfb[:, spine]).max()) > 1.0
+    assert np.degrees(angle(rfb[:, limbs], plain_rfb[:, limbs]).max()) < 1e-9
+    # The limit holds: no share turns more than 10 deg about x or z in the spine
+    # frame (x the humanoid's left, -X; y up; z forward, +Y; intrinsic XYZ).
+    s_mat = np.array([[-1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, 1.0, 0.0]]).T
+    m = Rotation.from_matrix(s_mat)
+    shares = Rotation.from_quat(rfb[:, spine].reshape(-1, 4), scalar_first=True)
+    xyz = np.degrees((m.inv() * shares * m).as_euler("XYZ"))
+    assert np.abs(xyz[:, [0, 2]]).max() <= 10.0 + 1e-6, np.abs(xyz).max(axis=0)
+    assert np.abs(xyz[:, [0, 2]]).max() > 9.0  # the limit is reached on this take
+    bad = tmp_path / "pivot.bvh"
+    take, cal_path = pig_synth
+    args = ["solve", str(take), "--rig", "plug-in-gait", "--calibration", str(cal_path)]
+    assert main([*args, "--out", str(bad), "--pipeline", str(toml)]) == 2
+    assert not bad.exists()

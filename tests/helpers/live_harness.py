@@ -228,6 +228,7 @@ class OscSource:
         self.label_set = LabelSet(label_set_id, _take().labels)
         self.next_id = 0
         self.sent: list[tuple[int, np.ndarray]] = []
+        self.rate_hz = RATE_HZ  # source time = frame number / rate
 
     def announce(self, label_set_id: int | None = None) -> None:
         if label_set_id is not None:
@@ -238,7 +239,9 @@ class OscSource:
         fid = self.next_id if frame_id is None else frame_id
         self.next_id = fid + 1
         self.raw(
-            osc_in.encode_compact_frame(fid, fid / RATE_HZ, self.label_set.id, markers)
+            osc_in.encode_compact_frame(
+                fid, fid / self.rate_hz, self.label_set.id, markers
+            )
         )
         self.sent.append((fid, _f32(markers)))
         return fid

@@ -260,3 +260,85 @@ def test_live_resampler_matches_offline(synth_take: Synth) -> None:
         tracemalloc.stop()
     assert end - start < 1024
     assert peak - start < 3072, peak - start  # numba's argument boxing
+
+
+def test_live_resampler_above_the_input_rate(synth_take: Synth) -> None:
+    """A 60 Hz capture sent at 120 Hz: every tick (one between each pair of input
+    frames) equals the offline ``resample`` at 120 Hz, unit quaternions; the first
+    tick an input completes is due on its arrival, the next one output period later
+    (before the next input: the timer sends it); each tick shows the source 8.33 ms
+    late (one input period less one output period), measured from the send times.
+    Ticks still queued when the next input arrives are due at once."""
+    src = synth_take(MOTIONS, 60.0, 2.0)
+    q, p = src.parent_from_segment_quat, src.joint_pos_world[:, 0]
+    times, eq, ep = resample(src.times_s, q, p, 120.0)
+    assert len(times) == 2 * len(q) - 1
+    r = RateResampler(q.shape[1], 120.0)
+    pose, out = PoseBuffer.new(q.shape[1]), PoseBuffer.new(q.shape[1])
+    in_ns = 1_000_000_000 // 60
+    got_q, got_p, got_t, sent_ns, tags, arrival = [], [], [], [], [], []
+    for k in range(len(q)):
+        pose.t_s = float(src.times_s[k])
+        pose.parent_from_bone_quat[:] = q[k]
+        pose.root_pos[:] = p[k]
+        now = 10**9 + k * in_ns  # arrival: the capture's own clock, no jitter
+        r.push(pose, now, tag=k)
+        assert r.completed == (1 if k == 0 else 2)
+        # Walk the loop's clock in 1 ms steps until the next input arrives.
+        for step_ns in range(0, in_ns, 1_000_000):
+            while r.due(now + step_ns):
+                r.pop(out)
+                sent_ns.append(now + step_ns)
+                tags.append(r.popped_tag)
+                arrival.append(r.popped_arrival_ns)
+                got_t.append(out.t_s)
+                got_q.append(out.parent_from_bone_quat.copy())
+                got_p.append(out.root_pos.copy())
+        assert not r.pending(), "every tick went out before the next input"
+    np.testing.assert_allclose(got_t, times, atol=1e-9)
+    got = np.array(got_q)
+    assert _norm_err(got) < 1e-12
+    assert np.all(np.abs(np.abs(np.sum(got * eq, -1)) - 1) < 1e-12)
+    np.testing.assert_allclose(np.array(got_p), ep, atol=1e-12)
+    # Latency behind the source: (send - arrival of the completing input) + (its
+    # time - the tick's), for every tick after the first frame.
+    lag_ms = (np.array(sent_ns[1:]) - np.array(arrival[1:])) * 1e-6 + (
+        np.array(tags[1:]) / 60.0 - np.array(got_t[1:])
+    ) * 1e3
+    print(f"\n60 -> 120 Hz: added latency {np.median(lag_ms):.2f} ms median, "
+          f"{lag_ms.min():.2f}..{lag_ms.max():.2f} ms (1 ms loop steps)")  # fmt: skip
+    assert np.all(lag_ms >= 1000 / 60 - 1000 / 120 - 1e-6)
+    assert np.all(lag_ms < 1000 / 60 - 1000 / 120 + 1.0)  # + the 1 ms step
+    # Between inputs: the second tick of each input goes out before the next one.
+    between = np.array(sent_ns[1:]) - np.array(arrival[1:])
+    assert np.sum(between > 0) == len(q) - 1
+
+    # Overdue: a loop that never ran its timer leaves a tick queued; the next input
+    # makes it due at once (then its own first tick).
+    r.reset()
+    for k, now in ((0, 0), (1, in_ns), (2, 2 * in_ns)):
+        pose.t_s = k / 60.0
+        r.push(pose, now)
+        while r.due(now):
+            r.pop(out)
+    assert r.pending() and not r.due(2 * in_ns)
+    assert r.due(2 * in_ns + 1_000_000_000 // 120)
+
+
+def test_live_resampler_queue_is_bounded() -> None:
+    """Far above the input's rate the queue holds QUEUE_TICKS ticks; the oldest are
+    dropped (counted), the latest kept."""
+    from retargetd.daemon.post.interp import QUEUE_TICKS
+
+    r = RateResampler(2, 1000.0)
+    pose, out = PoseBuffer.new(2), PoseBuffer.new(2)
+    r.push(pose, 0)
+    r.pop(out)
+    pose.t_s = 0.1  # 100 ticks in one input period
+    r.push(pose, 100_000_000)
+    assert r.completed == 100 and r.dropped == 100 - QUEUE_TICKS
+    n = 0
+    while r.pending():
+        r.pop(out)
+        n += 1
+    assert n == QUEUE_TICKS and abs(out.t_s - 0.1) < 1e-12
