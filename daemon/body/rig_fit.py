@@ -26,8 +26,10 @@ from typing import Any
 FIT_KEYS = ("markers", "bones")
 MARKER_KEYS = ("segment", "weight")
 BONE_KEYS = ("dof", "axis", "stiffness_mm")
-#: ``stiffness_mm`` at most a hinge's stiffness (FitParams.kappa_hinge: 1 m/rad).
+#: ``stiffness_mm`` at most a hinge's stiffness (FitParams.kappa_hinge: 1 m/rad);
+#: ``body.rig_model.RIG_RANGES`` lists the same range.
 STIFFNESS_MAX_MM = 1000.0
+STIFFNESS_WHY = "0 = none; at most a hinge's stiffness, past which the joint is frozen"
 DOFS = ("ball", "hinge", "swing")
 
 _AXES = {"x": (1.0, 0.0, 0.0), "y": (0.0, 1.0, 0.0), "z": (0.0, 0.0, 1.0)}
@@ -153,14 +155,13 @@ def parse_fit_table(
         if name in roots and dof != "ball":
             raise fail(f"{key}.dof", "a root bone is free (ball)")
         stiff = spec.get("stiffness_mm", 0.0)
-        if not (
-            _is_number(stiff)
-            and math.isfinite(stiff)
-            and 0.0 <= stiff <= STIFFNESS_MAX_MM
-        ):
+        if not _is_number(stiff):
+            raise fail(f"{key}.stiffness_mm", f"expected a number: {stiff!r}")
+        if not 0.0 <= stiff <= STIFFNESS_MAX_MM:  # (NaN too)
             raise fail(
                 f"{key}.stiffness_mm",
-                f"expected a number in [0, {STIFFNESS_MAX_MM:g}] mm/rad: {stiff!r}",
+                f"{stiff!r} is out of range: allowed [0, {STIFFNESS_MAX_MM:g}] mm/rad "
+                f"({STIFFNESS_WHY})",
             )
         if name in roots and stiff:
             raise fail(f"{key}.stiffness_mm", "a root bone is free (no stiffness)")

@@ -9,7 +9,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-from retargetd.daemon.body.rig_fit import FitOptions
+from retargetd.daemon.body.rig_fit import STIFFNESS_MAX_MM, STIFFNESS_WHY, FitOptions
 from retargetd.protocols.humanoid import HUMANOID_BONES as _HUMANOID_BONES
 
 #: The standard humanoid bones (parents first), re-exported for rig files.
@@ -98,6 +98,11 @@ RIG_RANGES: dict[str, NumberRange] = {
         BODY_EXTENT_MAX_MM,
         "an offset within one body",
         unit="mm",
+    ),
+    # The fit's pull of a joint towards its calibration pose (checked in body.rig_fit,
+    # which words the error the same way).
+    "fit.bones.*.stiffness_mm": NumberRange(
+        0.0, STIFFNESS_MAX_MM, STIFFNESS_WHY, unit="mm/rad"
     ),
 }
 

@@ -252,6 +252,8 @@ def _schema_key(path: tuple[str, ...]) -> str:
     parts = list(path)
     if parts[0] in NAME_TABLES and len(parts) > 1:
         parts[1] = "*"
+    if parts[0] == "fit" and len(parts) > 2:  # [fit.bones.NAME], [fit.markers.NAME]
+        parts[2] = "*"
     if parts == ["measurements", "*"]:  # the short form NAME = default
         parts.append("default")
     return ".".join(parts)

@@ -362,8 +362,9 @@ def test_fit_keys_parse_and_act(tmp_path: Path) -> None:
         ({"bones": {"l_shank": {"dof": "swing", "axis": "x"}}}, "only a hinge"),
         ({"bones": {"pelvis": {"dof": "swing"}}}, "root"),
         ({"bones": {"pelvis": {"stiffness_mm": 10}}}, "root"),
-        ({"bones": {"l_shank": {"stiffness_mm": -1}}}, "stiffness_mm"),
-        ({"bones": {"l_shank": {"stiffness_mm": 1e9}}}, "stiffness_mm"),
+        ({"bones": {"l_shank": {"stiffness_mm": -1}}}, "out of range"),
+        ({"bones": {"l_shank": {"stiffness_mm": 1e9}}}, "out of range"),
+        ({"bones": {"l_shank": {"stiffness_mm": float("nan")}}}, "out of range"),
         ({"bones": {"l_shank": {"stiffness_mm": "stiff"}}}, "stiffness_mm"),
         ({"other": 1}, "unknown key"),
     ):
