@@ -292,6 +292,55 @@ def test_a_rig_without_arms_refuses_twist_at_start(
     assert "no arm chains" in err, err
 
 
+def _resampling_daemon(
+    start_daemon: Callable[..., Live],
+    zmq_socket: Callable[[int], Any],
+    calibration: Path,
+    take: Any,
+    output_rate_hz: float,
+    prime_rate_hz: float,
+) -> tuple[Live, PoseSub, set[int], int]:
+    """A daemon with ``output_rate_hz`` and a twist stage, primed over ZeroMQ until
+    its pose stream reaches a SUB: (live, sub, the priming poses' names ids, frames
+    primed)."""
+    live = start_daemon(
+        {
+            "performer": {"calibration": str(calibration)},
+            "loop": {"process_every_frame": True, "output_rate_hz": output_rate_hz},
+            "pipeline": [{"kind": "twist"}],
+        }
+    )
+    sub = PoseSub(zmq_socket(zmq.SUB), live.tcp("zmq poses"))
+    push = zmq_socket(zmq.PUSH)
+    push.connect(live.tcp("zmq markers"))
+    push.send_multipart(zmq_wire.encode_zmq_labels(LabelSet(9, take.labels)))
+    deadline, k = time.monotonic() + 5.0, 0
+    while not sub.poses:
+        assert time.monotonic() < deadline, "the pose stream never reached the SUB"
+        push.send_multipart(
+            zmq_wire.encode_zmq_frame(k, k / prime_rate_hz, 9, take.markers_world[0])
+        )
+        k += 1
+        sub.pump(20)
+    sub.pump(100)
+    priming = {p.names_id for p in sub.poses}
+    sub.clear()
+    return live, sub, priming, k
+
+
+def _solve_sent(calibration: Path, take: Any, src: OscSource) -> tuple[Any, Any, Any]:
+    """The construction's solve of the frames ``src`` sent: (rig, cal, solve)."""
+    cal = load_calibration(calibration)
+    rig = load_rig(EXACT_RIG)
+    return (
+        rig,
+        cal,
+        BodySolver(rig, cal, take.labels).solve_take(
+            np.stack([m for _, m in src.sent])
+        ),
+    )
+
+
 @pytest.mark.timeout(90)
 def test_live_output_rate_resamples_to_the_engine_rate(
     start_daemon: Callable[..., Live],
@@ -304,29 +353,9 @@ def test_live_output_rate_resamples_to_the_engine_rate(
     ``source_time_s`` the tick's), each the slerp of the processed poses around it:
     equal to the offline ``interp.resample`` of the offline pipeline's output."""
     take = _take()
-    live = start_daemon(
-        {
-            "performer": {"calibration": str(exact_calibration)},
-            "loop": {"process_every_frame": True, "output_rate_hz": 60.0},
-            "pipeline": [{"kind": "twist"}],
-        }
+    live, sub, priming, n_primed = _resampling_daemon(
+        start_daemon, zmq_socket, exact_calibration, take, 60.0, RATE_HZ
     )
-    sub = PoseSub(zmq_socket(zmq.SUB), live.tcp("zmq poses"))
-    push = zmq_socket(zmq.PUSH)
-    push.connect(live.tcp("zmq markers"))
-    push.send_multipart(zmq_wire.encode_zmq_labels(LabelSet(9, take.labels)))
-    deadline, k = time.monotonic() + 5.0, 0
-    while not sub.poses:
-        assert time.monotonic() < deadline, "the pose stream never reached the SUB"
-        push.send_multipart(
-            zmq_wire.encode_zmq_frame(k, k / RATE_HZ, 9, take.markers_world[0])
-        )
-        k += 1
-        sub.pump(20)
-    sub.pump(100)
-    priming = {p.names_id for p in sub.poses}
-    sub.clear()
-    n_primed = k
     _wait_until(
         lambda: live.daemon.zmq_stream.counters.as_dict().get("accepted") == n_primed,
         "every priming frame taken",
@@ -358,11 +387,7 @@ def test_live_output_rate_resamples_to_the_engine_rate(
     skipped = after["resample_skipped"] - before["resample_skipped"]
     assert skipped == FRAMES - n_ticks, (skipped, FRAMES, n_ticks)
 
-    cal = load_calibration(exact_calibration)
-    rig = load_rig(EXACT_RIG)
-    raw = BodySolver(rig, cal, take.labels).solve_take(
-        np.stack([m for _, m in src.sent])
-    )
+    rig, cal, raw = _solve_sent(exact_calibration, take, src)
     assert [e["kind"] for e in live.daemon.config.pipeline] == ["twist"]
     done, _ = _offline(raw, cal, tmp_toml='[[pipeline]]\nkind = "twist"\n')
     t_in = np.arange(FRAMES) / RATE_HZ
@@ -397,28 +422,9 @@ def test_live_output_rate_above_the_input_rate(
     each tick goes out: its wait plus the source time between it and its input) is
     one input period less one output period, 8.3 ms, plus the loop's timer slack."""
     take = _take()
-    live = start_daemon(
-        {
-            "performer": {"calibration": str(exact_calibration)},
-            "loop": {"process_every_frame": True, "output_rate_hz": 120.0},
-            "pipeline": [{"kind": "twist"}],
-        }
+    live, sub, priming, _ = _resampling_daemon(
+        start_daemon, zmq_socket, exact_calibration, take, 120.0, 60.0
     )
-    sub = PoseSub(zmq_socket(zmq.SUB), live.tcp("zmq poses"))
-    push = zmq_socket(zmq.PUSH)
-    push.connect(live.tcp("zmq markers"))
-    push.send_multipart(zmq_wire.encode_zmq_labels(LabelSet(9, take.labels)))
-    deadline, k = time.monotonic() + 5.0, 0
-    while not sub.poses:
-        assert time.monotonic() < deadline, "the pose stream never reached the SUB"
-        push.send_multipart(
-            zmq_wire.encode_zmq_frame(k, k / 60.0, 9, take.markers_world[0])
-        )
-        k += 1
-        sub.pump(20)
-    sub.pump(100)
-    priming = {p.names_id for p in sub.poses}
-    sub.clear()
     time.sleep(0.05)
     before = live.daemon.stats.counters()
     src = osc_source(live)
@@ -447,11 +453,7 @@ def test_live_output_rate_above_the_input_rate(
     assert timer == n_frames - 1, timer
     assert after["resample_dropped"] == before["resample_dropped"]
 
-    cal = load_calibration(exact_calibration)
-    rig = load_rig(EXACT_RIG)
-    raw = BodySolver(rig, cal, take.labels).solve_take(
-        np.stack([m for _, m in src.sent])
-    )
+    _, cal, raw = _solve_sent(exact_calibration, take, src)
     done, _ = _offline(raw, cal, tmp_toml='[[pipeline]]\nkind = "twist"\n')
     out_t, q, p = resample(
         np.arange(n_frames) / 60.0, done.parent_from_bone_quat, done.root_pos, 120.0
@@ -534,11 +536,7 @@ def test_live_spine_pivot_equals_offline(
     frames = vmc.frames[k:n]
     names = [b for b in _vmc_bones(frames[0]) if b != "root"]
 
-    cal = load_calibration(exact_calibration)
-    rig = load_rig(EXACT_RIG)
-    raw = BodySolver(rig, cal, take.labels).solve_take(
-        np.stack([m for _, m in src.sent])
-    )
+    rig, cal, raw = _solve_sent(exact_calibration, take, src)
     done, _ = _offline(raw, cal, tmp_toml='[[pipeline]]\nkind = "twist"\n')
     cfg = TargetConfig(spine="pivot", spine_pivot_limit_deg=5.0)
     pivot = retarget_solve(done, rig, cal, cfg)
