@@ -37,12 +37,22 @@ def build_normal(m: tuple, s: tuple) -> None:
     s0, sa, sm, sr, sc = s[16], s[17], s[18], s[19], s[20]
     hh, g = s[21], s[23]
     pen, pen2, jac = s[26], s[27], s[28]
+    node_ptr, node_idx = m[16], m[17]
     n_b = parent.shape[0]
-    n = g.shape[0]
-    for i in range(n):
+    for i in range(g.shape[0]):
         g[i] = 0.0
-        for j in range(n):
-            hh[i, j] = 0.0
+    # only the blocks the factorization reads (solve_step): each node's diagonal
+    # block and its blocks with its ancestors; the rest of H stays zero
+    for k in range(node_ptr.shape[0] - 1):
+        rk = 3 * k
+        for i in range(3):
+            for j in range(3):
+                hh[rk + i, rk + j] = 0.0
+        for p in range(node_ptr[k], node_ptr[k + 1]):
+            ra = 3 * node_idx[p]
+            for i in range(3):
+                for j in range(3):
+                    hh[ra + i, rk + j] = 0.0
     for b in range(n_b):
         s0[b] = 0.0
         for j in range(3):
