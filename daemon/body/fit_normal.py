@@ -37,22 +37,17 @@ def build_normal(m: tuple, s: tuple) -> None:
     s0, sa, sm, sr, sc = s[16], s[17], s[18], s[19], s[20]
     hh, g = s[21], s[23]
     pen, pen2, jac = s[26], s[27], s[28]
-    node_ptr, node_idx = m[16], m[17]
+    node_ptr = m[16]
     n_b = parent.shape[0]
     for i in range(g.shape[0]):
         g[i] = 0.0
-    # only the blocks the factorization reads (solve_step): each node's diagonal
-    # block and its blocks with its ancestors; the rest of H stays zero
-    for k in range(node_ptr.shape[0] - 1):
-        rk = 3 * k
+    # H is stored as its 3 x 3 blocks (fit_model.n_blocks): each node's diagonal
+    # block, then one block per (node, ancestor) entry of node_idx
+    n_nodes = node_ptr.shape[0] - 1
+    for e in range(hh.shape[0]):
         for i in range(3):
             for j in range(3):
-                hh[rk + i, rk + j] = 0.0
-        for p in range(node_ptr[k], node_ptr[k + 1]):
-            ra = 3 * node_idx[p]
-            for i in range(3):
-                for j in range(3):
-                    hh[ra + i, rk + j] = 0.0
+                hh[e, i, j] = 0.0
     for b in range(n_b):
         s0[b] = 0.0
         for j in range(3):
@@ -112,7 +107,10 @@ def build_normal(m: tuple, s: tuple) -> None:
         ok0 = (okx, oky, okz)
         mx, my, mz = sa[k, 0], sa[k, 1], sa[k, 2]
         m1 = (mx, my, mz)
-        rk = 3 * (n_b - 1 - k)
+        nk = n_b - 1 - k
+        rk = 3 * nk
+        # blocks: (root translation, k) is the last of k's entries
+        tk = hh[n_nodes + node_ptr[nk + 1] - 1]
         tb = 3 * n_b + 3 * root_of[k]
         # gradient: sum w (p - o_k) x r = C - o_k x R
         g[rk + 0] += sc[k, 0] - (oky * sr[k, 2] - okz * sr[k, 1])
@@ -122,17 +120,19 @@ def build_normal(m: tuple, s: tuple) -> None:
         vx = mx - w0 * okx
         vy = my - w0 * oky
         vz = mz - w0 * okz
-        hh[tb + 0, rk + 1] += vz
-        hh[tb + 0, rk + 2] -= vy
-        hh[tb + 1, rk + 0] -= vz
-        hh[tb + 1, rk + 2] += vx
-        hh[tb + 2, rk + 0] += vy
-        hh[tb + 2, rk + 1] -= vx
+        tk[0, 1] += vz
+        tk[0, 2] -= vy
+        tk[1, 0] -= vz
+        tk[1, 2] += vx
+        tk[2, 0] += vy
+        tk[2, 1] -= vx
         for jj in range(anc_ptr[k], anc_ptr[k + 1]):
             la = anc_idx[jj]
             olx, oly, olz = o[la, 0] - c0x, o[la, 1] - c0y, o[la, 2] - c0z
             ol0 = (olx, oly, olz)
-            rl = 3 * (n_b - 1 - la)
+            # block (l, k): k's own diagonal, or its d-th ancestor's entry
+            d = jj - anc_ptr[k]
+            blk = hh[nk] if d == 0 else hh[n_nodes + node_ptr[nk] + d - 1]
             # G = sum w (p - o_k)(p - o_l)^T; rows l, cols k: trace(G) I - G
             tt = (
                 sm[k, 0, 0] + sm[k, 1, 1] + sm[k, 2, 2]
@@ -147,10 +147,10 @@ def build_normal(m: tuple, s: tuple) -> None:
                         - ok0[i] * m1[j]
                         + w0 * ok0[i] * ol0[j]
                     )
-                    hh[rl + i, rk + j] += (tt if i == j else 0.0) - gij
+                    blk[i, j] += (tt if i == j else 0.0) - gij
         if parent[k] < 0:
             for j in range(3):
-                hh[tb + j, tb + j] += w0
+                hh[n_b + root_of[k], j, j] += w0
                 g[tb + j] += sr[k, j]
     # Prior: lambda I on every rotation block, gradient lambda W phi.
     lam = params[P_LAM_ROT]
@@ -159,11 +159,12 @@ def build_normal(m: tuple, s: tuple) -> None:
     eps = 1e-6
     for b in range(n_b):
         rb = 3 * (n_b - 1 - b)
+        hb = hh[n_b - 1 - b]
         d = qmul(qprev[b, 0], -qprev[b, 1], -qprev[b, 2], -qprev[b, 3],
                   q[b, 0], q[b, 1], q[b, 2], q[b, 3])  # fmt: skip
         px, py, pz = qlog(d[0], d[1], d[2], d[3])
         for j in range(3):
-            hh[rb + j, rb + j] += lam
+            hb[j, j] += lam
             g[rb + j] += lam * (wm[b, j, 0] * px + wm[b, j, 1] * py + wm[b, j, 2] * pz)
         if parent[b] < 0:
             continue
@@ -175,7 +176,7 @@ def build_normal(m: tuple, s: tuple) -> None:
             sg = -1.0 if r[0] < 0.0 else 1.0
             vx, vy, vz = qlog(sg * r[0], sg * r[1], sg * r[2], sg * r[3])
             for j in range(3):
-                hh[rb + j, rb + j] += wr
+                hb[j, j] += wr
                 wv = wm[b, j, 0] * vx + wm[b, j, 1] * vy + wm[b, j, 2] * vz
                 g[rb + j] += wr * wv
         if abs(r[0]) > m[19][b]:
@@ -220,12 +221,12 @@ def build_normal(m: tuple, s: tuple) -> None:
             for i in range(3):
                 g[rb + i] += u[i] * pen[k]
                 for j in range(3):
-                    hh[rb + i, rb + j] += u[i] * u[j]
+                    hb[i, j] += u[i] * u[j]
     lt = params[P_LAM_TRANS]
     for rr in range(t.shape[0]):
         tb = 3 * n_b + 3 * rr
         for j in range(3):
-            hh[tb + j, tb + j] += lt
+            hh[n_b + rr, j, j] += lt
             g[tb + j] += lt * (t[rr, j] - tprev[rr, j])
 
 
@@ -233,111 +234,99 @@ def build_normal(m: tuple, s: tuple) -> None:
 def solve_step(m: tuple, s: tuple, mu: float) -> float:
     # x = -(H + mu I)^-1 g by a Cholesky over 3 x 3 nodes in elimination order
     # (children first): a node's column only reaches its ancestors, so the factor
-    # has the kinematic tree's pattern and no fill-in. Returns max |x|.
+    # has the kinematic tree's pattern and no fill-in. H and L are stored as blocks
+    # (build_normal): block k is node k's diagonal, block n_nodes + p the entry p of
+    # node_idx (rows: the ancestor node, columns: the node). The ancestors of a node's
+    # ancestor a_p are the node's own entries after p, so the block (a_p, a_q), p > q,
+    # is entry p - q - 1 of a_q. Returns max |x|.
     node_ptr, node_idx = m[16], m[17]
     hh, ll, g, x = s[21], s[22], s[23], s[24]
     n_nodes = node_ptr.shape[0] - 1
-    # copy the lower blocks the factorization touches
-    for k in range(n_nodes):
-        rk = 3 * k
+    for e in range(hh.shape[0]):
         for i in range(3):
-            for j in range(i + 1):
-                ll[rk + i, rk + j] = hh[rk + i, rk + j]
-            ll[rk + i, rk + i] += mu
-        for p in range(node_ptr[k], node_ptr[k + 1]):
-            ra = 3 * node_idx[p]
-            for i in range(3):
-                for j in range(3):
-                    ll[ra + i, rk + j] = hh[ra + i, rk + j]
+            for j in range(3):
+                ll[e, i, j] = hh[e, i, j]
     for k in range(n_nodes):
-        rk = 3 * k
+        for i in range(3):
+            ll[k, i, i] += mu
+    for k in range(n_nodes):
+        dk = ll[k]
         # 3 x 3 Cholesky of the diagonal block
-        a00 = ll[rk, rk]
+        a00 = dk[0, 0]
         l00 = math.sqrt(a00 if a00 > 1e-300 else 1e-300)
-        l10 = ll[rk + 1, rk] / l00
-        l20 = ll[rk + 2, rk] / l00
-        a11 = ll[rk + 1, rk + 1] - l10 * l10
+        l10 = dk[1, 0] / l00
+        l20 = dk[2, 0] / l00
+        a11 = dk[1, 1] - l10 * l10
         l11 = math.sqrt(a11 if a11 > 1e-300 else 1e-300)
-        l21 = (ll[rk + 2, rk + 1] - l20 * l10) / l11
-        a22 = ll[rk + 2, rk + 2] - l20 * l20 - l21 * l21
+        l21 = (dk[2, 1] - l20 * l10) / l11
+        a22 = dk[2, 2] - l20 * l20 - l21 * l21
         l22 = math.sqrt(a22 if a22 > 1e-300 else 1e-300)
-        ll[rk, rk], ll[rk + 1, rk], ll[rk + 2, rk] = l00, l10, l20
-        ll[rk + 1, rk + 1], ll[rk + 2, rk + 1], ll[rk + 2, rk + 2] = l11, l21, l22
-        ll[rk, rk + 1] = 0.0
-        ll[rk, rk + 2] = 0.0
-        ll[rk + 1, rk + 2] = 0.0
+        dk[0, 0], dk[1, 0], dk[2, 0] = l00, l10, l20
+        dk[1, 1], dk[2, 1], dk[2, 2] = l11, l21, l22
+        dk[0, 1] = 0.0
+        dk[0, 2] = 0.0
+        dk[1, 2] = 0.0
         p0, p1 = node_ptr[k], node_ptr[k + 1]
         # L_ak = A_ak L_kk^-T (forward substitution along each row)
         for p in range(p0, p1):
-            ra = 3 * node_idx[p]
+            bp = ll[n_nodes + p]
             for i in range(3):
-                y0 = ll[ra + i, rk] / l00
-                y1 = (ll[ra + i, rk + 1] - l10 * y0) / l11
-                y2 = (ll[ra + i, rk + 2] - l20 * y0 - l21 * y1) / l22
-                ll[ra + i, rk] = y0
-                ll[ra + i, rk + 1] = y1
-                ll[ra + i, rk + 2] = y2
+                y0 = bp[i, 0] / l00
+                y1 = (bp[i, 1] - l10 * y0) / l11
+                y2 = (bp[i, 2] - l20 * y0 - l21 * y1) / l22
+                bp[i, 0] = y0
+                bp[i, 1] = y1
+                bp[i, 2] = y2
         # A_ab -= L_ak L_bk^T for ancestors b <= a
         for p in range(p0, p1):
-            ra = 3 * node_idx[p]
-            for p2 in range(p0, p + 1):
-                rb = 3 * node_idx[p2]
-                diag = p2 == p
-                for i in range(3):
-                    ui0, ui1, ui2 = (
-                        ll[ra + i, rk],
-                        ll[ra + i, rk + 1],
-                        ll[ra + i, rk + 2],
+            ep = n_nodes + p
+            a = node_idx[p]
+            for i in range(3):
+                u0, u1, u2 = ll[ep, i, 0], ll[ep, i, 1], ll[ep, i, 2]
+                for j in range(i + 1):
+                    ll[a, i, j] -= (
+                        u0 * ll[ep, j, 0] + u1 * ll[ep, j, 1] + u2 * ll[ep, j, 2]
                     )
+            for q in range(p0, p):
+                eq = n_nodes + q
+                et = n_nodes + node_ptr[node_idx[q]] + (p - q - 1)
+                for i in range(3):
+                    u0, u1, u2 = ll[ep, i, 0], ll[ep, i, 1], ll[ep, i, 2]
                     for j in range(3):
-                        if diag and j > i:
-                            break
-                        ll[ra + i, rb + j] -= (
-                            ui0 * ll[rb + j, rk]
-                            + ui1 * ll[rb + j, rk + 1]
-                            + ui2 * ll[rb + j, rk + 2]
+                        ll[et, i, j] -= (
+                            u0 * ll[eq, j, 0] + u1 * ll[eq, j, 1] + u2 * ll[eq, j, 2]
                         )
     for e in range(g.shape[0]):
         x[e] = -g[e]
     # forward: L y = b
     for k in range(n_nodes):
         rk = 3 * k
-        y0 = x[rk] / ll[rk, rk]
-        y1 = (x[rk + 1] - ll[rk + 1, rk] * y0) / ll[rk + 1, rk + 1]
-        y2 = (x[rk + 2] - ll[rk + 2, rk] * y0 - ll[rk + 2, rk + 1] * y1) / ll[
-            rk + 2, rk + 2
-        ]
+        dk = ll[k]
+        y0 = x[rk] / dk[0, 0]
+        y1 = (x[rk + 1] - dk[1, 0] * y0) / dk[1, 1]
+        y2 = (x[rk + 2] - dk[2, 0] * y0 - dk[2, 1] * y1) / dk[2, 2]
         x[rk], x[rk + 1], x[rk + 2] = y0, y1, y2
         for p in range(node_ptr[k], node_ptr[k + 1]):
+            bp = ll[n_nodes + p]
             ra = 3 * node_idx[p]
             for i in range(3):
-                x[ra + i] -= (
-                    ll[ra + i, rk] * y0
-                    + ll[ra + i, rk + 1] * y1
-                    + ll[ra + i, rk + 2] * y2
-                )
+                x[ra + i] -= bp[i, 0] * y0 + bp[i, 1] * y1 + bp[i, 2] * y2
     # backward: L^T x = y
     big = 0.0
     for k in range(n_nodes - 1, -1, -1):
         rk = 3 * k
+        dk = ll[k]
         c0, c1, c2 = x[rk], x[rk + 1], x[rk + 2]
         for p in range(node_ptr[k], node_ptr[k + 1]):
+            bp = ll[n_nodes + p]
             ra = 3 * node_idx[p]
             xa0, xa1, xa2 = x[ra], x[ra + 1], x[ra + 2]
-            c0 -= ll[ra, rk] * xa0 + ll[ra + 1, rk] * xa1 + ll[ra + 2, rk] * xa2
-            c1 -= (
-                ll[ra, rk + 1] * xa0
-                + ll[ra + 1, rk + 1] * xa1
-                + ll[ra + 2, rk + 1] * xa2
-            )
-            c2 -= (
-                ll[ra, rk + 2] * xa0
-                + ll[ra + 1, rk + 2] * xa1
-                + ll[ra + 2, rk + 2] * xa2
-            )
-        x2 = c2 / ll[rk + 2, rk + 2]
-        x1 = (c1 - ll[rk + 2, rk + 1] * x2) / ll[rk + 1, rk + 1]
-        x0 = (c0 - ll[rk + 1, rk] * x1 - ll[rk + 2, rk] * x2) / ll[rk, rk]
+            c0 -= bp[0, 0] * xa0 + bp[1, 0] * xa1 + bp[2, 0] * xa2
+            c1 -= bp[0, 1] * xa0 + bp[1, 1] * xa1 + bp[2, 1] * xa2
+            c2 -= bp[0, 2] * xa0 + bp[1, 2] * xa1 + bp[2, 2] * xa2
+        x2 = c2 / dk[2, 2]
+        x1 = (c1 - dk[2, 1] * x2) / dk[1, 1]
+        x0 = (c0 - dk[1, 0] * x1 - dk[2, 0] * x2) / dk[0, 0]
         x[rk], x[rk + 1], x[rk + 2] = x0, x1, x2
         for v in (x0, x1, x2):
             if abs(v) > big:

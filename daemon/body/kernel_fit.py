@@ -115,9 +115,10 @@ def _lm(m: tuple, s: tuple, gated: bool, max_iter: int) -> tuple[int, bool, floa
         it += 1
         build_normal(m, s)
         dmax = 0.0
-        for e in range(hh.shape[0]):
-            if hh[e, e] > dmax:
-                dmax = hh[e, e]
+        for e in range(m[16].shape[0] - 1):  # the diagonal blocks (fit_normal)
+            for j in range(3):
+                if hh[e, j, j] > dmax:
+                    dmax = hh[e, j, j]
         accepted = False
         small = False
         step = 0.0

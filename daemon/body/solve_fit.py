@@ -259,6 +259,9 @@ class FitSolver:
         n_r = model.n_roots
         n_m = len(model.marker_names)
         n = model.n_dof
+        # H and its factor as 3 x 3 blocks: one per Cholesky node and one per
+        # (node, ancestor) entry (fit_normal.solve_step)
+        n_blk = len(model.node_ptr) - 1 + len(model.node_idx)
         self._params_arr = self.params.array()
         self._params_arr.flags.writeable = False
         self._model: tuple[np.ndarray, ...] = (
@@ -284,7 +287,7 @@ class FitSolver:
             z(n_b, 4), z(n_r, 3), z(n_b, 3, 3), z(n_b, 3), z(n_m, 3), z(1),
             z(n_m, 3), np.zeros(n_m, dtype=bool), z(n_m, 3), z(n_m),
             z(n_b), z(n_b, 3), z(n_b, 3, 3), z(n_b, 3), z(n_b, 3),
-            z(n, n), z(n, n), z(n), z(n), z(n_m), z(6), z(6), z(6, 3),
+            z(n_blk, 3, 3), z(n_blk, 3, 3), z(n), z(n), z(n_m), z(6), z(6), z(6, 3),
             z(n_b, 4), z(n_b, 4), z(n_b, 3, 3), z(n_b, 3), z(n_m, 3), z(n_m, 3),
             z(n_m), z(3), z(n_b, 4), z(n_r, 3),
             np.zeros(n_b, dtype=np.int64), np.zeros(n_b, dtype=np.int64),
