@@ -46,6 +46,7 @@ import math
 
 import numpy as np
 
+from retargetd.daemon.body import fit_pack
 from retargetd.daemon.body import kernel as body_kernel
 from retargetd.daemon.body.fit_normal import apply_step, build_normal, solve_step
 from retargetd.daemon.body.fit_terms import (
@@ -296,6 +297,31 @@ def _seed_from_construction(markers: np.ndarray, m: tuple, s: tuple, c: tuple) -
 @kernel
 def fit_one(
     markers: np.ndarray,  # (M_stream, 3) world metres, NaN = occluded
+    mf: np.ndarray,  # the model's float64 and int64 buffers (fit_pack)
+    mi: np.ndarray,
+    sf: np.ndarray,  # the state's float64, int64 and bool buffers
+    si: np.ndarray,
+    sb: np.ndarray,
+    lay: np.ndarray,  # (fit_pack.N_ROWS, 4) the layout
+    c: tuple,  # the construction kernel's (plan, state, output) plain tuples
+    of: np.ndarray,  # the pose's float64, float32, uint8 and bool buffers
+    of4: np.ndarray,
+    ou1: np.ndarray,
+    ob: np.ndarray,
+) -> int:
+    """Fit one frame from packed buffers (:mod:`fit_pack`: the live call, whose
+    dispatch unboxes 13 arguments instead of 90); returns the bones held."""
+    m = fit_pack.model_views(mf, mi, lay)
+    s = fit_pack.state_views(sf, si, sb, lay)
+    o = fit_pack.out_views(of, of4, ou1, ob, lay)
+    return fit_one_t(
+        markers, m, s, c, o[0], o[1], o[2], o[3], o[4], o[5], o[6], o[7], o[8], o[9]
+    )
+
+
+@kernel
+def fit_one_t(
+    markers: np.ndarray,  # (M_stream, 3) world metres, NaN = occluded
     m: tuple,  # the model (solve_fit.FitSolver._model)
     s: tuple,  # state and scratch (solve_fit.FitSolver._state)
     c: tuple,  # the construction kernel's (plan, state, output) plain tuples
@@ -507,10 +533,10 @@ def fit_many(
     out_rejected: np.ndarray,  # (T, Mr)
     out_stats: np.ndarray,  # (T, N_STATS)
 ) -> int:
-    """Fit every frame of a take in order (the same code as :func:`fit_one`)."""
+    """Fit every frame of a take in order (the same code as :func:`fit_one_t`)."""
     held = 0
     for f in range(markers.shape[0]):
-        held += fit_one(
+        held += fit_one_t(
             markers[f], m, s, c, out_joints[f], out_wfb[f], out_pfb[f],
             out_rfb[f], out_root[f], out_quality[f], out_flags[f], out_resid[f],
             out_rejected[f], out_stats[f],

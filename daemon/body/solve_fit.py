@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from retargetd.daemon.body import fit_pack
 from retargetd.daemon.body import fit_terms as ft
 from retargetd.daemon.body import kernel_fit as kf
 from retargetd.daemon.body.calibration import Calibration, calibrate
@@ -169,6 +170,9 @@ class FitPose(BodyPose):
     marker_residual: F64Array = field(default_factory=_empty)
     marker_rejected: np.ndarray = field(default_factory=_empty)
     stats: F64Array = field(default_factory=_empty)
+    #: The flat float64, float32, uint8 and bool buffers the fields are views of,
+    #: when :meth:`FitSolver.new_pose` made them (the packed call, ``fit_pack``).
+    fit_buffers: tuple[np.ndarray, ...] | None = None
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -264,7 +268,7 @@ class FitSolver:
         n_blk = len(model.node_ptr) - 1 + len(model.node_idx)
         self._params_arr = self.params.array()
         self._params_arr.flags.writeable = False
-        self._model: tuple[np.ndarray, ...] = (
+        model_arrays = (
             model.bone_parent, model.bone_root, model.off_parent, model.rest_pfb,
             con.marker_cols, model.marker_bone, model.marker_local,
             model.marker_weight, model.joint_bone, model.joint_local,
@@ -272,18 +276,17 @@ class FitSolver:
             model.anc_ptr, model.anc_idx, model.node_ptr, model.node_idx,
             self._params_arr, model.penalty_cos, model.twist_lock, model.rest_pull,
         )  # fmt: skip
+        # packed (fit_pack): the kernel gets one buffer per dtype; self._model keeps
+        # the same memory as a tuple of views (for fit_many and hand-made poses)
+        mbuf, mrows, self._model = fit_pack.pack(model_arrays, fit_pack.M_KINDS)
+        self._mf, self._mi = mbuf["f8"], mbuf["i8"]
 
         def z(*shape: int) -> np.ndarray:
             return np.zeros(shape)
 
-        self._q = z(n_b, 4)
-        self._t = z(n_r, 3)
-        self._qprev = z(n_b, 4)
-        self._tprev = z(n_r, 3)
-        self._have = np.zeros(1, dtype=np.int64)
-        self._prev_out = z(n_b, 4)
-        self._state: tuple[np.ndarray, ...] = (
-            self._q, self._t, self._qprev, self._tprev, self._have, self._prev_out,
+        state_arrays = (
+            z(n_b, 4), z(n_r, 3), z(n_b, 4), z(n_r, 3), np.zeros(1, dtype=np.int64),
+            z(n_b, 4),
             z(n_b, 4), z(n_r, 3), z(n_b, 3, 3), z(n_b, 3), z(n_m, 3), z(1),
             z(n_m, 3), np.zeros(n_m, dtype=bool), z(n_m, 3), z(n_m),
             z(n_b), z(n_b, 3), z(n_b, 3, 3), z(n_b, 3), z(n_b, 3),
@@ -294,6 +297,14 @@ class FitSolver:
             z(n_b, 4), z(n_r, 3), z(n_b, 4), z(n_r, 3),
             np.zeros(n_m, dtype=bool), np.zeros(n_m, dtype=bool), z(n_m, 3), z(n_m),
         )  # fmt: skip
+        sbuf, srows, self._state = fit_pack.pack(state_arrays, fit_pack.S_KINDS)
+        self._sf, self._si, self._sb = sbuf["f8"], sbuf["i8"], sbuf["b1"]
+        self._q, self._t, self._qprev, self._tprev, self._have, self._prev_out = (
+            self._state[:6]
+        )
+        # the outputs' rows: every pose of this solver has the same layout
+        _, orows, _ = fit_pack.pack(self._out_arrays(), fit_pack.O_KINDS)
+        self._layout = np.ascontiguousarray(np.concatenate([mrows, srows, orows]))
         self._gate_age = self._state[48]
         self._lm_scalars = self._state[36]  # gate, linear solves, damping carried
         self._con_pose = con.new_pose()
@@ -316,21 +327,32 @@ class FitSolver:
         self._gate_age[:] = math.inf  # no marker has a gate reference yet
         self._lm_scalars[2] = 0.0
 
-    def new_pose(self) -> FitPose:
-        """Allocate the buffers of one frame's output (once per stream)."""
+    def _out_arrays(self) -> tuple[np.ndarray, ...]:
         n_b = len(self.bone_names)
         n_m = len(self.marker_names)
+        return (
+            np.zeros((len(self.joint_names), 3)), np.zeros((n_b, 4)),
+            np.zeros((n_b, 4)), np.zeros((n_b, 4)), np.zeros(3),
+            np.zeros(n_b, dtype=np.float32), np.zeros(n_b, dtype=np.uint8),
+            np.zeros(n_m), np.zeros(n_m, dtype=bool), np.zeros(ft.N_STATS),
+        )  # fmt: skip
+
+    def new_pose(self) -> FitPose:
+        """Allocate the buffers of one frame's output (once per stream): the fields
+        are views of four flat buffers (``fit_buffers``, the packed call)."""
+        bufs, _, v = fit_pack.pack(self._out_arrays(), fit_pack.O_KINDS)
         return FitPose(
-            joint_centres=np.zeros((len(self.joint_names), 3)),
-            world_from_bone_quat=np.zeros((n_b, 4)),
-            parent_from_bone_quat=np.zeros((n_b, 4)),
-            rest_from_bone_quat=np.zeros((n_b, 4)),
-            root_pos=np.zeros(3),
-            bone_quality=np.zeros(n_b, dtype=np.float32),
-            bone_flags=np.zeros(n_b, dtype=np.uint8),
-            marker_residual=np.zeros(n_m),
-            marker_rejected=np.zeros(n_m, dtype=bool),
-            stats=np.zeros(ft.N_STATS),
+            joint_centres=v[0],
+            world_from_bone_quat=v[1],
+            parent_from_bone_quat=v[2],
+            rest_from_bone_quat=v[3],
+            root_pos=v[4],
+            bone_quality=v[5],
+            bone_flags=v[6],
+            marker_residual=v[7],
+            marker_rejected=v[8],
+            stats=v[9],
+            fit_buffers=(bufs["f8"], bufs["f4"], bufs["u1"], bufs["b1"]),
         )
 
     def solve_frame(self, markers_world: F64Array, out: FitPose) -> FitPose:
@@ -344,13 +366,19 @@ class FitSolver:
         Returns:
             ``out``.
         """
-        out.n_held = kf.fit_one(
-            markers_world, self._model, self._state, self._con, out.joint_centres,
-            out.world_from_bone_quat, out.parent_from_bone_quat,
-            out.rest_from_bone_quat, out.root_pos,
-            out.bone_quality, out.bone_flags, out.marker_residual,
-            out.marker_rejected, out.stats,
-        )  # fmt: skip
+        fb = out.fit_buffers
+        if fb is not None:
+            out.n_held = kf.fit_one(
+                markers_world, self._mf, self._mi, self._sf, self._si, self._sb,
+                self._layout, self._con, fb[0], fb[1], fb[2], fb[3],
+            )  # fmt: skip
+        else:  # a FitPose made by hand: its arrays one by one (a slower dispatch)
+            out.n_held = kf.fit_one_t(
+                markers_world, self._model, self._state, self._con,
+                out.joint_centres, out.world_from_bone_quat, out.parent_from_bone_quat,
+                out.rest_from_bone_quat, out.root_pos, out.bone_quality,
+                out.bone_flags, out.marker_residual, out.marker_rejected, out.stats,
+            )  # fmt: skip
         out.frame_flags = FRAME_RESEEDED if out.stats[ft.S_RESEEDED] else 0
         # Rig markers not seen this frame (their residual is NaN): the loop counts
         # them as occluded samples.
