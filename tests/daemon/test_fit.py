@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 
 from retargetd.daemon import rotations as rot
+from retargetd.daemon.body import fit_pack
 from retargetd.daemon.body.calibration import Calibration, calibrate, match_markers
 from retargetd.daemon.body.fit_model import (
     FitOptions,
@@ -30,6 +31,7 @@ from retargetd.daemon.body.solve import BodySolver
 from retargetd.daemon.body.solve_fit import (
     FLAG_HELD,
     FitParams,
+    FitPose,
     FitSolve,
     FitSolver,
     warm_up,
@@ -501,9 +503,10 @@ def test_one_frame_equals_batch_and_allocates_nothing() -> None:
     kept, top = end - start, peak - start
     print(f"\nsolve_frame: {kept} bytes kept, peak {top} bytes over the calls")
     assert kept < 1024
-    # the peak is numba's boxing of one call's ~100 arguments (5.2 KB here); a
-    # per-frame (Mr, 3) float64 array more (1.7 KB) would cross the line
-    assert top < 6400
+    # the peak is numba's boxing of one call's arguments: 1.1 KB for the packed
+    # call's 13 (fit_pack), 5.2 KB when it took ~100 arrays; a per-frame (Mr, 3)
+    # float64 array more (1.7 KB) would cross the line
+    assert top < 2600
     # one frame at a time is the batch, bit for bit
     solver.reset()
     for f in range(take.n_frames):
@@ -512,6 +515,57 @@ def test_one_frame_equals_batch_and_allocates_nothing() -> None:
     np.testing.assert_array_equal(wfb, batch.world_from_bone_quat)
     np.testing.assert_array_equal(pose.root_pos, batch.root_pos[-1])
     np.testing.assert_array_equal(pose.marker_residual, batch.marker_residual[-1])
+
+
+def test_packed_call_equals_the_tuple_call() -> None:
+    """The live call (fit_pack's flat buffers) and a hand-made pose's call (the
+    arrays one by one) run the same kernel on the same memory: equal bit for bit."""
+    rig = load_rig(EXACT_RIG)
+    take = _exact_take(noise_mm=0.5, dropout=0.05, seconds=1.0)
+    base = take.markers_world[take.base_pose_frames]
+    cal = calibrate(rig, base, take.labels)
+    solver = FitSolver(
+        rig, cal, take.labels, joint_limits=JOINT_LIMITS_DEG,
+        segment_kind=SEGMENT_KIND, base_positions=base,
+    )  # fmt: skip
+    packed = solver.new_pose()
+    assert packed.fit_buffers is not None
+    by_hand = FitPose(
+        **{
+            name: getattr(packed, name).copy()
+            for name in (
+                "joint_centres", "world_from_bone_quat", "parent_from_bone_quat",
+                "rest_from_bone_quat", "root_pos", "bone_quality", "bone_flags",
+                "marker_residual", "marker_rejected", "stats",
+            )
+        }
+    )  # fmt: skip
+    assert by_hand.fit_buffers is None
+    got = {
+        k: np.zeros((take.n_frames, *packed.world_from_bone_quat.shape)) for k in "ab"
+    }
+    for key, pose in (("a", packed), ("b", by_hand)):
+        solver.reset()
+        for f in range(take.n_frames):
+            solver.solve_frame(take.markers_world[f], pose)
+            got[key][f] = pose.world_from_bone_quat
+    np.testing.assert_array_equal(got["a"], got["b"])
+    np.testing.assert_array_equal(packed.marker_residual, by_hand.marker_residual)
+    np.testing.assert_array_equal(packed.stats, by_hand.stats)
+    assert np.isfinite(got["a"]).all() and np.abs(got["a"]).sum() > 0.0
+
+
+def test_pack_checks_the_kinds() -> None:
+    arrays = (np.arange(3, dtype=np.int64), np.ones((2, 4)), np.zeros(2, dtype=bool))
+    bufs, rows, views = fit_pack.pack(arrays, (("i8", 1), ("f8", 2), ("b1", 1)))
+    for a, v in zip(arrays, views, strict=True):
+        np.testing.assert_array_equal(a, v)
+        assert v.flags.c_contiguous and v.flags.writeable
+    assert rows.tolist() == [[0, 3, 1, 1], [0, 2, 4, 1], [0, 2, 1, 1]]
+    views[1][1, 2] = 7.0  # a view is the buffer's memory
+    assert bufs["f8"][6] == 7.0
+    with pytest.raises(ValueError, match="array 1"):
+        fit_pack.pack(arrays, (("i8", 1), ("f8", 1), ("b1", 1)))
 
 
 def _nrt_allocs() -> int:
