@@ -30,6 +30,13 @@ BONE_KEYS = ("dof", "axis", "stiffness_mm")
 #: ``body.rig_model.RIG_RANGES`` lists the same range.
 STIFFNESS_MAX_MM = 1000.0
 STIFFNESS_WHY = "0 = none; at most a hinge's stiffness, past which the joint is frozen"
+#: A marker's ``weight`` is a ratio of variances, the default marker's over this one's:
+#: at most (10 mm / 1 mm)^2, a marker at the optical noise floor (< 1 mm, Merriaux et
+#: al., Sensors 17(7):1591, 2017) against the low end of skin artefact on a limb
+#: (10-30 mm, Leardini et al., Gait Posture 21(2):212-225, 2005). OpenSim's IK setups
+#: use 10 (subject01_Setup_IK.xml); ``body.rig_model.RIG_RANGES`` lists the range.
+WEIGHT_MAX = 100.0
+WEIGHT_WHY = "0 = ignored; at most a noise-floor marker's against a skin-artefact one's"
 DOFS = ("ball", "hinge", "swing")
 
 _AXES = {"x": (1.0, 0.0, 0.0), "y": (0.0, 1.0, 0.0), "z": (0.0, 0.0, 1.0)}
@@ -118,8 +125,14 @@ def parse_fit_table(
         if seg is not None and seg not in bones:
             raise fail(f"{key}.segment", f"unknown bone {seg!r}")
         weight = spec.get("weight", 1.0)
-        if not _is_number(weight) or not math.isfinite(weight) or weight < 0.0:
-            raise fail(f"{key}.weight", f"expected a number >= 0: {weight!r}")
+        if not _is_number(weight):
+            raise fail(f"{key}.weight", f"expected a number: {weight!r}")
+        if not 0.0 <= weight <= WEIGHT_MAX:  # (NaN too)
+            raise fail(
+                f"{key}.weight",
+                f"{weight!r} is out of range: allowed [0, {WEIGHT_MAX:g}] "
+                f"({WEIGHT_WHY})",
+            )
         out_m[name] = MarkerFitOptions(segment=seg, weight=float(weight))
     out_b: dict[str, BoneFitOptions] = {}
     for name, spec in bones_t.items():
