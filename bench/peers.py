@@ -546,6 +546,95 @@ def opensim_runs(
     return runs, info
 
 
+#: gait2354 hinge -> (retargetd bone, OpenSim markers on the segment the axis is
+#: carried through: the bone's own segment, then the joint's other one as a check).
+OSIM_HINGES = {
+    "knee_{s}": ("{s}shank", ("Shank.Upper", "Shank.Front", "Shank.Rear"),
+                 ("Thigh.Upper", "Thigh.Front", "Thigh.Rear")),
+    "ankle_{s}": ("{s}foot", ("Heel", "Midfoot.Sup", "Midfoot.Lat"),
+                  ("Shank.Upper", "Shank.Front", "Shank.Rear")),
+}  # fmt: skip
+
+
+def _marker_frame(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """(3, 3) world_from_frame of three markers: +Y a -> b, +X towards c."""
+    y = (b - a) / np.linalg.norm(b - a)
+    x = (c - b) - y * ((c - b) @ y)
+    x /= np.linalg.norm(x)
+    return np.stack([x, y, np.cross(x, y)], axis=1)
+
+
+def hinge_axes() -> list[str]:
+    """The gait2354 knee and ankle axes in opensim-gait2354.toml's bones.
+
+    Each joint's first rotation axis (its coordinate's) is taken from
+    subject01_simbody.osim at the default pose into the frame of the model's markers on
+    one segment, then through the same markers in subject01_static.trc (medians) into
+    the bone as the construction builds it there (calibrated on that static). The
+    angle between that route and the one through the joint's other segment is printed
+    as a check (the static stands at the model's default pose when it is small).
+    """
+    import opensim as osim
+    from scipy.spatial.transform import Rotation
+
+    def vec(v: Any) -> np.ndarray:
+        return np.array([v.get(i) for i in range(3)])
+
+    def mat(r: Any) -> np.ndarray:
+        return np.array([[r.get(i, j) for j in range(3)] for i in range(3)])
+
+    osim.Logger.setLevelString("error")
+    static = load_take(OSIM_STATIC)
+    col = {n: i for i, n in enumerate(static.labels)}
+    rig = load_rig(RIG_OPENSIM)
+    meas = pelvis_measurements(
+        static.positions, static.labels, ("R.ASIS", "L.ASIS"), ("V.Sacral",)
+    )
+    cal = calibrate(rig, static.positions, static.labels, overrides=meas)
+    solved = BodySolver(rig, cal, static.labels).solve_take(static.positions)
+    lines = []
+    with in_temp_dir():
+        model = osim.Model(str(OSIM))
+        state = model.initSystem()
+        model.realizePosition(state)
+        markers = model.getMarkerSet()
+        for side in "rl":
+            for joint, (bone, own, other) in OSIM_HINGES.items():
+                j = model.getJointSet().get(joint.format(s=side))
+                axis = osim.CustomJoint.safeDownCast(j).getSpatialTransform()
+                axis = vec(axis.getTransformAxis(0).get_axis())
+                axis_g = mat(j.getParentFrame().getTransformInGround(state).R()) @ axis
+                routes = []
+                for names in (own, other):
+                    full = [f"{side.upper()}.{n}" for n in names]
+                    in_model = _marker_frame(
+                        *[vec(markers.get(n).getLocationInGround(state)) for n in full]
+                    )
+                    in_static = _marker_frame(
+                        *[
+                            np.nanmedian(static.positions[:, col[n]], axis=0)
+                            for n in full
+                        ]
+                    )
+                    routes.append(in_static @ (in_model.T @ axis_g))
+                b = solved.bone_names.index(bone.format(s=side))
+                q = np.median(solved.world_from_bone_quat[:, b], axis=0)
+                world_from_bone = Rotation.from_quat(
+                    q / np.linalg.norm(q), scalar_first=True
+                ).as_matrix()
+                in_bone = world_from_bone.T @ routes[0]
+                check = np.degrees(np.arccos(min(1.0, abs(routes[0] @ routes[1]))))
+                off_x = np.degrees(np.arccos(min(1.0, abs(in_bone[0]))))
+                model_axis = np.round(axis, 3).tolist()
+                lines.append(
+                    f"{joint.format(s=side)} (model axis {model_axis}): "
+                    f"[fit.bones.{bone.format(s=side)}] axis = "
+                    f"{np.round(in_bone, 3).tolist()}  ({off_x:.1f} deg from +X; "
+                    f"other segment's route {check:.1f} deg away)"
+                )
+    return lines
+
+
 # ---- report -------------------------------------------------------------------------
 
 
@@ -660,10 +749,19 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--json", metavar="OUT.json")
     parser.add_argument("--plot", metavar="OUT.png")
+    parser.add_argument(
+        "--hinge-axes",
+        action="store_true",
+        help="print the gait2354 knee and ankle axes in opensim-gait2354.toml's bones "
+        "and exit",
+    )
     args = parser.parse_args(argv)
     if not PEERS.is_dir():
         print(f"peers data not found at {PEERS}")
         return 2
+    if args.hinge_axes:
+        print("\n".join(hinge_axes()))
+        return 0
     warm_up()
     warm_up_fit()
     print(f"load before: {load_average()} ({os.cpu_count()} cores)")

@@ -37,6 +37,9 @@ STIFFNESS_WHY = "0 = none; at most a hinge's stiffness, past which the joint is 
 #: use 10 (subject01_Setup_IK.xml); ``body.rig_model.RIG_RANGES`` lists the range.
 WEIGHT_MAX = 100.0
 WEIGHT_WHY = "0 = ignored; at most a noise-floor marker's against a skin-artefact one's"
+#: A hinge's ``axis = [x, y, z]`` is a direction: each component of a unit vector lies
+#: in [-1, 1] (the parser normalizes what rounding leaves).
+AXIS_WHY = "a direction's components, as of a unit vector (normalized on reading)"
 DOFS = ("ball", "hinge", "swing")
 
 _AXES = {"x": (1.0, 0.0, 0.0), "y": (0.0, 1.0, 0.0), "z": (0.0, 0.0, 1.0)}
@@ -158,10 +161,17 @@ def parse_fit_table(
         elif (
             isinstance(axis_v, list)
             and len(axis_v) == 3
-            and all(_is_number(v) and math.isfinite(v) for v in axis_v)
-            and math.hypot(*axis_v) > 0.0
+            and all(_is_number(v) for v in axis_v)
         ):
+            for i, v in enumerate(axis_v):
+                if not -1.0 <= v <= 1.0:  # (NaN too)
+                    raise fail(
+                        f"{key}.axis[{i}]",
+                        f"{v!r} is out of range: allowed [-1, 1] ({AXIS_WHY})",
+                    )
             n = math.hypot(*axis_v)
+            if n == 0.0:
+                raise fail(f"{key}.axis", f"a zero vector is no direction: {axis_v!r}")
             axis = (axis_v[0] / n, axis_v[1] / n, axis_v[2] / n)
         else:
             raise fail(f"{key}.axis", f"expected x, y, z or [x, y, z]: {axis_v!r}")

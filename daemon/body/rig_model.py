@@ -10,6 +10,7 @@ import math
 from dataclasses import dataclass, field
 
 from retargetd.daemon.body.rig_fit import (
+    AXIS_WHY,
     STIFFNESS_MAX_MM,
     STIFFNESS_WHY,
     WEIGHT_MAX,
@@ -112,6 +113,8 @@ RIG_RANGES: dict[str, NumberRange] = {
     # A marker's residual weight, a ratio of variances (checked in body.rig_fit, whose
     # WEIGHT_MAX cites its bound).
     "fit.markers.*.weight": NumberRange(0.0, WEIGHT_MAX, WEIGHT_WHY),
+    # A hinge's axis as [x, y, z] (checked in body.rig_fit).
+    "fit.bones.*.axis": NumberRange(-1.0, 1.0, AXIS_WHY),
 }
 
 
