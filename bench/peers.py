@@ -4,6 +4,7 @@ Run from the repository root (optional extra ``peers``: ``pip install -e '.[peer
 
     python bench/peers.py [--frames a:b] [--method construction|fit|all]
                           [--json OUT.json] [--plot OUT.png]
+    python bench/peers.py --hinge-axes   # gait2354's knee / ankle axes in the rig
 
 Two problems, each solved frame by frame as a live loop would call the solver (the
 previous frame's answer kept as the start of the next where the solver has one):
@@ -36,8 +37,8 @@ with each retargetd solver.
 Marker residual RMS, per solver, over every frame after the first and over the
 **peer's markers** (like for like): biorbd's 75 model markers; the 31 markers of
 OpenSim's IK tasks (``subject01_Setup_IK.xml``; not the temples, knee and ankle
-markers). Every sample where the marker was seen counts, a marker the fit's gate
-rejected included:
+markers; also without the two acromions, :data:`OSIM_ACROMIONS`). Every sample where
+the marker was seen counts, a marker the fit's gate rejected included:
 
 * biorbd: distance of each model marker, placed by the solved q, to the measured one;
 * OpenSim: ``computeCurrentMarkerErrors`` (the markers in use by the IK tasks);
