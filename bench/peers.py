@@ -4,6 +4,7 @@ Run from the repository root (optional extra ``peers``: ``pip install -e '.[peer
 
     python bench/peers.py [--frames a:b] [--method construction|fit|all]
                           [--json OUT.json] [--plot OUT.png]
+    python bench/peers.py --hinge-axes   # gait2354's knee / ankle axes in the rig
 
 Two problems, each solved frame by frame as a live loop would call the solver (the
 previous frame's answer kept as the start of the next where the solver has one):
@@ -23,30 +24,42 @@ previous frame's answer kept as the start of the next where the solver has one):
   ``daemon/body/rigs/opensim-gait2354.toml`` calibrated on
   ``opensim-core/subject01_static.trc``.
 
-retargetd: ``BodySolver.solve_frame`` (``--method construction``) and, when
-``retargetd.daemon.body.solve_fit`` exists, its solver with the same interface
-(``--method fit``). Timing: ``time.perf_counter_ns`` around each solver call only; the
-first frame is reported apart (filter start, assembly, numba cache load is done before
-by a warm-up frame). Per solver: median and p99 per frame over the frames after the
-first, the ratio of its median to retargetd's construction median (same run), the marker
-residual RMS and, per joint centre, the median distance to retargetd's.
+retargetd: ``BodySolver.solve_frame`` (``--method construction``) and the rigid-skeleton
+fit ``FitSolver.solve_frame`` (``--method fit``; built as ``bench/bench_fit.py`` builds
+it: the validator's joint limits and segment kinds for its soft limit penalty, the
+rig's ``[fit]`` tables). Timing: ``time.perf_counter_ns`` around each solver call only;
+the first frame is reported apart (filter start, assembly; numba's cache load is done
+before by a warm-up frame). Per solver: median and p99 per frame over the frames after
+the first, the ratio of its median to each retargetd solver's median (same run), the
+marker residual RMS and, per joint centre and per corresponding segment, the agreement
+with each retargetd solver.
 
-Marker residual RMS, per solver:
+Marker residual RMS, per solver, over every frame after the first and over the
+**peer's markers** (like for like): biorbd's 75 model markers; the 31 markers of
+OpenSim's IK tasks (``subject01_Setup_IK.xml``; not the temples, knee and ankle
+markers; also without the two acromions, :data:`OSIM_ACROMIONS`). Every sample where
+the marker was seen counts, a marker the fit's gate rejected included:
 
-* biorbd: distance of each of the 75 model markers, placed by the solved q, to the
-  measured marker (every frame after the first);
+* biorbd: distance of each model marker, placed by the solved q, to the measured one;
 * OpenSim: ``computeCurrentMarkerErrors`` (the markers in use by the IK tasks);
-* retargetd (construction): the construction puts bones through points built from the
+* retargetd fit: its own distance from the fitted model to the measured marker
+  (``FitPose.marker_residual``), on the same markers;
+* retargetd construction: the construction puts bones through points built from the
   markers and has no model that predicts every marker, so its residual is the distance
   of each marker of a rigid segment (``[segments]``) to where the segment's calibrated
   layout, fitted rigidly (Kabsch) to that frame's markers of the segment, places it:
   how far the markers are from moving as the rigid bodies the solve assumes. Markers
-  in no segment (bioptim: RA LA RTT2 LTT2) are used as measured and not counted.
-  Three-marker segments (every OpenSim one) fit nearly exactly, so this is no
-  like-for-like comparison with a peer's residual, which includes its joints'
-  constraints; joint-centre agreement is the comparison that means the same thing;
-* retargetd (fit, or any solver whose pose has ``marker_residual``): its own
-  per-rig-marker distance from the fitted model to the measured marker, where seen.
+  in no segment are not counted (bioptim: RA LA RTT2 LTT2; OpenSim: the sternum and
+  acromions), and three-marker segments (every OpenSim one) fit nearly exactly, so
+  this is **not** like for like; the fit's residual is.
+
+Segment axes: for each retargetd bone with a corresponding peer body (biorbd and
+OpenSim segment frames, listed in :data:`BIORBD_SEGMENTS`, :data:`OSIM_SEGMENTS`), the
+rotation between the two frames per frame, ``R_rel(t) = R_ours(t)^T R_peer(t)``. The
+frames are defined differently (a bone's +Y runs from its origin to its aim, the
+peer's from its generic model), so the mean of ``R_rel`` is a convention, printed as
+``offset``; what says whether the two solvers turn the segment alike is the angle of
+each ``R_rel(t)`` from that mean (median and p95, degrees).
 
 Joint centres compared: biorbd segment origins (femur = hip, tibia = knee, talus =
 ankle, humerus = shoulder, ulna = elbow, hand = wrist); OpenSim joint child frames
@@ -60,9 +73,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import importlib
-import importlib.util
-import inspect
 import json
 import os
 import sys
@@ -75,10 +85,14 @@ from typing import Any
 
 import numpy as np
 
-from retargetd.daemon.body.calibration import Calibration, calibrate
+from retargetd.daemon.body.calibration import Calibration, calibrate, match_markers
 from retargetd.daemon.body.rig import Rig, load_rig
 from retargetd.daemon.body.solve import BodySolver, warm_up
+from retargetd.daemon.body.solve_fit import FitSolver
+from retargetd.daemon.body.solve_fit import warm_up as warm_up_fit
 from retargetd.daemon.cli.args import parse_frames
+from retargetd.daemon.validate.limits import JOINT_LIMITS_DEG
+from retargetd.daemon.validate.model import SEGMENT_KIND
 from retargetd.replay.takes import load_take
 
 REPO = Path(__file__).resolve().parent.parent
@@ -108,6 +122,44 @@ BIORBD_CENTRES = {
 }
 #: OpenSim joint (child frame origin) -> retargetd joint name.
 OSIM_CENTRES = {"hip": "HJC", "knee": "KJC", "ankle": "AJC"}
+#: OpenSim's acromion markers: gait2354 carries them on its rigid torso, the
+#: opensim-gait2354 rig's fit on clavicles (swing joints): the residual is also given
+#: without them, where both models put the markers on the same segments.
+OSIM_ACROMIONS = ("R.Acromium", "L.Acromium")
+#: retargetd bone (bioptim-wholebody.toml) -> biorbd segment whose frame it is
+#: compared with; ``{s}`` is the side (r, l). The forearm's roll comes from the
+#: styloids, so it is the radius (which carries pronation), not the ulna.
+BIORBD_SEGMENTS = {
+    "pelvis": "pelvis",
+    "thorax": "torso",
+    "head": "head_and_neck",
+    "{s}thigh": "femur_{s}",
+    "{s}shank": "tibia_{s}",
+    "{s}foot": "calcn_{s}",
+    "{s}toes": "toes_{s}",
+    "{s}upperarm": "humerus_{s}",
+    "{s}forearm": "radius_{s}",
+    "{s}hand": "hand_{s}",
+}
+#: retargetd bone (opensim-gait2354.toml) -> OpenSim body (gait2354 has no head or
+#: arms: its torso carries them).
+OSIM_SEGMENTS = {
+    "pelvis": "pelvis",
+    "torso": "torso",
+    "{s}thigh": "femur_{s}",
+    "{s}shank": "tibia_{s}",
+    "{s}foot": "calcn_{s}",
+    "{s}toes": "toes_{s}",
+}
+
+
+def sided(table: dict[str, str]) -> dict[str, str]:
+    """Expand ``{s}`` into the two sides (r, l)."""
+    out = {}
+    for ours, peer in table.items():
+        for side in ("r", "l") if "{s}" in ours else ("",):
+            out[ours.format(s=side)] = peer.format(s=side)
+    return out
 
 
 @dataclass
@@ -117,21 +169,45 @@ class Run:
     name: str
     problem: str
     ns: list[int] = field(default_factory=list)  # per-frame solve time, ns
-    residual_m: list[float] = field(default_factory=list)  # per marker-sample, m
+    # take label -> (T,) m, distance per frame (NaN: not seen, or no residual)
+    residual_m: dict[str, np.ndarray] = field(default_factory=dict)
     centres: dict[str, np.ndarray] = field(default_factory=dict)  # joint -> (T, 3) m
+    # segment (the retargetd bone it corresponds to) -> (T, 3, 3) world_from_segment
+    frames: dict[str, np.ndarray] = field(default_factory=dict)
 
-    def stats(self) -> dict[str, float]:
-        """first / median / p99 per frame (ms) and the residual RMS (mm)."""
+    def residuals(self, markers: tuple[str, ...] | None = None) -> np.ndarray:
+        """The finite residual samples (m) of ``markers`` (all when None), frames
+        after the first."""
+        parts = [
+            r[1:]
+            for name, r in self.residual_m.items()
+            if markers is None or name in markers
+        ]
+        res = np.concatenate(parts) if parts else np.zeros(0)
+        return res[np.isfinite(res)]
+
+    def stats(self, markers: tuple[str, ...] | None = None) -> dict[str, float]:
+        """first / median / p99 per frame (ms) and the residual RMS (mm) over
+        ``markers``."""
         steady = np.asarray(self.ns[1:], dtype=np.float64) / 1e6
-        res = np.asarray(self.residual_m)
-        res = res[np.isfinite(res)]
+        res = self.residuals(markers)
         return {
             "first_ms": self.ns[0] / 1e6,
             "median_ms": float(np.median(steady)),
             "p99_ms": float(np.percentile(steady, 99)),
             "residual_rms_mm": float(1000 * np.sqrt(np.mean(res**2))),
+            "residual_samples": int(res.size),
             "frames": len(self.ns),
         }
+
+    def marker_rms_mm(self) -> dict[str, float]:
+        """Per marker, its residual RMS (mm), frames after the first."""
+        out = {}
+        for name, r in self.residual_m.items():
+            r = r[1:][np.isfinite(r[1:])]
+            if r.size:
+                out[name] = float(1000 * np.sqrt(np.mean(r**2)))
+        return out
 
 
 @contextlib.contextmanager
@@ -174,37 +250,9 @@ def pelvis_measurements(
     }
 
 
-#: Where the fit solver lives (issue 14): the body layer, or the flat module it was
-#: drafted as; the first that exists is used.
-FIT_MODULES = ("retargetd.daemon.body.solve_fit", "retargetd.daemon.solve_fit")
-
-
-def fit_solver_class() -> Any | None:
-    """The fit solver (the first of :data:`FIT_MODULES` that exists), or None: its
-    ``FitSolver``, else its one class with ``solve_frame`` and ``new_pose``."""
-    for name in FIT_MODULES:
-        try:
-            found = importlib.util.find_spec(name) is not None
-        except ModuleNotFoundError:  # a parent package missing
-            found = False
-        if not found:
-            continue
-        mod = importlib.import_module(name)
-        if hasattr(mod, "FitSolver"):
-            return mod.FitSolver
-        for obj in vars(mod).values():
-            if (
-                isinstance(obj, type)
-                and hasattr(obj, "solve_frame")
-                and hasattr(obj, "new_pose")
-            ):
-                return obj
-    return None
-
-
 def segment_residuals(
     cal: Calibration, col_of: dict[str, int], frame: np.ndarray
-) -> list[float]:
+) -> dict[str, float]:
     """Distance (m) of each seen marker of each rigid segment to its calibrated layout
     fitted rigidly (Kabsch) to the segment's seen markers in ``frame``.
 
@@ -212,8 +260,11 @@ def segment_residuals(
         cal: the calibration (its ``segment_layouts``).
         col_of: rig marker -> column of ``frame`` (absent: not in the take).
         frame: (M, 3) float64, metres, world; NaN rows occluded.
+
+    Returns:
+        rig marker -> distance, for the markers of segments with >= 3 seen.
     """
-    out: list[float] = []
+    out: dict[str, float] = {}
     for names, layout in cal.segment_layouts.values():
         pts = np.array(
             [frame[col_of[n]] if n in col_of else np.full(3, np.nan) for n in names]
@@ -227,53 +278,86 @@ def segment_residuals(
         d = np.sign(np.linalg.det(u @ vt))
         rot = u @ np.diag([1.0, 1.0, d]) @ vt  # layout -> frame, row vectors
         fitted = (a - ca) @ rot + cb
-        out.extend(np.linalg.norm(fitted - b, axis=1).tolist())
+        dist = np.linalg.norm(fitted - b, axis=1)
+        for n, di in zip(np.asarray(names)[ok], dist, strict=True):
+            out[str(n)] = float(di)
     return out
 
 
+def mat_from_quat(q: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) rotation matrices from (..., 4) unit quaternions (w, x, y, z)."""
+    from scipy.spatial.transform import Rotation
+
+    flat = Rotation.from_quat(q.reshape(-1, 4), scalar_first=True).as_matrix()
+    return flat.reshape(*q.shape[:-1], 3, 3)
+
+
+def make_solver(
+    kind: str,
+    rig: Rig,
+    cal: Calibration,
+    labels: tuple[str, ...],
+    base: tuple[np.ndarray, tuple[str, ...]],
+) -> BodySolver | FitSolver:
+    """The construction, or the fit built as ``bench/bench_fit.py`` builds it (the
+    validator's joint limits and segment kinds; ``base``: the base-pose frames
+    ((F, M0, 3) metres) and labels the calibration was made from)."""
+    if kind == "construction":
+        return BodySolver(rig, cal, labels)
+    return FitSolver(
+        rig,
+        cal,
+        labels,
+        base_positions=base[0],
+        base_labels=base[1],
+        joint_limits=JOINT_LIMITS_DEG,
+        segment_kind=SEGMENT_KIND,
+    )
+
+
 def run_retargetd(
-    name: str,
+    kind: str,
     problem: str,
     rig: Rig,
     cal: Calibration,
     take: Any,
     frames: slice,
-    solver_cls: Any,
     base: tuple[np.ndarray, tuple[str, ...]],
 ) -> Run:
-    """One retargetd solver over the frames, one ``solve_frame`` call per frame.
-
-    ``base``: the base-pose frames ((F, M0, 3) metres) and labels the calibration was
-    made from, for a solver that builds its model from them (the fit's
-    ``base_positions``, ``base_labels``)."""
-    from retargetd.daemon.body.calibration import match_markers
-
+    """One retargetd solver (``kind``: construction or fit) over the frames, one
+    ``solve_frame`` call per frame. Residuals are keyed by the take's labels."""
     cols = match_markers(rig, take.labels)
     col_of = {m: int(c) for m, c in zip(rig.marker_names, cols, strict=True) if c >= 0}
-    kwargs: dict[str, Any] = {}
-    if "base_positions" in inspect.signature(solver_cls).parameters:
-        kwargs = {"base_positions": base[0], "base_labels": base[1]}
-    solver = solver_cls(rig, cal, take.labels, **kwargs)
+    label_of = {m: take.labels[c] for m, c in col_of.items()}
+    solver = make_solver(kind, rig, cal, take.labels, base)
     pose = solver.new_pose()
     pos = np.ascontiguousarray(take.positions[frames], dtype=np.float64)
     solver.solve_frame(pos[0], pose)  # warm-up: the kernel loaded, then reset
     solver.reset()
-    run = Run(name, problem)
-    joints = np.zeros((pos.shape[0], len(solver.joint_names), 3))
+    run = Run(f"retargetd {kind}", problem)
+    n = pos.shape[0]
+    joints = np.zeros((n, len(solver.joint_names), 3))
+    wfb = np.zeros((n, len(solver.bone_names), 4))
+    res = {label_of[m]: np.full(n, np.nan) for m in col_of}
+    fit_markers = getattr(solver, "marker_names", None) if kind == "fit" else None
     clock = time.perf_counter_ns
-    for t in range(pos.shape[0]):
+    for t in range(n):
         t0 = clock()
         solver.solve_frame(pos[t], pose)
         run.ns.append(clock() - t0)
         joints[t] = pose.joint_centres
-        if t == 0:
-            continue
-        residual = getattr(pose, "marker_residual", None)
-        if residual is not None:  # the solver's own model residual per rig marker
-            run.residual_m.extend(residual[np.isfinite(residual)].tolist())
+        wfb[t] = pose.world_from_bone_quat
+        if fit_markers is not None:  # the fit's own residual per rig marker
+            for m, r in zip(fit_markers, pose.marker_residual, strict=True):
+                if m in label_of:
+                    res[label_of[m]][t] = r
         else:
-            run.residual_m.extend(segment_residuals(cal, col_of, pos[t]))
+            for m, r in segment_residuals(cal, col_of, pos[t]).items():
+                res[label_of[m]][t] = r
+    run.residual_m = res
     run.centres = {j: joints[:, k] for k, j in enumerate(solver.joint_names)}
+    mats = mat_from_quat(wfb)
+    run.frames = {b: mats[:, k] for k, b in enumerate(solver.bone_names)}
     return run
 
 
@@ -286,48 +370,8 @@ def retargetd_runs(
     method: str,
     base: tuple[np.ndarray, tuple[str, ...]],
 ) -> list[Run]:
-    runs = []
-    if method in ("construction", "all"):
-        runs.append(
-            run_retargetd(
-                "retargetd construction",
-                problem,
-                rig,
-                cal,
-                take,
-                frames,
-                BodySolver,
-                base,
-            )
-        )
-    if method in ("fit", "all"):
-        cls = fit_solver_class()
-        if cls is None:
-            if method == "fit":
-                raise SystemExit(f"--method fit: none of {FIT_MODULES} found")
-            print(f"(retargetd fit: none of {FIT_MODULES} present; skipped)")
-        elif method == "fit":
-            runs.append(
-                run_retargetd(
-                    "retargetd fit", problem, rig, cal, take, frames, cls, base
-                )
-            )
-        else:
-            # With --method all, a fit solver that fails (a module in progress) is
-            # reported and skipped: the construction and the peers still run.
-            try:
-                runs.append(
-                    run_retargetd(
-                        "retargetd fit", problem, rig, cal, take, frames, cls, base
-                    )
-                )
-            except Exception as exc:
-                first = str(exc).strip().splitlines()
-                print(
-                    f"(retargetd fit: {cls.__module__}.{cls.__name__} failed, skipped: "
-                    f"{type(exc).__name__}: {first[-1] if first else ''})"
-                )
-    return runs
+    kinds = ("construction", "fit") if method == "all" else (method,)
+    return [run_retargetd(k, problem, rig, cal, take, frames, base) for k in kinds]
 
 
 # ---- biorbd -------------------------------------------------------------------------
@@ -349,6 +393,7 @@ def biorbd_runs(frames: slice) -> tuple[list[Run], dict[str, Any]]:
         for b, j in BIORBD_CENTRES.items()
         for s in "RL"
     }
+    frame_seg = {ours: seg[peer] for ours, peer in sided(BIORBD_SEGMENTS).items()}
     info = {
         "dof": model.nbQ(),
         "markers": model.nbMarkers(),
@@ -357,17 +402,26 @@ def biorbd_runs(frames: slice) -> tuple[list[Run], dict[str, Any]]:
         "biorbd": biorbd.__version__,
     }
 
+    def start(name: str) -> Run:
+        run = Run(name, "biorbd")
+        run.centres = {j: np.zeros((n, 3)) for j in centre_seg}
+        run.frames = {b: np.zeros((n, 3, 3)) for b in frame_seg}
+        run.residual_m = {m: np.full(n, np.nan) for m in names}
+        return run
+
     def record(run: Run, q: np.ndarray, t: int) -> None:
         placed = np.array([m.to_array() for m in model.technicalMarkers(q)])
-        if t > 0:
-            run.residual_m.extend(np.linalg.norm(placed - markers[t], axis=1).tolist())
+        dist = np.linalg.norm(placed - markers[t], axis=1)  # NaN where not seen
+        for m, d in zip(names, dist, strict=True):
+            run.residual_m[m][t] = d
         for j, s in centre_seg.items():
             run.centres[j][t] = model.globalJCS(q, s).trans().to_array()
+        for b, s in frame_seg.items():
+            run.frames[b][t] = model.globalJCS(q, s).rot().to_array()
 
     clock = time.perf_counter_ns
     n = markers.shape[0]
-    kal = Run("biorbd Kalman (EKF)", "biorbd")
-    kal.centres = {j: np.zeros((n, 3)) for j in centre_seg}
+    kal = start("biorbd Kalman (EKF)")
     kalman = biorbd.KalmanReconsMarkers(model, biorbd.KalmanParam(take.rate_hz))
     q = biorbd.GeneralizedCoordinates(model)
     qd = biorbd.GeneralizedVelocity(model)
@@ -379,8 +433,7 @@ def biorbd_runs(frames: slice) -> tuple[list[Run], dict[str, Any]]:
         kal.ns.append(clock() - t0)
         record(kal, q.to_array(), t)
 
-    lsq = Run("biorbd least-squares IK", "biorbd")
-    lsq.centres = {j: np.zeros((n, 3)) for j in centre_seg}
+    lsq = start("biorbd least-squares IK")
     # (3, markers, frames) as biorbd wants; only its residual, Jacobian and ranges used.
     ik = biorbd.InverseKinematics(model, np.transpose(markers[:1], (2, 1, 0)))
     lo, hi = (np.asarray(b, dtype=np.float64) for b in ik.bounds)
@@ -457,8 +510,14 @@ def opensim_runs(
                 for b, j in OSIM_CENTRES.items()
                 for s in "RL"
             }
+            bodies = {
+                ours: model.getBodySet().get(peer)
+                for ours, peer in sided(OSIM_SEGMENTS).items()
+            }
+            n = len(times)
             run = Run(f"OpenSim IK {accuracy:g}", "opensim")
-            run.centres = {j: np.zeros((len(times), 3)) for j in joints}
+            run.centres = {j: np.zeros((n, 3)) for j in joints}
+            run.frames = {b: np.zeros((n, 3, 3)) for b in bodies}
             errors = osim.SimTKArrayDouble()
             clock = time.perf_counter_ns
             for t, tm in enumerate(times):
@@ -469,21 +528,116 @@ def opensim_runs(
                 else:
                     solver.track(state)
                 run.ns.append(clock() - t0)
-                if t > 0:
-                    solver.computeCurrentMarkerErrors(errors)
-                    run.residual_m.extend(
-                        errors.getElt(i) for i in range(errors.size())
-                    )
+                solver.computeCurrentMarkerErrors(errors)
+                for i in range(errors.size()):
+                    name = solver.getMarkerNameForIndex(i)
+                    run.residual_m.setdefault(name, np.full(n, np.nan))
+                    run.residual_m[name][t] = errors.getElt(i)
                 model.realizePosition(state)
                 for j, frame in joints.items():
                     p = frame.getPositionInGround(state)
                     run.centres[j][t] = world_from_capture @ np.array(
                         [p.get(k) for k in range(3)]
                     )
+                for b, body in bodies.items():
+                    rot = body.getTransformInGround(state).R()
+                    run.frames[b][t] = world_from_capture @ np.array(
+                        [[rot.get(r, c) for c in range(3)] for r in range(3)]
+                    )
             info["markers_in_use"] = solver.getNumMarkersInUse()
+            info["ik_markers"] = list(run.residual_m)
             info["frames"] = len(times)
             runs.append(run)
     return runs, info
+
+
+#: gait2354 hinge -> (retargetd bone, OpenSim markers on the segment the axis is
+#: carried through: the bone's own segment, then the joint's other one as a check).
+OSIM_HINGES = {
+    "knee_{s}": ("{s}shank", ("Shank.Upper", "Shank.Front", "Shank.Rear"),
+                 ("Thigh.Upper", "Thigh.Front", "Thigh.Rear")),
+    "ankle_{s}": ("{s}foot", ("Heel", "Midfoot.Sup", "Midfoot.Lat"),
+                  ("Shank.Upper", "Shank.Front", "Shank.Rear")),
+}  # fmt: skip
+
+
+def _marker_frame(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """(3, 3) world_from_frame of three markers: +Y a -> b, +X towards c."""
+    y = (b - a) / np.linalg.norm(b - a)
+    x = (c - b) - y * ((c - b) @ y)
+    x /= np.linalg.norm(x)
+    return np.stack([x, y, np.cross(x, y)], axis=1)
+
+
+def hinge_axes() -> list[str]:
+    """The gait2354 knee and ankle axes in opensim-gait2354.toml's bones.
+
+    Each joint's first rotation axis (its coordinate's) is taken from
+    subject01_simbody.osim at the default pose into the frame of the model's markers on
+    one segment, then through the same markers in subject01_static.trc (medians) into
+    the bone as the construction builds it there (calibrated on that static). The
+    angle between that route and the one through the joint's other segment is printed
+    as a check (the static stands at the model's default pose when it is small).
+    """
+    import opensim as osim
+    from scipy.spatial.transform import Rotation
+
+    def vec(v: Any) -> np.ndarray:
+        return np.array([v.get(i) for i in range(3)])
+
+    def mat(r: Any) -> np.ndarray:
+        return np.array([[r.get(i, j) for j in range(3)] for i in range(3)])
+
+    osim.Logger.setLevelString("error")
+    static = load_take(OSIM_STATIC)
+    col = {n: i for i, n in enumerate(static.labels)}
+    rig = load_rig(RIG_OPENSIM)
+    meas = pelvis_measurements(
+        static.positions, static.labels, ("R.ASIS", "L.ASIS"), ("V.Sacral",)
+    )
+    cal = calibrate(rig, static.positions, static.labels, overrides=meas)
+    solved = BodySolver(rig, cal, static.labels).solve_take(static.positions)
+    lines = []
+    with in_temp_dir():
+        model = osim.Model(str(OSIM))
+        state = model.initSystem()
+        model.realizePosition(state)
+        markers = model.getMarkerSet()
+        for side in "rl":
+            for joint, (bone, own, other) in OSIM_HINGES.items():
+                j = model.getJointSet().get(joint.format(s=side))
+                axis = osim.CustomJoint.safeDownCast(j).getSpatialTransform()
+                axis = vec(axis.getTransformAxis(0).get_axis())
+                axis_g = mat(j.getParentFrame().getTransformInGround(state).R()) @ axis
+                routes = []
+                for names in (own, other):
+                    full = [f"{side.upper()}.{n}" for n in names]
+                    in_model = _marker_frame(
+                        *[vec(markers.get(n).getLocationInGround(state)) for n in full]
+                    )
+                    in_static = _marker_frame(
+                        *[
+                            np.nanmedian(static.positions[:, col[n]], axis=0)
+                            for n in full
+                        ]
+                    )
+                    routes.append(in_static @ (in_model.T @ axis_g))
+                b = solved.bone_names.index(bone.format(s=side))
+                q = np.median(solved.world_from_bone_quat[:, b], axis=0)
+                world_from_bone = Rotation.from_quat(
+                    q / np.linalg.norm(q), scalar_first=True
+                ).as_matrix()
+                in_bone = world_from_bone.T @ routes[0]
+                check = np.degrees(np.arccos(min(1.0, abs(routes[0] @ routes[1]))))
+                off_x = np.degrees(np.arccos(min(1.0, abs(in_bone[0]))))
+                model_axis = np.round(axis, 3).tolist()
+                lines.append(
+                    f"{joint.format(s=side)} (model axis {model_axis}): "
+                    f"[fit.bones.{bone.format(s=side)}] axis = "
+                    f"{np.round(in_bone, 3).tolist()}  ({off_x:.1f} deg from +X; "
+                    f"other segment's route {check:.1f} deg away)"
+                )
+    return lines
 
 
 # ---- report -------------------------------------------------------------------------
@@ -502,24 +656,66 @@ def agreement(run: Run, ref: Run) -> dict[str, float]:
     return out
 
 
-def table(runs: list[Run], bases: list[Run]) -> list[str]:
+def _angle_deg(rot: np.ndarray) -> np.ndarray:
+    """(...,) rotation angle (deg) of (..., 3, 3) rotation matrices."""
+    cos = 0.5 * (np.trace(rot, axis1=-2, axis2=-1) - 1.0)
+    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
+def axis_agreement(run: Run, ref: Run) -> dict[str, dict[str, float]]:
+    """Segment -> how ``run``'s frame turns against ``ref``'s (frames after the first).
+
+    ``R_rel(t) = R_ref(t)^T R_run(t)``; its mean (the rotation nearest the average
+    matrix) is the two frames' fixed difference of convention, ``offset_deg``; the
+    angle of each ``R_rel(t)`` from it, ``median_deg`` and ``p95_deg``, is how
+    differently the two turn the segment."""
+    out = {}
+    for b, rot in run.frames.items():
+        if b not in ref.frames:
+            continue
+        rel = np.swapaxes(ref.frames[b][1:], -1, -2) @ rot[1:]
+        u, _, vt = np.linalg.svd(rel.mean(axis=0))
+        mean = u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
+        dev = _angle_deg(np.swapaxes(mean, -1, -2)[None] @ rel)
+        out[b] = {
+            "offset_deg": float(_angle_deg(mean)),
+            "median_deg": float(np.median(dev)),
+            "p95_deg": float(np.percentile(dev, 95)),
+        }
+    return out
+
+
+def table(
+    runs: list[Run],
+    bases: list[Run],
+    markers: tuple[str, ...],
+    without: tuple[str, ...] = (),
+) -> list[str]:
     """Markdown rows: solver, first, median, p99, the ratio of its median to each
-    retargetd solver's (``bases``), residual."""
+    retargetd solver's (``bases``), residual RMS over ``markers`` (and over them
+    ``without`` some, when given)."""
     short = [b.name.removeprefix("retargetd ") for b in bases]
+    rest = tuple(m for m in markers if m not in without)
+    head = f" | marker residual RMS mm ({len(markers)} markers) |"
+    if without:
+        head += f" RMS mm without {' '.join(without)} |"
     rows = [
         "| solver | first frame ms | median ms | p99 ms | "
         + " | ".join(f"median / {n}" for n in short)
-        + " | marker residual RMS mm |",
-        "|---|---|---|---|" + "---|" * len(bases) + "---|",
+        + head,
+        "|---|---|---|---|" + "---|" * len(bases) + "---|" + "---|" * bool(without),
     ]
     medians = [b.stats()["median_ms"] for b in bases]
     for r in runs:
-        s = r.stats()
+        s = r.stats(markers)
         ratios = " | ".join(f"{s['median_ms'] / m:.3g}x" for m in medians)
-        rows.append(
+        row = (
             f"| {r.name} | {s['first_ms']:.3g} | {s['median_ms']:.4g} | "
             f"{s['p99_ms']:.4g} | {ratios} | {s['residual_rms_mm']:.1f} |"
         )
+        if without:
+            row += f" {r.stats(rest)['residual_rms_mm']:.1f} |"
+        rows.append(row)
     return rows
 
 
@@ -571,11 +767,21 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--json", metavar="OUT.json")
     parser.add_argument("--plot", metavar="OUT.png")
+    parser.add_argument(
+        "--hinge-axes",
+        action="store_true",
+        help="print the gait2354 knee and ankle axes in opensim-gait2354.toml's bones "
+        "and exit",
+    )
     args = parser.parse_args(argv)
     if not PEERS.is_dir():
         print(f"peers data not found at {PEERS}")
         return 2
+    if args.hinge_axes:
+        print("\n".join(hinge_axes()))
+        return 0
     warm_up()
+    warm_up_fit()
     print(f"load before: {load_average()} ({os.cpu_count()} cores)")
     out: dict[str, Any] = {"load_before": load_average(), "problems": {}}
     all_runs: list[Run] = []
@@ -603,10 +809,11 @@ def main(argv: list[str] | None = None) -> int:
     )
     peers, info = biorbd_runs(frames)
     info["calibration"] = {"frames": args.calibrate_frames, **meas}
+    markers = tuple(peers[0].residual_m)  # biorbd's 75 model markers
     lines += _section(
-        "biorbd: bioptim whole-body model and gait take", info, ours, peers
+        "biorbd: bioptim whole-body model and gait take", info, ours, peers, markers
     )
-    out["problems"]["biorbd"] = _doc(info, ours, peers)
+    out["problems"]["biorbd"] = _doc(info, ours, peers, markers)
     all_runs += ours + peers
 
     # OpenSim's problem.
@@ -629,8 +836,16 @@ def main(argv: list[str] | None = None) -> int:
     )
     peers, info = opensim_runs(frames, np.asarray(take.world_from_capture))
     info["calibration"] = {"static": OSIM_STATIC.name, **meas}
-    lines += _section("OpenSim: gait2354 / subject01 walk", info, ours, peers)
-    out["problems"]["opensim"] = _doc(info, ours, peers)
+    markers = tuple(peers[0].residual_m)  # the markers of OpenSim's IK tasks
+    lines += _section(
+        "OpenSim: gait2354 / subject01 walk",
+        info,
+        ours,
+        peers,
+        markers,
+        OSIM_ACROMIONS,
+    )
+    out["problems"]["opensim"] = _doc(info, ours, peers, markers, OSIM_ACROMIONS)
     all_runs += ours + peers
 
     out["load_after"] = load_average()
@@ -646,25 +861,78 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _section(
-    title: str, info: dict[str, Any], ours: list[Run], peers: list[Run]
+    title: str,
+    info: dict[str, Any],
+    ours: list[Run],
+    peers: list[Run],
+    markers: tuple[str, ...],
+    without: tuple[str, ...] = (),
 ) -> list[str]:
     lines = ["", f"## {title}", "", "setup: " + json.dumps(info), ""]
-    lines += table(ours + peers, ours)
-    lines += ["", f"joint-centre agreement with {ours[0].name}, median mm:", ""]
-    for r in [*ours[1:], *peers]:
-        agree = agreement(r, ours[0])
+    lines += table(ours + peers, ours, markers, without)
+    lines += [
+        "",
+        f"residual over the peer's {len(markers)} markers: {' '.join(markers)}",
+    ]
+    for r in ours + peers:
+        worst = sorted(r.marker_rms_mm().items(), key=lambda kv: -kv[1])
+        worst = [kv for kv in worst if kv[0] in markers][:6]
         lines.append(
-            f"- {r.name}: "
-            + ", ".join(f"{j} {d:.0f}" for j, d in sorted(agree.items()))
+            f"- {r.name}, largest per-marker RMS mm: "
+            + ", ".join(f"{m} {v:.0f}" for m, v in worst)
         )
+    for ref in ours:
+        lines += ["", f"joint-centre agreement with {ref.name}, median mm:", ""]
+        for r in [*ours, *peers]:
+            if r is ref:
+                continue
+            agree = agreement(r, ref)
+            lines.append(
+                f"- {r.name}: "
+                + ", ".join(f"{j} {d:.0f}" for j, d in sorted(agree.items()))
+            )
+        lines += [
+            "",
+            f"segment axes against {ref.name}, deg (offset: fixed difference of "
+            "convention; median / p95: angle from it per frame):",
+            "",
+        ]
+        for r in [*ours, *peers]:
+            if r is ref:
+                continue
+            axes = axis_agreement(r, ref)
+            lines.append(
+                f"- {r.name}: "
+                + ", ".join(
+                    f"{b} {a['offset_deg']:.0f} / {a['median_deg']:.1f} / "
+                    f"{a['p95_deg']:.1f}"
+                    for b, a in axes.items()
+                )
+            )
     return lines
 
 
-def _doc(info: dict[str, Any], ours: list[Run], peers: list[Run]) -> dict[str, Any]:
+def _doc(
+    info: dict[str, Any],
+    ours: list[Run],
+    peers: list[Run],
+    markers: tuple[str, ...],
+    without: tuple[str, ...] = (),
+) -> dict[str, Any]:
+    rest = tuple(m for m in markers if m not in without)
     return {
         "setup": info,
+        "residual_markers": list(markers),
+        "residual_without": list(without),
         "solvers": {
-            r.name: {**r.stats(), "agreement_mm": agreement(r, ours[0]), "ns": r.ns}
+            r.name: {
+                **r.stats(markers),
+                "residual_rms_mm_without": r.stats(rest)["residual_rms_mm"],
+                "marker_rms_mm": r.marker_rms_mm(),
+                "agreement_mm": {ref.name: agreement(r, ref) for ref in ours},
+                "axes_deg": {ref.name: axis_agreement(r, ref) for ref in ours},
+                "ns": r.ns,
+            }
             for r in ours + peers
         },
     }

@@ -30,6 +30,16 @@ BONE_KEYS = ("dof", "axis", "stiffness_mm")
 #: ``body.rig_model.RIG_RANGES`` lists the same range.
 STIFFNESS_MAX_MM = 1000.0
 STIFFNESS_WHY = "0 = none; at most a hinge's stiffness, past which the joint is frozen"
+#: A marker's ``weight`` is a ratio of variances, the default marker's over this one's:
+#: at most (10 mm / 1 mm)^2, a marker at the optical noise floor (< 1 mm, Merriaux et
+#: al., Sensors 17(7):1591, 2017) against the low end of skin artefact on a limb
+#: (10-30 mm, Leardini et al., Gait Posture 21(2):212-225, 2005). OpenSim's IK setups
+#: use 10 (subject01_Setup_IK.xml); ``body.rig_model.RIG_RANGES`` lists the range.
+WEIGHT_MAX = 100.0
+WEIGHT_WHY = "0 = ignored; at most a noise-floor marker's against a skin-artefact one's"
+#: A hinge's ``axis = [x, y, z]`` is a direction: each component of a unit vector lies
+#: in [-1, 1] (the parser normalizes what rounding leaves).
+AXIS_WHY = "a direction's components, as of a unit vector (normalized on reading)"
 DOFS = ("ball", "hinge", "swing")
 
 _AXES = {"x": (1.0, 0.0, 0.0), "y": (0.0, 1.0, 0.0), "z": (0.0, 0.0, 1.0)}
@@ -118,8 +128,14 @@ def parse_fit_table(
         if seg is not None and seg not in bones:
             raise fail(f"{key}.segment", f"unknown bone {seg!r}")
         weight = spec.get("weight", 1.0)
-        if not _is_number(weight) or not math.isfinite(weight) or weight < 0.0:
-            raise fail(f"{key}.weight", f"expected a number >= 0: {weight!r}")
+        if not _is_number(weight):
+            raise fail(f"{key}.weight", f"expected a number: {weight!r}")
+        if not 0.0 <= weight <= WEIGHT_MAX:  # (NaN too)
+            raise fail(
+                f"{key}.weight",
+                f"{weight!r} is out of range: allowed [0, {WEIGHT_MAX:g}] "
+                f"({WEIGHT_WHY})",
+            )
         out_m[name] = MarkerFitOptions(segment=seg, weight=float(weight))
     out_b: dict[str, BoneFitOptions] = {}
     for name, spec in bones_t.items():
@@ -145,10 +161,17 @@ def parse_fit_table(
         elif (
             isinstance(axis_v, list)
             and len(axis_v) == 3
-            and all(_is_number(v) and math.isfinite(v) for v in axis_v)
-            and math.hypot(*axis_v) > 0.0
+            and all(_is_number(v) for v in axis_v)
         ):
+            for i, v in enumerate(axis_v):
+                if not -1.0 <= v <= 1.0:  # (NaN too)
+                    raise fail(
+                        f"{key}.axis[{i}]",
+                        f"{v!r} is out of range: allowed [-1, 1] ({AXIS_WHY})",
+                    )
             n = math.hypot(*axis_v)
+            if n == 0.0:
+                raise fail(f"{key}.axis", f"a zero vector is no direction: {axis_v!r}")
             axis = (axis_v[0] / n, axis_v[1] / n, axis_v[2] / n)
         else:
             raise fail(f"{key}.axis", f"expected x, y, z or [x, y, z]: {axis_v!r}")

@@ -9,7 +9,14 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-from retargetd.daemon.body.rig_fit import STIFFNESS_MAX_MM, STIFFNESS_WHY, FitOptions
+from retargetd.daemon.body.rig_fit import (
+    AXIS_WHY,
+    STIFFNESS_MAX_MM,
+    STIFFNESS_WHY,
+    WEIGHT_MAX,
+    WEIGHT_WHY,
+    FitOptions,
+)
 from retargetd.protocols.humanoid import HUMANOID_BONES as _HUMANOID_BONES
 
 #: The standard humanoid bones (parents first), re-exported for rig files.
@@ -65,8 +72,7 @@ class NumberRange:
 
 
 #: Every numeric key of the rig format and its range, by key path (``*``: a name of
-#: the rig author's). ``[fit.markers.NAME] weight`` (>= 0, finite) is checked by
-#: ``body.fit_model``.
+#: the rig author's).
 RIG_RANGES: dict[str, NumberRange] = {
     # 0 turns the roll hold off; above 100 mm, more than a limb's radius (a thigh's
     # girth is ~0.5-0.6 m, a radius under 100 mm: Gordon et al., ANSUR II 2014), a
@@ -104,6 +110,11 @@ RIG_RANGES: dict[str, NumberRange] = {
     "fit.bones.*.stiffness_mm": NumberRange(
         0.0, STIFFNESS_MAX_MM, STIFFNESS_WHY, unit="mm/rad"
     ),
+    # A marker's residual weight, a ratio of variances (checked in body.rig_fit, whose
+    # WEIGHT_MAX cites its bound).
+    "fit.markers.*.weight": NumberRange(0.0, WEIGHT_MAX, WEIGHT_WHY),
+    # A hinge's axis as [x, y, z] (checked in body.rig_fit).
+    "fit.bones.*.axis": NumberRange(-1.0, 1.0, AXIS_WHY),
 }
 
 
