@@ -15,13 +15,16 @@ It is then driven one wake-up at a time, exactly as ``Daemon.run`` does (``poll`
 Each stage of the frame is timed by a wrapper put around the call on the live
 objects (``time.perf_counter_ns`` before and after): the poll, the decode and
 book-keeping of the input (``_service`` minus ``_solve_and_send``), the body solve, the
-retarget, the engine-frame conversion, the VMC encode and its ``sendto`` calls, the pose
-encode and its send, the validator's submit; "glue" is ``_solve_and_send`` minus the
-stages inside it (attribute reads, flags, the budget checks, the stats record, which is
-also timed alone on the same object after the run: a slotted object cannot be wrapped
-in place). The wrapper's own cost (measured on an empty call, same run) is subtracted
-from each stage and printed. Medians and p99 per stage in µs, and what share of the
-median frame each one is.
+emit call (``live/emit.py``: the retarget, the engine-frame conversion, the VMC and
+pose packs in one compiled call), the VMC ``sendto`` calls, the pose send, the
+validator's submit (stages a configuration never calls are left out of the table:
+the separate retarget, engine frame, VMC and pose encode rows appear only where the
+loop still makes them, the retarget with ``[target] spine = "pivot"``); "glue" is
+``_solve_and_send`` minus the stages inside it (attribute reads, flags, the budget
+checks, the stats record, which is also timed alone on the same object after the run:
+a slotted object cannot be wrapped in place). The wrapper's own cost (measured on an
+empty call, same run) is subtracted from each stage and printed. Medians and p99 per
+stage in µs, and what share of the median frame each one is.
 
 This is CPU time on the loop's thread: the wake-up latency of the scheduler, which
 dominates the end-to-end p99 on a loaded machine, is measured by
@@ -183,7 +186,7 @@ def profile(
             pipe = next(iter(d._pipelines.values()))
             names = (
                 "poll", "service", "solve_and_send", "body solve", "retarget",
-                "engine frame", "VMC encode", "VMC sendto", "pose encode",
+                "engine frame", "VMC encode", "emit call", "VMC sendto", "pose encode",
                 "pose send", "validator submit", "stats record", "empty wrapper",
             )  # fmt: skip
             t = {k: Timer(n_frames) for k in names}
@@ -206,6 +209,8 @@ def profile(
             saved_eu = (eu.unity_quat_xyzw_from_world, eu.unity_pos_from_world)
             eu.unity_quat_xyzw_from_world = t["engine frame"].wrap(saved_eu[0])
             eu.unity_pos_from_world = t["engine frame"].wrap(saved_eu[1])
+            saved_emit = live_send.emit_frame
+            live_send.emit_frame = t["emit call"].wrap(saved_emit)
             assert d._vmc is not None
             real_vmc = d._vmc
             d._vmc = SocketProxy(real_vmc, t["VMC sendto"])  # type: ignore[assignment]
@@ -226,6 +231,7 @@ def profile(
                     drain()
             finally:
                 eu.unity_quat_xyzw_from_world, eu.unity_pos_from_world = saved_eu
+                live_send.emit_frame = saved_emit
                 d._vmc = real_vmc
             solved = d.stats.frames_solved
             # The stats record (a slotted object: not wrappable in place), alone on
@@ -249,8 +255,8 @@ def profile(
         if k != "empty wrapper":  # each call's wrapper cost out
             us[k] = (timer.ns - timer.calls * wrapper) / 1e3
     inside = (
-        "body solve", "retarget", "engine frame", "VMC encode", "VMC sendto",
-        "pose encode", "pose send", "validator submit",
+        "body solve", "retarget", "engine frame", "VMC encode", "emit call",
+        "VMC sendto", "pose encode", "pose send", "validator submit",
     )  # fmt: skip
     us["glue (solve_and_send rest)"] = us["solve_and_send"] - sum(us[k] for k in inside)
     us["decode + book-keeping"] = us["service"] - us["solve_and_send"]
@@ -267,6 +273,8 @@ def profile(
     )
     print(f"{'stage':30s} {'median µs':>10s} {'p99 µs':>9s} {'share':>7s}")
     for k in order:
+        if k in t and not t[k].calls.any():
+            continue  # a stage this configuration never calls (e.g. the pivot's)
         a = us[k]
         med, p99 = float(np.median(a)), float(np.percentile(a, 99))
         share = (

@@ -6,7 +6,10 @@ on the live path by one call.
   ``MarkerPacket.store`` did in twelve numpy calls (~1 µs each);
 - :func:`vmc_pack`: one VMC frame's floats, hemisphere-continuous quaternions,
   big-endian into the datagram bytes, what ``VmcEncoder.encode`` did in ten numpy
-  calls and a scatter.
+  calls and a scatter;
+- :func:`pose_pack`: one pose data message into its two parts, what
+  ``PoseEncoder.encode`` does with a struct pack and five numpy copies (the live
+  loop calls it inside its one compiled call per frame, ``daemon/live/emit.py``).
 
 The numpy forms stay beside them as the reference (the tests compare both, byte for
 byte). The kernels here call nothing outside this module, so numba's per-file cache
@@ -125,8 +128,62 @@ def vmc_pack(
         wire[o + 3] = bits & 0xFF
 
 
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def pose_pack(
+    header: np.ndarray,
+    body: np.ndarray,
+    frame_id: int,
+    source_time_s: float,
+    received_ns: int,
+    solved_ns: int,
+    flags_word: int,
+    root_pos: np.ndarray,
+    wfb: np.ndarray,
+    pfb: np.ndarray,
+    rfb: np.ndarray,
+    weights: np.ndarray,
+    bone_flags: np.ndarray,
+    or_flags: np.ndarray,
+) -> None:
+    """One pose data message into ``header`` (68) and ``body`` (uint8, the
+    ``pose_stream`` layout, little-endian), as ``PoseEncoder.encode`` writes it.
+
+    The header's constant fields (magic, version, names id, counts) are written once
+    by the encoder; this writes the frame number, the source time, the received and
+    solved stamps, ``sent_ns`` = 0, ``flags_word`` (the performer id already in bits
+    16-23) and the root position. The bone flags are ``bone_flags | or_flags`` when
+    ``or_flags`` has one entry per bone, else ``bone_flags``."""
+    hi = header[8:48].view(np.int64)
+    hi[0] = frame_id
+    header[16:24].view(np.float64)[0] = source_time_s
+    hi[2] = received_ns
+    hi[3] = solved_ns
+    hi[4] = 0
+    header[48:52].view(np.uint32)[0] = flags_word
+    hf = header[56:68].view(np.float32)
+    for c in range(3):
+        hf[c] = root_pos[c]
+    b = wfb.shape[0]
+    k = weights.shape[0]
+    bf = body[: 48 * b + 4 * k].view(np.float32)
+    for i in range(b):
+        for j in range(4):
+            bf[4 * i + j] = wfb[i, j]
+            bf[4 * (b + i) + j] = pfb[i, j]
+            bf[4 * (2 * b + i) + j] = rfb[i, j]
+    for j in range(k):
+        bf[12 * b + j] = weights[j]
+    o = 48 * b + 4 * k
+    both = or_flags.shape[0] == b
+    for i in range(b):
+        f = bone_flags[i]
+        if both:
+            f |= or_flags[i]
+        body[o + i] = f
+
+
 def warm_up() -> None:
-    """Compile (or load from the cache) both kernels on tiny inputs, so no streamed
+    """Compile (or load from the cache) every kernel on tiny inputs, so no streamed
     frame pays for it."""
     rows = np.zeros((2, 3), dtype=np.float32)
     rows[1] = np.nan
@@ -140,4 +197,10 @@ def warm_up() -> None:
         np.array([[0.0, 0.0, 0.0, 1.0]]), np.zeros(1), 0.0, np.zeros((2, 4)), stage,
         stage.view(np.uint32), np.arange(16, dtype=np.int64) * 4,
         np.zeros(64, dtype=np.uint8),
+    )  # fmt: skip
+    quat = np.array([[1.0, 0.0, 0.0, 0.0]])
+    pose_pack(
+        np.zeros(68, dtype=np.uint8), np.zeros(56, dtype=np.uint8), 0, 0.0, 0, 0, 0,
+        np.zeros(3), quat, quat, quat, np.zeros(1), np.zeros(1, dtype=np.uint8),
+        np.zeros(0, dtype=np.uint8),
     )  # fmt: skip

@@ -54,6 +54,7 @@ from retargetd.daemon.live.config import ConfigError, DaemonConfig, check_pipeli
 from retargetd.daemon.live.console_feed import ConsoleFeed
 from retargetd.daemon.live.console_feed import dispatch as dispatch_console
 from retargetd.daemon.live.control import CONTROL_MAX_BYTES, ControlMixin
+from retargetd.daemon.live.emit import warm_up as warm_up_emit
 from retargetd.daemon.live.face import warm_up as warm_up_face
 from retargetd.daemon.live.inputs import InputsMixin
 from retargetd.daemon.live.performer import build_performers
@@ -192,9 +193,8 @@ class Daemon(
         self._wake_ns = 0  # when the current wake-up began
         # A wake-up solves the frames that arrived together while within the budget
         # of their solves: a frame of N performers is N solves, each with the budget.
-        self._catch_up_ns = int(config.loop.solve_budget_ms * 1e6) * len(
-            self.performers
-        )
+        self._budget_ns = int(config.loop.solve_budget_ms * 1e6)  # solve + send
+        self._catch_up_ns = self._budget_ns * len(self.performers)
         # (t_ns, frames_in, frames_out) at the last stats line: fps over that window.
         self._window = (self._t0_ns, 0, 0)
         self.last_stats_line = ""
@@ -342,6 +342,7 @@ class Daemon(
         with Progress(steps, "kernels: body", unit="kernels") as bar:
             warm_up()
             protocol_kernels.warm_up()
+            warm_up_emit()
             bar.update()
             if fit:
                 self.out(
