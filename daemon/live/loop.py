@@ -183,6 +183,13 @@ class Daemon(
         self._zbuf_extra = bytearray(64)
         self._zview_header = memoryview(self._zbuf_header)
         self._zview_payload = memoryview(self._zbuf_payload)
+        # The same buffers as uint8 arrays: the compiled decode reads them in place.
+        self._view = memoryview(self._buf)
+        self._wire = np.frombuffer(self._buf, dtype=np.uint8)
+        self._zwire_header = np.frombuffer(self._zbuf_header, dtype=np.uint8)
+        self._zwire_payload = np.frombuffer(self._zbuf_payload, dtype=np.uint8)
+        self._osc_simple = osc_cfg.form == "simple"
+        self._osc_limit = osc_cfg.max_message_bytes
         self._allow = frozenset(osc_cfg.allow)
         self._reload_limit = RateLimiter(config.control.min_interval_s)
         self._log = RateLimitedLog(self.out, config.loop.log_interval_s)

@@ -160,6 +160,12 @@ class DaemonState:
     _zbuf_extra: bytearray
     _zview_header: memoryview
     _zview_payload: memoryview
+    _view: memoryview  # of _buf
+    _wire: np.ndarray  # _buf as uint8 (the compiled decode's input)
+    _zwire_header: np.ndarray  # _zbuf_header as uint8
+    _zwire_payload: np.ndarray  # _zbuf_payload as uint8
+    _osc_simple: bool  # input.osc.form == "simple"
+    _osc_limit: int  # input.osc.max_message_bytes
     _allow: frozenset[str]
     _reload_limit: RateLimiter
     _log: RateLimitedLog
