@@ -189,6 +189,7 @@ class Daemon(
         self._zwire_header = np.frombuffer(self._zbuf_header, dtype=np.uint8)
         self._zwire_payload = np.frombuffer(self._zbuf_payload, dtype=np.uint8)
         self._osc_simple = osc_cfg.form == "simple"
+        self._osc_fd = self._show_fd = -2  # the poll result's fds (set by open)
         self._osc_limit = osc_cfg.max_message_bytes
         self._allow = frozenset(osc_cfg.allow)
         self._reload_limit = RateLimiter(config.control.min_interval_s)
@@ -223,6 +224,7 @@ class Daemon(
         if c.input.osc.enabled:
             osc = c.input.osc
             self._osc = self._udp_bind(osc.host, osc.port)
+            self._osc_fd = self._osc.fileno()
             allow = f", sources {', '.join(osc.allow)} only" if osc.allow else ""
             who = who_reaches(is_loopback_host(osc.host), osc.host)
             self._announce(
@@ -232,6 +234,7 @@ class Daemon(
         if c.show_control.enabled:
             show = c.show_control
             self._show = self._udp_bind(show.host, show.port)
+            self._show_fd = self._show.fileno()
             can = [w for w, on in (("calibrate", show.calibrate),
                                    ("reload", show.reload)) if on]  # fmt: skip
             who = who_reaches(is_loopback_host(show.host), show.host)

@@ -166,6 +166,8 @@ class DaemonState:
     _zwire_payload: np.ndarray  # _zbuf_payload as uint8
     _osc_simple: bool  # input.osc.form == "simple"
     _osc_limit: int  # input.osc.max_message_bytes
+    _osc_fd: int  # the OSC input's and show control's fds (-2: closed)
+    _show_fd: int
     _allow: frozenset[str]
     _reload_limit: RateLimiter
     _log: RateLimitedLog
