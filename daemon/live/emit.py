@@ -25,6 +25,8 @@ and the pivot itself and calls this with the retarget off.
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 from retargetd.daemon.compiled import kernel
@@ -168,6 +170,7 @@ class EmitPlan:
         target_pose: the retargeted frame, its arrays views of the float arena
             (what ``Retargeter.apply`` fills; the pivot and the console read it).
         ei, ef: the int64 and float64 arenas.
+        args: the call's per-pipeline arrays, in order (:meth:`bind`).
     """
 
     def __init__(
@@ -213,6 +216,19 @@ class EmitPlan:
         self.header = pose_enc.header_bytes
         self.body = pose_enc.body_bytes
         self.performer_bits = pose_enc.performer_bits
+        self.args: tuple[np.ndarray, ...] = ()  # set by bind()
+
+    def bind(self, pose: Any, blend: np.ndarray, weights: np.ndarray) -> None:
+        """Fix the pipeline's solved pose (``BodyPose`` / ``FitPose``, its arrays
+        reused every frame) and face outputs: :attr:`args` are then
+        :func:`emit_frame`'s array arguments from ``wfb`` to ``weights``, one tuple
+        read per frame instead of sixteen attributes."""
+        self.args = (
+            pose.world_from_bone_quat, pose.parent_from_bone_quat,
+            pose.rest_from_bone_quat, pose.root_pos, pose.bone_flags, self.ei, self.ef,
+            self.target_pose.flags, *self.vmc_buffers, self.header, self.body, blend,
+            weights,
+        )  # fmt: skip
 
     def view(self, slot: int, shape: tuple[int, ...]) -> np.ndarray:
         """The float arena's region ``slot`` (``I_*``) as an array of ``shape``."""

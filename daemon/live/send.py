@@ -44,6 +44,7 @@ logger = logging.getLogger(__name__)
 
 _NOBLOCK_MORE = zmq.NOBLOCK | zmq.SNDMORE
 _NO_FLAGS = np.zeros(0, dtype=np.uint8)  # no validation bone flags to OR in
+_PERFORMER_MASK = pose_stream.PERFORMER_MASK
 
 #: How often the VMC state is sent while nothing is streamed (0.5 s).
 VMC_STATE_INTERVAL_NS = 500_000_000
@@ -144,20 +145,24 @@ class SendMixin(DaemonState):
             performer=self._perf.index,
         )
         emit = EmitPlan(retargeter, vmc, pose_enc, bone_pos_unity)
+        pose = solver.new_pose()
+        blend = face.blend if face is not None else np.zeros(0)
+        weights = face.weights if face is not None else np.zeros(0)
+        emit.bind(pose, blend, weights)
         return Pipeline(
             solver=solver,
             retargeter=retargeter,
-            pose=solver.new_pose(),
+            pose=pose,
             target_pose=emit.target_pose,
             vmc=vmc,
             bone_pos_unity=bone_pos_unity,
             bone_quat_xyzw=np.zeros((n, 4)),
             root_pos_unity=np.zeros(3),
             root_quat_xyzw=np.array([0.0, 0.0, 0.0, 1.0]),
-            blend=face.blend if face is not None else np.zeros(0),
+            blend=blend,
             pose_enc=pose_enc,
             names_parts=pose_stream.encode_pose_names(names_msg),
-            weights=face.weights if face is not None else np.zeros(0),
+            weights=weights,
             bone_flags=np.zeros(n_bones, dtype=np.uint8),
             face=face,
             post=self._build_post(),
@@ -323,13 +328,9 @@ class SendMixin(DaemonState):
         if publish:
             what |= DO_POSE
         vb = perf.validation_bones
-        last_quat, stage32, offsets, wire = emit.vmc_buffers
-        flags_word = (flags & ~pose_stream.PERFORMER_MASK) | emit.performer_bits
+        flags_word = (flags & ~_PERFORMER_MASK) | emit.performer_bits
         emit_frame(
-            what, pose.world_from_bone_quat, pose.parent_from_bone_quat,
-            pose.rest_from_bone_quat, pose.root_pos, pose.bone_flags, emit.ei, emit.ef,
-            tp.flags, last_quat, stage32, offsets, wire, emit.header, emit.body,
-            pipe.blend, pipe.weights, _NO_FLAGS if vb is None else vb,
+            what, *emit.args, _NO_FLAGS if vb is None else vb,
             (solved_ns - self._t0_ns) * 1e-9, frame_id, source_t, received_ns,
             solved_ns, flags_word,
         )  # fmt: skip
