@@ -112,6 +112,9 @@ _RAW_FRAME = struct.Struct(">q")
 #: Pose header: frame number, received / solved / sent ns (pose_stream.HEADER).
 _POSE_FIELDS = struct.Struct("<8xq8xqqq")
 ADDED_P99_TARGET_US = 1000.0
+#: Issue 19 item 1, the hot path near the wire's floor: added p99 over raw UDP (same
+#: run, either transport, 240 and 1000 Hz) on a quiet machine, by variant.
+HOT_PATH_TARGETS_US = {"body": 150.0, "fit+face": 250.0, "face+fit": 250.0}
 
 
 # ---- child processes -----------------------------------------------------------------
@@ -1004,6 +1007,17 @@ def print_report(summaries: list[Summary], args: argparse.Namespace) -> None:
             print(
                 f"drops at 1000 Hz, {s.name}: {s.drops} of {s.sent} "
                 f"(target 0; stale {s.counters.get('stale', 0)}, latest wins)"
+            )
+    for s in cases:
+        b = raw.get(s.rate_hz)
+        variant = s.name.partition(" Hz")[2].strip() or "body"
+        target = HOT_PATH_TARGETS_US.get(variant)
+        if b is None or target is None:
+            continue
+        for out, p in (("VMC T", s.vmc), ("pose", s.pose)):
+            print(
+                f"hot path (issue 19): added p99, {s.name} -> {out}: "
+                f"{_f(p[1] - b.raw[1])} µs (target <= {target:.0f} µs, quiet machine)"
             )
 
 

@@ -3,25 +3,32 @@
 Run from the repository root::
 
     python bench/profile_loop.py [--frames N] [--warmup W] [--transports osc,zmq]
-        [--method construction|fit] [--validate] [--cprofile]
+        [--method construction|fit] [--validate] [--cprofile] [--rate-hz R]
 
 The daemon (``Daemon`` of ``daemon/live``, the object ``retargetd run`` serves) is
 opened on the ``menache`` rig calibrated on the synthetic performer's T-pose hold,
 with ephemeral endpoints on 127.0.0.1: compact OSC and ZeroMQ marker inputs, VMC out
 to a UDP socket this script drains, the ZeroMQ pose stream to a SUB this script drains.
 It is then driven one wake-up at a time, exactly as ``Daemon.run`` does (``poll`` then
-``_service``), one frame per wake-up: each frame is sent, then the loop wakes for it.
+``_service``), one frame per wake-up: each frame is sent, then the loop wakes for it,
+0.2 ms later, or paced at ``--rate-hz`` as a live source sends (on this shared VM a
+frame every 4 ms finds the code and data it touches colder than one every 0.5 ms, and
+every stage costs more: compare the two). The script runs against whichever tree is
+installed (an older one, without ``live/emit.py``, shows its separate stages).
 
 Each stage of the frame is timed by a wrapper put around the call on the live
 objects (``time.perf_counter_ns`` before and after): the poll, the decode and
 book-keeping of the input (``_service`` minus ``_solve_and_send``), the body solve, the
-retarget, the engine-frame conversion, the VMC encode and its ``sendto`` calls, the pose
-encode and its send, the validator's submit; "glue" is ``_solve_and_send`` minus the
-stages inside it (attribute reads, flags, the budget checks, the stats record, which is
-also timed alone on the same object after the run: a slotted object cannot be wrapped
-in place). The wrapper's own cost (measured on an empty call, same run) is subtracted
-from each stage and printed. Medians and p99 per stage in µs, and what share of the
-median frame each one is.
+emit call (``live/emit.py``: the retarget, the engine-frame conversion, the VMC and
+pose packs in one compiled call), the VMC ``sendto`` calls, the pose send, the
+validator's submit (stages a configuration never calls are left out of the table:
+the separate retarget, engine frame, VMC and pose encode rows appear only where the
+loop still makes them, the retarget with ``[target] spine = "pivot"``); "glue" is
+``_solve_and_send`` minus the stages inside it (attribute reads, flags, the budget
+checks, the stats record, which is also timed alone on the same object after the run:
+a slotted object cannot be wrapped in place). The wrapper's own cost (measured on an
+empty call, same run) is subtracted from each stage and printed. Medians and p99 per
+stage in µs, and what share of the median frame each one is.
 
 This is CPU time on the loop's thread: the wake-up latency of the scheduler, which
 dominates the end-to-end p99 on a loaded machine, is measured by
@@ -122,7 +129,7 @@ def _wake(d: Daemon, poll: Callable[[int], Any]) -> None:
 
 def profile(
     transport: str, n_frames: int, warmup: int, method: str, validate: bool,
-    cprofile: bool = False,
+    cprofile: bool = False, rate_hz: float = 0.0,
 ) -> None:  # fmt: skip
     take = pf.synthesize(seconds=(n_frames + warmup) / 240.0 + 1.0, rate_hz=240.0)
     rows = np.asarray(take.markers_world, dtype=np.float32)
@@ -183,7 +190,7 @@ def profile(
             pipe = next(iter(d._pipelines.values()))
             names = (
                 "poll", "service", "solve_and_send", "body solve", "retarget",
-                "engine frame", "VMC encode", "VMC sendto", "pose encode",
+                "engine frame", "VMC encode", "emit call", "VMC sendto", "pose encode",
                 "pose send", "validator submit", "stats record", "empty wrapper",
             )  # fmt: skip
             t = {k: Timer(n_frames) for k in names}
@@ -206,15 +213,25 @@ def profile(
             saved_eu = (eu.unity_quat_xyzw_from_world, eu.unity_pos_from_world)
             eu.unity_quat_xyzw_from_world = t["engine frame"].wrap(saved_eu[0])
             eu.unity_pos_from_world = t["engine frame"].wrap(saved_eu[1])
+            saved_emit = getattr(live_send, "emit_frame", None)  # (older trees: none)
+            if saved_emit is not None:
+                live_send.emit_frame = t["emit call"].wrap(saved_emit)
             assert d._vmc is not None
             real_vmc = d._vmc
             d._vmc = SocketProxy(real_vmc, t["VMC sendto"])  # type: ignore[assignment]
             empty = t["empty wrapper"].wrap(lambda: None)
             prof = cProfile.Profile() if cprofile else None
+            period_s = 1.0 / rate_hz if rate_hz > 0 else 0.0
+            next_s = time.perf_counter()
             try:
                 for k, p in enumerate(pkts[warmup:]):
                     for timer in t.values():
                         timer.k = k
+                    if period_s:  # paced: one frame every period, as a live source
+                        next_s += period_s
+                        ahead = next_s - time.perf_counter()
+                        if ahead > 0:
+                            time.sleep(ahead)
                     send(p)
                     time.sleep(0.0002)  # the packet is in the socket before the wake
                     if prof is not None:
@@ -226,6 +243,8 @@ def profile(
                     drain()
             finally:
                 eu.unity_quat_xyzw_from_world, eu.unity_pos_from_world = saved_eu
+                if saved_emit is not None:
+                    live_send.emit_frame = saved_emit
                 d._vmc = real_vmc
             solved = d.stats.frames_solved
             # The stats record (a slotted object: not wrappable in place), alone on
@@ -249,8 +268,8 @@ def profile(
         if k != "empty wrapper":  # each call's wrapper cost out
             us[k] = (timer.ns - timer.calls * wrapper) / 1e3
     inside = (
-        "body solve", "retarget", "engine frame", "VMC encode", "VMC sendto",
-        "pose encode", "pose send", "validator submit",
+        "body solve", "retarget", "engine frame", "VMC encode", "emit call",
+        "VMC sendto", "pose encode", "pose send", "validator submit",
     )  # fmt: skip
     us["glue (solve_and_send rest)"] = us["solve_and_send"] - sum(us[k] for k in inside)
     us["decode + book-keeping"] = us["service"] - us["solve_and_send"]
@@ -260,13 +279,16 @@ def profile(
         "solve_and_send", "service",
     )  # fmt: skip
     total = float(np.median(us["service"] + us["poll"]))
+    pacing = f"paced at {rate_hz:g} Hz" if rate_hz > 0 else "unpaced"
     print(
-        f"\n== {transport}, {method}, validator {'on' if validate else 'off'}: "
-        f"{n_frames} frames after {warmup} warm-up, {solved} solved; "
+        f"\n== {transport}, {method}, validator {'on' if validate else 'off'}, "
+        f"{pacing}: {n_frames} frames after {warmup} warm-up, {solved} solved; "
         f"wrapper cost {wrapper / 1e3:.2f} µs subtracted per call"
     )
     print(f"{'stage':30s} {'median µs':>10s} {'p99 µs':>9s} {'share':>7s}")
     for k in order:
+        if k in t and not t[k].calls.any():
+            continue  # a stage this configuration never calls (e.g. the pivot's)
         a = us[k]
         med, p99 = float(np.median(a)), float(np.percentile(a, 99))
         share = (
@@ -286,6 +308,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--method", default="construction", choices=("construction", "fit"))
     ap.add_argument("--validate", action="store_true")
     ap.add_argument(
+        "--rate-hz", type=float, default=0.0,
+        help="send the timed frames at this rate (0: each 0.2 ms after the last "
+        "wake-up); the per-frame costs grow with the time between frames",
+    )  # fmt: skip
+    ap.add_argument(
         "--cprofile", action="store_true",
         help="also print cProfile's top functions of the timed wake-ups",
     )  # fmt: skip
@@ -298,7 +325,7 @@ def main(argv: list[str] | None = None) -> int:
     for transport in args.transports.split(","):
         profile(
             transport.strip(), args.frames, args.warmup, args.method, args.validate,
-            args.cprofile,
+            args.cprofile, args.rate_hz,
         )  # fmt: skip
     la = os.getloadavg()
     print(f"load average at the end: {la[0]:.2f} {la[1]:.2f} {la[2]:.2f}")

@@ -11,7 +11,9 @@ quaternion product below, say) keeps loading its old machine code after that
 primitive changes. So every kernel here caches under a folder named by the digest of
 the sources of *every* module that compiles with :func:`kernel` (this one included,
 found by scanning the package for its import): edit any of them and every kernel
-recompiles into a fresh folder; nothing needs deleting by hand. The folder lives under
+recompiles into a fresh folder; nothing needs deleting by hand. The wire codecs'
+kernels (``retargetd.protocols.kernels``) are among those sources too: the live loop's
+emit kernel calls them. The folder lives under
 ``$NUMBA_CACHE_DIR`` when set, else ``$XDG_CACHE_HOME/retargetd/numba`` (default
 ``~/.cache``), else the temporary directory.
 
@@ -25,6 +27,7 @@ kernel's rigid-segment rebuild and the face kernel's head stabilization.
 from __future__ import annotations
 
 import hashlib
+import importlib.util
 import math
 import os
 import tempfile
@@ -43,7 +46,9 @@ _MARKERS = (
 
 
 def kernel_sources() -> tuple[Path, ...]:
-    """Every module of the package that compiles with :func:`kernel` (and this one)."""
+    """Every module of the package that compiles with :func:`kernel` (and this one),
+    and the wire codecs' kernels (``retargetd.protocols.kernels``), which the live
+    loop's one call per frame runs inside its own (``live/emit.py``)."""
     found = [Path(__file__).resolve()]
     for path in sorted(_PACKAGE.rglob("*.py")):
         if path == found[0] or "__pycache__" in path.parts:
@@ -51,6 +56,9 @@ def kernel_sources() -> tuple[Path, ...]:
         text = path.read_text(encoding="utf-8")
         if any(m in text for m in _MARKERS):
             found.append(path)
+    spec = importlib.util.find_spec("retargetd.protocols.kernels")
+    if spec is not None and spec.origin:
+        found.append(Path(spec.origin).resolve())
     return tuple(found)
 
 

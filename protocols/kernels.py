@@ -1,12 +1,18 @@
 """Compiled inner loops of the wire codecs (numba), each replacing a run of numpy calls
 on the live path by one call.
 
+- :func:`decode_frame`: a compact OSC frame's or a ZeroMQ frame's checks and then
+  :func:`store_rows`, what ``decode_compact_frame`` / ``decode_zmq_frame`` do in a
+  dozen Python checks, a struct unpack and a byte swap;
 - :func:`store_rows`: a decoded marker block into the frame (occlusion by NaN or an
   exact zero row, the inf check, the fused axis and unit conversion), what
   ``MarkerPacket.store`` did in twelve numpy calls (~1 µs each);
 - :func:`vmc_pack`: one VMC frame's floats, hemisphere-continuous quaternions,
   big-endian into the datagram bytes, what ``VmcEncoder.encode`` did in ten numpy
-  calls and a scatter.
+  calls and a scatter;
+- :func:`pose_pack`: one pose data message into its two parts, what
+  ``PoseEncoder.encode`` does with a struct pack and five numpy copies (the live
+  loop calls it inside its one compiled call per frame, ``daemon/live/emit.py``).
 
 The numpy forms stay beside them as the reference (the tests compare both, byte for
 byte). The kernels here call nothing outside this module, so numba's per-file cache
@@ -61,6 +67,127 @@ def store_rows(
             for c in range(3):
                 markers_world[i, c] = x * rhs[0, c] + y * rhs[1, c] + z * rhs[2, c]
     return True
+
+
+#: :func:`decode_frame` failures, in the order the checks run (negative returns).
+(D_BAD_LENGTH, D_BAD_ADDRESS, D_BAD_TYPETAGS, D_BAD_COUNT, D_BAD_BLOB_SIZE,
+ D_UNKNOWN_LABEL_SET, D_COUNT_MISMATCH, D_BAD_FRAME_NUMBER, D_NON_FINITE, D_BAD_MAGIC,
+ D_BAD_VERSION) = range(-1, -12, -1)  # fmt: skip
+#: :func:`decode_frame` forms.
+FORM_OSC_COMPACT = 0  #: ``/rtd/frame ,hdiib``: big-endian, one datagram
+FORM_ZMQ = 1  #: ``RTDM``: little-endian, a 32-byte header part then the payload
+_OSC_HEAD = np.frombuffer(b"/rtd/frame\0\0,hdiib\0\0", dtype=np.uint8)
+_ZMQ_MAGIC = np.frombuffer(b"RTDM\x01\x00", dtype=np.uint8)  # magic, version 1
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _be(buf: np.ndarray, at: int, size: int) -> int:
+    v = 0
+    for i in range(size):
+        v = (v << 8) | buf[at + i]
+    return v
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _le(buf: np.ndarray, at: int, size: int) -> int:
+    v = 0
+    for i in range(size - 1, -1, -1):
+        v = (v << 8) | buf[at + i]
+    return v
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def decode_frame(
+    form: int,
+    head: np.ndarray,
+    n_head: int,
+    payload: np.ndarray,
+    n_payload: int,
+    label_set_id: int,
+    zero_is_occluded: bool,
+    rhs: np.ndarray,
+    raw32: np.ndarray,
+    occluded: np.ndarray,
+    valid: np.ndarray,
+    markers_world: np.ndarray,
+) -> int:
+    """A marker frame's checks and its markers into the frame, in one call: what
+    ``osc_in.decode_compact_frame`` (``form`` :data:`FORM_OSC_COMPACT`, the datagram
+    in ``head[:n_head]``) and ``zmq_wire.decode_zmq_frame`` (:data:`FORM_ZMQ`, the
+    header part in ``head[:n_head]``, the payload in ``payload[:n_payload]``) check,
+    in the same order, then :func:`store_rows`.
+
+    Args:
+        head, payload: uint8 receive buffers (``payload`` unused for OSC).
+        label_set_id: the label set the packet must carry; its marker count is
+            ``markers_world.shape[0]``.
+        raw32: (n, 3) float32 scratch (the markers in native order).
+
+    Returns:
+        the frame number (>= 0), or a ``D_*`` code (< 0) with nothing written but
+        ``raw32``. The source time is left to the caller (struct: a Python float).
+    """
+    n = markers_world.shape[0]
+    if form == FORM_OSC_COMPACT:
+        if n_head < 48:
+            return D_BAD_LENGTH
+        for i in range(12):
+            if head[i] != _OSC_HEAD[i]:
+                return D_BAD_ADDRESS
+        for i in range(12, 20):
+            if head[i] != _OSC_HEAD[i]:
+                return D_BAD_TYPETAGS
+        frame_id = _be(head, 20, 8)  # int64: >= 2^63 reads as negative below
+        time_bits = _be(head, 28, 8)
+        set_id = _be(head, 36, 4)
+        count = _be(head, 40, 4)
+        blob = _be(head, 44, 4)
+        if set_id >= 1 << 31:
+            set_id -= 1 << 32
+        if count >= 1 << 31:
+            count -= 1 << 32
+        if blob >= 1 << 31:
+            blob -= 1 << 32
+        if count < 0:
+            return D_BAD_COUNT
+        if blob != 12 * count:
+            return D_BAD_BLOB_SIZE
+        if n_head != 48 + blob:
+            return D_BAD_LENGTH
+        data, at = head, 48
+    else:
+        if n_head != 32:
+            return D_BAD_LENGTH
+        for i in range(4):
+            if head[i] != _ZMQ_MAGIC[i]:
+                return D_BAD_MAGIC
+        if head[4] != _ZMQ_MAGIC[4] or head[5] != _ZMQ_MAGIC[5]:
+            return D_BAD_VERSION
+        frame_id = _le(head, 8, 8)
+        time_bits = _le(head, 16, 8)
+        set_id = _le(head, 24, 4)  # uint32
+        count = _le(head, 28, 4)
+        if n_payload != 12 * count:
+            return D_BAD_LENGTH
+        data, at = payload, 0
+    if set_id != label_set_id:
+        return D_UNKNOWN_LABEL_SET
+    if count != n:
+        return D_COUNT_MISMATCH
+    if frame_id < 0:
+        return D_BAD_FRAME_NUMBER
+    if (time_bits & 0x7FFF_FFFF_FFFF_FFFF) == 0x7FF0_0000_0000_0000:  # +-inf
+        return D_NON_FINITE
+    bits = raw32.reshape(3 * n).view(np.uint32)
+    if form == FORM_OSC_COMPACT:
+        for k in range(3 * n):
+            bits[k] = _be(data, at + 4 * k, 4)
+    else:
+        for k in range(3 * n):
+            bits[k] = _le(data, at + 4 * k, 4)
+    if not store_rows(raw32, zero_is_occluded, rhs, occluded, valid, markers_world):
+        return D_NON_FINITE
+    return frame_id
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
@@ -125,8 +252,62 @@ def vmc_pack(
         wire[o + 3] = bits & 0xFF
 
 
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def pose_pack(
+    header: np.ndarray,
+    body: np.ndarray,
+    frame_id: int,
+    source_time_s: float,
+    received_ns: int,
+    solved_ns: int,
+    flags_word: int,
+    root_pos: np.ndarray,
+    wfb: np.ndarray,
+    pfb: np.ndarray,
+    rfb: np.ndarray,
+    weights: np.ndarray,
+    bone_flags: np.ndarray,
+    or_flags: np.ndarray,
+) -> None:
+    """One pose data message into ``header`` (68) and ``body`` (uint8, the
+    ``pose_stream`` layout, little-endian), as ``PoseEncoder.encode`` writes it.
+
+    The header's constant fields (magic, version, names id, counts) are written once
+    by the encoder; this writes the frame number, the source time, the received and
+    solved stamps, ``sent_ns`` = 0, ``flags_word`` (the performer id already in bits
+    16-23) and the root position. The bone flags are ``bone_flags | or_flags`` when
+    ``or_flags`` has one entry per bone, else ``bone_flags``."""
+    hi = header[8:48].view(np.int64)
+    hi[0] = frame_id
+    header[16:24].view(np.float64)[0] = source_time_s
+    hi[2] = received_ns
+    hi[3] = solved_ns
+    hi[4] = 0
+    header[48:52].view(np.uint32)[0] = flags_word
+    hf = header[56:68].view(np.float32)
+    for c in range(3):
+        hf[c] = root_pos[c]
+    b = wfb.shape[0]
+    k = weights.shape[0]
+    bf = body[: 48 * b + 4 * k].view(np.float32)
+    for i in range(b):
+        for j in range(4):
+            bf[4 * i + j] = wfb[i, j]
+            bf[4 * (b + i) + j] = pfb[i, j]
+            bf[4 * (2 * b + i) + j] = rfb[i, j]
+    for j in range(k):
+        bf[12 * b + j] = weights[j]
+    o = 48 * b + 4 * k
+    both = or_flags.shape[0] == b
+    for i in range(b):
+        f = bone_flags[i]
+        if both:
+            f |= or_flags[i]
+        body[o + i] = f
+
+
 def warm_up() -> None:
-    """Compile (or load from the cache) both kernels on tiny inputs, so no streamed
+    """Compile (or load from the cache) every kernel on tiny inputs, so no streamed
     frame pays for it."""
     rows = np.zeros((2, 3), dtype=np.float32)
     rows[1] = np.nan
@@ -140,4 +321,16 @@ def warm_up() -> None:
         np.array([[0.0, 0.0, 0.0, 1.0]]), np.zeros(1), 0.0, np.zeros((2, 4)), stage,
         stage.view(np.uint32), np.arange(16, dtype=np.int64) * 4,
         np.zeros(64, dtype=np.uint8),
+    )  # fmt: skip
+    wire = np.zeros(64, dtype=np.uint8)
+    for form in (FORM_OSC_COMPACT, FORM_ZMQ):  # refused at once: typed, not run
+        decode_frame(
+            form, wire, 0, wire, 0, 0, True, np.eye(3), rows, np.zeros(2, np.bool_),
+            np.zeros(2, dtype=np.bool_), np.zeros((2, 3)),
+        )  # fmt: skip
+    quat = np.array([[1.0, 0.0, 0.0, 0.0]])
+    pose_pack(
+        np.zeros(68, dtype=np.uint8), np.zeros(56, dtype=np.uint8), 0, 0.0, 0, 0, 0,
+        np.zeros(3), quat, quat, quat, np.zeros(1), np.zeros(1, dtype=np.uint8),
+        np.zeros(0, dtype=np.uint8),
     )  # fmt: skip

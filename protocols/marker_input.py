@@ -252,6 +252,50 @@ class MarkerPacket:
                 "non_finite", "infinite value (NaN is occluded, inf is not)"
             )
 
+    def decode_packed(
+        self,
+        form: int,
+        head: np.ndarray,
+        n_head: int,
+        payload: np.ndarray,
+        n_payload: int,
+    ) -> int:
+        """Check a frame packet and store its markers in one compiled call
+        (:func:`kernels.decode_frame`, ``form`` one of its ``FORM_*``).
+
+        Args:
+            head: uint8 array: the datagram (OSC) or the header part (ZeroMQ) in its
+                first ``n_head`` bytes.
+            payload: uint8 array: the ZeroMQ payload part in its first
+                ``n_payload`` bytes (OSC: unused).
+
+        Returns:
+            The frame number, or a negative ``kernels.D_*`` code
+            (:data:`KERNEL_REASONS`) with the frame untouched.
+        """
+        frame = self.frame
+        return kernels.decode_frame(
+            form, head, n_head, payload, n_payload, self.label_set.id,
+            self.zero_is_occluded, self._rhs, self._raw32, self._occluded, frame.valid,
+            frame.markers_world,
+        )  # fmt: skip
+
+
+#: :func:`kernels.decode_frame`'s refusals by reason.
+KERNEL_REASONS: dict[int, str] = {
+    kernels.D_BAD_LENGTH: "bad_length",
+    kernels.D_BAD_ADDRESS: "bad_address",
+    kernels.D_BAD_TYPETAGS: "bad_typetags",
+    kernels.D_BAD_COUNT: "bad_count",
+    kernels.D_BAD_BLOB_SIZE: "bad_blob_size",
+    kernels.D_UNKNOWN_LABEL_SET: "unknown_label_set",
+    kernels.D_COUNT_MISMATCH: "count_mismatch",
+    kernels.D_BAD_FRAME_NUMBER: "bad_frame_number",
+    kernels.D_NON_FINITE: "non_finite",
+    kernels.D_BAD_MAGIC: "bad_magic",
+    kernels.D_BAD_VERSION: "bad_version",
+}
+
 
 class DropCounters:
     """Counts of packet outcomes by reason: a fixed int64 array indexed by

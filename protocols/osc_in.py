@@ -27,8 +27,9 @@ from typing import Any, cast
 
 import numpy as np
 
+from retargetd.protocols import kernels
 from retargetd.protocols.errors import DecodeError
-from retargetd.protocols.marker_input import LabelSet, MarkerPacket
+from retargetd.protocols.marker_input import KERNEL_REASONS, LabelSet, MarkerPacket
 from retargetd.protocols.osc_wire import (
     BUNDLE_HEADER_SIZE,
     BUNDLE_TAG,
@@ -55,6 +56,8 @@ _COMPACT_FIELDS = struct.Struct(">qdiii")  # frame, time, label set, count, blob
 COMPACT_FIELDS_OFFSET = len(_COMPACT_ADDR) + len(_COMPACT_TAGS)  # 20
 COMPACT_HEADER_SIZE = COMPACT_FIELDS_OFFSET + _COMPACT_FIELDS.size  # 48
 _BE_F32 = np.dtype(">f4")
+_TIME_BE = struct.Struct(">d")
+_TIME_OFFSET = COMPACT_FIELDS_OFFSET + 8
 
 _MARKER_TAGS = osc_string(",sfff")
 _MARKER_XYZ = struct.Struct(">fff")
@@ -115,6 +118,26 @@ def decode_compact_frame(
     frame.frame_id = frame_id
     frame.source_time_s = time_s
     out.label_set_id = label_set_id
+    out.unknown_labels = 0
+    return out
+
+
+def decode_compact_into(wire: np.ndarray, n: int, out: MarkerPacket) -> MarkerPacket:
+    """:func:`decode_compact_frame` of the datagram in ``wire[:n]``, its checks and
+    the markers' store in one compiled call (``kernels.decode_frame``; the live
+    loop's form: ``wire`` is a uint8 array over its receive buffer).
+
+    Same result, same checks in the same order; a refused packet raises the
+    :class:`DecodeError` :func:`decode_compact_frame` raises for it (its checks run
+    again, in Python, to say why: refusals are not the hot path)."""
+    frame_id = out.decode_packed(kernels.FORM_OSC_COMPACT, wire, n, wire, 0)
+    if frame_id < 0:
+        decode_compact_frame(wire.data[:n], out)  # raises the reason
+        raise DecodeError(KERNEL_REASONS[frame_id], "refused by the compiled checks")
+    frame = out.frame
+    frame.frame_id = frame_id
+    (frame.source_time_s,) = _TIME_BE.unpack_from(wire.data, _TIME_OFFSET)
+    out.label_set_id = out.label_set.id
     out.unknown_labels = 0
     return out
 

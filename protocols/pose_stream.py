@@ -73,6 +73,9 @@ PERFORMER_SHIFT = 16
 PERFORMER_MASK = 0x00FF_0000
 MAX_PERFORMERS = 256
 _SENT_NS = struct.Struct("<q")
+#: The header's flags word (uint32).
+FLAGS_OFFSET = 48
+_FLAGS_WORD = struct.Struct("<I")
 _LE_F32 = np.dtype("<f4")
 
 # Frame flag bits (uint32 in the header).
@@ -152,6 +155,12 @@ def stamp_sent(header: bytearray | memoryview, t_ns: int) -> None:
     _SENT_NS.pack_into(header, SENT_NS_OFFSET, t_ns)
 
 
+def stamp_flags(header: bytearray | memoryview, flags_word: int) -> None:
+    """Overwrite a header's flags word (frame flags, the performer id in bits 16-23),
+    e.g. to add ``FRAME_LATE`` to a message packed before the budget ran out."""
+    _FLAGS_WORD.pack_into(header, FLAGS_OFFSET, flags_word)
+
+
 class PoseEncoder:
     """Encodes pose data messages into two preallocated buffers.
 
@@ -167,6 +176,9 @@ class PoseEncoder:
     Attributes:
         parts: ``[header, body]`` (``[header, body, face]`` with a face) memoryviews,
             reused by every :meth:`encode`.
+        header_bytes, body_bytes: the first two parts as uint8 arrays (the same
+            memory), for ``kernels.pose_pack``.
+        performer_bits: the performer id as it sits in the flags word.
     """
 
     def __init__(
@@ -202,6 +214,16 @@ class PoseEncoder:
         self._weights = np.frombuffer(self._body, _LE_F32, k, 48 * b)
         self._bone_flags = np.frombuffer(self._body, np.uint8, b, 48 * b + 4 * k)
         self.parts = [memoryview(self._header), memoryview(self._body)]
+        # The same bytes as uint8 arrays, for a compiled pack (``kernels.pose_pack``);
+        # the header's constant fields are written now, once.
+        self.header_bytes = np.frombuffer(self._header, np.uint8)
+        self.body_bytes = np.frombuffer(self._body, np.uint8)
+        #: The performer id in the bits of the header's flags word (16-23).
+        self.performer_bits = self._performer_bits
+        HEADER.pack_into(
+            self._header, 0, DATA_MAGIC, DATA_VERSION, names_id, 0, 0.0, 0, 0, 0,
+            self._performer_bits, n_bones, n_weights, 0.0, 0.0, 0.0,
+        )  # fmt: skip
         self.n_face_markers = n_face_markers
         if n_face_markers is not None:
             if not 0 <= n_face_markers <= 0xFFFF:

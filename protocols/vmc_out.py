@@ -159,6 +159,15 @@ class VmcEncoder:
         self.state_datagram = memoryview(self._state)
         self.reset_continuity()
 
+    def pack_buffers(
+        self,
+    ) -> tuple[F64Array, np.ndarray, IntArray, np.ndarray]:
+        """``(last_quat, stage32, offsets, wire)`` as :func:`kernels.vmc_pack` takes
+        them (its stage bits are ``stage32.view(np.uint32)``), for a kernel that packs
+        a frame inside its own call (``daemon/live/emit.py``): the same state as
+        :meth:`encode`, so the two can be mixed and :meth:`reset_continuity` holds."""
+        return self._last_quat, self._stage32, self._offsets, self._wire
+
     def encode_state(
         self, calibration_state: int, tracking_ok: bool, t_s: float
     ) -> memoryview:

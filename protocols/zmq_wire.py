@@ -21,8 +21,14 @@ import struct
 
 import numpy as np
 
+from retargetd.protocols import kernels
 from retargetd.protocols.errors import DecodeError
-from retargetd.protocols.marker_input import MAX_MARKERS, LabelSet, MarkerPacket
+from retargetd.protocols.marker_input import (
+    KERNEL_REASONS,
+    MAX_MARKERS,
+    LabelSet,
+    MarkerPacket,
+)
 
 FRAME_MAGIC = b"RTDM"
 LABELS_MAGIC = b"RTDL"
@@ -30,6 +36,7 @@ VERSION = 1
 FRAME_HEADER = struct.Struct("<4sHHqdII")  # 32 bytes
 LABELS_HEADER = struct.Struct("<4sHHII")  # 16 bytes
 _LE_F32 = np.dtype("<f4")
+_TIME_LE = struct.Struct("<d")
 
 Buffer = bytes | bytearray | memoryview
 
@@ -79,6 +86,31 @@ def decode_zmq_frame(
     frame.frame_id = frame_id
     frame.source_time_s = time_s
     out.label_set_id = label_set_id
+    out.unknown_labels = 0
+    return out
+
+
+def decode_zmq_into(
+    header: np.ndarray, n_header: int, payload: np.ndarray, n_payload: int,
+    out: MarkerPacket,
+) -> MarkerPacket:  # fmt: skip
+    """:func:`decode_zmq_frame` of the parts in ``header[:n_header]`` and
+    ``payload[:n_payload]`` (uint8 arrays over the receive buffers), its checks and
+    the markers' store in one compiled call (``kernels.decode_frame``).
+
+    Same result, same checks in the same order; a refused message raises the
+    :class:`DecodeError` :func:`decode_zmq_frame` raises for it (its checks run
+    again, in Python, to say why)."""
+    frame_id = out.decode_packed(kernels.FORM_ZMQ, header, n_header, payload, n_payload)
+    if frame_id < 0:
+        decode_zmq_frame(
+            header.data[:n_header], payload.data[:n_payload], out
+        )  # raises the reason
+        raise DecodeError(KERNEL_REASONS[frame_id], "refused by the compiled checks")
+    frame = out.frame
+    frame.frame_id = frame_id
+    (frame.source_time_s,) = _TIME_LE.unpack_from(header.data, 16)
+    out.label_set_id = out.label_set.id
     out.unknown_labels = 0
     return out
 

@@ -54,6 +54,7 @@ from retargetd.daemon.live.config import ConfigError, DaemonConfig, check_pipeli
 from retargetd.daemon.live.console_feed import ConsoleFeed
 from retargetd.daemon.live.console_feed import dispatch as dispatch_console
 from retargetd.daemon.live.control import CONTROL_MAX_BYTES, ControlMixin
+from retargetd.daemon.live.emit import warm_up as warm_up_emit
 from retargetd.daemon.live.face import warm_up as warm_up_face
 from retargetd.daemon.live.inputs import InputsMixin
 from retargetd.daemon.live.performer import build_performers
@@ -182,6 +183,14 @@ class Daemon(
         self._zbuf_extra = bytearray(64)
         self._zview_header = memoryview(self._zbuf_header)
         self._zview_payload = memoryview(self._zbuf_payload)
+        # The same buffers as uint8 arrays: the compiled decode reads them in place.
+        self._view = memoryview(self._buf)
+        self._wire = np.frombuffer(self._buf, dtype=np.uint8)
+        self._zwire_header = np.frombuffer(self._zbuf_header, dtype=np.uint8)
+        self._zwire_payload = np.frombuffer(self._zbuf_payload, dtype=np.uint8)
+        self._osc_simple = osc_cfg.form == "simple"
+        self._osc_fd = self._show_fd = -2  # the poll result's fds (set by open)
+        self._osc_limit = osc_cfg.max_message_bytes
         self._allow = frozenset(osc_cfg.allow)
         self._reload_limit = RateLimiter(config.control.min_interval_s)
         self._log = RateLimitedLog(self.out, config.loop.log_interval_s)
@@ -192,9 +201,8 @@ class Daemon(
         self._wake_ns = 0  # when the current wake-up began
         # A wake-up solves the frames that arrived together while within the budget
         # of their solves: a frame of N performers is N solves, each with the budget.
-        self._catch_up_ns = int(config.loop.solve_budget_ms * 1e6) * len(
-            self.performers
-        )
+        self._budget_ns = int(config.loop.solve_budget_ms * 1e6)  # solve + send
+        self._catch_up_ns = self._budget_ns * len(self.performers)
         # (t_ns, frames_in, frames_out) at the last stats line: fps over that window.
         self._window = (self._t0_ns, 0, 0)
         self.last_stats_line = ""
@@ -216,6 +224,7 @@ class Daemon(
         if c.input.osc.enabled:
             osc = c.input.osc
             self._osc = self._udp_bind(osc.host, osc.port)
+            self._osc_fd = self._osc.fileno()
             allow = f", sources {', '.join(osc.allow)} only" if osc.allow else ""
             who = who_reaches(is_loopback_host(osc.host), osc.host)
             self._announce(
@@ -225,6 +234,7 @@ class Daemon(
         if c.show_control.enabled:
             show = c.show_control
             self._show = self._udp_bind(show.host, show.port)
+            self._show_fd = self._show.fileno()
             can = [w for w, on in (("calibrate", show.calibrate),
                                    ("reload", show.reload)) if on]  # fmt: skip
             who = who_reaches(is_loopback_host(show.host), show.host)
@@ -342,6 +352,7 @@ class Daemon(
         with Progress(steps, "kernels: body", unit="kernels") as bar:
             warm_up()
             protocol_kernels.warm_up()
+            warm_up_emit()
             bar.update()
             if fit:
                 self.out(

@@ -65,9 +65,10 @@ class PerformersMixin(DaemonState):
     def _collect(self, stream: MarkerStream) -> None:
         """Hand an accepted frame to every live calibration and face capture."""
         if not self._multi:
-            if self._calib_target:
+            perf = self._perf
+            if perf.calib_target:
                 self._collect_calibration_frame(stream)
-            if self.face is not None and self.face.capturing:
+            if perf.face is not None and perf.face.capturing:
                 self._collect_face_frame(stream)
             return
         kind = None

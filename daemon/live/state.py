@@ -26,6 +26,7 @@ from retargetd.daemon.body.rig import Rig
 from retargetd.daemon.body.solve import BodySolver
 from retargetd.daemon.body.solve_fit import FitSolver
 from retargetd.daemon.live.config import DaemonConfig
+from retargetd.daemon.live.emit import EmitPlan
 from retargetd.daemon.live.face import FaceStage, LiveFace
 from retargetd.daemon.live.performer import FrameSource, Performer
 from retargetd.daemon.live.ratelog import RateLimitedLog, RateLimiter
@@ -62,6 +63,7 @@ class Pipeline:
     post: SolvePost | None = None  # the [[pipeline]] stages (None: none configured)
     tick_source_clock: bool = True  # resampled ticks' times are the source's clock
     spine: SpinePivot | None = None  # [target] spine = "pivot", after the retarget
+    emit: EmitPlan | None = None  # the one compiled call per frame (live/emit.py)
 
 
 T = TypeVar("T")
@@ -158,6 +160,14 @@ class DaemonState:
     _zbuf_extra: bytearray
     _zview_header: memoryview
     _zview_payload: memoryview
+    _view: memoryview  # of _buf
+    _wire: np.ndarray  # _buf as uint8 (the compiled decode's input)
+    _zwire_header: np.ndarray  # _zbuf_header as uint8
+    _zwire_payload: np.ndarray  # _zbuf_payload as uint8
+    _osc_simple: bool  # input.osc.form == "simple"
+    _osc_limit: int  # input.osc.max_message_bytes
+    _osc_fd: int  # the OSC input's and show control's fds (-2: closed)
+    _show_fd: int
     _allow: frozenset[str]
     _reload_limit: RateLimiter
     _log: RateLimitedLog
@@ -165,6 +175,7 @@ class DaemonState:
     _show_token_prefix: str  # "/TOKEN" when show_control.token is set, else ""
     _guards: list[CurveGuard]
     _wake_ns: int
+    _budget_ns: int  # loop.solve_budget_ms: solve + send of one frame
     _catch_up_ns: int
     _window: tuple[int, int, int]
     _osc_form: int

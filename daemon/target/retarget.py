@@ -375,6 +375,11 @@ class Retargeter:
         self._params = _readonly(params)
         self._e = np.tile(_IDENTITY, (n, 1))  # E_h, scratch (steady state: no alloc)
 
+    def program(self) -> tuple[np.ndarray, F64Array, F64Array]:
+        """``(prog, cst, params)`` of the compiled kernel (read-only), for a kernel
+        that runs this retarget inside its own call (``live/emit.py``)."""
+        return self._prog, self._cst, self._params
+
     def new_pose(self) -> TargetPose:
         """Allocate one frame's output buffers (once per stream)."""
         n = len(self.bone_names)

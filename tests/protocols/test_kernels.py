@@ -6,11 +6,12 @@ from __future__ import annotations
 
 import ast
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
 
-from retargetd.protocols import kernels
+from retargetd.protocols import kernels, osc_in, zmq_wire
 from retargetd.protocols.errors import DecodeError
 from retargetd.protocols.marker_input import LabelSet, MarkerPacket
 from retargetd.protocols.vmc_out import VmcEncoder
@@ -121,3 +122,76 @@ def test_kernels_call_nothing_outside_their_module() -> None:
         elif isinstance(node, ast.ImportFrom):
             imported.add((node.module or "").split(".")[0])
     assert imported <= {"__future__", "math", "numba", "numpy"}, imported
+
+
+def _outcome(decode: Any, *args: Any) -> tuple[Any, ...]:
+    """(reason,) or (frame_id, time, markers, valid, label_set_id) of a decode."""
+    packet = args[-1]
+    try:
+        decode(*args)
+    except DecodeError as exc:
+        return (exc.reason,)
+    f = packet.frame
+    return (
+        f.frame_id, np.float64(f.source_time_s).tobytes(), f.markers_world.tobytes(),
+        f.valid.tobytes(), packet.label_set_id, packet.unknown_labels,
+    )  # fmt: skip
+
+
+def _mutations(good: bytes, rng: np.random.Generator) -> list[bytes]:
+    out = [good, good[:-1], good + b"\0\0\0\0", good[:20], b""]
+    for _ in range(300):
+        b = bytearray(good)
+        for _ in range(int(rng.integers(1, 4))):
+            b[int(rng.integers(0, len(b)))] = int(rng.integers(0, 256))
+        out.append(bytes(b))
+    return out
+
+
+@pytest.mark.parametrize("form", ["osc", "zmq"])
+def test_decode_frame_equals_the_python_decoders(form: str) -> None:
+    """The compiled checks and store (``decode_*_into``) against the Python decoders
+    on good, mutated and truncated packets: the same reason, or the same frame."""
+    rng = np.random.default_rng(5)
+    labels = LabelSet(3, tuple(f"M{i}" for i in range(6)))
+    pos = rng.normal(scale=500.0, size=(6, 3))
+    pos[1] = np.nan
+    pos[2] = 0.0
+    specials = [(7, 0.5), (0, float("nan")), (2**40, float("inf")), (-3, 1.0)]
+    wire_a = np.zeros(512, dtype=np.uint8)
+    wire_b = np.zeros(512, dtype=np.uint8)
+    seen: set[str] = set()
+    for frame_id, t in specials:
+        inf_row = np.where(np.arange(6)[:, None] == 4, np.inf, pos)
+        for p in (pos, inf_row, pos[:5]):  # good, an infinite marker, one too few
+            if form == "osc":
+                good = osc_in.encode_compact_frame(max(frame_id, 0), t, 3, p)
+                good = good[:20] + frame_id.to_bytes(8, "big", signed=True) + good[28:]
+                cases = [(m, b"") for m in _mutations(good, rng)]
+            else:
+                head, pay = zmq_wire.encode_zmq_frame(max(frame_id, 0), t, 3, p)
+                fid = frame_id.to_bytes(8, "little", signed=True)
+                head = head[:8] + fid + head[16:]
+                cases = [(m, pay) for m in _mutations(head, rng)]
+                cases += [(head, m) for m in _mutations(pay, rng)[:60]]
+            for k, (a, b) in enumerate(cases):
+                ref = MarkerPacket.create(labels, "+Y", "mm")
+                got = MarkerPacket.create(labels, "+Y", "mm")
+                wire_a[: len(a)] = np.frombuffer(a, np.uint8)
+                wire_b[: len(b)] = np.frombuffer(b, np.uint8)
+                if form == "osc":
+                    want = _outcome(osc_in.decode_compact_frame, a, ref)
+                    have = _outcome(osc_in.decode_compact_into, wire_a, len(a), got)
+                else:
+                    want = _outcome(zmq_wire.decode_zmq_frame, a, b, ref)
+                    have = _outcome(
+                        zmq_wire.decode_zmq_into, wire_a, len(a), wire_b, len(b), got
+                    )
+                assert have == want, (frame_id, t, k)
+                seen.add(str(want[0]) if len(want) == 1 else "ok")
+    # Every refusal the two forms share was met, and good frames.
+    common = {"ok", "bad_length", "unknown_label_set", "count_mismatch",
+              "bad_frame_number", "non_finite"}  # fmt: skip
+    own = {"bad_address", "bad_typetags", "bad_blob_size"} if form == "osc" else {
+        "bad_magic", "bad_version"}  # fmt: skip
+    assert common | own <= seen, seen
