@@ -47,9 +47,9 @@ EXACT_MARKERS = DATA / "synth-exact-markers.toml"
 RATE_HZ = 120.0
 
 
-def _fit(
-    rig: Rig, take: pf.SynthTake, positions: np.ndarray | None = None
-) -> tuple[Calibration, FitSolver, FitSolve]:
+def _solver(rig: Rig, take: pf.SynthTake) -> tuple[Calibration, FitSolver]:
+    """The rig calibrated on the take's base pose, and its fit with the validator's
+    limits."""
     base = take.markers_world[take.base_pose_frames]
     cal = calibrate(rig, base, take.labels)
     solver = FitSolver(
@@ -60,6 +60,13 @@ def _fit(
         segment_kind=SEGMENT_KIND,
         base_positions=base,
     )
+    return cal, solver
+
+
+def _fit(
+    rig: Rig, take: pf.SynthTake, positions: np.ndarray | None = None
+) -> tuple[Calibration, FitSolver, FitSolve]:
+    cal, solver = _solver(rig, take)
     pos = take.markers_world if positions is None else positions
     return cal, solver, solver.solve_take(pos)
 
@@ -475,16 +482,7 @@ def test_stiffness_pulls_towards_the_calibration_pose(tmp_path: Path) -> None:
 def test_one_frame_equals_batch_and_allocates_nothing() -> None:
     rig = load_rig(EXACT_RIG)
     take = _exact_take(noise_mm=0.5, dropout=0.05, seconds=3.0)
-    base = take.markers_world[take.base_pose_frames]
-    cal = calibrate(rig, base, take.labels)
-    solver = FitSolver(
-        rig,
-        cal,
-        take.labels,
-        joint_limits=JOINT_LIMITS_DEG,
-        segment_kind=SEGMENT_KIND,
-        base_positions=base,
-    )
+    _, solver = _solver(rig, take)
     batch = solver.solve_take(take.markers_world)
     solver.reset()
     pose = solver.new_pose()
@@ -524,12 +522,7 @@ def test_packed_call_equals_the_tuple_call() -> None:
     arrays one by one) run the same kernel on the same memory: equal bit for bit."""
     rig = load_rig(EXACT_RIG)
     take = _exact_take(noise_mm=0.5, dropout=0.05, seconds=1.0)
-    base = take.markers_world[take.base_pose_frames]
-    cal = calibrate(rig, base, take.labels)
-    solver = FitSolver(
-        rig, cal, take.labels, joint_limits=JOINT_LIMITS_DEG,
-        segment_kind=SEGMENT_KIND, base_positions=base,
-    )  # fmt: skip
+    _, solver = _solver(rig, take)
     packed = solver.new_pose()
     assert packed.fit_buffers is not None
     by_hand = FitPose(
