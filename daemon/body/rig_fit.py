@@ -99,18 +99,6 @@ def parse_fit_table(
     Raises:
         whatever ``fail`` returns, for the first bad key.
     """
-    # the ranges are RIG_RANGES' (one table for every numeric rig key; imported here:
-    # rig_model imports this module's bounds)
-    from retargetd.daemon.body.rig_model import RIG_RANGES
-
-    def number(key: str, schema: str, value: Any) -> float:
-        if not _is_number(value):
-            raise fail(key, f"expected a number: {value!r}")
-        rng = RIG_RANGES[schema]
-        if value not in rng:  # (NaN too)
-            raise fail(key, f"{value!r} is out of range: allowed {rng} ({rng.why})")
-        return float(value)
-
     if not isinstance(table, dict):
         raise fail("fit", f"expected a table, got {type(table).__name__}")
     for key in table:
@@ -139,10 +127,16 @@ def parse_fit_table(
         seg = spec.get("segment")
         if seg is not None and seg not in bones:
             raise fail(f"{key}.segment", f"unknown bone {seg!r}")
-        weight = number(
-            f"{key}.weight", "fit.markers.*.weight", spec.get("weight", 1.0)
-        )
-        out_m[name] = MarkerFitOptions(segment=seg, weight=weight)
+        weight = spec.get("weight", 1.0)
+        if not _is_number(weight):
+            raise fail(f"{key}.weight", f"expected a number: {weight!r}")
+        if not 0.0 <= weight <= WEIGHT_MAX:  # (NaN too)
+            raise fail(
+                f"{key}.weight",
+                f"{weight!r} is out of range: allowed [0, {WEIGHT_MAX:g}] "
+                f"({WEIGHT_WHY})",
+            )
+        out_m[name] = MarkerFitOptions(segment=seg, weight=float(weight))
     out_b: dict[str, BoneFitOptions] = {}
     for name, spec in bones_t.items():
         key = f"fit.bones.{name}"
@@ -170,7 +164,11 @@ def parse_fit_table(
             and all(_is_number(v) for v in axis_v)
         ):
             for i, v in enumerate(axis_v):
-                number(f"{key}.axis[{i}]", "fit.bones.*.axis", v)
+                if not -1.0 <= v <= 1.0:  # (NaN too)
+                    raise fail(
+                        f"{key}.axis[{i}]",
+                        f"{v!r} is out of range: allowed [-1, 1] ({AXIS_WHY})",
+                    )
             n = math.hypot(*axis_v)
             if n == 0.0:
                 raise fail(f"{key}.axis", f"a zero vector is no direction: {axis_v!r}")
@@ -179,10 +177,15 @@ def parse_fit_table(
             raise fail(f"{key}.axis", f"expected x, y, z or [x, y, z]: {axis_v!r}")
         if name in roots and dof != "ball":
             raise fail(f"{key}.dof", "a root bone is free (ball)")
-        stiff = number(
-            f"{key}.stiffness_mm", "fit.bones.*.stiffness_mm",
-            spec.get("stiffness_mm", 0.0),
-        )  # fmt: skip
+        stiff = spec.get("stiffness_mm", 0.0)
+        if not _is_number(stiff):
+            raise fail(f"{key}.stiffness_mm", f"expected a number: {stiff!r}")
+        if not 0.0 <= stiff <= STIFFNESS_MAX_MM:  # (NaN too)
+            raise fail(
+                f"{key}.stiffness_mm",
+                f"{stiff!r} is out of range: allowed [0, {STIFFNESS_MAX_MM:g}] mm/rad "
+                f"({STIFFNESS_WHY})",
+            )
         if name in roots and stiff:
             raise fail(f"{key}.stiffness_mm", "a root bone is free (no stiffness)")
         out_b[name] = BoneFitOptions(dof=dof, axis=axis, stiffness_mm=float(stiff))
