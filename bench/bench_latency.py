@@ -34,7 +34,12 @@ lost (counted).
 Baseline, in the same run: a raw UDP sender -> receiver pair (same processes, same
 pacing, same payload size as the OSC compact frame) at each rate. Daemon-added latency
 = the daemon case's percentile minus the raw UDP one at the same rate (for the pose
-stream that includes two ZeroMQ hops against one UDP hop).
+stream that includes two ZeroMQ hops against one UDP hop). A second baseline, the
+floor of any Python process in between: the same raw payload through a relay process
+that polls its UDP socket with ``zmq.Poller`` (the daemon's poll, its default 100 ms
+timeout), receives into a buffer and sends the datagram on to the receiver, unchanged;
+its added latency is what one Python hop costs on this machine at this rate, before any
+decoding or solving.
 
 Each case first sends ``--warmup`` seconds of frames (pipeline build on the first
 labelled frame) that are left out of every figure, then snapshots the daemon's
@@ -122,6 +127,11 @@ HOT_PATH_TARGETS_US = {"body": 150.0, "fit+face": 250.0, "face+fit": 250.0}
 
 #: Transports whose sender is a capture system the daemon connects to.
 CAPTURE_TRANSPORTS = ("natnet", "qtm")
+#: Cases without the daemon: raw UDP sender -> receiver, and the same through the
+#: Python relay (the floor of any Python process in between).
+BASELINES = ("raw", "relay")
+#: The relay's poll timeout: the daemon's loop.poll_timeout_ms default (100 ms).
+RELAY_POLL_MS = 100
 
 
 def _pace(
@@ -352,6 +362,47 @@ def _sender(spec: dict[str, Any], conn: Connection) -> None:
         if push is not None:
             push.close()
         ctx.term()
+
+
+def _relay(port: int, conn: Connection) -> None:
+    """The floor of any Python daemon (``relay`` baseline): what the daemon's loop
+    must do per frame at the least, and nothing else. A UDP socket polled by
+    ``zmq.Poller`` (as the daemon's loop polls its inputs, same timeout), each
+    datagram received into a preallocated buffer and sent on at once, unchanged, to
+    the receiver's ``port``. Its latency over raw UDP is the Python process hop:
+    wake-up, poll, one receive, one send, on this machine at this rate."""
+    import zmq
+
+    udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    udp.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4 << 20)
+    udp.bind((LOCALHOST, 0))
+    udp.setblocking(False)
+    out = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    dest = (LOCALHOST, port)
+    poller = zmq.Poller()
+    poller.register(udp, zmq.POLLIN)
+    poller.register(conn.fileno(), zmq.POLLIN)
+    conn.send(("port", udp.getsockname()[1]))
+    buf = bytearray(65536)
+    view = memoryview(buf)
+    fd = udp.fileno()  # zmq.Poller reports a plain socket by its descriptor
+    gc.disable()
+    try:
+        while True:
+            events = dict(poller.poll(RELAY_POLL_MS))
+            if fd in events:
+                while True:
+                    try:
+                        n = udp.recv_into(buf)
+                    except (BlockingIOError, InterruptedError):
+                        break
+                    out.sendto(view[:n], dest)
+            if conn.fileno() in events:
+                conn.recv()
+                return
+    finally:
+        udp.close()
+        out.close()
 
 
 def _receiver(capacity: int, raw_mode: bool, conn: Connection) -> None:
@@ -658,7 +709,7 @@ def run_case(
     browser: Any = None
     try:
         receiver = ctx.Process(
-            target=_receiver, args=(capacity, transport == "raw", recv_child)
+            target=_receiver, args=(capacity, transport in BASELINES, recv_child)
         )
         receiver.start()
         procs.append(receiver)
@@ -666,7 +717,7 @@ def run_case(
             raise RuntimeError("receiver did not start")
         _, port = recv_conn.recv()
         spec: dict[str, Any] = {
-            "mode": transport,
+            "mode": "raw" if transport in BASELINES else transport,
             "rate_hz": rate_hz,
             "seconds": args.seconds,
             "warmup_s": args.warmup,
@@ -691,6 +742,14 @@ def run_case(
             )
         if transport == "raw":
             spec["port"] = port
+        elif transport == "relay":
+            relay_conn, relay_child = ctx.Pipe()
+            relay = ctx.Process(target=_relay, args=(port, relay_child))
+            relay.start()
+            procs.append(relay)
+            if not relay_conn.poll(30):
+                raise RuntimeError("relay did not start")
+            spec["port"] = relay_conn.recv()[1]
         else:
             assert calibration is not None
             stem = f"{transport}_{rate_hz:g}_{variant}"
@@ -862,7 +921,7 @@ def summarize(r: Result) -> Summary:
         timed = (k >= 0) & (k < n)
         return arrival[timed] - r.sent_ns[k[timed]]
 
-    if r.name.startswith("raw"):
+    if r.name.startswith(BASELINES):
         d = lat(r.recv["raw_frame"], r.recv["t_ns"])
         s.raw_recv, s.raw = len(d), _pct(d)
         return s
@@ -911,7 +970,8 @@ def _f(x: float) -> str:
 def print_report(summaries: list[Summary], args: argparse.Namespace) -> None:
     """Tables and verdicts."""
     raw = {s.rate_hz: s for s in summaries if s.name.startswith("raw")}
-    cases = [s for s in summaries if not s.name.startswith("raw")]
+    relay = {s.rate_hz: s for s in summaries if s.name.startswith("relay")}
+    cases = [s for s in summaries if not s.name.startswith(BASELINES)]
     print(
         f"\n{args.seconds:g} s timed per case after {args.warmup:g} s of warm-up; "
         "daemon in latest-wins mode; latencies in µs, send -> arrival, "
@@ -926,7 +986,7 @@ def print_report(summaries: list[Summary], args: argparse.Namespace) -> None:
     print(head)
     print("-" * len(head))
     for s in summaries:
-        if s.name.startswith("raw"):
+        if s.name.startswith(BASELINES):
             print(f"{s.name:<24} {s.sent:>6} {s.send_rate_hz:8.1f} {'':>6} {'':>5} "
                   f"{s.sent - s.raw_recv:>5} {'':>7} {s.raw_recv:>8}")  # fmt: skip
             continue
@@ -954,6 +1014,14 @@ def print_report(summaries: list[Summary], args: argparse.Namespace) -> None:
         rp = b.raw if b else (float("nan"),) * 2
         if s.name.startswith("raw"):
             print(f"{s.name:<24} {_f(rp[0]):>7} / {_f(rp[1]):<6}")
+            continue
+        if s.name.startswith("relay"):
+            print(
+                f"{s.name:<24} {_f(rp[0]):>7} / {_f(rp[1]):<6} "
+                f"{_f(s.raw[0]):>6} / {_f(s.raw[1]):<5} "
+                f"{_f(s.raw[0] - rp[0]):>5} / {_f(s.raw[1] - rp[1]):<4}"
+                "   (the relay's datagram, in the VMC columns)"
+            )
             continue
         av = (s.vmc[0] - rp[0], s.vmc[1] - rp[1])
         ap = (s.pose[0] - rp[0], s.pose[1] - rp[1])
@@ -1018,6 +1086,14 @@ def print_report(summaries: list[Summary], args: argparse.Namespace) -> None:
             print(
                 f"hot path (issue 19): added p99, {s.name} -> {out}: "
                 f"{_f(p[1] - b.raw[1])} µs (target <= {target:.0f} µs, quiet machine)"
+            )
+    for rate, r in sorted(relay.items()):
+        b = raw.get(rate)
+        if b is not None:
+            print(
+                f"floor: a Python relay (poll, receive, send; nothing else) adds "
+                f"{_f(r.raw[0] - b.raw[0])} / {_f(r.raw[1] - b.raw[1])} µs "
+                f"(p50 / p99) at {rate:g} Hz"
             )
 
 
@@ -1114,7 +1190,7 @@ def main(argv: list[str] | None = None) -> int:
                 f"{training.k} shapes on the walk's head; {len(labels)} markers "
                 f"per frame (compact frame {48 + 12 * len(labels)} bytes)"
             )
-        plan = [("raw", r, "body") for r in rates] + [
+        plan = [(b, r, "body") for b in BASELINES for r in rates] + [
             (t, r, v) for v in variants for t in transports for r in rates
         ]
         for transport, rate, variant in plan:
