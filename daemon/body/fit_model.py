@@ -93,6 +93,11 @@ logger = logging.getLogger(__name__)
 #: table; a marker on one condyle is ~half that from either bone's line).
 PROXIMAL_TIE_M = 0.025
 
+#: A "hinge_twist" axis must be at least 30 deg off the bone's own axis (|cos| <= this):
+#: nearer, the cone the hinge sweeps the bone's axis on narrows to the axis itself and
+#: the hinge is mostly the twist (an elbow's flexion axis is ~90 deg off the forearm's).
+HINGE_TWIST_MAX_COS = math.cos(math.radians(30.0))
+
 #: Limit table columns (radians; NaN = no such limit): twist lo, twist hi,
 #: sagittal lo, sagittal hi, frontal |max|, cone max.
 LIM_TWIST_LO, LIM_TWIST_HI, LIM_SAG_LO, LIM_SAG_HI, LIM_FRONTAL, LIM_CONE = range(6)
@@ -116,7 +121,9 @@ class FitModel:
         joint_names: (J,); ``joint_bone`` (J,), ``joint_local`` (J, 3) metres.
         hinge_axis: (B, 3) unit hinge axis in the bone's rest axes, zeros = ball.
         twist_lock: (B,) 1.0 for a swing joint (no rotation about the bone's own +Y
-            relative to its calibration pose), else 0.0.
+            relative to its calibration pose), 2.0 for a hinge with the bone's twist
+            ("hinge_twist": the bone's axis stays on the cone the hinge sweeps it
+            on), else 0.0.
         rest_pull: (B,) m^2 / rad^2, weight of the pull towards the calibration pose
             (``stiffness_mm`` squared, in metres), 0 for none.
         limits: (B, 6) radians (``LIM_*`` columns, NaN = none); ``limit_left`` and
@@ -496,12 +503,25 @@ def build_fit_model(
     hinge = np.zeros((n_bones, 3))
     twist_lock = np.zeros(n_bones)
     rest_pull = np.zeros(n_bones)
+    rest_pfb = np.asarray(calibration.rest_parent_from_bone_quat, dtype=np.float64)
     for name, bopt in options.bones.items():
-        rest_pull[rig.bone_names.index(name)] = (1e-3 * bopt.stiffness_mm) ** 2
-        if bopt.dof == "hinge":
-            hinge[rig.bone_names.index(name)] = bopt.axis
+        b = rig.bone_names.index(name)
+        rest_pull[b] = (1e-3 * bopt.stiffness_mm) ** 2
+        if bopt.dof in ("hinge", "hinge_twist"):
+            axis = np.asarray(bopt.axis, dtype=np.float64)
+            if bopt.axis_in == "parent":  # pfb = R_axis(t) rest_pfb = rest_pfb R_h(t)
+                axis = rot.quat_rotate(rot.quat_conj(rest_pfb[b]), axis)
+            hinge[b] = axis / np.linalg.norm(axis)
+            if bopt.dof == "hinge_twist":
+                if abs(hinge[b][1]) > HINGE_TWIST_MAX_COS:
+                    raise ValueError(
+                        f"fit.bones.{name}: the hinge axis is within "
+                        f"{math.degrees(math.acos(HINGE_TWIST_MAX_COS)):.0f} deg of "
+                        "the bone's own axis, so a hinge about it is its twist"
+                    )
+                twist_lock[b] = 2.0
         elif bopt.dof == "swing":
-            twist_lock[rig.bone_names.index(name)] = 1.0
+            twist_lock[b] = 1.0
     limits, left_b, fwd_b = _limit_rows(
         rig, calibration, joint_limits or {}, segment_kind or {}
     )
@@ -540,9 +560,7 @@ def build_fit_model(
         bone_parent=_readonly(parents),
         bone_root=_readonly(bone_root),
         off_parent=_readonly(off_parent),
-        rest_pfb=_readonly(
-            np.asarray(calibration.rest_parent_from_bone_quat, dtype=np.float64)
-        ),
+        rest_pfb=_readonly(rest_pfb),
         root_rest_pos=_readonly(origins[roots]),
         marker_names=rig.marker_names,
         marker_bone=_readonly(np.asarray(bones_of, dtype=np.int64)),

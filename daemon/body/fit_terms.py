@@ -163,7 +163,16 @@ def pen_components(
             cone = math.sqrt(vx * vx + vy * vy + vz * vz)
             if cone > lim[5]:
                 out[2] = s_lim * (cone - lim[5])
-    if lock != 0.0:
+    if lock == 2.0:
+        # A hinge about h, then the bone's own twist: q = R_h(t) R_y(u) moves the
+        # bone's axis +Y on the cone about h, (q Y) . h = Y . h = h_y. The residual is
+        # the distance off that cone, in radians (/ sin of the cone's half-angle).
+        ax = 2.0 * (qx * qy - qw * qz)
+        ay = 1.0 - 2.0 * (qx * qx + qz * qz)
+        az = 2.0 * (qy * qz + qw * qx)
+        d = ax * hinge[0] + ay * hinge[1] + az * hinge[2] - hinge[1]
+        out[3] = s_hinge * d / math.sqrt(1.0 - hinge[1] * hinge[1])
+    elif lock != 0.0:
         # Zero twist about +Y <=> q_y = 0 <=> the rotation's axis is perpendicular to
         # the bone: a pure swing.
         out[3] = s_hinge * tw

@@ -22,9 +22,7 @@ from retargetd.daemon.body.rig import Rig
 from retargetd.daemon.body.solve import BodySolver
 from retargetd.daemon.body.solve_fit import FitSolver
 
-#: The methods, the default first. The fit is not the default yet: it does not
-#: validate the tennis serve (README "Two ways to solve the body";
-#: ``tests/daemon/test_validate_takes.py`` ``FIT_ON_TENNIS``).
+#: The methods, the default first (README "Two ways to solve the body").
 METHODS = ("construction", "fit")
 
 

@@ -6,8 +6,9 @@ and per bone (reference: ``daemon/body/rigs/RIGS.md``, "``[fit]``").
 segment = "lfemur"   # the bone the marker rides (default: from the bones using it)
 weight = 1.0         # residual weight (0 = ignored by the fit)
 [fit.bones.ltibia]
-dof = "hinge"        # "ball" (default), "hinge" or "swing"
-axis = "x"           # hinge axis in the bone's axes: "x", "y", "z" or [x, y, z]
+dof = "hinge"        # "ball" (default), "hinge", "hinge_twist" or "swing"
+axis = "x"           # hinge axis: "x", "y", "z" or [x, y, z]
+axis_in = "bone"     # the axes it is in: the bone's (default) or its "parent"'s
 stiffness_mm = 0     # pull towards the calibration pose, mm of residual per radian
 ```
 
@@ -25,7 +26,7 @@ from typing import Any
 #: The keys of each table, in the order errors list them.
 FIT_KEYS = ("markers", "bones")
 MARKER_KEYS = ("segment", "weight")
-BONE_KEYS = ("dof", "axis", "stiffness_mm")
+BONE_KEYS = ("dof", "axis", "axis_in", "stiffness_mm")
 #: ``stiffness_mm`` at most a hinge's stiffness (FitParams.kappa_hinge: 1 m/rad);
 #: ``body.rig_model.RIG_RANGES`` lists the same range.
 STIFFNESS_MAX_MM = 1000.0
@@ -40,7 +41,10 @@ WEIGHT_WHY = "0 = ignored; at most a noise-floor marker's against a skin-artefac
 #: A hinge's ``axis = [x, y, z]`` is a direction: each component of a unit vector lies
 #: in [-1, 1] (the parser normalizes what rounding leaves).
 AXIS_WHY = "a direction's components, as of a unit vector (normalized on reading)"
-DOFS = ("ball", "hinge", "swing")
+DOFS = ("ball", "hinge", "hinge_twist", "swing")
+#: The joints with an axis (``axis``, ``axis_in``).
+HINGES = ("hinge", "hinge_twist")
+AXES_IN = ("bone", "parent")
 
 _AXES = {"x": (1.0, 0.0, 0.0), "y": (0.0, 1.0, 0.0), "z": (0.0, 0.0, 1.0)}
 
@@ -57,14 +61,20 @@ class MarkerFitOptions:
 class BoneFitOptions:
     """Per-bone rig keys: ``dof`` and the hinge axis (bone axes).
 
-    ``dof``: "ball" (three rotations), "hinge" (one, about ``axis``) or "swing" (two:
-    a ball joint without rotation about the bone's own long axis, +Y).
+    ``dof``: "ball" (three rotations), "hinge" (one, about ``axis``), "hinge_twist"
+    (two: a hinge about ``axis``, then the bone's own twist about its long axis +Y: an
+    elbow with its forearm's pronation) or "swing" (two: a ball joint without rotation
+    about the bone's own long axis, +Y). ``axis_in``: the axes ``axis`` is given in,
+    the bone's rest axes ("bone") or its parent's ("parent": an elbow's flexion axis is
+    the upper arm's epicondyle axis, the upper arm's +X when its up reference is the
+    lateral epicondyle).
     ``stiffness_mm``: a pull of the joint towards its calibration pose, in mm of
     marker residual per radian (0: none), like OpenSim IK's coordinate tasks.
     """
 
     dof: str = "ball"
     axis: tuple[float, float, float] = (1.0, 0.0, 0.0)
+    axis_in: str = "bone"
     stiffness_mm: float = 0.0
 
 
@@ -152,9 +162,16 @@ def parse_fit_table(
                 )
         dof = spec.get("dof", "ball")
         if dof not in DOFS:
-            raise fail(f"{key}.dof", f"expected 'ball', 'hinge' or 'swing': {dof!r}")
-        if "axis" in spec and dof != "hinge":
-            raise fail(f"{key}.axis", "only a hinge has an axis")
+            raise fail(
+                f"{key}.dof",
+                f"expected 'ball', 'hinge', 'hinge_twist' or 'swing': {dof!r}",
+            )
+        for k in ("axis", "axis_in"):
+            if k in spec and dof not in HINGES:
+                raise fail(f"{key}.{k}", "only a hinge has an axis")
+        axis_in = spec.get("axis_in", "bone")
+        if axis_in not in AXES_IN:
+            raise fail(f"{key}.axis_in", f"expected 'bone' or 'parent': {axis_in!r}")
         axis_v = spec.get("axis", "x")
         if isinstance(axis_v, str) and axis_v in _AXES:
             axis = _AXES[axis_v]
@@ -188,5 +205,7 @@ def parse_fit_table(
             )
         if name in roots and stiff:
             raise fail(f"{key}.stiffness_mm", "a root bone is free (no stiffness)")
-        out_b[name] = BoneFitOptions(dof=dof, axis=axis, stiffness_mm=float(stiff))
+        out_b[name] = BoneFitOptions(
+            dof=dof, axis=axis, axis_in=axis_in, stiffness_mm=float(stiff)
+        )
     return FitOptions(markers=out_m, bones=out_b)

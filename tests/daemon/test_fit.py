@@ -371,6 +371,8 @@ def test_fit_keys_parse_and_act(tmp_path: Path) -> None:
         ({"bones": {"l_shank": {"dof": "hinge", "axis": [0, 0, 0]}}}, "axis"),
         ({"bones": {"l_shank": {"dof": "hinge", "axis": [2, 0, 0]}}}, r"axis\[0\]"),
         ({"bones": {"l_shank": {"dof": "swing", "axis": "x"}}}, "only a hinge"),
+        ({"bones": {"l_shank": {"axis_in": "parent"}}}, "only a hinge"),
+        ({"bones": {"l_shank": {"dof": "hinge", "axis_in": "world"}}}, "axis_in"),
         ({"bones": {"pelvis": {"dof": "swing"}}}, "root"),
         ({"bones": {"pelvis": {"stiffness_mm": 10}}}, "root"),
         ({"bones": {"l_shank": {"stiffness_mm": -1}}}, "out of range"),
@@ -428,6 +430,67 @@ def test_swing_joint_has_no_twist(tmp_path: Path) -> None:
     assert np.percentile(free, 95) > 5.0  # the performer's forearms do twist
     assert locked.max() < 0.5
     assert np.isfinite(res.world_from_bone_quat).all()
+
+
+def _off_cone_deg(q: np.ndarray, h: np.ndarray) -> np.ndarray:
+    """How far (degrees) rotations q (..., 4) put the bone's +Y off the cone a hinge
+    about the unit axis h (bone rest axes) sweeps it on."""
+    y = rot.quat_rotate(q, np.array([0.0, 1.0, 0.0]))
+    return np.degrees(np.abs(np.arcsin(np.clip(y @ h, -1, 1)) - np.arcsin(h[1])))
+
+
+def test_hinge_twist_elbow_flexes_about_the_parents_axis_and_twists(
+    tmp_path: Path,
+) -> None:
+    """``dof = "hinge_twist"``, ``axis_in = "parent"``: the synthetic performer's
+    elbows flex about the upper arm's epicondyle axis (its +X, up = the epicondyle
+    pair) and its forearms pronate +-70 deg about their own axis. As such joints the
+    forearms stay on the hinge's cone (as ball joints noise moves them off it) and
+    still follow the truth's twist."""
+    bones = ("l_forearm", "r_forearm")
+    text = EXACT_RIG.read_text() + "".join(
+        f'\n[fit.bones.{b}]\ndof = "hinge_twist"\naxis = "x"\naxis_in = "parent"\n'
+        for b in bones
+    )
+    path = tmp_path / "rig.toml"
+    path.write_text(text)
+    rig, opts = load_fit_rig(path)
+    assert all(opts.bones[b].axis_in == "parent" for b in bones)
+    take = _exact_take(noise_mm=1.0, seconds=3.0)
+    base = take.markers_world[take.base_pose_frames]
+    cal = calibrate(rig, base, take.labels)
+    model = build_fit_model(rig, cal, base, take.labels, opts)
+    idx = [rig.bone_names.index(b) for b in bones]
+    assert (model.twist_lock[idx] == 2.0).all() and model.twist_lock.sum() == 4.0
+    for b in idx:  # the parent's +X in the bone's rest axes
+        want = rot.quat_rotate(rot.quat_conj(model.rest_pfb[b]), np.eye(3)[0])
+        np.testing.assert_allclose(model.hinge_axis[b], want, atol=1e-12)
+    res = FitSolver(rig, cal, take.labels, model=model).solve_take(take.markers_world)
+    ball = FitSolver(
+        rig, cal, take.labels, model=build_fit_model(rig, cal, base, take.labels,
+                                                     FitOptions())
+    ).solve_take(take.markers_world)  # fmt: skip
+    off, off_ball = (
+        np.stack([_off_cone_deg(r.rest_from_bone_quat[:, b], model.hinge_axis[b])
+                  for b in idx])
+        for r in (res, ball)
+    )  # fmt: skip
+    err = _bone_errors_deg(rig, cal, res, take)[:, idx]
+    twist = np.abs(_twist_deg(res.rest_from_bone_quat[:, idx]))
+    print(
+        f"\nhinge_twist elbows: off the cone p95 {np.percentile(off, 95):.3f} deg "
+        f"(ball {np.percentile(off_ball, 95):.3f}); forearm error median "
+        f"{np.median(err):.2f} p95 {np.percentile(err, 95):.2f} deg; twist p95 "
+        f"{np.percentile(twist, 95):.1f} deg"
+    )
+    assert np.percentile(twist, 95) > 30.0  # the twist stays free
+    assert np.median(err) <= 1.0 and np.percentile(err, 95) <= 3.0
+    assert np.percentile(off, 95) < 0.25 * np.percentile(off_ball, 95)
+    # The axis must leave the bone a hinge: one along the bone's own axis is refused.
+    along = text.replace('axis = "x"\naxis_in = "parent"', 'axis = "y"')
+    path.write_text(along)
+    with pytest.raises(ValueError, match="hinge axis is within 30 deg"):
+        build_fit_model(rig, cal, base, take.labels, load_fit_rig(path)[1])
 
 
 def test_stiffness_pulls_towards_the_calibration_pose(tmp_path: Path) -> None:

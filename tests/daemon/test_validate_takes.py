@@ -61,26 +61,12 @@ TENNIS = "kineticstoolkit/kinematics_tennis_serve.c3d"
 #: (issue 14 item 3) frame 400 is no transient: the forearm's and hand's up direction
 #: (LWRB->LWRA) collapses there, so they keep their roll (flagged partial).
 TENNIS_GLITCHES = [744]
-#: The fit on cmu41 does not validate the serve yet (issue 14 item 5, measured with
-#: the jump gate, swing clavicles with a stiffness, swing hands and a swing spine:
-#: cmu41.toml [fit]): 7 frames past a limit, none by much for a serve but the hard
-#: limits are hard: the left forearm twists to 173.7 deg (4 frames, 13.7 past its
-#: 160) and the right foot 1.9 deg past its 55 (3 frames; the construction reaches
-#: 50.3). The forearm: the upper-arm wand (LUPA) holds the humerus's axial rotation
-#: back, and the forearm takes the difference to the wrist bar (at frame 880 the
-#: upper arm's twist is +31 deg against the construction's -46 from the epicondyle);
-#: upper-arm skin follows the humerus's axial rotation least of any segment's (Cutti
-#: et al., Gait Posture 21(3):341-349, 2005). Before the swing spine the abdomen and
-#: thorax drifted to opposite twists of 50 deg (5 frames past); before the clavicle
-#: keys the acromion, 100 mm off under the rigid chain with the arm overhead, lifted
-#: or twisted the left clavicle past its limits on 259-366 frames.
-FIT_ON_TENNIS = pytest.param(
-    "fit",
-    marks=pytest.mark.xfail(
-        reason="the fit does not validate the tennis serve yet (FIT_ON_TENNIS)",
-        strict=True,
-    ),
-)
+#: The fit validates the serve since the elbows are hinges with the forearm's twist,
+#: the upper-arm wands are down-weighted and the feet have a pull towards the
+#: calibration pose (cmu41.toml [fit], each key's reasons and what it did on both
+#: takes there). Before, 7 frames were past a limit: the left forearm's twist at
+#: 173.7 deg (the humerus's axial rotation put into the elbow as a sideways bend) and
+#: the right foot's 1.9 deg past its 55.
 
 
 def _validate(
@@ -135,10 +121,10 @@ def test_motek_ballet_passes(datasets: Path, method: str) -> None:
         assert np.median(rms) < 40.0
 
 
-@pytest.mark.parametrize("method", ["construction", FIT_ON_TENNIS])
+@pytest.mark.parametrize("method", ["construction", "fit"])
 def test_tennis_serve_passes(datasets: Path, method: str) -> None:
-    """With the fit (issue 14), the serve's one-frame label glitches should be gated
-    out and no longer show as limit transients (not yet: FIT_ON_TENNIS)."""
+    """With the fit (issue 14), the serve's one-frame label glitches are gated out
+    and no longer show as limit transients."""
     path = datasets / TENNIS
     rep, _ = _validate(path, slice(0, 50), path, method)
     assert rep.passed, {n: c.summary() for n, c in rep.checks.items() if c.n_flagged}
