@@ -25,8 +25,8 @@ Pass (all printed, exit 1 if any fails):
   (restarts) or a spoofed label announcement held the id's frames until the source
   announced its names again (listed apart: ``label_conflict`` drops, by design);
 - the recording replays to the same poses: its marker packets, fed through the live
-  decoders and a fresh ``BodySolver`` (reset where the daemon reset its own), give
-  the recorded ``/poses`` (float32-equal).
+  decoders and a fresh body solver of the daemon's method (the fit by default; reset
+  where the daemon reset its own), give the recorded ``/poses`` (float32-equal).
 
 Run from the repository root::
 
@@ -669,14 +669,17 @@ def rss_growth(
     return base, peak, peak - base
 
 
-def replay_check(path: Path, calibration: Path) -> dict[str, Any]:
-    """The recording's marker packets through the live decoders and a fresh
-    ``BodySolver`` (reset where the daemon reset its own: restarts, reloads, new
-    label sets), solving exactly the frames the daemon solved (the recorded poses,
-    matched by receive time), against the recorded ``/poses``."""
+def replay_check(path: Path, calibration: Path, method: str = "fit") -> dict[str, Any]:
+    """The recording's marker packets through the live decoders and a fresh body
+    solver of the daemon's ``method`` (the default, the fit; reset where the daemon
+    reset its own: restarts, reloads, new label sets), solving exactly the frames the
+    daemon solved (the recorded poses, matched by receive time), against the recorded
+    ``/poses``."""
     from retargetd.daemon.body.calibration import load_calibration
+    from retargetd.daemon.body.method import make_body_solver
     from retargetd.daemon.body.rig import load_rig
-    from retargetd.daemon.body.solve import BodySolver
+    from retargetd.daemon.validate.limits import JOINT_LIMITS_DEG
+    from retargetd.daemon.validate.model import SEGMENT_KIND
     from retargetd.protocols import osc_in, pose_stream
     from retargetd.protocols.errors import DecodeError
     from retargetd.protocols.marker_input import ACCEPTED, RESTART, MarkerStream
@@ -696,7 +699,7 @@ def replay_check(path: Path, calibration: Path) -> dict[str, Any]:
     rig = load_rig("plug-in-gait")
     cal = load_calibration(calibration)
     stream = MarkerStream()
-    solver: BodySolver | None = None
+    solver: Any = None
     labels: tuple[str, ...] = ()
     pose: Any = None
     compared = worst_q = worst_p = 0.0
@@ -717,7 +720,10 @@ def replay_check(path: Path, calibration: Path) -> dict[str, Any]:
             continue
         if solver is None or stream.current.label_set.labels != labels:
             labels = stream.current.label_set.labels
-            solver = BodySolver(rig, cal, labels)
+            solver = make_body_solver(
+                method, rig, cal, labels,
+                joint_limits=JOINT_LIMITS_DEG, segment_kind=SEGMENT_KIND,
+            )  # fmt: skip
             pose = solver.new_pose()
         elif code == RESTART:
             solver.reset()

@@ -142,7 +142,7 @@ class Calibration:
             "segments": {
                 name: {
                     "markers": list(names),
-                    "layout_m": np.asarray(layout).round(9).tolist(),
+                    "layout_m": np.asarray(layout).round(9).tolist(),  # as calibrate
                 }
                 for name, (names, layout) in self.segment_layouts.items()
             },
@@ -435,7 +435,7 @@ def calibrate(
         if len(kept) < 3:
             logger.warning("calibration: segment %s has < 3 markers seen: unused", seg)
             continue
-        layouts[seg] = (kept, mean_pos[[index[n] for n in kept]])
+        layouts[seg] = (kept, mean_pos[[index[n] for n in kept]].round(9))
 
     # Derived points in order; a rule point's offset is fixed from the base pose.
     offsets = np.zeros((len(rig.points), 3))
@@ -515,7 +515,17 @@ def calibrate(
         rest_bone_origin_pos=origins,
         measurements=meas,
         base_pose=dict(base_pose or {}, frames_used=int(n_frames)),
-        base_marker_pos=_nan_mean_rows(marker_pos),
+        base_marker_pos=_stored_m(_nan_mean_rows(marker_pos)),
+    )
+
+
+def _stored_m(pos: F64Array) -> F64Array:
+    """Positions rounded as the calibration file stores them (nm), so a calibration
+    used at once solves exactly as the same one saved and loaded (the fit is
+    iterative, with a gate: a difference in the last digits can tip a frame's
+    decision)."""
+    return np.array([[round(float(x), 9) for x in row] for row in pos]).reshape(
+        pos.shape
     )
 
 

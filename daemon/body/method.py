@@ -23,7 +23,7 @@ from retargetd.daemon.body.solve import BodySolver
 from retargetd.daemon.body.solve_fit import FitSolver
 
 #: The methods, the default first (README "Two ways to solve the body").
-METHODS = ("construction", "fit")
+METHODS = ("fit", "construction")
 
 
 def make_body_solver(
@@ -59,6 +59,11 @@ def make_body_solver(
         raise CalibrationError(
             f"calibration of rig {calibration.rig_name} has no base-pose marker "
             "positions (it predates the fit): recalibrate to use method 'fit'"
+        )
+    if calibration.rest_bone_origin_pos is None:
+        raise CalibrationError(
+            f"calibration of rig {calibration.rig_name} has no bone rest origins "
+            "(it predates them): recalibrate to use method 'fit'"
         )
     return FitSolver(
         rig,

@@ -235,9 +235,9 @@ def add_method_argument(
     parser.add_argument(
         "--method",
         choices=("construction", "fit"),
-        default=default or "construction",
-        help="the body solve: the chapter's construction (default) or the "
-        "rigid-skeleton fit to every visible marker",
+        default=default or "fit",
+        help="the body solve: the rigid-skeleton fit to every visible marker "
+        "(default) or the chapter's construction",
     )
 
 
@@ -254,10 +254,7 @@ def solver_for_take(args: argparse.Namespace) -> tuple[Any, Any, Any, Any]:
         CalibrationError,
         load_calibration,
     )
-    from retargetd.daemon.body.method import make_body_solver
     from retargetd.daemon.cli.args import parse_frames
-    from retargetd.daemon.validate.limits import JOINT_LIMITS_DEG
-    from retargetd.daemon.validate.model import SEGMENT_KIND
     from retargetd.replay.takes import load_take
 
     rig = load_rig_or_fail(args.rig)
@@ -273,13 +270,29 @@ def solver_for_take(args: argparse.Namespace) -> tuple[Any, Any, Any, Any]:
                 take, rig, frames, parse_measures(args.measure),
                 allow_moving=args.allow_moving_base_pose,
             )  # fmt: skip
-        solver = make_body_solver(
-            getattr(args, "method", "construction"), rig, cal, take.labels,
-            joint_limits=JOINT_LIMITS_DEG, segment_kind=SEGMENT_KIND,
-        )  # fmt: skip
+        solver = solver_of_method(args, rig, cal, take.labels)
     except CalibrationError as exc:
         raise UsageError(str(exc)) from None
     return rig, take, cal, solver
+
+
+def solver_of_method(
+    args: argparse.Namespace, rig: Any, calibration: Any, labels: Any
+) -> Any:
+    """The body solver ``--method`` names (default: the fit), with the validator's
+    joint limits as the fit's soft penalty: every command solves a take alike.
+
+    Raises:
+        CalibrationError: a calibration the method cannot use.
+    """
+    from retargetd.daemon.body.method import make_body_solver
+    from retargetd.daemon.validate.limits import JOINT_LIMITS_DEG
+    from retargetd.daemon.validate.model import SEGMENT_KIND
+
+    return make_body_solver(
+        getattr(args, "method", "fit"), rig, calibration, labels,
+        joint_limits=JOINT_LIMITS_DEG, segment_kind=SEGMENT_KIND,
+    )  # fmt: skip
 
 
 def add_force_argument(parser: argparse.ArgumentParser) -> None:

@@ -399,13 +399,12 @@ def solve_other_take(
         ``(take, solve)``.
     """
     from retargetd.daemon.body.calibration import CalibrationError
-    from retargetd.daemon.body.solve import BodySolver
-    from retargetd.daemon.cli.args import take_overrides
+    from retargetd.daemon.cli.args import solver_of_method, take_overrides
     from retargetd.replay.takes import load_take
 
     take = load_take(path, **take_overrides(args))
-    try:
-        solver = BodySolver(rig, calibration, take.labels)
+    try:  # the method the first take was solved with
+        solver = solver_of_method(args, rig, calibration, take.labels)
     except CalibrationError as exc:
         raise UsageError(f"{path}: {exc}") from None
     from retargetd.daemon.cli.args import solve_take_progress

@@ -139,6 +139,7 @@ def _validate(
     doc = {
         "take": str(take.path),
         "rig": rig.name,
+        "method": getattr(args, "method", "fit"),
         "frames": rep.n_frames,
         "rate_hz": take.rate_hz,
         "body_mass_kg": body_mass,

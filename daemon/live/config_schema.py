@@ -272,7 +272,7 @@ class ValidateSectionConfig:
 class SolveConfig:
     """The body solve (README "Two ways to solve the body")."""
 
-    method: str = one_of("construction", "construction", "fit")
+    method: str = one_of("fit", "construction", "fit")
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)

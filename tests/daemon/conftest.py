@@ -102,13 +102,16 @@ def daemon_config(
 ) -> Path:
     """A ``retargetd run`` config for the plug-in-gait rig: every endpoint ephemeral
     on 127.0.0.1, VMC off (or to 127.0.0.1:``vmc_port``), a pose stream that queues
-    (not drops) for a slow SUB."""
+    (not drops) for a slow SUB. The body solve is the construction, these tests'
+    oracle (the fit, the default, has its own live tests: test_live_equals_batch)."""
     q = json.dumps  # a JSON string is a valid TOML basic string for these paths
     vmc = f'host = "127.0.0.1"\nport = {vmc_port}' if vmc_port else "enabled = false"
     path.write_text(
         f"""[performer]
 rig = "plug-in-gait"
 calibration = {q(str(calibration))}
+[solve]
+method = "construction"
 [input.osc]
 port = 0
 [input.zmq]

@@ -17,6 +17,26 @@ def test_example_config_documents_the_defaults() -> None:
     assert DaemonConfig.from_toml(str(example)) == DaemonConfig()
 
 
+def test_the_fit_is_the_default_body_solve() -> None:
+    """Issue 14 item 4: once its tests pass (they do), the fit is the default, in the
+    daemon's config and on the command line; the construction stays a choice."""
+    from retargetd.daemon.body.method import METHODS
+    from retargetd.daemon.cli.main import build_parser
+
+    assert DaemonConfig().solve.method == "fit" and METHODS[0] == "fit"
+    chosen = DaemonConfig.from_dict({"solve": {"method": "construction"}})
+    assert chosen.solve.method == "construction"
+    parser = build_parser()
+    need = ["take.c3d", "--rig", "menache", "--calibration", "c.json"]
+    for cmd in (
+        ["solve", *need, "--out", "o.npz"],
+        ["validate", *need, "--report", "r.html"],
+    ):
+        assert parser.parse_args(cmd).method == "fit", cmd
+        args = parser.parse_args([*cmd, "--method", "construction"])
+        assert args.method == "construction", cmd
+
+
 def test_defaults_bind_loopback_only() -> None:
     c = DaemonConfig()
     assert c.input.osc.host == "127.0.0.1" and c.show_control.host == "127.0.0.1"

@@ -120,7 +120,8 @@ def test_synthetic_take_round_trip(
 ) -> None:
     take, cal_path = synth
     out = tmp_path / "s.bvh"
-    args = ["solve", str(take), "--rig", "menache", "--calibration", str(cal_path)]
+    args = ["solve", str(take), "--rig", "menache", "--method", "construction"]
+    args += ["--calibration", str(cal_path)]
     if orders != ("ZXY", "ZXY"):
         args += ["--bvh-root-order", orders[0], "--bvh-order", orders[1].lower()]
     assert main([*args, "--out", str(out)]) == 0
@@ -219,6 +220,11 @@ def test_usage_errors(
     assert load_calibration(old).rest_bone_origin_pos is None
     args = ["solve", str(take), "--rig", "menache", "--calibration", str(old)]
     assert main([*args, "--out", str(tmp_path / "x.bvh")]) == 2
+    # the fit (the default) needs the rest origins to solve at all
+    assert "no bone rest origins" in capsys.readouterr().err
+    assert (
+        main([*args, "--method", "construction", "--out", str(tmp_path / "x.bvh")]) == 2
+    )
     assert "recalibrate to export BVH" in capsys.readouterr().err
     assert not (tmp_path / "x.bvh").exists()
 

@@ -100,7 +100,8 @@ def test_batch_oracle_is_retargetd_solve(pig_calibration: Path, tmp_path: Path) 
     """The in-process batch solve used below is exactly what ``retargetd solve``
     writes for the walk."""
     out = tmp_path / "walk.npz"
-    argv = ["solve", str(WALK), "--rig", "plug-in-gait"]
+    # The construction: the oracle of this file's live tests (conftest.daemon_config).
+    argv = ["solve", str(WALK), "--rig", "plug-in-gait", "--method", "construction"]
     assert main([*argv, "--calibration", str(pig_calibration), "--out", str(out)]) == 0
     res = _batch(pig_calibration, rounded=False)
     with np.load(out, allow_pickle=False) as npz:

@@ -281,8 +281,10 @@ def test_recorded_replay_validates_clean(
     for check in checks.values():
         assert check["frames_flagged"] == 0
         assert check["max"] <= check["threshold"] or check["transient_frames"]
-    glitches = TENNIS_GLITCHES if name == "tennis-serve" else []
-    assert checks["limits"]["transient_frames"] == glitches
+    # validate solves with the fit (the default), which gates the serve's one-frame
+    # label glitches; the construction still shows them (test_tennis_serve_passes).
+    assert checks["limits"]["transient_frames"] == []
+    assert doc["method"] == "fit"
     assert checks["convention"]["max"] < 1e-6  # mm
     assert 0.0 < checks["ghost_force"]["max"] < THRESHOLDS["ghost_force_bw"]
     assert checks["floating"]["max"] == 0.0

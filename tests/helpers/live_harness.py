@@ -120,8 +120,11 @@ def _unused_udp_port() -> int:
 
 
 def _ephemeral_doc(vmc_port: int) -> dict[str, Any]:
+    # The harness's oracle is the construction (_solve_oracle: exact and cheap), so
+    # its daemons solve with it; tests of the fit (the default) set method = "fit".
     return {
         "performer": {"rig": str(EXACT_RIG)},
+        "solve": {"method": "construction"},
         "input": {
             "osc": {"port": 0},
             "zmq": {"endpoint": "tcp://127.0.0.1:*"},
