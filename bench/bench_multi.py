@@ -3,7 +3,7 @@
 Run from the repository root::
 
     python bench/bench_multi.py [--performers 4] [--rate 240] [--seconds S]
-        [--warmup W] [--no-single]
+        [--warmup W] [--no-single] [--method fit|construction]
 
 What runs (issue 19 item 2), all on 127.0.0.1, every process ended at the end even on
 error, with the machinery of ``bench_latency.py`` (its sender, pacing, daemon process
@@ -172,7 +172,7 @@ def _multi_receiver(n: int, capacity: int, conn: Connection) -> None:
         ctx.term()
 
 
-def _config(calibration: Path, ports: list[int]) -> str:
+def _config(calibration: Path, ports: list[int], method: str = "fit") -> str:
     tables = "".join(
         f"""
 [[performer]]
@@ -197,6 +197,8 @@ endpoint = "tcp://{LOCALHOST}:*"
 enabled = false
 [loop]
 process_every_frame = false
+[solve]
+method = "{method}"
 """
 
 
@@ -230,7 +232,7 @@ def run_multi(
             raise RuntimeError("receiver did not start")
         _, ports = recv_conn.recv()
         config = tmp / "multi.toml"
-        config.write_text(_config(calibration, ports))
+        config.write_text(_config(calibration, ports, args.method))
         daemon = Daemon(config, tmp / "multi.log")
         daemon.wait_ready()
         recv_conn.send(("sub", daemon.endpoints["zmq poses"]))
@@ -465,6 +467,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--no-single", action="store_true", help="skip the 1-performer reference"
     )
+    parser.add_argument(
+        "--method", choices=("fit", "construction"), default="fit",
+        help="the body solve (default: the daemon's default, the fit)",
+    )  # fmt: skip
     args = parser.parse_args(argv)
     if not 1 <= args.performers <= 64 or not 1 <= args.rate <= 10_000:
         parser.error("--performers in [1, 64], --rate in [1, 10000]")
@@ -495,8 +501,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"  raw UDP: done (load {_load()})", flush=True)
         single = None
         if not args.no_single:
+            variant = "fit" if args.method == "fit" else "body"  # bench_latency's
             single = summarize(run_case(ctx, "osc", args.rate, args, take, calibration,
-                                        tmp))  # fmt: skip
+                                        tmp, variant))  # fmt: skip
             print(f"  1 performer: done (load {_load()})", flush=True)
         m = run_multi(ctx, args, take, calibration, tmp)
         print(f"  {n} performers: done (load {_load()})", flush=True)
