@@ -57,9 +57,11 @@ stabilizes 40 markers, solves 52 weights and sends 52 VMC blendshapes and the Mu
 ``validate`` (``[validate]`` on: the live validator's thread checks every frame
 beside the loop), ``fit`` (``[solve] method = "fit"``: the rigid-skeleton fit instead
 of the construction, README "Two ways to solve the body") and any of them joined by
-``+`` (``face+validate``, ``fit+validate``, ``fit+face``); ``console`` (the body with
-``[console]`` on: the browser console served on a free port, its thread drawing every
-published snapshot, no browser) and ``console+browser`` (the same with a headless
+``+`` (``face+validate``, ``fit+validate``, ``fit+face``); ``+cold`` turns the
+fit's touch before each frame off (``[loop] prewarm_ms = 0``; on at 1.5 ms, the
+default, otherwise: ``fit`` against ``fit+cold`` measures it); ``console`` (the body
+with ``[console]`` on: the browser console served on a free port, its thread drawing
+every published snapshot, no browser) and ``console+browser`` (the same with a headless
 Chromium, Debian's ``chromium`` driven by selenium, showing the page for the whole
 case; skipped when Chromium or its driver is absent);
 ``pipeline`` (the body with ``[[pipeline]]`` post stages twist + One Euro between the
@@ -586,6 +588,7 @@ def _config_toml(
     method = "fit" if "fit" in variant.split("+") else "construction"
     console = variant.startswith("console")
     stages = PIPELINE_TOML if "pipeline" in variant else ""
+    prewarm = 0.0 if "cold" in variant.split("+") else 1.5  # [loop] prewarm_ms
     return f"""\
 [solve]
 method = "{method}"
@@ -612,6 +615,7 @@ endpoint = "tcp://{LOCALHOST}:*"
 enabled = false
 [loop]
 process_every_frame = false
+prewarm_ms = {prewarm}
 [face]
 enabled = {str(face).lower()}
 config = "arkit52"
@@ -1164,7 +1168,8 @@ def _valid_variant(variant: str) -> bool:
     parts = variant.split("+")
     return variant in ("body", "pipeline", "console", "console+browser") or (
         len(set(parts)) == len(parts)
-        and all(p in ("fit", "face", "validate") for p in parts)
+        and all(p in ("fit", "face", "validate", "cold") for p in parts)
+        and parts != ["cold"]
     )
 
 

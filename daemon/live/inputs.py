@@ -119,6 +119,7 @@ class InputsMixin(DaemonState):
             return 0
         self.stats.frames_in += 1
         self._last_frame_ns = t_ns
+        self._prewarm.observe(t_ns)
         stream.current.frame.t_ns = t_ns
         if code == RESTART:
             self.stats.restarts += 1

@@ -59,6 +59,7 @@ from retargetd.daemon.live.face import warm_up as warm_up_face
 from retargetd.daemon.live.inputs import InputsMixin
 from retargetd.daemon.live.performer import build_performers
 from retargetd.daemon.live.performers import PerformersMixin
+from retargetd.daemon.live.prewarm import Prewarm
 from retargetd.daemon.live.ratelog import RateLimitedLog, RateLimiter
 from retargetd.daemon.live.recording import (
     FORM_OSC,
@@ -211,6 +212,7 @@ class Daemon(
         self._osc_form = FORM_OSC[osc_cfg.form]
         self._vmc_state = VmcEncoder(())  # the state datagram (no bones needed)
         self._last_frame_ns = 0
+        self._prewarm = Prewarm(config.loop.prewarm_ms)
         # The console shows the first performer (its buttons act for that one).
         self.console = (
             ConsoleFeed(config.console, self.out) if config.console.enabled else None
@@ -478,9 +480,12 @@ class Daemon(
             if tick_ns >= 0:  # wake for it (rounded up to the poll's 1 ms)
                 left_ms = -(-(tick_ns - time.monotonic_ns()) // 1_000_000)
                 wait = max(0, min(timeout, left_ms))
+            wait = self._prewarm.wait_ms(time.monotonic_ns(), wait)
             events = self._poller.poll(wait)  # [(socket or fd, flags)]
             if events:
                 self._service(events)
+            elif self._prewarm.due(time.monotonic_ns()):
+                self._prewarm.touch()  # the fit, warm for the frame that comes next
             if self._capture is not None:
                 self._tick_capture()  # requests, lost check, held pose: never blocks
             now = time.monotonic_ns()

@@ -89,6 +89,7 @@ class SendMixin(DaemonState):
         self.stats.pipeline_builds += 1
         self._pipelines[key] = pipe
         self._labels_of[key] = labels
+        self._prewarm.register((id(perf), key), pipe.solver, stream.current.frame)
         return pipe
 
     def _build_pipeline(

@@ -29,6 +29,7 @@ from retargetd.daemon.live.config import DaemonConfig
 from retargetd.daemon.live.emit import EmitPlan
 from retargetd.daemon.live.face import FaceStage, LiveFace
 from retargetd.daemon.live.performer import FrameSource, Performer
+from retargetd.daemon.live.prewarm import Prewarm
 from retargetd.daemon.live.ratelog import RateLimitedLog, RateLimiter
 from retargetd.daemon.live.recording import LiveRecording
 from retargetd.daemon.live.stats import LoopStats
@@ -181,6 +182,7 @@ class DaemonState:
     _osc_form: int
     _vmc_state: VmcEncoder  # the /VMC/Ext/OK state datagram (not calibrated yet)
     _last_frame_ns: int
+    _prewarm: Prewarm  # [loop] prewarm_ms: the fit touched before a steady frame
     _log_after_ns: dict[str, int]
     _capture: Any  # sources.CaptureInput when [input] source is set
 

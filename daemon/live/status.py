@@ -41,7 +41,7 @@ class StatusMixin(DaemonState):
             "calibration_message": self._calib_message,
             "performers": performers,
             "endpoints": self.endpoints,
-            "counters": self.stats.counters(),
+            "counters": {**self.stats.counters(), "prewarm": self._prewarm.touches},
             "fps_in": self._fps(self.stats.frames_in, 1),
             "fps_out": self._fps(self.stats.frames_out, 2),
             "fps_window_s": round((time.monotonic_ns() - self._window[0]) * 1e-9, 3),

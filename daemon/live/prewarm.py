@@ -1,0 +1,108 @@
+"""Touch the fit shortly before a steady stream's next frame (``[loop] prewarm_ms``).
+
+On a shared machine a call that comes 4 ms after the last one finds the code and data
+it touches cold: the fit on the real Plug-in Gait walk takes ~45 us back to back and
+2-3x that paced at 240 Hz (README "The hot path, per frame"). A capture system sends at
+a steady rate, so the loop knows when the next frame is due: ``prewarm_ms`` before
+it, the loop runs each fit once on the last frame's markers, on a scratch solver that
+shares the real one's model (so nothing the stream sees changes), and the real frame's
+solve then runs warm. ``bench/bench_prewarm.py`` measures it: the frame's solve at 240
+Hz fell to 0.50-0.61 of the untouched one's median (p99 0.54-0.75) with a lead of 0.5
+or 1.5 ms; the touch itself costs ~90-130 us of the loop's idle time per frame.
+
+The period is a running mean of the accepted frames' spacing (weight 1/8 a frame); a
+stream counts as steady while the running mean of the spacing's deviation stays under
+:data:`STEADY_JITTER` of it. A stream faster than ``2 x prewarm_ms`` per frame is
+warm anyway (frames 1 ms apart cost ~1.8x back to back, not 3x) and is not touched,
+nor is one that is not steady (a replay sent as fast as possible, a flood). The
+poll's timeout is in whole milliseconds, so the touch comes between ``prewarm_ms``
+and ``prewarm_ms + 1`` ms before the frame.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from retargetd.daemon.body.solve_fit import FitSolver
+
+#: A stream is steady while its frames' spacing deviates from its running mean by
+#: less than this fraction of it on average (a capture system's clock jitters by far
+#: less; a 240 Hz sender on this loaded VM by ~5 %).
+STEADY_JITTER = 0.2
+#: Weight of each new spacing in the running means (a time constant of 8 frames).
+GAIN = 0.125
+
+
+class Prewarm:
+    """The predictor and the scratch solvers of one daemon (one loop)."""
+
+    def __init__(self, lead_ms: float) -> None:
+        self.lead_ns = int(lead_ms * 1e6)
+        self.period_ns = 0.0
+        self.dev_ns = 0.0
+        self.last_ns = 0
+        self.touched_ns = 0  # the last frame whose successor was touched for
+        self.touches = 0
+        # (performer, input) -> (scratch fit, its pose, the input's frame buffer)
+        self._scratch: dict[tuple[int, int], tuple[FitSolver, Any, Any]] = {}
+
+    def observe(self, t_ns: int) -> None:
+        """An accepted frame received at ``t_ns``."""
+        if self.last_ns:
+            d = float(t_ns - self.last_ns)
+            if self.period_ns == 0.0:
+                self.period_ns = d
+            else:
+                err = d - self.period_ns
+                self.period_ns += GAIN * err
+                self.dev_ns += GAIN * (abs(err) - self.dev_ns)
+        self.last_ns = t_ns
+
+    def next_ns(self) -> int:
+        """When the next frame is due, or -1 (off, not steady, or too fast)."""
+        p = self.period_ns
+        if (
+            self.lead_ns <= 0
+            or p <= 2.0 * self.lead_ns
+            or self.dev_ns >= STEADY_JITTER * p
+        ):
+            return -1
+        return self.last_ns + int(p)
+
+    def wait_ms(self, now_ns: int, wait_ms: int) -> int:
+        """The poll's timeout: ``wait_ms``, or less to wake for the touch."""
+        due = self.next_ns()
+        if due < 0 or self.touched_ns == self.last_ns:
+            return wait_ms
+        left = due - self.lead_ns - now_ns
+        return max(0, min(wait_ms, left // 1_000_000))
+
+    def due(self, now_ns: int) -> bool:
+        """The touch for the next frame is due now (and not done yet)."""
+        due = self.next_ns()
+        return (
+            due >= 0
+            and self.touched_ns != self.last_ns
+            and due - self.lead_ns - 1_000_000 <= now_ns < due
+        )
+
+    def register(self, key: tuple[int, int], solver: Any, frame: Any) -> None:
+        """A pipeline's solver and the frame buffer its input decodes into (off the
+        hot path: when the pipeline is built). A fit gets its scratch solver, which
+        shares its model; anything else is not touched."""
+        if not isinstance(solver, FitSolver):
+            self._scratch.pop(key, None)
+            return
+        scratch = FitSolver(
+            solver.rig, solver.calibration, solver.labels,
+            params=solver.params, model=solver.model,
+        )  # fmt: skip
+        self._scratch[key] = (scratch, scratch.new_pose(), frame)
+
+    def touch(self) -> None:
+        """Run each registered fit once on its input's last frame, on its scratch
+        solver."""
+        self.touched_ns = self.last_ns
+        for scratch, pose, frame in self._scratch.values():
+            scratch.solve_frame(frame.markers_world, pose)
+            self.touches += 1
