@@ -58,8 +58,8 @@ stabilizes 40 markers, solves 52 weights and sends 52 VMC blendshapes and the Mu
 beside the loop), ``fit`` (``[solve] method = "fit"``: the rigid-skeleton fit instead
 of the construction, README "Two ways to solve the body") and any of them joined by
 ``+`` (``face+validate``, ``fit+validate``, ``fit+face``); ``+cold`` turns the
-fit's touch before each frame off (``[loop] prewarm_ms = 0``; on at 1.5 ms, the
-default, otherwise: ``fit`` against ``fit+cold`` measures it); ``console`` (the body
+fit's touch before each frame off (``[loop] prewarm_ms = 0``; otherwise the daemon's
+default: ``fit`` against ``fit+cold`` measures it); ``console`` (the body
 with ``[console]`` on: the browser console served on a free port, its thread drawing
 every published snapshot, no browser) and ``console+browser`` (the same with a headless
 Chromium, Debian's ``chromium`` driven by selenium, showing the page for the whole
@@ -588,7 +588,8 @@ def _config_toml(
     method = "fit" if "fit" in variant.split("+") else "construction"
     console = variant.startswith("console")
     stages = PIPELINE_TOML if "pipeline" in variant else ""
-    prewarm = 0.0 if "cold" in variant.split("+") else 1.5  # [loop] prewarm_ms
+    # +cold: the fit's touch off; otherwise the daemon's default [loop] prewarm_ms
+    prewarm = "prewarm_ms = 0.0" if "cold" in variant.split("+") else ""
     return f"""\
 [solve]
 method = "{method}"
@@ -615,7 +616,7 @@ endpoint = "tcp://{LOCALHOST}:*"
 enabled = false
 [loop]
 process_every_frame = false
-prewarm_ms = {prewarm}
+{prewarm}
 [face]
 enabled = {str(face).lower()}
 config = "arkit52"

@@ -61,6 +61,7 @@ import numpy as np
 from retargetd.daemon import rotations as rot
 from retargetd.daemon.body.calibration import (
     Calibration,
+    CalibrationError,
     bone_world_quats,
     check_calibration_fits,
     compute_points,
@@ -513,8 +514,8 @@ def build_fit_model(
                 axis = rot.quat_rotate(rot.quat_conj(rest_pfb[b]), axis)
             hinge[b] = axis / np.linalg.norm(axis)
             if bopt.dof == "hinge_twist":
-                if abs(hinge[b][1]) > HINGE_TWIST_MAX_COS:
-                    raise ValueError(
+                if abs(hinge[b][1]) > HINGE_TWIST_MAX_COS:  # one line, exit 2
+                    raise CalibrationError(
                         f"fit.bones.{name}: the hinge axis is within "
                         f"{math.degrees(math.acos(HINGE_TWIST_MAX_COS)):.0f} deg of "
                         "the bone's own axis, so a hinge about it is its twist"

@@ -230,7 +230,8 @@ class LoopConfig:
     poll_timeout_ms: int = between(100, 1, 10_000)
     # Touch the fit this long before a steady stream's next frame (live/prewarm.py),
     # 0 = never: at least the touch's own cold cost (~0.1 ms) plus the poll's 1 ms
-    # rounding; a stream faster than 2x this per frame is not touched.
+    # rounding; a stream faster than 2x this per frame, or whose spacing deviates by
+    # half of this on average, is not touched.
     prewarm_ms: float = between(1.5, 0.0, 100.0)
     # A repeated log line (per reason) is printed once, then summarized with its
     # count at most once per this interval (a flood cannot grow the log).

@@ -4,15 +4,16 @@ On a shared machine a call that comes 4 ms after the last one finds the code and
 it touches cold: the fit on the real Plug-in Gait walk takes ~45 us back to back and
 2-3x that paced at 240 Hz (README "The hot path, per frame"). A capture system sends at
 a steady rate, so the loop knows when the next frame is due: ``prewarm_ms`` before
-it, the loop runs each fit once on the last frame's markers, on a scratch solver that
-shares the real one's model (so nothing the stream sees changes), and the real frame's
-solve then runs warm. ``bench/bench_prewarm.py`` measures it: the frame's solve at 240
+it, the loop runs each fit once on the last frame's markers, on a scratch solver built
+from the real one's model with its own state (so nothing the stream sees changes),
+and the real frame's solve then runs warm. ``bench/bench_prewarm.py`` measures it: the frame's solve at 240
 Hz fell to 0.50-0.61 of the untouched one's median (p99 0.54-0.75) with a lead of 0.5
 or 1.5 ms; the touch itself costs ~90-130 us of the loop's idle time per frame.
 
 The period is a running mean of the accepted frames' spacing (weight 1/8 a frame); a
 stream counts as steady while the running mean of the spacing's deviation stays under
-:data:`STEADY_JITTER` of it. A stream faster than ``2 x prewarm_ms`` per frame is
+half the lead: a frame that came earlier than the lead less the touch's own cost would
+find the loop still touching, and would wait for it. A stream faster than ``2 x prewarm_ms`` per frame is
 warm anyway (frames 1 ms apart cost ~1.8x back to back, not 3x) and is not touched,
 nor is one that is not steady (a replay sent as fast as possible, a flood). The
 poll's timeout is in whole milliseconds, so the touch comes between ``prewarm_ms``
@@ -25,10 +26,6 @@ from typing import Any
 
 from retargetd.daemon.body.solve_fit import FitSolver
 
-#: A stream is steady while its frames' spacing deviates from its running mean by
-#: less than this fraction of it on average (a capture system's clock jitters by far
-#: less; a 240 Hz sender on this loaded VM by ~5 %).
-STEADY_JITTER = 0.2
 #: Weight of each new spacing in the running means (a time constant of 8 frames).
 GAIN = 0.125
 
@@ -64,7 +61,7 @@ class Prewarm:
         if (
             self.lead_ns <= 0
             or p <= 2.0 * self.lead_ns
-            or self.dev_ns >= STEADY_JITTER * p
+            or self.dev_ns >= 0.5 * self.lead_ns
         ):
             return -1
         return self.last_ns + int(p)

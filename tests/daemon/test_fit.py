@@ -13,13 +13,19 @@ from __future__ import annotations
 import functools
 import tracemalloc
 from pathlib import Path
+from typing import Any, NamedTuple
 
 import numpy as np
 import pytest
 
 from retargetd.daemon import rotations as rot
 from retargetd.daemon.body import fit_pack
-from retargetd.daemon.body.calibration import Calibration, calibrate, match_markers
+from retargetd.daemon.body.calibration import (
+    Calibration,
+    CalibrationError,
+    calibrate,
+    match_markers,
+)
 from retargetd.daemon.body.fit_model import (
     FitOptions,
     build_fit_model,
@@ -396,29 +402,51 @@ def _twist_deg(q: np.ndarray) -> np.ndarray:
     return np.degrees(2.0 * np.arctan2(q[..., 2], q[..., 0]))
 
 
-def test_swing_joint_has_no_twist(tmp_path: Path) -> None:
-    """``dof = "swing"``: the joint keeps two rotations; its twist about the bone's
-    long axis stays at the calibration's (a clavicle whose one marker cannot see its
-    axial rotation), while the same bones as ball joints follow the truth's twist."""
+class _Forearms(NamedTuple):
+    text: str  # the rig file's text
+    path: Path
+    rig: Rig
+    opts: FitOptions
+    take: pf.SynthTake
+    base: np.ndarray  # the base-pose frames
+    cal: Calibration
+    model: Any
+    idx: list[int]  # the forearms' bone indices
+    res: FitSolve  # the fit with the keys
+    ball: FitSolve  # the fit with ball joints
+
+
+def _forearms_as(tmp_path: Path, keys: str, noise_mm: float) -> _Forearms:
+    """The exact rig with ``keys`` (TOML lines) on both forearms, on the synthetic
+    take, fitted with those keys and with ball joints."""
     bones = ("l_forearm", "r_forearm")
     text = EXACT_RIG.read_text() + "".join(
-        f'\n[fit.bones.{b}]\ndof = "swing"\n' for b in bones
+        f"\n[fit.bones.{b}]\n{keys}\n" for b in bones
     )
     path = tmp_path / "rig.toml"
     path.write_text(text)
     rig, opts = load_fit_rig(path)
-    assert all(opts.bones[b].dof == "swing" for b in bones)
-    take = _exact_take(noise_mm=0.5, seconds=3.0)
+    take = _exact_take(noise_mm=noise_mm, seconds=3.0)
     base = take.markers_world[take.base_pose_frames]
     cal = calibrate(rig, base, take.labels)
     model = build_fit_model(rig, cal, base, take.labels, opts)
     idx = [rig.bone_names.index(b) for b in bones]
-    assert (model.twist_lock[idx] == 1.0).all() and model.twist_lock.sum() == 2.0
     res = FitSolver(rig, cal, take.labels, model=model).solve_take(take.markers_world)
     ball = FitSolver(
         rig, cal, take.labels, model=build_fit_model(rig, cal, base, take.labels,
                                                      FitOptions())
     ).solve_take(take.markers_world)  # fmt: skip
+    return _Forearms(text, path, rig, opts, take, base, cal, model, idx, res, ball)
+
+
+def test_swing_joint_has_no_twist(tmp_path: Path) -> None:
+    """``dof = "swing"``: the joint keeps two rotations; its twist about the bone's
+    long axis stays at the calibration's (a clavicle whose one marker cannot see its
+    axial rotation), while the same bones as ball joints follow the truth's twist."""
+    f = _forearms_as(tmp_path, 'dof = "swing"', noise_mm=0.5)
+    model, idx, res, ball = f.model, f.idx, f.res, f.ball
+    assert all(f.opts.bones[b].dof == "swing" for b in ("l_forearm", "r_forearm"))
+    assert (model.twist_lock[idx] == 1.0).all() and model.twist_lock.sum() == 2.0
     locked = np.abs(_twist_deg(res.rest_from_bone_quat[:, idx]))
     free = np.abs(_twist_deg(ball.rest_from_bone_quat[:, idx]))
     print(
@@ -447,29 +475,15 @@ def test_hinge_twist_elbow_flexes_about_the_parents_axis_and_twists(
     pair) and its forearms pronate +-70 deg about their own axis. As such joints the
     forearms stay on the hinge's cone (as ball joints noise moves them off it) and
     still follow the truth's twist."""
-    bones = ("l_forearm", "r_forearm")
-    text = EXACT_RIG.read_text() + "".join(
-        f'\n[fit.bones.{b}]\ndof = "hinge_twist"\naxis = "x"\naxis_in = "parent"\n'
-        for b in bones
-    )
-    path = tmp_path / "rig.toml"
-    path.write_text(text)
-    rig, opts = load_fit_rig(path)
-    assert all(opts.bones[b].axis_in == "parent" for b in bones)
-    take = _exact_take(noise_mm=1.0, seconds=3.0)
-    base = take.markers_world[take.base_pose_frames]
-    cal = calibrate(rig, base, take.labels)
-    model = build_fit_model(rig, cal, base, take.labels, opts)
-    idx = [rig.bone_names.index(b) for b in bones]
+    keys = 'dof = "hinge_twist"\naxis = "x"\naxis_in = "parent"'
+    f = _forearms_as(tmp_path, keys, noise_mm=1.0)
+    text, path, rig, take, base, cal = f.text, f.path, f.rig, f.take, f.base, f.cal
+    model, idx, res, ball = f.model, f.idx, f.res, f.ball
+    assert all(f.opts.bones[b].axis_in == "parent" for b in ("l_forearm", "r_forearm"))
     assert (model.twist_lock[idx] == 2.0).all() and model.twist_lock.sum() == 4.0
     for b in idx:  # the parent's +X in the bone's rest axes
         want = rot.quat_rotate(rot.quat_conj(model.rest_pfb[b]), np.eye(3)[0])
         np.testing.assert_allclose(model.hinge_axis[b], want, atol=1e-12)
-    res = FitSolver(rig, cal, take.labels, model=model).solve_take(take.markers_world)
-    ball = FitSolver(
-        rig, cal, take.labels, model=build_fit_model(rig, cal, base, take.labels,
-                                                     FitOptions())
-    ).solve_take(take.markers_world)  # fmt: skip
     off, off_ball = (
         np.stack([_off_cone_deg(r.rest_from_bone_quat[:, b], model.hinge_axis[b])
                   for b in idx])
@@ -489,7 +503,7 @@ def test_hinge_twist_elbow_flexes_about_the_parents_axis_and_twists(
     # The axis must leave the bone a hinge: one along the bone's own axis is refused.
     along = text.replace('axis = "x"\naxis_in = "parent"', 'axis = "y"')
     path.write_text(along)
-    with pytest.raises(ValueError, match="hinge axis is within 30 deg"):
+    with pytest.raises(CalibrationError, match="hinge axis is within 30 deg"):
         build_fit_model(rig, cal, base, take.labels, load_fit_rig(path)[1])
 
 

@@ -55,6 +55,7 @@ from live_harness import (  # the harness, and its fixtures
     PoseSub,
     S,
     VmcReceiver,
+    _fit_oracle,
     _import_vmcp,
     _json_strict,
     _prime,
@@ -1555,10 +1556,6 @@ def test_fit_method_live_equals_batch(
     to float32 on the wire), and the frame flags say when the fit reseeded
     (``FRAME_RESEEDED``): the performer turned half round between two frames makes
     the fit lose track, as the batch does on the same frames."""
-    from retargetd.daemon.body.method import make_body_solver
-    from retargetd.daemon.validate.limits import JOINT_LIMITS_DEG
-    from retargetd.daemon.validate.model import SEGMENT_KIND
-
     take = _take()
     live = start_daemon(
         {
@@ -1581,17 +1578,10 @@ def test_fit_method_live_equals_batch(
             markers = (markers - centre) @ turned.T + centre
         src.send(markers)
     sub.wait(lambda: len(sub.poses) >= len(rows), "the fitted poses", 30.0)
-    solver = make_body_solver(
-        "fit", load_rig(EXACT_RIG), load_calibration(exact_calibration), take.labels,
-        joint_limits=JOINT_LIMITS_DEG, segment_kind=SEGMENT_KIND,
-    )  # fmt: skip
-    pose = solver.new_pose()
-    want = []
-    want_flags = []
-    for _fid, markers in src.sent:  # the primed frames too: the fit's state carries
-        solver.solve_frame(markers, pose)
-        want.append(pose.world_from_bone_quat.copy())
-        want_flags.append(pose.frame_flags)
+    # the primed frames too: the fit's state carries
+    oracle = _fit_oracle(exact_calibration, [m for _, m in src.sent])
+    want = [q for q, _ in oracle]
+    want_flags = [f for _, f in oracle]
     got = np.stack([p.world_from_bone_quat for p in sub.poses[-len(rows) :]])
     ref = np.stack(want[n0:])
     dots = np.abs(np.sum(got.astype(np.float64) * ref, axis=-1))

@@ -12,10 +12,8 @@ from typing import Any
 import numpy as np
 import pytest
 import zmq
-from live_harness import EXACT_RIG, Live, OscSource, PoseSub, _prime, _take
+from live_harness import Live, OscSource, PoseSub, _fit_oracle, _prime, _take
 
-from retargetd.daemon.body.calibration import load_calibration
-from retargetd.daemon.body.rig import load_rig
 from retargetd.daemon.live.prewarm import Prewarm
 
 MS = 1_000_000
@@ -76,10 +74,6 @@ def test_the_daemon_touches_the_fit_and_streams_the_same_poses(
     """A 100 Hz stream to a fit daemon: the loop touches the fit before frames (the
     ``prewarm`` counter), and the poses still equal an offline fit of the same
     frames, as without the touch (test_live.py::test_fit_method_live_equals_batch)."""
-    from retargetd.daemon.body.method import make_body_solver
-    from retargetd.daemon.validate.limits import JOINT_LIMITS_DEG
-    from retargetd.daemon.validate.model import SEGMENT_KIND
-
     take = _take()
     live = start_daemon(
         {
@@ -101,15 +95,7 @@ def test_the_daemon_touches_the_fit_and_streams_the_same_poses(
         src.send(take.markers_world[row])
     sub.wait(lambda: len(sub.poses) >= len(rows), "the fitted poses", 30.0)
     touches = live.ctl({"cmd": "status"})["status"]["counters"]["prewarm"]
-    solver = make_body_solver(
-        "fit", load_rig(EXACT_RIG), load_calibration(exact_calibration), take.labels,
-        joint_limits=JOINT_LIMITS_DEG, segment_kind=SEGMENT_KIND,
-    )  # fmt: skip
-    pose = solver.new_pose()
-    want = []
-    for _fid, markers in src.sent:
-        solver.solve_frame(markers, pose)
-        want.append(pose.world_from_bone_quat.copy())
+    want = [q for q, _ in _fit_oracle(exact_calibration, [m for _, m in src.sent])]
     got = np.stack([p.world_from_bone_quat for p in sub.poses[-len(rows) :]])
     dots = np.abs(np.sum(got.astype(np.float64) * np.stack(want[n0:]), axis=-1))
     print(f"\nprewarm: {touches} touches over {len(rows)} paced frames")

@@ -421,6 +421,26 @@ def _solve_oracle(
     return out, Retargeter(rig, cal, default_humanoid())
 
 
+def _fit_oracle(calibration: Path, frames: list[np.ndarray]) -> list[tuple[Any, int]]:
+    """The fit, as the daemon builds it (``make_body_solver("fit", ...)`` with the
+    validator's limits), on the same frames in the same order: per frame its
+    ``world_from_bone_quat`` (a copy) and frame flags."""
+    from retargetd.daemon.body.method import make_body_solver
+    from retargetd.daemon.validate.limits import JOINT_LIMITS_DEG
+    from retargetd.daemon.validate.model import SEGMENT_KIND
+
+    solver = make_body_solver(
+        "fit", load_rig(EXACT_RIG), load_calibration(calibration), _take().labels,
+        joint_limits=JOINT_LIMITS_DEG, segment_kind=SEGMENT_KIND,
+    )  # fmt: skip
+    pose = solver.new_pose()
+    out = []
+    for markers in frames:
+        solver.solve_frame(markers, pose)
+        out.append((pose.world_from_bone_quat.copy(), int(pose.frame_flags)))
+    return out
+
+
 def _json_strict(text: str) -> Any:
     def reject(name: str) -> Any:
         raise ValueError(f"not JSON: {name}")
