@@ -131,12 +131,14 @@ HOT_PATH_TARGETS_US = {"body": 150.0, "fit+face": 250.0, "face+fit": 250.0}
 CAPTURE_TRANSPORTS = ("natnet", "qtm")
 #: Cases without the daemon: raw UDP sender -> receiver, and the same through the
 #: Python relay (the floor of any Python process in between).
-BASELINES = ("raw", "relay", "relay+")
+BASELINES = ("raw", "relay", "relay+", "relay~")
 #: relay+: the size of its first datagram, VMC's bones (/VMC/Ext/Bone/Pos bundle of
 #: the humanoid bones at 240 Hz is 1-2 KB; the root and T come in the second).
 RELAY_BONES_BYTES = 1400
 #: The relay's poll timeout: the daemon's loop.poll_timeout_ms default (100 ms).
 RELAY_POLL_MS = 100
+#: relay~: it spins (polls without waiting) from this long before the next frame.
+SPIN_NS = 1_000_000
 
 
 def _pace(
@@ -369,7 +371,7 @@ def _sender(spec: dict[str, Any], conn: Connection) -> None:
         ctx.term()
 
 
-def _relay(port: int, conn: Connection, work: bool = False) -> None:
+def _relay(port: int, conn: Connection, work: bool = False, spin: bool = False) -> None:
     """The floor of any Python daemon (``relay`` baseline): what the daemon's loop
     must do per frame at the least, and nothing else. A UDP socket polled by
     ``zmq.Poller`` (as the daemon's loop polls its inputs, same timeout), each
@@ -421,8 +423,28 @@ def _relay(port: int, conn: Connection, work: bool = False) -> None:
     fd = udp.fileno()  # zmq.Poller reports a plain socket by its descriptor
     gc.disable()
     try:
+        period = last = 0
         while True:
-            events = dict(poller.poll(RELAY_POLL_MS))
+            wait = RELAY_POLL_MS
+            if spin and period:
+                now = time.monotonic_ns()
+                start, stop = last + period - SPIN_NS, last + period + period // 2
+                if start <= now < stop:
+                    wait = 0
+                elif now < start:
+                    wait = (start - now) // 1_000_000
+            events = dict(poller.poll(wait))
+            if spin and fd in events:  # the running mean of the frame spacing
+                now = time.monotonic_ns()
+                if last:
+                    gap = now - last
+                    if not period:
+                        period = gap
+                    elif gap < 2 * period:
+                        period += (gap - period) >> 3
+                last = now
+            if not events:
+                continue
             if fd in events:
                 while True:
                     try:
@@ -784,10 +806,11 @@ def run_case(
             )
         if transport == "raw":
             spec["port"] = port
-        elif transport in ("relay", "relay+"):
+        elif transport in ("relay", "relay+", "relay~"):
             relay_conn, relay_child = ctx.Pipe()
             relay = ctx.Process(
-                target=_relay, args=(port, relay_child, transport == "relay+")
+                target=_relay,
+                args=(port, relay_child, transport == "relay+", transport == "relay~"),
             )
             relay.start()
             procs.append(relay)
@@ -1136,6 +1159,8 @@ def print_report(summaries: list[Summary], args: argparse.Namespace) -> None:
         what = (
             "one compiled call, two sends"
             if r.name.startswith("relay+")
+            else "spinning from 1 ms before the next frame"
+            if r.name.startswith("relay~")
             else "poll, receive, send; nothing else"
         )
         if b is not None:

@@ -20,10 +20,10 @@ Each stage of the frame is timed by a wrapper put around the call on the live
 objects (``time.perf_counter_ns`` before and after): the poll, the decode and
 book-keeping of the input (``_service`` minus ``_solve_and_send``), the body solve, the
 emit call (``live/emit.py``: the retarget, the engine-frame conversion, the VMC and
-pose packs in one compiled call), the VMC ``sendto`` calls, the pose send, the
-validator's submit (stages a configuration never calls are left out of the table:
-the separate retarget, engine frame, VMC and pose encode rows appear only where the
-loop still makes them, the retarget with ``[target] spine = "pivot"``); "glue" is
+pose packs in one compiled call), the VMC sends (``send`` on the connected socket), the
+pose send, the validator's submit (stages a configuration never calls are left out of
+the table: the separate retarget, engine frame, VMC and pose encode rows appear only
+where the loop still makes them, the retarget with ``[target] spine = "pivot"``); "glue" is
 ``_solve_and_send`` minus the stages inside it (attribute reads, flags, the budget
 checks, the stats record, which is also timed alone on the same object after the run:
 a slotted object cannot be wrapped in place). The wrapper's own cost (measured on an
@@ -85,10 +85,11 @@ class Timer:
 
 
 class SocketProxy:
-    """The daemon's VMC socket with its ``sendto`` timed."""
+    """The daemon's VMC socket with its ``send`` and ``sendto`` timed."""
 
     def __init__(self, sock: socket.socket, timer: Timer) -> None:
         self._sock = sock
+        self.send = timer.wrap(sock.send)
         self.sendto = timer.wrap(sock.sendto)
 
     def __getattr__(self, name: str) -> Any:
@@ -190,7 +191,7 @@ def profile(
             pipe = next(iter(d._pipelines.values()))
             names = (
                 "poll", "service", "solve_and_send", "body solve", "retarget",
-                "engine frame", "VMC encode", "emit call", "VMC sendto", "pose encode",
+                "engine frame", "VMC encode", "emit call", "VMC send", "pose encode",
                 "pose send", "validator submit", "stats record", "empty wrapper",
             )  # fmt: skip
             t = {k: Timer(n_frames) for k in names}
@@ -216,9 +217,10 @@ def profile(
             saved_emit = getattr(live_send, "emit_frame", None)  # (older trees: none)
             if saved_emit is not None:
                 live_send.emit_frame = t["emit call"].wrap(saved_emit)
-            assert d._vmc is not None
-            real_vmc = d._vmc
-            d._vmc = SocketProxy(real_vmc, t["VMC sendto"])  # type: ignore[assignment]
+            perf = d.performers[0]
+            real_vmc = perf.vmc_sock
+            assert real_vmc is not None
+            perf.vmc_sock = SocketProxy(real_vmc, t["VMC send"])
             empty = t["empty wrapper"].wrap(lambda: None)
             prof = cProfile.Profile() if cprofile else None
             period_s = 1.0 / rate_hz if rate_hz > 0 else 0.0
@@ -245,7 +247,7 @@ def profile(
                 eu.unity_quat_xyzw_from_world, eu.unity_pos_from_world = saved_eu
                 if saved_emit is not None:
                     live_send.emit_frame = saved_emit
-                d._vmc = real_vmc
+                perf.vmc_sock = real_vmc
             solved = d.stats.frames_solved
             # The stats record (a slotted object: not wrappable in place), alone on
             # the same object, same arguments' kind, as many calls.
@@ -269,7 +271,7 @@ def profile(
             us[k] = (timer.ns - timer.calls * wrapper) / 1e3
     inside = (
         "body solve", "retarget", "engine frame", "VMC encode", "emit call",
-        "VMC sendto", "pose encode", "pose send", "validator submit",
+        "VMC send", "pose encode", "pose send", "validator submit",
     )  # fmt: skip
     us["glue (solve_and_send rest)"] = us["solve_and_send"] - sum(us[k] for k in inside)
     us["decode + book-keeping"] = us["service"] - us["solve_and_send"]

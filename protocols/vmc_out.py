@@ -18,8 +18,10 @@ show the state rather than silence.
 
 All values in Unity's frame (left-handed, +Y up, metres, x y z w; see
 ``engine_unity``). The messages are packed in order into bundles (time tag
-"immediately"), each datagram at most :data:`MAX_DATAGRAM` bytes so nothing is
-IP-fragmented; ``/VMC/Ext/T`` is the last message of the last datagram.
+"immediately"), each datagram at most ``max_datagram`` bytes: :data:`MAX_DATAGRAM`
+to another machine, so nothing is IP-fragmented, :data:`LOOPBACK_MAX_DATAGRAM` to
+this one, where a frame is one datagram and one send (:func:`datagram_limit`);
+``/VMC/Ext/T`` is the last message of the last datagram.
 
 Every message is prebuilt once; the float slots of all datagrams are one big-endian
 float32 view over one buffer, so a frame is encoded by a handful of array writes and
@@ -28,6 +30,7 @@ one scatter (no per-message Python objects).
 
 from __future__ import annotations
 
+import ipaddress
 import itertools
 from collections.abc import Sequence
 
@@ -44,8 +47,29 @@ from retargetd.protocols.osc_wire import (
 
 DEFAULT_HOST = "127.0.0.1"
 DEFAULT_PORT = 39539
-#: Largest UDP payload sent: a 1500-byte Ethernet MTU minus IPv4 (20) and UDP (8).
+#: Largest UDP payload sent off this machine: a 1500-byte Ethernet MTU minus IPv4 (20)
+#: and UDP (8), so nothing is IP-fragmented (one lost fragment loses the datagram).
 MAX_DATAGRAM = 1472
+#: Largest UDP payload sent to a loopback receiver. Loopback never fragments below its
+#: 64 KiB MTU, so the limit is the receivers' buffers: python-osc's UDP servers read
+#: with ``socketserver.UDPServer.max_packet_size`` = 8192 bytes (CPython's
+#: ``socketserver``; a longer datagram is cut there), the smallest of the VMC
+#: receivers we know (uOSC, under EVMC4U, reads whole datagrams). A frame of the
+#: 22 humanoid bones is 1.9 KB, 4.8 KB with 52 blendshapes: one datagram, one send.
+LOOPBACK_MAX_DATAGRAM = 8192
+#: The least ``max_datagram``: every IPv4 host accepts a 576-byte datagram (RFC 791),
+#: minus IPv4 (20) and UDP (8).
+MIN_DATAGRAM = 548
+
+
+def datagram_limit(host: str, configured: int = 0) -> int:
+    """The largest datagram sent to ``host``: ``configured`` when not 0, else
+    :data:`LOOPBACK_MAX_DATAGRAM` to a loopback address and :data:`MAX_DATAGRAM`
+    to any other."""
+    if configured:
+        return configured
+    loopback = ipaddress.ip_address(host).is_loopback
+    return LOOPBACK_MAX_DATAGRAM if loopback else MAX_DATAGRAM
 
 
 ROOT_ADDRESS = "/VMC/Ext/Root/Pos"
@@ -62,8 +86,10 @@ TIME_ADDRESS = "/VMC/Ext/T"
 _NAN7 = [float("nan")] * 7
 
 
-def _pack(messages: list[tuple[bytes, int]]) -> tuple[bytearray, list[int], IntArray]:
-    """Pack ``(message, n_trailing_floats)`` in order into bundles <= MAX_DATAGRAM.
+def _pack(
+    messages: list[tuple[bytes, int]], max_datagram: int
+) -> tuple[bytearray, list[int], IntArray]:
+    """Pack ``(message, n_trailing_floats)`` in order into bundles <= max_datagram.
 
     Returns the buffer (datagrams back to back), the datagram boundaries and the
     float32 index (into the buffer viewed as 4-byte words) of every float slot.
@@ -73,9 +99,9 @@ def _pack(messages: list[tuple[bytes, int]]) -> tuple[bytearray, list[int], IntA
     slots: list[int] = []
     for msg, n_floats in messages:
         element = ELEMENT_SIZE_PREFIX + len(msg)
-        if len(BUNDLE_HEADER) + element > MAX_DATAGRAM:
+        if len(BUNDLE_HEADER) + element > max_datagram:
             raise ValueError(f"a {len(msg)}-byte VMC message cannot fit one datagram")
-        if len(buf) == bounds[-1] or len(buf) - bounds[-1] + element > MAX_DATAGRAM:
+        if len(buf) == bounds[-1] or len(buf) - bounds[-1] + element > max_datagram:
             if len(buf) != bounds[-1]:
                 bounds.append(len(buf))
             buf += BUNDLE_HEADER
@@ -95,6 +121,8 @@ class VmcEncoder:
         bone_names: bone names, in the order of the ``bone_*`` arrays given to
             :meth:`encode` (default :data:`HUMANOID_BONES`; add any others you send).
         blend_names: blendshape clip names, in the order of ``blend``; may be empty.
+        max_datagram: the largest datagram, bytes (:func:`datagram_limit`; at least
+            :data:`MIN_DATAGRAM`): the messages are packed in order, greedily.
 
     Attributes:
         datagrams: the datagrams of a frame, in send order (memoryviews into one
@@ -105,7 +133,12 @@ class VmcEncoder:
         self,
         bone_names: Sequence[str] = HUMANOID_BONES,
         blend_names: Sequence[str] = (),
+        max_datagram: int = MAX_DATAGRAM,
     ) -> None:
+        if not MIN_DATAGRAM <= max_datagram <= 65507:
+            raise ValueError(
+                f"max_datagram must be {MIN_DATAGRAM}-65507 bytes; got {max_datagram}"
+            )
         names = tuple(bone_names)
         blends = tuple(blend_names)
         for kind, seq in (("bone", names), ("blendshape", blends)):
@@ -129,7 +162,7 @@ class VmcEncoder:
             (build_message(OK_ADDRESS, ",iiii", [1, CALIBRATION_CALIBRATED, 0, 1]), 0),
             (build_message(TIME_ADDRESS, ",f", [0.0]), 1),
         ]
-        self._buf, bounds, self._slots = _pack(messages)
+        self._buf, bounds, self._slots = _pack(messages, max_datagram)
         view = memoryview(self._buf)
         self.datagrams = [view[a:b] for a, b in itertools.pairwise(bounds)]
         # One compiled call writes a frame (``kernels.vmc_pack``): the floats staged

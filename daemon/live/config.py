@@ -73,6 +73,7 @@ from retargetd.protocols.conventions import normalize_units, normalize_up_axis
 from retargetd.protocols.natnet_client import parse_natnet_url
 from retargetd.protocols.pose_stream import MAX_PERFORMERS
 from retargetd.protocols.qtm import parse_qtm_url
+from retargetd.protocols.vmc_out import MIN_DATAGRAM
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -540,6 +541,13 @@ def _check(c: DaemonConfig, source: str) -> None:
     broadcast = target.is_multicast or str(target) in ("255.255.255.255",)
     if target.is_unspecified:
         raise fail("output.vmc.host", f"expected a receiver's address; got {vmc.host}")
+    if 0 < vmc.max_datagram_bytes < MIN_DATAGRAM:
+        raise fail(
+            "output.vmc.max_datagram_bytes",
+            f"expected 0 (automatic) or {MIN_DATAGRAM}-65507 (RFC 791: every IPv4 "
+            f"host accepts 576 bytes, 548 after the headers); got "
+            f"{vmc.max_datagram_bytes}",
+        )
     if broadcast and not vmc.allow_broadcast:
         raise fail(
             "output.vmc.host",

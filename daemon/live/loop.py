@@ -39,6 +39,7 @@ from __future__ import annotations
 import contextlib
 import gc
 import logging
+import select
 import socket
 import time
 from collections.abc import Callable
@@ -86,7 +87,7 @@ from retargetd.daemon.target.retarget import (
 from retargetd.daemon.validate.live import LiveValidator
 from retargetd.protocols import kernels as protocol_kernels
 from retargetd.protocols.marker_input import LabelSet, MarkerStream
-from retargetd.protocols.vmc_out import VmcEncoder
+from retargetd.protocols.vmc_out import VmcEncoder, datagram_limit
 
 logger = logging.getLogger(__name__)
 
@@ -147,7 +148,7 @@ class Daemon(
         self._sockets: list[Any] = []
         self._osc: socket.socket | None = None
         self._show: socket.socket | None = None
-        self._vmc: socket.socket | None = None
+        self._vmc = False  # [output.vmc] on (each performer's vmc_sock, open())
         self._zin: zmq.Socket[bytes] | None = None
         self._zmon: zmq.Socket[bytes] | None = None  # the input's disconnect events
         self._pub: zmq.Socket[bytes] | None = None
@@ -191,6 +192,7 @@ class Daemon(
         self._zwire_payload = np.frombuffer(self._zbuf_payload, dtype=np.uint8)
         self._osc_simple = osc_cfg.form == "simple"
         self._osc_fd = self._show_fd = -2  # the poll result's fds (set by open)
+        self._osc_more: Any = None  # select.poll of the OSC socket (set by open)
         self._osc_limit = osc_cfg.max_message_bytes
         self._allow = frozenset(osc_cfg.allow)
         self._reload_limit = RateLimiter(config.control.min_interval_s)
@@ -227,6 +229,8 @@ class Daemon(
             osc = c.input.osc
             self._osc = self._udp_bind(osc.host, osc.port)
             self._osc_fd = self._osc.fileno()
+            self._osc_more = select.poll()  # "another datagram waits?" (inputs.py)
+            self._osc_more.register(self._osc_fd, select.POLLIN)
             allow = f", sources {', '.join(osc.allow)} only" if osc.allow else ""
             who = who_reaches(is_loopback_host(osc.host), osc.host)
             self._announce(
@@ -305,16 +309,16 @@ class Daemon(
         )
         if c.output.vmc.enabled:
             vmc = c.output.vmc
-            self._vmc = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-            self._vmc.setblocking(False)
-            if vmc.allow_broadcast:  # without it the kernel refuses broadcast sends
-                self._vmc.setsockopt(socket.SOL_SOCKET, socket.SO_BROADCAST, 1)
+            self._vmc = True
             kind = "broadcast allowed" if vmc.allow_broadcast else "unicast"
-            for perf in self.performers:  # one avatar per destination
+            for perf in self.performers:  # one avatar per destination, one socket
                 host, port = perf.vmc_addr
+                self._open_vmc(perf, vmc.allow_broadcast)
+                size = datagram_limit(host, vmc.max_datagram_bytes)
                 self._announce(
                     f"vmc out {perf.name}" if perf.name else "vmc out",
-                    f"udp://{host}:{port} (plain OSC, {kind}; readable by "
+                    f"udp://{host}:{port} (plain OSC, {kind}, datagrams up to "
+                    f"{size} bytes; readable by "
                     f"{'this machine' if is_loopback_host(host) else host} "
                     "and the network path to it)",
                 )
@@ -411,6 +415,27 @@ class Daemon(
             f"queue {v.queue}, frame numbers at {v.rate_hz:g} Hz"
         )
 
+    def _open_vmc(self, perf: Any, allow_broadcast: bool) -> None:
+        """``perf``'s VMC socket, connected to its destination: a connected UDP
+        socket sends without parsing an address or looking up the route per call
+        (a receiver absent on this machine then shows as refused sends, counted in
+        ``vmc_errors``). Without a route to the host yet (a network not up), it
+        stays unconnected and sends with ``sendto``, as the route may come later."""
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        sock.setblocking(False)
+        if allow_broadcast:  # without it the kernel refuses broadcast sends
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_BROADCAST, 1)
+        perf.vmc_sock, perf.vmc_connected = sock, False
+        try:
+            sock.connect(perf.vmc_addr)
+        except OSError as exc:
+            self.out(
+                f"vmc out: no route to {perf.vmc_addr[0]} yet ({exc.strerror}): "
+                "sending unconnected"
+            )
+        else:
+            perf.vmc_connected = True
+
     def _server_socket(
         self, kind: int, secret_key: str, client_keys: tuple[str, ...]
     ) -> Any:
@@ -457,9 +482,11 @@ class Daemon(
                 self._poller.unregister(sock)
             sock.close()
         self._sockets.clear()
-        if self._vmc is not None:
-            self._vmc.close()
-            self._vmc = None
+        for perf in self.performers:
+            if perf.vmc_sock is not None:
+                perf.vmc_sock.close()
+                perf.vmc_sock = None
+        self._vmc = False
         for guard in self._guards:
             guard.close()
         self._guards.clear()

@@ -191,6 +191,10 @@ class Performer:
             LiveFace(face, self.rig.marker_names) if face is not None else None
         )
         self.vmc_addr = vmc_addr
+        # Its VMC socket (``Daemon.open``), connected to vmc_addr when the route is
+        # there: send() skips sendto's per-call address parse and route lookup.
+        self.vmc_sock: Any = None
+        self.vmc_connected = False
         self.validator: Any = None
         self.console: Any = None
         self.pipelines: dict[int, Any] = {}  # id(stream or view) -> Pipeline

@@ -6,18 +6,19 @@ it touches cold: the fit on the real Plug-in Gait walk takes ~45 us back to back
 a steady rate, so the loop knows when the next frame is due: ``prewarm_ms`` before
 it, the loop runs each fit once on the last frame's markers, on a scratch solver built
 from the real one's model with its own state (so nothing the stream sees changes),
-and the real frame's solve then runs warm. ``bench/bench_prewarm.py`` measures it: the frame's solve at 240
-Hz fell to 0.50-0.61 of the untouched one's median (p99 0.54-0.75) with a lead of 0.5
-or 1.5 ms; the touch itself costs ~90-130 us of the loop's idle time per frame.
+and the real frame's solve then runs warm. ``bench/bench_prewarm.py`` measures it:
+the frame's solve at 240 Hz fell to 0.50-0.61 of the untouched one's median (p99
+0.54-0.75) with a lead of 0.5 or 1.5 ms; the touch itself costs ~90-130 us of the
+loop's idle time per frame.
 
 The period is a running mean of the accepted frames' spacing (weight 1/8 a frame); a
 stream counts as steady while the running mean of the spacing's deviation stays under
 half the lead: a frame that came earlier than the lead less the touch's own cost would
-find the loop still touching, and would wait for it. A stream faster than ``2 x prewarm_ms`` per frame is
-warm anyway (frames 1 ms apart cost ~1.8x back to back, not 3x) and is not touched,
-nor is one that is not steady (a replay sent as fast as possible, a flood). The
-poll's timeout is in whole milliseconds, so the touch comes between ``prewarm_ms``
-and ``prewarm_ms + 1`` ms before the frame.
+find the loop still touching, and would wait for it. A stream faster than
+``2 x prewarm_ms`` per frame is warm anyway (frames 1 ms apart cost ~1.8x back to
+back, not 3x) and is not touched, nor is one that is not steady (a replay sent as
+fast as possible, a flood). The poll's timeout is in whole milliseconds, so the
+touch comes between ``prewarm_ms`` and ``prewarm_ms + 1`` ms before the frame.
 """
 
 from __future__ import annotations

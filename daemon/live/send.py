@@ -38,6 +38,7 @@ from retargetd.protocols.vmc_out import (
     CALIBRATION_CALIBRATING,
     CALIBRATION_WAITING,
     VmcEncoder,
+    datagram_limit,
 )
 
 logger = logging.getLogger(__name__)
@@ -137,7 +138,13 @@ class SendMixin(DaemonState):
             performer=self._perf.name,
             performer_id=self._perf.index,
         )
-        vmc = VmcEncoder(names, face.output_names if face is not None else ())
+        vmc = VmcEncoder(
+            names,
+            face.output_names if face is not None else (),
+            max_datagram=datagram_limit(
+                self._perf.vmc_addr[0], self.config.output.vmc.max_datagram_bytes
+            ),
+        )
         pose_enc = pose_stream.PoseEncoder(
             n_bones,
             len(weight_names),
@@ -322,7 +329,7 @@ class SendMixin(DaemonState):
                 if n_results:
                     self._take_validation_bits(results[n_results - 1])
             flags |= perf.validation_bits
-        vmc_sock = self._vmc
+        vmc_sock = perf.vmc_sock  # None: [output.vmc] off
         publish = self._pub is not None or self.recording.poses is not None
         if vmc_sock is not None:
             what |= DO_VMC
@@ -336,12 +343,14 @@ class SendMixin(DaemonState):
             solved_ns, flags_word,
         )  # fmt: skip
         if vmc_sock is not None:
-            addr = perf.vmc_addr
-            for dgram in pipe.vmc.datagrams:
-                try:
-                    vmc_sock.sendto(dgram, addr)
-                except OSError:  # receiver absent, buffer full: never block, count
-                    stats.vmc_errors += 1
+            if perf.vmc_connected:  # (one datagram to a loopback receiver)
+                for dgram in pipe.vmc.datagrams:
+                    try:
+                        vmc_sock.send(dgram)
+                    except OSError:  # receiver absent, buffer full: never block
+                        stats.vmc_errors += 1
+            else:
+                self._send_vmc_datagrams(pipe.vmc.datagrams)
         bone_flags = pose.bone_flags
         if publish:
             if solved_ns - perf.last_names_ns >= 1_000_000_000:
@@ -453,7 +462,7 @@ class SendMixin(DaemonState):
         the state (``/VMC/Ext/OK`` calibration state 1 waiting or 2 calibrating, the
         tracking flag) about twice a second: no pose is streamed then, and silence
         reads as "no performer" in EVMC4U and VSeeFace."""
-        if self._vmc is None or now_ns < self._next_vmc_state_ns:
+        if not self._vmc or now_ns < self._next_vmc_state_ns:
             return
         calibrating = self._calib_target > 0
         if self.calibration is not None and not calibrating:
@@ -464,7 +473,18 @@ class SendMixin(DaemonState):
         dgram = self._vmc_state.encode_state(
             state, tracking, (now_ns - self._t0_ns) * 1e-9
         )
-        try:
-            self._vmc.sendto(dgram, self._vmc_addr)
-        except OSError:  # receiver absent: never block, count
-            self.stats.vmc_errors += 1
+        self._send_vmc_datagrams((dgram,))
+
+    def _send_vmc_datagrams(self, datagrams: Any) -> None:
+        """Send datagrams to the current performer's VMC receiver, never blocking: a
+        refused one (receiver absent, buffer full, no route) is counted."""
+        sock, addr = self._vmc_sock, self._vmc_addr
+        assert sock is not None
+        for dgram in datagrams:
+            try:
+                if self._vmc_connected:
+                    sock.send(dgram)
+                else:
+                    sock.sendto(dgram, addr)
+            except OSError:
+                self.stats.vmc_errors += 1

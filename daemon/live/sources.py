@@ -409,7 +409,7 @@ class CaptureMixin(DaemonState):
         pipe = self._pipelines.get(key)
         if pipe is None:
             return
-        if self._vmc is not None:
+        if self._vmc:
             # VMC has no frame flags; its own word for this is /VMC/Ext/OK with
             # tracking 0 (VMC 2.7): the model is loaded and calibrated, tracking is
             # lost. Receivers keep the last pose they got and hear the performer is
@@ -417,10 +417,7 @@ class CaptureMixin(DaemonState):
             dgram = self._vmc_state.encode_state(
                 CALIBRATION_CALIBRATED, False, (now_ns - self._t0_ns) * 1e-9
             )
-            try:
-                self._vmc.sendto(dgram, self._vmc_addr)
-            except OSError:  # receiver absent: never block, count
-                self.stats.vmc_errors += 1
+            self._send_vmc_datagrams((dgram,))
             cap.counts["held_vmc"] += 1
         if self._pub is None and self.recording.poses is None:
             return

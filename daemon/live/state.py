@@ -120,6 +120,8 @@ class DaemonState:
     _last_names_ns: OfPerformer[int] = OfPerformer()
     _frame_flags: OfPerformer[int] = OfPerformer()  # set for all: _flag_frames
     _vmc_addr: OfPerformer[tuple[str, int]] = OfPerformer()
+    _vmc_sock: OfPerformer[socket.socket | None] = OfPerformer()
+    _vmc_connected: OfPerformer[bool] = OfPerformer()
     _next_vmc_state_ns: OfPerformer[int] = OfPerformer()
     _calib_target: OfPerformer[int] = OfPerformer()  # frames still wanted
     _calib_frames: OfPerformer[list[np.ndarray]] = OfPerformer()
@@ -147,8 +149,9 @@ class DaemonState:
     _poller: zmq.Poller
     _sockets: list[Any]
     _osc: socket.socket | None
+    _osc_more: Any  # select.poll of _osc: another datagram waiting?
     _show: socket.socket | None
-    _vmc: socket.socket | None
+    _vmc: bool  # [output.vmc] on: each performer has its socket (vmc_sock)
     _zin: zmq.Socket[bytes] | None
     _zmon: zmq.Socket[bytes] | None
     _pub: zmq.Socket[bytes] | None
@@ -195,6 +198,9 @@ class DaemonState:
         raise NotImplementedError
 
     def _send_vmc_state(self, now_ns: int) -> None:  # send
+        raise NotImplementedError
+
+    def _send_vmc_datagrams(self, datagrams: Any) -> None:  # send
         raise NotImplementedError
 
     def _start_validator(self) -> None:  # Daemon

@@ -61,6 +61,10 @@ def test_defaults_bind_loopback_only() -> None:
         ("[input.zmq]\nmode = 'push'", "input.zmq.mode"),
         ("[output.vmc]\nenabled = 'yes'", "output.vmc.enabled: expected true or false"),
         (
+            "[output.vmc]\nmax_datagram_bytes = 500",
+            "output.vmc.max_datagram_bytes: expected 0 (automatic) or 548-65507",
+        ),
+        (
             "[control]\nendpoint = 'tcp://0.0.0.0:1'",
             "control.endpoint: binding off loopback needs allow_remote = true",
         ),

@@ -168,9 +168,9 @@ def test_stream_vmc_and_pose_stream_match_the_solver(
 
     # ---- VMC, through python-osc's generic parser -----------------------------------
     assert len(vmc.frames) == n
-    assert all(len(d) <= vmc_out.MAX_DATAGRAM for d in vmc.datagrams)
+    assert all(len(d) <= vmc_out.LOOPBACK_MAX_DATAGRAM for d in vmc.datagrams)
     assert all(OscBundle.dgram_is_bundle(d) for d in vmc.datagrams)
-    assert set(vmc.frame_datagrams) == {2}  # 22 bones: two datagrams per frame
+    assert set(vmc.frame_datagrams) == {1}  # to loopback a frame is one datagram
     print(
         f"VMC: {len(vmc.datagrams)} datagrams, sizes "
         f"{sorted({len(d) for d in vmc.datagrams})} bytes"
@@ -597,10 +597,44 @@ def test_restart_after_a_gap_or_new_label_set_receiver_absent(
     np.testing.assert_allclose(
         sub.poses[-1].rest_from_bone_quat, oracle[-1][1].astype(np.float32), atol=1e-6
     )
+    # The VMC socket is connected: the kernel reports the closed port (ICMP port
+    # unreachable, never rate-limited on loopback) as refused sends, counted.
+    assert 0 < s.vmc_errors <= s.frames_out
     print(
         f"\nreceiver absent: {s.frames_out} frames sent to a closed port, "
         f"{s.vmc_errors} send errors counted"
     )
+
+
+def test_vmc_datagrams_to_another_machine_stay_under_the_mtu(
+    start_daemon: Callable[..., Live],
+    osc_source: Callable[..., OscSource],
+    vmc: VmcReceiver,
+    exact_calibration: Path,
+) -> None:
+    """``[output.vmc] max_datagram_bytes = 1472`` (what a receiver off this machine
+    gets by default: an Ethernet MTU, no IP fragments): a frame of the 22 humanoid
+    bones is two datagrams, each full but for the last, parsed back whole."""
+    take = _take()
+    live = start_daemon(
+        {
+            "performer": {"calibration": str(exact_calibration)},
+            "loop": {"process_every_frame": True},
+            "output": {"vmc": {"max_datagram_bytes": vmc_out.MAX_DATAGRAM}},
+        },
+        vmc_port=vmc.port,
+    )
+    assert "datagrams up to 1472 bytes" in live.daemon.endpoints["vmc out"]
+    src = osc_source(live)
+    src.announce()
+    for row in range(100, 110):
+        src.send(take.markers_world[row])
+        time.sleep(0.005)
+    vmc.wait_frames(10)
+    live.stop()
+    assert set(vmc.frame_datagrams) == {2}
+    assert all(len(d) <= vmc_out.MAX_DATAGRAM for d in vmc.datagrams)
+    assert [a for a, _ in vmc.frames[-1]] == VMC_FRAME
 
 
 def test_burst_latest_wins_drops_stale_frames(

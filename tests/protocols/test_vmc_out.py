@@ -160,3 +160,31 @@ def test_bad_names_are_refused() -> None:
         vmc_out.VmcEncoder(("Hips", "Hips"))
     with pytest.raises(ValueError, match="cannot fit"):
         vmc_out.VmcEncoder(("X" * 1500,))
+
+
+def test_a_loopback_receiver_gets_a_frame_in_one_datagram(
+    rng: np.random.Generator,
+) -> None:
+    """To this machine (no MTU below 64 KiB) the limit is python-osc's 8192-byte read:
+    22 bones and 52 blendshapes fit one datagram, which python-osc reads whole and
+    in order, as the same frame packed for Ethernet."""
+    assert vmc_out.datagram_limit("127.0.0.1") == vmc_out.LOOPBACK_MAX_DATAGRAM
+    assert vmc_out.datagram_limit("127.3.2.1") == vmc_out.LOOPBACK_MAX_DATAGRAM
+    assert vmc_out.datagram_limit("192.168.1.20") == vmc_out.MAX_DATAGRAM
+    assert vmc_out.datagram_limit("127.0.0.1", 1000) == 1000
+    blends = tuple(f"blend{i:02d}" for i in range(52))
+    frame = _frame(rng, 22, len(blends))
+    one = vmc_out.VmcEncoder(
+        vmc_out.HUMANOID_BONES, blends, max_datagram=vmc_out.LOOPBACK_MAX_DATAGRAM
+    )
+    lan = vmc_out.VmcEncoder(vmc_out.HUMANOID_BONES, blends)
+    got_one, got_lan = one.encode(*frame), lan.encode(*frame)
+    assert len(got_one) == 1 and len(got_one[0]) <= vmc_out.LOOPBACK_MAX_DATAGRAM
+    assert len(got_lan) == 3
+    assert _messages(got_one) == _messages(got_lan)
+    # Bundled, the bytes are the Ethernet datagrams' elements back to back.
+    elements = b"".join(bytes(d)[16:] for d in got_lan)
+    assert bytes(got_one[0]) == bytes(got_one[0])[:16] + elements
+    for bad in (vmc_out.MIN_DATAGRAM - 1, 65508):
+        with pytest.raises(ValueError, match="max_datagram"):
+            vmc_out.VmcEncoder(max_datagram=bad)
