@@ -16,19 +16,19 @@ frame every 4 ms finds the code and data it touches colder than one every 0.5 ms
 every stage costs more: compare the two). The script runs against whichever tree is
 installed (an older one, without ``live/emit.py``, shows its separate stages).
 
-Each stage of the frame is timed by a wrapper put around the call on the live
-objects (``time.perf_counter_ns`` before and after): the poll, the decode and
-book-keeping of the input (``_service`` minus ``_solve_and_send``), the body solve, the
-emit call (``live/emit.py``: the retarget, the engine-frame conversion, the VMC and
-pose packs in one compiled call), the VMC sends (``send`` on the connected socket), the
-pose send, the validator's submit (stages a configuration never calls are left out of
-the table: the separate retarget, engine frame, VMC and pose encode rows appear only
-where the loop still makes them, the retarget with ``[target] spine = "pivot"``); "glue" is
+Each stage of the frame is timed by a wrapper put around the call on the live objects
+(``time.perf_counter_ns`` before and after): the poll, the decode and book-keeping of
+the input (``_service`` minus ``_solve_and_send``), the body solve, the emit call
+(``live/emit.py``: the retarget, the engine-frame conversion, the VMC and pose packs in
+one compiled call), the VMC sends (``send`` on the connected socket), the pose send, the
+validator's submit (stages a configuration never calls are left out of the table: the
+separate retarget, engine frame, VMC and pose encode rows appear only where the loop
+still makes them, the retarget with ``[target] spine = "pivot"``); "glue" is
 ``_solve_and_send`` minus the stages inside it (attribute reads, flags, the budget
-checks, the stats record, which is also timed alone on the same object after the run:
-a slotted object cannot be wrapped in place). The wrapper's own cost (measured on an
-empty call, same run) is subtracted from each stage and printed. Medians and p99 per
-stage in µs, and what share of the median frame each one is.
+checks, the stats record, which is also timed alone on the same object after the run: a
+slotted object cannot be wrapped in place). The wrapper's own cost (measured on an empty
+call, same run) is subtracted from each stage and printed. Medians and p99 per stage in
+µs, and what share of the median frame each one is.
 
 This is CPU time on the loop's thread: the wake-up latency of the scheduler, which
 dominates the end-to-end p99 on a loaded machine, is measured by
