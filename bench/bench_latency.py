@@ -91,6 +91,7 @@ import gc
 import multiprocessing as mp
 import os
 import re
+import select
 import shutil
 import signal
 import socket
@@ -131,14 +132,12 @@ HOT_PATH_TARGETS_US = {"body": 150.0, "fit+face": 250.0, "face+fit": 250.0}
 CAPTURE_TRANSPORTS = ("natnet", "qtm")
 #: Cases without the daemon: raw UDP sender -> receiver, and the same through the
 #: Python relay (the floor of any Python process in between).
-BASELINES = ("raw", "relay", "relay+", "relay~")
+BASELINES = ("raw", "relay", "relay+")
 #: relay+: the size of its first datagram, VMC's bones (/VMC/Ext/Bone/Pos bundle of
 #: the humanoid bones at 240 Hz is 1-2 KB; the root and T come in the second).
 RELAY_BONES_BYTES = 1400
 #: The relay's poll timeout: the daemon's loop.poll_timeout_ms default (100 ms).
 RELAY_POLL_MS = 100
-#: relay~: it spins (polls without waiting) from this long before the next frame.
-SPIN_NS = 1_000_000
 
 
 def _pace(
@@ -371,19 +370,21 @@ def _sender(spec: dict[str, Any], conn: Connection) -> None:
         ctx.term()
 
 
-def _relay(port: int, conn: Connection, work: bool = False, spin: bool = False) -> None:
+def _relay(port: int, conn: Connection, work: bool = False) -> None:
     """The floor of any Python daemon (``relay`` baseline): what the daemon's loop
     must do per frame at the least, and nothing else. A UDP socket polled by
     ``zmq.Poller`` (as the daemon's loop polls its inputs, same timeout), each
     datagram received into a preallocated buffer and sent on at once, unchanged, to
-    the receiver's ``port``. Its latency over raw UDP is the Python process hop:
-    wake-up, poll, one receive, one send, on this machine at this rate.
+    the receiver's ``port`` on a connected socket, a zero-timeout poll ending the
+    drain (the daemon's cheapest calls, ``bench_socket_calls.py``). Its latency over
+    raw UDP is the Python process hop: wake-up, poll, one receive, one send, on this
+    machine at this rate.
 
     ``work`` (``relay+``): less than the daemon's least per frame under the design
-    (one compiled call for decode, solve and encode; VMC's two datagrams; no pose
-    stream): one numba call that copies the datagram into two output buffers, then
-    a first datagram of VMC's bone size (1400 bytes) to a socket nobody reads and the
-    copy to the receiver. A lower bound on any daemon built so."""
+    (one compiled call for decode, solve and encode; two sends, where the daemon
+    makes a VMC send and a two-part pose send): one numba call that copies the
+    datagram into two output buffers, then a first datagram of VMC's bone size (1400
+    bytes) to a socket nobody reads and the copy to the receiver. A lower bound on any daemon built so."""
     import zmq
 
     copy_into = None
@@ -411,7 +412,11 @@ def _relay(port: int, conn: Connection, work: bool = False, spin: bool = False) 
     udp.bind((LOCALHOST, 0))
     udp.setblocking(False)
     out = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    dest = (LOCALHOST, port)
+    out.connect((LOCALHOST, port))  # the cheapest sends, as the daemon's VMC socket
+    side = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    side.connect(sink_addr)
+    more = select.poll()  # "another datagram waits?", as the daemon's OSC drain
+    more.register(udp.fileno(), select.POLLIN)
     poller = zmq.Poller()
     poller.register(udp, zmq.POLLIN)
     poller.register(conn.fileno(), zmq.POLLIN)
@@ -423,46 +428,29 @@ def _relay(port: int, conn: Connection, work: bool = False, spin: bool = False) 
     fd = udp.fileno()  # zmq.Poller reports a plain socket by its descriptor
     gc.disable()
     try:
-        period = last = 0
         while True:
-            wait = RELAY_POLL_MS
-            if spin and period:
-                now = time.monotonic_ns()
-                start, stop = last + period - SPIN_NS, last + period + period // 2
-                if start <= now < stop:
-                    wait = 0
-                elif now < start:
-                    wait = (start - now) // 1_000_000
-            events = dict(poller.poll(wait))
-            if spin and fd in events:  # the running mean of the frame spacing
-                now = time.monotonic_ns()
-                if last:
-                    gap = now - last
-                    if not period:
-                        period = gap
-                    elif gap < 2 * period:
-                        period += (gap - period) >> 3
-                last = now
-            if not events:
-                continue
+            events = dict(poller.poll(RELAY_POLL_MS))
             if fd in events:
-                while True:
+                k = 0
+                while k == 0 or more.poll(0):
+                    k += 1
                     try:
                         n = udp.recv_into(buf)
                     except (BlockingIOError, InterruptedError):
                         break
                     if copy_into is None:
-                        out.sendto(view[:n], dest)
+                        out.send(view[:n])
                     else:
                         copy_into(src, n, a, b)
-                        out.sendto(bones, sink_addr)
-                        out.sendto(out_view[:n], dest)
+                        side.send(bones)
+                        out.send(out_view[:n])
             if conn.fileno() in events:
                 conn.recv()
                 return
     finally:
         udp.close()
         out.close()
+        side.close()
         sink.close()
 
 
@@ -806,11 +794,10 @@ def run_case(
             )
         if transport == "raw":
             spec["port"] = port
-        elif transport in ("relay", "relay+", "relay~"):
+        elif transport in ("relay", "relay+"):
             relay_conn, relay_child = ctx.Pipe()
             relay = ctx.Process(
-                target=_relay,
-                args=(port, relay_child, transport == "relay+", transport == "relay~"),
+                target=_relay, args=(port, relay_child, transport == "relay+")
             )
             relay.start()
             procs.append(relay)
@@ -1159,8 +1146,6 @@ def print_report(summaries: list[Summary], args: argparse.Namespace) -> None:
         what = (
             "one compiled call, two sends"
             if r.name.startswith("relay+")
-            else "spinning from 1 ms before the next frame"
-            if r.name.startswith("relay~")
             else "poll, receive, send; nothing else"
         )
         if b is not None:
@@ -1204,6 +1189,11 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=float, default=10.0, help="timed s per case")
     parser.add_argument("--warmup", type=float, default=0.5, help="untimed s per case")
+    parser.add_argument(
+        "--rounds", type=int, default=1,
+        help="run every case (baselines too) this many times, interleaved; the "
+        "added p99 of each round against its own raw UDP, and their median",
+    )  # fmt: skip
     parser.add_argument("--rates", default="240,1000", help="send rates, Hz")
     parser.add_argument(
         "--transports",
@@ -1213,7 +1203,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--variants", default="body,face",
         help="body, fit, face, validate, or joined by +; console, console+browser; "
-        "pipeline (+pipeline adds the post stages to any) (comma-separated)",
+        "pipeline (+pipeline adds the post stages to any; +cold turns the fit's "
+        "touch off) (comma-separated)",
     )  # fmt: skip
     args = parser.parse_args(argv)
     variants = [v for v in args.variants.split(",") if v]
@@ -1222,15 +1213,17 @@ def main(argv: list[str] | None = None) -> int:
     if (
         args.seconds <= 0
         or args.warmup < 0
+        or args.rounds < 1
         or not rates
         or any(not 1 <= r <= 10_000 for r in rates)
         or any(t not in ("osc", "zmq", *CAPTURE_TRANSPORTS) for t in transports)
         or any(not _valid_variant(v) for v in variants)
     ):
         parser.error(
-            "--seconds > 0, --warmup >= 0, rates in [1, 10000], osc/zmq/natnet/qtm, "
-            "variants "
-            "body, or fit/face/validate joined by +, console, console+browser"
+            "--seconds > 0, --warmup >= 0, --rounds >= 1, rates in [1, 10000], "
+            "osc/zmq/natnet/qtm, variants "
+            "body, or fit/face/validate/cold joined by +, console, console+browser, "
+            "any +pipeline"
         )
     if "console+browser" in variants and not (
         shutil.which("chromium") and shutil.which("chromedriver")
@@ -1268,17 +1261,62 @@ def main(argv: list[str] | None = None) -> int:
         plan = [(b, r, "body") for b in BASELINES for r in rates] + [
             (t, r, v) for v in variants for t in transports for r in rates
         ]
-        for transport, rate, variant in plan:
-            t0 = time.monotonic()
-            result = run_case(
-                ctx, transport, rate, args, take, calibration, tmp, variant,
-                streams.get(variant),
-            )  # fmt: skip
-            summaries.append(summarize(result))
-            print(f"  {result.name}: done in {time.monotonic() - t0:.1f} s", flush=True)
-    print_report(summaries, args)
+        rounds: list[list[Summary]] = []
+        for k in range(args.rounds):
+            if args.rounds > 1:
+                print(f"round {k + 1} of {args.rounds} (load average {_load()})")
+            summaries = []
+            for transport, rate, variant in plan:
+                t0 = time.monotonic()
+                result = run_case(
+                    ctx, transport, rate, args, take, calibration, tmp, variant,
+                    streams.get(variant),
+                )  # fmt: skip
+                summaries.append(summarize(result))
+                took = time.monotonic() - t0
+                print(f"  {result.name}: done in {took:.1f} s", flush=True)
+            rounds.append(summaries)
+    for k, summaries in enumerate(rounds):
+        if args.rounds > 1:
+            print(f"\n======== round {k + 1} of {args.rounds}")
+        print_report(summaries, args)
+    if args.rounds > 1:
+        print_rounds(rounds)
     print(f"load average at the end: {_load()}")
     return 0
+
+
+def print_rounds(rounds: list[list[Summary]]) -> None:
+    """Each case's added p99 over the rounds (each round's raw UDP baseline), the
+    median of the rounds and their range: the machine drifts between cases of a
+    round, and one round's p99 against one raw p99 is one draw of that drift."""
+    print(
+        f"\nadded p99 over raw UDP by round (each against its round's raw), µs; "
+        f"median [min, max] of {len(rounds)} rounds"
+    )
+    print(f"{'case':<28} {'VMC T':>22} {'pose':>22}   rounds (VMC T)")
+    for j, first in enumerate(rounds[0]):
+        if first.name.startswith("raw"):
+            continue
+        cols, per = [], []
+        for out in ("vmc", "pose"):
+            vals = []
+            for summaries in rounds:
+                s = summaries[j]
+                b = next(x for x in summaries if x.name == f"raw {s.rate_hz:g} Hz")
+                p = s.raw if s.name.startswith("relay") else getattr(s, out)
+                vals.append(p[1] - b.raw[1])
+            if out == "vmc":
+                per = vals
+            if first.name.startswith("relay") and out == "pose":
+                cols.append("")
+                continue
+            v = np.array(vals)
+            cols.append(f"{_f(np.median(v))} [{_f(v.min())}, {_f(v.max())}]")
+        print(
+            f"{first.name:<28} {cols[0]:>22} {cols[1]:>22}   "
+            + " ".join(_f(x) for x in per)
+        )
 
 
 if __name__ == "__main__":
