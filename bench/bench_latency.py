@@ -384,7 +384,8 @@ def _relay(port: int, conn: Connection, work: bool = False) -> None:
     (one compiled call for decode, solve and encode; two sends, where the daemon
     makes a VMC send and a two-part pose send): one numba call that copies the
     datagram into two output buffers, then a first datagram of VMC's bone size (1400
-    bytes) to a socket nobody reads and the copy to the receiver. A lower bound on any daemon built so."""
+    bytes) to a socket nobody reads and the copy to the receiver. A lower bound on any
+    daemon built so."""
     import zmq
 
     copy_into = None
