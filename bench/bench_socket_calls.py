@@ -1,4 +1,5 @@
-"""What the loop's socket calls cost, paced as a live source paces them.
+"""What the loop's socket calls (and its emit call) cost, paced as a live source
+paces them.
 
 Run from the repository root::
 
@@ -17,7 +18,10 @@ back), the cases of a group alternated call by call so that they see the same ma
 - **VMC** a humanoid frame of the 22 bones (``VmcEncoder``): in datagrams of at most
   1472 bytes with ``sendto`` (the baseline), the same with ``send`` on a connected
   socket, and one datagram of at most 8192 bytes on the connected socket (what the
-  loop does to a loopback receiver).
+  loop does to a loopback receiver);
+- **emit call** the loop's one compiled call per frame (``live/emit.py``, 24
+  arguments): through numba's dispatcher (the baseline) and as its compiled function
+  (``compiled.direct``, what ``EmitPlan.call`` holds).
 
 Median and p99 per call in µs and the ratio of each median to its group's baseline.
 Printed, never asserted (STYLE.md section 10).
@@ -176,6 +180,42 @@ def _vmc(calls: int, rate_hz: float) -> dict[str, np.ndarray]:
             s.close()
 
 
+def _emit(calls: int, rate_hz: float) -> dict[str, np.ndarray]:
+    """The live loop's emit call (24 arguments) on the real PiG-sized arrays of a
+    warm-up plan: through numba's dispatcher and as ``EmitPlan.call`` makes it."""
+    from retargetd.daemon.compiled import direct
+    from retargetd.daemon.live import emit
+
+    n, b = 22, 20
+    ei, at = emit._arenas(n)
+    ei[emit.N_HEAD + 3 :: 4] = -1  # every bone a root: nothing to walk
+    quat = np.tile([1.0, 0.0, 0.0, 0.0], (b, 1))
+    stage = np.zeros(7 * (n + 1) + 1, dtype=np.float32)
+    args = (
+        emit.DO_RETARGET | emit.DO_VMC | emit.DO_POSE, quat, quat.copy(), quat.copy(),
+        np.zeros(3), np.zeros(b, np.uint8), ei, np.zeros(at), np.zeros(n, np.uint8),
+        np.zeros((n + 1, 4)), stage, np.arange(len(stage), dtype=np.int64) * 4,
+        np.zeros(4 * len(stage), np.uint8), np.zeros(68, np.uint8),
+        np.zeros(52 + 60 * b, np.uint8), np.zeros(0), np.zeros(0),
+        np.zeros(0, np.uint8), 0.0, 0, 0.0, 0, 0, 0,
+    )  # fmt: skip
+    emit.emit_frame(*args)
+    fn = direct(emit.emit_frame, *args)
+    assert fn is not emit.emit_frame
+    return _time(
+        {
+            "emit_frame through the dispatcher (baseline)": lambda: emit.emit_frame(
+                *args
+            ),
+            "its compiled function, EmitPlan.call (the loop)": lambda: fn(*args),
+        },
+        lambda: None,
+        lambda: None,
+        calls,
+        rate_hz,
+    )
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--calls", type=int, default=1000, help="timed calls per case")
@@ -184,7 +224,8 @@ def main(argv: list[str] | None = None) -> int:
     rates = [float(r) for r in args.rates.split(",")]
     load = " ".join(f"{x:.2f}" for x in os.getloadavg())
     print(f"bench_socket_calls  [load average {load} ({os.cpu_count()} cpus)]")
-    for group, run in (("receive", _receive), ("VMC", _vmc)):
+    groups = (("receive", _receive), ("VMC", _vmc), ("emit call", _emit))
+    for group, run in groups:
         for rate in rates:
             got = run(args.calls, rate)
             paced = f"paced at {rate:g} Hz" if rate else "back to back"

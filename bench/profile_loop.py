@@ -214,9 +214,17 @@ def profile(
             saved_eu = (eu.unity_quat_xyzw_from_world, eu.unity_pos_from_world)
             eu.unity_quat_xyzw_from_world = t["engine frame"].wrap(saved_eu[0])
             eu.unity_pos_from_world = t["engine frame"].wrap(saved_eu[1])
-            saved_emit = getattr(live_send, "emit_frame", None)  # (older trees: none)
-            if saved_emit is not None:
-                live_send.emit_frame = t["emit call"].wrap(saved_emit)
+            # The emit call: the plan's compiled function (EmitPlan.call), or the
+            # module's kernel in older trees (none before live/emit.py).
+            plan = getattr(pipe, "emit", None)
+            saved_call = getattr(plan, "call", None)
+            saved_emit = None
+            if saved_call is not None:
+                plan.call = t["emit call"].wrap(saved_call)
+            else:
+                saved_emit = getattr(live_send, "emit_frame", None)
+                if saved_emit is not None:
+                    live_send.emit_frame = t["emit call"].wrap(saved_emit)
             perf = d.performers[0]
             real_vmc = perf.vmc_sock
             assert real_vmc is not None
@@ -245,6 +253,8 @@ def profile(
                     drain()
             finally:
                 eu.unity_quat_xyzw_from_world, eu.unity_pos_from_world = saved_eu
+                if saved_call is not None:
+                    plan.call = saved_call
                 if saved_emit is not None:
                     live_send.emit_frame = saved_emit
                 perf.vmc_sock = real_vmc

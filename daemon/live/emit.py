@@ -29,7 +29,7 @@ from typing import Any
 
 import numpy as np
 
-from retargetd.daemon.compiled import kernel
+from retargetd.daemon.compiled import direct, kernel
 from retargetd.daemon.target import kernel as kt
 from retargetd.daemon.target.kernel import retarget_one
 from retargetd.daemon.target.retarget import Retargeter, TargetPose
@@ -37,6 +37,9 @@ from retargetd.protocols import engine_unity
 from retargetd.protocols.kernels import pose_pack, vmc_pack
 from retargetd.protocols.pose_stream import PoseEncoder
 from retargetd.protocols.vmc_out import VmcEncoder
+
+#: No validation bone flags to OR in (``or_flags`` of :func:`emit_frame`).
+NO_FLAGS = np.zeros(0, dtype=np.uint8)
 
 #: ``what`` bits of :func:`emit_frame`.
 DO_RETARGET = 1
@@ -217,6 +220,7 @@ class EmitPlan:
         self.body = pose_enc.body_bytes
         self.performer_bits = pose_enc.performer_bits
         self.args: tuple[np.ndarray, ...] = ()  # set by bind()
+        self.call: Any = emit_frame  # its compiled function, once bound (bind())
 
     def bind(self, pose: Any, blend: np.ndarray, weights: np.ndarray) -> None:
         """Fix the pipeline's solved pose (``BodyPose`` / ``FitPose``, its arrays
@@ -229,6 +233,11 @@ class EmitPlan:
             self.target_pose.flags, *self.vmc_buffers, self.header, self.body, blend,
             weights,
         )  # fmt: skip
+        # The same argument types every frame: the compiled function itself, past
+        # the dispatcher (the validation bone flags or NO_FLAGS: both (B,) uint8).
+        self.call = direct(
+            emit_frame, DO_RETARGET, *self.args, NO_FLAGS, 0.0, 0, 0.0, 0, 0, 0
+        )
 
     def view(self, slot: int, shape: tuple[int, ...]) -> np.ndarray:
         """The float arena's region ``slot`` (``I_*``) as an array of ``shape``."""

@@ -20,8 +20,8 @@ from retargetd.daemon.live.emit import (
     DO_POSE,
     DO_RETARGET,
     DO_VMC,
+    NO_FLAGS,
     EmitPlan,
-    emit_frame,
 )
 from retargetd.daemon.live.performer import FrameSource
 from retargetd.daemon.live.state import DaemonState, Pipeline
@@ -44,7 +44,6 @@ from retargetd.protocols.vmc_out import (
 logger = logging.getLogger(__name__)
 
 _NOBLOCK_MORE = zmq.NOBLOCK | zmq.SNDMORE
-_NO_FLAGS = np.zeros(0, dtype=np.uint8)  # no validation bone flags to OR in
 _PERFORMER_MASK = pose_stream.PERFORMER_MASK
 
 #: How often the VMC state is sent while nothing is streamed (0.5 s).
@@ -337,8 +336,8 @@ class SendMixin(DaemonState):
             what |= DO_POSE
         vb = perf.validation_bones
         flags_word = (flags & ~_PERFORMER_MASK) | emit.performer_bits
-        emit_frame(
-            what, *emit.args, _NO_FLAGS if vb is None else vb,
+        emit.call(  # emit_frame's compiled function (EmitPlan.bind)
+            what, *emit.args, NO_FLAGS if vb is None else vb,
             (solved_ns - self._t0_ns) * 1e-9, frame_id, source_t, received_ns,
             solved_ns, flags_word,
         )  # fmt: skip

@@ -132,3 +132,21 @@ def test_kernel_flags_are_the_wire_flags() -> None:
         face_kernel.FLAG_FACE_PARTIAL,
         face_kernel.FLAG_NEVER,
     }
+
+
+def test_direct_is_the_compiled_function_for_those_types_only() -> None:
+    """``direct``: the overload compiled for the arguments' types (it computes the
+    same), or the dispatcher itself when none has those types (it then compiles)."""
+    a, out = np.array([1.0, 2.0, 3.0, 4.0]), np.zeros(4)
+    b = np.array([0.5, 0.5, 0.5, 0.5])
+    compiled.quat_mul_into(a, b, out)
+    fn = compiled.direct(compiled.quat_mul_into, a, b, out)
+    assert fn is not compiled.quat_mul_into
+    got = np.zeros(4)
+    fn(a, b, got)
+    np.testing.assert_array_equal(got, out)
+    f32 = np.zeros(4, np.float32)  # never compiled for float32: the dispatcher
+    assert compiled.direct(compiled.quat_mul_into, f32, f32, f32) is (
+        compiled.quat_mul_into
+    )
+    assert compiled.direct(len, a) is len  # not a numba dispatcher at all

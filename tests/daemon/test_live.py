@@ -78,6 +78,7 @@ from retargetd.daemon.body.solve import BodySolver
 from retargetd.daemon.cli.ctl import request
 from retargetd.daemon.cli.main import build_parser
 from retargetd.daemon.cli.main import main as cli_main
+from retargetd.daemon.live.emit import emit_frame
 from retargetd.daemon.target.retarget import default_humanoid
 from retargetd.protocols import engine_unity, osc_in, pose_stream, vmc_out, zmq_wire
 from retargetd.protocols.marker_input import LabelSet
@@ -124,6 +125,10 @@ def test_stream_vmc_and_pose_stream_match_the_solver(
     assert (s.frames_in, s.frames_solved, s.frames_out, s.stale) == (n, n, n, 0)
     assert live.daemon.osc_stream.counters.as_dict() == {"accepted": n}
     assert live.daemon.status()["calibrated"]
+    # The frames went through the emit kernel's compiled function, past numba's
+    # dispatcher (EmitPlan.call; the bytes checked below are what it wrote).
+    (pipe,) = live.daemon._pipelines.values()
+    assert pipe.emit is not None and pipe.emit.call is not emit_frame
     assert any(line.startswith("fps in") for line in live.lines)
 
     # ---- ZeroMQ pose stream ---------------------------------------------------------
