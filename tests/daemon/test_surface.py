@@ -592,7 +592,8 @@ def test_every_endpoint_line_says_who_can_reach_it(
         m = _live.ENDPOINT_LINE.match(line)
         assert m is not None, line
         if m.group(3) == "vmc out":
-            assert "unicast; readable by this machine" in line, line
+            want = "unicast, datagrams up to 8192 bytes; readable by this machine"
+            assert want in line, line
         else:
             assert "this machine only" in line, line
 
