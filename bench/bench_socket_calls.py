@@ -99,19 +99,15 @@ def _receive(calls: int, rate_hz: float) -> dict[str, np.ndarray]:
     more.register(rx.fileno(), select.POLLIN)
     payload = bytes(48 + 12 * 41)  # a compact OSC frame of the walk's 41 markers
 
-    def recvfrom_until_raise() -> None:
-        while True:
-            try:
-                rx.recvfrom_into(buf, 65536)
-            except BlockingIOError:
-                return
+    def until_raise(recv: Callable[..., object]) -> Callable[[], None]:
+        def call() -> None:
+            while True:
+                try:
+                    recv(buf, 65536)
+                except BlockingIOError:
+                    return
 
-    def recv_until_raise() -> None:
-        while True:
-            try:
-                rx.recv_into(buf, 65536)
-            except BlockingIOError:
-                return
+        return call
 
     def recv_then_poll() -> None:
         k = 0
@@ -125,8 +121,10 @@ def _receive(calls: int, rate_hz: float) -> dict[str, np.ndarray]:
     try:
         return _time(
             {
-                "recvfrom_into until it raises (baseline)": recvfrom_until_raise,
-                "recv_into until it raises": recv_until_raise,
+                "recvfrom_into until it raises (baseline)": until_raise(
+                    rx.recvfrom_into
+                ),
+                "recv_into until it raises": until_raise(rx.recv_into),
                 "recv_into, then poll(0) (the loop)": recv_then_poll,
             },
             lambda: tx.send(payload),

@@ -30,7 +30,6 @@ one scatter (no per-message Python objects).
 
 from __future__ import annotations
 
-import ipaddress
 import itertools
 from collections.abc import Sequence
 
@@ -39,6 +38,7 @@ import numpy as np
 from retargetd.protocols import kernels
 from retargetd.protocols.frames import F64Array, IntArray
 from retargetd.protocols.humanoid import HUMANOID_BONES
+from retargetd.protocols.marker_input import MAX_MESSAGE_BYTES
 from retargetd.protocols.osc_wire import (
     BUNDLE_HEADER,
     ELEMENT_SIZE_PREFIX,
@@ -62,13 +62,12 @@ LOOPBACK_MAX_DATAGRAM = 8192
 MIN_DATAGRAM = 548
 
 
-def datagram_limit(host: str, configured: int = 0) -> int:
-    """The largest datagram sent to ``host``: ``configured`` when not 0, else
-    :data:`LOOPBACK_MAX_DATAGRAM` to a loopback address and :data:`MAX_DATAGRAM`
-    to any other."""
+def datagram_limit(loopback: bool, configured: int = 0) -> int:
+    """The largest datagram sent to a receiver: ``configured`` when not 0, else
+    :data:`LOOPBACK_MAX_DATAGRAM` to a loopback one and :data:`MAX_DATAGRAM` to any
+    other."""
     if configured:
         return configured
-    loopback = ipaddress.ip_address(host).is_loopback
     return LOOPBACK_MAX_DATAGRAM if loopback else MAX_DATAGRAM
 
 
@@ -135,9 +134,10 @@ class VmcEncoder:
         blend_names: Sequence[str] = (),
         max_datagram: int = MAX_DATAGRAM,
     ) -> None:
-        if not MIN_DATAGRAM <= max_datagram <= 65507:
+        if not MIN_DATAGRAM <= max_datagram <= MAX_MESSAGE_BYTES:  # UDP payload
             raise ValueError(
-                f"max_datagram must be {MIN_DATAGRAM}-65507 bytes; got {max_datagram}"
+                f"max_datagram must be {MIN_DATAGRAM}-{MAX_MESSAGE_BYTES} bytes; got "
+                f"{max_datagram}"
             )
         names = tuple(bone_names)
         blends = tuple(blend_names)

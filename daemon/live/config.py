@@ -70,6 +70,7 @@ from retargetd.daemon.live.surface import (
 )
 from retargetd.daemon.post.pipeline import KINDS, build_pipeline
 from retargetd.protocols.conventions import normalize_units, normalize_up_axis
+from retargetd.protocols.marker_input import MAX_MESSAGE_BYTES
 from retargetd.protocols.natnet_client import parse_natnet_url
 from retargetd.protocols.pose_stream import MAX_PERFORMERS
 from retargetd.protocols.qtm import parse_qtm_url
@@ -544,7 +545,8 @@ def _check(c: DaemonConfig, source: str) -> None:
     if 0 < vmc.max_datagram_bytes < MIN_DATAGRAM:
         raise fail(
             "output.vmc.max_datagram_bytes",
-            f"expected 0 (automatic) or {MIN_DATAGRAM}-65507 (RFC 791: every IPv4 "
+            f"expected 0 (automatic) or {MIN_DATAGRAM}-{MAX_MESSAGE_BYTES} (RFC 791: "
+            "every IPv4 "
             f"host accepts 576 bytes, 548 after the headers); got "
             f"{vmc.max_datagram_bytes}",
         )

@@ -147,8 +147,9 @@ class VmcOutputConfig:
     port: int = spec(39539, "port", lo=1, hi=65535)
     allow_broadcast: bool = False  # a broadcast or multicast host needs this
     # The largest datagram, bytes; 0: 8192 to a loopback host, else 1472 (no IP
-    # fragments on Ethernet). Else 548 (RFC 791's 576 minus headers) to 65507.
-    max_datagram_bytes: int = between(0, 0, 65507)
+    # fragments on Ethernet). Else 548 (RFC 791's 576 minus headers) to the largest
+    # UDP payload.
+    max_datagram_bytes: int = between(0, 0, MAX_MESSAGE_BYTES)
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)

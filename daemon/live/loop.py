@@ -87,7 +87,7 @@ from retargetd.daemon.target.retarget import (
 from retargetd.daemon.validate.live import LiveValidator
 from retargetd.protocols import kernels as protocol_kernels
 from retargetd.protocols.marker_input import LabelSet, MarkerStream
-from retargetd.protocols.vmc_out import VmcEncoder, datagram_limit
+from retargetd.protocols.vmc_out import VmcEncoder
 
 logger = logging.getLogger(__name__)
 
@@ -314,11 +314,10 @@ class Daemon(
             for perf in self.performers:  # one avatar per destination, one socket
                 host, port = perf.vmc_addr
                 self._open_vmc(perf, vmc.allow_broadcast)
-                size = datagram_limit(host, vmc.max_datagram_bytes)
                 self._announce(
                     f"vmc out {perf.name}" if perf.name else "vmc out",
                     f"udp://{host}:{port} (plain OSC, {kind}, datagrams up to "
-                    f"{size} bytes; readable by "
+                    f"{perf.vmc_max_datagram} bytes; readable by "
                     f"{'this machine' if is_loopback_host(host) else host} "
                     "and the network path to it)",
                 )

@@ -28,9 +28,11 @@ from retargetd.daemon.live.config import DaemonConfig, PerformerConfig
 from retargetd.daemon.live.face import LiveFace
 from retargetd.daemon.live.ratelog import RateLimiter
 from retargetd.daemon.live.stats import LoopStats
+from retargetd.daemon.live.surface import is_loopback_host
 from retargetd.protocols import pose_stream
 from retargetd.protocols.frames import IntArray, MarkerFrame
 from retargetd.protocols.marker_input import LabelSet, MarkerStream
+from retargetd.protocols.vmc_out import datagram_limit
 
 logger = logging.getLogger(__name__)
 
@@ -162,6 +164,8 @@ class Performer:
         prefix: its label prefix ("" with one performer: every label).
         input: "any", "osc", "zmq" or "source".
         vmc_addr: its VMC destination (host, port).
+        vmc_max_datagram: the largest VMC datagram sent to it, bytes
+            (``vmc_out.datagram_limit``).
         face: its ``[face]`` settings, or None for no face.
         min_interval_s: the least time between two calibration requests.
     """
@@ -175,6 +179,7 @@ class Performer:
         prefix: str,
         input: str,
         vmc_addr: tuple[str, int],
+        vmc_max_datagram: int,
         face: Any,
         min_interval_s: float,
     ) -> None:
@@ -191,6 +196,7 @@ class Performer:
             LiveFace(face, self.rig.marker_names) if face is not None else None
         )
         self.vmc_addr = vmc_addr
+        self.vmc_max_datagram = vmc_max_datagram
         # Its VMC socket (``Daemon.open``), connected to vmc_addr when the route is
         # there: send() skips sendto's per-call address parse and route lookup.
         self.vmc_sock: Any = None
@@ -253,7 +259,11 @@ def build_performers(config: DaemonConfig) -> list[Performer]:
         face = config.face if config.face.enabled else None
         one = Performer(
             0, "", config.performer, prefix="", input="any",
-            vmc_addr=(vmc.host, vmc.port), face=face, min_interval_s=min_interval_s,
+            vmc_addr=(vmc.host, vmc.port),
+            vmc_max_datagram=datagram_limit(
+                is_loopback_host(vmc.host), vmc.max_datagram_bytes
+            ),
+            face=face, min_interval_s=min_interval_s,
         )  # fmt: skip
         return [one]
     out = []
@@ -275,6 +285,9 @@ def build_performers(config: DaemonConfig) -> list[Performer]:
                 prefix=p.prefix,
                 input=p.input,
                 vmc_addr=(host, port),
+                vmc_max_datagram=datagram_limit(
+                    is_loopback_host(host), vmc.max_datagram_bytes
+                ),
                 face=face,
                 min_interval_s=min_interval_s,
             )

@@ -38,7 +38,6 @@ from retargetd.protocols.vmc_out import (
     CALIBRATION_CALIBRATING,
     CALIBRATION_WAITING,
     VmcEncoder,
-    datagram_limit,
 )
 
 logger = logging.getLogger(__name__)
@@ -140,9 +139,7 @@ class SendMixin(DaemonState):
         vmc = VmcEncoder(
             names,
             face.output_names if face is not None else (),
-            max_datagram=datagram_limit(
-                self._perf.vmc_addr[0], self.config.output.vmc.max_datagram_bytes
-            ),
+            max_datagram=self._perf.vmc_max_datagram,
         )
         pose_enc = pose_stream.PoseEncoder(
             n_bones,

@@ -619,7 +619,7 @@ def test_vmc_datagrams_to_another_machine_stay_under_the_mtu(
 ) -> None:
     """``[output.vmc] max_datagram_bytes = 1472`` (what a receiver off this machine
     gets by default: an Ethernet MTU, no IP fragments): a frame of the 22 humanoid
-    bones is two datagrams, each full but for the last, parsed back whole."""
+    bones is two datagrams of at most 1472 bytes, parsed back whole and in order."""
     take = _take()
     live = start_daemon(
         {
