@@ -85,10 +85,12 @@ FRAME_RESTARTED = 1 << 2  # the marker source restarted (frame numbers reset)
 FRAME_INPUT_DROPPED = 1 << 3  # input frames were dropped since the last pose
 FRAME_SOURCE_LOST = 1 << 4  # the capture system is gone: the last good pose, resent
 FRAME_RESEEDED = 1 << 5  # the fit lost track and was reseeded from the construction
+FRAME_UNEXPLAINED = 1 << 6  # the markers fit no pose: the last explained pose, held
+FRAME_UNSEEN = 1 << 7  # the performer's markers not seen: no pose (held or rest)
 FRAME_VALIDATION_MASK = 0x0000_FF00  # bits 8-15: validation results (below)
 FRAME_FLAG_BITS = {
     "late": 0, "held": 1, "restarted": 2, "input_dropped": 3, "source_lost": 4,
-    "reseeded": 5,
+    "reseeded": 5, "unexplained": 6, "unseen": 7,
 }  # fmt: skip
 
 # Validation frame bits (8-15), set by the daemon's live validator (``[validate]``):

@@ -67,6 +67,7 @@ from retargetd.daemon.body.calibration import (
     compute_points,
     match_markers,
 )
+from retargetd.daemon.body.fit_observe import BoneObservation, observe
 from retargetd.daemon.body.rig import Rig, RigError, load_rig
 from retargetd.daemon.body.rig_fit import (
     BoneFitOptions,
@@ -99,6 +100,17 @@ PROXIMAL_TIE_M = 0.025
 #: the hinge is mostly the twist (an elbow's flexion axis is ~90 deg off the forearm's).
 HINGE_TWIST_MAX_COS = math.cos(math.radians(30.0))
 
+#: A fixed joint's pull towards its calibration pose, m^2 / rad^2: a hinge's off-axis
+#: stiffness (``FitParams.kappa_hinge``, 1 m of residual per radian), far above any
+#: marker's pull, so the joint does not turn.
+FIXED_STIFFNESS = 1.0
+
+#: The fit's joint limits sit this far inside the validator's table: the penalty is
+#: soft (``FitParams.kappa_limit``), so markers that ask for more push a joint a
+#: little past where it begins; the table is where a pose fails, and the fit stays
+#: inside it.
+LIMIT_MARGIN_RAD = math.radians(1.0)
+
 #: Limit table columns (radians; NaN = no such limit): twist lo, twist hi,
 #: sagittal lo, sagittal hi, frontal |max|, cone max.
 LIM_TWIST_LO, LIM_TWIST_HI, LIM_SAG_LO, LIM_SAG_HI, LIM_FRONTAL, LIM_CONE = range(6)
@@ -125,8 +137,16 @@ class FitModel:
             relative to its calibration pose), 2.0 for a hinge with the bone's twist
             ("hinge_twist": the bone's axis stays on the cone the hinge sweeps it
             on), else 0.0.
-        rest_pull: (B,) m^2 / rad^2, weight of the pull towards the calibration pose
-            (``stiffness_mm`` squared, in metres), 0 for none.
+        prior_mat: (B, 3, 3) m^2 / rad^2, each joint's pull towards its calibration
+            pose, ``1/2 c^T P c`` with ``c`` the joint's rotation relative to it in
+            swing-twist coordinates of the bone's rest axes (swing x, twist about +Y,
+            swing z; ``fit_terms.prior_chart``): the rig's ``stiffness_mm`` (squared,
+            in metres, times I), a fixed joint's :data:`FIXED_STIFFNESS`, and the
+            automatic prior on each rotation the markers do not observe
+            (``fit_observe``).
+        joint_dof: (B,) each joint's model ("root", "ball", "hinge", ...).
+        observation: (B,) what the markers determine of each bone
+            (``fit_observe.observe``).
         limits: (B, 6) radians (``LIM_*`` columns, NaN = none); ``limit_left`` and
             ``limit_forward`` (B, 3): the performer's left and forward in each bone's
             rest axes (the validator's sagittal and frontal axes).
@@ -159,7 +179,7 @@ class FitModel:
     joint_local: F64Array
     hinge_axis: F64Array
     twist_lock: F64Array
-    rest_pull: F64Array
+    prior_mat: F64Array
     limits: F64Array
     limit_left: F64Array
     limit_forward: F64Array
@@ -169,6 +189,8 @@ class FitModel:
     n_dof: int
     node_ptr: IntArray
     node_idx: IntArray
+    joint_dof: tuple[str, ...] = ()
+    observation: tuple[BoneObservation, ...] = ()
 
     @property
     def n_roots(self) -> int:
@@ -371,15 +393,15 @@ def _limit_rows(
         left_b[b] = rot.quat_rotate(bone_from_world, left)
         fwd_b[b] = rot.quat_rotate(bone_from_world, forward)
         if lim.twist[0] > -180.0 or lim.twist[1] < 180.0:
-            limits[b, LIM_TWIST_LO] = math.radians(lim.twist[0])
-            limits[b, LIM_TWIST_HI] = math.radians(lim.twist[1])
+            limits[b, LIM_TWIST_LO] = math.radians(lim.twist[0]) + LIMIT_MARGIN_RAD
+            limits[b, LIM_TWIST_HI] = math.radians(lim.twist[1]) - LIMIT_MARGIN_RAD
         if lim.sagittal is not None:
-            limits[b, LIM_SAG_LO] = math.radians(lim.sagittal[0])
-            limits[b, LIM_SAG_HI] = math.radians(lim.sagittal[1])
+            limits[b, LIM_SAG_LO] = math.radians(lim.sagittal[0]) + LIMIT_MARGIN_RAD
+            limits[b, LIM_SAG_HI] = math.radians(lim.sagittal[1]) - LIMIT_MARGIN_RAD
         if lim.frontal is not None:
-            limits[b, LIM_FRONTAL] = math.radians(lim.frontal)
+            limits[b, LIM_FRONTAL] = math.radians(lim.frontal) - LIMIT_MARGIN_RAD
         if lim.cone is not None:
-            limits[b, LIM_CONE] = math.radians(lim.cone)
+            limits[b, LIM_CONE] = math.radians(lim.cone) - LIMIT_MARGIN_RAD
     return limits, left_b, fwd_b
 
 
@@ -500,14 +522,17 @@ def build_fit_model(
             b = users[0] if users else 0
             loc, used = _local_mean(pts[point], pts[rig.bones[b].origin], wfb[:, b])
             joint_bone[j], joint_local[j] = b, (loc if used else np.zeros(3))
-    # Hinges.
+    # Joint models, the rig's own priors, and the automatic priors on what the
+    # markers do not observe (fit_observe).
     hinge = np.zeros((n_bones, 3))
     twist_lock = np.zeros(n_bones)
-    rest_pull = np.zeros(n_bones)
+    explicit = np.zeros((n_bones, 3, 3))
+    dof = ["root" if parents[b] < 0 else "ball" for b in range(n_bones)]
     rest_pfb = np.asarray(calibration.rest_parent_from_bone_quat, dtype=np.float64)
     for name, bopt in options.bones.items():
         b = rig.bone_names.index(name)
-        rest_pull[b] = (1e-3 * bopt.stiffness_mm) ** 2
+        dof[b] = bopt.dof
+        explicit[b] = (1e-3 * bopt.stiffness_mm) ** 2 * np.eye(3)
         if bopt.dof in ("hinge", "hinge_twist"):
             axis = np.asarray(bopt.axis, dtype=np.float64)
             if bopt.axis_in == "parent":  # pfb = R_axis(t) rest_pfb = rest_pfb R_h(t)
@@ -523,6 +548,16 @@ def build_fit_model(
                 twist_lock[b] = 2.0
         elif bopt.dof == "swing":
             twist_lock[b] = 1.0
+        elif bopt.dof == "fixed":
+            explicit[b] = FIXED_STIFFNESS * np.eye(3)
+    root_rest_pos = origins[roots]
+    observation = observe(
+        bone_names=rig.bone_names, parent=parents, root_of=bone_root,
+        off_parent=off_parent, rest_pfb=rest_pfb, root_rest_pos=root_rest_pos,
+        marker_bone=np.asarray(bones_of, dtype=np.int64), marker_local=local,
+        marker_weight=weight, dof=dof, hinge_axis=hinge, explicit_prior=explicit,
+    )  # fmt: skip
+    prior_mat = explicit + np.stack([o.prior for o in observation])
     limits, left_b, fwd_b = _limit_rows(
         rig, calibration, joint_limits or {}, segment_kind or {}
     )
@@ -562,7 +597,7 @@ def build_fit_model(
         bone_root=_readonly(bone_root),
         off_parent=_readonly(off_parent),
         rest_pfb=_readonly(rest_pfb),
-        root_rest_pos=_readonly(origins[roots]),
+        root_rest_pos=_readonly(root_rest_pos),
         marker_names=rig.marker_names,
         marker_bone=_readonly(np.asarray(bones_of, dtype=np.int64)),
         marker_local=_readonly(local),
@@ -572,7 +607,9 @@ def build_fit_model(
         joint_local=_readonly(joint_local),
         hinge_axis=_readonly(hinge),
         twist_lock=_readonly(twist_lock),
-        rest_pull=_readonly(rest_pull),
+        prior_mat=_readonly(prior_mat),
+        joint_dof=tuple(dof),
+        observation=observation,
         limits=_readonly(limits),
         limit_left=_readonly(left_b),
         limit_forward=_readonly(fwd_b),

@@ -12,11 +12,12 @@ from __future__ import annotations
 import math
 
 from retargetd.daemon.body.fit_terms import (
+    C_LAM_ROT,
+    C_LAM_TRANS,
     P_KAPPA_HINGE,
     P_KAPPA_LIMIT,
-    P_LAM_ROT,
-    P_LAM_TRANS,
     pen_components,
+    prior_chart,
     qexp,
     qlog,
 )
@@ -152,33 +153,67 @@ def build_normal(m: tuple, s: tuple) -> None:
             for j in range(3):
                 hh[n_b + root_of[k], j, j] += w0
                 g[tb + j] += sr[k, j]
-    # Prior: lambda I on every rotation block, gradient lambda W phi.
-    lam = params[P_LAM_ROT]
+    # Continuity: lambda I on every rotation block, gradient lambda W phi (phi the
+    # rotation from the prediction, bone axes).
+    sc = s[36]
+    lam = sc[C_LAM_ROT]
     s_lim = math.sqrt(params[P_KAPPA_LIMIT])
     s_hinge = math.sqrt(params[P_KAPPA_HINGE])
+    prior = m[21]
     eps = 1e-6
     for b in range(n_b):
         rb = 3 * (n_b - 1 - b)
         hb = hh[n_b - 1 - b]
-        d = qmul(qprev[b, 0], -qprev[b, 1], -qprev[b, 2], -qprev[b, 3],
-                  q[b, 0], q[b, 1], q[b, 2], q[b, 3])  # fmt: skip
-        px, py, pz = qlog(d[0], d[1], d[2], d[3])
-        for j in range(3):
-            hb[j, j] += lam
-            g[rb + j] += lam * (wm[b, j, 0] * px + wm[b, j, 1] * py + wm[b, j, 2] * pz)
+        if lam > 0.0:
+            d = qmul(qprev[b, 0], -qprev[b, 1], -qprev[b, 2], -qprev[b, 3],
+                      q[b, 0], q[b, 1], q[b, 2], q[b, 3])  # fmt: skip
+            px, py, pz = qlog(d[0], d[1], d[2], d[3])
+            for j in range(3):
+                hb[j, j] += lam
+                g[rb + j] += lam * (
+                    wm[b, j, 0] * px + wm[b, j, 1] * py + wm[b, j, 2] * pz
+                )
         if parent[b] < 0:
             continue
         r = qmul(rest_pfb[b, 0], -rest_pfb[b, 1], -rest_pfb[b, 2], -rest_pfb[b, 3],
                   q[b, 0], q[b, 1], q[b, 2], q[b, 3])  # fmt: skip
-        wr = m[21][b]
-        if wr > 0.0:
-            # pull to the calibration pose: the prior's form about the rest rotation
-            sg = -1.0 if r[0] < 0.0 else 1.0
-            vx, vy, vz = qlog(sg * r[0], sg * r[1], sg * r[2], sg * r[3])
-            for j in range(3):
-                hb[j, j] += wr
-                wv = wm[b, j, 0] * vx + wm[b, j, 1] * vy + wm[b, j, 2] * vz
-                g[rb + j] += wr * wv
+        pb = prior[b]
+        if pb[0, 0] + pb[1, 1] + pb[2, 2] > 0.0:
+            # The prior 1/2 c^T P c in swing-twist coordinates (fit_terms.
+            # prior_chart): Gauss-Newton with the chart's numerical Jacobian in the
+            # bone's own increments, turned into world increments (x W^T).
+            c0 = prior_chart(r[0], r[1], r[2], r[3])
+            for c in range(3):
+                e = qexp(eps if c == 0 else 0.0, eps if c == 1 else 0.0,
+                          eps if c == 2 else 0.0)  # fmt: skip
+                rp = qmul(r[0], r[1], r[2], r[3], e[0], e[1], e[2], e[3])
+                c1 = prior_chart(rp[0], rp[1], rp[2], rp[3])
+                for k in range(3):
+                    dk = (c1[k] - c0[k]) / eps
+                    jac[k, c] = dk if abs(dk) < 1e3 else 0.0  # (a wrap through pi)
+            # U = jac W^T (rows 3-5 of the scratch), then H += U^T P U, g += U^T P c
+            for k in range(3):
+                for i in range(3):
+                    jac[3 + k, i] = (
+                        jac[k, 0] * wm[b, i, 0]
+                        + jac[k, 1] * wm[b, i, 1]
+                        + jac[k, 2] * wm[b, i, 2]
+                    )
+            for k in range(3):
+                pc = pb[k, 0] * c0[0] + pb[k, 1] * c0[1] + pb[k, 2] * c0[2]
+                for i in range(3):
+                    g[rb + i] += jac[3 + k, i] * pc
+            for i in range(3):
+                for j in range(3):
+                    acc = 0.0
+                    for k in range(3):
+                        pu = (
+                            pb[k, 0] * jac[3, j]
+                            + pb[k, 1] * jac[4, j]
+                            + pb[k, 2] * jac[5, j]
+                        )
+                        acc += jac[3 + k, i] * pu
+                    hb[i, j] += acc
         if abs(r[0]) > m[19][b]:
             continue
         pen_components(r[0], r[1], r[2], r[3], lim[b], left[b], fwd[b], hinge[b],
@@ -222,7 +257,7 @@ def build_normal(m: tuple, s: tuple) -> None:
                 g[rb + i] += u[i] * pen[k]
                 for j in range(3):
                     hb[i, j] += u[i] * u[j]
-    lt = params[P_LAM_TRANS]
+    lt = sc[C_LAM_TRANS]
     for rr in range(t.shape[0]):
         tb = 3 * n_b + 3 * rr
         for j in range(3):

@@ -27,7 +27,7 @@ M_KINDS: tuple[tuple[str, int], ...] = (
     ("i8", 1), ("i8", 1), ("f8", 2), ("f8", 2), ("i8", 1), ("i8", 1), ("f8", 2),
     ("f8", 1), ("i8", 1), ("f8", 2), ("f8", 2), ("f8", 2), ("f8", 2), ("f8", 2),
     ("i8", 1), ("i8", 1), ("i8", 1), ("i8", 1), ("f8", 1), ("f8", 1), ("f8", 1),
-    ("f8", 1),
+    ("f8", 3),
 )  # fmt: skip
 #: (dtype, ndim) of each element of the state tuple ``s``.
 S_KINDS: tuple[tuple[str, int], ...] = (
@@ -38,6 +38,7 @@ S_KINDS: tuple[tuple[str, int], ...] = (
     ("f8", 2), ("f8", 2), ("f8", 2), ("f8", 3), ("f8", 2), ("f8", 2), ("f8", 2),
     ("f8", 1), ("f8", 1), ("f8", 2), ("f8", 2), ("i8", 1), ("i8", 1), ("f8", 2),
     ("f8", 2), ("f8", 2), ("f8", 2), ("b1", 1), ("b1", 1), ("f8", 2), ("f8", 1),
+    ("f8", 2), ("f8", 2), ("f8", 1), ("f8", 2),
 )  # fmt: skip
 #: (dtype, ndim) of the outputs: joint centres, world / parent / rest rotations, root,
 #: quality, flags, residuals, rejected, stats (``kernel_fit.fit_one_t``'s order).
@@ -48,7 +49,7 @@ O_KINDS: tuple[tuple[str, int], ...] = (
 ROW_S = len(M_KINDS)  #: first state row
 ROW_O = ROW_S + len(S_KINDS)  #: first output row
 N_ROWS = ROW_O + len(O_KINDS)
-if (ROW_S, ROW_O) != (22, 71):  # the literals of state_views and out_views
+if (ROW_S, ROW_O) != (22, 75):  # the literals of state_views and out_views
     raise ImportError("fit_pack: the kinds and the view functions disagree")
 
 
@@ -112,7 +113,7 @@ def model_views(f: np.ndarray, i: np.ndarray, lay: np.ndarray) -> tuple:
         _v1(i, lay, 8), _v2(f, lay, 9), _v2(f, lay, 10), _v2(f, lay, 11),
         _v2(f, lay, 12), _v2(f, lay, 13), _v1(i, lay, 14), _v1(i, lay, 15),
         _v1(i, lay, 16), _v1(i, lay, 17), _v1(f, lay, 18), _v1(f, lay, 19),
-        _v1(f, lay, 20), _v1(f, lay, 21),
+        _v1(f, lay, 20), _v3(f, lay, 21),
     )  # fmt: skip
 
 
@@ -137,6 +138,8 @@ def state_views(f: np.ndarray, i: np.ndarray, b: np.ndarray, lay: np.ndarray) ->
         _v1(i, lay, r + 40), _v2(f, lay, r + 41), _v2(f, lay, r + 42),
         _v2(f, lay, r + 43), _v2(f, lay, r + 44), _v1(b, lay, r + 45),
         _v1(b, lay, r + 46), _v2(f, lay, r + 47), _v1(f, lay, r + 48),
+        _v2(f, lay, r + 49), _v2(f, lay, r + 50), _v1(f, lay, r + 51),
+        _v2(f, lay, r + 52),
     )  # fmt: skip
 
 
@@ -145,7 +148,7 @@ def out_views(
     f: np.ndarray, f4: np.ndarray, u1: np.ndarray, b: np.ndarray, lay: np.ndarray
 ) -> tuple:
     """The outputs (:data:`O_KINDS`) as views of a pose's buffers."""
-    r = 71  # ROW_O
+    r = 75  # ROW_O
     return (
         _v2(f, lay, r), _v2(f, lay, r + 1), _v2(f, lay, r + 2), _v2(f, lay, r + 3),
         _v1(f, lay, r + 4), _v1(f4, lay, r + 5), _v1(u1, lay, r + 6),

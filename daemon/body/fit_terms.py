@@ -15,21 +15,39 @@ import numpy as np
 
 from retargetd.daemon.compiled import kernel, mat_from_unit_quat, qmul
 
-# params (float64 array) slots
-P_LAM_ROT = 0
-P_LAM_TRANS = 1
+# params (float64 array) slots (``solve_fit.FitParams``)
+P_NOISE_M = 0  # marker noise sigma_m, metres
+P_ALPHA_MAX = 1  # peak segment angular acceleration, rad/s^2
 P_KAPPA_LIMIT = 2
 P_KAPPA_HINGE = 3
 P_CAUCHY_M = 4
 P_GATE_M = 5
 P_GATE_K = 6
-P_RESEED_RMS_M = 7
+P_LOST_FLOOR_M = 7  # a track is suspect above max(this, P_LOST_K x its level)
 P_MAX_ITER = 8
 P_TOL = 9
-P_RESEED_REJECT_FRAC = 10
+P_REJECT_FRAC = 10  # more markers rejected than this fraction: suspect
 P_FTOL = 11
 P_GATE_MEMORY = 12
-N_PARAMS = 13
+P_ACC_MAX = 13  # peak linear acceleration of a root, m/s^2
+P_LOST_K = 14
+P_UNEXPLAINED_K = 15  # a frame is unexplained above max(gate, this x the level)
+P_UNEXPLAINED_FRAC = 16  # ... or with more than this fraction rejected
+P_LEVEL_TAU_S = 17  # time constant of the running residual level, seconds
+P_PERSIST = 18  # frames a marker stays rejected before a reseed is tried
+N_PARAMS = 19
+
+# per-frame scalars (the state's ``s[36]``)
+C_GATE = 0  # this frame's gate, metres
+C_SOLVES = 1  # linear solves this frame
+C_MU = 2  # Levenberg-Marquardt damping carried between frames
+C_DT = 3  # seconds since the last frame (set by the caller)
+C_GAP = 4  # frames since the last explained frame (1: the last one)
+C_LAM_ROT = 5  # this frame's continuity weights, m^2 / rad^2 and m^2 / m^2
+C_LAM_TRANS = 6
+C_LEVEL = 7  # the take's running inlier residual RMS, metres (0: none yet)
+C_SINCE_TRY = 8  # frames since the last reseed attempt
+N_SCALARS = 9
 
 # stats (float64 array) slots
 S_RMS = 0
@@ -38,7 +56,10 @@ S_ITER = 2
 S_RESEEDED = 3
 S_COST = 4
 S_SOLVES = 5
-N_STATS = 6
+S_UNEXPLAINED = 6  # 1: the fit could not explain the markers; the pose is held
+S_UNSEEN = 7  # 1: too few of the performer's markers seen; no pose
+S_LEVEL = 8  # the running residual level after this frame, metres
+N_STATS = 9
 
 INF = 1e300
 
@@ -67,6 +88,35 @@ def qlog(w: float, x: float, y: float, z: float) -> tuple[float, float, float]:
         return 2.0 * x, 2.0 * y, 2.0 * z
     k = 2.0 * math.atan2(s, w) / s
     return k * x, k * y, k * z
+
+
+@kernel
+def prior_chart(w: float, x: float, y: float, z: float) -> tuple[float, float, float]:
+    # A joint's rotation r relative to its calibration pose in swing-twist
+    # coordinates of the bone's rest axes: (swing about x, twist about +Y, swing about
+    # z), r = swing * twist with the twist about +Y and the swing perpendicular to it
+    # (the validator's split, validate.limits). Near identity these are the rotation
+    # vector's components; the twist stays the twist however far the bone swings.
+    if w < 0.0:
+        w, x, y, z = -w, -x, -y, -z
+    tw = 2.0 * math.atan2(y, w)
+    h = 0.5 * tw
+    sw, sx, sy, sz = qmul(w, x, y, z, math.cos(h), 0.0, -math.sin(h), 0.0)
+    vx, _vy, vz = qlog(sw, sx, sy, sz)
+    return vx, tw, vz
+
+
+@kernel
+def continuity_weights(params: np.ndarray, sc: np.ndarray, frames: float) -> None:
+    # The pull to the predicted pose: a constant-velocity prediction over `frames`
+    # frames misses by at most 1/2 a (frames dt)^2 with a the peak acceleration, so
+    # its weight is (sigma_m / that)^2 (the marker terms have unit weight per m^2).
+    h = frames * sc[C_DT]
+    srot = 0.5 * params[P_ALPHA_MAX] * h * h
+    stra = 0.5 * params[P_ACC_MAX] * h * h
+    nm = params[P_NOISE_M]
+    sc[C_LAM_ROT] = (nm / srot) ** 2 if srot > 0.0 else 0.0
+    sc[C_LAM_TRANS] = (nm / stra) ** 2 if stra > 0.0 else 0.0
 
 
 @kernel
@@ -224,38 +274,43 @@ def marker_cost(
 
 @kernel
 def reg_cost(m: tuple, s: tuple, q: np.ndarray, t: np.ndarray) -> float:
-    # Prior (pull to the last frame) and joint penalties at (q, t).
+    # Continuity (pull to the predicted pose s[2], s[3]), priors and joint penalties
+    # at (q, t).
     parent, rest_pfb = m[0], m[3]
     hinge, lim, left, fwd = m[10], m[11], m[12], m[13]
     params = m[18]
-    qprev, tprev = s[2], s[3]
+    qpred, tpred = s[2], s[3]
     pen = s[26]
-    pen_cos, lock = m[19], m[20]
-    lam = params[P_LAM_ROT]
+    pen_cos, lock, prior = m[19], m[20], m[21]
+    sc = s[36]
+    lam = sc[C_LAM_ROT]
     s_lim = math.sqrt(params[P_KAPPA_LIMIT])
     s_hinge = math.sqrt(params[P_KAPPA_HINGE])
     cost = 0.0
     for b in range(parent.shape[0]):
-        d = qmul(qprev[b, 0], -qprev[b, 1], -qprev[b, 2], -qprev[b, 3],
-                  q[b, 0], q[b, 1], q[b, 2], q[b, 3])  # fmt: skip
-        vx, vy, vz = qlog(d[0], d[1], d[2], d[3])
-        cost += 0.5 * lam * (vx * vx + vy * vy + vz * vz)
+        if lam > 0.0:
+            d = qmul(qpred[b, 0], -qpred[b, 1], -qpred[b, 2], -qpred[b, 3],
+                      q[b, 0], q[b, 1], q[b, 2], q[b, 3])  # fmt: skip
+            vx, vy, vz = qlog(d[0], d[1], d[2], d[3])
+            cost += 0.5 * lam * (vx * vx + vy * vy + vz * vz)
         if parent[b] >= 0:
             r = qmul(rest_pfb[b, 0], -rest_pfb[b, 1], -rest_pfb[b, 2], -rest_pfb[b, 3],
                       q[b, 0], q[b, 1], q[b, 2], q[b, 3])  # fmt: skip
-            if m[21][b] > 0.0:
-                sg = -1.0 if r[0] < 0.0 else 1.0
-                vx, vy, vz = qlog(sg * r[0], sg * r[1], sg * r[2], sg * r[3])
-                cost += 0.5 * m[21][b] * (vx * vx + vy * vy + vz * vz)
+            pb = prior[b]
+            if pb[0, 0] + pb[1, 1] + pb[2, 2] > 0.0:
+                c = prior_chart(r[0], r[1], r[2], r[3])
+                for i in range(3):
+                    for j in range(3):
+                        cost += 0.5 * c[i] * pb[i, j] * c[j]
             if abs(r[0]) > pen_cos[b]:
                 continue
             pen_components(r[0], r[1], r[2], r[3], lim[b], left[b], fwd[b],
                             hinge[b], lock[b], s_lim, s_hinge, pen)  # fmt: skip
             for k in range(6):
                 cost += 0.5 * pen[k] * pen[k]
-    lt = params[P_LAM_TRANS]
+    lt = sc[C_LAM_TRANS]
     for rr in range(t.shape[0]):
         for j in range(3):
-            dt = t[rr, j] - tprev[rr, j]
+            dt = t[rr, j] - tpred[rr, j]
             cost += 0.5 * lt * dt * dt
     return cost

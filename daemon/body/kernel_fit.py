@@ -50,20 +50,36 @@ from retargetd.daemon.body import fit_pack
 from retargetd.daemon.body import kernel as body_kernel
 from retargetd.daemon.body.fit_normal import apply_step, build_normal, solve_step
 from retargetd.daemon.body.fit_terms import (
+    C_DT,
+    C_GAP,
+    C_GATE,
+    C_LEVEL,
+    C_MU,
+    C_SINCE_TRY,
+    C_SOLVES,
     P_FTOL,
     P_GATE_K,
     P_GATE_M,
     P_GATE_MEMORY,
+    P_LEVEL_TAU_S,
+    P_LOST_FLOOR_M,
+    P_LOST_K,
     P_MAX_ITER,
-    P_RESEED_REJECT_FRAC,
-    P_RESEED_RMS_M,
+    P_PERSIST,
+    P_REJECT_FRAC,
     P_TOL,
+    P_UNEXPLAINED_FRAC,
+    P_UNEXPLAINED_K,
     S_COST,
     S_ITER,
+    S_LEVEL,
     S_REJECTED,
     S_RESEEDED,
     S_RMS,
     S_SOLVES,
+    S_UNEXPLAINED,
+    S_UNSEEN,
+    continuity_weights,
     cp1,
     cp2,
     cp3,
@@ -108,7 +124,7 @@ def _lm(m: tuple, s: tuple, gated: bool, max_iter: int) -> tuple[int, bool, floa
     # already lowers it by up to 3x per good step, so it is carried as it is: a
     # further decay per frame started most frames below what the problem needed and
     # paid for it in rejected steps (menache: 2.85 -> 2.45 solves a frame)
-    mu_scale = max(1e-8, s[36][2])
+    mu_scale = max(1e-8, s[36][C_MU])
     converged = False
     it = 0
     while it < max_iter:
@@ -125,7 +141,7 @@ def _lm(m: tuple, s: tuple, gated: bool, max_iter: int) -> tuple[int, bool, floa
         for _try in range(8):
             mu = mu_scale * dmax
             step = solve_step(m, s, mu)
-            s[36][1] += 1.0
+            s[36][C_SOLVES] += 1.0
             if step < tol:
                 # converged: a step under the tolerance is not worth its evaluation
                 # (one FK and cost, most frames' second iteration)
@@ -171,7 +187,7 @@ def _lm(m: tuple, s: tuple, gated: bool, max_iter: int) -> tuple[int, bool, floa
         if not accepted or step < tol or small:
             converged = True
             break
-    s[36][2] = mu_scale
+    s[36][C_MU] = mu_scale
     return it, converged, cost
 
 
@@ -215,6 +231,11 @@ def _mark_outliers(m: tuple, s: tuple, gate: float) -> bool:
         n2 = res[i, 0] ** 2 + res[i, 1] ** 2 + res[i, 2] ** 2
         if n2 <= g2:
             continue
+        if rage[i] == math.inf:
+            # never accepted since the take began: a steady misfit from the first
+            # frame is not told from a swap by one frame; the Cauchy loss weighs it
+            # down, and once seen its residual is its reference (step 4)
+            continue
         if rage[i] <= memory:
             d0 = res[i, 0] - rref[i, 0]
             d1 = res[i, 1] - rref[i, 1]
@@ -236,7 +257,7 @@ def _fit_phases(m: tuple, s: tuple) -> tuple[int, bool, float]:
     cp2(s[44], s[1])
     it1, conv1, cost = _lm(m, s, False, max_iter)
     gate = max(params[P_GATE_M], params[P_GATE_K] * _median_residual(s))
-    s[36][0] = gate
+    s[36][C_GATE] = gate
     if not _mark_outliers(m, s, gate):
         return it1, conv1, cost
     # the outliers pulled phase 1 away: start again from the warm start without them
@@ -248,10 +269,8 @@ def _fit_phases(m: tuple, s: tuple) -> tuple[int, bool, float]:
 
 @kernel
 def _score(m: tuple, s: tuple) -> tuple[float, int, int]:
-    # Inlier sum of squares (a rejected marker counts as the gate squared), number
-    # of inliers, number rejected.
+    # Inlier sum of squares, number of inliers, number rejected.
     vis, res, wt, rej = s[13], s[14], m[7], s[45]
-    g2 = s[36][0] ** 2
     ss = 0.0
     n_in = 0
     n_rej = 0
@@ -260,7 +279,6 @@ def _score(m: tuple, s: tuple) -> tuple[float, int, int]:
             continue
         if rej[i]:
             n_rej += 1
-            ss += g2
         else:
             n_in += 1
             ss += res[i, 0] ** 2 + res[i, 1] ** 2 + res[i, 2] ** 2
@@ -268,10 +286,19 @@ def _score(m: tuple, s: tuple) -> tuple[float, int, int]:
 
 
 @kernel
+def _whole_cost(m: tuple, s: tuple) -> float:
+    # The cost a candidate pose is judged on: every visible marker under the Cauchy
+    # loss (none gated out: a marker one candidate rejects still counts against it)
+    # plus continuity, priors and joint penalties, at the current state.
+    return _evaluate_current(m, s, False)
+
+
+@kernel
 def _seed_from_construction(markers: np.ndarray, m: tuple, s: tuple, c: tuple) -> None:
     # Run the construction kernel on this frame and take its bone rotations and root.
     # c: its packed plan, state and output buffers (``body.kernel.solve_one``): eight
-    # arrays to unbox per call instead of their 35 fields.
+    # arrays to unbox per call instead of their 35 fields. ``markers``: the stream's
+    # frame with the markers the fit does not see (exact zeros) as NaN (s[52]).
     pi, sf, sb, si = c[0], c[2], c[3], c[4]
     cp = body_kernel.plan_views(pi, c[1])
     cs = body_kernel.state_views(pi, sf, sb, si)
@@ -321,6 +348,48 @@ def fit_one(
     )
 
 
+#: Markers a pose needs before the performer counts as seen: three points fix a rigid
+#: body; with fewer the first pose would be the calibration pose wherever they are.
+MIN_SEEN = 3
+
+
+@kernel
+def _predict(m: tuple, s: tuple) -> None:
+    # The pose predicted for this frame: the last explained frame advanced by its
+    # joint-angle velocity when the frame before it was explained too, else held (a
+    # velocity across a gap is not known). Written to the pull target s[2], s[3] and
+    # to the warm start s[0], s[1].
+    q, t, qpred, tpred = s[0], s[1], s[2], s[3]
+    qlast, tlast, q2, t2 = s[49], s[50], s[41], s[42]
+    have, sc = s[4], s[36]
+    if have[0] >= 2 and sc[C_GAP] <= 1.0:
+        for b in range(q.shape[0]):
+            d = qmul(q2[b, 0], -q2[b, 1], -q2[b, 2], -q2[b, 3],
+                      qlast[b, 0], qlast[b, 1], qlast[b, 2], qlast[b, 3])  # fmt: skip
+            r = qmul(qlast[b, 0], qlast[b, 1], qlast[b, 2], qlast[b, 3],
+                      d[0], d[1], d[2], d[3])  # fmt: skip
+            nr = math.sqrt(r[0] * r[0] + r[1] * r[1] + r[2] * r[2] + r[3] * r[3])
+            for j in range(4):
+                qpred[b, j] = r[j] / nr
+        for rr in range(t.shape[0]):
+            for j in range(3):
+                tpred[rr, j] = 2.0 * tlast[rr, j] - t2[rr, j]
+    else:
+        cp2(qpred, qlast)
+        cp2(tpred, tlast)
+    cp2(q, qpred)
+    cp2(t, tpred)
+
+
+@kernel
+def _hold(m: tuple, s: tuple) -> None:
+    # The last explained pose (the calibration pose before any: ``FitSolver.reset``
+    # puts it there), for a frame the fit cannot explain or a performer not seen.
+    cp2(s[0], s[49])
+    cp2(s[1], s[50])
+    _evaluate_current(m, s, True)
+
+
 @kernel
 def fit_one_t(
     markers: np.ndarray,  # (M_stream, 3) world metres, NaN = occluded
@@ -342,23 +411,31 @@ def fit_one_t(
     parent, rest_pfb, cols = m[0], m[3], m[4]
     mk_bone, mk_weight, jt_bone, jt_local = m[5], m[7], m[8], m[9]
     params = m[18]
-    q, t, qprev, tprev, have = s[0], s[1], s[2], s[3], s[4]
+    q, t, have = s[0], s[1], s[4]
     prev_out = s[5]
     wq, wm, o = s[29], s[8], s[9]
     meas, vis, res = s[12], s[13], s[14]
     qb, tb = s[37], s[38]
     nvis, natt = s[39], s[40]
+    qlast, tlast, rej_run, clean = s[49], s[50], s[51], s[52]
+    sc = s[36]
     n_b = parent.shape[0]
     n_mk = mk_bone.shape[0]
     nan = math.nan
-    # 1. gather
-    s[36][1] = 0.0
+    # 1. gather: a marker at exactly (0, 0, 0) is one the capture system lost (many
+    # send zeros for "no data"), not a measurement
+    sc[C_SOLVES] = 0.0
+    for k in range(markers.shape[0]):
+        x, y, z = markers[k, 0], markers[k, 1], markers[k, 2]
+        if x == 0.0 and y == 0.0 and z == 0.0:
+            x = y = z = nan
+        clean[k, 0], clean[k, 1], clean[k, 2] = x, y, z
     n_seen = 0
     for i in range(n_mk):
         col = cols[i]
         ok = False
         if col >= 0 and mk_weight[i] > 0.0:
-            x, y, z = markers[col, 0], markers[col, 1], markers[col, 2]
+            x, y, z = clean[col, 0], clean[col, 1], clean[col, 2]
             if math.isfinite(x) and math.isfinite(y) and math.isfinite(z):
                 ok = True
                 meas[i, 0], meas[i, 1], meas[i, 2] = x, y, z
@@ -368,62 +445,90 @@ def fit_one_t(
         else:
             meas[i, 0] = meas[i, 1] = meas[i, 2] = nan
             res[i, 0] = res[i, 1] = res[i, 2] = 0.0
-    # 2. seed, fit, and reseed when the fit lost track
     reseeded = False
-    if have[0] == 0:
-        _seed_from_construction(markers, m, s, c)
-        cp2(qprev, q)
-        cp2(tprev, t)
-        reseeded = True
-    elif have[0] >= 2:
-        # warm start: the last frame, advanced by its joint-angle velocity
-        q2, t2 = s[41], s[42]
-        for b in range(n_b):
-            d = qmul(q2[b, 0], -q2[b, 1], -q2[b, 2], -q2[b, 3],
-                      q[b, 0], q[b, 1], q[b, 2], q[b, 3])  # fmt: skip
-            r = qmul(q[b, 0], q[b, 1], q[b, 2], q[b, 3], d[0], d[1], d[2], d[3])
-            nr = math.sqrt(r[0] * r[0] + r[1] * r[1] + r[2] * r[2] + r[3] * r[3])
-            for j in range(4):
-                q[b, j] = r[j] / nr
-        for rr in range(t.shape[0]):
-            for j in range(3):
-                t[rr, j] = 2.0 * t[rr, j] - t2[rr, j]
-    iters, conv, cost = _fit_phases(m, s)
-    ss, n_in, n_rej = _score(m, s)
-    rms = math.sqrt(ss / max(n_in + n_rej, 1))
-    lost = (
-        rms > params[P_RESEED_RMS_M]
-        or n_rej > params[P_RESEED_REJECT_FRAC] * max(n_seen, 1)
-        or ((not conv) and rms > 0.5 * params[P_RESEED_RMS_M])
-    )
-    if lost and have[0] != 0 and n_seen > 0:
-        cp2(qb, q)
-        cp2(tb, t)
-        cp1(s[46], s[45])
-        gate_b = s[36][0]
-        _seed_from_construction(markers, m, s, c)
-        it2, _conv2, _cost2 = _fit_phases(m, s)
-        iters += it2
-        ss2, n_in2, n_rej2 = _score(m, s)
-        if ss2 < ss:
+    unseen = n_seen < MIN_SEEN if have[0] == 0 else n_seen == 0
+    unexplained = False
+    iters = 0
+    cost = 0.0
+    rms = nan
+    if unseen:
+        # 2a. nobody there: no pose to fit; the last one held (flagged)
+        _hold(m, s)
+        for i in range(n_mk):
+            s[45][i] = False
+    else:
+        # 2b. seed (first frame), or predict and fit, and judge the result
+        first = have[0] == 0
+        if first:
+            _seed_from_construction(clean, m, s, c)
+            cp2(s[2], q)
+            cp2(s[3], t)
+            sc[C_GAP] = 1.0
+            continuity_weights(params, sc, math.inf)  # no continuity: no past
             reseeded = True
-            ss, n_in, n_rej = ss2, n_in2, n_rej2
         else:
-            cp2(q, qb)
-            cp2(t, tb)
-            cp1(s[45], s[46])
-            s[36][0] = gate_b
-            _evaluate_current(m, s, True)
-    # never NaN: a non-finite state (cannot happen with finite inputs) falls back
-    finite = True
-    for b in range(n_b):
-        for j in range(4):
-            if not math.isfinite(q[b, j]):
-                finite = False
-    if not finite:
-        cp2(q, qprev)
-        cp2(t, tprev)
-        _evaluate_current(m, s, True)
+            _predict(m, s)
+            continuity_weights(params, sc, sc[C_GAP])
+        iters, _conv, cost = _fit_phases(m, s)
+        ss, n_in, n_rej = _score(m, s)
+        rms = math.sqrt(ss / n_in) if n_in > 0 else math.inf
+        level = sc[C_LEVEL]
+        persist = 0.0
+        for i in range(n_mk):
+            if vis[i] and s[45][i] and rej_run[i] + 1.0 > persist:
+                persist = rej_run[i] + 1.0
+        lost_at = max(params[P_LOST_FLOOR_M], params[P_LOST_K] * level)
+        suspect = (level > 0.0 and rms > lost_at) or (
+            n_rej > params[P_REJECT_FRAC] * n_seen
+        )
+        n_persist = params[P_PERSIST] / sc[C_DT]  # frames
+        retry = persist >= n_persist and sc[C_SINCE_TRY] >= n_persist
+        if not first and (sc[C_GAP] > 1.0 or suspect or retry):
+            # A second candidate seeded from the construction, both judged on the
+            # whole cost. The prediction is only as good as the time since the
+            # markers last agreed with it: after a gap or a marker rejected for
+            # `persist` frames its continuity weight is that of so many frames.
+            sc[C_SINCE_TRY] = 0.0
+            continuity_weights(params, sc, max(sc[C_GAP], persist))
+            cost_a = _whole_cost(m, s)
+            cp2(qb, q)
+            cp2(tb, t)
+            cp1(s[46], s[45])
+            gate_a = sc[C_GATE]
+            _seed_from_construction(clean, m, s, c)
+            it2, _conv2, _cost2 = _fit_phases(m, s)
+            iters += it2
+            cost_b = _whole_cost(m, s)
+            if cost_b < cost_a and math.isfinite(cost_b):
+                reseeded = True
+                _evaluate_current(m, s, True)
+            else:
+                cp2(q, qb)
+                cp2(t, tb)
+                cp1(s[45], s[46])
+                sc[C_GATE] = gate_a
+                _evaluate_current(m, s, True)
+            ss, n_in, n_rej = _score(m, s)
+            rms = math.sqrt(ss / n_in) if n_in > 0 else math.inf
+        else:
+            sc[C_SINCE_TRY] += 1.0
+        # Unexplained: the markers are far from any pose the fit found (a burst of
+        # garbage, a collapse, mirrored labels). The pose is held, never carried.
+        far = max(params[P_GATE_M], params[P_UNEXPLAINED_K] * level)
+        unexplained = (
+            rms > far or n_rej > params[P_UNEXPLAINED_FRAC] * n_seen
+        ) and not first
+        # never NaN: a non-finite state (cannot happen with finite inputs) is held
+        for b in range(n_b):
+            for j in range(4):
+                if not math.isfinite(q[b, j]):
+                    unexplained = True
+        if unexplained:
+            _hold(m, s)
+        else:
+            tau = params[P_LEVEL_TAU_S]
+            a = min(1.0, sc[C_DT] / tau) if tau > 0.0 else 1.0
+            sc[C_LEVEL] = rms if level <= 0.0 else level + a * (rms - level)
     # 3. outputs
     rej, rref, rage = s[45], s[47], s[48]
     n_rej = 0
@@ -450,17 +555,18 @@ def fit_one_t(
             nvis[b] += 1
             sq += n2
             n_in += 1
+    held_all = unseen or unexplained
     n_held = 0
     for b in range(n_b):
         if natt[b] > 0:
             out_quality[b] = nvis[b] / natt[b]
             if nvis[b] < natt[b]:
                 out_flags[b] |= FLAG_PARTIAL
-            if nvis[b] == 0:
-                out_flags[b] |= FLAG_HELD
-                n_held += 1
         else:
             out_quality[b] = 1.0
+        if held_all or (natt[b] > 0 and nvis[b] == 0):
+            out_flags[b] |= FLAG_HELD
+            n_held += 1
         # world rotation, sign continuous with the last frame's output
         dot = 0.0
         for j in range(4):
@@ -501,19 +607,32 @@ def fit_one_t(
     out_stats[S_ITER] = iters
     out_stats[S_RESEEDED] = 1.0 if reseeded else 0.0
     out_stats[S_COST] = cost
-    out_stats[S_SOLVES] = s[36][1]
-    # 4. this frame is the next one's warm start and prior, and the gate's references
+    out_stats[S_SOLVES] = sc[C_SOLVES]
+    out_stats[S_UNEXPLAINED] = 1.0 if unexplained else 0.0
+    out_stats[S_UNSEEN] = 1.0 if unseen else 0.0
+    out_stats[S_LEVEL] = sc[C_LEVEL]
+    # 4. an explained frame is the next one's prediction base and the gate's
+    # reference; a held one leaves them, and the gap grows
+    if held_all:
+        if have[0] != 0:
+            sc[C_GAP] += 1.0
+        for i in range(n_mk):
+            rage[i] += 1.0
+        return n_held
     for i in range(n_mk):
         if vis[i] and not rej[i]:
             for j in range(3):
                 rref[i, j] = res[i, j]
             rage[i] = 0.0
+            rej_run[i] = 0.0
         else:
             rage[i] += 1.0
-    cp2(s[41], qprev)
-    cp2(s[42], tprev)
-    cp2(qprev, q)
-    cp2(tprev, t)
+            rej_run[i] = rej_run[i] + 1.0 if (vis[i] and rej[i]) else 0.0
+    cp2(s[41], qlast)
+    cp2(s[42], tlast)
+    cp2(qlast, q)
+    cp2(tlast, t)
+    sc[C_GAP] = 1.0
     have[0] = 2 if have[0] >= 1 else 1
     return n_held
 

@@ -34,6 +34,7 @@ def make_body_solver(
     *,
     joint_limits: Mapping[str, Any] | None = None,
     segment_kind: Mapping[str, str] | None = None,
+    rate_hz: float = 120.0,
 ) -> BodySolver | FitSolver:
     """A solver of ``method`` for this marker layout (same interface either way).
 
@@ -44,6 +45,8 @@ def make_body_solver(
         joint_limits: the validator's joint-limit table (the fit's soft penalty;
             ``validate.limits.JOINT_LIMITS_DEG``), None for no penalty.
         segment_kind: humanoid bone -> segment kind (``validate.model.SEGMENT_KIND``).
+        rate_hz: the frames' rate (the fit's continuity prior; the construction
+            has none).
 
     Raises:
         ValueError: an unknown method.
@@ -73,4 +76,5 @@ def make_body_solver(
         base_labels=calibration.marker_names,
         joint_limits=joint_limits,
         segment_kind=segment_kind,
+        rate_hz=rate_hz,
     )

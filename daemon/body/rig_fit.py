@@ -6,7 +6,7 @@ and per bone (reference: ``daemon/body/rigs/RIGS.md``, "``[fit]``").
 segment = "lfemur"   # the bone the marker rides (default: from the bones using it)
 weight = 1.0         # residual weight (0 = ignored by the fit)
 [fit.bones.ltibia]
-dof = "hinge"        # "ball" (default), "hinge", "hinge_twist" or "swing"
+dof = "hinge"        # "ball" (default), "hinge", "hinge_twist", "swing" or "fixed"
 axis = "x"           # hinge axis: "x", "y", "z" or [x, y, z]
 axis_in = "bone"     # the axes it is in: the bone's (default) or its "parent"'s
 stiffness_mm = 0     # pull towards the calibration pose, mm of residual per radian
@@ -41,7 +41,7 @@ WEIGHT_WHY = "0 = ignored; at most a noise-floor marker's against a skin-artefac
 #: A hinge's ``axis = [x, y, z]`` is a direction: each component of a unit vector lies
 #: in [-1, 1] (the parser normalizes what rounding leaves).
 AXIS_WHY = "a direction's components, as of a unit vector (normalized on reading)"
-DOFS = ("ball", "hinge", "hinge_twist", "swing")
+DOFS = ("ball", "hinge", "hinge_twist", "swing", "fixed")
 #: The joints with an axis (``axis``, ``axis_in``).
 HINGES = ("hinge", "hinge_twist")
 AXES_IN = ("bone", "parent")
@@ -63,11 +63,12 @@ class BoneFitOptions:
 
     ``dof``: "ball" (three rotations), "hinge" (one, about ``axis``), "hinge_twist"
     (two: a hinge about ``axis``, then the bone's own twist about its long axis +Y: an
-    elbow with its forearm's pronation) or "swing" (two: a ball joint without rotation
-    about the bone's own long axis, +Y). ``axis_in``: the axes ``axis`` is given in,
-    the bone's rest axes ("bone") or its parent's ("parent": an elbow's flexion axis is
-    the upper arm's epicondyle axis, the upper arm's +X when its up reference is the
-    lateral epicondyle).
+    elbow with its forearm's pronation), "swing" (two: a ball joint without rotation
+    about the bone's own long axis, +Y) or "fixed" (none: the bone keeps its
+    calibration pose relative to its parent, a link of one rigid segment).
+    ``axis_in``: the axes ``axis`` is given in, the bone's rest axes ("bone") or its
+    parent's ("parent": an elbow's flexion axis is the upper arm's epicondyle axis,
+    the upper arm's +X when its up reference is the lateral epicondyle).
     ``stiffness_mm``: a pull of the joint towards its calibration pose, in mm of
     marker residual per radian (0: none), like OpenSim IK's coordinate tasks.
     """
@@ -164,7 +165,7 @@ def parse_fit_table(
         if dof not in DOFS:
             raise fail(
                 f"{key}.dof",
-                f"expected 'ball', 'hinge', 'hinge_twist' or 'swing': {dof!r}",
+                f"expected 'ball', 'hinge', 'hinge_twist', 'swing' or 'fixed': {dof!r}",
             )
         for k in ("axis", "axis_in"):
             if k in spec and dof not in HINGES:

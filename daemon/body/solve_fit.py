@@ -42,7 +42,11 @@ from retargetd.daemon.body.solve import (
     BodySolver,
 )
 from retargetd.protocols.frames import F64Array
-from retargetd.protocols.pose_stream import FRAME_RESEEDED
+from retargetd.protocols.pose_stream import (
+    FRAME_RESEEDED,
+    FRAME_UNEXPLAINED,
+    FRAME_UNSEEN,
+)
 
 
 def _empty() -> np.ndarray:
@@ -61,25 +65,33 @@ __all__ = [
 
 @dataclass(frozen=True, slots=True, kw_only=True)
 class FitParams:
-    """The fit's weights and tests (SI units; see ``kernel_fit`` for the cost).
+    """The fit's weights and tests (SI units; see ``kernel_fit`` for the cost and the
+    per-frame rules). Every number is physics or a published figure; README ("The
+    fit's rules") lists them with the takes that confirmed them.
 
     Attributes:
-        lambda_rot: m^2 / rad^2, pull of each joint to the last frame: the ratio of
-            variances sigma_marker^2 / sigma_joint^2 with sigma_marker = 1 mm (optical
-            systems' marker residuals; Merriaux et al., "A study of Vicon system
-            positioning performance", Sensors 17(7):1591, 2017: < 1 mm) and
-            sigma_joint = 0.1 rad per frame (12 rad/s at 120 Hz, above the peak joint
-            speeds of walking and running, e.g. the knee's ~7 rad/s in sprinting,
-            Novacheck, "The biomechanics of running", Gait Posture 7(1):77-95, 1998).
-            A joint its markers determine has a marker curvature >= ~1e-2 m^2 (three
-            markers 0.06 m or more from it), so the pull lags it by < 1 % of its
-            frame-to-frame motion even when that is far faster (a serve's humeral
-            rotation); what the markers leave undetermined, it holds.
-        lambda_trans: m^2 / m^2, the same for each root's position with
-            sigma = 0.08 m per frame (10 m/s, sprinting, at 120 Hz).
-        kappa_limit: m^2 / rad^2, soft penalty past the validator's limits: 10 mm of
-            residual per radian beyond, weaker than one marker on a 0.1 m lever, so
-            markers that put a joint past its limit win and ``validate`` still sees it.
+        noise_m: marker noise sigma_m, the unit the other weights are relative to:
+            1 mm (optical systems' residuals; Merriaux et al., "A study of Vicon
+            system positioning performance", Sensors 17(7):1591, 2017: < 1 mm).
+        alpha_max: rad/s^2, the peak angular acceleration of any segment: 8000,
+            the throwing arm's internal rotation (about 7000 deg/s reached in the
+            ~30 ms from maximum external rotation to ball release; Fleisig et al.,
+            "Kinetics of baseball pitching with implications about injury
+            mechanisms", Am J Sports Med 23(2):233-239, 1995: a mean of ~4000
+            rad/s^2, twice that at the peak). The pull to the pose predicted from
+            the last two frames has sigma = alpha_max (n dt)^2 / 2 after n frames
+            of dt seconds, weight (noise_m / sigma)^2: at 120 Hz sigma is 16 deg,
+            so the pull never holds back a real motion, and what the markers leave
+            undetermined it carries from frame to frame.
+        acc_max: m/s^2, the same for a root's position: 100 (about 10 g, the body's
+            centre of mass under a landing's peak ground reaction force of up to
+            ~11 body weights; Dufek & Bates, "Biomechanical factors associated with
+            injury during landing in jump sports", Sports Med 12(5):326-337, 1991).
+        kappa_limit: m^2 / rad^2, penalty past the validator's joint limits: 1 m
+            of residual per radian (as a hinge's off-axis stiffness), above the pull
+            of every marker a bone carries (a few markers at 0.1-0.5 m levers:
+            < 0.5 m^2 / rad^2), so a fitted pose stays within ~2 deg of the table
+            and markers that ask for more show as residual, not as a bent joint.
         kappa_hinge: m^2 / rad^2, a hinge's rotation off its axis: 1 m per radian,
             far above any marker residual, so the joint is a hinge in effect.
         cauchy_m: Cauchy scale of the marker residuals: 20 mm, the order of skin
@@ -89,30 +101,37 @@ class FitParams:
             swapped label (residual >= marker spacing) strongly.
         gate_m: a visible marker whose residual exceeds max(gate_m, gate_k x the
             frame's median residual) after the ungated fit is rejected for the frame
-            (unless it moved less than that since its last accepted frame, see
-            gate_memory):
-            40 mm, past the largest soft-tissue artefact in the same review, below
-            the 50-100 mm spacing of markers on one segment. (A Cauchy scale as
-            large as the gate halves the iterations on the real walk but lets a
-            marker the model fits poorly pull the skeleton: the Plug-in Gait rig on
-            the synthetic performer, whose T10 sits 30-40 mm off its chest, moved
-            the root 38 mm with an ASIS hidden.)
+            when its residual also moved by more than that since its last accepted
+            frame (at most gate_memory frames ago; older: on the level alone): a
+            swapped label or a ghost jumps by a marker spacing, while skin sliding
+            over a joint grows a residual over many frames. 40 mm, past the largest
+            soft-tissue artefact in the same review, below the 50-100 mm spacing of
+            markers on one segment. A marker never accepted since the take began
+            (beyond the gate from its first frame: a steady misfit) is not gated;
+            the Cauchy loss weighs it down.
         gate_k: see gate_m (5: a factor that keeps the gate above the fit's own
             residual level when the model fits a performer loosely).
-        gate_memory: frames. A marker past the gate is rejected only if its residual
-            has also moved by more than the gate since its last accepted frame, when
-            that frame is at most this many frames old (else on the level alone): a
-            swapped label or a ghost jumps by a marker spacing, while skin sliding
-            over a joint grows a residual over many frames (the acromion marker of
-            the tennis serve as the arm rises: rejected on its level, the clavicle
-            lost its only marker and drifted). 30 frames
-            (0.125-0.5 s at 240-60 Hz); past it a swap is still caught on its
-            level, since its residual is a marker spacing.
-        reseed_rms_m: inlier RMS above which the fit has lost track: 25 mm, beyond
-            the artefact level above.
-        reseed_reject_frac: the fit has lost track when more than this fraction of
-            the visible markers is rejected (a quarter: more than an occasional
-            swap or ghost).
+        gate_memory: frames, see gate_m (30: 0.125-0.5 s at 240-60 Hz).
+        lost_floor_m, lost_k: the fit is suspect when its inlier residual RMS
+            exceeds max(lost_floor_m, lost_k x the take's own running level): then
+            a second candidate is seeded from the construction and the better of
+            the two on the whole cost (markers, continuity, priors, limits) is kept.
+            10 mm (the low end of skin artefact: a misfit below it is never a lost
+            track) and 2 (the running level doubled).
+        reject_frac: suspect too when more than this fraction of the visible markers
+            is rejected (a quarter: more than an occasional swap or ghost).
+        persist_s: a marker rejected this long (seconds) makes the fit try that
+            candidate again, at most once per persist_s: a wrong basin (a limb
+            turned half round) shows as its markers rejected frame after frame.
+            0.1 s, under half the 0.25 s the fit has to recover in.
+        unexplained_k, unexplained_frac: a frame is unexplained when the kept
+            candidate's inlier RMS exceeds max(gate_m, unexplained_k x the running
+            level) or more than unexplained_frac of its markers are rejected: no
+            skeleton pose accounts for the markers (a collapse, a burst of garbage,
+            mirrored labels). Its pose is the last explained one, flagged, and the
+            fit carries on from that. 4 (twice the suspect level) and one half.
+        level_tau_s: time constant of the running residual level over explained
+            frames: 1 s, a gait cycle (its artefact pattern), long against a burst.
         max_iter: iteration cap per phase (the worst case is 4 phases: two fits, each
             ungated then gated).
         tol: step size (rad, m) at which the fit has converged: 1e-4 (0.1 mm,
@@ -122,16 +141,22 @@ class FitParams:
             (1e-5: what is left is a direction the markers hardly see).
     """
 
-    lambda_rot: float = 1e-4
-    lambda_trans: float = (1e-3 / 0.08) ** 2
-    kappa_limit: float = 0.01**2
+    noise_m: float = 1e-3
+    alpha_max: float = 8000.0
+    acc_max: float = 100.0
+    kappa_limit: float = 1.0
     kappa_hinge: float = 1.0
     cauchy_m: float = 0.020
     gate_m: float = 0.040
     gate_k: float = 5.0
     gate_memory: int = 30
-    reseed_rms_m: float = 0.025
-    reseed_reject_frac: float = 0.25
+    lost_floor_m: float = 0.010
+    lost_k: float = 2.0
+    reject_frac: float = 0.25
+    persist_s: float = 0.1
+    unexplained_k: float = 4.0
+    unexplained_frac: float = 0.5
+    level_tau_s: float = 1.0
     max_iter: int = 10
     tol: float = 1e-4
     ftol: float = 1e-5
@@ -139,18 +164,24 @@ class FitParams:
     def array(self) -> F64Array:
         """The kernel's params array (``fit_terms.P_*`` slots)."""
         out = np.zeros(ft.N_PARAMS)
-        out[ft.P_LAM_ROT] = self.lambda_rot
-        out[ft.P_LAM_TRANS] = self.lambda_trans
+        out[ft.P_NOISE_M] = self.noise_m
+        out[ft.P_ALPHA_MAX] = self.alpha_max
+        out[ft.P_ACC_MAX] = self.acc_max
         out[ft.P_KAPPA_LIMIT] = self.kappa_limit
         out[ft.P_KAPPA_HINGE] = self.kappa_hinge
         out[ft.P_CAUCHY_M] = self.cauchy_m
         out[ft.P_GATE_M] = self.gate_m
         out[ft.P_GATE_K] = self.gate_k
         out[ft.P_GATE_MEMORY] = self.gate_memory
-        out[ft.P_RESEED_RMS_M] = self.reseed_rms_m
+        out[ft.P_LOST_FLOOR_M] = self.lost_floor_m
+        out[ft.P_LOST_K] = self.lost_k
+        out[ft.P_REJECT_FRAC] = self.reject_frac
+        out[ft.P_PERSIST] = self.persist_s
+        out[ft.P_UNEXPLAINED_K] = self.unexplained_k
+        out[ft.P_UNEXPLAINED_FRAC] = self.unexplained_frac
+        out[ft.P_LEVEL_TAU_S] = self.level_tau_s
         out[ft.P_MAX_ITER] = self.max_iter
         out[ft.P_TOL] = self.tol
-        out[ft.P_RESEED_REJECT_FRAC] = self.reseed_reject_frac
         out[ft.P_FTOL] = self.ftol
         return out
 
@@ -186,6 +217,12 @@ class FitSolve(BodySolve):
         marker_rejected: (T, Mr) bool.
         iterations: (T,) int, LM iterations per frame.
         reseeded: (T,) bool.
+        unexplained: (T,) bool, the markers fit no pose (``FRAME_UNEXPLAINED``):
+            the last explained pose held.
+        unseen: (T,) bool, too few of the performer's markers (``FRAME_UNSEEN``):
+            no pose (before the first seen frame: that frame's pose).
+        residual_level: (T,) float64, metres, the take's running inlier residual
+            RMS after each frame (what "unexplained" is judged against).
     """
 
     marker_names: tuple[str, ...] = ()
@@ -194,6 +231,18 @@ class FitSolve(BodySolve):
     marker_rejected: np.ndarray = field(default_factory=_empty)
     iterations: np.ndarray = field(default_factory=_empty)
     reseeded: np.ndarray = field(default_factory=_empty)
+    unexplained: np.ndarray = field(default_factory=_empty)
+    unseen: np.ndarray = field(default_factory=_empty)
+    residual_level: F64Array = field(default_factory=_empty)
+
+    @property
+    def frame_flags(self) -> np.ndarray:
+        """(T,) uint32 ``pose_stream.FRAME_*`` bits the fit sets per frame."""
+        return (
+            np.where(self.reseeded, FRAME_RESEEDED, 0)
+            | np.where(self.unexplained, FRAME_UNEXPLAINED, 0)
+            | np.where(self.unseen, FRAME_UNSEEN, 0)
+        ).astype(np.uint32)
 
     @property
     def outliers_rejected(self) -> int:
@@ -218,6 +267,8 @@ class FitSolver:
             layer passes them (``body`` may not import ``validate``).
         params: weights and tests.
         model: a model already built (then base_positions is not needed).
+        rate_hz: the frame rate of the frames to solve (the continuity prior's
+            time step; :meth:`solve_frame` may pass each frame's own ``dt_s``).
     """
 
     def __init__(
@@ -233,7 +284,11 @@ class FitSolver:
         model: FitModel | None = None,
         joint_limits: Mapping[str, JointLimitLike] | None = None,
         segment_kind: Mapping[str, str] | None = None,
+        rate_hz: float = 120.0,
     ) -> None:
+        if not (math.isfinite(rate_hz) and rate_hz > 0.0):
+            raise ValueError(f"rate_hz must be a positive number; got {rate_hz}")
+        self.rate_hz = float(rate_hz)
         if model is None:
             if base_positions is None:
                 raise ValueError("FitSolver needs base_positions or a model")
@@ -274,7 +329,7 @@ class FitSolver:
             model.marker_weight, model.joint_bone, model.joint_local,
             model.hinge_axis, model.limits, model.limit_left, model.limit_forward,
             model.anc_ptr, model.anc_idx, model.node_ptr, model.node_idx,
-            self._params_arr, model.penalty_cos, model.twist_lock, model.rest_pull,
+            self._params_arr, model.penalty_cos, model.twist_lock, model.prior_mat,
         )  # fmt: skip
         # packed (fit_pack): the kernel gets one buffer per dtype; self._model keeps
         # the same memory as a tuple of views (for fit_many and hand-made poses)
@@ -292,10 +347,11 @@ class FitSolver:
             z(n_b), z(n_b, 3), z(n_b, 3, 3), z(n_b, 3), z(n_b, 3),
             z(n_blk, 3, 3), z(n_blk, 3, 3), z(n), z(n), z(n_m), z(6), z(6), z(6, 3),
             z(n_b, 4), z(n_b, 4), z(n_b, 3, 3), z(n_b, 3), z(n_m, 3), z(n_m, 3),
-            z(n_m), z(3), z(n_b, 4), z(n_r, 3),
+            z(n_m), z(ft.N_SCALARS), z(n_b, 4), z(n_r, 3),
             np.zeros(n_b, dtype=np.int64), np.zeros(n_b, dtype=np.int64),
             z(n_b, 4), z(n_r, 3), z(n_b, 4), z(n_r, 3),
             np.zeros(n_m, dtype=bool), np.zeros(n_m, dtype=bool), z(n_m, 3), z(n_m),
+            z(n_b, 4), z(n_r, 3), z(n_m), z(self.n_stream, 3),
         )  # fmt: skip
         sbuf, srows, self._state = fit_pack.pack(state_arrays, fit_pack.S_KINDS)
         self._sf, self._si, self._sb = sbuf["f8"], sbuf["i8"], sbuf["b1"]
@@ -306,7 +362,8 @@ class FitSolver:
         _, orows, _ = fit_pack.pack(self._out_arrays(), fit_pack.O_KINDS)
         self._layout = np.ascontiguousarray(np.concatenate([mrows, srows, orows]))
         self._gate_age = self._state[48]
-        self._lm_scalars = self._state[36]  # gate, linear solves, damping carried
+        self._scalars = self._state[36]  # fit_terms.C_* slots
+        self._qlast, self._tlast, self._rej_run = self._state[49:52]
         self._con_pose = con.new_pose()
         assert self._con_pose.kernel_buffers is not None
         # The construction's packed buffers (``body.kernel.solve_one``): a NamedTuple
@@ -322,10 +379,16 @@ class FitSolver:
         self._t[:] = self.model.root_rest_pos
         self._qprev[:] = self._q
         self._tprev[:] = self._t
+        # the pose held before the performer is first seen: the calibration pose
+        self._qlast[:] = self._q
+        self._tlast[:] = self._t
+        self._rej_run[:] = 0.0
         self._prev_out[:] = 0.0
         self._have[0] = 0
         self._gate_age[:] = math.inf  # no marker has a gate reference yet
-        self._lm_scalars[2] = 0.0
+        self._scalars[:] = 0.0
+        self._scalars[ft.C_DT] = 1.0 / self.rate_hz
+        self._scalars[ft.C_GAP] = 1.0
 
     def _out_arrays(self) -> tuple[np.ndarray, ...]:
         n_b = len(self.bone_names)
@@ -355,17 +418,21 @@ class FitSolver:
             fit_buffers=(bufs["f8"], bufs["f4"], bufs["u1"], bufs["b1"]),
         )
 
-    def solve_frame(self, markers_world: F64Array, out: FitPose) -> FitPose:
+    def solve_frame(
+        self, markers_world: F64Array, out: FitPose, dt_s: float = 0.0
+    ) -> FitPose:
         """Fit one frame into ``out`` (no allocation).
 
         Args:
             markers_world: (M, 3) float64, metres, world, in this solver's label
                 order; NaN rows = occluded.
             out: buffers from :meth:`new_pose`, overwritten.
+            dt_s: seconds since the last frame (0: ``1 / rate_hz``).
 
         Returns:
             ``out``.
         """
+        self._scalars[ft.C_DT] = dt_s if dt_s > 0.0 else 1.0 / self.rate_hz
         fb = out.fit_buffers
         if fb is not None:
             out.n_held = kf.fit_one(
@@ -379,7 +446,12 @@ class FitSolver:
                 out.rest_from_bone_quat, out.root_pos, out.bone_quality,
                 out.bone_flags, out.marker_residual, out.marker_rejected, out.stats,
             )  # fmt: skip
-        out.frame_flags = FRAME_RESEEDED if out.stats[ft.S_RESEEDED] else 0
+        st = out.stats
+        out.frame_flags = (
+            (FRAME_RESEEDED if st[ft.S_RESEEDED] else 0)
+            | (FRAME_UNEXPLAINED if st[ft.S_UNEXPLAINED] else 0)
+            | (FRAME_UNSEEN if st[ft.S_UNSEEN] else 0)
+        )
         # Rig markers not seen this frame (their residual is NaN): the loop counts
         # them as occluded samples.
         out.n_occluded = len(out.marker_residual) - int(
@@ -415,10 +487,20 @@ class FitSolver:
         resid = np.zeros((n, n_m))
         rejected = np.zeros((n, n_m), dtype=bool)
         stats = np.zeros((n, ft.N_STATS))
+        self._scalars[ft.C_DT] = 1.0 / self.rate_hz
         kf.fit_many(
             positions, self._model, self._state, self._con, joints, wfb, pfb, rfb,
             root, quality, flags, resid, rejected, stats,
         )  # fmt: skip
+        unseen = stats[:, ft.S_UNSEEN] > 0.5
+        seen = np.flatnonzero(~unseen)
+        if seen.size and seen[0] > 0:
+            # Before the performer is first seen there is no pose: those frames
+            # (flagged) take the first seen one, so a file has no jump from the
+            # calibration spot.
+            lead = slice(0, int(seen[0]))
+            for arr in (joints, wfb, pfb, rfb, root):
+                arr[lead] = arr[seen[0]]
         return FitSolve(
             joint_names=self.joint_names,
             bone_names=self.bone_names,
@@ -437,6 +519,9 @@ class FitSolver:
             marker_rejected=rejected,
             iterations=stats[:, ft.S_ITER].astype(np.int64),
             reseeded=stats[:, ft.S_RESEEDED] > 0.5,
+            unexplained=stats[:, ft.S_UNEXPLAINED] > 0.5,
+            unseen=unseen,
+            residual_level=stats[:, ft.S_LEVEL].copy(),
         )
 
 
@@ -450,9 +535,10 @@ def warm_up() -> FitPose:
     """
     rig = parse_rig(_WARM_RIG, source="warm-up")
     labels = ("A", "B", "C", "D")
-    frame = np.array(
-        [[0.0, 0.0, 0.0], [0.0, 0.2, 0.0], [0.0, 0.1, 0.3], [0.1, 0.1, 0.1]]
-    )
+    frame = (
+        np.array([[0.0, 0.0, 0.0], [0.0, 0.2, 0.0], [0.0, 0.1, 0.3], [0.1, 0.1, 0.1]])
+        + 0.5
+    )  # (a marker at exactly 0, 0, 0 is one the capture system lost)
     cal = calibrate(rig, frame[None], labels)
     solver = FitSolver(rig, cal, labels, base_positions=frame[None])
     solver.solve_take(frame[None])

@@ -525,8 +525,11 @@ def test_stiffness_pulls_towards_the_calibration_pose(tmp_path: Path) -> None:
         cal = calibrate(rig, base, take.labels)
         model = build_fit_model(rig, cal, base, take.labels, opts)
         idx = [rig.bone_names.index(b) for b in bones]
-        assert np.allclose(model.rest_pull[idx], (stiff / 1000.0) ** 2)
-        assert model.rest_pull.sum() == pytest.approx(2 * (stiff / 1000.0) ** 2)
+        assert np.allclose(model.prior_mat[idx], (stiff / 1000.0) ** 2 * np.eye(3))
+        # the exact rig's markers observe every rotation: no automatic prior
+        assert np.trace(model.prior_mat, axis1=1, axis2=2).sum() == pytest.approx(
+            6 * (stiff / 1000.0) ** 2
+        )
         res = FitSolver(rig, cal, take.labels, model=model).solve_take(
             take.markers_world
         )

@@ -1,0 +1,293 @@
+"""Which rotations a rig's markers determine, decided per bone by the code.
+
+At the calibration pose the fit's model (every marker at its place on its bone, every
+joint with the freedom its joint model gives it) is linearized: a rotation ``e`` of
+bone ``b`` (a unit direction in the bone's rest axes, a radian of rotation about it)
+moves each marker ``i`` that bone ``b`` carries by ``(W_b e) x (p_i - o_b)`` metres,
+and the root's translation moves its markers one for one. With ``J`` those columns for
+every free rotation and translation (rows scaled by each marker's weight),
+``H = J^T J`` is the fit's information at unit marker noise. What the markers tell
+about bone ``b`` alone, every other joint free to make up for it, is the Schur
+complement of the other unknowns in ``H``:
+
+    S_b = H_bb - H_bo pinv(H_oo) H_ob          (H_oo singular: exact, since H is a Gram
+                                                matrix: null(H_oo) lies in null(H_bo))
+
+Its eigenvectors are the bone's rotations, its eigenvalues' square roots how many
+metres of marker displacement one radian of each makes when everything else moves to
+hide it: the lever, here in mm per radian. At marker noise ``sigma_m`` a rotation with
+lever ``L`` is measured to ``sigma_m / L`` radians; it is **observed** when that is at
+most :data:`RESOLUTION_RAD`, i.e. ``L >= MIN_LEVER_M``.
+
+A rotation that is not observed gets a **prior** automatically: a pull of the joint
+towards its calibration pose in that direction only, of stiffness
+:data:`PRIOR_STIFFNESS` (``MIN_LEVER_M^2``, m^2 / rad^2: the information of the weakest
+rotation the markers count as measuring, so the prior decides exactly where the
+markers cannot). Bones are decided parents first, each with the priors already given
+to the bones before it: when two joints turn about one axis that no marker between
+them sees (a spine bone without markers under the chest, a neck under a head) the
+proximal one is held and the distal one, whose markers see the sum, carries it.
+
+Joint models (``rig_fit``: ball, hinge, hinge_twist, swing, fixed) set which rotations
+a joint has at all; a root has three rotations and three translations.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from retargetd.daemon import rotations as rot
+from retargetd.protocols.frames import BoolArray, F64Array, IntArray
+
+__all__ = [
+    "MIN_LEVER_M",
+    "NOISE_M",
+    "PRIOR_STIFFNESS",
+    "RESOLUTION_RAD",
+    "BoneObservation",
+    "joint_basis",
+    "observe",
+]
+
+#: Marker noise, metres: optical systems' residuals are under 1 mm (Merriaux et al.,
+#: "A study of Vicon system positioning performance", Sensors 17(7):1591, 2017).
+NOISE_M = 1e-3
+#: The largest standard error of a joint angle that counts as measured: 5 degrees,
+#: the bound of McGinley et al.'s "reasonable" band ("The reliability of
+#: three-dimensional kinematic gait measurements: a systematic review", Gait Posture
+#: 29(3):360-369, 2009: errors of 2-5 degrees reasonable, above 5 a concern).
+RESOLUTION_RAD = math.radians(5.0)
+#: A rotation is observed when one radian of it moves the markers by at least this
+#: (metres per radian): NOISE_M / RESOLUTION_RAD = 11.5 mm/rad.
+MIN_LEVER_M = NOISE_M / RESOLUTION_RAD
+#: Stiffness of the prior on a rotation the markers do not observe, m^2 / rad^2.
+PRIOR_STIFFNESS = MIN_LEVER_M**2
+#: Relative cut of the pseudo-inverse in the Schur complement (the information spans
+#: ~ (1e-6 .. 10) m^2 / rad^2; what is below 1e-12 of the largest is a null space).
+_RCOND = 1e-12
+
+_EYE = np.eye(3)
+
+
+@dataclass(frozen=True, slots=True)
+class BoneObservation:
+    """What the markers determine of one bone's rotation relative to its parent.
+
+    Attributes:
+        bone: the bone's name.
+        dof: its joint model: "root", "ball", "hinge", "hinge_twist", "swing" or
+            "fixed".
+        axes: (d, 3) unit directions in the bone's rest axes (+Y along the bone),
+            the joint's free rotations, weakest first (d = 0 for a fixed joint).
+        lever_mm: (d,) mm of marker displacement per radian of each, every other
+            joint free to hide it.
+        observed: (d,) lever_mm >= MIN_LEVER_M in mm.
+        prior: (3, 3) m^2 / rad^2, the automatic prior the unobserved directions got
+            (in the bone's rest axes; zeros when none).
+        explicit: the rig's own ``[fit]`` prior on the bone made the automatic one
+            needless for some direction (``stiffness_mm`` or a fixed joint).
+    """
+
+    bone: str
+    dof: str
+    axes: F64Array
+    lever_mm: F64Array
+    observed: BoolArray
+    prior: F64Array
+    explicit: bool
+
+    def describe(self) -> str:
+        """One line: each rotation, its lever and whether it is observed."""
+        if self.dof == "fixed":
+            return "fixed to its parent (no rotation)"
+        parts = []
+        for axis, lever, seen in zip(
+            self.axes, self.lever_mm, self.observed, strict=True
+        ):
+            name = _axis_name(axis)
+            state = "observed" if seen else "held at the calibration pose"
+            parts.append(f"{name} {lever:.0f} mm/rad {state}")
+        return "; ".join(parts)
+
+
+def _axis_name(axis: F64Array) -> str:
+    """A readable name of a direction in bone axes (+Y: the bone's twist)."""
+    a = np.abs(axis)
+    k = int(np.argmax(a))
+    if a[k] > math.cos(math.radians(20.0)):
+        return ("swing x", "twist", "swing z")[k]
+    return "[" + ", ".join(f"{v:+.2f}" for v in axis) + "]"
+
+
+def joint_basis(dof: str, hinge_axis: F64Array) -> F64Array:
+    """The rotations a joint model allows at its calibration pose.
+
+    Args:
+        dof: "root", "ball", "hinge", "hinge_twist", "swing" or "fixed".
+        hinge_axis: (3,) the hinge axis in the bone's rest axes (hinges only).
+
+    Returns:
+        (3, d) orthonormal columns in the bone's rest axes.
+    """
+    if dof in ("root", "ball"):
+        return _EYE.copy()
+    if dof == "fixed":
+        return np.zeros((3, 0))
+    if dof == "swing":
+        return _EYE[:, [0, 2]].copy()
+    h = np.asarray(hinge_axis, dtype=np.float64)
+    h = h / np.linalg.norm(h)
+    if dof == "hinge":
+        return h[:, None]
+    if dof == "hinge_twist":  # the hinge, then the bone's own twist about +Y
+        q, _ = np.linalg.qr(np.stack([h, _EYE[1]], axis=1))
+        return np.asarray(q)
+    raise ValueError(f"unknown joint model {dof!r}")
+
+
+def _rest_pose(
+    parent: IntArray,
+    root_of: IntArray,
+    off_parent: F64Array,
+    rest_pfb: F64Array,
+    root_rest_pos: F64Array,
+) -> tuple[F64Array, F64Array]:
+    """World rotation matrices (B, 3, 3) and origins (B, 3) at the calibration pose."""
+    n = len(parent)
+    wq = np.zeros((n, 4))
+    org = np.zeros((n, 3))
+    for b in range(n):
+        p = int(parent[b])
+        if p < 0:
+            wq[b] = rest_pfb[b]
+            org[b] = root_rest_pos[root_of[b]]
+        else:
+            wq[b] = rot.quat_mul(wq[p], rest_pfb[b])
+            org[b] = org[p] + rot.quat_rotate(wq[p], off_parent[b])
+    return rot.mat_from_quat(wq), org
+
+
+def observe(
+    *,
+    bone_names: Sequence[str],
+    parent: IntArray,
+    root_of: IntArray,
+    off_parent: F64Array,
+    rest_pfb: F64Array,
+    root_rest_pos: F64Array,
+    marker_bone: IntArray,
+    marker_local: F64Array,
+    marker_weight: F64Array,
+    dof: Sequence[str],
+    hinge_axis: F64Array,
+    explicit_prior: F64Array,
+) -> tuple[BoneObservation, ...]:
+    """Decide, bone by bone (parents first), which rotations the markers observe, and
+    give the others the automatic prior (module docstring).
+
+    Args:
+        bone_names: (B,) the rig's bones, parents first.
+        parent: (B,) parent index, -1 for a root; ``root_of`` (B,) each bone's root
+            ordinal.
+        off_parent: (B, 3) metres, each origin in its parent's bone frame.
+        rest_pfb: (B, 4) calibrated parent_from_bone (roots: world_from_bone),
+            w x y z.
+        root_rest_pos: (R, 3) metres, world, the roots' calibrated origins.
+        marker_bone: (Mr,) the bone each marker rides; ``marker_local`` (Mr, 3)
+            metres in its frame; ``marker_weight`` (Mr,) (0: not used).
+        dof: (B,) each joint's model ("root" for roots).
+        hinge_axis: (B, 3) hinge axes in the bones' rest axes (hinges).
+        explicit_prior: (B, 3, 3) m^2 / rad^2, the rig's own priors (bone axes).
+
+    Returns:
+        One :class:`BoneObservation` per bone, in rig order.
+    """
+    n_b = len(bone_names)
+    wm, org = _rest_pose(parent, root_of, off_parent, rest_pfb, root_rest_pos)
+    used = np.flatnonzero(np.asarray(marker_weight) > 0.0)
+    pm = org[marker_bone[used]] + np.einsum(
+        "mij,mj->mi", wm[marker_bone[used]], marker_local[used]
+    )
+    # Columns: each bone's free rotations (world directions), then each root's
+    # translation.
+    bases = [joint_basis(dof[b], hinge_axis[b]) for b in range(n_b)]
+    col0 = np.cumsum([0] + [B.shape[1] for B in bases])
+    n_roots = int(root_rest_pos.shape[0])
+    n_col = int(col0[-1]) + 3 * n_roots
+    jac = np.zeros((3 * len(used), n_col))
+    for r, i in enumerate(used):
+        s = int(marker_bone[i])
+        rows = slice(3 * r, 3 * r + 3)
+        sw = math.sqrt(float(marker_weight[i]))
+        k = s
+        while k >= 0:
+            lever = pm[r] - org[k]
+            for c in range(bases[k].shape[1]):
+                a = wm[k] @ bases[k][:, c]
+                jac[rows, col0[k] + c] = sw * np.cross(a, lever)
+            k = int(parent[k])
+        t0 = int(col0[-1]) + 3 * int(root_of[s])
+        jac[rows, t0 : t0 + 3] = sw * _EYE
+    info = jac.T @ jac
+    # The rig's own priors on every bone (removed from a bone's own block while it is
+    # decided: the report says what the markers determine).
+    own = [bases[b].T @ explicit_prior[b] @ bases[b] for b in range(n_b)]
+    for b in range(n_b):
+        blk = slice(col0[b], col0[b + 1])
+        info[blk, blk] += own[b]
+    out = []
+    for b in range(n_b):
+        d = bases[b].shape[1]
+        blk = slice(col0[b], col0[b + 1])
+        if d == 0:
+            out.append(
+                BoneObservation(
+                    bone=bone_names[b],
+                    dof=dof[b],
+                    axes=np.zeros((0, 3)),
+                    lever_mm=np.zeros(0),
+                    observed=np.zeros(0, dtype=bool),
+                    prior=np.zeros((3, 3)),
+                    explicit=True,
+                )
+            )
+            continue
+        sel = np.zeros(n_col, dtype=bool)
+        sel[blk] = True
+        h_bb = info[np.ix_(sel, sel)] - own[b]
+        h_bo = info[np.ix_(sel, ~sel)]
+        h_oo = info[np.ix_(~sel, ~sel)]
+        schur = (
+            h_bb - h_bo @ np.linalg.pinv(h_oo, rcond=_RCOND, hermitian=True) @ h_bo.T
+        )
+        lam, vec = np.linalg.eigh(0.5 * (schur + schur.T))
+        lever = np.sqrt(np.maximum(lam, 0.0))
+        axes = (bases[b] @ vec).T  # (d, 3) bone axes
+        observed = lever >= MIN_LEVER_M
+        prior = np.zeros((3, 3))
+        explicit = False
+        for u in axes[~observed]:
+            if u @ explicit_prior[b] @ u >= PRIOR_STIFFNESS:
+                explicit = True
+                continue
+            prior += PRIOR_STIFFNESS * np.outer(u, u)
+        if parent[b] >= 0:  # a root is free: its prior would pin the performer
+            info[blk, blk] += bases[b].T @ prior @ bases[b]
+        else:
+            prior[:] = 0.0
+        out.append(
+            BoneObservation(
+                bone=bone_names[b],
+                dof=dof[b],
+                axes=axes,
+                lever_mm=1e3 * lever,
+                observed=observed,
+                prior=prior,
+                explicit=explicit,
+            )
+        )
+    return tuple(out)
