@@ -67,7 +67,11 @@ from retargetd.daemon.body.calibration import (
     compute_points,
     match_markers,
 )
-from retargetd.daemon.body.fit_observe import BoneObservation, observe
+from retargetd.daemon.body.fit_observe import (
+    BoneObservation,
+    hidden_information,
+    observe,
+)
 from retargetd.daemon.body.rig import Rig, RigError, load_rig
 from retargetd.daemon.body.rig_fit import (
     BoneFitOptions,
@@ -144,6 +148,10 @@ class FitModel:
             in metres, times I), a fixed joint's :data:`FIXED_STIFFNESS`, and the
             automatic prior on each rotation the markers do not observe
             (``fit_observe``).
+        hide_axes, hide_lam, hide_lost: (Mr * B, 9), (Mr * B, 3), (Mr * B, 3): row
+            ``k * B + b``, bone b's rotations with marker k hidden (three
+            directions in its rest axes), their information and what k gave along
+            each, m^2 / rad^2 (``fit_observe.hidden_information``: the hold prior).
         joint_dof: (B,) each joint's model ("root", "ball", "hinge", ...).
         observation: (B,) what the markers determine of each bone
             (``fit_observe.observe``).
@@ -180,6 +188,9 @@ class FitModel:
     hinge_axis: F64Array
     twist_lock: F64Array
     prior_mat: F64Array
+    hide_axes: F64Array
+    hide_lam: F64Array
+    hide_lost: F64Array
     limits: F64Array
     limit_left: F64Array
     limit_forward: F64Array
@@ -558,6 +569,12 @@ def build_fit_model(
         marker_weight=weight, dof=dof, hinge_axis=hinge, explicit_prior=explicit,
     )  # fmt: skip
     prior_mat = explicit + np.stack([o.prior for o in observation])
+    hide_axes, hide_lam, hide_lost = hidden_information(
+        parent=parents, root_of=bone_root, off_parent=off_parent, rest_pfb=rest_pfb,
+        root_rest_pos=root_rest_pos, marker_bone=np.asarray(bones_of, dtype=np.int64),
+        marker_local=local, marker_weight=weight, dof=dof, hinge_axis=hinge,
+        prior=prior_mat,
+    )  # fmt: skip
     limits, left_b, fwd_b = _limit_rows(
         rig, calibration, joint_limits or {}, segment_kind or {}
     )
@@ -608,6 +625,9 @@ def build_fit_model(
         hinge_axis=_readonly(hinge),
         twist_lock=_readonly(twist_lock),
         prior_mat=_readonly(prior_mat),
+        hide_axes=_readonly(hide_axes),
+        hide_lam=_readonly(hide_lam),
+        hide_lost=_readonly(hide_lost),
         joint_dof=tuple(dof),
         observation=observation,
         limits=_readonly(limits),

@@ -17,7 +17,7 @@ from retargetd.daemon.body.fit_terms import (
     P_KAPPA_HINGE,
     P_KAPPA_LIMIT,
     pen_components,
-    prior_chart,
+    prior_normal,
     qexp,
     qlog,
 )
@@ -61,9 +61,24 @@ def build_normal(m: tuple, s: tuple) -> None:
     # conditioning) summed over each bone's subtree: the block of H coupling a bone
     # k with an ancestor l sums over exactly the markers below k.
     c0x, c0y, c0z = o[0, 0], o[0, 1], o[0, 2]
+    carry, carry_on, mk_weight = s[57], s[58], m[7]
     for i in range(mk_bone.shape[0]):
         w = wrob[i]
         if w <= 0.0:
+            if carry_on[i] > 0.0:
+                # a hidden marker's carried misfit: its force only (kernel_fit)
+                b = mk_bone[i]
+                w = mk_weight[i]
+                px = pm[i, 0] - c0x
+                py = pm[i, 1] - c0y
+                pz = pm[i, 2] - c0z
+                rx, ry, rz = carry[i, 0], carry[i, 1], carry[i, 2]
+                sr[b, 0] += w * rx
+                sr[b, 1] += w * ry
+                sr[b, 2] += w * rz
+                sc[b, 0] += w * (py * rz - pz * ry)
+                sc[b, 1] += w * (pz * rx - px * rz)
+                sc[b, 2] += w * (px * ry - py * rx)
             continue
         b = mk_bone[i]
         px = pm[i, 0] - c0x
@@ -91,7 +106,7 @@ def build_normal(m: tuple, s: tuple) -> None:
         sm[b, 2, 0] = sm[b, 0, 2]
         sm[b, 2, 1] = sm[b, 1, 2]
         p = parent[b]
-        if p >= 0 and s0[b] > 0.0:
+        if p >= 0:
             s0[p] += s0[b]
             for j in range(3):
                 sa[p, j] += sa[b, j]
@@ -102,8 +117,6 @@ def build_normal(m: tuple, s: tuple) -> None:
                     sm[p, j, k2] += sm[b, j, k2]
     for k in range(n_b):
         w0 = s0[k]
-        if w0 <= 0.0:
-            continue
         okx, oky, okz = o[k, 0] - c0x, o[k, 1] - c0y, o[k, 2] - c0z
         ok0 = (okx, oky, okz)
         mx, my, mz = sa[k, 0], sa[k, 1], sa[k, 2]
@@ -117,6 +130,11 @@ def build_normal(m: tuple, s: tuple) -> None:
         g[rk + 0] += sc[k, 0] - (oky * sr[k, 2] - okz * sr[k, 1])
         g[rk + 1] += sc[k, 1] - (okz * sr[k, 0] - okx * sr[k, 2])
         g[rk + 2] += sc[k, 2] - (okx * sr[k, 1] - oky * sr[k, 0])
+        if parent[k] < 0:
+            for j in range(3):
+                g[tb + j] += sr[k, j]
+        if w0 <= 0.0:
+            continue
         # translation block: rows t, cols k: -[v]x, v = sum w (p - o_k)
         vx = mx - w0 * okx
         vy = my - w0 * oky
@@ -152,7 +170,6 @@ def build_normal(m: tuple, s: tuple) -> None:
         if parent[k] < 0:
             for j in range(3):
                 hh[n_b + root_of[k], j, j] += w0
-                g[tb + j] += sr[k, j]
     # Continuity: lambda I on every rotation block, gradient lambda W phi (phi the
     # rotation from the prediction, bone axes).
     sc = s[36]
@@ -160,6 +177,7 @@ def build_normal(m: tuple, s: tuple) -> None:
     s_lim = math.sqrt(params[P_KAPPA_LIMIT])
     s_hinge = math.sqrt(params[P_KAPPA_HINGE])
     prior = m[21]
+    hold, anchor, hold_on = s[53], s[54], s[55]
     eps = 1e-6
     for b in range(n_b):
         rb = 3 * (n_b - 1 - b)
@@ -178,42 +196,10 @@ def build_normal(m: tuple, s: tuple) -> None:
         r = qmul(rest_pfb[b, 0], -rest_pfb[b, 1], -rest_pfb[b, 2], -rest_pfb[b, 3],
                   q[b, 0], q[b, 1], q[b, 2], q[b, 3])  # fmt: skip
         pb = prior[b]
-        if pb[0, 0] + pb[1, 1] + pb[2, 2] > 0.0:
-            # The prior 1/2 c^T P c in swing-twist coordinates (fit_terms.
-            # prior_chart): Gauss-Newton with the chart's numerical Jacobian in the
-            # bone's own increments, turned into world increments (x W^T).
-            c0 = prior_chart(r[0], r[1], r[2], r[3])
-            for c in range(3):
-                e = qexp(eps if c == 0 else 0.0, eps if c == 1 else 0.0,
-                          eps if c == 2 else 0.0)  # fmt: skip
-                rp = qmul(r[0], r[1], r[2], r[3], e[0], e[1], e[2], e[3])
-                c1 = prior_chart(rp[0], rp[1], rp[2], rp[3])
-                for k in range(3):
-                    dk = (c1[k] - c0[k]) / eps
-                    jac[k, c] = dk if abs(dk) < 1e3 else 0.0  # (a wrap through pi)
-            # U = jac W^T (rows 3-5 of the scratch), then H += U^T P U, g += U^T P c
-            for k in range(3):
-                for i in range(3):
-                    jac[3 + k, i] = (
-                        jac[k, 0] * wm[b, i, 0]
-                        + jac[k, 1] * wm[b, i, 1]
-                        + jac[k, 2] * wm[b, i, 2]
-                    )
-            for k in range(3):
-                pc = pb[k, 0] * c0[0] + pb[k, 1] * c0[1] + pb[k, 2] * c0[2]
-                for i in range(3):
-                    g[rb + i] += jac[3 + k, i] * pc
-            for i in range(3):
-                for j in range(3):
-                    acc = 0.0
-                    for k in range(3):
-                        pu = (
-                            pb[k, 0] * jac[3, j]
-                            + pb[k, 1] * jac[4, j]
-                            + pb[k, 2] * jac[5, j]
-                        )
-                        acc += jac[3 + k, i] * pu
-                    hb[i, j] += acc
+        if pb[0, 0] + pb[1, 1] + pb[2, 2] > 0.0:  # the rig's and the automatic prior
+            prior_normal(rest_pfb[b], q[b], pb, wm[b], hb, g, rb, jac)
+        if hold_on[b] > 0.0:  # the hold while a marker is hidden (kernel_fit)
+            prior_normal(anchor[b], q[b], hold[b], wm[b], hb, g, rb, jac)
         if abs(r[0]) > m[19][b]:
             continue
         pen_components(r[0], r[1], r[2], r[3], lim[b], left[b], fwd[b], hinge[b],

@@ -45,6 +45,7 @@ from retargetd.protocols.frames import BoolArray, F64Array, IntArray
 
 __all__ = [
     "MIN_LEVER_M",
+    "hidden_information",
     "NOISE_M",
     "PRIOR_STIFFNESS",
     "RESOLUTION_RAD",
@@ -171,6 +172,57 @@ def _rest_pose(
     return rot.mat_from_quat(wq), org
 
 
+@dataclass(frozen=True, slots=True)
+class _Linearized:
+    """The model linearized at its calibration pose (rows: 3 per used marker)."""
+
+    jac: F64Array  # (3 U, n) metres per radian / per metre, rows scaled by sqrt(w)
+    used: IntArray  # (U,) rig marker of each row triple
+    bases: list[F64Array]  # per bone (3, d) its free rotations, bone rest axes
+    col0: IntArray  # (B + 1,) first column of each bone; translations after
+
+
+def _linearize(
+    parent: IntArray,
+    root_of: IntArray,
+    off_parent: F64Array,
+    rest_pfb: F64Array,
+    root_rest_pos: F64Array,
+    marker_bone: IntArray,
+    marker_local: F64Array,
+    marker_weight: F64Array,
+    dof: Sequence[str],
+    hinge_axis: F64Array,
+) -> _Linearized:
+    n_b = len(parent)
+    wm, org = _rest_pose(parent, root_of, off_parent, rest_pfb, root_rest_pos)
+    used = np.flatnonzero(np.asarray(marker_weight) > 0.0)
+    pm = org[marker_bone[used]] + np.einsum(
+        "mij,mj->mi", wm[marker_bone[used]], marker_local[used]
+    )
+    # Columns: each bone's free rotations (world directions), then each root's
+    # translation.
+    bases = [joint_basis(dof[b], hinge_axis[b]) for b in range(n_b)]
+    col0 = np.cumsum([0] + [B.shape[1] for B in bases])
+    n_roots = int(root_rest_pos.shape[0])
+    n_col = int(col0[-1]) + 3 * n_roots
+    jac = np.zeros((3 * len(used), n_col))
+    for r, i in enumerate(used):
+        s = int(marker_bone[i])
+        rows = slice(3 * r, 3 * r + 3)
+        sw = math.sqrt(float(marker_weight[i]))
+        k = s
+        while k >= 0:
+            lever = pm[r] - org[k]
+            for c in range(bases[k].shape[1]):
+                a = wm[k] @ bases[k][:, c]
+                jac[rows, col0[k] + c] = sw * np.cross(a, lever)
+            k = int(parent[k])
+        t0 = int(col0[-1]) + 3 * int(root_of[s])
+        jac[rows, t0 : t0 + 3] = sw * _EYE
+    return _Linearized(jac=jac, used=used, bases=bases, col0=col0)
+
+
 def observe(
     *,
     bone_names: Sequence[str],
@@ -207,31 +259,12 @@ def observe(
         One :class:`BoneObservation` per bone, in rig order.
     """
     n_b = len(bone_names)
-    wm, org = _rest_pose(parent, root_of, off_parent, rest_pfb, root_rest_pos)
-    used = np.flatnonzero(np.asarray(marker_weight) > 0.0)
-    pm = org[marker_bone[used]] + np.einsum(
-        "mij,mj->mi", wm[marker_bone[used]], marker_local[used]
-    )
-    # Columns: each bone's free rotations (world directions), then each root's
-    # translation.
-    bases = [joint_basis(dof[b], hinge_axis[b]) for b in range(n_b)]
-    col0 = np.cumsum([0] + [B.shape[1] for B in bases])
-    n_roots = int(root_rest_pos.shape[0])
-    n_col = int(col0[-1]) + 3 * n_roots
-    jac = np.zeros((3 * len(used), n_col))
-    for r, i in enumerate(used):
-        s = int(marker_bone[i])
-        rows = slice(3 * r, 3 * r + 3)
-        sw = math.sqrt(float(marker_weight[i]))
-        k = s
-        while k >= 0:
-            lever = pm[r] - org[k]
-            for c in range(bases[k].shape[1]):
-                a = wm[k] @ bases[k][:, c]
-                jac[rows, col0[k] + c] = sw * np.cross(a, lever)
-            k = int(parent[k])
-        t0 = int(col0[-1]) + 3 * int(root_of[s])
-        jac[rows, t0 : t0 + 3] = sw * _EYE
+    lin = _linearize(
+        parent, root_of, off_parent, rest_pfb, root_rest_pos, marker_bone,
+        marker_local, marker_weight, dof, hinge_axis,
+    )  # fmt: skip
+    jac, bases, col0 = lin.jac, lin.bases, lin.col0
+    n_col = jac.shape[1]
     info = jac.T @ jac
     # The rig's own priors on every bone (removed from a bone's own block while it is
     # decided: the report says what the markers determine).
@@ -291,3 +324,86 @@ def observe(
             )
         )
     return tuple(out)
+
+
+def hidden_information(
+    *,
+    parent: IntArray,
+    root_of: IntArray,
+    off_parent: F64Array,
+    rest_pfb: F64Array,
+    root_rest_pos: F64Array,
+    marker_bone: IntArray,
+    marker_local: F64Array,
+    marker_weight: F64Array,
+    dof: Sequence[str],
+    hinge_axis: F64Array,
+    prior: F64Array,
+) -> tuple[F64Array, F64Array, F64Array]:
+    """What each bone loses when one marker hides, for the fit's hold prior.
+
+    With marker ``k`` hidden (its rows out of ``J``) each bone's marginal information
+    ``S_b`` (module docstring; every prior of the model in) is decomposed into its
+    eigen-directions ``u`` (bone rest axes) with their information ``lam`` (m^2 /
+    rad^2), and the information the marker gave along each, ``u^T (S_b - S_b^-k) u``
+    (``lost``). The kernel (``kernel_fit``) holds, while ``k`` is hidden, each
+    direction that falls below what the take's residual level resolves, at its last
+    seen value, with the information lost (``FitParams``, "hold").
+
+    Args:
+        parent .. hinge_axis: as :func:`observe`.
+        prior: (B, 3, 3) m^2 / rad^2, every prior the model has (bone axes).
+
+    Returns:
+        ``axes`` (Mr * B, 9): row ``k * B + b`` the three directions (rows of a
+        3 x 3, bone rest axes; zero rows past the joint's freedom), ``lam``
+        (Mr * B, 3) and ``lost`` (Mr * B, 3); zeros for markers not used.
+    """
+    n_b = len(parent)
+    n_m = len(marker_bone)
+    lin = _linearize(
+        parent, root_of, off_parent, rest_pfb, root_rest_pos, marker_bone,
+        marker_local, marker_weight, dof, hinge_axis,
+    )  # fmt: skip
+    jac, bases, col0 = lin.jac, lin.bases, lin.col0
+    n_col = jac.shape[1]
+    info = jac.T @ jac
+    for b in range(n_b):
+        blk = slice(col0[b], col0[b + 1])
+        info[blk, blk] += bases[b].T @ prior[b] @ bases[b]
+    # S_b^-1 is the b block of H^-1; a tiny ridge makes H invertible where the
+    # markers and priors leave a direction free (a root's nothing, a fixed joint's
+    # zero columns): (1e-5 m/rad)^2, far under any threshold here.
+    ridge = 1e-10 * np.eye(n_col)
+
+    def marginals(h: F64Array) -> list[F64Array]:
+        cov = np.linalg.inv(h + ridge)
+        out = []
+        for b in range(n_b):
+            blk = slice(col0[b], col0[b + 1])
+            if col0[b + 1] == col0[b]:
+                out.append(np.zeros((0, 0)))
+                continue
+            sb = np.linalg.inv(cov[blk, blk]) - 1e-10 * np.eye(col0[b + 1] - col0[b])
+            out.append(0.5 * (sb + sb.T))
+        return out
+
+    full = marginals(info)
+    axes = np.zeros((n_m * n_b, 9))
+    lam_out = np.zeros((n_m * n_b, 3))
+    lost_out = np.zeros((n_m * n_b, 3))
+    for r, k in enumerate(lin.used):
+        rows = jac[3 * r : 3 * r + 3]
+        part = marginals(info - rows.T @ rows)
+        for b in range(n_b):
+            d = col0[b + 1] - col0[b]
+            if d == 0 or parent[b] < 0:
+                continue
+            lam, vec = np.linalg.eigh(part[b])
+            lost = np.einsum("ij,ik,kj->j", vec, full[b] - part[b], vec)
+            row = int(k) * n_b + b
+            ax = (bases[b] @ vec).T  # (d, 3)
+            axes[row, : 3 * d] = ax.reshape(-1)
+            lam_out[row, :d] = np.maximum(lam, 0.0)
+            lost_out[row, :d] = np.maximum(lost, 0.0)
+    return axes, lam_out, lost_out

@@ -1,7 +1,7 @@
 """The fit's model, state and output arrays packed into a few flat buffers.
 
 Why: numba unboxes every array argument at every call, and a tuple of arrays element
-by element. The fit's model (22 arrays), state (49) and output (10) cost 9.6 µs of
+by element. The fit's model (25 arrays), state (59) and output (10) cost 9.6 µs of
 dispatch back to back and 94 µs median when calls come 4 ms apart (240 Hz: the
 arrays' Python objects are out of the caches by then; measured on the project
 machine, 2026-12-03). Packed, a frame's call passes one buffer per dtype and a
@@ -27,7 +27,7 @@ M_KINDS: tuple[tuple[str, int], ...] = (
     ("i8", 1), ("i8", 1), ("f8", 2), ("f8", 2), ("i8", 1), ("i8", 1), ("f8", 2),
     ("f8", 1), ("i8", 1), ("f8", 2), ("f8", 2), ("f8", 2), ("f8", 2), ("f8", 2),
     ("i8", 1), ("i8", 1), ("i8", 1), ("i8", 1), ("f8", 1), ("f8", 1), ("f8", 1),
-    ("f8", 3),
+    ("f8", 3), ("f8", 2), ("f8", 2), ("f8", 2),
 )  # fmt: skip
 #: (dtype, ndim) of each element of the state tuple ``s``.
 S_KINDS: tuple[tuple[str, int], ...] = (
@@ -38,7 +38,8 @@ S_KINDS: tuple[tuple[str, int], ...] = (
     ("f8", 2), ("f8", 2), ("f8", 2), ("f8", 3), ("f8", 2), ("f8", 2), ("f8", 2),
     ("f8", 1), ("f8", 1), ("f8", 2), ("f8", 2), ("i8", 1), ("i8", 1), ("f8", 2),
     ("f8", 2), ("f8", 2), ("f8", 2), ("b1", 1), ("b1", 1), ("f8", 2), ("f8", 1),
-    ("f8", 2), ("f8", 2), ("f8", 1), ("f8", 2),
+    ("f8", 2), ("f8", 2), ("f8", 1), ("f8", 2), ("f8", 3), ("f8", 2), ("f8", 1),
+    ("f8", 2), ("f8", 2), ("f8", 1),
 )  # fmt: skip
 #: (dtype, ndim) of the outputs: joint centres, world / parent / rest rotations, root,
 #: quality, flags, residuals, rejected, stats (``kernel_fit.fit_one_t``'s order).
@@ -49,7 +50,7 @@ O_KINDS: tuple[tuple[str, int], ...] = (
 ROW_S = len(M_KINDS)  #: first state row
 ROW_O = ROW_S + len(S_KINDS)  #: first output row
 N_ROWS = ROW_O + len(O_KINDS)
-if (ROW_S, ROW_O) != (22, 75):  # the literals of state_views and out_views
+if (ROW_S, ROW_O) != (25, 84):  # the literals of state_views and out_views
     raise ImportError("fit_pack: the kinds and the view functions disagree")
 
 
@@ -113,14 +114,15 @@ def model_views(f: np.ndarray, i: np.ndarray, lay: np.ndarray) -> tuple:
         _v1(i, lay, 8), _v2(f, lay, 9), _v2(f, lay, 10), _v2(f, lay, 11),
         _v2(f, lay, 12), _v2(f, lay, 13), _v1(i, lay, 14), _v1(i, lay, 15),
         _v1(i, lay, 16), _v1(i, lay, 17), _v1(f, lay, 18), _v1(f, lay, 19),
-        _v1(f, lay, 20), _v3(f, lay, 21),
+        _v1(f, lay, 20), _v3(f, lay, 21), _v2(f, lay, 22), _v2(f, lay, 23),
+        _v2(f, lay, 24),
     )  # fmt: skip
 
 
 @kernel
 def state_views(f: np.ndarray, i: np.ndarray, b: np.ndarray, lay: np.ndarray) -> tuple:
     """The state tuple ``s`` (:data:`S_KINDS`) as views of its buffers."""
-    r = 22  # ROW_S
+    r = 25  # ROW_S
     return (
         _v2(f, lay, r), _v2(f, lay, r + 1), _v2(f, lay, r + 2), _v2(f, lay, r + 3),
         _v1(i, lay, r + 4), _v2(f, lay, r + 5), _v2(f, lay, r + 6),
@@ -139,7 +141,9 @@ def state_views(f: np.ndarray, i: np.ndarray, b: np.ndarray, lay: np.ndarray) ->
         _v2(f, lay, r + 43), _v2(f, lay, r + 44), _v1(b, lay, r + 45),
         _v1(b, lay, r + 46), _v2(f, lay, r + 47), _v1(f, lay, r + 48),
         _v2(f, lay, r + 49), _v2(f, lay, r + 50), _v1(f, lay, r + 51),
-        _v2(f, lay, r + 52),
+        _v2(f, lay, r + 52), _v3(f, lay, r + 53), _v2(f, lay, r + 54),
+        _v1(f, lay, r + 55), _v2(f, lay, r + 56), _v2(f, lay, r + 57),
+        _v1(f, lay, r + 58),
     )  # fmt: skip
 
 
@@ -148,7 +152,7 @@ def out_views(
     f: np.ndarray, f4: np.ndarray, u1: np.ndarray, b: np.ndarray, lay: np.ndarray
 ) -> tuple:
     """The outputs (:data:`O_KINDS`) as views of a pose's buffers."""
-    r = 75  # ROW_O
+    r = 84  # ROW_O
     return (
         _v2(f, lay, r), _v2(f, lay, r + 1), _v2(f, lay, r + 2), _v2(f, lay, r + 3),
         _v1(f, lay, r + 4), _v1(f4, lay, r + 5), _v1(u1, lay, r + 6),

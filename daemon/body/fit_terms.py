@@ -34,8 +34,11 @@ P_LOST_K = 14
 P_UNEXPLAINED_K = 15  # a frame is unexplained above max(gate, this x the level)
 P_UNEXPLAINED_FRAC = 16  # ... or with more than this fraction rejected
 P_LEVEL_TAU_S = 17  # time constant of the running residual level, seconds
-P_PERSIST = 18  # frames a marker stays rejected before a reseed is tried
-N_PARAMS = 19
+P_PERSIST = 18  # seconds a marker stays rejected before a reseed is tried
+P_JUMP_Z = 19  # a joint past max(this x its prediction's bound, P_JUMP_FLOOR_RAD)
+P_JUMP_FLOOR_RAD = 20  # ... from its prediction is no motion a body makes
+P_RESOLUTION_RAD = 21  # the hold: a joint angle's resolution (fit_observe)
+N_PARAMS = 22
 
 # per-frame scalars (the state's ``s[36]``)
 C_GATE = 0  # this frame's gate, metres
@@ -104,6 +107,57 @@ def prior_chart(w: float, x: float, y: float, z: float) -> tuple[float, float, f
     sw, sx, sy, sz = qmul(w, x, y, z, math.cos(h), 0.0, -math.sin(h), 0.0)
     vx, _vy, vz = qlog(sw, sx, sy, sz)
     return vx, tw, vz
+
+
+@kernel
+def prior_cost(a: np.ndarray, q: np.ndarray, pb: np.ndarray) -> float:
+    # 1/2 c^T P c, c the swing-twist coordinates of conj(a) q (a: the prior's
+    # anchor, a parent_from_bone w x y z; q: the joint's; pb: (3, 3) m^2 / rad^2).
+    r = qmul(a[0], -a[1], -a[2], -a[3], q[0], q[1], q[2], q[3])
+    c = prior_chart(r[0], r[1], r[2], r[3])
+    cost = 0.0
+    for i in range(3):
+        for j in range(3):
+            cost += 0.5 * c[i] * pb[i, j] * c[j]
+    return cost
+
+
+@kernel
+def prior_normal(
+    a: np.ndarray, q: np.ndarray, pb: np.ndarray, wmb: np.ndarray,
+    hb: np.ndarray, g: np.ndarray, rb: int, jac: np.ndarray,
+) -> None:  # fmt: skip
+    # The prior's Gauss-Newton terms in the bone's world increments (block hb,
+    # gradient g[rb:rb + 3]): the chart's numerical Jacobian in the bone's own
+    # increments (jac rows 0-2), turned into world increments U = jac W^T (rows
+    # 3-5), then H += U^T P U, g += U^T P c. wmb: the bone's world rotation matrix.
+    eps = 1e-6
+    r = qmul(a[0], -a[1], -a[2], -a[3], q[0], q[1], q[2], q[3])
+    c0 = prior_chart(r[0], r[1], r[2], r[3])
+    for c in range(3):
+        e = qexp(eps if c == 0 else 0.0, eps if c == 1 else 0.0,
+                  eps if c == 2 else 0.0)  # fmt: skip
+        rp = qmul(r[0], r[1], r[2], r[3], e[0], e[1], e[2], e[3])
+        c1 = prior_chart(rp[0], rp[1], rp[2], rp[3])
+        for k in range(3):
+            dk = (c1[k] - c0[k]) / eps
+            jac[k, c] = dk if abs(dk) < 1e3 else 0.0  # (a twist wrapping through pi)
+    for k in range(3):
+        for i in range(3):
+            jac[3 + k, i] = (
+                jac[k, 0] * wmb[i, 0] + jac[k, 1] * wmb[i, 1] + jac[k, 2] * wmb[i, 2]
+            )
+    for k in range(3):
+        pc = pb[k, 0] * c0[0] + pb[k, 1] * c0[1] + pb[k, 2] * c0[2]
+        for i in range(3):
+            g[rb + i] += jac[3 + k, i] * pc
+    for i in range(3):
+        for j in range(3):
+            acc = 0.0
+            for k in range(3):
+                pu = pb[k, 0] * jac[3, j] + pb[k, 1] * jac[4, j] + pb[k, 2] * jac[5, j]
+                acc += jac[3 + k, i] * pu
+            hb[i, j] += acc
 
 
 @kernel
@@ -245,6 +299,7 @@ def marker_cost(
     mk_bone, mk_local, mk_weight = m[5], m[6], m[7]
     params = m[18]
     meas, vis, rej = s[12], s[13], s[45]
+    carry, carry_on = s[57], s[58]
     c2 = params[P_CAUCHY_M] * params[P_CAUCHY_M]
     cost = 0.0
     for i in range(mk_bone.shape[0]):
@@ -258,6 +313,14 @@ def marker_cost(
             )
         if not vis[i]:
             wrob[i] = 0.0
+            if carry_on[i] > 0.0:  # a hidden marker's carried misfit: a constant
+                # force, the linear potential w r.p whose gradient is the force
+                w = mk_weight[i]
+                cost += w * (
+                    carry[i, 0] * pm[i, 0]
+                    + carry[i, 1] * pm[i, 1]
+                    + carry[i, 2] * pm[i, 2]
+                )
             continue
         n2 = 0.0
         for j in range(3):
@@ -282,6 +345,7 @@ def reg_cost(m: tuple, s: tuple, q: np.ndarray, t: np.ndarray) -> float:
     qpred, tpred = s[2], s[3]
     pen = s[26]
     pen_cos, lock, prior = m[19], m[20], m[21]
+    hold, anchor, hold_on = s[53], s[54], s[55]
     sc = s[36]
     lam = sc[C_LAM_ROT]
     s_lim = math.sqrt(params[P_KAPPA_LIMIT])
@@ -298,10 +362,9 @@ def reg_cost(m: tuple, s: tuple, q: np.ndarray, t: np.ndarray) -> float:
                       q[b, 0], q[b, 1], q[b, 2], q[b, 3])  # fmt: skip
             pb = prior[b]
             if pb[0, 0] + pb[1, 1] + pb[2, 2] > 0.0:
-                c = prior_chart(r[0], r[1], r[2], r[3])
-                for i in range(3):
-                    for j in range(3):
-                        cost += 0.5 * c[i] * pb[i, j] * c[j]
+                cost += prior_cost(rest_pfb[b], q[b], pb)
+            if hold_on[b] > 0.0:
+                cost += prior_cost(anchor[b], q[b], hold[b])
             if abs(r[0]) > pen_cos[b]:
                 continue
             pen_components(r[0], r[1], r[2], r[3], lim[b], left[b], fwd[b],

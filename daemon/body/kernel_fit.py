@@ -60,13 +60,20 @@ from retargetd.daemon.body.fit_terms import (
     P_FTOL,
     P_GATE_K,
     P_GATE_M,
+    P_ACC_MAX,
+    P_ALPHA_MAX,
+    P_CAUCHY_M,
     P_GATE_MEMORY,
+    P_JUMP_FLOOR_RAD,
+    P_JUMP_Z,
     P_LEVEL_TAU_S,
     P_LOST_FLOOR_M,
     P_LOST_K,
     P_MAX_ITER,
     P_PERSIST,
+    P_NOISE_M,
     P_REJECT_FRAC,
+    P_RESOLUTION_RAD,
     P_TOL,
     P_UNEXPLAINED_FRAC,
     P_UNEXPLAINED_K,
@@ -286,6 +293,14 @@ def _score(m: tuple, s: tuple) -> tuple[float, int, int]:
 
 
 @kernel
+def _truncated_rms(ss: float, n_in: int, n_rej: int, gate: float) -> float:
+    # The frame's residual RMS with each rejected marker counted at the gate: what
+    # the markers say of the fit, a misfit the gate hides included.
+    n = n_in + n_rej
+    return math.sqrt((ss + n_rej * gate * gate) / n) if n > 0 else math.inf
+
+
+@kernel
 def _whole_cost(m: tuple, s: tuple) -> float:
     # The cost a candidate pose is judged on: every visible marker under the Cauchy
     # loss (none gated out: a marker one candidate rejects still counts against it)
@@ -382,6 +397,116 @@ def _predict(m: tuple, s: tuple) -> None:
 
 
 @kernel
+def _impossible(m: tuple, s: tuple, frames: float) -> bool:
+    # Whether the fitted pose moved a joint (or a root) further from its prediction
+    # than a body can in `frames` frames: the bound 1/2 a (frames dt)^2 times
+    # P_JUMP_Z, or the floor (noise on a short lever makes a few degrees of jitter
+    # at any rate; the root: the gate).
+    params, parent = m[18], m[0]
+    q, t, qpred, tpred = s[0], s[1], s[2], s[3]
+    h = frames * s[36][C_DT]
+    z = params[P_JUMP_Z]
+    lim_r = max(z * 0.5 * params[P_ALPHA_MAX] * h * h, params[P_JUMP_FLOOR_RAD])
+    lim_t = max(z * 0.5 * params[P_ACC_MAX] * h * h, params[P_GATE_M])
+    for b in range(parent.shape[0]):
+        d = qmul(qpred[b, 0], -qpred[b, 1], -qpred[b, 2], -qpred[b, 3],
+                  q[b, 0], q[b, 1], q[b, 2], q[b, 3])  # fmt: skip
+        w = abs(d[0])
+        ang = 2.0 * math.acos(w if w < 1.0 else 1.0)
+        if ang > lim_r:
+            return True
+    for rr in range(t.shape[0]):
+        dx = t[rr, 0] - tpred[rr, 0]
+        dy = t[rr, 1] - tpred[rr, 1]
+        dz = t[rr, 2] - tpred[rr, 2]
+        if dx * dx + dy * dy + dz * dz > lim_t * lim_t:
+            return True
+    return False
+
+
+@kernel
+def _hold_priors(m: tuple, s: tuple) -> None:
+    # While markers are hidden, each bone's rotations that they observed and that
+    # the markers still seen no longer resolve (information under (sigma /
+    # resolution)^2, sigma the take's residual level: what the remaining markers'
+    # misfit would turn them by) are held at their last seen value with the
+    # information the hidden markers gave them (at most up to that threshold): the
+    # balance of the fit is kept, not shifted to what the remaining misfit prefers
+    # (fit_observe.hidden_information). s[53] the hold priors (bone axes, m^2 /
+    # rad^2), s[54] their anchors (parent_from_bone), s[55] their traces (0: off).
+    params, parent, wt = m[18], m[0], m[7]
+    axes, lam, lost = m[22], m[23], m[24]
+    vis = s[13]
+    hold, anchor, on, qlast = s[53], s[54], s[55], s[49]
+    n_b = parent.shape[0]
+    sig = max(params[P_NOISE_M], s[36][C_LEVEL]) / params[P_RESOLUTION_RAD]
+    thr = sig * sig
+    for b in range(n_b):
+        for i in range(3):
+            for j in range(3):
+                hold[b, i, j] = 0.0
+    for k in range(wt.shape[0]):
+        if wt[k] <= 0.0 or vis[k]:
+            continue
+        base = k * n_b
+        for b in range(n_b):
+            row = base + b
+            for j in range(3):
+                lo = lost[row, j]
+                li = lam[row, j]
+                if lo <= 0.0 or li >= thr:
+                    continue
+                kk = min(lo, thr - li)
+                u0, u1, u2 = (
+                    axes[row, 3 * j],
+                    axes[row, 3 * j + 1],
+                    axes[row, 3 * j + 2],
+                )
+                u = (u0, u1, u2)
+                for a in range(3):
+                    for c in range(3):
+                        hold[b, a, c] += kk * u[a] * u[c]
+    for b in range(n_b):
+        tr = hold[b, 0, 0] + hold[b, 1, 1] + hold[b, 2, 2]
+        if tr > on[b] * (1.0 + 1e-9):
+            # a hold that starts or grows (another marker hidden) holds from the
+            # last explained frame, not from where an older, weaker hold began
+            for j in range(4):
+                anchor[b, j] = qlast[b, j]
+        on[b] = tr
+
+
+@kernel
+def _carry_misfit(m: tuple, s: tuple) -> None:
+    # A hidden marker keeps pulling as it last did: its residual at its last
+    # accepted frame, in its bone's axes (s[56]), carried by the bone as predicted
+    # (s[57], world) as a constant force (fit_terms.marker_cost, fit_normal): the
+    # fit's balance stays where it was (a marker's misfit, soft tissue or the model,
+    # changes slowly), the hold priors give back its stiffness.
+    mk_bone, wt = m[5], m[7]
+    vis, rage = s[13], s[48]
+    rloc, carry, on = s[56], s[57], s[58]
+    wq, wm, o = s[29], s[8], s[9]
+    fk(m[0], m[1], m[2], s[0], s[1], wq, wm, o)
+    for i in range(mk_bone.shape[0]):
+        if vis[i] or wt[i] <= 0.0 or rage[i] == math.inf:
+            on[i] = 0.0
+            continue
+        b = mk_bone[i]
+        # the force of the Cauchy loss: w r / (1 + |r|^2 / c^2), folded into carry
+        c2 = m[18][P_CAUCHY_M] ** 2
+        n2 = rloc[i, 0] ** 2 + rloc[i, 1] ** 2 + rloc[i, 2] ** 2
+        f = 1.0 / (1.0 + n2 / c2)
+        for j in range(3):
+            carry[i, j] = f * (
+                wm[b, j, 0] * rloc[i, 0]
+                + wm[b, j, 1] * rloc[i, 1]
+                + wm[b, j, 2] * rloc[i, 2]
+            )
+        on[i] = 1.0
+
+
+@kernel
 def _hold(m: tuple, s: tuple) -> None:
     # The last explained pose (the calibration pose before any: ``FitSolver.reset``
     # puts it there), for a frame the fit cannot explain or a performer not seen.
@@ -460,6 +585,8 @@ def fit_one_t(
         # 2b. seed (first frame), or predict and fit, and judge the result
         first = have[0] == 0
         if first:
+            for i in range(n_mk):
+                s[58][i] = 0.0
             _seed_from_construction(clean, m, s, c)
             cp2(s[2], q)
             cp2(s[3], t)
@@ -469,9 +596,11 @@ def fit_one_t(
         else:
             _predict(m, s)
             continuity_weights(params, sc, sc[C_GAP])
+            _hold_priors(m, s)
+            _carry_misfit(m, s)
         iters, _conv, cost = _fit_phases(m, s)
         ss, n_in, n_rej = _score(m, s)
-        rms = math.sqrt(ss / n_in) if n_in > 0 else math.inf
+        rms = _truncated_rms(ss, n_in, n_rej, sc[C_GATE])
         level = sc[C_LEVEL]
         persist = 0.0
         for i in range(n_mk):
@@ -509,14 +638,16 @@ def fit_one_t(
                 sc[C_GATE] = gate_a
                 _evaluate_current(m, s, True)
             ss, n_in, n_rej = _score(m, s)
-            rms = math.sqrt(ss / n_in) if n_in > 0 else math.inf
+            rms = _truncated_rms(ss, n_in, n_rej, sc[C_GATE])
         else:
             sc[C_SINCE_TRY] += 1.0
         # Unexplained: the markers are far from any pose the fit found (a burst of
         # garbage, a collapse, mirrored labels). The pose is held, never carried.
-        far = max(params[P_GATE_M], params[P_UNEXPLAINED_K] * level)
+        far = max(params[P_LOST_FLOOR_M], params[P_UNEXPLAINED_K] * level)
         unexplained = (
-            rms > far or n_rej > params[P_UNEXPLAINED_FRAC] * n_seen
+            rms > far
+            or n_rej > params[P_UNEXPLAINED_FRAC] * n_seen
+            or _impossible(m, s, max(sc[C_GAP], persist))
         ) and not first
         # never NaN: a non-finite state (cannot happen with finite inputs) is held
         for b in range(n_b):
@@ -619,10 +750,17 @@ def fit_one_t(
         for i in range(n_mk):
             rage[i] += 1.0
         return n_held
+    rloc = s[56]
     for i in range(n_mk):
         if vis[i] and not rej[i]:
+            b = mk_bone[i]
             for j in range(3):
                 rref[i, j] = res[i, j]
+                rloc[i, j] = (
+                    wm[b, 0, j] * res[i, 0]
+                    + wm[b, 1, j] * res[i, 1]
+                    + wm[b, 2, j] * res[i, 2]
+                )
             rage[i] = 0.0
             rej_run[i] = 0.0
         else:

@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from retargetd.daemon.body import fit_pack
+from retargetd.daemon.body import fit_observe, fit_pack
 from retargetd.daemon.body import fit_terms as ft
 from retargetd.daemon.body import kernel_fit as kf
 from retargetd.daemon.body.calibration import Calibration, calibrate
@@ -112,8 +112,8 @@ class FitParams:
         gate_k: see gate_m (5: a factor that keeps the gate above the fit's own
             residual level when the model fits a performer loosely).
         gate_memory: frames, see gate_m (30: 0.125-0.5 s at 240-60 Hz).
-        lost_floor_m, lost_k: the fit is suspect when its inlier residual RMS
-            exceeds max(lost_floor_m, lost_k x the take's own running level): then
+        lost_floor_m, lost_k: the fit is suspect when its residual RMS (each
+            marker the gate rejected counted at the gate) exceeds max(lost_floor_m, lost_k x the take's own running level): then
             a second candidate is seeded from the construction and the better of
             the two on the whole cost (markers, continuity, priors, limits) is kept.
             10 mm (the low end of skin artefact: a misfit below it is never a lost
@@ -125,13 +125,27 @@ class FitParams:
             turned half round) shows as its markers rejected frame after frame.
             0.1 s, under half the 0.25 s the fit has to recover in.
         unexplained_k, unexplained_frac: a frame is unexplained when the kept
-            candidate's inlier RMS exceeds max(gate_m, unexplained_k x the running
-            level) or more than unexplained_frac of its markers are rejected: no
+            candidate's residual RMS (as above) exceeds max(lost_floor_m,
+            unexplained_k x the running level) or more than unexplained_frac of its markers are rejected: no
             skeleton pose accounts for the markers (a collapse, a burst of garbage,
             mirrored labels). Its pose is the last explained one, flagged, and the
             fit carries on from that. 4 (twice the suspect level) and one half.
-        level_tau_s: time constant of the running residual level over explained
-            frames: 1 s, a gait cycle (its artefact pattern), long against a burst.
+        resolution_deg: while a marker is hidden, what the markers still seen
+            observe of a joint under (max(noise_m, the running residual level) /
+            this)^2 m^2 / rad^2 is held at its last seen value with the
+            information the hidden marker gave it (``kernel_fit._hold_priors``):
+            on a real take the model's misfit, not the 1 mm noise, is what would
+            turn it. 5 deg, ``fit_observe.RESOLUTION_RAD``.
+        jump_z, jump_floor_deg: a frame is unexplained too when its pose moves a
+            joint further from its prediction than max(jump_z x the bound above,
+            jump_floor_deg) (a root: max(jump_z x acc_max's bound, gate_m)): a body
+            cannot, mirrored or permuted labels can (the rigid skeleton turned
+            half round fits a left-right swap with a small residual). 3 (thrice
+            the peak acceleration) and 10 deg (twice RESOLUTION_RAD of
+            ``fit_observe``: noise on a short lever jitters a few degrees a frame
+            at any rate).
+        level_tau_s: time constant of the running residual level (that RMS) over
+            explained frames: 1 s, a gait cycle (its artefact pattern), long against a burst.
         max_iter: iteration cap per phase (the worst case is 4 phases: two fits, each
             ungated then gated).
         tol: step size (rad, m) at which the fit has converged: 1e-4 (0.1 mm,
@@ -156,6 +170,9 @@ class FitParams:
     persist_s: float = 0.1
     unexplained_k: float = 4.0
     unexplained_frac: float = 0.5
+    resolution_deg: float = math.degrees(fit_observe.RESOLUTION_RAD)
+    jump_z: float = 3.0
+    jump_floor_deg: float = 10.0
     level_tau_s: float = 1.0
     max_iter: int = 10
     tol: float = 1e-4
@@ -180,6 +197,9 @@ class FitParams:
         out[ft.P_UNEXPLAINED_K] = self.unexplained_k
         out[ft.P_UNEXPLAINED_FRAC] = self.unexplained_frac
         out[ft.P_LEVEL_TAU_S] = self.level_tau_s
+        out[ft.P_JUMP_Z] = self.jump_z
+        out[ft.P_RESOLUTION_RAD] = math.radians(self.resolution_deg)
+        out[ft.P_JUMP_FLOOR_RAD] = math.radians(self.jump_floor_deg)
         out[ft.P_MAX_ITER] = self.max_iter
         out[ft.P_TOL] = self.tol
         out[ft.P_FTOL] = self.ftol
@@ -330,6 +350,7 @@ class FitSolver:
             model.hinge_axis, model.limits, model.limit_left, model.limit_forward,
             model.anc_ptr, model.anc_idx, model.node_ptr, model.node_idx,
             self._params_arr, model.penalty_cos, model.twist_lock, model.prior_mat,
+            model.hide_axes, model.hide_lam, model.hide_lost,
         )  # fmt: skip
         # packed (fit_pack): the kernel gets one buffer per dtype; self._model keeps
         # the same memory as a tuple of views (for fit_many and hand-made poses)
@@ -352,6 +373,7 @@ class FitSolver:
             z(n_b, 4), z(n_r, 3), z(n_b, 4), z(n_r, 3),
             np.zeros(n_m, dtype=bool), np.zeros(n_m, dtype=bool), z(n_m, 3), z(n_m),
             z(n_b, 4), z(n_r, 3), z(n_m), z(self.n_stream, 3),
+            z(n_b, 3, 3), z(n_b, 4), z(n_b), z(n_m, 3), z(n_m, 3), z(n_m),
         )  # fmt: skip
         sbuf, srows, self._state = fit_pack.pack(state_arrays, fit_pack.S_KINDS)
         self._sf, self._si, self._sb = sbuf["f8"], sbuf["i8"], sbuf["b1"]
@@ -364,6 +386,7 @@ class FitSolver:
         self._gate_age = self._state[48]
         self._scalars = self._state[36]  # fit_terms.C_* slots
         self._qlast, self._tlast, self._rej_run = self._state[49:52]
+        self._hold_active = self._state[55]
         self._con_pose = con.new_pose()
         assert self._con_pose.kernel_buffers is not None
         # The construction's packed buffers (``body.kernel.solve_one``): a NamedTuple
@@ -383,6 +406,8 @@ class FitSolver:
         self._qlast[:] = self._q
         self._tlast[:] = self._t
         self._rej_run[:] = 0.0
+        self._hold_active[:] = 0.0
+        self._state[58][:] = 0.0  # no misfit carried
         self._prev_out[:] = 0.0
         self._have[0] = 0
         self._gate_age[:] = math.inf  # no marker has a gate reference yet
