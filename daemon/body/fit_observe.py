@@ -45,11 +45,11 @@ from retargetd.protocols.frames import BoolArray, F64Array, IntArray
 
 __all__ = [
     "MIN_LEVER_M",
-    "hidden_information",
     "NOISE_M",
     "PRIOR_STIFFNESS",
     "RESOLUTION_RAD",
     "BoneObservation",
+    "hidden_information",
     "joint_basis",
     "observe",
 ]

@@ -70,89 +70,88 @@ class FitParams:
     fit's rules") lists them with the takes that confirmed them.
 
     Attributes:
-        noise_m: marker noise sigma_m, the unit the other weights are relative to:
-            1 mm (optical systems' residuals; Merriaux et al., "A study of Vicon
-            system positioning performance", Sensors 17(7):1591, 2017: < 1 mm).
-        alpha_max: rad/s^2, the peak angular acceleration of any segment: 8000,
-            the throwing arm's internal rotation (about 7000 deg/s reached in the
-            ~30 ms from maximum external rotation to ball release; Fleisig et al.,
-            "Kinetics of baseball pitching with implications about injury
-            mechanisms", Am J Sports Med 23(2):233-239, 1995: a mean of ~4000
-            rad/s^2, twice that at the peak). The pull to the pose predicted from
-            the last two frames has sigma = alpha_max (n dt)^2 / 2 after n frames
-            of dt seconds, weight (noise_m / sigma)^2: at 120 Hz sigma is 16 deg,
-            so the pull never holds back a real motion, and what the markers leave
-            undetermined it carries from frame to frame.
+        noise_m: marker noise sigma_m, the unit the other weights are relative to: 1 mm
+            (optical systems' residuals; Merriaux et al., "A study of Vicon system
+            positioning performance", Sensors 17(7):1591, 2017: < 1 mm).
+        alpha_max: rad/s^2, the peak angular acceleration of any segment: 8000, the
+            throwing arm's internal rotation (about 7000 deg/s reached in the ~30 ms
+            from maximum external rotation to ball release; Fleisig et al., "Kinetics of
+            baseball pitching with implications about injury mechanisms", Am J Sports
+            Med 23(2):233-239, 1995: a mean of ~4000 rad/s^2, twice that at the peak).
+            The pull to the pose predicted from the last two frames has sigma =
+            alpha_max (n dt)^2 / 2 after n frames of dt seconds, weight (noise_m /
+            sigma)^2: at 120 Hz sigma is 16 deg, so the pull never holds back a real
+            motion, and what the markers leave undetermined it carries from frame to
+            frame.
         acc_max: m/s^2, the same for a root's position: 100 (about 10 g, the body's
-            centre of mass under a landing's peak ground reaction force of up to
-            ~11 body weights; Dufek & Bates, "Biomechanical factors associated with
-            injury during landing in jump sports", Sports Med 12(5):326-337, 1991).
-        kappa_limit: m^2 / rad^2, penalty past the validator's joint limits: 1 m
-            of residual per radian (as a hinge's off-axis stiffness), above the pull
-            of every marker a bone carries (a few markers at 0.1-0.5 m levers:
-            < 0.5 m^2 / rad^2), so a fitted pose stays within ~2 deg of the table
-            and markers that ask for more show as residual, not as a bent joint.
-        kappa_hinge: m^2 / rad^2, a hinge's rotation off its axis: 1 m per radian,
-            far above any marker residual, so the joint is a hinge in effect.
+            centre of mass under a landing's peak ground reaction force of up to ~11
+            body weights; Dufek & Bates, "Biomechanical factors associated with injury
+            during landing in jump sports", Sports Med 12(5):326-337, 1991).
+        kappa_limit: m^2 / rad^2, penalty past the validator's joint limits: 1 m of
+            residual per radian (as a hinge's off-axis stiffness), above the pull of
+            every marker a bone carries (a few markers at 0.1-0.5 m levers: < 0.5 m^2 /
+            rad^2), so a fitted pose stays within ~2 deg of the table and markers that
+            ask for more show as residual, not as a bent joint.
+        kappa_hinge: m^2 / rad^2, a hinge's rotation off its axis: 1 m per radian, far
+            above any marker residual, so the joint is a hinge in effect.
         cauchy_m: Cauchy scale of the marker residuals: 20 mm, the order of skin
-            artefact on limb segments (Leardini et al., "Human movement analysis
-            using stereophotogrammetry, part 3: soft tissue artifact", Gait Posture
+            artefact on limb segments (Leardini et al., "Human movement analysis using
+            stereophotogrammetry, part 3: soft tissue artifact", Gait Posture
             21(2):212-225, 2005: 10-30 mm), so artefact is down-weighted mildly and a
             swapped label (residual >= marker spacing) strongly.
-        gate_m: a visible marker whose residual exceeds max(gate_m, gate_k x the
-            frame's median residual) after the ungated fit is rejected for the frame
-            when its residual also moved by more than that since its last accepted
-            frame (at most gate_memory frames ago; older: on the level alone): a
-            swapped label or a ghost jumps by a marker spacing, while skin sliding
-            over a joint grows a residual over many frames. 40 mm, past the largest
-            soft-tissue artefact in the same review, below the 50-100 mm spacing of
-            markers on one segment. A marker never accepted since the take began
-            (beyond the gate from its first frame: a steady misfit) is not gated;
-            the Cauchy loss weighs it down.
-        gate_k: see gate_m (5: a factor that keeps the gate above the fit's own
-            residual level when the model fits a performer loosely).
+        gate_m: a visible marker whose residual exceeds max(gate_m, gate_k x the frame's
+            median residual) after the ungated fit is rejected for the frame when its
+            residual also moved by more than that since its last accepted frame (at most
+            gate_memory frames ago; older: on the level alone): a swapped label or a
+            ghost jumps by a marker spacing, while skin sliding over a joint grows a
+            residual over many frames. 40 mm, past the largest soft-tissue artefact in
+            the same review, below the 50-100 mm spacing of markers on one segment. A
+            marker never accepted since the take began (beyond the gate from its first
+            frame: a steady misfit) is not gated; the Cauchy loss weighs it down.
+        gate_k: see gate_m (5: a factor that keeps the gate above the fit's own residual
+            level when the model fits a performer loosely).
         gate_memory: frames, see gate_m (30: 0.125-0.5 s at 240-60 Hz).
-        lost_floor_m, lost_k: the fit is suspect when its residual RMS (each
-            marker the gate rejected counted at the gate) exceeds max(lost_floor_m, lost_k x the take's own running level): then
-            a second candidate is seeded from the construction and the better of
-            the two on the whole cost (markers, continuity, priors, limits) is kept.
-            10 mm (the low end of skin artefact: a misfit below it is never a lost
-            track) and 2 (the running level doubled).
-        reject_frac: suspect too when more than this fraction of the visible markers
-            is rejected (a quarter: more than an occasional swap or ghost).
+        lost_floor_m, lost_k: the fit is suspect when its residual RMS (each marker the
+            gate rejected counted at the gate) exceeds max(lost_floor_m, lost_k x the
+            take's own running level): then a second candidate is seeded from the
+            construction and the better of the two on the whole cost (markers,
+            continuity, priors, limits) is kept. 10 mm (the low end of skin artefact: a
+            misfit below it is never a lost track) and 2 (the running level doubled).
+        reject_frac: suspect too when more than this fraction of the visible markers is
+            rejected (a quarter: more than an occasional swap or ghost).
         persist_s: a marker rejected this long (seconds) makes the fit try that
-            candidate again, at most once per persist_s: a wrong basin (a limb
-            turned half round) shows as its markers rejected frame after frame.
-            0.1 s, under half the 0.25 s the fit has to recover in.
+            candidate again, at most once per persist_s: a wrong basin (a limb turned
+            half round) shows as its markers rejected frame after frame. 0.1 s, under
+            half the 0.25 s the fit has to recover in.
         unexplained_k, unexplained_frac: a frame is unexplained when the kept
-            candidate's residual RMS (as above) exceeds max(lost_floor_m,
-            unexplained_k x the running level) or more than unexplained_frac of its markers are rejected: no
-            skeleton pose accounts for the markers (a collapse, a burst of garbage,
-            mirrored labels). Its pose is the last explained one, flagged, and the
-            fit carries on from that. 4 (twice the suspect level) and one half.
-        resolution_deg: while a marker is hidden, what the markers still seen
-            observe of a joint under (max(noise_m, the running residual level) /
-            this)^2 m^2 / rad^2 is held at its last seen value with the
-            information the hidden marker gave it (``kernel_fit._hold_priors``):
-            on a real take the model's misfit, not the 1 mm noise, is what would
-            turn it. 5 deg, ``fit_observe.RESOLUTION_RAD``.
-        jump_z, jump_floor_deg: a frame is unexplained too when its pose moves a
-            joint further from its prediction than max(jump_z x the bound above,
+            candidate's residual RMS (as above) exceeds max(lost_floor_m, unexplained_k
+            x the running level) or more than unexplained_frac of its markers are
+            rejected: no skeleton pose accounts for the markers (a collapse, a burst of
+            garbage, mirrored labels). Its pose is the last explained one, flagged, and
+            the fit carries on from that. 4 (twice the suspect level) and one half.
+        resolution_deg: while a marker is hidden, what the markers still seen observe of
+            a joint under (max(noise_m, the running residual level) / this)^2 m^2 /
+            rad^2 is held at its last seen value with the information the hidden marker
+            gave it (``kernel_fit._hold_priors``): on a real take the model's misfit,
+            not the 1 mm noise, is what would turn it. 5 deg,
+            ``fit_observe.RESOLUTION_RAD``.
+        jump_z, jump_floor_deg: a frame is unexplained too when its pose moves a joint
+            further from its prediction than max(jump_z x the bound above,
             jump_floor_deg) (a root: max(jump_z x acc_max's bound, gate_m)): a body
-            cannot, mirrored or permuted labels can (the rigid skeleton turned
-            half round fits a left-right swap with a small residual). 3 (thrice
-            the peak acceleration) and 10 deg (twice RESOLUTION_RAD of
-            ``fit_observe``: noise on a short lever jitters a few degrees a frame
-            at any rate).
+            cannot, mirrored or permuted labels can (the rigid skeleton turned half
+            round fits a left-right swap with a small residual). 3 (thrice the peak
+            acceleration) and 10 deg (twice RESOLUTION_RAD of ``fit_observe``: noise on
+            a short lever jitters a few degrees a frame at any rate).
         level_tau_s: time constant of the running residual level (that RMS) over
-            explained frames: 1 s, a gait cycle (its artefact pattern), long against a burst.
+            explained frames: 1 s, a gait cycle (its artefact pattern), long against a
+            burst.
         max_iter: iteration cap per phase (the worst case is 4 phases: two fits, each
             ungated then gated).
-        tol: step size (rad, m) at which the fit has converged: 1e-4 (0.1 mm,
-            0.006 deg, a tenth of the marker noise floor above; Gauss-Newton's next
-            step would be smaller still).
-        ftol: or when an accepted step lowers the cost by less than this fraction
-            (1e-5: what is left is a direction the markers hardly see).
+        tol: step size (rad, m) at which the fit has converged: 1e-4 (0.1 mm, 0.006 deg,
+            a tenth of the marker noise floor above; Gauss-Newton's next step would be
+            smaller still).
+        ftol: or when an accepted step lowers the cost by less than this fraction (1e-5:
+            what is left is a direction the markers hardly see).
     """
 
     noise_m: float = 1e-3
