@@ -9,7 +9,7 @@ construction's roll-hold levels (``sanity.roll_hold_levels_m``) were worked out 
 no markers at all. Here each shipped rig is rewritten with every marker renamed to a
 name no take uses (the take's label kept as its alias, the rest of the file renamed
 to match), and the take is also relabelled as the matcher accepts (a ``Subject:``
-prefix, another alias); both methods must give the same solve as the
+prefix, another alias, another case); both methods must give the same solve as the
 original rig on the original take, and the fit must use every marker the base pose
 saw.
 
@@ -179,11 +179,13 @@ def _renamed_rig(
 
 #: mode -> (extra alias the rig gets, how a take label is renamed). "rig": the take
 #: as recorded; "prefix": a subject prefix (``Sub01:LASI``, stripped by the
-#: matcher); "alias": every label replaced by a second alias the rig lists.
+#: matcher); "alias": every label replaced by a second alias the rig lists; "case":
+#: every label in another case (the matcher's case-insensitive fallback).
 RELABEL: dict[str, tuple[Callable[[str], str] | None, Callable[[str], str]]] = {
     "rig": (None, lambda label: label),
     "prefix": (None, lambda label: f"Sub01:{label}"),
     "alias": (lambda label: f"{label}_alt", lambda label: f"{label}_alt"),
+    "case": (None, lambda label: label.swapcase()),
 }
 
 
@@ -331,3 +333,25 @@ def test_rig_order_base_positions_need_one_column_per_rig_marker() -> None:
         build_fit_model(rig, cal, cal.base_marker_pos[None, :-1], None)
     model = build_fit_model(rig, cal, cal.base_marker_pos[None], None)
     assert (model.marker_weight > 0.0).all()
+
+
+def test_case_fallback_takes_only_an_unambiguous_free_label() -> None:
+    """A label in another case is taken only by a marker none of whose aliases is
+    a label exactly, when that spelling is the only one and no marker took it."""
+    from retargetd.daemon.body.rig import parse_rig
+
+    rig = load_rig("menache")
+    names = list(rig.markers)
+    lower = [n.lower() for n in names]
+    assert match_markers(rig, lower) == tuple(range(len(names)))
+    # Exact first: the exact label wins over another case of it, anywhere.
+    assert match_markers(rig, ["sacrum", *lower[1:], "SACRUM"])[0] == len(names)
+    # Two other-case spellings of one alias: ambiguous, left unmatched.
+    assert match_markers(rig, ["sacrum", *lower[1:], "Sacrum"])[0] == -1
+    # A label another marker matched exactly is not taken again by case.
+    text = (resources.files("retargetd.daemon.body.rigs") / "menache.toml").read_text()
+    assert '\nLHIP = "LHIP"\n' in text
+    text = text.replace('\nLHIP = "LHIP"\n', '\nLHIP = ["LHIP", "sacrum"]\n')
+    both = parse_rig(text, source="menache with LHIP also 'sacrum'")
+    cols = match_markers(both, [n for n in names if n != "LHIP"])
+    assert cols[names.index("SACRUM")] == 0 and cols[names.index("LHIP")] == -1
