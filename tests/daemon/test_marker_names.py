@@ -23,8 +23,6 @@ first 10 frames).
 from __future__ import annotations
 
 import functools
-import json
-import re
 from collections.abc import Callable
 from importlib import resources
 from pathlib import Path
@@ -33,6 +31,7 @@ from typing import NamedTuple
 import numpy as np
 import pytest
 from paths import DATASETS, require
+from renamed_rig import write_renamed_rig
 
 from retargetd.daemon.body.calibration import Calibration, calibrate, match_markers
 from retargetd.daemon.body.fit_model import build_fit_model
@@ -44,9 +43,6 @@ from retargetd.daemon.synth import performer as pf
 from retargetd.daemon.validate.limits import JOINT_LIMITS_DEG
 from retargetd.daemon.validate.model import SEGMENT_KIND
 from retargetd.replay.takes import load_take
-
-#: The prefix every renamed rig marker gets: no take label starts with it.
-NEW = "zq_"
 
 
 class Case(NamedTuple):
@@ -120,59 +116,6 @@ CASES: dict[str, tuple[str, Callable[[], Case]]] = {
 }
 
 _cached_case = functools.cache(lambda name: CASES[name][1]())
-
-
-# --- a rig file with every marker renamed ------------------------------------------
-
-
-def _renamed_rig(
-    name: str, path: Path, extra_alias: Callable[[str], str] | None = None
-) -> tuple[Rig, dict[str, str]]:
-    """The shipped rig ``name`` rewritten with every marker ``M`` named ``zq_M``:
-    its ``[markers]`` entry keeps the original labels as aliases (plus
-    ``extra_alias(first label)`` when given), and every other mention of a marker in
-    the file (segments, points, rules, bones, lateral, ``[fit.markers.M]``) is
-    renamed with it. Checked by parsing the file back.
-
-    Returns:
-        The rig loaded from ``path`` and old name -> new name.
-    """
-    original = load_rig(name)
-    text = (resources.files("retargetd.daemon.body.rigs") / f"{name}.toml").read_text()
-    new_of = {m: NEW + m for m in original.markers}
-    names = sorted(new_of, key=len, reverse=True)
-    token = re.compile(r"(?<![\w:])(" + "|".join(map(re.escape, names)) + r")(?![\w:])")
-    entry = re.compile(r"^\s*([A-Za-z_]\w*)\s*=")
-    section = ""
-    lines = []
-    for line in text.splitlines():
-        head = re.match(r"^\s*\[\[?\s*([^\]]+?)\s*\]", line)
-        if head:
-            section = head.group(1)
-        found = entry.match(line) if section == "markers" and not head else None
-        if found and found.group(1) in new_of:
-            old = found.group(1)
-            aliases = list(original.markers[old])
-            if extra_alias is not None:
-                aliases.append(extra_alias(aliases[0]))
-            lines.append(f"{new_of[old]} = {json.dumps(aliases)}")
-        elif section == "markers" and not head:
-            lines.append(line)
-        else:
-            lines.append(token.sub(lambda m: new_of[m.group(1)], line))
-    path.write_text("\n".join(lines) + "\n")
-    rig = load_rig(path)
-    # The rewrite is a pure rename: same markers in the same order, same labels.
-    assert rig.marker_names == tuple(new_of.values())
-    for old, new in new_of.items():
-        want = original.markers[old]
-        if extra_alias is not None:
-            want = (*want, extra_alias(want[0]))
-        assert rig.markers[new] == want
-    assert len(rig.points) == len(original.points)
-    assert rig.bone_names == original.bone_names
-    assert set(rig.fit.markers) == {new_of[m] for m in original.fit.markers}
-    return rig, new_of
 
 
 # --- how the take is relabelled ------------------------------------------------------
@@ -268,7 +211,7 @@ def test_renamed_rig_gives_the_same_solve(
     original = load_rig(rig_name)
     want = _reference(case_name, method)
     extra, how = RELABEL[mode]
-    rig, _ = _renamed_rig(rig_name, tmp_path / f"{rig_name}-renamed.toml", extra)
+    rig, _ = write_renamed_rig(rig_name, tmp_path / f"{rig_name}-renamed.toml", extra)
     labels = _relabel(rig, case.labels, how)
     base_labels = _relabel(rig, case.base_labels, how)
     assert not set(rig.marker_names) & set(labels)  # no name is a take label
@@ -300,7 +243,7 @@ def test_renamed_rig_from_the_command_line(
     take = tmp_path / "take.c3d"
     argv = ["synth", "--seconds", "2", "--rate", "60", "--noise-mm", "1"]
     assert main([*argv, "--out", str(take), "--markers", "menache"]) == 0
-    rig, _ = _renamed_rig("menache", tmp_path / "renamed.toml")
+    rig, _ = write_renamed_rig("menache", tmp_path / "renamed.toml")
     capsys.readouterr()
     assert main(["rig", "check", str(tmp_path / "renamed.toml"), str(take)]) == 0
     assert f"matched {len(rig.markers)}/{len(rig.markers)}" in capsys.readouterr().out
