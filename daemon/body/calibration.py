@@ -294,14 +294,35 @@ def match_markers(rig: Rig, labels: Sequence[str]) -> tuple[int, ...]:
     """Column of each rig marker in ``labels`` (-1 when the take lacks it).
 
     Labels are matched after stripping any ``Name:`` prefix; a rig marker's aliases
-    are tried in order; labels the rig does not name are ignored.
+    are tried in order; labels the rig does not name are ignored. A marker none of
+    whose aliases is a label exactly then takes a label that equals one of its
+    aliases but for case (``lasi`` for ``LASI``; aliases in order), when that
+    alias has only one such spelling among the labels and no other marker took
+    that label exactly: labs disagree on case, never on purpose within one take.
+    A rig marker's own name is not a label unless it is listed as one (RIGS.md).
     """
     stripped: dict[str, int] = {}
     for i, label in enumerate(labels):
         stripped.setdefault(label.rsplit(":", 1)[-1], i)
-    cols = []
-    for aliases in rig.markers.values():
-        cols.append(next((stripped[a] for a in aliases if a in stripped), -1))
+    cols = [
+        next((stripped[a] for a in aliases if a in stripped), -1)
+        for aliases in rig.markers.values()
+    ]
+    if all(c >= 0 for c in cols):
+        return tuple(cols)
+    spellings: dict[str, list[str]] = {}
+    for name in stripped:
+        spellings.setdefault(name.casefold(), []).append(name)
+    taken = {c for c in cols if c >= 0}
+    for k, aliases in enumerate(rig.markers.values()):
+        if cols[k] >= 0:
+            continue
+        for alias in aliases:
+            found = spellings.get(alias.casefold(), [])
+            if len(found) == 1 and stripped[found[0]] not in taken:
+                cols[k] = stripped[found[0]]
+                taken.add(cols[k])
+                break
     return tuple(cols)
 
 

@@ -420,7 +420,7 @@ def build_fit_model(
     rig: Rig,
     calibration: Calibration,
     base_positions: F64Array,
-    base_labels: tuple[str, ...] | list[str],
+    base_labels: tuple[str, ...] | list[str] | None,
     options: FitOptions | None = None,
     *,
     joint_limits: Mapping[str, JointLimitLike] | None = None,
@@ -433,7 +433,10 @@ def build_fit_model(
         calibration: its calibrated skeleton (with rest bone origins).
         base_positions: (F, M, 3) float64, metres, world: the base-pose frames the
             calibration was made from (NaN rows = occluded).
-        base_labels: (M,) their labels.
+        base_labels: (M,) their labels (matched as a take's: aliases, prefixes);
+            None: the columns are already the rig's markers in rig order (M = Mr,
+            e.g. ``calibration.base_marker_pos[None]``), used as they are: a rig
+            marker's name need not be one of its labels.
         options: ``[fit]`` keys (default: the rig's own, ``rig.fit``).
         joint_limits: the validator's table, segment kind -> limits
             (``validate.limits.JOINT_LIMITS_DEG``); None: no limit penalty.
@@ -443,14 +446,25 @@ def build_fit_model(
         The model.
 
     Raises:
-        ValueError: a calibration without rest bone origins, or the wrong rig.
+        ValueError: a calibration without rest bone origins, the wrong rig, or
+            rig-order positions (``base_labels`` None) without one column per rig
+            marker.
     """
     check_calibration_fits(rig, calibration)
     if calibration.rest_bone_origin_pos is None:
         raise ValueError("calibration has no rest bone origins: recalibrate")
     options = options if options is not None else rig.fit
     base_positions = np.asarray(base_positions, dtype=np.float64)
-    cols = np.asarray(match_markers(rig, base_labels))
+    n_rig = len(rig.markers)
+    if base_labels is None and base_positions.shape[1:] != (n_rig, 3):
+        raise ValueError(
+            f"base_positions in rig order must be (F, {n_rig}, 3) for rig "
+            f"{rig.name}; got {base_positions.shape}"
+        )
+    # Rig order already: never re-match the rig's names as if they were labels.
+    cols = np.asarray(
+        np.arange(n_rig) if base_labels is None else match_markers(rig, base_labels)
+    )
     n_frames = base_positions.shape[0]
     marker_pos = np.full((n_frames, len(cols), 3), np.nan)
     have = cols >= 0

@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from retargetd.daemon.body.calibration import Calibration, CalibrationError
+from retargetd.daemon.body.fit_model import build_fit_model
 from retargetd.daemon.body.rig import Rig
 from retargetd.daemon.body.solve import BodySolver
 from retargetd.daemon.body.solve_fit import FitSolver
@@ -68,13 +69,16 @@ def make_body_solver(
             f"calibration of rig {calibration.rig_name} has no bone rest origins "
             "(it predates them): recalibrate to use method 'fit'"
         )
-    return FitSolver(
+    # The calibration's base-pose means are already in rig-marker order: the model
+    # takes them as they are. Matching the rig's own marker names as if they were
+    # take labels lost every marker whose name is not also one of its aliases.
+    model = build_fit_model(
         rig,
         calibration,
-        labels,
-        base_positions=base[None],
-        base_labels=calibration.marker_names,
+        base[None],
+        None,
         joint_limits=joint_limits,
         segment_kind=segment_kind,
         rate_hz=rate_hz,
     )
+    return FitSolver(rig, calibration, labels, model=model)

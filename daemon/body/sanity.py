@@ -421,7 +421,7 @@ UP_LEVER_MIN_M = 0.030
 
 
 def up_levers(
-    rig: Rig, cal: Calibration, positions: F64Array, labels: Sequence[str]
+    rig: Rig, cal: Calibration, positions: F64Array, labels: Sequence[str] | None
 ) -> dict[str, float]:
     """Each bone's up lever in the base pose (see :data:`UP_LEVER_MIN_M`), metres.
 
@@ -429,13 +429,18 @@ def up_levers(
         rig: the rig the calibration was made for.
         cal: the calibration.
         positions: (F, M, 3) float64, metres, world: the base-pose frames.
-        labels: (M,) marker labels.
+        labels: (M,) the take's marker labels; None: the columns are the rig's
+            markers in rig order (``cal.base_marker_pos``), not matched by name.
 
     Returns:
         bone name -> lever (bones whose points were not all seen are left out).
     """
     pos = np.asarray(positions, dtype=np.float64)
-    cols = np.asarray(match_markers(rig, labels))
+    cols = (
+        np.arange(len(rig.markers))
+        if labels is None
+        else np.asarray(match_markers(rig, labels))
+    )
     mean = _finite_mean(pos, axis=0)  # (M, 3)
     marker_pos = np.full((1, len(cols), 3), np.nan)
     have = cols >= 0
@@ -492,7 +497,9 @@ def roll_hold_levels_m(rig: Rig, cal: Calibration) -> F64Array:
     base = cal.base_marker_pos
     if base is None:
         return levels
-    levers = up_levers(rig, cal, np.asarray(base)[None], cal.marker_names)
+    # base_marker_pos is in rig-marker order: never match the rig's names as labels
+    # (a marker named apart from its aliases would count as unseen).
+    levers = up_levers(rig, cal, np.asarray(base)[None], None)
     for b, bone in enumerate(rig.bones):
         lever = levers.get(bone.name)
         if lever is not None:

@@ -10,7 +10,11 @@ with the reason in the report, when neither works; ``validate.render``).
 ``--no-snapshots`` renders none (no GL subprocess; the report says ``snapshots off``):
 the checks, report and plot are unchanged.
 Body mass: the take's ``Bodymass`` when it has one, else 70 kg (``--body-mass-kg``
-overrides). Checks and thresholds: ``validate.checks``; the report's header
+overrides). With the fit (the default), the marker residual checks
+(``marker_residual_median``, ``marker_residual_max``: ``validate.residual``) read the
+fit's own residuals and name the markers the calibrated skeleton cannot match
+(report.json ``markers`` per such check; report.txt a line per flagged run). Checks
+and thresholds: ``validate.checks``; the report's header
 says how each threshold was set (the literature and the PiG walk, the MOTEK ballet and
 the tennis serve). A joint-limit excursion of a single frame is listed as a transient
 (a marker glitch), not failed.
@@ -44,7 +48,10 @@ THRESHOLDS_NOTE = (
     "calibrated on MOTEK_T, another session) and the tennis serve (rig cmu41, "
     "calibrated on its first second); each limit sits above the takes' worst frame "
     "and below the synthetic defects it must catch (per check below; values and "
-    "sources: validate.checks.THRESHOLDS, joint table: validate.limits)"
+    "sources: validate.checks.THRESHOLDS, joint table: validate.limits). The fit's "
+    "marker residual limits come from the literature alone, not from a take: the "
+    "real takes confirm them, and the ballet's right arm and the serve's acromion "
+    "markers fail them as the misfits they are (README)"
 )
 
 
@@ -179,6 +186,7 @@ def _validate(
         ),
         "",
     ]
+    width = max(18, *(len(name) for name in rep.checks))
     for name, c in rep.checks.items():
         s = c.summary(3)
         worst = ", ".join(
@@ -187,7 +195,8 @@ def _validate(
         )
         transients = f"  transients {c.transients.size}" if c.transients.size else ""
         lines.append(
-            f"{name:18s} {'FAIL' if c.n_flagged else 'ok  '} flagged {c.n_flagged:6d}"
+            f"{name:{width}s} {'FAIL' if c.n_flagged else 'ok  '} flagged "
+            f"{c.n_flagged:6d}"
             f"  max {s['max']:.4g} {c.unit} (threshold {c.threshold:g})"
             f"  worst frames: {worst}{transients}"
         )

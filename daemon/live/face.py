@@ -17,7 +17,8 @@ capture rebuilds the solver and saves the training set (``face.save_training`` o
 ``face.training``).
 
 When the face config lists no facial markers, they are every stream label that is not
-a head marker and not one of the body rig's markers.
+a head marker and that the body rig does not match (``body.calibration.match_markers``:
+its aliases, prefixes, case; a rig marker's name is not a label unless listed).
 
 With a neutral but no expression captured yet, the stabilized markers (the "Mug")
 are streamed and no weights are sent (the solver stabilizes; with no expression
@@ -33,6 +34,8 @@ from pathlib import Path
 
 import numpy as np
 
+from retargetd.daemon.body.calibration import match_markers
+from retargetd.daemon.body.rig import Rig
 from retargetd.daemon.face.config import FaceConfig, load_face_config
 from retargetd.daemon.face.solve import (
     FaceOutput,
@@ -85,18 +88,18 @@ class LiveFace:
 
     Args:
         settings: the ``[face]`` section.
-        body_markers: the body rig's marker names (not facial markers).
+        body_rig: the body's rig: the labels it matches are not facial markers.
 
     Raises:
         FaceConfigError / ValueError: a bad face config or training file.
     """
 
     def __init__(
-        self, settings: FaceSectionConfig, body_markers: Sequence[str] = ()
+        self, settings: FaceSectionConfig, body_rig: Rig | None = None
     ) -> None:
         self.settings = settings
         self.face: FaceConfig = load_face_config(settings.config)
-        self.body_markers = frozenset(body_markers)
+        self.body_rig = body_rig
         self.training: TrainingSet | None = None
         if settings.training and Path(settings.training).exists():
             self.training = TrainingSet.load(settings.training)
@@ -122,14 +125,20 @@ class LiveFace:
 
     def facial_markers(self, labels: Sequence[str]) -> tuple[str, ...]:
         """The facial markers for a stream with ``labels`` (training set's when one
-        exists, else the config's, else every non-head, non-body label)."""
+        exists, else the config's, else every label that is not a head marker and
+        that the body rig does not match)."""
         if self.training is not None:
             return self.training.marker_names
         if self.face.facial_markers:
             return self.face.facial_markers
         head = set(self.face.head_markers)
+        body = (
+            set(match_markers(self.body_rig, labels))
+            if self.body_rig is not None
+            else set()
+        )
         return tuple(
-            lb for lb in labels if lb not in head and lb not in self.body_markers
+            lb for i, lb in enumerate(labels) if lb not in head and i not in body
         )
 
     def stage(self, labels: Sequence[str]) -> FaceStage | None:

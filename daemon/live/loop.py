@@ -377,8 +377,11 @@ class Daemon(
                 res.push(probe)
         if self.calibration is None:
             return
-        pipe = self._build_pipeline(self.rig.marker_names, with_face=False)
-        nan_frame = np.full((len(self.rig.marker_names), 3), np.nan)
+        # A stream naming every marker as the rig's labels do (its names need not
+        # be labels: such a warm-up would call every marker missing).
+        labels = tuple(aliases[0] for aliases in self.rig.markers.values())
+        pipe = self._build_pipeline(labels, with_face=False)
+        nan_frame = np.full((len(labels), 3), np.nan)
         pose = pipe.solver.solve_frame(nan_frame, pipe.pose)
         pipe.retargeter.apply(pose, pipe.target_pose)
         pipe.solver.reset()

@@ -193,7 +193,7 @@ class Performer:
             load_calibration(config.calibration) if config.calibration else None
         )
         self.face: LiveFace | None = (
-            LiveFace(face, self.rig.marker_names) if face is not None else None
+            LiveFace(face, self.rig) if face is not None else None
         )
         self.vmc_addr = vmc_addr
         self.vmc_max_datagram = vmc_max_datagram

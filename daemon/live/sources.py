@@ -41,6 +41,7 @@ from typing import Any
 
 import zmq
 
+from retargetd.daemon.body.calibration import match_markers
 from retargetd.daemon.live.state import DaemonState
 from retargetd.protocols import natnet, natnet_client, pose_stream, qtm
 from retargetd.protocols.marker_input import ACCEPTED, RESTART, RESTART_GAP_NS
@@ -347,10 +348,13 @@ class CaptureMixin(DaemonState):
         cap.labels_seen = stream.label_set
         if stream.label_set is None:
             return
-        known = {  # every performer's markers, as the stream names them
-            p.prefix + m for p in self.performers for m in p.rig.marker_names
-        }
-        unknown = tuple(lb for lb in stream.label_set.labels if lb not in known)
+        labels = stream.label_set.labels
+        known: set[int] = set()  # the labels some performer's rig matches
+        for p in self.performers:
+            mine = [i for i, lb in enumerate(labels) if lb.startswith(p.prefix)]
+            cols = match_markers(p.rig, [labels[i][len(p.prefix) :] for i in mine])
+            known.update(mine[c] for c in cols if c >= 0)
+        unknown = tuple(lb for i, lb in enumerate(labels) if i not in known)
         if unknown and unknown != cap.unknown_labels:
             cap.counts["unknown_label_sets"] += 1
             shown = ", ".join(unknown[:8]) + (" ..." if len(unknown) > 8 else "")

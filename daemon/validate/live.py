@@ -18,6 +18,12 @@ the bits set when it is beyond its :data:`validate.THRESHOLDS` entry.
 - fit (mm): max distance between a skeleton point and its solved joint centre (pairs
   of :func:`validate.fit_pairs`; occluded centres skipped, NaN when none is seen)
   (``fit_max_mm``); bone bit FIT on each bone whose origin or aim is beyond.
+  **Blind for the fit** (the default method): the fit's joint centres are its rigid
+  skeleton's own, so this reads ~0 whatever the markers do. Offline, ``retargetd
+  validate`` reads the fit's marker residuals instead (``validate.residual``); live
+  they are not checked yet: that needs the residuals in the ring slot and a ninth
+  check, and RTDV's eight values and frame bits 8-15 are all taken (a protocol
+  change, PROTOCOLS.md section 6). Live, watch the fit's frame flag ``reseeded``.
 - quat_norm: max ``| |q| - 1 |`` over both rotation sets (``quat_norm``).
 - limits (degrees beyond): the swing/twist table of :mod:`validate_limits`
   (``limit_deg``); bone bit LIMIT on each bone beyond.

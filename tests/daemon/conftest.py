@@ -98,9 +98,14 @@ def retargetd_argv() -> list[str]:
 
 
 def daemon_config(
-    path: Path, calibration: Path, extra: str = "", vmc_port: int = 0
+    path: Path,
+    calibration: Path,
+    extra: str = "",
+    vmc_port: int = 0,
+    rig: str = "plug-in-gait",
 ) -> Path:
-    """A ``retargetd run`` config for the plug-in-gait rig: every endpoint ephemeral
+    """A ``retargetd run`` config for ``rig`` (default plug-in-gait, a shipped name or
+    a path; the calibration must be of it): every endpoint ephemeral
     on 127.0.0.1, VMC off (or to 127.0.0.1:``vmc_port``), a pose stream that queues
     (not drops) for a slow SUB. The body solve is the construction, these tests'
     oracle (the fit, the default, has its own live tests: test_live_equals_batch)."""
@@ -108,7 +113,7 @@ def daemon_config(
     vmc = f'host = "127.0.0.1"\nport = {vmc_port}' if vmc_port else "enabled = false"
     path.write_text(
         f"""[performer]
-rig = "plug-in-gait"
+rig = {q(rig)}
 calibration = {q(str(calibration))}
 [solve]
 method = "construction"
@@ -220,16 +225,20 @@ def retargetd() -> list[str]:
 
 @pytest.fixture
 def run_daemon(tmp_path: Path) -> Iterator[Callable[..., DaemonProc]]:
-    """``start(calibration, *args, extra="", vmc_port=0)``: ``retargetd run --config C
-    ARGS`` in ``tmp_path``, C from :func:`daemon_config`; killed at teardown if still
-    running."""
+    """``start(calibration, *args, extra="", vmc_port=0, rig="plug-in-gait")``:
+    ``retargetd run --config C ARGS`` in ``tmp_path``, C from :func:`daemon_config`;
+    killed at teardown if still running."""
     procs: list[DaemonProc] = []
 
     def start(
-        calibration: Path, *args: str, extra: str = "", vmc_port: int = 0
+        calibration: Path,
+        *args: str,
+        extra: str = "",
+        vmc_port: int = 0,
+        rig: str = "plug-in-gait",
     ) -> DaemonProc:
         config = daemon_config(
-            tmp_path / f"daemon{len(procs)}.toml", calibration, extra, vmc_port
+            tmp_path / f"daemon{len(procs)}.toml", calibration, extra, vmc_port, rig
         )
         proc = DaemonProc(["--config", str(config), *args], tmp_path)
         procs.append(proc)

@@ -1,5 +1,7 @@
 """The real takes validate clean: the MOTEK ballet and the tennis serve (rig cmu41)
-solved in process, and all three (with the PiG walk) as recorded replays.
+solved in process, and all three (with the PiG walk) as recorded replays; with the fit
+(the default), every check but the marker residual one, which fails on the ballet's
+right arm and the serve's acromion markers and names them (:data:`RESIDUAL_MISFITS`).
 
 Thresholds and the joint table were set on these takes and the literature
 (``validate.THRESHOLDS``, ``validate_limits``); the figures each check reaches are
@@ -69,6 +71,34 @@ TENNIS_GLITCHES = [744]
 #: the right foot's 1.9 deg past its 55.
 
 
+#: Takes whose fit fails the marker residual check (validate.residual, issue 28 item
+#: 4: what the fit cannot match shows as residual, flagged and named), and the two
+#: markers it must name first. Thresholds from the literature, not these takes
+#: (THRESHOLDS "marker_residual_*"); these are true misfits, not noise:
+#: - the ballet on MOTEK_T (another session: its right arm SHO-ELB 35 mm shorter than
+#:   the ballet's): the right upper-arm wand and elbow marker sit 46 / 36 mm (median)
+#:   from where the calibrated arm can put them, past 40 mm in 0.6-0.7 s runs (and
+#:   RBAC, on the scapula, at 43 mm for 8 frames); every other marker stays under;
+#: - the serve: the acromion markers 100-140 mm from the fitted clavicles in every
+#:   serve's arm elevation (runs of 1.3-2 s), far past the skin motion measured there
+#:   (median 30 mm at the acromial angle, Sensors 22(17):6502, 2022); freeing the
+#:   clavicles' [fit] prior did not bring LSHO under 120 mm (p90): the rig's model, not
+#:   the prior, cannot follow the serve's shoulder (the other issue 28 items).
+#: When the fit or the rigs come to match them, these become passes: update this.
+RESIDUAL_MISFITS = {"motek-ballet": ("RUPA", "RELB"), "tennis-serve": ("RSHO", "LSHO")}
+
+
+def _expected_failures(case: str, method: str) -> list[str]:
+    """The checks a case fails with ``method`` (the fit: the residual misfits)."""
+    misfit = method == "fit" and case in RESIDUAL_MISFITS
+    return ["marker_residual_max"] if misfit else []
+
+
+def _check_misfit(case: str, markers: dict[str, Any]) -> None:
+    """The residual check names the case's two misfit markers first."""
+    assert tuple(list(markers)[:2]) == RESIDUAL_MISFITS[case], markers
+
+
 def _validate(
     static: Path, frames: slice, take_path: Path, method: str = "construction"
 ) -> tuple[TakeReport, np.ndarray]:
@@ -105,9 +135,12 @@ def _validate(
 
 
 @pytest.mark.parametrize("method", ["construction", "fit"])
-def test_motek_ballet_passes(datasets: Path, method: str) -> None:
+def test_motek_ballet_validates(datasets: Path, method: str) -> None:
     rep, rms = _validate(datasets / MOTEK_T, slice(None), datasets / BALLET, method)
-    assert rep.passed, {n: c.summary() for n, c in rep.checks.items() if c.n_flagged}
+    failed = {n: c.summary() for n, c in rep.checks.items() if c.n_flagged}
+    assert rep.failed() == _expected_failures("motek-ballet", method), failed
+    if method == "fit":
+        _check_misfit("motek-ballet", rep.checks["marker_residual_max"].markers or {})
     assert rep.checks["limits"].transients.size == 0
     if method == "construction":
         # The checks the ballet came closest to (see THRESHOLDS): MOTEK_T is another
@@ -122,12 +155,15 @@ def test_motek_ballet_passes(datasets: Path, method: str) -> None:
 
 
 @pytest.mark.parametrize("method", ["construction", "fit"])
-def test_tennis_serve_passes(datasets: Path, method: str) -> None:
+def test_tennis_serve_validates(datasets: Path, method: str) -> None:
     """With the fit (issue 14), the serve's one-frame label glitches are gated out
     and no longer show as limit transients."""
     path = datasets / TENNIS
     rep, _ = _validate(path, slice(0, 50), path, method)
-    assert rep.passed, {n: c.summary() for n, c in rep.checks.items() if c.n_flagged}
+    failed = {n: c.summary() for n, c in rep.checks.items() if c.n_flagged}
+    assert rep.failed() == _expected_failures("tennis-serve", method), failed
+    if method == "fit":
+        _check_misfit("tennis-serve", rep.checks["marker_residual_max"].markers or {})
     want = TENNIS_GLITCHES if method == "construction" else []
     assert rep.checks["limits"].transients.tolist() == want
     assert 0.3 < np.nanmax(rep.checks["ghost_force"].values) < 0.75  # serve flight
@@ -270,15 +306,20 @@ def test_recorded_replay_validates_clean(
         *("validate", str(rec.recording), "--rig", rec.rig),
         *("--calibration", str(rec.calibration), "--report", str(report), *rec.extra),
     ]
-    assert main(argv) == 0
+    expected = _expected_failures(name, "fit")
+    assert main(argv) == (1 if expected else 0)
     doc: dict[str, Any] = json.loads((report / "report.json").read_text())
-    assert doc["passed"] and doc["failed"] == [] and doc["frames"] == rec.n_frames
+    assert doc["passed"] == (not expected) and doc["failed"] == expected
+    assert doc["frames"] == rec.n_frames
     assert doc["take"] == str(rec.recording)
     assert doc["thresholds"] == THRESHOLDS
     assert doc["thresholds_basis"] == THRESHOLDS_BASIS and doc["thresholds_note"]
     checks = doc["checks"]
     assert set(checks) == {*THRESHOLDS_BASIS}
-    for check in checks.values():
+    for check_name, check in checks.items():
+        if check_name in expected:
+            _check_misfit(name, check["markers"])
+            continue
         assert check["frames_flagged"] == 0
         assert check["max"] <= check["threshold"] or check["transient_frames"]
     # validate solves with the fit (the default), which gates the serve's one-frame
@@ -289,5 +330,6 @@ def test_recorded_replay_validates_clean(
     assert 0.0 < checks["ghost_force"]["max"] < THRESHOLDS["ghost_force_bw"]
     assert checks["floating"]["max"] == 0.0
     text = (report / "report.txt").read_text()
-    assert "Result: PASS" in text and "How the thresholds were set" in text
+    result = "Result: FAIL: marker_residual_max" if expected else "Result: PASS"
+    assert result in text and "How the thresholds were set" in text
     assert (report / "model.xml").is_file() and (report / "checks.png").is_file()
