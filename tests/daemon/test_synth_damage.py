@@ -1,5 +1,5 @@
 """Deterministic damage to a take's markers and what it does to a solve
-(``synth.damage``, issue 28 item 6)."""
+(``synth.damage``, issue 28 item 6), and a short run of ``bench/fit_truth.py``."""
 
 from __future__ import annotations
 
@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from bench_scripts import bench_module
 
 from retargetd.daemon import rotations as rot
 from retargetd.daemon.body.calibration import calibrate
@@ -179,3 +180,21 @@ def test_damage_metrics_against_the_truth() -> None:
     assert m.truth_max_deg is not None and m.max_bone == "l_hand"
     assert m.max_bone_deg > 1.0  # the hand held, or rebuilt from two markers
     assert m.truth_max_deg == pytest.approx(m.max_bone_deg, abs=1e-6)
+
+
+# --- bench/fit_truth.py -----------------------------------------------------------
+
+
+def test_fit_truth_bench_writes_its_tables(tmp_path: Path) -> None:
+    out = tmp_path / "fit-truth.md"
+    script = bench_module("fit_truth")
+    argv = ["--out", str(out), "--rigs", "menache", "--motions", "default",
+            "--methods", "fit", "--seconds", "2", "--damage-at-s", "1.2",
+            "--hide-s", "0.05", "--bursts", "2", "--burst-kinds", "zeros",
+            "--jobs", "1"]  # fmt: skip
+    assert script.main(argv) == 0
+    text = out.read_text()
+    assert "| menache | default | fit |" in text
+    assert "### menache, fit: p95 / max, degrees" in text
+    assert "| lhand |" in text
+    assert "| hide 0.05 s (37 markers) |" in text and "| zeros 2 frames |" in text
