@@ -1,0 +1,250 @@
+"""A body solve against the synthetic performer's truth (``synth.truth``, issue 28
+item 6), checked where the answer is known: the exact rig
+(``tests/data/synth-exact-rig.toml``, every bone rigid on its segment) solves to ~0;
+a rotation injected into a solve, or a twist into the truth, comes back as the
+error and the excursion it is.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from retargetd.daemon import rotations as rot
+from retargetd.daemon.body.calibration import calibrate
+from retargetd.daemon.body.method import make_body_solver
+from retargetd.daemon.body.rig import Rig, load_rig
+from retargetd.daemon.body.solve import BodySolve
+from retargetd.daemon.synth import performer as pf
+from retargetd.daemon.synth.truth import compare_with_truth, truth_map
+from retargetd.daemon.validate.limits import JOINT_LIMITS_DEG
+from retargetd.daemon.validate.model import SEGMENT_KIND
+
+DATA = Path(__file__).resolve().parent.parent / "data"
+EXACT_RIG = DATA / "synth-exact-rig.toml"
+EXACT_MARKERS = DATA / "synth-exact-markers.toml"
+RATE_HZ = 120.0
+Y = np.array([0.0, 1.0, 0.0])
+
+
+@functools.cache
+def _exact(motions: tuple[str, ...] = pf.DEFAULT_MOTIONS) -> tuple[Rig, pf.SynthTake]:
+    take = pf.synthesize(
+        seconds=3.0, rate_hz=RATE_HZ, markerset=EXACT_MARKERS, motions=motions, seed=3
+    )
+    return load_rig(EXACT_RIG), take
+
+
+@functools.cache
+def _solve(method: str, motions: tuple[str, ...] = pf.DEFAULT_MOTIONS) -> BodySolve:
+    rig, take = _exact(motions)
+    cal = calibrate(rig, take.markers_world[:120], take.labels)
+    solver = make_body_solver(
+        method, rig, cal, take.labels,
+        joint_limits=JOINT_LIMITS_DEG, segment_kind=SEGMENT_KIND,
+    )  # fmt: skip
+    return solver.solve_take(take.markers_world)
+
+
+def _about(axis: np.ndarray, deg: np.ndarray | float) -> np.ndarray:
+    return rot.quat_from_axis_angle(axis, np.radians(deg))
+
+
+# --- synth.truth ------------------------------------------------------------------
+
+
+def test_map_follows_humanoid_names() -> None:
+    rig, take = _exact()
+    tmap = truth_map(rig, take.segment_names)
+    # the exact rig names its bones and joints for the segments they stand for
+    assert tmap.bone_names == take.segment_names
+    assert [take.segment_names[s] for s in tmap.segments] == list(tmap.bone_names)
+    assert tmap.joint_names == take.segment_names
+    hand = tmap.bone_names.index("l_hand")
+    assert take.segment_names[tmap.carriers[hand]] == "l_forearm"
+    assert tmap.carriers[0] == -1  # the root's parent is the world
+    chain = [rig.bones[i].name for i in tmap.ancestors[hand]]
+    assert chain == ["l_hand", "l_forearm", "l_upper_arm", "l_clavicle", "thorax",
+                     "abdomen", "pelvis"]  # fmt: skip
+    # menache: bones without a humanoid name are skipped, shared origins too
+    menache = truth_map(load_rig("menache"), take.segment_names)
+    assert "lradius" not in menache.bone_names and "torso" not in menache.bone_names
+    assert len(menache.bone_names) == 19
+    pig = truth_map(load_rig("plug-in-gait"), take.segment_names)
+    assert "TRXO" not in pig.joint_names  # both clavicles' origin: no one joint
+
+
+@pytest.mark.parametrize(
+    ("method", "max_deg", "ref_frame"),
+    [("construction", 1e-6, 0), ("fit", 0.1, 0), ("construction", 1e-6, 250)],
+)
+def test_exact_rig_solves_to_the_truth(
+    method: str, max_deg: float, ref_frame: int
+) -> None:
+    """Any reference frame, in the T-pose (identity segments) or out of it (the
+    changes are compared in the world frame, where they agree)."""
+    rig, take = _exact()
+    cmp = compare_with_truth(_solve(method), take, rig, ref_frame=ref_frame)
+    print(
+        f"\nexact rig, {method}, reference {ref_frame}: bone max "
+        f"{cmp.max_deg.max():.2e} deg, joint max {cmp.joint_max_mm.max():.2e} mm"
+    )
+    assert cmp.max_deg.max() <= max_deg
+    assert cmp.joint_max_mm.max() <= 0.1
+    assert cmp.joint_offset_mm.max() <= 1e-3
+    assert cmp.bones_past(5.0, 10.0) == ()
+    assert (cmp.n_nan == 0).all()
+    assert cmp.error_deg.shape == (take.n_frames, 21)
+
+
+def _with(solve: BodySolve, **arrays: np.ndarray) -> BodySolve:
+    return dataclasses.replace(solve, **arrays)
+
+
+def test_injected_rotation_is_the_error() -> None:
+    rig, take = _exact()
+    solve = _solve("construction")
+    b = rig.bone_names.index("l_forearm")
+    k = truth_map(rig, take.segment_names).bone_names.index("l_forearm")
+    wfb = solve.world_from_bone_quat.copy()
+    axis = np.array([1.0, 2.0, -0.5]) / np.linalg.norm([1.0, 2.0, -0.5])
+    wfb[200:, b] = rot.quat_mul(_about(axis, 20.0), wfb[200:, b])  # world frame
+    wfb[300:, b] = rot.quat_mul(wfb[300:, b], _about(Y, -15.0))  # and bone frame
+    wfb[250, b] = np.nan
+    cmp = compare_with_truth(_with(solve, world_from_bone_quat=wfb), take, rig)
+    err = cmp.error_deg[:, k]
+    assert np.abs(err[:200]).max() <= 1e-6
+    np.testing.assert_allclose(err[200:250], 20.0, atol=1e-6)
+    assert err[250] == 180.0 and cmp.n_nan[k] == 1
+    # -15 deg about the bone's own +Y, then 20 deg about `axis` (world)
+    w = solve.world_from_bone_quat[300, b]
+    own = rot.quat_mul(w, rot.quat_mul(_about(Y, -15.0), rot.quat_conj(w)))
+    expected = np.degrees(rot.quat_angle(rot.quat_mul(_about(axis, 20.0), own)))
+    np.testing.assert_allclose(err[300], expected, atol=1e-6)
+    assert not np.isclose(expected, 20.0) and not np.isclose(expected, 15.0)
+    assert cmp.max_deg[k] == 180.0
+    others = np.delete(cmp.max_deg, k)
+    assert others.max() <= 1e-6
+    assert cmp.bones_past(5.0, 10.0) == ("l_forearm",)
+    # the reference frame is the calibration pose: a rotation there is no error later
+    ref = compare_with_truth(
+        _with(solve, world_from_bone_quat=wfb), take, rig, frames=slice(0, 200)
+    )
+    assert ref.max_deg[k] <= 1e-6
+
+
+def test_joint_error_carries_a_constant_offset_and_shows_drift() -> None:
+    rig, take = _exact()
+    solve = _solve("construction")
+    j = solve.joint_names.index("l_forearm")  # the elbow
+    upper = take.segment_names.index("l_upper_arm")
+    offset_seg = np.array([0.004, -0.003, 0.012])  # 13 mm, rigid on the upper arm
+    centres = solve.joint_centres.copy()
+    centres[:, j] += rot.quat_rotate(take.world_from_segment_quat[:, upper], offset_seg)
+    cmp = compare_with_truth(_with(solve, joint_centres=centres), take, rig)
+    jc = cmp.joint_names.index("l_forearm")
+    assert cmp.joint_offset_mm[jc] == pytest.approx(1000 * np.linalg.norm(offset_seg))
+    assert cmp.joint_carriers[jc] == "l_upper_arm"
+    assert cmp.joint_max_mm[jc] <= 1e-6
+    # an offset rigid on the joint's own segment (the wrist's, on the hand)
+    w = solve.joint_names.index("l_hand")
+    hand = take.segment_names.index("l_hand")
+    centres[:, w] += rot.quat_rotate(take.world_from_segment_quat[:, hand], offset_seg)
+    cmp = compare_with_truth(_with(solve, joint_centres=centres), take, rig)
+    jw = cmp.joint_names.index("l_hand")
+    assert cmp.joint_carriers[jw] == "l_hand"
+    assert cmp.joint_max_mm[jw] <= 1e-6
+    # a drift no constant offset explains: 5 mm along world x from frame 200
+    drift = solve.joint_centres.copy()
+    drift[200:, j] += [0.005, 0.0, 0.0]
+    cmp = compare_with_truth(_with(solve, joint_centres=drift), take, rig)
+    assert cmp.joint_max_mm[jc] == pytest.approx(5.0)
+    assert cmp.joint_p50_mm[jc] <= 1e-6
+
+
+def test_unobserved_twist_is_the_allowed_excursion() -> None:
+    """The performer holds the T-pose; the truth is given a forearm twist alpha
+    about its long axis, and the hand a swing beta and a twist theta about its own:
+    a solve that holds both twists (here: the still performer's) is off by no more
+    than |alpha| + |theta|, the excursion summed over the hand and its ancestors."""
+    rig, take = _exact(motions=())
+    solve = _solve("construction", motions=())
+    t = take.times_s
+    alpha = 40.0 * np.sin(2.0 * t)
+    theta = -25.0 * np.sin(3.1 * t + 0.4) * (t > 0.5)
+    beta = 30.0 * np.sin(1.3 * t)
+    wfs = take.world_from_segment_quat.copy()
+    forearm = take.segment_names.index("l_forearm")
+    hand = take.segment_names.index("l_hand")
+    z = np.array([0.0, 0.0, 1.0])
+    # T-pose: every segment's frame is the world's, the left arm along +Y
+    wfs[:, forearm] = _about(Y, alpha)
+    wfs[:, hand] = rot.quat_mul(
+        wfs[:, forearm], rot.quat_mul(_about(z, beta), _about(Y, theta))
+    )
+    truth = dataclasses.replace(take, world_from_segment_quat=wfs)
+    unobserved = {"l_forearm": [(0.0, 1.0, 0.0)], "l_hand": [(0.0, 2.0, 0.0)]}
+    cmp = compare_with_truth(solve, truth, rig, unobserved=unobserved)
+    kf, kh = cmp.bone_names.index("l_forearm"), cmp.bone_names.index("l_hand")
+    np.testing.assert_allclose(cmp.excursion_deg[:, kf], np.abs(alpha), atol=1e-6)
+    np.testing.assert_allclose(
+        cmp.excursion_deg[:, kh], np.abs(alpha) + np.abs(theta), atol=1e-6
+    )
+    np.testing.assert_allclose(cmp.error_deg[:, kf], np.abs(alpha), atol=1e-6)
+    # the hand's swing is observed: it stays an error
+    assert (cmp.error_deg[:, kh] > cmp.excursion_deg[:, kh] + 1.0).any()
+    others = np.delete(cmp.excursion_deg, [kf, kh], axis=1)
+    assert not others.any()
+    # without the swing the hand is within its excursion
+    wfs[:, hand] = rot.quat_mul(wfs[:, forearm], _about(Y, theta))
+    truth = dataclasses.replace(take, world_from_segment_quat=wfs)
+    cmp = compare_with_truth(solve, truth, rig, unobserved=unobserved)
+    assert (cmp.error_deg[:, kh] <= cmp.excursion_deg[:, kh] + 1e-6).all()
+    assert (cmp.excess_max_deg <= 1e-6).all()
+    assert cmp.max_deg[kh] > 30.0 and cmp.bones_past(5.0, 10.0) == ()
+
+
+def test_unobserved_axis_is_read_in_the_bone_rest_axes() -> None:
+    """The right forearm held flexed 60 deg (at the reference too) twists by alpha
+    about an oblique axis given in the bone's rest axes: its excursion is |alpha|,
+    the twist since the reference about that axis as the segment carries it."""
+    rig, take = _exact(motions=())
+    solve = _solve("construction", motions=())
+    b = rig.bone_names.index("r_forearm")
+    seg = take.segment_names.index("r_forearm")
+    rest = solve.world_from_bone_quat[0, b]  # = segment_from_bone: T-pose
+    axis_bone = np.array([1.0, 2.0, 3.0]) / np.sqrt(14.0)
+    axis_seg = rot.quat_rotate(rest, axis_bone)
+    alpha = 35.0 * np.sin(2.0 * take.times_s)
+    flexed = _about(np.array([0.0, 0.0, 1.0]), 60.0)
+    wfs = take.world_from_segment_quat.copy()
+    wfs[:, seg] = rot.quat_mul(flexed, _about(axis_seg, alpha))
+    wfb = solve.world_from_bone_quat.copy()
+    wfb[:, b] = rot.quat_mul(flexed, rest)  # the solve holds the twist
+    cmp = compare_with_truth(
+        _with(solve, world_from_bone_quat=wfb),
+        dataclasses.replace(take, world_from_segment_quat=wfs),
+        rig,
+        unobserved={"r_forearm": [tuple(axis_bone)]},
+    )
+    k = cmp.bone_names.index("r_forearm")
+    np.testing.assert_allclose(cmp.excursion_deg[:, k], np.abs(alpha), atol=1e-6)
+    np.testing.assert_allclose(cmp.error_deg[:, k], np.abs(alpha), atol=1e-6)
+    hand = cmp.bone_names.index("r_hand")  # carries its parent's excursion
+    np.testing.assert_allclose(cmp.excursion_deg[:, hand], np.abs(alpha), atol=1e-6)
+
+
+def test_unobserved_refuses_what_it_cannot_judge() -> None:
+    rig, take = _exact()
+    solve = _solve("construction")
+    with pytest.raises(ValueError, match="not in rig"):
+        compare_with_truth(solve, take, rig, unobserved={"nope": [(0, 1, 0)]})
+    with pytest.raises(ValueError, match="non-zero"):
+        compare_with_truth(solve, take, rig, unobserved={"l_hand": [(0, 0, 0)]})
+    short = _with(solve, world_from_bone_quat=solve.world_from_bone_quat[:10])
+    with pytest.raises(ValueError, match="not the same take"):
+        compare_with_truth(short, take, rig)
