@@ -79,6 +79,5 @@ def make_body_solver(
         None,
         joint_limits=joint_limits,
         segment_kind=segment_kind,
-        rate_hz=rate_hz,
     )
-    return FitSolver(rig, calibration, labels, model=model)
+    return FitSolver(rig, calibration, labels, model=model, rate_hz=rate_hz)
