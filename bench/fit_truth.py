@@ -173,6 +173,7 @@ def _solver(
     return make_body_solver(
         method, rig, cal, take.labels,
         joint_limits=JOINT_LIMITS_DEG, segment_kind=SEGMENT_KIND,
+        rate_hz=take.rate_hz,
     )  # fmt: skip
 
 

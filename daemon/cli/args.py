@@ -270,17 +270,22 @@ def solver_for_take(args: argparse.Namespace) -> tuple[Any, Any, Any, Any]:
                 take, rig, frames, parse_measures(args.measure),
                 allow_moving=args.allow_moving_base_pose,
             )  # fmt: skip
-        solver = solver_of_method(args, rig, cal, take.labels)
+        solver = solver_of_method(args, rig, cal, take.labels, take.rate_hz)
     except CalibrationError as exc:
         raise UsageError(str(exc)) from None
     return rig, take, cal, solver
 
 
 def solver_of_method(
-    args: argparse.Namespace, rig: Any, calibration: Any, labels: Any
+    args: argparse.Namespace,
+    rig: Any,
+    calibration: Any,
+    labels: Any,
+    rate_hz: float = 120.0,
 ) -> Any:
     """The body solver ``--method`` names (default: the fit), with the validator's
     joint limits as the fit's soft penalty: every command solves a take alike.
+    ``rate_hz``: the take's frame rate (the fit's continuity prior).
 
     Raises:
         CalibrationError: a calibration the method cannot use.
@@ -291,7 +296,7 @@ def solver_of_method(
 
     return make_body_solver(
         getattr(args, "method", "fit"), rig, calibration, labels,
-        joint_limits=JOINT_LIMITS_DEG, segment_kind=SEGMENT_KIND,
+        joint_limits=JOINT_LIMITS_DEG, segment_kind=SEGMENT_KIND, rate_hz=rate_hz,
     )  # fmt: skip
 
 

@@ -404,7 +404,7 @@ def solve_other_take(
 
     take = load_take(path, **take_overrides(args))
     try:  # the method the first take was solved with
-        solver = solver_of_method(args, rig, calibration, take.labels)
+        solver = solver_of_method(args, rig, calibration, take.labels, take.rate_hz)
     except CalibrationError as exc:
         raise UsageError(f"{path}: {exc}") from None
     from retargetd.daemon.cli.args import solve_take_progress

@@ -93,7 +93,7 @@ class Prewarm:
             return
         scratch = FitSolver(
             solver.rig, solver.calibration, solver.labels,
-            params=solver.params, model=solver.model,
+            params=solver.params, model=solver.model, rate_hz=solver.rate_hz,
         )  # fmt: skip
         self._scratch[key] = (scratch, scratch.new_pose(), frame)
 

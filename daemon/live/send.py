@@ -98,6 +98,7 @@ class SendMixin(DaemonState):
         solver = make_body_solver(
             self.config.solve.method, self.rig, self.calibration, labels,
             joint_limits=JOINT_LIMITS_DEG, segment_kind=SEGMENT_KIND,
+            rate_hz=self.config.validate.rate_hz,
         )  # fmt: skip
         if solver.missing_markers:
             logger.warning(
@@ -207,7 +208,9 @@ class SendMixin(DaemonState):
                 )  # fmt: skip
             return
         frame = stream.current.frame
-        pose = pipe.solver.solve_frame(frame.markers_world, pipe.pose)
+        pose = pipe.solver.solve_frame(
+            frame.markers_world, pipe.pose, self._frame_dt_s(pipe, frame, received_ns)
+        )
         post = pipe.post
         source_t = frame.source_time_s
         frame_id, arrival_ns = frame.frame_id, received_ns
@@ -239,6 +242,22 @@ class SendMixin(DaemonState):
         self._emit(pipe, stream, frame_id, source_t, arrival_ns, t_start)
         if post is not None and post.resampler is not None:
             self._send_due_ticks_of(pipe, time.monotonic_ns())  # overdue ones too
+
+    def _frame_dt_s(self, pipe: Pipeline, frame: Any, received_ns: int) -> float:
+        """Seconds since the pipeline's last solved frame, for the fit's prediction:
+        the source's clock when it sends one, else its frame numbers at
+        ``[validate] rate_hz``, else the receive clock (0: the first frame, or a
+        construction, which has no use for it)."""
+        last_t, last_id, last_ns = pipe.last_times
+        t, fid = frame.source_time_s, frame.frame_id
+        pipe.last_times = (t, fid, received_ns)
+        if last_ns == 0:
+            return 0.0
+        if t == t and last_t == last_t and t > last_t:  # (NaN: no source clock)
+            return float(t - last_t)
+        if fid > last_id >= 0:
+            return (fid - last_id) / self.config.validate.rate_hz
+        return max(received_ns - last_ns, 0) * 1e-9
 
     def _send_due_ticks(self, now_ns: int) -> None:
         """From the loop's timer: every resampled output tick whose send time has

@@ -13,6 +13,8 @@ reads exactly what it read before there were several."""
 
 from __future__ import annotations
 
+import math
+
 import socket
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -65,6 +67,9 @@ class Pipeline:
     tick_source_clock: bool = True  # resampled ticks' times are the source's clock
     spine: SpinePivot | None = None  # [target] spine = "pivot", after the retarget
     emit: EmitPlan | None = None  # the one compiled call per frame (live/emit.py)
+    # the last solved frame's source time, frame number and receive time (the fit's
+    # frame time, SendMixin._frame_dt_s)
+    last_times: tuple[float, int, int] = (math.nan, -1, 0)
 
 
 T = TypeVar("T")
