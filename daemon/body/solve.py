@@ -273,13 +273,17 @@ class BodySolver:
             raise ValueError("the pose was not made by new_pose()")
         return (self._pi, self._pf, self._sf, self._sb, self._si, *pose.kernel_buffers)
 
-    def solve_frame(self, markers_world: F64Array, out: BodyPose) -> BodyPose:
+    def solve_frame(
+        self, markers_world: F64Array, out: BodyPose, dt_s: float = 0.0
+    ) -> BodyPose:
         """Solve one frame into ``out`` (no allocation).
 
         Args:
             markers_world: (M, 3) float64, metres, world, in this solver's label order;
                 NaN rows = occluded.
             out: buffers from :meth:`new_pose`, overwritten.
+            dt_s: seconds since the last frame (unused: the construction has no
+                prediction; the fit's interface).
 
         Returns:
             ``out``.

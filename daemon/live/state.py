@@ -14,7 +14,6 @@ reads exactly what it read before there were several."""
 from __future__ import annotations
 
 import math
-
 import socket
 from collections.abc import Callable
 from dataclasses import dataclass
