@@ -91,6 +91,7 @@ class BoneObservation:
             (in the bone's rest axes; zeros when none).
         explicit: the rig's own ``[fit]`` prior on the bone made the automatic one
             needless for some direction (``stiffness_mm`` or a fixed joint).
+        hinge: (3,) a hinge's axis in the bone's rest axes (None: no hinge).
     """
 
     bone: str
@@ -100,6 +101,7 @@ class BoneObservation:
     observed: BoolArray
     prior: F64Array
     explicit: bool
+    hinge: F64Array | None = None
 
     def describe(self) -> str:
         """One line: each rotation, its lever and whether it is observed."""
@@ -321,6 +323,7 @@ def observe(
                 observed=observed,
                 prior=prior,
                 explicit=explicit,
+                hinge=hinge_axis[b] if dof[b] in ("hinge", "hinge_twist") else None,
             )
         )
     return tuple(out)

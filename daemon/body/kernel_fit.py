@@ -53,6 +53,7 @@ from retargetd.daemon.body.fit_terms import (
     C_DT,
     C_GAP,
     C_GATE,
+    C_LAST_RMS,
     C_LEVEL,
     C_MU,
     C_SINCE_TRY,
@@ -601,7 +602,10 @@ def fit_one_t(
         iters, _conv, cost = _fit_phases(m, s)
         ss, n_in, n_rej = _score(m, s)
         rms = _truncated_rms(ss, n_in, n_rej, sc[C_GATE])
-        level = sc[C_LEVEL]
+        # the take's own residual: its running level, or the last explained frame's
+        # when higher (a misfit that grows with the motion is the take's own; a
+        # burst of garbage jumps from one frame to the next)
+        level = max(sc[C_LEVEL], sc[C_LAST_RMS])
         persist = 0.0
         for i in range(n_mk):
             if vis[i] and s[45][i] and rej_run[i] + 1.0 > persist:
@@ -659,7 +663,9 @@ def fit_one_t(
         else:
             tau = params[P_LEVEL_TAU_S]
             a = min(1.0, sc[C_DT] / tau) if tau > 0.0 else 1.0
-            sc[C_LEVEL] = rms if level <= 0.0 else level + a * (rms - level)
+            lv = sc[C_LEVEL]
+            sc[C_LEVEL] = rms if lv <= 0.0 else lv + a * (rms - lv)
+            sc[C_LAST_RMS] = rms
     # 3. outputs
     rej, rref, rage = s[45], s[47], s[48]
     n_rej = 0

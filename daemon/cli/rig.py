@@ -44,6 +44,13 @@ def add_parser(subparsers: Any) -> None:
 
     add_take_arguments(check)
     check.add_argument(
+        "--calibration",
+        metavar="FILE",
+        help="a calibration of the rig: what the fit's markers observe is worked out "
+        "on it (default: on the take's base-pose rows, else on the synthetic "
+        "performer wearing the rig's marker set when one is shipped)",
+    )
+    check.add_argument(
         "--json",
         action="store_true",
         help="print the result as one JSON object (README: stable keys)",
@@ -135,9 +142,30 @@ def _describe(rig: Rig, args: argparse.Namespace, out: Any, doc: dict[str, Any])
     unmapped = [h for h in _humanoid_order() if h not in rig.humanoid]
     out(f"humanoid: {len(rig.humanoid)} mapped; not solved: {' '.join(unmapped)}\n")
     doc["humanoid_unmapped"] = unmapped
-    if args.take is None:
-        return 0
-    return _check_take(rig, args, out, doc)
+    doc["observability"] = None
+    rc = 0
+    cal = None
+    source = ""
+    if args.take is not None:
+        rc, cal = _check_take(rig, args, out, doc)
+        source = f"the take's base-pose rows ({args.frames or 'all'})"
+    if args.calibration is not None:
+        from retargetd.daemon.body.calibration import (
+            CalibrationError,
+            load_calibration,
+        )
+
+        try:
+            cal = load_calibration(args.calibration)
+        except (CalibrationError, OSError, ValueError) as exc:
+            raise UsageError(f"--calibration {args.calibration}: {exc}") from None
+        source = f"calibration {args.calibration}"
+    if cal is None and args.take is None:
+        cal = _synthetic_calibration(rig)
+        source = "the synthetic performer's T-pose"
+    if cal is not None:
+        _print_observability(rig, cal, source, out, doc)
+    return rc
 
 
 def _humanoid_order() -> tuple[str, ...]:
@@ -146,9 +174,89 @@ def _humanoid_order() -> tuple[str, ...]:
     return HUMANOID_BONES
 
 
+def _synthetic_calibration(rig: Rig) -> Any:
+    """The rig calibrated on the synthetic performer wearing the shipped marker set
+    of the rig's name (its T-pose hold), or None when there is none."""
+    from retargetd.daemon.body.calibration import CalibrationError, calibrate
+    from retargetd.daemon.cli.args import held_log_warnings
+    from retargetd.daemon.synth.performer import shipped_markersets, synthesize
+
+    if rig.name not in shipped_markersets():
+        return None
+    take = synthesize(seconds=0.5, rate_hz=60.0, markerset=rig.name, base_pose_s=0.5)
+    try:
+        with held_log_warnings("retargetd.daemon.body"):
+            return calibrate(rig, take.markers_world, take.labels)
+    except CalibrationError:
+        return None
+
+
+def _print_observability(
+    rig: Rig, cal: Any, source: str, out: Any, doc: dict[str, Any]
+) -> None:
+    """What the fit's markers observe of each bone's rotation, and what holds the
+    rest (``body.fit_observe``), on ``cal``'s base pose."""
+    from retargetd.daemon.body import fit_observe
+    from retargetd.daemon.body.calibration import CalibrationError
+    from retargetd.daemon.body.fit_model import build_fit_model
+    from retargetd.daemon.cli.args import held_log_warnings
+
+    base = cal.base_marker_pos
+    if base is None or cal.rest_bone_origin_pos is None:
+        out("observability: not computed (the calibration predates the fit)\n")
+        return
+    try:
+        with held_log_warnings("retargetd.daemon.body"):
+            model = build_fit_model(rig, cal, base[None], None)
+    except (CalibrationError, ValueError) as exc:
+        out(f"observability: not computed ({exc})\n")
+        return
+    lever_min = 1e3 * fit_observe.MIN_LEVER_M
+    out(
+        f"observability on {source} (what the fit's markers determine of each "
+        f"joint; a rotation under {lever_min:.1f} mm/rad, 5 deg at 1 mm noise, is "
+        "held at the calibration pose by the automatic prior):\n"
+    )
+    bones: dict[str, Any] = {}
+    for obs in model.observation:
+        riders = [
+            m
+            for i, m in enumerate(model.marker_names)
+            if model.marker_bone[i] == rig.bone_names.index(obs.bone)
+            and model.marker_weight[i] > 0.0
+        ]
+        explicit = rig.fit.bones.get(obs.bone)
+        stiff = explicit.stiffness_mm if explicit is not None else 0.0
+        note = f"; the rig's stiffness {stiff:g} mm/rad" if stiff else ""
+        out(f"  {obs.bone} ({obs.dof}{note}): {obs.describe()}\n")
+        out(f"      markers riding it: {' '.join(riders) or '(none)'}\n")
+        bones[obs.bone] = {
+            "dof": obs.dof,
+            "markers": riders,
+            "stiffness_mm": stiff,
+            "rotations": [
+                {
+                    "axis": [round(float(v), 4) for v in axis],
+                    "lever_mm_per_rad": round(float(lever), 2),
+                    "observed": bool(seen),
+                    "held_by": "markers" if seen else "automatic prior",
+                }
+                for axis, lever, seen in zip(
+                    obs.axes, obs.lever_mm, obs.observed, strict=True
+                )
+            ],
+        }
+    doc["observability"] = {
+        "source": source,
+        "min_lever_mm_per_rad": round(lever_min, 3),
+        "prior_stiffness_mm_per_rad": round(lever_min, 3),
+        "bones": bones,
+    }
+
+
 def _check_take(
     rig: Rig, args: argparse.Namespace, out: Any, doc: dict[str, Any]
-) -> int:
+) -> tuple[int, Any]:
     from retargetd.daemon.body.calibration import match_markers
     from retargetd.replay.takes import load_take
 
@@ -200,18 +308,18 @@ def _check_take(
     if dead_bones:
         out(f"  bones without data (held at rest, flagged): {' '.join(dead_bones)}\n")
         out(f"  points without data: {' '.join(dead_points)}\n")
-        return 1
+        return 1, None
     out("  every bone can be built from this take\n")
-    doc["up_levers_m"] = _check_levers(rig, take, args, out)
-    return 0
+    doc["up_levers_m"], cal = _check_levers(rig, take, args, out)
+    return 0, cal
 
 
 def _check_levers(
     rig: Rig, take: Any, args: argparse.Namespace, out: Any
-) -> dict[str, float] | None:
+) -> tuple[dict[str, float] | None, Any]:
     """Calibrate on the base-pose rows and print each bone's up lever; a warning
-    line for each under ``body.sanity.UP_LEVER_MIN_M``. Returns the levers (metres),
-    None when the calibration failed."""
+    line for each under ``body.sanity.UP_LEVER_MIN_M``. Returns the levers (metres)
+    and the calibration, (None, None) when the calibration failed."""
     from retargetd.daemon.body import sanity
     from retargetd.daemon.body.calibration import CalibrationError, calibrate
     from retargetd.daemon.cli.args import held_log_warnings, parse_frames
@@ -223,7 +331,7 @@ def _check_levers(
             cal = calibrate(rig, base, take.labels, take_measurements=take.measurements)
     except CalibrationError as exc:
         out(f"  up levers: not computed (calibration failed: {exc})\n")
-        return None
+        return None, None
     levers = sanity.up_levers(rig, cal, base, take.labels)
     out(
         f"  up levers in the base pose (rows {rows.start}:{rows.stop}; at least "
@@ -233,4 +341,4 @@ def _check_levers(
     )
     for line in sanity.check_up_levers(rig, cal, base, take.labels):
         out(f"  warning: {line}\n")
-    return {b: float(v) for b, v in levers.items()}
+    return {b: float(v) for b, v in levers.items()}, cal

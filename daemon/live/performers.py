@@ -49,7 +49,7 @@ class PerformersMixin(DaemonState):
                 if view is None or not view.refresh():
                     continue
                 self._perf = perf
-                out, unsolved = stats.frames_out, stats.unsolved
+                out, unsolved, unseen = stats.frames_out, stats.unsolved, stats.unseen
                 self._solve_and_send(view, t_ns)
                 ps = perf.stats
                 if stats.frames_out != out:
@@ -59,6 +59,8 @@ class PerformersMixin(DaemonState):
                     ps.record(int(r[0, j]), int(r[1, j]), int(r[2, j]), int(r[3, j]))
                 elif stats.unsolved != unsolved:
                     ps.unsolved += 1
+                elif stats.unseen != unseen:
+                    ps.unseen += 1
         finally:
             self._perf = first
 

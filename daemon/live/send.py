@@ -211,6 +211,23 @@ class SendMixin(DaemonState):
         pose = pipe.solver.solve_frame(
             frame.markers_world, pipe.pose, self._frame_dt_s(pipe, frame, received_ns)
         )
+        fit_bits = pose.frame_flags
+        if fit_bits:
+            if fit_bits & pose_stream.FRAME_UNSEEN:
+                # the performer's markers not seen: no pose to stream (counted;
+                # the console still shows the markers)
+                self.stats.unseen += 1
+                self.stats.frames_solved += 1
+                if self.console is not None:
+                    self.console.publish_markers(
+                        t_start, frame, stream.current.label_set.labels,
+                        self.stats, self.status,
+                    )  # fmt: skip
+                return
+            if fit_bits & pose_stream.FRAME_UNEXPLAINED:
+                self.stats.unexplained += 1
+            if fit_bits & pose_stream.FRAME_RESEEDED:
+                self.stats.reseeded += 1
         post = pipe.post
         source_t = frame.source_time_s
         frame_id, arrival_ns = frame.frame_id, received_ns
@@ -331,7 +348,7 @@ class SendMixin(DaemonState):
         solved_ns = time.monotonic_ns()
         flags = (
             perf.frame_flags
-            | pose.frame_flags  # the fit's reseeded bit
+            | pose.frame_flags  # the fit's reseeded and unexplained bits
             | (pose_stream.FRAME_HELD if pose.n_held else 0)
         )
         perf.frame_flags = 0

@@ -60,6 +60,12 @@ class LoopStats:
             counted by reason), or by the peer itself.
         unsolved: accepted frames not solved because no calibration is loaded yet
             (so ``frames_in = frames_solved + stale + unsolved``).
+        unseen: solved frames in which too few of the performer's markers were
+            seen to place a pose (``FRAME_UNSEEN``): nothing streamed for them.
+        unexplained: solved frames whose markers fit no pose the fit found
+            (``FRAME_UNEXPLAINED``): the last explained pose streamed, flagged.
+        reseeded: solved frames the fit reseeded from the construction
+            (``FRAME_RESEEDED``).
         labels_in: label announcements decoded (any outcome; per input the adopted
             and confirming ones are ``MarkerStream.labels_taken``).
         show_control_in: show-control datagrams received (allow-list passed).
@@ -92,6 +98,9 @@ class LoopStats:
     validation_drops: int = 0
     zmq_disconnects: int = 0
     unsolved: int = 0
+    unseen: int = 0
+    unexplained: int = 0
+    reseeded: int = 0
     labels_in: int = 0
     show_control_in: int = 0
     show_control_malformed: int = 0
@@ -186,7 +195,7 @@ class LoopStats:
                 "rejected_sources",
                 "face_solved", "face_head_lost", "face_captures", "validated",
                 "validation_flagged", "validation_drops", "zmq_disconnects",
-                "unsolved", "labels_in", "show_control_in", "show_control_malformed",
+                "unsolved", "unseen", "unexplained", "reseeded", "labels_in", "show_control_in", "show_control_malformed",
                 "control_requests", "control_errors", "post_restarts",
                 "resample_skipped", "resample_dropped", "resample_timer",
             )

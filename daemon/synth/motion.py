@@ -167,12 +167,16 @@ def _walk(m: Motion) -> None:
 def _arm_raise(m: Motion) -> None:
     w = m.w
     s2, s3, s5 = np.sqrt(2.0), np.sqrt(3.0), np.sqrt(5.0)
-    # Elevation from the T-pose (+ = up): near the side to near overhead, the right
-    # arm at another frequency and starting downward.
-    elev_l = 75.0 * np.sin(2.0 * np.pi * 0.19 * m.t)
-    elev_r = -70.0 * np.sin(2.0 * np.pi * 0.19 * s2 / 1.2 * m.t)
+    # Elevation from the T-pose (+ = up), the right arm at another frequency and
+    # starting downward. The amplitudes keep the performer's own segments apart in
+    # every combination the irrational frequencies reach (its truth validates
+    # without self-penetration over a minute: tests/daemon/test_validate_activities):
+    # with 75 deg up the bent left forearm met the head; with 70 deg down and 30 deg
+    # forward the right forearm and hand met the thigh and the pelvis.
+    elev_l = 60.0 * np.sin(2.0 * np.pi * 0.19 * m.t)
+    elev_r = -45.0 * np.sin(2.0 * np.pi * 0.19 * s2 / 1.2 * m.t)
     horiz_l = 35.0 * np.sin(2.0 * np.pi * 0.11 * s3 * m.t)  # + = forward
-    horiz_r = 30.0 * np.sin(2.0 * np.pi * 0.11 * s5 / 1.5 * m.t)
+    horiz_r = 20.0 * np.sin(2.0 * np.pi * 0.11 * s5 / 1.5 * m.t)
     flex_l = 30.0 * np.sin(2.0 * np.pi * 0.13 * s5 / 2.0 * m.t)  # + = forward
     flex_r = -30.0 * np.sin(2.0 * np.pi * 0.13 * s3 / 1.5 * m.t)
     m.add_bilateral("upper_arm", _X, w * elev_l, w * elev_r)  # elevation: up = +x
