@@ -195,7 +195,8 @@ class LoopStats:
                 "rejected_sources",
                 "face_solved", "face_head_lost", "face_captures", "validated",
                 "validation_flagged", "validation_drops", "zmq_disconnects",
-                "unsolved", "unseen", "unexplained", "reseeded", "labels_in", "show_control_in", "show_control_malformed",
+                "unsolved", "unseen", "unexplained", "reseeded", "labels_in",
+                "show_control_in", "show_control_malformed",
                 "control_requests", "control_errors", "post_restarts",
                 "resample_skipped", "resample_dropped", "resample_timer",
             )
