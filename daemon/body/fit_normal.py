@@ -61,24 +61,9 @@ def build_normal(m: tuple, s: tuple) -> None:
     # conditioning) summed over each bone's subtree: the block of H coupling a bone
     # k with an ancestor l sums over exactly the markers below k.
     c0x, c0y, c0z = o[0, 0], o[0, 1], o[0, 2]
-    carry, carry_on, mk_weight = s[57], s[58], m[7]
     for i in range(mk_bone.shape[0]):
         w = wrob[i]
         if w <= 0.0:
-            if carry_on[i] > 0.0:
-                # a hidden marker's carried misfit: its force only (kernel_fit)
-                b = mk_bone[i]
-                w = mk_weight[i]
-                px = pm[i, 0] - c0x
-                py = pm[i, 1] - c0y
-                pz = pm[i, 2] - c0z
-                rx, ry, rz = carry[i, 0], carry[i, 1], carry[i, 2]
-                sr[b, 0] += w * rx
-                sr[b, 1] += w * ry
-                sr[b, 2] += w * rz
-                sc[b, 0] += w * (py * rz - pz * ry)
-                sc[b, 1] += w * (pz * rx - px * rz)
-                sc[b, 2] += w * (px * ry - py * rx)
             continue
         b = mk_bone[i]
         px = pm[i, 0] - c0x

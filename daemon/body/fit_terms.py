@@ -300,7 +300,7 @@ def marker_cost(
     mk_bone, mk_local, mk_weight = m[5], m[6], m[7]
     params = m[18]
     meas, vis, rej = s[12], s[13], s[45]
-    carry, carry_on = s[57], s[58]
+    virt = s[58]  # hidden markers measured where they are predicted (kernel_fit)
     c2 = params[P_CAUCHY_M] * params[P_CAUCHY_M]
     cost = 0.0
     for i in range(mk_bone.shape[0]):
@@ -312,23 +312,15 @@ def marker_cost(
                 + wm[b, j, 1] * mk_local[i, 1]
                 + wm[b, j, 2] * mk_local[i, 2]
             )
-        if not vis[i]:
+        if not vis[i] and virt[i] == 0.0:
             wrob[i] = 0.0
-            if carry_on[i] > 0.0:  # a hidden marker's carried misfit: a constant
-                # force, the linear potential w r.p whose gradient is the force
-                w = mk_weight[i]
-                cost += w * (
-                    carry[i, 0] * pm[i, 0]
-                    + carry[i, 1] * pm[i, 1]
-                    + carry[i, 2] * pm[i, 2]
-                )
             continue
         n2 = 0.0
         for j in range(3):
             res[i, j] = pm[i, j] - meas[i, j]
             n2 += res[i, j] * res[i, j]
         w = mk_weight[i]
-        if gated and rej[i]:
+        if gated and rej[i] and vis[i]:
             wrob[i] = 0.0
         else:
             wrob[i] = w / (1.0 + n2 / c2)

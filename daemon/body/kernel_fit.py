@@ -5,39 +5,52 @@ Unknowns per frame: every bone's rotation relative to its parent (a quaternion
 (``fit_model.FitModel``) puts each rig marker at a fixed local position on one bone;
 the fit minimizes
 
-    1/2 sum_i w_i rho(|p_i(Q, t) - m_i|^2)           visible markers, Cauchy rho,
-                                                      cut to a constant past the gate
-  + 1/2 lambda_rot sum_b |log(conj(Q_b^prev) Q_b)|^2  weak pull to the last frame
-  + 1/2 lambda_trans sum_r |t_r - t_r^prev|^2
-  + 1/2 kappa_limit |excess past the validator's swing/twist limits|^2   (soft)
-  + 1/2 kappa_hinge |rotation off a hinge's axis|^2   (bones the rig makes hinges)
-  + 1/2 kappa_hinge twist^2                          (swing joints: no twist about
-                                                      the bone's own long axis)
-  + 1/2 k_b |log(conj(R_b) Q_b)|^2                   (bones the rig gives a
-                                                      stiffness: pull to the
-                                                      calibration pose R_b)
+    1/2 sum_i w_i rho(|p_i(Q, t) - m_i|^2)           markers, Cauchy rho; the gate's
+                                                      rejects out; a hidden marker
+                                                      measured where predicted
+  + 1/2 lambda_rot sum_b |log(conj(P_b) Q_b)|^2       pull to the predicted pose P
+  + 1/2 lambda_trans sum_r |t_r - t_r^pred|^2         (weights from the peak
+                                                      accelerations and the frame time)
+  + 1/2 kappa_limit |excess past the validator's swing/twist limits|^2
+  + 1/2 kappa_hinge |rotation off a hinge's axis|^2   (hinge, hinge_twist, swing)
+  + 1/2 c_b^T R_b c_b                                 priors towards the calibration
+                                                      pose (the rig's stiffness, a
+                                                      fixed joint, what no marker
+                                                      observes: fit_observe)
+  + 1/2 d_b^T H_b d_b                                 holds while markers are hidden,
+                                                      towards the last seen pose
 
-by Levenberg-Marquardt (compiled with ``compiled.kernel``). Increments are rotation
-vectors in world axes at each joint (``omega_b``; a bone's own increment is
-``conj(W_b) omega_b``), so a marker on bone s has the Jacobian ``-[p_i - o_k]x``
-for every ancestor-or-self k of s and ``I`` for its root's position. The normal
-equations are assembled from per-bone moment sums (no per-marker Jacobian rows) and
-solved by a Cholesky factorization ordered children
-first, in which the kinematic tree produces no fill-in (the cost is the sum over
-unknowns of (3 x depth)^2, not n^3); the blocks come from marker moments summed over
-each bone's subtree, one block per (bone, ancestor) pair.
+(c_b, d_b: swing-twist coordinates, ``fit_terms.prior_chart``) by Levenberg-Marquardt
+(compiled with ``compiled.kernel``). Increments are rotation vectors in world axes at
+each joint (``omega_b``; a bone's own increment is ``conj(W_b) omega_b``), so a marker
+on bone s has the Jacobian ``-[p_i - o_k]x`` for every ancestor-or-self k of s and
+``I`` for its root's position. The normal equations are assembled from per-bone
+moment sums (no per-marker Jacobian rows) and solved by a Cholesky factorization
+ordered children first, in which the kinematic tree produces no fill-in (the cost is
+the sum over unknowns of (3 x depth)^2, not n^3).
 
-Per frame: warm start from the last frame; phase 1 without a gate; when some visible
-marker's residual exceeds the gate ``max(gate_m, gate_k * median residual)``, phase 2
-drops those markers (counted) and fits again from the same start; when the fit has
-lost track (inlier RMS above ``reseed_rms_m``, too many markers rejected, or no
-convergence within the iteration cap with the RMS above half that) the construction
-kernel (``body.kernel.solve_one``) seeds a second fit and the better of the two
-(truncated squared residual) is kept. The first frame after a reset is
-seeded from the construction. Bones with no visible marker are carried by their
-neighbours and the pull to the last frame, flagged; no output is ever NaN.
+Per frame (``fit_one_t``; the rules' numbers are ``solve_fit.FitParams``):
 
-Everything is preallocated by ``solve_fit.FitSolver``: no allocation per frame.
+1. gather the markers; one at exactly (0, 0, 0) is lost, not measured. Too few seen
+   (none, or fewer than three before the first pose): the frame is **unseen**, the
+   last explained pose (the calibration pose before any) is held, flagged.
+2. the first frame is seeded from the construction (``body.kernel.solve_one``) where
+   the performer is; later ones start from the pose predicted from the last two
+   explained frames (``fit_track.predict``), with hidden markers' holds and virtual
+   measurements (``fit_track.hold_priors``, ``virtual_markers``).
+3. fit ungated, then again without the markers the gate rejects (``fit_track``).
+4. suspect (residual above twice the take's own, too many rejects, the first frame
+   after a gap, or a marker rejected for ``persist_s``): a second fit seeded from the
+   construction, the one with the lower whole cost (every marker under the Cauchy
+   loss, continuity, priors, limits) kept.
+5. **unexplained** (residual far above the take's own, half the markers rejected, or
+   a joint further from its prediction than a body moves): the last explained pose
+   is held, flagged, and the next frame's prediction and continuity account for the
+   gap. Else the frame is explained: the running residual level, the gate's
+   references and the prediction's history move on.
+
+No output is ever NaN. Everything is preallocated by ``solve_fit.FitSolver``: no
+allocation per frame.
 """
 
 from __future__ import annotations
@@ -58,23 +71,15 @@ from retargetd.daemon.body.fit_terms import (
     C_MU,
     C_SINCE_TRY,
     C_SOLVES,
-    P_ACC_MAX,
-    P_ALPHA_MAX,
-    P_CAUCHY_M,
     P_FTOL,
     P_GATE_K,
     P_GATE_M,
-    P_GATE_MEMORY,
-    P_JUMP_FLOOR_RAD,
-    P_JUMP_Z,
     P_LEVEL_TAU_S,
     P_LOST_FLOOR_M,
     P_LOST_K,
     P_MAX_ITER,
-    P_NOISE_M,
     P_PERSIST,
     P_REJECT_FRAC,
-    P_RESOLUTION_RAD,
     P_TOL,
     P_UNEXPLAINED_FRAC,
     P_UNEXPLAINED_K,
@@ -94,6 +99,16 @@ from retargetd.daemon.body.fit_terms import (
     fk,
     marker_cost,
     reg_cost,
+)
+from retargetd.daemon.body.fit_track import (
+    hold_priors,
+    impossible,
+    mark_outliers,
+    median_residual,
+    predict,
+    score,
+    truncated_rms,
+    virtual_markers,
 )
 from retargetd.daemon.compiled import kernel, qmul
 
@@ -200,62 +215,6 @@ def _lm(m: tuple, s: tuple, gated: bool, max_iter: int) -> tuple[int, bool, floa
 
 
 @kernel
-def _median_residual(s: tuple) -> float:
-    # Median |residual| over visible markers (insertion sort in scratch).
-    vis, res, buf = s[13], s[14], s[25]
-    n = 0
-    for i in range(vis.shape[0]):
-        if vis[i]:
-            v = math.sqrt(res[i, 0] ** 2 + res[i, 1] ** 2 + res[i, 2] ** 2)
-            j = n
-            while j > 0 and buf[j - 1] > v:
-                buf[j] = buf[j - 1]
-                j -= 1
-            buf[j] = v
-            n += 1
-    if n == 0:
-        return 0.0
-    if n % 2 == 1:
-        return buf[n // 2]
-    return 0.5 * (buf[n // 2 - 1] + buf[n // 2])
-
-
-@kernel
-def _mark_outliers(m: tuple, s: tuple, gate: float) -> bool:
-    # The gate, on the ungated fit's residuals: a visible marker is rejected when its
-    # residual exceeds the gate and, if it has a reference (its residual vector at
-    # its last accepted frame, at most P_GATE_MEMORY frames ago), has also moved from
-    # it by more than the gate. A swapped label or a ghost jumps by a marker spacing;
-    # skin sliding or a loose fit grows a residual over many frames and keeps it.
-    params = m[18]
-    vis, res, rej, rref, rage = s[13], s[14], s[45], s[47], s[48]
-    memory = params[P_GATE_MEMORY]
-    g2 = gate * gate
-    beyond = False
-    for i in range(vis.shape[0]):
-        rej[i] = False
-        if not vis[i]:
-            continue
-        n2 = res[i, 0] ** 2 + res[i, 1] ** 2 + res[i, 2] ** 2
-        if n2 <= g2:
-            continue
-        if rage[i] == math.inf:
-            # never accepted since the take began: a steady misfit from the first
-            # frame is not told from a swap by one frame; the Cauchy loss weighs it
-            # down, and once seen its residual is its reference (step 4)
-            continue
-        if rage[i] <= memory:
-            d0 = res[i, 0] - rref[i, 0]
-            d1 = res[i, 1] - rref[i, 1]
-            d2 = res[i, 2] - rref[i, 2]
-            if d0 * d0 + d1 * d1 + d2 * d2 <= g2:
-                continue
-        rej[i] = True
-        beyond = True
-    return beyond
-
-
-@kernel
 def _fit_phases(m: tuple, s: tuple) -> tuple[int, bool, float]:
     # Phase 1 ungated; phase 2 without the markers the gate rejects, from the same
     # start, when there are any.
@@ -264,41 +223,15 @@ def _fit_phases(m: tuple, s: tuple) -> tuple[int, bool, float]:
     cp2(s[43], s[0])
     cp2(s[44], s[1])
     it1, conv1, cost = _lm(m, s, False, max_iter)
-    gate = max(params[P_GATE_M], params[P_GATE_K] * _median_residual(s))
+    gate = max(params[P_GATE_M], params[P_GATE_K] * median_residual(s))
     s[36][C_GATE] = gate
-    if not _mark_outliers(m, s, gate):
+    if not mark_outliers(m, s, gate):
         return it1, conv1, cost
     # the outliers pulled phase 1 away: start again from the warm start without them
     cp2(s[0], s[43])
     cp2(s[1], s[44])
     it2, conv2, cost = _lm(m, s, True, max_iter)
     return it1 + it2, conv2, cost
-
-
-@kernel
-def _score(m: tuple, s: tuple) -> tuple[float, int, int]:
-    # Inlier sum of squares, number of inliers, number rejected.
-    vis, res, wt, rej = s[13], s[14], m[7], s[45]
-    ss = 0.0
-    n_in = 0
-    n_rej = 0
-    for i in range(vis.shape[0]):
-        if not vis[i] or wt[i] <= 0.0:
-            continue
-        if rej[i]:
-            n_rej += 1
-        else:
-            n_in += 1
-            ss += res[i, 0] ** 2 + res[i, 1] ** 2 + res[i, 2] ** 2
-    return ss, n_in, n_rej
-
-
-@kernel
-def _truncated_rms(ss: float, n_in: int, n_rej: int, gate: float) -> float:
-    # The frame's residual RMS with each rejected marker counted at the gate: what
-    # the markers say of the fit, a misfit the gate hides included.
-    n = n_in + n_rej
-    return math.sqrt((ss + n_rej * gate * gate) / n) if n > 0 else math.inf
 
 
 @kernel
@@ -370,144 +303,6 @@ MIN_SEEN = 3
 
 
 @kernel
-def _predict(m: tuple, s: tuple) -> None:
-    # The pose predicted for this frame: the last explained frame advanced by its
-    # joint-angle velocity when the frame before it was explained too, else held (a
-    # velocity across a gap is not known). Written to the pull target s[2], s[3] and
-    # to the warm start s[0], s[1].
-    q, t, qpred, tpred = s[0], s[1], s[2], s[3]
-    qlast, tlast, q2, t2 = s[49], s[50], s[41], s[42]
-    have, sc = s[4], s[36]
-    if have[0] >= 2 and sc[C_GAP] <= 1.0:
-        for b in range(q.shape[0]):
-            d = qmul(q2[b, 0], -q2[b, 1], -q2[b, 2], -q2[b, 3],
-                      qlast[b, 0], qlast[b, 1], qlast[b, 2], qlast[b, 3])  # fmt: skip
-            r = qmul(qlast[b, 0], qlast[b, 1], qlast[b, 2], qlast[b, 3],
-                      d[0], d[1], d[2], d[3])  # fmt: skip
-            nr = math.sqrt(r[0] * r[0] + r[1] * r[1] + r[2] * r[2] + r[3] * r[3])
-            for j in range(4):
-                qpred[b, j] = r[j] / nr
-        for rr in range(t.shape[0]):
-            for j in range(3):
-                tpred[rr, j] = 2.0 * tlast[rr, j] - t2[rr, j]
-    else:
-        cp2(qpred, qlast)
-        cp2(tpred, tlast)
-    cp2(q, qpred)
-    cp2(t, tpred)
-
-
-@kernel
-def _impossible(m: tuple, s: tuple, frames: float) -> bool:
-    # Whether the fitted pose moved a joint (or a root) further from its prediction
-    # than a body can in `frames` frames: the bound 1/2 a (frames dt)^2 times
-    # P_JUMP_Z, or the floor (noise on a short lever makes a few degrees of jitter
-    # at any rate; the root: the gate).
-    params, parent = m[18], m[0]
-    q, t, qpred, tpred = s[0], s[1], s[2], s[3]
-    h = frames * s[36][C_DT]
-    z = params[P_JUMP_Z]
-    lim_r = max(z * 0.5 * params[P_ALPHA_MAX] * h * h, params[P_JUMP_FLOOR_RAD])
-    lim_t = max(z * 0.5 * params[P_ACC_MAX] * h * h, params[P_GATE_M])
-    for b in range(parent.shape[0]):
-        d = qmul(qpred[b, 0], -qpred[b, 1], -qpred[b, 2], -qpred[b, 3],
-                  q[b, 0], q[b, 1], q[b, 2], q[b, 3])  # fmt: skip
-        w = abs(d[0])
-        ang = 2.0 * math.acos(w if w < 1.0 else 1.0)
-        if ang > lim_r:
-            return True
-    for rr in range(t.shape[0]):
-        dx = t[rr, 0] - tpred[rr, 0]
-        dy = t[rr, 1] - tpred[rr, 1]
-        dz = t[rr, 2] - tpred[rr, 2]
-        if dx * dx + dy * dy + dz * dz > lim_t * lim_t:
-            return True
-    return False
-
-
-@kernel
-def _hold_priors(m: tuple, s: tuple) -> None:
-    # While markers are hidden, each bone's rotations that they observed and that
-    # the markers still seen no longer resolve (information under (sigma /
-    # resolution)^2, sigma the take's residual level: what the remaining markers'
-    # misfit would turn them by) are held at their last seen value with the
-    # information the hidden markers gave them (at most up to that threshold): the
-    # balance of the fit is kept, not shifted to what the remaining misfit prefers
-    # (fit_observe.hidden_information). s[53] the hold priors (bone axes, m^2 /
-    # rad^2), s[54] their anchors (parent_from_bone), s[55] their traces (0: off).
-    params, parent, wt = m[18], m[0], m[7]
-    axes, lam, lost = m[22], m[23], m[24]
-    vis = s[13]
-    hold, anchor, on, qlast = s[53], s[54], s[55], s[49]
-    n_b = parent.shape[0]
-    sig = max(params[P_NOISE_M], s[36][C_LEVEL]) / params[P_RESOLUTION_RAD]
-    thr = sig * sig
-    for b in range(n_b):
-        for i in range(3):
-            for j in range(3):
-                hold[b, i, j] = 0.0
-    for k in range(wt.shape[0]):
-        if wt[k] <= 0.0 or vis[k]:
-            continue
-        base = k * n_b
-        for b in range(n_b):
-            row = base + b
-            for j in range(3):
-                lo = lost[row, j]
-                li = lam[row, j]
-                if lo <= 0.0 or li >= thr:
-                    continue
-                kk = min(lo, thr - li)
-                u0, u1, u2 = (
-                    axes[row, 3 * j],
-                    axes[row, 3 * j + 1],
-                    axes[row, 3 * j + 2],
-                )
-                u = (u0, u1, u2)
-                for a in range(3):
-                    for c in range(3):
-                        hold[b, a, c] += kk * u[a] * u[c]
-    for b in range(n_b):
-        tr = hold[b, 0, 0] + hold[b, 1, 1] + hold[b, 2, 2]
-        if tr > on[b] * (1.0 + 1e-9):
-            # a hold that starts or grows (another marker hidden) holds from the
-            # last explained frame, not from where an older, weaker hold began
-            for j in range(4):
-                anchor[b, j] = qlast[b, j]
-        on[b] = tr
-
-
-@kernel
-def _carry_misfit(m: tuple, s: tuple) -> None:
-    # A hidden marker keeps pulling as it last did: its residual at its last
-    # accepted frame, in its bone's axes (s[56]), carried by the bone as predicted
-    # (s[57], world) as a constant force (fit_terms.marker_cost, fit_normal): the
-    # fit's balance stays where it was (a marker's misfit, soft tissue or the model,
-    # changes slowly), the hold priors give back its stiffness.
-    mk_bone, wt = m[5], m[7]
-    vis, rage = s[13], s[48]
-    rloc, carry, on = s[56], s[57], s[58]
-    wq, wm, o = s[29], s[8], s[9]
-    fk(m[0], m[1], m[2], s[0], s[1], wq, wm, o)
-    for i in range(mk_bone.shape[0]):
-        if vis[i] or wt[i] <= 0.0 or rage[i] == math.inf:
-            on[i] = 0.0
-            continue
-        b = mk_bone[i]
-        # the force of the Cauchy loss: w r / (1 + |r|^2 / c^2), folded into carry
-        c2 = m[18][P_CAUCHY_M] ** 2
-        n2 = rloc[i, 0] ** 2 + rloc[i, 1] ** 2 + rloc[i, 2] ** 2
-        f = 1.0 / (1.0 + n2 / c2)
-        for j in range(3):
-            carry[i, j] = f * (
-                wm[b, j, 0] * rloc[i, 0]
-                + wm[b, j, 1] * rloc[i, 1]
-                + wm[b, j, 2] * rloc[i, 2]
-            )
-        on[i] = 1.0
-
-
-@kernel
 def _hold(m: tuple, s: tuple) -> None:
     # The last explained pose (the calibration pose before any: ``FitSolver.reset``
     # puts it there), for a frame the fit cannot explain or a performer not seen.
@@ -571,6 +366,8 @@ def fit_one_t(
         else:
             meas[i, 0] = meas[i, 1] = meas[i, 2] = nan
             res[i, 0] = res[i, 1] = res[i, 2] = 0.0
+    for i in range(n_mk):
+        s[58][i] = 0.0  # no virtual marker but where _virtual_markers puts one
     reseeded = False
     unseen = n_seen < MIN_SEEN if have[0] == 0 else n_seen == 0
     unexplained = False
@@ -586,8 +383,6 @@ def fit_one_t(
         # 2b. seed (first frame), or predict and fit, and judge the result
         first = have[0] == 0
         if first:
-            for i in range(n_mk):
-                s[58][i] = 0.0
             _seed_from_construction(clean, m, s, c)
             cp2(s[2], q)
             cp2(s[3], t)
@@ -595,13 +390,13 @@ def fit_one_t(
             continuity_weights(params, sc, math.inf)  # no continuity: no past
             reseeded = True
         else:
-            _predict(m, s)
+            predict(m, s)
             continuity_weights(params, sc, sc[C_GAP])
-            _hold_priors(m, s)
-            _carry_misfit(m, s)
+            hold_priors(m, s)
+            virtual_markers(m, s)
         iters, _conv, cost = _fit_phases(m, s)
-        ss, n_in, n_rej = _score(m, s)
-        rms = _truncated_rms(ss, n_in, n_rej, sc[C_GATE])
+        ss, n_in, n_rej = score(m, s)
+        rms = truncated_rms(ss, n_in, n_rej, sc[C_GATE])
         # the take's own residual: its running level, or the last explained frame's
         # when higher (a misfit that grows with the motion is the take's own; a
         # burst of garbage jumps from one frame to the next)
@@ -641,8 +436,8 @@ def fit_one_t(
                 cp1(s[45], s[46])
                 sc[C_GATE] = gate_a
                 _evaluate_current(m, s, True)
-            ss, n_in, n_rej = _score(m, s)
-            rms = _truncated_rms(ss, n_in, n_rej, sc[C_GATE])
+            ss, n_in, n_rej = score(m, s)
+            rms = truncated_rms(ss, n_in, n_rej, sc[C_GATE])
         else:
             sc[C_SINCE_TRY] += 1.0
         # Unexplained: the markers are far from any pose the fit found (a burst of
@@ -651,7 +446,7 @@ def fit_one_t(
         unexplained = (
             rms > far
             or n_rej > params[P_UNEXPLAINED_FRAC] * n_seen
-            or _impossible(m, s, max(sc[C_GAP], persist))
+            or impossible(m, s, max(sc[C_GAP], persist))
         ) and not first
         # never NaN: a non-finite state (cannot happen with finite inputs) is held
         for b in range(n_b):

@@ -297,7 +297,9 @@ def run(args: argparse.Namespace) -> int:
         out(
             f"fit: marker residual RMS median {med:.1f} mm, p95 {p95:.1f} mm; "
             f"outliers rejected {res.outliers_rejected} marker samples; reseeded "
-            f"{int(np.count_nonzero(res.reseeded))} frames\n"
+            f"{int(np.count_nonzero(res.reseeded))} frames; unexplained (held) "
+            f"{int(np.count_nonzero(res.unexplained))}; performer unseen "
+            f"{int(np.count_nonzero(res.unseen))}\n"
         )
     missing = n * int((cols < 0).sum())
     out(
@@ -396,6 +398,10 @@ def _fit_arrays(res: Any) -> dict[str, Any]:
         "marker_rejected": res.marker_rejected,
         "fit_iterations": res.iterations,
         "fit_reseeded": res.reseeded,
+        "fit_unexplained": res.unexplained,
+        "fit_unseen": res.unseen,
+        "fit_residual_level": res.residual_level,
+        "frame_flags": res.frame_flags,
     }
 
 
@@ -426,6 +432,8 @@ def _print_json_summary(
             "rms_p95_mm": float(np.percentile(finite, 95)) if len(finite) else None,
             "outliers_rejected": int(res.outliers_rejected),
             "reseeded_frames": int(np.count_nonzero(res.reseeded)),
+            "unexplained_frames": int(np.count_nonzero(res.unexplained)),
+            "unseen_frames": int(np.count_nonzero(res.unseen)),
         }
     print_json(
         {

@@ -139,9 +139,11 @@ def test_hierarchy_is_the_calibrated_skeleton(
     res = _solve_api(take, cal, "menache")
     sk = write_solve_bvh(tmp_path / "s.bvh", cal, res, 60.0)
     back = read_bvh_hierarchy(tmp_path / "s.bvh")
-    # Depth first in the file; rig order otherwise (menache's is not depth first).
+    # Depth first in the file (menache's rig order is depth first since its radius
+    # hangs from the ulna, so the file keeps it; a rig that is not keeps its order
+    # within each depth-first walk).
     perm = [cal.bone_names.index(n) for n in back.joint_names]
-    assert sorted(perm) == list(range(len(perm))) and perm != sorted(perm)
+    assert sorted(perm) == list(range(len(perm)))
     assert [cal.bone_parents[j] for j in perm] == [
         -1 if p < 0 else perm[p] for p in back.parents
     ]

@@ -77,13 +77,18 @@ def test_round_trip_and_sent_stamp(rng: np.random.Generator) -> None:
 def test_flag_bits_do_not_overlap_validation() -> None:
     frame_bits = (
         ps.FRAME_LATE | ps.FRAME_HELD | ps.FRAME_RESTARTED | ps.FRAME_INPUT_DROPPED
-        | ps.FRAME_SOURCE_LOST | ps.FRAME_RESEEDED
+        | ps.FRAME_SOURCE_LOST | ps.FRAME_RESEEDED | ps.FRAME_UNEXPLAINED
+        | ps.FRAME_UNSEEN
     )  # fmt: skip
     assert frame_bits & ps.FRAME_VALIDATION_MASK == 0
     bone_bits = ps.BONE_HELD | ps.BONE_REBUILT | ps.BONE_PARTIAL | ps.BONE_NEVER
     assert bone_bits & ps.BONE_VALIDATION_MASK == 0
-    assert {1 << b for b in ps.FRAME_FLAG_BITS.values()} == {1, 2, 4, 8, 16, 32}
+    assert {1 << b for b in ps.FRAME_FLAG_BITS.values()} == {
+        1, 2, 4, 8, 16, 32, 64, 128
+    }  # fmt: skip
     assert ps.FRAME_FLAG_BITS["reseeded"] == ps.FRAME_RESEEDED.bit_length() - 1
+    assert ps.FRAME_FLAG_BITS["unexplained"] == ps.FRAME_UNEXPLAINED.bit_length() - 1
+    assert ps.FRAME_FLAG_BITS["unseen"] == ps.FRAME_UNSEEN.bit_length() - 1
 
 
 def test_names_round_trip() -> None:

@@ -1,0 +1,356 @@
+"""What carries the rigid-skeleton fit from one frame to the next (numba): the pose
+predicted for a frame, the hold on what hidden markers alone resolved, the hidden
+markers measured where the prediction carries them, the gate with its memory of each
+marker's residual, and the tests that tell a frame the markers do not explain
+(``kernel_fit`` runs them; the rules and their numbers are ``solve_fit.FitParams``).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from retargetd.daemon.body.fit_terms import (
+    C_DT,
+    C_GAP,
+    C_LEVEL,
+    P_ACC_MAX,
+    P_ALPHA_MAX,
+    P_GATE_M,
+    P_GATE_MEMORY,
+    P_JUMP_FLOOR_RAD,
+    P_JUMP_Z,
+    P_NOISE_M,
+    P_RESOLUTION_RAD,
+    cp2,
+    fk,
+)
+from retargetd.daemon.compiled import kernel, qmul
+
+
+@kernel
+def truncated_rms(ss: float, n_in: int, n_rej: int, gate: float) -> float:
+    # The frame's residual RMS with each rejected marker counted at the gate: what
+    # the markers say of the fit, a misfit the gate hides included.
+    n = n_in + n_rej
+    return math.sqrt((ss + n_rej * gate * gate) / n) if n > 0 else math.inf
+
+
+@kernel
+def predict(m: tuple, s: tuple) -> None:
+    # The pose predicted for this frame: the last explained frame advanced by its
+    # joint-angle velocity when the frame before it was explained too, else held (a
+    # velocity across a gap is not known). Written to the pull target s[2], s[3] and
+    # to the warm start s[0], s[1].
+    q, t, qpred, tpred = s[0], s[1], s[2], s[3]
+    qlast, tlast, q2, t2 = s[49], s[50], s[41], s[42]
+    have, sc = s[4], s[36]
+    if have[0] >= 2 and sc[C_GAP] <= 1.0:
+        for b in range(q.shape[0]):
+            d = qmul(q2[b, 0], -q2[b, 1], -q2[b, 2], -q2[b, 3],
+                      qlast[b, 0], qlast[b, 1], qlast[b, 2], qlast[b, 3])  # fmt: skip
+            r = qmul(qlast[b, 0], qlast[b, 1], qlast[b, 2], qlast[b, 3],
+                      d[0], d[1], d[2], d[3])  # fmt: skip
+            nr = math.sqrt(r[0] * r[0] + r[1] * r[1] + r[2] * r[2] + r[3] * r[3])
+            for j in range(4):
+                qpred[b, j] = r[j] / nr
+        for rr in range(t.shape[0]):
+            for j in range(3):
+                tpred[rr, j] = 2.0 * tlast[rr, j] - t2[rr, j]
+    else:
+        cp2(qpred, qlast)
+        cp2(tpred, tlast)
+    cp2(q, qpred)
+    cp2(t, tpred)
+
+
+@kernel
+def impossible(m: tuple, s: tuple, frames: float) -> bool:
+    # Whether the fitted pose moved a joint (or a root) further from its prediction
+    # than a body can in `frames` frames: the bound 1/2 a (frames dt)^2 times
+    # P_JUMP_Z, or the floor (noise on a short lever makes a few degrees of jitter
+    # at any rate; the root: the gate).
+    params, parent = m[18], m[0]
+    q, t, qpred, tpred = s[0], s[1], s[2], s[3]
+    h = frames * s[36][C_DT]
+    z = params[P_JUMP_Z]
+    lim_r = max(z * 0.5 * params[P_ALPHA_MAX] * h * h, params[P_JUMP_FLOOR_RAD])
+    lim_t = max(z * 0.5 * params[P_ACC_MAX] * h * h, params[P_GATE_M])
+    for b in range(parent.shape[0]):
+        d = qmul(qpred[b, 0], -qpred[b, 1], -qpred[b, 2], -qpred[b, 3],
+                  q[b, 0], q[b, 1], q[b, 2], q[b, 3])  # fmt: skip
+        w = abs(d[0])
+        ang = 2.0 * math.acos(w if w < 1.0 else 1.0)
+        if ang > lim_r:
+            return True
+    for rr in range(t.shape[0]):
+        dx = t[rr, 0] - tpred[rr, 0]
+        dy = t[rr, 1] - tpred[rr, 1]
+        dz = t[rr, 2] - tpred[rr, 2]
+        if dx * dx + dy * dy + dz * dz > lim_t * lim_t:
+            return True
+    return False
+
+
+@kernel
+def hold_priors(m: tuple, s: tuple) -> None:
+    # While markers are hidden, each bone's rotations that they observed and that
+    # the markers still seen no longer resolve (information under (sigma /
+    # resolution)^2, sigma the take's residual level: what the remaining markers'
+    # misfit would turn them by) are held at their last seen value with the
+    # information the hidden markers gave them (at most up to that threshold): the
+    # balance of the fit is kept, not shifted to what the remaining misfit prefers
+    # (fit_observe.hidden_information). s[53] the hold priors (bone axes, m^2 /
+    # rad^2), s[54] their anchors (parent_from_bone), s[55] their traces (0: off).
+    params, parent, wt = m[18], m[0], m[7]
+    axes, lam, lost = m[22], m[23], m[24]
+    vis = s[13]
+    hold, anchor, on, qlast = s[53], s[54], s[55], s[49]
+    n_b = parent.shape[0]
+    sig = max(params[P_NOISE_M], s[36][C_LEVEL]) / params[P_RESOLUTION_RAD]
+    thr = sig * sig
+    for b in range(n_b):
+        for i in range(3):
+            for j in range(3):
+                hold[b, i, j] = 0.0
+    for k in range(wt.shape[0]):
+        if wt[k] <= 0.0 or vis[k]:
+            continue
+        base = k * n_b
+        for b in range(n_b):
+            row = base + b
+            for j in range(3):
+                lo = lost[row, j]
+                li = lam[row, j]
+                if lo <= 0.0 or li >= thr:
+                    continue
+                kk = min(lo, thr - li)
+                u0, u1, u2 = (
+                    axes[row, 3 * j],
+                    axes[row, 3 * j + 1],
+                    axes[row, 3 * j + 2],
+                )
+                u = (u0, u1, u2)
+                for a in range(3):
+                    for c in range(3):
+                        hold[b, a, c] += kk * u[a] * u[c]
+    local_floor(m, s, thr)
+    for b in range(n_b):
+        tr = hold[b, 0, 0] + hold[b, 1, 1] + hold[b, 2, 2]
+        if tr > on[b] * (1.0 + 1e-9):
+            # a hold that starts or grows (another marker hidden) holds from the
+            # last explained frame, not from where an older, weaker hold began
+            for j in range(4):
+                anchor[b, j] = qlast[b, j]
+        on[b] = tr
+
+
+@kernel
+def eig3(a: np.ndarray, v: np.ndarray) -> tuple[float, float, float]:
+    # Eigenvalues of the symmetric 3 x 3 ``a`` (destroyed) by cyclic Jacobi
+    # rotations; ``v``'s columns become the eigenvectors.
+    for i in range(3):
+        for j in range(3):
+            v[i, j] = 1.0 if i == j else 0.0
+    scale = abs(a[0, 0]) + abs(a[1, 1]) + abs(a[2, 2]) + 1e-300
+    for _sweep in range(10):
+        off = a[0, 1] * a[0, 1] + a[0, 2] * a[0, 2] + a[1, 2] * a[1, 2]
+        if off <= 1e-24 * scale * scale:
+            break
+        for pq in range(3):
+            p = 0 if pq < 2 else 1
+            q = 1 if pq == 0 else 2
+            apq = a[p, q]
+            if abs(apq) <= 1e-300:
+                continue
+            theta = (a[q, q] - a[p, p]) / (2.0 * apq)
+            t = 1.0 / (abs(theta) + math.sqrt(theta * theta + 1.0))
+            if theta < 0.0:
+                t = -t
+            c = 1.0 / math.sqrt(t * t + 1.0)
+            sn = t * c
+            for k in range(3):
+                akp, akq = a[k, p], a[k, q]
+                a[k, p] = c * akp - sn * akq
+                a[k, q] = sn * akp + c * akq
+            for k in range(3):
+                apk, aqk = a[p, k], a[q, k]
+                a[p, k] = c * apk - sn * aqk
+                a[q, k] = sn * apk + c * aqk
+            for k in range(3):
+                vkp, vkq = v[k, p], v[k, q]
+                v[k, p] = c * vkp - sn * vkq
+                v[k, q] = sn * vkp + c * vkq
+    return a[0, 0], a[1, 1], a[2, 2]
+
+
+@kernel
+def local_floor(m: tuple, s: tuple, thr: float) -> None:
+    # Several markers of one bone hidden at once can leave a rotation that no
+    # single-marker table (fit_observe.hidden_information) sees: the bone's own
+    # information about its origin, from the markers seen on it and below it at the
+    # predicted pose (sum w (|r|^2 I - r r^T)), is brought up to the threshold in
+    # every direction under it, for each bone a hidden marker rides or hangs below.
+    parent, mk_bone, mk_local, wt = m[0], m[5], m[6], m[7]
+    vis, hold = s[13], s[53]
+    wq, wm, o = s[29], s[8], s[9]
+    acc, touched, jac = s[18], s[39], s[28]
+    n_b = parent.shape[0]
+    fk(parent, m[1], m[2], s[0], s[1], wq, wm, o)
+    any_hidden = False
+    for b in range(n_b):
+        touched[b] = 0
+    for i in range(mk_bone.shape[0]):
+        if wt[i] > 0.0 and not vis[i]:
+            k = mk_bone[i]
+            while k >= 0:
+                touched[k] = 1
+                k = parent[k]
+            any_hidden = True
+    if not any_hidden:
+        return
+    for b in range(n_b):
+        for i in range(3):
+            for j in range(3):
+                acc[b, i, j] = 0.0
+    for i in range(mk_bone.shape[0]):
+        if wt[i] <= 0.0 or not vis[i]:
+            continue
+        sb = mk_bone[i]
+        px = o[sb, 0] + wm[sb, 0, 0] * mk_local[i, 0] + wm[sb, 0, 1] * mk_local[i, 1]
+        px += wm[sb, 0, 2] * mk_local[i, 2]
+        py = o[sb, 1] + wm[sb, 1, 0] * mk_local[i, 0] + wm[sb, 1, 1] * mk_local[i, 1]
+        py += wm[sb, 1, 2] * mk_local[i, 2]
+        pz = o[sb, 2] + wm[sb, 2, 0] * mk_local[i, 0] + wm[sb, 2, 1] * mk_local[i, 1]
+        pz += wm[sb, 2, 2] * mk_local[i, 2]
+        k = sb
+        while k >= 0:
+            if touched[k]:
+                r = (px - o[k, 0], py - o[k, 1], pz - o[k, 2])
+                r2 = r[0] * r[0] + r[1] * r[1] + r[2] * r[2]
+                for a in range(3):
+                    for c in range(3):
+                        acc[k, a, c] += wt[i] * ((r2 if a == c else 0.0) - r[a] * r[c])
+            k = parent[k]
+    a3, v3 = jac[3:6], jac[0:3]
+    for b in range(n_b):
+        if not touched[b] or parent[b] < 0:
+            continue
+        # in the bone's axes: W^T acc W
+        for a in range(3):
+            for c in range(3):
+                x = 0.0
+                for e in range(3):
+                    for f in range(3):
+                        x += wm[b, e, a] * acc[b, e, f] * wm[b, f, c]
+                a3[a, c] = x
+        lam = eig3(a3, v3)
+        for j in range(3):
+            if lam[j] >= thr:
+                continue
+            kk = thr - max(lam[j], 0.0)
+            for a in range(3):
+                for c in range(3):
+                    hold[b, a, c] += kk * v3[a, j] * v3[c, j]
+
+
+@kernel
+def virtual_markers(m: tuple, s: tuple) -> None:
+    # A hidden marker is measured where the predicted pose carries it, offset by its
+    # residual at its last accepted frame in its bone's axes (s[56]): it keeps the
+    # pull and the stiffness it gave the fit (the balance of a loosely fitting model
+    # stays where it was; a marker's misfit, soft tissue or the model, changes
+    # slowly), and it never enters the gate, the residual statistics or the outputs
+    # (s[58] marks it; fit_terms.marker_cost measures it).
+    mk_bone, mk_local, wt = m[5], m[6], m[7]
+    vis, rage, meas = s[13], s[48], s[12]
+    rloc, virt = s[56], s[58]
+    wq, wm, o = s[29], s[8], s[9]
+    fk(m[0], m[1], m[2], s[0], s[1], wq, wm, o)
+    for i in range(mk_bone.shape[0]):
+        if vis[i] or wt[i] <= 0.0 or rage[i] == math.inf:
+            virt[i] = 0.0
+            continue
+        b = mk_bone[i]
+        for j in range(3):
+            meas[i, j] = o[b, j] + (
+                wm[b, j, 0] * (mk_local[i, 0] - rloc[i, 0])
+                + wm[b, j, 1] * (mk_local[i, 1] - rloc[i, 1])
+                + wm[b, j, 2] * (mk_local[i, 2] - rloc[i, 2])
+            )
+        virt[i] = 1.0
+
+
+@kernel
+def median_residual(s: tuple) -> float:
+    # Median |residual| over visible markers (insertion sort in scratch).
+    vis, res, buf = s[13], s[14], s[25]
+    n = 0
+    for i in range(vis.shape[0]):
+        if vis[i]:
+            v = math.sqrt(res[i, 0] ** 2 + res[i, 1] ** 2 + res[i, 2] ** 2)
+            j = n
+            while j > 0 and buf[j - 1] > v:
+                buf[j] = buf[j - 1]
+                j -= 1
+            buf[j] = v
+            n += 1
+    if n == 0:
+        return 0.0
+    if n % 2 == 1:
+        return buf[n // 2]
+    return 0.5 * (buf[n // 2 - 1] + buf[n // 2])
+
+
+@kernel
+def mark_outliers(m: tuple, s: tuple, gate: float) -> bool:
+    # The gate, on the ungated fit's residuals: a visible marker is rejected when its
+    # residual exceeds the gate and, if it has a reference (its residual vector at
+    # its last accepted frame, at most P_GATE_MEMORY frames ago), has also moved from
+    # it by more than the gate. A swapped label or a ghost jumps by a marker spacing;
+    # skin sliding or a loose fit grows a residual over many frames and keeps it.
+    params = m[18]
+    vis, res, rej, rref, rage = s[13], s[14], s[45], s[47], s[48]
+    memory = params[P_GATE_MEMORY]
+    g2 = gate * gate
+    beyond = False
+    for i in range(vis.shape[0]):
+        rej[i] = False
+        if not vis[i]:
+            continue
+        n2 = res[i, 0] ** 2 + res[i, 1] ** 2 + res[i, 2] ** 2
+        if n2 <= g2:
+            continue
+        if rage[i] == math.inf:
+            # never accepted since the take began: a steady misfit from the first
+            # frame is not told from a swap by one frame; the Cauchy loss weighs it
+            # down, and once seen its residual is its reference (step 4)
+            continue
+        if rage[i] <= memory:
+            d0 = res[i, 0] - rref[i, 0]
+            d1 = res[i, 1] - rref[i, 1]
+            d2 = res[i, 2] - rref[i, 2]
+            if d0 * d0 + d1 * d1 + d2 * d2 <= g2:
+                continue
+        rej[i] = True
+        beyond = True
+    return beyond
+
+
+@kernel
+def score(m: tuple, s: tuple) -> tuple[float, int, int]:
+    # Inlier sum of squares, number of inliers, number rejected.
+    vis, res, wt, rej = s[13], s[14], m[7], s[45]
+    ss = 0.0
+    n_in = 0
+    n_rej = 0
+    for i in range(vis.shape[0]):
+        if not vis[i] or wt[i] <= 0.0:
+            continue
+        if rej[i]:
+            n_rej += 1
+        else:
+            n_in += 1
+            ss += res[i, 0] ** 2 + res[i, 1] ** 2 + res[i, 2] ** 2
+    return ss, n_in, n_rej
