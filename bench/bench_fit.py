@@ -103,6 +103,7 @@ def _menache(n_frames: int) -> Case:
             joint_limits=JOINT_LIMITS_DEG,
             segment_kind=SEGMENT_KIND,
             base_positions=base,
+            rate_hz=take.rate_hz,
         ),
         BodySolver(rig, cal, take.labels),
         np.ascontiguousarray(take.markers_world),
@@ -136,7 +137,7 @@ def _dense(n_frames: int, folder: Path) -> Case:
     cal = calibrate(rig, base, take.labels)
     solver = FitSolver(
         rig, cal, take.labels, joint_limits=JOINT_LIMITS_DEG,
-        segment_kind=SEGMENT_KIND, base_positions=base,
+        segment_kind=SEGMENT_KIND, base_positions=base, rate_hz=rate_hz,
     )  # fmt: skip
     n_hinge = sum(b.dof == "hinge" for b in rig.fit.bones.values())
     n_ball = len(rig.bones) - 1 - n_hinge
@@ -181,7 +182,7 @@ def _bioptim(n_frames: int) -> Case | None:
         "bioptim-wholebody",
         FitSolver(
             rig, cal, take.labels, joint_limits=JOINT_LIMITS_DEG,
-            segment_kind=SEGMENT_KIND, base_positions=base,
+            segment_kind=SEGMENT_KIND, base_positions=base, rate_hz=take.rate_hz,
         ),
         BodySolver(rig, cal, take.labels),
         frames,
@@ -214,6 +215,7 @@ def _pig(n_frames: int) -> Case | None:
             segment_kind=SEGMENT_KIND,
             base_positions=static.positions,
             base_labels=static.labels,
+            rate_hz=walk.rate_hz,
         ),
         BodySolver(rig, cal, walk.labels),
         frames,

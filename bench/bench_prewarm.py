@@ -50,6 +50,7 @@ def _solvers(n: int) -> tuple[list[tuple[object, object]], np.ndarray]:
         s = make_body_solver(
             "fit", rig, cal, walk.labels,
             joint_limits=JOINT_LIMITS_DEG, segment_kind=SEGMENT_KIND,
+            rate_hz=walk.rate_hz,
         )  # fmt: skip
         out.append((s, s.new_pose()))
     return out, walk.positions

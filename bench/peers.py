@@ -298,6 +298,7 @@ def make_solver(
     cal: Calibration,
     labels: tuple[str, ...],
     base: tuple[np.ndarray, tuple[str, ...]],
+    rate_hz: float = 120.0,
 ) -> BodySolver | FitSolver:
     """The construction, or the fit built as ``bench/bench_fit.py`` builds it (the
     validator's joint limits and segment kinds; ``base``: the base-pose frames
@@ -312,6 +313,7 @@ def make_solver(
         base_labels=base[1],
         joint_limits=JOINT_LIMITS_DEG,
         segment_kind=SEGMENT_KIND,
+        rate_hz=rate_hz,
     )
 
 
@@ -329,7 +331,7 @@ def run_retargetd(
     cols = match_markers(rig, take.labels)
     col_of = {m: int(c) for m, c in zip(rig.marker_names, cols, strict=True) if c >= 0}
     label_of = {m: take.labels[c] for m, c in col_of.items()}
-    solver = make_solver(kind, rig, cal, take.labels, base)
+    solver = make_solver(kind, rig, cal, take.labels, base, take.rate_hz)
     pose = solver.new_pose()
     pos = np.ascontiguousarray(take.positions[frames], dtype=np.float64)
     solver.solve_frame(pos[0], pose)  # warm-up: the kernel loaded, then reset

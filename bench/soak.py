@@ -60,6 +60,9 @@ import fuzz
 
 LOCALHOST = "127.0.0.1"
 RATE_HZ = 240.0
+#: The daemon's ``[validate] rate_hz`` here (its default): the rate of the frame
+#: numbers, which the fit's frame times come from (``live.send.frame_interval_s``).
+VALIDATE_RATE_HZ = 240.0
 LABEL_SET_ID = 1
 #: The pass thresholds (issue 12 item 7).
 MAX_GAP_S = 0.100
@@ -678,6 +681,7 @@ def replay_check(path: Path, calibration: Path, method: str = "fit") -> dict[str
     from retargetd.daemon.body.calibration import load_calibration
     from retargetd.daemon.body.method import make_body_solver
     from retargetd.daemon.body.rig import load_rig
+    from retargetd.daemon.live.send import frame_interval_s
     from retargetd.daemon.validate.limits import JOINT_LIMITS_DEG
     from retargetd.daemon.validate.model import SEGMENT_KIND
     from retargetd.protocols import osc_in, pose_stream
@@ -723,15 +727,19 @@ def replay_check(path: Path, calibration: Path, method: str = "fit") -> dict[str
             solver = make_body_solver(
                 method, rig, cal, labels,
                 joint_limits=JOINT_LIMITS_DEG, segment_kind=SEGMENT_KIND,
+                rate_hz=VALIDATE_RATE_HZ,
             )  # fmt: skip
             pose = solver.new_pose()
+            last = (math.nan, -1, 0)  # a new pipeline: its first frame
         elif code == RESTART:
             solver.reset()
         msg = poses.pop(p.t_ns, None)
         if msg is None:
             missing += 1  # stale (latest wins): the daemon did not solve it either
             continue
-        solver.solve_frame(stream.current.frame.markers_world, pose)
+        frame = stream.current.frame
+        dt, last = frame_interval_s(last, frame, p.t_ns, VALIDATE_RATE_HZ)
+        solver.solve_frame(frame.markers_world, pose, dt)
         dq = np.abs(
             pose.world_from_bone_quat.astype(np.float32) - msg.world_from_bone_quat
         )

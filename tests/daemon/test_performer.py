@@ -268,7 +268,9 @@ def test_arm_raise_sweeps_both_arms() -> None:
     for name, along in (("l_upper_arm", [0, 1, 0]), ("r_upper_arm", [0, -1, 0])):
         axis = rot.quat_rotate(tk.world_from_segment_quat[:, _seg(tk, name)], along)
         elevation = np.rad2deg(np.arcsin(np.clip(axis[:, 2], -1, 1)))
-        assert elevation.max() > 60.0 and elevation.min() < -60.0
+        # 60 deg up and 55 deg down at most (motion._arm_raise: the amplitudes that
+        # keep the performer's own segments apart), with the other components on top
+        assert elevation.max() > 40.0 and elevation.min() < -40.0
 
 
 def test_spine_bends_and_twists_the_trunk() -> None:

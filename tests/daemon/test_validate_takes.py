@@ -111,6 +111,7 @@ def _validate(
     solver = make_body_solver(
         method, rig, cal, take.labels,
         joint_limits=JOINT_LIMITS_DEG, segment_kind=SEGMENT_KIND,
+        rate_hz=take.rate_hz,
     )  # fmt: skip
     solve = solver.solve_take(take.positions)
     vm = build_model(skeleton_from_calibration(rig, cal))
