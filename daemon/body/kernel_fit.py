@@ -546,10 +546,10 @@ def fit_one_t(
     # 4. an explained frame is the next one's prediction base and the gate's
     # reference; a held one leaves them, and the gap grows
     if held_all:
+        # (the gate's references do not age over frames no pose was fitted to: the
+        # first frame after a burst is judged against the last explained one)
         if have[0] != 0:
             sc[C_GAP] += 1.0
-        for i in range(n_mk):
-            rage[i] += 1.0
         return n_held
     rloc = s[56]
     for i in range(n_mk):
