@@ -195,7 +195,7 @@ def test_the_issues_hidden_markers_keep_the_pose(
             "hide",
             window,
             marker=walk.labels.index(marker),
-        )  # fmt: skip
+        )
     )
     m = damage_metrics(intact, res, window, walk.rate_hz)
     print(
