@@ -38,7 +38,8 @@ P_PERSIST = 18  # seconds a marker stays rejected before a reseed is tried
 P_JUMP_Z = 19  # a joint past max(this x its prediction's bound, P_JUMP_FLOOR_RAD)
 P_JUMP_FLOOR_RAD = 20  # ... from its prediction is no motion a body makes
 P_RESOLUTION_RAD = 21  # the hold: a joint angle's resolution (fit_observe)
-N_PARAMS = 22
+P_VELOCITY_TAU_S = 22  # a hidden marker's velocity decays with this time constant
+N_PARAMS = 23
 
 # per-frame scalars (the state's ``s[36]``)
 C_GATE = 0  # this frame's gate, metres

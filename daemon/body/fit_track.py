@@ -23,8 +23,11 @@ from retargetd.daemon.body.fit_terms import (
     P_JUMP_Z,
     P_NOISE_M,
     P_RESOLUTION_RAD,
+    P_VELOCITY_TAU_S,
     cp2,
     fk,
+    qexp,
+    qlog,
 )
 from retargetd.daemon.compiled import kernel, qmul
 
@@ -110,13 +113,16 @@ def hold_priors(m: tuple, s: tuple) -> None:
     n_b = parent.shape[0]
     sig = max(params[P_NOISE_M], s[36][C_LEVEL]) / params[P_RESOLUTION_RAD]
     thr = sig * sig
+    rage, fresh = s[48], s[40]  # (s[40]: scratch here, the outputs' later)
     for b in range(n_b):
+        fresh[b] = 0
         for i in range(3):
             for j in range(3):
                 hold[b, i, j] = 0.0
     for k in range(wt.shape[0]):
         if wt[k] <= 0.0 or vis[k]:
             continue
+        new = rage[k] == 0.0  # accepted in the last explained frame: hidden now
         base = k * n_b
         for b in range(n_b):
             row = base + b
@@ -125,6 +131,8 @@ def hold_priors(m: tuple, s: tuple) -> None:
                 li = lam[row, j]
                 if lo <= 0.0 or li >= thr:
                     continue
+                if new:
+                    fresh[b] = 1
                 kk = min(lo, thr - li)
                 u0, u1, u2 = (
                     axes[row, 3 * j],
@@ -138,9 +146,11 @@ def hold_priors(m: tuple, s: tuple) -> None:
     local_floor(m, s, thr)
     for b in range(n_b):
         tr = hold[b, 0, 0] + hold[b, 1, 1] + hold[b, 2, 2]
-        if tr > on[b] * (1.0 + 1e-9):
-            # a hold that starts or grows (another marker hidden) holds from the
-            # last explained frame, not from where an older, weaker hold began
+        if tr > 0.0 and (on[b] == 0.0 or fresh[b]):
+            # a hold that starts, or that another marker just hidden adds to, holds
+            # from the last explained frame; otherwise it keeps its anchor while the
+            # markers stay hidden (a threshold that grows with the residual must not
+            # move it: the hold would follow a drift instead of stopping it)
             for j in range(4):
                 anchor[b, j] = qlast[b, j]
         on[b] = tr
@@ -267,7 +277,33 @@ def virtual_markers(m: tuple, s: tuple) -> None:
     vis, rage, meas = s[13], s[48], s[12]
     rloc, virt = s[56], s[58]
     wq, wm, o = s[29], s[8], s[9]
-    fk(m[0], m[1], m[2], s[0], s[1], wq, wm, o)
+    # The pose they are measured on: the predicted root, every joint advanced from
+    # its last explained value by its last velocity damped by exp(-dt / tau_v): a
+    # marker that stays hidden must not carry a velocity on (the fit would follow
+    # its own prediction and the velocity with it: a runaway), so what only it saw
+    # slows to a hold within ~tau_v.
+    params, parent, sc = m[18], m[0], s[36]
+    qlast, q2, qv = s[49], s[41], s[6]
+    k = math.exp(-sc[C_DT] / params[P_VELOCITY_TAU_S])
+    moving = s[4][0] >= 2 and sc[C_GAP] <= 1.0
+    for b in range(parent.shape[0]):
+        if parent[b] < 0:
+            for j in range(4):
+                qv[b, j] = s[0][b, j]
+            continue
+        if not moving:
+            for j in range(4):
+                qv[b, j] = qlast[b, j]
+            continue
+        d = qmul(q2[b, 0], -q2[b, 1], -q2[b, 2], -q2[b, 3],
+                  qlast[b, 0], qlast[b, 1], qlast[b, 2], qlast[b, 3])  # fmt: skip
+        vx, vy, vz = qlog(d[0], d[1], d[2], d[3])
+        e = qexp(k * vx, k * vy, k * vz)
+        r = qmul(qlast[b, 0], qlast[b, 1], qlast[b, 2], qlast[b, 3],
+                  e[0], e[1], e[2], e[3])  # fmt: skip
+        for j in range(4):
+            qv[b, j] = r[j]
+    fk(parent, m[1], m[2], qv, s[1], wq, wm, o)
     for i in range(mk_bone.shape[0]):
         if vis[i] or wt[i] <= 0.0 or rage[i] == math.inf:
             virt[i] = 0.0
