@@ -254,8 +254,12 @@ class ScipyFit:
         m = solver.model
         self.m = m
         self.cols = solver.marker_cols
-        self.lam = solver.params.lambda_rot
-        self.lam_t = solver.params.lambda_trans
+        # the continuity weights the kernel uses at the solver's rate (one frame:
+        # fit_terms.continuity_weights), about the warm start as the kernel's are
+        # about its prediction
+        p, dt = solver.params, 1.0 / solver.rate_hz
+        self.lam = (p.noise_m / (0.5 * p.alpha_max * dt * dt)) ** 2
+        self.lam_t = (p.noise_m / (0.5 * p.acc_max * dt * dt)) ** 2
         self.sw = np.sqrt(m.marker_weight)
         self.off = np.array(m.off_parent)  # (scipy wants writeable buffers)
 

@@ -195,6 +195,40 @@ def build_normal(m: tuple, s: tuple) -> None:
                 active = True
         if not active:
             continue
+        lk = lock[b]
+        if lk != 0.0 and pen[0] == 0.0 and pen[1] == 0.0 and pen[2] == 0.0:
+            # Only a swing joint's twist or a hinge_twist's cone residual (pen[3]):
+            # its Jacobian in the bone's own increments, analytic (most frames; the
+            # numerical one below costs three more evaluations of every term).
+            rw, rx, ry, rz = r[0], r[1], r[2], r[3]
+            if rw < 0.0:
+                rw, rx, ry, rz = -rw, -rx, -ry, -rz
+            if lk == 1.0:  # d twist, twist = 2 atan2(y, w)
+                den = rw * rw + ry * ry
+                j0 = s_hinge * (rw * rz + rx * ry) / den
+                j1 = s_hinge
+                j2 = s_hinge * (ry * rz - rw * rx) / den
+            else:  # the bone's axis R Y off the cone about h: d (h . R Y)
+                hv = hinge[b]
+                sc_h = s_hinge / math.sqrt(1.0 - hv[1] * hv[1])
+                c2x = 2.0 * (rx * rz + rw * ry)  # R Z
+                c2y = 2.0 * (ry * rz - rw * rx)
+                c2z = 1.0 - 2.0 * (rx * rx + ry * ry)
+                c0x = 1.0 - 2.0 * (ry * ry + rz * rz)  # R X
+                c0y = 2.0 * (rx * ry + rw * rz)
+                c0z = 2.0 * (rx * rz - rw * ry)
+                j0 = sc_h * (hv[0] * c2x + hv[1] * c2y + hv[2] * c2z)
+                j1 = 0.0
+                j2 = -sc_h * (hv[0] * c0x + hv[1] * c0y + hv[2] * c0z)
+            u0 = j0 * wm[b, 0, 0] + j1 * wm[b, 0, 1] + j2 * wm[b, 0, 2]
+            u1 = j0 * wm[b, 1, 0] + j1 * wm[b, 1, 1] + j2 * wm[b, 1, 2]
+            u2 = j0 * wm[b, 2, 0] + j1 * wm[b, 2, 1] + j2 * wm[b, 2, 2]
+            u = (u0, u1, u2)
+            for i in range(3):
+                g[rb + i] += u[i] * pen[3]
+                for j in range(3):
+                    hb[i, j] += u[i] * u[j]
+            continue
         # Numerical Jacobian of the penalty residuals w.r.t. the bone's own increment.
         for c in range(3):
             e = qexp(eps if c == 0 else 0.0, eps if c == 1 else 0.0,

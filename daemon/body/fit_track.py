@@ -131,9 +131,13 @@ def hold_priors(m: tuple, s: tuple) -> None:
                 li = lam[row, j]
                 if lo <= 0.0 or li >= thr:
                     continue
+                kk = min(lo, thr - li)
+                if kk < 0.01 * thr:
+                    # (a hold under 1 % of the threshold moves nothing by more than
+                    # 1 % of the resolution: not worth its terms in every iteration)
+                    continue
                 if new:
                     fresh[b] = 1
-                kk = min(lo, thr - li)
                 u0, u1, u2 = (
                     axes[row, 3 * j],
                     axes[row, 3 * j + 1],
@@ -284,6 +288,13 @@ def virtual_markers(m: tuple, s: tuple) -> None:
     # slows to a hold within ~tau_v.
     params, parent, sc = m[18], m[0], s[36]
     qlast, q2, qv = s[49], s[41], s[6]
+    hidden = False
+    for i in range(mk_bone.shape[0]):
+        if not vis[i] and wt[i] > 0.0 and rage[i] != math.inf:
+            hidden = True
+            break
+    if not hidden:  # (most frames: nothing to measure, no FK to pay)
+        return
     k = math.exp(-sc[C_DT] / params[P_VELOCITY_TAU_S])
     moving = s[4][0] >= 2 and sc[C_GAP] <= 1.0
     for b in range(parent.shape[0]):
