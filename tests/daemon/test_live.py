@@ -55,6 +55,7 @@ from live_harness import (  # the harness, and its fixtures
     PoseSub,
     S,
     VmcReceiver,
+    _f32,
     _fit_oracle,
     _import_vmcp,
     _json_strict,
@@ -1581,6 +1582,72 @@ def test_vmc_receivers_are_told_the_calibration_state(
         time.sleep(0.01)
     got = states()
     assert got and got[-1].calibration_state == cal.CALIBRATING
+
+
+@pytest.mark.timeout(300)
+def test_fit_live_burst_heals_and_an_unseen_performer_is_not_streamed(
+    start_daemon: Callable[..., Live],
+    osc_source: Callable[..., OscSource],
+    zmq_socket: Callable[[int], Any],
+    exact_calibration: Path,
+) -> None:
+    """Issue 28 item 3, live: 10 frames of every marker collapsed onto one reach the
+    daemon; they are streamed flagged ``unexplained`` (the last explained pose held),
+    and the poses are back on the intact frames' (the batch fit's, 2 deg) within
+    0.25 s of the burst's end. Then 3 frames with no marker at all: no pose is
+    streamed for them and status counts them ``unseen``."""
+    take = _take()
+    live = start_daemon(
+        {
+            "performer": {"calibration": str(exact_calibration)},
+            "solve": {"method": "fit"},
+            "loop": {"process_every_frame": True},
+        },
+    )
+    sub = PoseSub(zmq_socket(zmq.SUB), live.tcp("zmq poses"))
+    src = osc_source(live)
+    src.announce()
+    _prime(sub, lambda: src.send(take.markers_world[0]))
+    n0 = len(src.sent)
+    rows = list(range(100, 200))
+    burst = range(130, 140)
+    unseen = range(180, 183)
+    for row in rows:
+        markers = take.markers_world[row]
+        if row in burst:  # every marker onto the first
+            markers = np.broadcast_to(markers[0], markers.shape).copy()
+        if row in unseen:
+            markers = np.full_like(markers, np.nan)
+        src.send(markers)
+        time.sleep(0.002)
+    n_sent = len(rows) - len(unseen)
+    sub.wait(lambda: len(sub.poses) >= n_sent, "the fitted poses", 30.0)
+    got = sub.poses[-n_sent:]
+    streamed = [r for r in rows if r not in unseen]
+    ids = [
+        fid for (fid, _), r in zip(src.sent[n0:], rows, strict=True) if r in streamed
+    ]
+    assert [p.frame_id for p in got] == ids  # nothing for the unseen frames
+    flags = {r: p.flags for r, p in zip(streamed, got, strict=True)}
+    for r in burst:
+        assert flags[r] & pose_stream.FRAME_UNEXPLAINED, r
+    assert not any(flags[r] & pose_stream.FRAME_UNEXPLAINED for r in rows[:30])
+    # back on the intact frames' fit within 0.25 s (the take is 120 Hz: 30 frames)
+    intact = _fit_oracle(
+        exact_calibration,
+        [m for _, m in src.sent[:n0]] + [_f32(take.markers_world[r]) for r in rows],
+    )
+    want = {r: q for r, (q, _) in zip(rows, intact[n0:], strict=True)}
+    late = [r for r in streamed if burst.stop + 30 <= r < unseen.start]
+    for r in late:
+        q = got[streamed.index(r)].world_from_bone_quat.astype(np.float64)
+        dots = np.clip(np.abs(np.sum(q * want[r], axis=-1)), 0.0, 1.0)
+        assert np.degrees(2.0 * np.arccos(dots)).max() < 2.0, r
+    status = live.daemon.status()
+    counters = status["counters"]
+    assert counters["unseen"] == len(unseen), counters
+    assert counters["unexplained"] >= len(burst), counters
+    assert counters["frames_out"] == counters["frames_solved"] - len(unseen)
 
 
 @pytest.mark.timeout(300)
