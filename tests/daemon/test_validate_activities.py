@@ -98,3 +98,50 @@ def test_activity_reaches_the_published_range_and_passes(motion: str) -> None:
             for w in limits.warnings
         ), limits.warnings
     assert rep.passed, rep.failed()
+
+
+@pytest.mark.timeout(300)
+def test_the_default_motion_keeps_the_performers_own_segments_apart() -> None:
+    """The synthetic performer's default motions over a minute (the longest take
+    ``retargetd demo`` streams), solved exactly (the exact rig, whose bones are the
+    performer's segments): no self-penetration, so what the rigs' solves show is
+    theirs, not the motion's (issue 28: the arms' amplitudes were cut where forearm
+    and hand met the head, the thigh and the pelvis)."""
+    take = pf.synthesize(
+        seconds=60.0, rate_hz=RATE_HZ, markerset=DATA / "synth-exact-markers.toml"
+    )
+    rig = load_rig(DATA / "synth-exact-rig.toml")
+    cal = calibrate(rig, take.markers_world[take.base_pose_frames], take.labels)
+    res = BodySolver(rig, cal, take.labels).solve_take(take.markers_world)
+    vm = build_model(skeleton_from_calibration(rig, cal))
+    rep = validate_take(vm, res, RATE_HZ, fit=fit_pairs(rig, res.joint_names))
+    check = rep.checks["self_penetration"]
+    print(f"\ntruth self-penetration: max {np.nanmax(check.values):.1f} mm")
+    assert check.n_flagged == 0, check.summary()
+
+
+@pytest.mark.timeout(600)
+@pytest.mark.parametrize("method", ["fit", "construction"])
+def test_the_demo_take_validates(method: str) -> None:
+    """The take ``retargetd demo`` streams by default (menache, 31 s at 120 Hz, 0.5
+    mm noise, seed 1: ``cli/demo.py``), calibrated on its T-pose hold, validates with
+    both methods (issue 28: with the fit it failed on a neck twisted 90 deg and 118
+    frames of self-penetration, with the construction on 43)."""
+    from retargetd.daemon.body.method import make_body_solver
+    from retargetd.daemon.validate.limits import JOINT_LIMITS_DEG
+    from retargetd.daemon.validate.model import SEGMENT_KIND
+
+    take = pf.synthesize(
+        seconds=31.0, rate_hz=120.0, markerset="menache", noise_mm=0.5, seed=1
+    )
+    rig = load_rig("menache")
+    cal = calibrate(rig, take.markers_world[take.base_pose_frames], take.labels)
+    solver = make_body_solver(
+        method, rig, cal, take.labels,
+        joint_limits=JOINT_LIMITS_DEG, segment_kind=SEGMENT_KIND, rate_hz=120.0,
+    )  # fmt: skip
+    res = solver.solve_take(take.markers_world)
+    vm = build_model(skeleton_from_calibration(rig, cal))
+    rep = validate_take(vm, res, 120.0, fit=fit_pairs(rig, res.joint_names))
+    failed = {n: c.summary() for n, c in rep.checks.items() if c.n_flagged}
+    assert rep.passed, failed
