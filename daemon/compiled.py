@@ -159,21 +159,23 @@ def quat_conj_mul_into(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
 
 
 @kernel
-def _jacobi_top_eigvec(a: np.ndarray, v: np.ndarray, out: np.ndarray) -> None:
-    # Eigenvector of the largest eigenvalue of the symmetric 4x4 ``a`` (destroyed),
-    # by cyclic Jacobi rotations on the scratch ``v`` (4, 4): no allocation.
-    for i in range(4):
-        for j in range(4):
+def jacobi_eigen(a: np.ndarray, v: np.ndarray) -> None:
+    """Diagonalize the symmetric (n, n) ``a`` in place by cyclic Jacobi rotations:
+    its diagonal becomes the eigenvalues and ``v``'s columns (n, n) the eigenvectors.
+    No allocation (n = 3 for a joint's information, 4 for quaternion averaging)."""
+    n = a.shape[0]
+    for i in range(n):
+        for j in range(n):
             v[i, j] = 1.0 if i == j else 0.0
     for _sweep in range(30):
         off = 0.0
-        for p in range(3):
-            for q in range(p + 1, 4):
+        for p in range(n - 1):
+            for q in range(p + 1, n):
                 off += a[p, q] * a[p, q]
         if off < 1e-30:
             break
-        for p in range(3):
-            for q in range(p + 1, 4):
+        for p in range(n - 1):
+            for q in range(p + 1, n):
                 apq = a[p, q]
                 if abs(apq) < 1e-300:
                     continue
@@ -183,21 +185,28 @@ def _jacobi_top_eigvec(a: np.ndarray, v: np.ndarray, out: np.ndarray) -> None:
                     t = -t
                 c = 1.0 / math.sqrt(t * t + 1.0)
                 s = t * c
-                for k in range(4):
+                for k in range(n):
                     akp = a[k, p]
                     akq = a[k, q]
                     a[k, p] = c * akp - s * akq
                     a[k, q] = s * akp + c * akq
-                for k in range(4):
+                for k in range(n):
                     apk = a[p, k]
                     aqk = a[q, k]
                     a[p, k] = c * apk - s * aqk
                     a[q, k] = s * apk + c * aqk
-                for k in range(4):
+                for k in range(n):
                     vkp = v[k, p]
                     vkq = v[k, q]
                     v[k, p] = c * vkp - s * vkq
                     v[k, q] = s * vkp + c * vkq
+
+
+@kernel
+def _jacobi_top_eigvec(a: np.ndarray, v: np.ndarray, out: np.ndarray) -> None:
+    # Eigenvector of the largest eigenvalue of the symmetric 4x4 ``a`` (destroyed),
+    # on the scratch ``v`` (4, 4): no allocation.
+    jacobi_eigen(a, v)
     best = 0
     for i in range(1, 4):
         if a[i, i] > a[best, best]:

@@ -29,7 +29,7 @@ from retargetd.daemon.body.fit_terms import (
     qexp,
     qlog,
 )
-from retargetd.daemon.compiled import kernel, qmul
+from retargetd.daemon.compiled import jacobi_eigen, kernel, qmul
 
 
 @kernel
@@ -162,40 +162,9 @@ def hold_priors(m: tuple, s: tuple) -> None:
 
 @kernel
 def eig3(a: np.ndarray, v: np.ndarray) -> tuple[float, float, float]:
-    # Eigenvalues of the symmetric 3 x 3 ``a`` (destroyed) by cyclic Jacobi
-    # rotations; ``v``'s columns become the eigenvectors.
-    for i in range(3):
-        for j in range(3):
-            v[i, j] = 1.0 if i == j else 0.0
-    scale = abs(a[0, 0]) + abs(a[1, 1]) + abs(a[2, 2]) + 1e-300
-    for _sweep in range(10):
-        off = a[0, 1] * a[0, 1] + a[0, 2] * a[0, 2] + a[1, 2] * a[1, 2]
-        if off <= 1e-24 * scale * scale:
-            break
-        for pq in range(3):
-            p = 0 if pq < 2 else 1
-            q = 1 if pq == 0 else 2
-            apq = a[p, q]
-            if abs(apq) <= 1e-300:
-                continue
-            theta = (a[q, q] - a[p, p]) / (2.0 * apq)
-            t = 1.0 / (abs(theta) + math.sqrt(theta * theta + 1.0))
-            if theta < 0.0:
-                t = -t
-            c = 1.0 / math.sqrt(t * t + 1.0)
-            sn = t * c
-            for k in range(3):
-                akp, akq = a[k, p], a[k, q]
-                a[k, p] = c * akp - sn * akq
-                a[k, q] = sn * akp + c * akq
-            for k in range(3):
-                apk, aqk = a[p, k], a[q, k]
-                a[p, k] = c * apk - sn * aqk
-                a[q, k] = sn * apk + c * aqk
-            for k in range(3):
-                vkp, vkq = v[k, p], v[k, q]
-                v[k, p] = c * vkp - sn * vkq
-                v[k, q] = sn * vkp + c * vkq
+    # Eigenvalues of the symmetric 3 x 3 ``a`` (destroyed); ``v``'s columns become
+    # the eigenvectors (compiled.jacobi_eigen).
+    jacobi_eigen(a, v)
     return a[0, 0], a[1, 1], a[2, 2]
 
 
