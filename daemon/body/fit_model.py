@@ -69,6 +69,7 @@ from retargetd.daemon.body.calibration import (
 )
 from retargetd.daemon.body.fit_observe import (
     BoneObservation,
+    Chain,
     hidden_information,
     observe,
 )
@@ -576,19 +577,14 @@ def build_fit_model(
         elif bopt.dof == "fixed":
             explicit[b] = FIXED_STIFFNESS * np.eye(3)
     root_rest_pos = origins[roots]
-    observation = observe(
-        bone_names=rig.bone_names, parent=parents, root_of=bone_root,
-        off_parent=off_parent, rest_pfb=rest_pfb, root_rest_pos=root_rest_pos,
-        marker_bone=np.asarray(bones_of, dtype=np.int64), marker_local=local,
-        marker_weight=weight, dof=dof, hinge_axis=hinge, explicit_prior=explicit,
-    )  # fmt: skip
-    prior_mat = explicit + np.stack([o.prior for o in observation])
-    hide_axes, hide_lam, hide_lost = hidden_information(
+    chain = Chain(
         parent=parents, root_of=bone_root, off_parent=off_parent, rest_pfb=rest_pfb,
         root_rest_pos=root_rest_pos, marker_bone=np.asarray(bones_of, dtype=np.int64),
         marker_local=local, marker_weight=weight, dof=dof, hinge_axis=hinge,
-        prior=prior_mat,
     )  # fmt: skip
+    observation = observe(chain, bone_names=rig.bone_names, explicit_prior=explicit)
+    prior_mat = explicit + np.stack([o.prior for o in observation])
+    hide_axes, hide_lam, hide_lost = hidden_information(chain, prior=prior_mat)
     limits, left_b, fwd_b = _limit_rows(
         rig, calibration, joint_limits or {}, segment_kind or {}
     )

@@ -49,6 +49,7 @@ __all__ = [
     "PRIOR_STIFFNESS",
     "RESOLUTION_RAD",
     "BoneObservation",
+    "Chain",
     "hidden_information",
     "joint_basis",
     "observe",
@@ -174,6 +175,35 @@ def _rest_pose(
     return rot.mat_from_quat(wq), org
 
 
+@dataclass(frozen=True, slots=True, kw_only=True)
+class Chain:
+    """The fit's chain at its calibration pose, as ``fit_model`` builds it.
+
+    Attributes:
+        parent: (B,) parent index, -1 for a root; ``root_of`` (B,) each bone's root
+            ordinal.
+        off_parent: (B, 3) metres, each origin in its parent's bone frame.
+        rest_pfb: (B, 4) calibrated parent_from_bone (roots: world_from_bone),
+            w x y z.
+        root_rest_pos: (R, 3) metres, world, the roots' calibrated origins.
+        marker_bone: (Mr,) the bone each marker rides; ``marker_local`` (Mr, 3)
+            metres in its frame; ``marker_weight`` (Mr,) (0: not used).
+        dof: (B,) each joint's model ("root" for roots).
+        hinge_axis: (B, 3) hinge axes in the bones' rest axes (hinges).
+    """
+
+    parent: IntArray
+    root_of: IntArray
+    off_parent: F64Array
+    rest_pfb: F64Array
+    root_rest_pos: F64Array
+    marker_bone: IntArray
+    marker_local: F64Array
+    marker_weight: F64Array
+    dof: Sequence[str]
+    hinge_axis: F64Array
+
+
 @dataclass(frozen=True, slots=True)
 class _Linearized:
     """The model linearized at its calibration pose (rows: 3 per used marker)."""
@@ -184,20 +214,17 @@ class _Linearized:
     col0: IntArray  # (B + 1,) first column of each bone; translations after
 
 
-def _linearize(
-    parent: IntArray,
-    root_of: IntArray,
-    off_parent: F64Array,
-    rest_pfb: F64Array,
-    root_rest_pos: F64Array,
-    marker_bone: IntArray,
-    marker_local: F64Array,
-    marker_weight: F64Array,
-    dof: Sequence[str],
-    hinge_axis: F64Array,
-) -> _Linearized:
+def _linearize(chain: Chain) -> _Linearized:
+    ch = chain
+    parent, root_of, dof, hinge_axis = ch.parent, ch.root_of, ch.dof, ch.hinge_axis
+    marker_bone, marker_local, marker_weight = (
+        ch.marker_bone,
+        ch.marker_local,
+        ch.marker_weight,
+    )
+    root_rest_pos = ch.root_rest_pos
     n_b = len(parent)
-    wm, org = _rest_pose(parent, root_of, off_parent, rest_pfb, root_rest_pos)
+    wm, org = _rest_pose(parent, root_of, ch.off_parent, ch.rest_pfb, root_rest_pos)
     used = np.flatnonzero(np.asarray(marker_weight) > 0.0)
     pm = org[marker_bone[used]] + np.einsum(
         "mij,mj->mi", wm[marker_bone[used]], marker_local[used]
@@ -226,45 +253,22 @@ def _linearize(
 
 
 def observe(
-    *,
-    bone_names: Sequence[str],
-    parent: IntArray,
-    root_of: IntArray,
-    off_parent: F64Array,
-    rest_pfb: F64Array,
-    root_rest_pos: F64Array,
-    marker_bone: IntArray,
-    marker_local: F64Array,
-    marker_weight: F64Array,
-    dof: Sequence[str],
-    hinge_axis: F64Array,
-    explicit_prior: F64Array,
+    chain: Chain, *, bone_names: Sequence[str], explicit_prior: F64Array
 ) -> tuple[BoneObservation, ...]:
     """Decide, bone by bone (parents first), which rotations the markers observe, and
     give the others the automatic prior (module docstring).
 
     Args:
+        chain: the chain at its calibration pose.
         bone_names: (B,) the rig's bones, parents first.
-        parent: (B,) parent index, -1 for a root; ``root_of`` (B,) each bone's root
-            ordinal.
-        off_parent: (B, 3) metres, each origin in its parent's bone frame.
-        rest_pfb: (B, 4) calibrated parent_from_bone (roots: world_from_bone),
-            w x y z.
-        root_rest_pos: (R, 3) metres, world, the roots' calibrated origins.
-        marker_bone: (Mr,) the bone each marker rides; ``marker_local`` (Mr, 3)
-            metres in its frame; ``marker_weight`` (Mr,) (0: not used).
-        dof: (B,) each joint's model ("root" for roots).
-        hinge_axis: (B, 3) hinge axes in the bones' rest axes (hinges).
         explicit_prior: (B, 3, 3) m^2 / rad^2, the rig's own priors (bone axes).
 
     Returns:
         One :class:`BoneObservation` per bone, in rig order.
     """
     n_b = len(bone_names)
-    lin = _linearize(
-        parent, root_of, off_parent, rest_pfb, root_rest_pos, marker_bone,
-        marker_local, marker_weight, dof, hinge_axis,
-    )  # fmt: skip
+    parent, dof, hinge_axis = chain.parent, chain.dof, chain.hinge_axis
+    lin = _linearize(chain)
     jac, bases, col0 = lin.jac, lin.bases, lin.col0
     n_col = jac.shape[1]
     info = jac.T @ jac
@@ -330,18 +334,7 @@ def observe(
 
 
 def hidden_information(
-    *,
-    parent: IntArray,
-    root_of: IntArray,
-    off_parent: F64Array,
-    rest_pfb: F64Array,
-    root_rest_pos: F64Array,
-    marker_bone: IntArray,
-    marker_local: F64Array,
-    marker_weight: F64Array,
-    dof: Sequence[str],
-    hinge_axis: F64Array,
-    prior: F64Array,
+    chain: Chain, *, prior: F64Array
 ) -> tuple[F64Array, F64Array, F64Array]:
     """What each bone loses when one marker hides, for the fit's hold prior.
 
@@ -354,7 +347,7 @@ def hidden_information(
     seen value, with the information lost (``FitParams``, "hold").
 
     Args:
-        parent .. hinge_axis: as :func:`observe`.
+        chain: the chain at its calibration pose.
         prior: (B, 3, 3) m^2 / rad^2, every prior the model has (bone axes).
 
     Returns:
@@ -362,12 +355,10 @@ def hidden_information(
         3 x 3, bone rest axes; zero rows past the joint's freedom), ``lam``
         (Mr * B, 3) and ``lost`` (Mr * B, 3); zeros for markers not used.
     """
+    parent = chain.parent
     n_b = len(parent)
-    n_m = len(marker_bone)
-    lin = _linearize(
-        parent, root_of, off_parent, rest_pfb, root_rest_pos, marker_bone,
-        marker_local, marker_weight, dof, hinge_axis,
-    )  # fmt: skip
+    n_m = len(chain.marker_bone)
+    lin = _linearize(chain)
     jac, bases, col0 = lin.jac, lin.bases, lin.col0
     n_col = jac.shape[1]
     info = jac.T @ jac

@@ -1584,6 +1584,28 @@ def test_vmc_receivers_are_told_the_calibration_state(
     assert got and got[-1].calibration_state == cal.CALIBRATING
 
 
+def _fit_daemon(
+    start_daemon: Callable[..., Live],
+    osc_source: Callable[..., OscSource],
+    zmq_socket: Callable[[int], Any],
+    calibration: Path,
+) -> tuple[Live, PoseSub, OscSource]:
+    """A daemon solving with the fit on every frame, its pose subscriber and an OSC
+    source, announced and primed (the subscriber receives from the next frame)."""
+    live = start_daemon(
+        {
+            "performer": {"calibration": str(calibration)},
+            "solve": {"method": "fit"},
+            "loop": {"process_every_frame": True},
+        },
+    )
+    sub = PoseSub(zmq_socket(zmq.SUB), live.tcp("zmq poses"))
+    src = osc_source(live)
+    src.announce()
+    _prime(sub, lambda: src.send(_take().markers_world[0]))
+    return live, sub, src
+
+
 @pytest.mark.timeout(300)
 def test_fit_live_burst_heals_and_an_unseen_performer_is_not_streamed(
     start_daemon: Callable[..., Live],
@@ -1597,17 +1619,9 @@ def test_fit_live_burst_heals_and_an_unseen_performer_is_not_streamed(
     0.25 s of the burst's end. Then 3 frames with no marker at all: no pose is
     streamed for them and status counts them ``unseen``."""
     take = _take()
-    live = start_daemon(
-        {
-            "performer": {"calibration": str(exact_calibration)},
-            "solve": {"method": "fit"},
-            "loop": {"process_every_frame": True},
-        },
+    live, sub, src = _fit_daemon(
+        start_daemon, osc_source, zmq_socket, exact_calibration
     )
-    sub = PoseSub(zmq_socket(zmq.SUB), live.tcp("zmq poses"))
-    src = osc_source(live)
-    src.announce()
-    _prime(sub, lambda: src.send(take.markers_world[0]))
     n0 = len(src.sent)
     rows = list(range(100, 200))
     burst = range(130, 140)
@@ -1663,17 +1677,9 @@ def test_fit_method_live_equals_batch(
     (``FRAME_RESEEDED``): the performer turned half round between two frames makes
     the fit lose track, as the batch does on the same frames."""
     take = _take()
-    live = start_daemon(
-        {
-            "performer": {"calibration": str(exact_calibration)},
-            "solve": {"method": "fit"},
-            "loop": {"process_every_frame": True},
-        },
+    live, sub, src = _fit_daemon(
+        start_daemon, osc_source, zmq_socket, exact_calibration
     )
-    sub = PoseSub(zmq_socket(zmq.SUB), live.tcp("zmq poses"))
-    src = osc_source(live)
-    src.announce()
-    _prime(sub, lambda: src.send(take.markers_world[0]))
     n0 = len(src.sent)
     rows = range(100, 160)
     turned = _rot_z(180.0)
