@@ -1677,7 +1677,7 @@ def test_fit_method_live_equals_batch(
     (``FRAME_RESEEDED``): the performer turned half round between two frames makes
     the fit lose track, as the batch does on the same frames."""
     take = _take()
-    live, sub, src = _fit_daemon(
+    _live, sub, src = _fit_daemon(
         start_daemon, osc_source, zmq_socket, exact_calibration
     )
     n0 = len(src.sent)
