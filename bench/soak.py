@@ -197,7 +197,16 @@ class DaemonProcess:
             start_new_session=True,
         )  # fmt: skip
         self.endpoints: dict[str, str] = {}
-        deadline = time.monotonic() + 120.0
+        try:
+            self._wait_serving()
+        except BaseException:  # not left running (nor its log open) on the way out
+            self.kill()
+            raise
+
+    def _wait_serving(self) -> None:
+        # A first start on a fresh machine compiles the kernels: 82 s on a quiet
+        # 2-core VM (measured), so a slow runner gets several times that.
+        deadline = time.monotonic() + 300.0
         import re
 
         pattern = re.compile(r"^listening on (\S+)(?: \(.*\))?: (.+)$")
@@ -212,6 +221,14 @@ class DaemonProcess:
         while self.ctl({"cmd": "status"}, 500) is None:
             if self.proc.poll() is not None or time.monotonic() > deadline:
                 raise RuntimeError(f"daemon not serving:\n{self.log.read_text()}")
+
+    def kill(self) -> None:
+        """SIGKILL the daemon's process group, reap it, close its log."""
+        if self.proc.poll() is None:
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(self.proc.pid, signal.SIGKILL)
+            self.proc.wait(timeout=10.0)
+        self._log.close()
 
     def udp(self, what: str) -> tuple[str, int]:
         host, port = self.endpoints[what].removeprefix("udp://").rsplit(":", 1)

@@ -384,6 +384,23 @@ class Daemon(
         nan_frame = np.full((len(labels), 3), np.nan)
         pose = pipe.solver.solve_frame(nan_frame, pipe.pose)
         pipe.retargeter.apply(pose, pipe.target_pose)
+        # The [[pipeline]] stages and the spine pivot compile on their first finite
+        # pose (a twist and a One Euro stage: 4.1 s into the stream on a cold cache,
+        # measured): run them here on the rest pose, two frames apart (the filters'
+        # second-frame path), so no streamed frame pays for it.
+        if pipe.post is not None or pipe.spine is not None:
+            pose.parent_from_bone_quat[:] = self.calibration.rest_parent_from_bone_quat
+            pose.root_pos[:] = 0.0
+            now_ns = time.monotonic_ns()
+            for k in range(2):
+                if pipe.post is not None:
+                    t_ns = now_ns + k * 10_000_000
+                    pipe.post.apply(pose, k * 0.01, t_ns, k)
+                    pipe.post.pop_due(pose, t_ns)
+            if pipe.spine is not None:
+                tp = pipe.target_pose
+                pipe.retargeter.apply(pose, tp)
+                pipe.spine.apply(tp.world_from_bone_quat, tp.rest_from_bone_quat)
         pipe.solver.reset()
         self._names_id -= 1  # this pipeline is thrown away; keep the ids dense
 

@@ -25,6 +25,7 @@ import pytest
 import zmq
 from live_harness import (
     EXACT_RIG,
+    WAIT_S,
     Live,
     OscSource,
     PoseSub,
@@ -577,7 +578,7 @@ def test_behind_each_input_keeps_its_own_latest_with_several_performers(
             )
             push.send_multipart(zmq_wire.encode_zmq_frame(k, k / 100, 1, hold[k]))
             # Both waiting, then one wake-up drains both inputs.
-            deadline = time.monotonic() + 5.0
+            deadline = time.monotonic() + WAIT_S
             while True:
                 assert time.monotonic() < deadline, "frames did not arrive"
                 events = d._poller.poll(20)

@@ -22,6 +22,7 @@ import zmq
 from live_harness import (
     EXACT_RIG,
     RATE_HZ,
+    WAIT_S,
     Live,
     OscSource,
     PoseSub,
@@ -96,7 +97,7 @@ def test_live_pipeline_equals_offline_pipeline(
     push = zmq_socket(zmq.PUSH)
     push.connect(live.tcp("zmq markers"))
     push.send_multipart(zmq_wire.encode_zmq_labels(LabelSet(9, take.labels)))
-    deadline = time.monotonic() + 5.0
+    deadline = time.monotonic() + WAIT_S
     k = 0
     while not sub.poses:
         assert time.monotonic() < deadline, "the pose stream never reached the SUB"
@@ -314,7 +315,7 @@ def _resampling_daemon(
     push = zmq_socket(zmq.PUSH)
     push.connect(live.tcp("zmq markers"))
     push.send_multipart(zmq_wire.encode_zmq_labels(LabelSet(9, take.labels)))
-    deadline, k = time.monotonic() + 5.0, 0
+    deadline, k = time.monotonic() + WAIT_S, 0
     while not sub.poses:
         assert time.monotonic() < deadline, "the pose stream never reached the SUB"
         push.send_multipart(

@@ -53,6 +53,10 @@ VMC_FRAME = (
     + ["/VMC/Ext/Bone/Pos"] * len(vmc_out.HUMANOID_BONES)
     + ["/VMC/Ext/Blend/Apply", "/VMC/Ext/OK", "/VMC/Ext/T"]
 )
+#: How long a wait for something the daemon will do allows it. A wait ends as soon as
+#: the thing happens, so this only bounds a failure: generous, for a loaded 2-core
+#: runner (a CI run at twice this VM's test time missed 5 s deadlines).
+WAIT_S = 30.0
 ENDPOINT_LINE = re.compile(r"^(listening on|sending to) (\S+)(?: \(.*\))?: (.+)$")
 
 
@@ -88,10 +92,49 @@ def exact_calibration(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return path
 
 
+@pytest.fixture(scope="session", autouse=True)
+def compiled_kernels(tmp_path_factory: pytest.TempPathFactory) -> None:
+    """Every kernel a daemon runs, compiled (or loaded from numba's disk cache) once,
+    before the first test: a daemon opened here in-process with the fit, both
+    ``[[pipeline]]`` stages, an output rate and the validator on, plus the face.
+
+    The daemons the tests start, in threads or as processes, then load the kernels
+    from the cache (~0.5 s) instead of compiling them while a test's deadline runs:
+    on a fresh machine the fit alone compiles for 69 s on this 2-core VM (82 s for a
+    daemon's whole warm-up; measured), and a CI runner twice as slow made tests that
+    started the first daemons of a kind time out, then leave them running."""
+    from retargetd.daemon.live.face import warm_up as warm_up_face
+
+    take = _take()
+    cal = calibrate(
+        load_rig(EXACT_RIG),
+        _f32(take.markers_world[take.base_pose_frames]),
+        take.labels,
+    )
+    path = tmp_path_factory.mktemp("kernels") / "exact.json"
+    cal.save(path)
+    doc = _deep_merge(
+        _ephemeral_doc(_unused_udp_port()),
+        {
+            "performer": {"calibration": str(path)},
+            "solve": {"method": "fit"},
+            "loop": {"output_rate_hz": 60.0},
+            "pipeline": [{"kind": "twist"}, {"kind": "one_euro"}],
+            "validate": {"enabled": True},
+        },
+    )
+    daemon = Daemon(DaemonConfig.from_dict(doc, source="kernels"), out=lambda _: None)
+    try:
+        daemon.open()
+    finally:
+        daemon.close()
+    warm_up_face()
+
+
 # ---- waiting -----------------------------------------------------------------------
 
 
-def _wait_until(pred: Callable[[], bool], what: str, timeout_s: float = 5.0) -> None:
+def _wait_until(pred: Callable[[], bool], what: str, timeout_s: float = WAIT_S) -> None:
     deadline = time.monotonic() + timeout_s
     while not pred():
         if time.monotonic() > deadline:
@@ -167,11 +210,11 @@ class Live:
     def stop(self) -> None:
         """Stop the loop (bounded), close every socket, re-raise a loop crash."""
         self._stop.set()
-        self.thread.join(timeout=5.0)
+        self.thread.join(timeout=WAIT_S)
         alive = self.thread.is_alive()
         if not alive:
             self.daemon.close()
-        assert not alive, "the daemon loop did not stop within 5 s"
+        assert not alive, f"the daemon loop did not stop within {WAIT_S:g} s"
         if self._errors:
             raise self._errors[0]
 
@@ -188,7 +231,7 @@ class Live:
         return self.daemon.endpoints[what].split()[0]
 
     def ctl(self, req: dict[str, Any]) -> dict[str, Any]:
-        reply = request(self.tcp("control"), req, 2000)
+        reply = request(self.tcp("control"), req, int(WAIT_S * 1000))
         assert reply is not None, f"no control reply to {req}"
         return reply
 
@@ -282,7 +325,9 @@ class PoseSub:
                 self.names.append(names)
                 self.events.append(("names", names.names_id))
 
-    def wait(self, pred: Callable[[], bool], what: str, timeout_s: float = 5.0) -> None:
+    def wait(
+        self, pred: Callable[[], bool], what: str, timeout_s: float = WAIT_S
+    ) -> None:
         deadline = time.monotonic() + timeout_s
         while not pred():
             if time.monotonic() > deadline:
@@ -292,7 +337,7 @@ class PoseSub:
             self.pump(5)
 
 
-def _prime(sub: PoseSub, send: Callable[[], int], timeout_s: float = 5.0) -> None:
+def _prime(sub: PoseSub, send: Callable[[], int], timeout_s: float = WAIT_S) -> None:
     """Send frames (``send`` returns the frame number) until the subscriber receives
     one: poses published before its connection completes are lost (ZeroMQ's slow
     joiner). Then one more, waited for, so every later pose arrives; forget what the
@@ -360,7 +405,7 @@ class VmcReceiver:
                     self.states.append(self._pending)
                 self._pending, self._pending_dgrams = [], 0
 
-    def wait_frames(self, n: int, timeout_s: float = 5.0) -> None:
+    def wait_frames(self, n: int, timeout_s: float = WAIT_S) -> None:
         deadline = time.monotonic() + timeout_s
         while len(self.frames) < n:
             if time.monotonic() > deadline:
