@@ -35,8 +35,9 @@ from typing import Any
 
 import numpy as np
 
+from retargetd.daemon.body.calibrate_rom import RomPoints
 from retargetd.daemon.body.rig import LinePoint, Rig
-from retargetd.daemon.rotations import quat_conj, quat_from_mat, quat_mul
+from retargetd.daemon.rotations import quat_conj, quat_from_mat, quat_mul, quat_rotate
 from retargetd.protocols.frames import F64Array
 
 logger = logging.getLogger(__name__)
@@ -98,6 +99,20 @@ class Calibration:
     #: (Mr, 3) metres, world: each rig marker's mean position over the base pose
     #: (NaN where never seen); the fit attaches the markers to their bones from it.
     base_marker_pos: F64Array | None = None
+    #: The range of motion's functional joints (``calibrate --rom``;
+    #: ``body.calibrate_rom``): ``{"source": {...}, "joints": {name: {...}}}``;
+    #: empty without one.
+    functional: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def functional_axes(self) -> dict[str, F64Array]:
+        """bone -> its functional hinge axis in the bone's rest axes (those used)."""
+        joints = self.functional.get("joints", {})
+        return {
+            name: np.asarray(j["axis_bone"], dtype=np.float64)
+            for name, j in joints.items()
+            if j.get("kind") == "axis" and j.get("used") and "axis_bone" in j
+        }
 
     def to_json(self) -> dict[str, Any]:
         """A JSON-ready dict (the file format of ``retargetd calibrate``)."""
@@ -169,6 +184,7 @@ class Calibration:
                 )
             },
             "root_rest_pos_m": [float(x) for x in self.root_rest_pos],
+            **({"functional": self.functional} if self.functional else {}),
         }
 
     def save(self, path: str | Path) -> None:
@@ -246,6 +262,7 @@ def load_calibration(path: str | Path) -> Calibration:
                 [m.get("base_m", [np.nan] * 3) for m in doc["markers"].values()],
                 dtype=np.float64,
             ).reshape(-1, 3),
+            functional=dict(doc.get("functional", {})),
         )
     except (KeyError, TypeError, ValueError) as exc:
         raise CalibrationError(f"{path}: malformed calibration ({exc!r})") from None
@@ -406,6 +423,7 @@ def calibrate(
     take_measurements: Mapping[str, float] | None = None,
     overrides: Mapping[str, float] | None = None,
     base_pose: Mapping[str, Any] | None = None,
+    rom: tuple[F64Array, Sequence[str], Mapping[str, Any]] | None = None,
 ) -> Calibration:
     """Calibrate a rig on base-pose frames.
 
@@ -417,6 +435,10 @@ def calibrate(
         take_measurements: the take's subject measurements (mm), if any.
         overrides: measurement overrides (mm).
         base_pose: provenance saved with the calibration (take, frames ...).
+        rom: a range of motion for the rig's ``[functional]`` joints: (F, M, 3)
+            positions as ``positions``, its labels, and its provenance
+            (``body.calibrate_rom``); a joint it does not determine keeps the base
+            pose's estimate, said in a line of ``functional["notes"]``.
 
     Returns:
         The calibrated skeleton.
@@ -458,12 +480,22 @@ def calibrate(
             continue
         layouts[seg] = (kept, mean_pos[[index[n] for n in kept]].round(9))
 
-    # Derived points in order; a rule point's offset is fixed from the base pose.
+    # Derived points in order; a rule point's offset is fixed from the base pose,
+    # a functional one from the range of motion.
+    romp = None
+    if rom is not None and rig.functional:
+        rom_pos = np.asarray(rom[0], dtype=np.float64)
+        rom_cols = np.asarray(match_markers(rig, rom[1]), dtype=np.int64)
+        rom_markers = np.full((rom_pos.shape[0], len(rom_cols), 3), np.nan)
+        rom_markers[:, rom_cols >= 0] = rom_pos[:, rom_cols[rom_cols >= 0]]
+        romp = RomPoints(rig, rom_markers, three_point_frame, rom[2])
     offsets = np.zeros((len(rig.points), 3))
     pts = {m: marker_pos[:, i] for i, m in enumerate(rig.markers)}
     for k, p in enumerate(rig.points):
         if isinstance(p, LinePoint):
             pts[p.name] = pts[p.a] + p.u * (pts[p.b] - pts[p.a])
+            if romp is not None:
+                romp.offset(p, offsets[k], pts)
             continue
         frame = three_point_frame(*(pts[n] for n in p.frame))  # (F, 3, 3)
         origin = pts[p.frame[0]]
@@ -491,6 +523,8 @@ def calibrate(
                     "in the base pose"
                 )
             offsets[k] = local[ok].mean(axis=0)
+        if romp is not None:
+            offsets[k] = romp.offset(p, offsets[k], pts)
         pts[p.name] = origin + frame @ offsets[k]
 
     # Bones: rest orientation per frame with the kernel's construction, averaged.
@@ -518,6 +552,9 @@ def calibrate(
             rest_wfb[b] if par < 0 else quat_mul(quat_conj(rest_wfb[par]), rest_wfb[b])
         )
     root = rig.bones[0].origin
+    functional: dict[str, Any] = {}
+    if romp is not None:
+        functional = romp.finish(pts, rest_wfb, _rig_hinge_axes(rig, rest_pfb))
     return Calibration(
         rig_name=rig.name,
         rig_source=rig.source,
@@ -537,7 +574,21 @@ def calibrate(
         measurements=meas,
         base_pose=dict(base_pose or {}, frames_used=int(n_frames)),
         base_marker_pos=_stored_m(_nan_mean_rows(marker_pos)),
+        functional=functional,
     )
+
+
+def _rig_hinge_axes(rig: Rig, rest_pfb: F64Array) -> dict[str, F64Array]:
+    """bone -> the rig's ``[fit]`` hinge axis in the bone's rest axes."""
+    out = {}
+    for name, bopt in rig.fit.bones.items():
+        if bopt.dof in ("hinge", "hinge_twist"):
+            axis = np.asarray(bopt.axis, dtype=np.float64)
+            if bopt.axis_in == "parent":
+                b = rig.bone_names.index(name)
+                axis = quat_rotate(quat_conj(rest_pfb[b]), axis)
+            out[name] = axis / np.linalg.norm(axis)
+    return out
 
 
 def _stored_m(pos: F64Array) -> F64Array:

@@ -46,6 +46,7 @@ from pathlib import Path
 from typing import Any
 
 from retargetd.daemon.body.rig_fit import parse_fit_table
+from retargetd.daemon.body.rig_functional import parse_functional_table
 from retargetd.daemon.body.rig_model import (
     HUMANOID_BONES,
     RIG_KEYS,
@@ -66,6 +67,7 @@ logger = logging.getLogger(__name__)
 
 _TOP_KEYS = (
     "rig", "measurements", "markers", "segments", "points", "bones", "joints", "fit",
+    "functional",
 )  # fmt: skip
 
 
@@ -296,6 +298,9 @@ class _Parser:
             roots={b.name for b in bones if b.parent is None},
             fail=self.fail,
         )
+        functional = parse_functional_table(
+            doc.get("functional", {}), markers, points, bones, self.fail
+        )
         return Rig(
             name=name,
             source=self.src,
@@ -310,6 +315,7 @@ class _Parser:
             humanoid=humanoid,
             up_min_mm=float(up_min),
             fit=fit,
+            functional=functional,
         )
 
     def known_point(self, key: str, name: str, known: set[str]) -> None:

@@ -17,6 +17,7 @@ from retargetd.daemon.body.rig_fit import (
     WEIGHT_WHY,
     FitOptions,
 )
+from retargetd.daemon.body.rig_functional import FunctionalTable
 from retargetd.protocols.humanoid import HUMANOID_BONES as _HUMANOID_BONES
 
 #: The standard humanoid bones (parents first), re-exported for rig files.
@@ -238,6 +239,8 @@ class Rig:
     up_min_mm: float = UP_MIN_MM
     #: The ``[fit]`` table (``body.rig_fit``).
     fit: FitOptions = field(default_factory=FitOptions)
+    #: The ``[functional]`` table (``body.rig_functional``).
+    functional: FunctionalTable = field(default_factory=FunctionalTable)
 
     @property
     def marker_names(self) -> tuple[str, ...]:

@@ -114,6 +114,7 @@ def calibrate_from_take(
     overrides: dict[str, float],
     *,
     allow_moving: bool = False,
+    rom: Any = None,
 ) -> Any:
     """Calibrate ``rig`` on ``take.positions[frames]`` after the base-pose sanity
     checks (``body.sanity``: up axis, units, stillness; then stature, left/right
@@ -153,7 +154,9 @@ def calibrate_from_take(
                     "frames": f"{frames.start}:{frames.stop}",
                     "rate_hz": take.rate_hz,
                 },
+                rom=rom,
             )
+            notes += cal.functional.get("notes", [])  # --rom: joints not placed
             notes += sanity.check_calibration(rig, cal, units=take.units)
             # a bone whose roll would follow noise: named, with its lever
             notes += sanity.check_up_levers(rig, cal, base, take.labels)

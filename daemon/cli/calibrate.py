@@ -1,9 +1,15 @@
-"""``retargetd calibrate STATIC --rig RIG --out performer.json [--frames a:b]``.
+"""``retargetd calibrate STATIC --rig RIG --out performer.json [--frames a:b]
+[--rom TAKE [--rom-frames a:b]]``.
 
 The performer holds the base pose over the selected frames (0-based, half-open rows of
 the take as loaded; default: the whole take). The result is a calibrated skeleton
 (point offsets, bone lengths, rest orientations, measurements used with their source,
 rig identity) loaded by ``retargetd solve --calibration`` and by the daemon.
+
+``--rom TAKE`` places the rig's functional joints (its ``[functional]`` table: hip
+centres, knee axes) from a range of motion (``--rom-frames``, default the whole take;
+it may be the take itself): each is recorded with its residual and predicted error, and
+one the motion does not determine keeps the base pose's estimate, said in one line.
 ``--json`` prints the summary as one JSON object (README "Machine-readable output").
 """
 
@@ -21,6 +27,7 @@ from retargetd.daemon.cli.args import (
     parse_measures,
     take_overrides,
 )
+from retargetd.daemon.errors import UsageError
 
 logger = logging.getLogger(__name__)
 
@@ -38,6 +45,15 @@ def add_parser(subparsers: Any) -> None:
     parser.add_argument("--out", required=True, metavar="FILE.json")
     parser.add_argument(
         "--frames", metavar="a:b", help="base-pose rows (0-based, half-open)"
+    )
+    parser.add_argument(
+        "--rom",
+        metavar="TAKE",
+        help="a range-of-motion take for the rig's functional joints (hip centres, "
+        "knee axes; RIGS.md 'Functional joints')",
+    )
+    parser.add_argument(
+        "--rom-frames", metavar="a:b", help="range-of-motion rows (0-based, half-open)"
     )
     from retargetd.daemon.cli.args import add_take_arguments
 
@@ -59,8 +75,24 @@ def run(args: argparse.Namespace) -> int:
     overrides = parse_measures(args.measure)
     take = load_take(args.static, **take_overrides(args))
     frames = parse_frames(args.frames, take.n_frames, option="--frames")
+    rom = None
+    if args.rom_frames is not None and args.rom is None:
+        raise UsageError("--rom-frames needs --rom TAKE")
+    if args.rom is not None:
+        if not rig.functional:
+            raise UsageError(
+                f"rig {rig.name} has no functional joints ([functional] in RIGS.md): "
+                "--rom has nothing to place"
+            )
+        rom_take = load_take(args.rom, **take_overrides(args))
+        rows = parse_frames(args.rom_frames, rom_take.n_frames, option="--rom-frames")
+        rom = (
+            rom_take.positions[rows],
+            rom_take.labels,
+            {"take": str(rom_take.path), "frames": f"{rows.start}:{rows.stop}"},
+        )
     cal = calibrate_from_take(
-        take, rig, frames, overrides, allow_moving=args.allow_moving_base_pose
+        take, rig, frames, overrides, allow_moving=args.allow_moving_base_pose, rom=rom
     )
     cal.save(args.out)
     if args.json:
@@ -85,6 +117,8 @@ def run(args: argparse.Namespace) -> int:
             "measurements missing from the take, rig defaults used: "
             f"{' '.join(defaults)}\n"
         )
+    for name, j in cal.functional.get("joints", {}).items():
+        out(f"functional {name}: {_functional_line(j)}\n")
     out("bone lengths (mm): ")
     out(
         ", ".join(
@@ -94,6 +128,27 @@ def run(args: argparse.Namespace) -> int:
         + "\n"
     )
     return 0
+
+
+def _functional_line(j: dict[str, Any]) -> str:
+    """One functional joint's estimate, its quality and whether it is used."""
+    used = "used" if j["used"] else "not used (the motion does not determine it)"
+    if j["kind"] == "centre":
+        return (
+            f"centre {j['moved_mm']:.1f} mm from the base pose's, residual "
+            f"{j['rms_mm']:.1f} mm, predicted error {_or_dash(j['se_mm'])} mm, "
+            f"{j['frames']} frames: {used}"
+        )
+    rig = j.get("angle_from_rig_deg")
+    turned = f"{rig:.1f} deg from the rig's, " if rig is not None else ""
+    return (
+        f"axis {turned}turned {j['arc_deg']:.0f} deg, residual {j['rms_mm']:.1f} mm, "
+        f"predicted error {_or_dash(j['se_deg'])} deg, {j['frames']} frames: {used}"
+    )
+
+
+def _or_dash(x: float | None) -> str:
+    return "-" if x is None else f"{x:.2f}"
 
 
 def _print_json(
@@ -121,5 +176,6 @@ def _print_json(
                 n: float(length)
                 for n, length in zip(cal.bone_names, cal.bone_lengths, strict=False)
             },
+            "functional": cal.functional.get("joints", {}),
         }
     )

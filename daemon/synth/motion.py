@@ -34,8 +34,11 @@ ACTIVITY_MOTIONS: tuple[str, ...] = (
     "deep_squat",
     "kick",
 )
+#: A range-of-motion take for a functional calibration (``calibrate --rom``), meant to
+#: be synthesized alone: :func:`_rom`.
+CALIBRATION_MOTIONS: tuple[str, ...] = ("rom",)
 #: Every motion component, in composition order.
-ALL_MOTIONS: tuple[str, ...] = DEFAULT_MOTIONS + ACTIVITY_MOTIONS
+ALL_MOTIONS: tuple[str, ...] = DEFAULT_MOTIONS + ACTIVITY_MOTIONS + CALIBRATION_MOTIONS
 #: Ramp from the base-pose hold into full motion, seconds.
 RAMP_S = 0.5
 #: Walk: circle radius, speed, stride length (one left + one right step).
@@ -447,6 +450,45 @@ def _run(m: Motion) -> None:
     )
 
 
+#: The range of motion: each leg moves for half of this, the other standing.
+ROM_PERIOD_S = 12.0
+
+
+def _rom(m: Motion) -> None:
+    """A range of motion as done on a stage before a take, for the functional joints
+    (Camomilla et al. 2006, J Biomech 39:1096, the "star arc"; Vicon's ROM): each leg
+    in turn, standing on the other, circles the hip (flexion -10..50 deg with
+    abduction 0..30, two circles) while the knee flexes 0..90 three times; both
+    elbows flex 10..110 with the forearm turned +-40 deg and both shoulders sweep
+    elevation +-50 and horizontal +-35 deg, the right out of phase with the left.
+    The standing sole stays on the floor; nothing is planted (the pelvis stays
+    where it stood)."""
+    t = np.maximum(m.t, 0.0)
+    half = ROM_PERIOD_S / 2.0
+    tau = t % ROM_PERIOD_S
+    for side, start in (("l", 0.0), ("r", half)):
+        u = np.clip((tau - start) / half, 0.0, 1.0)  # 0..1 through this leg's turn
+        on = m.w * np.sin(np.pi * u) ** 2  # eases in and out of each turn
+        circle = 2.0 * np.pi * 2.0 * u  # two hip circles
+        flex = 20.0 - 30.0 * np.cos(circle)
+        abd = 15.0 - 15.0 * np.cos(circle + 0.5 * np.pi)
+        knee = 45.0 - 45.0 * np.cos(2.0 * np.pi * 3.0 * u)  # fullest mid-turn
+        sign = 1.0 if side == "l" else -1.0  # mirror x for the right side
+        m.add(f"{side}_thigh", _Y, -on * flex)
+        m.add(f"{side}_thigh", _X, sign * on * abd)  # abduction: knee outward
+        m.add(f"{side}_shank", _Y, on * knee)
+    elbow_l = 60.0 - 50.0 * np.cos(2.0 * np.pi * 0.25 * t)
+    elbow_r = 60.0 - 50.0 * np.cos(2.0 * np.pi * 0.25 * t + np.pi)
+    m.add_bilateral("forearm", _Z, -m.w * elbow_l, -m.w * elbow_r)
+    twist = 40.0 * np.sin(2.0 * np.pi * 0.15 * t)
+    m.add_bilateral("forearm", _Y, m.w * twist, -m.w * twist)
+    elev = 50.0 * np.sin(2.0 * np.pi * 0.1 * t)
+    horiz = 35.0 * np.sin(2.0 * np.pi * 0.07 * t)
+    m.add_bilateral("upper_arm", _X, m.w * elev, -m.w * elev)  # elevation: up = +x
+    m.add_bilateral("upper_arm", _Z, -m.w * horiz, m.w * horiz)  # forward = -z
+    m.floor_weight = m.w
+
+
 COMPONENTS: dict[str, Callable[[Motion], None]] = {
     "walk": _walk,
     "arm_raise": _arm_raise,
@@ -459,4 +501,5 @@ COMPONENTS: dict[str, Callable[[Motion], None]] = {
     "jump": _jump,
     "deep_squat": _deep_squat,
     "kick": _kick,
+    "rom": _rom,
 }
