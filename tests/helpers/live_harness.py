@@ -92,43 +92,54 @@ def exact_calibration(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return path
 
 
-@pytest.fixture(scope="session", autouse=True)
-def compiled_kernels(tmp_path_factory: pytest.TempPathFactory) -> None:
+@pytest.hookimpl(wrapper=True)
+def pytest_runtestloop(session: pytest.Session) -> Iterator[object]:
     """Every kernel a daemon runs, compiled (or loaded from numba's disk cache) once,
-    before the first test: a daemon opened here in-process with the fit, both
-    ``[[pipeline]]`` stages, an output rate and the validator on, plus the face.
+    before the first test (outside every test's timeout): :func:`compile_kernels`.
 
     The daemons the tests start, in threads or as processes, then load the kernels
     from the cache (~0.5 s) instead of compiling them while a test's deadline runs:
     on a fresh machine the fit alone compiles for 69 s on this 2-core VM (82 s for a
     daemon's whole warm-up; measured), and a CI runner twice as slow made tests that
     started the first daemons of a kind time out, then leave them running."""
+    if session.items and not session.config.option.collectonly:
+        compile_kernels()
+    return (yield)
+
+
+def compile_kernels() -> None:
+    """A daemon opened in-process with the fit, both ``[[pipeline]]`` stages, an output
+    rate and the validator on, then closed; and the face kernel."""
+    import tempfile
+
     from retargetd.daemon.live.face import warm_up as warm_up_face
 
     take = _take()
-    cal = calibrate(
-        load_rig(EXACT_RIG),
-        _f32(take.markers_world[take.base_pose_frames]),
-        take.labels,
-    )
-    path = tmp_path_factory.mktemp("kernels") / "exact.json"
-    cal.save(path)
-    doc = _deep_merge(
-        _ephemeral_doc(_unused_udp_port()),
-        {
-            "performer": {"calibration": str(path)},
-            "solve": {"method": "fit"},
-            "loop": {"output_rate_hz": 60.0},
-            "pipeline": [{"kind": "twist"}, {"kind": "one_euro"}],
-            "validate": {"enabled": True},
-        },
-    )
-    daemon = Daemon(DaemonConfig.from_dict(doc, source="kernels"), out=lambda _: None)
-    try:
-        daemon.open()
-    finally:
-        daemon.close()
+    rig = load_rig(EXACT_RIG)
+    cal = calibrate(rig, _f32(take.markers_world[take.base_pose_frames]), take.labels)
+    with tempfile.TemporaryDirectory(prefix="retargetd-kernels-") as tmp:
+        path = Path(tmp) / "exact.json"
+        cal.save(path)
+        doc = _deep_merge(
+            _ephemeral_doc(_unused_udp_port()),
+            {
+                "performer": {"calibration": str(path)},
+                "solve": {"method": "fit"},
+                "loop": {"output_rate_hz": 60.0},
+                "pipeline": [{"kind": "twist"}, {"kind": "one_euro"}],
+                "validate": {"enabled": True},
+            },
+        )
+        daemon = Daemon(DaemonConfig.from_dict(doc, source="kernels"), out=_ignore)
+        try:
+            daemon.open()
+        finally:
+            daemon.close()
     warm_up_face()
+
+
+def _ignore(_: str) -> None:
+    pass
 
 
 # ---- waiting -----------------------------------------------------------------------
