@@ -15,8 +15,9 @@ naming the daemon's performers; ``status`` lists every performer.
 ``calibrate`` prints the request's acceptance, then waits (at most ``--wait-s``,
 polling ``status``) for that calibration's outcome and prints its line: exit 0 when
 it calibrated, 1 when the daemon refused it (a moving, giant, mirrored or degenerate
-base pose: the reason is the line), it expired or the wait ran out; ``--no-wait``
-returns after the acceptance.
+base pose: the reason is the line), it calibrated but could not save the file (the
+daemon uses it; the old file is kept whole), it expired or the wait ran out;
+``--no-wait`` returns after the acceptance.
 ``record start`` makes the daemon record every marker packet it receives, its pose
 stream (unless ``--no-poses``) and control events to a new MCAP file, in the format of
 ``retargetd record`` (``retargetd replay`` plays it back); FILE must not exist yet and

@@ -163,6 +163,12 @@ class CalibrationMixin(DaemonState):
         self._calib_times = []
         limit = self._perf.config.calibrate_max_speed_m_s
         times_s = _window_times_s(times, self.config.validate.rate_hz)
+        if not times_s[-1] > times_s[0]:  # no speed can be told: never "still"
+            self._refuse_calibration(
+                f"the {frames.shape[0]} frames span no time (source, frame number "
+                "and receive times alike), so stillness cannot be judged"
+            )
+            return
         speeds = marker_drift_speeds_m_s(frames, times_s)
         if np.any(speeds > limit):
             worst = int(np.nanargmax(speeds))
@@ -194,7 +200,7 @@ class CalibrationMixin(DaemonState):
                 self._pipeline(stream)
         self._start_validator()
         self.stats.calibrations += 1
-        self._calib_state = "calibrated"
+        self._calib_state = "calibrated"  # "not_saved" below when the save fails
         path = self._perf.config.save_calibration or self._perf.config.calibration
         self.recording.event(
             "calibrated", frames=int(frames.shape[0]), by=self._calib_requested_by,
@@ -204,8 +210,9 @@ class CalibrationMixin(DaemonState):
             try:
                 cal.save(path)
                 msg = f"calibrated on {frames.shape[0]} frames; saved {path}"
-            except OSError as exc:
+            except OSError as exc:  # the old file is whole (an atomic save)
                 msg = f"calibrated on {frames.shape[0]} frames; NOT saved: {exc}"
+                self._calib_state = "not_saved"
         else:
             msg = f"calibrated on {frames.shape[0]} frames (not saved: no path)"
         self._calib_message = msg

@@ -217,7 +217,8 @@ class Performer:
         self.calib_last_ns = 0
         self.calib_message = ""
         # Requests so far (the ctl reply and status name the one they are about) and
-        # how the last one stands: "", "pending", "calibrated", "refused", "expired".
+        # how the last one stands: "", "pending", "calibrated", "not_saved" (in use,
+        # its file not written), "refused", "expired".
         self.calib_id = 0
         self.calib_state = ""
         self.calib_stream: Any = None  # where the frames come from (its input)

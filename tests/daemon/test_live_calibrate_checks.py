@@ -11,6 +11,8 @@ the ``ctl`` CLI over the control socket); every wait has a deadline.
 
 from __future__ import annotations
 
+import errno
+import os
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -22,7 +24,9 @@ import numpy as np
 import pytest
 
 from retargetd.daemon.body import sanity
+from retargetd.daemon.body.calibration import load_calibration
 from retargetd.daemon.cli.main import main as cli_main
+from retargetd.daemon.live.calibrate import marker_drift_speeds_m_s
 from retargetd.protocols.marker_input import LabelSet
 
 _take = _live._take
@@ -210,3 +214,53 @@ def test_a_genuine_still_performer_calibrates_and_ctl_says_so(
     assert live.daemon.calibration is not first_cal
     assert cal_path.read_bytes() != before
     assert sorted(p.name for p in tmp_path.iterdir()) == ["performer.json"]
+
+
+def test_a_live_save_on_a_full_disk_keeps_the_old_file(
+    start_daemon: Callable[..., Any],
+    osc_source: Callable[..., Any],
+    stream: Callable[..., _Streamer],
+    exact_calibration: Path,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """ENOSPC at the fsync (simulated: the daemon's thread shares this process): the
+    new calibration is in use, its file NOT written, the old one whole and readable,
+    no temporary file left; ``ctl`` says so and exits 1."""
+    from retargetd.daemon.body import calibration as calmod
+
+    def enospc(*_args: object) -> None:
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    cal_path = tmp_path / "performer.json"
+    cal_path.write_bytes(exact_calibration.read_bytes())
+    before = cal_path.read_bytes()
+    live = _daemon(start_daemon, cal_path)
+    first_cal = live.daemon.calibration
+    stream(osc_source(live), "genuine")
+    monkeypatch.setattr(calmod.os, "fsync", enospc)
+    capsys.readouterr()
+    assert cli_main(_ctl_calibrate(live)) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "NOT saved" in err[0] and "No space left" in err[0], err
+    monkeypatch.undo()
+    status = live.ctl({"cmd": "status"})["status"]
+    assert status["calibration_state"] == "not_saved"
+    assert status["counters"]["calibrations"] == 1
+    assert live.daemon.calibration is not first_cal  # taken, in use
+    assert cal_path.read_bytes() == before
+    load_calibration(cal_path)  # readable
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["performer.json"]
+
+
+@pytest.mark.parametrize("n", [2, 3, 5, 10])
+def test_the_live_drift_check_judges_any_window(n: int) -> None:
+    """Issue 29 item 5 for the live check: a window of any length >= 2 frames is
+    judged (a walk refused at 1.3 m/s, the hold still), not skipped."""
+    hold = _hold()[0]
+    times = np.arange(n) / _live.RATE_HZ
+    walk = np.stack([hold + np.array([1.3 * t, 0.0, 0.0]) for t in times])
+    still = np.stack([hold] * n)
+    assert np.nanmax(marker_drift_speeds_m_s(walk, times)) == pytest.approx(1.3)
+    assert np.nanmax(marker_drift_speeds_m_s(still, times)) == 0.0
