@@ -24,10 +24,13 @@ read back by :func:`load_calibration`.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import logging
 import math
+import os
+import tempfile
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -188,8 +191,49 @@ class Calibration:
         }
 
     def save(self, path: str | Path) -> None:
-        """Write the calibration as JSON."""
-        Path(path).write_text(json.dumps(self.to_json(), indent=1) + "\n")
+        """Write the calibration as JSON, atomically (:func:`write_atomic`): a
+        crash or a full disk leaves the file that was there whole.
+
+        Raises:
+            OSError: not written (one line naming the file); the old file is kept.
+        """
+        write_atomic(path, (json.dumps(self.to_json(), indent=1) + "\n").encode())
+
+
+def write_atomic(path: str | Path, data: bytes) -> None:
+    """Replace ``path`` with ``data`` all at once: write a temporary file in the same
+    folder, flush and fsync it, then ``os.replace`` it over ``path`` (atomic on POSIX
+    within one file system) and fsync the folder, so the rename survives a power
+    loss. A failure (ENOSPC, EIO, a crash) leaves the old file whole and readable;
+    the temporary file is removed.
+
+    Raises:
+        OSError: one line, ``cannot write PATH: REASON``, with the errno kept.
+    """
+    path = Path(path)
+    folder = path.parent
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=folder)
+    except OSError as exc:
+        raise OSError(exc.errno, f"cannot write {path}: {exc.strerror}") from None
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException as exc:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        if isinstance(exc, OSError):
+            raise OSError(exc.errno, f"cannot write {path}: {exc.strerror}") from None
+        raise
+    with contextlib.suppress(OSError):  # not every file system syncs a folder
+        dir_fd = os.open(folder, os.O_RDONLY)
+        try:
+            os.fsync(dir_fd)
+        finally:
+            os.close(dir_fd)
 
 
 def rig_digest(rig: Rig) -> str:

@@ -12,7 +12,12 @@ apart). These checks catch that from the base pose alone:
 - :func:`base_pose_motion` / :func:`check_base_pose_still`: marker speeds over the
   calibration frames against quiet-standing postural sway (the live calibrate can
   call these on its buffered frames);
+- :func:`check_mirrored`: the markers the rig calls left on the performer's left
+  (forward from the toes ahead of the ankles and the pelvis' front ahead of its back);
 - :func:`check_bilateral`: left and right calibrated bones within 10 %.
+
+:func:`calibrate_checked` runs them all around the calibration: the offline
+``calibrate`` (and ``--calibrate-frames``) and the live ``ctl calibrate`` share it.
 
 Each returns the warnings (one line each) and raises :class:`SanityError` (one line
 naming the override) where the result would be garbage. Positions are (F, M, 3)
@@ -22,18 +27,20 @@ float64 metres in the internal world (+Z up), NaN where occluded.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
-from dataclasses import dataclass
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
 from retargetd.daemon.body.calibration import (
     Calibration,
+    calibrate,
     compute_points,
     match_markers,
 )
 from retargetd.daemon.body.rig import Rig
-from retargetd.protocols.conventions import UNIT_TO_METRES
+from retargetd.protocols.conventions import UNIT_TO_METRES, normalize_units
 from retargetd.protocols.frames import F64Array
 
 #: Plausible standing height of a performer, metres. Adult mean heights by country
@@ -77,6 +84,17 @@ STILL_SPEED_LIMIT_M_S = 0.10
 #: 7 mm/s, well under :data:`STILL_SPEED_LIMIT_M_S`.
 STILL_LAG_S = 0.1
 
+#: The largest displacement marker noise alone gives a still marker between two
+#: samples: optical noise of 0.5 mm RMS per coordinate (Merriaux et al., Sensors
+#: 2017;17:1591: Vicon residuals under 1 mm) makes the difference of two samples
+#: 0.71 mm RMS per coordinate, and its 3-D length (a chi distribution with 3 degrees of
+#: freedom) exceeds 4 mm = 5.7 sigma with probability 5e-7 per marker. A window
+#: shorter than :data:`STILL_LAG_S` is judged over the lag it has (its whole length),
+#: with the speed limit raised to this over that lag when that is the larger: 2
+#: frames at 100 Hz allow 0.4 m/s, still under the slowest walk's 1.0 m/s
+#: (:data:`STILL_SPEED_LIMIT_M_S`); from 0.04 s on the limit is unchanged.
+STILL_NOISE_M = 0.004
+
 #: Left/right difference in a calibrated bone's length (relative to the mean of the
 #: two) above which a warning names the bones. Healthy adults' bilateral long-bone
 #: asymmetry is 1-3 % (humerus up to ~3 %, femur and tibia under 1-2 %: Auerbach &
@@ -102,19 +120,24 @@ class BasePoseMotion:
 
     Attributes:
         speed_m_s: the fastest marker's median speed over the frames, m/s (NaN when
-            there are too few frames to tell: fewer than the lag plus one).
+            nothing can be told: fewer than 2 frames, no frame rate, no marker seen
+            in two frames).
         marker: that marker's label ("" when NaN).
         lag_frames: frames between the two positions of each displacement.
+        limit_m_s: the speed above which the pose is not still:
+            :data:`STILL_SPEED_LIMIT_M_S`, or :data:`STILL_NOISE_M` over the lag
+            when a short window makes that larger.
     """
 
     speed_m_s: float
     marker: str
     lag_frames: int
+    limit_m_s: float = STILL_SPEED_LIMIT_M_S
 
     @property
     def still(self) -> bool:
-        """Below :data:`STILL_SPEED_LIMIT_M_S` (or too short to tell)."""
-        return not self.speed_m_s > STILL_SPEED_LIMIT_M_S
+        """Below :attr:`limit_m_s` (or nothing to tell)."""
+        return not self.speed_m_s > self.limit_m_s
 
 
 def base_pose_motion(
@@ -129,22 +152,25 @@ def base_pose_motion(
 
     Returns:
         The fastest marker's median speed (per marker, the median over frames of its
-        displacement over :data:`STILL_LAG_S` divided by the lag).
+        displacement over :data:`STILL_LAG_S`, or over the whole window when it is
+        shorter, divided by the lag). Any window of 2 frames or more is judged.
     """
     pos = np.asarray(positions, dtype=np.float64)
     lag = max(1, round(STILL_LAG_S * rate_hz)) if rate_hz > 0 else 1
-    if pos.ndim != 3 or pos.shape[0] <= lag or not rate_hz > 0:
+    if pos.ndim != 3 or pos.shape[0] < 2 or not rate_hz > 0:
         return BasePoseMotion(math.nan, "", lag)
+    lag = min(lag, pos.shape[0] - 1)  # a short window: its whole length
+    limit = max(STILL_SPEED_LIMIT_M_S, STILL_NOISE_M * rate_hz / lag)
     step = np.linalg.norm(pos[lag:] - pos[:-lag], axis=-1)  # (F - lag, M)
     finite = np.isfinite(step)
     if not finite.any():
-        return BasePoseMotion(math.nan, "", lag)
+        return BasePoseMotion(math.nan, "", lag, limit)
     step = np.where(finite, step, np.nan)
     seen = finite.any(axis=0)
     med = np.full(step.shape[1], -1.0)
     med[seen] = np.nanmedian(step[:, seen], axis=0) * rate_hz / lag
     m = int(np.argmax(med))
-    return BasePoseMotion(float(med[m]), labels[m], lag)
+    return BasePoseMotion(float(med[m]), labels[m], lag, limit)
 
 
 def check_base_pose_still(
@@ -168,7 +194,8 @@ def check_base_pose_still(
         Warnings (one line each).
 
     Raises:
-        SanityError: a marker's median speed is over :data:`STILL_SPEED_LIMIT_M_S`.
+        SanityError: a marker's median speed is over the limit
+            (:class:`BasePoseMotion`).
     """
     motion = base_pose_motion(positions, labels, rate_hz)
     if motion.still:
@@ -176,7 +203,7 @@ def check_base_pose_still(
     text = (
         f"the base pose is not still: marker {motion.marker} moves at "
         f"{motion.speed_m_s:.2f} m/s over the calibration frames (quiet standing "
-        f"sways under {STILL_SPEED_LIMIT_M_S:g} m/s)"
+        f"sways under {motion.limit_m_s:.2g} m/s)"
     )
     if allow_moving:
         return [f"{text}; calibrating anyway ({override})"]
@@ -250,10 +277,49 @@ def check_units(
     if lo <= extent <= hi:
         return []
     hint = _units_hint(extent, units)
-    raise SanityError(
+    text = (
         f"the base pose's markers span {extent:.4g} m vertically read as {units} "
         f"({units_source}); a person {STATURE_RANGE_M[0]:g}-{STATURE_RANGE_M[1]:g} m "
-        f"tall cannot: the file's unit looks wrong, try {override} {hint}"
+        "tall cannot"
+    )
+    if normalize_units(hint) == normalize_units(units):  # no unit would fit better
+        raise SanityError(f"{text}: too few of the body's markers were seen")
+    raise SanityError(f"{text}: the file's unit looks wrong, try {override} {hint}")
+
+
+#: The least spread (bounding-box diagonal of the markers' mean positions) of a base
+#: pose: the smallest a person can look through any unit confusion the units check
+#: names is 1.0 m / :data:`UNITS_GARBAGE_FACTOR` read a thousand times too small
+#: (metres declared as millimetres), 0.5 mm. Markers closer together than that are
+#: not a body: a stream stuck at one point, zeros, or one marker's value repeated.
+COLLAPSED_SPREAD_M = STATURE_RANGE_M[0] / UNITS_GARBAGE_FACTOR * 1e-3
+
+
+def check_spread(positions: F64Array) -> list[str]:
+    """Refuse a base pose whose markers collapse onto one point (under
+    :data:`COLLAPSED_SPREAD_M` apart), before the up-axis and units checks give a
+    misleading reason for it.
+
+    Args:
+        positions: (F, M, 3) float64, metres, world; NaN rows = occluded.
+
+    Raises:
+        SanityError: the markers span less than :data:`COLLAPSED_SPREAD_M`.
+    """
+    pos = np.asarray(positions, dtype=np.float64)
+    if pos.ndim != 3:
+        return []
+    mean = _finite_mean(pos, axis=0)
+    mean = mean[np.isfinite(mean).all(axis=-1)]
+    if mean.shape[0] < 2:
+        return []  # nothing to span: the calibration names the markers missing
+    spread = float(np.linalg.norm(mean.max(axis=0) - mean.min(axis=0)))
+    if spread >= COLLAPSED_SPREAD_M:
+        return []
+    raise SanityError(
+        f"the base pose is degenerate: its {mean.shape[0]} markers lie within "
+        f"{1000 * spread:.3g} mm of each other (a body spans metres): the marker "
+        "stream is stuck, zeroed or mislabelled"
     )
 
 
@@ -325,6 +391,160 @@ def check_up_axis(
     if up_source.startswith("override"):
         return [f"{text} (keeping {up_axis} as given)"]
     raise SanityError(f"{text}: pass {override} {detected}")
+
+
+#: Mirror check: the least horizontal length of a forward cue (toe markers ahead of
+#: the ankle's, the pelvis' front markers ahead of its back ones) and of the rig's
+#: right->left marker axis for the check to trust its direction. Marker noise of
+#: ~1 mm (Merriaux et al., Sensors 2017;17:1591) across 30 mm turns the direction by
+#: under 2 deg; the real cues are 5-10 times longer (the toes lie ~0.10-0.20 m ahead
+#: of the malleoli: foot length 0.152 H, Drillis & Contini in Winter 2009, Fig. 4.1;
+#: ASIS to PSIS ~0.15 m), so a shorter one means the markers collapsed or are missing.
+MIRROR_CUE_MIN_M = 0.030
+
+#: Mirror check: the angle between the rig's right->left marker axis and the
+#: performer's left (up x forward, forward from a cue the swap of left and right
+#: labels leaves unchanged) above which the labels are swapped. A genuine base pose
+#: puts it near 0 deg, a swap near 180 deg: the feet cue sums both feet, so their
+#: symmetric toe-out (foot progression angle ~10 deg, range -3 to +20 deg in adults:
+#: Staheli et al., J Bone Joint Surg Am 1985;67(1):39-47) cancels, and the shipped
+#: statics measure 0-11 deg, their swapped copies 169-180 deg (RIGS.md). 90 deg is
+#: where left turns into right; 135 deg leaves 45 deg, four times the worst toe-out,
+#: on either side. Between 45 and 135 deg the cue cannot tell: a warning.
+MIRROR_ANGLE_LIMIT_DEG = 135.0
+MIRROR_UNSURE_DEG = 45.0
+
+
+def _own_markers(rig: Rig, keep: object) -> list[str]:
+    """The markers feeding the bones whose humanoid name ``keep(name)`` accepts."""
+    out: list[str] = []
+    for bone in rig.bones:
+        if bone.humanoid and keep(bone.humanoid):  # type: ignore[operator]
+            for p in bone.inputs:
+                out.extend(m for m in rig.markers_of(p, base_pose=True) if m not in out)
+    return out
+
+
+def _forward_cues(rig: Rig) -> dict[str, tuple[list[str], list[str]]]:
+    """cue name -> (front markers, back markers), both sides together (so a swap of
+    left and right labels leaves each cue's vector unchanged).
+
+    - ``feet``: per side, the markers of the foot chain's distal aim (``*Toes`` bone,
+      else ``*Foot``) not used by the foot's origin (the toes), against those of the
+      foot's origin (the ankle centre) not used by the lower leg's origin (the
+      ankle and shank markers);
+    - ``pelvis``: the rig's ``lateral`` pair (ASIS / front waist / iliac crest)
+      against the other markers of the ``Hips`` bone (PSIS, sacrum, back waist).
+    """
+    by_humanoid = {b.humanoid: b for b in rig.bones if b.humanoid}
+    front: list[str] = []
+    back: list[str] = []
+    for side in ("Left", "Right"):
+        foot = by_humanoid.get(f"{side}Foot")
+        leg = by_humanoid.get(f"{side}LowerLeg")
+        if foot is None or leg is None:
+            continue
+        distal = by_humanoid.get(f"{side}Toes", foot)
+        at_ankle = rig.markers_of(foot.origin, base_pose=True)
+        at_knee = rig.markers_of(leg.origin, base_pose=True)
+        front += [m for m in rig.markers_of(distal.aim, base_pose=True)
+                  if m not in at_ankle]  # fmt: skip
+        back += [m for m in at_ankle if m not in at_knee]
+    cues: dict[str, tuple[list[str], list[str]]] = {}
+    if front and back:
+        cues["feet"] = (front, back)
+    hips = by_humanoid.get("Hips")
+    if hips is not None and rig.lateral:
+        pair = list(rig.lateral)
+        rest = [m for m in _own_markers(rig, lambda h: h == "Hips") if m not in pair]
+        if rest:
+            cues["pelvis"] = (pair, rest)
+    return cues
+
+
+def mirror_angles_deg(
+    rig: Rig, positions: F64Array, labels: Sequence[str]
+) -> dict[str, float]:
+    """Per forward cue (:func:`_forward_cues`), the angle between the rig's
+    right->left axis (the mean of the markers only ``Left*`` bones use minus that of
+    the markers only ``Right*`` bones use) and the performer's left, ``+Z x forward``,
+    both horizontal; degrees. Near 0 for a genuine base pose, near 180 when the
+    left and right labels are swapped. Cues the take lacks, or shorter than
+    :data:`MIRROR_CUE_MIN_M`, are left out.
+
+    Args:
+        rig: the rig.
+        positions: (F, M, 3) float64, metres, world (+Z up); NaN rows = occluded.
+        labels: (M,) marker labels.
+    """
+    cols = dict(zip(rig.marker_names, match_markers(rig, labels), strict=True))
+    pos = np.asarray(positions, dtype=np.float64)
+    if pos.ndim != 3:
+        return {}
+    mean = _finite_mean(pos, axis=0)  # (M, 3)
+
+    def centre(names: Sequence[str]) -> F64Array:
+        rows = [cols[m] for m in names if cols.get(m, -1) >= 0]
+        pts = mean[rows] if rows else np.full((1, 3), np.nan)
+        return _finite_mean(pts, axis=0)
+
+    left = _own_markers(rig, lambda h: h.startswith("Left"))
+    right = _own_markers(rig, lambda h: h.startswith("Right"))
+    across = centre([m for m in left if m not in right]) - centre(
+        [m for m in right if m not in left]
+    )
+    across[2] = 0.0
+    if not np.linalg.norm(across) >= MIRROR_CUE_MIN_M:  # NaN too
+        return {}
+    out: dict[str, float] = {}
+    for name, (front, back) in _forward_cues(rig).items():
+        fwd = centre(front) - centre(back)
+        fwd[2] = 0.0
+        if not np.linalg.norm(fwd) >= MIRROR_CUE_MIN_M:
+            continue
+        side = np.cross([0.0, 0.0, 1.0], fwd)  # up x forward = left
+        cos = float(side @ across) / float(
+            np.linalg.norm(side) * np.linalg.norm(across)
+        )
+        out[name] = math.degrees(math.acos(max(-1.0, min(1.0, cos))))
+    return out
+
+
+def check_mirrored(rig: Rig, positions: F64Array, labels: Sequence[str]) -> list[str]:
+    """Refuse a base pose whose left and right labels are swapped.
+
+    Forward comes from cues a swap leaves unchanged (the toes ahead of the ankles,
+    the pelvis' front markers ahead of its back ones), up is +Z (checked by
+    :func:`check_up_axis`), left = up x forward; the markers the rig calls left must
+    lie on that side (:func:`mirror_angles_deg`). Skipped for a rig or take without
+    the cues.
+
+    Returns:
+        A warning when the cues cannot tell (an angle between
+        :data:`MIRROR_UNSURE_DEG` and :data:`MIRROR_ANGLE_LIMIT_DEG`, or cues that
+        disagree).
+
+    Raises:
+        SanityError: every cue puts the rig's left markers on the performer's right
+            (more than :data:`MIRROR_ANGLE_LIMIT_DEG` from the left).
+    """
+    angles = mirror_angles_deg(rig, positions, labels)
+    if not angles:
+        return []
+    said = ", ".join(f"{name} {a:.0f} deg" for name, a in angles.items())
+    if all(a > MIRROR_ANGLE_LIMIT_DEG for a in angles.values()):
+        raise SanityError(
+            f"the base pose is mirrored: the markers rig {rig.name} calls left lie on "
+            f"the performer's right ({said} from the left that the toes ahead of "
+            "the ankles and the pelvis' front ahead of its back give): the take's "
+            "left and right labels look swapped; relabel them"
+        )
+    if all(a <= MIRROR_UNSURE_DEG for a in angles.values()):
+        return []
+    return [
+        f"left and right unclear in the base pose ({said} between the rig's "
+        "right->left markers and the performer's left): check the L/R labels"
+    ]
 
 
 def _bone_lengths(rig: Rig, cal: Calibration) -> dict[str, tuple[str, float]]:
@@ -405,9 +625,14 @@ def check_bilateral(rig: Rig, cal: Calibration) -> list[str]:
     return out
 
 
-def check_calibration(rig: Rig, cal: Calibration, *, units: str) -> list[str]:
+def check_calibration(
+    rig: Rig, cal: Calibration, *, units: str, override: str = "--take-units"
+) -> list[str]:
     """:func:`check_stature` and :func:`check_bilateral` on a calibration."""
-    return [*check_stature(rig, cal, units=units), *check_bilateral(rig, cal)]
+    return [
+        *check_stature(rig, cal, units=units, override=override),
+        *check_bilateral(rig, cal),
+    ]
 
 
 #: The least distance, in the base pose, between a bone's up reference and the bone's
@@ -505,3 +730,92 @@ def roll_hold_levels_m(rig: Rig, cal: Calibration) -> F64Array:
         if lever is not None:
             levels[b] = min(levels[b], ROLL_HOLD_BASE_FRACTION * lever)
     return levels
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class BasePoseSource:
+    """What a base pose was read as, and the options that change it (named in the
+    refusals): a take's header offline, the marker input's config live.
+
+    Attributes:
+        units, units_source: the length unit the markers were read in and where it
+            came from.
+        up_axis, up_source: the capture's up axis and where it came from.
+        world_from_capture: (3, 3) float64, the rotation they were read with.
+        rate_hz: frame rate of the base-pose frames, Hz.
+        units_override, up_override, moving_override: the option (offline) or
+            config key (live) that sets each; named in the messages.
+    """
+
+    units: str = "m"
+    units_source: str = "default"
+    up_axis: str = "+Z"
+    up_source: str = "default"
+    world_from_capture: F64Array = field(default_factory=lambda: np.eye(3))
+    rate_hz: float
+    units_override: str = "--take-units"
+    up_override: str = "--take-up"
+    moving_override: str = "--allow-moving-base-pose"
+
+
+def calibrate_checked(
+    rig: Rig,
+    positions: F64Array,
+    labels: Sequence[str],
+    source: BasePoseSource,
+    *,
+    allow_moving: bool = False,
+    take_measurements: Mapping[str, float] | None = None,
+    overrides: Mapping[str, float] | None = None,
+    base_pose: Mapping[str, Any] | None = None,
+    rom: tuple[F64Array, Sequence[str], Mapping[str, Any]] | None = None,
+) -> tuple[Calibration, list[str]]:
+    """Calibrate ``rig`` after every base-pose check and check the result: the
+    spread, up axis, units, stillness and left/right labels of the base pose
+    (:func:`check_spread`, :func:`check_up_axis`, :func:`check_units`,
+    :func:`check_base_pose_still`, :func:`check_mirrored`), then the stature,
+    left/right symmetry and up levers of the calibration (:func:`check_calibration`,
+    :func:`check_up_levers`). The one function both the offline ``calibrate`` and
+    the live calibration run.
+
+    Args:
+        rig: the rig.
+        positions: (F, M, 3) float64, metres, world (+Z up); NaN rows = occluded.
+        labels: (M,) marker labels.
+        source: how the markers were read (:class:`BasePoseSource`).
+        allow_moving: a moving base pose warns instead of refusing.
+        take_measurements, overrides, base_pose, rom: passed to ``calibrate`` (a
+            range of motion's joints it does not determine are among the warnings).
+
+    Returns:
+        ``(calibration, warnings)`` (one line each).
+
+    Raises:
+        SanityError: a base pose whose calibration would be garbage.
+        CalibrationError: a base pose that cannot calibrate the rig.
+    """
+    notes = check_spread(positions)
+    notes += check_up_axis(
+        rig, positions, labels, up_axis=source.up_axis, up_source=source.up_source,
+        world_from_capture=source.world_from_capture, override=source.up_override,
+    )  # fmt: skip
+    notes += check_units(
+        positions, units=source.units, units_source=source.units_source,
+        override=source.units_override,
+    )  # fmt: skip
+    notes += check_base_pose_still(
+        positions, labels, source.rate_hz, allow_moving=allow_moving,
+        override=source.moving_override,
+    )  # fmt: skip
+    notes += check_mirrored(rig, positions, labels)
+    cal = calibrate(
+        rig, positions, labels, take_measurements=take_measurements,
+        overrides=overrides, base_pose=base_pose, rom=rom,
+    )  # fmt: skip
+    notes += cal.functional.get("notes", [])  # rom: the joints it did not place
+    notes += check_calibration(
+        rig, cal, units=source.units, override=source.units_override
+    )
+    # a bone whose roll would follow noise: named, with its lever
+    notes += check_up_levers(rig, cal, positions, labels)
+    return cal, notes

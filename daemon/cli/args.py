@@ -117,8 +117,9 @@ def calibrate_from_take(
     rom: Any = None,
 ) -> Any:
     """Calibrate ``rig`` on ``take.positions[frames]`` after the base-pose sanity
-    checks (``body.sanity``: up axis, units, stillness; then stature, left/right
-    symmetry and each bone's up lever of the result). Warnings go to stderr, one line
+    checks (``body.sanity.calibrate_checked``: up axis, units, stillness, left/right
+    labels; then stature, left/right symmetry and each bone's up lever of the
+    result; the live calibration runs the same). Warnings go to stderr, one line
     each, only once the calibration succeeded (a wrong rig gives its one error line
     alone).
 
@@ -126,26 +127,21 @@ def calibrate_from_take(
         UsageError: a calibration error or a base pose that would give garbage.
     """
     from retargetd.daemon.body import sanity
-    from retargetd.daemon.body.calibration import CalibrationError, calibrate
+    from retargetd.daemon.body.calibration import CalibrationError
 
-    base = take.positions[frames]
+    source = sanity.BasePoseSource(
+        units=take.units, units_source=take.units_source, up_axis=take.up_axis,
+        up_source=take.up_source, world_from_capture=take.world_from_capture,
+        rate_hz=take.rate_hz,
+    )  # fmt: skip
     try:
         with held_log_warnings("retargetd.daemon.body") as held:
-            notes = sanity.check_up_axis(
-                rig, base, take.labels,
-                up_axis=take.up_axis, up_source=take.up_source,
-                world_from_capture=take.world_from_capture,
-            )  # fmt: skip
-            notes += sanity.check_units(
-                base, units=take.units, units_source=take.units_source
-            )
-            notes += sanity.check_base_pose_still(
-                base, take.labels, take.rate_hz, allow_moving=allow_moving
-            )
-            cal = calibrate(
+            cal, notes = sanity.calibrate_checked(
                 rig,
-                base,
+                take.positions[frames],
                 take.labels,
+                source,
+                allow_moving=allow_moving,
                 take_measurements=take.measurements,
                 overrides=overrides,
                 base_pose={
@@ -156,10 +152,6 @@ def calibrate_from_take(
                 },
                 rom=rom,
             )
-            notes += cal.functional.get("notes", [])  # --rom: joints not placed
-            notes += sanity.check_calibration(rig, cal, units=take.units)
-            # a bone whose roll would follow noise: named, with its lever
-            notes += sanity.check_up_levers(rig, cal, base, take.labels)
     except (CalibrationError, sanity.SanityError) as exc:
         raise UsageError(str(exc)) from None
     held.pass_on()

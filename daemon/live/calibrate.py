@@ -5,10 +5,15 @@ reload of the rig and calibration files.
 
 A calibration is taken only from a still performer: the markers' drift over the
 averaged frames (:func:`marker_drift_speeds_m_s`) must stay under
-``performer.calibrate_max_speed_m_s``, else it is refused, one line says why and the
-old calibration is kept (and not saved over). A request with a bad count is refused;
-one that collects no frame for ``performer.calibrate_timeout_s`` expires. Calibration
-requests and reloads are rate limited (``control.min_interval_s``).
+``performer.calibrate_max_speed_m_s``; then the frames pass the offline calibrate's own
+checks (``body.sanity.calibrate_checked``: up axis, units, stillness, left/right labels,
+then stature and symmetry of the result). Otherwise it is refused: one line says why
+(to the ``ctl`` client too: the status' ``calibration_state`` / ``_message``), it is
+counted (``calibrations_refused``) and the old calibration is kept (its file untouched).
+A request with a bad count is refused; one that collects no frame for
+``performer.calibrate_timeout_s`` expires. Calibration requests and reloads are rate
+limited (``control.min_interval_s``). A calibration is saved atomically
+(``Calibration.save``).
 """
 
 from __future__ import annotations
@@ -20,14 +25,20 @@ import time
 
 import numpy as np
 
-from retargetd.daemon.body.calibration import calibrate, load_calibration
+from retargetd.daemon.body.calibration import CalibrationError, load_calibration
 from retargetd.daemon.body.rig import load_rig
+from retargetd.daemon.body.sanity import (
+    BasePoseSource,
+    SanityError,
+    calibrate_checked,
+)
 from retargetd.daemon.body.solve import BodySolver
 from retargetd.daemon.live.config import DaemonConfig, check_pipeline
 from retargetd.daemon.live.config_schema import CALIBRATE_MAX_FRAMES
 from retargetd.daemon.live.performer import FrameSource
 from retargetd.daemon.live.send import spine_stage
 from retargetd.daemon.live.state import DaemonState
+from retargetd.protocols.conventions import world_from_capture_mat
 
 logger = logging.getLogger(__name__)
 
@@ -69,6 +80,9 @@ class CalibrationMixin(DaemonState):
         self._calib_labels = ()
         self._calib_requested_by = by
         self._calib_last_ns = now
+        self._calib_id += 1
+        self._calib_state = "pending"
+        self._calib_stream = None
         self.recording.event("calibration_requested", count=n, by=by)
         logger.info("calibration requested (%s): averaging %d frames", by, n)
         return f"calibrating over the next {n} frames: hold the base pose"
@@ -79,6 +93,7 @@ class CalibrationMixin(DaemonState):
             self._calib_frames = []  # the marker layout changed: start again
             self._calib_times = []
         self._calib_labels = labels
+        self._calib_stream = stream
         frame = stream.current.frame
         self._calib_frames.append(frame.markers_world.copy())
         self._calib_times.append(
@@ -101,6 +116,7 @@ class CalibrationMixin(DaemonState):
         self._calib_frames = []
         self._calib_times = []
         self.stats.calibrations_expired += 1
+        self._calib_state = "expired"
         msg = (
             f"calibration expired: no marker frames for {timeout_s:g} s "
             f"({got} of {wanted} collected); the old calibration is kept"
@@ -146,37 +162,34 @@ class CalibrationMixin(DaemonState):
         self._calib_frames = []
         self._calib_times = []
         limit = self._perf.config.calibrate_max_speed_m_s
-        speeds = marker_drift_speeds_m_s(
-            frames, _window_times_s(times, self.config.validate.rate_hz)
-        )
+        times_s = _window_times_s(times, self.config.validate.rate_hz)
+        if not times_s[-1] > times_s[0]:  # no speed can be told: never "still"
+            self._refuse_calibration(
+                f"the {frames.shape[0]} frames span no time (source, frame number "
+                "and receive times alike), so stillness cannot be judged"
+            )
+            return
+        speeds = marker_drift_speeds_m_s(frames, times_s)
         if np.any(speeds > limit):
             worst = int(np.nanargmax(speeds))
             name = labels[worst] if worst < len(labels) else f"#{worst}"
-            msg = (
-                f"calibration refused: the performer is not still (marker {name} "
-                f"moving at {speeds[worst]:.3f} m/s > {limit:g} m/s over the "
-                f"{frames.shape[0]} frames); the old calibration is kept: hold the "
-                "base pose and ask again"
+            self._refuse_calibration(
+                f"the performer is not still (marker {name} moving at "
+                f"{speeds[worst]:.3f} m/s > {limit:g} m/s over the {frames.shape[0]} "
+                "frames)"
             )
-            self.stats.calibrations_refused += 1
-            self._calib_message = msg
-            self.recording.event("calibration_refused", message=msg)
-            self.out(self._named(msg))
             return
         try:
-            cal = calibrate(
-                self.rig,
-                frames,
-                labels,
+            cal, notes = calibrate_checked(
+                self.rig, frames, labels, self._base_pose_source(times_s),
                 base_pose={"live": True, "frames": int(frames.shape[0]),
                            "requested_by": self._calib_requested_by},
             )  # fmt: skip
-        except ValueError as exc:
-            logger.warning("live calibration failed: %s", exc)
-            self.recording.event("calibration_failed", error=str(exc))
-            self._calib_message = f"calibration failed: {exc}"
-            self.out(self._named(self._calib_message))
+        except (SanityError, CalibrationError) as exc:
+            self._refuse_calibration(str(exc))
             return
+        for note in notes:
+            self.out(self._named(f"calibration warning: {note}"))
         # Atomic: the loop thread is the only reader; the next frame uses the new one,
         # with its pipeline built now rather than on the next frame.
         self.calibration = cal
@@ -187,21 +200,62 @@ class CalibrationMixin(DaemonState):
                 self._pipeline(stream)
         self._start_validator()
         self.stats.calibrations += 1
+        self._calib_state = "calibrated"  # "not_saved" below when the save fails
         path = self._perf.config.save_calibration or self._perf.config.calibration
         self.recording.event(
             "calibrated", frames=int(frames.shape[0]), by=self._calib_requested_by,
-            path=path or "",
+            path=path or "", warnings=notes,
         )  # fmt: skip
         if path:
             try:
                 cal.save(path)
                 msg = f"calibrated on {frames.shape[0]} frames; saved {path}"
-            except OSError as exc:
+            except OSError as exc:  # the old file is whole (an atomic save)
                 msg = f"calibrated on {frames.shape[0]} frames; NOT saved: {exc}"
+                self._calib_state = "not_saved"
         else:
             msg = f"calibrated on {frames.shape[0]} frames (not saved: no path)"
         self._calib_message = msg
         self.out(self._named(msg))
+
+    def _refuse_calibration(self, why: str) -> None:
+        """A live calibration refused: counted, said in one line (to the log and,
+        through the status, to the ``ctl`` client), recorded; the old calibration
+        keeps streaming and its file is not written."""
+        msg = (
+            f"calibration refused: {why}; the old calibration is kept: hold the "
+            "base pose and ask again"
+        )
+        logger.warning("%s", self._named(msg))
+        self.stats.calibrations_refused += 1
+        self._calib_state = "refused"
+        self._calib_message = msg
+        self.recording.event("calibration_refused", message=msg)
+        self.out(self._named(msg))
+
+    def _base_pose_source(self, times_s: np.ndarray) -> BasePoseSource:
+        """How the calibration frames were read: the unit and up axis of the input
+        they came from (``[input.osc]`` / ``[input.zmq]``), the frame rate of the
+        window; a refusal names the config key to change."""
+        stream = getattr(self._calib_stream, "stream", self._calib_stream)  # a view's
+        key = (
+            "input.osc" if stream is self.osc_stream
+            else "input.zmq" if stream is self.zmq_stream
+            else ""
+        )  # fmt: skip
+        cfg = getattr(self.config.input, key.split(".")[-1]) if key else None
+        units = cfg.units if cfg is not None else "m"
+        up = cfg.up if cfg is not None else "+Z"
+        where = f"config {key}" if key else "the capture input"
+        span = float(times_s[-1] - times_s[0]) if len(times_s) > 1 else 0.0
+        rate = (len(times_s) - 1) / span if span > 0 else math.nan
+        return BasePoseSource(
+            units=units, units_source=where, up_axis=up, up_source=where,
+            world_from_capture=world_from_capture_mat(up),
+            rate_hz=rate, units_override=f"[{key or 'input'}] units =",
+            up_override=f"[{key or 'input'}] up =",
+            moving_override="nothing (hold the base pose)",
+        )  # fmt: skip
 
     def _named(self, msg: str) -> str:
         """A calibration line, naming the performer when there are several."""

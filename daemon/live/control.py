@@ -89,7 +89,8 @@ class ControlMixin(DaemonState):
             if not self.config.control.calibrate:
                 raise ValueError("calibrate is off on this path (control.calibrate)")
             msg = self.request_calibration(req.get("count"), "ctl")
-            return {"ok": True, "message": msg}
+            # ctl waits for this one's outcome (status: calibration_id / _state)
+            return {"ok": True, "message": msg, "calibration_id": self._calib_id}
         if cmd == "reload":
             if not self.config.control.reload:
                 raise ValueError("reload is off on this path (control.reload)")

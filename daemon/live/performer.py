@@ -216,6 +216,12 @@ class Performer:
         self.calib_times: list[tuple[float, int, int]] = []
         self.calib_last_ns = 0
         self.calib_message = ""
+        # Requests so far (the ctl reply and status name the one they are about) and
+        # how the last one stands: "", "pending", "calibrated", "not_saved" (in use,
+        # its file not written), "refused", "expired".
+        self.calib_id = 0
+        self.calib_state = ""
+        self.calib_stream: Any = None  # where the frames come from (its input)
         self.calibrate_limit = RateLimiter(min_interval_s)
         self.validation_bits = 0
         self.validation_bones: np.ndarray | None = None

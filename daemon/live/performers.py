@@ -228,6 +228,8 @@ class PerformersMixin(DaemonState):
                     "calibrated": perf.calibration is not None,
                     "calibrating": perf.calib_target > 0,
                     "calibration_message": perf.calib_message,
+                    "calibration_id": perf.calib_id,
+                    "calibration_state": perf.calib_state,
                     "vmc": f"{perf.vmc_addr[0]}:{perf.vmc_addr[1]}",
                     "frames_out": (
                         perf.stats.frames_out if self._multi else self.stats.frames_out

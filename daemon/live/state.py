@@ -137,6 +137,9 @@ class DaemonState:
     _calib_last_ns: OfPerformer[int] = OfPerformer()
     # how the last calibration ended ("" = none yet)
     _calib_message: OfPerformer[str] = OfPerformer()
+    _calib_id: OfPerformer[int] = OfPerformer()  # requests so far
+    _calib_state: OfPerformer[str] = OfPerformer()  # "", pending, calibrated ...
+    _calib_stream: OfPerformer[Any] = OfPerformer()  # the frames' stream or view
     _calibrate_limit: OfPerformer[RateLimiter] = OfPerformer()
     _validation_bits: OfPerformer[int] = OfPerformer()
     _validation_bones: OfPerformer[np.ndarray | None] = OfPerformer()

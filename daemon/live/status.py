@@ -39,6 +39,8 @@ class StatusMixin(DaemonState):
             "calibrated": all(p["calibrated"] for p in performers),
             "calibrating": any(p["calibrating"] for p in performers),
             "calibration_message": self._calib_message,
+            "calibration_id": self._calib_id,
+            "calibration_state": self._calib_state,
             "performers": performers,
             "endpoints": self.endpoints,
             "counters": {**self.stats.counters(), "prewarm": self._prewarm.touches},

@@ -376,6 +376,8 @@ def test_two_performers_calibrated_apart_each_to_its_own_vmc_port(
     # A first: its avatar moves, B's still waits.
     rc, out, _ = ctl("calibrate", "--performer", "A", "--count", "10")
     assert rc == 0 and "next 10 frames" in out
+    # ctl waited for A's outcome (issue 29: the result reaches the client)
+    assert "calibrated on 10 frames; saved" in out and "a.json" in out, out
     _wait_until(lambda: any(ln.startswith("A: calibrated on 10 frames; saved")
                             for ln in live.lines), "A calibrated")  # fmt: skip
     _pump_until([va, vb], lambda: len(va.frames) > 10, "A's VMC frames")

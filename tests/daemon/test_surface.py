@@ -526,7 +526,8 @@ def test_control_under_curve_answers_only_the_listed_key(
     reply = request(ep, {"cmd": "status"}, 2000, operator)
     assert reply is not None and reply["ok"]
     capsys.readouterr()
-    assert cli_main(["ctl", "--endpoint", ep, "--key", operator, "calibrate"]) == 0
+    assert cli_main(["ctl", "--endpoint", ep, "--key", operator, "calibrate",
+                    "--no-wait"]) == 0  # fmt: skip
     assert "calibrating over the next" in capsys.readouterr().out
     assert live.daemon.status()["calibrating"]
     rc = cli_main(["ctl", "--endpoint", ep, "--timeout-ms", "300", "status"])
