@@ -40,7 +40,7 @@ import numpy as np
 
 from retargetd.daemon.body.calibrate_rom import RomPoints
 from retargetd.daemon.body.rig import LinePoint, Rig
-from retargetd.daemon.rotations import quat_conj, quat_from_mat, quat_mul, quat_rotate
+from retargetd.daemon.rotations import quat_conj, quat_from_mat, quat_mul
 from retargetd.protocols.frames import F64Array
 
 logger = logging.getLogger(__name__)
@@ -598,7 +598,7 @@ def calibrate(
     root = rig.bones[0].origin
     functional: dict[str, Any] = {}
     if romp is not None:
-        functional = romp.finish(pts, rest_wfb, _rig_hinge_axes(rig, rest_pfb))
+        functional = romp.finish(pts, rest_wfb, rest_pfb)
     return Calibration(
         rig_name=rig.name,
         rig_source=rig.source,
@@ -620,19 +620,6 @@ def calibrate(
         base_marker_pos=_stored_m(_nan_mean_rows(marker_pos)),
         functional=functional,
     )
-
-
-def _rig_hinge_axes(rig: Rig, rest_pfb: F64Array) -> dict[str, F64Array]:
-    """bone -> the rig's ``[fit]`` hinge axis in the bone's rest axes."""
-    out = {}
-    for name, bopt in rig.fit.bones.items():
-        if bopt.dof in ("hinge", "hinge_twist"):
-            axis = np.asarray(bopt.axis, dtype=np.float64)
-            if bopt.axis_in == "parent":
-                b = rig.bone_names.index(name)
-                axis = quat_rotate(quat_conj(rest_pfb[b]), axis)
-            out[name] = axis / np.linalg.norm(axis)
-    return out
 
 
 def _stored_m(pos: F64Array) -> F64Array:
