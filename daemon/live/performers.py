@@ -228,6 +228,7 @@ class PerformersMixin(DaemonState):
                     "calibrated": perf.calibration is not None,
                     "calibrating": perf.calib_target > 0,
                     "calibration_message": perf.calib_message,
+                    "calibration_match": _match_status(perf),
                     "vmc": f"{perf.vmc_addr[0]}:{perf.vmc_addr[1]}",
                     "frames_out": (
                         perf.stats.frames_out if self._multi else self.stats.frames_out
@@ -264,6 +265,21 @@ class PerformersMixin(DaemonState):
                 f"{'-' if p99 is None else f'{p99:.0f}'} us{state}"
             )
         return " | performers " + ", ".join(parts)
+
+
+def _match_status(perf: Performer) -> dict[str, Any] | None:
+    """``calibration_match`` of a performer's status: None before its first second
+    of frames with its calibration has been checked (``body.match``)."""
+    window = perf.match_window
+    if window is None or window.result is None:
+        return None
+    found = window.result
+    return {
+        "matches": found.matches,
+        "frames": found.frames,
+        "warning": found.warning(),
+        "segments": found.to_json(),
+    }
 
 
 def _round(value: float) -> float | None:
