@@ -277,3 +277,36 @@ def test_match_window_checks_the_first_second_once() -> None:
     assert done == [int(take.rate_hz)]  # the frame one second after the first
     assert window.result is not None and window.result.matches
     assert window.n_frames == int(take.rate_hz)
+
+
+@pytest.mark.usefixtures("mujoco_cwd")
+def test_validate_names_the_calibration_not_only_the_joint_limits(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # The case: validate failed only on joint limits, pointing the user at
+    # the wrong cause. Now the warning names the segment first, and the JSON and
+    # report.json hold the figures; --strict-calibration stops before validating.
+    require_datasets()
+    cal_path = tmp_path / "belt.json"
+    static = str(require(DATASETS / PIG_STATIC, PIG_STATIC))
+    walk = str(require(DATASETS / PIG3_WALK, PIG3_WALK))
+    assert (
+        main(["calibrate", static, "--rig", "plug-in-gait", "--out", str(cal_path)])
+        == 0
+    )
+    capsys.readouterr()
+    argv = ["validate", walk, "--rig", "plug-in-gait", "--calibration", str(cal_path),
+            "--method", "construction", "--no-snapshots", "--json"]  # fmt: skip
+    report = tmp_path / "report"
+    assert main([*argv, "--report", str(report)]) == 1
+    captured = capsys.readouterr()
+    assert "calibration does not match this take: pelvis" in captured.err
+    doc = json.loads(captured.out)
+    assert doc["calibration_match"]["pelvis"]["matches"] is False
+    on_disk = json.loads((report / "report.json").read_text())
+    assert on_disk["calibration_match"]["pelvis"]["matches"] is False
+    assert (
+        main([*argv, "--report", str(tmp_path / "strict"), "--strict-calibration"]) == 2
+    )
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "pelvis" in err
