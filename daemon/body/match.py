@@ -268,28 +268,50 @@ def match_calibration(calibration: Calibration, markers: F64Array) -> Calibratio
     return CalibrationMatch(segments=tuple(segments), frames=int(markers.shape[0]))
 
 
-def markers_of_calibration(
+def calibration_columns(
     calibration: Calibration,
+    rig_marker_names: Sequence[str],
     marker_cols: Sequence[int],
-    positions: F64Array,
-) -> F64Array:
-    """The take's columns of the calibration's markers: (T, Mr, 3), NaN where the take
-    lacks a marker.
+) -> IntArray:
+    """Column of each calibrated marker in a stream, matched by name (a rig file
+    edited since the calibration: its markers the rig no longer has are absent).
 
     Args:
         calibration: whose ``marker_names`` order the result follows.
-        marker_cols: (Mr,) column of each rig marker in ``positions`` (-1 = absent;
-            ``calibration.match_markers``), in the rig's (= the calibration's)
-            marker order.
+        rig_marker_names: (Mr,) the rig's markers.
+        marker_cols: (Mr,) column of each rig marker in the stream (-1 = absent;
+            ``calibration.match_markers``, a solver's ``marker_cols``).
+
+    Returns:
+        (len(calibration.marker_names),) int64, -1 = absent.
+    """
+    if len(marker_cols) != len(rig_marker_names):
+        raise ValueError(
+            f"marker_cols: expected {len(rig_marker_names)} columns (one per rig "
+            f"marker); got {len(marker_cols)}"
+        )
+    col_of = dict(zip(rig_marker_names, marker_cols, strict=True))
+    return np.asarray(
+        [int(col_of.get(m, -1)) for m in calibration.marker_names], dtype=np.int64
+    )
+
+
+def markers_of_calibration(
+    calibration: Calibration,
+    rig_marker_names: Sequence[str],
+    marker_cols: Sequence[int],
+    positions: F64Array,
+) -> F64Array:
+    """The take's columns of the calibration's markers: (T, Mc, 3) metres, world,
+    NaN where the take (or the rig) lacks a marker.
+
+    Args:
+        calibration: whose ``marker_names`` order the result follows.
+        rig_marker_names, marker_cols: as :func:`calibration_columns`.
         positions: (T, M, 3) float64 metres, world, the take's markers.
     """
     positions = np.asarray(positions, dtype=np.float64)
-    cols = np.asarray(marker_cols, dtype=np.int64)
-    if cols.shape != (len(calibration.marker_names),):
-        raise ValueError(
-            f"marker_cols: expected {len(calibration.marker_names)} columns (one per "
-            f"calibrated marker); got {cols.shape}"
-        )
+    cols = calibration_columns(calibration, rig_marker_names, marker_cols)
     out = np.full((positions.shape[0], len(cols), 3), np.nan)
     have = cols >= 0
     out[:, have] = positions[:, cols[have]]
@@ -309,6 +331,7 @@ class MatchWindow:
 
     Args:
         calibration: the calibration checked (kept: a new one needs a new window).
+        rig_marker_names: (Mr,) the rig's markers (the order of ``marker_cols``).
         window_s: seconds of stream to check over.
         max_frames: at most this many frames (a faster stream ends the window early).
     """
@@ -316,11 +339,13 @@ class MatchWindow:
     def __init__(
         self,
         calibration: Calibration,
+        rig_marker_names: Sequence[str],
         *,
         window_s: float = LIVE_WINDOW_S,
         max_frames: int = 1000,
     ) -> None:
         self.calibration = calibration
+        self.rig_marker_names = tuple(rig_marker_names)
         self.window_s = window_s
         n_markers = len(calibration.marker_names)
         self._buf = np.full((max_frames, n_markers, 3), np.nan)
@@ -345,7 +370,7 @@ class MatchWindow:
         Args:
             markers_world: (n, 3) float64 metres, world, the stream's markers
                 (NaN rows = occluded).
-            marker_cols: (Mr,) int64, column of each calibrated marker in
+            marker_cols: (Mr,) int64, column of each rig marker in
                 ``markers_world`` (-1 = absent; the solver's ``marker_cols``).
             t_s: the frame's time, seconds: the source's clock when it has one (a
                 take replayed as fast as possible is checked over its own first
@@ -359,7 +384,9 @@ class MatchWindow:
             return self.finish()
         if marker_cols is not self._cols_of:  # a new label set: its columns, once
             self._cols_of = marker_cols
-            cols = np.asarray(marker_cols, dtype=np.int64)
+            cols = calibration_columns(
+                self.calibration, self.rig_marker_names, marker_cols
+            )
             self._absent[:] = cols < 0
             self._cols[:] = np.where(self._absent, 0, cols)
         row = self._buf[self.n_frames]

@@ -285,13 +285,13 @@ def solver_for_take(args: argparse.Namespace) -> tuple[Any, Any, Any, Any]:
     except CalibrationError as exc:
         raise UsageError(str(exc)) from None
     args.calibration_match = check_calibration_match(
-        take, cal, solver, strict=getattr(args, "strict_calibration", False)
+        take, rig, cal, solver, strict=getattr(args, "strict_calibration", False)
     )
     return rig, take, cal, solver
 
 
 def check_calibration_match(
-    take: Any, calibration: Any, solver: Any, *, strict: bool
+    take: Any, rig: Any, calibration: Any, solver: Any, *, strict: bool
 ) -> Any:
     """Fit each rigid segment's markers, on every frame of ``take``, to their
     calibrated layout (``body.match``); a segment past its threshold is named in
@@ -304,7 +304,9 @@ def check_calibration_match(
 
     found = match_calibration(
         calibration,
-        markers_of_calibration(calibration, solver.marker_cols, take.positions),
+        markers_of_calibration(
+            calibration, rig.marker_names, solver.marker_cols, take.positions
+        ),
     )
     line = found.warning()
     if line is not None:

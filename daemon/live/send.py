@@ -313,7 +313,7 @@ class SendMixin(DaemonState):
         if calibration is None:
             return
         if window is None or window.calibration is not calibration:
-            window = perf.match_window = MatchWindow(calibration)
+            window = perf.match_window = MatchWindow(calibration, perf.rig.marker_names)
             perf.match_flags = 0
         t_s = frame.source_time_s
         if not math.isfinite(t_s):

@@ -38,6 +38,7 @@ from retargetd.daemon.body.match import (
     MARKER_BOUND_MM,
     CalibrationMatch,
     MatchWindow,
+    calibration_columns,
     layout_residuals,
     markers_of_calibration,
     match_calibration,
@@ -106,8 +107,11 @@ def _calibrate(
 
 def _match(cal: Calibration, rig_name: str, take_name: str) -> CalibrationMatch:
     take = load_take(require(DATASETS / take_name, take_name))
-    cols = match_markers(load_rig(rig_name), take.labels)
-    return match_calibration(cal, markers_of_calibration(cal, cols, take.positions))
+    rig = load_rig(rig_name)
+    cols = match_markers(rig, take.labels)
+    return match_calibration(
+        cal, markers_of_calibration(cal, rig.marker_names, cols, take.positions)
+    )
 
 
 def _figures(found: CalibrationMatch) -> str:
@@ -154,6 +158,25 @@ def test_thresholds_come_from_the_cited_bounds() -> None:
     assert segment_threshold_mm("ribcage", 6) == pytest.approx(19.7 * math.sqrt(2 / 3))
 
 
+def test_calibrated_markers_are_matched_by_name() -> None:
+    # A rig file edited since the calibration (markers reordered, one dropped): the
+    # calibration's markers still find their columns by name; the dropped one is
+    # absent (its segment fitted from the rest).
+    take = _take()
+    rig = load_rig(EXACT_RIG)
+    cal = calibrate(rig, _f32(take.markers_world[take.base_pose_frames]), take.labels)
+    cols = list(match_markers(rig, take.labels))
+    names = list(rig.marker_names)
+    direct = calibration_columns(cal, names, cols)
+    assert list(direct) == cols
+    edited = calibration_columns(cal, names[::-1][1:], cols[::-1][1:])
+    gone = cal.marker_names.index(names[-1])
+    assert edited[gone] == -1
+    assert np.delete(edited, gone).tolist() == np.delete(direct, gone).tolist()
+    with pytest.raises(ValueError, match="one per rig marker"):
+        calibration_columns(cal, names, cols[:-1])
+
+
 # ---- synthetic ----------------------------------------------------------------------
 
 
@@ -164,7 +187,8 @@ def test_a_thigh_wand_moved_20_mm_on_the_synthetic_performer_is_named() -> None:
     cols = match_markers(rig, take.labels)
     intact = calibrate(rig, base, take.labels)
     found = match_calibration(
-        intact, markers_of_calibration(intact, cols, take.markers_world)
+        intact,
+        markers_of_calibration(intact, rig.marker_names, cols, take.markers_world),
     )
     assert found.matches and found.warning() is None
     assert max(s.rms_mm for s in found.segments) < 0.5  # exact markers
@@ -172,7 +196,7 @@ def test_a_thigh_wand_moved_20_mm_on_the_synthetic_performer_is_named() -> None:
     moved_base[:, take.labels.index("LTHI")] += np.array([0.0, 0.0, 0.020])
     moved = calibrate(rig, moved_base, take.labels)
     found = match_calibration(
-        moved, markers_of_calibration(moved, cols, take.markers_world)
+        moved, markers_of_calibration(moved, rig.marker_names, cols, take.markers_world)
     )
     print(f"synthetic, LTHI moved 20 mm: {_figures(found)}")
     assert [s.segment for s in found.mismatched] == ["l_thigh"]
@@ -268,7 +292,7 @@ def test_match_window_checks_the_first_second_once() -> None:
     rig = load_rig(EXACT_RIG)
     cal = calibrate(rig, _f32(take.markers_world[take.base_pose_frames]), take.labels)
     cols = np.asarray(match_markers(rig, take.labels), dtype=np.int64)
-    window = MatchWindow(cal)
+    window = MatchWindow(cal, rig.marker_names)
     results = [
         window.add(take.markers_world[k], cols, k / take.rate_hz)
         for k in range(int(1.5 * take.rate_hz))
