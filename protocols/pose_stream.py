@@ -88,9 +88,11 @@ FRAME_RESEEDED = 1 << 5  # the fit lost track and was reseeded from the construc
 FRAME_UNEXPLAINED = 1 << 6  # the markers fit no pose: the last explained pose, held
 FRAME_UNSEEN = 1 << 7  # the performer's markers not seen: no pose (held or rest)
 FRAME_VALIDATION_MASK = 0x0000_FF00  # bits 8-15: validation results (below)
+# bits 16-23: the performer id (PERFORMER_SHIFT)
+FRAME_CALIBRATION_MISMATCH = 1 << 24  # the calibration does not fit these markers
 FRAME_FLAG_BITS = {
     "late": 0, "held": 1, "restarted": 2, "input_dropped": 3, "source_lost": 4,
-    "reseeded": 5, "unexplained": 6, "unseen": 7,
+    "reseeded": 5, "unexplained": 6, "unseen": 7, "calibration_mismatch": 24,
 }  # fmt: skip
 
 # Validation frame bits (8-15), set by the daemon's live validator (``[validate]``):

@@ -221,6 +221,13 @@ def add_solve_arguments(parser: argparse.ArgumentParser) -> None:
     )
     add_method_argument(parser)
     add_take_arguments(parser)
+    parser.add_argument(
+        "--strict-calibration",
+        action="store_true",
+        help="exit 2 when the calibration does not match the take (a segment's "
+        "markers off their calibrated layout: README 'Does the calibration fit "
+        "the take?'); else a warning",
+    )
 
 
 def add_method_argument(
@@ -237,13 +244,17 @@ def add_method_argument(
 
 
 def solver_for_take(args: argparse.Namespace) -> tuple[Any, Any, Any, Any]:
-    """Load the rig and the take, load or make the calibration, build the solver.
+    """Load the rig and the take, load or make the calibration, build the solver,
+    and check that the calibration fits the take (:func:`check_calibration_match`;
+    its result is left in ``args.calibration_match`` for the command's summary).
 
     Returns:
         ``(rig, take, calibration, solver)``.
 
     Raises:
-        UsageError: a bad rig, calibration or frame selection (one line, exit 2).
+        UsageError: a bad rig, calibration or frame selection, or with
+            ``--strict-calibration`` a calibration that does not match the take
+            (one line, exit 2).
     """
     from retargetd.daemon.body.calibration import (
         CalibrationError,
@@ -268,7 +279,36 @@ def solver_for_take(args: argparse.Namespace) -> tuple[Any, Any, Any, Any]:
         solver = solver_of_method(args, rig, cal, take.labels, take.rate_hz)
     except CalibrationError as exc:
         raise UsageError(str(exc)) from None
+    args.calibration_match = check_calibration_match(
+        take, rig, cal, solver, strict=getattr(args, "strict_calibration", False)
+    )
     return rig, take, cal, solver
+
+
+def check_calibration_match(
+    take: Any, rig: Any, calibration: Any, solver: Any, *, strict: bool
+) -> Any:
+    """Fit each rigid segment's markers, on every frame of ``take``, to their
+    calibrated layout (``body.match``); a segment past its threshold is named in
+    one ``warning:`` line on stderr, or with ``strict`` a UsageError (exit 2).
+
+    Returns:
+        The :class:`~retargetd.daemon.body.match.CalibrationMatch`.
+    """
+    from retargetd.daemon.body.match import markers_of_calibration, match_calibration
+
+    found = match_calibration(
+        calibration,
+        markers_of_calibration(
+            calibration, rig.marker_names, solver.marker_cols, take.positions
+        ),
+    )
+    line = found.warning()
+    if line is not None:
+        if strict:
+            raise UsageError(f"{line} (--strict-calibration)")
+        sys.stderr.write(f"warning: {line}\n")
+    return found
 
 
 def solver_of_method(

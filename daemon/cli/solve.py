@@ -319,6 +319,7 @@ def run(args: argparse.Namespace) -> int:
         for b, name in enumerate(res.bone_names)
         if held[:, b].any()
     ]
+    out(args.calibration_match.summary() + "\n")
     out("bones held (frames): " + (", ".join(flagged) if flagged else "none") + "\n")
     stab = segment_stability(rig, res.joint_names, res.joint_centres)
     if stab:
@@ -459,6 +460,8 @@ def _print_json_summary(
                 if held[:, b].any()
             },
             "fit": fit,
+            "calibration_match": args.calibration_match.to_json(),
+            "calibration_matches": args.calibration_match.matches,
             "segment_stability": [
                 {"bone": b, "mean_m": m, "cv_pct": cv}
                 for b, m, cv in segment_stability(

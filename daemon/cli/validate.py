@@ -159,6 +159,7 @@ def _validate(
         "seconds_per_frame": rep.seconds_per_frame,
         "passed": rep.passed,
         "failed": rep.failed(),
+        "calibration_match": args.calibration_match.to_json(),
         "checks": {
             n: {**c.summary(), "detail": c.detail} for n, c in rep.checks.items()
         },
@@ -175,6 +176,7 @@ def _validate(
         f"retargetd validate: {take.path} (rig {rig.name}, {rep.n_frames} frames at "
         f"{take.rate_hz:g} Hz, body mass {body_mass:g} kg)",
         f"Result: {'PASS' if rep.passed else 'FAIL: ' + ', '.join(rep.failed())}",
+        args.calibration_match.summary(),
         "",
         f"How the thresholds were set: {THRESHOLDS_NOTE}",
         f"Joint limits: {LIMITS_SOURCES}",
@@ -217,6 +219,7 @@ def _validate(
                 "body_mass_kg": body_mass,
                 "passed": rep.passed,
                 "failed": rep.failed(),
+                "calibration_match": args.calibration_match.to_json(),
                 "checks": {
                     n: {
                         "frames_flagged": c.n_flagged,

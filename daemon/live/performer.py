@@ -23,6 +23,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from retargetd.daemon.body.calibration import Calibration, load_calibration
+from retargetd.daemon.body.match import MatchWindow
 from retargetd.daemon.body.rig import Rig, load_rig
 from retargetd.daemon.live.config import DaemonConfig, PerformerConfig
 from retargetd.daemon.live.face import LiveFace
@@ -224,6 +225,11 @@ class Performer:
         self.calib_stream: Any = None  # where the frames come from (its input)
         self.calibrate_limit = RateLimiter(min_interval_s)
         self.validation_bits = 0
+        # The calibration-match check over the stream's first second
+        # (``body.match.MatchWindow``; ``send._check_calibration_match``) and the
+        # frame flag it leaves on every later pose (``calibration_mismatch``).
+        self.match_window: MatchWindow | None = None
+        self.match_flags = 0
         self.validation_bones: np.ndarray | None = None
         self.validation_enc: pose_stream.ValidationEncoder | None = None
         self.validation_results: list[Any] = []

@@ -230,6 +230,7 @@ class PerformersMixin(DaemonState):
                     "calibration_message": perf.calib_message,
                     "calibration_id": perf.calib_id,
                     "calibration_state": perf.calib_state,
+                    "calibration_match": _match_status(perf),
                     "vmc": f"{perf.vmc_addr[0]}:{perf.vmc_addr[1]}",
                     "frames_out": (
                         perf.stats.frames_out if self._multi else self.stats.frames_out
@@ -266,6 +267,21 @@ class PerformersMixin(DaemonState):
                 f"{'-' if p99 is None else f'{p99:.0f}'} us{state}"
             )
         return " | performers " + ", ".join(parts)
+
+
+def _match_status(perf: Performer) -> dict[str, Any] | None:
+    """``calibration_match`` of a performer's status: None before its first second
+    of frames with its calibration has been checked (``body.match``)."""
+    window = perf.match_window
+    if window is None or window.result is None:
+        return None
+    found = window.result
+    return {
+        "matches": found.matches,
+        "frames": found.frames,
+        "warning": found.warning(),
+        "segments": found.to_json(),
+    }
 
 
 def _round(value: float) -> float | None:

@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 import zmq
 
+from retargetd.daemon.body.match import MatchWindow
 from retargetd.daemon.body.method import make_body_solver
 from retargetd.daemon.live.config_schema import TargetConfig
 from retargetd.daemon.live.emit import (
@@ -240,6 +241,14 @@ class SendMixin(DaemonState):
                 )  # fmt: skip
             return
         frame = stream.current.frame
+        perf = self._perf
+        window = perf.match_window
+        if (
+            window is None
+            or window.result is None
+            or window.calibration is not perf.calibration
+        ):
+            self._check_calibration_match(window, pipe, frame, received_ns)
         pose = pipe.solver.solve_frame(
             frame.markers_world, pipe.pose, self._frame_dt_s(pipe, frame, received_ns)
         )
@@ -291,6 +300,33 @@ class SendMixin(DaemonState):
         self._emit(pipe, stream, frame_id, source_t, arrival_ns, t_start)
         if post is not None and post.resampler is not None:
             self._send_due_ticks_of(pipe, time.monotonic_ns())  # overdue ones too
+
+    def _check_calibration_match(
+        self, window: Any, pipe: Pipeline, frame: Any, received_ns: int
+    ) -> None:
+        """Over the performer's first second of frames with this calibration: its
+        segments' markers against their calibrated layout (``body.match``). A
+        mismatch is one warning line, ``calibration_match`` in status and the
+        ``calibration_mismatch`` frame flag on every later pose."""
+        perf = self._perf
+        calibration = perf.calibration
+        if calibration is None:
+            return
+        if window is None or window.calibration is not calibration:
+            window = perf.match_window = MatchWindow(calibration, perf.rig.marker_names)
+            perf.match_flags = 0
+        t_s = frame.source_time_s
+        if not math.isfinite(t_s):
+            t_s = received_ns * 1e-9
+        found = window.add(frame.markers_world, pipe.solver.marker_cols, t_s)
+        if found is None:
+            return
+        line = found.warning()
+        if line is None:
+            logger.info("%s: %s", perf.label, found.summary())
+            return
+        perf.match_flags = pose_stream.FRAME_CALIBRATION_MISMATCH
+        logger.warning("%s: %s", perf.label, line)
 
     def _frame_dt_s(self, pipe: Pipeline, frame: Any, received_ns: int) -> float:
         """Seconds since the pipeline's last solved frame (:func:`frame_interval_s`)."""
@@ -371,6 +407,7 @@ class SendMixin(DaemonState):
         solved_ns = time.monotonic_ns()
         flags = (
             perf.frame_flags
+            | perf.match_flags  # calibration_mismatch, from the first second on
             | pose.frame_flags  # the fit's reseeded and unexplained bits
             | (pose_stream.FRAME_HELD if pose.n_held else 0)
         )

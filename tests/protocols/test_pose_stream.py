@@ -84,8 +84,13 @@ def test_flag_bits_do_not_overlap_validation() -> None:
     bone_bits = ps.BONE_HELD | ps.BONE_REBUILT | ps.BONE_PARTIAL | ps.BONE_NEVER
     assert bone_bits & ps.BONE_VALIDATION_MASK == 0
     assert {1 << b for b in ps.FRAME_FLAG_BITS.values()} == {
-        1, 2, 4, 8, 16, 32, 64, 128
+        1, 2, 4, 8, 16, 32, 64, 128, 1 << 24
     }  # fmt: skip
+    assert (
+        ps.FRAME_CALIBRATION_MISMATCH & (ps.FRAME_VALIDATION_MASK | ps.PERFORMER_MASK)
+        == 0
+    )
+    assert ps.FRAME_FLAG_BITS["calibration_mismatch"] == 24
     assert ps.FRAME_FLAG_BITS["reseeded"] == ps.FRAME_RESEEDED.bit_length() - 1
     assert ps.FRAME_FLAG_BITS["unexplained"] == ps.FRAME_UNEXPLAINED.bit_length() - 1
     assert ps.FRAME_FLAG_BITS["unseen"] == ps.FRAME_UNSEEN.bit_length() - 1
