@@ -29,6 +29,7 @@ from retargetd.daemon.body.functional import (
     hinge_axis,
     sphere_centre,
 )
+from retargetd.daemon.body.rig_fit import hinge_axes_in_bone
 from retargetd.daemon.body.rig_functional import FunctionalAxis
 from retargetd.daemon.body.rig_model import LinePoint, Rig
 from retargetd.protocols.frames import F64Array
@@ -133,7 +134,7 @@ class RomPoints:
         the record: the calibration file's ``functional`` table (``notes``: a line
         for each joint the motion did not determine)."""
         bones = self.rig.bone_names
-        rig_axis_in_bone = rig_hinge_axes(self.rig, rest_pfb)
+        rig_axis_in_bone = hinge_axes_in_bone(self.rig.fit.bones, bones, rest_pfb)
         for spec in self.rig.functional.axes:
             est = self._axis(spec)
             rec = _axis_record(est, spec.markers)
@@ -153,19 +154,6 @@ class RomPoints:
                 rec["axis_bone"] = [round(float(v), 9) for v in axis]
             self.record[spec.bone] = rec
         return {"source": self.source, "joints": self.record, "notes": self.notes}
-
-
-def rig_hinge_axes(rig: Rig, rest_pfb: F64Array) -> dict[str, F64Array]:
-    """bone -> the rig's ``[fit]`` hinge axis in the bone's rest axes."""
-    out = {}
-    for name, bopt in rig.fit.bones.items():
-        if bopt.dof in ("hinge", "hinge_twist"):
-            axis = np.asarray(bopt.axis, dtype=np.float64)
-            if bopt.axis_in == "parent":
-                b = rig.bone_names.index(name)
-                axis = rot.quat_rotate(rot.quat_conj(rest_pfb[b]), axis)
-            out[name] = axis / np.linalg.norm(axis)
-    return out
 
 
 def _onto_axis(

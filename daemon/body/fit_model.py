@@ -78,6 +78,7 @@ from retargetd.daemon.body.rig_fit import (
     BoneFitOptions,
     FitOptions,
     MarkerFitOptions,
+    hinge_axes_in_bone,
     parse_fit_table,
 )
 
@@ -555,18 +556,14 @@ def build_fit_model(
     explicit = np.zeros((n_bones, 3, 3))
     dof = ["root" if parents[b] < 0 else "ball" for b in range(n_bones)]
     rest_pfb = np.asarray(calibration.rest_parent_from_bone_quat, dtype=np.float64)
+    axes = hinge_axes_in_bone(options.bones, rig.bone_names, rest_pfb)
     functional_axes = calibration.functional_axes
     for name, bopt in options.bones.items():
         b = rig.bone_names.index(name)
         dof[b] = bopt.dof
         explicit[b] = (1e-3 * bopt.stiffness_mm) ** 2 * np.eye(3)
-        if bopt.dof in ("hinge", "hinge_twist"):
-            axis = np.asarray(bopt.axis, dtype=np.float64)
-            if bopt.axis_in == "parent":  # pfb = R_axis(t) rest_pfb = rest_pfb R_h(t)
-                axis = rot.quat_rotate(rot.quat_conj(rest_pfb[b]), axis)
-            hinge[b] = axis / np.linalg.norm(axis)
-            if name in functional_axes:  # calibrate --rom: the axis the joint turns
-                hinge[b] = functional_axes[name]
+        if name in axes:  # calibrate --rom's functional axis first, the rig's else
+            hinge[b] = functional_axes.get(name, axes[name])
             if bopt.dof == "hinge_twist":
                 if abs(hinge[b][1]) > HINGE_TWIST_MAX_COS:  # one line, exit 2
                     raise CalibrationError(

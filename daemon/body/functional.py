@@ -32,10 +32,10 @@ import numpy as np
 from retargetd.protocols.frames import F64Array
 
 #: The largest predicted standard error (worst direction) a functional estimate may
-#: have and be used, metres: half of the 10 mm within which a joint centre is worth
-#: having from the motion at all (the regression it replaces is off by 8-22 mm on
-#: the synthetic performer, issue 29; 10-20 mm in vivo, Leardini et al. 1999, J
-#: Biomech 32:99-103).
+#: have and be used, metres: half of the 10 mm issue 29 asks of a hip or knee centre
+#: (the regression it replaces is 22 mm off on the synthetic performer; functional
+#: hip centres beat the predictive ones against roentgen stereophotogrammetry,
+#: Leardini et al. 1999, J Biomech 32:99-103).
 MAX_SE_M = 0.005
 #: The largest predicted standard error of a functional hinge axis, radians: half of
 #: the 3 deg issue 29 asks of a knee axis (the wand's axis is 35-43 deg off on a real
@@ -45,9 +45,10 @@ MAX_AXIS_SE_RAD = math.radians(1.5)
 #: optical marker noise, ~1 mm (Merriaux et al. 2017, Sensors 17:1591).
 NOISE_FLOOR_M = 0.001
 #: The least angle a hinge must turn through to give an axis, radians: the axis is
-#: the normal of the markers' circles, so it takes an arc; 20 deg brings the axis'
-#: error under 3 deg at 1 mm noise and 40 mm leverage (sigma / (lever * arc)), the
-#: accuracy issue 29 asks of a knee axis.
+#: the normal of the markers' circles, so it takes an arc. 20 deg moves a marker 40
+#: mm from the axis 14 mm along its circle, 14 times the ~1 mm marker noise, so the
+#: circle's plane is the motion's and not the noise's; the predicted error
+#: (:data:`MAX_AXIS_SE_RAD`) then decides.
 MIN_ARC_RAD = math.radians(20.0)
 
 

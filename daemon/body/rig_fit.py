@@ -19,9 +19,14 @@ stiffness_mm = 0     # pull towards the calibration pose, mm of residual per rad
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Collection
+from collections.abc import Callable, Collection, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
+
+import numpy as np
+
+from retargetd.daemon import rotations as rot
+from retargetd.protocols.frames import F64Array
 
 #: The keys of each table, in the order errors list them.
 FIT_KEYS = ("markers", "bones")
@@ -85,6 +90,25 @@ class FitOptions:
 
     markers: dict[str, MarkerFitOptions] = field(default_factory=dict)
     bones: dict[str, BoneFitOptions] = field(default_factory=dict)
+
+
+def hinge_axes_in_bone(
+    bones: Mapping[str, BoneFitOptions],
+    bone_names: Sequence[str],
+    rest_parent_from_bone_quat: F64Array,
+) -> dict[str, F64Array]:
+    """bone -> its hinge's unit ``axis`` in the bone's rest axes, for the hinges of
+    ``bones`` (an ``axis_in = "parent"`` axis turned by the calibration's rest
+    rotation: pfb = R_axis(t) rest_pfb = rest_pfb R_h(t))."""
+    out = {}
+    for name, bopt in bones.items():
+        if bopt.dof in HINGES:
+            axis = np.asarray(bopt.axis, dtype=np.float64)
+            if bopt.axis_in == "parent":
+                q = rest_parent_from_bone_quat[bone_names.index(name)]
+                axis = rot.quat_rotate(rot.quat_conj(q), axis)
+            out[name] = axis / np.linalg.norm(axis)
+    return out
 
 
 def _is_number(v: Any) -> bool:
