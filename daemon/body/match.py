@@ -199,14 +199,6 @@ def layout_residuals(layout: F64Array, points: F64Array) -> F64Array:
     return out
 
 
-def warm_up() -> None:
-    """Load (or compile) the fit kernel before a live stream needs it: its first
-    call compiles for seconds on a cold cache, holding the interpreter while the
-    loop thread serves frames."""
-    layout = np.eye(3)
-    layout_residuals(layout, layout[None])
-
-
 @kernel
 def _layout_residuals(layout: F64Array, points: F64Array, out: F64Array) -> None:
     """:func:`layout_residuals` into ``out`` (NaN-filled), one compiled call for the
