@@ -50,15 +50,16 @@ from __future__ import annotations
 
 import logging
 import math
-import threading
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
+# Imported as a module: this one only calls the compiled fit and compiles nothing,
+# so it stays out of the kernels' cache digest (``compiled.kernel_sources``).
+import retargetd.daemon.compiled as compiled_kernels
 from retargetd.daemon.body.calibration import Calibration
-from retargetd.daemon.compiled import horn_fit, kernel
 from retargetd.protocols.frames import F64Array, IntArray
 
 logger = logging.getLogger(__name__)
@@ -193,46 +194,26 @@ def layout_residuals(layout: F64Array, points: F64Array) -> F64Array:
         frame when fewer than 3 points were seen (or they lie on one line).
     """
     layout = np.ascontiguousarray(layout, dtype=np.float64)
-    points = np.ascontiguousarray(points, dtype=np.float64)
-    out = np.full(points.shape[:2], np.nan)
-    _layout_residuals(layout, points, out)
-    return out
-
-
-@kernel
-def _layout_residuals(layout: F64Array, points: F64Array, out: F64Array) -> None:
-    """:func:`layout_residuals` into ``out`` (NaN-filled), one compiled call for the
-    take (nogil: the live check runs it on its own thread)."""
-    k = layout.shape[0]
-    rows = np.arange(k)
+    points = np.asarray(points, dtype=np.float64)
+    n_frames, k = points.shape[:2]
+    out = np.full((n_frames, k), np.nan)
+    rows = np.arange(k, dtype=np.int64)
     weights = np.ones(k)
-    seen = np.zeros(k, dtype=np.bool_)
     n44, v44, q4, cen = np.zeros((4, 4)), np.zeros((4, 4)), np.zeros(4), np.zeros(6)
-    for t in range(points.shape[0]):
-        pts = points[t]
-        n_seen = 0
-        for j in range(k):
-            seen[j] = (
-                math.isfinite(pts[j, 0])
-                and math.isfinite(pts[j, 1])
-                and math.isfinite(pts[j, 2])
-            )
-            n_seen += seen[j]
+    seen = np.isfinite(points).all(axis=2)
+    for t in np.flatnonzero(seen.sum(axis=1) >= 3):
+        pts = np.ascontiguousarray(points[t])
         if (
-            n_seen < 3
-            or horn_fit(layout, pts, rows, seen, weights, n44, v44, q4, cen) < 3
+            compiled_kernels.horn_fit(
+                layout, pts, rows, seen[t], weights, n44, v44, q4, cen
+            )
+            < 3
         ):
             continue
-        for j in range(k):  # n44[:3, :3] is world_from_layout: p = R (l - c_l) + c_p
-            if not seen[j]:
-                continue
-            d2 = 0.0
-            for a in range(3):
-                f = cen[3 + a]
-                for b in range(3):
-                    f += n44[a, b] * (layout[j, b] - cen[b])
-                d2 += (pts[j, a] - f) ** 2
-            out[t, j] = math.sqrt(d2)
+        # n44[:3, :3] is world_from_layout: p = R (l - c_l) + c_p
+        fitted = (layout - cen[:3]) @ n44[:3, :3].T + cen[3:]
+        out[t] = np.linalg.norm(pts - fitted, axis=1)
+    return out
 
 
 def match_calibration(calibration: Calibration, markers: F64Array) -> CalibrationMatch:
@@ -346,9 +327,7 @@ class MatchWindow:
     of its stream, then :func:`match_calibration` on them, once.
 
     The buffer is allocated here (off the hot path); :meth:`add` copies one frame
-    into it (a ``take`` into a row, no array allocated) until the window is over;
-    then the check runs on its own thread, and the first :meth:`add` after it
-    finished returns its result.
+    into it (a ``take`` into a row, no array allocated) until the window is over.
 
     Args:
         calibration: the calibration checked (kept: a new one needs a new window).
@@ -376,8 +355,6 @@ class MatchWindow:
         self.n_frames = 0
         self.first_s = math.nan
         self.result: CalibrationMatch | None = None
-        self._found: CalibrationMatch | None = None
-        self._worker: threading.Thread | None = None
 
     @property
     def done(self) -> bool:
@@ -387,8 +364,8 @@ class MatchWindow:
     def add(
         self, markers_world: F64Array, marker_cols: IntArray, t_s: float
     ) -> CalibrationMatch | None:
-        """Add one frame; returns the check's result on the first frame after its
-        thread finished (None before, and after: read ``result``).
+        """Add one frame; returns the check's result on the frame that ends the
+        window (None before, and after: read ``result``).
 
         Args:
             markers_world: (n, 3) float64 metres, world, the stream's markers
@@ -401,17 +378,10 @@ class MatchWindow:
         """
         if self.result is not None:
             return None
-        if self._worker is not None:  # the check runs on its own thread
-            if self._worker.is_alive():
-                return None
-            self._worker.join()
-            self.result = self._found
-            return self.result
         if math.isnan(self.first_s):
             self.first_s = t_s
         elif abs(t_s - self.first_s) >= self.window_s:
-            self._start()
-            return None
+            return self.finish()
         if marker_cols is not self._cols_of:  # a new label set: its columns, once
             self._cols_of = marker_cols
             cols = calibration_columns(
@@ -424,30 +394,10 @@ class MatchWindow:
         row[self._absent] = np.nan
         self.n_frames += 1
         if self.n_frames == self._buf.shape[0]:
-            self._start()
+            return self.finish()
         return None
 
-    def _start(self) -> None:
-        """The check on the frames so far, on its own thread: its fits (~7 ms for
-        240 frames of Plug-in Gait's 3 segments on this VM, more with more
-        segments) would hold the frame that ends the window; the buffer is no
-        longer written."""
-        self._worker = threading.Thread(
-            target=self._run, name="calibration-match", daemon=True
-        )
-        self._worker.start()
-
-    def _run(self) -> None:
-        self._found = match_calibration(self.calibration, self._buf[: self.n_frames])
-
     def finish(self) -> CalibrationMatch:
-        """Run the check on the frames so far, here (also when the stream stops
-        early); the result of a check already running is waited for."""
-        if self._worker is not None:
-            self._worker.join()
-            self.result = self._found
-        if self.result is None:
-            self.result = match_calibration(
-                self.calibration, self._buf[: self.n_frames]
-            )
+        """Run the check on the frames so far (also when the stream stops early)."""
+        self.result = match_calibration(self.calibration, self._buf[: self.n_frames])
         return self.result
