@@ -182,6 +182,58 @@ class CalibrationMatch:
         return {s.segment: s.to_json() for s in self.segments}
 
 
+class _LayoutFit:
+    """One segment's rigid fit of its layout to a frame's points, with every buffer
+    allocated once (the live check fits each frame as it arrives: no allocation, no
+    burst of work on the frame that ends the window)."""
+
+    def __init__(self, layout: F64Array) -> None:
+        self.layout = np.ascontiguousarray(layout, dtype=np.float64).reshape(-1, 3)
+        k = self.layout.shape[0]
+        self._rows = np.arange(k, dtype=np.int64)
+        self._use = np.ones(k, dtype=bool)
+        self._weights = np.ones(k)
+        self._n44, self._v44 = np.zeros((4, 4)), np.zeros((4, 4))
+        self._q4, self._cen = np.zeros(4), np.zeros(6)
+        self._centred, self._fitted = np.zeros((k, 3)), np.zeros((k, 3))
+
+    def residuals(self, pts: F64Array, out: F64Array) -> None:
+        """Each point's distance from the fitted layout into ``out`` (k,), metres:
+        NaN where the point is not seen, and for all when fewer than 3 were seen
+        (or they lie on one line).
+
+        Args:
+            pts: (k, 3) float64, C-contiguous, metres, world; NaN rows = not seen.
+            out: (k,) float64.
+        """
+        cen = self._cen
+        used = compiled_kernels.horn_fit(
+            self.layout, pts, self._rows, self._use, self._weights,
+            self._n44, self._v44, self._q4, cen,
+        )  # fmt: skip
+        if used < 3:
+            out[:] = np.nan
+            return
+        # n44[:3, :3] is world_from_layout: p = R (l - c_l) + c_p
+        fitted = self._fitted
+        np.subtract(self.layout, cen[:3], out=self._centred)
+        np.matmul(self._centred, self._n44[:3, :3].T, out=fitted)
+        fitted += cen[3:]
+        np.subtract(pts, fitted, out=fitted)
+        fitted *= fitted
+        np.sum(fitted, axis=1, out=out)
+        np.sqrt(out, out=out)
+
+
+def warm_up() -> None:
+    """Load what the live check calls (the compiled fit's Python entry and the
+    numpy paths of :class:`_LayoutFit`) before the first frame: a layout fitted to
+    itself."""
+    layout = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.0, 0.1, 0.0]])
+    out = np.zeros(3)
+    _LayoutFit(layout).residuals(layout, out)
+
+
 def layout_residuals(layout: F64Array, points: F64Array) -> F64Array:
     """Per frame, each point's distance from the layout fitted rigidly to the points.
 
@@ -193,27 +245,44 @@ def layout_residuals(layout: F64Array, points: F64Array) -> F64Array:
         (T, k) float64 metres: NaN where the point was not seen, and for the whole
         frame when fewer than 3 points were seen (or they lie on one line).
     """
-    layout = np.ascontiguousarray(layout, dtype=np.float64)
+    fit = _LayoutFit(layout)
     points = np.asarray(points, dtype=np.float64)
-    n_frames, k = points.shape[:2]
-    out = np.full((n_frames, k), np.nan)
-    rows = np.arange(k, dtype=np.int64)
-    weights = np.ones(k)
-    n44, v44, q4, cen = np.zeros((4, 4)), np.zeros((4, 4)), np.zeros(4), np.zeros(6)
+    out = np.full(points.shape[:2], np.nan)
     seen = np.isfinite(points).all(axis=2)
     for t in np.flatnonzero(seen.sum(axis=1) >= 3):
-        pts = np.ascontiguousarray(points[t])
-        if (
-            compiled_kernels.horn_fit(
-                layout, pts, rows, seen[t], weights, n44, v44, q4, cen
-            )
-            < 3
-        ):
-            continue
-        # n44[:3, :3] is world_from_layout: p = R (l - c_l) + c_p
-        fitted = (layout - cen[:3]) @ n44[:3, :3].T + cen[3:]
-        out[t] = np.linalg.norm(pts - fitted, axis=1)
+        fit.residuals(np.ascontiguousarray(points[t]), out[t])
     return out
+
+
+def _segment_match(
+    segment: str, names: Sequence[str], residual: F64Array
+) -> SegmentMatch:
+    """A segment's figures from its per-frame residuals ((T, k) metres)."""
+    fitted = np.isfinite(residual).any(axis=1)
+    frames = int(fitted.sum())
+    rms_mm = worst_mm = math.nan
+    worst = ""
+    if frames:
+        r = residual[fitted]
+        per_marker = np.full(len(names), -np.inf)
+        if np.isfinite(r).all():  # every marker seen: numpy's nan-free (fast) path
+            rms = np.sqrt(np.mean(r**2, axis=1))
+            per_marker[:] = np.median(r, axis=0)
+        else:
+            rms = np.sqrt(np.nanmean(r**2, axis=1))
+            seen_any = np.isfinite(r).any(axis=0)
+            per_marker[seen_any] = np.nanmedian(r[:, seen_any], axis=0)
+        rms_mm = 1e3 * float(np.median(rms))
+        w = int(np.argmax(per_marker))
+        worst, worst_mm = names[w], 1e3 * float(per_marker[w])
+    return SegmentMatch(
+        segment=segment,
+        rms_mm=rms_mm,
+        frames=frames,
+        threshold_mm=segment_threshold_mm(segment, len(names)),
+        worst_marker=worst,
+        worst_marker_mm=worst_mm,
+    )
 
 
 def match_calibration(calibration: Calibration, markers: F64Array) -> CalibrationMatch:
@@ -242,29 +311,7 @@ def match_calibration(calibration: Calibration, markers: F64Array) -> Calibratio
     for segment, (names, layout) in calibration.segment_layouts.items():
         cols = [index[n] for n in names]
         residual = layout_residuals(np.asarray(layout).reshape(-1, 3), markers[:, cols])
-        fitted = np.isfinite(residual).any(axis=1)
-        frames = int(fitted.sum())
-        rms_mm = worst_mm = math.nan
-        worst = ""
-        if frames:
-            r = residual[fitted]
-            rms = np.sqrt(np.nanmean(r**2, axis=1))
-            rms_mm = 1e3 * float(np.median(rms))
-            seen_any = np.isfinite(r).any(axis=0)
-            per_marker = np.full(len(names), -np.inf)
-            per_marker[seen_any] = np.nanmedian(r[:, seen_any], axis=0)
-            w = int(np.argmax(per_marker))
-            worst, worst_mm = names[w], 1e3 * float(per_marker[w])
-        segments.append(
-            SegmentMatch(
-                segment=segment,
-                rms_mm=rms_mm,
-                frames=frames,
-                threshold_mm=segment_threshold_mm(segment, len(names)),
-                worst_marker=worst,
-                worst_marker_mm=worst_mm,
-            )
-        )
+        segments.append(_segment_match(segment, names, residual))
     return CalibrationMatch(segments=tuple(segments), frames=int(markers.shape[0]))
 
 
@@ -324,10 +371,13 @@ def _finite_or_none(v: float) -> float | None:
 
 class MatchWindow:
     """The live check: a performer's markers over the first :data:`LIVE_WINDOW_S`
-    of its stream, then :func:`match_calibration` on them, once.
+    of its stream against the calibration's layouts (:func:`match_calibration`'s
+    figures), once.
 
-    The buffer is allocated here (off the hot path); :meth:`add` copies one frame
-    into it (a ``take`` into a row, no array allocated) until the window is over.
+    Every buffer is allocated here (off the hot path). :meth:`add` fits each
+    segment's layout to the frame as it arrives (a rigid fit per segment, no array
+    allocated), so the frame that ends the window only takes medians: the fits of a
+    whole second on that one frame held the loop for milliseconds.
 
     Args:
         calibration: the calibration checked (kept: a new one needs a new window).
@@ -348,10 +398,19 @@ class MatchWindow:
         self.rig_marker_names = tuple(rig_marker_names)
         self.window_s = window_s
         n_markers = len(calibration.marker_names)
-        self._buf = np.full((max_frames, n_markers, 3), np.nan)
+        self._row = np.full((n_markers, 3), np.nan)
         self._cols = np.zeros(n_markers, dtype=np.int64)
         self._absent = np.zeros(n_markers, dtype=bool)
         self._cols_of: object = None
+        index = {m: i for i, m in enumerate(calibration.marker_names)}
+        self._segments = []
+        for segment, (names, layout) in calibration.segment_layouts.items():
+            fit = _LayoutFit(np.asarray(layout))
+            cols = np.asarray([index[n] for n in names], dtype=np.int64)
+            pts = np.zeros((len(names), 3))
+            residual = np.full((max_frames, len(names)), np.nan)
+            self._segments.append((segment, tuple(names), fit, cols, pts, residual))
+        self._max_frames = max_frames
         self.n_frames = 0
         self.first_s = math.nan
         self.result: CalibrationMatch | None = None
@@ -389,15 +448,26 @@ class MatchWindow:
             )
             self._absent[:] = cols < 0
             self._cols[:] = np.where(self._absent, 0, cols)
-        row = self._buf[self.n_frames]
+        row = self._row
         np.take(markers_world, self._cols, axis=0, out=row)
         row[self._absent] = np.nan
+        t = self.n_frames
+        for _, _, fit, cols, pts, residual in self._segments:
+            np.take(row, cols, axis=0, out=pts)
+            fit.residuals(pts, residual[t])
         self.n_frames += 1
-        if self.n_frames == self._buf.shape[0]:
+        if self.n_frames == self._max_frames:
             return self.finish()
         return None
 
     def finish(self) -> CalibrationMatch:
-        """Run the check on the frames so far (also when the stream stops early)."""
-        self.result = match_calibration(self.calibration, self._buf[: self.n_frames])
+        """The figures over the frames so far (also when the stream stops early)."""
+        n = self.n_frames
+        self.result = CalibrationMatch(
+            segments=tuple(
+                _segment_match(segment, names, residual[:n])
+                for segment, names, _, _, _, residual in self._segments
+            ),
+            frames=n,
+        )
         return self.result

@@ -49,6 +49,7 @@ from typing import Any
 import numpy as np
 import zmq
 
+from retargetd.daemon.body.match import warm_up as warm_up_match
 from retargetd.daemon.body.solve_fit import warm_up as warm_up_fit
 from retargetd.daemon.live.calibrate import CalibrationMixin
 from retargetd.daemon.live.config import ConfigError, DaemonConfig, check_pipeline
@@ -358,6 +359,7 @@ class Daemon(
             warm_up()
             protocol_kernels.warm_up()
             warm_up_emit()
+            warm_up_match()  # the calibration check fits the first second's frames
             bar.update()
             if fit:
                 self.out(

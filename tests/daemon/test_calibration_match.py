@@ -301,6 +301,21 @@ def test_match_window_checks_the_first_second_once() -> None:
     assert done == [int(take.rate_hz)]  # the frame one second after the first
     assert window.result is not None and window.result.matches
     assert window.n_frames == int(take.rate_hz)
+    # Fitted frame by frame as they came, the figures are the offline check's on
+    # the same frames; a marker moved 40 mm after the static is caught the same way.
+    first = take.markers_world[: int(take.rate_hz)]
+    for shift in (0.0, 0.040):
+        moved = first.copy()
+        moved[:, 0, 0] += shift
+        window = MatchWindow(cal, rig.marker_names)
+        for k in range(len(moved) + 1):
+            found = window.add(moved[min(k, len(moved) - 1)], cols, k / take.rate_hz)
+        assert found is not None
+        offline = match_calibration(
+            cal, markers_of_calibration(cal, rig.marker_names, cols, moved)
+        )
+        assert found.to_json() == offline.to_json()
+        assert found.matches == (shift == 0.0)
 
 
 @pytest.mark.usefixtures("mujoco_cwd")
