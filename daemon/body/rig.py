@@ -18,7 +18,9 @@ A rig is a TOML file (reference: ``daemon/body/rigs/RIGS.md``) declaring
   point's coordinates along the base-pose body axes, each an affine combination of
   points such as ``"SACRUM"`` or ``"0.5*L1 + 0.5*PELVIS"``) or ``offset_mm = [x, y, z]``
   (explicit offset in the three-point frame, each a number or a linear expression in
-  measurements such as ``"LKneeWidth/2 + MarkerDiameter/2"``);
+  measurements such as ``"LKneeWidth/2 + MarkerDiameter/2"``), and optional
+  ``bend_min_deg`` (the frame's least bend in the base pose; calibrating under it
+  warns: ``body.sanity.check_bends``);
 - ``[bones.NAME]``: ``parent``, ``origin``, ``aim``, ``up`` (a point, or ``[A, B]`` for
   the direction A->B) and optional ``humanoid`` (standard humanoid bone name). Bone
   axes: +Y from origin to aim, +X towards the up reference (made orthogonal to Y),
@@ -41,6 +43,7 @@ import logging
 import math
 import re
 import tomllib
+from collections.abc import Mapping
 from importlib import resources
 from pathlib import Path
 from typing import Any
@@ -69,6 +72,8 @@ _TOP_KEYS = (
     "rig", "measurements", "markers", "segments", "points", "bones", "joints", "fit",
     "functional",
 )  # fmt: skip
+#: Keys of a ``rigid`` point.
+RIGID_KEYS = ("rigid", "rule", "offset_mm", "bend_min_deg", "description")
 
 
 def shipped_rigs() -> tuple[str, ...]:
@@ -248,6 +253,13 @@ class _Parser:
                 f"{shown or repr(value)} is out of range: allowed {rng} ({rng.why})",
             )
 
+    def number(self, key: str, value: Any, schema: str) -> float:
+        """``value`` as a float, named at ``key`` unless a number in its range."""
+        if not isinstance(value, int | float) or isinstance(value, bool):
+            raise self.fail(key, f"expected a number, got {value!r}")
+        self.in_range(key, schema, value)
+        return float(value)
+
     def unknown_keys(
         self, key: str, table: dict[str, Any], allowed: tuple[str, ...]
     ) -> None:
@@ -407,16 +419,16 @@ class _Parser:
             if "line" in spec:
                 self.unknown_keys(key, spec, ("line", "u", "description"))
                 a, b = self.strings(f"{key}.line", spec["line"], n=2)
-                u = spec.get("u", 0.5)
-                if not isinstance(u, int | float) or isinstance(u, bool):
-                    raise self.fail(f"{key}.u", f"expected a number, got {u!r}")
-                self.in_range(f"{key}.u", "points.*.u", u)
-                parsed[pname] = LinePoint(name=pname, a=a, b=b, u=float(u))
+                u = self.number(f"{key}.u", spec.get("u", 0.5), "points.*.u")
+                parsed[pname] = LinePoint(name=pname, a=a, b=b, u=u)
             elif "rigid" in spec:
-                self.unknown_keys(
-                    key, spec, ("rigid", "rule", "offset_mm", "description")
-                )
+                self.unknown_keys(key, spec, RIGID_KEYS)
                 a, b, c = self.strings(f"{key}.rigid", spec["rigid"], n=3)
+                bend = self.number(
+                    f"{key}.bend_min_deg",
+                    spec.get("bend_min_deg", 0.0),
+                    "points.*.bend_min_deg",
+                )
                 if len({a, b, c}) != 3:
                     raise self.fail(f"{key}.rigid", "needs three different points")
                 has_rule, has_off = "rule" in spec, "offset_mm" in spec
@@ -441,7 +453,9 @@ class _Parser:
                                 "points (coefficients summing to 1, no constant)",
                             )
                         rule[axis] = expr
-                    parsed[pname] = RigidPoint(name=pname, frame=(a, b, c), rule=rule)
+                    parsed[pname] = RigidPoint(
+                        name=pname, frame=(a, b, c), rule=rule, bend_min_deg=bend
+                    )
                 else:
                     off = spec["offset_mm"]
                     if not isinstance(off, list) or len(off) != 3:
@@ -476,39 +490,38 @@ class _Parser:
                         name=pname,
                         frame=(a, b, c),
                         offset_mm=(exprs[0], exprs[1], exprs[2]),
+                        bend_min_deg=bend,
                     )
             else:
                 # A misspelt 'line' or 'rigid' is named as the unknown key it is.
-                self.unknown_keys(
-                    key,
-                    spec,
-                    ("line", "u", "rigid", "rule", "offset_mm", "description"),
-                )
+                self.unknown_keys(key, spec, ("line", "u", *RIGID_KEYS))
                 raise self.fail(key, "a point needs 'line' or 'rigid'")
         known = set(markers) | set(parsed)
         for p in parsed.values():
             for item in p.inputs:
                 self.known_point(f"points.{p.name}", item, known)
-        return tuple(parsed[n] for n in self.order(parsed, set(markers)))
+        deps = {n: p.inputs for n, p in parsed.items()}
+        return tuple(parsed[n] for n in self.order(deps, "points.%s"))
 
-    def order(self, parsed: dict[str, DerivedPoint], leaves: set[str]) -> list[str]:
-        """Topological order of derived points; a cycle is reported by its path."""
+    def order(self, deps: Mapping[str, tuple[str, ...]], key: str) -> list[str]:
+        """Topological order of ``deps`` (name -> the names it needs; a name not in
+        ``deps`` is a leaf); a cycle is reported by its path at ``key % name``."""
         done: list[str] = []
         state: dict[str, int] = {}
 
         def visit(name: str, path: list[str]) -> None:
-            if name in leaves or state.get(name) == 2:
+            if name not in deps or state.get(name) == 2:
                 return
             if state.get(name) == 1:
                 cycle = [*path[path.index(name) :], name]
-                raise self.fail(f"points.{name}", "cycle " + " -> ".join(cycle))
+                raise self.fail(key % name, "cycle " + " -> ".join(cycle))
             state[name] = 1
-            for item in parsed[name].inputs:
+            for item in deps[name]:
                 visit(item, [*path, name])
             state[name] = 2
             done.append(name)
 
-        for name in parsed:
+        for name in deps:
             visit(name, [])
         return done
 
@@ -560,24 +573,8 @@ class _Parser:
         for b in bones.values():
             if b.parent is not None and b.parent not in bones:
                 raise self.fail(f"bones.{b.name}.parent", f"unknown bone {b.parent!r}")
-        ordered: list[str] = []
-        state: dict[str, int] = {}
-
-        def visit(name: str, path: list[str]) -> None:
-            if state.get(name) == 2:
-                return
-            if state.get(name) == 1:
-                cycle = [*path[path.index(name) :], name]
-                raise self.fail(f"bones.{name}.parent", "cycle " + " -> ".join(cycle))
-            state[name] = 1
-            parent = bones[name].parent
-            if parent is not None:
-                visit(parent, [*path, name])
-            state[name] = 2
-            ordered.append(name)
-
-        for name in bones:
-            visit(name, [])
+        deps = {n: (b.parent,) if b.parent else () for n, b in bones.items()}
+        ordered = self.order(deps, "bones.%s.parent")
         return tuple(bones[n] for n in ordered)
 
     def parse_joints(self, known: set[str]) -> dict[str, str]:

@@ -9,6 +9,8 @@ weight = 1.0         # residual weight (0 = ignored by the fit)
 dof = "hinge"        # "ball" (default), "hinge", "hinge_twist", "swing" or "fixed"
 axis = "x"           # hinge axis: "x", "y", "z" or [x, y, z]
 axis_in = "bone"     # the axes it is in: the bone's (default) or its "parent"'s
+axis_from_bend_deg = 0  # bent at least this much in the calibration pose: the axis
+                        # there perpendicular to the bone and its parent instead
 stiffness_mm = 0     # pull towards the calibration pose, mm of residual per radian
 ```
 
@@ -31,7 +33,7 @@ from retargetd.protocols.frames import F64Array
 #: The keys of each table, in the order errors list them.
 FIT_KEYS = ("markers", "bones")
 MARKER_KEYS = ("segment", "weight")
-BONE_KEYS = ("dof", "axis", "axis_in", "stiffness_mm")
+BONE_KEYS = ("dof", "axis", "axis_in", "axis_from_bend_deg", "stiffness_mm")
 #: ``stiffness_mm`` at most a hinge's stiffness (FitParams.kappa_hinge: 1 m/rad);
 #: ``body.rig_model.RIG_RANGES`` lists the same range.
 STIFFNESS_MAX_MM = 1000.0
@@ -46,6 +48,8 @@ WEIGHT_WHY = "0 = ignored; at most a noise-floor marker's against a skin-artefac
 #: A hinge's ``axis = [x, y, z]`` is a direction: each component of a unit vector lies
 #: in [-1, 1] (the parser normalizes what rounding leaves).
 AXIS_WHY = "a direction's components, as of a unit vector (normalized on reading)"
+#: ``axis_from_bend_deg``: a bend short of straight, at most a right angle.
+BEND_WHY = "0 = never; a joint's bend, at most a right angle"
 DOFS = ("ball", "hinge", "hinge_twist", "swing", "fixed")
 #: The joints with an axis (``axis``, ``axis_in``).
 HINGES = ("hinge", "hinge_twist")
@@ -74,6 +78,10 @@ class BoneFitOptions:
     ``axis_in``: the axes ``axis`` is given in, the bone's rest axes ("bone") or its
     parent's ("parent": an elbow's flexion axis is the upper arm's epicondyle axis,
     the upper arm's +X when its up reference is the lateral epicondyle).
+    ``axis_from_bend_deg``: where the calibration pose bends the joint at least this
+    much (the angle between the bone's +Y and its parent's), the hinge turns about
+    the axis perpendicular to both there, signed like ``axis`` (0: never): a hinge's
+    axis is the one its bend is about.
     ``stiffness_mm``: a pull of the joint towards its calibration pose, in mm of
     marker residual per radian (0: none), like OpenSim IK's coordinate tasks.
     """
@@ -81,6 +89,7 @@ class BoneFitOptions:
     dof: str = "ball"
     axis: tuple[float, float, float] = (1.0, 0.0, 0.0)
     axis_in: str = "bone"
+    axis_from_bend_deg: float = 0.0
     stiffness_mm: float = 0.0
 
 
@@ -101,12 +110,19 @@ def hinge_axes_in_bone(
     ``bones`` (an ``axis_in = "parent"`` axis turned by the calibration's rest
     rotation: pfb = R_axis(t) rest_pfb = rest_pfb R_h(t))."""
     out = {}
+    y = np.array([0.0, 1.0, 0.0])
     for name, bopt in bones.items():
         if bopt.dof in HINGES:
+            q = rest_parent_from_bone_quat[bone_names.index(name)]
             axis = np.asarray(bopt.axis, dtype=np.float64)
             if bopt.axis_in == "parent":
-                q = rest_parent_from_bone_quat[bone_names.index(name)]
                 axis = rot.quat_rotate(rot.quat_conj(q), axis)
+            if bopt.axis_from_bend_deg > 0.0:
+                # in the bone's axes: its parent's +Y, then the bend's normal
+                bend = np.cross(rot.quat_rotate(rot.quat_conj(q), y), y)
+                sin = float(np.linalg.norm(bend))
+                if sin >= math.sin(math.radians(bopt.axis_from_bend_deg)):
+                    axis = bend if bend @ axis >= 0.0 else -bend
             out[name] = axis / np.linalg.norm(axis)
     return out
 
@@ -230,7 +246,18 @@ def parse_fit_table(
             )
         if name in roots and stiff:
             raise fail(f"{key}.stiffness_mm", "a root bone is free (no stiffness)")
+        from_bend = spec.get("axis_from_bend_deg", 0.0)
+        if "axis_from_bend_deg" in spec and dof not in HINGES:
+            raise fail(f"{key}.axis_from_bend_deg", "only a hinge has an axis")
+        if not _is_number(from_bend):
+            raise fail(f"{key}.axis_from_bend_deg", f"expected a number: {from_bend!r}")
+        if not 0.0 <= from_bend <= 90.0:  # (NaN too)
+            raise fail(
+                f"{key}.axis_from_bend_deg",
+                f"{from_bend!r} is out of range: allowed [0, 90] deg ({BEND_WHY})",
+            )
         out_b[name] = BoneFitOptions(
-            dof=dof, axis=axis, axis_in=axis_in, stiffness_mm=float(stiff)
-        )
+            dof=dof, axis=axis, axis_in=axis_in, stiffness_mm=float(stiff),
+            axis_from_bend_deg=float(from_bend),
+        )  # fmt: skip
     return FitOptions(markers=out_m, bones=out_b)

@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 
 from retargetd.daemon.body.rig_fit import (
     AXIS_WHY,
+    BEND_WHY,
     STIFFNESS_MAX_MM,
     STIFFNESS_WHY,
     WEIGHT_MAX,
@@ -99,6 +100,11 @@ RIG_RANGES: dict[str, NumberRange] = {
     "points.*.u": NumberRange(
         -1.0, 2.0, "at most one segment length beyond either end of the line"
     ),
+    # The least bend a rigid point's frame needs in the base pose (the angle B-A-C
+    # short of straight): a bend, not a reflex angle.
+    "points.*.bend_min_deg": NumberRange(
+        0.0, 90.0, "a joint's bend short of straight, at most a right angle", unit="deg"
+    ),
     # An offset between two points of one body, per axis of the three-point frame.
     "points.*.offset_mm": NumberRange(
         -BODY_EXTENT_MAX_MM,
@@ -114,6 +120,8 @@ RIG_RANGES: dict[str, NumberRange] = {
     # A marker's residual weight, a ratio of variances (checked in body.rig_fit, whose
     # WEIGHT_MAX cites its bound).
     "fit.markers.*.weight": NumberRange(0.0, WEIGHT_MAX, WEIGHT_WHY),
+    # The least calibration-pose bend that gives a hinge its axis (body.rig_fit).
+    "fit.bones.*.axis_from_bend_deg": NumberRange(0.0, 90.0, BEND_WHY, unit="deg"),
     # A hinge's axis as [x, y, z] (checked in body.rig_fit).
     "fit.bones.*.axis": NumberRange(-1.0, 1.0, AXIS_WHY),
 }
@@ -182,6 +190,9 @@ class RigidPoint:
     frame: tuple[str, str, str]
     rule: dict[str, LinearExpr] | None = None
     offset_mm: tuple[LinearExpr, LinearExpr, LinearExpr] | None = None
+    #: The frame's least bend in the base pose, degrees (180 - the angle at A between
+    #: B and C); 0 = none. Under it, calibrating warns (``body.sanity.check_bends``).
+    bend_min_deg: float = 0.0
 
     @property
     def inputs(self) -> tuple[str, ...]:

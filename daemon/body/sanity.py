@@ -645,6 +645,23 @@ def check_calibration(
 UP_LEVER_MIN_M = 0.030
 
 
+def _base_pose_points(
+    rig: Rig, cal: Calibration, positions: F64Array, labels: Sequence[str] | None
+) -> dict[str, F64Array]:
+    """The rig's points on the base pose's mean markers (each (1, 3))."""
+    pos = np.asarray(positions, dtype=np.float64)
+    cols = (
+        np.arange(len(rig.markers))
+        if labels is None
+        else np.asarray(match_markers(rig, labels))
+    )
+    mean = _finite_mean(pos, axis=0)  # (M, 3)
+    marker_pos = np.full((1, len(cols), 3), np.nan)
+    have = cols >= 0
+    marker_pos[0, have] = mean[cols[have]]
+    return compute_points(rig, marker_pos, cal.point_offsets)
+
+
 def up_levers(
     rig: Rig, cal: Calibration, positions: F64Array, labels: Sequence[str] | None
 ) -> dict[str, float]:
@@ -660,17 +677,7 @@ def up_levers(
     Returns:
         bone name -> lever (bones whose points were not all seen are left out).
     """
-    pos = np.asarray(positions, dtype=np.float64)
-    cols = (
-        np.arange(len(rig.markers))
-        if labels is None
-        else np.asarray(match_markers(rig, labels))
-    )
-    mean = _finite_mean(pos, axis=0)  # (M, 3)
-    marker_pos = np.full((1, len(cols), 3), np.nan)
-    have = cols >= 0
-    marker_pos[0, have] = mean[cols[have]]
-    pts = compute_points(rig, marker_pos, cal.point_offsets)
+    pts = _base_pose_points(rig, cal, positions, labels)
     out: dict[str, float] = {}
     for bone in rig.bones:
         axis = pts[bone.aim][0] - pts[bone.origin][0]
@@ -697,6 +704,53 @@ def check_up_levers(
         for name, lever in up_levers(rig, cal, positions, labels).items()
         if lever < UP_LEVER_MIN_M
     ]
+
+
+def base_pose_bends_deg(
+    rig: Rig, cal: Calibration, positions: F64Array, labels: Sequence[str] | None
+) -> dict[str, float]:
+    """The bend of each rigid point's frame that has ``bend_min_deg`` in the base
+    pose: 180 deg less the angle at its first point between the other two.
+
+    Args, labels: as :func:`up_levers`.
+
+    Returns:
+        point name -> bend, degrees (points whose frame was not seen left out).
+    """
+    needs = [p for p in rig.points if getattr(p, "bend_min_deg", 0.0) > 0.0]
+    if not needs:
+        return {}
+    pts = _base_pose_points(rig, cal, positions, labels)
+    out: dict[str, float] = {}
+    for p in needs:
+        a, b, c = (pts[n][0] for n in p.frame)
+        u, v = b - a, c - a
+        nu, nv = float(np.linalg.norm(u)), float(np.linalg.norm(v))
+        if not (np.isfinite(nu * nv) and nu > 0 and nv > 0):
+            continue
+        cos = float(np.clip(u @ v / (nu * nv), -1.0, 1.0))
+        out[p.name] = 180.0 - float(np.degrees(np.arccos(cos)))
+    return out
+
+
+def check_bends(
+    rig: Rig, cal: Calibration, positions: F64Array, labels: Sequence[str]
+) -> list[str]:
+    """One warning per rigid point whose frame is straighter in the base pose than
+    its ``bend_min_deg`` (RIGS.md: a construction that reads a joint's axis from the
+    joint's bend, such as Plug-in Gait's elbow, cannot from a straight one)."""
+    mins = {p.name: p.bend_min_deg for p in rig.points if hasattr(p, "bend_min_deg")}
+    return [
+        f"point {name}: {' '.join(_frame_of(rig, name))} is bent {bend:.0f} deg in the "
+        f"base pose (the rig needs at least {mins[name]:g} deg to place it): "
+        f"calibrate with that joint bent"
+        for name, bend in base_pose_bends_deg(rig, cal, positions, labels).items()
+        if bend < mins[name]
+    ]
+
+
+def _frame_of(rig: Rig, name: str) -> tuple[str, ...]:
+    return next(tuple(p.frame) for p in rig.points if p.name == name)
 
 
 #: A bone whose up lever is already short in the base pose would, with the rig's
@@ -774,9 +828,9 @@ def calibrate_checked(
     spread, up axis, units, stillness and left/right labels of the base pose
     (:func:`check_spread`, :func:`check_up_axis`, :func:`check_units`,
     :func:`check_base_pose_still`, :func:`check_mirrored`), then the stature,
-    left/right symmetry and up levers of the calibration (:func:`check_calibration`,
-    :func:`check_up_levers`). The one function both the offline ``calibrate`` and
-    the live calibration run.
+    left/right symmetry, up levers and bends of the calibration
+    (:func:`check_calibration`, :func:`check_up_levers`, :func:`check_bends`). The
+    one function both the offline ``calibrate`` and the live calibration run.
 
     Args:
         rig: the rig.
@@ -818,4 +872,6 @@ def calibrate_checked(
     )
     # a bone whose roll would follow noise: named, with its lever
     notes += check_up_levers(rig, cal, positions, labels)
+    # a point whose construction needs a bent joint, calibrated on a straight one
+    notes += check_bends(rig, cal, positions, labels)
     return cal, notes

@@ -4,7 +4,10 @@ A marker set is TOML package data in ``daemon/synth/markersets/*.toml`` (or any 
 ``name`` and one ``[markers.LABEL]`` table per marker with ``segment`` (a segment of
 :mod:`retargetd.daemon.synth.skeleton`), ``offset_mm = [x, y, z]`` in that
 segment's frame (forward, left, up in the rest T-pose, origin at the segment's
-proximal joint centre, for the 1.75 m reference performer) and a ``description``.
+proximal joint centre, for the 1.75 m reference performer) and a ``description``;
+optionally ``[base_pose]`` ``elbow_flexion_deg``: the elbows' bend while the performer
+holds the base pose (a protocol's static, such as Plug-in Gait's, that needs them bent),
+which the motion ramps out of.
 """
 
 from __future__ import annotations
@@ -33,6 +36,8 @@ class MarkerSet:
         offsets_mm: (M, 3) float64, millimetres, in the segment's frame (forward, left,
             up in the rest T-pose) for the :data:`REFERENCE_HEIGHT_M` performer.
         descriptions: (M,) where on the body each marker sits.
+        elbow_flexion_deg: both elbows' flexion during the base-pose hold, degrees
+            (0: the straight-armed T-pose); the motion ramps out of it.
     """
 
     name: str
@@ -41,6 +46,7 @@ class MarkerSet:
     segments: tuple[str, ...]
     offsets_mm: F64Array
     descriptions: tuple[str, ...]
+    elbow_flexion_deg: float = 0.0
 
 
 def shipped_markersets() -> tuple[str, ...]:
@@ -130,6 +136,25 @@ def _markerset_from_dict(data: dict[str, Any], source: str) -> MarkerSet:
         segments.append(str(segment))
         offsets.append([float(v) for v in offset])
         descriptions.append(description)
+    unknown_top = set(data) - {"name", "reference_height_m", "markers", "base_pose"}
+    if unknown_top:
+        raise ValueError(f"{source}: unknown keys {sorted(unknown_top)}")
+    base = data.get("base_pose", {})
+    if not isinstance(base, dict) or set(base) - {"elbow_flexion_deg"}:
+        raise ValueError(
+            f"{source}: base_pose: expected a table with elbow_flexion_deg; "
+            f"got {base!r}"
+        )
+    flexion = base.get("elbow_flexion_deg", 0.0)
+    if (
+        not isinstance(flexion, int | float)
+        or isinstance(flexion, bool)
+        or not 0.0 <= flexion <= 150.0
+    ):
+        raise ValueError(
+            f"{source}: base_pose.elbow_flexion_deg: expected 0-150 deg (the elbow's "
+            f"range); got {flexion!r}"
+        )
     name = data.get("name", Path(source).stem)
     if not isinstance(name, str):
         raise ValueError(f"{source}: name: expected a string; got {name!r}")
@@ -140,4 +165,5 @@ def _markerset_from_dict(data: dict[str, Any], source: str) -> MarkerSet:
         segments=tuple(segments),
         offsets_mm=readonly(np.array(offsets, dtype=np.float64)),
         descriptions=tuple(descriptions),
+        elbow_flexion_deg=float(flexion),
     )

@@ -307,7 +307,8 @@ def synthesize(
     """Synthesize a take of the performer wearing a marker set.
 
     Frame ``i`` is at ``t = i / rate_hz``. Frames with ``t < base_pose_s`` hold the
-    exact T-pose; the motion ramps in over :data:`RAMP_S` after that. Noise and
+    exact T-pose (the elbows bent by the marker set's ``elbow_flexion_deg``); the
+    motion ramps in over :data:`RAMP_S` after that. Noise and
     dropouts are drawn from independent streams of ``seed``, so the same arguments
     give bit-identical output.
 
@@ -372,6 +373,11 @@ def synthesize(
     for name in ALL_MOTIONS:  # fixed composition order, whatever order was asked
         if name in motions:
             COMPONENTS[name](work)
+    if markerset.elbow_flexion_deg:
+        # The marker set's static bends the elbows; the motion ramps out of it
+        # (flexion about the upper arm's z, forward = -z on the left).
+        hold = (1.0 - work.w) * markerset.elbow_flexion_deg
+        work.add_bilateral("forearm", 2, -hold, -hold)
 
     parent_from_segment = np.empty((n_frames, n_seg, 4))
     orders = np.array(skeleton.euler_orders)

@@ -400,6 +400,15 @@ def test_fit_keys_parse_and_act(tmp_path: Path) -> None:
         ({"bones": {"l_shank": {"dof": "swing", "axis": "x"}}}, "only a hinge"),
         ({"bones": {"l_shank": {"axis_in": "parent"}}}, "only a hinge"),
         ({"bones": {"l_shank": {"dof": "hinge", "axis_in": "world"}}}, "axis_in"),
+        ({"bones": {"l_shank": {"axis_from_bend_deg": 17}}}, "only a hinge"),
+        (
+            {"bones": {"l_shank": {"dof": "hinge", "axis_from_bend_deg": 95}}},
+            r"axis_from_bend_deg: 95 is out of range: allowed \[0, 90\]",
+        ),
+        (
+            {"bones": {"l_shank": {"dof": "hinge", "axis_from_bend_deg": "bent"}}},
+            "axis_from_bend_deg: expected a number",
+        ),
         ({"bones": {"pelvis": {"dof": "swing"}}}, "root"),
         ({"bones": {"pelvis": {"stiffness_mm": 10}}}, "root"),
         ({"bones": {"l_shank": {"stiffness_mm": -1}}}, "out of range"),
@@ -526,6 +535,28 @@ def test_hinge_twist_elbow_flexes_about_the_parents_axis_and_twists(
     path.write_text(along)
     with pytest.raises(CalibrationError, match="hinge axis is within 30 deg"):
         build_fit_model(rig, cal, base, take.labels, load_fit_rig(path)[1])
+
+
+def test_a_hinge_bent_in_the_calibration_pose_turns_about_its_bend() -> None:
+    """``axis_from_bend_deg``: a rest pose bent past it gives the hinge the axis
+    perpendicular to the bone and its parent there (signed like ``axis``), whatever
+    the declared axis; a straighter one keeps the declared axis."""
+    from retargetd.daemon.body.rig_fit import BoneFitOptions, hinge_axes_in_bone
+
+    true_axis = np.array([0.3, 0.0, -1.0]) / np.hypot(0.3, 1.0)  # in the parent
+    declared = (1.0, 0.0, 0.2)  # the parent's +X, near the truth but not on it
+    for bend_deg, from_bend in ((40.0, True), (10.0, False)):
+        q = rot.quat_from_axis_angle(true_axis, np.deg2rad(bend_deg))
+        opts = BoneFitOptions(
+            dof="hinge_twist", axis=declared, axis_in="parent", axis_from_bend_deg=17.0
+        )
+        got = hinge_axes_in_bone({"fore": opts}, ["upper", "fore"], np.stack([q, q]))
+        want_parent = true_axis if from_bend else np.asarray(declared)
+        want = rot.quat_rotate(rot.quat_conj(q), want_parent)
+        want = want / np.linalg.norm(want)
+        if from_bend:
+            want = want * np.sign(want @ rot.quat_rotate(rot.quat_conj(q), declared))
+        np.testing.assert_allclose(got["fore"], want, atol=1e-12)
 
 
 def test_stiffness_pulls_towards_the_calibration_pose(tmp_path: Path) -> None:

@@ -127,6 +127,37 @@ def test_load_markerset_by_path_and_errors(tmp_path: Path) -> None:
         pf.load_markerset("nope")
     with pytest.raises(ValueError, match=r"missing\.toml: cannot read"):
         pf.load_markerset(tmp_path / "missing.toml")
+    for base, why in (
+        (
+            "[base_pose]\nelbow_flexion_deg = 200\n",
+            r"base_pose\.elbow_flexion_deg: expected 0-150",
+        ),
+        ("[base_pose]\nknee = 3\n", r"base_pose: expected a table"),
+        ("pose = 1\n", r"unknown keys \['pose'\]"),
+    ):
+        bad = tmp_path / "bad_base.toml"
+        bad.write_text(base + '[markers.A]\nsegment = "head"\noffset_mm = [1, 2, 3]\n')
+        with pytest.raises(ValueError, match=r"bad_base\.toml: " + why):
+            pf.load_markerset(bad)
+
+
+def test_plug_in_gait_holds_its_static_with_the_elbows_bent() -> None:
+    """Plug-in Gait's static bends the elbows (its marker set's ``[base_pose]``): 40
+    deg in the hold, none once the motion has ramped out of it; menache's T-pose
+    stays straight."""
+    ms = pf.load_markerset("plug-in-gait")
+    assert ms.elbow_flexion_deg == 40.0
+    assert pf.load_markerset("menache").elbow_flexion_deg == 0.0
+    take = pf.synthesize(seconds=2.0, rate_hz=60.0, markerset=ms, motions=())
+    for side in ("l", "r"):
+        q = take.parent_from_segment_quat[:, _seg(take, f"{side}_forearm")]
+        bend = np.rad2deg(rot.quat_angle(q))
+        np.testing.assert_allclose(bend[: take.base_pose_frames.stop], 40.0)
+        np.testing.assert_allclose(bend[-10:], 0.0, atol=1e-9)
+        # about the upper arm's z (the flexion axis in the T-pose)
+        axis = q[0, 1:] / np.linalg.norm(q[0, 1:])
+        assert abs(axis[2]) > 0.999
+    assert np.all(take.markers_world[take.base_pose_frames] == take.markers_world[0])
 
 
 # --- skeleton --------------------------------------------------------------------

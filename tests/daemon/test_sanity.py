@@ -244,6 +244,38 @@ def test_stature_and_bilateral_from_the_calibration(synth: SynthTake) -> None:
             assert "lupperarm" in got[0] and "rupperarm" in got[0]
 
 
+def test_a_straight_elbow_warns_for_plug_in_gait() -> None:
+    """Plug-in Gait's elbow centre needs a bent elbow (rig: ``bend_min_deg``): its
+    own static, elbows bent 40 deg, passes; the straight-armed T-pose warns once per
+    elbow, naming the point and the bend."""
+    from retargetd.daemon.synth.markerset import load_markerset
+
+    rig = load_rig("plug-in-gait")
+    bent = load_markerset("plug-in-gait")
+    for markerset, n_warnings in (
+        (bent, 0),
+        (dataclasses.replace(bent, elbow_flexion_deg=0.0), 2),
+    ):
+        take = synthesize(seconds=0.5, rate_hz=60.0, markerset=markerset, motions=())
+        cal = calibrate(rig, take.markers_world, take.labels)
+        bends = sanity.base_pose_bends_deg(rig, cal, take.markers_world, take.labels)
+        assert set(bends) == {"LEJC", "REJC"}
+        got = sanity.check_bends(rig, cal, take.markers_world, take.labels)
+        assert len(got) == n_warnings, got
+        for side in "LR":
+            if n_warnings:
+                assert bends[f"{side}EJC"] < 24.0
+                assert any(
+                    w.startswith(
+                        f"point {side}EJC: {side}ELB {side}SJC {side}WRI is bent"
+                    )
+                    for w in got
+                )
+            else:
+                # the elbow's 40 deg and the tilt ELB's own offset gives the frame
+                assert 40.0 < bends[f"{side}EJC"] < 55.0
+
+
 def test_up_axis_from_the_base_pose(synth: SynthTake) -> None:
     """The synthetic pose read with every wrong axis: the error names the axis the
     file's capture frame really has up."""

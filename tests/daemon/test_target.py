@@ -558,8 +558,13 @@ def test_shipped_rigs_on_the_synthetic_performer(name: str) -> None:
     comp = dict(zip(rt.bone_names, _angle_deg(rt.compensation_quat), strict=True))
     print(f"\n{name}: T-pose compensation (deg): "
           + ", ".join(f"{k} {v:.1f}" for k, v in comp.items() if v > 0.05))  # fmt: skip
-    # Long bones: the rig's joint centres in an exact T-pose (rig accuracy, not pose).
-    assert max(comp.values()) < 17.0
+    # Long bones: the rig's joint centres in an exact T-pose (rig accuracy, not pose),
+    # but for the static's own elbow bend (Plug-in Gait's: its marker set's
+    # [base_pose]), which the compensation carries to the forearm and the hand.
+    bend = pf.load_markerset(name).elbow_flexion_deg
+    forearm = {"LeftLowerArm", "RightLowerArm", "LeftHand", "RightHand"}
+    off = {k: abs(v - (bend if k in forearm else 0.0)) for k, v in comp.items()}
+    assert max(off.values()) < 17.0
     solver = BodySolver(rig, cal, take.labels)
     bp, out = solver.new_pose(), rt.new_pose()
     rt.apply(solver.solve_frame(take.markers_world[0], bp), out)
