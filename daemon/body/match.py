@@ -318,7 +318,7 @@ def match_calibration(calibration: Calibration, markers: F64Array) -> Calibratio
 def calibration_columns(
     calibration: Calibration,
     rig_marker_names: Sequence[str],
-    marker_cols: Sequence[int],
+    marker_cols: Sequence[int] | IntArray,
 ) -> IntArray:
     """Column of each calibrated marker in a stream, matched by name (a rig file
     edited since the calibration: its markers the rig no longer has are absent).

@@ -40,6 +40,7 @@ from retargetd.daemon.body.calibration import (
     match_markers,
 )
 from retargetd.daemon.body.rig import Rig
+from retargetd.daemon.body.rig_model import RigidPoint
 from retargetd.protocols.conventions import UNIT_TO_METRES, normalize_units
 from retargetd.protocols.frames import F64Array
 
@@ -717,7 +718,7 @@ def base_pose_bends_deg(
     Returns:
         point name -> bend, degrees (points whose frame was not seen left out).
     """
-    needs = [p for p in rig.points if getattr(p, "bend_min_deg", 0.0) > 0.0]
+    needs = [p for p in rig.points if isinstance(p, RigidPoint) and p.bend_min_deg > 0]
     if not needs:
         return {}
     pts = _base_pose_points(rig, cal, positions, labels)
@@ -739,7 +740,7 @@ def check_bends(
     """One warning per rigid point whose frame is straighter in the base pose than
     its ``bend_min_deg`` (RIGS.md: a construction that reads a joint's axis from the
     joint's bend, such as Plug-in Gait's elbow, cannot from a straight one)."""
-    mins = {p.name: p.bend_min_deg for p in rig.points if hasattr(p, "bend_min_deg")}
+    mins = {p.name: p.bend_min_deg for p in rig.points if isinstance(p, RigidPoint)}
     return [
         f"point {name}: {' '.join(_frame_of(rig, name))} is bent {bend:.0f} deg in the "
         f"base pose (the rig needs at least {mins[name]:g} deg to place it): "
@@ -750,7 +751,9 @@ def check_bends(
 
 
 def _frame_of(rig: Rig, name: str) -> tuple[str, ...]:
-    return next(tuple(p.frame) for p in rig.points if p.name == name)
+    return next(
+        p.frame for p in rig.points if isinstance(p, RigidPoint) and p.name == name
+    )
 
 
 #: A bone whose up lever is already short in the base pose would, with the rig's

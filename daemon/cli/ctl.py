@@ -1,10 +1,12 @@
 """``retargetd ctl [--endpoint E] status [--json] |
-calibrate [--count N] [--performer NAME] [--no-wait] [--wait-s S] | reload |
+calibrate [--count N] [--rom [--seconds S]] [--performer NAME] [--no-wait]
+[--wait-s S] | reload |
 record start FILE.mcap [--no-poses] [--force] | record stop |
 face-capture NAME [--count N] [--performer NAME]``.
 
 Talks to a running daemon over its local control socket (ZeroMQ REQ/REP, JSON
-requests ``{"cmd": "status"}``, ``{"cmd": "calibrate", "count": N}``,
+requests ``{"cmd": "status"}``, ``{"cmd": "calibrate", "count": N}`` (with
+``--rom``: ``"rom_s": S``),
 ``{"cmd": "reload"}``, ``{"cmd": "record", "action": "start", "path": FILE,
 "poses": true}``, ``{"cmd": "record", "action": "stop"}``,
 ``{"cmd": "face-capture", "name": NAME, "count": N}``; calibrate and face-capture
@@ -17,7 +19,9 @@ polling ``status``) for that calibration's outcome and prints its line: exit 0 w
 it calibrated, 1 when the daemon refused it (a moving, giant, mirrored or degenerate
 base pose: the reason is the line), it calibrated but could not save the file (the
 daemon uses it; the old file is kept whole), it expired or the wait ran out;
-``--no-wait`` returns after the acceptance.
+``--no-wait`` returns after the acceptance. ``--rom``: after the base pose the daemon
+collects ``--seconds`` (default 20) of range of motion and places the rig's functional
+joints from it (``calibrate --rom`` offline); the wait grows by those seconds.
 ``record start`` makes the daemon record every marker packet it receives, its pose
 stream (unless ``--no-poses``) and control events to a new MCAP file, in the format of
 ``retargetd record`` (``retargetd replay`` plays it back); FILE must not exist yet and
@@ -82,6 +86,19 @@ def add_parser(subparsers: Any) -> None:
         "--performer",
         metavar="NAME",
         help="the performer to calibrate (several performers: [[performer]] name)",
+    )
+    cal.add_argument(
+        "--rom",
+        action="store_true",
+        help="after the base pose, a range of motion for the rig's functional joints "
+        "(hip centres, knee axes: RIGS.md)",
+    )
+    cal.add_argument(
+        "--seconds",
+        type=float,
+        default=None,
+        metavar="S",
+        help="with --rom: seconds of range of motion (default 20)",
     )
     cal.add_argument(
         "--no-wait",
@@ -168,6 +185,11 @@ def run(args: argparse.Namespace) -> int:
         req["count"] = args.count
     if counted and args.performer is not None:
         req["performer"] = args.performer
+    if args.ctl_command == "calibrate":
+        if args.seconds is not None and not args.rom:
+            raise UsageError("--seconds needs --rom")
+        if args.rom:
+            req["rom_s"] = ROM_DEFAULT_S if args.seconds is None else args.seconds
     if args.ctl_command == "face-capture":
         req["name"] = args.name
     if args.ctl_command == "record":
@@ -210,6 +232,10 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+#: ``ctl calibrate --rom`` without ``--seconds``: a star arc per hip and a few knee
+#: flexions (Camomilla et al. 2006: ~10 s a leg).
+ROM_DEFAULT_S = 20.0
+
 #: Between two status polls while ``ctl calibrate`` waits: a calibration of 60 frames
 #: at 120 Hz takes 0.5 s, so 50 ms adds at most a tenth to it and costs the daemon 20
 #: small requests a second.
@@ -227,7 +253,8 @@ def _wait_calibration(args: argparse.Namespace, reply: dict[str, Any]) -> int:
         raise UsageError(f"--wait-s must be > 0; got {args.wait_s}")
     wanted = reply.get("calibration_id")
     name = reply.get("performer")
-    deadline = time.monotonic() + args.wait_s
+    rom_s = (ROM_DEFAULT_S if args.seconds is None else args.seconds) if args.rom else 0
+    deadline = time.monotonic() + args.wait_s + rom_s
     while True:
         got = request(
             args.endpoint, {"cmd": "status"}, args.timeout_ms, args.key,
@@ -236,7 +263,7 @@ def _wait_calibration(args: argparse.Namespace, reply: dict[str, Any]) -> int:
         doc = _performer_doc(got, name)
         if doc is not None and doc.get("calibration_id") == wanted:
             state = doc.get("calibration_state")
-            if state not in ("pending", None):
+            if state not in ("pending", "rom", None):
                 line = str(doc.get("calibration_message", ""))
                 if state == "calibrated":
                     sys.stdout.write(line + "\n")

@@ -10,6 +10,11 @@ checks (``body.sanity.calibrate_checked``: up axis, units, stillness, left/right
 then stature and symmetry of the result). Otherwise it is refused: one line says why
 (to the ``ctl`` client too: the status' ``calibration_state`` / ``_message``), it is
 counted (``calibrations_refused``) and the old calibration is kept (its file untouched).
+With a range of motion (``ctl calibrate --rom --seconds S``) the still base pose is
+kept and the next S seconds of frames are collected as the performer moves each joint
+through its range; the rig's functional joints are then placed from them
+(``calibrate --rom`` offline: the same ``calibrate_checked``), a joint they do not
+determine named in a warning line and left at its base-pose estimate.
 A request with a bad count is refused; one that collects no frame for
 ``performer.calibrate_timeout_s`` expires. Calibration requests and reloads are rate
 limited (``control.min_interval_s``). A calibration is saved atomically
@@ -22,6 +27,7 @@ import dataclasses
 import logging
 import math
 import time
+from typing import Any
 
 import numpy as np
 
@@ -34,7 +40,10 @@ from retargetd.daemon.body.sanity import (
 )
 from retargetd.daemon.body.solve import BodySolver
 from retargetd.daemon.live.config import DaemonConfig, check_pipeline
-from retargetd.daemon.live.config_schema import CALIBRATE_MAX_FRAMES
+from retargetd.daemon.live.config_schema import (
+    CALIBRATE_MAX_FRAMES,
+    CALIBRATE_ROM_MAX_S,
+)
 from retargetd.daemon.live.performer import FrameSource
 from retargetd.daemon.live.send import spine_stage
 from retargetd.daemon.live.state import DaemonState
@@ -46,13 +55,18 @@ logger = logging.getLogger(__name__)
 class CalibrationMixin(DaemonState):
     """Live calibration, live face capture and reload."""
 
-    def request_calibration(self, count: object = None, by: str = "") -> str:
+    def request_calibration(
+        self, count: object = None, by: str = "", rom_s: object = None
+    ) -> str:
         """Start a live calibration over the next ``count`` accepted frames.
 
         Args:
             count: frames to average (an int in [3, CALIBRATE_MAX_FRAMES]); None =
                 ``performer.calibrate_frames``.
             by: who asked (logged, recorded, saved in the calibration).
+            rom_s: then this many seconds of range of motion for the rig's
+                functional joints (a number in [1, CALIBRATE_ROM_MAX_S]); None =
+                none.
 
         Raises:
             ValueError: a bad count, or rate limited (the message says which); the
@@ -67,6 +81,20 @@ class CalibrationMixin(DaemonState):
             )
         else:
             n = count
+        rom = 0.0
+        if rom_s is not None:
+            if isinstance(rom_s, int | float) and not isinstance(rom_s, bool):
+                rom = float(rom_s)
+            if not 1.0 <= rom <= CALIBRATE_ROM_MAX_S:
+                raise ValueError(
+                    f"seconds of range of motion must be a number in [1, "
+                    f"{CALIBRATE_ROM_MAX_S:g}]; got {rom_s!r}"
+                )
+            if not self.rig.functional:
+                raise ValueError(
+                    f"rig {self.rig.name} has no [functional] joints: a range of "
+                    "motion has nothing to place"
+                )
         now = time.monotonic_ns()
         if not self._calibrate_limit.allow(now):
             self.stats.rate_limited += 1
@@ -83,11 +111,23 @@ class CalibrationMixin(DaemonState):
         self._calib_id += 1
         self._calib_state = "pending"
         self._calib_stream = None
-        self.recording.event("calibration_requested", count=n, by=by)
+        self._calib_rom_s = rom
+        self._end_rom()
+        self.recording.event(
+            "calibration_requested", count=n, by=by, rom_s=self._calib_rom_s
+        )
         logger.info("calibration requested (%s): averaging %d frames", by, n)
-        return f"calibrating over the next {n} frames: hold the base pose"
+        if rom_s is None:
+            return f"calibrating over the next {n} frames: hold the base pose"
+        return (
+            f"calibrating over the next {n} frames: hold the base pose, then move "
+            f"each joint through its range for {self._calib_rom_s:g} s"
+        )
 
     def _collect_calibration_frame(self, stream: FrameSource) -> None:
+        if self._calib_base is not None:
+            self._collect_rom_frame(stream)
+            return
         labels = stream.current.label_set.labels
         if self._calib_labels and labels != self._calib_labels:
             self._calib_frames = []  # the marker layout changed: start again
@@ -103,6 +143,31 @@ class CalibrationMixin(DaemonState):
         if len(self._calib_frames) >= self._calib_target:
             self._finish_calibration()
 
+    def _collect_rom_frame(self, stream: FrameSource) -> None:
+        """One frame of the range of motion; the last one calibrates."""
+        frame = stream.current.frame
+        base: tuple[np.ndarray, tuple[str, ...], np.ndarray] = self._calib_base
+        if stream.current.label_set.labels != base[1]:
+            self._refuse_calibration(
+                "the marker labels changed during the range of motion"
+            )
+            return
+        self._calib_rom_frames.append(frame.markers_world.copy())
+        self._calib_rom_times.append((frame.source_time_s, frame.frame_id, frame.t_ns))
+        self._calib_last_ns = time.monotonic_ns()
+        span = _window_times_s(
+            [self._calib_rom_times[0], self._calib_rom_times[-1]],
+            self.config.validate.rate_hz,
+        )
+        if span[1] - span[0] >= self._calib_rom_s:
+            frames, labels, times_s = base
+            rom = (
+                np.stack(self._calib_rom_frames), labels,
+                {"live": True, "seconds": self._calib_rom_s,
+                 "frames": len(self._calib_rom_frames)},
+            )  # fmt: skip
+            self._calibrate_on(frames, labels, times_s, rom)
+
     def _calibration_tick(self, now_ns: int) -> None:
         """Expire a pending calibration that has collected no frame for
         ``performer.calibrate_timeout_s`` (nothing changes; one line says so)."""
@@ -112,9 +177,7 @@ class CalibrationMixin(DaemonState):
         if now_ns - self._calib_last_ns < int(timeout_s * 1e9):
             return
         got, wanted = len(self._calib_frames), self._calib_target
-        self._calib_target = 0
-        self._calib_frames = []
-        self._calib_times = []
+        self._end_calibration_request()
         self.stats.calibrations_expired += 1
         self._calib_state = "expired"
         msg = (
@@ -154,11 +217,25 @@ class CalibrationMixin(DaemonState):
         self.recording.event("face_capture_requested", name=name, by=by)
         return msg
 
+    def _end_calibration_request(self) -> None:
+        """Nothing pending any more (the frames collected let go)."""
+        self._calib_target = 0
+        self._calib_frames = []
+        self._calib_times = []
+        self._end_rom()
+
+    def _end_rom(self) -> None:
+        """No range of motion under way."""
+        self._calib_base = None
+        self._calib_rom_frames = []
+        self._calib_rom_times = []
+
     def _finish_calibration(self) -> None:
+        """The base pose is collected: still, it calibrates, or holds for the range
+        of motion when one was asked for."""
         frames = np.stack(self._calib_frames)
         labels = self._calib_labels
         times = self._calib_times
-        self._calib_target = 0
         self._calib_frames = []
         self._calib_times = []
         limit = self._perf.config.calibrate_max_speed_m_s
@@ -179,11 +256,35 @@ class CalibrationMixin(DaemonState):
                 "frames)"
             )
             return
+        if self._calib_rom_s > 0.0:
+            self._calib_base = (frames, labels, times_s)
+            self._calib_state = "rom"
+            self._calib_last_ns = time.monotonic_ns()
+            msg = (
+                f"base pose held ({frames.shape[0]} frames): move each joint "
+                f"through its range for {self._calib_rom_s:g} s"
+            )
+            self._calib_message = msg
+            self.out(self._named(msg))
+            return
+        self._calibrate_on(frames, labels, times_s, None)
+
+    def _calibrate_on(
+        self,
+        frames: np.ndarray,
+        labels: tuple[str, ...],
+        times_s: np.ndarray,
+        rom: tuple[np.ndarray, tuple[str, ...], dict[str, Any]] | None,
+    ) -> None:
+        """Calibrate on a still base pose (and a range of motion) with every
+        offline check; take the result, or refuse it."""
+        self._end_calibration_request()
         try:
             cal, notes = calibrate_checked(
                 self.rig, frames, labels, self._base_pose_source(times_s),
                 base_pose={"live": True, "frames": int(frames.shape[0]),
                            "requested_by": self._calib_requested_by},
+                rom=rom,
             )  # fmt: skip
         except (SanityError, CalibrationError) as exc:
             self._refuse_calibration(str(exc))
@@ -206,15 +307,24 @@ class CalibrationMixin(DaemonState):
             "calibrated", frames=int(frames.shape[0]), by=self._calib_requested_by,
             path=path or "", warnings=notes,
         )  # fmt: skip
+        what = f"{frames.shape[0]} frames"
+        if rom is not None:
+            placed = [
+                n for n, j in cal.functional.get("joints", {}).items() if j.get("used")
+            ]
+            what += (
+                f" and {rom[0].shape[0]} frames of range of motion (placed: "
+                f"{', '.join(placed) or 'none'})"
+            )
         if path:
             try:
                 cal.save(path)
-                msg = f"calibrated on {frames.shape[0]} frames; saved {path}"
+                msg = f"calibrated on {what}; saved {path}"
             except OSError as exc:  # the old file is whole (an atomic save)
-                msg = f"calibrated on {frames.shape[0]} frames; NOT saved: {exc}"
+                msg = f"calibrated on {what}; NOT saved: {exc}"
                 self._calib_state = "not_saved"
         else:
-            msg = f"calibrated on {frames.shape[0]} frames (not saved: no path)"
+            msg = f"calibrated on {what} (not saved: no path)"
         self._calib_message = msg
         self.out(self._named(msg))
 
@@ -227,6 +337,7 @@ class CalibrationMixin(DaemonState):
             "base pose and ask again"
         )
         logger.warning("%s", self._named(msg))
+        self._end_calibration_request()
         self.stats.calibrations_refused += 1
         self._calib_state = "refused"
         self._calib_message = msg

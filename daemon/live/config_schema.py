@@ -20,6 +20,12 @@ LOCALHOST = "127.0.0.1"
 #: of 2^31 grew the daemon's memory without bound: issue 12).
 CALIBRATE_MAX_FRAMES = 10_000
 
+#: The longest live range of motion (``ctl calibrate --rom --seconds S``), seconds:
+#: a stage range of motion is a star arc per hip and a few knee and elbow flexions,
+#: 20-30 s (Camomilla et al. 2006's star arc takes ~10 s a leg); 120 s at 2000 Hz of
+#: 200 markers is 576 MB, the most a request may make the daemon hold.
+CALIBRATE_ROM_MAX_S = 120.0
+
 #: Ceiling for ``input.zmq.max_message_bytes``: the frame payload of the largest label
 #: set allowed (100,000 markers x 12 bytes = 1.2 MB), rounded up to 2 MiB. The input
 #: queue then holds at most RCVHWM (1,000) messages of 2 parts this size.

@@ -88,7 +88,7 @@ class ControlMixin(DaemonState):
         if cmd == "calibrate":
             if not self.config.control.calibrate:
                 raise ValueError("calibrate is off on this path (control.calibrate)")
-            msg = self.request_calibration(req.get("count"), "ctl")
+            msg = self.request_calibration(req.get("count"), "ctl", req.get("rom_s"))
             # ctl waits for this one's outcome (status: calibration_id / _state)
             return {"ok": True, "message": msg, "calibration_id": self._calib_id}
         if cmd == "reload":

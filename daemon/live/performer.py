@@ -218,11 +218,18 @@ class Performer:
         self.calib_last_ns = 0
         self.calib_message = ""
         # Requests so far (the ctl reply and status name the one they are about) and
-        # how the last one stands: "", "pending", "calibrated", "not_saved" (in use,
+        # how the last one stands: "", "pending", "rom" (the base pose held, the range
+        # of motion under way), "calibrated", "not_saved" (in use,
         # its file not written), "refused", "expired".
         self.calib_id = 0
         self.calib_state = ""
         self.calib_stream: Any = None  # where the frames come from (its input)
+        # A range of motion after the base pose (``ctl calibrate --rom``): seconds
+        # wanted (0: none), the base pose held while it is collected, its frames.
+        self.calib_rom_s = 0.0
+        self.calib_base: Any = None  # (frames, labels, times_s) once still
+        self.calib_rom_frames: list[np.ndarray] = []
+        self.calib_rom_times: list[tuple[float, int, int]] = []
         self.calibrate_limit = RateLimiter(min_interval_s)
         self.validation_bits = 0
         # The calibration-match check over the stream's first second

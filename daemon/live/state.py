@@ -140,6 +140,10 @@ class DaemonState:
     _calib_id: OfPerformer[int] = OfPerformer()  # requests so far
     _calib_state: OfPerformer[str] = OfPerformer()  # "", pending, calibrated ...
     _calib_stream: OfPerformer[Any] = OfPerformer()  # the frames' stream or view
+    _calib_rom_s: OfPerformer[float] = OfPerformer()  # range of motion wanted, s
+    _calib_base: OfPerformer[Any] = OfPerformer()  # the still base pose, during it
+    _calib_rom_frames: OfPerformer[list[np.ndarray]] = OfPerformer()
+    _calib_rom_times: OfPerformer[list[tuple[float, int, int]]] = OfPerformer()
     _calibrate_limit: OfPerformer[RateLimiter] = OfPerformer()
     _validation_bits: OfPerformer[int] = OfPerformer()
     _validation_bones: OfPerformer[np.ndarray | None] = OfPerformer()
