@@ -235,7 +235,9 @@ class DaemonState:
     def _collect_face_frame(self, stream: FrameSource) -> None:  # calibrate
         raise NotImplementedError
 
-    def request_calibration(self, count: object = None, by: str = "") -> str:
+    def request_calibration(
+        self, count: object = None, by: str = "", rom_s: object = None
+    ) -> str:
         raise NotImplementedError  # calibrate
 
     def request_face_capture(
