@@ -154,7 +154,10 @@ def request(
 
     from retargetd.daemon.live.surface import curve_client
 
-    ctx: Any = zmq.Context.instance()
+    # A context of its own (shut below), but for an inproc:// endpoint, which only
+    # the daemon's own (the process's shared) context reaches.
+    shared = endpoint.startswith("inproc://")
+    ctx: Any = zmq.Context.instance() if shared else zmq.Context()
     sock = ctx.socket(zmq.REQ)
     sock.setsockopt(zmq.LINGER, 0)
     sock.setsockopt(zmq.RCVTIMEO, timeout_ms)
@@ -171,6 +174,8 @@ def request(
         return None
     finally:
         sock.close()
+        if not shared:
+            ctx.term()
 
 
 def run(args: argparse.Namespace) -> int:

@@ -144,7 +144,14 @@ class Daemon(
             except ValueError as exc:
                 msg = f"target.spine: {exc} (rig {perf.rig.name})"
                 raise ConfigError(msg) from None
-        self._ctx: Any = zmq.Context.instance()
+        # Its own ZeroMQ context (its own I/O thread), shut at close: the daemon's
+        # sockets never share an I/O thread or a socket budget with the host's. An
+        # inproc:// endpoint reaches only sockets of the same context, so with one
+        # the daemon takes the process's shared context (zmq.Context.instance()).
+        endpoints = (config.input.zmq.endpoint, config.output.pose.endpoint,
+                     config.control.endpoint)  # fmt: skip
+        self._shared_ctx = any(ep.startswith("inproc://") for ep in endpoints)
+        self._ctx: Any = zmq.Context.instance() if self._shared_ctx else zmq.Context()
         self._poller = zmq.Poller()
         self._sockets: list[Any] = []
         self._osc: socket.socket | None = None
@@ -511,6 +518,8 @@ class Daemon(
         for guard in self._guards:
             guard.close()
         self._guards.clear()
+        if not self._shared_ctx and not self._ctx.closed:
+            self._ctx.destroy(linger=0)  # its sockets are closed above
 
     def run(self, should_exit: Callable[[], bool]) -> None:
         """Serve until ``should_exit()`` is true (checked every poll timeout).

@@ -49,8 +49,9 @@ def udp_socket() -> Iterator[Callable[..., socket.socket]]:
 
 @pytest.fixture
 def zmq_socket() -> Iterator[Callable[[int], Any]]:
-    """A factory of ZeroMQ sockets (``linger = 0``), all closed at teardown."""
-    ctx = zmq.Context.instance()
+    """A factory of ZeroMQ sockets (``linger = 0``) in a context of the test's own
+    (as the daemon's is its own), all closed and the context shut at teardown."""
+    ctx = zmq.Context()
     made: list[Any] = []
 
     def make(kind: int) -> Any:
@@ -62,6 +63,7 @@ def zmq_socket() -> Iterator[Callable[[int], Any]]:
     yield make
     for sock in made:
         sock.close()
+    ctx.term()
 
 
 # ---- the Plug-in Gait pair and daemons as subprocesses -----------------------------

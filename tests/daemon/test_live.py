@@ -1480,7 +1480,6 @@ def test_zero_markers_are_occluded_at_the_input(
 
 def test_zmq_parts_over_the_limit_that_reach_the_loop_are_too_large(
     start_daemon: Callable[..., Live],
-    zmq_socket: Callable[[int], Any],
 ) -> None:
     """inproc bypasses libzmq's MAXMSGSIZE: the drain checks part sizes itself, before
     decoding (a 1.4 KB label payload over a 1,000-byte limit)."""
@@ -1489,15 +1488,21 @@ def test_zmq_parts_over_the_limit_that_reach_the_loop_are_too_large(
     live = start_daemon(
         {"input": {"zmq": {"endpoint": endpoint, "max_message_bytes": 1000}}}
     )
-    push = zmq_socket(zmq.PUSH)
-    push.connect(endpoint)
-    big = LabelSet(4, tuple(f"M{i:05d}" for i in range(200)))
-    header, payload = zmq_wire.encode_zmq_labels(big)
-    assert len(payload) > 1000
-    push.send_multipart([header, payload])
-    push.send_multipart(zmq_wire.encode_zmq_labels(LabelSet(5, take.labels)))
-    stream = live.daemon.zmq_stream
-    _wait_until(lambda: stream.label_set is not None, "the label set within bounds")
+    # inproc reaches the daemon's context only: with an inproc endpoint that is the
+    # process's shared one (the test's zmq_socket fixture has a context of its own).
+    push = zmq.Context.instance().socket(zmq.PUSH)
+    push.setsockopt(zmq.LINGER, 0)
+    try:
+        push.connect(endpoint)
+        big = LabelSet(4, tuple(f"M{i:05d}" for i in range(200)))
+        header, payload = zmq_wire.encode_zmq_labels(big)
+        assert len(payload) > 1000
+        push.send_multipart([header, payload])
+        push.send_multipart(zmq_wire.encode_zmq_labels(LabelSet(5, take.labels)))
+        stream = live.daemon.zmq_stream
+        _wait_until(lambda: stream.label_set is not None, "the label set within bounds")
+    finally:
+        push.close()
     live.stop()
     assert stream.counters.as_dict() == {"too_large": 1}
     assert stream.label_set == LabelSet(5, take.labels)
