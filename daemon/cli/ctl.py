@@ -20,7 +20,7 @@ it calibrated, 1 when the daemon refused it (a moving, giant, mirrored or degene
 base pose: the reason is the line), it calibrated but could not save the file (the
 daemon uses it; the old file is kept whole), it expired or the wait ran out;
 ``--no-wait`` returns after the acceptance. ``--rom``: after the base pose the daemon
-collects ``--seconds`` (default 20) of range of motion and places the rig's functional
+collects ``--seconds`` (default 24) of range of motion and places the rig's functional
 joints from it (``calibrate --rom`` offline); the wait grows by those seconds.
 ``record start`` makes the daemon record every marker packet it receives, its pose
 stream (unless ``--no-poses``) and control events to a new MCAP file, in the format of
@@ -98,7 +98,7 @@ def add_parser(subparsers: Any) -> None:
         type=float,
         default=None,
         metavar="S",
-        help="with --rom: seconds of range of motion (default 20)",
+        help="with --rom: seconds of range of motion (default 24)",
     )
     cal.add_argument(
         "--no-wait",
@@ -237,9 +237,10 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-#: ``ctl calibrate --rom`` without ``--seconds``: a star arc per hip and a few knee
-#: flexions (Camomilla et al. 2006: ~10 s a leg).
-ROM_DEFAULT_S = 20.0
+#: ``ctl calibrate --rom`` without ``--seconds``: two cycles of the synthetic ``rom``
+#: motion (``synth.motion.ROM_PERIOD_S`` 12 s: each leg circles its hip twice), the
+#: range of motion ``tests/daemon/test_functional.py`` places the hips and knees from.
+ROM_DEFAULT_S = 24.0
 
 #: Between two status polls while ``ctl calibrate`` waits: a calibration of 60 frames
 #: at 120 Hz takes 0.5 s, so 50 ms adds at most a tenth to it and costs the daemon 20

@@ -21,10 +21,11 @@ LOCALHOST = "127.0.0.1"
 CALIBRATE_MAX_FRAMES = 10_000
 
 #: The longest live range of motion (``ctl calibrate --rom --seconds S``), seconds:
-#: a stage range of motion is a star arc per hip and a few knee and elbow flexions,
-#: 20-30 s (Camomilla et al. 2006's star arc takes ~10 s a leg); 120 s at 2000 Hz of
-#: 200 markers is 576 MB, the most a request may make the daemon hold.
-CALIBRATE_ROM_MAX_S = 120.0
+#: bounded by the memory a request may make the daemon hold, 60 s at 2000 Hz (the
+#: fastest full-resolution optical rate, as CALIBRATE_MAX_FRAMES) of 200 markers as
+#: float64 is 576 MB; 60 s is still over twice the synthetic ``rom`` motion's two
+#: cycles (24 s, each leg circling its hip twice), which place the hips to 4-6 mm.
+CALIBRATE_ROM_MAX_S = 60.0
 
 #: Ceiling for ``input.zmq.max_message_bytes``: the frame payload of the largest label
 #: set allowed (100,000 markers x 12 bytes = 1.2 MB), rounded up to 2 MiB. The input

@@ -239,11 +239,10 @@ def test_a_thigh_wand_moved_20_mm_on_a_real_take_is_named(axis: str) -> None:
     assert line is not None and "rthigh" in line
 
 
-def test_another_subjects_calibration_is_caught_by_solve(
+def _belt_calibration(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
-) -> None:
-    # BELT_C's static (1.505 m) on flatFoot's walk (1.76 m): the pelvis markers sit
-    # 200 mm apart against 245 mm.
+) -> tuple[Path, str]:
+    """BELT_C's static calibrated to a file, and flatFoot's walk (another subject)."""
     require_datasets()
     cal_path = tmp_path / "belt.json"
     static = str(require(DATASETS / PIG_STATIC, PIG_STATIC))
@@ -253,6 +252,15 @@ def test_another_subjects_calibration_is_caught_by_solve(
         == 0
     )
     capsys.readouterr()
+    return cal_path, walk
+
+
+def test_another_subjects_calibration_is_caught_by_solve(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # BELT_C's static (1.505 m) on flatFoot's walk (1.76 m): the pelvis markers sit
+    # 200 mm apart against 245 mm.
+    cal_path, walk = _belt_calibration(tmp_path, capsys)
     argv = ["solve", walk, "--rig", "plug-in-gait", "--calibration", str(cal_path),
             "--method", "construction", "--quiet"]  # fmt: skip
     # --strict-calibration: exit 2, one line, nothing written
@@ -325,15 +333,7 @@ def test_validate_names_the_calibration_not_only_the_joint_limits(
     # The issue's case: validate failed only on joint limits, pointing the user at
     # the wrong cause. Now the warning names the segment first, and the JSON and
     # report.json hold the figures; --strict-calibration stops before validating.
-    require_datasets()
-    cal_path = tmp_path / "belt.json"
-    static = str(require(DATASETS / PIG_STATIC, PIG_STATIC))
-    walk = str(require(DATASETS / PIG3_WALK, PIG3_WALK))
-    assert (
-        main(["calibrate", static, "--rig", "plug-in-gait", "--out", str(cal_path)])
-        == 0
-    )
-    capsys.readouterr()
+    cal_path, walk = _belt_calibration(tmp_path, capsys)
     argv = ["validate", walk, "--rig", "plug-in-gait", "--calibration", str(cal_path),
             "--method", "construction", "--no-snapshots", "--json"]  # fmt: skip
     report = tmp_path / "report"

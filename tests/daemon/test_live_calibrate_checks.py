@@ -126,12 +126,46 @@ def _ctl_calibrate(live: Any) -> list[str]:
     ]  # fmt: skip
 
 
-def _daemon(start_daemon: Callable[..., Any], cal_path: Path) -> Any:
-    return start_daemon(
-        {
-            "performer": {"calibration": str(cal_path)},
-            "control": {"min_interval_s": 0.01},
-        }
+class _Session:
+    """A daemon on a copy of the exact calibration, the performer ``case`` streaming."""
+
+    def __init__(
+        self,
+        start_daemon: Callable[..., Any],
+        osc_source: Callable[..., Any],
+        stream: Callable[..., _Streamer],
+        exact_calibration: Path,
+        tmp_path: Path,
+        case: str,
+    ) -> None:
+        self.cal_path = tmp_path / "performer.json"
+        self.cal_path.write_bytes(exact_calibration.read_bytes())
+        self.before = self.cal_path.read_bytes()
+        self.live = start_daemon(
+            {
+                "performer": {"calibration": str(self.cal_path)},
+                "control": {"min_interval_s": 0.01},
+            }
+        )
+        self.first_cal = self.live.daemon.calibration
+        stream(osc_source(self.live), case)
+
+    def __iter__(self) -> Iterator[Any]:
+        """``live, cal_path, before, first_cal``."""
+        return iter((self.live, self.cal_path, self.before, self.first_cal))
+
+
+@pytest.fixture
+def session(
+    start_daemon: Callable[..., Any],
+    osc_source: Callable[..., Any],
+    stream: Callable[..., _Streamer],
+    exact_calibration: Path,
+    tmp_path: Path,
+) -> Callable[[str], _Session]:
+    """``session(case)``: a :class:`_Session` with the performer ``case``."""
+    return lambda case: _Session(
+        start_daemon, osc_source, stream, exact_calibration, tmp_path, case
     )
 
 
@@ -155,20 +189,12 @@ def test_the_bad_performers_are_what_the_checks_refuse() -> None:
 
 @pytest.mark.parametrize("case", list(REASON))
 def test_a_bad_still_performer_is_refused_live_and_ctl_told(
-    start_daemon: Callable[..., Any],
-    osc_source: Callable[..., Any],
-    stream: Callable[..., _Streamer],
-    exact_calibration: Path,
+    session: Callable[[str], _Session],
     tmp_path: Path,
     capsys: pytest.CaptureFixture[str],
     case: str,
 ) -> None:
-    cal_path = tmp_path / "performer.json"
-    cal_path.write_bytes(exact_calibration.read_bytes())
-    before = cal_path.read_bytes()
-    live = _daemon(start_daemon, cal_path)
-    first_cal = live.daemon.calibration
-    stream(osc_source(live), case)
+    live, cal_path, before, first_cal = session(case)
     capsys.readouterr()
     assert cli_main(_ctl_calibrate(live)) == 1
     out, err = capsys.readouterr()
@@ -190,19 +216,11 @@ def test_a_bad_still_performer_is_refused_live_and_ctl_told(
 
 
 def test_a_genuine_still_performer_calibrates_and_ctl_says_so(
-    start_daemon: Callable[..., Any],
-    osc_source: Callable[..., Any],
-    stream: Callable[..., _Streamer],
-    exact_calibration: Path,
+    session: Callable[[str], _Session],
     tmp_path: Path,
     capsys: pytest.CaptureFixture[str],
 ) -> None:
-    cal_path = tmp_path / "performer.json"
-    cal_path.write_bytes(exact_calibration.read_bytes())
-    before = cal_path.read_bytes()
-    live = _daemon(start_daemon, cal_path)
-    first_cal = live.daemon.calibration
-    stream(osc_source(live), "genuine")
+    live, cal_path, before, first_cal = session("genuine")
     capsys.readouterr()
     assert cli_main(_ctl_calibrate(live)) == 0
     out = capsys.readouterr().out
@@ -217,10 +235,7 @@ def test_a_genuine_still_performer_calibrates_and_ctl_says_so(
 
 
 def test_a_live_save_on_a_full_disk_keeps_the_old_file(
-    start_daemon: Callable[..., Any],
-    osc_source: Callable[..., Any],
-    stream: Callable[..., _Streamer],
-    exact_calibration: Path,
+    session: Callable[[str], _Session],
     tmp_path: Path,
     capsys: pytest.CaptureFixture[str],
     monkeypatch: pytest.MonkeyPatch,
@@ -233,12 +248,7 @@ def test_a_live_save_on_a_full_disk_keeps_the_old_file(
     def enospc(*_args: object) -> None:
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
 
-    cal_path = tmp_path / "performer.json"
-    cal_path.write_bytes(exact_calibration.read_bytes())
-    before = cal_path.read_bytes()
-    live = _daemon(start_daemon, cal_path)
-    first_cal = live.daemon.calibration
-    stream(osc_source(live), "genuine")
+    live, cal_path, before, first_cal = session("genuine")
     monkeypatch.setattr(calmod.os, "fsync", enospc)
     capsys.readouterr()
     assert cli_main(_ctl_calibrate(live)) == 1
