@@ -24,13 +24,10 @@ read back by :func:`load_calibration`.
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import json
 import logging
 import math
-import os
-import tempfile
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -40,6 +37,7 @@ import numpy as np
 
 from retargetd.daemon.body.calibrate_rom import RomPoints
 from retargetd.daemon.body.rig import LinePoint, Rig
+from retargetd.daemon.files import write_atomic
 from retargetd.daemon.rotations import quat_conj, quat_from_mat, quat_mul
 from retargetd.protocols.frames import F64Array
 
@@ -106,6 +104,14 @@ class Calibration:
     #: ``body.calibrate_rom``): ``{"source": {...}, "joints": {name: {...}}}``;
     #: empty without one.
     functional: dict[str, Any] = field(default_factory=dict)
+    #: (Mr, 3) metres, world, base pose: where each marker sits on its bone in the
+    #: take its layout was refined on (``--refine-layout``, ``body.refine``), carried
+    #: into the base pose by its bone; None without a refinement. The fit attaches the
+    #: markers from it (the joint model still comes from ``base_marker_pos``).
+    layout_marker_pos: F64Array | None = None
+    #: The refinement's record (``body.refine.refine_layout``): its source, rounds,
+    #: residuals before and after, and per marker how far it moved; empty without.
+    layout_refined: dict[str, Any] = field(default_factory=dict)
 
     @property
     def functional_axes(self) -> dict[str, F64Array]:
@@ -138,18 +144,12 @@ class Calibration:
                 for k, v in self.measurements.items()
             },
             "markers": {
-                n: {"seen": s}
-                | (
-                    {}
-                    if self.base_marker_pos is None or not np.isfinite(pos).all()
-                    else {"base_m": [round(float(x), 9) for x in pos]}
-                )
-                for n, s, pos in zip(
+                n: {"seen": s} | _position("base_m", pos) | _position("take_m", took)
+                for n, s, pos, took in zip(
                     self.marker_names,
                     self.markers_seen,
-                    self.base_marker_pos
-                    if self.base_marker_pos is not None
-                    else [None] * len(self.marker_names),
+                    _rows(self.base_marker_pos, len(self.marker_names)),
+                    _rows(self.layout_marker_pos, len(self.marker_names)),
                     strict=False,
                 )
             },
@@ -188,6 +188,7 @@ class Calibration:
             },
             "root_rest_pos_m": [float(x) for x in self.root_rest_pos],
             **({"functional": self.functional} if self.functional else {}),
+            **({"layout_refined": self.layout_refined} if self.layout_refined else {}),
         }
 
     def save(self, path: str | Path) -> None:
@@ -200,40 +201,16 @@ class Calibration:
         write_atomic(path, (json.dumps(self.to_json(), indent=1) + "\n").encode())
 
 
-def write_atomic(path: str | Path, data: bytes) -> None:
-    """Replace ``path`` with ``data`` all at once: write a temporary file in the same
-    folder, flush and fsync it, then ``os.replace`` it over ``path`` (atomic on POSIX
-    within one file system) and fsync the folder, so the rename survives a power
-    loss. A failure (ENOSPC, EIO, a crash) leaves the old file whole and readable;
-    the temporary file is removed.
+def _rows(pos: F64Array | None, n: int) -> Sequence[F64Array | None]:
+    """A (n, 3) array's rows, or n Nones without one."""
+    return [None] * n if pos is None else list(pos)
 
-    Raises:
-        OSError: one line, ``cannot write PATH: REASON``, with the errno kept.
-    """
-    path = Path(path)
-    folder = path.parent
-    try:
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=folder)
-    except OSError as exc:
-        raise OSError(exc.errno, f"cannot write {path}: {exc.strerror}") from None
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException as exc:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        if isinstance(exc, OSError):
-            raise OSError(exc.errno, f"cannot write {path}: {exc.strerror}") from None
-        raise
-    with contextlib.suppress(OSError):  # not every file system syncs a folder
-        dir_fd = os.open(folder, os.O_RDONLY)
-        try:
-            os.fsync(dir_fd)
-        finally:
-            os.close(dir_fd)
+
+def _position(key: str, pos: F64Array | None) -> dict[str, list[float]]:
+    """``{key: [x, y, z]}`` (to the nanometre) for a finite position, else {}."""
+    if pos is None or not np.isfinite(pos).all():
+        return {}
+    return {key: [round(float(x), 9) for x in pos]}
 
 
 def rig_digest(rig: Rig) -> str:
@@ -307,6 +284,18 @@ def load_calibration(path: str | Path) -> Calibration:
                 dtype=np.float64,
             ).reshape(-1, 3),
             functional=dict(doc.get("functional", {})),
+            layout_marker_pos=(
+                np.asarray(
+                    [
+                        m.get("take_m", m.get("base_m", [np.nan] * 3))
+                        for m in doc["markers"].values()
+                    ],
+                    dtype=np.float64,
+                ).reshape(-1, 3)
+                if "layout_refined" in doc
+                else None
+            ),
+            layout_refined=dict(doc.get("layout_refined", {})),
         )
     except (KeyError, TypeError, ValueError) as exc:
         raise CalibrationError(f"{path}: malformed calibration ({exc!r})") from None

@@ -427,6 +427,7 @@ def build_fit_model(
     *,
     joint_limits: Mapping[str, JointLimitLike] | None = None,
     segment_kind: Mapping[str, str] | None = None,
+    layout_positions: F64Array | None = None,
 ) -> FitModel:
     """Build the fit's rigid model (see module docstring).
 
@@ -443,6 +444,11 @@ def build_fit_model(
         joint_limits: the validator's table, segment kind -> limits
             (``validate.limits.JOINT_LIMITS_DEG``); None: no limit penalty.
         segment_kind: humanoid bone -> segment kind (``validate.model.SEGMENT_KIND``).
+        layout_positions: (Mr, 3) metres, world, base pose, rig order: where each
+            marker sits on its bone when that is not where the base pose saw it
+            (a refined layout, ``Calibration.layout_marker_pos``); a marker's place
+            on its bone is taken from its finite row, in the bone frames the base
+            pose's markers build. None: the base pose's places.
 
     Returns:
         The model.
@@ -521,7 +527,11 @@ def build_fit_model(
             bones_of[i] = 0
             continue
         bone = rig.bones[b]
-        loc, used = _local_mean(marker_pos[:, i], pts[bone.origin], wfb[:, b])
+        place = marker_pos[:, i]
+        if layout_positions is not None and np.isfinite(layout_positions[i]).all():
+            # one row per base frame: the bone frames are the base frames'
+            place = np.broadcast_to(layout_positions[i], place.shape)
+        loc, used = _local_mean(place, pts[bone.origin], wfb[:, b])
         if used == 0:
             loc = rot.quat_rotate(
                 rot.quat_conj(rest_wfb[b]), marker_mean[i] - origins[b]

@@ -86,11 +86,17 @@ MARKER_BOUND_MM = {
 LIVE_WINDOW_S = 1.0
 
 
+def marker_bound_mm(segment: str) -> float:
+    """How far a marker of the segment (or bone) so named may sit off its calibrated
+    place, mm: :data:`MARKER_BOUND_MM`'s "trunk" or "limb" bound, by the name."""
+    kind = "trunk" if any(t in segment.lower() for t in TRUNK_SEGMENTS) else "limb"
+    return MARKER_BOUND_MM[kind]
+
+
 def segment_threshold_mm(segment: str, n_markers: int) -> float:
     """The layout RMS threshold of a segment of ``n_markers`` (>= 3), mm: its
-    marker bound (:data:`MARKER_BOUND_MM`, by its name) times sqrt(1 - 2/k)."""
-    kind = "trunk" if any(t in segment.lower() for t in TRUNK_SEGMENTS) else "limb"
-    return MARKER_BOUND_MM[kind] * math.sqrt(1.0 - 2.0 / max(n_markers, 3))
+    marker bound (:func:`marker_bound_mm`) times sqrt(1 - 2/k)."""
+    return marker_bound_mm(segment) * math.sqrt(1.0 - 2.0 / max(n_markers, 3))
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)

@@ -79,5 +79,6 @@ def make_body_solver(
         None,
         joint_limits=joint_limits,
         segment_kind=segment_kind,
+        layout_positions=calibration.layout_marker_pos,
     )
     return FitSolver(rig, calibration, labels, model=model, rate_hz=rate_hz)

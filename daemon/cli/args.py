@@ -228,6 +228,13 @@ def add_solve_arguments(parser: argparse.ArgumentParser) -> None:
         "markers off their calibrated layout: README 'Does the calibration fit "
         "the take?'); else a warning",
     )
+    parser.add_argument(
+        "--refine-layout",
+        action="store_true",
+        help="re-place each marker on its bone from this take's frames before "
+        "solving (a wand re-seated since the static; the joint model kept; the "
+        "fit only): says per marker how far it moved (README 'Re-seated markers')",
+    )
 
 
 def add_method_argument(
@@ -276,6 +283,18 @@ def solver_for_take(args: argparse.Namespace) -> tuple[Any, Any, Any, Any]:
                 take, rig, frames, parse_measures(args.measure),
                 allow_moving=args.allow_moving_base_pose,
             )  # fmt: skip
+        args.layout_refined = None
+        if getattr(args, "refine_layout", False):
+            if getattr(args, "method", "fit") != "fit":
+                raise UsageError(
+                    "--refine-layout re-places the fit's markers: it does nothing "
+                    "for --method construction, which builds its points from the "
+                    "markers themselves"
+                )
+            args.layout_refined = refine_from_take(
+                rig, cal, take, slice(0, take.n_frames)
+            )
+            cal = args.layout_refined.calibration
         solver = solver_of_method(args, rig, cal, take.labels, take.rate_hz)
     except CalibrationError as exc:
         raise UsageError(str(exc)) from None
@@ -283,6 +302,28 @@ def solver_for_take(args: argparse.Namespace) -> tuple[Any, Any, Any, Any]:
         take, rig, cal, solver, strict=getattr(args, "strict_calibration", False)
     )
     return rig, take, cal, solver
+
+
+def refine_from_take(rig: Any, calibration: Any, take: Any, rows: slice) -> Any:
+    """Re-place each marker on its bone from ``take.positions[rows]``
+    (``body.refine.refine_layout``, with the fit's joint limits as ``solve``'s);
+    its one summary line goes to stderr.
+
+    Returns:
+        The :class:`~retargetd.daemon.body.refine.RefinedLayout`.
+    """
+    from retargetd.daemon.body.refine import refine_layout
+    from retargetd.daemon.validate.limits import JOINT_LIMITS_DEG
+    from retargetd.daemon.validate.model import SEGMENT_KIND
+
+    refined = refine_layout(
+        rig, calibration, take.positions[rows], take.labels,
+        source={"take": str(take.path), "frames": f"{rows.start}:{rows.stop}"},
+        rate_hz=take.rate_hz, joint_limits=JOINT_LIMITS_DEG,
+        segment_kind=SEGMENT_KIND,
+    )  # fmt: skip
+    sys.stderr.write(f"refine-layout: {refined.summary()}\n")
+    return refined
 
 
 def check_calibration_match(

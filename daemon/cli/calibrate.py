@@ -1,5 +1,5 @@
 """``retargetd calibrate STATIC --rig RIG --out performer.json [--frames a:b]
-[--rom TAKE [--rom-frames a:b]]``.
+[--rom TAKE [--rom-frames a:b]] [--refine-layout TAKE [--refine-frames a:b]]``.
 
 The performer holds the base pose over the selected frames (0-based, half-open rows of
 the take as loaded; default: the whole take). The result is a calibrated skeleton
@@ -10,6 +10,10 @@ rig identity) loaded by ``retargetd solve --calibration`` and by the daemon.
 centres, knee axes) from a range of motion (``--rom-frames``, default the whole take;
 it may be the take itself): each is recorded with its residual and predicted error, and
 one the motion does not determine keeps the base pose's estimate, said in one line.
+``--refine-layout TAKE`` then re-places each marker on its bone from that take's
+frames (``--refine-frames``, default the whole take): a wand re-seated or a marker
+re-stuck since the static sits where the take says, the joint model is kept
+(``body.refine``); the file records per marker how far it moved.
 ``--json`` prints the summary as one JSON object (README "Machine-readable output").
 """
 
@@ -55,6 +59,17 @@ def add_parser(subparsers: Any) -> None:
     parser.add_argument(
         "--rom-frames", metavar="a:b", help="range-of-motion rows (0-based, half-open)"
     )
+    parser.add_argument(
+        "--refine-layout",
+        metavar="TAKE",
+        help="re-place each marker on its bone from this take's frames (markers "
+        "re-seated since the static; the joint model kept)",
+    )
+    parser.add_argument(
+        "--refine-frames",
+        metavar="a:b",
+        help="--refine-layout's rows (0-based, half-open)",
+    )
     from retargetd.daemon.cli.args import add_take_arguments
 
     add_take_arguments(parser)
@@ -91,9 +106,19 @@ def run(args: argparse.Namespace) -> int:
             rom_take.labels,
             {"take": str(rom_take.path), "frames": f"{rows.start}:{rows.stop}"},
         )
+    if args.refine_frames is not None and args.refine_layout is None:
+        raise UsageError("--refine-frames needs --refine-layout TAKE")
     cal = calibrate_from_take(
         take, rig, frames, overrides, allow_moving=args.allow_moving_base_pose, rom=rom
     )
+    if args.refine_layout is not None:
+        from retargetd.daemon.cli.args import refine_from_take
+
+        refine_take = load_take(args.refine_layout, **take_overrides(args))
+        rows = parse_frames(
+            args.refine_frames, refine_take.n_frames, option="--refine-frames"
+        )
+        cal = refine_from_take(rig, cal, refine_take, rows).calibration
     cal.save(args.out)
     if args.json:
         _print_json(args, rig, take, frames, cal)
@@ -177,5 +202,6 @@ def _print_json(
                 for n, length in zip(cal.bone_names, cal.bone_lengths, strict=False)
             },
             "functional": cal.functional.get("joints", {}),
+            "layout_refined": cal.layout_refined or None,
         }
     )

@@ -462,6 +462,11 @@ def _print_json_summary(
             "fit": fit,
             "calibration_match": args.calibration_match.to_json(),
             "calibration_matches": args.calibration_match.matches,
+            "layout_refined": (
+                None
+                if args.layout_refined is None
+                else args.layout_refined.calibration.layout_refined
+            ),
             "segment_stability": [
                 {"bone": b, "mean_m": m, "cv_pct": cv}
                 for b, m, cv in segment_stability(

@@ -160,6 +160,11 @@ def _validate(
         "passed": rep.passed,
         "failed": rep.failed(),
         "calibration_match": args.calibration_match.to_json(),
+        "layout_refined": (
+            None
+            if args.layout_refined is None
+            else args.layout_refined.calibration.layout_refined
+        ),
         "checks": {
             n: {**c.summary(), "detail": c.detail} for n, c in rep.checks.items()
         },

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from retargetd.daemon.body import calibration as calmod
+from retargetd.daemon import files as filesmod
 from retargetd.daemon.body.calibration import (
     Calibration,
     calibrate,
@@ -66,9 +66,9 @@ def test_a_failed_save_keeps_the_old_file(
                 _enospc()
                 return 0
 
-        monkeypatch.setattr(calmod.os, "fdopen", Full)
+        monkeypatch.setattr(filesmod.os, "fdopen", Full)
     else:
-        monkeypatch.setattr(calmod.os, fails, _enospc)
+        monkeypatch.setattr(filesmod.os, fails, _enospc)
     with pytest.raises(OSError) as info:
         new.save(path)
     monkeypatch.undo()
@@ -103,7 +103,7 @@ def test_calibrate_on_a_full_disk_is_one_line_and_keeps_the_old_file(
     assert main([*argv, "--out", str(out)]) == 0
     before = out.read_bytes()
     capsys.readouterr()
-    monkeypatch.setattr(calmod.os, "fsync", _enospc)
+    monkeypatch.setattr(filesmod.os, "fsync", _enospc)
     assert main([*argv, "--measure", "MarkerRadius=9", "--out", str(out)]) == 2
     err = [ln for ln in capsys.readouterr().err.splitlines() if "error" in ln]
     assert len(err) == 1 and "No space left" in err[0] and str(out) in err[0], err
