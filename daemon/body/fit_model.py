@@ -73,6 +73,7 @@ from retargetd.daemon.body.fit_observe import (
     hidden_information,
     observe,
 )
+from retargetd.daemon.body.neutral import neutral_from_rest, performer_left
 from retargetd.daemon.body.rig import Rig, RigError, load_rig
 from retargetd.daemon.body.rig_fit import (
     BoneFitOptions,
@@ -118,8 +119,12 @@ FIXED_STIFFNESS = 1.0
 LIMIT_MARGIN_RAD = math.radians(1.0)
 
 #: Limit table columns (radians; NaN = no such limit): twist lo, twist hi,
-#: sagittal lo, sagittal hi, frontal |max|, cone max.
+#: sagittal lo, sagittal hi, frontal |max|, cone max; then (4) the bone's
+#: ``neutral_from_rest`` (w x y z, ``body.neutral``): the limits apply to it times
+#: the calibration-relative rotation.
 LIM_TWIST_LO, LIM_TWIST_HI, LIM_SAG_LO, LIM_SAG_HI, LIM_FRONTAL, LIM_CONE = range(6)
+LIM_REF = 6
+N_LIM = 10
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -157,11 +162,13 @@ class FitModel:
         joint_dof: (B,) each joint's model ("root", "ball", "hinge", ...).
         observation: (B,) what the markers determine of each bone
             (``fit_observe.observe``).
-        limits: (B, 6) radians (``LIM_*`` columns, NaN = none); ``limit_left`` and
+        limits: (B, N_LIM) radians (``LIM_*`` columns, NaN = none), then each
+            bone's ``neutral_from_rest`` (``LIM_REF``); ``limit_left`` and
             ``limit_forward`` (B, 3): the performer's left and forward in each bone's
-            rest axes (the validator's sagittal and frontal axes).
+            axes at anatomical neutral (the validator's sagittal and frontal axes).
         penalty_cos: (B,) cos(theta_min / 2), theta_min the smallest limit of the
-            bone: a joint rotated by less than that (|w| above it) is inside all its
+            bone: a joint rotated from neutral by less than that (|w| of
+            ``neutral_from_rest * q`` above it) is inside all its
             limits, since swing and twist angles never exceed the rotation's angle
             (-1 for a bone without limits: never checked; 2 for a hinge or a swing
             joint: always).
@@ -382,27 +389,22 @@ def _limit_rows(
 ) -> tuple[F64Array, F64Array, F64Array]:
     """The validator's limits per bone in radians, and its sagittal / frontal axes."""
     n_bones = len(rig.bones)
-    limits = np.full((n_bones, 6), np.nan)
+    limits = np.full((n_bones, N_LIM), np.nan)
+    limits[:, LIM_REF : LIM_REF + 4] = neutral_from_rest(rig, calibration, segment_kind)
     left_b = np.zeros((n_bones, 3))
     fwd_b = np.zeros((n_bones, 3))
-    origins = np.asarray(calibration.rest_bone_origin_pos, dtype=np.float64)
-    humanoid = [b.humanoid or "" for b in rig.bones]
     # The same performer's left as validate_model.skeleton_from_calibration.
-    left = np.array([0.0, 1.0, 0.0])
-    if "LeftUpperLeg" in humanoid and "RightUpperLeg" in humanoid:
-        left = (
-            origins[humanoid.index("LeftUpperLeg")]
-            - origins[humanoid.index("RightUpperLeg")]
-        )
-        left[2] = 0.0
-        left /= np.linalg.norm(left)
+    left = performer_left(rig, calibration)
     forward = np.cross(left, np.array([0.0, 0.0, 1.0]))
     rest_wfb = np.asarray(calibration.rest_world_from_bone_quat, dtype=np.float64)
     for b, bone in enumerate(rig.bones):
         lim = joint_limits.get(segment_kind.get(bone.humanoid or "", "link"))
         if lim is None or bone.parent is None:
             continue
-        bone_from_world = rot.quat_conj(rest_wfb[b])
+        # the performer's axes in the bone's axes at anatomical neutral
+        bone_from_world = rot.quat_mul(
+            limits[b, LIM_REF : LIM_REF + 4], rot.quat_conj(rest_wfb[b])
+        )
         left_b[b] = rot.quat_rotate(bone_from_world, left)
         fwd_b[b] = rot.quat_rotate(bone_from_world, forward)
         if lim.twist[0] > -180.0 or lim.twist[1] < 180.0:
@@ -600,7 +602,7 @@ def build_fit_model(
     )
     penalty_cos = np.full(n_bones, -1.0)
     for b in range(n_bones):
-        bounds = np.abs(limits[b][np.isfinite(limits[b])])
+        bounds = np.abs(limits[b, :LIM_REF][np.isfinite(limits[b, :LIM_REF])])
         if bounds.size:
             penalty_cos[b] = math.cos(0.5 * float(bounds.min()))
         if hinge[b].any() or twist_lock[b]:

@@ -16,6 +16,7 @@ from retargetd.daemon.body.fit_terms import (
     C_LAM_TRANS,
     P_KAPPA_HINGE,
     P_KAPPA_LIMIT,
+    neutral_w,
     pen_components,
     prior_normal,
     qexp,
@@ -185,7 +186,7 @@ def build_normal(m: tuple, s: tuple) -> None:
             prior_normal(rest_pfb[b], q[b], pb, wm[b], hb, g, rb, jac)
         if hold_on[b] > 0.0:  # the hold while a marker is hidden (kernel_fit)
             prior_normal(anchor[b], q[b], hold[b], wm[b], hb, g, rb, jac)
-        if abs(r[0]) > m[19][b]:
+        if abs(neutral_w(lim[b], r)) > m[19][b]:
             continue
         pen_components(r[0], r[1], r[2], r[3], lim[b], left[b], fwd[b], hinge[b],
                         lock[b], s_lim, s_hinge, pen)  # fmt: skip

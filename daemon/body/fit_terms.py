@@ -227,6 +227,13 @@ def fk(
 
 
 @kernel
+def neutral_w(lim_b: np.ndarray, r: tuple) -> float:
+    # The scalar part of neutral_from_rest (lim_b[6:10]) times r: the cosine of half
+    # the joint's rotation from anatomical neutral (the penalties' skip test).
+    return lim_b[6] * r[0] - lim_b[7] * r[1] - lim_b[8] * r[2] - lim_b[9] * r[3]
+
+
+@kernel
 def pen_components(
     qw: float, qx: float, qy: float, qz: float,
     lim: np.ndarray, left: np.ndarray, fwd: np.ndarray, hinge: np.ndarray,
@@ -234,13 +241,18 @@ def pen_components(
 ) -> None:  # fmt: skip
     # Residuals of one joint's penalties for its calibration-relative rotation q:
     # out[0] twist, out[1] sagittal, out[2] frontal or cone excess (the validator's
-    # swing/twist split, validate_limits.swing_twist), out[3:6] the rotation off the
-    # hinge axis, or out[3] a swing joint's twist (lock != 0); each scaled by the
-    # square root of its weight.
+    # swing/twist split, validate_limits.swing_twist) of the rotation from anatomical
+    # neutral, neutral_from_rest (lim[6:10], body.neutral) times q; out[3:6] the
+    # rotation off the hinge axis, or out[3] a swing joint's twist (lock != 0), of q
+    # itself; each scaled by the square root of its weight.
     if qw < 0.0:
         qw, qx, qy, qz = -qw, -qx, -qy, -qz
     for k in range(6):
         out[k] = 0.0
+    hw, hx, hy, hz = qw, qx, qy, qz
+    qw, qx, qy, qz = qmul(lim[6], lim[7], lim[8], lim[9], hw, hx, hy, hz)
+    if qw < 0.0:
+        qw, qx, qy, qz = -qw, -qx, -qy, -qz
     tw = 2.0 * math.atan2(qy, qw)
     tw = (tw + math.pi) % (2.0 * math.pi) - math.pi
     if math.isfinite(lim[0]):
@@ -273,17 +285,18 @@ def pen_components(
         # A hinge about h, then the bone's own twist: q = R_h(t) R_y(u) moves the
         # bone's axis +Y on the cone about h, (q Y) . h = Y . h = h_y. The residual is
         # the distance off that cone, in radians (/ sin of the cone's half-angle).
-        ax = 2.0 * (qx * qy - qw * qz)
-        ay = 1.0 - 2.0 * (qx * qx + qz * qz)
-        az = 2.0 * (qy * qz + qw * qx)
+        ax = 2.0 * (hx * hy - hw * hz)
+        ay = 1.0 - 2.0 * (hx * hx + hz * hz)
+        az = 2.0 * (hy * hz + hw * hx)
         d = ax * hinge[0] + ay * hinge[1] + az * hinge[2] - hinge[1]
         out[3] = s_hinge * d / math.sqrt(1.0 - hinge[1] * hinge[1])
     elif lock != 0.0:
         # Zero twist about +Y <=> q_y = 0 <=> the rotation's axis is perpendicular to
-        # the bone: a pure swing.
-        out[3] = s_hinge * tw
+        # the bone: a pure swing (of the calibration-relative rotation).
+        th = 2.0 * math.atan2(hy, hw)
+        out[3] = s_hinge * ((th + math.pi) % (2.0 * math.pi) - math.pi)
     elif hinge[0] != 0.0 or hinge[1] != 0.0 or hinge[2] != 0.0:
-        vx, vy, vz = qlog(qw, qx, qy, qz)
+        vx, vy, vz = qlog(hw, hx, hy, hz)
         d = vx * hinge[0] + vy * hinge[1] + vz * hinge[2]
         out[3] = s_hinge * (vx - d * hinge[0])
         out[4] = s_hinge * (vy - d * hinge[1])
@@ -359,7 +372,7 @@ def reg_cost(m: tuple, s: tuple, q: np.ndarray, t: np.ndarray) -> float:
                 cost += prior_cost(rest_pfb[b], q[b], pb)
             if hold_on[b] > 0.0:
                 cost += prior_cost(anchor[b], q[b], hold[b])
-            if abs(r[0]) > pen_cos[b]:
+            if abs(neutral_w(lim[b], r)) > pen_cos[b]:
                 continue
             pen_components(r[0], r[1], r[2], r[3], lim[b], left[b], fwd[b],
                             hinge[b], lock[b], s_lim, s_hinge, pen)  # fmt: skip

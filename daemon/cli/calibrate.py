@@ -14,6 +14,9 @@ one the motion does not determine keeps the base pose's estimate, said in one li
 frames (``--refine-frames``, default the whole take): a wand re-seated or a marker
 re-stuck since the static sits where the take says, the joint model is kept
 (``body.refine``); the file records per marker how far it moved.
+The summary also gives the calibration pose's own hip, knee and ankle angles from
+anatomical neutral (``body.neutral``): the joint ranges the fit and ``validate`` use
+are taken from neutral, not from the calibration pose.
 ``--json`` prints the summary as one JSON object (README "Machine-readable output").
 """
 
@@ -144,6 +147,16 @@ def run(args: argparse.Namespace) -> int:
         )
     for name, j in cal.functional.get("joints", {}).items():
         out(f"functional {name}: {_functional_line(j)}\n")
+    from_neutral = _pose_from_neutral(rig, cal)
+    if from_neutral:
+        out(
+            "calibration pose from anatomical neutral (sagittal / frontal deg; the "
+            "joint ranges are taken from neutral): "
+            + ", ".join(
+                f"{b} {s:+.1f} / {f:+.1f}" for b, (s, f) in from_neutral.items()
+            )
+            + "\n"
+        )
     out("bone lengths (mm): ")
     out(
         ", ".join(
@@ -170,6 +183,18 @@ def _functional_line(j: dict[str, Any]) -> str:
         f"axis {turned}turned {j['arc_deg']:.0f} deg, residual {j['rms_mm']:.1f} mm, "
         f"predicted error {_or_dash(j['se_deg'])} deg, {j['frames']} frames: {used}"
     )
+
+
+def _pose_from_neutral(rig: Any, cal: Any) -> dict[str, tuple[float, float]]:
+    """Each bone's calibration pose from anatomical neutral (``body.neutral``), in
+    the validator's sagittal / frontal split."""
+    from retargetd.daemon.body.neutral import pose_from_neutral_deg
+    from retargetd.daemon.validate.model import SEGMENT_KIND, skeleton_from_calibration
+
+    if cal.rest_bone_origin_pos is None:
+        return {}
+    left = skeleton_from_calibration(rig, cal).left_world
+    return pose_from_neutral_deg(rig, cal, SEGMENT_KIND, left)
 
 
 def _or_dash(x: float | None) -> str:
@@ -203,5 +228,9 @@ def _print_json(
             },
             "functional": cal.functional.get("joints", {}),
             "layout_refined": cal.layout_refined or None,
+            "pose_from_neutral_deg": {
+                b: {"sagittal": sag, "frontal": fro}
+                for b, (sag, fro) in _pose_from_neutral(rig, cal).items()
+            },
         }
     )

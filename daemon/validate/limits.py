@@ -1,12 +1,14 @@
 """Anatomical joint limits as swing/twist about each bone's axis.
 
 A bone's streamed ``rest_from_bone_quat`` ``q`` is its rotation from the calibration
-pose, in the bone's own rest axes (+Y along the bone). It is split as
-``q = swing * twist``: ``twist`` about +Y (the long-axis rotation, e.g. forearm
-pronation), ``swing`` about an axis perpendicular to the bone (its rotation vector
-``s``). Limits are measured from the calibration pose, which is a standing pose (T-,
-A- or anatomical): for legs, spine and neck that pose is close to anatomical neutral,
-so their swing is split into a sagittal component (``s`` along the performer's left,
+pose, in the bone's own rest axes (+Y along the bone). The limits apply to its
+rotation from anatomical neutral, ``neutral_from_rest * q`` (``body.neutral``: a hip
+or knee the calibration held flexed is measured from straight; every other joint from
+the calibration pose), split as ``swing * twist``: ``twist`` about +Y (the long-axis
+rotation, e.g. forearm pronation), ``swing`` about an axis perpendicular to the bone
+(its rotation vector ``s``). The calibration pose is a standing pose (T-, A- or
+anatomical): for legs, spine and neck that pose is close to anatomical neutral, so
+their swing is split into a sagittal component (``s`` along the performer's left,
 as in the calibration pose: positive = knee flexion, hip extension, ankle
 plantarflexion, trunk / neck flexion) and a frontal component (``s`` along forward,
 checked as a magnitude because its sign flips with the side). For the arms the rest
@@ -221,14 +223,29 @@ def swing_twist(q: F64Array) -> tuple[F64Array, F64Array]:
     return rot.rotvec_from_quat(swing), twist_angle
 
 
+def neutral_frame(skel: Skeleton, b: int) -> tuple[F64Array, F64Array]:
+    """Bone ``b``'s ``neutral_from_rest`` (4,) and ``neutral_from_world`` (4,)
+    rotations: the limits apply to ``neutral_from_rest * rest_from_bone``, and the
+    performer's left and forward are taken in the bone's axes at neutral
+    (``body.neutral``; identity without ``skel.neutral_from_rest_quat``)."""
+    ref = (
+        np.array([1.0, 0.0, 0.0, 0.0])
+        if skel.neutral_from_rest_quat is None
+        else np.asarray(skel.neutral_from_rest_quat[b], dtype=np.float64)
+    )
+    return ref, rot.quat_mul(ref, rot.quat_conj(skel.rest_world_from_bone_quat[b]))
+
+
 def limit_violation_deg(
     skel: Skeleton, pfb: F64Array, table: dict[str, JointLimit] | None = None
 ) -> tuple[F64Array, np.ndarray]:
     """Degrees beyond each bone's limits, per frame, and which limit.
 
     Args:
-        skel: the skeleton (segment kinds, rest rotations, performer's left).
-        pfb: (T, B, 4) streamed ``rest_from_bone_quat``.
+        skel: the skeleton (segment kinds, rest rotations, performer's left, the
+            calibration pose's rotation from anatomical neutral).
+        pfb: (T, B, 4) streamed ``rest_from_bone_quat``: the limits are checked on
+            ``neutral_from_rest * rest_from_bone`` (``body.neutral``).
         table: the limits (default :data:`JOINT_LIMITS_DEG`; or
             :data:`TYPICAL_LIMITS_DEG`).
 
@@ -239,6 +256,8 @@ def limit_violation_deg(
     n, n_bones = pfb.shape[:2]
     viol = np.zeros((n, n_bones))
     which = np.full((n, n_bones), "", dtype=object)
+    if skel.neutral_from_rest_quat is not None:
+        pfb = rot.quat_mul(np.asarray(skel.neutral_from_rest_quat)[None], pfb)
     swing, twist = swing_twist(pfb)
     swing = np.degrees(swing)
     twist = np.degrees(twist)
@@ -248,7 +267,7 @@ def limit_violation_deg(
         lim = (JOINT_LIMITS_DEG if table is None else table).get(kind)
         if lim is None or skel.bone_parents[b] < 0:
             continue
-        bone_from_world = rot.quat_conj(skel.rest_world_from_bone_quat[b])
+        _, bone_from_world = neutral_frame(skel, b)
         parts: list[tuple[str, F64Array, F64Array]] = [
             ("twist", twist[:, b], _beyond(twist[:, b], *lim.twist))
         ]

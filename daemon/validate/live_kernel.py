@@ -41,8 +41,9 @@ _B_SPEED = ps.BONE_V_SPEED
 # Per-bone float table columns (``Tables.bone_f``).
 _C_LEN, _C_OFF = 0, 1  # model length; offset in the parent's bone frame (3)
 _C_TW, _C_SAG, _C_FRO, _C_CONE = 4, 6, 8, 9  # limits, degrees (lo, hi) / max; NaN none
-_C_LEFT, _C_FWD = 10, 13  # performer's left / forward in the bone's rest frame (3)
-_N_BONE_F = 16
+_C_LEFT, _C_FWD = 10, 13  # performer's left / forward in the bone's neutral frame (3)
+_C_REF = 16  # neutral_from_rest (4, w x y z): the limits apply to it * rest_from_bone
+_N_BONE_F = 20
 # Per-bone int table columns (``Tables.bone_i``).
 _I_PARENT, _I_BODY, _I_SITE, _I_LIMITED = 0, 1, 2, 3
 # Parameter vector (``Tables.params``).
@@ -225,7 +226,15 @@ def _check_frame(
     for b in range(n_bones):
         if bone_i[b, _I_LIMITED] == 0:
             continue
-        qw, qx, qy, qz = pfb[b, 0], pfb[b, 1], pfb[b, 2], pfb[b, 3]
+        aw, ax, ay, az = (
+            bone_f[b, _C_REF], bone_f[b, _C_REF + 1], bone_f[b, _C_REF + 2],
+            bone_f[b, _C_REF + 3],
+        )  # fmt: skip
+        pw, px, py, pz = pfb[b, 0], pfb[b, 1], pfb[b, 2], pfb[b, 3]
+        qw = aw * pw - ax * px - ay * py - az * pz
+        qx = aw * px + ax * pw + ay * pz - az * py
+        qy = aw * py - ax * pz + ay * pw + az * px
+        qz = aw * pz + ax * py - ay * px + az * pw
         tw = 2.0 * math.atan2(qy, qw) + math.pi
         tw = tw - 2.0 * math.pi * math.floor(tw / (2.0 * math.pi)) - math.pi
         c = math.cos(0.5 * tw)

@@ -15,7 +15,7 @@ from retargetd.daemon import rotations as rot
 from retargetd.daemon.body.rig import Rig
 from retargetd.daemon.validate import dynamics as vd
 from retargetd.daemon.validate.checks import fit_pairs
-from retargetd.daemon.validate.limits import JOINT_LIMITS_DEG
+from retargetd.daemon.validate.limits import JOINT_LIMITS_DEG, neutral_frame
 from retargetd.daemon.validate.live_kernel import (
     _C_CONE,
     _C_FRO,
@@ -23,6 +23,7 @@ from retargetd.daemon.validate.live_kernel import (
     _C_LEFT,
     _C_LEN,
     _C_OFF,
+    _C_REF,
     _C_SAG,
     _C_TW,
     _I_BODY,
@@ -90,7 +91,8 @@ class Tables:
             if lim is None or parents[b] < 0:
                 continue
             bone_i[b, _I_LIMITED] = 1
-            bone_from_world = rot.quat_conj(skel.rest_world_from_bone_quat[b])
+            ref, bone_from_world = neutral_frame(skel, b)
+            bone_f[b, _C_REF : _C_REF + 4] = ref
             bone_f[b, _C_TW : _C_TW + 2] = lim.twist
             if lim.sagittal is not None:
                 bone_f[b, _C_SAG : _C_SAG + 2] = lim.sagittal

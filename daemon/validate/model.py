@@ -34,6 +34,7 @@ import numpy as np
 
 from retargetd.daemon import rotations as rot
 from retargetd.daemon.body.calibration import Calibration
+from retargetd.daemon.body.neutral import neutral_from_rest, performer_left
 from retargetd.daemon.body.rig import Rig
 from retargetd.protocols.frames import F64Array
 
@@ -128,6 +129,10 @@ class Skeleton:
         rest_world_from_bone_quat: (B, 4) w x y z, the calibration pose.
         rest_origin_world: (B, 3) metres, bone origins in the calibration pose.
         left_world: (3,) the performer's left in the calibration pose (horizontal).
+        neutral_from_rest_quat: (B, 4) w x y z, each bone's rotation from anatomical
+            neutral to the calibration pose, in its axes (``body.neutral``): the
+            joint limits apply to ``neutral_from_rest * rest_from_bone``; None:
+            identity (the calibration pose taken as neutral).
     """
 
     bone_names: tuple[str, ...]
@@ -138,6 +143,7 @@ class Skeleton:
     rest_world_from_bone_quat: F64Array
     rest_origin_world: F64Array
     left_world: F64Array
+    neutral_from_rest_quat: F64Array | None = None
 
     def digest(self, body_mass_kg: float) -> str:
         """SHA-256 of everything the model is built from."""
@@ -177,13 +183,7 @@ def skeleton_from_calibration(
             )
             offsets[b] *= lengths[p] / cal_len[p]
     kinds = tuple(SEGMENT_KIND.get(b.humanoid or "", "link") for b in rig.bones)
-    humanoid = [b.humanoid or "" for b in rig.bones]
-    left = np.array([0.0, 1.0, 0.0])
-    if "LeftUpperLeg" in humanoid and "RightUpperLeg" in humanoid:
-        left = origins[humanoid.index("LeftUpperLeg")].copy()
-        left -= origins[humanoid.index("RightUpperLeg")]
-        left[2] = 0.0
-        left /= np.linalg.norm(left)
+    left = performer_left(rig, calibration)
     return Skeleton(
         bone_names=tuple(calibration.bone_names),
         bone_parents=parents,
@@ -193,6 +193,7 @@ def skeleton_from_calibration(
         rest_world_from_bone_quat=rest_wfb,
         rest_origin_world=origins,
         left_world=left,
+        neutral_from_rest_quat=neutral_from_rest(rig, calibration, SEGMENT_KIND),
     )
 
 
@@ -396,4 +397,5 @@ def skeleton_from_arrays(skel: Skeleton, bone_lengths: F64Array) -> Skeleton:
         rest_world_from_bone_quat=skel.rest_world_from_bone_quat,
         rest_origin_world=skel.rest_origin_world,
         left_world=skel.left_world,
+        neutral_from_rest_quat=skel.neutral_from_rest_quat,
     )

@@ -243,7 +243,7 @@ def test_a_live_save_on_a_full_disk_keeps_the_old_file(
     """ENOSPC at the fsync (simulated: the daemon's thread shares this process): the
     new calibration is in use, its file NOT written, the old one whole and readable,
     no temporary file left; ``ctl`` says so and exits 1."""
-    from retargetd.daemon.body import calibration as calmod
+    from retargetd.daemon import files as calmod
 
     def enospc(*_args: object) -> None:
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
