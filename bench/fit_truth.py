@@ -13,7 +13,10 @@ at ``--rate-hz``, ``--noise-mm``, ``--seed``) wearing a shipped marker set
 activity alone (``synth.motion.ACTIVITY_MOTIONS``). The rig of the same name is
 calibrated on the take's first ``--calibrate-frames`` frames (the T-pose hold) and
 the take is solved with ``body.method.make_body_solver(method, rig, cal, labels,
-joint_limits=JOINT_LIMITS_DEG, segment_kind=SEGMENT_KIND)``, once per method.
+joint_limits=JOINT_LIMITS_DEG, segment_kind=SEGMENT_KIND)``, once per method;
+``fit+rom`` (rigs with a ``[functional]`` table) is the fit on a calibration that
+adds the same performer's range of motion (``synth --motions rom``, two cycles:
+``calibrate --rom``, issue 29), in the truth tables only.
 
 **Truth table.** ``synth.truth.compare_with_truth``: per rig bone with a humanoid
 name, the angle between its rotation change since frame 0 and its performer
@@ -65,6 +68,7 @@ from retargetd.daemon.body.solve import BodySolve, BodySolver
 from retargetd.daemon.body.solve_fit import FitSolver
 from retargetd.daemon.synth import performer as pf
 from retargetd.daemon.synth.damage import DamageMetrics, damage, damage_metrics
+from retargetd.daemon.synth.motion import ROM_PERIOD_S
 from retargetd.daemon.synth.truth import compare_with_truth
 from retargetd.daemon.validate.limits import JOINT_LIMITS_DEG
 from retargetd.daemon.validate.model import SEGMENT_KIND
@@ -77,6 +81,13 @@ MOTION_SETS: dict[str, tuple[str, ...]] = {
     **{name: (name,) for name in pf.ACTIVITY_MOTIONS},
 }
 BURST_KINDS = ("collapse", "zeros", "swap")
+#: The fit on a calibration that adds a range of motion (issue 29): rigs with a
+#: ``[functional]`` table only, truth tables only (no damage).
+ROM_METHOD = "fit+rom"
+#: Seconds of the synthetic range of motion after its 1 s hold: two cycles of
+#: ``synth.motion`` ``rom`` (``ROM_PERIOD_S`` 12 s), the live ``ctl calibrate --rom``
+#: default.
+ROM_SECONDS = 2.0 * ROM_PERIOD_S
 #: Issue 28 item 6's thresholds.
 P95_DEG = 5.0
 MAX_DEG = 10.0
@@ -156,22 +167,30 @@ def _take(rig_name: str, motions: str, settings: Settings) -> pf.SynthTake:
 
 @lru_cache(maxsize=4)
 def _calibrated(
-    rig_name: str, motions: str, settings: Settings
+    rig_name: str, motions: str, settings: Settings, rom: bool = False
 ) -> tuple[Rig, Calibration]:
     rig = load_rig(rig_name)
     take = _take(rig_name, motions, settings)
     base = take.markers_world[: settings.calibrate_frames]
-    return rig, calibrate(rig, base, take.labels)
+    if not rom:
+        return rig, calibrate(rig, base, take.labels)
+    # the same performer (seed, height, marker set) through its range of motion
+    moves = pf.synthesize(
+        seconds=1.0 + ROM_SECONDS, rate_hz=settings.rate_hz, markerset=rig_name,
+        motions=("rom",), noise_mm=settings.noise_mm, seed=settings.seed,
+    )  # fmt: skip
+    frames = (moves.markers_world[moves.base_pose_frames.stop :], moves.labels, {})
+    return rig, calibrate(rig, base, take.labels, rom=frames)
 
 
 @lru_cache(maxsize=4)
 def _solver(
     rig_name: str, motions: str, method: str, settings: Settings
 ) -> BodySolver | FitSolver:
-    rig, cal = _calibrated(rig_name, motions, settings)
+    rig, cal = _calibrated(rig_name, motions, settings, method == ROM_METHOD)
     take = _take(rig_name, motions, settings)
     return make_body_solver(
-        method, rig, cal, take.labels,
+        method.removesuffix("+rom"), rig, cal, take.labels,
         joint_limits=JOINT_LIMITS_DEG, segment_kind=SEGMENT_KIND,
         rate_hz=take.rate_hz,
     )  # fmt: skip
@@ -457,7 +476,10 @@ def _document(
         f"{settings.seed}, wearing each rig's marker set; calibrated on frames "
         f"0-{settings.calibrate_frames - 1} (the T-pose hold); solved with "
         "`make_body_solver(method, rig, cal, labels, joint_limits=JOINT_LIMITS_DEG, "
-        "segment_kind=SEGMENT_KIND)`."
+        f"segment_kind=SEGMENT_KIND)`. `{ROM_METHOD}` (rigs with a `[functional]` "
+        "table): the fit on a calibration that adds the same performer's range of "
+        f"motion (`synth --motions rom`, {ROM_SECONDS:g} s after its hold; "
+        "`calibrate --rom`, issue 29)."
         + (" Unobserved axes: `--unobserved` (the marks judge error less the truth's "
            "excursion in them)." if settings.unobserved else ""),
         "",
@@ -496,7 +518,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--rigs", default=",".join(RIGS))
     ap.add_argument("--motions", default=",".join(MOTION_SETS),
                     help="motion sets: default and activity names")  # fmt: skip
-    ap.add_argument("--methods", default=",".join(METHODS))
+    ap.add_argument("--methods", default=",".join((*METHODS, ROM_METHOD)),
+                    help=f"{', '.join(METHODS)}, {ROM_METHOD}")  # fmt: skip
     ap.add_argument("--seconds", type=float, default=10.0)
     ap.add_argument("--rate-hz", type=float, default=120.0)
     ap.add_argument("--noise-mm", type=float, default=0.0)
@@ -517,7 +540,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     rigs = _names(args.rigs, RIGS, "rigs")
     motion_sets = _names(args.motions, MOTION_SETS, "motions")
-    methods = _names(args.methods, METHODS, "methods")
+    methods = _names(args.methods, (*METHODS, ROM_METHOD), "methods")
     kinds = _names(args.burst_kinds, BURST_KINDS, "burst-kinds")
     hides = _numbers(args.hide_s, float, "hide-s")
     bursts = _numbers(args.bursts, int, "bursts")
@@ -546,13 +569,20 @@ def main(argv: Sequence[str] | None = None) -> int:
         recovery_tol_mm=args.recovery_tol_mm,
         unobserved=args.unobserved.read_text() if args.unobserved else "",
     )
+    functional = {r for r in rigs if load_rig(r).functional}
     tasks: list[Any] = [
-        TruthCase(r, m, meth) for r in rigs for m in motion_sets for meth in methods
+        TruthCase(r, m, meth)
+        for r in rigs
+        for m in motion_sets
+        for meth in methods
+        if meth != ROM_METHOD or r in functional
     ]
     n_truth = len(tasks)
     if not args.no_damage:
         for r in rigs:
             for meth in methods:
+                if meth == ROM_METHOD:
+                    continue
                 tasks += [
                     DamageCase(r, meth, "hide", (round(h * args.rate_hz),))
                     for h in hides

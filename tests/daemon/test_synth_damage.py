@@ -198,3 +198,17 @@ def test_fit_truth_bench_writes_its_tables(tmp_path: Path) -> None:
     assert "### menache, fit: p95 / max, degrees" in text
     assert "| lhand |" in text
     assert "| hide 0.05 s (37 markers) |" in text and "| zeros 2 frames |" in text
+
+
+def test_fit_truth_bench_adds_the_range_of_motion_calibration(tmp_path: Path) -> None:
+    # fit+rom only for a rig with [functional] joints, truth tables only
+    out = tmp_path / "fit-truth.md"
+    script = bench_module("fit_truth")
+    argv = ["--out", str(out), "--rigs", "menache,plug-in-gait", "--motions",
+            "default", "--methods", "fit+rom", "--seconds", "2", "--no-damage",
+            "--jobs", "1"]  # fmt: skip
+    assert script.main(argv) == 0
+    text = out.read_text()
+    assert "| plug-in-gait | default | fit+rom |" in text
+    assert "| menache | default | fit+rom |" not in text
+    assert "### plug-in-gait, fit+rom: p95 / max, degrees" in text
