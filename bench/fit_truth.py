@@ -21,7 +21,10 @@ adds the same performer's range of motion (``synth --motions rom``, two cycles:
 **Truth table.** ``synth.truth.compare_with_truth``: per rig bone with a humanoid
 name, the angle between its rotation change since frame 0 and its performer
 segment's; statistics over the frames after the calibration window. Bones past p95
-5 deg or max 10 deg (issue 28 item 6) are bold. With ``--unobserved FILE`` (JSON:
+5 deg or max 10 deg (issue 28 item 6) are bold; a bone whose rig's markers leave a
+rotation unobserved (``fit_observe``'s decision for the rig and its calibration,
+issue 28 item 1), or whose ancestors' markers do, is judged on its error less the
+truth's own excursion in those rotations. ``--unobserved FILE`` adds axes (JSON:
 ``{rig: {bone: [[x, y, z], ...]}}``, axes in the bone's rest axes that no marker
 determines) the marks judge the error less the truth's own excursion in those axes.
 
@@ -69,7 +72,7 @@ from retargetd.daemon.body.solve_fit import FitSolver
 from retargetd.daemon.synth import performer as pf
 from retargetd.daemon.synth.damage import DamageMetrics, damage, damage_metrics
 from retargetd.daemon.synth.motion import ROM_PERIOD_S
-from retargetd.daemon.synth.truth import compare_with_truth
+from retargetd.daemon.synth.truth import compare_with_truth, truth_map
 from retargetd.daemon.validate.limits import JOINT_LIMITS_DEG
 from retargetd.daemon.validate.model import SEGMENT_KIND
 
@@ -136,6 +139,9 @@ class TruthRow:
     p95_deg: tuple[float, ...]
     max_deg: tuple[float, ...]
     past: tuple[str, ...]
+    held: tuple[str, ...]  # bones judged less the truth's unobserved excursion
+    excess_p95_deg: tuple[float, ...]
+    excess_max_deg: tuple[float, ...]
     n_nan: int
     joint: str
     joint_p95_mm: float
@@ -211,10 +217,29 @@ def _solve(
     return solver.solve_take(take.markers_world if positions is None else positions)
 
 
+def _unobserved(
+    rig_name: str, motions: str, settings: Settings
+) -> dict[str, list[list[float]]]:
+    """Per compared bone, the rotations (bone rest axes) its rig's markers do not
+    observe (``fit_observe``, issue 28 item 1: decided from the rig and its
+    calibration, the same for both methods), then ``--unobserved``'s per bone."""
+    rig, _ = _calibrated(rig_name, motions, settings)
+    model = _solver(rig_name, motions, "fit", settings).model
+    compared = set(truth_map(rig, _take(rig_name, motions, settings).segment_names)
+                   .bone_names)  # fmt: skip
+    out = {
+        o.bone: o.axes[~o.observed].tolist()
+        for o in model.observation
+        if o.bone in compared and not o.observed.all()
+    }
+    out.update(json.loads(settings.unobserved or "{}").get(rig_name, {}))
+    return out
+
+
 def _run_truth(case: TruthCase, settings: Settings) -> TruthRow:
     take = _take(case.rig, case.motions, settings)
     rig, _ = _calibrated(case.rig, case.motions, settings)
-    unobserved = json.loads(settings.unobserved or "{}").get(case.rig)
+    unobserved = _unobserved(case.rig, case.motions, settings)
     cmp = compare_with_truth(
         _solve(case.rig, case.motions, case.method, settings),
         take,
@@ -229,6 +254,13 @@ def _run_truth(case: TruthCase, settings: Settings) -> TruthRow:
         p95_deg=tuple(float(v) for v in cmp.p95_deg),
         max_deg=tuple(float(v) for v in cmp.max_deg),
         past=cmp.bones_past(P95_DEG, MAX_DEG),
+        held=tuple(
+            n
+            for n, ex in zip(cmp.bone_names, cmp.excursion_deg.T, strict=True)
+            if ex.any()
+        ),
+        excess_p95_deg=tuple(float(v) for v in cmp.excess_p95_deg),
+        excess_max_deg=tuple(float(v) for v in cmp.excess_max_deg),
         n_nan=int(cmp.n_nan.max()) if cmp.n_nan.size else 0,
         joint=cmp.joint_names[j] if cmp.joint_names else "",
         joint_p95_mm=float(cmp.joint_p95_mm[j]) if cmp.joint_names else 0.0,
@@ -304,7 +336,12 @@ def _truth_section(rows: Sequence[TruthRow], settings: Settings) -> list[str]:
         f"{settings.calibrate_frames}-{round(settings.seconds * settings.rate_hz) - 1} "
         "of the angle between its rotation change since frame 0 and its performer "
         "segment's, degrees (`synth.truth.compare_with_truth`). **Bold**: past "
-        f"p95 {P95_DEG:g} deg or max {MAX_DEG:g} deg. Joints: the worst rig joint "
+        f"p95 {P95_DEG:g} deg or max {MAX_DEG:g} deg; for a bone whose rig's markers "
+        "leave a rotation unobserved (`fit_observe`, issue 28 item 1: held at the "
+        "calibration pose by the fit's prior) or whose ancestors' do, judged on the "
+        "error less the truth's own excursion in those rotations (shown as \"less "
+        'excursion"), as item 6 asks; the worst columns of the first table stay the '
+        "plain error. Joints: the worst rig joint "
         "centre that stands for a performer joint, mm, after a constant offset "
         "carried by either adjacent segment.",
         "",
@@ -336,7 +373,14 @@ def _truth_section(rows: Sequence[TruthRow], settings: Settings) -> list[str]:
             for b, bone in enumerate(block[0].bone_names):
                 cells = [
                     _bold(
-                        f"{_deg(r.p95_deg[b])} / {_deg(r.max_deg[b])}", bone in r.past
+                        f"{_deg(r.p95_deg[b])} / {_deg(r.max_deg[b])}"
+                        + (
+                            f" (less excursion {_deg(r.excess_p95_deg[b])} / "
+                            f"{_deg(r.excess_max_deg[b])})"
+                            if bone in r.held
+                            else ""
+                        ),
+                        bone in r.past,
                     )
                     for r in block
                 ]
@@ -480,8 +524,8 @@ def _document(
         "table): the fit on a calibration that adds the same performer's range of "
         f"motion (`synth --motions rom`, {ROM_SECONDS:g} s after its hold; "
         "`calibrate --rom`, issue 29)."
-        + (" Unobserved axes: `--unobserved` (the marks judge error less the truth's "
-           "excursion in them)." if settings.unobserved else ""),
+        + (" Unobserved axes added by `--unobserved`." if settings.unobserved
+           else ""),
         "",
     ]  # fmt: skip
     if truth:
