@@ -37,7 +37,7 @@ import numpy as np
 
 from retargetd.daemon.body.calibrate_rom import RomPoints
 from retargetd.daemon.body.rig import LinePoint, Rig
-from retargetd.daemon.files import write_atomic
+from retargetd.daemon.files import FileFormatError, loads_json, read_text, write_atomic
 from retargetd.daemon.rotations import quat_conj, quat_from_mat, quat_mul
 from retargetd.protocols.frames import F64Array
 
@@ -225,9 +225,9 @@ def load_calibration(path: str | Path) -> Calibration:
         CalibrationError: unreadable or not a calibration, naming the file.
     """
     try:
-        doc = json.loads(Path(path).read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        raise CalibrationError(f"{path}: cannot read calibration: {exc}") from None
+        doc = loads_json(read_text(path, "calibration"))
+    except FileFormatError as exc:
+        raise CalibrationError(f"{path}: {exc}") from None
     if not isinstance(doc, dict) or doc.get("format") != CALIBRATION_FORMAT:
         raise CalibrationError(f"{path}: not a retargetd calibration file")
     if doc.get("version") != CALIBRATION_VERSION:

@@ -42,7 +42,6 @@ import ast
 import logging
 import math
 import re
-import tomllib
 from collections.abc import Mapping
 from importlib import resources
 from pathlib import Path
@@ -65,6 +64,7 @@ from retargetd.daemon.body.rig_model import (
     RigError,
     RigidPoint,
 )
+from retargetd.daemon.files import FileFormatError, loads_toml, read_text
 
 logger = logging.getLogger(__name__)
 
@@ -101,16 +101,9 @@ def load_rig(name_or_path: str | Path) -> Rig:
             )
         return parse_rig(resource.read_text(), source=f"{text_name} (shipped)")
     try:
-        data = path.read_bytes()
-    except OSError as exc:
-        raise RigError(f"{path}: cannot read rig file: {exc.strerror}") from None
-    try:
-        text = data.decode("utf-8")
-    except UnicodeDecodeError as exc:
-        raise RigError(
-            f"{path}: not UTF-8 text (byte 0x{data[exc.start]:02x} at offset "
-            f"{exc.start})"
-        ) from None
+        text = read_text(path, "rig file")
+    except FileFormatError as exc:
+        raise RigError(f"{path}: {exc}") from None
     return parse_rig(text, source=str(path))
 
 
@@ -194,8 +187,8 @@ def _linear(
 def parse_rig(text: str, *, source: str) -> Rig:
     """Parse and validate rig TOML text. ``source`` names the file in errors."""
     try:
-        doc = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
+        doc = loads_toml(text)
+    except FileFormatError as exc:
         hint = ""
         dotted = re.search(r"^\s*([A-Za-z0-9_-]+)\.([A-Za-z0-9_.-]+)\s*=", text, re.M)
         if dotted:
@@ -205,7 +198,7 @@ def parse_rig(text: str, *, source: str) -> Rig:
                 f'"{a}.{b}" = ..., or name the rig marker without dots, '
                 f'{a}{b.replace(".", "")} = "{a}.{b}")'
             )
-        raise RigError(f"{source}: not valid TOML: {exc}{hint}") from None
+        raise RigError(f"{source}: {exc}{hint}") from None
     return _Parser(doc, source).parse()
 
 

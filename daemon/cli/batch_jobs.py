@@ -26,7 +26,6 @@ import shlex
 import shutil
 import tempfile
 import time
-import tomllib
 import traceback
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -147,9 +146,11 @@ def load_manifest(path: str | Path) -> tuple[dict[str, Any], list[Rule]]:
         BatchError: naming the file and key.
     """
     path = Path(path)
+    from retargetd.daemon.files import FileFormatError, loads_toml, read_text
+
     try:
-        doc = tomllib.loads(path.read_text())
-    except (OSError, tomllib.TOMLDecodeError) as exc:
+        doc = loads_toml(read_text(path, "batch manifest"))
+    except FileFormatError as exc:
         raise BatchError(f"{path}: {exc}") from None
     base = abs_path(path).parent
     unknown = set(doc) - {"defaults", "takes"}

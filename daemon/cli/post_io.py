@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import tomllib
 from pathlib import Path
 from typing import Any
 
@@ -35,10 +34,11 @@ def add_pipeline_argument(parser: argparse.ArgumentParser) -> None:
 
 
 def _read_toml(path: str | Path) -> dict[str, Any]:
+    from retargetd.daemon.files import FileFormatError, loads_toml, read_text
+
     try:
-        with open(path, "rb") as fh:
-            return tomllib.load(fh)
-    except tomllib.TOMLDecodeError as exc:
+        return loads_toml(read_text(path, "pipeline file"))
+    except FileFormatError as exc:
         raise UsageError(f"--pipeline {path}: {exc}") from None
 
 

@@ -32,7 +32,6 @@ from __future__ import annotations
 import argparse
 import math
 import sys
-import tomllib
 from typing import Any
 
 from retargetd.daemon.errors import UsageError
@@ -92,10 +91,11 @@ def add_parser(subparsers: Any) -> None:
 
 
 def _load_map(path: str) -> dict[str, str]:
+    from retargetd.daemon.files import FileFormatError, loads_toml, read_text
+
     try:
-        with open(path, "rb") as fh:
-            data = tomllib.load(fh)
-    except tomllib.TOMLDecodeError as exc:
+        data = loads_toml(read_text(path, "name map"))
+    except FileFormatError as exc:
         raise UsageError(f"--map {path}: {exc}") from None
     joints = data.get("joints")
     if not isinstance(joints, dict) or not all(

@@ -29,7 +29,6 @@ Reference: ``daemon/face/faces/FACES.md``.
 from __future__ import annotations
 
 import logging
-import tomllib
 from collections.abc import Sequence
 from dataclasses import dataclass
 from importlib import resources
@@ -38,6 +37,8 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
+
+from retargetd.daemon.files import FileFormatError, loads_toml, read_text
 
 logger = logging.getLogger(__name__)
 
@@ -198,16 +199,9 @@ def load_face_config(name_or_path: str | Path) -> FaceConfig:
         )
     elif path.is_file():
         try:
-            data = path.read_bytes()
-        except OSError as exc:
-            raise FaceConfigError(f"{path}: cannot read: {exc.strerror}") from None
-        try:
-            text = data.decode("utf-8")
-        except UnicodeDecodeError as exc:
-            raise FaceConfigError(
-                f"{path}: not UTF-8 text (byte 0x{data[exc.start]:02x} at offset "
-                f"{exc.start})"
-            ) from None
+            text = read_text(path, "face config")
+        except FileFormatError as exc:
+            raise FaceConfigError(f"{path}: {exc}") from None
         src, stem = str(path), path.stem
     else:
         raise FaceConfigError(
@@ -215,7 +209,7 @@ def load_face_config(name_or_path: str | Path) -> FaceConfig:
             f"(presets: {', '.join(shipped_faces())})"
         )
     try:
-        doc = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
+        doc = loads_toml(text)
+    except FileFormatError as exc:
         raise FaceConfigError(f"{src}: {exc}") from None
     return parse_face_config(doc, src, stem)

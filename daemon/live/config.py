@@ -34,7 +34,6 @@ import difflib
 import ipaddress
 import math
 import re
-import tomllib
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
@@ -42,6 +41,7 @@ from typing import Any
 from retargetd.daemon.body.rig import RigError, load_rig
 from retargetd.daemon.face.config import FaceConfigError, load_face_config
 from retargetd.daemon.face.training import TrainingSet
+from retargetd.daemon.files import FileFormatError, loads_toml, read_text
 from retargetd.daemon.live.config_schema import (
     PERFORMER_INPUTS,
     ConfigError,
@@ -105,20 +105,9 @@ class DaemonConfig:
     def from_toml(cls, path: str | Path) -> DaemonConfig:
         """Read and validate a TOML config. Raises ConfigError naming the key."""
         try:
-            data = Path(path).read_bytes()
-        except OSError as exc:
-            raise ConfigError(f"{path}: cannot read config: {exc.strerror}") from None
-        try:
-            text = data.decode("utf-8")
-        except UnicodeDecodeError as exc:
-            raise ConfigError(
-                f"{path}: not UTF-8 text (byte 0x{data[exc.start]:02x} at offset "
-                f"{exc.start})"
-            ) from None
-        try:
-            doc = tomllib.loads(text)
-        except tomllib.TOMLDecodeError as exc:
-            raise ConfigError(f"{path}: not valid TOML: {exc}") from None
+            doc = loads_toml(read_text(path, "config"))
+        except FileFormatError as exc:
+            raise ConfigError(f"{path}: {exc}") from None
         return cls.from_dict(doc, source=str(path))
 
     @classmethod

@@ -12,7 +12,6 @@ which the motion ramps out of.
 
 from __future__ import annotations
 
-import tomllib
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
@@ -20,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from retargetd.daemon.files import FileFormatError, loads_toml, read_text
 from retargetd.daemon.synth.skeleton import SEGMENT_NAMES, readonly
 from retargetd.protocols.frames import F64Array
 
@@ -79,11 +79,9 @@ def load_markerset(name_or_path: str | Path) -> MarkerSet:
     if isinstance(name_or_path, Path) or text_name.endswith(".toml") or path.exists():
         source = str(path)
         try:
-            data = tomllib.loads(path.read_text(encoding="utf-8"))
-        except OSError as exc:
-            raise ValueError(f"{source}: cannot read marker set ({exc})") from None
-        except tomllib.TOMLDecodeError as exc:
-            raise ValueError(f"{source}: not valid TOML ({exc})") from None
+            data = loads_toml(read_text(path, "marker set"))
+        except FileFormatError as exc:
+            raise ValueError(f"{source}: {exc}") from None
     else:
         res = resources.files("retargetd.daemon.synth.markersets") / f"{text_name}.toml"
         if not res.is_file():
@@ -92,7 +90,7 @@ def load_markerset(name_or_path: str | Path) -> MarkerSet:
                 f"{', '.join(shipped_markersets())} or a path to a .toml file"
             )
         source = f"retargetd.daemon.synth.markersets/{text_name}.toml"
-        data = tomllib.loads(res.read_text(encoding="utf-8"))
+        data = loads_toml(res.read_text(encoding="utf-8"))
     return _markerset_from_dict(data, source)
 
 

@@ -19,9 +19,8 @@ import json
 import os
 import socket
 import stat
-import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -42,45 +41,6 @@ Live, OscSource, PoseSub = _live.Live, _live.OscSource, _live.PoseSub
 _take, _wait_until, RATE_HZ = _live._take, _live._wait_until, _live.RATE_HZ
 # The harness's fixtures (start_daemon, exact_calibration, osc_source) come from
 # tests/conftest.py (pytest_plugins).
-
-
-class _Streamer(threading.Thread):
-    """Streams the T-pose hold at ~200 Hz until stopped (a live source)."""
-
-    def __init__(self, src: Any) -> None:
-        super().__init__(name="test-streamer", daemon=True)
-        self.src = src
-        self.stop_event = threading.Event()
-
-    def run(self) -> None:
-        hold = _take().markers_world[_take().base_pose_frames]
-        k = 0
-        while not self.stop_event.is_set():
-            if k % 100 == 0:
-                self.src.announce()
-            self.src.send(hold[k % len(hold)])
-            k += 1
-            time.sleep(0.005)
-
-    def stop(self) -> None:
-        self.stop_event.set()
-        self.join(timeout=2.0)
-        assert not self.is_alive()
-
-
-@pytest.fixture
-def streamer() -> Iterator[Callable[[Any], _Streamer]]:
-    made: list[_Streamer] = []
-
-    def make(src: Any) -> _Streamer:
-        s = _Streamer(src)
-        made.append(s)
-        s.start()
-        return s
-
-    yield make
-    for s in made:
-        s.stop()
 
 
 #: Comfortable walking speed (Bohannon 1997: 1.3-1.5 m/s).

@@ -515,3 +515,44 @@ def _import_vmcp() -> tuple[Any, Any]:
             pytest.fail(f"vmcp/osc4py3 missing (CI=true: nothing may skip): {exc}")
         pytest.skip(f"vmcp/osc4py3 not installed: {exc}")
     return oscbuildparse, events
+
+
+class _Streamer(threading.Thread):
+    """Streams the T-pose hold at ~200 Hz until stopped (a live source)."""
+
+    def __init__(self, src: Any) -> None:
+        super().__init__(name="test-streamer", daemon=True)
+        self.src = src
+        self.stop_event = threading.Event()
+
+    def run(self) -> None:
+        hold = _take().markers_world[_take().base_pose_frames]
+        k = 0
+        while not self.stop_event.is_set():
+            if k % 100 == 0:
+                self.src.announce()
+            self.src.send(hold[k % len(hold)])
+            k += 1
+            time.sleep(0.005)
+
+    def stop(self) -> None:
+        self.stop_event.set()
+        self.join(timeout=2.0)
+        assert not self.is_alive()
+
+
+@pytest.fixture
+def streamer() -> Iterator[Callable[[Any], _Streamer]]:
+    """``streamer(source)``: the T-pose hold streamed at ~200 Hz on a thread until
+    the test ends (or ``.stop()``)."""
+    made: list[_Streamer] = []
+
+    def make(src: Any) -> _Streamer:
+        s = _Streamer(src)
+        made.append(s)
+        s.start()
+        return s
+
+    yield make
+    for s in made:
+        s.stop()
