@@ -5,6 +5,7 @@ code here, so the config check can read a training file without loading the solv
 
 from __future__ import annotations
 
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -13,6 +14,14 @@ import numpy as np
 from retargetd.protocols.frames import F64Array
 
 TRAINING_FORMAT = "retargetd-face-training/1"
+#: The most a training file may unpack to, bytes: 52 expressions of 200 markers in
+#: float64 are 250 KB; 64 MiB is 250 times that, and a zip that unpacks to more
+#: (a bomb) is refused before anything is unpacked.
+MAX_TRAINING_BYTES = 64 << 20
+_ARRAYS = (
+    "head_names", "marker_names", "expression_names", "head_layout", "neutral",
+    "deltas",
+)  # fmt: skip
 
 
 @dataclass(frozen=True, slots=True, kw_only=True, eq=False)
@@ -82,16 +91,30 @@ class TrainingSet:
         """Read a file written by :meth:`save`.
 
         Raises:
-            ValueError: not a face training set, or inconsistent shapes.
+            ValueError: one line naming the file: not a face training set (not a
+                zip of arrays, members past :data:`MAX_TRAINING_BYTES` unpacked,
+                object arrays, a missing array), or inconsistent shapes.
         """
-        with np.load(path, allow_pickle=False) as z:
-            if "format" not in z or str(z["format"]) != TRAINING_FORMAT:
-                raise ValueError(f"{path}: not a {TRAINING_FORMAT} file")
-            return cls(
-                head_names=tuple(str(s) for s in z["head_names"]),
-                marker_names=tuple(str(s) for s in z["marker_names"]),
-                expression_names=tuple(str(s) for s in z["expression_names"]),
-                head_layout=np.asarray(z["head_layout"], dtype=np.float64),
-                neutral=np.asarray(z["neutral"], dtype=np.float64),
-                deltas=np.asarray(z["deltas"], dtype=np.float64),
-            )
+        try:
+            with zipfile.ZipFile(path) as zf:  # sizes before anything is unpacked
+                unpacked = sum(info.file_size for info in zf.infolist())
+            if unpacked > MAX_TRAINING_BYTES:
+                raise ValueError(
+                    f"{unpacked >> 20} MiB unpacked, more than a training set holds "
+                    f"({MAX_TRAINING_BYTES >> 20} MiB)"
+                )
+            with np.load(path, allow_pickle=False) as z:
+                if "format" not in z or str(z["format"]) != TRAINING_FORMAT:
+                    raise ValueError(f"not a {TRAINING_FORMAT} file")
+                arrays = {k: z[k] for k in _ARRAYS}
+        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
+            reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else exc
+            raise ValueError(f"{path}: not a face training set ({reason})") from None
+        return cls(
+            head_names=tuple(str(s) for s in arrays["head_names"]),
+            marker_names=tuple(str(s) for s in arrays["marker_names"]),
+            expression_names=tuple(str(s) for s in arrays["expression_names"]),
+            head_layout=np.asarray(arrays["head_layout"], dtype=np.float64),
+            neutral=np.asarray(arrays["neutral"], dtype=np.float64),
+            deltas=np.asarray(arrays["deltas"], dtype=np.float64),
+        )

@@ -14,6 +14,7 @@ from __future__ import annotations
 import shutil
 import socket
 import time
+import zipfile
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -33,6 +34,7 @@ from retargetd.daemon.cli.main import main
 from retargetd.daemon.cli.post_io import load_pipeline_entries
 from retargetd.daemon.errors import UsageError
 from retargetd.daemon.face.config import FaceConfigError, load_face_config
+from retargetd.daemon.face.training import TrainingSet
 from retargetd.daemon.live.config import DaemonConfig
 from retargetd.daemon.live.config_schema import ConfigError
 from retargetd.daemon.synth.markerset import load_markerset
@@ -188,3 +190,34 @@ def test_a_running_daemon_survives_a_nested_rig_on_reload(
     assert "reload failed" in message and "nested more than 32 levels" in message, reply
     assert str(rig) in message and "request" not in message
     assert live.daemon.rig.name  # the running rig kept
+
+
+@settings(max_examples=25, deadline=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])  # fmt: skip
+@given(data=st.binary(max_size=2000), zip_head=st.booleans())
+def test_a_face_training_file_of_any_bytes_is_one_line(
+    tmp_path: Path, data: bytes, zip_head: bool
+) -> None:
+    # any bytes (a zip's signature first or not: a broken archive) read as a training
+    # set are one ValueError line naming the file
+    path = tmp_path / "training.npz"
+    path.write_bytes((b"PK\x03\x04" if zip_head else b"") + data)
+    with pytest.raises(ValueError) as caught:
+        TrainingSet.load(path)
+    assert "not a face training set" in _one_line(caught.value, path)
+
+
+def test_a_zip_bomb_training_file_is_refused_before_it_unpacks(tmp_path: Path) -> None:
+    path = tmp_path / "bomb.npz"
+    with zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED) as zf:
+        zf.writestr("deltas.npy", b"\0" * (65 << 20))  # 65 MiB of zeros, ~65 KB
+    assert path.stat().st_size < 1 << 20
+    with pytest.raises(ValueError) as caught:
+        TrainingSet.load(path)
+    assert "65 MiB unpacked" in _one_line(caught.value, path)
+    # and a run's config that names it: one line, exit 2
+    config = tmp_path / "face.toml"
+    config.write_text(f"[face]\ntraining = {str(path)!r}\n")
+    with pytest.raises(ConfigError) as refused:
+        DaemonConfig.from_toml(config)
+    assert "65 MiB unpacked" in _one_line(refused.value, path)
