@@ -456,10 +456,11 @@ def fuzz_show_control(n: int, seed: int) -> Tally:
     tally = Tally("show control")
 
     def one(_i: int) -> None:
-        messages, malformed = parse_show_control(mutate(r, corpus))
-        tally.outcomes["malformed" if malformed else "good"] += 1
+        parsed = parse_show_control(mutate(r, corpus))
+        outcome = parsed.refused or ("malformed" if parsed.malformed else "good")
+        tally.outcomes[outcome] += 1
         tally.counted += 1
-        for address, args in messages:
+        for address, args in parsed.messages:
             if not isinstance(address, str) or not isinstance(args, list):
                 raise AssertionError(f"bad parse {address!r} {args!r}")
 

@@ -18,6 +18,7 @@ import json
 import logging
 import os
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -159,11 +160,18 @@ class ControlMixin(DaemonState):
                 self.stats.rejected_sources += 1  # the same allow-list as the markers
                 continue
             self.stats.show_control_in += 1
-            messages, malformed = parse_show_control(bytes(self._buf[:n]))
-            if malformed:
+            parsed = parse_show_control(
+                bytes(self._buf[:n]), self._show_token_prefix.encode()
+            )
+            if parsed.refused:  # the whole datagram, once, before any parsing
+                self._show_refused(parsed.refused, parsed.why, addr)
+                continue
+            if parsed.malformed:
                 self.stats.show_control_malformed += 1
-                self._show_refused("malformed", f"{malformed} malformed OSC", addr)
-            for address, args in messages:
+                self._show_refused(
+                    "malformed", f"{parsed.malformed} malformed OSC", addr
+                )
+            for address, args in parsed.messages:
                 self._show_control(address, args, addr)
 
     def _show_refused(self, reason: str, why: str, addr: Any = None) -> None:
@@ -177,17 +185,8 @@ class ControlMixin(DaemonState):
         )
 
     def _show_control(self, address: str, args: list[Any], addr: Any) -> None:
-        prefix = self._show_token_prefix
-        if prefix:
-            # Constant-time on the token; the rest of the address is public.
-            head = address[: len(prefix)].encode()
-            if not (
-                hmac.compare_digest(head, prefix.encode())
-                and address[len(prefix) : len(prefix) + 1] == "/"
-            ):
-                self._show_refused("bad_token", "no or wrong token prefix", addr)
-                return
-            address = address[len(prefix) :]
+        # parse_show_control checked the token on every message of the datagram
+        address = address[len(self._show_token_prefix) :]
         cfg = self.config.show_control
         by = f"show control {addr[0]}"
         now = time.monotonic_ns()
@@ -269,44 +268,99 @@ def recording_path(folder: str, path: str) -> str:
     return str(resolved)
 
 
-def parse_show_control(packet: bytes) -> tuple[list[tuple[str, list[Any]]], int]:
+#: Messages a show-control datagram may carry: a show-control command is one message
+#: (VMC senders bundle ``Calib/Ready`` with ``Calib/Exec``: two); 16 leaves room and
+#: bounds what one datagram can make the daemon do. A datagram with more is refused
+#: whole, after reading at most this many element headers (issue 30: bundles of 5,000
+#: messages at 200 datagrams/s cut the VMC output to 0 when each was refused alone).
+SHOW_MAX_MESSAGES = 16
+#: Bundles nested in a show-control datagram at most.
+SHOW_MAX_DEPTH = 4
+
+
+@dataclass(slots=True)
+class ShowDatagram:
+    """A show-control datagram taken apart (:func:`parse_show_control`).
+
+    Attributes:
+        messages: ``[(address, args), ...]`` (addresses with the token prefix).
+        malformed: elements that did not parse (a malformed bundle counts 1).
+        refused: "" or the reason the whole datagram is refused unparsed
+            ("too_many_messages", "nested_too_deep", "bad_token"); ``why`` its line.
+    """
+
+    messages: list[tuple[str, list[Any]]] = field(default_factory=list)
+    malformed: int = 0
+    refused: str = ""
+    why: str = ""
+
+
+def parse_show_control(packet: bytes, token_prefix: bytes = b"") -> ShowDatagram:
     """The OSC messages of a show-control datagram (a message, or a bundle flattened,
-    nested at most 4 deep), and how many of its elements were malformed.
+    nested at most :data:`SHOW_MAX_DEPTH` deep), refused whole and unparsed when it
+    holds more than :data:`SHOW_MAX_MESSAGES` messages or, with ``token_prefix``
+    (``b"/TOKEN"``), when any message's address does not start with it (compared in
+    constant time on the raw bytes: the token is never parsed out of a refused
+    datagram). Refusing costs at most :data:`SHOW_MAX_MESSAGES` element headers.
 
     Never raises: a malformed message is skipped and counted; a malformed bundle
-    (bad element sizes, nested too deep) counts 1 and none of its messages is used.
-
-    Returns:
-        ``([(address, args), ...], malformed)``.
+    (bad element sizes) counts 1 and none of its messages is used.
     """
     raw: list[bytes] = []
-    malformed = _osc_messages(packet, raw)
-    good: list[tuple[str, list[Any]]] = []
+    out = ShowDatagram()
+    try:
+        out.malformed = _osc_messages(packet, raw)
+    except _Refused as exc:
+        out.refused, out.why = exc.reason, exc.why
+        return out
+    if token_prefix:
+        # constant time on the token; the rest of the address is public
+        n = len(token_prefix)
+        for message in raw:
+            if not (hmac.compare_digest(message[:n], token_prefix)
+                    and message[n : n + 1] == b"/"):  # fmt: skip
+                out.refused, out.why = "bad_token", "no or wrong token prefix"
+                return out
     for message in raw:
         try:
             address, _tags, args = parse_message(message)
         except DecodeError:
-            malformed += 1
+            out.malformed += 1
             continue
-        good.append((address, args))
-    return good, malformed
+        out.messages.append((address, args))
+    return out
+
+
+class _Refused(Exception):
+    def __init__(self, reason: str, why: str) -> None:
+        super().__init__(why)
+        self.reason, self.why = reason, why
 
 
 def _osc_messages(packet: bytes, out: list[bytes], depth: int = 0) -> int:
     """Append the messages of an OSC packet to ``out`` (a bundle flattened; a bundle
     that does not parse whole contributes nothing); returns the number of malformed
-    bundles met."""
+    bundles met.
+
+    Raises:
+        _Refused: past :data:`SHOW_MAX_MESSAGES` messages or :data:`SHOW_MAX_DEPTH`
+            nested bundles (the whole datagram is refused).
+    """
     if not packet.startswith(b"#bundle\0"):
+        if len(out) >= SHOW_MAX_MESSAGES:
+            raise _Refused(
+                "too_many_messages", f"more than {SHOW_MAX_MESSAGES} messages"
+            )
         out.append(packet)
         return 0
-    if depth > 4:
-        return 1
-    inner: list[bytes] = []
+    if depth >= SHOW_MAX_DEPTH:
+        raise _Refused("nested_too_deep", f"bundles nested past {SHOW_MAX_DEPTH}")
+    mark = len(out)
     bad = 0
     try:
         for element in iter_bundle_elements(packet):
-            bad += _osc_messages(bytes(element), inner, depth + 1)
+            bad += _osc_messages(bytes(element), out, depth + 1)
     except DecodeError:
+        del out[mark:]
         return bad + 1
-    out.extend(inner)
     return bad

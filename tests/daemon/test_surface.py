@@ -35,6 +35,7 @@ from retargetd.daemon.cli.ctl import request
 from retargetd.daemon.cli.main import main as cli_main
 from retargetd.daemon.live.config import ConfigError, DaemonConfig
 from retargetd.daemon.live.config_schema import CALIBRATE_MAX_FRAMES
+from retargetd.daemon.live.control import SHOW_MAX_MESSAGES
 from retargetd.daemon.live.ratelog import RateLimitedLog, RateLimiter
 
 Live, OscSource, PoseSub = _live.Live, _live.OscSource, _live.PoseSub
@@ -256,25 +257,33 @@ def test_ready_bundles_are_logged_once_then_summarized(
 ) -> None:
     live = start_daemon({"loop": {"log_interval_s": 0.3}})
     sock, show = udp_socket(), live.udp("show control")
-    bundle = OscBundleBuilder(IMMEDIATELY)
-    for _ in range(50):
-        bundle.add_content(OscMessageBuilder("/VMC/Ext/Set/Calib/Ready").build())
-    data = bundle.build().dgram
+
+    def ready_bundle(n: int) -> bytes:
+        bundle = OscBundleBuilder(IMMEDIATELY)
+        for _ in range(n):
+            bundle.add_content(OscMessageBuilder("/VMC/Ext/Set/Calib/Ready").build())
+        return bytes(bundle.build().dgram)
+
+    full = ready_bundle(SHOW_MAX_MESSAGES)  # the most one datagram may carry
     for _ in range(200):
-        sock.sendto(data, show)
-    sock.sendto(_osc("/rtd/status"), show)  # a marker that all 200 were read
+        sock.sendto(full, show)
+    # one message more: the datagram is refused whole, once, none of it acted on
+    sock.sendto(ready_bundle(SHOW_MAX_MESSAGES + 1), show)
+    sock.sendto(_osc("/rtd/status"), show)  # a marker that all were read
     _wait_until(lambda: _refused(live).get("unknown_address") == 1, "the marker")
+    assert _refused(live)["too_many_messages"] == 1
     ready = [ln for ln in live.lines if "calibration ready" in ln]
     assert len(ready) == 1, len(ready)
+    more = 200 * SHOW_MAX_MESSAGES - 1
     _wait_until(
         lambda: any(
-            ln.startswith("show control ready: 9999 more") for ln in live.lines
+            ln.startswith(f"show control ready: {more} more") for ln in live.lines
         ),
         "the summary",
     )
     size = sum(len(ln) + 1 for ln in live.lines)
     assert size < 10_000, size  # 200 x 50 lines were 1.26 MB
-    print(f"\n200 bundles of 50 Calib/Ready: {size} bytes of output in all")
+    print(f"\n200 bundles of {SHOW_MAX_MESSAGES} Calib/Ready: {size} bytes of output")
 
 
 def test_rate_limited_log_and_limiter_units() -> None:
@@ -318,6 +327,43 @@ def test_show_control_token_prefix(
     assert not live.daemon.status()["calibrating"]
     sock.sendto(_osc(f"/{TOKEN}/VMC/Ext/Set/Calib/Exec"), show)
     _wait_until(lambda: live.daemon.status()["calibrating"], "the calibration")
+
+
+def _bundle(*elements: bytes) -> bytes:
+    """An OSC 1.0 bundle: "#bundle", the time tag "immediately", then each element
+    with its int32 big-endian size."""
+    head = b"#bundle\0" + (1).to_bytes(8, "big")
+    return head + b"".join(len(e).to_bytes(4, "big") + e for e in elements)
+
+
+def test_a_refused_show_control_datagram_is_refused_once_unparsed(
+    start_daemon: Callable[..., Any], udp_socket: Callable[..., socket.socket]
+) -> None:
+    """Issue 30: bundles of 5,000 token-less messages at 200/s silenced the VMC
+    output, each message refused alone. A datagram is now refused whole and once:
+    past SHOW_MAX_MESSAGES messages after reading that many element headers, and
+    without the token on every message before any message is parsed; nothing in a
+    refused datagram is acted on, even a message with the token beside one
+    without."""
+    live = start_daemon({"show_control": {"token": TOKEN}})
+    sock, show = udp_socket(), live.udp("show control")
+    flood = _bundle(*[_osc("/VMC/Ext/Set/Calib/Exec")] * 2000)  # 64 KB, one datagram
+    assert len(flood) < 65507
+    for _ in range(20):
+        sock.sendto(flood, show)
+    mixed = _bundle(_osc(f"/{TOKEN}/VMC/Ext/Set/Calib/Exec"), _osc("/rtd/reload"))
+    sock.sendto(mixed, show)
+    nested = _osc(f"/{TOKEN}/VMC/Ext/Set/Calib/Exec")
+    for _ in range(5):  # bundles five deep: past SHOW_MAX_DEPTH (4)
+        nested = _bundle(nested)
+    sock.sendto(nested, show)
+    sock.sendto(_osc(f"/{TOKEN}/rtd/status"), show)  # a marker that all were read
+    _wait_until(lambda: _refused(live).get("unknown_address") == 1, "the marker")
+    assert _refused(live) == {
+        "too_many_messages": 20, "bad_token": 1, "nested_too_deep": 1,
+        "unknown_address": 1,
+    }  # fmt: skip
+    assert not live.daemon.status()["calibrating"]
 
 
 # ---- the surface in the config ------------------------------------------------------
