@@ -37,11 +37,14 @@ def store_rows(
     occluded: np.ndarray,
     valid: np.ndarray,
     markers_world: np.ndarray,
+    limit_m: float,
+    counts: np.ndarray,
 ) -> bool:
     """Convert ``raw32`` (n, 3) float32 (native order) into ``markers_world`` (n, 3)
     float64 world metres, ``markers_world[i] = raw32[i] @ rhs``; a row with a NaN (or,
     with ``zero_is_occluded``, exactly (0, 0, 0), either sign of zero) is occluded: all
-    NaN, ``occluded[i]`` True, ``valid[i]`` False.
+    NaN, ``occluded[i]`` True, ``valid[i]`` False; so is a row with a world coordinate
+    past ``limit_m`` metres, and ``counts[0]`` counts those (implausible, not lost).
 
     Returns False, writing nothing, when any value is infinite."""
     n = raw32.shape[0]
@@ -57,15 +60,22 @@ def store_rows(
         hidden = math.isnan(x) or math.isnan(y) or math.isnan(z)
         if zero_is_occluded and x == 0.0 and y == 0.0 and z == 0.0:
             hidden = True
+        if not hidden:
+            far = False
+            for c in range(3):
+                w = x * rhs[0, c] + y * rhs[1, c] + z * rhs[2, c]
+                markers_world[i, c] = w
+                if abs(w) > limit_m:
+                    far = True
+            if far:
+                hidden = True
+                counts[0] += 1
         occluded[i] = hidden
         valid[i] = not hidden
         if hidden:
             markers_world[i, 0] = nan
             markers_world[i, 1] = nan
             markers_world[i, 2] = nan
-        else:
-            for c in range(3):
-                markers_world[i, c] = x * rhs[0, c] + y * rhs[1, c] + z * rhs[2, c]
     return True
 
 
@@ -110,6 +120,8 @@ def decode_frame(
     occluded: np.ndarray,
     valid: np.ndarray,
     markers_world: np.ndarray,
+    limit_m: float,
+    counts: np.ndarray,
 ) -> int:
     """A marker frame's checks and its markers into the frame, in one call: what
     ``osc_in.decode_compact_frame`` (``form`` :data:`FORM_OSC_COMPACT`, the datagram
@@ -185,7 +197,9 @@ def decode_frame(
     else:
         for k in range(3 * n):
             bits[k] = _le(data, at + 4 * k, 4)
-    if not store_rows(raw32, zero_is_occluded, rhs, occluded, valid, markers_world):
+    if not store_rows(
+        raw32, zero_is_occluded, rhs, occluded, valid, markers_world, limit_m, counts
+    ):
         return D_NON_FINITE
     return frame_id
 
@@ -311,9 +325,10 @@ def warm_up() -> None:
     frame pays for it."""
     rows = np.zeros((2, 3), dtype=np.float32)
     rows[1] = np.nan
+    counts = np.zeros(1, dtype=np.int64)
     store_rows(
         rows, True, np.eye(3), np.zeros(2, dtype=np.bool_), np.zeros(2, dtype=np.bool_),
-        np.zeros((2, 3)),
+        np.zeros((2, 3)), 1000.0, counts,
     )  # fmt: skip
     stage = np.zeros(16, dtype=np.float32)
     vmc_pack(
@@ -326,7 +341,7 @@ def warm_up() -> None:
     for form in (FORM_OSC_COMPACT, FORM_ZMQ):  # refused at once: typed, not run
         decode_frame(
             form, wire, 0, wire, 0, 0, True, np.eye(3), rows, np.zeros(2, np.bool_),
-            np.zeros(2, dtype=np.bool_), np.zeros((2, 3)),
+            np.zeros(2, dtype=np.bool_), np.zeros((2, 3)), 1000.0, counts,
         )  # fmt: skip
     quat = np.array([[1.0, 0.0, 0.0, 0.0]])
     pose_pack(

@@ -153,6 +153,8 @@ class MarkerPacket:
         label_index: name -> row, for the simple (per-marker) form.
         zero_is_occluded: an exact (0, 0, 0) row is occluded (many capture systems
             send zeros, not NaN, for a marker they do not see).
+        max_coordinate_m: a marker with a world coordinate past this (metres) is
+            occluded and counted in ``implausible[0]`` (:data:`MAX_COORDINATE_M`).
     """
 
     frame: MarkerFrame
@@ -162,6 +164,10 @@ class MarkerPacket:
     world_from_capture_scaled_mat: F64Array
     label_index: dict[str, int]
     zero_is_occluded: bool
+    max_coordinate_m: float
+    #: (1,) int64: markers occluded for a coordinate past ``max_coordinate_m``; one
+    #: array shared by the packets of a stream (they swap).
+    implausible: IntArray
     # Scratch, allocated with the frame: the conversion's right-hand side (M^T), native
     # float32 rows, the occlusion mask, and the staging rows of the simple form.
     _rhs: F64Array = field(repr=False)
@@ -180,6 +186,8 @@ class MarkerPacket:
         up_axis: str = "+Z",
         units: str = "m",
         zero_is_occluded: bool = True,
+        max_coordinate_m: float = 0.0,
+        implausible: IntArray | None = None,
     ) -> MarkerPacket:
         """Allocate a packet for ``label_set``.
 
@@ -188,14 +196,25 @@ class MarkerPacket:
             up_axis: the sender's up axis (``"+Y"``, ``"+Z"`` ...), see conventions.
             units: the sender's length unit (``"mm"``, ``"m"`` ...).
             zero_is_occluded: treat an exact (0, 0, 0) row as occluded.
+            max_coordinate_m: the bound on a world coordinate, metres (0:
+                :data:`MAX_COORDINATE_M`).
+            implausible: the (1,) int64 counter to share (default: a new one).
         """
         mat = world_from_capture_mat(up_axis) * UNIT_TO_METRES[normalize_units(units)]
         mat.flags.writeable = False
-        return cls._allocate(label_set, mat, zero_is_occluded)
+        return cls._allocate(
+            label_set, mat, zero_is_occluded, max_coordinate_m or MAX_COORDINATE_M,
+            np.zeros(1, dtype=np.int64) if implausible is None else implausible,
+        )  # fmt: skip
 
     @classmethod
     def _allocate(
-        cls, label_set: LabelSet, mat: F64Array, zero_is_occluded: bool
+        cls,
+        label_set: LabelSet,
+        mat: F64Array,
+        zero_is_occluded: bool,
+        max_coordinate_m: float,
+        implausible: IntArray,
     ) -> MarkerPacket:
         n = len(label_set.labels)
         return cls(
@@ -206,6 +225,8 @@ class MarkerPacket:
             world_from_capture_scaled_mat=mat,
             label_index={name: i for i, name in enumerate(label_set.labels)},
             zero_is_occluded=zero_is_occluded,
+            max_coordinate_m=float(max_coordinate_m),
+            implausible=implausible,
             _rhs=np.ascontiguousarray(mat.T),
             _raw32=np.zeros((n, 3), dtype=np.float32),
             _occluded=np.zeros(n, dtype=bool),
@@ -220,8 +241,9 @@ class MarkerPacket:
         """
         if len(label_set.labels) != len(self.label_set.labels):
             return MarkerPacket._allocate(
-                label_set, self.world_from_capture_scaled_mat, self.zero_is_occluded
-            )
+                label_set, self.world_from_capture_scaled_mat, self.zero_is_occluded,
+                self.max_coordinate_m, self.implausible,
+            )  # fmt: skip
         self.label_set = label_set
         self.label_index = {name: i for i, name in enumerate(label_set.labels)}
         self._simple = None  # the names moved: the layout cache no longer holds
@@ -246,7 +268,7 @@ class MarkerPacket:
         frame = self.frame
         if not kernels.store_rows(
             raw32, self.zero_is_occluded, self._rhs, self._occluded, frame.valid,
-            frame.markers_world,
+            frame.markers_world, self.max_coordinate_m, self.implausible,
         ):  # fmt: skip
             raise DecodeError(
                 "non_finite", "infinite value (NaN is occluded, inf is not)"
@@ -277,7 +299,7 @@ class MarkerPacket:
         return kernels.decode_frame(
             form, head, n_head, payload, n_payload, self.label_set.id,
             self.zero_is_occluded, self._rhs, self._raw32, self._occluded, frame.valid,
-            frame.markers_world,
+            frame.markers_world, self.max_coordinate_m, self.implausible,
         )  # fmt: skip
 
 
@@ -295,6 +317,14 @@ KERNEL_REASONS: dict[int, str] = {
     kernels.D_BAD_MAGIC: "bad_magic",
     kernels.D_BAD_VERSION: "bad_version",
 }
+
+
+#: A marker with a world coordinate (x, y or z) past +-this, metres, is implausible:
+#: occluded and counted (issue 30: every marker at 1e30 was held with no flag or
+#: counter). The largest optical capture volumes are tens of metres across (stadium
+#: and warehouse installations, ~100 m at most); 1 km is ten times that, and still
+#: well inside float32's range (its step at 1 km is 0.06 mm).
+MAX_COORDINATE_M = 1000.0
 
 
 class DropCounters:
@@ -472,6 +502,7 @@ class MarkerStream:
         max_markers: label sets with more markers are refused
             (``too_many_markers``).
         zero_is_occluded: see :class:`MarkerPacket`.
+        max_coordinate_m: see :class:`MarkerPacket` (:data:`MAX_COORDINATE_M`).
     """
 
     def __init__(
@@ -484,11 +515,15 @@ class MarkerStream:
         max_rate_hz: float = MAX_RATE_HZ,
         max_markers: int = MAX_MARKERS,
         zero_is_occluded: bool = True,
+        max_coordinate_m: float = MAX_COORDINATE_M,
     ) -> None:
         initial = label_set if label_set is not None else LabelSet(-1, ())
         self.label_set: LabelSet | None = label_set
-        self.current = MarkerPacket.create(initial, up_axis, units, zero_is_occluded)
-        self._spare = MarkerPacket.create(initial, up_axis, units, zero_is_occluded)
+        #: (1,) markers occluded for a coordinate past ``max_coordinate_m``.
+        self.implausible = np.zeros(1, dtype=np.int64)
+        args = (up_axis, units, zero_is_occluded, max_coordinate_m, self.implausible)
+        self.current = MarkerPacket.create(initial, *args)
+        self._spare = MarkerPacket.create(initial, *args)
         self.sequencer = FrameSequencer(restart_gap_ns, max_rate_hz)
         self.counters = DropCounters()
         self.last_error: DecodeError | None = None

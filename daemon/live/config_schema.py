@@ -9,7 +9,12 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
-from retargetd.protocols.marker_input import MAX_MARKERS, MAX_MESSAGE_BYTES, MAX_RATE_HZ
+from retargetd.protocols.marker_input import (
+    MAX_COORDINATE_M,
+    MAX_MARKERS,
+    MAX_MESSAGE_BYTES,
+    MAX_RATE_HZ,
+)
 
 LOCALHOST = "127.0.0.1"
 
@@ -126,6 +131,8 @@ class OscInputConfig:
     max_markers: int = between(MAX_MARKERS, 1, 100_000)
     max_message_bytes: int = between(MAX_MESSAGE_BYTES, 64, MAX_MESSAGE_BYTES)
     zero_is_occluded: bool = True
+    # a marker with a world coordinate past this (metres) is occluded and counted
+    max_coordinate_m: float = between(MAX_COORDINATE_M, 1.0, 1e6)
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -143,6 +150,7 @@ class ZmqInputConfig:
     # per message part (ZMQ_MAXMSGSIZE), up to _ZMQ_MAX_MESSAGE_BYTES
     max_message_bytes: int = between(MAX_MESSAGE_BYTES, 64, _ZMQ_MAX_MESSAGE_BYTES)
     zero_is_occluded: bool = True
+    max_coordinate_m: float = between(MAX_COORDINATE_M, 1.0, 1e6)
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)

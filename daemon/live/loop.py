@@ -173,6 +173,7 @@ class Daemon(
             max_rate_hz=osc_cfg.max_rate_hz,
             max_markers=osc_cfg.max_markers,
             zero_is_occluded=osc_cfg.zero_is_occluded,
+            max_coordinate_m=osc_cfg.max_coordinate_m,
         )
         self.zmq_stream = MarkerStream(
             None,
@@ -181,6 +182,7 @@ class Daemon(
             max_rate_hz=zmq_cfg.max_rate_hz,
             max_markers=zmq_cfg.max_markers,
             zero_is_occluded=zmq_cfg.zero_is_occluded,
+            max_coordinate_m=zmq_cfg.max_coordinate_m,
         )
         self._log_after_ns: dict[str, int] = {}  # rate-limited log lines, by key
         self._names_id = 0

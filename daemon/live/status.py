@@ -43,7 +43,14 @@ class StatusMixin(DaemonState):
             "calibration_state": self._calib_state,
             "performers": performers,
             "endpoints": self.endpoints,
-            "counters": {**self.stats.counters(), "prewarm": self._prewarm.touches},
+            "counters": {
+                **self.stats.counters(),
+                "prewarm": self._prewarm.touches,
+                # markers occluded for a coordinate past max_coordinate_m, all inputs
+                "implausible_markers": int(
+                    self.osc_stream.implausible[0] + self.zmq_stream.implausible[0]
+                ),
+            },
             "fps_in": self._fps(self.stats.frames_in, 1),
             "fps_out": self._fps(self.stats.frames_out, 2),
             "fps_window_s": round((time.monotonic_ns() - self._window[0]) * 1e-9, 3),

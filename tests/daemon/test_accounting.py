@@ -143,3 +143,21 @@ def test_frames_before_a_calibration_are_counted_unsolved(
         0,
         4,
     )
+
+
+def test_a_daemon_counts_a_frame_of_markers_at_1e30(
+    start_daemon: Callable[..., Any], osc_source: Callable[..., Any]
+) -> None:
+    live = start_daemon()
+    src = osc_source(live)
+    src.announce()
+    n = len(src.label_set.labels)
+    src.send(np.full((n, 3), 1e30))
+    _wait_until(
+        lambda: (
+            live.ctl({"cmd": "status"})["status"]["counters"]["implausible_markers"]
+            == n
+        ),
+        "the count",
+    )
+    assert live.daemon.stats.frames_in == 1  # the frame kept, its markers occluded

@@ -13,7 +13,7 @@ import pytest
 
 from retargetd.protocols import kernels, osc_in, zmq_wire
 from retargetd.protocols.errors import DecodeError
-from retargetd.protocols.marker_input import LabelSet, MarkerPacket
+from retargetd.protocols.marker_input import MAX_COORDINATE_M, LabelSet, MarkerPacket
 from retargetd.protocols.vmc_out import VmcEncoder
 
 KERNELS = Path(kernels.__file__)
@@ -22,7 +22,8 @@ KERNELS = Path(kernels.__file__)
 def _store_reference(
     raw: np.ndarray, mat: np.ndarray, zero_is_occluded: bool
 ) -> tuple[np.ndarray, np.ndarray]:
-    """The numpy form of ``MarkerPacket.store``: (markers_world, valid)."""
+    """The numpy form of ``MarkerPacket.store``: (markers_world, valid); a row with
+    a world coordinate past ``MAX_COORDINATE_M`` is occluded too."""
     raw32 = np.asarray(raw, dtype=np.float32)
     if np.isinf(raw32).any():
         raise DecodeError("non_finite", "inf")
@@ -30,6 +31,8 @@ def _store_reference(
     if zero_is_occluded:
         occluded |= (raw32 == 0.0).all(axis=1)
     rows = raw32.astype(np.float64)
+    with np.errstate(invalid="ignore"):
+        occluded |= (np.abs(rows @ mat.T) > MAX_COORDINATE_M).any(axis=1)
     rows[occluded] = np.nan
     return rows @ mat.T, ~occluded
 
@@ -50,7 +53,7 @@ def test_store_rows_equals_the_numpy_form(
         raw[rng.random(n) < 0.1] = 0.0
         raw[rng.random(n) < 0.05] = -0.0
         raw[rng.random(n) < 0.05, 1] = 0.0  # a zero in one axis only: visible
-        packet.store(raw)
+        packet.store(raw)  # scale 500: in metres, a row in ten past 1 km
         want_world, want_valid = _store_reference(raw, mat, zero_is_occluded)
         np.testing.assert_array_equal(
             packet.frame.valid, want_valid, err_msg=str(trial)

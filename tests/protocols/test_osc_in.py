@@ -13,7 +13,12 @@ from pythonosc.osc_message_builder import OscMessageBuilder
 
 from retargetd.protocols import osc_in
 from retargetd.protocols.errors import DecodeError
-from retargetd.protocols.marker_input import REASON_INDEX, LabelSet, MarkerPacket
+from retargetd.protocols.marker_input import (
+    MAX_COORDINATE_M,
+    REASON_INDEX,
+    LabelSet,
+    MarkerPacket,
+)
 from retargetd.protocols.osc_wire import build_bundle, build_message
 
 NAN = float("nan")
@@ -257,8 +262,13 @@ def test_valid_compact_frames_decode_exactly(
     assert out.frame.source_time_s == t or (
         np.isnan(t) and np.isnan(out.frame.source_time_s)
     )
-    # NaN anywhere, or an exact (0, 0, 0) row (zero_is_occluded), is occluded.
-    valid = ~np.isnan(pos).any(axis=1) & (pos != 0).any(axis=1)
+    # NaN anywhere, an exact (0, 0, 0) row (zero_is_occluded), or a coordinate past
+    # MAX_COORDINATE_M (1 km; the values go to 1e6 m) is occluded.
+    valid = (
+        ~np.isnan(pos).any(axis=1)
+        & (pos != 0).any(axis=1)
+        & (np.abs(np.nan_to_num(pos)) <= MAX_COORDINATE_M).all(axis=1)
+    )
     np.testing.assert_array_equal(out.frame.valid, valid)
     np.testing.assert_array_equal(out.frame.markers_world[valid], pos[valid])
     assert np.isnan(out.frame.markers_world[~valid]).all()
@@ -274,8 +284,13 @@ def test_valid_simple_bundles_decode_exactly(pos: np.ndarray, frame: int) -> Non
             osc_in.decode_simple_bundle(packet, out)
         return
     osc_in.decode_simple_bundle(packet, out)
-    # NaN anywhere, or an exact (0, 0, 0) row (zero_is_occluded), is occluded.
-    valid = ~np.isnan(pos).any(axis=1) & (pos != 0).any(axis=1)
+    # NaN anywhere, an exact (0, 0, 0) row (zero_is_occluded), or a coordinate past
+    # MAX_COORDINATE_M (1 km; the values go to 1e6 m) is occluded.
+    valid = (
+        ~np.isnan(pos).any(axis=1)
+        & (pos != 0).any(axis=1)
+        & (np.abs(np.nan_to_num(pos)) <= MAX_COORDINATE_M).all(axis=1)
+    )
     np.testing.assert_array_equal(out.frame.valid, valid)
     np.testing.assert_array_equal(out.frame.markers_world[valid], pos[valid])
 
