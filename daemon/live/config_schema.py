@@ -221,6 +221,16 @@ class RecordConfig:
     # Every recording goes under this folder (relative: the daemon's working
     # directory); a path outside it or with ".." is refused.
     folder: str = spec("recordings", "folder")
+    # The folder's recordings (*.mcap) may hold at most this many MB: record start
+    # is refused at it and a recording stops there (a day of takes at 120 Hz, 60
+    # markers and poses is ~400 MB an hour, so 20 GB is 50 hours of takes).
+    max_total_mb: float = between(20_000.0, 1.0, 1e9)
+    # The disk keeps at least this many MB free: record start is refused and a
+    # recording stops below it (room for the MCAP footer, the OS and other files).
+    min_free_mb: float = between(1024.0, 0.0, 1e9)
+    # At most one record start per this many seconds (3,000 start/stop cycles in
+    # 9.4 s wrote 3,000 files, issue 30); a refused start is counted rate_limited.
+    min_interval_s: float = between(1.0, 0.0, 3600.0)
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)

@@ -141,10 +141,15 @@ class ControlMixin(DaemonState):
         force = req.get("force", False)
         if type(force) is not bool:
             raise ValueError(f"'force' must be true or false; got {force!r}")
-        msg = self.recording.start(
-            path, poses, input_infos(self.config, self.endpoints), announcements,
-            force=force, rig=self.rig,
-        )  # fmt: skip
+        try:
+            msg = self.recording.start(
+                path, poses, input_infos(self.config, self.endpoints), announcements,
+                force=force, rig=self.rig,
+            )  # fmt: skip
+        except ValueError as exc:
+            if str(exc).startswith("rate limited"):
+                self.stats.rate_limited += 1
+            raise
         for perf in self.performers:  # names messages open the recorded pose stream
             perf.last_names_ns = 0
         return msg

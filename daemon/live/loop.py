@@ -220,7 +220,10 @@ class Daemon(
         self._window = (self._t0_ns, 0, 0)
         self.last_stats_line = ""
         self.endpoints: dict[str, str] = {}
-        self.recording = LiveRecording()
+        rc = config.record
+        self.recording = LiveRecording(
+            rc.folder, rc.max_total_mb, rc.min_free_mb, rc.min_interval_s
+        )
         self._osc_form = FORM_OSC[osc_cfg.form]
         self._vmc_state = VmcEncoder(())  # the state datagram (no bones needed)
         self._last_frame_ns = 0
@@ -556,6 +559,9 @@ class Daemon(
             self._each_performer(self._send_vmc_state, now)
             self._each_performer(self._send_due_ticks, time.monotonic_ns())
             self._log.flush(now)
+            stopped = self.recording.check_limits(now)  # [record] limits, once a s
+            if stopped:
+                self.out(stopped)
             if now >= next_stats:
                 self.last_stats_line = self.stats_line()
                 self._window = (now, self.stats.frames_in, self.stats.frames_out)

@@ -42,8 +42,10 @@ queued: ``queued`` is what is on its way, ``dropped`` what a full queue refused,
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
+import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -74,6 +76,25 @@ QUEUE_SIZE = DEFAULT_QUEUE_SIZE
 HEALTH_INTERVAL_NS = 500_000_000
 #: Shutdown waits this long, in all, for the writers to finish their files.
 CLOSE_TIMEOUT_S = 5.0
+#: How often a running recording checks the folder's size and the disk's free space,
+#: nanoseconds (a stat of the file and a statvfs: microseconds, once a second).
+LIMIT_CHECK_NS = 1_000_000_000
+
+
+def folder_mb(folder: str | Path) -> float:
+    """MB of the ``*.mcap`` files under ``folder`` (recursively; 0 when missing)."""
+    total = 0
+    for root, _dirs, files in os.walk(folder):
+        for name in files:
+            if name.lower().endswith(".mcap"):
+                with contextlib.suppress(OSError):  # removed while we walk
+                    total += os.stat(os.path.join(root, name)).st_size
+    return total / 1e6
+
+
+def free_mb(folder: str | Path) -> float:
+    """MB free on the disk holding ``folder`` for an unprivileged writer."""
+    return shutil.disk_usage(folder).free / 1e6
 
 
 class BoneEnds:
@@ -132,7 +153,22 @@ class LiveRecording:
         poses: the active recorder when it records poses, else None.
     """
 
-    def __init__(self) -> None:
+    def __init__(
+        self,
+        folder: str | Path = "recordings",
+        max_total_mb: float = 20_000.0,
+        min_free_mb: float = 1024.0,
+        min_interval_s: float = 1.0,
+    ) -> None:
+        #: ``[record]``'s limits (``config_schema.RecordConfig``).
+        self.folder, self.max_total_mb = Path(folder), float(max_total_mb)
+        self.min_free_mb, self.min_interval_ns = (
+            float(min_free_mb),
+            int(min_interval_s * 1e9),
+        )
+        self._last_start_ns: int | None = None
+        self._next_check_ns = 0
+        self._base_mb = 0.0  # the folder's other recordings, when this one began
         self.packets: Recorder | None = None
         self.poses: Recorder | None = None
         #: The active recorder while recording (Foxglove channels), else None.
@@ -181,6 +217,15 @@ class LiveRecording:
         self._end_failed()
         if self._active is not None:
             raise ValueError(f"already recording to {self._active.path}")
+        now = time.monotonic_ns()
+        if (
+            self._last_start_ns is not None
+            and now - self._last_start_ns < self.min_interval_ns
+        ):
+            raise ValueError(
+                f"rate limited: one record start per {self.min_interval_ns / 1e9:g} s "
+                "(record.min_interval_s)"
+            )
         if not os.path.isabs(path):
             raise ValueError(
                 f"path must be absolute (the daemon's working directory is not the "
@@ -190,6 +235,9 @@ class LiveRecording:
             raise ValueError(f"path must end in .mcap; got {path!r}")
         if os.path.exists(path) and not force:
             raise ValueError(f"{path} exists: record start --force replaces it")
+        full = self._over_limits(path)
+        if full:
+            raise ValueError(f"record start refused: {full}")
         bone_ends = BoneEnds(rig) if rig is not None else None
         try:
             recorder = open_skeleton_recorder(
@@ -203,7 +251,8 @@ class LiveRecording:
             raise ValueError(
                 f"cannot record to {path}: {exc.strerror or exc}"
             ) from None
-        now = time.monotonic_ns()
+        self._last_start_ns = now  # only a start that made a file counts
+        self._next_check_ns = now + LIMIT_CHECK_NS
         self._active = _Active(recorder, path, poses, now)
         self._failed = None
         self.packets = recorder
@@ -262,6 +311,41 @@ class LiveRecording:
             return
         self._health_ns = t_ns
         rec.record_health(t_ns, health_figures(status_fn(), occluded, validation_flags))
+
+    def _over_limits(self, path: str | None = None) -> str:
+        """ "" within ``[record]``'s limits, else why not (one line): the folder's
+        recordings at ``max_total_mb`` (with the active file: its size now), or the
+        disk under ``min_free_mb`` free."""
+        with contextlib.suppress(OSError):
+            self.folder.mkdir(parents=True, exist_ok=True)
+        try:
+            used, free = folder_mb(self.folder), free_mb(self.folder)
+        except OSError as exc:
+            return f"cannot measure the recordings folder {self.folder}: {exc.strerror}"
+        if used >= self.max_total_mb:
+            return (
+                f"the recordings folder {self.folder} holds {used:.0f} MB "
+                f"(record.max_total_mb = {self.max_total_mb:g})"
+            )
+        if free < self.min_free_mb:
+            return (
+                f"{free:.0f} MB free on the disk of {self.folder} "
+                f"(record.min_free_mb = {self.min_free_mb:g})"
+            )
+        return ""
+
+    def check_limits(self, now_ns: int) -> str:
+        """Stop the active recording when the folder or the disk reached
+        ``[record]``'s limits (checked at most every :data:`LIMIT_CHECK_NS`; the
+        loop calls it every iteration). Returns the stop's message, else ""."""
+        if self._active is None or now_ns < self._next_check_ns:
+            return ""
+        self._next_check_ns = now_ns + LIMIT_CHECK_NS
+        full = self._over_limits()
+        if not full:
+            return ""
+        msg = self.stop(f"limit: {full}")
+        return f"recording stopped at a limit: {full}; {msg}"
 
     def event(self, event: str, **fields: Any) -> None:
         """Queue a control event when recording (never blocks)."""

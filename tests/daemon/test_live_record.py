@@ -27,6 +27,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from live_harness import _wait_until
 from paths import DATASETS
 
 from retargetd.daemon.cli.ctl import request
@@ -265,7 +266,9 @@ class InThread:
             "control": {"endpoint": "tcp://127.0.0.1:*"},
             "show_control": {"port": 0},
             "loop": {"poll_timeout_ms": 20, "process_every_frame": True},
-            "record": {"folder": str(tmp_path)},
+            # back-to-back starts; the limits have their own test below
+            "record": {"folder": str(tmp_path), "min_interval_s": 0.0,
+                       "min_free_mb": 0.0},
         }  # fmt: skip
         self.lines: list[str] = []
         self.daemon = Daemon(
@@ -421,3 +424,61 @@ def test_ctl_record_start_force_replaces_an_existing_file(
     while old.read_bytes()[:8] == b"an old t" and time.monotonic() < deadline:
         time.sleep(0.05)
     assert old.read_bytes().startswith(b"\x89MCAP"), old.read_bytes()[:16]
+
+
+def test_recordings_cannot_fill_the_disk(
+    start_daemon: Callable[..., Any], tmp_path: Path
+) -> None:
+    """Issue 30: 3,000 record start/stop cycles in 9.4 s wrote 3,000 files. A start
+    within record.min_interval_s of the last is refused and counted rate_limited; the
+    folder's recordings at record.max_total_mb refuse a start and stop a running
+    recording (its file finished, the reason in status); a disk under
+    record.min_free_mb free refuses a start. Each refusal is one line to ctl."""
+    folder = tmp_path / "recordings"
+    live = start_daemon({"record": {"folder": str(folder), "min_interval_s": 30.0,
+                                    "max_total_mb": 1.0}})  # fmt: skip
+
+    def record(action: str, name: str = "") -> dict[str, Any]:
+        req = {"cmd": "record", "action": action}
+        if name:
+            req["path"] = str(folder / name)
+        reply: dict[str, Any] = live.ctl(req)
+        return reply
+
+    assert record("start", "a.mcap")["ok"]
+    assert record("stop")["ok"]
+    reply = record("start", "b.mcap")
+    assert reply == {
+        "ok": False, "error": "rate limited: one record start per 30 s "
+        "(record.min_interval_s)",
+    }  # fmt: skip
+    assert live.ctl({"cmd": "status"})["status"]["counters"]["rate_limited"] == 1
+    assert not (folder / "b.mcap").exists()
+    # The folder at its limit: 1 MB of an earlier take is there.
+    live.daemon.recording.min_interval_ns = 0
+    (folder / "old.mcap").write_bytes(b"\0" * 1_100_000)
+    reply = record("start", "c.mcap")
+    assert not reply["ok"] and "record start refused" in reply["error"]
+    assert "record.max_total_mb = 1" in reply["error"], reply
+    assert "\n" not in reply["error"]
+    # A running recording stops when the folder reaches it.
+    (folder / "old.mcap").unlink()
+    assert record("start", "d.mcap")["ok"]
+    (folder / "old.mcap").write_bytes(b"\0" * 1_100_000)
+    _wait_until(
+        lambda: not live.ctl({"cmd": "status"})["status"]["record"]["active"],
+        "the recording stopped at the limit",
+    )
+    _wait_until(
+        lambda: (live.ctl({"cmd": "status"})["status"]["record"]["last"] or {}).get(
+            "path") == str(folder / "d.mcap"),
+        "its file finished",
+    )  # fmt: skip
+    last = live.ctl({"cmd": "status"})["status"]["record"]["last"]
+    assert last["stopped"].startswith("limit: the recordings folder"), last
+    assert any("record.max_total_mb" in ln for ln in live.lines)
+    # The free-space floor: more free space asked for than any disk has.
+    (folder / "old.mcap").unlink()
+    live.daemon.recording.min_free_mb = 1e12
+    reply = record("start", "e.mcap")
+    assert not reply["ok"] and "record.min_free_mb" in reply["error"], reply

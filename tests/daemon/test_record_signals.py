@@ -101,7 +101,7 @@ def sender_for() -> Iterator[Callable[[tuple[str, int]], Sender]]:
 
 def _record_folder(folder: Path) -> str:
     """Config lines letting ``ctl record start`` write under ``folder``."""
-    return f"[record]\nfolder = {json.dumps(str(folder))}\n"
+    return f"[record]\nfolder = {json.dumps(str(folder))}\nmin_free_mb = 0.0\n"
 
 
 def _record_status(daemon: Any) -> dict[str, Any]:
