@@ -168,7 +168,7 @@ class LiveRecording:
         )
         self._last_start_ns: int | None = None
         self._next_check_ns = 0
-        self._base_mb = 0.0  # the folder's other recordings, when this one began
+        self._base_mb = 0.0  # MB of the folder's recordings when the last began
         self.packets: Recorder | None = None
         self.poses: Recorder | None = None
         #: The active recorder while recording (Foxglove channels), else None.
@@ -235,7 +235,7 @@ class LiveRecording:
             raise ValueError(f"path must end in .mcap; got {path!r}")
         if os.path.exists(path) and not force:
             raise ValueError(f"{path} exists: record start --force replaces it")
-        full = self._over_limits(path)
+        full = self._over_limits()
         if full:
             raise ValueError(f"record start refused: {full}")
         bone_ends = BoneEnds(rig) if rig is not None else None
@@ -312,14 +312,20 @@ class LiveRecording:
         self._health_ns = t_ns
         rec.record_health(t_ns, health_figures(status_fn(), occluded, validation_flags))
 
-    def _over_limits(self, path: str | None = None) -> str:
-        """ "" within ``[record]``'s limits, else why not (one line): the folder's
-        recordings at ``max_total_mb`` (with the active file: its size now), or the
-        disk under ``min_free_mb`` free."""
+    def _over_limits(self, active: _Active | None = None) -> str:
+        """Why ``[record]``'s limits are reached (one line), else "": the folder's
+        recordings at ``max_total_mb``, or the disk under ``min_free_mb`` free.
+        Without ``active`` the folder is walked (at a start; its total kept); with
+        it, that total plus the active file's size now (a stat and a statvfs: the
+        loop thread never walks a folder while recording)."""
         with contextlib.suppress(OSError):
             self.folder.mkdir(parents=True, exist_ok=True)
         try:
-            used, free = folder_mb(self.folder), free_mb(self.folder)
+            if active is None:
+                used = self._base_mb = folder_mb(self.folder)
+            else:
+                used = self._base_mb + os.stat(active.path).st_size / 1e6
+            free = free_mb(self.folder)
         except OSError as exc:
             return f"cannot measure the recordings folder {self.folder}: {exc.strerror}"
         if used >= self.max_total_mb:
@@ -341,7 +347,7 @@ class LiveRecording:
         if self._active is None or now_ns < self._next_check_ns:
             return ""
         self._next_check_ns = now_ns + LIMIT_CHECK_NS
-        full = self._over_limits()
+        full = self._over_limits(self._active)
         if not full:
             return ""
         msg = self.stop(f"limit: {full}")

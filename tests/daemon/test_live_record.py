@@ -427,7 +427,10 @@ def test_ctl_record_start_force_replaces_an_existing_file(
 
 
 def test_recordings_cannot_fill_the_disk(
-    start_daemon: Callable[..., Any], tmp_path: Path
+    start_daemon: Callable[..., Any],
+    osc_source: Callable[..., Any],
+    streamer: Callable[[Any], Any],
+    tmp_path: Path,
 ) -> None:
     """Issue 30: 3,000 record start/stop cycles in 9.4 s wrote 3,000 files. A start
     within record.min_interval_s of the last is refused and counted rate_limited; the
@@ -461,10 +464,11 @@ def test_recordings_cannot_fill_the_disk(
     assert not reply["ok"] and "record start refused" in reply["error"]
     assert "record.max_total_mb = 1" in reply["error"], reply
     assert "\n" not in reply["error"]
-    # A running recording stops when the folder reaches it.
-    (folder / "old.mcap").unlink()
+    # A running recording stops when the folder reaches it: 0.97 MB were there
+    # when it began (measured then), and the take grows past the last 0.03 MB.
+    (folder / "old.mcap").write_bytes(b"\0" * 970_000)
+    feed = streamer(osc_source(live))  # what the take records
     assert record("start", "d.mcap")["ok"]
-    (folder / "old.mcap").write_bytes(b"\0" * 1_100_000)
     _wait_until(
         lambda: not live.ctl({"cmd": "status"})["status"]["record"]["active"],
         "the recording stopped at the limit",
@@ -474,11 +478,14 @@ def test_recordings_cannot_fill_the_disk(
             "path") == str(folder / "d.mcap"),
         "its file finished",
     )  # fmt: skip
+    feed.stop()
     last = live.ctl({"cmd": "status"})["status"]["record"]["last"]
     assert last["stopped"].startswith("limit: the recordings folder"), last
+    assert last["frames"] > 0 and last["dropped"] == 0, last  # its true counts
     assert any("record.max_total_mb" in ln for ln in live.lines)
     # The free-space floor: more free space asked for than any disk has.
     (folder / "old.mcap").unlink()
+    (folder / "d.mcap").unlink()
     live.daemon.recording.min_free_mb = 1e12
     reply = record("start", "e.mcap")
     assert not reply["ok"] and "record.min_free_mb" in reply["error"], reply
