@@ -60,7 +60,9 @@ class ControlMixin(DaemonState):
     def control_reply(self, parts: list[bytes]) -> dict[str, Any]:
         """The reply to one control request (every part of one ZeroMQ message).
 
-        Never raises: a malformed request gets ``{"ok": false, "error": ...}``.
+        Never raises: a malformed request gets ``{"ok": false, "error": ...}``, and
+        so does one that meets a fault of the daemon's own (logged with its
+        traceback: a control command never stops the show).
         Counted: ``control_requests`` every request, ``control_errors`` those whose
         reply is not ok.
         """
@@ -78,6 +80,10 @@ class ControlMixin(DaemonState):
             reply = {"ok": False, "error": "request nested too deeply"}
         except (ValueError, TypeError) as exc:
             reply = {"ok": False, "error": str(exc)}
+        except Exception as exc:  # a fault of ours: answered, logged, never fatal
+            logger.exception("control request %r failed", parts[:1])
+            reply = {"ok": False, "error": f"internal error ({type(exc).__name__}): "
+                     "the daemon's log has the traceback"}  # fmt: skip
         if reply.get("ok") is not True:
             self.stats.control_errors += 1
         return reply

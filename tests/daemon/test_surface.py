@@ -636,3 +636,24 @@ def test_record_start_only_under_the_recordings_folder(
     assert reply["ok"], reply
     assert live.ctl({"cmd": "record", "action": "stop"})["ok"]
     _wait_until(lambda: (folder / "take1.mcap").is_file(), "the recording")
+
+
+def test_a_fault_in_a_control_command_is_answered_not_fatal(
+    start_daemon: Callable[..., Any],
+    monkeypatch: pytest.MonkeyPatch,
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """A bug met while handling a request (here: status raising AttributeError) is
+    answered ``ok: false`` naming an internal error, logged with its traceback, and
+    the daemon keeps serving."""
+    live = start_daemon()
+
+    def broken() -> Any:
+        raise AttributeError("'str' object has no attribute 'path'")
+
+    monkeypatch.setattr(live.daemon, "status", broken)
+    reply = live.ctl({"cmd": "status"})
+    assert reply["ok"] is False and "internal error (AttributeError)" in reply["error"]
+    assert any("control request" in r.message for r in caplog.records)
+    monkeypatch.undo()
+    assert live.ctl({"cmd": "status"})["ok"] is True
