@@ -28,6 +28,7 @@ import json
 import os
 import tempfile
 import tomllib
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -91,15 +92,7 @@ def loads_toml(text: str) -> dict[str, Any]:
     Raises:
         FileFormatError: not valid TOML, or nested past :data:`MAX_DEPTH`.
     """
-    try:
-        doc = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise FileFormatError(f"not valid TOML: {exc}") from None
-    except RecursionError:
-        raise FileFormatError(
-            f"nested more than {MAX_DEPTH} levels deep (tables and arrays)"
-        ) from None
-    check_depth(doc)
+    doc: dict[str, Any] = _loads(tomllib.loads, tomllib.TOMLDecodeError, "TOML", text)
     return doc
 
 
@@ -109,13 +102,21 @@ def loads_json(text: str) -> Any:
     Raises:
         FileFormatError: not valid JSON, or nested past :data:`MAX_DEPTH`.
     """
+    return _loads(json.loads, json.JSONDecodeError, "JSON", text)
+
+
+def _loads(
+    parse: Callable[[str], Any], invalid: type[Exception], kind: str, text: str
+) -> Any:
+    """``parse(text)``, its ``invalid`` error and a parser's ``RecursionError`` as
+    one :class:`FileFormatError` line, then the depth checked."""
     try:
-        doc = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise FileFormatError(f"not valid JSON: {exc}") from None
+        doc = parse(text)
+    except invalid as exc:
+        raise FileFormatError(f"not valid {kind}: {exc}") from None
     except RecursionError:
         raise FileFormatError(
-            f"nested more than {MAX_DEPTH} levels deep (objects and arrays)"
+            f"nested more than {MAX_DEPTH} levels deep (tables and arrays)"
         ) from None
     check_depth(doc)
     return doc

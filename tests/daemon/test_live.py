@@ -715,50 +715,11 @@ def test_osc_allow_list(
 # ---- control -----------------------------------------------------------------------
 
 
-class _Streamer(threading.Thread):
-    """Streams the T-pose hold at ~200 Hz until stopped (a live source)."""
-
-    def __init__(self, src: OscSource) -> None:
-        super().__init__(name="test-streamer", daemon=True)
-        self.src = src
-        self.stop_event = threading.Event()
-
-    def run(self) -> None:
-        hold = _take().markers_world[_take().base_pose_frames]
-        k = 0
-        while not self.stop_event.is_set():
-            if k % 100 == 0:
-                self.src.announce()
-            self.src.send(hold[k % len(hold)])
-            k += 1
-            time.sleep(0.005)
-
-    def stop(self) -> None:
-        self.stop_event.set()
-        self.join(timeout=2.0)
-        assert not self.is_alive()
-
-
-@pytest.fixture
-def streamer() -> Iterator[Callable[[OscSource], _Streamer]]:
-    made: list[_Streamer] = []
-
-    def make(src: OscSource) -> _Streamer:
-        s = _Streamer(src)
-        made.append(s)
-        s.start()
-        return s
-
-    yield make
-    for s in made:
-        s.stop()
-
-
 def test_ctl_live_calibration_while_streaming_status_and_reload(
     start_daemon: Callable[..., Live],
     osc_source: Callable[..., OscSource],
     zmq_socket: Callable[[int], Any],
-    streamer: Callable[[OscSource], _Streamer],
+    streamer: Callable[[OscSource], Any],
     exact_calibration: Path,
     tmp_path: Path,
     capsys: pytest.CaptureFixture[str],
@@ -841,7 +802,7 @@ def test_show_control_triggers_a_calibration(
     start_daemon: Callable[..., Live],
     osc_source: Callable[..., OscSource],
     udp_socket: Callable[..., socket.socket],
-    streamer: Callable[[OscSource], _Streamer],
+    streamer: Callable[[OscSource], Any],
     tmp_path: Path,
 ) -> None:
     saved = tmp_path / "show.json"
