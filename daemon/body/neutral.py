@@ -148,33 +148,28 @@ def neutral_from_rest(
 
 
 def pose_from_neutral_deg(
-    rig: Rig,
-    calibration: Calibration,
-    segment_kind: Mapping[str, str],
-    left_world: F64Array,
+    rig: Rig, calibration: Calibration, segment_kind: Mapping[str, str]
 ) -> dict[str, tuple[float, float]]:
     """Each bone whose calibration pose is off neutral: its (sagittal, frontal)
     angles from neutral, degrees (the validator's split: sagittal positive = knee
-    flexion, hip extension, ankle plantarflexion), for the ``calibrate`` summary.
+    flexion, hip extension), for the ``calibrate`` summary.
 
     Args:
         rig, calibration, segment_kind: as :func:`neutral_from_rest`.
-        left_world: (3,) the performer's left (horizontal).
     """
     c = neutral_from_rest(rig, calibration, segment_kind)
     rest_w = np.asarray(calibration.rest_world_from_bone_quat, dtype=np.float64)
-    forward_world = np.cross(left_world, [0.0, 0.0, 1.0])
+    left = performer_left(rig, calibration)
+    forward = np.cross(left, [0.0, 0.0, 1.0])
     out = {}
     for b, bone in enumerate(rig.bones):
         if abs(c[b, 0]) >= 1.0 - 1e-12:
             continue
         to_neutral = rot.quat_mul(c[b], rot.quat_conj(rest_w[b]))
-        half = math.atan2(c[b, 2], c[b, 0])  # the twist about +Y, halved
-        twist = np.array([math.cos(half), 0.0, math.sin(half), 0.0])
-        swing_q = rot.quat_mul(c[b], rot.quat_conj(twist))
+        swing_q, _ = rot.swing_twist(c[b], np.array([0.0, 1.0, 0.0]))
         swing = np.degrees(rot.rotvec_from_quat(swing_q))
         out[bone.name] = (
-            float(swing @ rot.quat_rotate(to_neutral, left_world)),
-            float(swing @ rot.quat_rotate(to_neutral, forward_world)),
+            float(swing @ rot.quat_rotate(to_neutral, left)),
+            float(swing @ rot.quat_rotate(to_neutral, forward)),
         )
     return out

@@ -189,12 +189,9 @@ def _pose_from_neutral(rig: Any, cal: Any) -> dict[str, tuple[float, float]]:
     """Each bone's calibration pose from anatomical neutral (``body.neutral``), in
     the validator's sagittal / frontal split."""
     from retargetd.daemon.body.neutral import pose_from_neutral_deg
-    from retargetd.daemon.validate.model import SEGMENT_KIND, skeleton_from_calibration
+    from retargetd.daemon.validate.model import SEGMENT_KIND
 
-    if cal.rest_bone_origin_pos is None:
-        return {}
-    left = skeleton_from_calibration(rig, cal).left_world
-    return pose_from_neutral_deg(rig, cal, SEGMENT_KIND, left)
+    return pose_from_neutral_deg(rig, cal, SEGMENT_KIND)
 
 
 def _or_dash(x: float | None) -> str:

@@ -222,8 +222,9 @@ class RecordConfig:
     # directory); a path outside it or with ".." is refused.
     folder: str = spec("recordings", "folder")
     # The folder's recordings (*.mcap) may hold at most this many MB: record start
-    # is refused at it and a recording stops there (a day of takes at 120 Hz, 60
-    # markers and poses is ~400 MB an hour, so 20 GB is 50 hours of takes).
+    # is refused at it and a recording stops there. Measured: the PiG walk at 120 Hz
+    # with poses and the Foxglove channels writes 1.4 GB an hour, so 20 GB holds a
+    # long show day of takes (~14 hours).
     max_total_mb: float = between(20_000.0, 1.0, 1e9)
     # The disk keeps at least this many MB free: record start is refused and a
     # recording stops below it (room for the MCAP footer, the OS and other files).
