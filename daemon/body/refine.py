@@ -72,19 +72,16 @@ from retargetd.daemon.body.calibration import (
     compute_points,
 )
 from retargetd.daemon.body.fit_model import FitModel
-from retargetd.daemon.body.match import NOISE_MM as NOISE_BOUND_MM
-from retargetd.daemon.body.match import marker_bound_mm
+from retargetd.daemon.body.match import NOISE_MM, marker_bound_mm
 from retargetd.daemon.body.method import make_body_solver
 from retargetd.daemon.body.rig import Rig
 from retargetd.daemon.body.solve_fit import FitSolve, FitSolver
 from retargetd.protocols.frames import F64Array
 
-#: The noise bound, mm (Merriaux et al. 2017; ``body.match.NOISE_MM``).
-NOISE_MM = NOISE_BOUND_MM
 #: Explained frames a marker must be seen in to be re-placed (module docstring).
 FRAMES_MIN = 25
 #: A re-placed marker settles when a round would move it less than this, mm (a
-#: twentieth of the noise bound, :data:`NOISE_MM`).
+#: twentieth of the noise bound, ``body.match.NOISE_MM``).
 SETTLED_MM = 0.1
 #: Rounds of solve and re-placement at most, before the markers still moving are
 #: judged by their tail (:func:`_tail_m`); twice, the second time without those put
@@ -306,7 +303,7 @@ def refine_layout(
         if not re_placed[i] and not undetermined[i] and frames[i] >= FRAMES_MIN
         and off_mm[i] >= 1e3 * bound_m[i]
     )  # fmt: skip
-    pinning = tuple(m for i, m in enumerate(rig.marker_names) if undetermined[i])
+    unplaced = tuple(m for i, m in enumerate(rig.marker_names) if undetermined[i])
     too_few = tuple(
         m
         for i, m in enumerate(rig.marker_names)
@@ -319,7 +316,7 @@ def refine_layout(
         "rms_before_mm": round(before, 3),
         "rms_after_mm": round(rms_mm(solved), 3),
         "kept_off": list(kept),
-        "undetermined": list(pinning),
+        "undetermined": list(unplaced),
         "markers": {
             m: {"moved_mm": round(float(moved[i]), 2), "frames": int(frames[i])}
             for i, m in enumerate(rig.marker_names)
@@ -332,7 +329,7 @@ def refine_layout(
         frames={m: int(frames[i]) for i, m in enumerate(rig.marker_names)},
         too_few=too_few,
         kept_off=kept,
-        undetermined=pinning,
+        undetermined=unplaced,
         rounds=rounds,
         rms_before_mm=before,
         rms_after_mm=rms_mm(solved),
