@@ -51,7 +51,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
@@ -101,6 +101,11 @@ logger = logging.getLogger(__name__)
 #: pair across (knee / ankle / wrist widths 50-110 mm, Plug-in Gait's measurements
 #: table; a marker on one condyle is ~half that from either bone's line).
 PROXIMAL_TIE_M = 0.025
+
+#: ``axis_markers`` closer than this are no joint's two sides (the narrowest joint a
+#: rig puts a marker pair across is ~50 mm wide, Plug-in Gait's measurements table:
+#: half that is already a marker pair on one side): the rig's axis is kept.
+AXIS_MARKERS_MIN_M = 0.025
 
 #: A "hinge_twist" axis must be at least 30 deg off the bone's own axis (|cos| <= this):
 #: nearer, the cone the hinge sweeps the bone's axis on narrows to the axis itself and
@@ -155,10 +160,11 @@ class FitModel:
             in metres, times I), a fixed joint's :data:`FIXED_STIFFNESS`, and the
             automatic prior on each rotation the markers do not observe
             (``fit_observe``).
-        hide_axes, hide_lam, hide_lost: (Mr * B, 9), (Mr * B, 3), (Mr * B, 3): row
+        hide_axes, hide_lam, hide_lost: (Mr * B, 18), (Mr * B, 6), (Mr * B, 6): row
             ``k * B + b``, bone b's rotations with marker k hidden (three
             directions in its rest axes), their information and what k gave along
-            each, m^2 / rad^2 (``fit_observe.hidden_information``: the hold prior).
+            each, m^2 / rad^2, marginal then given the ancestors' holds
+            (``fit_observe.hidden_information``: the hold prior).
         joint_dof: (B,) each joint's model ("root", "ball", "hinge", ...).
         observation: (B,) what the markers determine of each bone
             (``fit_observe.observe``).
@@ -420,6 +426,41 @@ def _limit_rows(
     return limits, left_b, fwd_b
 
 
+def _marker_axis(
+    name: str,
+    pair: tuple[str, ...],
+    rig: Rig,
+    parent: int,
+    bones_of: Sequence[int],
+    local: F64Array,
+    rest_pfb: F64Array,
+    nominal: F64Array,
+) -> F64Array:
+    """A hinge's axis from ``[fit.bones.NAME] axis_markers``: the line from the first
+    marker to the second where the calibration placed them on the parent bone,
+    turned into the bone's rest axes and signed like ``nominal`` (the rig's
+    ``axis``, the same axes). A marker the base pose never saw leaves ``nominal``
+    (a warning); a marker riding another bone is the rig's error (one line)."""
+    i, k = (rig.marker_names.index(m) for m in pair)
+    for m, c in ((pair[0], i), (pair[1], k)):
+        if bones_of[c] != parent:
+            raise CalibrationError(
+                f"fit.bones.{name}.axis_markers: marker {m} rides "
+                f"{rig.bone_names[bones_of[c]]}, not the parent bone "
+                f"{rig.bone_names[parent]}"
+            )
+    line = local[k] - local[i]
+    norm = float(np.linalg.norm(line))
+    if not math.isfinite(norm) or norm < AXIS_MARKERS_MIN_M:
+        logger.warning(
+            "fit: %s's axis markers %s and %s are %.1f mm apart in the base pose: "
+            "the rig's axis is kept", name, pair[0], pair[1], 1e3 * norm,
+        )  # fmt: skip
+        return nominal
+    axis = rot.quat_rotate(rot.quat_conj(rest_pfb), line / norm)
+    return axis if axis @ nominal >= 0.0 else -axis
+
+
 def build_fit_model(
     rig: Rig,
     calibration: Calibration,
@@ -576,6 +617,11 @@ def build_fit_model(
         explicit[b] = (1e-3 * bopt.stiffness_mm) ** 2 * np.eye(3)
         if name in axes:  # calibrate --rom's functional axis first, the rig's else
             hinge[b] = functional_axes.get(name, axes[name])
+            if bopt.axis_markers and name not in functional_axes:
+                hinge[b] = _marker_axis(
+                    name, bopt.axis_markers, rig, parents[b], bones_of, local,
+                    rest_pfb[b], axes[name],
+                )  # fmt: skip
             if bopt.dof == "hinge_twist":
                 if abs(hinge[b][1]) > HINGE_TWIST_MAX_COS:  # one line, exit 2
                     raise CalibrationError(

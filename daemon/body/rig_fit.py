@@ -11,6 +11,8 @@ axis = "x"           # hinge axis: "x", "y", "z" or [x, y, z]
 axis_in = "bone"     # the axes it is in: the bone's (default) or its "parent"'s
 axis_from_bend_deg = 0  # bent at least this much in the calibration pose: the axis
                         # there perpendicular to the bone and its parent instead
+axis_markers = ["LIKNEE", "LEKNEE"]  # the axis is the line through these two markers
+                        # of the parent bone at the calibration pose (signed like axis)
 stiffness_mm = 0     # pull towards the calibration pose, mm of residual per radian
 ```
 
@@ -33,7 +35,9 @@ from retargetd.protocols.frames import F64Array
 #: The keys of each table, in the order errors list them.
 FIT_KEYS = ("markers", "bones")
 MARKER_KEYS = ("segment", "weight")
-BONE_KEYS = ("dof", "axis", "axis_in", "axis_from_bend_deg", "stiffness_mm")
+BONE_KEYS = (
+    "dof", "axis", "axis_in", "axis_from_bend_deg", "axis_markers", "stiffness_mm"
+)
 #: ``stiffness_mm`` at most a hinge's stiffness (FitParams.kappa_hinge: 1 m/rad);
 #: ``body.rig_model.RIG_RANGES`` lists the same range.
 STIFFNESS_MAX_MM = 1000.0
@@ -82,6 +86,12 @@ class BoneFitOptions:
     much (the angle between the bone's +Y and its parent's), the hinge turns about
     the axis perpendicular to both there, signed like ``axis`` (0: never): a hinge's
     axis is the one its bend is about.
+    ``axis_markers``: two markers riding the parent bone (a knee's femoral
+    epicondyles, an elbow's humeral ones): the hinge turns about the line through
+    them where the calibration placed them, signed like ``axis`` (empty: ``axis``).
+    The line is the anatomical axis itself; a bone frame's axis is that line made
+    perpendicular to a bone whose other end is an estimate (a hip or shoulder
+    centre), so it carries the estimate's error into every flexion.
     ``stiffness_mm``: a pull of the joint towards its calibration pose, in mm of
     marker residual per radian (0: none), like OpenSim IK's coordinate tasks.
     """
@@ -90,6 +100,7 @@ class BoneFitOptions:
     axis: tuple[float, float, float] = (1.0, 0.0, 0.0)
     axis_in: str = "bone"
     axis_from_bend_deg: float = 0.0
+    axis_markers: tuple[str, ...] = ()
     stiffness_mm: float = 0.0
 
 
@@ -256,8 +267,26 @@ def parse_fit_table(
                 f"{key}.axis_from_bend_deg",
                 f"{from_bend!r} is out of range: allowed [0, 90] deg ({BEND_WHY})",
             )
+        pair = spec.get("axis_markers", [])
+        if "axis_markers" in spec and dof not in HINGES:
+            raise fail(f"{key}.axis_markers", "only a hinge has an axis")
+        if (
+            not isinstance(pair, list)
+            or len(pair) not in (0, 2)
+            or not all(isinstance(m, str) for m in pair)
+        ):
+            raise fail(f"{key}.axis_markers", f"expected two marker names: {pair!r}")
+        for m in pair:
+            if m not in markers:
+                raise fail(f"{key}.axis_markers", f"unknown marker {m!r}")
+        if len(pair) == 2 and pair[0] == pair[1]:
+            raise fail(f"{key}.axis_markers", f"two different markers: {pair!r}")
+        if pair and from_bend:
+            raise fail(
+                f"{key}.axis_markers", "give axis_markers or axis_from_bend_deg, not both"
+            )
         out_b[name] = BoneFitOptions(
             dof=dof, axis=axis, axis_in=axis_in, stiffness_mm=float(stiff),
-            axis_from_bend_deg=float(from_bend),
+            axis_from_bend_deg=float(from_bend), axis_markers=tuple(pair),
         )  # fmt: skip
     return FitOptions(markers=out_m, bones=out_b)
