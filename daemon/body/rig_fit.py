@@ -36,7 +36,12 @@ from retargetd.protocols.frames import F64Array
 FIT_KEYS = ("markers", "bones")
 MARKER_KEYS = ("segment", "weight")
 BONE_KEYS = (
-    "dof", "axis", "axis_in", "axis_from_bend_deg", "axis_markers", "stiffness_mm"
+    "dof",
+    "axis",
+    "axis_in",
+    "axis_from_bend_deg",
+    "axis_markers",
+    "stiffness_mm",
 )
 #: ``stiffness_mm`` at most a hinge's stiffness (FitParams.kappa_hinge: 1 m/rad);
 #: ``body.rig_model.RIG_RANGES`` lists the same range.
@@ -283,7 +288,8 @@ def parse_fit_table(
             raise fail(f"{key}.axis_markers", f"two different markers: {pair!r}")
         if pair and from_bend:
             raise fail(
-                f"{key}.axis_markers", "give axis_markers or axis_from_bend_deg, not both"
+                f"{key}.axis_markers",
+                "give axis_markers or axis_from_bend_deg, not both",
             )
         out_b[name] = BoneFitOptions(
             dof=dof, axis=axis, axis_in=axis_in, stiffness_mm=float(stiff),
