@@ -826,6 +826,7 @@ def calibrate_checked(
     overrides: Mapping[str, float] | None = None,
     base_pose: Mapping[str, Any] | None = None,
     rom: tuple[F64Array, Sequence[str], Mapping[str, Any]] | None = None,
+    up_levers: bool = False,
 ) -> tuple[Calibration, list[str]]:
     """Calibrate ``rig`` after every base-pose check and check the result: the
     spread, up axis, units, stillness and left/right labels of the base pose
@@ -843,6 +844,12 @@ def calibrate_checked(
         allow_moving: a moving base pose warns instead of refusing.
         take_measurements, overrides, base_pose, rom: passed to ``calibrate`` (a
             range of motion's joints it does not determine are among the warnings).
+        up_levers: warn of each bone whose up lever is short
+            (:func:`check_up_levers`): for the construction, which takes every
+            bone's roll from its up reference. The fit (the default) takes none: it
+            decides from all the markers what each bone's rotations are measured
+            by, and holds what they are not (``body.fit_observe``, printed by
+            ``retargetd rig check``), so a short up lever says nothing of its solve.
 
     Returns:
         ``(calibration, warnings)`` (one line each).
@@ -873,8 +880,9 @@ def calibrate_checked(
     notes += check_calibration(
         rig, cal, units=source.units, override=source.units_override
     )
-    # a bone whose roll would follow noise: named, with its lever
-    notes += check_up_levers(rig, cal, positions, labels)
+    # a bone whose construction roll would follow noise: named, with its lever
+    if up_levers:
+        notes += check_up_levers(rig, cal, positions, labels)
     # a point whose construction needs a bent joint, calibrated on a straight one
     notes += check_bends(rig, cal, positions, labels)
     return cal, notes

@@ -115,11 +115,13 @@ def calibrate_from_take(
     *,
     allow_moving: bool = False,
     rom: Any = None,
+    method: str = "fit",
 ) -> Any:
     """Calibrate ``rig`` on ``take.positions[frames]`` after the base-pose sanity
     checks (``body.sanity.calibrate_checked``: up axis, units, stillness, left/right
-    labels; then stature, left/right symmetry and each bone's up lever of the
-    result; the live calibration runs the same). Warnings go to stderr, one line
+    labels; then stature, left/right symmetry and, for ``method`` "construction",
+    each bone's up lever of the result; the live calibration runs the same).
+    Warnings go to stderr, one line
     each, only once the calibration succeeded (a wrong rig gives its one error line
     alone).
 
@@ -151,6 +153,7 @@ def calibrate_from_take(
                     "rate_hz": take.rate_hz,
                 },
                 rom=rom,
+                up_levers=method == "construction",
             )
     except (CalibrationError, sanity.SanityError) as exc:
         raise UsageError(str(exc)) from None
@@ -282,6 +285,7 @@ def solver_for_take(args: argparse.Namespace) -> tuple[Any, Any, Any, Any]:
             cal = calibrate_from_take(
                 take, rig, frames, parse_measures(args.measure),
                 allow_moving=args.allow_moving_base_pose,
+                method=getattr(args, "method", "fit"),
             )  # fmt: skip
         args.layout_refined = None
         if getattr(args, "refine_layout", False):

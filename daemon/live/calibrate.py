@@ -284,7 +284,7 @@ class CalibrationMixin(DaemonState):
                 self.rig, frames, labels, self._base_pose_source(times_s),
                 base_pose={"live": True, "frames": int(frames.shape[0]),
                            "requested_by": self._calib_requested_by},
-                rom=rom,
+                rom=rom, up_levers=self.config.solve.method == "construction",
             )  # fmt: skip
         except (SanityError, CalibrationError) as exc:
             self._refuse_calibration(str(exc))

@@ -34,9 +34,11 @@ def _calibrate(argv: list[str], tmp_path: Path) -> list[str]:
     return ["calibrate", *argv, "--out", str(tmp_path / "cal.json")]
 
 
-#: The up-lever warnings the real base poses do give (``check_up_levers``): the feet
-#: of Plug-in Gait and cmu41 take their roll from the heel, 13-26 mm off the
-#: ankle->toe line (RIGS.md "How much lever an up reference needs").
+#: The up-lever warnings the real base poses do give the construction
+#: (``check_up_levers``; the fit takes no bone's roll from its up reference, so its
+#: calibrations give none): the feet of Plug-in Gait and cmu41 take their roll from
+#: the heel, 13-26 mm off the ankle->toe line (RIGS.md "How much lever an up
+#: reference needs").
 LEVER_WARNINGS = {
     PIG_STATIC: {"lfoot"},
     "btkdata/MOTEK_T.trc": {"lfoot", "rfoot"},
@@ -78,7 +80,7 @@ def test_metres_labelled_mm_is_refused_naming_take_units(
     line = _one_error(capsys)
     assert "--take-units m" in line and "mm" in line
     assert main(_calibrate([*argv, "--take-units", "m"], tmp_path)) == 0
-    assert _warnings(capsys.readouterr().err) == ([], LEVER_WARNINGS[PIG_STATIC])
+    assert _warnings(capsys.readouterr().err) == ([], set())
 
 
 def test_z_up_trc_read_as_y_up_is_refused_naming_take_up(
@@ -94,7 +96,7 @@ def test_z_up_trc_read_as_y_up_is_refused_naming_take_up(
     line = _one_error(capsys)
     assert "--take-up +Z" in line and "+Y" in line
     assert main(_calibrate([*argv, "--take-up", "+Z"], tmp_path)) == 0
-    assert _warnings(capsys.readouterr().err) == ([], LEVER_WARNINGS[PIG_STATIC])
+    assert _warnings(capsys.readouterr().err) == ([], set())
 
 
 def test_calibrating_on_walking_frames_is_refused(
@@ -135,8 +137,15 @@ def test_real_base_poses_pass_every_check(
     argv = [str(datasets / path), "--rig", rig]
     argv += ["--frames", frames] if frames else []
     assert main(_calibrate(argv, tmp_path)) == 0
-    # only the up-lever warnings, each naming its bone
-    assert _warnings(capsys.readouterr().err) == ([], LEVER_WARNINGS[path])
+    assert _warnings(capsys.readouterr().err) == ([], set())  # no warning at all
+    # the construction takes each bone's roll from its up reference: the short
+    # levers are named where it calibrates (and only those)
+    solve = [
+        "solve", str(datasets / path), "--rig", rig, "--method", "construction",
+        "--calibrate-frames", frames or ":", "--out", str(tmp_path / "s.npz"),
+    ]  # fmt: skip
+    assert main(solve) == 0
+    assert _warnings(capsys.readouterr().err)[1] == LEVER_WARNINGS[path]
     take = load_take(datasets / path)
     rows = slice(0, 50) if frames else slice(None)
     motion = sanity.base_pose_motion(take.positions[rows], take.labels, take.rate_hz)
@@ -389,3 +398,40 @@ def test_ten_walking_frames_are_refused_like_eleven(
         line = _one_error(capsys)
         assert "not still" in line and "m/s" in line, line
     assert not (tmp_path / "cal.json").exists()
+
+
+#: Bones of each shipped rig whose up reference sits under ``UP_LEVER_MIN_M`` from
+#: the bone's axis on the synthetic performer: menache's neck takes its roll from T1,
+#: 17 mm behind the LONECK->UPNECK line, and its scapulae from the acromion, 26 mm off
+#: the clavicle->scapula line (the chapter's choices).
+SYNTH_LEVER_WARNINGS = {
+    "menache": {"loneck", "lscapula", "rscapula"},
+    "plug-in-gait": set(),
+}
+
+
+@pytest.mark.parametrize("markerset", sorted(SYNTH_LEVER_WARNINGS))
+def test_shipped_rigs_calibrate_and_solve_their_performer_without_a_warning(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], markerset: str
+) -> None:
+    """Issue 31 item 7: each shipped rig, on the synthetic performer wearing its
+    marker set, calibrates and solves with the default method without a warning a
+    user could not act on; the construction, which takes each bone's roll from its
+    up reference, still names the short levers."""
+    from retargetd.daemon.synth.markerset import shipped_markersets
+
+    assert set(SYNTH_LEVER_WARNINGS) == set(shipped_markersets())
+    take = tmp_path / "take.c3d"
+    assert main(["synth", "--seconds", "2", "--rate", "60", "--markers", markerset,
+                 "--out", str(take)]) == 0  # fmt: skip
+    capsys.readouterr()
+    assert main(_calibrate([str(take), "--rig", markerset, "--frames", "0:60"],
+                           tmp_path)) == 0  # fmt: skip
+    assert "warning" not in capsys.readouterr().err
+    solve = ["solve", str(take), "--rig", markerset, "--calibrate-frames", "0:60"]
+    assert main([*solve, "--out", str(tmp_path / "fit.npz")]) == 0
+    assert "warning" not in capsys.readouterr().err
+    assert main([*solve, "--method", "construction", "--out",
+                 str(tmp_path / "con.npz")]) == 0  # fmt: skip
+    other, bones = _warnings(capsys.readouterr().err)
+    assert (other, bones) == ([], SYNTH_LEVER_WARNINGS[markerset])
