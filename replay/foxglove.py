@@ -17,7 +17,9 @@ from the file alone):
     frame, rotation = ``parent_from_bone`` (both world-referenced: ``world`` is Z up,
     as in the internal frame).
 ``/foxglove/health`` (JSON, ``retargetd.health`` JSON schema)
-    the health figures for Foxglove's plot panel (``/foxglove/health.<field>``).
+    the health figures for Foxglove's plot panel (``/foxglove/health.<field>``):
+    live, every 0.5 s (``daemon.live.recording.health_figures``); in a solve's own
+    file, one per frame (:func:`solve_health`).
 
 Log times are those of the frames (nanoseconds; see :class:`FoxgloveChannels`).
 """
@@ -59,6 +61,8 @@ _HEALTH_SCHEMA = {
         "validation_flags": {"type": "integer"},
         "latency_p50_ms": {"type": "object"},
         "latency_p99_ms": {"type": "object"},
+        "held_bones": {"type": "integer"},
+        "marker_rms_mm": {"type": ["number", "null"]},
     },
     "required": ["t_ns"],
 }
@@ -272,6 +276,7 @@ def write_solve_mcap(
     start_ns: int = 0,
     library: str = "retargetd",
     progress: Callable[[int], None] | None = None,
+    health: Sequence[Mapping[str, Any]] | None = None,
 ) -> int:
     """Write a solved take as an MCAP of Foxglove channels (``solve --out x.mcap``).
 
@@ -286,6 +291,7 @@ def write_solve_mcap(
         start_ns: log time of frame 0, nanoseconds.
         library: the MCAP header's library string.
         progress: called with 1 after each frame written (a progress bar).
+        health: optional (T,) health figures per frame (:func:`solve_health`).
 
     Returns:
         The number of frames written.
@@ -307,10 +313,51 @@ def write_solve_mcap(
                 markers=None if markers is None else markers[i],
                 marker_valid=None if marker_valid is None else marker_valid[i],
             )
+            if health is not None:
+                ch.write_health(t_ns, health[i])
             if progress is not None:
                 progress(1)
         w.finish()
     return n
+
+
+def solve_health(
+    rate_hz: float,
+    bone_flags: np.ndarray,
+    marker_valid: np.ndarray | None = None,
+    marker_rms: F64Array | None = None,
+) -> list[dict[str, Any]]:
+    """Per frame of an offline solve, the ``/foxglove/health`` figures it has: the
+    take's rate (``input_rate_hz``), no ``drops`` (a file loses nothing), the markers
+    not seen (``occluded``), the bones held (``held_bones``: any flag) and the fit's
+    marker residual RMS in mm (``marker_rms_mm``; None for the construction or a
+    frame it did not fit). The live figures it cannot have (latencies, the
+    validator's flags) are left out.
+
+    Args:
+        rate_hz: the take's frame rate.
+        bone_flags: (T, B) the solve's bone flags.
+        marker_valid: (T, M) the markers seen, or None (occluded 0).
+        marker_rms: (T,) metres, or None.
+    """
+    flags = np.asarray(bone_flags)
+    n = flags.shape[0]
+    held = (flags != 0).sum(axis=1)
+    occ = (
+        np.zeros(n, np.int64)
+        if marker_valid is None
+        else (~np.asarray(marker_valid, bool)).sum(axis=1)
+    )
+    out = []
+    for i in range(n):
+        rms = None if marker_rms is None else float(marker_rms[i])
+        out.append({
+            "input_rate_hz": float(rate_hz), "drops": 0, "occluded": int(occ[i]),
+            "held_bones": int(held[i]),
+            "marker_rms_mm": None if rms is None or not np.isfinite(rms)
+            else round(1e3 * rms, 4),
+        })  # fmt: skip
+    return out
 
 
 def add_to_recording(

@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from retargetd.daemon.console.snapshot import SkeletonProgram, bone_endpoints
-from retargetd.replay.foxglove import write_solve_mcap
+from retargetd.replay.foxglove import solve_health, write_solve_mcap
 
 
 def solve_bone_ends(arrays: Mapping[str, Any], rig: Any) -> np.ndarray:
@@ -60,6 +60,8 @@ def write_solve_foxglove(
     Returns:
         Frames written.
     """
+    flags = np.asarray(arrays["bone_flags"], np.uint8)
+    rms = arrays.get("marker_rms")
     return write_solve_mcap(
         path,
         bone_names=[str(n) for n in arrays["bone_names"]],
@@ -67,9 +69,13 @@ def write_solve_foxglove(
         bone_ends=solve_bone_ends(arrays, rig),
         world_from_bone_quat=np.asarray(arrays["world_from_bone_quat"], np.float64),
         rate_hz=float(arrays["rate_hz"]),
-        bone_flags=np.asarray(arrays["bone_flags"], np.uint8),
+        bone_flags=flags,
         markers=markers,
         marker_valid=marker_valid,
         library=library,
         progress=progress,
-    )
+        health=solve_health(
+            float(arrays["rate_hz"]), flags, marker_valid,
+            None if rms is None else np.asarray(rms, np.float64),
+        ),
+    )  # fmt: skip

@@ -105,13 +105,31 @@ def test_solve_mcap_holds_the_solve_under_foxglove_schemas(
         schemas = {s.name for s in summary.schemas.values()}
         assert {"foxglove.SceneUpdate", "foxglove.FrameTransforms"} <= schemas
         scene, tf = [], []
-        for _, channel, _, msg in reader.iter_decoded_messages():
+        topics = ["/foxglove/scene", "/foxglove/tf"]
+        for _, channel, _, msg in reader.iter_decoded_messages(topics=topics):
             if channel.topic == "/foxglove/scene":
                 scene.append(msg)
-            elif channel.topic == "/foxglove/tf":
+            else:
                 tf.append(msg)
+        health = [
+            (message.log_time, json.loads(message.data))
+            for _, _, message in reader.iter_messages(topics=["/foxglove/health"])
+        ]
+        declared = {c.topic for c in summary.channels.values()}
+        counts = summary.statistics.channel_message_counts
+        # every declared channel carries messages (issue 31 item 8)
+        assert all(counts.get(cid, 0) > 0 for cid in summary.channels), counts
     n = joints.shape[0]
-    assert len(scene) == len(tf) == n
+    assert len(scene) == len(tf) == len(health) == n
+    assert "/foxglove/health" in declared
+    # the health per frame: the fit's residual and the held bones of the NPZ
+    with np.load(npz, allow_pickle=False) as z:
+        rms, flags = z["marker_rms"], z["bone_flags"]
+    for i, (log_ns, h) in enumerate(health):
+        assert h["t_ns"] == log_ns
+        assert h["held_bones"] == int((flags[i] != 0).sum())
+        if np.isfinite(rms[i]):
+            assert h["marker_rms_mm"] == pytest.approx(1e3 * rms[i], abs=1e-3)
     for i in (10, n // 2, n - 1):
         ents = {e.id: e for e in scene[i].entities}
         pts = np.array([[p.x, p.y, p.z] for p in ents["skeleton"].lines[0].points])
