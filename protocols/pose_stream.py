@@ -438,6 +438,8 @@ class PoseNames:
         performer: the performer's name ("" with one performer: then the JSON
             has no ``performer`` keys).
         performer_id: its id, as at byte 50 of the data header.
+        bone_humanoid: per bone, its humanoid (Unity ``HumanBodyBones``) name, ""
+            for a bone the rig maps to none (empty: not sent, an older sender).
     """
 
     rig: str
@@ -448,6 +450,7 @@ class PoseNames:
     face_markers: tuple[str, ...] = ()
     performer: str = ""
     performer_id: int = 0
+    bone_humanoid: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         n = len(self.bone_names)
@@ -457,6 +460,11 @@ class PoseNames:
             raise ValueError(
                 f"bone_parents must hold one index in [-1, {n}) per bone; "
                 f"got {self.bone_parents}"
+            )
+        if self.bone_humanoid and len(self.bone_humanoid) != n:
+            raise ValueError(
+                f"bone_humanoid must hold one name per bone ({n}); "
+                f"got {len(self.bone_humanoid)}"
             )
 
 
@@ -468,6 +476,7 @@ def encode_pose_names(names: PoseNames) -> list[bytes]:
         "names_id": names.names_id,
         "rig": names.rig,
         "bones": list(names.bone_names),
+        "humanoid": list(names.bone_humanoid),
         "parents": list(names.bone_parents),
         "weights": list(names.weight_names),
         "quat_order": "wxyz",
@@ -523,6 +532,7 @@ def decode_pose_names(parts: Sequence[bytes | bytearray | memoryview]) -> PoseNa
     ):
         raise DecodeError("bad_json", "'parents' must be a list of integers")
     has_face = "face_markers" in doc
+    humanoid = _str_list(doc, "humanoid") if "humanoid" in doc else ()
     performer = doc.get("performer", "")
     performer_id = doc.get("performer_id", 0)
     if not isinstance(performer, str) or type(performer_id) is not int:
@@ -537,6 +547,7 @@ def decode_pose_names(parts: Sequence[bytes | bytearray | memoryview]) -> PoseNa
             face_markers=_str_list(doc, "face_markers") if has_face else (),
             performer=performer,
             performer_id=performer_id,
+            bone_humanoid=humanoid,
         )
     except ValueError as exc:
         if isinstance(exc, DecodeError):

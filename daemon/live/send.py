@@ -169,6 +169,7 @@ class SendMixin(DaemonState):
             face_markers=face_markers,
             performer=self._perf.name,
             performer_id=self._perf.index,
+            bone_humanoid=tuple(b.humanoid or "" for b in self.rig.bones),
         )
         vmc = VmcEncoder(
             names,

@@ -1185,6 +1185,21 @@ def test_demo_subprocess_streams_poses(
     assert sub.names and sub.names[-1].rig == "menache"
     assert sub.names[-1].names_id == sub.poses[-1].names_id
     assert len(sub.names[-1].bone_names) == sub.poses[-1].world_from_bone_quat.shape[0]
+    # each bone's humanoid name beside the rig's (issue 31 item 3), and PROTOCOLS.md's
+    # names example is the start of what the demo streams
+    rig = load_rig("menache")
+    streamed_names = sub.names[-1]
+    assert streamed_names.bone_humanoid == tuple(b.humanoid or "" for b in rig.bones)
+    doc = (REPO_ROOT / "protocols/PROTOCOLS.md").read_text()
+    example = doc[doc.index('{"schema": "retargetd.pose_names"') :]
+    example = example[: example.index("```")]
+    for key, got in (
+        ("bones", streamed_names.bone_names),
+        ("humanoid", streamed_names.bone_humanoid),
+        ("parents", streamed_names.bone_parents),
+    ):
+        shown = json.loads(re.search(rf'"{key}": (\[[^\]]*\])', example)[1])
+        assert shown[-1] == "..." and tuple(shown[:-1]) == got[: len(shown) - 1], key
     streamed = int(re.findall(r"streamed (\d+)", summary)[0])
     assert len(vmc_rx.frames) == streamed  # one VMC frame per pose streamed
     print(

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import json
 import struct
 
 import numpy as np
@@ -16,9 +17,10 @@ from retargetd.protocols.errors import DecodeError
 NAMES_HEAD = b"RTDN\x01\x00\x00\x00"
 NAMES = ps.PoseNames(
     rig="menache",
-    bone_names=("Hips", "Spine", "Head"),
+    bone_names=("pelvis", "lumbar", "torso"),
     bone_parents=(-1, 0, 1),
     weight_names=("A", "Blink"),
+    bone_humanoid=("Hips", "Spine", ""),
 )
 
 
@@ -100,6 +102,15 @@ def test_names_round_trip() -> None:
     parts = ps.encode_pose_names(NAMES)
     assert parts[0] == b"RTDN\x01\x00\x00\x00"
     assert ps.decode_pose_names(parts) == NAMES
+    doc = json.loads(parts[1])
+    assert doc["humanoid"] == ["Hips", "Spine", ""]  # beside the rig's names
+    # a sender without the key (an older one): unknown, not an error
+    del doc["humanoid"]
+    old = ps.decode_pose_names([parts[0], json.dumps(doc).encode()])
+    assert old.bone_humanoid == () and old.bone_names == NAMES.bone_names
+    with pytest.raises(DecodeError):  # one name per bone
+        doc["humanoid"] = ["Hips"]
+        ps.decode_pose_names([parts[0], json.dumps(doc).encode()])
 
 
 @pytest.mark.parametrize(
