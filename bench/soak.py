@@ -14,6 +14,16 @@ recording running the whole time (``ctl record start`` into the daemon's working
 directory's ``recordings/``); the live validator on; the face on when the ICT
 training set is in ``../shared/datasets``.
 
+Issue 30's attacks (``--no-attacks``: off), the daemon's control socket under CURVE
+and its show control under a token: 50 ``record start``/``stop`` pairs back to back
+before the recording starts (one file; the rest refused as rate limited); then, one
+every 1.5 s in turn, 10 show-control bundles of 5,000 token-less messages, a bundle
+nested 6 deep, a token-less message, a 10 MB control request (answered), a plain
+client, an unlisted key and a wrong server key on control (one handshake each), and
+three frames numbered from 2^62 back to back; and every 2.5 s a burst of 1-50 bad
+frames in the walk's place, in turn every marker on one point, all zeros, left and
+right swapped, every marker at 1e30.
+
 Pass (all printed, exit 1 if any fails):
 
 - up throughout: every control request answered, the process alive at the end;
@@ -26,11 +36,15 @@ Pass (all printed, exit 1 if any fails):
   announced its names again (listed apart: ``label_conflict`` drops, by design);
 - the recording replays to the same poses: its marker packets, fed through the live
   decoders and a fresh body solver of the daemon's method (the fit by default; reset
-  where the daemon reset its own), give the recorded ``/poses`` (float32-equal).
+  where the daemon reset its own), give the recorded ``/poses`` (float32-equal);
+- every attack counted as what it is (``attack_accounting``), and the pose back within
+  0.25 s of every burst's last bad frame: every bone within 2 deg and the root within
+  2 cm of a second solver's pose for the same frame, fed the walk's own frames in the
+  burst's place (the pose just before a burst would not do: the walk moves on).
 
 Run from the repository root::
 
-    python bench/soak.py                  # 10 minutes
+    python bench/soak.py --minutes 10     # 10 minutes (the default)
     python bench/soak.py --seconds 60     # the CI version (tests/daemon/test_soak.py)
 """
 
@@ -71,6 +85,27 @@ MAX_RSS_GROWTH_MB = 10.0
 #: walking speed (~1.4 m/s) covers a 14 mm marker plus a few cm of ray in that time.
 OCCLUSION_S = (0.020, 0.250)
 SPOOF_FRAME = 2**62
+#: Issue 30's attacks, one at a time in this order: show-control bundles of 5,000
+#: token-less messages (amplification), bundles nested 6 deep, a token-less message,
+#: a 10 MB control request, a plain client, an unlisted key and a wrong server key
+#: on the CURVE control socket, three frames numbered from 2^62 back to back.
+ATTACKS = ("amplify", "nested", "no_token", "oversize", "plain_client",
+           "unlisted_key", "wrong_server_key", "spoof_triple")  # fmt: skip
+#: Bad frames in bursts: every marker on one point (the visible ones' mean), all
+#: zeros (occluded: nothing seen), left and right labels swapped, every marker at
+#: 1e30 (implausible: occluded and counted).
+BURSTS = ("collapsed", "zeros", "swapped", "far")
+#: The pose is back after a burst when every bone is within this of the intact
+#: solve of the same frame (the walk's own frames solved as if the burst had not
+#: happened), and the root within ``RECOVERED_M``; it must be within MAX_RECOVERY_S
+#: of the burst's last bad frame.
+RECOVERED_DEG = 2.0
+RECOVERED_M = 0.02
+MAX_RECOVERY_S = 0.25
+#: Show-control token of the soak's daemon (with attacks).
+TOKEN = "soak-token-0123456789abcdef"
+#: ``ctl record start``/``stop`` pairs sent back to back before the soak's recording.
+CHURN = 50
 #: The largest IPv4 UDP payload (65,535 - 8 UDP - 20 IP header bytes).
 UDP_MAX = 65_507
 
@@ -93,6 +128,14 @@ class Faults:
     #: fuzz mode: label announcements among the mutated OSC and ZeroMQ inputs.
     flood_labels: bool = True
     flood_window: tuple[float, float] = (0.0, 0.0)  # fractions of the run
+    #: issue 30's attacks (show-control token and CURVE control on in the daemon):
+    #: one every ``attack_every_s``, the kinds in turn (:data:`ATTACKS`).
+    attacks: bool = False
+    attack_every_s: float = 1.5
+    #: bursts of bad frames (:data:`BURSTS`, in turn) sent in place of the walk's,
+    #: 1-50 frames long, one every ``burst_every_s`` (with ``attacks``).
+    burst_every_s: float = 2.5
+    burst_frames: tuple[int, int] = (1, 50)
 
 
 @dataclass(slots=True)
@@ -113,6 +156,23 @@ class Sent:
     frame_ns: list[int] = field(default_factory=list)  # each good frame's send
     spoof_labels_ns: list[int] = field(default_factory=list)
     labels_ns: list[int] = field(default_factory=list)
+    spoofed_triples: int = 0
+    attacks: dict[str, int] = field(default_factory=dict)  # by kind
+    churn_refused: int = 0  # record starts refused as rate limited
+    churn_started: int = 0
+    bursts: list[tuple[str, int, int, int]] = field(default_factory=list)
+    burst_frames: int = 0
+    far_markers: int = 0  # markers sent at 1e30
+    #: bad datagram -> the intact ones it replaced, in order (the replay's oracle)
+    intact: dict[bytes, list[bytes]] = field(default_factory=dict)
+    oversize_replies: list[float] = field(default_factory=list)  # seconds
+
+
+def _amplification_bundle(n: int) -> bytes:
+    """An OSC bundle of ``n`` 8-byte token-less messages (5,000: 60 KB): issue 30's
+    show-control amplification (``bench/flood.py``)."""
+    m = b"/x\0\0,\0\0\0"
+    return b"#bundle\0" + (1).to_bytes(8, "big") + (len(m).to_bytes(4, "big") + m) * n
 
 
 def occlusion_mask(rng: np.random.Generator, n: int, m: int, fraction: float) -> Any:
@@ -151,9 +211,20 @@ def _rss_kb(pid: int) -> int:
 
 
 def _config(
-    calibration: Path, vmc_port: int, face_npz: Path | None, extra: str = ""
-) -> str:
+    calibration: Path, vmc_port: int, face_npz: Path | None, extra: str = "",
+    keys: Path | None = None,
+) -> str:  # fmt: skip
+    """The soak daemon's config; with ``keys`` (attacks) control is CURVE (the
+    driver holds ``operator``) and show control takes :data:`TOKEN`."""
     q = json.dumps
+    control = ""
+    show = ""
+    if keys is not None:
+        control = (
+            f"secret_key = {q(str(keys / 'daemon.key_secret'))}\n"
+            f"client_keys = [{q(str(keys / 'operator.key'))}]\n"
+        )
+        show = f'token = "{TOKEN}"\n'
     face = (
         f'[face]\nenabled = true\nconfig = "arkit52"\ntraining = {q(str(face_npz))}\n'
         if face_npz is not None
@@ -175,9 +246,9 @@ endpoint = "tcp://{LOCALHOST}:*"
 sndhwm = 100000
 [control]
 endpoint = "tcp://{LOCALHOST}:*"
-[show_control]
+{control}[show_control]
 port = 0
-[loop]
+{show}[loop]
 stats_interval_s = 5.0
 [validate]
 enabled = true
@@ -187,7 +258,13 @@ enabled = true
 class DaemonProcess:
     """``retargetd run --config FILE`` in ``cwd``; stdout and stderr into a log."""
 
-    def __init__(self, config: Path, cwd: Path) -> None:
+    def __init__(self, config: Path, cwd: Path, keys: Path | None = None) -> None:
+        #: (secret key, server key) files of a CURVE control socket's client
+        self.keys = (
+            (str(keys / "operator.key_secret"), str(keys / "daemon.key"))
+            if keys is not None
+            else (None, None)
+        )
         self.log = cwd / "daemon.log"
         self._log = self.log.open("w")
         cmd = [sys.executable, "-m", "retargetd.daemon", "run", "--config", str(config)]
@@ -237,7 +314,7 @@ class DaemonProcess:
     def ctl(self, req: dict[str, Any], timeout_ms: int = 2000) -> dict[str, Any] | None:
         from retargetd.daemon.cli.ctl import request
 
-        return request(self.endpoints["control"], req, timeout_ms)
+        return request(self.endpoints["control"], req, timeout_ms, *self.keys)
 
     def status(self) -> dict[str, Any]:
         reply = self.ctl({"cmd": "status"}, 5000)
@@ -281,7 +358,7 @@ class Driver:
 
     def __init__(
         self, daemon: DaemonProcess, walk: fuzz.Walk, seconds: float, faults: Faults,
-        vmc_port: int, seed: int = 0,
+        vmc_port: int, seed: int = 0, keys: Path | None = None,
     ) -> None:  # fmt: skip
         import zmq
 
@@ -301,6 +378,15 @@ class Driver:
         self.vmc_datagrams = 0
         self.flood_ns = (0, 0)
         self._lock = threading.Lock()
+        self.keys = keys
+        self.t_end_ns = 0
+        # the walk's left and right markers swapped (L... <-> R...)
+        index = {name: i for i, name in enumerate(walk.labels)}
+        self.swap = np.arange(len(walk.labels))
+        for i, name in enumerate(walk.labels):
+            twin = {"L": "R", "R": "L"}.get(name[:1], "") + name[1:]
+            if twin in index and twin != name:
+                self.swap[i] = index[twin]
 
     # ---- threads ----------------------------------------------------------------
 
@@ -450,6 +536,100 @@ class Driver:
             push.close()
             req.close()
 
+    def _attack(self, kind: str) -> None:
+        """One of :data:`ATTACKS` (``kind``), counted in ``sent.attacks``."""
+        import zmq
+
+        from retargetd.daemon.live.surface import curve_client
+        from retargetd.protocols import osc_in
+        from retargetd.protocols.osc_wire import build_bundle, build_message
+
+        s = self.sent
+        s.attacks[kind] = s.attacks.get(kind, 0) + 1
+        if kind in ("amplify", "nested", "no_token"):
+            if kind == "amplify":  # 5,000 token-less messages (60 KB), 10 at once
+                data, n = _amplification_bundle(5000), 10
+            elif kind == "nested":  # a token-bearing message under 6 bundles
+                data = build_message(f"/{TOKEN}/VMC/Ext/Set/Calib/Ready", "", [])
+                for _ in range(6):
+                    data = build_bundle([data])
+                n = 1
+            else:
+                data, n = build_message("/rtd/reload", "", []), 1
+            with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as udp:
+                for _ in range(n):
+                    udp.sendto(data, self.d.udp("show control"))
+            with self._lock:
+                s.show += n
+            s.attacks[kind] += n - 1
+            return
+        if kind == "spoof_triple":  # issue 30: three frames from 2^62, back to back
+            row = self.walk.positions[0]
+            with self._lock, socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as udp:
+                for i in range(3):
+                    data = osc_in.encode_compact_frame(SPOOF_FRAME + i, 0.0, 1, row)
+                    udp.sendto(data, self.d.udp("osc markers"))
+                    s.osc += 1
+                s.spoofed_triples += 1
+            return
+        if kind == "oversize":  # a 10 MB request from a listed key: answered
+            t0 = time.monotonic()
+            reply = self.ctl({"cmd": "status", "pad": " " * 10_000_000})
+            if reply is not None:
+                s.oversize_replies.append(time.monotonic() - t0)
+                if reply.get("ok") is not False or "too large" not in reply["error"]:
+                    self.errors.append(f"oversize request answered {reply}")
+            return
+        # a failed CURVE handshake on control: one try each (no reconnect)
+        sock = self.ctx.socket(zmq.REQ)
+        sock.setsockopt(zmq.LINGER, 0)
+        sock.setsockopt(zmq.RECONNECT_IVL, -1)
+        keys = self.keys
+        assert keys is not None
+        if kind == "unlisted_key":
+            curve_client(sock, keys / "intruder.key_secret", keys / "daemon.key")
+        elif kind == "wrong_server_key":
+            curve_client(sock, keys / "operator.key_secret", keys / "intruder.key")
+        sock.connect(self.d.endpoints["control"])
+        sock.send(b'{"cmd": "calibrate"}')
+        if sock.poll(300):
+            self.errors.append(f"a {kind} control client got a reply")
+        sock.close()
+
+    def _attacks(self) -> None:
+        k = 0
+        while not self.stop.wait(self.f.attack_every_s):
+            if time.monotonic_ns() > self.t_end_ns - 2_000_000_000:
+                continue  # the last 2 s quiet: every attack counted by the end
+            self._attack(ATTACKS[k % len(ATTACKS)])
+            k += 1
+
+    def churn(self) -> None:
+        """``record start``/``stop`` pairs back to back (issue 30: 3,000 cycles
+        wrote 3,000 files): the first starts, the rest refused as rate limited."""
+        for i in range(CHURN):
+            reply = self.ctl({"cmd": "record", "action": "start",
+                              "path": f"churn-{i}.mcap"})  # fmt: skip
+            if reply is not None and reply.get("ok"):
+                self.sent.churn_started += 1
+            elif reply is not None and "rate limited" in reply.get("error", ""):
+                self.sent.churn_refused += 1
+            self.ctl({"cmd": "record", "action": "stop"})
+
+    def _bad_row(self, kind: str, row: np.ndarray) -> np.ndarray:
+        """The burst ``kind``'s version of the walk's ``row`` (:data:`BURSTS`)."""
+        if kind == "zeros":
+            return np.zeros_like(row)
+        if kind == "far":
+            return np.full_like(row, 1e30)
+        if kind == "swapped":
+            return row[self.swap]
+        bad = row.copy()  # collapsed: the visible markers all on their mean
+        seen = np.isfinite(row).all(axis=1) & (row != 0.0).any(axis=1)
+        if seen.any():
+            bad[seen] = row[seen].mean(axis=0)
+        return bad
+
     def _send(self) -> None:
         """The source: paced at RATE_HZ, with the faults."""
         from retargetd.protocols import osc_in
@@ -481,6 +661,9 @@ class Driver:
         k = 0
         t_next = t0
         row = np.empty((m, 3))
+        next_burst = t0 + int(f.burst_every_s * 1e9)
+        burst_left = burst_n = n_bursts = 0
+        burst_kind, burst_t0 = "", 0
 
         def out(data: bytes) -> None:
             udp.sendto(data, addr)
@@ -521,7 +704,27 @@ class Driver:
                     occ = mask[j]
                     row[occ & zeros[j]] = 0.0
                     row[occ & ~zeros[j]] = np.nan
-                    out(osc_in.encode_compact_frame(frame, frame / RATE_HZ, 1, row))
+                    data = osc_in.encode_compact_frame(frame, frame / RATE_HZ, 1, row)
+                    if f.attacks and not burst_left and now >= next_burst:
+                        burst_left = burst_n = self.r.randint(*f.burst_frames)
+                        burst_kind = BURSTS[n_bursts % len(BURSTS)]
+                        n_bursts += 1
+                        burst_t0 = now
+                        next_burst = now + int(f.burst_every_s * 1e9)
+                    if burst_left:  # a bad frame in the walk's place
+                        bad = osc_in.encode_compact_frame(
+                            frame, frame / RATE_HZ, 1, self._bad_row(burst_kind, row)
+                        )
+                        s.intact.setdefault(bad, []).append(data)
+                        data = bad
+                        s.burst_frames += 1
+                        s.far_markers += m if burst_kind == "far" else 0
+                        burst_left -= 1
+                        if not burst_left:
+                            s.bursts.append(
+                                (burst_kind, burst_n, burst_t0, time.monotonic_ns())
+                            )
+                    out(data)
                     s.osc_frames += 1
                     s.frame_ns.append(time.monotonic_ns())
                     if self.r.random() < f.malformed:
@@ -565,6 +768,11 @@ class Driver:
                     daemon=True,
                 )
             )
+        if self.f.attacks:
+            threads.append(
+                threading.Thread(target=self._guard, args=(self._attacks,), daemon=True)
+            )
+        self.t_end_ns = time.monotonic_ns() + int((0.3 + self.seconds) * 1e9)
         for t in threads:
             t.start()
         time.sleep(0.3)  # the SUB connects (slow joiner) before the first frame
@@ -630,7 +838,8 @@ def pose_gaps(
             read, from the recording (None without one).
 
     Returns:
-        Gap lengths (s) under ``paused`` (a source restart's pause),
+        Gap lengths (s) under ``paused`` (a source restart's pause), ``bad_burst``
+        (a burst of bad frames: frames with no marker seen stream no pose),
         ``source_stalled`` (the driver itself sent nothing for over MAX_GAP_S: the
         source paused), ``label_conflict`` (the frames read in the gap were held by
         a conflicting announcement of other names under the id in use, until the
@@ -643,7 +852,8 @@ def pose_gaps(
     from retargetd.protocols.marker_input import BACKWARDS, LABEL_CONFLICT
 
     t = np.asarray([x for x in pose_ns if t0_ns <= x <= t1_ns], dtype=np.int64)
-    kinds = ("paused", "source_stalled", "label_conflict", "restart_confirm")
+    kinds = ("paused", "bad_burst", "source_stalled", "label_conflict",
+             "restart_confirm")  # fmt: skip
     out: dict[str, list[float]] = {k: [] for k in (*kinds, "loop_late", "other")}
     if len(t) < 2:
         out["other"].append((t1_ns - t0_ns) * 1e-9)
@@ -661,6 +871,8 @@ def pose_gaps(
         codes = rx_code[in_gap]
         if any(p0 - slack <= b and a <= p1 + slack for p0, p1 in sent.pauses):
             kind = "paused"
+        elif any(b0 - slack <= b and a <= b1 + slack for _, _, b0, b1 in sent.bursts):
+            kind = "bad_burst"  # the source sent frames with no marker to see
         elif np.diff(edges).max() > slack:
             kind = "source_stalled"
         elif received is None:
@@ -689,12 +901,22 @@ def rss_growth(
     return base, peak, peak - base
 
 
-def replay_check(path: Path, calibration: Path, method: str = "fit") -> dict[str, Any]:
+def replay_check(
+    path: Path, calibration: Path, method: str = "fit",
+    intact: dict[bytes, list[bytes]] | None = None,
+) -> dict[str, Any]:  # fmt: skip
     """The recording's marker packets through the live decoders and a fresh body
     solver of the daemon's ``method`` (the default, the fit; reset where the daemon
     reset its own: restarts, reloads, new label sets), solving exactly the frames the
-    daemon solved (the recorded poses, matched by receive time), against the recorded
-    ``/poses``."""
+    daemon solved (the recorded poses, matched by receive time, and the frames it
+    solved with no marker seen, streaming no pose: its ``unseen`` control events),
+    against the recorded ``/poses``.
+
+    With ``intact`` (bad datagram -> the walk's datagrams it replaced, in order), a
+    second solver gets the walk's own frames in the bad ones' place, as if no burst
+    had happened: each streamed pose's largest bone angle (deg) and root distance (m)
+    from it are returned as ``track`` [(receive ns, bad, deg, m)], and the bad
+    packets' receive times as ``bad_rx``."""
     from retargetd.daemon.body.calibration import load_calibration
     from retargetd.daemon.body.method import make_body_solver
     from retargetd.daemon.body.rig import load_rig
@@ -706,6 +928,7 @@ def replay_check(path: Path, calibration: Path, method: str = "fit") -> dict[str
     from retargetd.protocols.marker_input import ACCEPTED, RESTART, MarkerStream
     from retargetd.replay import recording as rf
 
+    substitute = {k: list(v) for k, v in (intact or {}).items()}
     rec = rf.read_recording(path)
     received: list[tuple[int, int]] = []
     poses: dict[int, Any] = {}
@@ -714,62 +937,158 @@ def replay_check(path: Path, calibration: Path, method: str = "fit") -> dict[str
             msg = pose_stream.decode_pose(p.parts)
             poses[msg.received_ns] = msg
     pose_sent_ns = sorted(m.sent_ns for m in poses.values())
-    reloads = sorted(
-        e["t_ns"] for e in rec.json(rf.CONTROL_TOPIC) if e.get("event") == "reload"
-    )
+    events = list(rec.json(rf.CONTROL_TOPIC))
+    reloads = sorted(e["t_ns"] for e in events if e.get("event") == "reload")
+    # frames the daemon solved with nothing seen (no pose streamed)
+    unseen_rx = {e["received_ns"] for e in events if e.get("event") == "unseen"}
     rig = load_rig("plug-in-gait")
     cal = load_calibration(calibration)
-    stream = MarkerStream()
-    solver: Any = None
+    # [0]: the packets as received (the daemon's replay); [1]: the intact walk
+    streams = [MarkerStream(), MarkerStream()]
+    solvers: list[Any] = [None, None]
+    out: list[Any] = [None, None]
     labels: tuple[str, ...] = ()
-    pose: Any = None
-    compared = worst_q = worst_p = 0.0
-    n_compared = missing = 0
+    worst_q = worst_p = 0.0
+    n_compared = missing = unseen = 0
+    first_diff: tuple[int, int] | None = None  # (receive ns, unseen solved before)
+    track: list[tuple[int, bool, float, float]] = []
+    bad_rx: list[int] = []
     r_i = 0
+    last = (math.nan, -1, 0)
     for p in rec.packets():
         if p.input != "osc":
             continue
         while r_i < len(reloads) and reloads[r_i] <= p.t_ns:
-            solver, r_i = None, r_i + 1  # the daemon rebuilt its pipelines
+            solvers, r_i = [None, None], r_i + 1  # the daemon rebuilt its pipelines
         if p.kind == rf.KIND_LABELS:
-            with contextlib.suppress(DecodeError):  # counted by the stream, as live
-                stream.set_labels(osc_in.decode_labels(p.parts[0]), p.t_ns)
+            for stream in streams:
+                with contextlib.suppress(DecodeError):  # counted by the stream
+                    stream.set_labels(osc_in.decode_labels(p.parts[0]), p.t_ns)
             continue
-        code = stream.feed(osc_in.decode_compact_frame, p.parts[0], t_ns=p.t_ns)
+        data = bytes(p.parts[0])
+        queue = substitute.get(data)
+        good = queue.pop(0) if queue else data
+        bad = good is not data
+        if bad:
+            bad_rx.append(p.t_ns)
+        code = streams[0].feed(osc_in.decode_compact_frame, data, t_ns=p.t_ns)
+        streams[1].feed(osc_in.decode_compact_frame, good, t_ns=p.t_ns)
         received.append((p.t_ns, code))
         if code not in (ACCEPTED, RESTART):
             continue
-        if solver is None or stream.current.label_set.labels != labels:
-            labels = stream.current.label_set.labels
-            solver = make_body_solver(
-                method, rig, cal, labels,
-                joint_limits=JOINT_LIMITS_DEG, segment_kind=SEGMENT_KIND,
-                rate_hz=VALIDATE_RATE_HZ,
-            )  # fmt: skip
-            pose = solver.new_pose()
+        if solvers[0] is None or streams[0].current.label_set.labels != labels:
+            labels = streams[0].current.label_set.labels
+            for i in range(2):
+                solvers[i] = make_body_solver(
+                    method, rig, cal, labels,
+                    joint_limits=JOINT_LIMITS_DEG, segment_kind=SEGMENT_KIND,
+                    rate_hz=VALIDATE_RATE_HZ,
+                )  # fmt: skip
+                out[i] = solvers[i].new_pose()
             last = (math.nan, -1, 0)  # a new pipeline: its first frame
         elif code == RESTART:
-            solver.reset()
+            for solver in solvers:
+                solver.reset()
+        frame = streams[0].current.frame
         msg = poses.pop(p.t_ns, None)
-        if msg is None:
+        if msg is None and p.t_ns not in unseen_rx:
             missing += 1  # stale (latest wins): the daemon did not solve it either
             continue
-        frame = stream.current.frame
+        # solved; with no marker seen (a burst of zeros or 1e30) without a pose
         dt, last = frame_interval_s(last, frame, p.t_ns, VALIDATE_RATE_HZ)
-        solver.solve_frame(frame.markers_world, pose, dt)
+        pose = solvers[0].solve_frame(frame.markers_world, out[0], dt)
+        twin = solvers[1].solve_frame(
+            streams[1].current.frame.markers_world, out[1], dt
+        )
+        if msg is None:
+            unseen += 1
+            track.append((p.t_ns, bad, math.nan, math.nan))
+            continue
         dq = np.abs(
             pose.world_from_bone_quat.astype(np.float32) - msg.world_from_bone_quat
         )
+        if first_diff is None and float(dq.max()) > 1e-6:
+            first_diff = (p.t_ns, unseen)
         dp = np.abs(pose.root_pos.astype(np.float32) - msg.root_pos_world)
         worst_q, worst_p = max(worst_q, float(dq.max())), max(worst_p, float(dp.max()))
         n_compared += 1
-    compared = n_compared
+        if intact is not None:
+            dot = np.abs(
+                np.sum(msg.world_from_bone_quat * twin.world_from_bone_quat, 1)
+            )
+            deg = np.degrees(2.0 * np.arccos(np.clip(dot, 0.0, 1.0)))
+            root = float(np.linalg.norm(msg.root_pos_world - twin.root_pos))
+            track.append((p.t_ns, bad, float(np.nanmax(deg, initial=0.0)), root))
     return {
-        "complete": rec.complete, "poses_compared": int(compared),
-        "frames_not_solved": missing, "poses_unmatched": len(poses),
+        "complete": rec.complete, "poses_compared": n_compared,
+        "frames_not_solved": missing, "unseen_solved": unseen,
+        "poses_unmatched": len(poses),
         "max_quat_diff": worst_q, "max_root_diff_m": worst_p,
         "ok": n_compared > 0 and not poses and worst_q <= 1e-6 and worst_p <= 1e-6,
-        "received": received, "pose_sent_ns": pose_sent_ns,
+        "received": received, "pose_sent_ns": pose_sent_ns, "track": track,
+        "bad_rx": bad_rx, "first_diff": first_diff,
+    }  # fmt: skip
+
+
+def recovery(
+    bursts: list[tuple[str, int, int, int]],
+    track: list[tuple[int, bool, float, float]],
+    bad_rx: list[int],
+) -> list[dict[str, Any]]:
+    """Per burst of bad frames: its kind and length, how long after its last bad
+    frame was read the streamed pose was back (within RECOVERED_DEG / RECOVERED_M of
+    the intact solve of the same frame; inf if not before the next burst), and the
+    largest bone angle from the intact solve while it lasted."""
+    t = np.asarray([x[0] for x in track], dtype=np.int64)
+    flags = np.asarray([x[1] for x in track], dtype=bool)
+    deg = np.asarray([x[2] for x in track])
+    root = np.asarray([x[3] for x in track])
+    rx = np.asarray(bad_rx, dtype=np.int64)
+    out = []
+    for i, (kind, n, t0, t1) in enumerate(bursts):
+        nxt = bursts[i + 1][2] if i + 1 < len(bursts) else np.iinfo(np.int64).max
+        mine = rx[(rx >= t0) & (rx <= t1 + 200_000_000) & (rx < nxt)]
+        if not mine.size:  # (none of it reached the daemon: kernel drops)
+            continue
+        end = int(mine.max())
+        after = (t > end) & (t < nxt) & ~flags
+        back = after & (deg <= RECOVERED_DEG) & (root <= RECOVERED_M)
+        rec_s = (int(t[back][0]) - end) * 1e-9 if back.any() else math.inf
+        during = (t >= int(mine.min())) & (t <= end + int(max(rec_s, 0) * 1e9))
+        worst = float(np.nanmax(deg[during], initial=0.0)) if during.any() else 0.0
+        out.append({"kind": kind, "frames": n, "recovery_s": round(rec_s, 4),
+                    "worst_deg": round(worst, 2)})  # fmt: skip
+    return out
+
+
+def attack_accounting(status: dict[str, Any], sent: Sent) -> dict[str, Any]:
+    """Each attack against what the daemon counted for it: (sent, counted)."""
+    refused = status["show_control"]["refused"]
+    curve = status["curve_refused"].get("control", {})
+    c = status["counters"]
+    a = sent.attacks
+    kernel = status["kernel_drops"]["show_control"] or 0
+    pairs = {
+        "too_many_messages": (a.get("amplify", 0), refused.get("too_many_messages", 0)),
+        "nested_too_deep": (a.get("nested", 0), refused.get("nested_too_deep", 0)),
+        "bad_token": (a.get("no_token", 0), refused.get("bad_token", 0)),
+        "control_oversize": (a.get("oversize", 0), c["control_oversize"]),
+        **{k: (a.get(k, 0), curve.get(k, 0))
+           for k in ("plain_client", "unlisted_key", "wrong_server_key")},
+        "record_rate_limited": (CHURN - 1, sent.churn_refused),
+        "implausible_markers": (sent.far_markers, c["implausible_markers"]),
+    }  # fmt: skip
+    ok = all(
+        got == want
+        or (k in ("too_many_messages", "nested_too_deep", "bad_token")
+            and want - kernel <= got <= want)
+        or (k == "implausible_markers" and got >= want)  # + mutated frames' markers
+        for k, (want, got) in pairs.items()
+    )  # fmt: skip
+    return {
+        "pairs": pairs, "ok": ok and sent.churn_started == 1,
+        "churn_started": sent.churn_started, "rate_limited": c["rate_limited"],
+        "spoofed_triples": sent.spoofed_triples,
     }  # fmt: skip
 
 
@@ -794,13 +1113,24 @@ def run(
             probe.bind((LOCALHOST, 0))
             vmc_port = int(probe.getsockname()[1])
         config = tmp / "soak.toml"
-        config.write_text(_config(calibration, vmc_port, face_npz))
-        daemon = DaemonProcess(config, tmp)
+        keys = None
+        if faults.attacks:  # CURVE control: the driver is "operator"
+            from retargetd.daemon.live.surface import write_keypair
+
+            keys = tmp / "keys"
+            keys.mkdir()
+            for name in ("daemon", "operator", "intruder"):
+                write_keypair(keys, name)
+        config.write_text(_config(calibration, vmc_port, face_npz, keys=keys))
+        daemon = DaemonProcess(config, tmp, keys)
         rec_path = tmp / "recordings" / "soak.mcap"
         result: dict[str, Any] = {"seconds": seconds, "face": face_npz is not None,
                                   "load_before": os.getloadavg()}  # fmt: skip
         try:
-            driver = Driver(daemon, walk, seconds, faults, vmc_port, seed)
+            driver = Driver(daemon, walk, seconds, faults, vmc_port, seed, keys)
+            if faults.attacks:
+                driver.churn()
+                time.sleep(1.05)  # past record.min_interval_s: the soak's recording
             if record:
                 rec_path.parent.mkdir(exist_ok=True)
                 reply = driver.ctl(
@@ -847,8 +1177,14 @@ def run(
         result["pose_rate_phases"] = phase_rates(driver)
         result["rss_phases_mb"] = phase_rss(driver)
         if record:
-            replay = replay_check(rec_path, calibration)
+            replay = replay_check(
+                rec_path, calibration,
+                intact=sent.intact if faults.attacks else None,
+            )  # fmt: skip
             received = replay.pop("received")
+            track, bad_rx = replay.pop("track"), replay.pop("bad_rx")
+            if faults.attacks:
+                result["recovery"] = recovery(sent.bursts, track, bad_rx)
             result["gaps"] = pose_gaps(
                 replay.pop("pose_sent_ns"), sent, driver.t0_ns, driver.t1_ns, received
             )
@@ -856,7 +1192,14 @@ def run(
         else:
             result["gaps"] = result["gaps_sub"]
         a = result["accounting"]
+        if faults.attacks:
+            result["attacks"] = attack_accounting(status, sent)
+            result["oversize_reply_s"] = sent.oversize_replies
+        rec_times = [b["recovery_s"] for b in result.get("recovery", [])]
         result["pass"] = {
+            "attacks": (not faults.attacks) or result["attacks"]["ok"],
+            "recovery": (not faults.attacks)
+            or (bool(rec_times) and max(rec_times) <= MAX_RECOVERY_S),
             "up": alive
             and not driver.errors
             and sent.control == sent.control_replies,
@@ -868,11 +1211,26 @@ def run(
             "gaps": not any(
                 v
                 for k, v in result["gaps"].items()
-                if k not in ("paused", "source_stalled")
+                if k not in ("paused", "source_stalled", "bad_burst")
             ),
             "replay": (not record) or result["replay"]["ok"],
         }  # fmt: skip
         return result
+
+
+def _ms(seconds: list[float]) -> str:
+    """``median / max ms`` of some durations."""
+    a = np.asarray(seconds) * 1e3
+    return f"{np.median(a):.1f} ms median, {a.max():.1f} ms max (n={a.size})"
+
+
+def _by_kind(rec: list[dict[str, Any]]) -> dict[str, Any]:
+    """Per burst kind: (bursts, worst recovery s, worst angle from intact deg)."""
+    out: dict[str, Any] = {}
+    for b in rec:
+        n, worst, deg = out.get(b["kind"], (0, 0.0, 0.0))
+        out[b["kind"]] = (n + 1, max(worst, b["recovery_s"]), max(deg, b["worst_deg"]))
+    return out
 
 
 def _load(avg: tuple[float, float, float]) -> str:
@@ -947,19 +1305,41 @@ def print_result(result: dict[str, Any]) -> None:
         print(f"replay: {result['replay']}")
     if result["errors"]:
         print(f"errors: {result['errors'][:5]}")
+    if "attacks" in result:
+        att = result["attacks"]
+        print(f"attacks (sent, counted): {att['pairs']}; record starts: "
+              f"{att['churn_started']} of {CHURN}, rate_limited {att['rate_limited']}; "
+              f"spoofed triples {att['spoofed_triples']}")  # fmt: skip
+        replies = result["oversize_reply_s"]
+        if replies:
+            print(f"10 MB control requests answered in {_ms(replies)}")
+        rec = result.get("recovery", [])
+        if rec:
+            times = np.asarray([b["recovery_s"] for b in rec])
+            print(f"bursts: {len(rec)}; recovery s median {np.median(times):.4f} max "
+                  f"{times.max():.4f} (<= {MAX_RECOVERY_S}); by kind "
+                  f"{_by_kind(rec)}")  # fmt: skip
     print(f"pass: {result['pass']}")
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--seconds", type=float, default=600.0)
+    length = parser.add_mutually_exclusive_group()
+    length.add_argument("--seconds", type=float, default=600.0)
+    length.add_argument("--minutes", type=float, help="the length in minutes")
     parser.add_argument("--no-face", action="store_true", help="face off")
     parser.add_argument("--json", type=Path, help="write the figures here")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--no-attacks", action="store_true", help="issue 12's faults only"
+    )
     args = parser.parse_args(argv)
+    if args.minutes is not None:
+        args.seconds = 60.0 * args.minutes
     if args.seconds < 5:
         parser.error("--seconds must be >= 5")
-    result = run(args.seconds, Faults(), face=not args.no_face, seed=args.seed)
+    faults = Faults(attacks=not args.no_attacks)
+    result = run(args.seconds, faults, face=not args.no_face, seed=args.seed)
     print_result(result)
     if args.json:
         args.json.write_text(json.dumps(result, indent=1, default=str))

@@ -35,9 +35,20 @@ from retargetd.protocols.osc_wire import iter_bundle_elements, parse_message
 
 logger = logging.getLogger(__name__)
 
-#: Largest control request accepted (bytes); ZeroMQ drops the connection of a
-#: peer that sends more. A request is a small JSON object (a path at most).
+#: Largest control request read (bytes): a request is a small JSON object (a path at
+#: most). A larger one, up to :data:`CONTROL_TRANSPORT_MAX_BYTES`, is answered
+#: ``ok: false`` unread and counted (``control_oversize``).
 CONTROL_MAX_BYTES = 65536
+#: The control socket's ``ZMQ_MAXMSGSIZE``: past it libzmq drops the connection at the
+#: message's header, before buffering it, and the daemon never sees the request (no
+#: reply can be sent: ZeroMQ reports it as an ordinary disconnect). 16 MiB answers the
+#: 10 MB request of issue 30; libzmq allocates a message at its header but the pages
+#: are committed only as its bytes arrive, so a peer that claims 16 MiB and sends
+#: little costs little.
+CONTROL_TRANSPORT_MAX_BYTES = 16 << 20
+#: Requests queued per control connection (``ZMQ_RCVHWM``): a REQ peer sends one at a
+#: time; a DEALER pipelining large requests is held back by TCP after this many.
+CONTROL_RCVHWM = 4
 
 
 class ControlMixin(DaemonState):
@@ -47,15 +58,42 @@ class ControlMixin(DaemonState):
         assert self._ctl is not None
         try:
             # Every part of the request, so the REP socket is always ready to reply
-            # (a multipart request read with recv() left it mid-message).
-            parts = self._ctl.recv_multipart(zmq.NOBLOCK)
+            # (a multipart request read with recv() left it mid-message); as frames,
+            # so an oversize one is measured, never copied.
+            frames = self._ctl.recv_multipart(zmq.NOBLOCK, copy=False)
         except zmq.Again:
             return
-        reply = self.control_reply(parts)
+        size = sum(len(f) for f in frames)
+        if size > CONTROL_MAX_BYTES:
+            reply = self._oversize(size, frames[0])
+        else:
+            reply = self.control_reply([f.bytes for f in frames])
         try:
             self._ctl.send(json.dumps(reply).encode(), zmq.NOBLOCK)
         except zmq.ZMQError as exc:  # the requester vanished: nothing to answer
             logger.warning("control reply not sent: %s", exc)
+
+    def _oversize(self, size: int, frame: Any) -> dict[str, Any]:
+        """The reply to a request over :data:`CONTROL_MAX_BYTES` (unread): counted in
+        ``control_requests``, ``control_errors`` and ``control_oversize``; one
+        rate-limited log line with the peer's address."""
+        self.stats.control_requests += 1
+        self.stats.control_errors += 1
+        self.stats.control_oversize += 1
+        try:
+            peer = frame.get("Peer-Address")  # tcp: the peer's IP address
+        except zmq.ZMQError:
+            peer = "an ipc or inproc peer"
+        self._log.line(
+            "control oversize",
+            f"control: refused a request of {size} bytes from {peer} "
+            f"(at most {CONTROL_MAX_BYTES})",
+            time.monotonic_ns(),
+        )
+        return {
+            "ok": False,
+            "error": f"request too large: {size} bytes (at most {CONTROL_MAX_BYTES})",
+        }
 
     def control_reply(self, parts: list[bytes]) -> dict[str, Any]:
         """The reply to one control request (every part of one ZeroMQ message).

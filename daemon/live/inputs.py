@@ -56,6 +56,8 @@ class InputsMixin(DaemonState):
                 osc = True
             elif sock == show_fd:
                 show = True
+            else:  # a watched socket's monitor (watch.py): never on the hot path
+                self._watch.drain(sock, self._wake_ns)
         newest: MarkerStream | None = None
         newest_ns = 0
         if osc:

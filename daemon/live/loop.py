@@ -55,7 +55,11 @@ from retargetd.daemon.live.calibrate import CalibrationMixin
 from retargetd.daemon.live.config import ConfigError, DaemonConfig, check_pipeline
 from retargetd.daemon.live.console_feed import ConsoleFeed
 from retargetd.daemon.live.console_feed import dispatch as dispatch_console
-from retargetd.daemon.live.control import CONTROL_MAX_BYTES, ControlMixin
+from retargetd.daemon.live.control import (
+    CONTROL_RCVHWM,
+    CONTROL_TRANSPORT_MAX_BYTES,
+    ControlMixin,
+)
 from retargetd.daemon.live.emit import warm_up as warm_up_emit
 from retargetd.daemon.live.face import warm_up as warm_up_face
 from retargetd.daemon.live.inputs import InputsMixin
@@ -77,6 +81,7 @@ from retargetd.daemon.live.surface import (
     is_loopback_host,
     who_reaches,
 )
+from retargetd.daemon.live.watch import SocketWatch
 from retargetd.daemon.post.interp import RateResampler
 from retargetd.daemon.post.pose import PoseBuffer
 from retargetd.daemon.progress import Progress
@@ -208,6 +213,9 @@ class Daemon(
         self._reload_limit = RateLimiter(config.control.min_interval_s)
         self._log = RateLimitedLog(self.out, config.loop.log_interval_s)
         self._show_counters: dict[str, int] = {}
+        # CURVE handshake failures and descriptor exhaustion on the bound ZeroMQ
+        # sockets (their monitors: watch.py)
+        self._watch = SocketWatch(self._poller, self._log, self.out)
         token = config.show_control.token
         self._show_token_prefix = f"/{token}" if token else ""
         self._guards: list[CurveGuard] = []
@@ -297,6 +305,7 @@ class Daemon(
             self._pub.setsockopt(zmq.SNDHWM, pose.sndhwm)
             self._pub.bind(pose.endpoint)
             self._sockets.append(self._pub)
+            self._watch.watch("zmq poses", self._pub, bool(pose.secret_key))
             ep = _last_endpoint(self._pub)
             who = who_reaches(endpoint_is_local(pose.endpoint), ep)
             curve = (
@@ -308,10 +317,12 @@ class Daemon(
         ctl = c.control
         self._ctl = self._server_socket(zmq.REP, ctl.secret_key, ctl.client_keys)
         self._ctl.setsockopt(zmq.LINGER, 0)
-        self._ctl.setsockopt(zmq.MAXMSGSIZE, CONTROL_MAX_BYTES)
+        self._ctl.setsockopt(zmq.MAXMSGSIZE, CONTROL_TRANSPORT_MAX_BYTES)
+        self._ctl.setsockopt(zmq.RCVHWM, CONTROL_RCVHWM)
         self._ctl.bind(ctl.endpoint)
         self._poller.register(self._ctl, zmq.POLLIN)
         self._sockets.append(self._ctl)
+        self._watch.watch("control", self._ctl, bool(ctl.secret_key))
         ep = _last_endpoint(self._ctl)
         who = who_reaches(endpoint_is_local(ctl.endpoint), ep)
         curve = (
@@ -510,6 +521,7 @@ class Daemon(
             if perf.validator is not None:
                 perf.validator.close()
                 perf.validator = None
+        self._watch.close()  # the monitors before their sockets
         for sock in self._sockets:
             with contextlib.suppress(KeyError):
                 self._poller.unregister(sock)
@@ -559,6 +571,7 @@ class Daemon(
             self._each_performer(self._send_vmc_state, now)
             self._each_performer(self._send_due_ticks, time.monotonic_ns())
             self._log.flush(now)
+            self._watch.tick(now)  # descriptor exhaustion: its end, once
             stopped = self.recording.check_limits(now)  # [record] limits, once a s
             if stopped:
                 self.out(stopped)

@@ -260,6 +260,8 @@ class SendMixin(DaemonState):
                 # the console still shows the markers)
                 self.stats.unseen += 1
                 self.stats.frames_solved += 1
+                if self.recording.packets is not None:  # a replay solves it too
+                    self.recording.event("unseen", received_ns=received_ns)
                 if self.console is not None:
                     self.console.publish_markers(
                         t_start, frame, stream.current.label_set.labels,

@@ -35,6 +35,7 @@ from retargetd.daemon.live.ratelog import RateLimitedLog, RateLimiter
 from retargetd.daemon.live.recording import LiveRecording
 from retargetd.daemon.live.stats import LoopStats
 from retargetd.daemon.live.surface import CurveGuard
+from retargetd.daemon.live.watch import SocketWatch
 from retargetd.daemon.post.pivot import SpinePivot
 from retargetd.daemon.post.solve_post import SolvePost
 from retargetd.protocols import pose_stream
@@ -189,6 +190,7 @@ class DaemonState:
     _show_counters: dict[str, int]  # show-control messages refused, by reason
     _show_token_prefix: str  # "/TOKEN" when show_control.token is set, else ""
     _guards: list[CurveGuard]
+    _watch: SocketWatch  # the bound ZeroMQ sockets' monitors (CURVE, descriptors)
     _wake_ns: int
     _budget_ns: int  # loop.solve_budget_ms: solve + send of one frame
     _catch_up_ns: int

@@ -72,6 +72,8 @@ class LoopStats:
         show_control_malformed: of those, datagrams with a malformed element.
         control_requests: control requests answered.
         control_errors: of those, answered with ``ok: false``.
+        control_oversize: of those, refused unread for their size (over
+            ``control.CONTROL_MAX_BYTES``).
     """
 
     frames_in: int = 0
@@ -106,6 +108,7 @@ class LoopStats:
     show_control_malformed: int = 0
     control_requests: int = 0
     control_errors: int = 0
+    control_oversize: int = 0
     post_restarts: int = 0
     resample_skipped: int = 0
     resample_dropped: int = 0
@@ -197,7 +200,8 @@ class LoopStats:
                 "validation_flagged", "validation_drops", "zmq_disconnects",
                 "unsolved", "unseen", "unexplained", "reseeded", "labels_in",
                 "show_control_in", "show_control_malformed",
-                "control_requests", "control_errors", "post_restarts",
+                "control_requests", "control_errors", "control_oversize",
+                "post_restarts",
                 "resample_skipped", "resample_dropped", "resample_timer",
             )
         }  # fmt: skip

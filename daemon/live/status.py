@@ -50,7 +50,13 @@ class StatusMixin(DaemonState):
                 "implausible_markers": int(
                     self.osc_stream.implausible[0] + self.zmq_stream.implausible[0]
                 ),
+                # episodes of descriptor exhaustion, and the failed accepts seen
+                "fd_episodes": self._watch.fd_episodes,
+                "fd_accept_failures": self._watch.fd_accept_failures,
             },
+            "fd_exhausted": self._watch.exhausted,  # an episode is going on
+            # CURVE handshakes refused, by socket and reason (sockets with a key)
+            "curve_refused": self._watch.status(),
             "fps_in": self._fps(self.stats.frames_in, 1),
             "fps_out": self._fps(self.stats.frames_out, 2),
             "fps_window_s": round((time.monotonic_ns() - self._window[0]) * 1e-9, 3),

@@ -7,7 +7,13 @@ ICT training set is in ``../shared/datasets``). Passes as the soak does: up
 throughout, RSS growth <= 10 MB after warm-up, every datagram and frame accounted
 for exactly, no pose gap over 100 ms but where the source paused or a conflicting
 label announcement held the id, and the recording replays to the same poses. Keep
-it at 60 s: two source restarts and twelve spoofs fall in it."""
+it at 60 s: two source restarts and twelve spoofs fall in it.
+
+Issue 30 item 6: with the round's attacks (show-control amplification, nested and
+token-less datagrams under a token, 10 MB control requests, failed CURVE handshakes,
+record start/stop churn, spoofed frame-number triples) each counted as what it is,
+and bursts of bad frames (collapsed, zeros, swapped, 1e30) after each of which the
+pose is back within 0.25 s of the intact solve."""
 
 from __future__ import annotations
 
@@ -23,7 +29,7 @@ def test_soak_with_faults() -> None:
     require_datasets()
     soak = bench_module("soak")
     require(soak.fuzz.PIG_MOTION, "the PiG walk")
-    result = soak.run(SECONDS, soak.Faults(), face=True, seed=12)
+    result = soak.run(SECONDS, soak.Faults(attacks=True), face=True, seed=12)
     soak.print_result(result)
     sent = result["sent"]
     # The faults happened.
@@ -51,8 +57,23 @@ def test_soak_with_faults() -> None:
     # A conflicting announcement keeps the names in use: no gap from it.
     assert not result["gaps"]["label_conflict"], result["gaps"]
     assert result["poses"] > 0.5 * SECONDS * soak.RATE_HZ
+    # Every attack counted as what it is (sent, counted), each kind at least once.
+    att = result["attacks"]
+    assert att["ok"], att
+    assert all(sent_n >= 1 for sent_n, _ in att["pairs"].values()), att
+    assert att["churn_started"] == 1 and att["spoofed_triples"] >= 1, att
+    # Every burst kind met and its recovery measured (printed). Not asserted yet:
+    # measured here the pose was back within 0.25 s of the intact solve after most
+    # bursts but not all (this test: 23 bursts, 0.2499 s at worst; a 30 s soak:
+    # 0.41 s, a bone 170 deg off the intact solve 0.17 s after a burst of zeros):
+    # issue 30 item 6 stays open on it (bench/soak.py's pass "recovery").
+    rec = result["recovery"]
+    assert {b["kind"] for b in rec} == set(soak.BURSTS), rec
     # The recording replays to the same poses.
     replay = result["replay"]
     assert replay["complete"] and replay["poses_unmatched"] == 0, replay
-    assert replay["poses_compared"] == a["frames_solved"], replay
+    # (frames with nothing seen are solved without a pose: unseen)
+    solved = replay["poses_compared"] + replay["unseen_solved"]
+    assert solved == a["frames_solved"], replay
+    assert replay["unseen_solved"] == result["counters"]["unseen"], replay
     assert replay["ok"], replay

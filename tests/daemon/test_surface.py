@@ -540,6 +540,77 @@ def test_control_under_curve_answers_only_the_listed_key(
     assert rc == 1 and "no daemon answered" in capsys.readouterr().err
 
 
+def _curve_attempt(
+    zmq_socket: Callable[[int], Any], ep: str, kind: int, keys: Path | None,
+    key: str = "", server: str = "daemon",
+) -> Any:  # fmt: skip
+    """A client that tries one handshake (no reconnect): plain without ``keys``."""
+    from retargetd.daemon.live.surface import curve_client
+
+    sock = zmq_socket(kind)
+    sock.setsockopt(zmq.RECONNECT_IVL, -1)  # one handshake each, counted exactly
+    if keys is not None:
+        curve_client(sock, keys / f"{key}.key_secret", keys / f"{server}.key")
+    if kind == zmq.SUB:
+        sock.setsockopt(zmq.SUBSCRIBE, b"")
+    sock.connect(ep)
+    if kind == zmq.REQ:
+        sock.send(b'{"cmd": "calibrate"}')
+    return sock
+
+
+def test_failed_curve_handshakes_are_counted_by_reason_and_logged(
+    start_daemon: Callable[..., Any],
+    zmq_socket: Callable[[int], Any],
+    keys: Path,
+) -> None:
+    """Issue 30: CURVE handshakes that failed (a plain client, an unlisted key, a
+    wrong server key; many at once) moved no counter and logged nothing."""
+    curve = {
+        "allow_remote": True,
+        "secret_key": str(keys / "daemon.key_secret"),
+        "client_keys": [str(keys / "operator.key")],
+    }
+    live = start_daemon({"control": curve, "output": {"pose": curve}})
+    ctl, poses = live.tcp("control"), live.tcp("zmq poses")
+    n_plain = 20  # at once
+    for _ in range(n_plain):
+        _curve_attempt(zmq_socket, ctl, zmq.REQ, None)
+    _curve_attempt(zmq_socket, ctl, zmq.REQ, keys, "intruder")
+    _curve_attempt(zmq_socket, ctl, zmq.REQ, keys, "operator", server="intruder")
+    _curve_attempt(zmq_socket, poses, zmq.SUB, None)
+    _curve_attempt(zmq_socket, poses, zmq.SUB, keys, "intruder")
+    operator = str(keys / "operator.key_secret")
+    want = {
+        "control": {"plain_client": n_plain, "unlisted_key": 1,
+                    "wrong_server_key": 1, "other": 0},
+        "zmq poses": {"plain_client": 1, "unlisted_key": 1, "wrong_server_key": 0,
+                      "other": 0},
+    }  # fmt: skip
+
+    def refused() -> Any:
+        reply = request(ctl, {"cmd": "status"}, int(1000 * _live.WAIT_S), operator)
+        assert reply is not None and reply["ok"], reply
+        return reply["status"]["curve_refused"]
+
+    _wait_until(lambda: refused() == want, f"the counts ({want})")
+    assert not live.daemon.status()["calibrating"]  # nothing got through
+    # One line per socket and reason within the log interval, naming the peer
+    # (host:port of its connection) when the loop read it before it closed.
+    logged = [ln for ln in live.lines if "CURVE handshake refused" in ln]
+    assert sorted(ln.split(" from ")[0] for ln in logged) == [
+        "control: CURVE handshake refused (plain_client)",
+        "control: CURVE handshake refused (unlisted_key)",
+        "control: CURVE handshake refused (wrong_server_key)",
+        "zmq poses: CURVE handshake refused (plain_client)",
+        "zmq poses: CURVE handshake refused (unlisted_key)",
+    ], logged
+    for line in logged:
+        peer = line.split(" from ")[1]
+        assert peer == "peer unknown" or peer.startswith("127.0.0.1:"), line
+    print(f"curve refusals logged: {logged}")
+
+
 def test_pose_stream_under_curve_reaches_only_the_listed_key(
     start_daemon: Callable[..., Any],
     osc_source: Callable[..., Any],
