@@ -24,6 +24,7 @@ no frame number, and a restarted bridge's frame numbers start over.
 
 from __future__ import annotations
 
+import hashlib
 import hmac
 import struct
 import time
@@ -40,6 +41,7 @@ TRAILER_BYTES = _HEAD.size + TAG_BYTES
 #: MAC), at most its block (a longer key is hashed first, gaining nothing).
 KEY_MIN_BYTES = 32
 KEY_MAX_BYTES = 64
+_BLOCK_BYTES = 64  # SHA-256's block
 
 #: :meth:`DatagramVerifier.check` refusals.
 UNSIGNED = -1  # too short for a trailer, or no ``RTDS`` where it belongs
@@ -105,11 +107,20 @@ class DatagramVerifier:
             one (the sender restarted).
     """
 
-    __slots__ = ("_key", "counter", "new_session", "session")
+    __slots__ = ("_inner", "_outer", "counter", "new_session", "session")
 
     def __init__(self, key: bytes) -> None:
         check_key(key)
-        self._key = key
+        # HMAC as RFC 2104 writes it, H((K ^ opad) || H((K ^ ipad) || m)), with the
+        # two keyed SHA-256 states made once and copied per datagram: hmac.digest
+        # sets the key up on every call, measured slower (bench/bench_auth.py times
+        # both; the whole check of a 41-marker frame, median: 21.0 against 28.7 us
+        # paced at 240 Hz, 1.7 against 2.4 us back to back, load 1.4-2.3 on 2
+        # cores). A key of at most the 64-byte block is zero-padded to it (RFC 2104
+        # section 2).
+        padded = key.ljust(_BLOCK_BYTES, b"\0")
+        self._inner = hashlib.sha256(bytes(b ^ 0x36 for b in padded))
+        self._outer = hashlib.sha256(bytes(b ^ 0x5C for b in padded))
         self.session = -1
         self.counter = -1
         self.new_session = False
@@ -129,8 +140,11 @@ class DatagramVerifier:
         magic, session, counter = _HEAD.unpack_from(view, start)
         if magic != MAGIC:
             return UNSIGNED
-        digest = hmac.digest(self._key, view[:body], "sha256")
-        if not hmac.compare_digest(digest[:TAG_BYTES], view[body:n]):
+        inner = self._inner.copy()
+        inner.update(view[:body])
+        outer = self._outer.copy()
+        outer.update(inner.digest())
+        if not hmac.compare_digest(outer.digest()[:TAG_BYTES], view[body:n]):
             return BAD_TAG
         last = self.session
         if session < last or (session == last and counter <= self.counter):

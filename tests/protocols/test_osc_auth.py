@@ -76,6 +76,16 @@ def test_unsigned_altered_and_other_keys_are_refused() -> None:
     assert _check(v, signed + b"\0") == UNSIGNED  # trailing bytes: no trailer
 
 
+@pytest.mark.parametrize("n_key", [32, 33, 48, 63, 64])
+def test_the_verifiers_hmac_is_the_hmac_modules(n_key: int) -> None:
+    # The verifier builds HMAC from two keyed SHA-256 states; the signer calls
+    # hmac.digest: every key length agrees.
+    key = bytes(range(7, 7 + n_key))
+    v = DatagramVerifier(key)
+    for counter in range(3):
+        assert _check(v, sign_datagram(key, FRAME, 1, counter)) == len(FRAME)
+
+
 def test_keys_outside_32_to_64_bytes_are_refused() -> None:
     for n in (0, 16, 31, 65):
         with pytest.raises(ValueError, match="32-64 bytes"):
