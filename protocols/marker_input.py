@@ -44,6 +44,8 @@ REASONS: tuple[str, ...] = (
     "implausible_jump",
     "label_conflict",
     "conflicting_labels",
+    "auth_failed",
+    "auth_replayed",
     "too_large",
     "too_many_markers",
     "bad_length",
@@ -77,6 +79,8 @@ IMPLAUSIBLE_JUMP = REASON_INDEX["implausible_jump"]
 LABEL_CONFLICT = REASON_INDEX["label_conflict"]
 CONFLICTING_LABELS = REASON_INDEX["conflicting_labels"]
 TOO_MANY_MARKERS = REASON_INDEX["too_many_markers"]
+AUTH_FAILED = REASON_INDEX["auth_failed"]  # unsigned, or a tag not the key's
+AUTH_REPLAYED = REASON_INDEX["auth_replayed"]  # signed, not newer than the last
 OTHER = REASON_INDEX["other"]
 
 #: A frame number that goes back after this long without an accepted frame is a

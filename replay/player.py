@@ -97,10 +97,20 @@ class Sender:
         endpoint: where to send.
         linger_ms: how long closing waits for queued ZeroMQ messages (a player
             finishing a take wants its tail delivered; bounded).
+        sign: OSC only: called on each datagram, returns the bytes to send
+            (``osc_auth.DatagramSigner.sign``: signed datagrams, PROTOCOLS.md 13).
     """
 
-    def __init__(self, endpoint: Endpoint, linger_ms: int = 2000) -> None:
+    def __init__(
+        self,
+        endpoint: Endpoint,
+        linger_ms: int = 2000,
+        sign: Callable[[Any], bytes] | None = None,
+    ) -> None:
+        if sign is not None and endpoint.scheme != "osc":
+            raise ValueError("only OSC datagrams are signed (ZeroMQ has CURVE)")
         self.endpoint = endpoint
+        self._sign = sign
         self.dropped = 0
         self._udp: socket.socket | None = None
         self._push: Any = None
@@ -127,8 +137,9 @@ class Sender:
     def send(self, parts: tuple[bytes, ...] | list[bytes]) -> None:
         """Send one packet (one datagram, or the parts of one ZeroMQ message)."""
         if self._udp is not None:
+            data = parts[0] if self._sign is None else self._sign(parts[0])
             try:
-                self._udp.sendto(parts[0], self._addr)
+                self._udp.sendto(data, self._addr)
             except OSError:  # e.g. ECONNREFUSED from an earlier ICMP: count, go on
                 self.dropped += 1
             return

@@ -15,6 +15,11 @@ and index) and a summary is printed. A killed recorder leaves a readable file (a
 the last ~0.25 s). A write error (a full disk ...) stops the recording: the file keeps
 every whole chunk, the summary counts what it holds, and the exit code is 1.
 Layout: ``protocols/PROTOCOLS.md``, "Recordings (MCAP)".
+
+``--key-file FILE.hmac`` (OSC): only datagrams signed with the key, each newer than
+the last, are recorded, without their trailers (what a daemon with ``[input.osc]
+key_file`` decodes); the others are refused and counted in the summary (unsigned or
+a bad tag; replayed). PROTOCOLS.md section 13.
 """
 
 from __future__ import annotations
@@ -65,6 +70,10 @@ def add_parser(subparsers: Any) -> None:
     parser.add_argument(
         "--poses", metavar="URL", help="also record a pose stream: zmq+sub://HOST:PORT"
     )
+    parser.add_argument(
+        "--key-file", metavar="FILE.hmac",
+        help="OSC: record only datagrams signed with this key (retargetd keys --hmac)",
+    )  # fmt: skip
     parser.set_defaults(run=run)
 
 
@@ -97,6 +106,7 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(str(exc)) from None
     if args.seconds is not None and not args.seconds > 0:
         raise UsageError(f"--seconds must be > 0; got {args.seconds:g}")
+    verifier = _verifier(args.key_file, ep)
     refuse_existing(args.out, force=args.force)
 
     ctx = zmq.Context()
@@ -176,6 +186,7 @@ def run(args: argparse.Namespace) -> int:
     deadline = math.inf if args.seconds is None else time.monotonic() + args.seconds
     buf = bytearray(_UDP_MAX)
     view = memoryview(buf)
+    refused: dict[int, int] = {}  # osc_auth refusal code -> datagrams
     with stop_on_signals(stop):  # also during the close: a second signal waits
         try:
             while not stop.is_set() and time.monotonic() < deadline:
@@ -190,6 +201,11 @@ def run(args: argparse.Namespace) -> int:
                             n = udp.recv_into(buf)
                         except (BlockingIOError, InterruptedError):
                             break
+                        if verifier is not None:
+                            n = verifier.check(view, n)
+                            if n < 0:
+                                refused[n] = refused.get(n, 0) + 1
+                                continue
                         recorder.record_packet(
                             "osc", form, time.monotonic_ns(), view[:n]
                         )
@@ -211,7 +227,7 @@ def run(args: argparse.Namespace) -> int:
         f"{st.other_packets} other packets ({st.label_sets} label sets"
         + (f", {st.poses} pose messages" if zposes is not None else "")
         + f") over {st.seconds:.2f} s to {args.out}; dropped {st.dropped} "
-        f"(recorder queue full)",
+        f"(recorder queue full)" + _refused_text(verifier, refused),
         flush=True,
     )
     if recorder.failed or st.write_errors:
@@ -221,6 +237,32 @@ def run(args: argparse.Namespace) -> int:
         )
         return 1
     return 0
+
+
+def _verifier(key_file: str | None, ep: Any) -> Any:
+    """The HMAC verifier of ``--key-file`` (None without it)."""
+    if key_file is None:
+        return None
+    from retargetd.daemon.live.surface import KeyFileError, load_hmac_key
+    from retargetd.protocols.osc_auth import DatagramVerifier
+
+    if ep is None or ep.scheme != "osc":
+        raise UsageError("--key-file checks OSC datagrams; ZeroMQ uses CURVE")
+    try:
+        return DatagramVerifier(load_hmac_key(key_file))
+    except KeyFileError as exc:
+        raise UsageError(f"--key-file: {exc}") from None
+
+
+def _refused_text(verifier: Any, refused: dict[int, int]) -> str:
+    """The summary's refusals under ``--key-file`` ("" without it)."""
+    if verifier is None:
+        return ""
+    from retargetd.protocols import osc_auth
+
+    failed = refused.get(osc_auth.UNSIGNED, 0) + refused.get(osc_auth.BAD_TAG, 0)
+    replayed = refused.get(osc_auth.REPLAYED, 0)
+    return f"; refused {failed} unsigned or bad tag (auth_failed), {replayed} replayed"
 
 
 def _drain_zmq(sock: Any, record: Any) -> None:

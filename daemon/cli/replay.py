@@ -21,6 +21,12 @@ the recorded inter-arrival times (scaled by ``--speed``), when ``--to`` uses the
 recorded transport and ``--form`` (if given) the recorded form; otherwise (or with
 ``--subject``, ``--take-units``, ``--take-up``) it is decoded to a take and sent as one.
 At the end the player prints its own timing jitter (send time - due time).
+
+``--key-file FILE.hmac`` signs every OSC datagram (a daemon with ``[input.osc]
+key_file`` takes only signed ones): a trailer with a session (now, in Unix µs), a
+counter and the truncated HMAC-SHA256 (PROTOCOLS.md section 13). A recording made
+from a signed input holds the datagrams without their trailers, so it is signed
+afresh when sent.
 """
 
 from __future__ import annotations
@@ -63,6 +69,10 @@ def add_parser(subparsers: Any) -> None:
         help="OSC form (default compact; for a recording: as recorded)",
     )  # fmt: skip
     parser.add_argument("--seconds", type=float, help="stop after this long")
+    parser.add_argument(
+        "--key-file", metavar="FILE.hmac",
+        help="sign each OSC datagram with this key (retargetd keys --hmac)",
+    )  # fmt: skip
     add_take_arguments(parser)
     parser.set_defaults(run=run)
 
@@ -91,6 +101,17 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"--seconds must be > 0; got {args.seconds:g}")
     if ep.scheme == "zmq" and args.form == "simple":
         raise UsageError("--form simple is an OSC form; ZeroMQ has one form")
+    sign = None
+    if args.key_file is not None:
+        from retargetd.daemon.live.surface import KeyFileError, load_hmac_key
+        from retargetd.protocols.osc_auth import DatagramSigner
+
+        if ep.scheme != "osc":
+            raise UsageError("--key-file signs OSC datagrams; ZeroMQ uses CURVE")
+        try:
+            sign = DatagramSigner(load_hmac_key(args.key_file)).sign
+        except KeyFileError as exc:
+            raise UsageError(f"--key-file: {exc}") from None
     blend = args.blend_frames
     if blend is not None and not args.loop:
         raise UsageError("--blend-frames needs --loop (it blends the loop's seam)")
@@ -126,11 +147,12 @@ def run(args: argparse.Namespace) -> int:
         )
     print(
         f"replaying {args.take}: {what}, {source.duration_s:.2f} s, to {ep} at speed "
-        f"{args.speed:g}{' (looping)' if args.loop else ''}",
+        f"{args.speed:g}{' (looping)' if args.loop else ''}"
+        f"{', signed' if sign is not None else ''}",
         flush=True,
     )
     try:
-        sender = Sender(ep)
+        sender = Sender(ep, sign=sign)
     except OSError as exc:
         raise UsageError(f"cannot send to {ep}: {exc}") from None
     stop = threading.Event()

@@ -64,6 +64,7 @@ from retargetd.daemon.live.surface import (
     check_token,
     endpoint_is_local,
     is_loopback_host,
+    load_hmac_key,
     load_public_key,
     load_secret_key,
     parse_endpoint,
@@ -335,6 +336,12 @@ def _apply_rule(check: str, meta: Any, value: Any) -> None:
     elif check == "public_keys":
         for path in value:
             load_public_key(path)
+    elif check == "public_key":
+        if value:
+            load_public_key(value)
+    elif check == "hmac_key":
+        if value:
+            load_hmac_key(value)
     elif check == "performer_name":
         if not _NAME_RE.fullmatch(value):
             raise ValueError(
@@ -506,7 +513,29 @@ def _check(c: DaemonConfig, source: str) -> None:
     ):
         if not endpoint_is_local(ep) and not allowed:
             raise fail(key, f"{remote}; got {ep!r}")
-    for section, cfg in (("control", c.control), ("output.pose", c.output.pose)):
+    zin = c.input.zmq
+    servers: list[tuple[str, Any]] = [("control", c.control)]
+    servers.append(("output.pose", c.output.pose))
+    if zin.mode == "pull":
+        servers.append(("input.zmq", zin))
+        if zin.server_key:
+            raise fail(
+                "input.zmq.server_key", 'is for mode = "sub" (a publisher\'s key)'
+            )
+    else:
+        if zin.client_keys:
+            raise fail(
+                "input.zmq.client_keys",
+                'are for mode = "pull"; a SUB takes the publisher\'s server_key',
+            )
+        if bool(zin.secret_key) != bool(zin.server_key):
+            key = "server_key" if zin.secret_key else "secret_key"
+            raise fail(
+                f"input.zmq.{key}",
+                "CURVE on a SUB needs the daemon's secret_key and the publisher's "
+                "server_key",
+            )
+    for section, cfg in servers:
         if cfg.secret_key and not cfg.client_keys:
             raise fail(
                 f"{section}.client_keys",

@@ -133,6 +133,9 @@ class OscInputConfig:
     zero_is_occluded: bool = True
     # a marker with a world coordinate past this (metres) is occluded and counted
     max_coordinate_m: float = between(MAX_COORDINATE_M, 1.0, 1e6)
+    # An HMAC key file (retargetd keys --hmac NAME): set, only datagrams signed with
+    # it and newer than the last are taken (PROTOCOLS.md 13); "" = unsigned.
+    key_file: str = spec("", "hmac_key")
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -151,6 +154,12 @@ class ZmqInputConfig:
     max_message_bytes: int = between(MAX_MESSAGE_BYTES, 64, _ZMQ_MAX_MESSAGE_BYTES)
     zero_is_occluded: bool = True
     max_coordinate_m: float = between(MAX_COORDINATE_M, 1.0, 1e6)
+    # CURVE, as [control]: mode "pull", the daemon's .key_secret, and only the
+    # client keys below may send; mode "sub", the daemon's .key_secret and the
+    # publisher's public key (server_key): it connects as a CURVE client.
+    secret_key: str = spec("", "secret_key")
+    client_keys: tuple[str, ...] = spec((), "public_keys")
+    server_key: str = spec("", "public_key")
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)

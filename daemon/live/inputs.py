@@ -16,10 +16,12 @@ from retargetd.daemon.live.recording import (
     FORM_ZMQ,
 )
 from retargetd.daemon.live.state import DaemonState
-from retargetd.protocols import osc_in, pose_stream, zmq_wire
+from retargetd.protocols import osc_auth, osc_in, pose_stream, zmq_wire
 from retargetd.protocols.errors import DecodeError
 from retargetd.protocols.marker_input import (
     ACCEPTED,
+    AUTH_FAILED,
+    AUTH_REPLAYED,
     IMPLAUSIBLE_JUMP,
     REASON_INDEX,
     RESTART,
@@ -146,6 +148,7 @@ class InputsMixin(DaemonState):
         limit = self._osc_limit
         allow = self._allow
         more = self._osc_more
+        auth, view = self._osc_auth, self._view
         newest = 0  # receive time of the newest accepted frame not yet solved
         # The poll said a datagram waits; after it, a zero-timeout poll of this socket
         # says whether another does: the receive that ends a drain in EAGAIN raises
@@ -172,6 +175,14 @@ class InputsMixin(DaemonState):
                 stream.counters.add_reason("too_large")
                 continue
             t_ns = time.monotonic_ns()
+            if auth is not None:  # before any OSC in it is parsed
+                m = auth.check(view, n)
+                if m < 0:
+                    self._refuse_unsigned(stream, m, t_ns)
+                    continue
+                if auth.new_session:  # the sender restarted: so does its sequence
+                    stream.sequencer.restart_next()
+                n = m  # the datagram without its trailer (recorded, decoded)
             rec = self.recording.packets
             if rec is not None:
                 rec.record_packet("osc", self._osc_form, t_ns, self._view[:n])
@@ -196,6 +207,31 @@ class InputsMixin(DaemonState):
                     self._flag_frames(pose_stream.FRAME_INPUT_DROPPED)
                 newest = got
         return newest
+
+    def _refuse_unsigned(self, stream: MarkerStream, code: int, t_ns: int) -> None:
+        """Count a datagram the HMAC check refused (``osc_auth``); one log line per
+        kind every ``LOG_INTERVAL_NS``."""
+        if code == osc_auth.REPLAYED:
+            stream.counters.add(AUTH_REPLAYED)
+            auth = self._osc_auth
+            assert auth is not None
+            self._log_limited(
+                "osc.auth_replayed", t_ns,
+                "osc input: a signed datagram not newer than the last accepted "
+                "(session %d, counter %d) refused (auth_replayed)",
+                auth.session, auth.counter,
+            )  # fmt: skip
+            return
+        stream.counters.add(AUTH_FAILED)
+        what = (
+            "unsigned (no RTDS trailer)"
+            if code == osc_auth.UNSIGNED
+            else "its tag is not the key's (another key, or altered bytes)"
+        )
+        self._log_limited(
+            f"osc.auth_failed.{code}", t_ns,
+            "osc input: a datagram refused, %s (auth_failed)", what,
+        )  # fmt: skip
 
     def _drain_zmq(self, every: bool) -> int:
         assert self._zin is not None

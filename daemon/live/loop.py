@@ -77,8 +77,12 @@ from retargetd.daemon.live.stats import LoopStats
 from retargetd.daemon.live.status import StatusMixin
 from retargetd.daemon.live.surface import (
     CurveGuard,
+    KeyFileError,
+    curve_client,
     endpoint_is_local,
     is_loopback_host,
+    osc_verifier,
+    unauthenticated_warning,
     who_reaches,
 )
 from retargetd.daemon.live.watch import SocketWatch
@@ -210,6 +214,10 @@ class Daemon(
         self._osc_more: Any = None  # select.poll of the OSC socket (set by open)
         self._osc_limit = osc_cfg.max_message_bytes
         self._allow = frozenset(osc_cfg.allow)
+        try:  # [input.osc] key_file: signed datagrams only (PROTOCOLS.md 13)
+            self._osc_auth = osc_verifier(osc_cfg.key_file)
+        except KeyFileError as exc:  # changed since the config was checked
+            raise ConfigError(f"input.osc.key_file: {exc}") from None
         self._reload_limit = RateLimiter(config.control.min_interval_s)
         self._log = RateLimitedLog(self.out, config.loop.log_interval_s)
         self._show_counters: dict[str, int] = {}
@@ -253,11 +261,16 @@ class Daemon(
             self._osc_more = select.poll()  # "another datagram waits?" (inputs.py)
             self._osc_more.register(self._osc_fd, select.POLLIN)
             allow = f", sources {', '.join(osc.allow)} only" if osc.allow else ""
-            who = who_reaches(is_loopback_host(osc.host), osc.host)
+            local = is_loopback_host(osc.host)
+            who = who_reaches(local, osc.host)
+            signed = ", signed only (HMAC-SHA256)" if osc.key_file else ""
             self._announce(
                 "osc markers",
-                f"udp://{self._addr(self._osc)} ({osc.form}; frames from {who}{allow})",
+                f"udp://{self._addr(self._osc)} ({osc.form}; frames from {who}"
+                f"{allow}{signed})",
             )
+            if not local and not osc.key_file:
+                self.out(unauthenticated_warning("osc", osc.host, "key_file"))
         if c.show_control.enabled:
             show = c.show_control
             self._show = self._udp_bind(show.host, show.port)
@@ -275,7 +288,15 @@ class Daemon(
             zin = c.input.zmq
             local = endpoint_is_local(zin.endpoint)
             pull = zin.mode == "pull"
-            self._zin = self._ctx.socket(zmq.PULL if pull else zmq.SUB)
+            # CURVE as the control socket's: a bound PULL is the server letting in
+            # the listed clients; a SUB is a client of the publisher's key.
+            self._zin = self._server_socket(
+                zmq.PULL if pull else zmq.SUB,
+                zin.secret_key if pull else "",
+                zin.client_keys,
+            )
+            if not pull and zin.secret_key:
+                curve_client(self._zin, zin.secret_key, zin.server_key)
             self._zin.setsockopt(zmq.LINGER, 0)
             # Bounded queue: 1,000 messages of parts of at most max_message_bytes;
             # libzmq drops the connection of a peer sending a larger part, before
@@ -296,7 +317,13 @@ class Daemon(
             self._poller.register(self._zmon, zmq.POLLIN)
             self._sockets.append(self._zmon)
             ep = _last_endpoint(self._zin) or zin.endpoint
-            self._announce("zmq markers", f"{ep} ({zin.mode}; {who})")
+            curve = ", CURVE" if zin.secret_key else ""
+            if pull and zin.secret_key:
+                curve += f": {len(zin.client_keys)} client key(s)"
+            self._announce("zmq markers", f"{ep} ({zin.mode}; {who}{curve})")
+            if not local and not zin.secret_key:
+                keys = "client_keys" if pull else "server_key"
+                self.out(unauthenticated_warning("zmq", zin.endpoint, keys))
         self._open_capture()
         if c.output.pose.enabled:
             pose = c.output.pose

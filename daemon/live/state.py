@@ -40,6 +40,7 @@ from retargetd.daemon.post.pivot import SpinePivot
 from retargetd.daemon.post.solve_post import SolvePost
 from retargetd.protocols import pose_stream
 from retargetd.protocols.marker_input import MarkerStream
+from retargetd.protocols.osc_auth import DatagramVerifier
 from retargetd.protocols.vmc_out import VmcEncoder
 
 
@@ -185,6 +186,7 @@ class DaemonState:
     _osc_fd: int  # the OSC input's and show control's fds (-2: closed)
     _show_fd: int
     _allow: frozenset[str]
+    _osc_auth: DatagramVerifier | None  # [input.osc] key_file: signed datagrams only
     _reload_limit: RateLimiter
     _log: RateLimitedLog
     _show_counters: dict[str, int]  # show-control messages refused, by reason

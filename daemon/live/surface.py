@@ -5,18 +5,32 @@ Key files are ZeroMQ certificates (the ZPL text ``zmq.auth`` reads): ``NAME.key`
 holds the public key, ``NAME.key_secret`` the public and the secret key; both are
 written with mode 0600 and a secret key file readable by anyone else is refused (as
 ssh refuses an open private key). ``retargetd keys NAME`` writes a pair.
+
+HMAC key files (``[input.osc] key_file``, ``retargetd replay/record --key-file``;
+PROTOCOLS.md §13): UTF-8 text, lines starting with ``#`` ignored, one line of
+64-128 hex digits: the key is the 32-64 bytes they spell (not the text). Mode 0600
+like a secret key: a file readable by group or others is refused. ``retargetd keys
+--hmac NAME`` writes ``NAME.hmac`` with 32 random bytes.
 """
 
 from __future__ import annotations
 
 import ipaddress
 import os
+import secrets
 import stat
 from pathlib import Path
 from typing import Any
 
 import zmq
 from zmq.auth.certs import load_certificate
+
+from retargetd.protocols.osc_auth import (
+    KEY_MAX_BYTES,
+    KEY_MIN_BYTES,
+    DatagramVerifier,
+    check_key,
+)
 
 #: Transports the daemon's ZeroMQ endpoints may use.
 ZMQ_TRANSPORTS = ("tcp://", "ipc://", "inproc://")
@@ -169,6 +183,94 @@ def load_secret_key(path: str | Path) -> tuple[bytes, bytes]:
     if secret_key is None or len(secret_key) != 40:
         raise KeyFileError(f"{path}: no secret key (a .key_secret file is needed)")
     return public_key, secret_key
+
+
+# ---- HMAC keys (signed marker datagrams) -----------------------------------------
+
+#: A key file larger than this is not one (a key line and a few comment lines).
+_HMAC_FILE_MAX_BYTES = 4096
+
+
+def write_hmac_key(folder: str | Path, name: str) -> Path:
+    """Write ``NAME.hmac``: 32 random bytes (``secrets``) as hex, mode 0600.
+
+    Raises:
+        KeyFileError: the file exists already, or the name is not a plain file name.
+        OSError: the folder cannot be written.
+    """
+    if not name or "/" in name or name.startswith("."):
+        raise KeyFileError(f"a key name is a plain file name; got {name!r}")
+    path = Path(folder) / f"{name}.hmac"
+    text = (
+        "# HMAC-SHA256 key of retargetd's signed marker datagrams (PROTOCOLS.md 13):\n"
+        f"# SECRET: give it to the sender {name} over a safe channel; mode 0600\n"
+        f"{secrets.token_hex(KEY_MIN_BYTES)}\n"
+    )
+    try:
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    except FileExistsError:
+        raise KeyFileError(f"{path}: exists already (not overwritten)") from None
+    with os.fdopen(fd, "w", encoding="ascii") as f:
+        f.write(text)
+    return path
+
+
+def load_hmac_key(path: str | Path) -> bytes:
+    """The key bytes of an HMAC key file that only its owner can read.
+
+    Raises:
+        KeyFileError: missing, readable by group or others, too large, or not one
+            line of 64-128 hex digits (besides ``#`` comments).
+    """
+    try:
+        st = os.stat(path)
+    except OSError as exc:
+        raise KeyFileError(f"{path}: cannot read key file: {exc.strerror}") from None
+    if st.st_mode & (stat.S_IRWXG | stat.S_IRWXO):
+        raise KeyFileError(
+            f"{path}: a key must be readable by its owner only (chmod 600); mode is "
+            f"{stat.S_IMODE(st.st_mode):o}"
+        )
+    if st.st_size > _HMAC_FILE_MAX_BYTES:
+        raise KeyFileError(f"{path}: not a key file (over {_HMAC_FILE_MAX_BYTES} B)")
+    try:
+        with open(path, "rb") as f:
+            text = f.read(_HMAC_FILE_MAX_BYTES + 1).decode("utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise KeyFileError(f"{path}: cannot read key file: {exc}") from None
+    lines = [ln.strip() for ln in text.splitlines()]
+    keys = [ln for ln in lines if ln and not ln.startswith("#")]
+    want = f"one line of {2 * KEY_MIN_BYTES}-{2 * KEY_MAX_BYTES} hex digits"
+    if len(keys) != 1:
+        raise KeyFileError(f"{path}: expected {want}; found {len(keys)} lines")
+    try:
+        key = bytes.fromhex(keys[0])
+        check_key(key)
+    except ValueError:
+        raise KeyFileError(f"{path}: expected {want}") from None
+    return key
+
+
+def osc_verifier(key_file: str) -> DatagramVerifier | None:
+    """The OSC input's verifier of signed datagrams (None: ``key_file`` unset).
+
+    Raises:
+        KeyFileError: see :func:`load_hmac_key`.
+    """
+    return DatagramVerifier(load_hmac_key(key_file)) if key_file else None
+
+
+def unauthenticated_warning(input_name: str, where: str, keys: str) -> str:
+    """The start-up line of a marker input off loopback without a key."""
+    fix = (
+        "[input.osc] key_file (retargetd keys --hmac NAME; PROTOCOLS.md 13)"
+        if input_name == "osc"
+        else f"[input.zmq] secret_key and {keys} (CURVE; retargetd keys NAME)"
+    )
+    return (
+        f"warning: {input_name} markers at {where} are not authenticated: any host "
+        f"that can reach it can move the avatar; set {fix}"
+    )
 
 
 class _AllowedKeys:

@@ -198,6 +198,41 @@ def test_round_trip_player_to_recorder(
     assert resent == recorded
 
 
+@pytest.mark.timeout(90)
+def test_record_with_a_key_file_keeps_only_signed_datagrams(
+    tmp_path: Path, take_path: Path, recorders: list[Recorder]
+) -> None:
+    from retargetd.daemon.live.surface import load_hmac_key
+    from retargetd.protocols.osc_auth import DatagramSigner
+
+    assert main(["keys", "--hmac", "bridge", "--dir", str(tmp_path)]) == 0
+    key = str(tmp_path / "bridge.hmac")
+    rec = Recorder(tmp_path, "osc://127.0.0.1:0", "--key-file", key)
+    recorders.append(rec)
+    to = ["--to", f"osc://127.0.0.1:{rec.port}", "--speed", "0"]
+    assert main(["replay", str(take_path), *to]) == 0  # unsigned: refused
+    assert main(["replay", str(take_path), *to, "--key-file", key]) == 0
+    rec.wait_frames(40)
+    # A signed datagram of an older session than the replay's: a replay, refused.
+    old = DatagramSigner(load_hmac_key(key), session=1)
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as tx:
+        labels = osc_in.encode_labels(LabelSet(9, LABELS))
+        tx.sendto(old.sign(labels), ("127.0.0.1", rec.port))
+    time.sleep(0.3)  # received before the stop
+    code, out, err = rec.stop(signal.SIGINT)
+    assert code == 0, err
+    assert "recorded 40 marker frames, 1 label packets" in out, out
+    assert "refused 41 unsigned or bad tag (auth_failed), 1 replayed" in out, out
+    # Recorded without their trailers: the take decodes as sent.
+    source, take = load_take(take_path), load_take(rec.out)
+    assert take.labels == source.labels
+    np.testing.assert_array_equal(
+        take.positions, source.positions.astype(np.float32).astype(np.float64)
+    )
+    assert main(["record", "--listen", "zmq://127.0.0.1:0", "--out",
+                 str(tmp_path / "z.mcap"), "--key-file", key]) == 2  # fmt: skip
+
+
 @pytest.mark.timeout(60)
 def test_sigkill_leaves_a_readable_file(
     tmp_path: Path, recorders: list[Recorder]

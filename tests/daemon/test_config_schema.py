@@ -91,6 +91,8 @@ def _out_of_range(f: dataclasses.Field, tmp: Path) -> Any:
         "token": "short",
         "secret_key": missing,
         "public_keys": [missing],
+        "public_key": missing,
+        "hmac_key": missing,
         "pipeline": [{"kind": "nope"}],
         "performer_name": "a b",
         "prefix": "x" * 65,

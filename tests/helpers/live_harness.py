@@ -289,6 +289,8 @@ class OscSource:
         self.next_id = 0
         self.sent: list[tuple[int, np.ndarray]] = []
         self.rate_hz = RATE_HZ  # source time = frame number / rate
+        #: Applied to every datagram before it is sent (e.g. ``DatagramSigner.sign``).
+        self.sign: Callable[[bytes], bytes] | None = None
 
     def announce(self, label_set_id: int | None = None) -> None:
         if label_set_id is not None:
@@ -307,7 +309,7 @@ class OscSource:
         return fid
 
     def raw(self, data: bytes) -> None:
-        self.sock.sendto(data, self.addr)
+        self.sock.sendto(data if self.sign is None else self.sign(data), self.addr)
 
 
 class PoseSub:

@@ -13,7 +13,7 @@ import pytest
 import zmq
 
 from retargetd.protocols import marker_input as mi
-from retargetd.protocols import osc_in, pose_stream, zmq_wire
+from retargetd.protocols import osc_auth, osc_in, pose_stream, zmq_wire
 from retargetd.protocols.osc_wire import build_message
 
 DOC = (Path(__file__).resolve().parents[2] / "protocols" / "PROTOCOLS.md").read_text()
@@ -92,6 +92,12 @@ def test_hex_examples_match_the_encoders() -> None:
         "pose_face": _face_part(),
         "validation_header": _validation_parts()[0],
         "validation_body": _validation_parts()[1],
+        "osc_signed_trailer": osc_auth.sign_datagram(
+            bytes(range(32)),
+            osc_in.encode_compact_frame(7, 0.5, 3, POS),
+            1_750_000_000_000_000,
+            41,
+        )[-osc_auth.TRAILER_BYTES :],
     }
     for name, data in expected.items():
         assert _hex(name) == data, name
@@ -171,3 +177,46 @@ def test_zmq_sender_speaks_zmtp_to_a_pull_socket() -> None:
     frame = stream.current.frame
     assert frame.frame_id == 119
     np.testing.assert_allclose(frame.markers_world[0], [0.1, 0.2, 1.119], rtol=1e-6)
+
+
+@pytest.mark.timeout(30)
+def test_osc_signed_sender_is_verified_and_decoded() -> None:
+    verifier = osc_auth.DatagramVerifier(bytes(range(32)))
+    with _udp_receiver() as rx:
+        _run("osc_signed", rx.getsockname()[1])
+        stream = mi.MarkerStream()
+        for t in range(122):
+            data = rx.recv(65536)
+            n = verifier.check(memoryview(data), len(data))
+            assert n >= 0, n
+            if data.startswith(b"/rtd/labels"):
+                stream.set_labels(osc_in.decode_labels(data[:n]))
+            else:
+                code = stream.feed(osc_in.decode_compact_frame, data[:n], t_ns=t)
+                assert code == mi.ACCEPTED
+    assert verifier.counter == 121 and stream.current.frame.frame_id == 119
+
+
+def test_signed_trailer_vector_computed_from_the_text_alone() -> None:
+    # Written from §13's words, not our encoder: HMAC-SHA256 over the datagram, the
+    # magic, session and counter (uint64 BE), truncated to 16 bytes.
+    import hashlib
+    import hmac
+    import struct
+
+    section = DOC[DOC.index("## 13. Signed marker datagrams") :]
+
+    def find(pattern: str) -> str:
+        match = re.search(pattern, section)
+        assert match, pattern
+        return match.group(1)
+
+    key = bytes.fromhex(find(r"`([0-9a-f]{64})`"))
+    session = int(find(r"session (\d+) \("))
+    counter = int(find(r"counter (\d+)\. The trailer"))
+    datagram = _hex("osc_compact")
+    trailer = _hex("osc_signed_trailer")
+    head = b"RTDS" + struct.pack(">QQ", session, counter)
+    tag = hmac.new(key, datagram + head, hashlib.sha256).digest()[:16]
+    assert len(datagram) == 72 and key == bytes(range(32))
+    assert trailer == head + tag
