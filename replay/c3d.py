@@ -105,6 +105,11 @@ _SPELLED_UNITS = {
 }
 
 
+def _printable(text: str) -> str:
+    """``text`` with every non-printable character escaped (one line, readable)."""
+    return "".join(c if c.isprintable() else ascii(c)[1:-1] for c in text)
+
+
 def _param(params: Mapping[str, Any], group: str, name: str) -> Any:
     """A parameter's value, or None when the group or parameter is absent."""
     entry = params.get(group, {}).get(name)
@@ -358,9 +363,10 @@ def read_c3d(
         try:
             data = read_fallback(layout, layout_rate)
         except (ValueError, KeyError, OSError, AssertionError, struct.error) as exc:
+            # A garbled section can put any byte in a name: keep the message one line.
+            detail = _printable(f"ezc3d not used: {why}; c3d package: {exc}")
             raise TakeError(
-                f"take {name}: not a readable C3D file (ezc3d not used: {why}; "
-                f"c3d package: {exc})"
+                f"take {name}: not a readable C3D file ({detail})"
             ) from None
         if data.points.shape[0] == 0:
             raise TakeError(

@@ -11,6 +11,13 @@ arrays sized from the frames the file *holds*, never from what it declares.
 there (``FP1.C3D``: "inconsistent analog count"); the layout check replaces those
 checks here, and its notes are reported as repairs. The package's warnings (end of
 file inside a frame, missing parameters ...) are collected, never raised.
+
+The package walks the parameter section itself, following each next-entry offset.
+Where the layout repaired the section (an offset pointing inside its entry or past
+the section, a description longer than the bytes left), the package reads the file
+through :class:`_Patched`, which overlays the layout's ``patches`` (a few bytes of
+the parameter section) on what it reads, so both walks agree; the file is not
+changed.
 """
 
 from __future__ import annotations
@@ -18,9 +25,9 @@ from __future__ import annotations
 import importlib.metadata
 import os
 import warnings
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import IO, Any
 
 import c3d
 import numpy as np
@@ -30,6 +37,33 @@ from retargetd.replay.c3d_layout import C3DLayout, param_value
 
 #: How ``take info`` names this reader.
 READER_NAME = f"c3d {importlib.metadata.version('c3d')} (fallback)"
+
+
+class _Patched:
+    """A binary file read with some of its bytes replaced (``read``, ``seek``,
+    ``tell``: what ``c3d.Reader`` uses)."""
+
+    def __init__(self, handle: IO[bytes], patches: Sequence[tuple[int, bytes]]):
+        self._handle = handle
+        self._patches = tuple(patches)
+
+    def read(self, size: int = -1) -> bytes:
+        at = self._handle.tell()
+        raw = self._handle.read(size)
+        if not any(p < at + len(raw) and p + len(b) > at for p, b in self._patches):
+            return raw
+        out = bytearray(raw)
+        for p, patch in self._patches:
+            for i, byte in enumerate(patch):
+                if 0 <= p + i - at < len(out):
+                    out[p + i - at] = byte
+        return bytes(out)
+
+    def seek(self, offset: int, whence: int = os.SEEK_SET) -> int:
+        return self._handle.seek(offset, whence)
+
+    def tell(self) -> int:
+        return self._handle.tell()
 
 
 class _LenientReader(c3d.Reader):
@@ -98,7 +132,9 @@ def read_fallback(layout: C3DLayout, rate_hz: float) -> FallbackData:
         warnings.catch_warnings(record=True) as caught,
     ):
         warnings.simplefilter("always")
-        reader = _LenientReader(handle)
+        reader = _LenientReader(
+            _Patched(handle, layout.patches) if layout.patches else handle
+        )
         reader.rate_hz = rate_hz
         if int(reader.point_used) != n_points:
             raise ValueError(

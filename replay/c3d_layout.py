@@ -19,6 +19,25 @@ sample has an empty parameter section, where ezc3d reads 0 points and a 0 Hz rat
 although the header declares 40 points at 30 Hz; the SGI sample is MIPS, which
 ezc3d refuses.
 
+Where an entry's next-entry offset disagrees with its own sizes, the walk reads the
+section as BTK does (``btkC3DFileIO.cpp``; read, not copied), with one difference:
+
+- **A description longer than the bytes left** before the entry the offset points at
+  (a 211-character description in a vendor's file): BTK reads that many bytes, then
+  seeks back to the offset's target. We read the description as the bytes left and go
+  on at the target.
+- **An offset pointing inside its own entry, backwards, or past the parameter
+  section** (into the data section or past the file; ``POINT:LABELS`` in two vendors'
+  files): BTK seeks to the target whatever it is, which inside an entry reads the
+  entry's own bytes as the next entry; it stops reading parameters at a target in the
+  data section. We go on from the entry's end when an entry (or the end marker)
+  starts there; else, past the section, we stop as BTK does (the parameters after it
+  are not read), and inside or backwards the file fails in one line.
+
+Each repair is a note (``take info`` lists it) and a few bytes in ``patches`` that the
+fallback reader overlays on the file, so the ``c3d`` package walks the same section;
+ezc3d, which is strict about offsets, is not used for such a file.
+
 Header words (16-bit, 1-based, C3D standard, https://www.c3d.org/): 1 parameter
 block and key 0x50; 2 points; 3 analog samples per frame (all channels); 4 first
 frame; 5 last frame; 7-8 scale (float, < 0 means float data); 9 data start block;
@@ -29,6 +48,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import struct
 from dataclasses import dataclass, field
 
@@ -80,6 +100,10 @@ class C3DLayout:
         ezc3d_problems: why ezc3d cannot be trusted with this file (empty: it can).
         notes: other departures from the standard, reported as repairs when a
             reader works around them.
+        patches: ``(file offset, bytes)`` to overlay on the file so that a reader
+            walking its parameter section sees the repaired section (a description
+            length cut to the bytes left, a next-entry offset pointing at the
+            entry's end or 0); empty for a standard section.
     """
 
     path: str
@@ -96,6 +120,7 @@ class C3DLayout:
     params: dict[tuple[str, str], RawParam] = field(default_factory=dict)
     ezc3d_problems: tuple[str, ...] = ()
     notes: tuple[str, ...] = ()
+    patches: tuple[tuple[int, bytes], ...] = ()
 
     def has(self, group: str, name: str) -> bool:
         """True when the file stores ``GROUP:NAME`` (readers may add defaults)."""
@@ -130,6 +155,9 @@ class _Decoder:
     def u16(self, raw: bytes, at: int = 0) -> int:
         return int(self._u16.unpack_from(raw, at)[0])
 
+    def pack_u16(self, value: int) -> bytes:
+        return self._u16.pack(value)
+
     def f32(self, raw: bytes, at: int = 0) -> float:
         chunk = raw[at : at + 4]
         if self.dec:
@@ -155,9 +183,123 @@ def _param_number(dec: _Decoder, param: RawParam | None) -> float | None:
     return float(struct.unpack("b", param.data[:1])[0])
 
 
+#: C3D names are letters, digits and underscores (C3D standard); used only to tell
+#: whether an offset that disagrees with an entry's size lands on an entry.
+_ENTRY_NAME = re.compile(rb"[A-Za-z0-9_]+")
+
+
+def _entry_at(section: bytes, at: int, limit: int) -> bool:
+    """True when an entry or the section's end marker plausibly starts at ``at``.
+
+    A zero name length ends the section; otherwise a name of C3D characters, a
+    non-zero group id and an offset word must fit before ``limit``.
+    """
+    if not 0 <= at < limit:
+        return False
+    n_name = struct.unpack_from("b", section, at)[0]
+    if n_name == 0:
+        return True
+    if at + 4 + abs(n_name) > limit or section[at + 1] == 0:
+        return False
+    return _ENTRY_NAME.fullmatch(section[at + 2 : at + 2 + abs(n_name)]) is not None
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class _Entry:
+    """Where one entry's parts lie, section-relative bytes."""
+
+    name: str  # GROUP or GROUP:NAME
+    start: int  # the name length byte
+    offset_at: int  # the next-entry offset word
+    target: int  # where the offset says the next entry starts (0: last entry)
+    desc_at: int  # the description length byte
+    n_desc: int  # the description length, as an unsigned byte
+    end: int  # desc_at + 1 + n_desc: where the entry's own sizes say it ends
+
+
+@dataclass(slots=True)
+class _Repairs:
+    """What the walk worked around: messages and byte patches (section-relative)."""
+
+    notes: list[str] = field(default_factory=list)
+    problems: list[str] = field(default_factory=list)
+    patches: list[tuple[int, bytes]] = field(default_factory=list)
+    #: False once a "not standard" problem is recorded (one such message is enough).
+    standard: bool = True
+
+
+def _next_entry(
+    section: bytes, entry: _Entry, limit: int, dec: _Decoder, fix: _Repairs
+) -> int | None:
+    """Where the entry after ``entry`` starts, repairing a bad offset as BTK would.
+
+    BTK (``btkC3DFileIO.cpp``) seeks to the offset's target whatever the entry's own
+    sizes say: a description longer than the bytes left is read and the stream
+    seeked back; an offset pointing into the data section stops the walk. We do the
+    same where the target is an entry, and otherwise, where BTK would read an
+    entry's own bytes as the next entry, go on from the entry's end when an entry
+    starts there. Each repair is noted and patched in the bytes the fallback reads,
+    so that the ``c3d`` package walks the section the same way.
+
+    Returns:
+        The next entry's position, or None to stop the walk here.
+    """
+    target, end = entry.target, entry.end
+    if target == end:
+        return target
+    fits = entry.desc_at < target < limit
+    if fits and target < end and _entry_at(section, target, limit):
+        left = target - entry.desc_at - 1
+        fix.notes.append(
+            f"{entry.name} description length {entry.n_desc} overstates the {left} "
+            f"bytes left before the next entry; read as {left}"
+        )
+        fix.problems.append(f"{entry.name} description overstates its length")
+        fix.patches.append((entry.desc_at, bytes([left])))
+        return target
+    if fits and target > end:
+        # A gap: ezc3d (strict) refuses it; BTK and the c3d package follow the offset.
+        if fix.standard:
+            fix.problems.append(
+                f"parameter section not standard: entry {entry.name!r} ends at byte "
+                f"{end}, its offset says {target}"
+            )
+            fix.standard = False
+        return target
+    if target <= entry.start:
+        where = f"backwards (to section byte {target})"
+    elif target < limit:
+        where = f"inside the entry (section byte {target}; it ends at {end})"
+    else:
+        where = (
+            f"past the parameter section (section byte {target}; it ends at {limit})"
+        )
+    fix.problems.append(f"{entry.name} next-entry offset points {where.split(' (')[0]}")
+    if end < limit and _entry_at(section, end, limit):
+        fix.notes.append(
+            f"{entry.name} next-entry offset points {where}; read on from the "
+            f"entry's end (byte {end})"
+        )
+        fix.patches.append((entry.offset_at, dec.pack_u16(end - entry.offset_at)))
+        return end
+    if target >= limit:
+        # BTK: "The next parameter is pointing in the Data section. Parameters'
+        # extraction is stopped."
+        fix.notes.append(
+            f"{entry.name} next-entry offset points {where} and no entry starts at "
+            f"its end: the parameters after it are not read"
+        )
+        fix.patches.append((entry.offset_at, dec.pack_u16(0)))
+        return None
+    raise ValueError(
+        f"{entry.name} next-entry offset points {where} and no entry starts at its "
+        f"end (byte {end})"
+    )
+
+
 def _walk_parameters(
-    section: bytes, dec: _Decoder, n_blocks: int
-) -> tuple[dict[tuple[str, str], RawParam], list[str], list[str]]:
+    section: bytes, dec: _Decoder, n_blocks: int, limit: int
+) -> tuple[dict[tuple[str, str], RawParam], list[str], _Repairs]:
     """Walk the parameter section as ezc3d does, bounded by the bytes present.
 
     Args:
@@ -165,19 +307,27 @@ def _walk_parameters(
             byte, at most :data:`MAX_PARAMETER_BLOCKS` blocks).
         dec: the processor's decoder.
         n_blocks: the block count the section declares.
+        limit: where the data section starts (section-relative, at most
+            ``len(section)``): no entry lies at or past it.
 
     Returns:
-        ``(params, ezc3d_problems, notes)``.
+        ``(params, ezc3d_problems, repairs)``; ``repairs.notes`` holds every
+        departure from the standard, ``repairs.patches`` the bytes to change so that
+        a reader walking the file sees the repaired section.
+
+    Raises:
+        ValueError: an entry's offset points inside it or backwards and no entry
+            starts at its end: nothing safe to read on from (one line).
     """
     params: dict[tuple[str, str], RawParam] = {}
-    problems: list[str] = []
-    notes: list[str] = []
+    fix = _Repairs()
+    problems = fix.problems
+    notes = fix.notes
     group_names: dict[int, str] = {}
     pending: list[tuple[int, str, RawParam]] = []
     declared_end = n_blocks * BLOCK_BYTES
     pos = 4
     end = len(section)
-    standard = True
     while True:
         if pos + 2 > end:
             problems.append(
@@ -195,6 +345,7 @@ def _walk_parameters(
         if pos + 2 > end:
             problems.append("parameter section cut inside an entry")
             break
+        offset_at = pos
         offset = dec.u16(section, pos)
         pos += 2
         target = pos + offset - 2 if offset else 0
@@ -205,13 +356,6 @@ def _walk_parameters(
             if pos + 1 > end:
                 problems.append("parameter section cut inside a group entry")
                 break
-            n_desc = struct.unpack_from("b", section, pos)[0]
-            if n_desc < 0:
-                problems.append(
-                    f"group {name} has a {n_desc + 256}-character description "
-                    "(ezc3d reads the length as negative and allocates ~4 GB)"
-                )
-            pos += 1 + (n_desc & 0xFF)
             group_names[-gid] = name
         else:
             name = f"{group_names.get(gid, f'group {gid}')}:{name}"
@@ -228,14 +372,38 @@ def _walk_parameters(
             if type_code not in PARAM_TYPES:
                 problems.append(f"parameter {name} has element type {type_code}")
                 size = 0
-            limit = target if target else end
-            if pos + size > min(limit, end):
+            room = min(target if target else end, end)
+            # An offset short of values that fit, followed by an entry, is the
+            # offset's fault (repaired below), not the values'.
+            own_end = pos + size
+            offset_at_fault = (
+                bool(offset)
+                and own_end < min(limit, end)
+                and _entry_at(section, own_end + 1 + section[own_end], min(limit, end))
+            )
+            if pos + size > room and not offset_at_fault:
                 problems.append(
                     f"parameter {name} declares {size} bytes of values but its "
-                    f"entry holds {max(0, min(limit, end) - pos)}"
+                    f"entry holds {max(0, room - pos)}"
                 )
-                standard = False  # one message for this entry is enough
                 notes.append(f"parameter {name} skipped: declares more bytes than held")
+                fix.standard = False
+                if (
+                    offset
+                    and start < target < pos + size
+                    and not _entry_at(section, target, min(limit, end))
+                ):
+                    # BTK would read the values' bytes as the next entry.
+                    raise ValueError(
+                        f"{name} next-entry offset points inside the entry (section "
+                        f"byte {target}) and no entry starts at its end"
+                    )
+                if offset:
+                    if target <= start:
+                        problems.append(f"entry {name!r} points backwards")
+                        break
+                    pos = target  # one message for this entry is enough
+                    continue
             else:
                 pending.append(
                     (
@@ -245,27 +413,29 @@ def _walk_parameters(
                     )
                 )
             pos += size
-            if pos < end:
-                n_desc = struct.unpack_from("b", section, pos)[0]
-                if n_desc < 0:
-                    problems.append(
-                        f"parameter {name} has a {n_desc + 256}-character description "
-                        "(ezc3d reads the length as negative and allocates ~4 GB)"
-                    )
-                pos += 1 + (n_desc & 0xFF)
+        n_desc = section[pos] if pos < end else 0
+        if n_desc > 127:
+            kind = "group" if gid < 0 else "parameter"
+            problems.append(
+                f"{kind} {name} has a {n_desc}-character description "
+                "(ezc3d reads the length as negative and allocates ~4 GB)"
+            )
+        entry = _Entry(
+            name=name,
+            start=start,
+            offset_at=offset_at,
+            target=target,
+            desc_at=pos,
+            n_desc=n_desc,
+            end=pos + 1 + n_desc,
+        )
+        pos = entry.end
         if not offset:
             break  # the last entry
-        if target <= start:
-            problems.append(f"entry {name!r} points backwards")
+        following = _next_entry(section, entry, min(limit, end), dec, fix)
+        if following is None:
             break
-        if pos != target and standard:
-            # ezc3d (strict) refuses this; the c3d package follows the offset.
-            standard = False
-            problems.append(
-                f"parameter section not standard: entry {name!r} ends at byte {pos}, "
-                f"its offset says {target}"
-            )
-        pos = target  # the offset is authoritative (the c3d package follows it too)
+        pos = following
     if not pending:
         notes.append("parameter section holds no parameters")
     elif pos > declared_end:
@@ -276,7 +446,7 @@ def _walk_parameters(
             notes.append(f"parameter {name} belongs to no group (id {gid})")
             continue
         params.setdefault((group, name), param)
-    return params, problems, notes
+    return params, problems, fix
 
 
 def _rotation_problems(
@@ -372,8 +542,17 @@ def inspect_c3d(path: str | os.PathLike[str]) -> C3DLayout:
     problems: list[str] = []
     if proc_byte == 86:
         problems.append("MIPS (SGI) processor type, which ezc3d does not read")
-    params, walk_problems, notes = _walk_parameters(section, dec, n_blocks)
+    data_start = dec.u16(head, 16)
+    # No entry lies in the data section (BTK stops the walk at an offset into it).
+    data_at = (data_start - 1) * BLOCK_BYTES - section_at
+    limit = data_at if 4 < data_at < len(section) else len(section)
+    try:
+        params, walk_problems, fix = _walk_parameters(section, dec, n_blocks, limit)
+    except ValueError as exc:
+        raise TakeError(f"take {name}: not a readable C3D file ({exc})") from None
     problems += walk_problems
+    notes = fix.notes
+    patches = tuple((section_at + at, raw) for at, raw in fix.patches)
     if zeros:
         # The c3d package would not find the header: only ezc3d reads these.
         notes = leading_notes + notes
@@ -383,7 +562,6 @@ def inspect_c3d(path: str | os.PathLike[str]) -> C3DLayout:
     first = dec.u16(head, 6)
     last = dec.u16(head, 8)
     header_scale = dec.f32(head, 12)
-    data_start = dec.u16(head, 16)
     header_rate = dec.f32(head, 20)
 
     used = _param_number(dec, params.get(("POINT", "USED")))
@@ -465,6 +643,7 @@ def inspect_c3d(path: str | os.PathLike[str]) -> C3DLayout:
         params=params,
         ezc3d_problems=tuple(problems),
         notes=tuple(notes),
+        patches=patches,
     )
 
 

@@ -9,7 +9,7 @@ apart in :class:`References` and never enter the marker stream.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -146,6 +146,25 @@ class Take:
         if self.valid.size == 0:
             return 0.0
         return float(1.0 - self.valid.mean())
+
+    def select_rows(self, rows: slice) -> Take:
+        """The take cut to ``rows`` (a step-1 slice of row indices, as
+        ``daemon.cli.args.parse_frames`` gives): markers, validity and references
+        cut alike, ``first_frame`` moved on by ``rows.start`` so that row 0 of the
+        result keeps its source frame number."""
+        start, stop, step = rows.indices(self.n_frames)
+        if step != 1 or stop <= start:
+            raise ValueError(f"rows must select frames in order; got {rows}")
+        refs = self.references
+        if refs.values.shape[0] == self.n_frames:
+            refs = replace(refs, values=refs.values[start:stop])
+        return replace(
+            self,
+            positions=self.positions[start:stop],
+            valid=self.valid[start:stop],
+            references=refs,
+            first_frame=self.first_frame + start,
+        )
 
     def marker_index(self, label: str) -> int:
         """Column of a marker label. Raises KeyError naming the label."""

@@ -240,6 +240,23 @@ def add_solve_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def add_frames_argument(parser: argparse.ArgumentParser) -> None:
+    """``--frames a:b`` (``solve``, ``validate``): the rows of the take to solve.
+
+    Stored as ``args.solve_frames`` (``blend`` and ``loop`` have an integer
+    ``--frames`` of their own). ``--calibrate-frames`` still counts rows of the whole
+    take; the output keeps the take's frame numbers (``first_frame`` moved on by a).
+    """
+    parser.add_argument(
+        "--frames",
+        dest="solve_frames",
+        metavar="a:b",
+        help="solve only these rows of the take (0-based, half-open, as "
+        "--calibrate-frames, which still counts rows of the whole take); the "
+        "output's first_frame is the take's number of row a",
+    )
+
+
 def add_method_argument(
     parser: argparse.ArgumentParser, default: str | None = None
 ) -> None:
@@ -257,6 +274,8 @@ def solver_for_take(args: argparse.Namespace) -> tuple[Any, Any, Any, Any]:
     """Load the rig and the take, load or make the calibration, build the solver,
     and check that the calibration fits the take (:func:`check_calibration_match`;
     its result is left in ``args.calibration_match`` for the command's summary).
+    With ``--frames a:b`` (``args.solve_frames``) the take returned is cut to those
+    rows after calibrating (``args.solve_rows`` = ``"a:b"``, else None).
 
     Returns:
         ``(rig, take, calibration, solver)``.
@@ -275,6 +294,10 @@ def solver_for_take(args: argparse.Namespace) -> tuple[Any, Any, Any, Any]:
 
     rig = load_rig_or_fail(args.rig)
     take = load_take(args.take, **take_overrides(args))
+    rows = None  # --frames: checked before calibrating, applied after
+    if getattr(args, "solve_frames", None) is not None:
+        rows = parse_frames(args.solve_frames, take.n_frames, option="--frames")
+    args.solve_rows = None if rows is None else f"{rows.start}:{rows.stop}"
     try:
         if args.calibration is not None:
             cal = load_calibration(args.calibration)
@@ -287,6 +310,9 @@ def solver_for_take(args: argparse.Namespace) -> tuple[Any, Any, Any, Any]:
                 allow_moving=args.allow_moving_base_pose,
                 method=getattr(args, "method", "fit"),
             )  # fmt: skip
+        # Calibrated on the whole take's rows; solved (and checked) on --frames.
+        if rows is not None:
+            take = take.select_rows(rows)
         args.layout_refined = None
         if getattr(args, "refine_layout", False):
             if getattr(args, "method", "fit") != "fit":

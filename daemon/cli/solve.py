@@ -1,7 +1,15 @@
 """``retargetd solve TAKE --rig RIG (--calibration FILE | --calibrate-frames a:b)
 --out OUT.npz|OUT.bvh|OUT.csv|OUT.glb|OUT.mcap [--fill-gaps N] [--pipeline FILE.toml]
 [--bvh-order ZXY] [--bvh-root-order ORDER] [--euler-order ORDER] [--degrees] [--json]
-[--quiet]``: solve every frame of a take. The ``--out`` suffix chooses the format.
+[--quiet] [--frames a:b]``: solve every frame of a take, or the rows ``--frames``
+selects. The ``--out`` suffix chooses the format.
+
+``--frames a:b``: solve only rows a..b-1 of the take (0-based, half-open; e.g. past
+a run of empty leading frames). ``--calibrate-frames`` still counts rows of the
+whole take, so a take can calibrate on rows outside the ones it solves. The NPZ
+keeps the take's frame numbering: its ``first_frame`` is the take's number of row a
+(the take's own ``first_frame`` + a), so NPZ row i is source frame ``first_frame +
+i``; BVH, CSV, glTF and MCAP count frames and time from the first solved row.
 
 ``--json`` prints the summary as one JSON object (keys in README "Machine-readable
 output"); ``--quiet`` prints nothing on success. On a terminal a progress bar runs on
@@ -75,6 +83,7 @@ def add_parser(subparsers: Any) -> None:
     """Register ``solve``."""
     from retargetd.daemon.cli.args import (
         add_force_argument,
+        add_frames_argument,
         add_output_arguments,
         add_solve_arguments,
     )
@@ -88,6 +97,7 @@ def add_parser(subparsers: Any) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     add_solve_arguments(parser)
+    add_frames_argument(parser)
     parser.add_argument(
         "--out", required=True, metavar="OUT.npz|OUT.bvh|OUT.csv|OUT.glb|OUT.mcap"
     )
@@ -282,7 +292,8 @@ def run(args: argparse.Namespace) -> int:
     present = cols[cols >= 0]
     occluded = int((~take.valid[:, present]).sum())
     total = n * len(cols)
-    out(f"wrote {args.out}: {n} frames at {take.rate_hz:g} Hz, rig {rig.name}, ")
+    rows = f" (rows {args.solve_rows} of the take)" if args.solve_rows else ""
+    out(f"wrote {args.out}: {n} frames{rows} at {take.rate_hz:g} Hz, rig {rig.name}, ")
     out(f"{len(res.bone_names)} bones, {len(res.joint_names)} joint centres\n")
     fps = n / solve_s if solve_s > 0 else float("inf")
     out(f"solved in {solve_s:.2f} s: {fps:.0f} frames/s\n")
@@ -445,6 +456,8 @@ def _print_json_summary(
             "rig": rig.name,
             "method": args.method,
             "frames": n,
+            "frames_selected": args.solve_rows,
+            "first_frame": int(take.first_frame),
             "rate_hz": float(take.rate_hz),
             "bones": len(res.bone_names),
             "joint_centres": len(res.joint_names),

@@ -1,6 +1,13 @@
 """``retargetd validate TAKE --rig RIG (--calibration FILE | --calibrate-frames a:b)
---report DIR``: check every solved frame of a take against a MuJoCo model of the
-calibrated skeleton.
+--report DIR [--frames a:b]``: check every solved frame of a take (or of the rows
+``--frames`` selects) against a MuJoCo model of the calibrated skeleton.
+
+``--frames a:b``: solve and check only rows a..b-1 of the take (0-based, half-open);
+``--calibrate-frames`` still counts rows of the whole take. The report's frame
+numbers count from row a (the header says so; report.json ``frames_selected``,
+``first_frame`` = the take's number of row a). The joint-limit detail names the bone
+and angle at the worst flagged frames (by degrees beyond the limit), and the first
+flagged frame when it is not among them.
 
 Writes ``DIR/report.json`` (per check: threshold, frames flagged, worst frames and
 values), ``DIR/report.txt`` (the same, readable) and ``DIR/model.xml`` (the model
@@ -59,6 +66,7 @@ def add_parser(subparsers: Any) -> None:
     """Register ``validate``."""
     from retargetd.daemon.cli.args import (
         add_force_argument,
+        add_frames_argument,
         add_output_arguments,
         add_solve_arguments,
     )
@@ -70,6 +78,7 @@ def add_parser(subparsers: Any) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     add_solve_arguments(parser)
+    add_frames_argument(parser)
     parser.add_argument("--report", required=True, metavar="DIR")
     add_output_arguments(parser, json=True)
     add_force_argument(parser)
@@ -148,6 +157,8 @@ def _validate(
         "rig": rig.name,
         "method": getattr(args, "method", "fit"),
         "frames": rep.n_frames,
+        "frames_selected": args.solve_rows,
+        "first_frame": int(take.first_frame),
         "rate_hz": take.rate_hz,
         "body_mass_kg": body_mass,
         "body_mass_source": "default" if mass is None else "take or --body-mass-kg",
@@ -177,9 +188,15 @@ def _validate(
         snapshots=not getattr(args, "no_snapshots", False),
     )  # fmt: skip
     (report_dir / "report.json").write_text(json.dumps(doc, indent=1) + "\n")
+    rows = (
+        f", rows {args.solve_rows} of the take: frame f below is take row "
+        f"{args.solve_rows.split(':')[0]} + f"
+        if args.solve_rows
+        else ""
+    )
     lines = [
         f"retargetd validate: {take.path} (rig {rig.name}, {rep.n_frames} frames at "
-        f"{take.rate_hz:g} Hz, body mass {body_mass:g} kg)",
+        f"{take.rate_hz:g} Hz{rows}, body mass {body_mass:g} kg)",
         f"Result: {'PASS' if rep.passed else 'FAIL: ' + ', '.join(rep.failed())}",
         args.calibration_match.summary(),
         "",
@@ -220,6 +237,7 @@ def _validate(
                 "rig": rig.name,
                 "report": str(report_dir / "report.json"),
                 "frames": rep.n_frames,
+                "frames_selected": args.solve_rows,
                 "rate_hz": float(take.rate_hz),
                 "body_mass_kg": body_mass,
                 "passed": rep.passed,

@@ -487,14 +487,20 @@ def validate_take(
     lim.flagged = beyond & (vd.run_lengths(beyond) >= th["limit_min_frames"])
     lim.transients = np.flatnonzero(beyond & ~lim.flagged)
     names = skel_model.bone_names
-    lim.detail = [
-        f"frame {t}: {names[worst_bone[t]]} {which[t, worst_bone[t]]}"
-        for t in np.flatnonzero(lim.flagged)[:5]
-    ]
-    lim.detail += [
-        f"transient, frame {t}: {names[worst_bone[t]]} {which[t, worst_bone[t]]}"
-        for t in lim.transients[:5]
-    ]
+    excess = viol[np.arange(n), worst_bone]  # (T,) degrees beyond, worst bone
+
+    def limit_line(t: int, prefix: str = "") -> str:
+        b = worst_bone[t]
+        return (
+            f"{prefix}frame {t}: {names[b]} {which[t, b]} ({excess[t]:.1f} deg beyond)"
+        )
+
+    flagged_frames = np.flatnonzero(lim.flagged)
+    worst = _worst(flagged_frames, excess)
+    lim.detail = [limit_line(t) for t in worst]
+    if flagged_frames.size and flagged_frames[0] not in worst:
+        lim.detail.append(limit_line(int(flagged_frames[0]), "first flagged, "))
+    lim.detail += [limit_line(t, "transient, ") for t in _worst(lim.transients, excess)]
     lim.warnings = _typical_warnings(skel_model, pfb, viol, rate_hz)
     checks["self_penetration"].detail = [
         f"frame {t}: {names[self_pairs[t, 0]]} / {names[self_pairs[t, 1]]}"
@@ -502,6 +508,17 @@ def validate_take(
     ]
     checks.update(_residual_checks(solve, th, rate_hz))
     return TakeReport(checks=checks, n_frames=n, seconds_per_frame=per_frame)
+
+
+#: Frames named per check in the limit detail lines (the worst, by degrees beyond).
+N_DETAIL_FRAMES = 5
+
+
+def _worst(frames: np.ndarray, values: F64Array) -> list[int]:
+    """The :data:`N_DETAIL_FRAMES` of ``frames`` with the largest ``values``, largest
+    first (the earlier frame first on a tie)."""
+    order = np.argsort(-values[frames], kind="stable")[:N_DETAIL_FRAMES]
+    return [int(frames[i]) for i in order]
 
 
 def _residual_checks(

@@ -375,3 +375,25 @@ def test_cli_exit_codes(
     monkeypatch.setattr(validate, "validate_take", boom)
     assert main(argv) == 2  # the report folder now holds a report: refused
     assert main([*argv, "--force"]) == 3
+
+
+def test_limit_detail_names_the_worst_frames(clean: Any) -> None:
+    """The detail names bone and angle at the frames most beyond the limit (the
+    bump's peak), worst first, then the first flagged frame (issue 31, item 10)."""
+    solve = _rotate_bone(clean, "l_shank", clean.skel.left_world, -40.0)
+    rep = _run(clean, _with(solve, joint_centres=_posed_joints(clean, solve)))
+    limits = rep.checks["limits"]
+    flagged = np.flatnonzero(limits.flagged)
+    assert flagged.size > 10
+    excess = limits.values[flagged]
+    worst = flagged[np.argsort(-excess, kind="stable")[:5]]
+    lines = limits.detail
+    assert len(lines) == 6
+    assert [int(line.split(":")[0].split()[-1]) for line in lines[:5]] == list(worst)
+    assert lines[5].startswith(f"first flagged, frame {flagged[0]}: l_shank ")
+    assert flagged[0] not in worst
+    for line, t in zip(lines[:5], worst, strict=True):
+        assert f"frame {t}: l_shank " in line and "sagittal -" in line
+        assert line.endswith(f"({limits.values[t]:.1f} deg beyond)")
+    # Worst first: the values named fall.
+    assert list(limits.values[worst]) == sorted(limits.values[worst], reverse=True)
