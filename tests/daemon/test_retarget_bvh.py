@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pygltflib
 import pytest
+from gltf_tools import issue_summary, validate_glb
 from scipy.spatial.transform import Rotation
 
 from retargetd.daemon.cli.main import main
@@ -228,10 +229,19 @@ def test_retarget_onto_mixamo_names_by_the_builtin_maps(
     n_mapped = sum(not n.startswith("x_") for n in names)
     assert n_mapped >= 15
     assert _check_same_directions(src, out, rename) >= 15
-    # The same take as glTF: node rotations are the BVH's local rotations.
+    # The same take as glTF: node rotations are the BVH's local rotations, on a
+    # skin of the target's joints (named as in the target) with a capsule per
+    # joint-to-child segment; no validator error or warning.
     assert main(["retarget", str(source_bvh), "--target", str(tgt_path),
-                 "--out", str(out_path)]) == 0  # fmt: skip
+                 "--glb-mesh", "capsules", "--out", str(out_path)]) == 0  # fmt: skip
+    report = validate_glb(out_path)
+    assert report["issues"]["numErrors"] == 0, issue_summary(report)
+    assert report["issues"]["numWarnings"] == 0, issue_summary(report)
     gltf = pygltflib.GLTF2().load(str(out_path))
+    assert [n.name for n in gltf.nodes] == [*names, "body"]
+    assert gltf.skins[0].joints == list(range(len(names)))
+    assert gltf.skins[0].skeleton == 0  # the root joint: no scene root node
+    assert len(gltf.meshes) == 1 and gltf.nodes[-1].skin == 0
     assert out.frames is not None
     angles, _ = split_bvh_motion(out, out.frames)
     blob = gltf.binary_blob()
