@@ -30,13 +30,13 @@ CAPSULE_SEGMENTS = 8
 CAPSULE_CAP_RINGS = 2
 #: ``--glb-mesh`` choices: the skin alone, or a capsule per bone.
 MESHES = ("none", "capsules")
-#: A capsule's radius per unit of bone length. A human limb is roughly a cylinder
-#: whose radius is 0.13-0.2 of its length (upper arm ~0.045 m over ~0.27 m, thigh
-#: ~0.08 m over ~0.40 m, shin ~0.05 m over ~0.39 m), so 0.15 gives limbs about their
-#: girth from the skeleton alone, with no body measurements. Trunk and head bones come
-#: out thinner than the body (their bulk is not along one bone): a figure that shows
-#: the pose, not a body model. The caps reach 0.15 L past each end, so neighbouring
-#: capsules overlap at the joints and the figure reads as connected.
+#: A capsule's radius per unit of bone length: a choice, not a body measurement.
+#: Limbs are long and thin, so a fixed fraction of the bone's length gives them a
+#: plausible girth from the skeleton alone, with no body measurements (with 0.15 a
+#: Blender render of the Plug-in Gait walk reads as a walking figure). Trunk and head
+#: bones come out thinner than the body (their bulk is not along one bone): a figure
+#: that shows the pose, not a body model. The caps reach 0.15 L past each end, so
+#: neighbouring capsules overlap at the joints and the figure reads as connected.
 CAPSULE_RADIUS_PER_LENGTH = 0.15
 #: ... and no thinner than 1 cm, so short bones (hands, a short pelvis) stay visible.
 CAPSULE_MIN_RADIUS_M = 0.01
