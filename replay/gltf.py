@@ -1,23 +1,43 @@
-"""glTF 2.0 binary (``.glb``) writing: a skeleton as nodes and one animation.
+"""glTF 2.0 binary (``.glb``) writing: a skinned skeleton, an animation, capsules.
 
-The file (Khronos glTF 2.0 specification, "GLB File Format Specification" and
-"Animations"):
+The file (Khronos glTF 2.0 specification, "GLB File Format Specification",
+"Skins" and "Animations"):
 
 - A 12-byte header: magic ``b"glTF"``, version 2, total length (uint32 little endian),
   then a JSON chunk (length, ``b"JSON"``, UTF-8 padded with spaces to 4 bytes) and a
   BIN chunk (length, ``b"BIN\\0"``, the buffer padded with zeros to 4 bytes).
-- ``nodes``: one per joint, named, with its rest ``translation`` (metres, in the
-  parent node's frame) and ``rotation``; ``children`` give the hierarchy. An optional
-  scene root node holds a fixed rotation (e.g. our +Z-up world into glTF's +Y up).
+- ``nodes``: first one per joint, in the caller's order, named, with its rest
+  ``translation`` (metres, in the parent node's frame) and ``rotation``, and optional
+  ``extras``; ``children`` give the hierarchy. Then an optional scene root node
+  holding a fixed rotation (e.g. our +Z-up world into glTF's +Y up), then, with
+  capsules, the mesh node (a scene root with no transform, as the spec asks of a
+  skinned mesh's node).
+- ``skins[0]``: ``joints`` = every joint node; ``inverseBindMatrices`` = one MAT4
+  float32 per joint (column-major), the inverse of the joint's scene transform in the
+  rest pose (the bind pose *is* the rest pose), ``[R^T, -R^T t; 0 0 0 1]``;
+  ``skeleton`` = the root joint when there is one and no scene root. Under a scene
+  root it is left out: the IBMs are relative to the scene (the skinned mesh's space,
+  as the spec has them), and Blender's importer (3.4) reads them as relative to the
+  skeleton node's parent when ``skeleton`` is given, which would turn the bind pose
+  by the scene root's rotation; without it Blender binds at the nodes' rest, which
+  is the same pose. Written even without a mesh, so importers build an armature.
+- ``meshes[0]`` (with capsules, :mod:`retargetd.replay.gltf_mesh`): one triangle
+  primitive, ``POSITION`` and ``NORMAL`` float32 VEC3 in the bind pose's scene
+  coordinates (``min``/``max`` on POSITION), ``JOINTS_0`` unsigned byte (unsigned
+  short past 255 joints) VEC4 ``(j, 0, 0, 0)``, ``WEIGHTS_0`` float32 VEC4
+  ``(1, 0, 0, 0)`` (each vertex moves rigidly with its one joint), ``indices``
+  unsigned short (unsigned int past 65535 vertices), one grey material.
 - One ``animation``: per channel a sampler with ``interpolation: "LINEAR"`` (for
   ``rotation`` glTF defines LINEAR as slerp between the keys), ``input`` = key times
   (float32 seconds, strictly increasing, with ``min``/``max`` as the spec requires),
   ``output`` = float32 values: ``rotation`` as VEC4 quaternions in **x y z w** order
   (glTF's order; converted here from our w x y z), ``translation`` as VEC3 metres.
+  Channels target the joint nodes.
 
-All accessors are tightly packed float32 in one buffer, each view 4-byte aligned.
-The writer is independent of the solver: callers pass arrays (see
-:mod:`retargetd.daemon.post.export_gltf` for a solved take).
+Every accessor is tightly packed in its own buffer view, each view 4-byte aligned;
+vertex and index views carry their ``target``. The writer is independent of the
+solver: callers pass arrays (see :mod:`retargetd.daemon.post.export_gltf` for a
+solved take).
 """
 
 from __future__ import annotations
@@ -30,14 +50,22 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
+from scipy.spatial.transform import Rotation
 
 from retargetd.protocols.frames import F64Array
+from retargetd.replay.gltf_mesh import Capsule, capsule_mesh
 
 GLB_MAGIC = b"glTF"
 GLB_VERSION = 2
 _CHUNK_JSON = 0x4E4F534A
 _CHUNK_BIN = 0x004E4942
-_FLOAT = 5126  # GL_FLOAT
+#: glTF componentType per little-endian numpy dtype (GL enums).
+_COMPONENT = {"<f4": 5126, "|u1": 5121, "<u2": 5123, "<u4": 5125}
+_ARRAY_BUFFER = 34962  # bufferView.target of vertex attributes
+_ELEMENT_ARRAY_BUFFER = 34963  # ... of indices
+#: The capsules' material: a light grey, matte (glTF metallic-roughness).
+CAPSULE_BASE_COLOR = (0.8, 0.8, 0.8, 1.0)
 _PATHS = {"rotation": ("VEC4", 4), "translation": ("VEC3", 3)}
 
 
@@ -77,22 +105,38 @@ class _Buffer:
         self.views: list[dict[str, Any]] = []
         self.accessors: list[dict[str, Any]] = []
 
-    def add(self, arr: F64Array, kind: str, with_bounds: bool = False) -> int:
-        f32 = np.ascontiguousarray(arr, dtype="<f4")
+    def add(
+        self,
+        arr: np.ndarray,
+        kind: str,
+        *,
+        dtype: str = "<f4",
+        with_bounds: bool = False,
+        target: int | None = None,
+    ) -> int:
+        packed = np.ascontiguousarray(arr, dtype=dtype)
         offset = len(self.data)
-        self.data += f32.tobytes()
+        self.data += packed.tobytes()
         self.data += b"\0" * (-len(self.data) % 4)
-        self.views.append({"buffer": 0, "byteOffset": offset, "byteLength": f32.nbytes})
+        view: dict[str, Any] = {
+            "buffer": 0,
+            "byteOffset": offset,
+            "byteLength": packed.nbytes,
+        }
+        if target is not None:
+            view["target"] = target
+        self.views.append(view)
         acc: dict[str, Any] = {
             "bufferView": len(self.views) - 1,
-            "componentType": _FLOAT,
-            "count": int(f32.shape[0]),
+            "componentType": _COMPONENT[np.dtype(dtype).str],
+            "count": int(packed.shape[0]),
             "type": kind,
         }
         if with_bounds:
-            flat = f32.reshape(f32.shape[0], -1)
-            acc["min"] = [float(v) for v in flat.min(axis=0)]
-            acc["max"] = [float(v) for v in flat.max(axis=0)]
+            flat = packed.reshape(packed.shape[0], -1)
+            cast = float if packed.dtype.kind == "f" else int
+            acc["min"] = [cast(v) for v in flat.min(axis=0)]
+            acc["max"] = [cast(v) for v in flat.max(axis=0)]
         self.accessors.append(acc)
         return len(self.accessors) - 1
 
@@ -121,6 +165,91 @@ def _check_channel(ch: GltfChannel, n_nodes: int) -> None:
         raise ValueError(f"channel of node {ch.node} ({ch.path}) has non-finite values")
 
 
+def scene_from_joint_rest(
+    parents: Sequence[int] | npt.NDArray[np.int64],
+    rest_translation: F64Array,
+    rest_rotation_quat: F64Array,
+    scene_root_quat: F64Array | None = None,
+) -> F64Array:
+    """Each joint's rest transform in scene coordinates (the bind pose).
+
+    Args:
+        parents: (N,) parent per joint, -1 for a root (any order, no cycles).
+        rest_translation: (N, 3) float64, origin in the parent's frame.
+        rest_rotation_quat: (N, 4) float64 (w, x, y, z) unit, ``parent_from_joint``.
+        scene_root_quat: (4,) float64 (w, x, y, z), the roots' parent rotation.
+
+    Returns:
+        (N, 4, 4) float64 ``scene_from_joint`` (rotation and translation).
+    """
+    par = np.asarray(parents, dtype=np.int64)
+    n = len(par)
+    local = np.tile(np.eye(4), (n, 1, 1))
+    local[:, :3, :3] = Rotation.from_quat(
+        rest_rotation_quat, scalar_first=True
+    ).as_matrix()
+    local[:, :3, 3] = rest_translation
+    root = np.eye(4)
+    if scene_root_quat is not None:
+        root[:3, :3] = Rotation.from_quat(
+            scene_root_quat, scalar_first=True
+        ).as_matrix()
+    out = np.full((n, 4, 4), np.nan)
+    done = np.zeros(n, dtype=bool)
+    for _ in range(n):  # one level of the tree per pass, parents in any order
+        ready = ~done & ((par < 0) | done[np.maximum(par, 0)])
+        if not ready.any():
+            break
+        for j in np.flatnonzero(ready):
+            out[j] = (root if par[j] < 0 else out[par[j]]) @ local[j]
+        done |= ready
+    if not done.all():
+        raise ValueError(f"parents must form a tree; got {par}")
+    return out
+
+
+def _inverse_rigid(m: F64Array) -> F64Array:
+    """``[R^T, -R^T t; 0 0 0 1]`` of (..., 4, 4) rigid transforms."""
+    inv = np.zeros_like(m)
+    rt = np.swapaxes(m[..., :3, :3], -1, -2)
+    inv[..., :3, :3] = rt
+    inv[..., :3, 3] = -np.einsum("...ij,...j->...i", rt, m[..., :3, 3])
+    inv[..., 3, 3] = 1.0
+    return inv
+
+
+def _add_capsules(
+    buf: _Buffer, capsules: Sequence[Capsule], bind: F64Array, n_joints: int
+) -> dict[str, Any]:
+    """The capsules as one skinned primitive, vertices in the bind pose."""
+    mesh = capsule_mesh(tuple(capsules))
+    rot, trans = bind[mesh.joints, :3, :3], bind[mesh.joints, :3, 3]
+    pos = np.einsum("vij,vj->vi", rot, mesh.positions) + trans
+    nrm = np.einsum("vij,vj->vi", rot, mesh.normals)
+    nrm /= np.linalg.norm(nrm, axis=-1, keepdims=True)
+    joints = np.zeros((len(pos), 4), dtype=np.int64)
+    joints[:, 0] = mesh.joints
+    weights = np.zeros((len(pos), 4))
+    weights[:, 0] = 1.0
+    joint_dtype = "|u1" if n_joints <= 256 else "<u2"
+    index_dtype = "<u2" if len(pos) <= 65535 else "<u4"
+    attributes = {
+        "POSITION": buf.add(pos, "VEC3", with_bounds=True, target=_ARRAY_BUFFER),
+        "NORMAL": buf.add(nrm, "VEC3", target=_ARRAY_BUFFER),
+        "JOINTS_0": buf.add(joints, "VEC4", dtype=joint_dtype, target=_ARRAY_BUFFER),
+        "WEIGHTS_0": buf.add(weights, "VEC4", target=_ARRAY_BUFFER),
+    }
+    indices = buf.add(
+        mesh.indices, "SCALAR", dtype=index_dtype, target=_ELEMENT_ARRAY_BUFFER
+    )
+    return {
+        "name": "capsules",
+        "primitives": [
+            {"attributes": attributes, "indices": indices, "material": 0, "mode": 4}
+        ],
+    }
+
+
 def write_glb(
     path: str | Path,
     *,
@@ -131,29 +260,35 @@ def write_glb(
     channels: Sequence[GltfChannel],
     scene_root_quat: F64Array | None = None,
     scene_root_name: str = "world",
+    node_extras: Sequence[dict[str, Any]] | None = None,
+    capsules: Sequence[Capsule] = (),
+    skin_name: str = "skeleton",
     animation_name: str = "take",
     generator: str = "retargetd",
 ) -> None:
-    """Write a skeleton and its animation as a ``.glb`` file (module docstring).
+    """Write a skinned skeleton and its animation as a ``.glb`` file (module docstring).
 
     Args:
         path: destination file.
-        names: (N,) node names.
-        parents: (N,) parent index per node, -1 for a root; parents before children
+        names: (N,) joint node names.
+        parents: (N,) parent index per joint, -1 for a root; parents before children
             is not required.
-        rest_translation: (N, 3) float64, metres, each node's origin in its parent's
+        rest_translation: (N, 3) float64, metres, each joint's origin in its parent's
             frame (roots: in the scene root's).
-        rest_rotation_quat: (N, 4) float64 (w, x, y, z), each node's rest
-            ``parent_from_node``.
+        rest_rotation_quat: (N, 4) float64 (w, x, y, z), each joint's rest
+            ``parent_from_node``; the rest pose is the bind pose.
         channels: the animated properties.
         scene_root_quat: (4,) float64 (w, x, y, z): if given, the roots hang under a
             node ``scene_root_name`` with this rotation (``gltf_from_world``).
         scene_root_name: that node's name.
+        node_extras: (N,) optional JSON objects, each joint node's ``extras``.
+        capsules: a skinned mesh of these capsules (none: no mesh).
+        skin_name: the skin's name.
         animation_name: the animation's name.
         generator: ``asset.generator``.
 
     Raises:
-        ValueError: inconsistent shapes, bad parents or channels.
+        ValueError: inconsistent shapes, bad parents, channels or capsules.
     """
     n = len(names)
     par = np.asarray(parents, dtype=np.int64)
@@ -166,9 +301,19 @@ def write_glb(
         )
     if np.any((par < -1) | (par >= n)) or np.any(par == np.arange(n)):
         raise ValueError(f"parents must be -1 or another node's index; got {par}")
+    if node_extras is not None and len(node_extras) != n:
+        raise ValueError(f"need {n} node_extras; got {len(node_extras)}")
     for ch in channels:
         _check_channel(ch, n)
+    for c in capsules:
+        if not 0 <= c.joint < n:
+            raise ValueError(f"capsule joint must be in 0..{n - 1}; got {c.joint}")
     quat = quat / np.linalg.norm(quat, axis=-1, keepdims=True)  # glTF: unit rotations
+    root_quat = None
+    if scene_root_quat is not None:
+        root_quat = np.asarray(scene_root_quat, dtype=np.float64)
+        root_quat = root_quat / np.linalg.norm(root_quat)
+    bind = scene_from_joint_rest(par, trans, quat, root_quat)
     nodes: list[dict[str, Any]] = []
     for i in range(n):
         node: dict[str, Any] = {
@@ -179,20 +324,47 @@ def write_glb(
         kids = [int(c) for c in np.flatnonzero(par == i)]
         if kids:
             node["children"] = kids
+        if node_extras is not None and node_extras[i]:
+            node["extras"] = dict(node_extras[i])
         nodes.append(node)
     roots = [int(r) for r in np.flatnonzero(par < 0)]
-    if scene_root_quat is not None:
-        q = np.asarray(scene_root_quat, dtype=np.float64)
-        q = q / np.linalg.norm(q)
+    skin: dict[str, Any] = {"name": skin_name, "joints": list(range(n))}
+    if len(roots) == 1 and root_quat is None:
+        skin["skeleton"] = roots[0]
+    if root_quat is not None:
         nodes.append(
             {
                 "name": scene_root_name,
-                "rotation": [float(v) for v in xyzw_from_wxyz(q)],
+                "rotation": [float(v) for v in xyzw_from_wxyz(root_quat)],
                 "children": roots,
             }
         )
         roots = [n]
     buf = _Buffer()
+    # Column-major MAT4: numpy's row-major bytes of the transpose.
+    ibm = np.swapaxes(_inverse_rigid(bind), -1, -2).reshape(n, 16)
+    skin["inverseBindMatrices"] = buf.add(ibm, "MAT4")
+    doc: dict[str, Any] = {
+        "asset": {"version": "2.0", "generator": generator},
+        "scene": 0,
+        "scenes": [{"nodes": roots}],
+        "nodes": nodes,
+        "skins": [skin],
+    }
+    if capsules:
+        doc["meshes"] = [_add_capsules(buf, capsules, bind, n)]
+        doc["materials"] = [
+            {
+                "name": "capsules",
+                "pbrMetallicRoughness": {
+                    "baseColorFactor": list(CAPSULE_BASE_COLOR),
+                    "metallicFactor": 0.0,
+                    "roughnessFactor": 0.8,
+                },
+            }
+        ]
+        nodes.append({"name": "body", "mesh": 0, "skin": 0})
+        roots.append(len(nodes) - 1)
     samplers, targets = [], []
     for ch in channels:
         values = ch.values
@@ -205,23 +377,16 @@ def write_glb(
         targets.append(
             {"sampler": len(samplers) - 1, "target": {"node": ch.node, "path": ch.path}}
         )
-    doc: dict[str, Any] = {
-        "asset": {"version": "2.0", "generator": generator},
-        "scene": 0,
-        "scenes": [{"nodes": roots}],
-        "nodes": nodes,
-    }
     if channels:
-        doc["buffers"] = [{"byteLength": len(buf.data)}]
-        doc["bufferViews"] = buf.views
-        doc["accessors"] = buf.accessors
         doc["animations"] = [
             {"name": animation_name, "samplers": samplers, "channels": targets}
         ]
+    doc["buffers"] = [{"byteLength": len(buf.data)}]
+    doc["bufferViews"] = buf.views
+    doc["accessors"] = buf.accessors
     js = json.dumps(doc, separators=(",", ":")).encode("utf-8")
     js += b" " * (-len(js) % 4)
     chunks = struct.pack("<II", len(js), _CHUNK_JSON) + js
-    if channels:
-        chunks += struct.pack("<II", len(buf.data), _CHUNK_BIN) + bytes(buf.data)
+    chunks += struct.pack("<II", len(buf.data), _CHUNK_BIN) + bytes(buf.data)
     header = GLB_MAGIC + struct.pack("<II", GLB_VERSION, 12 + len(chunks))
     Path(path).write_bytes(header + chunks)

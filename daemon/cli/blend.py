@@ -32,7 +32,10 @@ from retargetd.daemon.errors import UsageError
 def add_parser(subparsers: Any) -> None:
     """Register ``blend``."""
     from retargetd.daemon.cli.args import add_solve_arguments
-    from retargetd.daemon.cli.post_io import add_pipeline_argument
+    from retargetd.daemon.cli.post_io import (
+        add_glb_mesh_argument,
+        add_pipeline_argument,
+    )
 
     parser = subparsers.add_parser(
         "blend",
@@ -56,6 +59,7 @@ def add_parser(subparsers: Any) -> None:
     add_pipeline_argument(parser)
     parser.add_argument("--bvh-order", metavar="ORDER", help="BVH: channel order")
     parser.add_argument("--out", required=True, metavar="OUT.glb|OUT.bvh|OUT.npz")
+    add_glb_mesh_argument(parser)
     parser.set_defaults(run=run)
 
 
@@ -77,6 +81,8 @@ def run(args: argparse.Namespace) -> int:
         CLIP_SUFFIXES,
         check_bvh_order,
         clip_of,
+        glb_mesh_of,
+        humanoid_names,
         pose_steps_deg,
         solve_other_take,
         solved_take,
@@ -86,6 +92,7 @@ def run(args: argparse.Namespace) -> int:
     from retargetd.daemon.post.interp import blend
 
     suffix = suffix_of(args.out, CLIP_SUFFIXES)
+    glb_mesh = glb_mesh_of(args, suffix)
     if args.bvh_order is not None:
         if suffix != "bvh":
             raise UsageError(
@@ -109,7 +116,10 @@ def run(args: argparse.Namespace) -> int:
         )
     except ValueError as exc:
         raise UsageError(f"--at/--frames: {exc}") from None
-    write_clip(args.out, out_clip, cal, bvh_order=args.bvh_order)
+    write_clip(
+        args.out, out_clip, cal, bvh_order=args.bvh_order,
+        humanoid=humanoid_names(rig), glb_mesh=glb_mesh,
+    )  # fmt: skip
     steps = pose_steps_deg(out_clip.parent_from_bone_quat)
     fade = steps[max(at_a - 1, 0) : at_a + args.frames]
     own = max(

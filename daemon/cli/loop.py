@@ -30,7 +30,10 @@ from retargetd.daemon.errors import UsageError
 def add_parser(subparsers: Any) -> None:
     """Register ``loop``."""
     from retargetd.daemon.cli.args import add_solve_arguments
-    from retargetd.daemon.cli.post_io import add_pipeline_argument
+    from retargetd.daemon.cli.post_io import (
+        add_glb_mesh_argument,
+        add_pipeline_argument,
+    )
 
     parser = subparsers.add_parser(
         "loop",
@@ -54,6 +57,7 @@ def add_parser(subparsers: Any) -> None:
     add_pipeline_argument(parser)
     parser.add_argument("--bvh-order", metavar="ORDER", help="BVH: channel order")
     parser.add_argument("--out", required=True, metavar="OUT.glb|OUT.bvh|OUT.npz")
+    add_glb_mesh_argument(parser)
     parser.set_defaults(run=run)
 
 
@@ -66,6 +70,8 @@ def run(args: argparse.Namespace) -> int:
         CLIP_SUFFIXES,
         check_bvh_order,
         clip_of,
+        glb_mesh_of,
+        humanoid_names,
         pose_steps_deg,
         solved_take,
         suffix_of,
@@ -74,6 +80,7 @@ def run(args: argparse.Namespace) -> int:
     from retargetd.daemon.post.interp import Clip, find_loop, loop, pose_distance
 
     suffix = suffix_of(args.out, CLIP_SUFFIXES)
+    glb_mesh = glb_mesh_of(args, suffix)
     if args.bvh_order is not None:
         if suffix != "bvh":
             raise UsageError(
@@ -82,7 +89,7 @@ def run(args: argparse.Namespace) -> int:
         check_bvh_order("--bvh-order", args.bvh_order)
     if args.frames < 1:
         raise UsageError(f"--frames: expected >= 1; got {args.frames}")
-    _, take, cal, res = solved_take(args)
+    rig, take, cal, res = solved_take(args)
     full = clip_of(res, cal, take.rate_hz, args.take)
     sel = parse_frames(args.range, full.n_frames, option="--range")
     clip = Clip(
@@ -104,7 +111,10 @@ def run(args: argparse.Namespace) -> int:
         looped, travel = loop(clip, args.frames)
     except ValueError as exc:
         raise UsageError(f"--frames: {exc}") from None
-    write_clip(args.out, looped, cal, bvh_order=args.bvh_order, travel_m=travel)
+    write_clip(
+        args.out, looped, cal, bvh_order=args.bvh_order, travel_m=travel,
+        humanoid=humanoid_names(rig), glb_mesh=glb_mesh,
+    )  # fmt: skip
     q = looped.parent_from_bone_quat
     seam = float(np.degrees(pose_distance(q[-1], q[0])))
     own = pose_steps_deg(clip.parent_from_bone_quat)

@@ -33,6 +33,36 @@ def add_pipeline_argument(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def add_glb_mesh_argument(parser: argparse.ArgumentParser) -> None:
+    """``--glb-mesh none|capsules`` (glTF output: the skin alone, or a capsule per
+    bone on it; :mod:`retargetd.replay.gltf_mesh`)."""
+    parser.add_argument(
+        "--glb-mesh",
+        choices=("none", "capsules"),
+        help="glTF: 'none' writes the skeleton as a skin alone (importers build an "
+        "armature from it); 'capsules' adds a capsule per bone bound to it, so the "
+        "take shows as a figure (default none)",
+    )
+
+
+def glb_mesh_of(args: argparse.Namespace, suffix: str) -> str:
+    """``--glb-mesh``'s value (``"none"`` when not given).
+
+    Raises:
+        UsageError: given for an output other than ``.glb``.
+    """
+    mesh = getattr(args, "glb_mesh", None)
+    if mesh is not None and suffix != "glb":
+        raise UsageError(f"--glb-mesh applies to .glb output; --out is {args.out!r}")
+    return mesh or "none"
+
+
+def humanoid_names(rig: Any) -> list[str]:
+    """(B,) each rig bone's standard humanoid name, ``""`` when unmapped (the NPZ's
+    ``bone_humanoid``; glTF node names)."""
+    return [b.humanoid or "" for b in rig.bones]
+
+
 def _read_toml(path: str | Path) -> dict[str, Any]:
     from retargetd.daemon.files import FileFormatError, loads_toml, read_text
 
@@ -295,6 +325,8 @@ def write_clip(
     *,
     bvh_order: str | None = None,
     travel_m: Any = None,
+    humanoid: Any = None,
+    glb_mesh: str = "none",
 ) -> None:
     """Write a clip as ``.glb`` (every frame), ``.bvh`` or ``.npz``.
 
@@ -310,6 +342,9 @@ def write_clip(
         calibration: the calibrated skeleton.
         bvh_order: BVH channel order (default ZXY).
         travel_m: optional (3,) float64 metres, stored in the NPZ.
+        humanoid: (B,) humanoid name per bone or ``""`` (:func:`humanoid_names`):
+            glTF node names.
+        glb_mesh: glTF: ``"none"`` or ``"capsules"`` (``--glb-mesh``).
 
     Raises:
         UsageError: a bad suffix, or a calibration that cannot be exported.
@@ -325,7 +360,7 @@ def write_clip(
     suffix = suffix_of(path, CLIP_SUFFIXES)
     try:
         if suffix == "glb":
-            write_clip_glb(path, clip, calibration)
+            write_clip_glb(path, clip, calibration, humanoid=humanoid, mesh=glb_mesh)
         elif suffix == "bvh":
             write_clip_bvh(
                 path, calibration, clip.parent_from_bone_quat, clip.root_pos,

@@ -9,9 +9,11 @@ kept keys (slerp for rotations, a straight line for the root: glTF's LINEAR) sta
 within the tolerance of every frame, and the kept keys are refitted by least squares
 when that still holds (:mod:`retargetd.daemon.post.reduce`). The frame rate stays.
 
-Written as glTF 2.0 binary: the calibrated skeleton as nodes, one animation, rotation
-channels and the root's translation, LINEAR. Prints the keys kept per channel and the
-worst error.
+Written as glTF 2.0 binary: the calibrated skeleton as a skin (joint nodes named by
+the humanoid map where the rig has one, inverse bind matrices at the calibration
+pose; ``--glb-mesh capsules`` adds a capsule per bone), one animation on the joints
+holding only the kept keys, rotation channels and the root's translation, LINEAR.
+Prints the keys kept per channel and the worst error.
 """
 
 from __future__ import annotations
@@ -26,7 +28,10 @@ from retargetd.daemon.errors import UsageError
 def add_parser(subparsers: Any) -> None:
     """Register ``reduce``."""
     from retargetd.daemon.cli.args import add_solve_arguments
-    from retargetd.daemon.cli.post_io import add_pipeline_argument
+    from retargetd.daemon.cli.post_io import (
+        add_glb_mesh_argument,
+        add_pipeline_argument,
+    )
     from retargetd.daemon.post.reduce import (
         DEFAULT_TOLERANCE_DEG,
         DEFAULT_TOLERANCE_MM,
@@ -55,6 +60,7 @@ def add_parser(subparsers: Any) -> None:
     )
     add_pipeline_argument(parser)
     parser.add_argument("--out", required=True, metavar="OUT.glb")
+    add_glb_mesh_argument(parser)
     from retargetd.daemon.cli.args import add_output_arguments
 
     add_output_arguments(parser, json=False)
@@ -64,12 +70,18 @@ def add_parser(subparsers: Any) -> None:
 def run(args: argparse.Namespace) -> int:
     """Run ``reduce``."""
     from retargetd.daemon.body.calibration import CalibrationError
-    from retargetd.daemon.cli.post_io import clip_of, solved_take, suffix_of
+    from retargetd.daemon.cli.post_io import (
+        clip_of,
+        glb_mesh_of,
+        humanoid_names,
+        solved_take,
+        suffix_of,
+    )
     from retargetd.daemon.post.export_gltf import write_reduced_glb
     from retargetd.daemon.post.reduce import describe, reduce_clip
     from retargetd.daemon.progress import Progress
 
-    suffix_of(args.out, ("glb",))
+    glb_mesh = glb_mesh_of(args, suffix_of(args.out, ("glb",)))
     for option, value in (
         ("--tolerance-deg", args.tolerance_deg),
         ("--tolerance-mm", args.tolerance_mm),
@@ -87,7 +99,9 @@ def run(args: argparse.Namespace) -> int:
         bar.update()
         bar.set_description("reduce: write")
         try:
-            write_reduced_glb(args.out, reduced, cal)
+            write_reduced_glb(
+                args.out, reduced, cal, humanoid=humanoid_names(rig), mesh=glb_mesh
+            )
         except CalibrationError as exc:
             raise UsageError(str(exc)) from None
         bar.update()

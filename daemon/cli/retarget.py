@@ -23,8 +23,10 @@ target joints at equal arc length, each bone aimed along the curve, the twist sh
 equally (other chains spread equally). See ``retargetd.daemon.target.bvh_retarget``,
 ``retargetd.daemon.post.pivot`` and ``retargetd.daemon.post.hermite``.
 
-``.glb``: the target's joints as glTF nodes (``--units``: the BVH length unit,
-default cm, for glTF's metres), every frame as a LINEAR key.
+``.glb``: the target's joints as a glTF skin (named as in the target BVH; inverse
+bind matrices at its rest pose; ``--units``: the BVH length unit, default cm, for
+glTF's metres), every frame as a LINEAR key on the joints; ``--glb-mesh capsules``
+adds a capsule per joint-to-child segment.
 """
 
 from __future__ import annotations
@@ -53,6 +55,9 @@ def add_parser(subparsers: Any) -> None:
         "--target", required=True, metavar="TARGET.bvh", help="the skeleton to drive"
     )
     parser.add_argument("--out", required=True, metavar="OUT.bvh|OUT.glb")
+    from retargetd.daemon.cli.post_io import add_glb_mesh_argument
+
+    add_glb_mesh_argument(parser)
     parser.add_argument(
         "--map", metavar="FILE.toml", help='[joints] "source joint" = "target joint"'
     )
@@ -109,7 +114,7 @@ def _load_map(path: str) -> dict[str, str]:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``retarget``."""
-    from retargetd.daemon.cli.post_io import suffix_of
+    from retargetd.daemon.cli.post_io import glb_mesh_of, suffix_of
     from retargetd.daemon.target.bvh_retarget import (
         SpineCurve,
         retarget_bvh,
@@ -119,6 +124,7 @@ def run(args: argparse.Namespace) -> int:
     from retargetd.replay.bvh import read_bvh_hierarchy, write_bvh
 
     suffix = suffix_of(args.out, ("bvh", "glb"))
+    glb_mesh = glb_mesh_of(args, suffix)
     name_map = _load_map(args.map) if args.map is not None else None
     if args.root_scale is not None and not args.root_scale > 0.0:
         raise UsageError(f"--root-scale: expected > 0; got {args.root_scale}")
@@ -154,7 +160,7 @@ def run(args: argparse.Namespace) -> int:
     if suffix == "bvh":
         write_bvh(args.out, result.skeleton, result.frames, result.frame_time_s)
     else:
-        write_retarget_glb(args.out, result, M_PER_UNIT[args.units])
+        write_retarget_glb(args.out, result, M_PER_UNIT[args.units], mesh=glb_mesh)
     w = sys.stdout.write
     mapped = [
         f"{target.joint_names[j]}<-{source.joint_names[s]}"

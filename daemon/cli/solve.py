@@ -44,8 +44,13 @@ intrinsic, ``ZXY`` = R_Z R_X R_Y about the moving axes; lower case extrinsic, ab
 the fixed parent axes in that order; default ZXY), radians unless ``--degrees``,
 unwrapped over time. See ``retargetd.daemon.target.euler_csv``.
 
-``.glb``: glTF 2.0 binary, every frame as a key (bones as nodes, rotations LINEAR,
-i.e. slerp, root translation LINEAR). See ``retargetd.daemon.post.export_gltf``.
+``.glb``: glTF 2.0 binary, every frame as a key: the calibrated skeleton as a skin
+(one joint per bone, named by the rig's humanoid map where it has one, else the rig's
+name, kept in each node's ``extras``; inverse bind matrices at the calibration pose),
+one animation on the joints (rotations LINEAR, i.e. slerp, root translation LINEAR);
+importers build an armature from the skin. ``--glb-mesh capsules`` adds a capsule per
+bone bound to it, so the take shows as a figure. See
+``retargetd.daemon.post.export_gltf``.
 
 ``.mcap``: Foxglove channels alone (``/foxglove/scene`` skeleton and markers,
 ``/foxglove/tf`` bone frames, ``/foxglove/health``), Foxglove's published schemas
@@ -87,7 +92,10 @@ def add_parser(subparsers: Any) -> None:
         add_output_arguments,
         add_solve_arguments,
     )
-    from retargetd.daemon.cli.post_io import add_pipeline_argument
+    from retargetd.daemon.cli.post_io import (
+        add_glb_mesh_argument,
+        add_pipeline_argument,
+    )
 
     parser = subparsers.add_parser(
         "solve",
@@ -103,6 +111,7 @@ def add_parser(subparsers: Any) -> None:
     )
     add_output_arguments(parser, json=True)
     add_pipeline_argument(parser)
+    add_glb_mesh_argument(parser)
     parser.add_argument(
         "--fill-gaps",
         type=int,
@@ -243,7 +252,7 @@ def run(args: argparse.Namespace) -> int:
             take.rate_hz, order=args.euler_order or "ZXY", degrees=args.degrees,
         )  # fmt: skip
     elif out_format == "glb":
-        _write_glb(args.out, cal, res, take.rate_hz)
+        _write_glb(args, rig, cal, res, take.rate_hz)
     else:
         arrays = dict(
             joint_names=np.asarray(res.joint_names, dtype=str),
@@ -348,10 +357,11 @@ def run(args: argparse.Namespace) -> int:
 def _out_format(args: argparse.Namespace) -> str:
     """``"npz"``, ``"bvh"``, ``"csv"``, ``"glb"`` or ``"mcap"`` from the ``--out``
     suffix; checks the format's options."""
-    from retargetd.daemon.cli.post_io import check_bvh_order, suffix_of
+    from retargetd.daemon.cli.post_io import check_bvh_order, glb_mesh_of, suffix_of
     from retargetd.daemon.rotations import euler_from_quat
 
     suffix = suffix_of(args.out, ("npz", "bvh", "csv", "glb", "mcap"))
+    glb_mesh_of(args, suffix)  # --glb-mesh is for .glb alone
     for option, value in (
         ("--bvh-order", args.bvh_order),
         ("--bvh-root-order", args.bvh_root_order),
@@ -375,12 +385,18 @@ def _out_format(args: argparse.Namespace) -> str:
     return suffix
 
 
-def _write_glb(path: str, cal: Any, res: Any, rate_hz: float) -> None:
+def _write_glb(
+    args: argparse.Namespace, rig: Any, cal: Any, res: Any, rate_hz: float
+) -> None:
     from retargetd.daemon.body.calibration import CalibrationError
+    from retargetd.daemon.cli.post_io import glb_mesh_of, humanoid_names
     from retargetd.daemon.post.export_gltf import clip_from_solve, write_clip_glb
 
     try:
-        write_clip_glb(path, clip_from_solve(res, cal, rate_hz), cal)
+        write_clip_glb(
+            args.out, clip_from_solve(res, cal, rate_hz), cal,
+            humanoid=humanoid_names(rig), mesh=glb_mesh_of(args, "glb"),
+        )  # fmt: skip
     except CalibrationError as exc:
         raise UsageError(str(exc)) from None
 

@@ -1,12 +1,14 @@
 """A solved take as glTF 2.0 binary: every frame, or the keys of a reduction.
 
-Nodes are the calibrated skeleton's bones (as :mod:`retargetd.daemon.target.bvh`: the
-calibration pose is the rest pose, bone lengths fixed), under a scene root node that
+The calibrated skeleton is a glTF **skin** (:mod:`retargetd.replay.gltf`): one joint
+node per bone (as :mod:`retargetd.daemon.target.bvh`: the calibration pose is the rest
+pose and the bind pose, bone lengths fixed), under a scene root node ``world`` that
 turns our +Z-up world into glTF's +Y up (:data:`GLTF_FROM_WORLD_QUAT`, the same axes
 as the BVH export: world +Z -> +Y, world -Y -> +Z):
 
     rest translation_j = conj(rest_world_from_bone_p) (o_j - o_p)     metres
     rest rotation_j    = rest_parent_from_bone_j   (root: rest_world_from_root)
+    inverse bind_j     = (gltf_from_world ⊗ rest_world_from_bone_j, o_j)^-1
     rotation_j(t)      = solve.parent_from_bone_j(t)
     translation_root(t) = root_pos(t)   (world, metres)
 
@@ -14,16 +16,29 @@ as the BVH export: world +Z -> +Y, world -Y -> +Z):
 (``rest_parent_from_bone ⊗ solve.rest_from_bone``), which is what a glTF node
 rotation is: ``parent_from_node``.
 
+Names: a bone the rig maps onto the standard humanoid is named by it (``Hips``,
+``LeftUpperArm``; the NPZ's ``bone_humanoid``), any other by the rig's name; every
+joint node's ``extras`` keeps ``{"rig_bone": NAME}`` (and ``"humanoid"`` when mapped).
+
+Mesh (``mesh="capsules"``, CLI ``--glb-mesh capsules``): one capsule per bone
+(:func:`retargetd.replay.gltf_mesh.bone_capsule`: radius 0.15 of the length, at
+least 1 cm) along the bone's +Y from its origin to ``bone_length``, every vertex
+weighted 1 to its bone. Without it (the default) the file holds the skin alone,
+which is enough for an armature (Blender 3.4 builds one from the skin's joints).
+
 Blender's importer (default options) turns the file back into our world, metres:
-each bone becomes an empty at the bone's origin, its axes ``world_from_bone ⊗
-gltf_from_world`` (the importer re-labels every node's own axes Y-up to Z-up as
-well); ``tests/daemon/post/test_gltf_blender.py`` checks this.
+the ``world`` node becomes the armature object and each bone a bone of it, posed at
+``world_from_bone(t)`` relative to its rest ``rest_world_from_bone`` (the importer's
+bone-direction heuristic changes each bone's rest axes by a constant rotation, which
+cancels in that relative pose); ``tests/daemon/post/test_gltf_blender.py`` checks this.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -34,6 +49,7 @@ from retargetd.daemon.post.interp import Clip
 from retargetd.daemon.post.reduce import KeyChannel, ReducedClip
 from retargetd.protocols.frames import F64Array
 from retargetd.replay.gltf import GltfChannel, write_glb
+from retargetd.replay.gltf_mesh import Capsule, bone_capsule, check_mesh
 
 #: glTF (+Y up) from our world (+Z up): -90° about x, (w, x, y, z).
 GLTF_FROM_WORLD_QUAT = np.array([math.sqrt(0.5), -math.sqrt(0.5), 0.0, 0.0])
@@ -77,22 +93,74 @@ def _skeleton(calibration: Calibration) -> tuple[F64Array, F64Array]:
     return trans, quat
 
 
+def node_names(
+    bone_names: Sequence[str], humanoid: Sequence[str] | None
+) -> tuple[list[str], list[dict[str, Any]]]:
+    """Each bone's node name and ``extras`` (module docstring).
+
+    Args:
+        bone_names: (B,) the rig's bone names.
+        humanoid: (B,) each bone's standard humanoid name, ``""`` when unmapped (the
+            NPZ's ``bone_humanoid``); None: the rig's names throughout.
+
+    Returns:
+        ``(names, extras)``. When a humanoid name would repeat another node's name
+        (an unmapped bone called like a mapped one), every node keeps its rig name.
+
+    Raises:
+        ValueError: ``humanoid`` of another length.
+    """
+    extras: list[dict[str, Any]] = [{"rig_bone": str(b)} for b in bone_names]
+    if humanoid is None:
+        return [str(b) for b in bone_names], extras
+    if len(humanoid) != len(bone_names):
+        raise ValueError(
+            f"need {len(bone_names)} humanoid names (one per bone); got {len(humanoid)}"
+        )
+    names = [str(h) if h else str(b) for b, h in zip(bone_names, humanoid, strict=True)]
+    for e, h in zip(extras, humanoid, strict=True):
+        if h:
+            e["humanoid"] = str(h)
+    if len(set(names)) != len(names):
+        names = [str(b) for b in bone_names]
+    return names, extras
+
+
+def bone_capsules(calibration: Calibration) -> list[Capsule]:
+    """One capsule per bone, along its +Y from its origin to its length (metres, the
+    bone's frame; :func:`~retargetd.replay.gltf_mesh.bone_capsule`)."""
+    lengths = np.asarray(calibration.bone_lengths, dtype=np.float64)
+    return [
+        bone_capsule(b, np.array([0.0, length, 0.0]))
+        for b, length in enumerate(lengths)
+    ]
+
+
 def write_reduced_glb(
-    path: str | Path, reduced: ReducedClip, calibration: Calibration
+    path: str | Path,
+    reduced: ReducedClip,
+    calibration: Calibration,
+    *,
+    humanoid: Sequence[str] | None = None,
+    mesh: str = "none",
 ) -> None:
     """Write a reduced take (:func:`retargetd.daemon.post.reduce.reduce_clip` of a
-    :func:`clip_from_solve` clip): one channel per bone and the root's translation.
+    :func:`clip_from_solve` clip): one channel per bone and the root's translation,
+    on the skin (module docstring).
 
     Args:
         path: destination ``.glb``.
         reduced: the keys.
         calibration: the skeleton.
+        humanoid: (B,) each bone's humanoid name or ``""`` (:func:`node_names`).
+        mesh: ``"none"`` (the skin alone) or ``"capsules"``.
 
     Raises:
         CalibrationError: no bone rest origins in the calibration.
-        ValueError: the keys do not fit the skeleton.
+        ValueError: the keys do not fit the skeleton; an unknown mesh.
     """
-    names = calibration.bone_names
+    check_mesh(mesh)
+    names, extras = node_names(calibration.bone_names, humanoid)
     if len(reduced.rotations) != len(names):
         raise ValueError(
             f"reduced take has {len(reduced.rotations)} rotation channels, the "
@@ -126,19 +194,31 @@ def write_reduced_glb(
         rest_rotation_quat=quat,
         channels=channels,
         scene_root_quat=GLTF_FROM_WORLD_QUAT,
+        node_extras=extras,
+        capsules=bone_capsules(calibration) if mesh == "capsules" else (),
     )
 
 
-def write_clip_glb(path: str | Path, clip: Clip, calibration: Calibration) -> None:
-    """Write every frame of a clip (no reduction).
+def write_clip_glb(
+    path: str | Path,
+    clip: Clip,
+    calibration: Calibration,
+    *,
+    humanoid: Sequence[str] | None = None,
+    mesh: str = "none",
+) -> None:
+    """Write every frame of a clip (no reduction), on the skin (module docstring).
 
     Args:
         path: destination ``.glb``.
         clip: from :func:`clip_from_solve` (finite).
         calibration: the skeleton.
+        humanoid: (B,) each bone's humanoid name or ``""`` (:func:`node_names`).
+        mesh: ``"none"`` (the skin alone) or ``"capsules"``.
 
     Raises:
         CalibrationError: no bone rest origins in the calibration.
+        ValueError: an unknown mesh.
     """
     frames = np.arange(clip.n_frames)
 
@@ -152,4 +232,4 @@ def write_clip_glb(path: str | Path, clip: Clip, calibration: Calibration) -> No
         n_frames=clip.n_frames,
         rate_hz=clip.rate_hz,
     )
-    write_reduced_glb(path, reduced, calibration)
+    write_reduced_glb(path, reduced, calibration, humanoid=humanoid, mesh=mesh)

@@ -69,6 +69,7 @@ from retargetd.replay.bvh import (
     split_bvh_motion,
 )
 from retargetd.replay.gltf import GltfChannel, write_glb
+from retargetd.replay.gltf_mesh import Capsule, bone_capsule, check_mesh
 
 _IDENTITY = np.array([1.0, 0.0, 0.0, 0.0])
 #: Rotation order given to target joints that have no rotation channels.
@@ -509,19 +510,29 @@ def retarget_bvh(
 
 
 def write_retarget_glb(
-    path: str | Path, result: BvhRetarget, m_per_unit: float
+    path: str | Path, result: BvhRetarget, m_per_unit: float, *, mesh: str = "none"
 ) -> None:
-    """Write a retargeted take as glTF 2.0 binary (every frame).
+    """Write a retargeted take as glTF 2.0 binary (every frame), as a skin.
 
-    BVH's +Y-up axes are glTF's, so no scene rotation: nodes are the target's joints
-    at their OFFSETs (times ``m_per_unit``), identity rest rotations, LINEAR rotation
-    channels ``R'_j`` and the root's translation.
+    BVH's +Y-up axes are glTF's, so no scene rotation: joint nodes are the target's
+    joints (named as in the target BVH) at their OFFSETs (times ``m_per_unit``),
+    identity rest rotations (BVH's rest pose, also the skin's bind pose), LINEAR
+    rotation channels ``R'_j`` and the root's translation.
+
+    ``mesh="capsules"``: a capsule from each joint to each child's OFFSET and End Site
+    (:func:`retargetd.replay.gltf_mesh.bone_capsule`), weighted 1 to the joint;
+    segments under 1 mm (coincident joints) get none.
 
     Args:
         path: the ``.glb`` file.
         result: from :func:`retarget_bvh`.
         m_per_unit: metres per file unit (0.01 for centimetres).
+        mesh: ``"none"`` (the skin alone) or ``"capsules"``.
+
+    Raises:
+        ValueError: an unknown mesh.
     """
+    check_mesh(mesh)
     sk = result.skeleton
     n = len(sk.joint_names)
     times = np.asarray(np.arange(len(result.frames)) * result.frame_time_s, np.float64)
@@ -550,4 +561,27 @@ def write_retarget_glb(
         rest_translation=rest_t,
         rest_rotation_quat=np.tile(_IDENTITY, (n, 1)),
         channels=channels,
+        capsules=_segment_capsules(sk.parents, rest_t, m_per_unit * sk.end_sites)
+        if mesh == "capsules"
+        else (),
     )
+
+
+#: Shorter joint-to-child segments get no capsule (coincident joints), metres.
+_MIN_SEGMENT_M = 1e-3
+
+
+def _segment_capsules(
+    parents: tuple[int, ...], offsets_m: F64Array, end_sites_m: F64Array
+) -> list[Capsule]:
+    """A capsule per joint-to-child segment and per End Site, in the joint's frame
+    (identity rest rotations: a child's OFFSET is its origin in the joint's frame)."""
+    capsules = []
+    for j in range(len(parents)):
+        ends = [offsets_m[c] for c in range(len(parents)) if parents[c] == j]
+        if np.isfinite(end_sites_m[j]).all():
+            ends.append(end_sites_m[j])
+        capsules += [
+            bone_capsule(j, e) for e in ends if np.linalg.norm(e) >= _MIN_SEGMENT_M
+        ]
+    return capsules

@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pygltflib
 import pytest
+from gltf_tools import issue_summary, validate_glb
 from scipy.spatial.transform import Rotation, Slerp
 
 from retargetd.daemon.cli.main import main
@@ -50,6 +51,7 @@ def _check_reduced_glb(
 ) -> int:  # fmt: skip
     """Play every channel of the file at every frame; return the keys kept."""
     gltf = pygltflib.GLTF2().load(str(path))
+    assert gltf.skins[0].joints == list(range(len(names)))  # a skin of every bone
     anim = gltf.animations[0]
     t = np.arange(len(quat)) / rate_hz
     kept = 0
@@ -58,7 +60,8 @@ def _check_reduced_glb(
         sampler = anim.samplers[ch.sampler]
         assert sampler.interpolation == "LINEAR"
         times = _accessor(gltf, sampler.input, 1)[:, 0]
-        node = gltf.nodes[ch.target.node].name
+        # Nodes are named by the humanoid map; extras keep the rig's bone name.
+        node = gltf.nodes[ch.target.node].extras["rig_bone"]
         kept += len(times)
         tt = np.clip(t, times[0], times[-1])  # float32 key times
         if ch.target.path == "rotation":
@@ -226,3 +229,47 @@ def test_reduce_with_a_pipeline_reduces_the_processed_take(
         d = 2 * np.arccos(np.clip(np.abs(np.sum(a * b, axis=-1)), 0.0, 1.0))
         assert np.degrees(d).max() > 1.0
     _check_reduced_glb(glb, names, q, root, 100.0, 0.5, 1.0)
+
+
+def test_every_glb_command_writes_the_skin_and_capsules(
+    walk: tuple[Path, Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``solve``, ``reduce``, ``blend`` and ``loop`` write the same skinned file:
+    joints named by the humanoid map, ``--glb-mesh capsules`` a capsule per bone
+    bound to them, no validator error or warning; ``--glb-mesh`` elsewhere is a
+    usage error."""
+    take, cal, npz = walk
+    rig = ["--rig", "plug-in-gait", "--calibration", str(cal)]
+    commands = {
+        "solve": ["solve", str(take), *rig],
+        "reduce": ["reduce", str(take), *rig],
+        "blend": ["blend", str(take), str(take), *rig, "--at", "150:100",
+                  "--frames", "10"],
+        "loop": ["loop", str(take), *rig, "--range", "200:", "--frames", "10"],
+    }  # fmt: skip
+    with np.load(npz) as z:
+        want = [str(h) or str(n) for n, h in zip(z["bone_names"], z["bone_humanoid"],
+                                                  strict=True)]  # fmt: skip
+    assert want[0] == "Hips"
+    for name, argv in commands.items():
+        for mesh in ("none", "capsules"):
+            out = tmp_path / f"{name}_{mesh}.glb"
+            assert main([*argv, "--glb-mesh", mesh, "--out", str(out)]) == 0, name
+            capsys.readouterr()
+            report = validate_glb(out)
+            issues = report["issues"]
+            assert issues["numErrors"] == 0, (name, issue_summary(report))
+            assert issues["numWarnings"] == 0, (name, issue_summary(report))
+            gltf = pygltflib.GLTF2().load(str(out))
+            assert [n.name for n in gltf.nodes[: len(want)]] == want, name
+            assert gltf.skins[0].joints == list(range(len(want)))
+            assert len(gltf.meshes) == (mesh == "capsules"), name
+            if mesh == "capsules":
+                pos = gltf.meshes[0].primitives[0].attributes.POSITION
+                assert gltf.accessors[pos].count == 34 * len(want)
+    assert main([*commands["solve"], "--glb-mesh", "capsules",
+                 "--out", str(tmp_path / "x.npz")]) == 2  # fmt: skip
+    assert "--glb-mesh applies to .glb output" in capsys.readouterr().err
+    assert main([*commands["loop"], "--glb-mesh", "capsules",
+                 "--out", str(tmp_path / "x.bvh")]) == 2  # fmt: skip
+    assert "--glb-mesh applies to .glb output" in capsys.readouterr().err

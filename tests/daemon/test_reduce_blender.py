@@ -1,36 +1,37 @@
 """Interop: Blender imports the ``.glb`` that ``retargetd reduce`` writes (sparse keys,
-each channel its own key times) and poses every bone where the solve has it.
+each channel its own key times) as an armature whose action holds only the kept keys,
+and poses every bone where the solve has it.
 
 Blender (Debian package ``blender``) runs headless and imports the file with its
-default options (``bpy.ops.import_scene.gltf``); the importer undoes our Y-up ``world``
-node, so Blender's world is ours and each empty's axes are ``world_from_bone ⊗
-gltf_from_world`` (see ``tests/daemon/post/test_gltf_blender.py``). Compared on the
-Plug-in Gait walk at frames on and between keys: each bone's world axes against the
+default options (``bpy.ops.import_scene.gltf``); the skin becomes one armature, a
+bone per joint named as the nodes (the rig's humanoid names). The importer undoes our
+Y-up ``world`` node, so Blender's world is ours; each bone's world pose times its
+world rest inverse is ``world_from_bone(t) ⊗ rest_world_from_bone^-1`` whatever rest
+axes the importer chose (see ``tests/daemon/post/test_gltf_blender.py``). Compared on
+the Plug-in Gait walk at frames on and between keys: that rotation against the
 unreduced solve, within the tolerance summed down the bone's chain (each local
 rotation is within the tolerance, and errors compose along the chain) plus 0.05° for
 Blender's own interpolation between quaternion keys and float32 storage; and against
 the file's keys played back independently (pygltflib, scipy's Slerp, forward
 kinematics down the nodes) within 0.05°, which catches keys landing at wrong times.
+Every curve of the action holds as many keys as the file's channel.
 """
 
 from __future__ import annotations
 
 import json
 import math
-import os
-import shutil
 import subprocess
 from pathlib import Path
 
 import numpy as np
 import pygltflib
 import pytest
+from gltf_tools import require_blender
 from scipy.spatial.transform import Rotation, Slerp
 
 from retargetd.daemon.cli.main import main
-from retargetd.daemon.post.export_gltf import GLTF_FROM_WORLD_QUAT
 
-IN_CI = os.environ.get("CI", "").lower() in ("1", "true", "yes")
 STATIC = "btkdata/PiG_Calibration-FlatFoot-Full.c3d"
 WALK = "btkdata/PiG_Motion-FlatFoot-Full.c3d"
 TOL_DEG = 0.5
@@ -43,27 +44,34 @@ glb, out, times = sys.argv[sys.argv.index("--") + 1:]
 bpy.ops.import_scene.gltf(filepath=glb)
 scene = bpy.context.scene
 fps = scene.render.fps / scene.render.fps_base
-first = min(
-    kp.co[0]
-    for o in scene.objects if o.animation_data and o.animation_data.action
-    for fc in o.animation_data.action.fcurves for kp in fc.keyframe_points
-)
-doc = {"version": bpy.app.version_string, "frames": {}}
+(arma,) = [o for o in scene.objects if o.type == "ARMATURE"]
+action = arma.animation_data.action
+first = min(kp.co[0] for fc in action.fcurves for kp in fc.keyframe_points)
+rows = lambda m: [list(r) for r in m]
+doc = {
+    "version": bpy.app.version_string, "frames": {},
+    "rest": {b.name: rows(arma.matrix_world @ b.matrix_local) for b in arma.data.bones},
+    "keys": {f"{fc.data_path}[{fc.array_index}]": len(fc.keyframe_points)
+             for fc in action.fcurves},
+}
 for t in [float(x) for x in times.split(",")]:
     f = first + t * fps
     scene.frame_set(int(f), subframe=f - int(f))
     doc["frames"][repr(t)] = {
-        o.name: [list(row) for row in o.matrix_world] for o in scene.objects
+        pb.name: rows(arma.matrix_world @ pb.matrix) for pb in arma.pose.bones
     }
 with open(out, "w") as fh:
     json.dump(doc, fh)
 """
 
 
-def _played_world(glb: Path, names: list[str], times: list[float]) -> np.ndarray:
-    """(len(times), B, 4) x y z w: each node's world rotation from the file's keys
-    (slerp between keys, nodes composed down the hierarchy, the world node left
-    out)."""
+def _played_world(
+    glb: Path, names: list[str], times: list[float]
+) -> tuple[np.ndarray, np.ndarray, dict[str, int]]:
+    """The file's keys played back: (len(times), B, 4) x y z w each node's world
+    rotation (slerp between keys, nodes composed down the hierarchy, the world node
+    left out), (B, 4) the same at rest (the nodes' own rotations), and the key count
+    of each node's rotation channel."""
     gltf = pygltflib.GLTF2().load(str(glb))
     blob = gltf.binary_blob()
 
@@ -76,6 +84,7 @@ def _played_world(glb: Path, names: list[str], times: list[float]) -> np.ndarray
 
     t = np.asarray(times)
     local: dict[int, Rotation] = {}
+    n_keys: dict[str, int] = {}
     for ch in gltf.animations[0].channels:
         if ch.target.path != "rotation":
             continue
@@ -83,33 +92,27 @@ def _played_world(glb: Path, names: list[str], times: list[float]) -> np.ndarray
         key_t = accessor(sampler.input, 1)[:, 0]
         keys = Rotation.from_quat(accessor(sampler.output, 4))
         local[ch.target.node] = Slerp(key_t, keys)(np.clip(t, key_t[0], key_t[-1]))
+        n_keys[gltf.nodes[ch.target.node].name] = len(key_t)
     parent = {c: i for i, node in enumerate(gltf.nodes) for c in node.children or []}
     node_of = {node.name: i for i, node in enumerate(gltf.nodes)}
 
-    def world(i: int) -> Rotation:
+    def world(i: int, rot: dict[int, Rotation]) -> Rotation:
         p = parent.get(i)
-        if p is None or p not in local:  # under the world node
-            return local[i]
-        return world(p) * local[i]
+        if p is None or p not in rot:  # under the world node
+            return rot[i]
+        return world(p, rot) * rot[i]
 
-    return np.stack([world(node_of[n]).as_quat() for n in names], axis=1)
-
-
-def _blender() -> str:
-    exe = shutil.which("blender")
-    if exe is not None:
-        return exe
-    reason = "blender not found on PATH (Debian: apt-get install blender)"
-    if IN_CI:
-        pytest.fail(f"{reason} (CI=true: nothing may skip)")
-    pytest.skip(reason)
+    rest = {i: Rotation.from_quat(gltf.nodes[i].rotation) for i in local}
+    played = np.stack([world(node_of[n], local).as_quat() for n in names], axis=1)
+    rest_q = np.stack([world(node_of[n], rest).as_quat() for n in names])
+    return played, rest_q, n_keys
 
 
 @pytest.mark.timeout(300)
 def test_blender_imports_the_reduced_glb(
     datasets: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    exe = _blender()
+    exe = require_blender()
     cal = tmp_path / "cal.json"
     assert main(["calibrate", str(datasets / STATIC), "--rig", "plug-in-gait",
                  "--out", str(cal)]) == 0  # fmt: skip
@@ -120,7 +123,11 @@ def test_blender_imports_the_reduced_glb(
                  "--out", str(glb)]) == 0  # fmt: skip
     capsys.readouterr()
     with np.load(npz) as z:
-        names = [str(n) for n in z["bone_names"]]
+        # Node (and Blender bone) names: the humanoid name where the rig has one.
+        names = [
+            str(h) or str(n)
+            for n, h in zip(z["bone_names"], z["bone_humanoid"], strict=True)
+        ]
         parents = z["bone_parents"]
         wfb = z["world_from_bone_quat"]
         rate = float(z["rate_hz"])
@@ -141,22 +148,30 @@ def test_blender_imports_the_reduced_glb(
     depth = np.zeros(len(names), dtype=int)
     for b, p in enumerate(parents):
         depth[b] = 0 if p < 0 else depth[p] + 1
-    to_gltf = Rotation.from_quat(GLTF_FROM_WORLD_QUAT, scalar_first=True)
-    played = _played_world(glb, names, times)
+    played, rest_q, n_keys = _played_world(glb, names, times)
+    assert len(doc["keys"]) == 4 * len(names) + 3
+    for name in names:  # every curve of a bone: the file's kept keys, no more
+        for i in range(4):
+            curve = f'pose.bones["{name}"].rotation_quaternion[{i}]'
+            assert doc["keys"][curve] == n_keys[name], (curve, n_keys[name])
+    assert sum(n_keys.values()) < len(names) * n / 2  # the reduction kept few keys
     worst = worst_keys = 0.0
     for k, (f, t) in enumerate(zip(frames, times, strict=True)):
-        objects = doc["frames"][repr(t)]
+        bones = doc["frames"][repr(t)]
         for b, name in enumerate(names):
-            got = Rotation.from_matrix(np.array(objects[name])[:3, :3])
-            want = Rotation.from_quat(wfb[f, b], scalar_first=True) * to_gltf
+            rest = np.array(doc["rest"][name])[:3, :3]
+            got = Rotation.from_matrix(np.array(bones[name])[:3, :3] @ rest.T)
+            rest_b = Rotation.from_quat(rest_q[b]).inv()
+            want = Rotation.from_quat(wfb[f, b], scalar_first=True) * rest_b
             ang = math.degrees((got * want.inv()).magnitude())
             worst = max(worst, ang)
             assert ang <= TOL_DEG * (depth[b] + 1) + 0.05, (name, f, ang)
-            keyed = Rotation.from_quat(played[k, b]) * to_gltf
+            keyed = Rotation.from_quat(played[k, b]) * rest_b
             ang_keys = math.degrees((got * keyed.inv()).magnitude())
             worst_keys = max(worst_keys, ang_keys)
             assert ang_keys < 0.05, (name, f, ang_keys)
     print(
-        f"\nBlender {doc['version']}: worst bone axes {worst:.3f} deg against the "
+        f"\nBlender {doc['version']}: {sum(n_keys.values())} rotation keys of "
+        f"{len(names) * n}; worst bone axes {worst:.3f} deg against the "
         f"solve, {worst_keys:.4f} deg against the keys played back"
     )

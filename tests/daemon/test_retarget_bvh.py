@@ -7,11 +7,14 @@ humanoid maps. Both files are posed with an independent forward kinematics (scip
 
 from __future__ import annotations
 
+import json
+import subprocess
 from pathlib import Path
 
 import numpy as np
 import pygltflib
 import pytest
+from gltf_tools import issue_summary, require_blender, validate_glb
 from scipy.spatial.transform import Rotation
 
 from retargetd.daemon.cli.main import main
@@ -228,10 +231,19 @@ def test_retarget_onto_mixamo_names_by_the_builtin_maps(
     n_mapped = sum(not n.startswith("x_") for n in names)
     assert n_mapped >= 15
     assert _check_same_directions(src, out, rename) >= 15
-    # The same take as glTF: node rotations are the BVH's local rotations.
+    # The same take as glTF: node rotations are the BVH's local rotations, on a
+    # skin of the target's joints (named as in the target) with a capsule per
+    # joint-to-child segment; no validator error or warning.
     assert main(["retarget", str(source_bvh), "--target", str(tgt_path),
-                 "--out", str(out_path)]) == 0  # fmt: skip
+                 "--glb-mesh", "capsules", "--out", str(out_path)]) == 0  # fmt: skip
+    report = validate_glb(out_path)
+    assert report["issues"]["numErrors"] == 0, issue_summary(report)
+    assert report["issues"]["numWarnings"] == 0, issue_summary(report)
     gltf = pygltflib.GLTF2().load(str(out_path))
+    assert [n.name for n in gltf.nodes] == [*names, "body"]
+    assert gltf.skins[0].joints == list(range(len(names)))
+    assert gltf.skins[0].skeleton == 0  # the root joint: no scene root node
+    assert len(gltf.meshes) == 1 and gltf.nodes[-1].skin == 0
     assert out.frames is not None
     angles, _ = split_bvh_motion(out, out.frames)
     blob = gltf.binary_blob()
@@ -530,3 +542,83 @@ def test_spread_hermite_puts_a_longer_spine_on_the_curve(
     for key in (("Neck", "Head"), ("Head", "end")):
         cos = np.clip(np.sum(d_src[key] * d_out[key], axis=-1), -1.0, 1.0)
         assert np.degrees(np.arccos(cos)).max() < 1e-3, key
+
+
+BLENDER_SCRIPT = r"""
+import json, sys
+import bpy
+
+glb, out, times = sys.argv[sys.argv.index("--") + 1:]
+bpy.ops.import_scene.gltf(filepath=glb)  # every option at its default
+scene = bpy.context.scene
+fps = scene.render.fps / scene.render.fps_base
+(arma,) = [o for o in scene.objects if o.type == "ARMATURE"]
+action = arma.animation_data.action
+first = min(kp.co[0] for fc in action.fcurves for kp in fc.keyframe_points)
+doc = {"bones": [b.name for b in arma.data.bones],
+       "keys": [len(fc.keyframe_points) for fc in action.fcurves], "heads": {}}
+for t in [float(x) for x in times.split(",")]:
+    f = first + t * fps
+    scene.frame_set(int(f), subframe=f - int(f))
+    doc["heads"][repr(t)] = {
+        pb.name: list(arma.matrix_world @ pb.head) for pb in arma.pose.bones
+    }
+with open(out, "w") as fh:
+    json.dump(doc, fh)
+"""
+
+
+@pytest.mark.timeout(300)
+def test_blender_imports_the_retargeted_glb_as_an_armature(
+    source_bvh: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``retarget --out .glb``: Blender (headless, importer defaults) builds an
+    armature of the target's joints whose action keys every frame, and puts each
+    bone's head where the retargeted BVH's forward kinematics puts the joint
+    (centimetres to metres; BVH's +Y up is glTF's, which Blender turns to +Z up:
+    ``(x, y, z) -> (x, -z, y)``), within 0.1 mm."""
+    exe = require_blender()
+    src = read_bvh_hierarchy(source_bvh, read_motion=True)
+    tgt_path, glb, bvh = tmp_path / "t.bvh", tmp_path / "o.glb", tmp_path / "o.bvh"
+    _posed_target(src, tgt_path)
+    for out_path in (glb, bvh):
+        assert main(["retarget", str(source_bvh), "--target", str(tgt_path),
+                     "--out", str(out_path)]) == 0  # fmt: skip
+    capsys.readouterr()
+    out = read_bvh_hierarchy(bvh, read_motion=True)
+    assert out.frames is not None
+    n_frames, names = len(out.frames), list(out.joint_names)
+    glob = _fk(out)
+    _, positions = split_bvh_motion(out, out.frames)
+    pos = np.zeros((n_frames, len(names), 3))
+    for j, p in enumerate(out.parents):
+        # The root's channels move it from its OFFSET; children hang at theirs.
+        pos[:, j] = (
+            positions[:, 0] + out.offsets[0]
+            if p < 0
+            else pos[:, p] + glob[p].apply(np.array(out.offsets[j]))
+        )
+    frames = [0, n_frames // 2, n_frames - 1]
+    times = [f * out.frame_time_s for f in frames]
+    script, dump = tmp_path / "dump.py", tmp_path / "blender.json"
+    script.write_text(BLENDER_SCRIPT)
+    cmd = [exe, "-b", "--factory-startup", "--python-exit-code", "1",
+           "--python", str(script), "--", str(glb), str(dump),
+           ",".join(repr(t) for t in times)]  # fmt: skip
+    run = subprocess.run(cmd, capture_output=True, text=True, timeout=240, check=False)
+    assert run.returncode == 0 and dump.is_file(), run.stderr[-2000:]
+    doc = json.loads(dump.read_text())
+    assert doc["bones"] == names
+    assert doc["keys"] == [n_frames] * (4 * len(names) + 3)
+    worst = 0.0
+    for f, t in zip(frames, times, strict=True):
+        for j, name in enumerate(names):
+            x, y, z = 0.01 * pos[f, j]
+            err = 1e3 * np.linalg.norm(
+                np.array(doc["heads"][repr(t)][name]) - [x, -z, y]
+            )
+            worst = max(worst, err)
+            assert err < 0.1, (name, f, err)
+    print(
+        f"\nBlender: {len(names)} bones, {n_frames} keys a curve; worst {worst:.4f} mm"
+    )

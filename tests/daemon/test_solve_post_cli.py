@@ -141,7 +141,12 @@ def test_glb_holds_every_frame(
     with np.load(plain) as npz:
         q = npz["parent_from_bone_quat"]
         names = [str(n) for n in npz["bone_names"]]
-    node_of = {n.name: i for i, n in enumerate(gltf.nodes)}
+        humanoid = [str(h) for h in npz["bone_humanoid"]]
+    # Each bone's node is named by its humanoid name (the rig's where it has none);
+    # the node's extras keep the rig's name.
+    node_names = [h or n for n, h in zip(names, humanoid, strict=True)]
+    assert [n.name for n in gltf.nodes[: len(names)]] == node_names
+    node_of = {n.extras["rig_bone"]: i for i, n in enumerate(gltf.nodes) if n.extras}
     anim = gltf.animations[0]
     checked = 0
     for ch in anim.channels:
@@ -154,7 +159,7 @@ def test_glb_holds_every_frame(
         start = view.byteOffset + (acc.byteOffset or 0)
         vals = np.frombuffer(blob, np.float32, acc.count * 4, start).reshape(-1, 4)
         assert acc.count == len(q)
-        b = names.index(gltf.nodes[ch.target.node].name)
+        b = node_names.index(gltf.nodes[ch.target.node].name)
         assert node_of[names[b]] == ch.target.node
         wxyz = vals[:, [3, 0, 1, 2]].astype(np.float64)
         err = rot.quat_angle(rot.quat_mul(rot.quat_conj(q[:, b]), wxyz))
