@@ -120,6 +120,7 @@ def run(args: argparse.Namespace) -> int:
         noise_mm=args.noise_mm, seed=1,
     )  # fmt: skip
     daemon = make_daemon(config)
+    daemon.hint_uncalibrated = False  # the demo calibrates on the opening hold itself
     stop = threading.Event()
     install_signal_handlers(stop)
     open_or_fail(daemon, " (another daemon?)")

@@ -224,6 +224,9 @@ class Daemon(
         # CURVE handshake failures and descriptor exhaustion on the bound ZeroMQ
         # sockets (their monitors: watch.py)
         self._watch = SocketWatch(self._poller, self._log, self.out)
+        #: open() tells how to calibrate a performer without a calibration (False:
+        #: the caller calibrates itself and says so, as ``retargetd demo`` does)
+        self.hint_uncalibrated = True
         token = config.show_control.token
         self._show_token_prefix = f"/{token}" if token else ""
         self._guards: list[CurveGuard] = []
@@ -384,7 +387,7 @@ class Daemon(
         gc.collect()
         gc.freeze()
         for perf in self.performers:
-            if perf.calibration is not None:
+            if perf.calibration is not None or not self.hint_uncalibrated:
                 continue
             if not perf.name:
                 self.out(

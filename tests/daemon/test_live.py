@@ -1176,6 +1176,9 @@ def test_demo_subprocess_streams_poses(
     vmc_rx.pump()
     assert rc == 0, err
     assert any(line.startswith("calibrated on") for line in proc.lines)
+    # the demo calibrates itself: no hint to run 'ctl calibrate' (issue 31 item 5)
+    assert not any("no calibration loaded" in line for line in proc.lines)
+    assert any(line.startswith("calibrating over the next") for line in proc.lines)
     summary = proc.lines[-1]
     assert summary.startswith("demo: sent"), proc.lines
     assert len(sub.poses) > 50, len(sub.poses)
