@@ -80,12 +80,20 @@ def add_parser(subparsers: Any) -> None:
     parser.add_argument(
         "takes", nargs="+", metavar="TAKES", help="files, folders, globs"
     )
-    parser.add_argument("--out", required=True, metavar="DIR")
+    parser.add_argument(
+        "--out", required=True, metavar="DIR",
+        help="folder for the outputs (one set per take) and the summary",
+    )  # fmt: skip
     parser.add_argument("--manifest", metavar="FILE.toml", help="per-take rules")
     parser.add_argument("--rig", metavar="RIG", help="default rig for every take")
     group = parser.add_mutually_exclusive_group()
-    group.add_argument("--calibration", metavar="FILE.json")
-    group.add_argument("--calibrate-frames", metavar="a:b")
+    group.add_argument(
+        "--calibration", metavar="FILE.json", help="one calibration for every take"
+    )
+    group.add_argument(
+        "--calibrate-frames", metavar="a:b",
+        help="calibrate each take on these rows of itself (0-based, half-open)",
+    )  # fmt: skip
     group.add_argument("--static", metavar="TAKE", help="static trial to calibrate on")
     parser.add_argument(
         "--scheduler",

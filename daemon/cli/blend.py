@@ -58,7 +58,10 @@ def add_parser(subparsers: Any) -> None:
     )
     add_pipeline_argument(parser)
     parser.add_argument("--bvh-order", metavar="ORDER", help="BVH: channel order")
-    parser.add_argument("--out", required=True, metavar="OUT.glb|OUT.bvh|OUT.npz")
+    parser.add_argument(
+        "--out", required=True, metavar="OUT.glb|OUT.bvh|OUT.npz",
+        help="the blended take; the suffix picks the format",
+    )  # fmt: skip
     add_glb_mesh_argument(parser)
     parser.set_defaults(run=run)
 

@@ -49,7 +49,9 @@ def add_parser(subparsers: Any) -> None:
     )
     parser.add_argument("static", metavar="STATIC", help="take holding the base pose")
     add_rig_arguments(parser)
-    parser.add_argument("--out", required=True, metavar="FILE.json")
+    parser.add_argument(
+        "--out", required=True, metavar="FILE.json", help="the calibration to write"
+    )
     parser.add_argument(
         "--frames", metavar="a:b", help="base-pose rows (0-based, half-open)"
     )

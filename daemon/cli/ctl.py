@@ -66,7 +66,10 @@ def add_parser(subparsers: Any) -> None:
         default=ControlConfig().endpoint,
         help="the daemon's control endpoint (default %(default)s)",
     )
-    parser.add_argument("--timeout-ms", type=int, default=2000)
+    parser.add_argument(
+        "--timeout-ms", type=int, default=2000,
+        help="how long to wait for the daemon's answer (default %(default)s ms)",
+    )  # fmt: skip
     parser.add_argument(
         "--key",
         metavar="FILE.key_secret",
@@ -81,7 +84,10 @@ def add_parser(subparsers: Any) -> None:
     status = sub.add_parser("status", help="fps, drops, latency, occluded markers")
     status.add_argument("--json", action="store_true", help="the full JSON document")
     cal = sub.add_parser("calibrate", help="calibrate live on the next N frames")
-    cal.add_argument("--count", type=int, default=None, metavar="N")
+    cal.add_argument(
+        "--count", type=int, default=None, metavar="N",
+        help="base-pose frames to average (default: the performer's calibrate_frames)",
+    )  # fmt: skip
     cal.add_argument(
         "--performer",
         metavar="NAME",
@@ -116,7 +122,11 @@ def add_parser(subparsers: Any) -> None:
     rec = sub.add_parser("record", help="record inside the daemon: start FILE | stop")
     rec_sub = rec.add_subparsers(dest="record_action", metavar="ACTION", required=True)
     start = rec_sub.add_parser("start", help="start recording to a new MCAP file")
-    start.add_argument("file", metavar="FILE.mcap")
+    start.add_argument(
+        "file",
+        metavar="FILE.mcap",
+        help="the recording, in the daemon's [record] folder",
+    )
     start.add_argument(
         "--no-poses", action="store_true", help="record markers and events only"
     )
@@ -132,7 +142,10 @@ def add_parser(subparsers: Any) -> None:
         help="capture a face training pose live (neutral first, then expressions)",
     )
     face.add_argument("name", metavar="NAME", help="neutral or an expression name")
-    face.add_argument("--count", type=int, default=None, metavar="N")
+    face.add_argument(
+        "--count", type=int, default=None, metavar="N",
+        help="frames of the expression to average (default: the face config's)",
+    )  # fmt: skip
     face.add_argument("--performer", metavar="NAME", help="whose face")
     parser.set_defaults(run=run)
 

@@ -31,7 +31,10 @@ def add_parser(subparsers: Any) -> None:
     parser.add_argument("--seconds", type=float, default=30.0, help="run time (s)")
     parser.add_argument("--rate", type=float, default=120.0, help="marker rate (Hz)")
     parser.add_argument("--config", metavar="FILE.toml", help="daemon config (TOML)")
-    parser.add_argument("--noise-mm", type=float, default=0.5)
+    parser.add_argument(
+        "--noise-mm", type=float, default=0.5,
+        help="marker noise of the synthetic performer, mm (default %(default)s)",
+    )  # fmt: skip
     add_console_argument(parser, "127.0.0.1:8080")
     parser.set_defaults(run=run)
 

@@ -42,7 +42,9 @@ def add_parser(subparsers: Any) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("take", metavar="TAKE", help="a .c3d or .trc take")
-    parser.add_argument("--out", required=True, metavar="FILE.c3d")
+    parser.add_argument(
+        "--out", required=True, metavar="FILE.c3d", help="the C3D file to write"
+    )
     add_force_argument(parser)
     parser.add_argument(
         "--frames", metavar="a:b", help="rows to write (0-based, half-open; all)"

@@ -37,12 +37,17 @@ def add_parser(subparsers: Any) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("take", metavar="TAKE", help="a .c3d, .trc or .mcap take")
-    parser.add_argument("--face", required=True, metavar="FACECONFIG")
+    parser.add_argument(
+        "--face", required=True, metavar="FACECONFIG",
+        help="face config: a shipped preset name or a TOML file (FACES.md)",
+    )  # fmt: skip
     parser.add_argument(
         "--poses", required=True, metavar="neutral=a:b,NAME=c:d,...",
         help="frame range of each pose (0-based, half-open rows)",
     )  # fmt: skip
-    parser.add_argument("--out", required=True, metavar="face.npz")
+    parser.add_argument(
+        "--out", required=True, metavar="face.npz", help="the training set to write"
+    )
     add_force_argument(parser)
     add_take_arguments(parser)
     from retargetd.daemon.cli.args import add_output_arguments

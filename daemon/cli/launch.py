@@ -23,9 +23,14 @@ def add_console_argument(parser: argparse.ArgumentParser, default: str | None) -
         metavar="[HOST:]PORT",
         default=default,
         help="serve the browser console there (viser; 127.0.0.1 unless a host is "
-        "given, which then needs console.allow_remote)"
+        "given, which then needs --allow-remote)"
         + (f"; default {default}" if default else "; off unless given"),
     )
+    parser.add_argument(
+        "--allow-remote", action="store_true",
+        help="let --console serve off loopback (the page has no login; as view's "
+        "--allow-remote and the config's console.allow_remote)",
+    )  # fmt: skip
     if default:
         parser.add_argument(
             "--no-console", action="store_true", help="run without the console"
@@ -73,6 +78,8 @@ def load_config(args: argparse.Namespace) -> Any:
     if getattr(args, "method", None):
         solve = dataclasses.replace(solve, method=args.method)
     console = config.console
+    if getattr(args, "allow_remote", False):
+        console = dataclasses.replace(console, allow_remote=True)
     if getattr(args, "console", None) and not getattr(args, "no_console", False):
         host, port = parse_console(args.console)
         console = dataclasses.replace(console, enabled=True, host=host, port=port)

@@ -15,6 +15,7 @@ import os
 import sys
 from collections.abc import Sequence
 
+from retargetd.daemon.cli.help import tidy
 from retargetd.daemon.errors import UsageError
 from retargetd.daemon.version import package_version
 from retargetd.replay.take import TakeError
@@ -84,6 +85,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     for name in SUBCOMMAND_MODULES:
         importlib.import_module(name).add_parser(sub)
+    tidy(parser)  # usage, summary and options first; the manual after, plain
     return parser
 
 

@@ -54,7 +54,9 @@ def add_parser(subparsers: Any) -> None:
         help="osc://HOST:PORT, zmq://HOST:PORT (bind a PULL), zmq+sub://HOST:PORT, "
         "qtm://HOST[:PORT] or natnet://HOST[:PORT][?...] (connect to a capture system)",
     )  # fmt: skip
-    parser.add_argument("--out", required=True, metavar="FILE.mcap")
+    parser.add_argument(
+        "--out", required=True, metavar="FILE.mcap", help="the recording to write"
+    )
     add_force_argument(parser)
     parser.add_argument(
         "--form", choices=("compact", "simple"), default="compact",

@@ -59,7 +59,9 @@ def add_parser(subparsers: Any) -> None:
         help=f"largest root position error (default {DEFAULT_TOLERANCE_MM})",
     )
     add_pipeline_argument(parser)
-    parser.add_argument("--out", required=True, metavar="OUT.glb")
+    parser.add_argument(
+        "--out", required=True, metavar="OUT.glb", help="the reduced take (glTF binary)"
+    )
     add_glb_mesh_argument(parser)
     from retargetd.daemon.cli.args import add_output_arguments
 

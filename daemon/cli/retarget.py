@@ -54,7 +54,10 @@ def add_parser(subparsers: Any) -> None:
     parser.add_argument(
         "--target", required=True, metavar="TARGET.bvh", help="the skeleton to drive"
     )
-    parser.add_argument("--out", required=True, metavar="OUT.bvh|OUT.glb")
+    parser.add_argument(
+        "--out", required=True, metavar="OUT.bvh|OUT.glb",
+        help="the retargeted take; the suffix picks the format",
+    )  # fmt: skip
     from retargetd.daemon.cli.post_io import add_glb_mesh_argument
 
     add_glb_mesh_argument(parser)

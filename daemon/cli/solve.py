@@ -107,8 +107,9 @@ def add_parser(subparsers: Any) -> None:
     add_solve_arguments(parser)
     add_frames_argument(parser)
     parser.add_argument(
-        "--out", required=True, metavar="OUT.npz|OUT.bvh|OUT.csv|OUT.glb|OUT.mcap"
-    )
+        "--out", required=True, metavar="OUT.npz|OUT.bvh|OUT.csv|OUT.glb|OUT.mcap",
+        help="the solved take; the suffix picks the format",
+    )  # fmt: skip
     add_output_arguments(parser, json=True)
     add_pipeline_argument(parser)
     add_glb_mesh_argument(parser)

@@ -79,7 +79,10 @@ def add_parser(subparsers: Any) -> None:
     )
     add_solve_arguments(parser)
     add_frames_argument(parser)
-    parser.add_argument("--report", required=True, metavar="DIR")
+    parser.add_argument(
+        "--report", required=True, metavar="DIR",
+        help="folder for report.json, report.txt, model.xml and the snapshots",
+    )  # fmt: skip
     add_output_arguments(parser, json=True)
     add_force_argument(parser)
     parser.add_argument(
