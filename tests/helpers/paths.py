@@ -12,7 +12,10 @@ import pytest
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 TEST_DATA = REPO_ROOT / "tests" / "data"
-SHARED = REPO_ROOT.parent / "shared"
+#: ``../shared`` beside the repository; ``RETARGETD_SHARED`` points the suite at another
+#: folder (an empty one checks that every test needing the shared data skips, saying
+#: why, where it is absent: README "Tests").
+SHARED = Path(os.environ.get("RETARGETD_SHARED") or REPO_ROOT.parent / "shared")
 #: Real takes live beside the project, never inside it (../shared/datasets).
 DATASETS = SHARED / "datasets"
 #: C3D and TRC files in the odd variants labs write (../shared/formats).

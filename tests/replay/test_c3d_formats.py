@@ -24,6 +24,7 @@ from typing import Any
 import ezc3d
 import numpy as np
 import pytest
+from paths import DATASETS, FORMATS, IN_CI, REPO_ROOT, SHARED
 
 from retargetd.daemon.cli.main import main
 from retargetd.protocols import conventions as cv
@@ -33,11 +34,6 @@ from retargetd.replay.c3d_layout import inspect_c3d
 from retargetd.replay.take import TakeError
 from retargetd.replay.takes import load_take
 
-# tests/conftest.py can't be imported by name under --import-mode=importlib: its
-# paths and CI flag are repeated here.
-REPO_ROOT = Path(__file__).resolve().parents[2]
-IN_CI = os.environ.get("CI", "").lower() in ("1", "true", "yes")
-FORMATS = REPO_ROOT.parent / "shared" / "formats"
 #: Peak resident memory allowed to read or reject a file under 1 MB (issue 16).
 MAX_RSS_MB = 300
 #: Hang guard for a child process, s. Not a speed assertion: a regression to the
@@ -240,7 +236,7 @@ def test_zero_rate_needs_take_rate(
 
 
 def test_zero_rate_trc_needs_take_rate(tmp_path: Path) -> None:
-    src = require_file(REPO_ROOT.parent / "shared/datasets/btkdata/MOTEK_T.trc")
+    src = require_file(DATASETS / "btkdata/MOTEK_T.trc")
     lines = src.read_text().splitlines()
     fields = lines[2].split("\t")
     fields[0] = "0"
@@ -253,7 +249,7 @@ def test_zero_rate_trc_needs_take_rate(tmp_path: Path) -> None:
 
 
 def _dataset_c3ds() -> list[str]:
-    root = REPO_ROOT.parent / "shared" / "datasets"
+    root = DATASETS
     if not root.is_dir():
         return ["(datasets folder absent)"]
     return sorted(
@@ -334,7 +330,7 @@ PACKAGE_REFUSES = {
 
 @pytest.mark.parametrize("rel", _both_readable())
 def test_fallback_reads_what_ezc3d_reads(rel: str) -> None:
-    path = require_file(REPO_ROOT.parent / "shared" / rel)
+    path = require_file(SHARED / rel)
     expected = _read_ezc3d(str(path))
     layout = inspect_c3d(path)
     assert layout.ezc3d_problems == ()
