@@ -14,6 +14,16 @@ from typing import Any
 import pytest
 from paths import IN_CI, REPO_ROOT
 
+#: The Plug-in Gait rig's humanoid names, in rig order (the NPZ's ``bone_humanoid``;
+#: all 19 mapped), written out: the oracle the glTF tests check node names against.
+PIG_HUMANOID = (
+    "Hips", "Spine", "Chest", "Neck", "Head",
+    "LeftShoulder", "LeftUpperArm", "LeftLowerArm", "LeftHand",
+    "RightShoulder", "RightUpperArm", "RightLowerArm", "RightHand",
+    "LeftUpperLeg", "LeftLowerLeg", "LeftFoot",
+    "RightUpperLeg", "RightLowerLeg", "RightFoot",
+)  # fmt: skip
+
 VALIDATOR_DIR = REPO_ROOT / "tools" / "gltf-validator"
 VALIDATOR_SCRIPT = VALIDATOR_DIR / "validate.mjs"
 VALIDATOR_PACKAGE = VALIDATOR_DIR / "node_modules" / "gltf-validator" / "package.json"

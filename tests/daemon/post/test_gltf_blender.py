@@ -37,7 +37,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from gltf_tools import require_blender
+from gltf_tools import PIG_HUMANOID, require_blender
 from scipy.spatial.transform import Rotation
 
 from retargetd.daemon.body.rig import load_rig
@@ -52,14 +52,6 @@ from retargetd.replay.gltf_mesh import capsule_mesh
 
 MAX_ANGLE_DEG = 0.1
 MAX_POS_MM = 0.1
-#: The Plug-in Gait rig's humanoid names, in rig order (the NPZ's ``bone_humanoid``).
-PIG_HUMANOID = (
-    "Hips", "Spine", "Chest", "Neck", "Head",
-    "LeftShoulder", "LeftUpperArm", "LeftLowerArm", "LeftHand",
-    "RightShoulder", "RightUpperArm", "RightLowerArm", "RightHand",
-    "LeftUpperLeg", "LeftLowerLeg", "LeftFoot",
-    "RightUpperLeg", "RightLowerLeg", "RightFoot",
-)  # fmt: skip
 
 SCRIPT = r"""
 import json, sys

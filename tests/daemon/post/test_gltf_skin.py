@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from gltf_tools import issue_summary, validate_glb
+from gltf_tools import PIG_HUMANOID, issue_summary, validate_glb
 from pygltflib import GLTF2
 from scipy.spatial.transform import Rotation
 
@@ -35,14 +35,6 @@ from retargetd.daemon.post.reduce import reduce_clip
 from retargetd.daemon.target.bvh import posed_bone_origins
 from retargetd.replay.gltf_mesh import capsule_mesh
 
-#: The Plug-in Gait rig's humanoid names, in rig order (all 19 bones are mapped).
-PIG_HUMANOID = (
-    "Hips", "Spine", "Chest", "Neck", "Head",
-    "LeftShoulder", "LeftUpperArm", "LeftLowerArm", "LeftHand",
-    "RightShoulder", "RightUpperArm", "RightLowerArm", "RightHand",
-    "LeftUpperLeg", "LeftLowerLeg", "LeftFoot",
-    "RightUpperLeg", "RightLowerLeg", "RightFoot",
-)  # fmt: skip
 MAX_VERTEX_MM = 0.01
 
 
