@@ -10,8 +10,10 @@ solved first, exactly as ``retargetd solve`` does (``--method`` too), and shown 
 its markers; without ``--rig`` its markers alone are shown.
 
 ``--report`` (``retargetd validate``'s ``report.json``, or its folder): every frame a
-check flags is marked on the timeline ("Next flagged" steps through them); without
-it, the frames where the solve flagged a bone are marked.
+check flags is marked on the timeline ("Next flagged" steps through them), and at such
+a frame the page names each check with its value (where the report holds one) and
+draws the bones the report names in red; without it, the frames where the solve
+flagged a bone are marked.
 
 Serves ``--console`` (default 127.0.0.1:8080; port 0 picks a free one), prints the
 page's address, and runs until Ctrl-C (SIGINT) or SIGTERM. A host other than loopback
@@ -84,9 +86,7 @@ def add_parser(subparsers: Any) -> None:
     parser.set_defaults(run=run)
 
 
-def _report_frames(text: str) -> list[int]:
-    from retargetd.daemon.console.offline import flagged_frames_from_report
-
+def _read_report(text: str) -> dict[str, Any]:
     p = Path(text)
     if p.is_dir():
         p = p / "report.json"
@@ -96,7 +96,7 @@ def _report_frames(text: str) -> list[int]:
         raise UsageError(f"--report: cannot read {p}: {exc}") from None
     if not isinstance(doc, dict) or not isinstance(doc.get("checks"), dict):
         raise UsageError(f"--report: {p} is not a validate report (no 'checks')")
-    return flagged_frames_from_report(doc)
+    return doc
 
 
 def _sequence(args: argparse.Namespace, flagged: list[int] | None) -> Any:
@@ -165,8 +165,16 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(
             f"--console: {host} is not loopback; pass --allow-remote to serve there"
         )
-    flagged = _report_frames(args.report) if args.report else None
+    from retargetd.daemon.console.offline import (
+        flagged_frames_from_report,
+        with_report,
+    )
+
+    report = _read_report(args.report) if args.report else None
+    flagged = None if report is None else flagged_frames_from_report(report)
     seq = _sequence(args, flagged)
+    if report is not None:  # each flagged frame's checks, values and bones
+        seq = with_report(seq, report)
     viewer = OfflineViewer(seq, host=host, port=port)
     stop = threading.Event()
     previous = signal.signal(signal.SIGTERM, lambda *_: stop.set())

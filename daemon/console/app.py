@@ -6,9 +6,19 @@ copies the latest snapshot out of the slot at :data:`RENDER_HZ` and updates the 
 markers (seen: orange; occluded: grey at their last seen position), the solved
 skeleton (bones blue, flagged bones red), the retargeted humanoid beside it (green),
 the face weights as bars when the face is live, and rolling plots of the health
-figures. Buttons queue :class:`Command` items (calibrate after a countdown, record
-start/stop with a file name, face capture under a pose name, reload); nothing here
+figures against the seconds since the run started (``Snapshot.t_s``). Buttons queue
+:class:`Command` items (calibrate after a countdown, record start/stop with a file
+name, face capture under a pose name when a face is configured, reload); nothing here
 calls into the loop.
+
+At a frame a validation check flags (``Snapshot.check_flags``: the live validator's
+latest result, or ``retargetd view --report``'s report), the status names each check
+with its value and the bones it flags (their validation bits, drawn red).
+
+"Follow performer" (on by default) keeps the performer in every client's view: each
+render moves the camera (position and look-at together, so the operator's orbit and
+zoom stay) by the performer's displacement in the floor plane since the view was
+taken; height is not followed, so a walk's bob does not shake the view.
 
 Offline (:mod:`retargetd.daemon.console.offline`) the same page runs with
 ``commands=None`` (no buttons, no plots) and a timeline added by the player.
@@ -37,6 +47,7 @@ from retargetd.daemon.console.snapshot import (
     bone_endpoints,
     humanoid_positions,
 )
+from retargetd.protocols import pose_stream
 
 logger = logging.getLogger(__name__)
 
@@ -62,6 +73,29 @@ OCCLUDED_RGB = (150, 150, 150)
 #: markers are 9.5-25 mm spheres, Vicon and OptiTrack catalogues).
 BONE_THICKNESS_M = 0.025
 MARKER_SIZE_M = 0.02
+#: Follow: the view moves once the performer is this far (metres, floor plane) from
+#: where the view follows it, so a standing performer's sway does not move it.
+FOLLOW_DEADBAND_M = 0.01
+#: Follow: a page's camera report this long after the console last moved that
+#: camera is the operator's (or the page's first view), not an echo of the move:
+#: the view is followed from there (a pan while the performer stands stays).
+FOLLOW_ECHO_S = 0.5
+#: The validation bone bits each check sets (``pose_stream.BONE_V_*``): the bones a
+#: flagged check names on the page. Live checks (``VALIDATION_CHECKS``) and the
+#: offline report's (``validate.checks``) alike.
+CHECK_BONE_BITS = {
+    "limits": pose_stream.BONE_V_LIMIT,
+    "self_penetration": pose_stream.BONE_V_PENETRATION,
+    "floor_penetration": pose_stream.BONE_V_PENETRATION,
+    "fit": pose_stream.BONE_V_FIT,
+    "fit_max": pose_stream.BONE_V_FIT,
+    "fit_median": pose_stream.BONE_V_FIT,
+    "speed": pose_stream.BONE_V_SPEED,
+    "root_speed": pose_stream.BONE_V_SPEED,
+    "effector_speed": pose_stream.BONE_V_SPEED,
+}
+#: Bones named per flagged check on the page (then "+N").
+MAX_BONES_NAMED = 4
 
 
 class Console:
@@ -75,6 +109,9 @@ class Console:
             ``calibrate`` command (0: at once); pressing again during the countdown
             cancels it.
         title: the page's heading.
+        face_capture: show the "Face pose" field and "Face capture" button (only
+            when a face is configured: ``[face]`` or the performer's ``face``).
+        follow: "Follow performer" at start.
     """
 
     def __init__(
@@ -86,6 +123,8 @@ class Console:
         port: int = 8080,
         calibrate_countdown_s: float = DEFAULT_CALIBRATE_COUNTDOWN_S,
         title: str = "retargetd",
+        face_capture: bool = False,
+        follow: bool = True,
     ) -> None:
         if calibrate_countdown_s < 0:
             raise ValueError(
@@ -96,6 +135,16 @@ class Console:
         self._host, self._port = host, port
         self._countdown_s = calibrate_countdown_s
         self._title = title
+        self._face_capture = face_capture
+        self._follow_initial = follow
+        # client id -> the view's look-at minus the performer's anchor (x, y), taken
+        # when following starts for that client, and the look-at (x, y) it was last
+        # moved to (or taken at) with time.monotonic() of that move
+        self._follow_base: dict[int, np.ndarray] = {}
+        self._follow_look: dict[int, tuple[np.ndarray, float]] = {}
+        self._anchor_source = ""
+        # client id -> time.monotonic() of its latest camera report
+        self._camera_reported: dict[int, float] = {}
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._lock = threading.Lock()
@@ -115,6 +164,10 @@ class Console:
         self.server.scene.set_up_direction("+z")
         self.server.scene.add_grid("/floor", width=8.0, height=8.0, cell_size=0.5)
         self._build_gui()
+        self.server.on_client_connect(self._client_connected)
+        self.server.on_client_disconnect(
+            lambda c: self._camera_reported.pop(c.client_id, None)
+        )
         self._thread = threading.Thread(target=self._run, name="console", daemon=True)
         self._thread.start()
 
@@ -147,6 +200,10 @@ class Console:
         # console stays on the network it is served on.
         gui.configure_theme(control_width="medium", show_share_button=False)
         self._status = gui.add_markdown(f"**{html.escape(self._title)}**: waiting")
+        self.follow = gui.add_checkbox(
+            "Follow performer", self._follow_initial,
+            hint="the camera moves with the performer (orbit and zoom stay)",
+        )  # fmt: skip
         self._buttons: dict[str, Any] = {}
         if self.commands is not None:
             with gui.add_folder("Controls"):
@@ -157,15 +214,17 @@ class Console:
                 b = gui.add_button("Record start")
                 b.on_click(lambda _e: self._press_record())
                 self._buttons["record"] = b
-                # The training set's order: neutral first, then each expression.
-                self._face_name = gui.add_text("Face pose", "neutral")
-                b = gui.add_button("Face capture", hint="average the next frames")
-                b.on_click(
-                    lambda _e: self._put(
-                        CMD_FACE_CAPTURE, self._face_name.value.strip() or "neutral"
+                if self._face_capture:
+                    # The training set's order: neutral first, then each expression.
+                    self._face_name = gui.add_text("Face pose", "neutral")
+                    b = gui.add_button("Face capture", hint="average the next frames")
+                    b.on_click(
+                        lambda _e: self._put(
+                            CMD_FACE_CAPTURE,
+                            self._face_name.value.strip() or "neutral",
+                        )
                     )
-                )
-                self._buttons["face"] = b
+                    self._buttons["face"] = b
                 b = gui.add_button("Reload")
                 b.on_click(lambda _e: self._put(CMD_RELOAD))
                 self._buttons["reload"] = b
@@ -254,6 +313,7 @@ class Console:
                     continue
                 seq = got
                 self._draw(layout, snap)
+                self._follow_performer(snap)
                 self.frames_drawn += 1
                 if self._plots:
                     dt = snap.t_s - last_t
@@ -336,12 +396,66 @@ class Console:
                     self._face_html.content = _face_bars(layout.face_names, s)
             self._status.content = _status_text(
                 self._title, s, live=self.commands is not None
-            )
+            ) + _check_text(layout, s)
             self._recording = s.recording
             button = self._buttons.get("record")
             label = "Record stop" if s.recording else "Record start"
             if button is not None and button.label != label:
                 button.label = label
+
+    # ---- camera follow (render thread) -------------------------------------------
+
+    def _client_connected(self, client: Any) -> None:
+        # A client's camera is known once it reports one (before that, viser's
+        # handle holds placeholders).
+        cid = client.client_id
+
+        def reported(_cam: Any) -> None:
+            self._camera_reported[cid] = time.monotonic()
+
+        client.camera.on_update(reported)
+
+    def _follow_performer(self, s: Snapshot) -> None:
+        """Move each client's camera with the performer (floor plane); see the
+        module docstring."""
+        if not self.follow.value:
+            self._follow_base.clear()  # re-taken from the view when turned on
+            self._follow_look.clear()
+            return
+        anchor, source = performer_anchor(s, self._last_marker_pos)
+        if anchor is None:
+            return
+        if source != self._anchor_source:  # e.g. markers -> solved root: no jump
+            self._follow_base.clear()
+            self._follow_look.clear()
+            self._anchor_source = source
+        clients = self.server.get_clients()
+        for cid in [c for c in self._follow_base if c not in clients]:
+            del self._follow_base[cid]
+            self._follow_look.pop(cid, None)
+        now = time.monotonic()
+        for cid, client in clients.items():
+            reported = self._camera_reported.get(cid)
+            if reported is None:  # no camera from the page yet
+                continue
+            cam = client.camera
+            look = np.asarray(cam.look_at, np.float64)[:2]
+            base = self._follow_base.get(cid)
+            moved_to, moved_at = self._follow_look.get(cid, (look, 0.0))
+            if base is None or (
+                reported > moved_at + FOLLOW_ECHO_S
+                and float(np.hypot(*(look - moved_to))) > 1e-3
+            ):  # the page's own view (its first, or the operator's): from here
+                self._follow_base[cid] = look - anchor
+                self._follow_look[cid] = (look, 0.0)  # not a move of ours
+                continue
+            # Absolute, not incremental: a camera report that crosses a move in
+            # flight is corrected on the next render instead of losing the step.
+            shift = anchor + base - look
+            if float(np.hypot(shift[0], shift[1])) > FOLLOW_DEADBAND_M:
+                pos = np.asarray(cam.position, np.float64)
+                cam.position = pos + np.array([shift[0], shift[1], 0.0])
+                self._follow_look[cid] = (anchor + base, now)
 
     def _segments(
         self, name: str, points: np.ndarray, colors: np.ndarray, handle: Any
@@ -391,6 +505,50 @@ def _status_text(title: str, s: Snapshot, *, live: bool = True) -> str:
         f"  \n{rate}{s.occluded} occluded, "
         f"{int(np.count_nonzero(s.bone_flags))} bones flagged"
     )
+
+
+def performer_anchor(
+    s: Snapshot, last_marker_pos: np.ndarray | None = None
+) -> tuple[np.ndarray | None, str]:
+    """Where the performer stands, (x, y) metres world, and what it was taken from:
+    the solved root, else the mean solved joint centre, else (before a calibration)
+    the mean of the markers at their last seen places (``last_marker_pos``, (M, 3),
+    NaN where never seen: a marker's dropout does not move it), else of the markers
+    seen now; (None, "") when nothing is known."""
+    if np.isfinite(s.root_pos).all():
+        return s.root_pos[:2].copy(), "root"
+    ok = np.isfinite(s.joint_pos).all(axis=1)
+    if ok.any():
+        return s.joint_pos[ok, :2].mean(axis=0), "joints"
+    if last_marker_pos is not None and len(last_marker_pos) == len(s.marker_pos):
+        known = np.isfinite(last_marker_pos).all(axis=1)
+        if known.any():
+            return last_marker_pos[known, :2].mean(axis=0), "markers"
+    seen = s.marker_valid & np.isfinite(s.marker_pos).all(axis=1)
+    if seen.any():
+        return s.marker_pos[seen, :2].mean(axis=0), "markers"
+    return None, ""
+
+
+def _check_text(layout: ConsoleLayout, s: Snapshot) -> str:
+    """One line per check flagging this frame: its name, the bones it flags and
+    its value ("limits: lupleg 12.3 deg beyond limit"); "" when none does."""
+    if not s.check_flags:
+        return ""
+    lines = []
+    for k, name in enumerate(layout.check_names):
+        if not (s.check_flags >> k) & 1:
+            continue
+        bit = CHECK_BONE_BITS.get(name, 0)
+        bones = [layout.bone_names[b] for b in np.flatnonzero(s.bone_flags & bit)]
+        who = ", ".join(bones[:MAX_BONES_NAMED])
+        if len(bones) > MAX_BONES_NAMED:
+            who += f" +{len(bones) - MAX_BONES_NAMED}"
+        v = float(s.check_values[k])
+        unit = layout.check_units[k] if layout.check_units else ""
+        value = f"{v:.3g} {unit}".rstrip() if np.isfinite(v) else "flagged"
+        lines.append(html.escape(f"{name}: {who} {value}".replace("  ", " ")))
+    return "  \n**flagged**: " + "; ".join(lines)
 
 
 def _face_bars(names: tuple[str, ...], s: Snapshot) -> str:

@@ -6,13 +6,18 @@ or a take (anything ``retargetd.replay.takes.load_take`` reads: markers only), a
 optionally overlays a take's markers on a solve. :func:`serve_offline` serves it: a
 frame slider (scrub), Play and Loop checkboxes and a speed choice; flagged frames
 (given, e.g. from a validation report, or every frame where a bone is flagged in the
-solve) are marked on the slider and reachable with "Next flagged".
+solve) are marked on the slider and reachable with "Next flagged". With a report
+(:func:`with_report`), each frame the report flags shows the checks that flag it,
+their values where the report holds them, and the bones it names drawn red
+(:func:`report_checks`).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
+import re
 import threading
 import time
 from collections.abc import Mapping, Sequence
@@ -23,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from retargetd.daemon.body.rig import load_rig, shipped_rigs
-from retargetd.daemon.console.app import Console
+from retargetd.daemon.console.app import CHECK_BONE_BITS, Console
 from retargetd.daemon.console.snapshot import (
     ConsoleLayout,
     SkeletonProgram,
@@ -57,6 +62,8 @@ class ViewSequence:
         root_pos: (T, 3) float64 metres world.
         bone_flags: (T, B) uint8.
         flagged_frames: sorted frame indices (0-based) to mark on the timeline.
+        checks: a validation report's checks frame by frame (:func:`with_report`),
+            in the layout's ``check_names`` order; None: no report.
     """
 
     layout: ConsoleLayout
@@ -68,6 +75,7 @@ class ViewSequence:
     root_pos: F64Array
     bone_flags: np.ndarray
     flagged_frames: tuple[int, ...] = ()
+    checks: ReportChecks | None = None
 
     @property
     def n_frames(self) -> int:
@@ -213,6 +221,106 @@ def flagged_frames_from_report(doc: Mapping[str, Any]) -> list[int]:
     return sorted(frames)
 
 
+#: A report's detail line about one frame ("frame 120: lupleg swing (12.3 deg
+#: beyond)", "first flagged, frame 7: ...", "frame 9: lfemur / rfemur").
+_DETAIL_FRAME = re.compile(r"frame (\d+): (.*)$")
+#: The limits detail's value at that frame.
+_DETAIL_DEG = re.compile(r"\(([-+0-9.eE]+) deg beyond\)")
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class ReportChecks:
+    """A validation report's checks, frame by frame (what ``report.json`` holds).
+
+    Attributes:
+        names: (K,) check names, the report's order (at most 64).
+        units: (K,) their units.
+        flags: (T,) uint64, bit k set where ``names[k]`` flags the frame (its
+            ``flagged_runs``).
+        values: (T, K) float64, the check's value at the frame in its unit where
+            the report holds one (its worst frames, its detail lines); NaN else.
+        bone_bits: (T, B) uint8 ``BONE_V_*`` bits: the bones a check's detail lines
+            name (limits: the joint's bone; self-penetration: both bones), over
+            the whole flagged run holding the named frame.
+    """
+
+    names: tuple[str, ...]
+    units: tuple[str, ...]
+    flags: np.ndarray
+    values: F64Array
+    bone_bits: np.ndarray
+
+
+def report_checks(
+    doc: Mapping[str, Any], bone_names: Sequence[str], n_frames: int
+) -> ReportChecks:
+    """Read ``retargetd validate``'s ``report.json`` frame by frame.
+
+    A report holds, per check, its flagged runs, its five worst frames with their
+    values and detail lines naming a frame (limits: the bone, the swing or twist and
+    the degrees beyond; self-penetration: the two bones). Values elsewhere are not
+    in the report and stay NaN. Frames past ``n_frames`` are ignored.
+
+    Args:
+        doc: the report, parsed.
+        bone_names: (B,) the view's bones (named in the detail lines).
+        n_frames: T.
+    """
+    checks = list(doc.get("checks", {}).items())[:64]
+    n, b = int(n_frames), len(bone_names)
+    index = {name: i for i, name in enumerate(bone_names)}
+    flags = np.zeros(n, np.uint64)
+    values = np.full((n, len(checks)), np.nan)
+    bone_bits = np.zeros((n, b), np.uint8)
+    for k, (name, check) in enumerate(checks):
+        runs = check.get("flagged_runs")
+        if runs is None:  # an older report: its worst frames, when it failed
+            worst = check.get("worst_frames", ()) if check.get("frames_flagged") else ()
+            runs = [[int(f), int(f) + 1] for f in worst]
+        runs = [(max(int(a), 0), min(int(z), n)) for a, z in runs]
+        runs = [(a, z) for a, z in runs if a < z]
+        flagged = np.zeros(n, bool)
+        for a, z in runs:
+            flagged[a:z] = True
+        flags[flagged] |= np.uint64(1 << k)
+        for f, v in zip(
+            check.get("worst_frames", ()), check.get("worst_values", ()), strict=False
+        ):
+            if 0 <= int(f) < n and flagged[int(f)]:
+                values[int(f), k] = float(v)
+        bit = CHECK_BONE_BITS.get(name, 0)
+        for line in check.get("detail", ()):
+            m = _DETAIL_FRAME.search(str(line))
+            if m is None or not (0 <= int(m.group(1)) < n and flagged[int(m.group(1))]):
+                continue  # a transient (not flagged), or past the view
+            f, body = int(m.group(1)), m.group(2)
+            deg = _DETAIL_DEG.search(body)
+            if deg is not None and np.isnan(values[f, k]):
+                values[f, k] = float(deg.group(1))
+            named = [index[w] for w in re.findall(r"[^\s/(),]+", body) if w in index]
+            if bit and named:
+                a, z = next((a, z) for a, z in runs if a <= f < z)
+                bone_bits[a:z, named] |= np.uint8(bit)
+    return ReportChecks(
+        names=tuple(str(name) for name, _ in checks),
+        units=tuple(str(c.get("unit", "")) for _, c in checks),
+        flags=flags, values=values, bone_bits=bone_bits,
+    )  # fmt: skip
+
+
+def with_report(seq: ViewSequence, doc: Mapping[str, Any]) -> ViewSequence:
+    """``seq`` with a validation report: its flagged frames marked, and at each
+    one the checks, values and bones the report gives (:func:`report_checks`)."""
+    checks = report_checks(doc, seq.layout.bone_names, seq.n_frames)
+    layout = dataclasses.replace(
+        seq.layout, check_names=checks.names, check_units=checks.units
+    )
+    return dataclasses.replace(
+        seq, layout=layout, checks=checks,
+        flagged_frames=tuple(flagged_frames_from_report(doc)),
+    )  # fmt: skip
+
+
 def camera_for(seq: ViewSequence) -> tuple[F64Array, F64Array]:
     """(position, look_at) metres world of the page's first view: level with the
     performer's mean position, 4.6 m off along -Y (a 50 degree vertical field of
@@ -309,6 +417,10 @@ class OfflineViewer:
         np.copyto(s.world_from_bone_quat, q.world_from_bone_quat[i])
         np.copyto(s.root_pos, q.root_pos[i])
         np.copyto(s.bone_flags, q.bone_flags[i])
+        if q.checks is not None:  # the report's flagged bones join the solve's
+            np.bitwise_or(s.bone_flags, q.checks.bone_bits[i], out=s.bone_flags)
+            s.check_flags = int(q.checks.flags[i])
+            np.copyto(s.check_values, q.checks.values[i])
         s.occluded = int(np.count_nonzero(~q.marker_valid[i]))
         s.calibrated = bool(q.layout.joint_names)  # a solve: a calibrated skeleton
         while not self.slot.commit() and not self._stop.is_set():

@@ -259,6 +259,10 @@ class ConsoleLayout:
             ``world_from_bone``.
         face_names: (F,) face weight names (empty: no face).
         stage_names: names of the timed pipeline stages (latency plots).
+        check_names: (K,) the validation checks a snapshot's ``check_flags`` bits
+            and ``check_values`` follow (live: ``pose_stream.VALIDATION_CHECKS``;
+            offline: a report's checks); at most 64.
+        check_units: (K,) each check's unit, for the page ("" for none).
     """
 
     marker_names: tuple[str, ...]
@@ -277,12 +281,21 @@ class ConsoleLayout:
     humanoid_rest_quat: F64Array = field(default_factory=lambda: np.zeros((0, 4)))
     face_names: tuple[str, ...] = ()
     stage_names: tuple[str, ...] = ()
+    check_names: tuple[str, ...] = ()
+    check_units: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         if self.skeleton.n_bones != len(self.bone_names):
             raise ValueError(
                 f"skeleton has {self.skeleton.n_bones} bones, "
                 f"bone_names {len(self.bone_names)}"
+            )
+        if len(self.check_names) > 64 or (
+            self.check_units and len(self.check_units) != len(self.check_names)
+        ):
+            raise ValueError(
+                f"check_names: at most 64, one unit each; got "
+                f"{len(self.check_names)} names, {len(self.check_units)} units"
             )
 
 
@@ -293,7 +306,8 @@ class Snapshot:
     Attributes:
         layout_id: which layout these arrays follow (bumped on reload).
         frame: the capture frame number.
-        t_s: seconds, the loop's clock (monotonic) or the take's time.
+        t_s: seconds since the run started: live, since the daemon started (the
+            pose stream's ``t``); offline, since the take's first frame.
         marker_pos: (M, 3) float64 metres world (NaN or stale where occluded).
         marker_valid: (M,) bool, True where seen this frame.
         joint_pos: (J, 3) float64 metres world, solved joint centres.
@@ -314,6 +328,10 @@ class Snapshot:
         latency_p50_ms / latency_p99_ms: (K,) float64 per stage, milliseconds.
         occluded: markers occluded this frame.
         validation_flags: validation flags raised (cumulative).
+        check_flags: bit k set when the layout's ``check_names[k]`` flags this
+            frame (live: the latest validation result; offline: the report).
+        check_values: (K,) float64, each check's value at this frame in its
+            ``check_units`` (NaN: not known).
     """
 
     layout_id: int
@@ -338,6 +356,8 @@ class Snapshot:
     latency_p99_ms: F64Array
     occluded: int
     validation_flags: int
+    check_flags: int
+    check_values: F64Array
 
     @staticmethod
     def for_layout(layout: ConsoleLayout, layout_id: int = 0) -> Snapshot:
@@ -370,6 +390,8 @@ class Snapshot:
             latency_p99_ms=np.full(k, np.nan),
             occluded=0,
             validation_flags=0,
+            check_flags=0,
+            check_values=np.full(len(layout.check_names), np.nan),
         )
 
     def copy_from(self, other: Snapshot) -> None:
@@ -396,6 +418,8 @@ class Snapshot:
         np.copyto(self.latency_p99_ms, other.latency_p99_ms)
         self.occluded = other.occluded
         self.validation_flags = other.validation_flags
+        self.check_flags = other.check_flags
+        np.copyto(self.check_values, other.check_values)
 
 
 class SnapshotSlot:

@@ -14,7 +14,11 @@ The page shows the markers, the solved skeleton with flagged bones in red, the
 retargeted humanoid beside it (the loop copies the target's bone rotations and hips
 position, ``TargetPose``; the console thread poses the joints,
 ``console.snapshot.humanoid_positions``), face weights when the face is on, and the
-health plots.
+health plots. Its ``t`` counts from the daemon's start (the pose stream's ``t``), not
+the machine's uptime. With ``[validate]`` on, the latest validation result goes with
+each snapshot: its frame bits name the checks (``VALIDATION_CHECKS``), its values
+and bone bits (ORed into the drawn bone flags: red) say where and by how much. The
+"Face capture" button is on the page only when the performer has a face configured.
 """
 
 from __future__ import annotations
@@ -42,6 +46,7 @@ from retargetd.daemon.console.snapshot import (
 from retargetd.daemon.live.config import ConsoleConfig
 from retargetd.daemon.live.stats import STAGES, LoopStats
 from retargetd.daemon.target.retarget import performer_left_from_calibration
+from retargetd.protocols import pose_stream
 from retargetd.protocols.frames import MarkerFrame
 
 logger = logging.getLogger(__name__)
@@ -52,6 +57,10 @@ logger = logging.getLogger(__name__)
 HUMANOID_BESIDE_M = 2.0
 #: The health plots' refresh (0.5 s): the stats line's figures, not per frame.
 HEALTH_INTERVAL_NS = 500_000_000
+#: The live validator's checks, as the page names them, and the units of
+#: ``ValidationResult.values`` (``validate.live``).
+CHECK_UNITS = ("mm", "mm", "", "deg beyond limit", "mm", "mm", "m/s", "s")
+_VALIDATION_SHIFT = pose_stream.FRAME_V_CONVENTION.bit_length() - 1  # first check
 
 
 def _health(status: dict[str, Any]) -> dict[str, Any]:
@@ -109,6 +118,8 @@ def _layout(
         bone_lengths=np.asarray(solver.calibration.bone_lengths, dtype=np.float64),
         face_names=face_names,
         stage_names=STAGES,
+        check_names=pose_stream.VALIDATION_CHECKS,
+        check_units=CHECK_UNITS,
         **humanoid,
     )
 
@@ -132,11 +143,23 @@ class ConsoleFeed:
     Args:
         config: the ``[console]`` section (host, port, publish rate).
         out: where the daemon's lines go (the console's URL is printed there).
+        t0_ns: ``time.monotonic_ns()`` when the daemon started: the page's ``t`` and
+            plots count from it.
+        face_capture: a face is configured (the page offers Face capture).
     """
 
-    def __init__(self, config: ConsoleConfig, out: Callable[[str], None]) -> None:
+    def __init__(
+        self,
+        config: ConsoleConfig,
+        out: Callable[[str], None],
+        *,
+        t0_ns: int = 0,
+        face_capture: bool = False,
+    ) -> None:
         self.config = config
         self.out = out
+        self.t0_ns = t0_ns
+        self.face_capture = face_capture
         self.commands = CommandQueue()
         self.slot: SnapshotSlot | None = None
         self.console: Console | None = None
@@ -153,8 +176,9 @@ class ConsoleFeed:
         del rig
         self.slot = SnapshotSlot(empty, publish_hz=self.config.publish_hz)
         self.console = Console(
-            self.slot, self.commands, host=self.config.host, port=self.config.port
-        )
+            self.slot, self.commands, host=self.config.host, port=self.config.port,
+            face_capture=self.face_capture,
+        )  # fmt: skip
         self.console.start()
         return self.console.url
 
@@ -179,12 +203,18 @@ class ConsoleFeed:
         status_fn: Callable[[], dict[str, Any]],
         target: Any = None,
         target_pose: Any = None,
+        validation_bits: int = 0,
+        validation_values: np.ndarray | None = None,
+        validation_bones: np.ndarray | None = None,
     ) -> None:
         """Publish this frame when one is due (``publish_hz``); never waits. The
         health figures (``status_fn``, the status document) are refreshed at most
         every :data:`HEALTH_INTERVAL_NS`: their percentiles are not per-frame work.
         ``target`` (``TargetSkeleton``) and ``target_pose`` (``TargetPose``): the
-        retargeted humanoid, copied as rotations (posed on the console thread)."""
+        retargeted humanoid, copied as rotations (posed on the console thread).
+        ``validation_bits`` (frame bits 8-15), ``validation_values`` ((8,) in
+        ``VALIDATION_CHECKS`` order) and ``validation_bones`` ((B,) uint8 bits 4-7):
+        the live validator's latest result ([validate] on)."""
         slot = self.slot
         if slot is None or not slot.due(now_ns):
             return
@@ -199,13 +229,20 @@ class ConsoleFeed:
         if s.marker_pos.shape != frame.markers_world.shape:
             return  # the layout is being swapped
         s.frame = frame.frame_id
-        s.t_s = now_ns * 1e-9
+        s.t_s = (now_ns - self.t0_ns) * 1e-9
         np.copyto(s.marker_pos, frame.markers_world)
         np.copyto(s.marker_valid, frame.valid)
         np.copyto(s.joint_pos, pose.joint_centres)
         np.copyto(s.world_from_bone_quat, pose.world_from_bone_quat)
         np.copyto(s.root_pos, pose.root_pos)
         np.copyto(s.bone_flags, bone_flags)
+        s.check_flags = (validation_bits & pose_stream.FRAME_VALIDATION_MASK) >> (
+            _VALIDATION_SHIFT
+        )
+        if validation_values is not None:
+            np.copyto(s.check_values, validation_values)
+        if validation_bones is not None and len(validation_bones) == len(bone_flags):
+            np.bitwise_or(s.bone_flags, validation_bones, out=s.bone_flags)
         if target_pose is not None and s.humanoid_quat.shape[0]:
             np.copyto(s.humanoid_quat, target_pose.world_from_bone_quat)
             np.copyto(s.humanoid_hips, target_pose.hips_pos)
@@ -238,9 +275,10 @@ class ConsoleFeed:
         if s.marker_pos.shape != frame.markers_world.shape:
             return
         s.frame = frame.frame_id
-        s.t_s = now_ns * 1e-9
+        s.t_s = (now_ns - self.t0_ns) * 1e-9
         np.copyto(s.marker_pos, frame.markers_world)
         np.copyto(s.marker_valid, frame.valid)
+        s.check_flags = 0
         s.face_on = False
         s.calibrated = False
         self._commit_health(slot, s, self._health, frame, stats)

@@ -247,9 +247,17 @@ class Daemon(
         self._vmc_state = VmcEncoder(())  # the state datagram (no bones needed)
         self._last_frame_ns = 0
         self._prewarm = Prewarm(config.loop.prewarm_ms)
-        # The console shows the first performer (its buttons act for that one).
+        # The console shows the first performer (its buttons act for that one);
+        # its t counts from the daemon's start, as the pose stream's t does.
         self.console = (
-            ConsoleFeed(config.console, self.out) if config.console.enabled else None
+            ConsoleFeed(
+                config.console,
+                self.out,
+                t0_ns=self._t0_ns,
+                face_capture=self.performers[0].face is not None,
+            )
+            if config.console.enabled
+            else None
         )
 
     # ---- lifecycle -------------------------------------------------------------------
@@ -471,6 +479,7 @@ class Daemon(
             old.close()
         self._validation_bits = 0
         self._validation_bones = None
+        self._validation_values.fill(np.nan)
         if not v.enabled or self.calibration is None:
             return
 

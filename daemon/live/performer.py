@@ -238,6 +238,8 @@ class Performer:
         self.match_window: MatchWindow | None = None
         self.match_flags = 0
         self.validation_bones: np.ndarray | None = None
+        # the latest result's values (VALIDATION_CHECKS order), for the console
+        self.validation_values = np.full(len(pose_stream.VALIDATION_CHECKS), np.nan)
         self.validation_enc: pose_stream.ValidationEncoder | None = None
         self.validation_results: list[Any] = []
         # This performer's frames out, unsolved frames and latency rings (the

@@ -494,7 +494,7 @@ class SendMixin(DaemonState):
                 pose, bone_flags,
                 face.weight_names if face is not None else (),
                 pipe.weights if face is not None else None, self.stats, self.status,
-                self.target, tp,
+                self.target, tp, perf.validation_bits, perf.validation_values, vb,
             )  # fmt: skip
         if sent_ns - t_start > self._budget_ns:
             self.stats.overruns += 1
@@ -511,6 +511,7 @@ class SendMixin(DaemonState):
             self._validation_bones = np.zeros(len(bones), dtype=np.uint8)
         np.bitwise_and(bones, pose_stream.BONE_VALIDATION_MASK,
                        out=self._validation_bones)  # fmt: skip
+        np.copyto(self._validation_values, last.values, casting="same_kind")
 
     def _publish_validation(self, results: list[Any], n: int, pipe: Pipeline) -> None:
         """Count the first ``n`` results and publish each as an ``RTDV`` message (the

@@ -149,6 +149,7 @@ class DaemonState:
     _calibrate_limit: OfPerformer[RateLimiter] = OfPerformer()
     _validation_bits: OfPerformer[int] = OfPerformer()
     _validation_bones: OfPerformer[np.ndarray | None] = OfPerformer()
+    _validation_values: OfPerformer[np.ndarray] = OfPerformer()
     _validation_enc: OfPerformer[pose_stream.ValidationEncoder | None] = OfPerformer()
     # reused by LiveValidator.drain_results
     _validation_results: OfPerformer[list[Any]] = OfPerformer()

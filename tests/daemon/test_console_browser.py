@@ -76,7 +76,9 @@ def test_console_in_chromium(driver: Any) -> None:
     take, layout, pairs = _performer_layout()
     slot = SnapshotSlot(layout)
     commands = CommandQueue()
-    console = Console(slot, commands, port=0, calibrate_countdown_s=COUNTDOWN_S)
+    console = Console(
+        slot, commands, port=0, calibrate_countdown_s=COUNTDOWN_S, face_capture=True
+    )
     frame = 40
     # The bone ending at the left knee (the segment pair thigh -> shank): a long one.
     flagged = layout.bone_names.index("l_shank")
@@ -279,3 +281,179 @@ def test_view_timeline_in_chromium(driver: Any, solved: tuple[Path, Path]) -> No
         assert int(viewer.frame.value) > start
     finally:
         viewer.stop()
+
+
+def _page_text(driver: Any) -> str:
+    from selenium.webdriver.common.by import By
+
+    return str(driver.find_element(By.TAG_NAME, "body").text)
+
+
+def _wait_client(server: Any, timeout_s: float = 60.0) -> Any:
+    """The first client once it has reported its camera."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        client = next(iter(server.get_clients().values()), None)
+        if client is not None and client.camera._state.update_timestamp:
+            return client
+        time.sleep(0.1)
+    raise AssertionError("no client reported its camera")
+
+
+def _shot(driver: Any) -> tuple[np.ndarray, np.ndarray, int, int]:
+    """(screenshot (H, W, 3) uint8, canvas offset (2,), canvas width, height)."""
+    import matplotlib.image as mpimg
+    from selenium.webdriver.common.by import By
+
+    for b in driver.find_elements(
+        By.CSS_SELECTOR, "button.mantine-Notification-closeButton"
+    ):
+        b.click()
+    time.sleep(1.0)
+    png = driver.get_screenshot_as_png()
+    img = (mpimg.imread(io.BytesIO(png), format="png")[..., :3] * 255).astype(np.uint8)
+    left, top, w, h = driver.execute_script(
+        "const r = document.querySelector('canvas').getBoundingClientRect();"
+        "return [r.left, r.top, r.width, r.height];"
+    )
+    return img, np.array([left, top]), int(w), int(h)
+
+
+@pytest.mark.timeout(240)
+def test_report_flagged_frame_shows_check_and_red_bone(
+    driver: Any, solved: tuple[Path, Path]
+) -> None:
+    """At a frame a validation report flags, the bone its detail names is red and
+    the page names the check and its value; at an unflagged frame neither."""
+    from retargetd.daemon.console.offline import (
+        OfflineViewer,
+        load_sequence,
+        with_report,
+    )
+
+    take, npz = solved
+    seq = load_sequence(npz, take=take)
+    ends = bone_endpoints(
+        seq.layout.skeleton, seq.joint_pos, seq.world_from_bone_quat, seq.root_pos,
+        seq.layout.bone_lengths,
+    )  # fmt: skip
+    length = np.linalg.norm(ends[:, :, 1] - ends[:, :, 0], axis=-1)  # (T, B)
+    ok = np.isfinite(length[[10, 33]]).all(axis=0) & ~seq.bone_flags[[10, 33]].any(0)
+    bone = int(np.argmax(np.where(ok, length[33], -1.0)))
+    name = seq.layout.bone_names[bone]
+    # The shape of validate's report.json (validate.checks.CheckResult.summary).
+    doc = {"checks": {
+        "limits": {
+            "threshold": 10.0, "unit": "deg beyond limit", "frames_flagged": 6,
+            "worst_frames": [33, 34], "worst_values": [12.3, 11.0],
+            "flagged_runs": [[30, 36]],
+            "detail": [f"frame 33: {name} swing (12.3 deg beyond)"],
+        },
+        "floor_penetration": {
+            "threshold": 20.0, "unit": "mm", "frames_flagged": 0,
+            "worst_frames": [3], "worst_values": [1.0], "flagged_runs": [],
+            "detail": [],
+        },
+    }}  # fmt: skip
+    viewer = OfflineViewer(with_report(seq, doc), port=0)
+    try:
+        viewer.start()
+        viewer.console.follow.value = False  # the first view's camera throughout
+        driver.get(viewer.url)
+        client = _wait_client(viewer.console.server)
+        results = {}
+        for f in (33, 10):
+            viewer.frame.value = f
+            t_end = time.monotonic() + 30
+            while f"frame {f}," not in _page_text(driver):
+                assert time.monotonic() < t_end, _page_text(driver)
+                time.sleep(0.1)
+            time.sleep(1.5)  # drawn
+            img, at, w, h = _shot(driver)
+            mid = ends[f, bone].mean(axis=0)
+            px = _project(client.camera, mid[None], w, h) + at
+            results[f] = (_near(img, px, _red)[0], _near(img, px, _blue)[0])
+            text = _page_text(driver)
+            if f == 33:
+                assert f"limits: {name} 12.3 deg beyond limit" in text, text
+            else:
+                assert "limits:" not in text, text
+        assert results[33][0], f"{name} not red at the flagged frame 33"
+        assert not results[10][0] and results[10][1], f"{name} not blue at frame 10"
+    finally:
+        viewer.stop()
+
+
+@pytest.mark.timeout(240)
+def test_follow_keeps_a_walking_performer_in_view(driver: Any) -> None:
+    """The performer walks 8 m across the view: with "Follow performer" on, its
+    bones stay on the page; unticked through the page, a further walk leaves it."""
+    from selenium.webdriver.common.by import By
+
+    from retargetd.daemon.console.app import Console
+
+    take, layout, _pairs = _performer_layout()
+    layout = ConsoleLayout(
+        marker_names=(), joint_names=layout.joint_names,
+        bone_names=layout.bone_names, bone_parents=layout.bone_parents,
+        skeleton=layout.skeleton, bone_lengths=layout.bone_lengths,
+    )  # fmt: skip
+    slot = SnapshotSlot(layout)
+    console = Console(slot, None, port=0)
+    pose = take.joint_pos_world[40]
+    root = pose[0].copy()
+
+    def publish(dy: float) -> None:
+        s = slot.begin()
+        s.joint_pos[:] = pose + np.array([0.0, dy, 0.0])
+        s.root_pos[:] = root + np.array([0.0, dy, 0.0])
+        assert slot.commit()
+
+    def walk(a: float, b: float, seconds: float = 3.0) -> None:
+        for dy in np.linspace(a, b, int(seconds * 30)):
+            publish(float(dy))
+            time.sleep(1 / 30)
+        time.sleep(2.0)  # the last moves reach the page
+
+    def blue_pixels() -> int:
+        # The middle of the canvas, where the view centres the performer: clear of
+        # the axes gizmo (bottom left, blue Z) and the GUI panel (top right).
+        img, at, w, h = _shot(driver)
+        x, y = int(at[0]), int(at[1])
+        return int(_blue(img[y : y + h, x + w * 15 // 100 : x + w * 65 // 100]).sum())
+
+    try:
+        console.start()
+        cam = console.server.initial_camera
+        cam.position = root + np.array([4.6, 0.0, 0.2])  # across the walk (+Y)
+        cam.look_at = root
+        cam.up = (0.0, 0.0, 1.0)
+        cam.fov = np.deg2rad(50.0)
+        publish(0.0)
+        driver.get(console.url)
+        client = _wait_client(console.server)
+        time.sleep(2.0)
+        at_start = blue_pixels()
+        assert at_start > 300, f"performer not drawn at the start ({at_start} px)"
+        walk(0.0, 8.0)
+        followed = blue_pixels()
+        moved = np.asarray(client.camera.look_at) - root
+        assert followed > 0.5 * at_start, f"walked out of view ({followed} px)"
+        assert abs(moved[1] - 8.0) < 0.1 and abs(moved[2]) < 1e-6, moved
+        box = driver.find_element(
+            By.XPATH,
+            "//label[normalize-space(.)='Follow performer']"
+            "/ancestor::*[.//input][1]//input",
+        )
+        driver.execute_script("arguments[0].click();", box)
+        t_end = time.monotonic() + 20
+        while console.follow.value and time.monotonic() < t_end:
+            time.sleep(0.05)
+        assert console.follow.value is False
+        walk(8.0, 16.0)
+        left = blue_pixels()
+        print(f"\nfollow: bone pixels {at_start} at start, {followed} after 8 m")
+        print(f"follow: {left} after 8 m more with follow off")
+        assert left < 0.02 * at_start, f"still in view with follow off ({left} px)"
+    finally:
+        console.stop()

@@ -13,6 +13,7 @@ retargeted humanoid beside it in its colour.
 from __future__ import annotations
 
 import os
+import re
 import threading
 import time
 from collections.abc import Callable
@@ -124,6 +125,15 @@ def test_live_console_calibrate_and_skeleton(
         orange = _near(img, mpx[m_in], _orange)
         print(f"\nlive console: {orange.sum()} of {m_in.sum()} markers orange")
         assert m_in.sum() >= 20 and orange.mean() >= 0.6, "markers not drawn"
+        # t counts from the daemon's start (issue 31 item 6), not the machine's
+        # uptime; no face is configured, so the page offers no face capture.
+        text = driver.find_element(By.TAG_NAME, "body").text
+        age_s = (time.monotonic_ns() - live.daemon._t0_ns) * 1e-9
+        m = re.search(r"t = ([0-9.]+) s", text)
+        assert m is not None, text
+        print(f"live console: t = {m.group(1)} s, daemon up {age_s:.2f} s")
+        assert 0.0 <= float(m.group(1)) <= age_s, (m.group(0), age_s)
+        assert "Face capture" not in text and "Face pose" not in text, text
         assert live.daemon.stats.calibrations == 0
         button = wait.until(
             ec.element_to_be_clickable(
@@ -136,6 +146,14 @@ def test_live_console_calibrate_and_skeleton(
         )
         lh._wait_until(lambda: feed.published >= 10, "published snapshots", 30.0)
         time.sleep(2.0)  # a few frames rendered
+        # The plots' time axis: seconds since the daemon started.
+        age_s = (time.monotonic_ns() - live.daemon._t0_ns) * 1e-9
+        t_axis = np.asarray(feed.console._history["input rate (Hz)"][0])
+        assert len(t_axis) and 0.0 <= t_axis.min() <= t_axis.max() <= age_s, (
+            t_axis.min(),
+            t_axis.max(),
+            age_s,
+        )
         img = _screenshot(driver, tmp_path / "live-console.png")
         if os.environ.get("RETARGETD_DOCS_SCREENSHOT") == "1":  # the README's picture
             docs = Path(__file__).resolve().parents[2] / "docs"
@@ -184,3 +202,28 @@ def test_live_console_calibrate_and_skeleton(
     finally:
         stop.set()
         sender.join(timeout=2.0)
+
+
+@pytest.mark.timeout(120)
+@pytest.mark.parametrize("face", [False, True])
+def test_face_capture_only_with_a_face(
+    driver: Any, start_daemon: Callable[..., lh.Live], face: bool
+) -> None:
+    """The page offers "Face capture" and "Face pose" only when the daemon has a
+    face configured ([face] on)."""
+    from selenium.webdriver.common.by import By
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    doc: dict[str, Any] = {"console": {"enabled": True, "port": 0}}
+    if face:
+        doc["face"] = {"enabled": True}
+    live = start_daemon(doc)
+    feed = live.daemon.console
+    assert feed is not None and feed.face_capture is face
+    driver.get(live.daemon.endpoints["console"].split()[0])
+    WebDriverWait(driver, 60).until(
+        lambda d: "Calibrate" in d.find_element(By.TAG_NAME, "body").text
+    )
+    text = driver.find_element(By.TAG_NAME, "body").text
+    assert ("Face capture" in text) is face, text
+    assert ("Face pose" in text) is face, text

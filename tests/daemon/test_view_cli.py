@@ -129,6 +129,15 @@ def test_view_serves_a_solve_and_scrubs_in_chromium(
         # Two marks on the slider (the runs' first frames).
         marks = driver.find_elements(By.CSS_SELECTOR, ".mantine-Slider-mark")
         assert len(marks) == 2, len(marks)
+        # The first view's camera throughout (projected below): follow off.
+        follow = driver.find_element(
+            By.XPATH,
+            "//label[normalize-space(.)='Follow performer']"
+            "/ancestor::*[.//input][1]//input",
+        )
+        assert follow.is_selected()
+        driver.execute_script("arguments[0].click();", follow)
+        wait.until(lambda _d: not follow.is_selected())
         thumb.click()
         thumb.send_keys(Keys.END)  # scrub to the last frame
         last = seq.n_frames - 1
