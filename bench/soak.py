@@ -91,6 +91,10 @@ SPOOF_FRAME = 2**62
 #: on the CURVE control socket, three frames numbered from 2^62 back to back.
 ATTACKS = ("amplify", "nested", "no_token", "oversize", "plain_client",
            "unlisted_key", "wrong_server_key", "spoof_triple")  # fmt: skip
+#: The whole ZMTP 3.1 greeting of a client without CURVE (mechanism NULL).
+PLAIN_GREETING = (
+    b"\xff" + bytes(8) + b"\x7f" + b"\x03\x01" + b"NULL".ljust(20, b"\0") + bytes(32)
+)
 #: Bad frames in bursts: every marker on one point (the visible ones' mean), all
 #: zeros (occluded: nothing seen), left and right labels swapped, every marker at
 #: 1e30 (implausible: occluded and counted).
@@ -580,6 +584,9 @@ class Driver:
                 if reply.get("ok") is not False or "too large" not in reply["error"]:
                     self.errors.append(f"oversize request answered {reply}")
             return
+        if kind == "plain_client":  # a client without CURVE: its whole greeting
+            self._plain_client(self.d.endpoints["control"])
+            return
         # a failed CURVE handshake on control: one try each (no reconnect)
         sock = self.ctx.socket(zmq.REQ)
         sock.setsockopt(zmq.LINGER, 0)
@@ -595,6 +602,22 @@ class Driver:
         if sock.poll(300):
             self.errors.append(f"a {kind} control client got a reply")
         sock.close()
+
+    def _plain_client(self, endpoint: str) -> None:
+        """The whole ZMTP greeting of a client without CURVE in one write, then wait
+        for the daemon to hang up: always ``plain_client``. (A plain libzmq client
+        hangs up itself when it reads the daemon's greeting first, before sending its
+        mechanism: the daemon sees a connection closed in the greeting, ``other``;
+        a race, ``daemon/live/watch.py``.)"""
+        host, _, port = endpoint.removeprefix("tcp://").rpartition(":")
+        try:
+            with socket.create_connection((host, int(port)), timeout=2.0) as tcp:
+                tcp.sendall(PLAIN_GREETING)
+                while tcp.recv(256):  # the daemon's greeting, then its hang-up
+                    pass
+        except OSError as exc:  # (a reset is a hang-up too)
+            if not isinstance(exc, ConnectionResetError):
+                self.errors.append(f"plain client: {exc}")
 
     def _attacks(self) -> None:
         k = 0
