@@ -55,6 +55,25 @@ logger = logging.getLogger(__name__)
 class CalibrationMixin(DaemonState):
     """Live calibration, live face capture and reload."""
 
+    def _hint_uncalibrated(self) -> None:
+        """Tell, once at start, how to calibrate each performer without a
+        calibration."""
+        for perf in self.performers:
+            if perf.calibration is not None:
+                continue
+            if not perf.name:
+                self.out(
+                    "no calibration loaded: streaming starts after 'retargetd ctl "
+                    "calibrate' (or /VMC/Ext/Set/Calib/Exec) with the performer in "
+                    "the base pose"
+                )
+            else:
+                self.out(
+                    f"performer {perf.name}: no calibration loaded: its streaming "
+                    f"starts after 'retargetd ctl calibrate --performer {perf.name}' "
+                    f'(or /rtd/calibrate "{perf.name}") with it in the base pose'
+                )
+
     def request_calibration(
         self, count: object = None, by: str = "", rom_s: object = None
     ) -> str:

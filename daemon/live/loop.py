@@ -394,21 +394,8 @@ class Daemon(
         # garbage collector's full passes (one took ~50 ms here, holding the GIL).
         gc.collect()
         gc.freeze()
-        for perf in self.performers:
-            if perf.calibration is not None or not self.hint_uncalibrated:
-                continue
-            if not perf.name:
-                self.out(
-                    "no calibration loaded: streaming starts after 'retargetd ctl "
-                    "calibrate' (or /VMC/Ext/Set/Calib/Exec) with the performer in "
-                    "the base pose"
-                )
-            else:
-                self.out(
-                    f"performer {perf.name}: no calibration loaded: its streaming "
-                    f"starts after 'retargetd ctl calibrate --performer {perf.name}' "
-                    f'(or /rtd/calibrate "{perf.name}") with it in the base pose'
-                )
+        if self.hint_uncalibrated:
+            self._hint_uncalibrated()
 
     def _warm_up(self) -> None:
         """Load the compiled kernel and run every stage once before the first frame
