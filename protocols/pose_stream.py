@@ -115,6 +115,8 @@ VALIDATION_CHECKS = (
     "speed",
     "floating",
 )
+#: The unit of each check's value in the validation message (PROTOCOLS.md §6).
+VALIDATION_UNITS = ("mm", "mm", "", "deg beyond limit", "mm", "mm", "m/s", "s")
 
 # Bone flag bits (one uint8 per bone).
 BONE_HELD = 1 << 0  # too little data: last good rotation held

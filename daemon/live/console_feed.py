@@ -57,9 +57,6 @@ logger = logging.getLogger(__name__)
 HUMANOID_BESIDE_M = 2.0
 #: The health plots' refresh (0.5 s): the stats line's figures, not per frame.
 HEALTH_INTERVAL_NS = 500_000_000
-#: The live validator's checks, as the page names them, and the units of
-#: ``ValidationResult.values`` (``validate.live``).
-CHECK_UNITS = ("mm", "mm", "", "deg beyond limit", "mm", "mm", "m/s", "s")
 _VALIDATION_SHIFT = pose_stream.FRAME_V_CONVENTION.bit_length() - 1  # first check
 
 
@@ -119,7 +116,7 @@ def _layout(
         face_names=face_names,
         stage_names=STAGES,
         check_names=pose_stream.VALIDATION_CHECKS,
-        check_units=CHECK_UNITS,
+        check_units=pose_stream.VALIDATION_UNITS,
         **humanoid,
     )
 

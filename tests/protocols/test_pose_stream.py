@@ -256,6 +256,7 @@ def test_validation_message_round_trip() -> None:
 def test_validation_bits_fill_the_reserved_ranges() -> None:
     frame = [getattr(ps, f"FRAME_V_{c.upper()}") for c in ps.VALIDATION_CHECKS]
     assert sum(frame) == ps.FRAME_VALIDATION_MASK and len(set(frame)) == 8
+    assert len(ps.VALIDATION_UNITS) == len(ps.VALIDATION_CHECKS)  # one unit each
     bone = [1 << b for b in ps.BONE_VALIDATION_BITS.values()]
     assert sum(bone) == ps.BONE_VALIDATION_MASK
 
