@@ -71,6 +71,7 @@ from retargetd.daemon.body.fit_observe import (
     BoneObservation,
     Chain,
     hidden_information,
+    marker_hinges,
     observe,
 )
 from retargetd.daemon.body.neutral import neutral_from_rest, performer_left
@@ -160,11 +161,14 @@ class FitModel:
             in metres, times I), a fixed joint's :data:`FIXED_STIFFNESS`, and the
             automatic prior on each rotation the markers do not observe
             (``fit_observe``).
-        hide_axes, hide_lam, hide_lost: (Mr * B, 18), (Mr * B, 6), (Mr * B, 6): row
+        hide_axes, hide_lam, hide_lost: (2 Mr B, 9), (2 Mr B, 3), (2 Mr B, 3): row
             ``k * B + b``, bone b's rotations with marker k hidden (three
-            directions in its rest axes), their information and what k gave along
-            each, m^2 / rad^2, marginal then given the ancestors' holds
+            directions in its rest axes), their marginal information and what k gave
+            along each, m^2 / rad^2, at the calibration pose; from row ``Mr * B`` on
+            the same with every nearly straight hinge at a right angle
             (``fit_observe.hidden_information``: the hold prior).
+        hide_hinge: (Mr,) the hinge whose bend picks a hidden marker's table, -1
+            none (``fit_observe.marker_hinges``).
         joint_dof: (B,) each joint's model ("root", "ball", "hinge", ...).
         observation: (B,) what the markers determine of each bone
             (``fit_observe.observe``).
@@ -206,6 +210,7 @@ class FitModel:
     hide_axes: F64Array
     hide_lam: F64Array
     hide_lost: F64Array
+    hide_hinge: IntArray
     limits: F64Array
     limit_left: F64Array
     limit_forward: F64Array
@@ -696,6 +701,7 @@ def build_fit_model(
         hide_axes=_readonly(hide_axes),
         hide_lam=_readonly(hide_lam),
         hide_lost=_readonly(hide_lost),
+        hide_hinge=_readonly(marker_hinges(chain)),
         joint_dof=tuple(dof),
         observation=observation,
         limits=_readonly(limits),

@@ -39,7 +39,8 @@ P_JUMP_Z = 19  # a joint past max(this x its prediction's bound, P_JUMP_FLOOR_RA
 P_JUMP_FLOOR_RAD = 20  # ... from its prediction is no motion a body makes
 P_RESOLUTION_RAD = 21  # the hold: a joint angle's resolution (fit_observe)
 P_VELOCITY_TAU_S = 22  # a hidden marker's velocity decays with this time constant
-N_PARAMS = 23
+P_HOLD_STRAIGHT_RAD = 23  # the hold: a limb's hinge bent less reads the straight table
+N_PARAMS = 24
 
 # per-frame scalars (the state's ``s[36]``)
 C_GATE = 0  # this frame's gate, metres

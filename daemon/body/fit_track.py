@@ -19,6 +19,7 @@ from retargetd.daemon.body.fit_terms import (
     P_ALPHA_MAX,
     P_GATE_M,
     P_GATE_MEMORY,
+    P_HOLD_STRAIGHT_RAD,
     P_JUMP_FLOOR_RAD,
     P_JUMP_Z,
     P_NOISE_M,
@@ -97,6 +98,13 @@ def impossible(m: tuple, s: tuple, frames: float) -> bool:
 
 
 @kernel
+def _bone_y_cos(q: np.ndarray) -> float:
+    # cos of a joint's bend: its bone's +Y against its parent's +Y, the joint at
+    # parent_from_bone q (unit): the y component of q's rotation of +Y
+    return 1.0 - 2.0 * (q[1] * q[1] + q[3] * q[3])
+
+
+@kernel
 def hold_priors(m: tuple, s: tuple) -> None:
     # While markers are hidden, each bone's rotations that they observed and that
     # the markers still seen no longer resolve (information under (sigma /
@@ -107,10 +115,18 @@ def hold_priors(m: tuple, s: tuple) -> None:
     # (fit_observe.hidden_information). s[53] the hold priors (bone axes, m^2 /
     # rad^2), s[54] their anchors (parent_from_bone), s[55] their traces (0: off).
     params, parent, wt = m[18], m[0], m[7]
-    axes, lam, lost = m[22], m[23], m[24]
+    axes, lam, lost, limb = m[22], m[23], m[24], m[25]
     vis = s[13]
     hold, anchor, on, qlast = s[53], s[54], s[55], s[49]
     n_b = parent.shape[0]
+    # the tables (fit_observe.hidden_information): at the calibration pose, and from
+    # row n_mk * n_b on with the nearly straight hinges at a right angle; a hidden
+    # marker's hold blends them by how far its limb's hinge is bent at the last
+    # explained frame: sin(bend) / sin(P_HOLD_STRAIGHT_RAD), at most 1 (what its
+    # markers tell the two twists apart by, against what makes it count as bent), so
+    # a hinge that bends through the threshold moves its hold smoothly
+    n_tab = wt.shape[0] * n_b
+    sin_bent = math.sin(params[P_HOLD_STRAIGHT_RAD])
     sig = max(params[P_NOISE_M], s[36][C_LEVEL]) / params[P_RESOLUTION_RAD]
     thr = sig * sig
     rage, fresh = s[48], s[40]  # (s[40]: scratch here, the outputs' later)
@@ -123,30 +139,40 @@ def hold_priors(m: tuple, s: tuple) -> None:
         if wt[k] <= 0.0 or vis[k]:
             continue
         new = rage[k] == 0.0  # accepted in the last explained frame: hidden now
-        base = k * n_b
-        for b in range(n_b):
-            row = base + b
-            for j in range(3):
-                lo = lost[row, j]
-                li = lam[row, j]
-                if lo <= 0.0 or li >= thr:
-                    continue
-                kk = min(lo, thr - li)
-                if kk < 0.01 * thr:
-                    # (a hold under 1 % of the threshold moves nothing by more than
-                    # 1 % of the resolution: not worth its terms in every iteration)
-                    continue
-                if new:
-                    fresh[b] = 1
-                u0, u1, u2 = (
-                    axes[row, 3 * j],
-                    axes[row, 3 * j + 1],
-                    axes[row, 3 * j + 2],
-                )
-                u = (u0, u1, u2)
-                for a in range(3):
-                    for c in range(3):
-                        hold[b, a, c] += kk * u[a] * u[c]
+        h = limb[k]
+        bent = 0.0
+        if h >= 0:
+            c = _bone_y_cos(qlast[h])
+            bent = min(1.0, math.sqrt(max(0.0, 1.0 - c * c)) / sin_bent)
+        for half in range(2):
+            share = bent if half == 1 else 1.0 - bent
+            if share <= 0.0:
+                continue
+            base = k * n_b + half * n_tab
+            for b in range(n_b):
+                row = base + b
+                for j in range(3):
+                    lo = lost[row, j]
+                    li = lam[row, j]
+                    if lo <= 0.0 or li >= thr:
+                        continue
+                    kk = share * min(lo, thr - li)
+                    if kk < 0.01 * thr:
+                        # (a hold under 1 % of the threshold moves nothing by more
+                        # than 1 % of the resolution: not worth its terms in every
+                        # iteration)
+                        continue
+                    if new:
+                        fresh[b] = 1
+                    u0, u1, u2 = (
+                        axes[row, 3 * j],
+                        axes[row, 3 * j + 1],
+                        axes[row, 3 * j + 2],
+                    )
+                    u = (u0, u1, u2)
+                    for a in range(3):
+                        for c2 in range(3):
+                            hold[b, a, c2] += kk * u[a] * u[c2]
     local_floor(m, s, thr)
     for b in range(n_b):
         tr = hold[b, 0, 0] + hold[b, 1, 1] + hold[b, 2, 2]

@@ -135,6 +135,13 @@ class FitParams:
             gave it (``kernel_fit._hold_priors``): on a real take the model's misfit,
             not the 1 mm noise, is what would turn it. 5 deg,
             ``fit_observe.RESOLUTION_RAD``.
+        hold_straight_deg: a hidden marker's hold reads the tables made with the
+            nearly straight hinges at a right angle once its limb's hinge
+            (``fit_observe.marker_hinges``) bends past this at the last explained
+            frame, else those made at the calibration pose
+            (``fit_observe.hidden_information``): 30 deg,
+            ``fit_observe.HOLD_TABLE_STRAIGHT_RAD``, below which the hinge's two twists
+            are told apart by less than half what a right angle gives.
         velocity_tau_s: a hidden marker is measured on the pose whose joints move on
             from their last explained values with their last velocity damped by
             exp(-dt / velocity_tau_s) per frame (Singer's manoeuvre model): the
@@ -178,6 +185,7 @@ class FitParams:
     unexplained_k: float = 4.0
     unexplained_frac: float = 0.5
     resolution_deg: float = math.degrees(fit_observe.RESOLUTION_RAD)
+    hold_straight_deg: float = math.degrees(fit_observe.HOLD_TABLE_STRAIGHT_RAD)
     velocity_tau_s: float = 0.1
     jump_z: float = 3.0
     jump_floor_deg: float = 10.0
@@ -208,6 +216,7 @@ class FitParams:
         out[ft.P_JUMP_Z] = self.jump_z
         out[ft.P_VELOCITY_TAU_S] = self.velocity_tau_s
         out[ft.P_RESOLUTION_RAD] = math.radians(self.resolution_deg)
+        out[ft.P_HOLD_STRAIGHT_RAD] = math.radians(self.hold_straight_deg)
         out[ft.P_JUMP_FLOOR_RAD] = math.radians(self.jump_floor_deg)
         out[ft.P_MAX_ITER] = self.max_iter
         out[ft.P_TOL] = self.tol
@@ -359,7 +368,7 @@ class FitSolver:
             model.hinge_axis, model.limits, model.limit_left, model.limit_forward,
             model.anc_ptr, model.anc_idx, model.node_ptr, model.node_idx,
             self._params_arr, model.penalty_cos, model.twist_lock, model.prior_mat,
-            model.hide_axes, model.hide_lam, model.hide_lost,
+            model.hide_axes, model.hide_lam, model.hide_lost, model.hide_hinge,
         )  # fmt: skip
         # packed (fit_pack): the kernel gets one buffer per dtype; self._model keeps
         # the same memory as a tuple of views (for fit_many and hand-made poses)
