@@ -448,7 +448,9 @@ def train(
         expression_names=tuple(exprs),
         head_layout=layout,
         neutral=neutral,
-        deltas=np.array([means[e] - neutral for e in exprs]).reshape(len(exprs), -1, 3),
+        deltas=np.array([means[e] - neutral for e in exprs]).reshape(
+            len(exprs), len(marker_names), 3
+        ),
     )
 
 
