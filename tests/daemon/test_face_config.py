@@ -353,3 +353,25 @@ def test_a_body_marker_listed_as_facial_is_one_line_error(
     assert main([*argv, "--out", str(tmp_path / "f.npz")]) == 0
     said = capsys.readouterr().out
     assert f"(listed by the face config): {' '.join(truth.marker_names[:20])}\n" in said
+
+
+def test_the_daemon_refuses_a_body_marker_listed_as_facial(tmp_path: Path) -> None:
+    # The daemon's own rig, or the config's body_rig: one line naming the marker,
+    # a ConfigError (``make_daemon`` turns it into exit 2 before any socket opens).
+    from retargetd.daemon.body.rig import load_rig
+    from retargetd.daemon.live.config import ConfigError, FaceSectionConfig
+    from retargetd.daemon.live.face import LiveFace
+
+    config = tmp_path / "mine.toml"
+    config.write_text(
+        'head_markers = ["LFHD", "RFHD", "LBHD", "RBHD"]\n'
+        'facial_markers = ["CHIN", "Sub:lsho"]\nexpressions = ["jawOpen"]\n'
+    )
+    settings = FaceSectionConfig(enabled=True, config=str(config))
+    with pytest.raises(ConfigError, match=r"Sub:lsho is a marker of the body rig"):
+        LiveFace(settings, load_rig("plug-in-gait"))
+    LiveFace(settings)  # no rig named anywhere: nothing to refuse
+    config.write_text(config.read_text() + 'body_rig = "plug-in-gait"\n')
+    with pytest.raises(ConfigError, match="Sub:lsho") as info:
+        LiveFace(settings)
+    assert "\n" not in str(info.value)
