@@ -143,6 +143,7 @@ class LiveFace:
         self._capture_labels: tuple[str, ...] = ()
         self.captures = 0
         self.last_message = ""
+        self._unobserved_cache: tuple[TrainingSet | None, tuple[str, ...]] = (None, ())
 
     def _check_training(self, t: TrainingSet) -> None:
         if tuple(t.head_names) != self.face.head_markers:
@@ -304,22 +305,29 @@ class LiveFace:
     def status(self) -> dict[str, object]:
         """The face part of ``ctl status --json``."""
         t = self.training
-        reg = self.settings.regularization
         return {
             "config": self.face.name,
             "trained": t is not None,
             "expressions": list(t.expression_names) if t is not None else [],
             "facial_markers": len(t.marker_names) if t is not None else 0,
-            "unobserved": (
-                list(observability(t, regularization=reg).unobservable)
-                if t is not None
-                else []
-            ),
+            "unobserved": list(self._unobserved(t)),
             "noise_mm": 1e3 * t.noise_rms_m if t is not None else None,
             "capturing": self._capture_name if self.capturing else "",
             "captures": self.captures,
             "last_capture": self.last_message,
         }
+
+    def _unobserved(self, t: TrainingSet | None) -> tuple[str, ...]:
+        # Judged once per training set (a few ms of linear algebra), not per status.
+        if t is None:
+            return ()
+        if self._unobserved_cache[0] is not t:
+            reg = self.settings.regularization
+            self._unobserved_cache = (
+                t,
+                observability(t, regularization=reg).unobservable,
+            )
+        return self._unobserved_cache[1]
 
 
 def warm_up() -> None:
