@@ -137,13 +137,24 @@ FACE_HEAD_LOST = 1 << 1  # < 3 head markers: head pose and weights held, markers
 FACE_NOT_CONVERGED = 1 << 2  # the weight solve hit its iteration cap (best kept)
 FACE_PARTIAL = 1 << 3  # some facial marker occluded (left out of that frame's solve)
 FACE_NEVER = 1 << 4  # no good frame yet: identity head pose and zero weights
+FACE_SHAPE_HELD = 1 << 5  # a shape's key markers hidden: that shape held (RTDS says)
 FACE_FLAG_BITS = {
     "head_partial": 0,
     "head_lost": 1,
     "not_converged": 2,
     "face_partial": 3,
     "never": 4,
+    "shape_held": 5,
 }
+
+# Shape state bits (one uint8 per solved expression, in the shape-state message).
+SHAPE_UNOBSERVED = 1 << 0  # the layout cannot observe it: left out of the solve, 0
+SHAPE_HIDDEN = 1 << 1  # a key marker hidden this frame: the last weight held
+SHAPE_STATE_BITS = {"unobserved": 0, "hidden": 1}
+SHAPE_MAGIC = b"RTDS"
+#: Shape-state message: magic, version 1, names id, frame number, K, reserved; then
+#: K uint8 states, NUL-padded to a multiple of 4 (one part).
+SHAPE_HEADER = struct.Struct("<4sHHqHH")  # 20 bytes
 
 
 def body_size(n_bones: int, n_weights: int) -> int:
@@ -442,6 +453,8 @@ class PoseNames:
         performer_id: its id, as at byte 50 of the data header.
         bone_humanoid: per bone, its humanoid (Unity ``HumanBodyBones``) name, ""
             for a bone the rig maps to none (empty: not sent, an older sender).
+        unobserved: the weights the marker layout cannot observe: left out of the
+            solve and sent as 0 (sent with a face; empty from an older sender).
     """
 
     rig: str
@@ -453,6 +466,7 @@ class PoseNames:
     performer: str = ""
     performer_id: int = 0
     bone_humanoid: tuple[str, ...] = ()
+    unobserved: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         n = len(self.bone_names)
@@ -491,6 +505,9 @@ def encode_pose_names(names: PoseNames) -> list[bytes]:
         "face_markers": list(names.face_markers),
         "face_flag_bits": FACE_FLAG_BITS,
     }
+    if names.face_markers:  # with a face: the shape states (RTDS) and what is unseen
+        doc["shape_state_bits"] = SHAPE_STATE_BITS
+        doc["unobserved"] = list(names.unobserved)
     if names.performer:  # several performers share the stream
         doc["performer"] = names.performer
         doc["performer_id"] = names.performer_id
@@ -550,6 +567,7 @@ def decode_pose_names(parts: Sequence[bytes | bytearray | memoryview]) -> PoseNa
             performer=performer,
             performer_id=performer_id,
             bone_humanoid=humanoid,
+            unobserved=_str_list(doc, "unobserved") if "unobserved" in doc else (),
         )
     except ValueError as exc:
         if isinstance(exc, DecodeError):
@@ -676,3 +694,74 @@ def decode_validation(
         values=np.frombuffer(data, _LE_F32, k, 0).copy(),
         bone_flags=np.frombuffer(data, np.uint8, b, 4 * k).copy(),
     )
+
+
+def shape_size(n_weights: int) -> int:
+    """Bytes in a shape-state message for ``n_weights`` expressions."""
+    return SHAPE_HEADER.size + ((n_weights + 3) & ~3)
+
+
+class ShapeStateEncoder:
+    """Encodes shape-state messages (``RTDS``, one part) into one reused buffer.
+
+    Args:
+        n_weights: solved expressions (the data message's K), <= 65535.
+        names_id: the names message's id.
+
+    Attributes:
+        part: the message (a memoryview of the buffer).
+    """
+
+    def __init__(self, n_weights: int, names_id: int = 0) -> None:
+        if not (0 <= n_weights <= 0xFFFF and 0 <= names_id <= 0xFFFF):
+            raise ValueError(
+                f"n_weights and names_id must be in [0, 65535]; "
+                f"got {n_weights}, {names_id}"
+            )
+        self.n_weights, self.names_id = n_weights, names_id
+        self._buf = bytearray(shape_size(n_weights))
+        self._states = np.frombuffer(self._buf, np.uint8, n_weights, SHAPE_HEADER.size)
+        self.part = memoryview(self._buf)
+
+    def encode(self, frame_id: int, states: U8Array) -> memoryview:
+        """Write one frame's states, (n_weights,) uint8 ``SHAPE_*`` bits."""
+        SHAPE_HEADER.pack_into(
+            self._buf, 0, SHAPE_MAGIC, VERSION, self.names_id, frame_id,
+            self.n_weights, 0,
+        )  # fmt: skip
+        self._states[:] = states
+        return self.part
+
+
+@dataclass(slots=True, eq=False)
+class ShapeStateMessage:
+    """A decoded shape-state message.
+
+    Attributes:
+        names_id: the names message describing the weights.
+        frame_id: the frame number of the data message it follows.
+        states: (K,) uint8 ``SHAPE_*`` bits, in the names message's weight order.
+    """
+
+    names_id: int
+    frame_id: int
+    states: U8Array
+
+
+def decode_shape_state(part: bytes | bytearray | memoryview) -> ShapeStateMessage:
+    """Decode a shape-state message (one part).
+
+    Raises:
+        DecodeError: ``bad_length``, ``bad_magic``, ``bad_version``.
+    """
+    if len(part) < SHAPE_HEADER.size:
+        raise DecodeError("bad_length", f"shape state of {len(part)} bytes, < 20")
+    magic, version, names_id, frame_id, k, _ = SHAPE_HEADER.unpack_from(part)
+    if magic != SHAPE_MAGIC:
+        raise DecodeError("bad_magic", f"expected {SHAPE_MAGIC!r}; got {magic!r}")
+    if version != VERSION:
+        raise DecodeError("bad_version", f"version {version}, expected {VERSION}")
+    if len(part) != shape_size(k):
+        raise DecodeError("bad_length", f"shape state of {len(part)} bytes for {k}")
+    states = np.frombuffer(bytes(part), np.uint8, k, SHAPE_HEADER.size).copy()
+    return ShapeStateMessage(names_id=names_id, frame_id=frame_id, states=states)

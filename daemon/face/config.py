@@ -8,7 +8,10 @@ A face config is a TOML file (or a shipped preset by name: ``arkit52``, ``vrm0``
     head_weights = [1.0, 1.0, 1.0, 1.0]    # optional: weight of each in the rigid fit
                                            # (equal is best for equal noise; else
                                            # 1 / variance of each marker)
-    facial_markers = ["BRL1", "BRR1", ...]  # [] = every other marker of the take
+    facial_markers = ["BRL1", "BRR1", ...]  # [] = chosen (``face.markers``): not a
+                                           # head marker, not the body rig's, above
+                                           # the neck in the neutral pose
+    body_rig = "plug-in-gait"              # optional: its markers are never facial
     expressions = ["browDownLeft", ...]     # the solved shapes (training poses)
 
     [output]                               # optional; absent = identity map
@@ -47,7 +50,8 @@ F64Array = npt.NDArray[np.float64]
 
 #: Every key a face config may hold (``output`` is the table).
 FACE_KEYS = (
-    "name", "head_markers", "head_weights", "facial_markers", "expressions", "output"
+    "name", "head_markers", "head_weights", "facial_markers", "body_rig",
+    "expressions", "output",
 )  # fmt: skip
 
 
@@ -63,7 +67,9 @@ class FaceConfig:
         name: config name.
         head_markers: (H,) stabilization marker names, H >= 3.
         head_weights: (H,) rigid-fit weights, >= 0.
-        facial_markers: facial marker names; empty = every non-head marker.
+        facial_markers: facial marker names; empty = chosen (``face.markers``).
+        body_rig: the body rig (shipped name or file) whose markers are never
+            facial; "" = none named here (the daemon's rig still applies).
         expressions: (K,) solved expression names.
         outputs: output names, in send order.
         mix: per output, ((expression, gain), ...).
@@ -73,6 +79,7 @@ class FaceConfig:
     head_markers: tuple[str, ...]
     head_weights: tuple[float, ...]
     facial_markers: tuple[str, ...]
+    body_rig: str
     expressions: tuple[str, ...]
     outputs: tuple[str, ...]
     mix: tuple[tuple[tuple[str, float], ...], ...]
@@ -140,6 +147,9 @@ def parse_face_config(doc: dict[str, Any], src: str, default_name: str) -> FaceC
         raise FaceConfigError(
             f"{src}: facial_markers: markers also in head_markers: {both}"
         )
+    body_rig = doc.get("body_rig", "")
+    if not isinstance(body_rig, str):
+        raise FaceConfigError(f"{src}: body_rig: expected a rig name, got {body_rig!r}")
     exprs = _names(src, doc, "expressions", required=True)
     if not exprs:
         raise FaceConfigError(f"{src}: expressions: empty")
@@ -174,6 +184,7 @@ def parse_face_config(doc: dict[str, Any], src: str, default_name: str) -> FaceC
         head_markers=head,
         head_weights=tuple(float(w) for w in weights),
         facial_markers=facial,
+        body_rig=body_rig,
         expressions=exprs,
         outputs=tuple(outputs),
         mix=tuple(mix),

@@ -23,6 +23,10 @@ FLAG_HEAD_LOST = pose_stream.FACE_HEAD_LOST  #: < 3 head markers: pose, weights 
 FLAG_NOT_CONVERGED = pose_stream.FACE_NOT_CONVERGED  #: the iteration cap was hit
 FLAG_FACE_PARTIAL = pose_stream.FACE_PARTIAL  #: some facial marker occluded
 FLAG_NEVER = pose_stream.FACE_NEVER  #: no good frame yet: identity pose, zero weights
+FLAG_SHAPE_HELD = pose_stream.FACE_SHAPE_HELD  #: a shape held: its key markers hidden
+#: Per-shape state bits (``FaceOutput.shape_state``, the pose stream's ``RTDS``).
+SHAPE_UNOBSERVED = pose_stream.SHAPE_UNOBSERVED  #: left out of the solve: sent as 0
+SHAPE_HIDDEN = pose_stream.SHAPE_HIDDEN  #: a key marker hidden: weight held
 
 #: Block exchanges without fewer infeasibilities before single (Murty) exchanges.
 _BPP_TRIES = 3
@@ -112,7 +116,7 @@ def _box_qp(
     a: np.ndarray,  # (K, K) SPD
     b: np.ndarray,  # (K,)
     w: np.ndarray,  # (K,) out: solution in [0, 1]
-    state: np.ndarray,  # (K,) int64: 0 free, 1 at 0, 2 at 1; in: warm start
+    state: np.ndarray,  # (K,) int64: 0 free, 1 at 0, 2 at 1, 3 held at w; warm start
     idx: np.ndarray,  # (K,) int64 scratch
     chol: np.ndarray,  # (K, K) scratch
     x: np.ndarray,  # (K,) scratch
@@ -149,6 +153,9 @@ def _box_qp(
         last = -1
         for i in range(k):
             new = state[i]
+            if state[i] == 3:  # held (its key markers hidden): never exchanged
+                g[i] = 3
+                continue
             if state[i] == 0:
                 if w[i] < -1e-13:
                     new = 1
@@ -201,7 +208,7 @@ def solve_face_frame(
     layout: np.ndarray,  # (H, 3)
     head_w: np.ndarray,  # (H,)
     neutral: np.ndarray,  # (M, 3)
-    basis: np.ndarray,  # (3M, K)
+    basis: np.ndarray,  # (3M, K) the solved shapes' columns only
     a_full: np.ndarray,  # (K, K) = B^T B + lambda I
     a: np.ndarray,  # (K, K) scratch: restricted normal matrix (kept between frames)
     last_seen: np.ndarray,  # (M,) bool: pattern a was built for
@@ -221,12 +228,19 @@ def solve_face_frame(
     have_good: np.ndarray,  # (1,) bool
     cen: np.ndarray,  # (6,) scratch: the head fit's centroids
     max_iter: int,
+    solved_cols: np.ndarray,  # (K,) int64: each solved shape's output index
+    key_ptr: np.ndarray,  # (K + 1,) int64: shape j's key markers are
+    key_idx: np.ndarray,  # key_idx[key_ptr[j]:key_ptr[j + 1]] (facial indices)
+    wr: np.ndarray,  # (K,) scratch: the solved shapes' weights
     out_markers: np.ndarray,  # (M, 3)
-    out_w: np.ndarray,  # (K,)
+    out_w: np.ndarray,  # (K_all,): unsolved shapes stay 0
     out_quat: np.ndarray,  # (4,)
     out_pos: np.ndarray,  # (3,)
     out_status: np.ndarray,  # (3,) int64
+    out_state: np.ndarray,  # (K_all,) uint8: SHAPE_* bits (unobserved preset)
 ) -> None:
+    # K here counts the solved shapes; out_w and out_state hold every shape of the
+    # training set, and solved_cols says where each solved one goes.
     m = face_cols.shape[0]
     k = a.shape[0]
     flags = 0
@@ -240,7 +254,7 @@ def solve_face_frame(
         for i in range(m):
             out_markers[i, 0] = out_markers[i, 1] = out_markers[i, 2] = np.nan
         for j in range(k):
-            out_w[j] = w_prev[j]
+            out_w[solved_cols[j]] = w_prev[j]
         out_status[0] = flags
         out_status[1] = 0
         out_status[2] = 0
@@ -304,14 +318,30 @@ def solve_face_frame(
             r = 3 * i + c
             for p in range(k):
                 b[p] += basis[r, p] * d
+    # A shape whose key markers are hidden is held at its last weight (state 3: a
+    # fixed variable of the QP), so it neither guesses nor pollutes the others.
     for j in range(k):
-        out_w[j] = w_prev[j]
-    iters = _box_qp(a, b, out_w, state, idx, chol, x, g, max_iter)
+        hidden = False
+        for p in range(key_ptr[j], key_ptr[j + 1]):
+            if not seen[key_idx[p]]:
+                hidden = True
+                break
+        if hidden:
+            state[j] = 3
+            flags |= FLAG_SHAPE_HELD
+            out_state[solved_cols[j]] = SHAPE_HIDDEN
+        else:
+            if state[j] == 3:
+                state[j] = 0
+            out_state[solved_cols[j]] = 0
+        wr[j] = w_prev[j]
+    iters = _box_qp(a, b, wr, state, idx, chol, x, g, max_iter)
     if iters < 0:
         flags |= FLAG_NOT_CONVERGED
         iters = max_iter
     for j in range(k):
-        w_prev[j] = out_w[j]
+        w_prev[j] = wr[j]
+        out_w[solved_cols[j]] = wr[j]
     for j in range(4):
         out_quat[j] = q4[j]
     for j in range(3):

@@ -49,7 +49,6 @@ centroid. Quaternions are (w, x, y, z).
 from __future__ import annotations
 
 import logging
-import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -62,9 +61,18 @@ from retargetd.daemon.face.kernel import (
     FLAG_HEAD_PARTIAL,
     FLAG_NEVER,
     FLAG_NOT_CONVERGED,
+    FLAG_SHAPE_HELD,
+    SHAPE_HIDDEN,
+    SHAPE_UNOBSERVED,
     solve_face_frame,
 )
-from retargetd.daemon.face.training import TrainingSet
+from retargetd.daemon.face.observability import (
+    MAX_WEIGHT_STD,
+    Observability,
+    key_markers,
+    observability,
+)
+from retargetd.daemon.face.training import DEFAULT_NOISE_RMS_M, TrainingSet
 
 logger = logging.getLogger(__name__)
 
@@ -73,67 +81,6 @@ BoolArray = npt.NDArray[np.bool_]
 
 
 # ---- training set -------------------------------------------------------------------
-
-
-@dataclass(frozen=True, slots=True, kw_only=True, eq=False)
-class Observability:
-    """Which shapes a marker layout can see.
-
-    Attributes:
-        names: (K,) expression names.
-        peak_m: (K,) largest marker displacement of each shape, metres.
-        weight_std: (K,) standard deviation of each unbounded weight estimate under
-            ``noise_m`` marker noise: ``noise * sqrt(((B^T B + lambda I)^-1)_kk)``.
-        observable: (K,) bool, ``peak_m >= min_peak_m`` and
-            ``weight_std <= max_weight_std``.
-    """
-
-    names: tuple[str, ...]
-    peak_m: F64Array
-    weight_std: F64Array
-    observable: BoolArray
-
-    @property
-    def unobservable(self) -> tuple[str, ...]:
-        """Names of the shapes this layout cannot see or tell apart."""
-        return tuple(
-            n for n, ok in zip(self.names, self.observable, strict=True) if not ok
-        )
-
-
-def observability(
-    training: TrainingSet,
-    *,
-    noise_m: float = 5e-4 / math.sqrt(3.0),
-    regularization: float = 1e-3,
-    min_peak_m: float = 1e-3,
-    max_weight_std: float = 0.1,
-) -> Observability:
-    """Report the shapes the training set's markers cannot see or separate.
-
-    A shape is unobservable when it moves no marker by ``min_peak_m``, or when
-    marker noise of ``noise_m`` (per axis, metres) gives its weight a standard
-    deviation above ``max_weight_std``: its column of B is too close to a
-    combination of the others (near rank deficiency, e.g. gaze vs. eyelid shapes).
-    """
-    b = training.basis
-    peak = np.linalg.norm(training.deltas, axis=2).max(axis=1)
-    seen = peak >= min_peak_m
-    cols = np.flatnonzero(seen)
-    std = np.full(training.k, np.inf)
-    if cols.size:
-        bs = b[:, cols]
-        btb = bs.T @ bs
-        lam = regularization * float(np.mean(np.diag(b.T @ b)))
-        std[cols] = noise_m * np.sqrt(
-            np.diag(np.linalg.inv(btb + lam * np.eye(cols.size)))
-        )
-    return Observability(
-        names=training.expression_names,
-        peak_m=peak,
-        weight_std=std,
-        observable=seen & (std <= max_weight_std),
-    )
 
 
 def stabilization_error(
@@ -210,6 +157,9 @@ class FaceOutput:
         world_from_head_pos: (3,) float64, metres, world.
         status: (3,) int64: flags (``FLAG_*``), Cholesky solves of the QP, visible
             facial markers.
+        shape_state: (K,) uint8 per expression: ``SHAPE_UNOBSERVED`` (left out of
+            the solve, weight 0), ``SHAPE_HIDDEN`` (a key marker hidden this frame:
+            the last weight held), 0 = solved.
     """
 
     markers_head: F64Array
@@ -217,6 +167,7 @@ class FaceOutput:
     world_from_head_quat: F64Array
     world_from_head_pos: F64Array
     status: npt.NDArray[np.int64]
+    shape_state: npt.NDArray[np.uint8]
 
     @property
     def flags(self) -> int:
@@ -230,6 +181,14 @@ class FaceOutput:
 class FaceSolver:
     """Per-frame face solve from a training set (stabilize + bounded weights).
 
+    Only the ``solved`` shapes are in the QP; the others are sent as 0 with
+    ``SHAPE_UNOBSERVED``. A solved shape's **key markers** are those whose loss alone
+    would make it unobservable (weight std above ``max_weight_std`` at the training
+    set's noise, with the other solved shapes); while one of them is hidden the shape
+    is held at its last weight (a fixed variable of the QP) and flagged
+    ``SHAPE_HIDDEN``: held, not decayed, as the head and the bones are held (STYLE
+    section 7): a decay would invent a motion toward neutral that nothing measured.
+
     Args:
         training: the performer's training set.
         labels: the stream's marker labels (column order of ``markers_world``);
@@ -237,6 +196,9 @@ class FaceSolver:
         regularization: unitless; ``lambda = regularization * mean(diag(B^T B))``.
         head_weights: (H,) weight of each head marker in the rigid fit (default 1).
         max_iter: active-set iteration cap per frame.
+        solved: (K,) bool, the shapes solved (default all; the daemon passes
+            ``observability(training).observable``).
+        max_weight_std: the observability threshold the key markers are found at.
     """
 
     def __init__(
@@ -247,17 +209,29 @@ class FaceSolver:
         regularization: float = 1e-3,
         head_weights: Sequence[float] | None = None,
         max_iter: int | None = None,
+        solved: Sequence[bool] | BoolArray | None = None,
+        max_weight_std: float = MAX_WEIGHT_STD,
     ) -> None:
         if not regularization >= 0.0:
             raise ValueError(f"regularization: expected >= 0, got {regularization}")
         self.training = training
-        h, m, k = len(training.head_names), len(training.marker_names), training.k
-        self._basis = training.basis
+        h, m, k_all = len(training.head_names), len(training.marker_names), training.k
+        mask = np.ones(k_all, bool) if solved is None else np.asarray(solved, bool)
+        if mask.shape != (k_all,):
+            raise ValueError(f"solved: expected ({k_all},) bool, got {mask.shape}")
+        self.solved = mask
+        self._solved_cols = np.flatnonzero(mask).astype(np.int64)
+        k = len(self._solved_cols)
+        self._basis = np.ascontiguousarray(training.basis[:, self._solved_cols])
         btb = self._basis.T @ self._basis
         self.lambda_ = float(regularization * np.mean(np.diag(btb))) if k else 0.0
         if self.lambda_ <= 0.0:
             self.lambda_ = 1e-12
         self._a_full = btb + self.lambda_ * np.eye(k)
+        self._key_ptr, self._key_idx = key_markers(
+            self._basis, self.lambda_, training.noise_rms_m, max_weight_std
+        )
+        self._wr = np.zeros(k)
         self._a = self._a_full.copy()
         self._last_seen = np.ones(m, dtype=np.bool_)
         self._seen = np.ones(m, dtype=np.bool_)
@@ -308,13 +282,26 @@ class FaceSolver:
     def new_output(self) -> FaceOutput:
         """An output buffer sized for this solver (allocate once per stream)."""
         m, k = len(self.training.marker_names), self.training.k
+        state = np.where(self.solved, 0, SHAPE_UNOBSERVED).astype(np.uint8)
         return FaceOutput(
             markers_head=np.full((m, 3), np.nan),
             weights=np.zeros(k),
             world_from_head_quat=np.array([1.0, 0.0, 0.0, 0.0]),
             world_from_head_pos=np.zeros(3),
             status=np.zeros(3, dtype=np.int64),
+            shape_state=state,
         )
+
+    def key_markers(self) -> dict[str, tuple[str, ...]]:
+        """Each solved shape's key markers (those whose loss alone hides it)."""
+        t = self.training
+        return {
+            t.expression_names[c]: tuple(
+                t.marker_names[i]
+                for i in self._key_idx[self._key_ptr[j] : self._key_ptr[j + 1]]
+            )
+            for j, c in enumerate(self._solved_cols)
+        }
 
     def solve_frame(
         self, markers_world: F64Array, valid: BoolArray, out: FaceOutput
@@ -332,8 +319,10 @@ class FaceSolver:
             self._head_w, self._neutral, self._basis, self._a_full, self._a,
             self._last_seen, self._seen, self._b, self._w_prev, self._state, self._idx,
             self._chol, self._x, self._g, self._n44, self._v44, self._q4, self._rot,
-            self._pos, self._have_good, self._cen, self.max_iter, out.markers_head,
-            out.weights, out.world_from_head_quat, out.world_from_head_pos, out.status,
+            self._pos, self._have_good, self._cen, self.max_iter, self._solved_cols,
+            self._key_ptr, self._key_idx, self._wr, out.markers_head, out.weights,
+            out.world_from_head_quat, out.world_from_head_pos, out.status,
+            out.shape_state,
         )  # fmt: skip
         return out
 
@@ -459,16 +448,23 @@ def train(
         expression_names=tuple(exprs),
         head_layout=layout,
         neutral=neutral,
-        deltas=np.array([means[e] - neutral for e in exprs]).reshape(len(exprs), -1, 3),
+        deltas=np.array([means[e] - neutral for e in exprs]).reshape(
+            len(exprs), len(marker_names), 3
+        ),
     )
 
 
 __all__ = [
+    "DEFAULT_NOISE_RMS_M",
     "FLAG_FACE_PARTIAL",
     "FLAG_HEAD_LOST",
     "FLAG_HEAD_PARTIAL",
     "FLAG_NEVER",
     "FLAG_NOT_CONVERGED",
+    "FLAG_SHAPE_HELD",
+    "MAX_WEIGHT_STD",
+    "SHAPE_HIDDEN",
+    "SHAPE_UNOBSERVED",
     "FaceOutput",
     "FaceSolver",
     "Observability",

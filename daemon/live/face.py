@@ -16,9 +16,17 @@ not yet captured are simply absent (their output terms contribute nothing). Each
 capture rebuilds the solver and saves the training set (``face.save_training`` or
 ``face.training``).
 
-When the face config lists no facial markers, they are every stream label that is not
-a head marker and that the body rig does not match (``body.calibration.match_markers``:
-its aliases, prefixes, case; a rig marker's name is not a label unless listed).
+Facial markers (``face.markers``): the face config's list, refused at the start (a
+config error, exit 2) when a body rig names one of them: the daemon's rig or the
+config's ``body_rig``. When the config lists none, they are every stream label that
+is not a head marker and that no body rig matches (``body.calibration.match_markers``:
+its aliases, prefixes, case; a rig marker's name is not a label unless listed), and
+the first neutral capture keeps only those on the head's side of the neck.
+
+Shapes the training set's markers cannot observe (``face.observability`` at its
+``noise_rms_m``) are left out of the solve and sent as 0, flagged per shape
+(``FaceOutput.shape_state``; the pose stream's ``RTDS`` message, PROTOCOLS.md §6);
+``ctl status --json`` lists them (``face.unobserved``).
 
 With a neutral but no expression captured yet, the stabilized markers (the "Mug")
 are streamed and no weights are sent (the solver stabilizes; with no expression
@@ -28,23 +36,30 @@ there is nothing to solve).
 from __future__ import annotations
 
 import logging
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from retargetd.daemon.body.calibration import match_markers
-from retargetd.daemon.body.rig import Rig
+from retargetd.daemon.body.rig import Rig, RigError, load_rig
 from retargetd.daemon.face.config import FaceConfig, load_face_config
+from retargetd.daemon.face.markers import (
+    FacialMarkerError,
+    check_listed,
+    on_head_side,
+    select_facial,
+)
 from retargetd.daemon.face.solve import (
     FaceOutput,
     FaceSolver,
     TrainingSet,
     head_layout_from_frames,
     mean_pose,
+    observability,
 )
-from retargetd.daemon.live.config import FaceSectionConfig
+from retargetd.daemon.live.config import ConfigError, FaceSectionConfig
 from retargetd.protocols.frames import F64Array
 
 logger = logging.getLogger(__name__)
@@ -63,6 +78,7 @@ class FaceStage:
         out_matrix: (n_out, K) the output map.
         blend: (n_out,) the output values of the last frame, in [0, 1].
         weights: (K,) view of the solved weights sent in the pose stream.
+        unobserved: the expressions left out of the solve (sent as 0).
     """
 
     solver: FaceSolver
@@ -73,6 +89,7 @@ class FaceStage:
     out_matrix: F64Array
     blend: F64Array
     weights: F64Array
+    unobserved: tuple[str, ...] = ()
 
     def solve(self, markers_world: F64Array, valid: np.ndarray) -> FaceOutput:
         """Solve one frame (no allocation): ``out`` and ``blend`` updated."""
@@ -91,7 +108,8 @@ class LiveFace:
         body_rig: the body's rig: the labels it matches are not facial markers.
 
     Raises:
-        FaceConfigError / ValueError: a bad face config or training file.
+        FaceConfigError / ValueError: a bad face config or training file;
+            ConfigError: a body marker listed as facial (one line naming it).
     """
 
     def __init__(
@@ -100,6 +118,20 @@ class LiveFace:
         self.settings = settings
         self.face: FaceConfig = load_face_config(settings.config)
         self.body_rig = body_rig
+        rigs = [body_rig] if body_rig is not None else []
+        if self.face.body_rig and (
+            body_rig is None or self.face.body_rig != body_rig.name
+        ):
+            try:
+                rigs.append(load_rig(self.face.body_rig))
+            except RigError as exc:
+                raise ConfigError(f"face {self.face.name}: body_rig: {exc}") from None
+        #: The body rigs whose markers are never facial.
+        self.body_rigs: tuple[Rig, ...] = tuple(rigs)
+        try:
+            check_listed(self.face.facial_markers, self.face.head_markers, rigs)
+        except FacialMarkerError as exc:
+            raise ConfigError(f"face {self.face.name}: {exc}") from None
         self.training: TrainingSet | None = None
         if settings.training and Path(settings.training).exists():
             self.training = TrainingSet.load(settings.training)
@@ -111,6 +143,7 @@ class LiveFace:
         self._capture_labels: tuple[str, ...] = ()
         self.captures = 0
         self.last_message = ""
+        self._unobserved_cache: tuple[TrainingSet | None, tuple[str, ...]] = (None, ())
 
     def _check_training(self, t: TrainingSet) -> None:
         if tuple(t.head_names) != self.face.head_markers:
@@ -126,20 +159,17 @@ class LiveFace:
     def facial_markers(self, labels: Sequence[str]) -> tuple[str, ...]:
         """The facial markers for a stream with ``labels`` (training set's when one
         exists, else the config's, else every label that is not a head marker and
-        that the body rig does not match)."""
+        that no body rig matches: ``face.markers.select_facial`` by names; the
+        neck test follows on the first neutral capture)."""
         if self.training is not None:
             return self.training.marker_names
-        if self.face.facial_markers:
-            return self.face.facial_markers
-        head = set(self.face.head_markers)
-        body = (
-            set(match_markers(self.body_rig, labels))
-            if self.body_rig is not None
-            else set()
-        )
-        return tuple(
-            lb for i, lb in enumerate(labels) if lb not in head and i not in body
-        )
+        try:
+            return select_facial(
+                labels, self.face.head_markers, self.face.facial_markers,
+                self.body_rigs, None,
+            )  # fmt: skip
+        except FacialMarkerError:
+            return ()
 
     def stage(self, labels: Sequence[str]) -> FaceStage | None:
         """The solve stage for a stream (None without a training set)."""
@@ -149,11 +179,13 @@ class LiveFace:
         head_w = None
         if tuple(t.head_names) == self.face.head_markers:
             head_w = self.face.head_weights
+        obs = observability(t, regularization=self.settings.regularization)
         solver = FaceSolver(
             t,
             labels=tuple(labels),
             regularization=self.settings.regularization,
             head_weights=head_w,
+            solved=obs.observable,
         )
         out = solver.new_output()
         names = t.expression_names
@@ -170,6 +202,7 @@ class LiveFace:
             out_matrix=self.face.output_matrix(names) if t.k else np.zeros((0, 0)),
             blend=np.zeros(len(outputs)),
             weights=out.weights,
+            unobserved=obs.unobservable,
         )
 
     # ---- live capture ----------------------------------------------------------------
@@ -233,10 +266,21 @@ class LiveFace:
         face = np.stack(self._capture_face)
         self._capture_target = 0
         self._capture_head, self._capture_face = [], []
+        names = self._face_names
+        if self.training is None and not self.face.facial_markers and len(names):
+            # The first neutral: keep the markers on the head's side of the neck.
+            with np.errstate(all="ignore"), warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)
+                up = on_head_side(np.nanmean(head, 0), np.nanmean(face, 0))
+            names = tuple(n for n, k in zip(names, up, strict=True) if k)
+            face = face[:, up]
         try:
-            training = capture_into(
-                self.training, name, head, face, self.face, self._face_names
-            )
+            if not names:
+                raise ValueError(
+                    "no facial markers (every label a head marker, a body rig's "
+                    "or below the neck)"
+                )
+            training = capture_into(self.training, name, head, face, self.face, names)
         except ValueError as exc:
             self.last_message = f"face capture {name!r} failed: {exc}"
             return False, self.last_message
@@ -266,10 +310,24 @@ class LiveFace:
             "trained": t is not None,
             "expressions": list(t.expression_names) if t is not None else [],
             "facial_markers": len(t.marker_names) if t is not None else 0,
+            "unobserved": list(self._unobserved(t)),
+            "noise_mm": 1e3 * t.noise_rms_m if t is not None else None,
             "capturing": self._capture_name if self.capturing else "",
             "captures": self.captures,
             "last_capture": self.last_message,
         }
+
+    def _unobserved(self, t: TrainingSet | None) -> tuple[str, ...]:
+        # Judged once per training set (a few ms of linear algebra), not per status.
+        if t is None:
+            return ()
+        if self._unobserved_cache[0] is not t:
+            reg = self.settings.regularization
+            self._unobserved_cache = (
+                t,
+                observability(t, regularization=reg).unobservable,
+            )
+        return self._unobserved_cache[1]
 
 
 def warm_up() -> None:
@@ -349,4 +407,5 @@ def capture_into(
         head_layout=layout,
         neutral=neutral,
         deltas=np.array([deltas[e] for e in order]).reshape(len(order), m, 3),
+        noise_rms_m=training.noise_rms_m,
     )

@@ -170,6 +170,7 @@ class SendMixin(DaemonState):
             performer=self._perf.name,
             performer_id=self._perf.index,
             bone_humanoid=tuple(b.humanoid or "" for b in self.rig.bones),
+            unobserved=face.unobserved if face is not None else (),
         )
         vmc = VmcEncoder(
             names,
@@ -204,6 +205,11 @@ class SendMixin(DaemonState):
             weights=weights,
             bone_flags=np.zeros(n_bones, dtype=np.uint8),
             face=face,
+            shape_enc=(
+                pose_stream.ShapeStateEncoder(len(weight_names), self._names_id)
+                if face is not None
+                else None
+            ),
             post=self._build_post(),
             spine=spine_stage(self.config.target, self.target, self.rig),
             emit=emit,
@@ -464,6 +470,13 @@ class SendMixin(DaemonState):
             sent_ns = time.monotonic_ns()
             pose_stream.stamp_sent(parts[0], sent_ns)
             self._send_pub(parts, sent_ns)
+            if fo is not None and pipe.shape_enc is not None and self._pub is not None:
+                try:  # per-shape states, right after their pose (not recorded)
+                    self._pub.send(
+                        pipe.shape_enc.encode(frame_id, fo.shape_state), zmq.NOBLOCK
+                    )
+                except zmq.Again:
+                    self.stats.send_drops += 1
         sent_ns = time.monotonic_ns()
         self.stats.frames_out += 1
         if frame is None or stream is None:  # a timer tick: sent, nothing else

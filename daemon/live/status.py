@@ -150,6 +150,7 @@ class StatusMixin(DaemonState):
             )
             + (
                 f" | face head lost {c['face_head_lost']}/{c['face_solved']}"
+                + _unobserved(s["face"])
                 if s["face"] is not None
                 else ""
             )
@@ -160,6 +161,12 @@ class StatusMixin(DaemonState):
                 else ""
             )
         )
+
+
+def _unobserved(face: dict[str, Any]) -> str:
+    """`` unobserved 2 (eyeLookUpLeft eyeWideLeft)``: the shapes left out (issue 32)."""
+    names = face.get("unobserved") or []
+    return f" unobserved {len(names)} ({' '.join(names)})" if names else ""
 
 
 def _post_stages(latency: dict[str, Any]) -> str:

@@ -57,7 +57,11 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
-from retargetd.daemon.face.solve import TrainingSet, head_layout_from_frames
+from retargetd.daemon.face.solve import (
+    TrainingSet,
+    head_layout_from_frames,
+    observability,
+)
 from retargetd.replay.takes import load_take
 
 logger = logging.getLogger(__name__)
@@ -514,6 +518,7 @@ def synth_face_take(
     n_markers: int = 40,
     rate_hz: float = 100.0,
     model: str = "ict",
+    unobservable_still: bool = False,
 ) -> SynthFace:
     """A face model with known weights on the head motion of the PiG walk.
 
@@ -526,6 +531,10 @@ def synth_face_take(
         noise_rms_m: 3-D RMS Gaussian noise, metres, on every marker.
         n_markers: facial markers.
         rate_hz: time base of the weight curves.
+        unobservable_still: the shapes this layout cannot observe
+            (``face.solve.observability`` at 0.5 mm) are not performed (weight 0),
+            as in issue 32's test; otherwise the performer moves them too and their
+            motion, which no marker tells apart, leaks into the shapes solved.
     """
     from scipy.spatial.transform import Rotation
 
@@ -535,7 +544,10 @@ def synth_face_take(
     if n_frames is not None:
         quat, pos = quat[:n_frames], pos[:n_frames]
     n = len(quat)
-    w = synth_weights(rng, n, rate_hz, fm.missing)
+    missing = fm.missing
+    if unobservable_still:
+        missing = (*missing, *observability(training).unobservable)
+    w = synth_weights(rng, n, rate_hz, tuple(dict.fromkeys(missing)))
     face = training.neutral + np.einsum("tk,kmc->tmc", w, training.deltas)
     head = np.broadcast_to(training.head_layout, (n, *training.head_layout.shape))
     local = np.concatenate([head, face], axis=1)

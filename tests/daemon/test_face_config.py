@@ -130,7 +130,8 @@ def _held(k: int, hold: int) -> np.ndarray:
 
 
 def _solve(training: sf.TrainingSet, world: np.ndarray) -> np.ndarray:
-    solver = sf.FaceSolver(training)
+    # As the daemon solves: the shapes the layout cannot observe left out (0).
+    solver = sf.FaceSolver(training, solved=sf.observability(training).observable)
     res = solver.new_output()
     solved = np.zeros((len(world), training.k))
     for i, frame in enumerate(world):
@@ -246,3 +247,144 @@ def test_custom_rig_trained_and_sent_by_its_own_names(tmp_path: Path) -> None:
 def test_face_train_usage_errors(tmp_path: Path) -> None:
     argv = ["face-train", str(tmp_path / "x.c3d"), "--face", "nope", "--poses", "a=1:2"]
     assert main([*argv, "--out", str(tmp_path / "f.npz")]) == 2
+
+
+# ---- issue 32 item 1: facial markers are the config's or the layout's, not the body's
+
+
+def _face_with_body(
+    path: Path, truth: sf.TrainingSet, w: np.ndarray, rng: np.random.Generator
+) -> tuple[list[str], np.ndarray]:
+    # The Plug-in Gait walk's real body markers (its 31 non-head markers, their own
+    # frames) with the synthetic face riding the same frames' head motion, the head
+    # markers in their measured layout; one unnamed marker (a prop on the chest, 6 cm
+    # in front of STRN) that no rig names. 0.5 mm noise; written as a C3D.
+    from retargetd.replay.c3d import write_c3d
+    from retargetd.replay.takes import load_take
+
+    walk = load_take(DATASETS / fs.PIG_WALK)
+    head_cols = [walk.labels.index(n) for n in fs.HEAD_NAMES]
+    complete = np.all(walk.valid[:, head_cols], axis=1)
+    body_names = [n for n in walk.labels if n not in fs.HEAD_NAMES]
+    body = walk.positions[complete][:, [walk.labels.index(n) for n in body_names]]
+    quat, pos = fs.pig_head_motion(DATASETS)
+    assert len(quat) == len(body)
+    n = len(w)
+    t = np.arange(n) % len(quat)
+    face = truth.neutral + np.einsum("tk,kmc->tmc", w, truth.deltas)
+    local = np.concatenate(
+        [np.broadcast_to(truth.head_layout, (n, 4, 3)), face], axis=1
+    )
+    rot = Rotation.from_quat(quat[t], scalar_first=True).as_matrix()
+    head_face = np.einsum("tij,tmj->tmi", rot, local) + pos[t][:, None]
+    prop = body[t][:, [body_names.index("STRN")]] + np.array([0.06, 0.0, 0.0])
+    world = np.concatenate([head_face, body[t], prop], axis=1)
+    world += rng.normal(0.0, 5e-4 / np.sqrt(3.0), world.shape)
+    labels = [*truth.head_names, *truth.marker_names, *body_names, "PROP1"]
+    write_c3d(path, labels, world, 100.0)
+    return body_names, world
+
+
+def test_face_train_keeps_body_markers_out_of_the_face(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A take with a real body (the Plug-in Gait walk's markers) beside a face:
+    ``face-train`` with a preset (``facial_markers = []``) takes the 40 facial
+    markers and none of the 31 body markers (the rig's names) nor the chest prop
+    (below the neck), prints that list and solves as well as a face-only take."""
+    _need_face_data(fs.ICT_DIR)
+    truth = fs.ict_training_set(DATASETS)
+    hold = 20
+    # Ten shapes these 40 markers see, and two they cannot tell from eyeBlinkLeft.
+    extra = ["eyeLookUpLeft", "eyeWideLeft"]
+    names = ["neutral", *truth.expression_names[:10], *extra]
+    cols = [*range(10), *(truth.expression_names.index(e) for e in extra)]
+    w = np.zeros((hold * len(names), truth.k))
+    w[:, cols] = _held(len(cols), hold)
+    take = tmp_path / "body-face.c3d"
+    body_names, world = _face_with_body(take, truth, w, np.random.default_rng(5))
+    assert {"C7", "CLAV", "LSHO", "LANK"} <= set(body_names)
+    poses = ",".join(f"{p}={i * hold}:{(i + 1) * hold}" for i, p in enumerate(names))
+    out = tmp_path / "face.npz"
+    argv = ["face-train", str(take), "--face", "arkit52", "--poses", poses]
+    assert main([*argv, "--out", str(out)]) == 0
+    got = sf.TrainingSet.load(out)
+    assert got.marker_names == truth.marker_names
+    said = capsys.readouterr().out
+    how = "not head markers, not plug-in-gait's, above the neck"
+    assert f"{how}): {' '.join(truth.marker_names)}\n" in said
+    said_unseen = "unobservable with this marker layout (0.5 mm noise): "
+    assert f"{said_unseen}eyeLookUpLeft, eyeWideLeft\n" in said
+    for e in extra:  # which shape each is confused with, and by how much
+        assert re.search(
+            rf"^  {e}: confused with eyeBlinkLeft \(weight correlation \+0\.[89]\d\), "
+            r"weight std 0\.\d\d$",
+            said,
+            flags=re.M,
+        ), said
+    solved = _solve(got, world[:, : 4 + len(truth.marker_names)])
+    assert not solved[:, 10:].any()  # left out: 0 on every frame
+    held = np.array(
+        [np.median(solved[i * hold : (i + 1) * hold], axis=0) for i in range(1, 11)]
+    )
+    np.testing.assert_allclose(held[:, :10], np.eye(10), atol=0.1)
+    # Without the rig, the neck still keeps the chest, arms and legs out; only the
+    # markers at the top of the thorax (C7, the shoulders) reach above the chin's
+    # level: why the rig's names come first.
+    argv_none = [*argv, "--rig", "none", "--out", str(tmp_path / "none.npz")]
+    assert main(argv_none) == 0
+    loose = set(sf.TrainingSet.load(tmp_path / "none.npz").marker_names)
+    assert set(truth.marker_names) <= loose
+    extra = loose - set(truth.marker_names)
+    assert extra and extra <= {"C7", "LSHO", "RSHO", "RBAK"}
+    assert not {"PROP1", "CLAV", "STRN", "LANK", "LASI"} & loose
+
+
+def test_a_body_marker_listed_as_facial_is_one_line_error(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    _need_face_data(fs.ICT_DIR)
+    truth = fs.ict_training_set(DATASETS)
+    take = tmp_path / "body-face.c3d"
+    _face_with_body(take, truth, np.zeros((40, truth.k)), np.random.default_rng(6))
+    config = tmp_path / "mine.toml"
+    facial = ", ".join(f'"{n}"' for n in (*truth.marker_names[:20], "C7"))
+    config.write_text(
+        'head_markers = ["LFHD", "RFHD", "LBHD", "RBHD"]\n'
+        f'body_rig = "plug-in-gait"\nfacial_markers = [{facial}]\n'
+        'expressions = ["jawOpen"]\n'
+    )
+    capsys.readouterr()
+    poses = "neutral=0:20,jawOpen=20:40"
+    argv = ["face-train", str(take), "--face", str(config), "--poses", poses]
+    assert main([*argv, "--out", str(tmp_path / "f.npz")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "C7" in err and "body rig" in err, err
+    assert not (tmp_path / "f.npz").exists()
+    # The same list without C7 trains, and face-train prints it.
+    config.write_text(config.read_text().replace(', "C7"', ""))
+    assert main([*argv, "--out", str(tmp_path / "f.npz")]) == 0
+    said = capsys.readouterr().out
+    assert f"(listed by the face config): {' '.join(truth.marker_names[:20])}\n" in said
+
+
+def test_the_daemon_refuses_a_body_marker_listed_as_facial(tmp_path: Path) -> None:
+    # The daemon's own rig, or the config's body_rig: one line naming the marker,
+    # a ConfigError (``make_daemon`` turns it into exit 2 before any socket opens).
+    from retargetd.daemon.body.rig import load_rig
+    from retargetd.daemon.live.config import ConfigError, FaceSectionConfig
+    from retargetd.daemon.live.face import LiveFace
+
+    config = tmp_path / "mine.toml"
+    config.write_text(
+        'head_markers = ["LFHD", "RFHD", "LBHD", "RBHD"]\n'
+        'facial_markers = ["CHIN", "Sub:lsho"]\nexpressions = ["jawOpen"]\n'
+    )
+    settings = FaceSectionConfig(enabled=True, config=str(config))
+    with pytest.raises(ConfigError, match=r"Sub:lsho is a marker of the body rig"):
+        LiveFace(settings, load_rig("plug-in-gait"))
+    LiveFace(settings)  # no rig named anywhere: nothing to refuse
+    config.write_text(config.read_text() + 'body_rig = "plug-in-gait"\n')
+    with pytest.raises(ConfigError, match="Sub:lsho") as info:
+        LiveFace(settings)
+    assert "\n" not in str(info.value)

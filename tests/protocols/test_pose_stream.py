@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
 import struct
 
@@ -313,3 +314,48 @@ def test_validation_encoder_reuses_its_buffers(rng: np.random.Generator) -> None
         assert (msg.frame_id, msg.flags) == (frame, ps.FRAME_V_SPEED)
         np.testing.assert_array_equal(msg.values, np.float32(values))
         np.testing.assert_array_equal(msg.bone_flags, bones)
+
+
+def test_shape_state_message_round_trip_and_layout() -> None:
+    # Issue 32: per-shape states in their own message; the data message unchanged.
+    enc = ps.ShapeStateEncoder(5, names_id=9)
+    states = np.array([0, ps.SHAPE_UNOBSERVED, ps.SHAPE_HIDDEN, 0, 1], dtype=np.uint8)
+    part = enc.encode(42, states)
+    assert part is enc.part and len(part) == 20 + 8  # 5 states, NUL-padded to 8
+    assert bytes(part[:4]) == ps.SHAPE_MAGIC and bytes(part[25:]) == b"\x00" * 3
+    msg = ps.decode_shape_state(bytes(part))
+    assert (msg.names_id, msg.frame_id) == (9, 42)
+    np.testing.assert_array_equal(msg.states, states)
+    assert ps.FACE_FLAG_BITS["shape_held"] == ps.FACE_SHAPE_HELD.bit_length() - 1
+    assert ps.SHAPE_STATE_BITS == {"unobserved": 0, "hidden": 1}
+    for bad, reason in (
+        (bytes(part)[:-4], "bad_length"),
+        (b"RTDX" + bytes(part)[4:], "bad_magic"),
+        (bytes(part)[:4] + b"\x02\x00" + bytes(part)[6:], "bad_version"),
+        (b"RTDS", "bad_length"),
+    ):
+        with pytest.raises(DecodeError) as info:
+            ps.decode_shape_state(bad)
+        assert info.value.reason == reason
+
+
+def test_names_list_the_unobserved_weights_only_with_a_face() -> None:
+    face = dataclasses.replace(
+        NAMES, face_markers=("F1",), unobserved=("eyeLookUpLeft",)
+    )
+    parts = ps.encode_pose_names(face)
+    doc = json.loads(parts[1])
+    assert doc["unobserved"] == ["eyeLookUpLeft"]
+    assert doc["shape_state_bits"] == {"unobserved": 0, "hidden": 1}
+    assert ps.decode_pose_names(parts) == face
+    assert "unobserved" not in json.loads(ps.encode_pose_names(NAMES)[1])
+    del doc["unobserved"]  # an older sender: nothing unobserved known
+    old = ps.decode_pose_names([parts[0], json.dumps(doc).encode()])
+    assert old.unobserved == () and old.face_markers == ("F1",)
+
+
+@given(st.binary(max_size=100))
+def test_shape_state_decoder_raises_only_decode_error(junk: bytes) -> None:
+    for data in (junk, b"RTDS\x01\x00\x00\x00" + junk):
+        with contextlib.suppress(DecodeError):
+            ps.decode_shape_state(data)

@@ -90,6 +90,15 @@ def test_hex_examples_match_the_encoders() -> None:
         "pose_body": _pose_parts()[1],
         "pose_header_performer": _pose_parts(performer=1)[0],
         "pose_face": _face_part(),
+        "shape_state": bytes(
+            pose_stream.ShapeStateEncoder(3).encode(
+                7,
+                np.array(
+                    [0, pose_stream.SHAPE_UNOBSERVED, pose_stream.SHAPE_HIDDEN],
+                    dtype=np.uint8,
+                ),
+            )
+        ),
         "validation_header": _validation_parts()[0],
         "validation_body": _validation_parts()[1],
         "osc_signed_trailer": osc_auth.sign_datagram(
