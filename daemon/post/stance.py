@@ -43,6 +43,11 @@ from retargetd.daemon import rotations as rot
 from retargetd.daemon.body.calibration import Calibration
 from retargetd.daemon.body.rig import Rig
 from retargetd.protocols.frames import F64Array
+from retargetd.protocols.pose_stream import (
+    FRAME_CONTACT_KNOWN,
+    FRAME_CONTACT_LEFT,
+    FRAME_CONTACT_RIGHT,
+)
 
 #: Detector parameters (SI). Which data chose each and which confirmed it: README
 #: "Foot contact".
@@ -74,9 +79,8 @@ STANCE: dict[str, float] = {
     "cutoff_hz": 6.0,
 }
 
-#: Frame flag bits of :class:`StanceDetector.bits` (the pose stream's FRAME_CONTACT_*
-#: values, repeated here: ``post`` does not depend on the wire module's layout).
-LEFT, RIGHT, KNOWN = 1 << 25, 1 << 26, 1 << 27
+#: The flag bits :meth:`StanceDetector.update` returns (the pose stream's).
+LEFT, RIGHT, KNOWN = FRAME_CONTACT_LEFT, FRAME_CONTACT_RIGHT, FRAME_CONTACT_KNOWN
 _Y = np.array([0.0, 1.0, 0.0])
 _SIDES = (("LeftFoot", "LeftToes"), ("RightFoot", "RightToes"))
 
@@ -87,6 +91,7 @@ class _Foot:
     offsets: F64Array  # (len(chain), 3): each chain bone's origin in its parent frame
     points: tuple[tuple[int, float], ...]  # (bone, length): a point at its aim; -1 L
     rest_z: F64Array  # (P,) calibrated height of each point
+    heel: F64Array | None = None  # (3,) the heel in the foot bone's frame
 
 
 def _feet(rig: Rig, cal: Calibration) -> tuple[_Foot, ...]:
@@ -124,7 +129,14 @@ def _feet(rig: Rig, cal: Calibration) -> tuple[_Foot, ...]:
             pts.append((t, float(lengths[t])))
         plan = _Foot(tuple(chain), offsets, tuple(pts), np.zeros(len(pts)))
         rest = foot_points(plan, origin[chain[0]], wfb)[:, 2]
-        feet.append(_Foot(plan.chain, offsets, plan.points, rest))
+        # The heel: under the ankle at the level of the foot's lowest point in the
+        # calibration (feet flat on the floor), fixed in the foot bone; the point
+        # Ghoussayni's foot-strike threshold is applied to.
+        drop = np.array([0.0, 0.0, rest.min() - rest[0]])
+        heel = rot.quat_rotate(rot.quat_conj(wfb[foot]), drop)
+        plan = _Foot(plan.chain, offsets, plan.points, rest, heel)
+        rest = foot_points(plan, origin[chain[0]], wfb)[:, 2]
+        feet.append(_Foot(plan.chain, offsets, plan.points, rest, heel))
     return tuple(feet)
 
 
@@ -134,9 +146,13 @@ def foot_points(foot: _Foot, root_pos: F64Array, wfb: F64Array) -> F64Array:
     for k in range(1, len(foot.chain)):
         b, p = foot.chain[k], foot.chain[k - 1]
         origins[b] = origins[p] + rot.quat_rotate(wfb[p], foot.offsets[k])
-    out = np.empty((len(foot.points), 3))
+    n = len(foot.points)
+    out = np.empty((n + (foot.heel is not None), 3))
     for i, (b, ln) in enumerate(foot.points):
         out[i] = origins[b] if ln < 0 else origins[b] + rot.quat_rotate(wfb[b], ln * _Y)
+    if foot.heel is not None:
+        b = foot.points[0][0]
+        out[n] = origins[b] + rot.quat_rotate(wfb[b], foot.heel)
     return out
 
 
@@ -153,7 +169,7 @@ class StanceDetector:
         self.support = [0.0, 0.0]
         self._still = [0.0, 0.0]
         self._prev: list[F64Array | None] = [None, None]
-        self._vel = [np.zeros((len(f.points), 3)) for f in self.feet]
+        self._vel = [np.zeros((len(f.rest_z), 3)) for f in self.feet]
 
     @property
     def known(self) -> bool:
@@ -189,14 +205,16 @@ class StanceDetector:
             if prev is None or not dt > 0.0:
                 vel[:] = 0.0
                 self._still[s] = 0.0
+                speed = np.zeros(len(pts))
             else:
+                raw = (pts - prev) / dt
+                speed = np.sqrt((raw * raw).sum(axis=1))
                 alpha = dt / (dt + 1.0 / (2.0 * math.pi * p["cutoff_hz"]))
-                vel += alpha * ((pts - prev) / dt - vel)
+                vel += alpha * (raw - vel)
             self._prev[s] = pts
-            speed = np.sqrt((vel * vel).sum(axis=1))
             level = pts[:, 2] - foot.rest_z
             h = level - self.support[s]
-            slowest = float(speed.min())
+            slowest = float(np.sqrt((vel * vel).sum(axis=1)).min())
             if prev is not None and dt > 0.0:
                 if slowest < p["still_speed_m_s"]:
                     self._still[s] += dt
