@@ -16,8 +16,13 @@ height is its height when standing; ``h = z - z_rest - s`` is its height above t
 with ``s`` the foot's support level: 0 (the calibration's floor) until the foot stops
 somewhere else (a step, a riser), then that level.
 
-Speed. Each point's velocity is the frame-to-frame difference smoothed by a one-pole
-low-pass at :data:`STANCE` ``cutoff_hz`` (causal; what the live loop can do).
+Speed. Each point's frame-to-frame speed for the on/off thresholds (they sit far above
+the solve's noise: a causal low-pass would delay each strike by its lag, 30-40 ms on the
+PiG walk); the stop-at-any-height rule, whose speed is near the noise, uses the speed
+low-passed by a one-pole filter at :data:`STANCE` ``cutoff_hz`` (causal).
+
+One frame is one compiled call (:func:`_step`, numba, nothing allocated), on state the
+detector owns.
 
 Contact (with hysteresis: two speeds, after the foot-velocity algorithms):
 
@@ -35,13 +40,13 @@ foot bone does not move, so it reads as standing.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import numpy as np
 
 from retargetd.daemon import rotations as rot
 from retargetd.daemon.body.calibration import Calibration
 from retargetd.daemon.body.rig import Rig
+from retargetd.daemon.compiled import direct, kernel
 from retargetd.protocols.frames import F64Array
 from retargetd.protocols.pose_stream import (
     FRAME_CONTACT_KNOWN,
@@ -74,85 +79,177 @@ STANCE: dict[str, float] = {
     # still_s is twice that.
     "still_speed_m_s": 0.20,
     "still_s": 0.082,
-    # Velocity low-pass, Hz: Winter's ~6 Hz for gait kinematics (Winter 2009,
-    # Biomechanics and Motor Control of Human Movement, 4th ed., ch. 2).
+    # Low-pass of the stillness speed, Hz: Winter's ~6 Hz for gait kinematics
+    # (Winter 2009, Biomechanics and Motor Control of Human Movement, 4th ed., ch. 2).
     "cutoff_hz": 6.0,
 }
+_PARAMS = ("on_speed_m_s", "off_speed_m_s", "near_m", "still_speed_m_s", "still_s")
 
 #: The flag bits :meth:`StanceDetector.update` returns (the pose stream's).
 LEFT, RIGHT, KNOWN = FRAME_CONTACT_LEFT, FRAME_CONTACT_RIGHT, FRAME_CONTACT_KNOWN
-_Y = np.array([0.0, 1.0, 0.0])
 _SIDES = (("LeftFoot", "LeftToes"), ("RightFoot", "RightToes"))
+_MAX_POINTS = 4  # ankle, forefoot (the foot's aim), toe tip (a toes bone), heel
+# State columns per foot: has history, seconds still, support level, contact.
+_HAS, _STILL, _SUPPORT, _CONTACT = 0, 1, 2, 3
 
 
-@dataclass(frozen=True, slots=True)
-class _Foot:
-    chain: tuple[int, ...]  # bone indices root .. foot bone (.. toes bone)
-    offsets: F64Array  # (len(chain), 3): each chain bone's origin in its parent frame
-    points: tuple[tuple[int, float], ...]  # (bone, length): a point at its aim; -1 L
-    rest_z: F64Array  # (P,) calibrated height of each point
-    heel: F64Array | None = None  # (3,) the heel in the foot bone's frame
+class _Plan:
+    """Both feet's chains (root .. foot bone), each bone's origin in its parent's
+    rest frame, and the points: (bone, offset in that bone's frame), rest height."""
+
+    def __init__(self, rig: Rig, cal: Calibration) -> None:
+        parents = [int(p) for p in cal.bone_parents]
+        names = list(cal.bone_names)
+        wfb = np.asarray(cal.rest_world_from_bone_quat, dtype=np.float64)
+        origin = np.asarray(cal.rest_bone_origin_pos, dtype=np.float64)
+        lengths = np.asarray(cal.bone_lengths, dtype=np.float64)
+        chains: list[list[int]] = []
+        points: list[list[tuple[int, F64Array]]] = []
+        for foot_name, toes_name in _SIDES:
+            b = names.index(rig.humanoid[foot_name])
+            chain: list[int] = []
+            while b >= 0:
+                chain.insert(0, b)
+                b = parents[b]
+            foot = chain[-1]
+            pts = [(foot, np.zeros(3)), (foot, np.array([0.0, lengths[foot], 0.0]))]
+            toes = rig.humanoid.get(toes_name)
+            if toes is not None and parents[names.index(toes)] == foot:
+                t = names.index(toes)
+                chain.append(t)
+                pts.append((t, np.array([0.0, lengths[t], 0.0])))
+            chains.append(chain)
+            points.append(pts)
+        n_chain = max(len(c) for c in chains)
+        self.chain = np.full((2, n_chain), -1, dtype=np.int64)
+        self.chain_len = np.array([len(c) for c in chains], dtype=np.int64)
+        self.offset = np.zeros((2, n_chain, 3))
+        self.pt_link = np.zeros((2, _MAX_POINTS), dtype=np.int64)  # index in chain
+        self.pt_local = np.zeros((2, _MAX_POINTS, 3))
+        self.n_pts = np.zeros(2, dtype=np.int64)
+        self.rest_z = np.zeros((2, _MAX_POINTS))
+        for s, (chain, pts) in enumerate(zip(chains, points, strict=True)):
+            self.chain[s, : len(chain)] = chain
+            for k in range(1, len(chain)):
+                c, p = chain[k], chain[k - 1]
+                self.offset[s, k] = rot.quat_rotate(
+                    rot.quat_conj(wfb[p]), origin[c] - origin[p]
+                )
+            for i, (b, local) in enumerate(pts):
+                self.pt_link[s, i] = chain.index(b)
+                self.pt_local[s, i] = local
+            rest = [(origin[b] + rot.quat_rotate(wfb[b], local))[2] for b, local in pts]
+            # The heel: under the ankle at the level of the foot's lowest point in
+            # the calibration (feet flat on the floor), fixed in the foot bone; the
+            # point Ghoussayni's foot-strike threshold is applied to.
+            foot = pts[0][0]  # the ankle's bone
+            drop = np.array([0.0, 0.0, min(rest) - rest[0]])
+            n = len(pts)
+            self.pt_link[s, n] = chain.index(foot)
+            self.pt_local[s, n] = rot.quat_rotate(rot.quat_conj(wfb[foot]), drop)
+            self.n_pts[s] = n + 1
+            self.rest_z[s, :n] = rest
+            self.rest_z[s, n] = min(rest)
 
 
-def _feet(rig: Rig, cal: Calibration) -> tuple[_Foot, ...]:
-    """The two feet's chains and points; () when the rig maps no LeftFoot/RightFoot."""
-    if cal.rest_bone_origin_pos is None:
-        return ()
-    parents = [int(p) for p in cal.bone_parents]
-    names = list(cal.bone_names)
-    wfb = np.asarray(cal.rest_world_from_bone_quat, dtype=np.float64)
-    origin = np.asarray(cal.rest_bone_origin_pos, dtype=np.float64)
-    lengths = np.asarray(cal.bone_lengths, dtype=np.float64)
-    feet = []
-    for foot_name, toes_name in _SIDES:
-        if foot_name not in rig.humanoid:
-            return ()
-        b = names.index(rig.humanoid[foot_name])
-        chain: list[int] = []
-        while b >= 0:
-            chain.insert(0, b)
-            b = parents[b]
-        offsets = np.zeros((len(chain), 3))
-        for k in range(1, len(chain)):
-            c, p = chain[k], chain[k - 1]
-            offsets[k] = rot.quat_rotate(rot.quat_conj(wfb[p]), origin[c] - origin[p])
-        foot = chain[-1]
-        pts = [(foot, -1.0), (foot, float(lengths[foot]))]
-        toes = rig.humanoid.get(toes_name)
-        if toes is not None and parents[names.index(toes)] == foot:
-            t = names.index(toes)
-            toe_off = rot.quat_rotate(
-                rot.quat_conj(wfb[foot]), origin[t] - origin[foot]
+@kernel(inline="always")
+def _rotate(
+    q: np.ndarray, b: int, vx: float, vy: float, vz: float
+) -> tuple[float, float, float]:  # pragma: no cover - compiled
+    """q[b] (w x y z, unit) applied to v: v + 2 w (u x v) + 2 u x (u x v)."""
+    w, x, y, z = q[b, 0], q[b, 1], q[b, 2], q[b, 3]
+    cx = y * vz - z * vy
+    cy = z * vx - x * vz
+    cz = x * vy - y * vx
+    return (
+        vx + 2.0 * (w * cx + y * cz - z * cy),
+        vy + 2.0 * (w * cy + z * cx - x * cz),
+        vz + 2.0 * (w * cz + x * cy - y * cx),
+    )
+
+
+@kernel
+def _step(
+    root_pos: np.ndarray,  # (3,)
+    wfb: np.ndarray,  # (B, 4)
+    dt: float,
+    chain: np.ndarray,  # (2, C) int64
+    chain_len: np.ndarray,  # (2,) int64
+    offset: np.ndarray,  # (2, C, 3)
+    pt_link: np.ndarray,  # (2, P) int64
+    pt_local: np.ndarray,  # (2, P, 3)
+    n_pts: np.ndarray,  # (2,) int64
+    rest_z: np.ndarray,  # (2, P)
+    params: np.ndarray,  # (6,) _PARAMS, then the low-pass time constant, s
+    origins: np.ndarray,  # (2, C, 3) scratch
+    prev: np.ndarray,  # (2, P, 3) state: last frame's points
+    vel: np.ndarray,  # (2, P, 3) state: low-passed velocity
+    state: np.ndarray,  # (2, 4) state: _HAS, _STILL, _SUPPORT, _CONTACT
+) -> int:  # pragma: no cover - compiled
+    """One frame of both feet (module docstring); returns the contact bits 0-1."""
+    on_v, off_v, near_m, still_v, still_s, tau = (
+        params[0], params[1], params[2], params[3], params[4], params[5],
+    )  # fmt: skip
+    out = 0
+    for s in range(2):
+        for k in range(3):
+            origins[s, 0, k] = root_pos[k]
+        for j in range(1, chain_len[s]):
+            p = chain[s, j - 1]
+            rx, ry, rz = _rotate(
+                wfb, p, offset[s, j, 0], offset[s, j, 1], offset[s, j, 2]
             )
-            offsets = np.vstack([offsets, toe_off])
-            chain.append(t)
-            pts.append((t, float(lengths[t])))
-        plan = _Foot(tuple(chain), offsets, tuple(pts), np.zeros(len(pts)))
-        rest = foot_points(plan, origin[chain[0]], wfb)[:, 2]
-        # The heel: under the ankle at the level of the foot's lowest point in the
-        # calibration (feet flat on the floor), fixed in the foot bone; the point
-        # Ghoussayni's foot-strike threshold is applied to.
-        drop = np.array([0.0, 0.0, rest.min() - rest[0]])
-        heel = rot.quat_rotate(rot.quat_conj(wfb[foot]), drop)
-        plan = _Foot(plan.chain, offsets, plan.points, rest, heel)
-        rest = foot_points(plan, origin[chain[0]], wfb)[:, 2]
-        feet.append(_Foot(plan.chain, offsets, plan.points, rest, heel))
-    return tuple(feet)
-
-
-def foot_points(foot: _Foot, root_pos: F64Array, wfb: F64Array) -> F64Array:
-    """(P, 3) a foot's points posed from one frame's root position and rotations."""
-    origins = {foot.chain[0]: np.asarray(root_pos, dtype=np.float64)}
-    for k in range(1, len(foot.chain)):
-        b, p = foot.chain[k], foot.chain[k - 1]
-        origins[b] = origins[p] + rot.quat_rotate(wfb[p], foot.offsets[k])
-    n = len(foot.points)
-    out = np.empty((n + (foot.heel is not None), 3))
-    for i, (b, ln) in enumerate(foot.points):
-        out[i] = origins[b] if ln < 0 else origins[b] + rot.quat_rotate(wfb[b], ln * _Y)
-    if foot.heel is not None:
-        b = foot.points[0][0]
-        out[n] = origins[b] + rot.quat_rotate(wfb[b], foot.heel)
+            origins[s, j, 0] = origins[s, j - 1, 0] + rx
+            origins[s, j, 1] = origins[s, j - 1, 1] + ry
+            origins[s, j, 2] = origins[s, j - 1, 2] + rz
+        fresh = state[s, _HAS] == 0.0 or not dt > 0.0
+        alpha = 0.0 if fresh else dt / (dt + tau)
+        slowest = math.inf
+        lowest = math.inf
+        any_on = False
+        any_hold = False
+        for i in range(n_pts[s]):
+            j = pt_link[s, i]
+            b = chain[s, j]
+            rx, ry, rz = _rotate(
+                wfb, b, pt_local[s, i, 0], pt_local[s, i, 1], pt_local[s, i, 2]
+            )
+            px = origins[s, j, 0] + rx
+            py = origins[s, j, 1] + ry
+            pz = origins[s, j, 2] + rz
+            speed = 0.0
+            if fresh:
+                vel[s, i, 0] = vel[s, i, 1] = vel[s, i, 2] = 0.0
+            else:
+                dx = (px - prev[s, i, 0]) / dt
+                dy = (py - prev[s, i, 1]) / dt
+                dz = (pz - prev[s, i, 2]) / dt
+                speed = math.sqrt(dx * dx + dy * dy + dz * dz)
+                vel[s, i, 0] += alpha * (dx - vel[s, i, 0])
+                vel[s, i, 1] += alpha * (dy - vel[s, i, 1])
+                vel[s, i, 2] += alpha * (dz - vel[s, i, 2])
+            prev[s, i, 0], prev[s, i, 1], prev[s, i, 2] = px, py, pz
+            v = vel[s, i]
+            slowest = min(slowest, math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]))
+            level = pz - rest_z[s, i]
+            lowest = min(lowest, level)
+            if level - state[s, _SUPPORT] < near_m:
+                any_on = any_on or speed < on_v
+                any_hold = any_hold or speed < off_v
+        if fresh:
+            state[s, _STILL] = 0.0
+        elif slowest < still_v:
+            state[s, _STILL] += dt
+        else:
+            state[s, _STILL] = 0.0
+        state[s, _HAS] = 1.0
+        still = state[s, _STILL] >= still_s
+        if still:  # stopped here: this is the foot's support now
+            state[s, _SUPPORT] = lowest
+        on = still or (any_hold if state[s, _CONTACT] != 0.0 else any_on)
+        state[s, _CONTACT] = 1.0 if on else 0.0
+        if on:
+            out |= 1 << s
     return out
 
 
@@ -162,77 +259,58 @@ class StanceDetector:
     def __init__(
         self, rig: Rig, calibration: Calibration, params: dict[str, float] | None = None
     ) -> None:
-        self.p = {**STANCE, **(params or {})}
-        self.feet = _feet(rig, calibration)
-        self.contact = [False, False]
-        #: Each foot's support level above the calibration's floor, metres.
-        self.support = [0.0, 0.0]
-        self._still = [0.0, 0.0]
-        self._prev: list[F64Array | None] = [None, None]
-        self._vel = [np.zeros((len(f.rest_z), 3)) for f in self.feet]
+        p = {**STANCE, **(params or {})}
+        self.known = calibration.rest_bone_origin_pos is not None and all(
+            f in rig.humanoid for f, _ in _SIDES
+        )
+        """Whether the rig maps both feet (else the contact is never set)."""
+        self._plan = _Plan(rig, calibration) if self.known else None
+        tau = 1.0 / (2.0 * math.pi * p["cutoff_hz"])
+        self._params = np.array([*(p[k] for k in _PARAMS), tau])
+        n_chain = self._plan.chain.shape[1] if self._plan is not None else 1
+        self._origins = np.zeros((2, n_chain, 3))
+        self._prev = np.zeros((2, _MAX_POINTS, 3))
+        self._vel = np.zeros((2, _MAX_POINTS, 3))
+        self._state = np.zeros((2, 4))
+        self._call: object = _step
 
     @property
-    def known(self) -> bool:
-        """Whether the rig maps both feet (else the contact is never set)."""
-        return bool(self.feet)
+    def contact(self) -> tuple[bool, bool]:
+        """Left and right foot in contact after the last frame."""
+        return bool(self._state[0, _CONTACT]), bool(self._state[1, _CONTACT])
+
+    @property
+    def support(self) -> tuple[float, float]:
+        """Each foot's support level above the calibration's floor, metres."""
+        return float(self._state[0, _SUPPORT]), float(self._state[1, _SUPPORT])
 
     def reset(self) -> None:
         """Forget the history (a new stream): the next frame starts afresh."""
-        self.contact = [False, False]
-        self.support = [0.0, 0.0]
-        self._still = [0.0, 0.0]
-        self._prev = [None, None]
+        self._state[:] = 0.0
 
     def update(
         self, root_pos: F64Array, world_from_bone_quat: F64Array, dt: float
     ) -> int:
-        """Advance one frame; returns the flag bits (LEFT, RIGHT, KNOWN).
+        """Advance one frame; returns the pose stream's flag bits (LEFT, RIGHT, KNOWN).
 
         Args:
-            root_pos: (3,) metres, world.
-            world_from_bone_quat: (B, 4) w x y z.
+            root_pos: (3,) float64 metres, world.
+            world_from_bone_quat: (B, 4) float64 w x y z.
             dt: seconds since the previous frame (0 or less: no history, e.g. the
                 first frame).
         """
-        if not self.feet:
+        plan = self._plan
+        if plan is None:
             return 0
-        p = self.p
-        bits = KNOWN
-        for s, foot in enumerate(self.feet):
-            pts = foot_points(foot, root_pos, world_from_bone_quat)
-            prev = self._prev[s]
-            vel = self._vel[s]
-            if prev is None or not dt > 0.0:
-                vel[:] = 0.0
-                self._still[s] = 0.0
-                speed = np.zeros(len(pts))
-            else:
-                raw = (pts - prev) / dt
-                speed = np.sqrt((raw * raw).sum(axis=1))
-                alpha = dt / (dt + 1.0 / (2.0 * math.pi * p["cutoff_hz"]))
-                vel += alpha * (raw - vel)
-            self._prev[s] = pts
-            level = pts[:, 2] - foot.rest_z
-            h = level - self.support[s]
-            slowest = float(np.sqrt((vel * vel).sum(axis=1)).min())
-            if prev is not None and dt > 0.0:
-                if slowest < p["still_speed_m_s"]:
-                    self._still[s] += dt
-                else:
-                    self._still[s] = 0.0
-            still = self._still[s] >= p["still_s"]
-            if still:  # stopped here: this is the foot's support now
-                self.support[s] = float(level.min())
-                h = level - self.support[s]
-            near = h < p["near_m"]
-            if self.contact[s]:
-                on = still or bool(np.any(near & (speed < p["off_speed_m_s"])))
-            else:
-                on = still or bool(np.any(near & (speed < p["on_speed_m_s"])))
-            self.contact[s] = on
-            if on:
-                bits |= LEFT if s == 0 else RIGHT
-        return bits
+        args = (
+            root_pos, world_from_bone_quat, float(dt), plan.chain, plan.chain_len,
+            plan.offset, plan.pt_link, plan.pt_local, plan.n_pts, plan.rest_z,
+            self._params, self._origins, self._prev, self._vel, self._state,
+        )  # fmt: skip
+        if self._call is _step:  # the compiled entry point once it exists
+            self._call = direct(_step, *args)
+        bits: int = self._call(*args)  # type: ignore[operator]
+        return KNOWN | (LEFT if bits & 1 else 0) | (RIGHT if bits & 2 else 0)
 
 
 def foot_contact(
@@ -244,13 +322,15 @@ def foot_contact(
 ) -> np.ndarray:
     """(T, 2) bool, left and right foot in contact per frame of a solved take: the
     live detector run over the frames at ``rate_hz`` (``retargetd solve``'s
-    ``foot_contact``)."""
+    ``foot_contact``; all False when the rig maps no LeftFoot/RightFoot)."""
     det = StanceDetector(rig, calibration)
-    n = root_pos.shape[0]
+    root = np.ascontiguousarray(root_pos, dtype=np.float64)
+    wfb = np.ascontiguousarray(world_from_bone_quat, dtype=np.float64)
+    n = root.shape[0]
     out = np.zeros((n, 2), dtype=bool)
     dt = 1.0 / rate_hz
     for t in range(n):
-        bits = det.update(root_pos[t], world_from_bone_quat[t], dt if t else 0.0)
+        bits = det.update(root[t], wfb[t], dt if t else 0.0)
         out[t, 0] = bool(bits & LEFT)
         out[t, 1] = bool(bits & RIGHT)
     return out

@@ -132,7 +132,7 @@ def test_every_shipped_rig_with_feet_has_a_detector(name: str) -> None:
     rig = load_rig(name)
     cal = calibrate(rig, take.markers_world, take.labels)
     det = StanceDetector(rig, cal)
-    assert det.known and len(det.feet) == 2
+    assert det.known
     solver = make_body_solver("construction", rig, cal, take.labels)
     res = solver.solve_take(take.markers_world)
     bits = [
