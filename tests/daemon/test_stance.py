@@ -50,11 +50,14 @@ def _timing_ms(truth: np.ndarray, found: np.ndarray) -> np.ndarray:
 
 
 @functools.cache
-def _jump(steps: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _jump(steps: bool, noise_mm: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(truth (T, 2), detected (T, 2), surface height (T,)) of synthetic jumps in
     place (menache rig and markers), with ``steps`` each jump landing one riser
-    higher (the performer lifted by ``STEP_M`` at the middle of each flight)."""
-    take = pf.synthesize(seconds=9.0, rate_hz=RATE_HZ, motions=("jump",), seed=2)
+    higher (the performer lifted by ``STEP_M`` at the middle of each flight), the
+    markers with ``noise_mm`` of Gaussian noise."""
+    take = pf.synthesize(
+        seconds=9.0, rate_hz=RATE_HZ, motions=("jump",), seed=2, noise_mm=noise_mm
+    )
     skel = make_skeleton(take.height_m)
     seg, pts = skel.sole_segments, skel.sole_points
     sole = take.joint_pos_world[:, seg] + rot.quat_rotate(
@@ -89,21 +92,26 @@ def _jump(steps: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return truth, found, surface
 
 
-@pytest.mark.parametrize("steps", [False, True], ids=["floor", "stairs"])
-def test_jump_flight_is_no_contact(steps: bool) -> None:
+@pytest.mark.parametrize(
+    ("steps", "noise_mm"),
+    [(False, 0.0), (False, 1.0), (True, 0.0)],
+    ids=["floor", "floor-noise-1mm", "stairs"],
+)
+def test_jump_flight_is_no_contact(steps: bool, noise_mm: float) -> None:
     """Countermovement jumps: detected contact agrees with the truth on >= 95 % of
     frames per foot, every flight is seen (no contact through its middle), every
     take-off and landing within 50 ms; ``stairs``: each jump lands a riser higher, so
     the contact is at 0.17, 0.34, 0.51 m, where the calibrated floor is not (found
-    once the foot has stopped there: within 150 ms)."""
-    truth, found, surface = _jump(steps)
+    once the foot has stopped there: within 150 ms); with 1 mm of marker noise too."""
+    truth, found, surface = _jump(steps, noise_mm)
     for k in range(2):
         agree = float((truth[:, k] == found[:, k]).mean())
         on_t, off_t = _events(truth[:, k])
         on_f, off_f = _events(found[:, k])
         err = np.concatenate([_timing_ms(on_t, on_f), _timing_ms(off_t, off_f)])
         print(
-            f"jump {'stairs' if steps else 'floor'} foot {'LR'[k]}: agree "
+            f"jump {'stairs' if steps else 'floor'} noise {noise_mm} mm foot "
+            f"{'LR'[k]}: agree "
             f"{agree:.3f}, {on_t.size} landings {off_t.size} take-offs, timing "
             f"median {np.median(err):.0f} ms max {err.max():.0f} ms"
         )
