@@ -6,8 +6,9 @@ every solved frame before the post stages) and ``retargetd solve`` (the NPZ's
 
 Foot points. The humanoid ``LeftFoot``/``RightFoot`` bones (every shipped rig maps
 them): the foot bone's origin (the ankle) and its aim (the forefoot marker or point the
-rig aims it at), and the toes bone's aim when the rig maps ``LeftToes``/``RightToes``.
-They are posed from the solved world rotations, the root position and the calibrated
+rig aims it at), the toes bone's aim when the rig maps ``LeftToes``/``RightToes``, and
+a heel, under the ankle at the level of the foot's lowest point in the calibration. They
+are posed from the solved world rotations, the root position and the calibrated
 rest offsets (``origin_b = origin_p + wfb_p * offset_b``, ``aim_b = origin_b + wfb_b *
 (0, L_b, 0)``), so any solver's output (the joint centres need not name them) works.
 
