@@ -95,6 +95,14 @@ FRAME_FLAG_BITS = {
     "reseeded": 5, "unexplained": 6, "unseen": 7, "calibration_mismatch": 24,
 }  # fmt: skip
 
+# Foot contact (issue 34), bits 25-27: stance detected from the solve, per foot
+# (daemon/post/stance.py); CONTACT_KNOWN says the detector runs (the rig maps
+# LeftFoot and RightFoot): without it bits 25-26 are 0 and mean nothing.
+FRAME_CONTACT_LEFT = 1 << 25  # the left foot is on the ground (or on a step)
+FRAME_CONTACT_RIGHT = 1 << 26  # the right foot is on the ground (or on a step)
+FRAME_CONTACT_KNOWN = 1 << 27  # contact detected for this frame (bits 25-26 valid)
+FRAME_FLAG_BITS.update(contact_left=25, contact_right=26, contact_known=27)
+
 # Validation frame bits (8-15), set by the daemon's live validator (``[validate]``):
 # one per check, in this order; VALIDATION_CHECKS names them.
 FRAME_V_CONVENTION = 1 << 8  # model posed from the chain != streamed skeleton

@@ -228,6 +228,13 @@ def run(args: argparse.Namespace) -> int:
     started = time.perf_counter()
     res = solve_take_progress(solver, take.positions, quiet=args.quiet)
     solve_s = time.perf_counter() - started
+    # Stance from the solve, before any post stage: the live daemon's detector on the
+    # same frames (post/stance.py), so the NPZ's contacts are the stream's.
+    from retargetd.daemon.post.stance import foot_contact
+
+    contact = foot_contact(
+        rig, cal, res.root_pos, res.world_from_bone_quat, take.rate_hz
+    )
     kinds: tuple[str, ...] = ()
     n_filled = None
     if args.fill_gaps is not None:
@@ -268,6 +275,7 @@ def run(args: argparse.Namespace) -> int:
             bone_lengths=res.bone_lengths,
             bone_quality=res.bone_quality,
             bone_flags=res.bone_flags,
+            foot_contact=contact,
             rate_hz=np.float64(take.rate_hz),
             world_from_capture=np.asarray(take.world_from_capture, dtype=np.float64),
             first_frame=np.int64(take.first_frame),

@@ -29,6 +29,7 @@ from retargetd.daemon.live.state import DaemonState, Pipeline
 from retargetd.daemon.post.pipeline import build_pipeline
 from retargetd.daemon.post.pivot import SpinePivot
 from retargetd.daemon.post.solve_post import SolvePost
+from retargetd.daemon.post.stance import StanceDetector
 from retargetd.daemon.target.retarget import (
     Retargeter,
 )
@@ -213,6 +214,7 @@ class SendMixin(DaemonState):
             post=self._build_post(),
             spine=spine_stage(self.config.target, self.target, self.rig),
             emit=emit,
+            stance=StanceDetector(self.rig, self.calibration),
         )
 
     def _build_post(self) -> SolvePost | None:
@@ -256,9 +258,8 @@ class SendMixin(DaemonState):
             or window.calibration is not perf.calibration
         ):
             self._check_calibration_match(window, pipe, frame, received_ns)
-        pose = pipe.solver.solve_frame(
-            frame.markers_world, pipe.pose, self._frame_dt_s(pipe, frame, received_ns)
-        )
+        dt = self._frame_dt_s(pipe, frame, received_ns)
+        pose = pipe.solver.solve_frame(frame.markers_world, pipe.pose, dt)
         fit_bits = pose.frame_flags
         if fit_bits:
             if fit_bits & pose_stream.FRAME_UNSEEN:
@@ -278,6 +279,10 @@ class SendMixin(DaemonState):
                 self.stats.unexplained += 1
             if fit_bits & pose_stream.FRAME_RESEEDED:
                 self.stats.reseeded += 1
+        if pipe.stance is not None:  # on the solve, before the post stages (as solve)
+            pipe.stance_bits = pipe.stance.update(
+                pose.root_pos, pose.world_from_bone_quat, dt
+            )
         post = pipe.post
         source_t = frame.source_time_s
         frame_id, arrival_ns = frame.frame_id, received_ns
@@ -419,6 +424,7 @@ class SendMixin(DaemonState):
             | perf.match_flags  # calibration_mismatch, from the first second on
             | pose.frame_flags  # the fit's reseeded and unexplained bits
             | (pose_stream.FRAME_HELD if pose.n_held else 0)
+            | pipe.stance_bits  # foot contact (FRAME_CONTACT_*)
         )
         perf.frame_flags = 0
         validator = perf.validator

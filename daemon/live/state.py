@@ -38,6 +38,7 @@ from retargetd.daemon.live.surface import CurveGuard
 from retargetd.daemon.live.watch import SocketWatch
 from retargetd.daemon.post.pivot import SpinePivot
 from retargetd.daemon.post.solve_post import SolvePost
+from retargetd.daemon.post.stance import StanceDetector
 from retargetd.protocols import pose_stream
 from retargetd.protocols.marker_input import MarkerStream
 from retargetd.protocols.osc_auth import DatagramVerifier
@@ -70,6 +71,8 @@ class Pipeline:
     tick_source_clock: bool = True  # resampled ticks' times are the source's clock
     spine: SpinePivot | None = None  # [target] spine = "pivot", after the retarget
     emit: EmitPlan | None = None  # the one compiled call per frame (live/emit.py)
+    stance: StanceDetector | None = None  # foot contact (post/stance.py)
+    stance_bits: int = 0  # its FRAME_CONTACT_* bits for the latest solved frame
     # the last solved frame's source time, frame number and receive time (the fit's
     # frame time, SendMixin._frame_dt_s)
     last_times: tuple[float, int, int] = (math.nan, -1, 0)

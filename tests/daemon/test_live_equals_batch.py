@@ -43,7 +43,9 @@ from retargetd.daemon.body.calibration import load_calibration
 from retargetd.daemon.body.rig import load_rig
 from retargetd.daemon.body.solve import BodySolve, BodySolver
 from retargetd.daemon.cli.main import main
+from retargetd.daemon.post.stance import foot_contact
 from retargetd.daemon.rotations import quat_angle, quat_conj, quat_mul
+from retargetd.protocols import pose_stream as ps
 from retargetd.replay.take import Take
 from retargetd.replay.takes import load_take
 
@@ -186,3 +188,20 @@ def test_live_pose_stream_equals_batch_solve(
     assert (dots > 0).all()
     np.testing.assert_allclose(live_root, batch.root_pos, rtol=0, atol=1e-6)
     np.testing.assert_array_equal(live_flags, batch.bone_flags)
+    # Foot contact (issue 34): the stream's bits are solve's foot_contact, frame for
+    # frame (the same detector on the same solve, at the take's clock).
+    assert all(m.flags & ps.FRAME_CONTACT_KNOWN for m in poses)
+    live_contact = np.array(
+        [
+            [
+                m.flags & ps.FRAME_CONTACT_LEFT != 0,
+                m.flags & ps.FRAME_CONTACT_RIGHT != 0,
+            ]
+            for m in poses
+        ]
+    )
+    contact = foot_contact(
+        load_rig("plug-in-gait"), load_calibration(pig_calibration),
+        batch.root_pos, batch.world_from_bone_quat, take.rate_hz,
+    )  # fmt: skip
+    np.testing.assert_array_equal(live_contact, contact)

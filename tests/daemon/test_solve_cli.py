@@ -14,7 +14,7 @@ from retargetd.daemon.cli.main import main
 NPZ_KEYS = {
     "joint_names", "joint_centres", "bone_names", "bone_parents",
     "world_from_bone_quat", "rest_from_bone_quat", "root_pos", "bone_lengths",
-    "bone_quality", "bone_flags", "rate_hz", "world_from_capture",
+    "bone_quality", "bone_flags", "rate_hz", "world_from_capture", "foot_contact",
 }  # fmt: skip
 
 
@@ -45,6 +45,9 @@ def test_calibrate_then_solve(
         assert npz["world_from_bone_quat"].shape == (n, b, 4)
         assert npz["bone_quality"].dtype == np.float32
         assert npz["bone_flags"].dtype == np.uint8
+        contact = npz["foot_contact"]  # (T, 2) bool; both feet down in the static hold
+        assert contact.shape == (n, 2) and contact.dtype == np.bool_
+        assert contact[:120].all()
         pfb = npz["rest_from_bone_quat"]
         assert np.isfinite(pfb).all()
         # Identity in the calibration pose (the static hold).

@@ -87,7 +87,7 @@ def test_flag_bits_do_not_overlap_validation() -> None:
     bone_bits = ps.BONE_HELD | ps.BONE_REBUILT | ps.BONE_PARTIAL | ps.BONE_NEVER
     assert bone_bits & ps.BONE_VALIDATION_MASK == 0
     assert {1 << b for b in ps.FRAME_FLAG_BITS.values()} == {
-        1, 2, 4, 8, 16, 32, 64, 128, 1 << 24
+        1, 2, 4, 8, 16, 32, 64, 128, 1 << 24, 1 << 25, 1 << 26, 1 << 27
     }  # fmt: skip
     assert (
         ps.FRAME_CALIBRATION_MISMATCH & (ps.FRAME_VALIDATION_MASK | ps.PERFORMER_MASK)
@@ -359,3 +359,33 @@ def test_shape_state_decoder_raises_only_decode_error(junk: bytes) -> None:
     for data in (junk, b"RTDS\x01\x00\x00\x00" + junk):
         with contextlib.suppress(DecodeError):
             ps.decode_shape_state(data)
+
+
+def test_foot_contact_bits_ride_the_flags_word(rng: np.random.Generator) -> None:
+    """Issue 34: bits 25-27 of the flags word at byte 48 (byte 51, bits 1-3) carry the
+    foot contact; the performer id (byte 50) and the older bits are untouched, and a
+    decoder that predates them reads the rest as before."""
+    assert (ps.FRAME_CONTACT_LEFT, ps.FRAME_CONTACT_RIGHT, ps.FRAME_CONTACT_KNOWN) == (
+        0x0200_0000,
+        0x0400_0000,
+        0x0800_0000,
+    )
+    enc = ps.PoseEncoder(3, 2, performer=5)
+    _, args = _encode(rng, enc)
+    contact = ps.FRAME_CONTACT_KNOWN | ps.FRAME_CONTACT_RIGHT
+    enc.encode(**{**args, "flags": args["flags"] | contact})
+    header = bytes(enc.parts[0])
+    assert header[50] == 5 and header[51] == 0b1100  # performer id; bits 26, 27
+    (word,) = struct.unpack_from("<I", header, 48)
+    assert word & ps.FRAME_CONTACT_RIGHT and not word & ps.FRAME_CONTACT_LEFT
+    msg = ps.decode_pose(enc.parts)
+    assert msg.flags == args["flags"] | contact and msg.performer == 5
+    # an old decoder: the pre-34 bits alone, as before
+    assert msg.flags & 0xFF == args["flags"]
+    names = json.loads(ps.encode_pose_names(NAMES)[1])
+    bits = names["frame_flag_bits"]
+    assert (bits["contact_left"], bits["contact_right"], bits["contact_known"]) == (
+        25,
+        26,
+        27,
+    )

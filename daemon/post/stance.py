@@ -1,0 +1,337 @@
+"""Stance from the solve: per foot, is it on the ground (issue 34, item 1).
+
+One causal detector, frame by frame, shared by the live daemon (``live/send.py``, on
+every solved frame before the post stages) and ``retargetd solve`` (the NPZ's
+``foot_contact``), so offline equals live.
+
+Foot points. The humanoid ``LeftFoot``/``RightFoot`` bones (every shipped rig maps
+them): the foot bone's origin (the ankle) and its aim (the forefoot marker or point the
+rig aims it at), the toes bone's aim when the rig maps ``LeftToes``/``RightToes``, and
+a heel, under the ankle at the level of the foot's lowest point in the calibration. They
+are posed from the solved world rotations, the root position and the calibrated
+rest offsets (``origin_b = origin_p + wfb_p * offset_b``, ``aim_b = origin_b + wfb_b *
+(0, L_b, 0)``), so any solver's output (the joint centres need not name them) works.
+
+Height. The calibration is taken standing on the floor, so each point's calibrated
+height is its height when standing; ``h = z - z_rest - s`` is its height above that,
+with ``s`` the foot's support level: 0 (the calibration's floor) until the foot stops
+somewhere else (a step, a riser), then that level.
+
+Speed. Each point's frame-to-frame speed for the on/off thresholds (they sit far above
+the solve's noise: a causal low-pass would delay each strike by its lag, 30-40 ms on the
+PiG walk); the stop-at-any-height rule, whose speed is near the noise, uses the speed
+low-passed by a one-pole filter at :data:`STANCE` ``cutoff_hz`` (causal).
+
+One frame is one compiled call (:func:`_step`, numba, nothing allocated), on state the
+detector owns.
+
+Contact (with hysteresis: two speeds, after the foot-velocity algorithms):
+
+* on when some point is slower than ``on_speed_m_s`` within ``near_m`` of the support
+  level, or when the foot has been slower than ``still_speed_m_s`` for ``still_s`` at
+  any height (a foot that stops on a step: the level moves there);
+* off when no point is both slower than ``off_speed_m_s`` and within ``near_m``, and the
+  foot is not still.
+
+Known limits: a foot held still in the air for longer than ``still_s`` reads as a foot
+on a support (the feet alone cannot tell a riser from a held pose); a held (occluded)
+foot bone does not move, so it reads as standing.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from retargetd.daemon import rotations as rot
+from retargetd.daemon.body.calibration import Calibration
+from retargetd.daemon.body.rig import Rig
+from retargetd.daemon.compiled import direct, kernel
+from retargetd.protocols.frames import F64Array
+from retargetd.protocols.pose_stream import (
+    FRAME_CONTACT_KNOWN,
+    FRAME_CONTACT_LEFT,
+    FRAME_CONTACT_RIGHT,
+)
+
+#: Detector parameters (SI). Which data chose each and which confirmed it: README
+#: "Foot contact".
+STANCE: dict[str, float] = {
+    # On: a foot point slower than this (3D). Ghoussayni et al. 2004 (Gait Posture
+    # 20:266-272): foot strike when the heel's sagittal speed falls below 500 mm/s;
+    # Bonci et al. 2022 (Front Bioeng Biotechnol 10:868928, their "enhanced
+    # Ghoussayni" M5): 3D heel or forefoot speed below 0.5 m/s.
+    "on_speed_m_s": 0.5,
+    # Off: every point faster than this (or lifted). Bonci et al. 2022 (M5): foot off
+    # when the forefoot's 3D speed exceeds 1.0 m/s. The gap to on_speed is the
+    # hysteresis: noise near one threshold cannot toggle the contact.
+    "off_speed_m_s": 1.0,
+    # Within this of the support level. Height alone cannot tell stance from swing:
+    # the swing toe passes 1.29 +- 0.45 cm above the floor (Winter 1992, Phys Ther
+    # 72:45-53; O'Connor et al. 2007, Gait Posture 25:469-474, likewise pair their
+    # foot-velocity events with a foot-height gate), so the speed decides and the
+    # height only excludes a slow foot aloft (a jump's apex); 4 cm admits the solved
+    # foot's height error in stance (a heel or forefoot rocking on the floor).
+    "near_m": 0.04,
+    # Stopped at any height (a step): slower than this for still_s. 0.2 m/s is the
+    # stationary speed of the floating check (validate/dynamics.py CONTACT); a
+    # ballistic foot is under it for 2 * 0.2 / 9.81 = 41 ms at a jump's apex, so
+    # still_s is twice that.
+    "still_speed_m_s": 0.20,
+    "still_s": 0.082,
+    # Low-pass of the stillness speed, Hz: Winter's ~6 Hz for gait kinematics
+    # (Winter 2009, Biomechanics and Motor Control of Human Movement, 4th ed., ch. 2).
+    "cutoff_hz": 6.0,
+}
+_PARAMS = ("on_speed_m_s", "off_speed_m_s", "near_m", "still_speed_m_s", "still_s")
+
+#: The flag bits :meth:`StanceDetector.update` returns (the pose stream's).
+LEFT, RIGHT, KNOWN = FRAME_CONTACT_LEFT, FRAME_CONTACT_RIGHT, FRAME_CONTACT_KNOWN
+_SIDES = (("LeftFoot", "LeftToes"), ("RightFoot", "RightToes"))
+_MAX_POINTS = 4  # ankle, forefoot (the foot's aim), toe tip (a toes bone), heel
+# State columns per foot: has history, seconds still, support level, contact.
+_HAS, _STILL, _SUPPORT, _CONTACT = 0, 1, 2, 3
+
+
+class _Plan:
+    """Both feet's chains (root .. foot bone), each bone's origin in its parent's
+    rest frame, and the points: (bone, offset in that bone's frame), rest height."""
+
+    def __init__(self, rig: Rig, cal: Calibration) -> None:
+        parents = [int(p) for p in cal.bone_parents]
+        names = list(cal.bone_names)
+        wfb = np.asarray(cal.rest_world_from_bone_quat, dtype=np.float64)
+        origin = np.asarray(cal.rest_bone_origin_pos, dtype=np.float64)
+        lengths = np.asarray(cal.bone_lengths, dtype=np.float64)
+        chains: list[list[int]] = []
+        points: list[list[tuple[int, F64Array]]] = []
+        for foot_name, toes_name in _SIDES:
+            b = names.index(rig.humanoid[foot_name])
+            chain: list[int] = []
+            while b >= 0:
+                chain.insert(0, b)
+                b = parents[b]
+            foot = chain[-1]
+            pts = [(foot, np.zeros(3)), (foot, np.array([0.0, lengths[foot], 0.0]))]
+            toes = rig.humanoid.get(toes_name)
+            if toes is not None and parents[names.index(toes)] == foot:
+                t = names.index(toes)
+                chain.append(t)
+                pts.append((t, np.array([0.0, lengths[t], 0.0])))
+            chains.append(chain)
+            points.append(pts)
+        n_chain = max(len(c) for c in chains)
+        self.chain = np.full((2, n_chain), -1, dtype=np.int64)
+        self.chain_len = np.array([len(c) for c in chains], dtype=np.int64)
+        self.offset = np.zeros((2, n_chain, 3))
+        self.pt_link = np.zeros((2, _MAX_POINTS), dtype=np.int64)  # index in chain
+        self.pt_local = np.zeros((2, _MAX_POINTS, 3))
+        self.n_pts = np.zeros(2, dtype=np.int64)
+        self.rest_z = np.zeros((2, _MAX_POINTS))
+        for s, (chain, pts) in enumerate(zip(chains, points, strict=True)):
+            self.chain[s, : len(chain)] = chain
+            for k in range(1, len(chain)):
+                c, p = chain[k], chain[k - 1]
+                self.offset[s, k] = rot.quat_rotate(
+                    rot.quat_conj(wfb[p]), origin[c] - origin[p]
+                )
+            for i, (b, local) in enumerate(pts):
+                self.pt_link[s, i] = chain.index(b)
+                self.pt_local[s, i] = local
+            rest = [(origin[b] + rot.quat_rotate(wfb[b], local))[2] for b, local in pts]
+            # The heel: under the ankle at the level of the foot's lowest point in
+            # the calibration (feet flat on the floor), fixed in the foot bone; the
+            # point Ghoussayni's foot-strike threshold is applied to.
+            foot = pts[0][0]  # the ankle's bone
+            drop = np.array([0.0, 0.0, min(rest) - rest[0]])
+            n = len(pts)
+            self.pt_link[s, n] = chain.index(foot)
+            self.pt_local[s, n] = rot.quat_rotate(rot.quat_conj(wfb[foot]), drop)
+            self.n_pts[s] = n + 1
+            self.rest_z[s, :n] = rest
+            self.rest_z[s, n] = min(rest)
+
+
+@kernel(inline="always")
+def _rotate(
+    q: np.ndarray, b: int, vx: float, vy: float, vz: float
+) -> tuple[float, float, float]:  # pragma: no cover - compiled
+    """q[b] (w x y z, unit) applied to v: v + 2 w (u x v) + 2 u x (u x v)."""
+    w, x, y, z = q[b, 0], q[b, 1], q[b, 2], q[b, 3]
+    cx = y * vz - z * vy
+    cy = z * vx - x * vz
+    cz = x * vy - y * vx
+    return (
+        vx + 2.0 * (w * cx + y * cz - z * cy),
+        vy + 2.0 * (w * cy + z * cx - x * cz),
+        vz + 2.0 * (w * cz + x * cy - y * cx),
+    )
+
+
+@kernel
+def _step(
+    root_pos: np.ndarray,  # (3,)
+    wfb: np.ndarray,  # (B, 4)
+    dt: float,
+    chain: np.ndarray,  # (2, C) int64
+    chain_len: np.ndarray,  # (2,) int64
+    offset: np.ndarray,  # (2, C, 3)
+    pt_link: np.ndarray,  # (2, P) int64
+    pt_local: np.ndarray,  # (2, P, 3)
+    n_pts: np.ndarray,  # (2,) int64
+    rest_z: np.ndarray,  # (2, P)
+    params: np.ndarray,  # (6,) _PARAMS, then the low-pass time constant, s
+    origins: np.ndarray,  # (2, C, 3) scratch
+    prev: np.ndarray,  # (2, P, 3) state: last frame's points
+    vel: np.ndarray,  # (2, P, 3) state: low-passed velocity
+    state: np.ndarray,  # (2, 4) state: _HAS, _STILL, _SUPPORT, _CONTACT
+) -> int:  # pragma: no cover - compiled
+    """One frame of both feet (module docstring); returns the contact bits 0-1."""
+    on_v, off_v, near_m, still_v, still_s, tau = (
+        params[0], params[1], params[2], params[3], params[4], params[5],
+    )  # fmt: skip
+    out = 0
+    for s in range(2):
+        for k in range(3):
+            origins[s, 0, k] = root_pos[k]
+        for j in range(1, chain_len[s]):
+            p = chain[s, j - 1]
+            rx, ry, rz = _rotate(
+                wfb, p, offset[s, j, 0], offset[s, j, 1], offset[s, j, 2]
+            )
+            origins[s, j, 0] = origins[s, j - 1, 0] + rx
+            origins[s, j, 1] = origins[s, j - 1, 1] + ry
+            origins[s, j, 2] = origins[s, j - 1, 2] + rz
+        fresh = state[s, _HAS] == 0.0 or not dt > 0.0
+        alpha = 0.0 if fresh else dt / (dt + tau)
+        slowest = math.inf
+        lowest = math.inf
+        any_on = False
+        any_hold = False
+        for i in range(n_pts[s]):
+            j = pt_link[s, i]
+            b = chain[s, j]
+            rx, ry, rz = _rotate(
+                wfb, b, pt_local[s, i, 0], pt_local[s, i, 1], pt_local[s, i, 2]
+            )
+            px = origins[s, j, 0] + rx
+            py = origins[s, j, 1] + ry
+            pz = origins[s, j, 2] + rz
+            speed = 0.0
+            if fresh:
+                vel[s, i, 0] = vel[s, i, 1] = vel[s, i, 2] = 0.0
+            else:
+                dx = (px - prev[s, i, 0]) / dt
+                dy = (py - prev[s, i, 1]) / dt
+                dz = (pz - prev[s, i, 2]) / dt
+                speed = math.sqrt(dx * dx + dy * dy + dz * dz)
+                vel[s, i, 0] += alpha * (dx - vel[s, i, 0])
+                vel[s, i, 1] += alpha * (dy - vel[s, i, 1])
+                vel[s, i, 2] += alpha * (dz - vel[s, i, 2])
+            prev[s, i, 0], prev[s, i, 1], prev[s, i, 2] = px, py, pz
+            v = vel[s, i]
+            slowest = min(slowest, math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]))
+            level = pz - rest_z[s, i]
+            lowest = min(lowest, level)
+            if level - state[s, _SUPPORT] < near_m:
+                any_on = any_on or speed < on_v
+                any_hold = any_hold or speed < off_v
+        if fresh:
+            state[s, _STILL] = 0.0
+        elif slowest < still_v:
+            state[s, _STILL] += dt
+        else:
+            state[s, _STILL] = 0.0
+        state[s, _HAS] = 1.0
+        still = state[s, _STILL] >= still_s
+        if still:  # stopped here: this is the foot's support now
+            state[s, _SUPPORT] = lowest
+        on = still or (any_hold if state[s, _CONTACT] != 0.0 else any_on)
+        state[s, _CONTACT] = 1.0 if on else 0.0
+        if on:
+            out |= 1 << s
+    return out
+
+
+class StanceDetector:
+    """Per-foot contact, causal, frame by frame (module docstring)."""
+
+    def __init__(
+        self, rig: Rig, calibration: Calibration, params: dict[str, float] | None = None
+    ) -> None:
+        p = {**STANCE, **(params or {})}
+        self.known = calibration.rest_bone_origin_pos is not None and all(
+            f in rig.humanoid for f, _ in _SIDES
+        )
+        """Whether the rig maps both feet (else the contact is never set)."""
+        self._plan = _Plan(rig, calibration) if self.known else None
+        tau = 1.0 / (2.0 * math.pi * p["cutoff_hz"])
+        self._params = np.array([*(p[k] for k in _PARAMS), tau])
+        n_chain = self._plan.chain.shape[1] if self._plan is not None else 1
+        self._origins = np.zeros((2, n_chain, 3))
+        self._prev = np.zeros((2, _MAX_POINTS, 3))
+        self._vel = np.zeros((2, _MAX_POINTS, 3))
+        self._state = np.zeros((2, 4))
+        self._call: object = _step
+
+    @property
+    def contact(self) -> tuple[bool, bool]:
+        """Left and right foot in contact after the last frame."""
+        return bool(self._state[0, _CONTACT]), bool(self._state[1, _CONTACT])
+
+    @property
+    def support(self) -> tuple[float, float]:
+        """Each foot's support level above the calibration's floor, metres."""
+        return float(self._state[0, _SUPPORT]), float(self._state[1, _SUPPORT])
+
+    def reset(self) -> None:
+        """Forget the history (a new stream): the next frame starts afresh."""
+        self._state[:] = 0.0
+
+    def update(
+        self, root_pos: F64Array, world_from_bone_quat: F64Array, dt: float
+    ) -> int:
+        """Advance one frame; returns the pose stream's flag bits (LEFT, RIGHT, KNOWN).
+
+        Args:
+            root_pos: (3,) float64 metres, world.
+            world_from_bone_quat: (B, 4) float64 w x y z.
+            dt: seconds since the previous frame (0 or less: no history, e.g. the
+                first frame).
+        """
+        plan = self._plan
+        if plan is None:
+            return 0
+        args = (
+            root_pos, world_from_bone_quat, float(dt), plan.chain, plan.chain_len,
+            plan.offset, plan.pt_link, plan.pt_local, plan.n_pts, plan.rest_z,
+            self._params, self._origins, self._prev, self._vel, self._state,
+        )  # fmt: skip
+        if self._call is _step:  # the compiled entry point once it exists
+            self._call = direct(_step, *args)
+        bits: int = self._call(*args)  # type: ignore[operator]
+        return KNOWN | (LEFT if bits & 1 else 0) | (RIGHT if bits & 2 else 0)
+
+
+def foot_contact(
+    rig: Rig,
+    calibration: Calibration,
+    root_pos: F64Array,
+    world_from_bone_quat: F64Array,
+    rate_hz: float,
+) -> np.ndarray:
+    """(T, 2) bool, left and right foot in contact per frame of a solved take: the
+    live detector run over the frames at ``rate_hz`` (``retargetd solve``'s
+    ``foot_contact``; all False when the rig maps no LeftFoot/RightFoot)."""
+    det = StanceDetector(rig, calibration)
+    root = np.ascontiguousarray(root_pos, dtype=np.float64)
+    wfb = np.ascontiguousarray(world_from_bone_quat, dtype=np.float64)
+    n = root.shape[0]
+    out = np.zeros((n, 2), dtype=bool)
+    dt = 1.0 / rate_hz
+    for t in range(n):
+        bits = det.update(root[t], wfb[t], dt if t else 0.0)
+        out[t, 0] = bool(bits & LEFT)
+        out[t, 1] = bool(bits & RIGHT)
+    return out
