@@ -145,7 +145,7 @@ FACE_HEAD_LOST = 1 << 1  # < 3 head markers: head pose and weights held, markers
 FACE_NOT_CONVERGED = 1 << 2  # the weight solve hit its iteration cap (best kept)
 FACE_PARTIAL = 1 << 3  # some facial marker occluded (left out of that frame's solve)
 FACE_NEVER = 1 << 4  # no good frame yet: identity head pose and zero weights
-FACE_SHAPE_HELD = 1 << 5  # a shape's key markers hidden: that shape held (RTDS says)
+FACE_SHAPE_HELD = 1 << 5  # a shape's key markers hidden: that shape held (RTDF says)
 FACE_FLAG_BITS = {
     "head_partial": 0,
     "head_lost": 1,
@@ -159,7 +159,7 @@ FACE_FLAG_BITS = {
 SHAPE_UNOBSERVED = 1 << 0  # the layout cannot observe it: left out of the solve, 0
 SHAPE_HIDDEN = 1 << 1  # a key marker hidden this frame: the last weight held
 SHAPE_STATE_BITS = {"unobserved": 0, "hidden": 1}
-SHAPE_MAGIC = b"RTDS"
+SHAPE_MAGIC = b"RTDF"
 #: Shape-state message: magic, version 1, names id, frame number, K, reserved; then
 #: K uint8 states, NUL-padded to a multiple of 4 (one part).
 SHAPE_HEADER = struct.Struct("<4sHHqHH")  # 20 bytes
@@ -513,7 +513,7 @@ def encode_pose_names(names: PoseNames) -> list[bytes]:
         "face_markers": list(names.face_markers),
         "face_flag_bits": FACE_FLAG_BITS,
     }
-    if names.face_markers:  # with a face: the shape states (RTDS) and what is unseen
+    if names.face_markers:  # with a face: the shape states (RTDF) and what is unseen
         doc["shape_state_bits"] = SHAPE_STATE_BITS
         doc["unobserved"] = list(names.unobserved)
     if names.performer:  # several performers share the stream
@@ -710,7 +710,7 @@ def shape_size(n_weights: int) -> int:
 
 
 class ShapeStateEncoder:
-    """Encodes shape-state messages (``RTDS``, one part) into one reused buffer.
+    """Encodes shape-state messages (``RTDF``, one part) into one reused buffer.
 
     Args:
         n_weights: solved expressions (the data message's K), <= 65535.

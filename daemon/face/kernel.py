@@ -24,7 +24,7 @@ FLAG_NOT_CONVERGED = pose_stream.FACE_NOT_CONVERGED  #: the iteration cap was hi
 FLAG_FACE_PARTIAL = pose_stream.FACE_PARTIAL  #: some facial marker occluded
 FLAG_NEVER = pose_stream.FACE_NEVER  #: no good frame yet: identity pose, zero weights
 FLAG_SHAPE_HELD = pose_stream.FACE_SHAPE_HELD  #: a shape held: its key markers hidden
-#: Per-shape state bits (``FaceOutput.shape_state``, the pose stream's ``RTDS``).
+#: Per-shape state bits (``FaceOutput.shape_state``, the pose stream's ``RTDF``).
 SHAPE_UNOBSERVED = pose_stream.SHAPE_UNOBSERVED  #: left out of the solve: sent as 0
 SHAPE_HIDDEN = pose_stream.SHAPE_HIDDEN  #: a key marker hidden: weight held
 

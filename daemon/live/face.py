@@ -25,7 +25,7 @@ the first neutral capture keeps only those on the head's side of the neck.
 
 Shapes the training set's markers cannot observe (``face.observability`` at its
 ``noise_rms_m``) are left out of the solve and sent as 0, flagged per shape
-(``FaceOutput.shape_state``; the pose stream's ``RTDS`` message, PROTOCOLS.md §6);
+(``FaceOutput.shape_state``; the pose stream's ``RTDF`` message, PROTOCOLS.md §6);
 ``ctl status --json`` lists them (``face.unobserved``).
 
 With a neutral but no expression captured yet, the stabilized markers (the "Mug")

@@ -65,7 +65,7 @@ class Pipeline:
     weights: np.ndarray
     bone_flags: np.ndarray  # sent bone flags: the solve's | the latest validation's
     face: FaceStage | None = None
-    # the face's shape-state message (RTDS, after each pose with a face)
+    # the face's shape-state message (RTDF, after each pose with a face)
     shape_enc: pose_stream.ShapeStateEncoder | None = None
     post: SolvePost | None = None  # the [[pipeline]] stages (None: none configured)
     tick_source_clock: bool = True  # resampled ticks' times are the source's clock

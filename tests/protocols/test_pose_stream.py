@@ -332,7 +332,7 @@ def test_shape_state_message_round_trip_and_layout() -> None:
         (bytes(part)[:-4], "bad_length"),
         (b"RTDX" + bytes(part)[4:], "bad_magic"),
         (bytes(part)[:4] + b"\x02\x00" + bytes(part)[6:], "bad_version"),
-        (b"RTDS", "bad_length"),
+        (b"RTDF", "bad_length"),
     ):
         with pytest.raises(DecodeError) as info:
             ps.decode_shape_state(bad)
@@ -356,7 +356,7 @@ def test_names_list_the_unobserved_weights_only_with_a_face() -> None:
 
 @given(st.binary(max_size=100))
 def test_shape_state_decoder_raises_only_decode_error(junk: bytes) -> None:
-    for data in (junk, b"RTDS\x01\x00\x00\x00" + junk):
+    for data in (junk, b"RTDF\x01\x00\x00\x00" + junk):
         with contextlib.suppress(DecodeError):
             ps.decode_shape_state(data)
 
