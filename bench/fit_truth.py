@@ -407,7 +407,8 @@ def _damage_section(rows: Sequence[DamageRow], settings: Settings) -> list[str]:
         f"within {settings.recovery_tol_mm:g} mm of the intact solve for good; the "
         "damaged solve's worst bone against the truth (the intact solve's in "
         "brackets). A hide row is the worst over every marker hidden in turn, the "
-        "marker named. **Bold**: what issue 28 item 6 forbids (hide: a joint past "
+        "marker named, and says how many of the markers hidden passed a limit "
+        "below. **Bold**: what issue 28 item 6 forbids (hide: a joint past "
         f"{HIDE_JOINT_MM:g} mm, a bone past {HIDE_BONE_DEG:g} deg, a new step, NaN; "
         f"burst: recovery over {RECOVERY_S:g} s, NaN). The collapse is onto the "
         "take's first marker.",
@@ -456,8 +457,15 @@ def _damage_line(kind: str, length: int, group: list[DamageRow], rate: float) ->
     late = rec.metrics.recovery_frames is None or (
         rec.metrics.recovery_frames / rate > RECOVERY_S
     )
+    past = sum(
+        r.metrics.max_joint_mm > HIDE_JOINT_MM
+        or r.metrics.max_bone_deg > HIDE_BONE_DEG
+        or r.metrics.new_steps > 0
+        or r.metrics.nan_frames > 0
+        for r in group
+    )
     label = (
-        f"hide {length / rate:g} s ({len(group)} markers)"
+        f"hide {length / rate:g} s ({len(group)} markers, {past} past a limit)"
         if hide
         else f"{kind} {length} frame{'s' if length > 1 else ''}"
     )
