@@ -41,6 +41,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from retargetd.daemon.body.rig import shipped_rigs
 from retargetd.daemon.files import FileFormatError, loads_toml, read_text
 
 logger = logging.getLogger(__name__)
@@ -150,6 +151,11 @@ def parse_face_config(doc: dict[str, Any], src: str, default_name: str) -> FaceC
     body_rig = doc.get("body_rig", "")
     if not isinstance(body_rig, str):
         raise FaceConfigError(f"{src}: body_rig: expected a rig name, got {body_rig!r}")
+    if body_rig and not _rig_named(body_rig):
+        raise FaceConfigError(
+            f"{src}: body_rig: no shipped rig named {body_rig!r} (shipped: "
+            f"{', '.join(shipped_rigs())}; or a path to a rig .toml file)"
+        )
     exprs = _names(src, doc, "expressions", required=True)
     if not exprs:
         raise FaceConfigError(f"{src}: expressions: empty")
@@ -224,3 +230,9 @@ def load_face_config(name_or_path: str | Path) -> FaceConfig:
     except FileFormatError as exc:
         raise FaceConfigError(f"{src}: {exc}") from None
     return parse_face_config(doc, src, stem)
+
+
+def _rig_named(name: str) -> bool:
+    """Whether ``name`` can name a rig: a shipped one, or a path to a ``.toml`` (that
+    one is read where the rig is used, which names a missing file in one line)."""
+    return name in shipped_rigs() or name.lower().endswith(".toml") or "/" in name

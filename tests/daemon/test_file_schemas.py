@@ -190,6 +190,8 @@ def _face_out_of_range(key: str, value: Any) -> Any:
         return ["A", "B"]  # fewer than 3
     if key == "facial_markers":
         return ["LFHD"]  # a head marker too
+    if key == "body_rig":
+        return "noSuchRig"  # neither a shipped rig nor a rig file
     raise AssertionError(f"no out-of-range value for face key {key!r}")
 
 
