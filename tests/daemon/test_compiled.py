@@ -131,6 +131,7 @@ def test_kernel_flags_are_the_wire_flags() -> None:
         face_kernel.FLAG_NOT_CONVERGED,
         face_kernel.FLAG_FACE_PARTIAL,
         face_kernel.FLAG_NEVER,
+        face_kernel.FLAG_SHAPE_HELD,
     }
 
 
