@@ -66,7 +66,7 @@ from retargetd.daemon.live.inputs import InputsMixin
 from retargetd.daemon.live.performer import build_performers
 from retargetd.daemon.live.performers import PerformersMixin
 from retargetd.daemon.live.prewarm import Prewarm
-from retargetd.daemon.live.ratelog import RateLimitedLog, RateLimiter
+from retargetd.daemon.live.ratelog import RateLimitedLog, RateLimiter, print_line
 from retargetd.daemon.live.recording import (
     FORM_OSC,
     LiveRecording,
@@ -134,7 +134,7 @@ class Daemon(
     ) -> None:
         self.config = config
         self.config_path = config_path  # re-read by reload for [[pipeline]]
-        self.out = out or (lambda line: print(line, flush=True))
+        self.out = out or print_line
         self.stats = LoopStats()
         # Each performer's rig, calibration, face, VMC destination... (performer.py);
         # the attributes of one (self.rig, self.calibration ...) are the current's.

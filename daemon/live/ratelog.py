@@ -5,13 +5,31 @@ stream of malformed packets) must neither grow the log without bound nor block t
 loop: :class:`RateLimitedLog` prints a reason's first line at once, counts the
 repeats, and prints one summary with the count at most once per interval;
 :class:`RateLimiter` lets a costly command (reload, calibrate) through at most once
-per interval and counts what it turned away.
+per interval and counts what it turned away. :func:`print_line` is the daemon's
+default ``out``: whole lines, whichever thread prints them.
 """
 
 from __future__ import annotations
 
+import sys
+import threading
 from collections.abc import Callable
 from dataclasses import dataclass
+
+_PRINT_LOCK = threading.Lock()
+
+
+def print_line(line: str) -> None:
+    """Write ``line`` and its newline to stdout in one write, flushed, under a lock.
+
+    ``print`` writes the text and the newline separately: a capture input's thread
+    (QTM's, NatNet's) saying something while the loop announces its endpoints could
+    splice two lines into one (``listening on ...: zmq poses`` ran into a ``qtm:``
+    line, and a test waiting for that endpoint never saw it).
+    """
+    with _PRINT_LOCK:
+        sys.stdout.write(line + "\n")
+        sys.stdout.flush()
 
 
 @dataclass(slots=True)
