@@ -28,6 +28,7 @@ from retargetd.daemon.live.performer import FrameSource
 from retargetd.daemon.live.state import DaemonState, Pipeline
 from retargetd.daemon.post.pipeline import build_pipeline
 from retargetd.daemon.post.pivot import SpinePivot
+from retargetd.daemon.post.plant import FootPlant, performer_leg_m
 from retargetd.daemon.post.solve_post import SolvePost
 from retargetd.daemon.post.stance import StanceDetector
 from retargetd.daemon.target.retarget import (
@@ -102,6 +103,23 @@ def spine_stage(config: TargetConfig, target: Any, rig: Any) -> SpinePivot | Non
         target.bone_names, target.parents, target.rest_world_from_bone_quat,
         set(rig.humanoid), target.left_world, config.spine_pivot_limit_deg,
     )  # fmt: skip
+
+
+def plant_stage(
+    config: TargetConfig, retargeter: Retargeter, rig: Any, calibration: Any
+) -> FootPlant | None:
+    """The ``[target] feet = "plant"`` stage for ``retargeter``'s target driven by
+    ``rig`` (None for ``"free"``): after the retarget and the spine pivot, on the
+    target's pose, with the stance detector's contact (post/plant.py).
+
+    Raises:
+        ValueError: the target or rig lacks a leg, or no performer leg length.
+    """
+    if config.feet != "plant":
+        return None
+    return FootPlant(
+        retargeter.target, retargeter.root_scale, performer_leg_m(rig, calibration)
+    )
 
 
 class SendMixin(DaemonState):
@@ -213,6 +231,9 @@ class SendMixin(DaemonState):
             ),
             post=self._build_post(),
             spine=spine_stage(self.config.target, self.target, self.rig),
+            plant=plant_stage(
+                self.config.target, retargeter, self.rig, self.calibration
+            ),
             emit=emit,
             stance=StanceDetector(self.rig, self.calibration),
         )
@@ -411,6 +432,16 @@ class SendMixin(DaemonState):
             t0 = time.perf_counter_ns()
             pipe.spine.apply(tp.world_from_bone_quat, tp.rest_from_bone_quat)
             stats.record_spine(time.perf_counter_ns() - t0)
+        plant_bits = 0
+        if pipe.plant is not None and pipe.stance is not None:  # feet = "plant"
+            if what:
+                pipe.retargeter.apply(pose, tp)
+                what = 0
+            plant_bits = pipe.plant.apply(
+                tp.world_from_bone_quat, tp.rest_from_bone_quat, tp.root_pos,
+                tp.hips_pos, pipe.stance.state,
+                source_t if source_t == source_t else received_ns * 1e-9,
+            )  # fmt: skip
         face = pipe.face
         fo = face.out if face is not None else None
         if face is not None and frame is not None:
@@ -425,6 +456,7 @@ class SendMixin(DaemonState):
             | pose.frame_flags  # the fit's reseeded and unexplained bits
             | (pose_stream.FRAME_HELD if pose.n_held else 0)
             | pipe.stance_bits  # foot contact (FRAME_CONTACT_*)
+            | plant_bits  # FRAME_PLANT_UNREACHED
         )
         perf.frame_flags = 0
         validator = perf.validator

@@ -92,6 +92,9 @@ _SIDES = (("LeftFoot", "LeftToes"), ("RightFoot", "RightToes"))
 _MAX_POINTS = 4  # ankle, forefoot (the foot's aim), toe tip (a toes bone), heel
 # State columns per foot: has history, seconds still, support level, contact.
 _HAS, _STILL, _SUPPORT, _CONTACT = 0, 1, 2, 3
+#: :attr:`StanceDetector.state`'s columns a later stage reads (post/plant.py): the
+#: support level (metres above the calibration's floor) and the contact (0 or 1).
+SUPPORT_COLUMN, CONTACT_COLUMN = _SUPPORT, _CONTACT
 
 
 class _Plan:
@@ -279,6 +282,13 @@ class StanceDetector:
     def contact(self) -> tuple[bool, bool]:
         """Left and right foot in contact after the last frame."""
         return bool(self._state[0, _CONTACT]), bool(self._state[1, _CONTACT])
+
+    @property
+    def state(self) -> np.ndarray:
+        """(2, 4) the detector's own state array (left, right), updated in place
+        every frame: read :data:`SUPPORT_COLUMN` and :data:`CONTACT_COLUMN` without a
+        copy (the plant stage's input)."""
+        return self._state
 
     @property
     def support(self) -> tuple[float, float]:
