@@ -220,7 +220,7 @@ def retarget_solve(
     maps it before VMC: :class:`~retargetd.daemon.target.retarget.Retargeter` (the
     same ``compensate_base_pose``), then, with ``spine = "pivot"``, the same
     :class:`~retargetd.daemon.post.pivot.SpinePivot`
-    (:func:`retargetd.daemon.live.send.spine_stage`), then, with ``feet = "plant"``,
+    (:func:`retargetd.daemon.post.pivot.spine_stage`), then, with ``feet = "plant"``,
     the same :class:`~retargetd.daemon.post.plant.FootPlant`
     (:func:`retargetd.daemon.live.send.plant_stage`) fed by the stance detector run
     on ``stance_solve`` (the solve before any post stage, as live).
@@ -247,7 +247,8 @@ def retarget_solve(
     """
     from types import SimpleNamespace
 
-    from retargetd.daemon.live.send import plant_stage, spine_stage
+    from retargetd.daemon.post.pivot import spine_stage
+    from retargetd.daemon.post.plant import plant_stage
     from retargetd.daemon.post.stance import StanceDetector
     from retargetd.daemon.target.retarget import (
         Retargeter,
@@ -269,13 +270,13 @@ def retarget_solve(
     rt = Retargeter(
         rig, calibration, target, compensate_base_pose=t.compensate_base_pose
     )
+    stance = StanceDetector(rig, calibration)
     try:
-        plant = plant_stage(t, rt, rig, calibration)
+        plant = plant_stage(t.feet, rt, stance)
     except ValueError as exc:
         raise UsageError(f"[target] feet = 'plant': {exc}") from None
     if plant is not None and not rate_hz > 0.0:
         raise UsageError("feet = 'plant': the take's frame rate is needed")
-    stance = StanceDetector(rig, calibration) if plant is not None else None
     src = solve if stance_solve is None else stance_solve
     out = rt.new_pose()
     n_frames, n = len(solve.world_from_bone_quat), len(target.bone_names)
@@ -291,16 +292,13 @@ def retarget_solve(
         rt.apply(frame, out)  # type: ignore[arg-type]
         if spine is not None:
             spine.apply(out.world_from_bone_quat, out.rest_from_bone_quat)
-        if plant is not None and stance is not None:
+        if plant is not None:
             stance.update(
                 np.ascontiguousarray(src.root_pos[k], dtype=np.float64),
                 np.ascontiguousarray(src.world_from_bone_quat[k], dtype=np.float64),
                 1.0 / rate_hz if k else 0.0,
             )
-            plant_flags[k] = plant.apply(
-                out.world_from_bone_quat, out.rest_from_bone_quat, out.root_pos,
-                out.hips_pos, stance.state, k / rate_hz,
-            )  # fmt: skip
+            plant_flags[k] = plant.apply_pose(out, k / rate_hz)
         wfb[k], rfb[k], root[k] = (
             out.world_from_bone_quat,
             out.rest_from_bone_quat,
@@ -316,7 +314,7 @@ def retarget_solve(
     }
     if plant is not None:
         arrays["target_plant_flags"] = plant_flags
-        arrays["target_leg_ratio"] = np.float64(plant.leg_ratio)
+        arrays["target_leg_ratio"] = np.asarray(plant.leg_ratio, dtype=np.float64)
     return arrays
 
 

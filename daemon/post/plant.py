@@ -460,6 +460,25 @@ def _leg_ik(
     return out
 
 
+def plant_stage(feet: str, retargeter: Any, stance: Any) -> FootPlant | None:
+    """The ``[target] feet = "plant"`` stage for ``retargeter``'s target (None for
+    ``"free"``), fed by ``stance`` (a
+    :class:`~retargetd.daemon.post.stance.StanceDetector` on the performer's solve,
+    whose rig and calibration give the performer's leg length): after the retarget
+    and the spine pivot, on the target's pose (live ``send.py``, offline
+    ``cli/post_io.retarget_solve``).
+
+    Raises:
+        ValueError: the target or rig lacks a leg, or no performer leg length.
+    """
+    if feet != "plant":
+        return None
+    leg = performer_leg_m(stance.rig, stance.calibration)
+    stage = FootPlant(retargeter.target, retargeter.root_scale, leg)
+    stage.stance_state = stance.state
+    return stage
+
+
 class FootPlant:
     """The plant stage for one target and performer (module docstring).
 
@@ -529,6 +548,23 @@ class FootPlant:
         self._state = np.zeros((2, _N_STATE))
         self._call: object = _plant_step
         self.n_bones = len(names)
+        self.stance_state = np.zeros((2, 4))
+        """The stance detector's state :meth:`apply_pose` reads (:func:`plant_stage`
+        binds the detector's own array)."""
+        self._const = (
+            self._rest, self._offsets, self._parents, self.chain, self.chain_len,
+            self.heel, self.ball, self._toes, self._tip, self._left, self._params,
+            self._e, self._x, self._state,
+        )  # fmt: skip
+
+    def apply_pose(self, pose: Any, source_t: float, received_ns: int = 0) -> int:
+        """:meth:`apply` on a ``TargetPose`` with :attr:`stance_state`, at the
+        source's time ``source_t`` (seconds), else (NaN) the receive time."""
+        t_s = source_t if source_t == source_t else received_ns * 1e-9
+        return self.apply(
+            pose.world_from_bone_quat, pose.rest_from_bone_quat, pose.root_pos,
+            pose.hips_pos, self.stance_state, t_s,
+        )  # fmt: skip
 
     def reset(self) -> None:
         """Forget the history (a new stream): no foot held, no correction left."""
@@ -554,14 +590,14 @@ class FootPlant:
                 (:attr:`StanceDetector.state`), updated for this frame.
             t_s: this frame's time, seconds (any clock that only moves forward).
         """
-        args = (
+        call = self._call
+        if call is _plant_step:  # the compiled entry point once it exists
+            call = self._call = direct(
+                _plant_step, world_from_bone_quat, rest_from_bone_quat, root_pos,
+                hips_pos, stance_state, float(t_s), *self._const,
+            )  # fmt: skip
+        bits: int = call(  # type: ignore[operator]
             world_from_bone_quat, rest_from_bone_quat, root_pos, hips_pos,
-            stance_state, float(t_s), self._rest, self._offsets, self._parents,
-            self.chain, self.chain_len, self.heel, self.ball, self._toes, self._tip,
-            self._left,
-            self._params, self._e, self._x, self._state,
+            stance_state, float(t_s), *self._const,
         )  # fmt: skip
-        if self._call is _plant_step:  # the compiled entry point once it exists
-            self._call = direct(_plant_step, *args)
-        bits: int = self._call(*args)  # type: ignore[operator]
         return FRAME_PLANT_UNREACHED if bits else 0

@@ -268,6 +268,7 @@ class StanceDetector:
             f in rig.humanoid for f, _ in _SIDES
         )
         """Whether the rig maps both feet (else the contact is never set)."""
+        self.rig, self.calibration = rig, calibration
         self._plan = _Plan(rig, calibration) if self.known else None
         tau = 1.0 / (2.0 * math.pi * p["cutoff_hz"])
         self._params = np.array([*(p[k] for k in _PARAMS), tau])
