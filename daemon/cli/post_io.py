@@ -298,7 +298,7 @@ def retarget_solve(
                 np.ascontiguousarray(src.world_from_bone_quat[k], dtype=np.float64),
                 1.0 / rate_hz if k else 0.0,
             )
-            plant_flags[k] = plant.apply_pose(out, k / rate_hz)
+            plant_flags[k] = plant.apply_pose(out)
         wfb[k], rfb[k], root[k] = (
             out.world_from_bone_quat,
             out.rest_from_bone_quat,

@@ -396,7 +396,7 @@ class SendMixin(DaemonState):
             if what:
                 pipe.retargeter.apply(pose, tp)
             what = 0  # its plant_unreached flag rides perf.frame_flags
-            perf.frame_flags |= pipe.plant.apply_pose(tp, source_t, received_ns)
+            perf.frame_flags |= pipe.plant.apply_pose(tp)
         face = pipe.face
         fo = face.out if face is not None else None
         if face is not None and frame is not None:

@@ -466,7 +466,8 @@ def plant_stage(feet: str, retargeter: Any, stance: Any) -> FootPlant | None:
     :class:`~retargetd.daemon.post.stance.StanceDetector` on the performer's solve,
     whose rig and calibration give the performer's leg length): after the retarget
     and the spine pivot, on the target's pose (live ``send.py``, offline
-    ``cli/post_io.retarget_solve``).
+    ``cli/post_io.retarget_solve``); its clock is the detector's (the sum of the
+    frame intervals the detector was given), so live and offline blend alike.
 
     Raises:
         ValueError: the target or rig lacks a leg, or no performer leg length.
@@ -476,6 +477,7 @@ def plant_stage(feet: str, retargeter: Any, stance: Any) -> FootPlant | None:
     leg = performer_leg_m(stance.rig, stance.calibration)
     stage = FootPlant(retargeter.target, retargeter.root_scale, leg)
     stage.stance_state = stance.state
+    stage.stance_clock = stance.clock
     return stage
 
 
@@ -548,6 +550,9 @@ class FootPlant:
         self._state = np.zeros((2, _N_STATE))
         self._call: object = _plant_step
         self.n_bones = len(names)
+        self.stance_clock = np.zeros(1)
+        """(1,) seconds: the clock :meth:`apply_pose` reads (:func:`plant_stage`
+        binds the stance detector's)."""
         self.stance_state = np.zeros((2, 4))
         """The stance detector's state :meth:`apply_pose` reads (:func:`plant_stage`
         binds the detector's own array)."""
@@ -557,10 +562,10 @@ class FootPlant:
             self._e, self._x, self._state,
         )  # fmt: skip
 
-    def apply_pose(self, pose: Any, source_t: float, received_ns: int = 0) -> int:
-        """:meth:`apply` on a ``TargetPose`` with :attr:`stance_state`, at the
-        source's time ``source_t`` (seconds), else (NaN) the receive time."""
-        t_s = source_t if source_t == source_t else received_ns * 1e-9
+    def apply_pose(self, pose: Any) -> int:
+        """:meth:`apply` on a ``TargetPose`` with :attr:`stance_state` at
+        :attr:`stance_clock`."""
+        t_s = float(self.stance_clock[0])
         return self.apply(
             pose.world_from_bone_quat, pose.rest_from_bone_quat, pose.root_pos,
             pose.hips_pos, self.stance_state, t_s,

@@ -277,6 +277,9 @@ class StanceDetector:
         self._prev = np.zeros((2, _MAX_POINTS, 3))
         self._vel = np.zeros((2, _MAX_POINTS, 3))
         self._state = np.zeros((2, 4))
+        self.clock = np.zeros(1)
+        """(1,) seconds: the sum of the frame intervals given to :meth:`update` (a
+        later stage's clock, post/plant.py)."""
         self._call: object = _step
 
     @property
@@ -299,6 +302,7 @@ class StanceDetector:
     def reset(self) -> None:
         """Forget the history (a new stream): the next frame starts afresh."""
         self._state[:] = 0.0
+        self.clock[0] = 0.0
 
     def update(
         self, root_pos: F64Array, world_from_bone_quat: F64Array, dt: float
@@ -311,6 +315,8 @@ class StanceDetector:
             dt: seconds since the previous frame (0 or less: no history, e.g. the
                 first frame).
         """
+        if dt > 0.0:
+            self.clock[0] += dt
         plan = self._plan
         if plan is None:
             return 0
