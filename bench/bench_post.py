@@ -47,9 +47,11 @@ from retargetd.daemon.post.interp import Clip, RateResampler, resample
 from retargetd.daemon.post.one_euro import OneEuroFilter
 from retargetd.daemon.post.pipeline import build_pipeline
 from retargetd.daemon.post.pivot import ShiftingPivot, SpinePivot
+from retargetd.daemon.post.plant import FootPlant, performer_leg_m
 from retargetd.daemon.post.pose import PoseBuffer
 from retargetd.daemon.post.reduce import reduce_clip
 from retargetd.daemon.post.solve_post import SolvePost
+from retargetd.daemon.post.stance import StanceDetector
 from retargetd.daemon.post.twist import TwistDistribution, arm_chains
 from retargetd.daemon.target.retarget import Retargeter
 from retargetd.daemon.target.skeleton import default_humanoid
@@ -258,6 +260,33 @@ def main() -> None:
         np.copyto(spine_r, mapped_r[i % n])
         spine_pivot.apply(spine_g, spine_r)
 
+    # [target] feet = "plant" (live/send.py): on each mapped frame, the stance
+    # detector's state of that frame (replayed: the detector's own cost is not in
+    # this row), both feet; the PiG walk's contact holds a foot most frames.
+    plant = FootPlant(humanoid, retargeter.root_scale, performer_leg_m(solver.rig, cal))
+    detector = StanceDetector(solver.rig, cal)
+    stance_states = np.empty((n, 2, 4))
+    mapped_root = np.empty((n, 3))
+    for i in range(n):
+        detector.update(body_p[i], body_w[i], 1.0 / clip.rate_hz if i else 0.0)
+        stance_states[i] = detector.state
+        body.world_from_bone_quat[:] = body_w[i]
+        body.root_pos[:] = body_p[i]
+        retargeter.apply(body, tpose)
+        mapped_root[i] = tpose.root_pos
+    plant_g, plant_r = np.empty_like(mapped_w[0]), np.empty_like(mapped_r[0])
+    plant_root, plant_hips, plant_st = np.empty(3), np.empty(3), np.empty((2, 4))
+
+    def plant_step(i: int) -> None:
+        k = i % n
+        np.copyto(plant_g, mapped_w[k])
+        np.copyto(plant_r, mapped_r[k])
+        np.copyto(plant_root, mapped_root[k])
+        np.copyto(plant_st, stance_states[k])
+        plant.apply(
+            plant_g, plant_r, plant_root, plant_hips, plant_st, i / clip.rate_hz
+        )
+
     def upsample_step(i: int) -> None:
         now = i * 10_000_000  # 100 Hz arrivals; every queued tick sent by the next
         res120.push(load(i), now)
@@ -276,6 +305,7 @@ def main() -> None:
             lambda i: (load(i), spine.apply(spine_pts, spine_out)),
         ),
         ("SpinePivot.apply (humanoid, 3 joints)", spine_step),
+        ("FootPlant.apply (humanoid, 2 feet)", plant_step),
         ("RateResampler push+pop (100->60 Hz)", resample_step),
         ("RateResampler push+pop (100->120 Hz)", upsample_step),
         ("OneEuroFilter.apply (19 bones)", lambda i: euro.apply(load(i), out)),

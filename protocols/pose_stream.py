@@ -102,6 +102,11 @@ FRAME_CONTACT_LEFT = 1 << 25  # the left foot is on the ground (or on a step)
 FRAME_CONTACT_RIGHT = 1 << 26  # the right foot is on the ground (or on a step)
 FRAME_CONTACT_KNOWN = 1 << 27  # contact detected for this frame (bits 25-26 valid)
 FRAME_FLAG_BITS.update(contact_left=25, contact_right=26, contact_known=27)
+# Feet planted on the target (issue 34, ``[target] feet = "plant"``;
+# daemon/post/plant.py): a stance foot's hold was out of the target leg's reach this
+# frame, so the leg is straightened (or at the knee's most flexion) toward it.
+FRAME_PLANT_UNREACHED = 1 << 28
+FRAME_FLAG_BITS.update(plant_unreached=28)
 
 # Validation frame bits (8-15), set by the daemon's live validator (``[validate]``):
 # one per check, in this order; VALIDATION_CHECKS names them.

@@ -33,6 +33,38 @@ def add_pipeline_argument(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def add_plant_feet_argument(parser: argparse.ArgumentParser) -> None:
+    """``--plant-feet`` (``[target] feet = "plant"`` offline; README "Feet that
+    plant")."""
+    parser.add_argument(
+        "--plant-feet",
+        action="store_true",
+        help="map the motion onto the target skeleton (--pipeline's [target], else "
+        "the default humanoid) with the stance feet planted, as the live "
+        '[target] feet = "plant" does: the root scaled by the leg-length ratio, '
+        "each stance foot held where it landed by two-bone leg IK; written as the "
+        ".npz's target_* arrays (.npz only)",
+    )
+
+
+def plant_target_config(target_config: Any, out: str, out_format: str) -> Any:
+    """``--plant-feet``: the ``[target]`` config (the given one, else the defaults:
+    the humanoid) with ``feet = "plant"``.
+
+    Raises:
+        UsageError: an output other than ``.npz``.
+    """
+    from retargetd.daemon.live.config_schema import TargetConfig
+
+    if out_format != "npz":
+        raise UsageError(
+            "--plant-feet: the planted motion is on the target skeleton, written as "
+            f"the .npz's target_* arrays (.npz only); got --out {out}"
+        )
+    base = TargetConfig() if target_config is None else target_config
+    return dataclasses.replace(base, feet="plant")
+
+
 def add_glb_mesh_argument(parser: argparse.ArgumentParser) -> None:
     """``--glb-mesh none|capsules`` (glTF output: the skin alone, or a capsule per
     bone on it; :mod:`retargetd.replay.gltf_mesh`)."""
@@ -176,31 +208,48 @@ def apply_pipeline_to_solve(
 
 
 def retarget_solve(
-    solve: Any, rig: Any, calibration: Any, target_config: Any
+    solve: Any,
+    rig: Any,
+    calibration: Any,
+    target_config: Any,
+    *,
+    rate_hz: float = 0.0,
+    stance_solve: Any = None,
 ) -> dict[str, np.ndarray]:
     """A solve mapped onto the ``[target]`` skeleton frame by frame, as the live loop
     maps it before VMC: :class:`~retargetd.daemon.target.retarget.Retargeter` (the
     same ``compensate_base_pose``), then, with ``spine = "pivot"``, the same
     :class:`~retargetd.daemon.post.pivot.SpinePivot`
-    (:func:`retargetd.daemon.live.send.spine_stage`).
+    (:func:`retargetd.daemon.post.pivot.spine_stage`), then, with ``feet = "plant"``,
+    the same :class:`~retargetd.daemon.post.plant.FootPlant`
+    (:func:`retargetd.daemon.live.send.plant_stage`) fed by the stance detector run
+    on ``stance_solve`` (the solve before any post stage, as live).
 
     Args:
         solve: the (processed) :class:`~retargetd.daemon.body.solve.BodySolve`.
         rig: its rig.
         calibration: its calibration.
         target_config: a ``TargetConfig`` (:func:`load_target_section`).
+        rate_hz: the take's frame rate (needed with ``feet = "plant"``).
+        stance_solve: the solve stance is detected on (default ``solve``).
 
     Returns:
         NPZ arrays: ``target_bone_names`` (N,), ``target_world_from_bone_quat`` and
         ``target_rest_from_bone_quat`` (T, N, 4) w x y z (the latter what VMC sends,
-        world axes), ``target_root_pos`` (T, 3) metres world, ``target_spine``.
+        world axes), ``target_root_pos`` (T, 3) metres world, ``target_spine``,
+        ``target_feet``; with ``feet = "plant"`` also ``target_plant_flags`` (T,)
+        uint32 (``FRAME_PLANT_UNREACHED`` where a foot could not reach its hold) and
+        ``target_leg_ratio`` (the target's leg length over the performer's).
 
     Raises:
-        UsageError: a target the spine pivot does not fit, or a bad BVH target.
+        UsageError: a target the spine pivot or the plant does not fit, or a bad BVH
+            target.
     """
     from types import SimpleNamespace
 
-    from retargetd.daemon.live.send import spine_stage
+    from retargetd.daemon.post.pivot import spine_stage
+    from retargetd.daemon.post.plant import plant_stage
+    from retargetd.daemon.post.stance import StanceDetector
     from retargetd.daemon.target.retarget import (
         Retargeter,
         TargetSkeleton,
@@ -221,10 +270,19 @@ def retarget_solve(
     rt = Retargeter(
         rig, calibration, target, compensate_base_pose=t.compensate_base_pose
     )
+    stance = StanceDetector(rig, calibration)
+    try:
+        plant = plant_stage(t.feet, rt, stance)
+    except ValueError as exc:
+        raise UsageError(f"[target] feet = 'plant': {exc}") from None
+    if plant is not None and not rate_hz > 0.0:
+        raise UsageError("feet = 'plant': the take's frame rate is needed")
+    src = solve if stance_solve is None else stance_solve
     out = rt.new_pose()
     n_frames, n = len(solve.world_from_bone_quat), len(target.bone_names)
     wfb, rfb = np.empty((n_frames, n, 4)), np.empty((n_frames, n, 4))
     root = np.empty((n_frames, 3))
+    plant_flags = np.zeros(n_frames, dtype=np.uint32)
     for k in range(n_frames):
         frame = SimpleNamespace(
             world_from_bone_quat=np.ascontiguousarray(solve.world_from_bone_quat[k]),
@@ -234,18 +292,30 @@ def retarget_solve(
         rt.apply(frame, out)  # type: ignore[arg-type]
         if spine is not None:
             spine.apply(out.world_from_bone_quat, out.rest_from_bone_quat)
+        if plant is not None:
+            stance.update(
+                np.ascontiguousarray(src.root_pos[k], dtype=np.float64),
+                np.ascontiguousarray(src.world_from_bone_quat[k], dtype=np.float64),
+                1.0 / rate_hz if k else 0.0,
+            )
+            plant_flags[k] = plant.apply_pose(out)
         wfb[k], rfb[k], root[k] = (
             out.world_from_bone_quat,
             out.rest_from_bone_quat,
             out.root_pos,
         )
-    return {
+    arrays = {
         "target_bone_names": np.asarray(target.bone_names, dtype=str),
         "target_world_from_bone_quat": wfb,
         "target_rest_from_bone_quat": rfb,
         "target_root_pos": root,
         "target_spine": np.asarray(t.spine),
+        "target_feet": np.asarray(t.feet),
     }
+    if plant is not None:
+        arrays["target_plant_flags"] = plant_flags
+        arrays["target_leg_ratio"] = np.asarray(plant.leg_ratio, dtype=np.float64)
+    return arrays
 
 
 def fill_held_gaps(solve: Any, calibration: Any, max_frames: int) -> tuple[Any, int]:

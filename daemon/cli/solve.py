@@ -95,6 +95,7 @@ def add_parser(subparsers: Any) -> None:
     from retargetd.daemon.cli.post_io import (
         add_glb_mesh_argument,
         add_pipeline_argument,
+        add_plant_feet_argument,
     )
 
     parser = subparsers.add_parser(
@@ -112,6 +113,7 @@ def add_parser(subparsers: Any) -> None:
     )  # fmt: skip
     add_output_arguments(parser, json=True)
     add_pipeline_argument(parser)
+    add_plant_feet_argument(parser)
     add_glb_mesh_argument(parser)
     parser.add_argument(
         "--fill-gaps",
@@ -216,7 +218,11 @@ def run(args: argparse.Namespace) -> int:
         from retargetd.daemon.cli.post_io import load_target_section
 
         target_cfg = load_target_section(args.pipeline)
-        if target_cfg is not None and target_cfg.spine != "pivot":
+        if (
+            target_cfg is not None
+            and target_cfg.spine != "pivot"
+            and not args.plant_feet
+        ):
             target_cfg = None  # a daemon config's [target]: nothing to emit offline
         if target_cfg is not None and out_format != "npz":
             raise UsageError(
@@ -224,6 +230,10 @@ def run(args: argparse.Namespace) -> int:
                 'the target skeleton (spine = "pivot" ...), written in .npz only '
                 f"(target_* arrays); got --out {args.out}"
             )
+    if args.plant_feet:
+        from retargetd.daemon.cli.post_io import plant_target_config
+
+        target_cfg = plant_target_config(target_cfg, args.out, out_format)
     rig, take, cal, solver = solver_for_take(args)
     started = time.perf_counter()
     res = solve_take_progress(solver, take.positions, quiet=args.quiet)
@@ -235,6 +245,7 @@ def run(args: argparse.Namespace) -> int:
     contact = foot_contact(
         rig, cal, res.root_pos, res.world_from_bone_quat, take.rate_hz
     )
+    raw = res  # stance is detected on the solve before any post stage, as live
     kinds: tuple[str, ...] = ()
     n_filled = None
     if args.fill_gaps is not None:
@@ -246,10 +257,12 @@ def run(args: argparse.Namespace) -> int:
         from retargetd.daemon.cli.post_io import apply_pipeline_to_solve
 
         res, kinds = apply_pipeline_to_solve(args.pipeline, res, cal, take.rate_hz)
-        if target_cfg is not None:
-            from retargetd.daemon.cli.post_io import retarget_solve
+    if target_cfg is not None:
+        from retargetd.daemon.cli.post_io import retarget_solve
 
-            target_arrays = retarget_solve(res, rig, cal, target_cfg)
+        target_arrays = retarget_solve(
+            res, rig, cal, target_cfg, rate_hz=take.rate_hz, stance_solve=raw
+        )
     if out_format == "bvh":
         _write_bvh(args, cal, res, take.rate_hz)
     elif out_format == "csv":

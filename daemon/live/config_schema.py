@@ -257,6 +257,11 @@ class TargetConfig:
     # most spine_pivot_limit_deg a joint; post/pivot.py SpinePivot; README).
     spine: str = one_of("mapped", "mapped", "pivot")
     spine_pivot_limit_deg: float = between(15.0, 0.0, 180.0, open_lo=True)
+    # The feet: "free" (the rotations alone; the root scaled by the hips-height
+    # ratio) or "plant" (the root scaled by the leg-length ratio and each stance foot
+    # held where it landed by two-bone IK on the target's legs; post/plant.py
+    # FootPlant; README "Feet that plant").
+    feet: str = one_of("free", "free", "plant")
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)

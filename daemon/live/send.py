@@ -16,7 +16,6 @@ import zmq
 
 from retargetd.daemon.body.match import MatchWindow
 from retargetd.daemon.body.method import make_body_solver
-from retargetd.daemon.live.config_schema import TargetConfig
 from retargetd.daemon.live.emit import (
     DO_POSE,
     DO_RETARGET,
@@ -27,7 +26,8 @@ from retargetd.daemon.live.emit import (
 from retargetd.daemon.live.performer import FrameSource
 from retargetd.daemon.live.state import DaemonState, Pipeline
 from retargetd.daemon.post.pipeline import build_pipeline
-from retargetd.daemon.post.pivot import SpinePivot
+from retargetd.daemon.post.pivot import spine_stage
+from retargetd.daemon.post.plant import plant_stage
 from retargetd.daemon.post.solve_post import SolvePost
 from retargetd.daemon.post.stance import StanceDetector
 from retargetd.daemon.target.retarget import (
@@ -81,27 +81,6 @@ _PERFORMER_MASK = pose_stream.PERFORMER_MASK
 
 #: How often the VMC state is sent while nothing is streamed (0.5 s).
 VMC_STATE_INTERVAL_NS = 500_000_000
-
-
-def spine_stage(config: TargetConfig, target: Any, rig: Any) -> SpinePivot | None:
-    """The ``[target] spine = "pivot"`` stage for ``target`` driven by ``rig`` (None
-    for ``"mapped"``).
-
-    Why a target option and not a ``[[pipeline]]`` kind: the pipeline's stages act
-    on the solved rig's pose (``PoseBuffer``, the rig's B bones), and the bones the
-    pivot writes are the target's: UpperChest exists on no shipped rig (the rigs
-    solve pelvis, lumbar, thorax), so the shares can only be written once the pose
-    is mapped onto the target, after ``Retargeter.apply``.
-
-    Raises:
-        ValueError: the target has no spine chain or the rig drives none of it.
-    """
-    if config.spine != "pivot":
-        return None
-    return SpinePivot(
-        target.bone_names, target.parents, target.rest_world_from_bone_quat,
-        set(rig.humanoid), target.left_world, config.spine_pivot_limit_deg,
-    )  # fmt: skip
 
 
 class SendMixin(DaemonState):
@@ -186,6 +165,7 @@ class SendMixin(DaemonState):
             performer=self._perf.index,
         )
         emit = EmitPlan(retargeter, vmc, pose_enc, bone_pos_unity)
+        stance = StanceDetector(self.rig, self.calibration)
         pose = solver.new_pose()
         blend = face.blend if face is not None else np.zeros(0)
         weights = face.weights if face is not None else np.zeros(0)
@@ -213,8 +193,9 @@ class SendMixin(DaemonState):
             ),
             post=self._build_post(),
             spine=spine_stage(self.config.target, self.target, self.rig),
+            plant=plant_stage(self.config.target.feet, retargeter, stance),
             emit=emit,
-            stance=StanceDetector(self.rig, self.calibration),
+            stance=stance,
         )
 
     def _build_post(self) -> SolvePost | None:
@@ -411,6 +392,11 @@ class SendMixin(DaemonState):
             t0 = time.perf_counter_ns()
             pipe.spine.apply(tp.world_from_bone_quat, tp.rest_from_bone_quat)
             stats.record_spine(time.perf_counter_ns() - t0)
+        if pipe.plant is not None:  # [target] feet = "plant", after the retarget
+            if what:
+                pipe.retargeter.apply(pose, tp)
+            what = 0  # its plant_unreached flag rides perf.frame_flags
+            perf.frame_flags |= pipe.plant.apply_pose(tp)
         face = pipe.face
         fo = face.out if face is not None else None
         if face is not None and frame is not None:

@@ -37,6 +37,7 @@ from retargetd.daemon.live.stats import LoopStats
 from retargetd.daemon.live.surface import CurveGuard
 from retargetd.daemon.live.watch import SocketWatch
 from retargetd.daemon.post.pivot import SpinePivot
+from retargetd.daemon.post.plant import FootPlant
 from retargetd.daemon.post.solve_post import SolvePost
 from retargetd.daemon.post.stance import StanceDetector
 from retargetd.protocols import pose_stream
@@ -73,6 +74,7 @@ class Pipeline:
     emit: EmitPlan | None = None  # the one compiled call per frame (live/emit.py)
     stance: StanceDetector | None = None  # foot contact (post/stance.py)
     stance_bits: int = 0  # its FRAME_CONTACT_* bits for the latest solved frame
+    plant: FootPlant | None = None  # [target] feet = "plant", after the retarget
     # the last solved frame's source time, frame number and receive time (the fit's
     # frame time, SendMixin._frame_dt_s)
     last_times: tuple[float, int, int] = (math.nan, -1, 0)

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Collection, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -441,3 +442,25 @@ class SpinePivot:
             world_from_bone_quat, rest_from_bone_quat, self._rest, self._plan,
             self._m, st.limit_rad, st.double, st._angles, self._shares, self._e,
         )  # fmt: skip
+
+
+def spine_stage(config: Any, target: Any, rig: Any) -> SpinePivot | None:
+    """The ``[target] spine = "pivot"`` stage for ``target`` driven by ``rig`` (None
+    for ``"mapped"``); ``config`` is the ``[target]`` table (``TargetConfig``:
+    ``spine``, ``spine_pivot_limit_deg``).
+
+    Why a target option and not a ``[[pipeline]]`` kind: the pipeline's stages act
+    on the solved rig's pose (``PoseBuffer``, the rig's B bones), and the bones the
+    pivot writes are the target's: UpperChest exists on no shipped rig (the rigs
+    solve pelvis, lumbar, thorax), so the shares can only be written once the pose
+    is mapped onto the target, after ``Retargeter.apply``.
+
+    Raises:
+        ValueError: the target has no spine chain or the rig drives none of it.
+    """
+    if config.spine != "pivot":
+        return None
+    return SpinePivot(
+        target.bone_names, target.parents, target.rest_world_from_bone_quat,
+        set(rig.humanoid), target.left_world, config.spine_pivot_limit_deg,
+    )  # fmt: skip

@@ -92,6 +92,9 @@ _SIDES = (("LeftFoot", "LeftToes"), ("RightFoot", "RightToes"))
 _MAX_POINTS = 4  # ankle, forefoot (the foot's aim), toe tip (a toes bone), heel
 # State columns per foot: has history, seconds still, support level, contact.
 _HAS, _STILL, _SUPPORT, _CONTACT = 0, 1, 2, 3
+#: :attr:`StanceDetector.state`'s columns a later stage reads (post/plant.py): the
+#: support level (metres above the calibration's floor) and the contact (0 or 1).
+SUPPORT_COLUMN, CONTACT_COLUMN = _SUPPORT, _CONTACT
 
 
 class _Plan:
@@ -265,6 +268,7 @@ class StanceDetector:
             f in rig.humanoid for f, _ in _SIDES
         )
         """Whether the rig maps both feet (else the contact is never set)."""
+        self.rig, self.calibration = rig, calibration
         self._plan = _Plan(rig, calibration) if self.known else None
         tau = 1.0 / (2.0 * math.pi * p["cutoff_hz"])
         self._params = np.array([*(p[k] for k in _PARAMS), tau])
@@ -273,12 +277,22 @@ class StanceDetector:
         self._prev = np.zeros((2, _MAX_POINTS, 3))
         self._vel = np.zeros((2, _MAX_POINTS, 3))
         self._state = np.zeros((2, 4))
+        self.clock = np.zeros(1)
+        """(1,) seconds: the sum of the frame intervals given to :meth:`update` (a
+        later stage's clock, post/plant.py)."""
         self._call: object = _step
 
     @property
     def contact(self) -> tuple[bool, bool]:
         """Left and right foot in contact after the last frame."""
         return bool(self._state[0, _CONTACT]), bool(self._state[1, _CONTACT])
+
+    @property
+    def state(self) -> np.ndarray:
+        """(2, 4) the detector's own state array (left, right), updated in place
+        every frame: read :data:`SUPPORT_COLUMN` and :data:`CONTACT_COLUMN` without a
+        copy (the plant stage's input)."""
+        return self._state
 
     @property
     def support(self) -> tuple[float, float]:
@@ -288,6 +302,7 @@ class StanceDetector:
     def reset(self) -> None:
         """Forget the history (a new stream): the next frame starts afresh."""
         self._state[:] = 0.0
+        self.clock[0] = 0.0
 
     def update(
         self, root_pos: F64Array, world_from_bone_quat: F64Array, dt: float
@@ -300,6 +315,8 @@ class StanceDetector:
             dt: seconds since the previous frame (0 or less: no history, e.g. the
                 first frame).
         """
+        if dt > 0.0:
+            self.clock[0] += dt
         plan = self._plan
         if plan is None:
             return 0

@@ -573,6 +573,71 @@ def test_live_spine_pivot_equals_offline(
     assert " pivot " in line, line
 
 
+@pytest.mark.timeout(90)
+def test_live_planted_feet_equal_offline(
+    start_daemon: Callable[..., Live],
+    osc_source: Callable[..., OscSource],
+    zmq_socket: Callable[[int], Any],
+    vmc: VmcReceiver,
+    exact_calibration: Path,
+) -> None:
+    """``[target] feet = "plant"`` (issue 34): the VMC bones (Unity frame, float32)
+    equal ``solve --plant-feet``'s offline mapping (``retarget_solve``: the same
+    stance detector and ``FootPlant`` frame by frame) within 1e-6 rad on every bone,
+    and the legs differ from the free mapping's where a foot was held."""
+    take = _take()
+    live = start_daemon(
+        {
+            "performer": {"calibration": str(exact_calibration)},
+            "loop": {"process_every_frame": True},
+            "target": {"feet": "plant"},
+        },
+        vmc_port=vmc.port,
+    )
+    sub = PoseSub(zmq_socket(zmq.SUB), live.tcp("zmq poses"))
+    src = osc_source(live)
+    src.announce()
+    _prime(sub, lambda: src.send(take.markers_world[0]))
+    k = len(src.sent)
+    for row in range(60, 60 + 150):
+        src.send(take.markers_world[row])
+        sub.pump()
+        time.sleep(0.004)
+    n = len(src.sent)
+    vmc.wait_frames(n)
+    live.stop()
+    frames = vmc.frames[k:n]
+    names = [b for b in _vmc_bones(frames[0]) if b != "root"]
+    rig, cal, raw = _solve_sent(exact_calibration, take, src)
+    plant = retarget_solve(raw, rig, cal, TargetConfig(feet="plant"), rate_hz=RATE_HZ)
+    free = retarget_solve(raw, rig, cal, TargetConfig())
+    assert [str(b) for b in plant["target_bone_names"]] == names
+    unity = np.zeros((len(names), 4))
+    pairs = [(s, b) for s in ("Left", "Right") for b in ("UpperLeg", "LowerLeg")]
+    legs = [names.index(s + b) for s, b in pairs]
+    worst, moved = 0.0, 0.0
+    for t, frame in enumerate(frames, start=k):
+        bones = _vmc_bones(frame)
+        got = np.array([bones[b][3:] for b in names])  # x y z w, Unity
+        engine_unity.unity_quat_xyzw_from_world(
+            plant["target_rest_from_bone_quat"][t], unity
+        )
+        err = _angles(np.roll(got, 1, axis=-1), np.roll(unity, 1, axis=-1))
+        worst = max(worst, float(err.max()))
+        rel = quat_mul(
+            quat_conj(plant["target_rest_from_bone_quat"][t, legs]),
+            free["target_rest_from_bone_quat"][t, legs],
+        )
+        moved = max(moved, float(quat_angle(rel).max()))
+    print(
+        f"\nlive planted feet over {len(frames)} VMC frames: worst angle to offline "
+        f"{worst:.1e} rad; the plant moved the legs by up to {np.degrees(moved):.2f} "
+        "deg"
+    )
+    assert worst < TOL_RAD, worst
+    assert moved > 0.0, "the plant changed nothing"
+
+
 def test_spine_pivot_the_rig_cannot_drive_is_one_line(
     tmp_path: Path, exact_calibration: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -87,7 +87,7 @@ def test_flag_bits_do_not_overlap_validation() -> None:
     bone_bits = ps.BONE_HELD | ps.BONE_REBUILT | ps.BONE_PARTIAL | ps.BONE_NEVER
     assert bone_bits & ps.BONE_VALIDATION_MASK == 0
     assert {1 << b for b in ps.FRAME_FLAG_BITS.values()} == {
-        1, 2, 4, 8, 16, 32, 64, 128, 1 << 24, 1 << 25, 1 << 26, 1 << 27
+        1, 2, 4, 8, 16, 32, 64, 128, 1 << 24, 1 << 25, 1 << 26, 1 << 27, 1 << 28
     }  # fmt: skip
     assert (
         ps.FRAME_CALIBRATION_MISMATCH & (ps.FRAME_VALIDATION_MASK | ps.PERFORMER_MASK)
@@ -389,3 +389,20 @@ def test_foot_contact_bits_ride_the_flags_word(rng: np.random.Generator) -> None
         26,
         27,
     )
+
+
+def test_plant_unreached_bit_rides_the_flags_word(rng: np.random.Generator) -> None:
+    """Issue 34 item 2: bit 28 ``plant_unreached`` (``0x1000_0000``, byte 51 bit 4),
+    PROTOCOLS.md's vector: left foot in contact and out of reach, performer 0, the
+    flags word ``0x1A00_0000`` (bytes 48-51 ``00 00 00 1A``); named in the names
+    message's ``frame_flag_bits``."""
+    assert ps.FRAME_PLANT_UNREACHED == 0x1000_0000
+    enc = ps.PoseEncoder(3, 2, performer=0)
+    _, args = _encode(rng, enc)
+    word = ps.FRAME_CONTACT_LEFT | ps.FRAME_CONTACT_KNOWN | ps.FRAME_PLANT_UNREACHED
+    enc.encode(**{**args, "flags": word})
+    header = bytes(enc.parts[0])
+    assert header[48:52] == bytes([0x00, 0x00, 0x00, 0x1A])
+    assert ps.decode_pose(enc.parts).flags == 0x1A00_0000
+    names = json.loads(ps.encode_pose_names(NAMES)[1])
+    assert names["frame_flag_bits"]["plant_unreached"] == 28

@@ -1,0 +1,453 @@
+"""Feet that plant (issue 34, item 3): stance-foot skate and penetration on targets
+whose legs are 0.8x, 1.0x and 1.25x the performer's, without and with
+``[target] feet = "plant"``; the knee at the blend edges; the swing paths.
+
+    python bench/feet_plant.py --out docs/feet.md [--seconds 8] [--rate 120]
+        [--no-real]
+
+The synthetic performer (``daemon/synth``, menache markers, noise 0) walks, runs,
+climbs and descends stairs (its stair gaits are the stair joint angles on a flat
+floor: ``synth/motion.py``); it is calibrated on its own T-pose hold, solved with the
+construction, retargeted onto a humanoid target (the default humanoid's torso and
+arms) whose leg segments (thigh, shank, ankle height, foot) are k times the
+calibrated performer's, and run through three ways:
+
+- ``free``: the rotations alone (the retarget's root scaled by the hips-height ratio);
+- ``scaled``: the root scaled by the leg-length ratio, no foot held (the plant stage
+  with no contact): the unplanted path the swing is compared with;
+- ``plant``: ``feet = "plant"`` (``daemon/post/plant.py``), the stance detector's
+  contact (``daemon/post/stance.py``) on the solve.
+
+Measured on the target (forward kinematics of the emitted pose), per foot, over the
+frames the detector marks in contact (its contact is the performer's; the synthetic
+gaits slide their own stance feet, ~1 m/s, so that contact is sparse and short: the
+detector calls stance only where the solved foot slows below 0.5 m/s):
+
+- **skate**: per frame, the horizontal travel of the foot's floor points (heel and
+  ball: the points within 1 cm of the foot's lowest), the least of them (a foot
+  rolling about its ball holds its ball); summed over each contact run. Columns: the
+  p95 over contact frames and the p95 over runs of that sum, mm;
+- **sink**: the foot's lowest point (heel, ball, toe tip) below its support level (the
+  detector's, times the leg ratio), max over contact frames, mm;
+- **knee**: at the blend edges (the frame before each contact onset through the
+  blend-in, the frame before each release through the blend-out), the most the plant
+  adds to the knee's frame-to-frame change (|d flex plant - d flex scaled|), deg;
+- **swing**: in swing once the release has blended out, the largest distance of the
+  planted ankle from the scaled one, mm;
+- **unreached**: frames flagged ``plant_unreached``.
+
+With ``--no-real`` the real takes are left out; else the takes in
+``../shared/datasets`` (the PiG walk, OpenSim's subject01 walk, the MOTEK ballet, the
+tennis serve), each calibrated as in ``bench/batch_datasets.toml``, on the default
+humanoid, ``free`` against ``plant``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from retargetd.daemon import rotations as rot
+from retargetd.daemon.body.calibration import calibrate
+from retargetd.daemon.body.method import make_body_solver
+from retargetd.daemon.body.rig import load_rig
+from retargetd.daemon.post.plant import PLANT, FootPlant, foot_points, performer_leg_m
+from retargetd.daemon.post.stance import SUPPORT_COLUMN, StanceDetector
+from retargetd.daemon.synth import performer as pf
+from retargetd.daemon.target.retarget import Retargeter, default_humanoid
+from retargetd.daemon.target.skeleton import TargetSkeleton
+from retargetd.daemon.validate.limits import JOINT_LIMITS_DEG
+from retargetd.daemon.validate.model import SEGMENT_KIND
+
+REPO = Path(__file__).resolve().parent.parent
+DATASETS = REPO.parent / "shared" / "datasets"
+ACTIVITIES = ("walk", "run", "stair_ascent", "stair_descent")
+LEG_SCALES = (0.8, 1.0, 1.25)
+#: A floor point: within this of the foot's lowest (the plant's pivot_switch_m).
+ON_FLOOR_M = PLANT["pivot_switch_m"]
+_SIDES = ("Left", "Right")
+
+
+def leg_target(rig: Any, calibration: Any, k: float) -> TargetSkeleton:
+    """The default humanoid with legs k times the calibrated performer's: thigh and
+    shank lengths, ankle height (mean of both sides), the foot scaled with the ankle
+    height; the torso and arms the default's, the hips raised or lowered with the
+    legs."""
+    base = default_humanoid()
+    origins = np.asarray(calibration.rest_bone_origin_pos)
+    names = list(calibration.bone_names)
+
+    def joint(h: str) -> np.ndarray:
+        return origins[names.index(rig.humanoid[h])]
+
+    thigh = np.mean([np.linalg.norm(joint(s + "LowerLeg") - joint(s + "UpperLeg"))
+                     for s in _SIDES])  # fmt: skip
+    shank = np.mean([np.linalg.norm(joint(s + "Foot") - joint(s + "LowerLeg"))
+                     for s in _SIDES])  # fmt: skip
+    ankle = np.mean([joint(s + "Foot")[2] for s in _SIDES])
+    hip_drop = 0.05  # the default's UpperLeg below its Hips
+    foot = k * ankle / 0.08  # the default's ankle height 0.08 m, toes at 0.02
+    offsets = np.array(base.rest_offsets)
+    aims = np.array(base.aim_offsets)
+    hips = hip_drop + k * (thigh + shank + ankle)
+    offsets[0] = (0.0, 0.0, hips)
+    for s, sx in (("Left", -1.0), ("Right", 1.0)):
+        i = {b: base.index(s + b) for b in ("UpperLeg", "LowerLeg", "Foot", "Toes")}
+        offsets[i["UpperLeg"]] = (sx * 0.09, 0.0, -hip_drop)
+        offsets[i["LowerLeg"]] = (0.0, 0.0, -k * thigh)
+        offsets[i["Foot"]] = (0.0, 0.0, -k * shank)
+        offsets[i["Toes"]] = (0.0, foot * 0.13, -foot * 0.06)
+        aims[i["UpperLeg"]] = offsets[i["LowerLeg"]]
+        aims[i["LowerLeg"]] = offsets[i["Foot"]]
+        aims[i["Foot"]] = offsets[i["Toes"]]
+        aims[i["Toes"]] = (0.0, foot * 0.06, -foot * 0.02)
+    return dataclasses.replace(
+        base,
+        name=f"humanoid, legs {k:g}x",
+        rest_offsets=offsets,
+        aim_offsets=aims,
+        hips_height=float(hips),
+    )
+
+
+def run_modes(
+    res: Any, rig: Any, cal: Any, target: TargetSkeleton, rate_hz: float
+) -> dict[str, Any]:
+    """The solve through ``free``, ``scaled`` and ``plant`` (module docstring): each
+    way's target ``wfb`` (T, N, 4) and ``root`` (T, 3); the detector's ``contact``
+    (T, 2) and ``support`` (T, 2) (the performer's, metres); ``flags`` (T,);
+    ``leg_ratio``."""
+    rt = Retargeter(rig, cal, target)
+    leg = performer_leg_m(rig, cal)
+    plant = FootPlant(target, rt.root_scale, leg)
+    scaled = FootPlant(target, rt.root_scale, leg)
+    no_contact = np.zeros((2, 4))
+    det = StanceDetector(rig, cal)
+    n_frames, n = len(res.root_pos), len(target.bone_names)
+    out: dict[str, Any] = {
+        m: {"wfb": np.empty((n_frames, n, 4)), "root": np.empty((n_frames, 3))}
+        for m in ("free", "scaled", "plant")
+    }
+    contact = np.zeros((n_frames, 2), bool)
+    support = np.zeros((n_frames, 2))
+    flags = np.zeros(n_frames, np.uint32)
+    pose = rt.new_pose()
+    for t in range(n_frames):
+        frame = _Frame(res, t)
+        bits = det.update(frame.root_pos, frame.world_from_bone_quat,
+                          1.0 / rate_hz if t else 0.0)  # fmt: skip
+        contact[t] = (bool(bits & 1 << 25), bool(bits & 1 << 26))
+        support[t] = det.state[:, SUPPORT_COLUMN]
+        for mode in ("free", "scaled", "plant"):
+            rt.apply(frame, pose)  # type: ignore[arg-type]
+            if mode == "scaled":
+                scaled.apply(
+                    pose.world_from_bone_quat, pose.rest_from_bone_quat,
+                    pose.root_pos, pose.hips_pos, no_contact, t / rate_hz,
+                )  # fmt: skip
+            elif mode == "plant":
+                flags[t] = plant.apply(
+                    pose.world_from_bone_quat, pose.rest_from_bone_quat,
+                    pose.root_pos, pose.hips_pos, det.state, t / rate_hz,
+                )  # fmt: skip
+            out[mode]["wfb"][t] = pose.world_from_bone_quat
+            out[mode]["root"][t] = pose.root_pos
+    out.update(contact=contact, support=support, flags=flags,
+               leg_ratio=plant.leg_ratio)  # fmt: skip
+    return out
+
+
+class _Frame:
+    """One solved frame as ``Retargeter.apply`` reads it."""
+
+    def __init__(self, res: Any, t: int) -> None:
+        self.world_from_bone_quat = np.ascontiguousarray(
+            res.world_from_bone_quat[t], dtype=np.float64
+        )
+        self.root_pos = np.ascontiguousarray(res.root_pos[t], dtype=np.float64)
+        self.bone_flags = np.ascontiguousarray(res.bone_flags[t])
+
+
+def foot_geometry(target: TargetSkeleton, wfb: np.ndarray, root: np.ndarray) -> dict:
+    """Forward kinematics of a target take (T frames): per side (2,) ``heel``,
+    ``ball``, ``tip``, ``ankle`` (T, 2, 3) and the knee flexion ``knee_deg`` (T, 2)."""
+    delta = rot.quat_mul(wfb, rot.quat_conj(target.rest_world_from_bone_quat))
+    n_frames, n = wfb.shape[:2]
+    x = np.zeros((n_frames, n, 3))
+    x[:, 0] = root + target.rest_offsets[0]
+    for i in range(1, n):
+        p = target.parents[i]
+        x[:, i] = x[:, p] + rot.quat_rotate(delta[:, p], target.rest_offsets[i])
+    heel_v, ball_v = foot_points(target)
+    g: dict[str, np.ndarray] = {
+        k: np.zeros((n_frames, 2, 3)) for k in ("heel", "ball", "tip", "ankle")
+    }
+    g["knee_deg"] = np.zeros((n_frames, 2))
+    for s, side in enumerate(_SIDES):
+        ul, ll, ft, to = (
+            target.index(side + b) for b in ("UpperLeg", "LowerLeg", "Foot", "Toes")
+        )
+        g["ankle"][:, s] = x[:, ft]
+        g["heel"][:, s] = x[:, ft] + rot.quat_rotate(delta[:, ft], heel_v[s])
+        g["ball"][:, s] = x[:, ft] + rot.quat_rotate(delta[:, ft], ball_v[s])
+        g["tip"][:, s] = x[:, to] + rot.quat_rotate(
+            delta[:, to], target.aim_offsets[to]
+        )
+        a, b = x[:, ll] - x[:, ul], x[:, ft] - x[:, ll]
+        cos = (
+            np.sum(a * b, -1) / np.linalg.norm(a, axis=-1) / np.linalg.norm(b, axis=-1)
+        )
+        g["knee_deg"][:, s] = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+    return g
+
+
+def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
+    """[start, stop) of each run of True."""
+    d = np.diff(np.concatenate([[0], mask.astype(np.int8), [0]]))
+    return list(zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1), strict=True))
+
+
+def skate_sink(g: dict, contact: np.ndarray, floor: np.ndarray) -> dict[str, float]:
+    """Skate (per contact frame and per contact run, mm) and sink (mm) of one way,
+    both feet pooled (module docstring)."""
+    per_frame, per_run, sink = [], [], []
+    for s in range(2):
+        pts = np.stack([g["heel"][:, s], g["ball"][:, s]], axis=1)  # (T, 2, 3)
+        low = np.minimum(pts[..., 2].min(axis=1), g["tip"][:, s, 2])
+        for a, b in _runs(contact[:, s]):
+            sink.extend(np.maximum(floor[a:b, s] - low[a:b], 0.0))
+            if b - a < 2:
+                continue
+            step = np.linalg.norm(np.diff(pts[a:b, :, :2], axis=0), axis=-1)  # (n, 2)
+            on = (
+                pts[a + 1 : b, :, 2]
+                <= pts[a + 1 : b, :, 2].min(-1, keepdims=True) + ON_FLOOR_M
+            )
+            d = np.where(on, step, np.inf).min(axis=1)
+            per_frame.extend(d)
+            per_run.append(d.sum())
+    pf_ = np.asarray(per_frame) * 1e3
+    pr = np.asarray(per_run) * 1e3
+    return {
+        "frames": int(contact.sum()),
+        "runs": len(per_run),
+        "skate_frame_p95_mm": float(np.percentile(pf_, 95)) if pf_.size else np.nan,
+        "skate_run_p95_mm": float(np.percentile(pr, 95)) if pr.size else np.nan,
+        "skate_run_max_mm": float(pr.max()) if pr.size else np.nan,
+        "sink_max_mm": float(np.max(sink) * 1e3) if sink else np.nan,
+    }
+
+
+def edges_and_swing(
+    gp: dict, gs: dict, contact: np.ndarray, rate_hz: float
+) -> dict[str, float]:
+    """The knee at the blend edges and the swing paths (module docstring)."""
+    n_in = int(np.ceil(PLANT["blend_in_s"] * rate_hz))
+    n_out = int(np.ceil(PLANT["blend_out_s"] * rate_hz))
+    n_frames = len(contact)
+    added, raw = [0.0], [0.0]
+    swing = [0.0]
+    for s in range(2):
+        dp = np.abs(np.diff(gp["knee_deg"][:, s]))
+        ds = np.abs(np.diff(gs["knee_deg"][:, s]))
+        extra = np.abs(np.diff(gp["knee_deg"][:, s]) - np.diff(gs["knee_deg"][:, s]))
+        edge = np.zeros(n_frames - 1, bool)
+        free = ~contact[:, s].copy()
+        for a, b in _runs(contact[:, s]):
+            edge[max(a - 1, 0) : min(a + n_in, n_frames - 1)] = True
+            edge[max(b - 1, 0) : min(b + n_out, n_frames - 1)] = True
+            free[b : b + n_out] = False
+        if edge.any():
+            added.append(float(extra[edge].max()))
+            raw.append(float(dp[edge].max()))
+        del ds
+        d = np.linalg.norm(gp["ankle"][:, s] - gs["ankle"][:, s], axis=-1)[free]
+        if d.size:
+            swing.append(float(d.max() * 1e3))
+    return {
+        "knee_added_deg": max(added),
+        "knee_edge_deg": max(raw),
+        "swing_max_mm": max(swing),
+    }
+
+
+def measure(
+    res: Any, rig: Any, cal: Any, target: TargetSkeleton, rate_hz: float
+) -> dict[str, Any]:
+    """Every figure of one take on one target (module docstring)."""
+    ways = run_modes(res, rig, cal, target, rate_hz)
+    contact, k = ways["contact"], ways["leg_ratio"]
+    floor = ways["support"] * k
+    geo = {m: foot_geometry(target, ways[m]["wfb"], ways[m]["root"])
+           for m in ("free", "scaled", "plant")}  # fmt: skip
+    return {
+        "leg_ratio": k,
+        "free": skate_sink(geo["free"], contact, floor),
+        "scaled": skate_sink(geo["scaled"], contact, floor),
+        "plant": skate_sink(geo["plant"], contact, floor),
+        **edges_and_swing(geo["plant"], geo["scaled"], contact, rate_hz),
+        "unreached": int(np.count_nonzero(ways["flags"])),
+        "n_frames": len(contact),
+    }
+
+
+def synthetic(activity: str, seconds: float, rate_hz: float) -> tuple[Any, ...]:
+    """(solve, rig, calibration) of the synthetic performer doing ``activity``."""
+    take = pf.synthesize(seconds=seconds, rate_hz=rate_hz, motions=(activity,), seed=0)
+    rig = load_rig("menache")
+    cal = calibrate(rig, take.markers_world[: int(0.5 * rate_hz)], take.labels)
+    solver = make_body_solver(
+        "construction", rig, cal, take.labels,
+        joint_limits=JOINT_LIMITS_DEG, segment_kind=SEGMENT_KIND,
+    )  # fmt: skip
+    return solver.solve_take(take.markers_world), rig, cal
+
+
+#: The real takes, calibrated as ``bench/batch_datasets.toml`` does: (label, take,
+#: rig, static take or None, base-pose rows, measurements).
+REAL = (
+    ("PiG walk", "btkdata/PiG_Motion-FlatFoot-Full.c3d", "plug-in-gait",
+     "btkdata/PiG_Calibration-FlatFoot-Full.c3d", None, ()),
+    ("OpenSim subject01 walk", "opensim-core/subject01_walk1.trc", "opensim-gait2354",
+     "opensim-core/subject01_static.trc", None,
+     ("PelvisWidth=262.3", "PelvisDepth=198.6")),
+    ("MOTEK ballet", "btkdata/MOTEK_ballet_reduced.trc", "cmu41",
+     "btkdata/MOTEK_T.trc", None, ()),
+    ("tennis serve", "kineticstoolkit/kinematics_tennis_serve.c3d", "cmu41", None,
+     "0:50", ()),
+)  # fmt: skip
+
+
+def real(
+    take_rel: str,
+    rig_name: str,
+    static_rel: str | None,
+    rows: str | None,
+    measures: tuple[str, ...],
+    work: Path,
+) -> tuple[Any, ...]:
+    """(solve, rig, calibration, rate) of a real take: ``retargetd calibrate`` and
+    ``retargetd solve`` (NPZ), as a user runs them."""
+    import subprocess
+    from types import SimpleNamespace
+
+    from retargetd.daemon.body.calibration import load_calibration
+
+    stem = Path(take_rel).stem
+    cal_path, npz = work / f"{stem}.json", work / f"{stem}.npz"
+    cli = [sys.executable, "-m", "retargetd.daemon"]
+    static = DATASETS / (static_rel or take_rel)
+    cmd = [*cli, "calibrate", str(static), "--rig", rig_name, "--out", str(cal_path)]
+    if rows is not None:
+        cmd += ["--frames", rows]
+    for m in measures:
+        cmd += ["--measure", m]
+    subprocess.run(cmd, check=True, capture_output=True)
+    subprocess.run(
+        [*cli, "solve", str(DATASETS / take_rel), "--rig", rig_name, "--calibration",
+         str(cal_path), "--out", str(npz), "--quiet"],
+        check=True, capture_output=True,
+    )  # fmt: skip
+    d = np.load(npz)
+    res = SimpleNamespace(
+        world_from_bone_quat=d["world_from_bone_quat"],
+        root_pos=d["root_pos"],
+        bone_flags=d["bone_flags"],
+    )
+    return res, load_rig(rig_name), load_calibration(cal_path), float(d["rate_hz"])
+
+
+def _row(label: str, m: dict[str, Any], *, synthetic_row: bool) -> str:
+    f, p = m["free"], m["plant"]
+    cells = [
+        label,
+        f"{m['leg_ratio']:.2f}",
+        f"{p['frames']} / {p['runs']}",
+        f"{f['skate_frame_p95_mm']:.1f} / {f['skate_run_p95_mm']:.1f}",
+        f"{p['skate_frame_p95_mm']:.2f} / {p['skate_run_p95_mm']:.2f}",
+        f"{f['sink_max_mm']:.1f}",
+        f"{p['sink_max_mm']:.2f}",
+        f"{m['knee_added_deg']:.2f} ({m['knee_edge_deg']:.1f})",
+        f"{m['swing_max_mm']:.2f}",
+        str(m["unreached"]),
+    ]
+    del synthetic_row
+    return "| " + " | ".join(cells) + " |"
+
+
+HEADER = (
+    "| take | leg ratio | contact frames / runs | skate free, mm (p95 frame / p95 "
+    "run) | skate plant, mm | sink free, mm (max) | sink plant, mm | knee at blend "
+    "edges, deg: added (raw) | swing off path, mm (max) | unreached frames |\n"
+    "|---|---|---|---|---|---|---|---|---|---|"
+)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Measure and write the table."""
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--out", type=Path, help="write the Markdown here")
+    ap.add_argument("--seconds", type=float, default=8.0)
+    ap.add_argument("--rate", type=float, default=120.0)
+    ap.add_argument("--activities", default=",".join(ACTIVITIES))
+    ap.add_argument("--no-real", action="store_true")
+    args = ap.parse_args(argv)
+    started = time.perf_counter()
+    lines = ["### Synthetic performer", "", HEADER]
+    results: dict[str, Any] = {}
+    for activity in args.activities.split(","):
+        res, rig, cal = synthetic(activity, args.seconds, args.rate)
+        for k in LEG_SCALES:
+            m = measure(res, rig, cal, leg_target(rig, cal, k), args.rate)
+            results[f"{activity} {k:g}x"] = m
+            lines.append(_row(f"{activity}, legs {k:g}x", m, synthetic_row=True))
+            print(lines[-1], flush=True)
+    if not args.no_real:
+        lines += ["", "### Real takes (default humanoid)", "", HEADER]
+        import tempfile
+
+        work = Path(tempfile.mkdtemp(prefix="feet_plant_"))
+        for label, take_rel, rig_name, static_rel, rows, measures in REAL:
+            if not (DATASETS / take_rel).exists():
+                lines.append(f"| {label} | (not in ../shared/datasets) |")
+                continue
+            res, rig, cal, rate = real(
+                take_rel, rig_name, static_rel, rows, measures, work
+            )
+            m = measure(res, rig, cal, default_humanoid(), rate)
+            results[label] = m
+            lines.append(_row(f"{label} ({rig_name}, {rate:g} Hz)", m,
+                              synthetic_row=False))  # fmt: skip
+            print(lines[-1], flush=True)
+    took = time.perf_counter() - started
+    lines += [
+        "",
+        f"(measured in {took:.0f} s: `python bench/feet_plant.py --out docs/feet.md "
+        f"--seconds {args.seconds:g} --rate {args.rate:g}`)",
+    ]
+    if args.out is not None:
+        _write(args.out, "\n".join(lines) + "\n")
+    return 0
+
+
+def _write(path: Path, table: str) -> None:
+    """Replace the generated part of ``path`` (between the markers), else write it."""
+    start, end = "<!-- feet_plant.py: begin -->", "<!-- feet_plant.py: end -->"
+    text = path.read_text(encoding="utf-8") if path.exists() else ""
+    if start in text and end in text:
+        head, rest = text.split(start, 1)
+        _, tail = rest.split(end, 1)
+        text = f"{head}{start}\n{table}{end}{tail}"
+    else:
+        text = f"{text}{start}\n{table}{end}\n"
+    path.write_text(text, encoding="utf-8")
+
+
+if __name__ == "__main__":
+    sys.exit(main())
