@@ -67,7 +67,9 @@ case; skipped when Chromium or its driver is absent);
 ``pipeline`` (the body with ``[[pipeline]]`` post stages twist + One Euro between the
 solve and the target mapping: the daemon's own per-stage figures, ``post.twist`` and
 ``post.one_euro`` from ``ctl status``, are printed after the tables; ``+pipeline``
-adds them to any variant).
+adds them to any variant); ``+plant`` (last) plants the feet on the target
+(``[target] feet = "plant"``, README "Feet that plant"): ``body`` against ``body+plant``
+measures the stage in the loop.
 
 Capture-system transports (``--transports natnet,qtm``, README "Capture systems"):
 the sender process is the capture system, the emulators of ``tests/protocols`` (their
@@ -599,6 +601,10 @@ def _config_toml(
     method = "fit" if "fit" in variant.split("+") else "construction"
     console = variant.startswith("console")
     stages = PIPELINE_TOML if "pipeline" in variant else ""
+    # +plant: the feet planted on the target (issue 34, README "Feet that plant")
+    if "plant" in variant.split("+"):
+        stages += '\n[target]\nfeet = "plant"\n'
+
     # +cold: the fit's touch off; otherwise the daemon's default [loop] prewarm_ms
     prewarm = "prewarm_ms = 0.0" if "cold" in variant.split("+") else ""
     return f"""\
@@ -1175,8 +1181,8 @@ def _calibrate(tmp: Path) -> Path:
 
 def _valid_variant(variant: str) -> bool:
     """``body``, ``pipeline``, ``console``, ``console+browser``, or ``fit``, ``face``,
-    ``validate`` joined by ``+``; any of them ``+pipeline``."""
-    variant = variant.removesuffix("+pipeline")
+    ``validate`` joined by ``+``; any of them ``+pipeline``, then any ``+plant``."""
+    variant = variant.removesuffix("+plant").removesuffix("+pipeline")
     parts = variant.split("+")
     return variant in ("body", "pipeline", "console", "console+browser") or (
         len(set(parts)) == len(parts)
