@@ -323,9 +323,12 @@ class LiveFace:
             return ()
         if self._unobserved_cache[0] is not t:
             reg = self.settings.regularization
+            head_w = None
+            if tuple(t.head_names) == self.face.head_markers:
+                head_w = np.asarray(self.face.head_weights)
             self._unobserved_cache = (
                 t,
-                observability(t, regularization=reg).unobservable,
+                observability(t, regularization=reg, head_weights=head_w).unobservable,
             )
         return self._unobserved_cache[1]
 

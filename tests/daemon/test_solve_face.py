@@ -27,6 +27,7 @@ from scipy.optimize import lsq_linear
 from scipy.spatial.transform import Rotation
 
 from retargetd.daemon.face import solve as sf
+from retargetd.daemon.face.observability import pose_jacobian
 from retargetd.daemon.synth import face as fs
 
 
@@ -61,10 +62,13 @@ def _oracle(
     markers_head: np.ndarray,
     seen: np.ndarray,
     held: np.ndarray | None = None,
+    head_seen: np.ndarray | None = None,
 ) -> np.ndarray:
-    # min |B_v w - d_v|^2 + lambda |w|^2, 0 <= w <= 1, as one stacked least squares,
-    # over the solver's solved shapes (the others are 0); ``held`` (K,) weights, NaN
-    # where free: shapes held at a value (their key markers hidden) are fixed there.
+    # min |B_v w + J_v delta - d_v|^2 + delta^T G delta + lambda |w|^2, 0 <= w <= 1,
+    # delta (the head pose's correction, 6) free, as one stacked least squares over
+    # the solver's solved shapes (the others are 0); G's rows are the head markers'
+    # Jacobians (``head_seen``, default all). ``held`` (K,) weights, NaN where free:
+    # shapes held at a value (their key markers hidden) are fixed there.
     tr = solver.training
     rows = np.repeat(seen, 3)
     d = (markers_head - tr.neutral).reshape(-1)[rows]
@@ -76,9 +80,20 @@ def _oracle(
         d = d - tr.basis[rows][:, fixed] @ held[fixed]
     basis = tr.basis[:, free]
     k = basis.shape[1]
-    a = np.vstack([basis[rows], math.sqrt(solver.lambda_) * np.eye(k)])
-    rhs = np.concatenate([d, np.zeros(k)])
-    w[free] = lsq_linear(a, rhs, bounds=(0.0, 1.0), method="bvls", tol=1e-14).x
+    jac = pose_jacobian(tr.neutral).reshape(-1, 6)[rows]
+    hs = np.ones(len(tr.head_names), bool) if head_seen is None else head_seen
+    jh = pose_jacobian(tr.head_layout[hs]).reshape(-1, 6)
+    a = np.block(
+        [
+            [basis[rows], jac],
+            [math.sqrt(solver.lambda_) * np.eye(k), np.zeros((k, 6))],
+            [np.zeros((len(jh), k)), jh],
+        ]
+    )
+    rhs = np.concatenate([d, np.zeros(k + len(jh))])
+    lo = np.r_[np.zeros(k), np.full(6, -np.inf)]
+    hi = np.r_[np.ones(k), np.full(6, np.inf)]
+    w[free] = lsq_linear(a, rhs, bounds=(lo, hi), method="bvls", tol=1e-14).x[:k]
     return w
 
 
