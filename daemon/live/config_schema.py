@@ -61,6 +61,9 @@ class PerformerConfig:
     """Who is solved, with what."""
 
     rig: str = spec("menache", "rig")
+    # false: a face and no body (its face streamed alone, nothing calibrated; the
+    # face is [face]'s, or a [[performer]]'s face key): README "A face alone"
+    body: bool = True
     # a calibration JSON; "" = calibrate live before streaming
     calibration: str = spec("", "file")
     # where a live calibration is saved ("" = next to it)
