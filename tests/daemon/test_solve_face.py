@@ -545,10 +545,12 @@ def test_unobservable_shapes_are_left_out_and_sent_as_zero(
     assert (got["st"][:, unseen] == sf.SHAPE_UNOBSERVED).all()
     assert (got["st"][:, obs.observable] == 0).all()
     err = np.abs(got["w"] - face_take.weights)
-    # Median 0.025 (ICT) / 0.020 (MakeHuman); p95 0.13 / 0.10: 37 / 32 shapes move
-    # at once, each with a noise std up to MAX_WEIGHT_STD.
+    # Median 0.019 (ICT) / 0.016 (MakeHuman); p95 0.102 / 0.080: 38 / 32 shapes move
+    # at once, each with a noise std up to MAX_WEIGHT_STD. The solver before issue 32's
+    # item 4 (the ridge 1e-3 mean(diag B^T B), the head pose from the head markers
+    # alone) gave ICT 0.13, which fails here.
     assert np.median(err[:, obs.observable]) <= 0.05
-    assert np.percentile(err[:, obs.observable], 95) <= 0.15
+    assert np.percentile(err[:, obs.observable], 95) <= 0.11
     # A larger noise level leaves more shapes out, never fewer.
     noisier = sf.observability(tr, noise_rms_m=1e-3)
     assert set(obs.unobservable) <= set(noisier.unobservable)
