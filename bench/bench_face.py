@@ -13,12 +13,13 @@ marker seen; ``--occluded`` percent of facial markers hidden at random per frame
 restricted normal matrix is rebuilt on most frames) it prints ``FaceSolver.solve_frame``
 latency (``time.perf_counter_ns`` around each call after a warm-up): median, p99, max in
 microseconds, the Cholesky solves per frame, and the same-run baseline: numpy Kabsch
-(SVD) + ``scipy.optimize.lsq_linear`` (``bounds=(0, 1)``, method ``bvls``) per frame,
-with the ratio of medians. The solver solves what the daemon solves: the shapes the
-layout can observe (``observability``: 38 of ICT's 52 with these markers; the others
-are sent as 0), and holds a shape while one of its key markers is hidden;
-``--all-shapes`` solves all 52 (before issue 32). Speed is printed, never asserted
-(STYLE.md section 10).
+(SVD) + ``scipy.optimize.lsq_linear`` (method ``bvls``) on the same problem per frame
+(the weights in [0, 1] and the head pose's correction, unbounded, with its prior from
+the head markers), with the ratio of medians. The solver solves what the daemon
+solves: the shapes the layout can observe (``observability``: 38 of ICT's 52 with
+these markers; the others are sent as 0), and holds a shape while one of its key
+markers is hidden; ``--all-shapes`` solves all 52 (before issue 32). Speed is printed,
+never asserted (STYLE.md section 10).
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ import numpy as np
 from scipy.optimize import lsq_linear
 
 from retargetd.daemon.face import solve as sf
+from retargetd.daemon.face.observability import pose_jacobian
 from retargetd.daemon.synth import face as fs
 
 DATASETS = Path(__file__).resolve().parent.parent.parent / "shared" / "datasets"
@@ -61,9 +63,21 @@ def _baseline_frame(
     dvec = (face - tr.neutral[seen]).reshape(-1)
     basis = tr.basis[rows][:, solver.solved]
     k = basis.shape[1]
-    a = np.vstack([basis, math.sqrt(solver.lambda_) * np.eye(k)])
-    rhs = np.concatenate([dvec, np.zeros(k)])
-    return lsq_linear(a, rhs, bounds=(0.0, 1.0), method="bvls").x
+    # The same problem: the head pose's correction (6, unbounded) with the weights,
+    # its prior from the head markers seen (face.solve's module docstring).
+    jac = pose_jacobian(tr.neutral).reshape(-1, 6)[rows]
+    jh = pose_jacobian(tr.head_layout[valid[:h]]).reshape(-1, 6)
+    a = np.block(
+        [
+            [basis, jac],
+            [math.sqrt(solver.lambda_) * np.eye(k), np.zeros((k, 6))],
+            [np.zeros((len(jh), k)), jh],
+        ]
+    )
+    rhs = np.concatenate([dvec, np.zeros(k + len(jh))])
+    lo = np.r_[np.zeros(k), np.full(6, -np.inf)]
+    hi = np.r_[np.ones(k), np.full(6, np.inf)]
+    return lsq_linear(a, rhs, bounds=(lo, hi), method="bvls").x[:k]
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -10,6 +10,13 @@ Per frame, in this order (``shared/reference/engines.md``, PROTOCOLS.md section 
                                            normal calibration mode, tracking ok)
     /VMC/Ext/T         ,f         t  (sender time, seconds)
 
+A face-only performer (no body: README "A face alone") sends
+:class:`BlendEncoder`'s frames: the same messages without ``Root/Pos`` and
+``Bone/Pos`` (the avatar's body is someone else's to move)::
+
+    /VMC/Ext/Blend/Val ,sf NAME value   (every blendshape), /VMC/Ext/Blend/Apply ,
+    /VMC/Ext/OK ,iiii 1 3 0 1, /VMC/Ext/T ,f t
+
 Before a calibration (nothing to stream yet) and while one collects frames, the
 daemon sends :meth:`VmcEncoder.encode_state` instead, about twice a second: a bundle
 of ``/VMC/Ext/OK ,iiii 1 S 0 K`` (S = 1 waiting for calibration, 2 calibrating;
@@ -259,4 +266,54 @@ class VmcEncoder:
             t_s, self._last_quat, self._stage32, self._stage_bits, self._offsets,
             self._wire,
         )  # fmt: skip
+        return self.datagrams
+
+
+class BlendEncoder:
+    """Encodes the blendshapes of a face alone into prebuilt datagrams (no root, no
+    bones: module docstring).
+
+    Args:
+        blend_names: blendshape clip names, in the order of ``blend``.
+        max_datagram: the largest datagram, bytes (:func:`datagram_limit`).
+
+    Attributes:
+        datagrams: the datagrams of a frame, in send order (views into one reused
+            buffer: send them before the next :meth:`encode`).
+    """
+
+    def __init__(
+        self, blend_names: Sequence[str], max_datagram: int = MAX_DATAGRAM
+    ) -> None:
+        if not MIN_DATAGRAM <= max_datagram <= MAX_MESSAGE_BYTES:
+            raise ValueError(
+                f"max_datagram must be {MIN_DATAGRAM}-{MAX_MESSAGE_BYTES} bytes; got "
+                f"{max_datagram}"
+            )
+        blends = tuple(blend_names)
+        if len(set(blends)) != len(blends) or not all(blends):
+            raise ValueError(f"blendshape names must be unique and non-empty; {blends}")
+        self.blend_names = blends
+        messages = [
+            (build_message(BLEND_VAL_ADDRESS, ",sf", [name, 0.0]), 1) for name in blends
+        ]
+        messages += [
+            (build_message(BLEND_APPLY_ADDRESS, ",", []), 0),
+            (build_message(OK_ADDRESS, ",iiii", [1, CALIBRATION_CALIBRATED, 0, 1]), 0),
+            (build_message(TIME_ADDRESS, ",f", [0.0]), 1),
+        ]
+        self._buf, bounds, slots = _pack(messages, max_datagram)
+        view = memoryview(self._buf)
+        self.datagrams = [view[a:b] for a, b in itertools.pairwise(bounds)]
+        self._wire = np.frombuffer(self._buf, dtype=">f4")
+        self._slots = np.ascontiguousarray(slots, dtype=np.intp)
+        self._stage = np.zeros(len(slots), dtype=">f4")
+
+    def encode(self, blend: F64Array, t_s: float) -> list[memoryview]:
+        """Write one frame (``blend`` (n,) in [0, 1], ``t_s`` the sender time in
+        seconds) and return :attr:`datagrams`."""
+        n = len(self.blend_names)
+        self._stage[:n] = blend
+        self._stage[n] = t_s
+        self._wire[self._slots] = self._stage
         return self.datagrams

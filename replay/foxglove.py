@@ -21,6 +21,13 @@ from the file alone):
     live, every 0.5 s (``daemon.live.recording.health_figures``); in a solve's own
     file, one per frame (:func:`solve_health`).
 
+``/face/weights`` (JSON, ``retargetd.face`` JSON schema; only with a face)
+    per frame: ``t_ns``, ``flags`` (the pose stream's face flags, PROTOCOLS.md
+    section 6), ``weights`` (``{shape: weight}``, every shape of the training set;
+    Foxglove plots ``/face/weights.weights.jawOpen``), ``held`` (the shapes held
+    this frame: a key marker hidden) and ``unobserved`` (the shapes left out of the
+    solve, sent as 0).
+
 Log times are those of the frames (nanoseconds; see :class:`FoxgloveChannels`).
 """
 
@@ -38,6 +45,7 @@ from retargetd.protocols.frames import F64Array
 SCENE_TOPIC = "/foxglove/scene"
 TF_TOPIC = "/foxglove/tf"
 HEALTH_TOPIC = "/foxglove/health"
+FACE_TOPIC = "/face/weights"
 WORLD_FRAME = "world"
 BONE_FRAME_PREFIX = "bone/"
 
@@ -66,6 +74,24 @@ _HEALTH_SCHEMA = {
     },
     "required": ["t_ns"],
 }
+
+
+_FACE_SCHEMA = {
+    "title": "retargetd.face",
+    "type": "object",
+    "properties": {
+        "t_ns": {"type": "integer"},
+        "flags": {"type": "integer"},
+        "weights": {"type": "object", "additionalProperties": {"type": "number"}},
+        "held": {"type": "array", "items": {"type": "string"}},
+        "unobserved": {"type": "array", "items": {"type": "string"}},
+    },
+    "required": ["t_ns", "flags", "weights"],
+}
+#: The per-shape state bits of ``shape_state`` (the pose stream's ``RTDF``, which
+#: replay may not import from the daemon: protocols/pose_stream.py SHAPE_*).
+_SHAPE_UNOBSERVED = 1
+_SHAPE_HIDDEN = 2
 
 
 def _stamp(t_ns: int) -> Any:
@@ -99,10 +125,15 @@ class FoxgloveChannels:
         writer: a started ``mcap.writer.Writer``.
         bone_names: (B,) bone names (frame names ``bone/<name>``).
         bone_parents: (B,) parent bone index, -1 for the root.
+        face_shapes: (K,) the face's shape names: registers ``/face/weights``.
     """
 
     def __init__(
-        self, writer: Any, bone_names: Sequence[str], bone_parents: Sequence[int]
+        self,
+        writer: Any,
+        bone_names: Sequence[str],
+        bone_parents: Sequence[int],
+        face_shapes: Sequence[str] = (),
     ) -> None:
         from foxglove.messages import FrameTransforms, SceneUpdate
 
@@ -120,6 +151,12 @@ class FoxgloveChannels:
             "retargetd.health", "jsonschema", json.dumps(_HEALTH_SCHEMA).encode()
         )
         channels[HEALTH_TOPIC] = writer.register_channel(HEALTH_TOPIC, "json", hid)
+        self.face_shapes = tuple(face_shapes)
+        if self.face_shapes:
+            fid = writer.register_schema(
+                "retargetd.face", "jsonschema", json.dumps(_FACE_SCHEMA).encode()
+            )
+            channels[FACE_TOPIC] = writer.register_channel(FACE_TOPIC, "json", fid)
         self._channels = channels
         self._frames = [BONE_FRAME_PREFIX + n for n in self.bone_names]
         self._parent_frames = [
@@ -261,6 +298,32 @@ class FoxgloveChannels:
         msg = {"t_ns": int(t_ns), **figures}
         self._add(HEALTH_TOPIC, t_ns, json.dumps(msg, allow_nan=False).encode())
 
+    def write_face(
+        self, t_ns: int, flags: int, weights: np.ndarray, shape_state: np.ndarray
+    ) -> None:
+        """Write one frame of the face (``/face/weights``, module docstring).
+
+        Args:
+            t_ns: log time, nanoseconds.
+            flags: the face flag bits.
+            weights: (K,) in ``face_shapes`` order.
+            shape_state: (K,) uint8 per-shape state bits.
+        """
+        names = self.face_shapes
+        st = np.asarray(shape_state)
+        msg = {
+            "t_ns": int(t_ns),
+            "flags": int(flags),
+            "weights": dict(
+                zip(names, np.asarray(weights, float).tolist(), strict=True)
+            ),
+            "held": [n for n, b in zip(names, st, strict=True) if b & _SHAPE_HIDDEN],
+            "unobserved": [
+                n for n, b in zip(names, st, strict=True) if b & _SHAPE_UNOBSERVED
+            ],
+        }
+        self._add(FACE_TOPIC, t_ns, json.dumps(msg, allow_nan=False).encode())
+
 
 def write_solve_mcap(
     path: str | os.PathLike[str],
@@ -277,6 +340,7 @@ def write_solve_mcap(
     library: str = "retargetd",
     progress: Callable[[int], None] | None = None,
     health: Sequence[Mapping[str, Any]] | None = None,
+    face: Mapping[str, Any] | None = None,
 ) -> int:
     """Write a solved take as an MCAP of Foxglove channels (``solve --out x.mcap``).
 
@@ -292,6 +356,10 @@ def write_solve_mcap(
         library: the MCAP header's library string.
         progress: called with 1 after each frame written (a progress bar).
         health: optional (T,) health figures per frame (:func:`solve_health`).
+        face: optional, the face per frame (``/face/weights``): ``face_shapes``
+            (K,), ``face_weights`` (T, K), ``face_shape_state`` (T, K) and
+            ``face_flags`` (T,), as ``retargetd solve --face`` names them. With no
+            bone (``bone_ends`` (T, 0, 2, 3)) the file holds the face and markers.
 
     Returns:
         The number of frames written.
@@ -302,7 +370,8 @@ def write_solve_mcap(
     with open(path, "wb") as out:
         w = Writer(out, compression=CompressionType.ZSTD)
         w.start(profile="", library=library)
-        ch = FoxgloveChannels(w, bone_names, bone_parents)
+        shapes = () if face is None else [str(x) for x in face["face_shapes"]]
+        ch = FoxgloveChannels(w, bone_names, bone_parents, shapes)
         for i in range(n):
             t_ns = start_ns + round(i * 1e9 / rate_hz)
             ch.write_frame(
@@ -315,6 +384,11 @@ def write_solve_mcap(
             )
             if health is not None:
                 ch.write_health(t_ns, health[i])
+            if face is not None:
+                ch.write_face(
+                    t_ns, int(face["face_flags"][i]), face["face_weights"][i],
+                    face["face_shape_state"][i],
+                )  # fmt: skip
             if progress is not None:
                 progress(1)
         w.finish()

@@ -34,6 +34,17 @@ The file (Khronos glTF 2.0 specification, "GLB File Format Specification",
   (glTF's order; converted here from our w x y z), ``translation`` as VEC3 metres.
   Channels target the joint nodes.
 
+- With a face (:class:`MorphFace`): one more mesh, a ``POINTS`` primitive (mode 0) of
+  the stabilized facial markers' neutral positions (float32 VEC3, head coordinates,
+  metres) with one morph target per shape (its ``POSITION`` displacements, with
+  ``min``/``max``), the shape names in the mesh's ``extras.targetNames`` (the
+  convention Blender's importer reads into shape-key names) and default ``weights``
+  0; its node (named as the face) hangs under the scene root and carries the head
+  pose (``translation``, ``rotation`` channels: ``world_from_head``) and the
+  ``weights`` channel: a LINEAR sampler whose output holds K scalars per key, the
+  weights of that frame (the spec's layout for morph-target animation). With no
+  joints (a face alone) there is no skin.
+
 Every accessor is tightly packed in its own buffer view, each view 4-byte aligned;
 vertex and index views carry their ``target``. The writer is independent of the
 solver: callers pass arrays (see :mod:`retargetd.daemon.post.export_gltf` for a
@@ -85,6 +96,31 @@ class GltfChannel:
     path: str
     times_s: F64Array
     values: F64Array
+
+
+@dataclass(frozen=True, slots=True, kw_only=True, eq=False)
+class MorphFace:
+    """A face as morph targets on a point mesh, and its animation.
+
+    Attributes:
+        name: the mesh's and its node's name.
+        neutral: (V, 3) float64, metres, head coordinates: the neutral points.
+        targets: (K, V, 3) float64, metres: each shape's displacement.
+        target_names: (K,) shape names.
+        times_s: (T,) float64 seconds, strictly increasing (also as float32).
+        weights: (T, K) float in [0, 1].
+        world_from_head_quat: (T, 4) float64 (w, x, y, z).
+        head_pos: (T, 3) float64, metres, in the scene root's frame (world).
+    """
+
+    name: str
+    neutral: F64Array
+    targets: F64Array
+    target_names: tuple[str, ...]
+    times_s: F64Array
+    weights: npt.NDArray[np.floating[Any]]
+    world_from_head_quat: F64Array
+    head_pos: F64Array
 
 
 def xyzw_from_wxyz(q: F64Array) -> F64Array:
@@ -218,6 +254,72 @@ def _inverse_rigid(m: F64Array) -> F64Array:
     return inv
 
 
+def _check_face(face: MorphFace) -> None:
+    v = face.neutral.shape[0]
+    k, t = len(face.target_names), len(face.times_s)
+    shapes = {
+        "neutral": (face.neutral.shape, (v, 3)),
+        "targets": (face.targets.shape, (k, v, 3)),
+        "weights": (np.shape(face.weights), (t, k)),
+        "world_from_head_quat": (face.world_from_head_quat.shape, (t, 4)),
+        "head_pos": (face.head_pos.shape, (t, 3)),
+    }
+    for name, (got, want) in shapes.items():
+        if got != want:
+            raise ValueError(f"face {name}: expected shape {want}, got {got}")
+    if v == 0 or t == 0:
+        raise ValueError("face: needs at least one point and one frame")
+    if np.any(np.diff(np.asarray(face.times_s, np.float32)) <= 0.0):
+        raise ValueError("face times must increase strictly (also as float32)")
+
+
+def _add_face(
+    buf: _Buffer,
+    doc: dict[str, Any],
+    face: MorphFace,
+    parent: int | None,
+    samplers: list[dict[str, Any]],
+    channels: list[dict[str, Any]],
+) -> None:
+    """The face's mesh, node and animation channels (module docstring)."""
+    meshes = doc.setdefault("meshes", [])
+    position = buf.add(face.neutral, "VEC3", with_bounds=True, target=_ARRAY_BUFFER)
+    morph = [
+        {"POSITION": buf.add(d, "VEC3", with_bounds=True, target=_ARRAY_BUFFER)}
+        for d in face.targets
+    ]
+    meshes.append(
+        {
+            "name": face.name,
+            "primitives": [
+                {"attributes": {"POSITION": position}, "targets": morph, "mode": 0}
+            ],
+            "weights": [0.0] * len(morph),
+            "extras": {"targetNames": list(face.target_names)},
+        }
+    )
+    nodes = doc["nodes"]
+    nodes.append({"name": face.name, "mesh": len(meshes) - 1})
+    node = len(nodes) - 1
+    if parent is not None:
+        nodes[parent].setdefault("children", []).append(node)
+    else:
+        doc["scenes"][0]["nodes"].append(node)
+    times = buf.add(np.asarray(face.times_s), "SCALAR", with_bounds=True)
+    quat = face.world_from_head_quat
+    quat = xyzw_from_wxyz(quat / np.linalg.norm(quat, axis=-1, keepdims=True))
+    for path, values, kind in (
+        ("translation", face.head_pos, "VEC3"),
+        ("rotation", quat, "VEC4"),
+        ("weights", np.asarray(face.weights, np.float64).reshape(-1), "SCALAR"),
+    ):
+        out = buf.add(values, kind)
+        samplers.append({"input": times, "output": out, "interpolation": "LINEAR"})
+        channels.append(
+            {"sampler": len(samplers) - 1, "target": {"node": node, "path": path}}
+        )
+
+
 def _add_capsules(
     buf: _Buffer, capsules: Sequence[Capsule], bind: F64Array, n_joints: int
 ) -> dict[str, Any]:
@@ -262,6 +364,7 @@ def write_glb(
     scene_root_name: str = "world",
     node_extras: Sequence[dict[str, Any]] | None = None,
     capsules: Sequence[Capsule] = (),
+    face: MorphFace | None = None,
     skin_name: str = "skeleton",
     animation_name: str = "take",
     generator: str = "retargetd",
@@ -283,6 +386,8 @@ def write_glb(
         scene_root_name: that node's name.
         node_extras: (N,) optional JSON objects, each joint node's ``extras``.
         capsules: a skinned mesh of these capsules (none: no mesh).
+        face: a face as morph targets and its animation (module docstring); with
+            no joints (``names`` empty) the file holds the face alone.
         skin_name: the skin's name.
         animation_name: the animation's name.
         generator: ``asset.generator``.
@@ -313,6 +418,10 @@ def write_glb(
     if scene_root_quat is not None:
         root_quat = np.asarray(scene_root_quat, dtype=np.float64)
         root_quat = root_quat / np.linalg.norm(root_quat)
+    if face is not None:
+        _check_face(face)
+    elif n == 0:
+        raise ValueError("need at least one joint or a face")
     bind = scene_from_joint_rest(par, trans, quat, root_quat)
     nodes: list[dict[str, Any]] = []
     for i in range(n):
@@ -332,25 +441,26 @@ def write_glb(
     if len(roots) == 1 and root_quat is None:
         skin["skeleton"] = roots[0]
     if root_quat is not None:
-        nodes.append(
-            {
-                "name": scene_root_name,
-                "rotation": [float(v) for v in xyzw_from_wxyz(root_quat)],
-                "children": roots,
-            }
-        )
+        node = {
+            "name": scene_root_name,
+            "rotation": [float(v) for v in xyzw_from_wxyz(root_quat)],
+        }
+        if roots:
+            node["children"] = roots
+        nodes.append(node)
         roots = [n]
     buf = _Buffer()
-    # Column-major MAT4: numpy's row-major bytes of the transpose.
-    ibm = np.swapaxes(_inverse_rigid(bind), -1, -2).reshape(n, 16)
-    skin["inverseBindMatrices"] = buf.add(ibm, "MAT4")
     doc: dict[str, Any] = {
         "asset": {"version": "2.0", "generator": generator},
         "scene": 0,
         "scenes": [{"nodes": roots}],
         "nodes": nodes,
-        "skins": [skin],
     }
+    if n:
+        # Column-major MAT4: numpy's row-major bytes of the transpose.
+        ibm = np.swapaxes(_inverse_rigid(bind), -1, -2).reshape(n, 16)
+        skin["inverseBindMatrices"] = buf.add(ibm, "MAT4")
+        doc["skins"] = [skin]
     if capsules:
         doc["meshes"] = [_add_capsules(buf, capsules, bind, n)]
         doc["materials"] = [
@@ -365,7 +475,11 @@ def write_glb(
         ]
         nodes.append({"name": "body", "mesh": 0, "skin": 0})
         roots.append(len(nodes) - 1)
-    samplers, targets = [], []
+    samplers: list[dict[str, Any]] = []
+    targets: list[dict[str, Any]] = []
+    if face is not None:
+        _add_face(buf, doc, face, n if root_quat is not None else None, samplers,
+                  targets)  # fmt: skip
     for ch in channels:
         values = ch.values
         if ch.path == "rotation":
@@ -377,7 +491,7 @@ def write_glb(
         targets.append(
             {"sampler": len(samplers) - 1, "target": {"node": ch.node, "path": ch.path}}
         )
-    if channels:
+    if targets:
         doc["animations"] = [
             {"name": animation_name, "samplers": samplers, "channels": targets}
         ]

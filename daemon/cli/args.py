@@ -210,12 +210,16 @@ def load_rig_or_fail(name: str) -> Any:
         raise UsageError(str(exc)) from None
 
 
-def add_solve_arguments(parser: argparse.ArgumentParser) -> None:
+def add_solve_arguments(
+    parser: argparse.ArgumentParser, *, body_optional: bool = False
+) -> None:
     """TAKE, ``--rig``/``--measure``, ``--calibration FILE | --calibrate-frames a:b``
-    and the take options: what every command that solves a take accepts."""
+    and the take options: what every command that solves a take accepts
+    (``body_optional``: the rig and calibration may be left out, for ``solve
+    --face-only``; the command checks them)."""
     parser.add_argument("take", metavar="TAKE", help="a .c3d, .trc or .mcap take")
-    add_rig_arguments(parser)
-    group = parser.add_mutually_exclusive_group(required=True)
+    add_rig_arguments(parser, required=not body_optional)
+    group = parser.add_mutually_exclusive_group(required=not body_optional)
     group.add_argument("--calibration", metavar="FILE.json", help="calibrated skeleton")
     group.add_argument(
         "--calibrate-frames",

@@ -1,4 +1,5 @@
-"""``retargetd solve TAKE --rig RIG (--calibration FILE | --calibrate-frames a:b)
+"""``retargetd solve TAKE (--rig RIG (--calibration FILE | --calibrate-frames a:b)
+[--face FACE.npz] | --face FACE.npz --face-only)
 --out OUT.npz|OUT.bvh|OUT.csv|OUT.glb|OUT.mcap [--fill-gaps N] [--pipeline FILE.toml]
 [--bvh-order ZXY] [--bvh-root-order ORDER] [--euler-order ORDER] [--degrees] [--json]
 [--quiet] [--frames a:b]``: solve every frame of a take, or the rows ``--frames``
@@ -52,6 +53,12 @@ importers build an armature from the skin. ``--glb-mesh capsules`` adds a capsul
 bone bound to it, so the take shows as a figure. See
 ``retargetd.daemon.post.export_gltf``.
 
+``--face FACE.npz``: also the face, solved as the daemon solves it, in every format but
+BVH (``face_*`` arrays, CSV columns, a glTF morph-target mesh, ``/face/weights`` in the
+MCAP); ``--face-only``: the face alone, no rig and no calibration
+(``retargetd.daemon.cli.face_io``; README "Face output"). ``--face-config``: the face
+config whose ``head_weights`` the daemon uses.
+
 ``.mcap``: Foxglove channels alone (``/foxglove/scene`` skeleton and markers,
 ``/foxglove/tf`` bone frames, ``/foxglove/health``), Foxglove's published schemas
 written with its SDK: Foxglove's 3D panel shows the take with no layout work. See
@@ -92,6 +99,7 @@ def add_parser(subparsers: Any) -> None:
         add_output_arguments,
         add_solve_arguments,
     )
+    from retargetd.daemon.cli.face_io import add_face_arguments
     from retargetd.daemon.cli.post_io import (
         add_glb_mesh_argument,
         add_pipeline_argument,
@@ -105,7 +113,8 @@ def add_parser(subparsers: Any) -> None:
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    add_solve_arguments(parser)
+    add_solve_arguments(parser, body_optional=True)
+    add_face_arguments(parser)
     add_frames_argument(parser)
     parser.add_argument(
         "--out", required=True, metavar="OUT.npz|OUT.bvh|OUT.csv|OUT.glb|OUT.mcap",
@@ -203,6 +212,7 @@ def reference_distances(
 def run(args: argparse.Namespace) -> int:
     """Run ``solve``."""
     from retargetd.daemon.body.solve import FLAG_HELD
+    from retargetd.daemon.cli import face_io
     from retargetd.daemon.cli.args import (
         refuse_existing,
         solve_take_progress,
@@ -210,9 +220,12 @@ def run(args: argparse.Namespace) -> int:
     )
 
     out_format = _out_format(args)
+    face = face_io.check_face_arguments(args, out_format)
     if args.fill_gaps is not None and args.fill_gaps < 1:
         raise UsageError(f"--fill-gaps: expected >= 1 frames; got {args.fill_gaps}")
     refuse_existing(args.out, force=args.force)
+    if face is not None and args.face_only:
+        return _run_face_only(args, face, out_format)
     target_cfg = None
     if args.pipeline is not None:  # checked before the solve
         from retargetd.daemon.cli.post_io import load_target_section
@@ -238,6 +251,7 @@ def run(args: argparse.Namespace) -> int:
     started = time.perf_counter()
     res = solve_take_progress(solver, take.positions, quiet=args.quiet)
     solve_s = time.perf_counter() - started
+    ft = None if face is None else face_io.solve_face_of_take(face, take)
     # Stance from the solve, before any post stage: the live daemon's detector on the
     # same frames (post/stance.py), so the NPZ's contacts are the stream's.
     from retargetd.daemon.post.stance import foot_contact
@@ -272,8 +286,11 @@ def run(args: argparse.Namespace) -> int:
             args.out, res.bone_names, res.parent_from_bone_quat, res.root_pos,
             take.rate_hz, order=args.euler_order or "ZXY", degrees=args.degrees,
         )  # fmt: skip
+        if ft is not None:
+            face_io.write_face_csv(args.out, ft, take.rate_hz, append=True)
     elif out_format == "glb":
-        _write_glb(args, rig, cal, res, take.rate_hz)
+        morph = None if ft is None else face_io.morph_face(face, ft, take.rate_hz)
+        _write_glb(args, rig, cal, res, take.rate_hz, morph)
     else:
         arrays = dict(
             joint_names=np.asarray(res.joint_names, dtype=str),
@@ -296,6 +313,7 @@ def run(args: argparse.Namespace) -> int:
             method=np.asarray(args.method),
             **_fit_arrays(res),
             **target_arrays,
+            **({} if ft is None else face_io.face_arrays(ft)),
         )
         if out_format == "mcap":
             from retargetd.daemon.console.export import write_solve_foxglove
@@ -308,12 +326,12 @@ def run(args: argparse.Namespace) -> int:
                 write_solve_foxglove(
                     args.out, arrays, rig, markers=take.positions,
                     marker_valid=take.valid, library=f"retargetd {package_version()}",
-                    progress=bar.update,
+                    progress=bar.update, face=None if ft is None else arrays,
                 )  # fmt: skip
         else:
             np.savez(args.out, **arrays)
     if args.json:
-        _print_json_summary(args, rig, take, solver, res, solve_s, kinds)
+        _print_json_summary(args, rig, take, solver, res, solve_s, kinds, ft)
         return 0
     if args.quiet:
         return 0
@@ -373,6 +391,56 @@ def run(args: argparse.Namespace) -> int:
         out("joint centres against the take's own reference points (median, p95):\n")
         for name, ref, med, p95 in compared:
             out(f"  {name} vs {ref}: {med:.1f} mm, {p95:.1f} mm\n")
+    if ft is not None:
+        for line in face_io.face_summary(ft):
+            out(line + "\n")
+    return 0
+
+
+def _run_face_only(args: argparse.Namespace, face: Any, out_format: str) -> int:
+    """``solve --face FACE.npz --face-only``: the face alone (no rig, no
+    calibration)."""
+    from retargetd.daemon.cli import face_io
+    from retargetd.daemon.cli.args import parse_frames, print_json, take_overrides
+    from retargetd.replay.takes import load_take
+
+    take = load_take(args.take, **take_overrides(args))
+    args.solve_rows = None
+    if args.solve_frames is not None:
+        rows = parse_frames(args.solve_frames, take.n_frames, option="--frames")
+        take = take.select_rows(rows)
+        args.solve_rows = f"{rows.start}:{rows.stop}"
+    started = time.perf_counter()
+    ft = face_io.solve_face_of_take(face, take)
+    solve_s = time.perf_counter() - started
+    face_io.write_face_only(args, face, take, ft, out_format)
+    n = take.n_frames
+    if args.json:
+        print_json(
+            {
+                "command": "solve",
+                "take": str(take.path),
+                "out": args.out,
+                "format": out_format,
+                "face_only": True,
+                "frames": n,
+                "frames_selected": args.solve_rows,
+                "first_frame": int(take.first_frame),
+                "rate_hz": float(take.rate_hz),
+                "solve_s": solve_s,
+                "face": face_io.face_json(ft),
+            }
+        )
+        return 0
+    if args.quiet:
+        return 0
+    rows_txt = f" (rows {args.solve_rows} of the take)" if args.solve_rows else ""
+    sys.stdout.write(
+        f"wrote {args.out}: {n} frames{rows_txt} at {take.rate_hz:g} Hz, the face "
+        f"alone ({len(ft.marker_names)} facial markers)\n"
+    )
+    for line in face_io.face_summary(ft):
+        sys.stdout.write(line + "\n")
     return 0
 
 
@@ -408,7 +476,12 @@ def _out_format(args: argparse.Namespace) -> str:
 
 
 def _write_glb(
-    args: argparse.Namespace, rig: Any, cal: Any, res: Any, rate_hz: float
+    args: argparse.Namespace,
+    rig: Any,
+    cal: Any,
+    res: Any,
+    rate_hz: float,
+    face: Any = None,
 ) -> None:
     from retargetd.daemon.body.calibration import CalibrationError
     from retargetd.daemon.cli.post_io import glb_mesh_of, humanoid_names
@@ -417,7 +490,7 @@ def _write_glb(
     try:
         write_clip_glb(
             args.out, clip_from_solve(res, cal, rate_hz), cal,
-            humanoid=humanoid_names(rig), mesh=glb_mesh_of(args, "glb"),
+            humanoid=humanoid_names(rig), mesh=glb_mesh_of(args, "glb"), face=face,
         )  # fmt: skip
     except CalibrationError as exc:
         raise UsageError(str(exc)) from None
@@ -463,10 +536,12 @@ def _print_json_summary(
     res: Any,
     solve_s: float,
     kinds: tuple[str, ...],
+    ft: Any = None,
 ) -> None:
     """The summary as one JSON object (README "Machine-readable output")."""
     from retargetd.daemon.body.solve import FLAG_HELD
     from retargetd.daemon.cli.args import print_json
+    from retargetd.daemon.cli.face_io import face_json
 
     n = take.n_frames
     cols = solver.marker_cols
@@ -530,5 +605,6 @@ def _print_json_summary(
                     take, res.joint_names, res.joint_centres
                 )
             ],
+            "face": None if ft is None else face_json(ft),
         }
     )

@@ -45,8 +45,10 @@ def write_solve_foxglove(
     marker_valid: np.ndarray | None = None,
     library: str = "retargetd",
     progress: Callable[[int], None] | None = None,
+    face: Mapping[str, Any] | None = None,
 ) -> int:
-    """Write a solve as an MCAP of Foxglove channels.
+    """Write a solve as an MCAP of Foxglove channels (with ``face``: the ``face_*``
+    arrays of ``retargetd solve --face``, on ``/face/weights``).
 
     Args:
         path: the ``.mcap`` to write.
@@ -78,4 +80,5 @@ def write_solve_foxglove(
             float(arrays["rate_hz"]), flags, marker_valid,
             None if rms is None else np.asarray(rms, np.float64),
         ),
+        face=face,
     )  # fmt: skip

@@ -200,6 +200,77 @@ def _box_qp(
 
 
 @kernel
+def _add_pose_prior(
+    a: np.ndarray,  # (K + 6, K + 6): the pose block a[K:, K:] is added to
+    k: int,
+    layout: np.ndarray,  # (H, 3) head coordinates
+    head_w: np.ndarray,  # (H,)
+    head_seen: np.ndarray,  # (H,) bool: used in this frame's fit
+) -> None:
+    # G = sum_i w_i H_i^T H_i over the head markers the fit used, with
+    # H_i = [I, -[l_i]x] the change of head marker i under a small pose correction
+    # (tau, theta): l -> l + tau + theta x l. ``solve_face``'s pose_information.
+    for i in range(layout.shape[0]):
+        if not head_seen[i]:
+            continue
+        w = head_w[i]
+        x, y, z = layout[i, 0], layout[i, 1], layout[i, 2]
+        for r in range(3):
+            h0 = 1.0 if r == 0 else 0.0
+            h1 = 1.0 if r == 1 else 0.0
+            h2 = 1.0 if r == 2 else 0.0
+            if r == 0:
+                h3, h4, h5 = 0.0, z, -y
+            elif r == 1:
+                h3, h4, h5 = -z, 0.0, x
+            else:
+                h3, h4, h5 = y, -x, 0.0
+            row = (h0, h1, h2, h3, h4, h5)
+            for p in range(6):
+                for q in range(6):
+                    a[k + p, k + q] += w * row[p] * row[q]
+
+
+@kernel
+def _reduce_pose(
+    a: np.ndarray,  # (K + 6, K + 6) the restricted joint normal matrix
+    k: int,
+    ared: np.ndarray,  # (K, K) out: A_ww - A_wd A_dd^-1 A_dw
+    schur: np.ndarray,  # (K, 6) out: A_wd A_dd^-1
+    c6: np.ndarray,  # (6, 6) scratch: Cholesky factor of A_dd
+) -> None:
+    # The pose correction is unbounded, so it is eliminated (Schur complement): the
+    # box QP in w alone has A_red = A_ww - S A_dw and b_red = b_w - S b_d with
+    # S = A_wd A_dd^-1, and the same solution in w. Built when the pattern changes.
+    for p in range(6):
+        for q in range(p + 1):
+            s = a[k + p, k + q]
+            for t in range(q):
+                s -= c6[p, t] * c6[q, t]
+            if p == q:
+                c6[p, p] = math.sqrt(s) if s > 0.0 else 1e-300
+            else:
+                c6[p, q] = s / c6[q, q]
+    for j in range(k):  # schur[j] = A_dd^-1 a[k:, j] (A_dd symmetric)
+        for p in range(6):
+            s = a[k + p, j]
+            for t in range(p):
+                s -= c6[p, t] * schur[j, t]
+            schur[j, p] = s / c6[p, p]
+        for p in range(5, -1, -1):
+            s = schur[j, p]
+            for t in range(p + 1, 6):
+                s -= c6[t, p] * schur[j, t]
+            schur[j, p] = s / c6[p, p]
+    for p in range(k):
+        for q in range(k):
+            s = a[p, q]
+            for r in range(6):
+                s -= schur[p, r] * a[k + r, q]
+            ared[p, q] = s
+
+
+@kernel
 def solve_face_frame(
     markers: np.ndarray,  # (N, 3) world, metres
     valid: np.ndarray,  # (N,) bool
@@ -208,12 +279,16 @@ def solve_face_frame(
     layout: np.ndarray,  # (H, 3)
     head_w: np.ndarray,  # (H,)
     neutral: np.ndarray,  # (M, 3)
-    basis: np.ndarray,  # (3M, K) the solved shapes' columns only
-    a_full: np.ndarray,  # (K, K) = B^T B + lambda I
-    a: np.ndarray,  # (K, K) scratch: restricted normal matrix (kept between frames)
-    last_seen: np.ndarray,  # (M,) bool: pattern a was built for
-    seen: np.ndarray,  # (M,) bool scratch
-    b: np.ndarray,  # (K,) scratch
+    basis: np.ndarray,  # (3M, K + 6): the solved shapes' columns, then the pose's
+    a_full: np.ndarray,  # (K + 6, K + 6) = basis^T basis + lambda I on the shapes
+    a: np.ndarray,  # (K + 6, K + 6) scratch: restricted normal matrix (kept)
+    last_seen: np.ndarray,  # (M + H,) bool: pattern a was built for (facial, head)
+    seen: np.ndarray,  # (M + H,) bool scratch
+    b: np.ndarray,  # (K + 6,) scratch
+    ared: np.ndarray,  # (K, K) the pose eliminated (_reduce_pose), kept
+    schur: np.ndarray,  # (K, 6) kept with ared
+    c6: np.ndarray,  # (6, 6) scratch
+    bred: np.ndarray,  # (K,) scratch
     w_prev: np.ndarray,  # (K,) last good weights (warm start), updated
     state: np.ndarray,  # (K,) int64 scratch, kept between frames
     idx: np.ndarray,
@@ -240,9 +315,15 @@ def solve_face_frame(
     out_state: np.ndarray,  # (K_all,) uint8: SHAPE_* bits (unobserved preset)
 ) -> None:
     # K here counts the solved shapes; out_w and out_state hold every shape of the
-    # training set, and solved_cols says where each solved one goes.
+    # training set, and solved_cols says where each solved one goes. With K > 0 the
+    # least squares has 6 more variables, unbounded: the small correction (tau,
+    # theta) of the head pose that the facial markers see, whose prior information
+    # is the head markers' own (G, _add_pose_prior); they are eliminated before the
+    # box QP (_reduce_pose). With K = 0 there are none (a is 0 x 0).
     m = face_cols.shape[0]
-    k = a.shape[0]
+    nh = head_cols.shape[0]
+    k = solved_cols.shape[0]
+    n = a.shape[0]
     flags = 0
     used = _fit_head(
         markers, valid, head_cols, layout, head_w, n44, v44, q4, rot, pos, cen
@@ -264,7 +345,7 @@ def solve_face_frame(
         for j in range(3):
             out_pos[j] = pos[j] if have_good[0] else 0.0
         return
-    if used < head_cols.shape[0]:
+    if used < nh:
         flags |= FLAG_HEAD_PARTIAL
     # Stabilize: p_head = R^T (p_world - t).
     nvis = 0
@@ -290,25 +371,41 @@ def solve_face_frame(
         seen[i] = ok
         if ok != last_seen[i]:
             changed = True
+    for i in range(nh):  # the head markers the fit used (as horn_fit picks them)
+        c = head_cols[i]
+        ok = c >= 0 and valid[c] and head_w[i] > 0.0
+        if ok:
+            ok = (
+                math.isfinite(markers[c, 0])
+                and math.isfinite(markers[c, 1])
+                and math.isfinite(markers[c, 2])
+            )
+        seen[m + i] = ok
+        if ok != last_seen[m + i]:
+            changed = True
     if nvis < m:
         flags |= FLAG_FACE_PARTIAL
     if changed:
-        # A = A_full - sum over occluded markers of B_m^T B_m.
-        for p in range(k):
-            for q in range(k):
+        # A = A_full - sum over occluded markers of B_m^T B_m, + the pose prior G.
+        for p in range(n):
+            for q in range(n):
                 a[p, q] = a_full[p, q]
-        for i in range(m):
+        for i in range(m + nh):
             last_seen[i] = seen[i]
+        for i in range(m):
             if seen[i]:
                 continue
             for r in range(3 * i, 3 * i + 3):
-                for p in range(k):
+                for p in range(n):
                     brp = basis[r, p]
                     if brp == 0.0:
                         continue
-                    for q in range(k):
+                    for q in range(n):
                         a[p, q] -= brp * basis[r, q]
-    for p in range(k):
+        if n > k:
+            _add_pose_prior(a, k, layout, head_w, seen[m:])
+            _reduce_pose(a, k, ared, schur, c6)
+    for p in range(n):
         b[p] = 0.0
     for i in range(m):
         if not seen[i]:
@@ -316,7 +413,7 @@ def solve_face_frame(
         for c in range(3):
             d = out_markers[i, c] - neutral[i, c]
             r = 3 * i + c
-            for p in range(k):
+            for p in range(n):
                 b[p] += basis[r, p] * d
     # A shape whose key markers are hidden is held at its last weight (state 3: a
     # fixed variable of the QP), so it neither guesses nor pollutes the others.
@@ -335,7 +432,12 @@ def solve_face_frame(
                 state[j] = 0
             out_state[solved_cols[j]] = 0
         wr[j] = w_prev[j]
-    iters = _box_qp(a, b, wr, state, idx, chol, x, g, max_iter)
+    for p in range(k):
+        s = b[p]
+        for r in range(n - k):
+            s -= schur[p, r] * b[k + r]
+        bred[p] = s
+    iters = _box_qp(ared, bred, wr, state, idx, chol, x, g, max_iter)
     if iters < 0:
         flags |= FLAG_NOT_CONVERGED
         iters = max_iter

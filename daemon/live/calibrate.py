@@ -91,6 +91,10 @@ class CalibrationMixin(DaemonState):
             ValueError: a bad count, or rate limited (the message says which); the
                 pending calibration, if any, goes on untouched.
         """
+        if not self._perf.body:
+            raise ValueError(
+                f"{self._perf.label} has no body (body = false): nothing to calibrate"
+            )
         if count is None:
             n = self._perf.config.calibrate_frames
         elif type(count) is not int or not 3 <= count <= CALIBRATE_MAX_FRAMES:

@@ -61,6 +61,9 @@ class PerformerConfig:
     """Who is solved, with what."""
 
     rig: str = spec("menache", "rig")
+    # false: a face and no body (its face streamed alone, nothing calibrated; the
+    # face is [face]'s, or a [[performer]]'s face key): README "A face alone"
+    body: bool = True
     # a calibration JSON; "" = calibrate live before streaming
     calibration: str = spec("", "file")
     # where a live calibration is saved ("" = next to it)
@@ -300,8 +303,9 @@ class FaceSectionConfig:
     save_training: str = spec("", "out_path")
     # frames averaged by `ctl face-capture` (--count)
     capture_frames: int = between(60, 1, 100_000)
-    # unitless weight damping (solve_face)
-    regularization: float = between(1e-3, 0.0, 1.0)
+    # unitless weight damping: lambda = regularization * noise_rms^2, 1 = the MAP
+    # ridge for a weight prior N(0, 1/3) (face/observability.py ridge; FACES.md)
+    regularization: float = between(1.0, 0.0, 100.0)
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)

@@ -59,6 +59,7 @@ from retargetd.daemon.face.solve import (
     mean_pose,
     observability,
 )
+from retargetd.daemon.face.take import face_solver
 from retargetd.daemon.live.config import ConfigError, FaceSectionConfig
 from retargetd.protocols.frames import F64Array
 
@@ -179,14 +180,10 @@ class LiveFace:
         head_w = None
         if tuple(t.head_names) == self.face.head_markers:
             head_w = self.face.head_weights
-        obs = observability(t, regularization=self.settings.regularization)
-        solver = FaceSolver(
-            t,
-            labels=tuple(labels),
-            regularization=self.settings.regularization,
+        solver, obs = face_solver(  # as ``retargetd solve --face`` builds it
+            t, labels, regularization=self.settings.regularization,
             head_weights=head_w,
-            solved=obs.observable,
-        )
+        )  # fmt: skip
         out = solver.new_output()
         names = t.expression_names
         outputs = self.face.outputs if t.k else ()
@@ -323,9 +320,12 @@ class LiveFace:
             return ()
         if self._unobserved_cache[0] is not t:
             reg = self.settings.regularization
+            head_w = None
+            if tuple(t.head_names) == self.face.head_markers:
+                head_w = np.asarray(self.face.head_weights)
             self._unobserved_cache = (
                 t,
-                observability(t, regularization=reg).unobservable,
+                observability(t, regularization=reg, head_weights=head_w).unobservable,
             )
         return self._unobserved_cache[1]
 

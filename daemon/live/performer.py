@@ -190,6 +190,14 @@ class Performer:
         self.prefix = prefix
         self.input = input
         self.rig: Rig = load_rig(config.rig)
+        # False: a face alone (``face_only.py``): no rig calibration, no body solve.
+        self.body = config.body
+        if not self.body and face is None:
+            raise ValueError(
+                f"{self.label}: body = false needs a face ([face] enabled = true"
+                f"{' and its face key' if name else ''})"
+            )
+        self.face_stages: dict[int, Any] = {}  # id(stream or view) -> FaceOnlyStage
         self.calibration: Calibration | None = (
             load_calibration(config.calibration) if config.calibration else None
         )

@@ -97,6 +97,9 @@ class PerformersMixin(DaemonState):
                 if view is None:
                     continue
                 key = id(view)
+            stage = perf.face_stages.get(key)  # a face alone (face_only.py)
+            if stage is not None:
+                stage.face.solver.reset()
             pipe = perf.pipelines.get(key)
             if pipe is not None:
                 pipe.solver.reset()
@@ -225,7 +228,9 @@ class PerformersMixin(DaemonState):
                     "prefix": perf.prefix,
                     "input": perf.input,
                     "rig": perf.rig.name,
-                    "calibrated": perf.calibration is not None,
+                    "body": perf.body,
+                    # a face alone has nothing to calibrate
+                    "calibrated": perf.calibration is not None or not perf.body,
                     "calibrating": perf.calib_target > 0,
                     "calibration_message": perf.calib_message,
                     "calibration_id": perf.calib_id,

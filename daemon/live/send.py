@@ -23,8 +23,9 @@ from retargetd.daemon.live.emit import (
     NO_FLAGS,
     EmitPlan,
 )
+from retargetd.daemon.live.face_only import FaceOnlyMixin
 from retargetd.daemon.live.performer import FrameSource
-from retargetd.daemon.live.state import DaemonState, Pipeline
+from retargetd.daemon.live.state import Pipeline
 from retargetd.daemon.post.pipeline import build_pipeline
 from retargetd.daemon.post.pivot import spine_stage
 from retargetd.daemon.post.plant import plant_stage
@@ -83,7 +84,7 @@ _PERFORMER_MASK = pose_stream.PERFORMER_MASK
 VMC_STATE_INTERVAL_NS = 500_000_000
 
 
-class SendMixin(DaemonState):
+class SendMixin(FaceOnlyMixin):
     """Building the per-stream pipelines and solving, retargeting, encoding and sending
     one frame.
     """
@@ -120,11 +121,9 @@ class SendMixin(DaemonState):
                 " ".join(solver.missing_markers),
             )
         retargeter = Retargeter(
-            self.rig,
-            self.calibration,
-            self.target,
+            self.rig, self.calibration, self.target,
             compensate_base_pose=self.config.target.compensate_base_pose,
-        )
+        )  # fmt: skip
         target_pose = retargeter.new_pose()
         names = tuple(self.target.bone_names)
         n = len(names)
@@ -220,6 +219,8 @@ class SendMixin(DaemonState):
         # The clock starts before the pipeline lookup: a pipeline built here (the
         # first frame after a new label set) shows its cost in this frame's solve
         # stage and overrun check, not hidden before it.
+        if not self._perf.body:  # a face alone (face_only.py)
+            return self._solve_and_send_face(stream, received_ns)
         t_start = time.monotonic_ns()
         pipe = self._pipeline(stream)
         if pipe is None:  # no calibration yet: counted, never silent
@@ -563,7 +564,7 @@ class SendMixin(DaemonState):
         the state (``/VMC/Ext/OK`` calibration state 1 waiting or 2 calibrating, the
         tracking flag) about twice a second: no pose is streamed then, and silence
         reads as "no performer" in EVMC4U and VSeeFace."""
-        if not self._vmc or now_ns < self._next_vmc_state_ns:
+        if not self._vmc or now_ns < self._next_vmc_state_ns or not self._perf.body:
             return
         calibrating = self._calib_target > 0
         if self.calibration is not None and not calibrating:

@@ -48,7 +48,7 @@ from retargetd.daemon.body.solve import BodySolve
 from retargetd.daemon.post.interp import Clip
 from retargetd.daemon.post.reduce import KeyChannel, ReducedClip
 from retargetd.protocols.frames import F64Array
-from retargetd.replay.gltf import GltfChannel, write_glb
+from retargetd.replay.gltf import GltfChannel, MorphFace, write_glb
 from retargetd.replay.gltf_mesh import Capsule, bone_capsule, check_mesh
 
 #: glTF (+Y up) from our world (+Z up): -90° about x, (w, x, y, z).
@@ -143,6 +143,7 @@ def write_reduced_glb(
     *,
     humanoid: Sequence[str] | None = None,
     mesh: str = "none",
+    face: MorphFace | None = None,
 ) -> None:
     """Write a reduced take (:func:`retargetd.daemon.post.reduce.reduce_clip` of a
     :func:`clip_from_solve` clip): one channel per bone and the root's translation,
@@ -154,6 +155,7 @@ def write_reduced_glb(
         calibration: the skeleton.
         humanoid: (B,) each bone's humanoid name or ``""`` (:func:`node_names`).
         mesh: ``"none"`` (the skin alone) or ``"capsules"``.
+        face: the face as morph targets (``retargetd solve --face``), or None.
 
     Raises:
         CalibrationError: no bone rest origins in the calibration.
@@ -196,6 +198,7 @@ def write_reduced_glb(
         scene_root_quat=GLTF_FROM_WORLD_QUAT,
         node_extras=extras,
         capsules=bone_capsules(calibration) if mesh == "capsules" else (),
+        face=face,
     )
 
 
@@ -206,6 +209,7 @@ def write_clip_glb(
     *,
     humanoid: Sequence[str] | None = None,
     mesh: str = "none",
+    face: MorphFace | None = None,
 ) -> None:
     """Write every frame of a clip (no reduction), on the skin (module docstring).
 
@@ -215,6 +219,7 @@ def write_clip_glb(
         calibration: the skeleton.
         humanoid: (B,) each bone's humanoid name or ``""`` (:func:`node_names`).
         mesh: ``"none"`` (the skin alone) or ``"capsules"``.
+        face: the face as morph targets (``retargetd solve --face``), or None.
 
     Raises:
         CalibrationError: no bone rest origins in the calibration.
@@ -232,4 +237,6 @@ def write_clip_glb(
         n_frames=clip.n_frames,
         rate_hz=clip.rate_hz,
     )
-    write_reduced_glb(path, reduced, calibration, humanoid=humanoid, mesh=mesh)
+    write_reduced_glb(
+        path, reduced, calibration, humanoid=humanoid, mesh=mesh, face=face
+    )

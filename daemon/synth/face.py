@@ -391,11 +391,17 @@ def face_training_set(
 
 
 def model_training_set(
-    fm: FaceModel, datasets: Path, n_markers: int = 40
+    fm: FaceModel,
+    datasets: Path,
+    n_markers: int = 40,
+    head_layout: F64Array | None = None,
 ) -> TrainingSet:
-    """:func:`face_training_set` of a loaded :class:`FaceModel` (its own names)."""
+    """:func:`face_training_set` of a loaded :class:`FaceModel` (its own names);
+    ``head_layout``: the band's layout (default :func:`pig_head_layout`; another
+    take's from :func:`take_head_motion`)."""
     face_v = pick_face_vertices(fm, n_markers)
-    head = place_head_band(fm.neutral[fm.skin], fm.eye_level, pig_head_layout(datasets))
+    layout = pig_head_layout(datasets) if head_layout is None else head_layout
+    head = place_head_band(fm.neutral[fm.skin], fm.eye_level, layout)
     origin = head.mean(axis=0)
     return TrainingSet(
         head_names=HEAD_NAMES,
@@ -412,11 +418,11 @@ def ict_training_set(datasets: Path, n_markers: int = 40) -> TrainingSet:
     return face_training_set(datasets, "ict", n_markers)
 
 
-def _pig_head(datasets: Path) -> tuple[F64Array, F64Array]:
-    # (T, 4, 3) complete frames of the walk's head markers (world, m) and their
+def _pig_head(datasets: Path, take_path: str = PIG_WALK) -> tuple[F64Array, F64Array]:
+    # (T, 4, 3) complete frames of the take's head markers (world, m) and their
     # layout (4, 3) in anatomical head axes (x right, y forward, z up), centred.
 
-    take = load_take(datasets / PIG_WALK)
+    take = load_take(datasets / take_path)
     cols = [take.labels.index(n) for n in HEAD_NAMES]
     head_world = take.positions[:, cols]
     complete = np.all(np.isfinite(head_world), axis=(1, 2))
@@ -457,6 +463,29 @@ def pig_head_motion(datasets: Path) -> tuple[F64Array, F64Array]:
         quat[t] = rot.as_quat(scalar_first=True)
         pos[t] = c
     return quat, pos
+
+
+def take_head_motion(
+    datasets: Path, take_path: str
+) -> tuple[F64Array, F64Array, F64Array, npt.NDArray[np.bool_]]:
+    """The head of any take wearing LFHD RFHD LBHD RBHD (e.g. the tennis serve): its
+    layout in anatomical head axes (as :func:`pig_head_layout`), ``world_from_head``
+    per complete frame (quat (T, 4) w x y z, pos (T, 3) m, as
+    :func:`pig_head_motion`) and which rows of the take are complete (T_all,)."""
+    from scipy.spatial.transform import Rotation
+
+    take = load_take(datasets / take_path)
+    cols = [take.labels.index(n) for n in HEAD_NAMES]
+    complete = np.all(np.isfinite(take.positions[:, cols]), axis=(1, 2))
+    head_world, layout = _pig_head(datasets, take_path)
+    quat = np.zeros((len(head_world), 4))
+    pos = np.zeros((len(head_world), 3))
+    for t, f in enumerate(head_world):
+        c = f.mean(axis=0)
+        rot, _ = Rotation.align_vectors(f - c, layout)
+        quat[t] = rot.as_quat(scalar_first=True)
+        pos[t] = c
+    return layout, quat, pos, complete
 
 
 def synth_weights(

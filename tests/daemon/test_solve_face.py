@@ -27,6 +27,7 @@ from scipy.optimize import lsq_linear
 from scipy.spatial.transform import Rotation
 
 from retargetd.daemon.face import solve as sf
+from retargetd.daemon.face.observability import pose_jacobian
 from retargetd.daemon.synth import face as fs
 
 
@@ -61,10 +62,13 @@ def _oracle(
     markers_head: np.ndarray,
     seen: np.ndarray,
     held: np.ndarray | None = None,
+    head_seen: np.ndarray | None = None,
 ) -> np.ndarray:
-    # min |B_v w - d_v|^2 + lambda |w|^2, 0 <= w <= 1, as one stacked least squares,
-    # over the solver's solved shapes (the others are 0); ``held`` (K,) weights, NaN
-    # where free: shapes held at a value (their key markers hidden) are fixed there.
+    # min |B_v w + J_v delta - d_v|^2 + delta^T G delta + lambda |w|^2, 0 <= w <= 1,
+    # delta (the head pose's correction, 6) free, as one stacked least squares over
+    # the solver's solved shapes (the others are 0); G's rows are the head markers'
+    # Jacobians (``head_seen``, default all). ``held`` (K,) weights, NaN where free:
+    # shapes held at a value (their key markers hidden) are fixed there.
     tr = solver.training
     rows = np.repeat(seen, 3)
     d = (markers_head - tr.neutral).reshape(-1)[rows]
@@ -76,9 +80,20 @@ def _oracle(
         d = d - tr.basis[rows][:, fixed] @ held[fixed]
     basis = tr.basis[:, free]
     k = basis.shape[1]
-    a = np.vstack([basis[rows], math.sqrt(solver.lambda_) * np.eye(k)])
-    rhs = np.concatenate([d, np.zeros(k)])
-    w[free] = lsq_linear(a, rhs, bounds=(0.0, 1.0), method="bvls", tol=1e-14).x
+    jac = pose_jacobian(tr.neutral).reshape(-1, 6)[rows]
+    hs = np.ones(len(tr.head_names), bool) if head_seen is None else head_seen
+    jh = pose_jacobian(tr.head_layout[hs]).reshape(-1, 6)
+    a = np.block(
+        [
+            [basis[rows], jac],
+            [math.sqrt(solver.lambda_) * np.eye(k), np.zeros((k, 6))],
+            [np.zeros((len(jh), k)), jh],
+        ]
+    )
+    rhs = np.concatenate([d, np.zeros(k + len(jh))])
+    lo = np.r_[np.zeros(k), np.full(6, -np.inf)]
+    hi = np.r_[np.ones(k), np.full(6, np.inf)]
+    w[free] = lsq_linear(a, rhs, bounds=(lo, hi), method="bvls", tol=1e-14).x[:k]
     return w
 
 
@@ -530,10 +545,12 @@ def test_unobservable_shapes_are_left_out_and_sent_as_zero(
     assert (got["st"][:, unseen] == sf.SHAPE_UNOBSERVED).all()
     assert (got["st"][:, obs.observable] == 0).all()
     err = np.abs(got["w"] - face_take.weights)
-    # Median 0.025 (ICT) / 0.020 (MakeHuman); p95 0.13 / 0.10: 37 / 32 shapes move
-    # at once, each with a noise std up to MAX_WEIGHT_STD.
+    # Median 0.019 (ICT) / 0.016 (MakeHuman); p95 0.102 / 0.080: 38 / 32 shapes move
+    # at once, each with a noise std up to MAX_WEIGHT_STD. The solver before issue 32's
+    # item 4 (the ridge 1e-3 mean(diag B^T B), the head pose from the head markers
+    # alone) gave ICT 0.13, which fails here.
     assert np.median(err[:, obs.observable]) <= 0.05
-    assert np.percentile(err[:, obs.observable], 95) <= 0.15
+    assert np.percentile(err[:, obs.observable], 95) <= 0.11
     # A larger noise level leaves more shapes out, never fewer.
     noisier = sf.observability(tr, noise_rms_m=1e-3)
     assert set(obs.unobservable) <= set(noisier.unobservable)
