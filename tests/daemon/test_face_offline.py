@@ -28,6 +28,7 @@ from typing import Any
 import numpy as np
 import pytest
 import zmq
+from gltf_tools import issue_summary, validate_glb
 from paths import DATASETS
 from scipy.spatial.transform import Rotation
 
@@ -144,6 +145,12 @@ def _solve_hidden(sf_: ServeFace) -> Path:
     return _solve(sf_, "hidden.npz", "--face-only", take=sf_.hidden_take)
 
 
+def _face_only(sf_: ServeFace) -> Path:
+    """The take's face-only NPZ, solved once per session (any test may run alone)."""
+    path = sf_.folder / "face-only.npz"
+    return path if path.exists() else _solve(sf_, "face-only.npz", "--face-only")
+
+
 def _npz(path: Path) -> dict[str, np.ndarray]:
     with np.load(path, allow_pickle=False) as z:
         return {k: z[k] for k in z.files}
@@ -191,7 +198,7 @@ def test_a_hidden_key_marker_flags_its_shape(serve_face: ServeFace) -> None:
     is key to are held (their last weight) and flagged hidden on exactly those
     frames; the frame says shape_held; every other shape is solved as before."""
     z = _npz(_solve_hidden(serve_face))
-    full = _npz(serve_face.folder / "face-only.npz")
+    full = _npz(_face_only(serve_face))
     names = serve_face.truth.expression_names
     hidden = (z["face_shape_state"] & pose_stream.SHAPE_HIDDEN) != 0
     expect = np.zeros(len(hidden), bool)
@@ -267,9 +274,7 @@ def test_face_trained_from_held_poses(
 
 
 def test_csv_glb_and_mcap_hold_the_npz_weights(serve_face: ServeFace) -> None:
-    z = _npz(serve_face.folder / "face-only.npz")
-    if "face_weights" not in z:  # pragma: no cover - run alone
-        z = _npz(_solve(serve_face, "face-only.npz", "--face-only"))
+    z = _npz(_face_only(serve_face))
     names = list(z["face_shapes"])
     w, st = z["face_weights"], z["face_shape_state"]
     # CSV: frame, time_s, face_flags, one column per shape, then its state.
@@ -285,7 +290,11 @@ def test_csv_glb_and_mcap_hold_the_npz_weights(serve_face: ServeFace) -> None:
     np.testing.assert_array_equal(table[:, 3 : 3 + len(names)].astype(np.float32), w)
     np.testing.assert_array_equal(table[:, 3 + len(names) :], st)
     # glTF: a point mesh with one morph target per shape, the weights animated.
-    doc, blob = _read_glb(_solve(serve_face, "face.glb", "--face-only"))
+    glb = _solve(serve_face, "face.glb", "--face-only")
+    report = validate_glb(glb)  # the Khronos validator (gltf_tools)
+    assert report["issues"]["numErrors"] == 0, issue_summary(report)
+    assert report["issues"]["numWarnings"] == 0, issue_summary(report)
+    doc, blob = _read_glb(glb)
     assert "skins" not in doc
     mesh = doc["meshes"][0]
     assert mesh["extras"]["targetNames"] == names
