@@ -26,8 +26,9 @@ _BODY = FitParams()
 #: Positioning Performance", Sensors 17(7):1591, 2017). 10 mm is five times that
 #: worst error, and below the closest two distinct markers of a cluster may sit
 #: (a marker diameter, 9.5-14 mm passive markers, apart at least). Confirmed on the
-#: pyomeca box (``tests/daemon/props/test_props_real.py``): its markers' residual
-#: RMS is under 1 mm on every frame.
+#: pyomeca box, 8 markers, 580 frames, not used to choose it
+#: (``tests/daemon/props/test_props_real.py``): residual RMS median 0.27 mm, 95th
+#: percentile 0.52 mm, largest 1.5 mm; no marker gated on a frame it was seen.
 DEFAULT_GATE_M = 0.010
 #: The body fit's gate factor (``FitParams.gate_k``): the gate stays above the fit's
 #: own residual level on a noisy system.
