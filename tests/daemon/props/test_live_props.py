@@ -1,0 +1,221 @@
+"""Props in the live daemon (``daemon/live/props.py``): a camera rig streamed over OSC
+beside a performer's markers, received as VMC (parsed with python-osc and read by the
+VMC spec's own words, not with our encoder) and as ``RTDR`` messages on the pose
+stream; its field of view set live by an OSC fader; ``ctl calibrate --prop``.
+"""
+
+from __future__ import annotations
+
+import math
+import socket
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import zmq
+from pythonosc.osc_bundle import OscBundle
+from pythonosc.osc_message import OscMessage
+from scipy.spatial.transform import Rotation
+
+from retargetd.daemon.props.layout import calibrate_prop, load_layout
+from retargetd.protocols import osc_in, pose_props
+from retargetd.protocols.marker_input import LabelSet
+from retargetd.protocols.osc_wire import build_message
+
+CAMERA = np.array(
+    [
+        [0.00, 0.00, 0.00],
+        [0.16, 0.02, 0.00],
+        [-0.12, 0.05, 0.03],
+        [0.02, 0.21, 0.06],
+        [0.05, -0.04, 0.14],
+    ]
+)
+LABELS = ("cam:0", "cam:1", "cam:2", "cam:3", "cam:4", "other")
+WAIT_S = 20.0
+
+
+def _vmc_messages(sock: socket.socket, until: float) -> list[tuple[str, list[Any]]]:
+    """Every OSC message received before ``until`` (bundles opened: python-osc's
+    parser, independent of ours)."""
+    out: list[tuple[str, list[Any]]] = []
+    while time.monotonic() < until:
+        try:
+            data = sock.recv(65536)
+        except TimeoutError:
+            continue
+        if OscBundle.dgram_is_bundle(data):
+            for item in OscBundle(data):
+                if isinstance(item, OscMessage):
+                    out.append((item.address, list(item.params)))
+        else:
+            m = OscMessage(data)
+            out.append((m.address, list(m.params)))
+        if any(a == "/VMC/Ext/Cam" for a, _ in out):
+            break
+    return out
+
+
+def _world_from_unity_pos(p: list[float]) -> np.ndarray:
+    # VMC poses are Unity's: left-handed, +Y up, metres. The lab's (x, y, z) with +Z
+    # up is Unity's (x, z, y) (shared/reference/engines.md, "Coordinate systems").
+    return np.array([p[0], p[2], p[1]])
+
+
+def _unity_forward_in_world(q_xyzw: list[float]) -> np.ndarray:
+    # Unity's camera looks along its local +Z; rotate it by the received quaternion
+    # (x y z w, Unity's frame) with the plain quaternion-to-matrix formula, then
+    # read the Unity vector in the lab's axes.
+    x, y, z, w = q_xyzw
+    fwd = np.array([2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)])
+    return _world_from_unity_pos(list(fwd))
+
+
+@pytest.fixture
+def camera_layout(tmp_path: Path) -> Path:
+    still = np.repeat(CAMERA[None] + [0.0, 0.0, 1.5], 5, 0)
+    layout = calibrate_prop(still, LABELS[:5], name="cam", kind="camera", rate_hz=100.0)
+    path = tmp_path / "cam.json"
+    layout.save(path)
+    return path
+
+
+def test_camera_streams_as_vmc_and_pose_stream(
+    start_daemon: Callable[..., Any],
+    udp_socket: Callable[..., socket.socket],
+    camera_layout: Path,
+) -> None:
+    vmc = udp_socket(bind=True, timeout_s=0.05)
+    live = start_daemon(
+        {
+            "prop": [
+                {
+                    "name": "cam",
+                    "kind": "camera",
+                    "calibration": str(camera_layout),
+                    "fov_deg": 50.0,
+                    "fov_osc": "/lens/fov",
+                }
+            ]
+        },
+        vmc_port=vmc.getsockname()[1],
+    )
+    ctx = zmq.Context.instance()
+    sub = ctx.socket(zmq.SUB)
+    sub.setsockopt(zmq.LINGER, 0)
+    sub.setsockopt(zmq.SUBSCRIBE, pose_props.PROP_MAGIC)
+    sub.connect(live.tcp("zmq poses"))
+    src = udp_socket()
+    osc = live.udp("osc markers")
+    label_set = LabelSet(7, LABELS)
+    # The camera yawed +90 deg about world +Z and 1.5 m up: at calibration it
+    # looked along world +Y, so now along world -X.
+    turn = Rotation.from_euler("z", 90, degrees=True)
+    origin = np.array([0.3, -0.2, 1.6])
+    centred = CAMERA - CAMERA.mean(axis=0)
+    markers = np.vstack([turn.apply(centred) + origin, [[9.0, 9.0, 9.0]]])
+    fid = 0
+    msgs: list[tuple[str, list[Any]]] = []
+    got = None
+    deadline = time.monotonic() + WAIT_S
+    while time.monotonic() < deadline and (got is None or not msgs):
+        src.sendto(osc_in.encode_labels(label_set), osc)
+        src.sendto(osc_in.encode_compact_frame(fid, fid / 120, 7, markers), osc)
+        fid += 1
+        if not msgs:
+            msgs = [
+                m
+                for m in _vmc_messages(vmc, time.monotonic() + 0.1)
+                if m[0] in ("/VMC/Ext/Tra/Pos", "/VMC/Ext/Cam")
+            ]
+        if got is None and sub.poll(50):
+            got = pose_props.decode_prop(sub.recv())
+    assert got is not None and msgs, "no prop message or no VMC prop datagram"
+    # the pose stream: the prop message, world frame, w x y z
+    assert got.name == "cam" and got.kind == pose_props.KIND_CAMERA
+    assert got.flags == 0 and got.used == 5 and got.seen == 5
+    np.testing.assert_allclose(got.pos_world, origin, atol=1e-5)
+    q = Rotation.from_quat(got.world_from_prop_quat, scalar_first=True)
+    assert np.degrees((q * turn.inv()).magnitude()) < 0.01
+    assert got.fov_deg == pytest.approx(50.0)
+    # VMC, by the spec: /VMC/Ext/Tra/Pos s fff ffff and /VMC/Ext/Cam s fff ffff f
+    tra = next(args for addr, args in msgs if addr == "/VMC/Ext/Tra/Pos")
+    cam = next(args for addr, args in msgs if addr == "/VMC/Ext/Cam")
+    assert (
+        tra[0] == "cam" and len(tra) == 8 and all(isinstance(v, float) for v in tra[1:])
+    )
+    assert cam[0] == "cam" and len(cam) == 9
+    np.testing.assert_allclose(_world_from_unity_pos(cam[1:4]), origin, atol=1e-5)
+    # hand-worked: +90 deg about world +Z is -90 deg about Unity +Y:
+    # x y z w = (0, -sin 45, 0, cos 45), and Unity's forward turns to world -X
+    s = math.sqrt(0.5)
+    np.testing.assert_allclose(cam[4:8], [0.0, -s, 0.0, s], atol=1e-5)
+    np.testing.assert_allclose(_unity_forward_in_world(cam[4:8]), [-1, 0, 0], atol=1e-5)
+    assert cam[8] == pytest.approx(50.0)
+    np.testing.assert_allclose(tra[1:8], cam[1:8], atol=0)
+    # a lens fader on the show-control port moves the field of view
+    show = live.udp("show control")
+    src.sendto(build_message("/lens/fov", "f", [35.0]), show)
+    src.sendto(build_message("/lens/fov", "f", [500.0]), show)  # refused, counted
+    fov = None
+    deadline = time.monotonic() + WAIT_S
+    while time.monotonic() < deadline and fov != pytest.approx(35.0):
+        src.sendto(osc_in.encode_compact_frame(fid, fid / 120, 7, markers), osc)
+        fid += 1
+        for addr, args in _vmc_messages(vmc, time.monotonic() + 0.05):
+            if addr == "/VMC/Ext/Cam":
+                fov = args[8]
+    assert fov == pytest.approx(35.0)
+    status = live.ctl({"cmd": "status"})["status"]
+    (doc,) = status["props"]
+    assert doc["name"] == "cam" and doc["frames"] > 0 and doc["fov_deg"] == 35.0
+    assert status["show_control"]["refused"].get("bad_argument", 0) >= 1
+    sub.close()
+
+
+def test_ctl_calibrate_prop_live(
+    start_daemon: Callable[..., Any],
+    udp_socket: Callable[..., socket.socket],
+    tmp_path: Path,
+) -> None:
+    out = tmp_path / "sword.json"
+    live = start_daemon(
+        {
+            "prop": [
+                {"name": "cam", "save_calibration": str(out), "calibrate_frames": 10}
+            ]
+        }
+    )
+    reply = live.ctl({"cmd": "calibrate", "prop": "nope"})
+    assert reply["ok"] is False and "no prop named 'nope'" in reply["error"]
+    reply = live.ctl({"cmd": "calibrate", "prop": "cam"})
+    assert (
+        reply["ok"] is True and "calibrating on the next 10 frames" in reply["message"]
+    )
+    src = udp_socket()
+    osc = live.udp("osc markers")
+    label_set = LabelSet(3, LABELS)
+    markers = np.vstack([CAMERA + np.array([1.0, 2.0, 0.9]), [[9.0, 9.0, 9.0]]])
+    rng = np.random.default_rng(0)
+    deadline = time.monotonic() + WAIT_S
+    fid = 0
+    state = ""
+    while time.monotonic() < deadline and state != "calibrated":
+        src.sendto(osc_in.encode_labels(label_set), osc)
+        noisy = markers + rng.normal(0.0, 2e-4, markers.shape)
+        src.sendto(osc_in.encode_compact_frame(fid, fid / 120, 3, noisy), osc)
+        fid += 1
+        time.sleep(0.005)
+        if fid % 10 == 0:
+            (doc,) = live.ctl({"cmd": "status"})["status"]["props"]
+            state = doc["calibration"]
+    assert state == "calibrated", doc
+    layout = load_layout(out)
+    assert layout.labels == LABELS[:5]
+    np.testing.assert_allclose(
+        layout.layout_prop_m, CAMERA - CAMERA.mean(axis=0), atol=1e-3
+    )
+    assert any("prop cam: calibrated on 10 frames" in line for line in live.lines)
