@@ -288,17 +288,17 @@ class LiveProps:
             self._out(p.calib_message)
             return
         path = cfg.save_calibration or cfg.calibration or f"{p.name}.prop.json"
-        saved = f", saved to {path}"
+        saved, state = f", saved to {path}", "calibrated"
         try:
             layout.save(path)
-        except OSError as exc:
-            saved = f", not saved ({exc})"
+        except OSError as exc:  # used all the same; ctl exits 1 on it
+            saved, state = f", not saved ({exc})", "not saved"
         p.solver = PropSolver(layout, p.params)
         if p.bound is not None:
             p.solver.bind(p.bound.labels)
         if p.filter is not None:
             p.filter.reset()
-        p.calib_state = "calibrated"
+        p.calib_state = state
         p.calib_message = (
             f"prop {p.name}: calibrated on {len(frames)} frames, "
             f"{len(p.calib_labels)} markers{saved}"

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 import socket
+import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -20,6 +21,7 @@ from pythonosc.osc_bundle import OscBundle
 from pythonosc.osc_message import OscMessage
 from scipy.spatial.transform import Rotation
 
+from retargetd.daemon.cli.main import main
 from retargetd.daemon.props.layout import calibrate_prop, load_layout
 from retargetd.protocols import osc_in, pose_props
 from retargetd.protocols.marker_input import LabelSet
@@ -180,8 +182,9 @@ def test_ctl_calibrate_prop_live(
     start_daemon: Callable[..., Any],
     udp_socket: Callable[..., socket.socket],
     tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
 ) -> None:
-    out = tmp_path / "sword.json"
+    out = tmp_path / "cam.json"
     live = start_daemon(
         {
             "prop": [
@@ -191,31 +194,38 @@ def test_ctl_calibrate_prop_live(
     )
     reply = live.ctl({"cmd": "calibrate", "prop": "nope"})
     assert reply["ok"] is False and "no prop named 'nope'" in reply["error"]
-    reply = live.ctl({"cmd": "calibrate", "prop": "cam"})
-    assert (
-        reply["ok"] is True and "calibrating on the next 10 frames" in reply["message"]
-    )
     src = udp_socket()
     osc = live.udp("osc markers")
     label_set = LabelSet(3, LABELS)
     markers = np.vstack([CAMERA + np.array([1.0, 2.0, 0.9]), [[9.0, 9.0, 9.0]]])
     rng = np.random.default_rng(0)
-    deadline = time.monotonic() + WAIT_S
-    fid = 0
-    state = ""
-    while time.monotonic() < deadline and state != "calibrated":
-        src.sendto(osc_in.encode_labels(label_set), osc)
-        noisy = markers + rng.normal(0.0, 2e-4, markers.shape)
-        src.sendto(osc_in.encode_compact_frame(fid, fid / 120, 3, noisy), osc)
-        fid += 1
-        time.sleep(0.005)
-        if fid % 10 == 0:
-            (doc,) = live.ctl({"cmd": "status"})["status"]["props"]
-            state = doc["calibration"]
-    assert state == "calibrated", doc
+    stop = threading.Event()
+
+    def stream() -> None:  # the prop lies still, markers jittering by 0.2 mm
+        fid = 0
+        while not stop.is_set():
+            src.sendto(osc_in.encode_labels(label_set), osc)
+            noisy = markers + rng.normal(0.0, 2e-4, markers.shape)
+            src.sendto(osc_in.encode_compact_frame(fid, fid / 120, 3, noisy), osc)
+            fid += 1
+            time.sleep(1 / 120)
+
+    sender = threading.Thread(target=stream, daemon=True)
+    sender.start()
+    try:
+        ep = live.tcp("control")
+        assert main(["ctl", "--endpoint", ep, "calibrate", "--prop", "cam"]) == 0
+    finally:
+        stop.set()
+        sender.join(timeout=5)
+    said = capsys.readouterr().out
+    assert "prop cam: calibrating on the next 10 frames (ctl)" in said
+    assert "prop cam: calibrated on 10 frames, 5 markers, saved to" in said
     layout = load_layout(out)
     assert layout.labels == LABELS[:5]
     np.testing.assert_allclose(
         layout.layout_prop_m, CAMERA - CAMERA.mean(axis=0), atol=1e-3
     )
-    assert any("prop cam: calibrated on 10 frames" in line for line in live.lines)
+    (doc,) = live.ctl({"cmd": "status"})["status"]["props"]
+    assert doc["calibration"] == "calibrated"
+    assert main(["ctl", "--endpoint", ep, "calibrate", "--prop", "cam", "--rom"]) == 2
