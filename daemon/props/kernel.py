@@ -12,9 +12,10 @@ w x y z and the origin's position) and the frame's statistics:
    marker, so both go (a sword of 4 with 2 swapped keeps 2: the pose is held). Two
    dropped markers that agree with the kept ones once their labels are exchanged
    are counted as a swap (``FLAG_SWAP``). When the kept markers and the swaps do
-   not explain every seen marker, every agreeing triple is tried as a seed instead
-   (three markers agree as their own mirror image too; the set that explains the
-   most wins). Fewer than 3 kept: the last pose is held and flagged ``FLAG_HELD``.
+   not explain every seen marker, every agreeing pair and triple is tried as a seed
+   instead (three markers agree as their own mirror image too; the set that
+   explains the most, two per recognized swap, wins). Fewer than 3 kept: the last
+   pose is held and flagged ``FLAG_HELD``.
 3. **Fit**: Horn's weighted closed form (``compiled.horn_fit``, the fit the body's
    rigid-segment rebuild and the face's head stabilization share) over the kept
    markers, then every seen marker within the gate rejoins, and iteratively
@@ -61,8 +62,9 @@ S_GATE_M = 5  # this frame's gate, metres
 S_FLAGS = 6
 N_STATS = 7
 
-#: Props up to this many markers search every agreeing triple when the greedy
-#: consensus leaves seen markers unexplained (C(12, 3) = 220 seeds at most).
+#: Props up to this many markers search every agreeing pair and triple when the
+#: greedy consensus leaves seen markers unexplained (C(12, 3) + C(12, 2) = 286 seeds
+#: at most).
 MAX_SEARCH_MARKERS = 12
 
 FLAG_HELD = 1  # fewer than 3 markers agree: the last good pose, held
@@ -282,25 +284,25 @@ def solve_prop(
     _greedy_consensus(layout_d, pts, cols, keep, gate_m)
     n_keep, swaps = _explained(layout_d, pts, cols, seen, keep, gate_m)
     if n_keep + 2 * swaps < n_seen and k <= MAX_SEARCH_MARKERS:
-        # not every seen marker is explained: seed from every agreeing triple,
-        # grow it by the markers that agree with all of it, and keep the set that
-        # explains most (its markers, plus two per recognized swap). A triangle
-        # has no handedness, so three markers alone may agree as a mirror image:
-        # the swap that explains the rest tells the true set from it.
+        # not every seen marker is explained: seed from every agreeing pair and
+        # triple, grow it by the markers that agree with all of it, and keep the
+        # set that explains most (its markers, plus two per recognized swap). A
+        # triangle has no handedness, so three markers alone may agree as a mirror
+        # image: the swap that explains the rest tells the true set from it.
         for i in range(k):
             alt[i] = keep[i]
         best_score = n_keep + 2 * swaps
         best_keep = n_keep
         for a in range(k):
             for b in range(a + 1, k):
-                for c in range(b + 1, k):
+                for c in range(b, k):  # c == b: the pair (a, b) alone as the seed
                     if not (seen[a] and seen[b] and seen[c]):
                         continue
                     for i in range(k):
                         keep[i] = i in (a, b, c)
                     if not _agrees(layout_d, pts, cols, keep, a, a, gate_m):
                         continue
-                    if not _agrees(layout_d, pts, cols, keep, b, b, gate_m):
+                    if c != b and not _agrees(layout_d, pts, cols, keep, b, b, gate_m):
                         continue
                     for m in range(k):
                         if (
