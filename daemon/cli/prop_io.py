@@ -173,3 +173,63 @@ def calibrate_prop_command(args: argparse.Namespace) -> int:
             "move a marker): " + ", ".join(f"{a}/{b}" for a, b in pairs) + "\n"
         )
     return 0
+
+
+def add_solve_prop_arguments(parser: argparse.ArgumentParser) -> None:
+    """``solve --prop FILE.json`` (repeatable)."""
+    parser.add_argument(
+        "--prop",
+        action="append",
+        default=[],
+        metavar="FILE.json",
+        help="also solve this calibrated prop (calibrate --prop) on every frame "
+        "(repeatable); NPZ: prop_NAME_* arrays",
+    )
+
+
+def solve_props_for_take(args: argparse.Namespace) -> tuple[dict[str, Any], list[str]]:
+    """Each ``--prop`` layout solved on the take's rows (``--frames``): the NPZ
+    arrays ``prop_NAME_world_from_prop_quat`` (T, 4) w x y z, ``prop_NAME_pos_world``
+    (T, 3) metres, ``prop_NAME_flags`` (T,) (the pose stream's prop flags),
+    ``prop_NAME_rms_m`` (T,) (NaN when held), ``prop_NAME_labels``; and one summary
+    line per prop. Raises UsageError."""
+    from retargetd.daemon.cli.args import parse_frames, take_overrides
+    from retargetd.daemon.props import kernel as pk
+    from retargetd.daemon.props.layout import PropError, load_layout
+    from retargetd.daemon.props.solve import solve_take
+
+    arrays: dict[str, Any] = {}
+    lines: list[str] = []
+    for path in args.prop:
+        try:
+            layout = load_layout(path)
+        except PropError as exc:
+            raise UsageError(f"--prop: {exc}") from None
+        heads = {m.split(":", 1)[0] for m in layout.labels if ":" in m}
+        prefix = f"{heads.pop()}:" if len(heads) == 1 else ""
+        overrides = take_overrides(args)
+        overrides["subject"] = None
+        take, labels, _ = load_prop_take(args.take, layout.labels, prefix, **overrides)
+        frames = getattr(args, "solve_frames", None)
+        rows = parse_frames(frames, take.n_frames, option="--frames")
+        track = solve_take(layout, labels, take.positions[rows], take.valid[rows])
+        key = f"prop_{layout.name}_"
+        arrays[key + "world_from_prop_quat"] = track.world_from_prop_quat
+        arrays[key + "pos_world"] = track.prop_pos_world
+        arrays[key + "flags"] = track.flags
+        arrays[key + "rms_m"] = track.rms_m
+        arrays[key + "labels"] = np.asarray(layout.labels, dtype=str)
+        rms = track.rms_m[np.isfinite(track.rms_m)] * 1e3
+        held = int(np.count_nonzero(track.flags & pk.FLAG_HELD))
+        swaps = int(np.count_nonzero(track.flags & pk.FLAG_SWAP))
+        stats = (
+            f"residual RMS median {np.median(rms):.2f} mm, p95 "
+            f"{np.percentile(rms, 95):.2f} mm, max {rms.max():.2f} mm"
+            if len(rms)
+            else "never solved"
+        )
+        lines.append(
+            f"prop {layout.name}: {len(layout.labels)} markers, {len(track.flags)} "
+            f"frames, {stats}; held {held} frames, swaps seen on {swaps}\n"
+        )
+    return arrays, lines

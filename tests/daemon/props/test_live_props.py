@@ -229,3 +229,74 @@ def test_ctl_calibrate_prop_live(
     (doc,) = live.ctl({"cmd": "status"})["status"]["props"]
     assert doc["calibration"] == "calibrated"
     assert main(["ctl", "--endpoint", ep, "calibrate", "--prop", "cam", "--rom"]) == 2
+
+
+def test_recordings_carry_props_and_replay_solves_them_again(
+    start_daemon: Callable[..., Any],
+    udp_socket: Callable[..., socket.socket],
+    camera_layout: Path,
+    tmp_path: Path,
+) -> None:
+    # A recording holds the prop's markers as received (/markers/raw) and its RTDR
+    # messages (/poses); read back as a take and solved offline, it gives the poses
+    # the daemon sent, frame for frame.
+    from retargetd.daemon.cli.prop_io import load_prop_take
+    from retargetd.daemon.props.solve import solve_take
+    from retargetd.replay import recording as rf
+
+    live = start_daemon(
+        {
+            "prop": [
+                {"name": "cam", "kind": "camera", "calibration": str(camera_layout)}
+            ],
+            "record": {"folder": str(tmp_path)},
+        }
+    )
+    src = udp_socket()
+    osc = live.udp("osc markers")
+    label_set = LabelSet(5, LABELS)
+    src.sendto(osc_in.encode_labels(label_set), osc)
+    rec_path = tmp_path / "props.mcap"
+    reply = live.ctl({"cmd": "record", "action": "start", "path": str(rec_path)})
+    assert reply["ok"], reply
+    rng = np.random.default_rng(1)
+    centred = CAMERA - CAMERA.mean(axis=0)
+    turns = Rotation.from_rotvec(rng.normal(0.0, 0.5, (60, 3)))
+    for fid in range(60):
+        pos = np.array([0.01 * fid, 0.0, 1.5])
+        markers = np.vstack([turns[fid].apply(centred) + pos, [[9.0, 9.0, 9.0]]])
+        markers += rng.normal(0.0, 5e-4, markers.shape)
+        src.sendto(osc_in.encode_compact_frame(fid, fid / 120, 5, markers), osc)
+        time.sleep(0.004)
+    deadline = time.monotonic() + WAIT_S
+    while time.monotonic() < deadline:
+        (doc,) = live.ctl({"cmd": "status"})["status"]["props"]
+        if doc["frames"] >= 60:
+            break
+        time.sleep(0.02)
+    assert live.ctl({"cmd": "record", "action": "stop"})["ok"]
+    deadline = time.monotonic() + WAIT_S
+    while time.monotonic() < deadline:
+        rec_status = live.ctl({"cmd": "status"})["status"]["record"]
+        if not rec_status["active"] and not rec_status["finishing"]:
+            break
+        time.sleep(0.02)
+    rec = rf.read_recording(rec_path)
+    assert rec.complete
+    sent = [
+        pose_props.decode_prop(p.parts[0])
+        for p in rec.packets(rf.POSES_TOPIC)
+        if p.parts[0][:4] == pose_props.PROP_MAGIC
+    ]
+    assert [m.frame_id for m in sent] == list(range(60))
+    for m in sent:
+        q = Rotation.from_quat(m.world_from_prop_quat, scalar_first=True)
+        assert np.degrees((q * turns[m.frame_id].inv()).magnitude()) < 0.5
+    take, labels, _ = load_prop_take(str(rec_path), LABELS[:5], "cam:")
+    assert take.n_frames == 60
+    track = solve_take(load_layout(camera_layout), labels, take.positions, take.valid)
+    wire = np.array([m.world_from_prop_quat for m in sent])
+    np.testing.assert_allclose(track.world_from_prop_quat, wire, atol=2e-7)
+    np.testing.assert_allclose(
+        track.prop_pos_world, np.array([m.pos_world for m in sent]), atol=2e-7
+    )
