@@ -94,7 +94,9 @@ def prop_definition(args: argparse.Namespace) -> dict[str, Any]:
     return spec
 
 
-def load_prop_take(path: str, markers: tuple[str, ...], prefix: str, **overrides: Any):
+def load_prop_take(
+    path: str, markers: tuple[str, ...], prefix: str, **overrides: Any
+) -> tuple[Any, list[str], np.ndarray]:
     """(take, labels as the stream names them, column of each prop marker): the take
     read whole, or as the subject its prefix names. Raises UsageError when the prop's
     markers are not in it."""

@@ -52,22 +52,34 @@ LAYOUTS: dict[str, F64Array] = {
         ]
     ),
 }
-#: Which hand carries which prop, the grip (the prop's centroid in the hand frame,
-#: metres) and its own motion in the grip: per axis (amplitude rad, frequency Hz,
-#: phase rad) of the rotation vector, and the same (m) for the shift.
-CARRY: dict[str, dict[str, object]] = {
-    "camera": {
-        "hand": "r_hand",
-        "grip": (0.0, -0.08, 0.10),
-        "turn": ((0.45, 0.31, 0.0), (0.60, 0.47, 1.1), (0.25, 0.23, 2.3)),
-        "shift": ((0.04, 0.19, 0.4), (0.03, 0.29, 1.7), (0.05, 0.13, 2.9)),
-    },
-    "sword": {
-        "hand": "l_hand",
-        "grip": (0.0, -0.06, 0.0),
-        "turn": ((1.0, 1.13, 0.0), (0.5, 0.71, 0.9), (0.8, 0.97, 2.0)),
-        "shift": ((0.02, 0.41, 0.3), (0.02, 0.37, 1.3), (0.02, 0.53, 2.2)),
-    },
+Sines = tuple[tuple[float, float, float], ...]  # per axis: amplitude, Hz, phase
+
+
+@dataclass(frozen=True, slots=True)
+class Carry:
+    """Which hand carries a prop, the grip (the prop's centroid in the hand frame,
+    metres) and its own motion in the grip: per axis (amplitude rad, frequency Hz,
+    phase rad) of the rotation vector, and the same (amplitude m) of the shift."""
+
+    hand: str
+    grip: tuple[float, float, float]
+    turn: Sines
+    shift: Sines
+
+
+CARRY: dict[str, Carry] = {
+    "camera": Carry(
+        "r_hand",
+        (0.0, -0.08, 0.10),
+        ((0.45, 0.31, 0.0), (0.60, 0.47, 1.1), (0.25, 0.23, 2.3)),
+        ((0.04, 0.19, 0.4), (0.03, 0.29, 1.7), (0.05, 0.13, 2.9)),
+    ),
+    "sword": Carry(
+        "l_hand",
+        (0.0, -0.06, 0.0),
+        ((1.0, 1.13, 0.0), (0.5, 0.71, 0.9), (0.8, 0.97, 2.0)),
+        ((0.02, 0.41, 0.3), (0.02, 0.37, 1.3), (0.02, 0.53, 2.2)),
+    ),
 }
 
 
@@ -84,9 +96,9 @@ class SynthProp:
     prop_pos_world: F64Array  # (T, 3): the centroid
 
 
-def _sines(spec: object, t: F64Array) -> F64Array:
+def _sines(spec: Sines, t: F64Array) -> F64Array:
     out = np.zeros((t.size, 3))
-    for axis, (amp, hz, phase) in enumerate(spec):  # type: ignore[arg-type]
+    for axis, (amp, hz, phase) in enumerate(spec):
         out[:, axis] = amp * np.sin(2.0 * np.pi * hz * t + phase)
     return out
 
@@ -119,17 +131,17 @@ def synth_props(
     out = []
     for i, name in enumerate(names):
         carry = CARRY[name]
-        seg = take.segment_names.index(str(carry["hand"]))
+        seg = take.segment_names.index(carry.hand)
         hand_q = take.world_from_segment_quat[:, seg]
         hand_p = take.joint_pos_world[:, seg]
-        own_v = w * _sines(carry["turn"], t)
+        own_v = w * _sines(carry.turn, t)
         angle = np.linalg.norm(own_v, axis=1)
         unit = own_v / np.maximum(angle, 1e-12)[:, None]
         axis = np.where(angle[:, None] > 1e-12, unit, [1.0, 0.0, 0.0])
         grip_from_prop = rot.quat_from_axis_angle(axis, angle)
         world_q = rot.quat_mul(hand_q, grip_from_prop)
-        grip = np.asarray(carry["grip"], dtype=np.float64)
-        pos = hand_p + rot.quat_rotate(hand_q, grip + w * _sines(carry["shift"], t))
+        grip = np.asarray(carry.grip, dtype=np.float64)
+        pos = hand_p + rot.quat_rotate(hand_q, grip + w * _sines(carry.shift, t))
         layout = LAYOUTS[name] - LAYOUTS[name].mean(axis=0)
         k = len(layout)
         markers = rot.quat_rotate(world_q[:, None, :], layout[None]) + pos[:, None]
