@@ -179,7 +179,10 @@ class LiveProps:
         pts, valid = frame.markers_world, frame.valid
         for i, p in enumerate(self.props):
             if p.bound is not labels:
-                p.bind(labels)
+                if p.bound is not None and p.bound.labels == labels.labels:
+                    p.bound = labels  # the same names re-announced: no restart
+                else:
+                    p.bind(labels)
             if p.calib_target:
                 self._collect(p, pts, valid, frame.source_time_s, t_ns)
             solver = p.solver
