@@ -263,6 +263,8 @@ class Daemon(
             if config.console.enabled
             else None
         )
+        if self.console is not None:  # it draws the props too
+            self.console.props = self.props
 
     # ---- lifecycle -------------------------------------------------------------------
 

@@ -300,3 +300,45 @@ def test_recordings_carry_props_and_replay_solves_them_again(
     np.testing.assert_allclose(
         track.prop_pos_world, np.array([m.pos_world for m in sent]), atol=2e-7
     )
+
+
+def test_console_draws_the_prop(
+    start_daemon: Callable[..., Any],
+    udp_socket: Callable[..., socket.socket],
+    camera_layout: Path,
+) -> None:
+    # The browser console's scene holds an axes frame per prop at its pose (the
+    # viser handle the page renders; no browser needed to read it).
+    live = start_daemon(
+        {
+            "prop": [
+                {"name": "cam", "kind": "camera", "calibration": str(camera_layout)}
+            ],
+            "console": {"enabled": True, "port": 0},
+        }
+    )
+    feed = live.daemon.console
+    assert feed is not None and feed.console is not None
+    src = udp_socket()
+    osc = live.udp("osc markers")
+    label_set = LabelSet(9, LABELS)
+    turn = Rotation.from_euler("x", 30, degrees=True)
+    origin = np.array([-0.4, 0.7, 1.2])
+    markers = np.vstack(
+        [turn.apply(CAMERA - CAMERA.mean(axis=0)) + origin, [[9.0, 9.0, 9.0]]]
+    )
+    deadline = time.monotonic() + WAIT_S
+    fid = 0
+    handle = None
+    while time.monotonic() < deadline:
+        src.sendto(osc_in.encode_labels(label_set), osc)
+        src.sendto(osc_in.encode_compact_frame(fid, fid / 120, 9, markers), osc)
+        fid += 1
+        time.sleep(0.01)
+        handle = feed.console._props.get("cam")
+        if handle is not None and np.allclose(handle.position, origin, atol=1e-4):
+            break
+    assert handle is not None and handle.visible
+    np.testing.assert_allclose(handle.position, origin, atol=1e-4)
+    drawn = Rotation.from_quat(np.asarray(handle.wxyz), scalar_first=True)
+    assert np.degrees((drawn * turn.inv()).magnitude()) < 0.05
