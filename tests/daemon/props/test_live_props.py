@@ -342,3 +342,74 @@ def test_console_draws_the_prop(
     np.testing.assert_allclose(handle.position, origin, atol=1e-4)
     drawn = Rotation.from_quat(np.asarray(handle.wxyz), scalar_first=True)
     assert np.degrees((drawn * turn.inv()).magnitude()) < 0.05
+
+
+def test_replay_of_a_recording_streams_the_same_props(
+    start_daemon: Callable[..., Any],
+    udp_socket: Callable[..., socket.socket],
+    camera_layout: Path,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    # ``retargetd replay`` sends a recording's marker packets as they came: a daemon
+    # with the same [[prop]] sends the same RTDR poses the recorded one did.
+    from retargetd.replay import recording as rf
+
+    prop = {"name": "cam", "kind": "camera", "calibration": str(camera_layout)}
+    first = start_daemon({"prop": [prop], "record": {"folder": str(tmp_path)}})
+    src = udp_socket()
+    osc = first.udp("osc markers")
+    src.sendto(osc_in.encode_labels(LabelSet(5, LABELS)), osc)
+    rec_path = tmp_path / "r.mcap"
+    assert first.ctl({"cmd": "record", "action": "start", "path": str(rec_path)})["ok"]
+    rng = np.random.default_rng(2)
+    centred = CAMERA - CAMERA.mean(axis=0)
+    turns = Rotation.from_rotvec(rng.normal(0.0, 0.5, (40, 3)))
+    for fid in range(40):
+        up = np.array([0.0, 0.0, 1.5])
+        markers = np.vstack([turns[fid].apply(centred) + up, [[9, 9, 9.0]]])
+        src.sendto(osc_in.encode_compact_frame(fid, fid / 120, 5, markers), osc)
+        time.sleep(0.004)
+    deadline = time.monotonic() + WAIT_S
+    while first.ctl({"cmd": "status"})["status"]["props"][0]["frames"] < 40:
+        assert time.monotonic() < deadline
+        time.sleep(0.02)
+    assert first.ctl({"cmd": "record", "action": "stop"})["ok"]
+    while (
+        first.ctl({"cmd": "status"})["status"]["record"]["active"]
+        or (first.ctl({"cmd": "status"})["status"]["record"]["finishing"])
+    ):
+        assert time.monotonic() < deadline
+        time.sleep(0.02)
+    recorded = [
+        pose_props.decode_prop(p.parts[0])
+        for p in rf.read_recording(rec_path).packets(rf.POSES_TOPIC)
+        if p.parts[0][:4] == pose_props.PROP_MAGIC
+    ]
+    assert len(recorded) == 40
+    second = start_daemon({"prop": [prop]})
+    sub = zmq.Context.instance().socket(zmq.SUB)
+    sub.setsockopt(zmq.LINGER, 0)
+    sub.setsockopt(zmq.SUBSCRIBE, pose_props.PROP_MAGIC)
+    osc2 = second.udp("osc markers")
+    # past ZeroMQ's slow joiner: the handshake done, the subscription on its way
+    monitor = sub.get_monitor_socket(zmq.EVENT_HANDSHAKE_SUCCEEDED)
+    sub.connect(second.tcp("zmq poses"))
+    assert monitor.poll(int(WAIT_S * 1000)), "no handshake with the pose stream"
+    sub.disable_monitor()
+    monitor.close()
+    time.sleep(0.2)
+    to = f"osc://{osc2[0]}:{osc2[1]}"
+    assert main(["replay", str(rec_path), "--to", to]) == 0
+    capsys.readouterr()
+    replayed = []
+    while len(replayed) < 40 and sub.poll(int(WAIT_S * 1000)):
+        replayed.append(pose_props.decode_prop(sub.recv()))
+    sub.close()
+    assert [m.frame_id for m in replayed] == [m.frame_id for m in recorded]
+    for live, again in zip(recorded, replayed, strict=True):
+        np.testing.assert_array_equal(
+            again.world_from_prop_quat, live.world_from_prop_quat
+        )
+        np.testing.assert_array_equal(again.pos_world, live.pos_world)
+        assert again.flags == live.flags and again.used == live.used
