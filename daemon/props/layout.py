@@ -33,14 +33,13 @@ FORMAT = "retargetd-prop"
 VERSION = 1
 KINDS = ("rigid", "camera")
 
-#: Markers a prop may have: the fit's swap check is O(K^2) per frame and its bench
-#: figure (``bench/bench_props.py``) is for clusters of 3 to 8; 32 is past any rigid
-#: body the capture vendors define (Motive: "typically 3 to 8" markers per asset).
+#: Markers a prop may have: the consensus is O(K^2) per frame (its search O(K^3),
+#: up to ``kernel.MAX_SEARCH_MARKERS``), the bench covers clusters of 4 to 8, and the
+#: prop message counts markers in one byte; 32 is four times the largest benched.
 MAX_PROP_MARKERS = 32
 #: The least spread of a layout across its second principal axis, metres: markers
-#: closer to one line than this leave the roll about it unobserved. 5 mm is half the
-#: smallest marker diameter in common use (9.5-14 mm passive markers), i.e. within
-#: one marker's size of a line.
+#: closer to one line than this leave the roll about it unobserved. 5 mm is within
+#: the radius of common passive markers (9.5-14 mm across) of a line.
 MIN_PLANAR_SPREAD_M = 0.005
 
 
