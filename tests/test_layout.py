@@ -6,7 +6,7 @@ never a higher one nor another subpackage of its own layer::
 
     cli                                  the command line
     live, synth                          the live daemon; the synthetic performer
-    target, face, validate, post, console
+    target, face, validate, post, console, props
     body                                 rigs, calibration, the body solve
     shared leaves (daemon/*.py)          rotations, errors, version, compiled primitives
     replay, protocols                    outside daemon/ (tests/test_packaging.py)
@@ -36,6 +36,7 @@ LAYERS: dict[str, int] = {
     "validate": 3,
     "post": 3,
     "console": 3,
+    "props": 3,
     "live": 4,
     "synth": 4,
     "cli": 5,

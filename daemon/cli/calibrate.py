@@ -1,5 +1,10 @@
 """``retargetd calibrate STATIC --rig RIG --out performer.json [--frames a:b]
-[--rom TAKE [--rom-frames a:b]] [--refine-layout TAKE [--refine-frames a:b]]``.
+[--rom TAKE [--rom-frames a:b]] [--refine-layout TAKE [--refine-frames a:b]]``;
+``retargetd calibrate STATIC --prop NAME [--config FILE | --markers A,B,C | --prefix
+P] [--kind rigid|camera] [--pivot-mm X,Y,Z] --out NAME.json [--frames a:b]``.
+
+``--prop NAME`` calibrates a prop instead (``cli/prop_io.py``): the layout of its
+markers in its own frame (README "Props and a virtual camera").
 
 The performer holds the base pose over the selected frames (0-based, half-open rows of
 the take as loaded; default: the whole take). The result is a calibrated skeleton
@@ -34,6 +39,7 @@ from retargetd.daemon.cli.args import (
     parse_measures,
     take_overrides,
 )
+from retargetd.daemon.cli.prop_io import add_prop_arguments, calibrate_prop_command
 from retargetd.daemon.errors import UsageError
 
 logger = logging.getLogger(__name__)
@@ -48,7 +54,12 @@ def add_parser(subparsers: Any) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("static", metavar="STATIC", help="take holding the base pose")
-    add_rig_arguments(parser)
+    add_rig_arguments(
+        parser,
+        required=False,
+        rig_help="shipped rig name or a rig file (required unless --prop)",
+    )
+    add_prop_arguments(parser)
     parser.add_argument(
         "--out", required=True, metavar="FILE.json", help="the calibration to write"
     )
@@ -91,6 +102,10 @@ def run(args: argparse.Namespace) -> int:
     from retargetd.daemon.cli.args import parse_frames
     from retargetd.replay.takes import load_take
 
+    if args.prop is not None:
+        return calibrate_prop_command(args)
+    if args.rig is None:
+        raise UsageError("--rig is required (or --prop NAME for a prop)")
     rig = load_rig_or_fail(args.rig)
     overrides = parse_measures(args.measure)
     take = load_take(args.static, **take_overrides(args))

@@ -1,5 +1,5 @@
 """``retargetd ctl [--endpoint E] status [--json] |
-calibrate [--count N] [--rom [--seconds S]] [--performer NAME] [--no-wait]
+calibrate [--count N] [--rom [--seconds S]] [--performer NAME | --prop NAME] [--no-wait]
 [--wait-s S] | reload |
 record start FILE.mcap [--no-poses] [--force] | record stop |
 face-capture NAME [--count N] [--performer NAME]``.
@@ -19,7 +19,10 @@ polling ``status``) for that calibration's outcome and prints its line: exit 0 w
 it calibrated, 1 when the daemon refused it (a moving, giant, mirrored or degenerate
 base pose: the reason is the line), it calibrated but could not save the file (the
 daemon uses it; the old file is kept whole), it expired or the wait ran out;
-``--no-wait`` returns after the acceptance. ``--rom``: after the base pose the daemon
+``--no-wait`` returns after the acceptance. ``--prop NAME`` calibrates a
+``[[prop]]`` instead (``{"cmd": "calibrate", "prop": NAME}``): its layout from the
+next N frames while it lies still, saved and used at once (README "Props and a
+virtual camera"). ``--rom``: after the base pose the daemon
 collects ``--seconds`` (default 24) of range of motion and places the rig's functional
 joints from it (``calibrate --rom`` offline); the wait grows by those seconds.
 ``record start`` makes the daemon record every marker packet it receives, its pose
@@ -92,6 +95,12 @@ def add_parser(subparsers: Any) -> None:
         "--performer",
         metavar="NAME",
         help="the performer to calibrate (several performers: [[performer]] name)",
+    )
+    cal.add_argument(
+        "--prop",
+        metavar="NAME",
+        help="calibrate the [[prop]] NAME instead: its layout from the next N frames "
+        "(default its calibrate_frames) while it lies still",
     )
     cal.add_argument(
         "--rom",
@@ -208,6 +217,10 @@ def run(args: argparse.Namespace) -> int:
             raise UsageError("--seconds needs --rom")
         if args.rom:
             req["rom_s"] = ROM_DEFAULT_S if args.seconds is None else args.seconds
+        if args.prop is not None:
+            if args.rom or args.performer is not None:
+                raise UsageError("--prop calibrates a prop: no --rom or --performer")
+            req["prop"] = args.prop
     if args.ctl_command == "face-capture":
         req["name"] = args.name
     if args.ctl_command == "record":
@@ -272,6 +285,7 @@ def _wait_calibration(args: argparse.Namespace, reply: dict[str, Any]) -> int:
         raise UsageError(f"--wait-s must be > 0; got {args.wait_s}")
     wanted = reply.get("calibration_id")
     name = reply.get("performer")
+    prop = reply.get("prop")
     rom_s = (ROM_DEFAULT_S if args.seconds is None else args.seconds) if args.rom else 0
     deadline = time.monotonic() + args.wait_s + rom_s
     while True:
@@ -279,7 +293,14 @@ def _wait_calibration(args: argparse.Namespace, reply: dict[str, Any]) -> int:
             args.endpoint, {"cmd": "status"}, args.timeout_ms, args.key,
             args.server_key,
         )  # fmt: skip
-        doc = _performer_doc(got, name)
+        doc = _performer_doc(got, name) if prop is None else _prop_doc(got, prop)
+        if (
+            prop is not None and doc is not None
+        ):  # a prop: calibrating, then its outcome
+            doc["calibration_state"] = doc.get("calibration")
+            doc["calibration_id"] = wanted = None
+            if doc["calibration_state"] == "calibrating":
+                doc["calibration_state"] = "pending"
         if doc is not None and doc.get("calibration_id") == wanted:
             state = doc.get("calibration_state")
             if state not in ("pending", "rom", None):
@@ -296,6 +317,16 @@ def _wait_calibration(args: argparse.Namespace, reply: dict[str, Any]) -> int:
             )
             return 1
         time.sleep(_POLL_S)
+
+
+def _prop_doc(status: dict[str, Any] | None, name: Any) -> dict[str, Any] | None:
+    """The status document of the prop ``name``."""
+    if status is None or not status.get("ok"):
+        return None
+    for doc in status["status"].get("props") or []:
+        if doc.get("name") == name:
+            return dict(doc)
+    return None
 
 
 def _performer_doc(status: dict[str, Any] | None, name: Any) -> dict[str, Any] | None:

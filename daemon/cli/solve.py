@@ -105,6 +105,7 @@ def add_parser(subparsers: Any) -> None:
         add_pipeline_argument,
         add_plant_feet_argument,
     )
+    from retargetd.daemon.cli.prop_io import add_solve_prop_arguments
 
     parser = subparsers.add_parser(
         "solve",
@@ -124,6 +125,7 @@ def add_parser(subparsers: Any) -> None:
     add_pipeline_argument(parser)
     add_plant_feet_argument(parser)
     add_glb_mesh_argument(parser)
+    add_solve_prop_arguments(parser)  # --prop FILE.json (cli/prop_io.py)
     parser.add_argument(
         "--fill-gaps",
         type=int,
@@ -248,6 +250,9 @@ def run(args: argparse.Namespace) -> int:
 
         target_cfg = plant_target_config(target_cfg, args.out, out_format)
     rig, take, cal, solver = solver_for_take(args)
+    from retargetd.daemon.cli.prop_io import solve_props_for_take
+
+    prop_arrays, prop_lines = solve_props_for_take(args)  # --prop: props beside
     started = time.perf_counter()
     res = solve_take_progress(solver, take.positions, quiet=args.quiet)
     solve_s = time.perf_counter() - started
@@ -314,6 +319,7 @@ def run(args: argparse.Namespace) -> int:
             **_fit_arrays(res),
             **target_arrays,
             **({} if ft is None else face_io.face_arrays(ft)),
+            **prop_arrays,
         )
         if out_format == "mcap":
             from retargetd.daemon.console.export import write_solve_foxglove
@@ -373,6 +379,8 @@ def run(args: argparse.Namespace) -> int:
         out(f"gaps filled (<= {args.fill_gaps} held frames): {n_filled} bone-frames\n")
     if kinds:
         out(f"pipeline {args.pipeline}: {' -> '.join(kinds)}\n")
+    for line in prop_lines:
+        out(line)
     held = (res.bone_flags & FLAG_HELD) != 0
     flagged = [
         f"{name} {100.0 * held[:, b].mean():.1f} %"

@@ -127,6 +127,14 @@ def add_parser(subparsers: Any) -> None:
         default="mm",
         help="length unit of the file (default mm)",
     )
+    parser.add_argument(
+        "--props",
+        metavar="LIST",
+        default="",
+        help="also carry props (comma-separated: camera, sword; synth/props.py): "
+        "their markers (camera1..5, sword1..4) in the take, their truth in "
+        "TRUTH.props.npz with --truth",
+    )
     parser.set_defaults(run=run, origin=DEFAULT_ORIGIN)
 
 
@@ -191,19 +199,50 @@ def run(args: argparse.Namespace) -> int:
         )
     except ValueError as exc:
         raise UsageError(str(exc)) from None
+    labels, markers = list(take.labels), take.markers_world
+    props = _props(args, take)  # --props: carried by the performer's hands
+    for p in props:
+        # unprefixed labels (camera1 ...): a C3D whose labels carry "Name:" prefixes
+        # reads the unprefixed ones as no subject's, and the performer's are those
+        labels += [label.replace(":", "") for label in p.labels]
+        markers = np.concatenate([markers, p.markers_world], axis=1)
     writer = write_c3d if suffix == ".c3d" else write_trc
     writer(
         args.out,
-        list(take.labels),
-        take.markers_world,
+        labels,
+        markers,
         take.rate_hz,
         units=args.units,
         up_axis=_UP_AXIS[suffix],
     )
     if args.truth:
         take.save_truth(args.truth)
+        if props:
+            truth = Path(args.truth)
+            arrays: dict[str, Any] = {}
+            for p in props:
+                arrays[f"{p.name}_world_from_prop_quat"] = p.world_from_prop_quat
+                arrays[f"{p.name}_pos_world"] = p.prop_pos_world
+                arrays[f"{p.name}_layout_prop_m"] = p.layout_prop_m
+            np.savez(truth.with_name(truth.stem + ".props.npz"), **arrays)
     sys.stdout.write(summary(take, args.out, args.truth, _UP_AXIS[suffix], args.units))
     return 0
+
+
+def _props(args: argparse.Namespace, take: Any) -> tuple[Any, ...]:
+    """``--props``: the synthetic props of the take (UsageError on a bad name)."""
+    names = tuple(n.strip() for n in args.props.split(",") if n.strip())
+    if not names:
+        return ()
+    from retargetd.daemon.synth.props import synth_props
+
+    try:
+        return synth_props(
+            take, names, noise_mm=args.noise_mm, seed=args.seed,
+            base_pose_s=args.base_pose_s,
+        )  # fmt: skip
+    except ValueError as exc:
+        raise UsageError(f"--props: {exc}") from None
 
 
 def summary(take: Any, out: str, truth: str | None, up_axis: str, units: str) -> str:

@@ -48,6 +48,7 @@ from retargetd.daemon.console.snapshot import (
     humanoid_positions,
 )
 from retargetd.protocols import pose_stream
+from retargetd.protocols.pose_props import PROP_HELD, PROP_NEVER
 
 logger = logging.getLogger(__name__)
 
@@ -73,6 +74,8 @@ OCCLUDED_RGB = (150, 150, 150)
 #: markers are 9.5-25 mm spheres, Vicon and OptiTrack catalogues).
 BONE_THICKNESS_M = 0.025
 MARKER_SIZE_M = 0.02
+#: A prop's axes (``[[prop]]``), metres: the size of a hand-held camera rig.
+PROP_AXES_M = 0.2
 #: Follow: the view moves once the performer is this far (metres, floor plane) from
 #: where the view follows it, so a standing performer's sway does not move it.
 FOLLOW_DEADBAND_M = 0.01
@@ -264,6 +267,7 @@ class Console:
                     self._history[title] = [[] for _ in range(len(names) + 1)]
                     self._plot_series[title] = names
         self._markers = self._bones = self._humanoid = None
+        self._props: dict[str, Any] = {}  # [[prop]] name -> its axes' handle
         self._last_marker_pos: np.ndarray | None = None
 
     # ---- buttons (viser's threads): queue only -----------------------------------
@@ -390,6 +394,7 @@ class Console:
                 self._humanoid = self._segments(
                     "/humanoid", h[hok], colors, self._humanoid
                 )
+            self._draw_props(layout, s)
             if layout.face_names:
                 self._face_folder.visible = s.face_on
                 if s.face_on:
@@ -402,6 +407,23 @@ class Console:
             label = "Record stop" if s.recording else "Record start"
             if button is not None and button.label != label:
                 button.label = label
+
+    def _draw_props(self, layout: ConsoleLayout, s: Snapshot) -> None:
+        # Each [[prop]] as a frame of axes at its pose (x red, y green, z blue);
+        # hidden until its first pose, shrunk while held.
+        for i, name in enumerate(layout.prop_names):
+            handle = self._props.get(name)
+            if handle is None:
+                handle = self.server.scene.add_frame(
+                    f"/props/{name}", axes_length=PROP_AXES_M,
+                    axes_radius=PROP_AXES_M / 25,
+                )  # fmt: skip
+                self._props[name] = handle
+            flags = int(s.prop_flags[i])
+            handle.visible = not flags & PROP_NEVER
+            handle.wxyz = s.prop_quat[i]
+            handle.position = s.prop_pos[i]
+            handle.axes_length = PROP_AXES_M * (0.5 if flags & PROP_HELD else 1.0)
 
     # ---- camera follow (render thread) -------------------------------------------
 

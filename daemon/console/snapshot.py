@@ -263,6 +263,7 @@ class ConsoleLayout:
             and ``check_values`` follow (live: ``pose_stream.VALIDATION_CHECKS``;
             offline: a report's checks); at most 64.
         check_units: (K,) each check's unit, for the page ("" for none).
+        prop_names: (P,) the ``[[prop]]`` rigid bodies drawn as axes (empty: none).
     """
 
     marker_names: tuple[str, ...]
@@ -283,6 +284,7 @@ class ConsoleLayout:
     stage_names: tuple[str, ...] = ()
     check_names: tuple[str, ...] = ()
     check_units: tuple[str, ...] = ()
+    prop_names: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         if self.skeleton.n_bones != len(self.bone_names):
@@ -358,6 +360,11 @@ class Snapshot:
     validation_flags: int
     check_flags: int
     check_values: F64Array
+    #: (P, 4) w x y z world_from_prop, (P, 3) metres world, (P,) prop flags
+    #: (``props.kernel.FLAG_*``; NEVER: not drawn), one per ``layout.prop_names``.
+    prop_quat: F64Array = field(default_factory=lambda: np.zeros((0, 4)))
+    prop_pos: F64Array = field(default_factory=lambda: np.zeros((0, 3)))
+    prop_flags: np.ndarray = field(default_factory=lambda: np.zeros(0, np.uint8))
 
     @staticmethod
     def for_layout(layout: ConsoleLayout, layout_id: int = 0) -> Snapshot:
@@ -392,6 +399,9 @@ class Snapshot:
             validation_flags=0,
             check_flags=0,
             check_values=np.full(len(layout.check_names), np.nan),
+            prop_quat=np.tile([1.0, 0.0, 0.0, 0.0], (len(layout.prop_names), 1)),
+            prop_pos=np.zeros((len(layout.prop_names), 3)),
+            prop_flags=np.full(len(layout.prop_names), 8, np.uint8),  # never
         )
 
     def copy_from(self, other: Snapshot) -> None:
@@ -420,6 +430,9 @@ class Snapshot:
         self.validation_flags = other.validation_flags
         self.check_flags = other.check_flags
         np.copyto(self.check_values, other.check_values)
+        np.copyto(self.prop_quat, other.prop_quat)
+        np.copyto(self.prop_pos, other.prop_pos)
+        np.copyto(self.prop_flags, other.prop_flags)
 
 
 class SnapshotSlot:

@@ -42,6 +42,7 @@ from retargetd.daemon.body.rig import RigError, load_rig
 from retargetd.daemon.face.config import FaceConfigError, load_face_config
 from retargetd.daemon.face.training import TrainingSet
 from retargetd.daemon.files import FileFormatError, loads_toml, read_text
+from retargetd.daemon.live.config_props import PropConfig, build_props, check_props
 from retargetd.daemon.live.config_schema import (
     PERFORMER_INPUTS,
     ConfigError,
@@ -101,6 +102,8 @@ class DaemonConfig:
     # TOML key ``performer`` when it is an array of tables; ``performer`` is then
     # the first of them.
     performers: tuple[NamedPerformerConfig, ...] = spec((), "performer_list")
+    # The [[prop]] tables (config_props.py): rigid props and virtual cameras.
+    props: tuple[PropConfig, ...] = spec((), "prop_list")
 
     @classmethod
     def from_toml(cls, path: str | Path) -> DaemonConfig:
@@ -114,6 +117,12 @@ class DaemonConfig:
     @classmethod
     def from_dict(cls, doc: dict[str, Any], *, source: str = "config") -> DaemonConfig:
         """Build from a parsed document. Raises ConfigError naming the key."""
+        if "props" in doc:
+            raise ConfigError(
+                f"{source}: props: unknown key (props are [[prop]] tables)"
+            )
+        props = build_props(doc["prop"], _build, source) if "prop" in doc else ()
+        doc = {k: v for k, v in doc.items() if k != "prop"}
         if "performers" in doc:
             raise ConfigError(
                 f"{source}: performers: unknown key (several performers are "
@@ -129,6 +138,10 @@ class DaemonConfig:
             config = replace(config, performer=performers[0], performers=performers)
         _check(config, source)
         _check_performers(config, source)
+        if props:
+            names = tuple(p.name for p in config.performers)
+            check_props(props, names, source)
+            config = replace(config, props=props)
         return config
 
 
@@ -352,6 +365,13 @@ def _apply_rule(check: str, meta: Any, value: Any) -> None:
         if any(c in value for c in "\0\n") or len(value) > 64:
             raise ValueError(
                 f"expected a label prefix of <= 64 characters; got {value!r}"
+            )
+    elif check == "osc_address":
+        if value and (
+            not value.startswith("/") or any(c in value for c in " #*,?[]{}")
+        ):
+            raise ValueError(
+                f"expected an OSC address such as /lens/fov; got {value!r}"
             )
     elif check == "host_port":
         if value:

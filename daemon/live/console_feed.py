@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -166,6 +167,8 @@ class ConsoleFeed:
         self._health: dict[str, Any] = {}
         self._health_ns = 0
         self.published = 0
+        #: the daemon's props (``live/props.LiveProps``), drawn as axes when set
+        self.props: Any = None
 
     def start(self, rig: Rig) -> str:
         """Start the page (an empty layout until the first solved frame); its URL."""
@@ -220,7 +223,8 @@ class ConsoleFeed:
         status = self._health
         key = (id(solver), labels)
         if key != self._layout_key:  # a new pipeline: the page's layout (not hot)
-            slot.set_layout(_layout(rig, solver, labels, face_names, target))
+            slot.set_layout(self._with_props(_layout(rig, solver, labels, face_names,
+                                                     target)))  # fmt: skip
             self._layout_key = key
         s = slot.begin()
         if s.marker_pos.shape != frame.markers_world.shape:
@@ -266,7 +270,7 @@ class ConsoleFeed:
             self._health, self._health_ns = _health(status_fn()), now_ns
         key = (0, labels)
         if key != self._layout_key:  # markers only, until a pipeline exists
-            slot.set_layout(_markers_layout(labels))
+            slot.set_layout(self._with_props(_markers_layout(labels)))
             self._layout_key = key
         s = slot.begin()
         if s.marker_pos.shape != frame.markers_world.shape:
@@ -280,6 +284,10 @@ class ConsoleFeed:
         s.calibrated = False
         self._commit_health(slot, s, self._health, frame, stats)
 
+    def _with_props(self, layout: ConsoleLayout) -> ConsoleLayout:
+        props = self.props.props if self.props is not None else ()
+        return replace(layout, prop_names=tuple(p.name for p in props))
+
     def _commit_health(
         self,
         slot: SnapshotSlot,
@@ -288,6 +296,11 @@ class ConsoleFeed:
         frame: MarkerFrame,
         stats: LoopStats,
     ) -> None:
+        if self.props is not None and len(s.prop_flags) == len(self.props.props):
+            for i, p in enumerate(self.props.props):  # each prop's last sent pose
+                s.prop_quat[i] = p.pose.parent_from_bone_quat[0]
+                s.prop_pos[i] = p.pose.root_pos
+                s.prop_flags[i] = p.flags
         s.recording = bool(status.get("recording"))
         s.input_rate_hz = float(status.get("fps_in", 0.0))
         s.drops = int(status.get("drops", 0))

@@ -287,9 +287,18 @@ class ControlMixin(DaemonState):
                 self.out(self.reload())
             except ValueError as exc:
                 self._show_refused("rate_limited", f"{address}: {exc}", addr)
+        elif self._show_prop_fov(address, args, addr):
+            pass  # a camera's fov_osc (live/props.py)
         else:
             self._show_refused("unknown_address", f"unknown address {address!r}"[:200],
                                addr)  # fmt: skip
+
+    def _show_prop_fov(self, address: str, args: list[Any], addr: Any) -> bool:
+        try:
+            return self.props.set_fov(address, args)
+        except ValueError as exc:
+            self._show_refused("bad_argument", str(exc)[:200], addr)
+            return True
 
 
 def recording_path(folder: str, path: str) -> str:

@@ -130,6 +130,7 @@ class InputsMixin(DaemonState):
             self._flag_frames(pose_stream.FRAME_RESTARTED)
             self._restart_pipelines(stream)
         self._collect(stream)  # live calibrations and face captures
+        self.props.on_frame(stream, t_ns)  # [[prop]]: every accepted frame
         # Solve at once while this wake-up is within the budget (frames that merely
         # arrived together are all solved); past it the loop is behind, and the
         # latest frame wins: this one waits and is dropped if a newer one comes.

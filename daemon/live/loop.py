@@ -66,6 +66,7 @@ from retargetd.daemon.live.inputs import InputsMixin
 from retargetd.daemon.live.performer import build_performers
 from retargetd.daemon.live.performers import PerformersMixin
 from retargetd.daemon.live.prewarm import Prewarm
+from retargetd.daemon.live.props import LiveProps, vmc_destinations
 from retargetd.daemon.live.ratelog import RateLimitedLog, RateLimiter, print_line
 from retargetd.daemon.live.recording import (
     FORM_OSC,
@@ -243,6 +244,9 @@ class Daemon(
         self.recording = LiveRecording(
             rc.folder, rc.max_total_mb, rc.min_free_mb, rc.min_interval_s
         )
+        # [[prop]]: rigid props and cameras, one part called per accepted frame
+        self.props = LiveProps(config.props, vmc_destinations(config), self._send_pub,
+                               self.out)  # fmt: skip
         self._osc_form = FORM_OSC[osc_cfg.form]
         self._vmc_state = VmcEncoder(())  # the state datagram (no bones needed)
         self._last_frame_ns = 0
@@ -259,6 +263,8 @@ class Daemon(
             if config.console.enabled
             else None
         )
+        if self.console is not None:  # it draws the props too
+            self.console.props = self.props
 
     # ---- lifecycle -------------------------------------------------------------------
 
@@ -540,6 +546,7 @@ class Daemon(
         """Stop an active recording (its file is finished, bounded wait) and close
         every socket (idempotent)."""
         self.recording.close()
+        self.props.close()
         self._close_capture()
         if self.console is not None:
             self.console.stop()

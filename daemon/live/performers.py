@@ -190,6 +190,11 @@ class PerformersMixin(DaemonState):
         commands for the daemon as a whole (status, reload, record) take none."""
         cmd = req.get("cmd")
         name = req.get("performer")
+        if cmd == "calibrate" and req.get("prop") is not None:  # a [[prop]]'s
+            if not self.config.control.calibrate:
+                raise ValueError("calibrate is off on this path (control.calibrate)")
+            msg = self.props.request_calibration(req["prop"], req.get("count"), "ctl")
+            return {"ok": True, "message": msg, "prop": req["prop"]}
         if cmd not in PER_PERFORMER_COMMANDS:
             if name is not None:
                 raise ValueError(

@@ -31,6 +31,7 @@ from retargetd.daemon.live.emit import EmitPlan
 from retargetd.daemon.live.face import FaceStage, LiveFace
 from retargetd.daemon.live.performer import FrameSource, Performer
 from retargetd.daemon.live.prewarm import Prewarm
+from retargetd.daemon.live.props import LiveProps
 from retargetd.daemon.live.ratelog import RateLimitedLog, RateLimiter
 from retargetd.daemon.live.recording import LiveRecording
 from retargetd.daemon.live.stats import LoopStats
@@ -163,6 +164,7 @@ class DaemonState:
     target: Any
     endpoints: dict[str, str]
     recording: LiveRecording
+    props: LiveProps  # [[prop]] (live/props.py)
     last_stats_line: str
     osc_stream: MarkerStream
     zmq_stream: MarkerStream

@@ -83,6 +83,7 @@ class StatusMixin(DaemonState):
             "face": self.face.status() if self.face is not None else None,
             "validate": self._validate_status(),
             "capture": self._capture_status(),
+            "props": self.props.status(),  # [[prop]] (live/props.py)
         }
 
     def _occluded_and_held(self) -> tuple[list[str], list[str]]:

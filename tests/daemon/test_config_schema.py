@@ -24,6 +24,7 @@ from retargetd.daemon.live.config import (
     DaemonConfig,
     NamedPerformerConfig,
 )
+from retargetd.daemon.live.config_props import PropConfig
 
 
 def _leaves(kind: Any, prefix: str = "") -> Iterator[tuple[str, dataclasses.Field]]:
@@ -46,9 +47,11 @@ def _sections(kind: Any, prefix: str = "") -> Iterator[str]:
             yield from _sections(type(value), f"{prefix}{f.name}.")
 
 
-# ``performers`` is read from [[performer]] tables (PERFORMER_LEAVES below).
-LEAVES = {k: f for k, f in _leaves(DaemonConfig) if k != "performers"}
+# ``performers`` is read from [[performer]] tables (PERFORMER_LEAVES below), ``props``
+# from [[prop]] tables (PROP_LEAVES).
+LEAVES = {k: f for k, f in _leaves(DaemonConfig) if k not in ("performers", "props")}
 PERFORMER_LEAVES = {f.name: f for f in dataclasses.fields(NamedPerformerConfig)}
+PROP_LEAVES = {f.name: f for f in dataclasses.fields(PropConfig)}
 SECTIONS = list(_sections(DaemonConfig))
 
 
@@ -98,6 +101,7 @@ def _out_of_range(f: dataclasses.Field, tmp: Path) -> Any:
         "prefix": "x" * 65,
         "host_port": "127.0.0.1:0",
         "performer_face": missing,
+        "osc_address": "lens fov",
     }
     if check == "range":
         hi = meta["hi"]
@@ -221,6 +225,65 @@ def test_every_performer_key_bad_gives_exit_2_and_one_line(
     assert main(["run", "--config", str(path)]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and named in err, err
+
+
+@pytest.mark.parametrize(
+    ("key", "kind"),
+    [
+        pytest.param(key, kind, id=f"prop[0].{key}-{kind}")
+        for key in PROP_LEAVES
+        for kind in ("wrong_type", "out_of_range", "misspelled")
+    ],
+)
+def test_every_prop_key_bad_gives_exit_2_and_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], key: str, kind: str
+) -> None:
+    # The keys of a [[prop]] table, named prop[i].KEY in the error.
+    f = PROP_LEAVES[key]
+    head = "[[prop]]\n" + ("" if key == "name" else 'name = "cam"\n')
+    if kind == "misspelled":
+        wrong = _misspelled(key)
+        text = f"{head}{wrong} = 1\n"
+        named = f"prop[0].{wrong}"
+    else:
+        value = (
+            _wrong_type(f.default)
+            if kind == "wrong_type"
+            else _out_of_range(f, tmp_path)
+        )
+        if value is None:
+            return  # a bool has no out-of-range value (its wrong type is tested)
+        text = f"{head}{key} = {json.dumps(value)}\n"
+        named = f"prop[0].{key}"
+    path = tmp_path / "bad.toml"
+    path.write_text(text)
+    with pytest.raises(ConfigError) as info:
+        DaemonConfig.from_toml(path)
+    assert f": {named}" in str(info.value), (text, str(info.value))
+    assert main(["run", "--config", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and named in err, err
+
+
+def test_props_across_tables(tmp_path: Path) -> None:
+    path = tmp_path / "p.toml"
+    path.write_text('[[prop]]\nname = "cam"\nkind = "camera"\n')
+    (cam,) = DaemonConfig.from_toml(path).props
+    assert cam.prefix == "cam:" and cam.kind == "camera" and cam.fov_deg == 60.0
+    for text, said in (
+        ('[[prop]]\nname = "a"\n[[prop]]\nname = "a"\n', "prop[1].name"),
+        ('[[prop]]\nname = "a"\nmarkers = ["x", "y"]\n', "prop[0].markers"),
+        (
+            '[[prop]]\nname = "a"\nmarkers = ["x", "y", "z"]\n'
+            '[[prop]]\nname = "b"\nmarkers = ["z", "u", "v"]\n',
+            "prop[1].markers",
+        ),
+        ('[[performer]]\nname = "a"\n[[prop]]\nname = "a"\n', "prop[0].name"),
+        ('[[prop]]\nkind = "rigid"\n', "prop[0].name"),
+    ):
+        path.write_text(text)
+        with pytest.raises(ConfigError, match=said.replace("[", r"\[")):
+            DaemonConfig.from_toml(path)
 
 
 def test_non_utf8_config_rig_and_face_config_one_line(
