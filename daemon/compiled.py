@@ -142,6 +142,21 @@ def qmul(
     )
 
 
+@kernel(inline="always")
+def qrot(
+    w: float, x: float, y: float, z: float, vx: float, vy: float, vz: float
+) -> tuple[float, float, float]:
+    """The unit quaternion (w x y z) applied to v: v + 2 w (u x v) + 2 u x (u x v)."""
+    cx = y * vz - z * vy
+    cy = z * vx - x * vz
+    cz = x * vy - y * vx
+    return (
+        vx + 2.0 * (w * cx + y * cz - z * cy),
+        vy + 2.0 * (w * cy + z * cx - x * cz),
+        vz + 2.0 * (w * cz + x * cy - y * cx),
+    )
+
+
 @kernel
 def quat_mul_into(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
     """``out = a ⊗ b`` (4,) each; ``out`` may not alias ``a`` or ``b``."""

@@ -48,7 +48,7 @@ import numpy as np
 
 from retargetd.daemon.body.calibration import Calibration
 from retargetd.daemon.body.rig import Rig
-from retargetd.daemon.compiled import direct, kernel, qmul
+from retargetd.daemon.compiled import direct, kernel, qmul, qrot
 from retargetd.daemon.post.stance import CONTACT_COLUMN, SUPPORT_COLUMN
 from retargetd.protocols.frames import F64Array
 from retargetd.protocols.pose_stream import FRAME_PLANT_UNREACHED
@@ -152,22 +152,7 @@ def _rot(
     q: np.ndarray, vx: float, vy: float, vz: float
 ) -> tuple[float, float, float]:  # pragma: no cover - compiled
     """(w x y z, unit) q applied to v."""
-    return _rotq(q[0], q[1], q[2], q[3], vx, vy, vz)
-
-
-@kernel(inline="always")
-def _rotq(
-    w: float, x: float, y: float, z: float, vx: float, vy: float, vz: float
-) -> tuple[float, float, float]:  # pragma: no cover - compiled
-    """(w x y z, unit) applied to v: v + 2 w (u x v) + 2 u x (u x v)."""
-    cx = y * vz - z * vy
-    cy = z * vx - x * vz
-    cz = x * vy - y * vx
-    return (
-        vx + 2.0 * (w * cx + y * cz - z * cy),
-        vy + 2.0 * (w * cy + z * cx - x * cz),
-        vz + 2.0 * (w * cz + x * cy - y * cx),
-    )
+    return qrot(q[0], q[1], q[2], q[3], vx, vy, vz)
 
 
 @kernel(inline="always")
@@ -337,7 +322,7 @@ def _toe_roll(
         rest[toe, 0], -rest[toe, 1], -rest[toe, 2], -rest[toe, 3],
     )  # fmt: skip
     _, _, jz = _rot(ef, offsets[toe, 0], offsets[toe, 1], offsets[toe, 2])
-    vx, vy, vz = _rotq(tw, tx, ty, tz, tip[s, 0], tip[s, 1], tip[s, 2])
+    vx, vy, vz = qrot(tw, tx, ty, tz, tip[s, 0], tip[s, 1], tip[s, 2])
     want = support - (az + jz)
     if not vz < want:
         return
@@ -451,8 +436,8 @@ def _leg_ik(
             e[s, j, 0], e[s, j, 1], e[s, j, 2], e[s, j, 3],
         )  # fmt: skip
     # where the knee and ankle went (the toes are placed from the ankle)
-    kx_, ky_, kz_ = _rotq(sw, sx, sy, sz, ux, uy, uz)
-    fx_, fy_, fz_ = _rotq(sw, sx, sy, sz, wx, wy, wz)
+    kx_, ky_, kz_ = qrot(sw, sx, sy, sz, ux, uy, uz)
+    fx_, fy_, fz_ = qrot(sw, sx, sy, sz, wx, wy, wz)
     x[s, kk, 0], x[s, kk, 1], x[s, kk, 2] = hipx + kx_, hipy + ky_, hipz + kz_
     x[s, f, 0] = x[s, kk, 0] + fx_
     x[s, f, 1] = x[s, kk, 1] + fy_

@@ -47,7 +47,7 @@ import numpy as np
 from retargetd.daemon import rotations as rot
 from retargetd.daemon.body.calibration import Calibration
 from retargetd.daemon.body.rig import Rig
-from retargetd.daemon.compiled import direct, kernel
+from retargetd.daemon.compiled import direct, kernel, qrot
 from retargetd.protocols.frames import F64Array
 from retargetd.protocols.pose_stream import (
     FRAME_CONTACT_KNOWN,
@@ -161,15 +161,7 @@ def _rotate(
     q: np.ndarray, b: int, vx: float, vy: float, vz: float
 ) -> tuple[float, float, float]:  # pragma: no cover - compiled
     """q[b] (w x y z, unit) applied to v: v + 2 w (u x v) + 2 u x (u x v)."""
-    w, x, y, z = q[b, 0], q[b, 1], q[b, 2], q[b, 3]
-    cx = y * vz - z * vy
-    cy = z * vx - x * vz
-    cz = x * vy - y * vx
-    return (
-        vx + 2.0 * (w * cx + y * cz - z * cy),
-        vy + 2.0 * (w * cy + z * cx - x * cz),
-        vz + 2.0 * (w * cz + x * cy - y * cx),
-    )
+    return qrot(q[b, 0], q[b, 1], q[b, 2], q[b, 3], vx, vy, vz)
 
 
 @kernel

@@ -189,24 +189,32 @@ def test_every_key_bad_gives_exit_2_and_one_line(
     assert "listening on" not in out
 
 
+#: The array-of-tables whose keys are checked one by one: table, its leaves, and the
+#: value its `name` key gets when another key is the one under test.
+TABLE_LEAVES = {"performer": (PERFORMER_LEAVES, "A"), "prop": (PROP_LEAVES, "cam")}
+
+
 @pytest.mark.parametrize(
-    ("key", "kind"),
+    ("table", "key", "kind"),
     [
-        pytest.param(key, kind, id=f"performer[0].{key}-{kind}")
-        for key in PERFORMER_LEAVES
+        pytest.param(table, key, kind, id=f"{table}[0].{key}-{kind}")
+        for table, (leaves, _) in TABLE_LEAVES.items()
+        for key in leaves
         for kind in ("wrong_type", "out_of_range", "misspelled")
     ],
 )
-def test_every_performer_key_bad_gives_exit_2_and_one_line(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str], key: str, kind: str
-) -> None:
-    # The keys of a [[performer]] table, named performer[i].KEY in the error.
-    f = PERFORMER_LEAVES[key]
-    head = "[[performer]]\n" + ("" if key == "name" else 'name = "A"\n')
+def test_every_table_array_key_bad_gives_exit_2_and_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], table: str, key: str,
+    kind: str,
+) -> None:  # fmt: skip
+    # The keys of a [[performer]] or [[prop]] table, named TABLE[i].KEY in the error.
+    leaves, name = TABLE_LEAVES[table]
+    f = leaves[key]
+    head = f"[[{table}]]\n" + ("" if key == "name" else f'name = "{name}"\n')
     if kind == "misspelled":
         wrong = _misspelled(key)
         text = f"{head}{wrong} = 1\n"
-        named = f"performer[0].{wrong}"
+        named = f"{table}[0].{wrong}"
     else:
         value = (
             _wrong_type(f.default)
@@ -216,45 +224,7 @@ def test_every_performer_key_bad_gives_exit_2_and_one_line(
         if value is None:
             return  # a bool has no out-of-range value (its wrong type is tested)
         text = f"{head}{key} = {json.dumps(value)}\n"
-        named = f"performer[0].{key}"
-    path = tmp_path / "bad.toml"
-    path.write_text(text)
-    with pytest.raises(ConfigError) as info:
-        DaemonConfig.from_toml(path)
-    assert f": {named}" in str(info.value), (text, str(info.value))
-    assert main(["run", "--config", str(path)]) == 2
-    err = capsys.readouterr().err
-    assert err.count("\n") == 1 and named in err, err
-
-
-@pytest.mark.parametrize(
-    ("key", "kind"),
-    [
-        pytest.param(key, kind, id=f"prop[0].{key}-{kind}")
-        for key in PROP_LEAVES
-        for kind in ("wrong_type", "out_of_range", "misspelled")
-    ],
-)
-def test_every_prop_key_bad_gives_exit_2_and_one_line(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str], key: str, kind: str
-) -> None:
-    # The keys of a [[prop]] table, named prop[i].KEY in the error.
-    f = PROP_LEAVES[key]
-    head = "[[prop]]\n" + ("" if key == "name" else 'name = "cam"\n')
-    if kind == "misspelled":
-        wrong = _misspelled(key)
-        text = f"{head}{wrong} = 1\n"
-        named = f"prop[0].{wrong}"
-    else:
-        value = (
-            _wrong_type(f.default)
-            if kind == "wrong_type"
-            else _out_of_range(f, tmp_path)
-        )
-        if value is None:
-            return  # a bool has no out-of-range value (its wrong type is tested)
-        text = f"{head}{key} = {json.dumps(value)}\n"
-        named = f"prop[0].{key}"
+        named = f"{table}[0].{key}"
     path = tmp_path / "bad.toml"
     path.write_text(text)
     with pytest.raises(ConfigError) as info:

@@ -543,24 +543,8 @@ def test_live_spine_pivot_equals_offline(
     pivot = retarget_solve(done, rig, cal, cfg)
     plain = retarget_solve(done, rig, cal, TargetConfig())
     assert [str(b) for b in pivot["target_bone_names"]] == names
-    unity = np.zeros((len(names), 4))
-    worst, moved = 0.0, 0.0
     spine = [names.index(b) for b in ("Spine", "Chest", "UpperChest")]
-    for t, frame in enumerate(frames, start=k):
-        bones = _vmc_bones(frame)
-        got = np.array([bones[b][3:] for b in names])  # x y z w, Unity
-        engine_unity.unity_quat_xyzw_from_world(
-            pivot["target_rest_from_bone_quat"][t], unity
-        )
-        # The angle between them (atan2 of the relative quaternion: arccos of the
-        # dot product would turn float32 rounding into 1e-4 rad); xyzw -> wxyz.
-        err = _angles(np.roll(got, 1, axis=-1), np.roll(unity, 1, axis=-1))
-        worst = max(worst, float(err.max()))
-        rel = quat_mul(
-            quat_conj(pivot["target_rest_from_bone_quat"][t, spine]),
-            plain["target_rest_from_bone_quat"][t, spine],
-        )
-        moved = max(moved, float(quat_angle(rel).max()))
+    worst, moved = _vmc_against_offline(frames, k, names, pivot, plain, spine)
     print(
         f"\nlive spine pivot over {len(frames)} VMC frames: worst angle to offline "
         f"{worst:.1e} rad; the pivot moved Spine/Chest/UpperChest by up to "
@@ -571,6 +555,33 @@ def test_live_spine_pivot_equals_offline(
     p50, p99 = status["latency_us"]["post.pivot"]
     assert 0 < p50 <= p99, status["latency_us"]
     assert " pivot " in line, line
+
+
+def _vmc_against_offline(
+    frames: list[Any], k: int, names: list[str], mapped: dict[str, Any],
+    free: dict[str, Any], idx: list[int],
+) -> tuple[float, float]:  # fmt: skip
+    """The worst angle (rad) of the VMC bones ``names`` in ``frames`` (the take's
+    rows from ``k`` on) from the offline mapping ``mapped``'s, and the most its bones
+    ``idx`` differ from the ``free`` mapping's (what the stage under test moved)."""
+    unity = np.zeros((len(names), 4))
+    worst, moved = 0.0, 0.0
+    for t, frame in enumerate(frames, start=k):
+        bones = _vmc_bones(frame)
+        got = np.array([bones[b][3:] for b in names])  # x y z w, Unity
+        engine_unity.unity_quat_xyzw_from_world(
+            mapped["target_rest_from_bone_quat"][t], unity
+        )
+        # The angle between them (atan2 of the relative quaternion: arccos of the
+        # dot product would turn float32 rounding into 1e-4 rad); xyzw -> wxyz.
+        err = _angles(np.roll(got, 1, axis=-1), np.roll(unity, 1, axis=-1))
+        worst = max(worst, float(err.max()))
+        rel = quat_mul(
+            quat_conj(mapped["target_rest_from_bone_quat"][t, idx]),
+            free["target_rest_from_bone_quat"][t, idx],
+        )
+        moved = max(moved, float(quat_angle(rel).max()))
+    return worst, moved
 
 
 @pytest.mark.timeout(90)
@@ -612,23 +623,9 @@ def test_live_planted_feet_equal_offline(
     plant = retarget_solve(raw, rig, cal, TargetConfig(feet="plant"), rate_hz=RATE_HZ)
     free = retarget_solve(raw, rig, cal, TargetConfig())
     assert [str(b) for b in plant["target_bone_names"]] == names
-    unity = np.zeros((len(names), 4))
     pairs = [(s, b) for s in ("Left", "Right") for b in ("UpperLeg", "LowerLeg")]
     legs = [names.index(s + b) for s, b in pairs]
-    worst, moved = 0.0, 0.0
-    for t, frame in enumerate(frames, start=k):
-        bones = _vmc_bones(frame)
-        got = np.array([bones[b][3:] for b in names])  # x y z w, Unity
-        engine_unity.unity_quat_xyzw_from_world(
-            plant["target_rest_from_bone_quat"][t], unity
-        )
-        err = _angles(np.roll(got, 1, axis=-1), np.roll(unity, 1, axis=-1))
-        worst = max(worst, float(err.max()))
-        rel = quat_mul(
-            quat_conj(plant["target_rest_from_bone_quat"][t, legs]),
-            free["target_rest_from_bone_quat"][t, legs],
-        )
-        moved = max(moved, float(quat_angle(rel).max()))
+    worst, moved = _vmc_against_offline(frames, k, names, plant, free, legs)
     print(
         f"\nlive planted feet over {len(frames)} VMC frames: worst angle to offline "
         f"{worst:.1e} rad; the plant moved the legs by up to {np.degrees(moved):.2f} "
