@@ -520,17 +520,7 @@ def test_live_spine_pivot_equals_offline(
         },
         vmc_port=vmc.port,
     )
-    sub = PoseSub(zmq_socket(zmq.SUB), live.tcp("zmq poses"))
-    src = osc_source(live)
-    src.announce()
-    _prime(sub, lambda: src.send(take.markers_world[0]))
-    k = len(src.sent)
-    for row in range(60, 60 + 150):
-        src.send(take.markers_world[row])
-        sub.pump()
-        time.sleep(0.004)
-    n = len(src.sent)
-    vmc.wait_frames(n)
+    src, k, n = _stream_rows(live, zmq_socket, osc_source, vmc, take)
     status = live.daemon.status()
     line = live.daemon.stats_line()
     live.stop()
@@ -555,6 +545,26 @@ def test_live_spine_pivot_equals_offline(
     p50, p99 = status["latency_us"]["post.pivot"]
     assert 0 < p50 <= p99, status["latency_us"]
     assert " pivot " in line, line
+
+
+def _stream_rows(
+    live: Live, zmq_socket: Callable[[int], Any],
+    osc_source: Callable[..., OscSource], vmc: VmcReceiver, take: Any,
+) -> tuple[OscSource, int, int]:  # fmt: skip
+    """Rows 60-209 of ``take`` sent over OSC once the pose stream answers; returns
+    the source and its sent count before and after them (VMC has all of them)."""
+    sub = PoseSub(zmq_socket(zmq.SUB), live.tcp("zmq poses"))
+    src = osc_source(live)
+    src.announce()
+    _prime(sub, lambda: src.send(take.markers_world[0]))
+    k = len(src.sent)
+    for row in range(60, 60 + 150):
+        src.send(take.markers_world[row])
+        sub.pump()
+        time.sleep(0.004)
+    n = len(src.sent)
+    vmc.wait_frames(n)
+    return src, k, n
 
 
 def _vmc_against_offline(
@@ -605,17 +615,7 @@ def test_live_planted_feet_equal_offline(
         },
         vmc_port=vmc.port,
     )
-    sub = PoseSub(zmq_socket(zmq.SUB), live.tcp("zmq poses"))
-    src = osc_source(live)
-    src.announce()
-    _prime(sub, lambda: src.send(take.markers_world[0]))
-    k = len(src.sent)
-    for row in range(60, 60 + 150):
-        src.send(take.markers_world[row])
-        sub.pump()
-        time.sleep(0.004)
-    n = len(src.sent)
-    vmc.wait_frames(n)
+    src, k, n = _stream_rows(live, zmq_socket, osc_source, vmc, take)
     live.stop()
     frames = vmc.frames[k:n]
     names = [b for b in _vmc_bones(frames[0]) if b != "root"]
