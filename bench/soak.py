@@ -869,8 +869,9 @@ def pose_gaps(
         source announced its own again), ``restart_confirm`` (frames of a restarted
         source dropped until its new sequence was confirmed), ``loop_late`` (the
         daemon read nothing, or read and queued frames, in the gap: its loop was not
-        scheduled in time; a measure of the host's load, not asserted) and
-        ``other`` (none of these: a failure).
+        scheduled in time, or was busy elsewhere; a failure like ``other``, since on
+        a quiet host it is the daemon's, whatever the load says) and ``other`` (none
+        of these: a failure).
     """
     from retargetd.protocols.marker_input import BACKWARDS, LABEL_CONFLICT
 
