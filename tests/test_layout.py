@@ -6,7 +6,7 @@ never a higher one nor another subpackage of its own layer::
 
     cli                                  the command line
     live, synth                          the live daemon; the synthetic performer
-    target, face, validate, post, console, props
+    retarget, face, validate, post, console, props
     body                                 rigs, calibration, the body solve
     shared leaves (daemon/*.py)          rotations, errors, version, compiled primitives
     replay, protocols                    outside daemon/ (tests/test_packaging.py)
@@ -31,7 +31,7 @@ PREFIX = "retargetd.daemon"
 #: Subpackage -> layer (higher imports lower). Leaves (daemon/*.py) are layer 1.
 LAYERS: dict[str, int] = {
     "body": 2,
-    "target": 3,
+    "retarget": 3,
     "face": 3,
     "validate": 3,
     "post": 3,

@@ -90,7 +90,7 @@ from retargetd.daemon.live.watch import SocketWatch
 from retargetd.daemon.post.interp import RateResampler
 from retargetd.daemon.post.pose import PoseBuffer
 from retargetd.daemon.progress import Progress
-from retargetd.daemon.target.retarget import (
+from retargetd.daemon.retarget.retarget import (
     TargetSkeleton,
     default_humanoid,
     warm_up,

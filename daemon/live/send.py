@@ -31,7 +31,7 @@ from retargetd.daemon.post.pivot import spine_stage
 from retargetd.daemon.post.plant import plant_stage
 from retargetd.daemon.post.solve_post import SolvePost
 from retargetd.daemon.post.stance import StanceDetector
-from retargetd.daemon.target.retarget import (
+from retargetd.daemon.retarget.retarget import (
     Retargeter,
 )
 from retargetd.daemon.validate.limits import JOINT_LIMITS_DEG

@@ -43,8 +43,8 @@ from retargetd.daemon.live.config import ConfigError, DaemonConfig
 from retargetd.daemon.live.config_schema import TargetConfig
 from retargetd.daemon.live.loop import Daemon
 from retargetd.daemon.post.interp import resample
+from retargetd.daemon.retarget.bvh import world_from_parent_chain
 from retargetd.daemon.rotations import quat_angle, quat_conj, quat_mul
-from retargetd.daemon.target.bvh import world_from_parent_chain
 from retargetd.protocols import engine_unity, zmq_wire
 from retargetd.protocols.marker_input import LabelSet
 
