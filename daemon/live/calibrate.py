@@ -372,11 +372,8 @@ class CalibrationMixin(DaemonState):
         they came from (``[input.osc]`` / ``[input.zmq]``), the frame rate of the
         window; a refusal names the config key to change."""
         stream = getattr(self._calib_stream, "stream", self._calib_stream)  # a view's
-        key = (
-            "input.osc" if stream is self.osc_stream
-            else "input.zmq" if stream is self.zmq_stream
-            else ""
-        )  # fmt: skip
+        kind = self.inputs.kind_of(stream)
+        key = f"input.{kind}" if kind != "source" else ""
         cfg = getattr(self.config.input, key.split(".")[-1]) if key else None
         units = cfg.units if cfg is not None else "m"
         up = cfg.up if cfg is not None else "+Z"

@@ -25,11 +25,9 @@ from typing import Any
 import zmq
 
 from retargetd.daemon.live.recording import (
-    FORM_ZMQ,
     input_infos,
 )
 from retargetd.daemon.live.state import DaemonState
-from retargetd.protocols import osc_in, zmq_wire
 from retargetd.protocols.errors import DecodeError
 from retargetd.protocols.osc_wire import iter_bundle_elements, parse_message
 
@@ -172,16 +170,7 @@ class ControlMixin(DaemonState):
         path = recording_path(self.config.record.folder, path)
         if type(poses) is not bool:
             raise ValueError(f"'poses' must be true or false; got {poses!r}")
-        announcements: list[tuple[str, int, tuple[bytes, ...]]] = []
-        if self._osc is not None and self.config.input.osc.form == "compact":
-            ls = self.osc_stream.label_set
-            if ls is not None:
-                announcements.append(
-                    ("osc", self._osc_form, (osc_in.encode_labels(ls),))
-                )
-        if self._zin is not None and self.zmq_stream.label_set is not None:
-            parts = tuple(zmq_wire.encode_zmq_labels(self.zmq_stream.label_set))
-            announcements.append(("zmq", FORM_ZMQ, parts))
+        announcements = self.inputs.label_announcements()
         force = req.get("force", False)
         if type(force) is not bool:
             raise ValueError(f"'force' must be true or false; got {force!r}")
@@ -202,7 +191,7 @@ class ControlMixin(DaemonState):
         assert self._show is not None
         while True:
             try:
-                n, addr = self._show.recvfrom_into(self._buf)
+                n, addr = self._show.recvfrom_into(self._show_buf)
             except (BlockingIOError, InterruptedError):
                 break
             if self._allow and addr[0] not in self._allow:
@@ -210,7 +199,7 @@ class ControlMixin(DaemonState):
                 continue
             self.stats.show_control_in += 1
             parsed = parse_show_control(
-                bytes(self._buf[:n]), self._show_token_prefix.encode()
+                bytes(self._show_buf[:n]), self._show_token_prefix.encode()
             )
             if parsed.refused:  # the whole datagram, once, before any parsing
                 self._show_refused(parsed.refused, parsed.why, addr)

@@ -39,7 +39,6 @@ from __future__ import annotations
 import contextlib
 import gc
 import logging
-import select
 import socket
 import time
 from collections.abc import Callable
@@ -62,28 +61,33 @@ from retargetd.daemon.live.control import (
 )
 from retargetd.daemon.live.emit import warm_up as warm_up_emit
 from retargetd.daemon.live.face import warm_up as warm_up_face
-from retargetd.daemon.live.inputs import InputsMixin
+from retargetd.daemon.live.inputs import (
+    LOG_INTERVAL_NS,
+    READY_MONITOR,
+    READY_OSC,
+    READY_ZMQ,
+    Inputs,
+    last_endpoint,
+)
 from retargetd.daemon.live.performer import build_performers
 from retargetd.daemon.live.performers import PerformersMixin
 from retargetd.daemon.live.prewarm import Prewarm
 from retargetd.daemon.live.props import LiveProps, vmc_destinations
-from retargetd.daemon.live.ratelog import RateLimitedLog, RateLimiter, print_line
-from retargetd.daemon.live.recording import (
-    FORM_OSC,
-    LiveRecording,
+from retargetd.daemon.live.ratelog import (
+    OncePer,
+    RateLimitedLog,
+    RateLimiter,
+    print_line,
 )
+from retargetd.daemon.live.recording import LiveRecording
 from retargetd.daemon.live.send import SendMixin, spine_stage
 from retargetd.daemon.live.sources import CaptureMixin
 from retargetd.daemon.live.stats import LoopStats
 from retargetd.daemon.live.status import StatusMixin
 from retargetd.daemon.live.surface import (
     CurveGuard,
-    KeyFileError,
-    curve_client,
     endpoint_is_local,
     is_loopback_host,
-    osc_verifier,
-    unauthenticated_warning,
     who_reaches,
 )
 from retargetd.daemon.live.watch import SocketWatch
@@ -97,7 +101,8 @@ from retargetd.daemon.retarget.retarget import (
 )
 from retargetd.daemon.validate.live import LiveValidator
 from retargetd.protocols import kernels as protocol_kernels
-from retargetd.protocols.marker_input import LabelSet, MarkerStream
+from retargetd.protocols import pose_stream
+from retargetd.protocols.marker_input import ACCEPTED, RESTART, MarkerStream
 from retargetd.protocols.vmc_out import VmcEncoder
 
 logger = logging.getLogger(__name__)
@@ -106,7 +111,6 @@ _UDP_MAX = 65536
 
 
 class Daemon(
-    InputsMixin,
     CaptureMixin,
     SendMixin,
     CalibrationMixin,
@@ -143,7 +147,12 @@ class Daemon(
         for perf in self.performers:  # each performer's rig, after any --rig
             check_pipeline(config.pipeline, perf.rig)
         self._perf = self.performers[0]
+        # [[performer]] tables: status per performer, and each input's latest frame
+        # solved (an input may carry other performers' markers, or none of one's);
+        # one [performer] reads every input, and the newest of them is its frame.
         self._multi = bool(config.performers)
+        self._left: MarkerStream | None = None  # the wake-up's frame left unsolved
+        self._left_ns = 0  # its receive time
         self.target = _load_target(config)
         for perf in self.performers:  # [target] spine = "pivot": target and rig fit
             try:
@@ -164,61 +173,26 @@ class Daemon(
         self._ctx: Any = zmq.Context.instance() if self._shared_ctx else zmq.Context()
         self._poller = zmq.Poller()
         self._sockets: list[Any] = []
-        self._osc: socket.socket | None = None
         self._show: socket.socket | None = None
         self._vmc = False  # [output.vmc] on (each performer's vmc_sock, open())
-        self._zin: zmq.Socket[bytes] | None = None
-        self._zmon: zmq.Socket[bytes] | None = None  # the input's disconnect events
         self._pub: zmq.Socket[bytes] | None = None
         self._ctl: zmq.Socket[bytes] | None = None
         self._capture: Any = None  # a capture system ([input] source), sources.py
-        osc_cfg, zmq_cfg = config.input.osc, config.input.zmq
-        simple_labels = (
-            LabelSet(0, osc_cfg.labels) if osc_cfg.form == "simple" else None
-        )
-        self.osc_stream = MarkerStream(
-            simple_labels,
-            osc_cfg.up,
-            osc_cfg.units,
-            max_rate_hz=osc_cfg.max_rate_hz,
-            max_markers=osc_cfg.max_markers,
-            zero_is_occluded=osc_cfg.zero_is_occluded,
-            max_coordinate_m=osc_cfg.max_coordinate_m,
-        )
-        self.zmq_stream = MarkerStream(
-            None,
-            zmq_cfg.up,
-            zmq_cfg.units,
-            max_rate_hz=zmq_cfg.max_rate_hz,
-            max_markers=zmq_cfg.max_markers,
-            zero_is_occluded=zmq_cfg.zero_is_occluded,
-            max_coordinate_m=zmq_cfg.max_coordinate_m,
-        )
-        self._log_after_ns: dict[str, int] = {}  # rate-limited log lines, by key
         self._names_id = 0
         self._t0_ns = time.monotonic_ns()
-        self._buf = bytearray(_UDP_MAX)
-        # ZeroMQ input parts, received in place: header (a frame's or a label set's
-        # is 32 / 16 bytes; 64 leaves room to see a wrong one), payload (the limit).
-        self._zbuf_header = bytearray(64)
-        self._zbuf_payload = bytearray(config.input.zmq.max_message_bytes)
-        self._zbuf_extra = bytearray(64)
-        self._zview_header = memoryview(self._zbuf_header)
-        self._zview_payload = memoryview(self._zbuf_payload)
-        # The same buffers as uint8 arrays: the compiled decode reads them in place.
-        self._view = memoryview(self._buf)
-        self._wire = np.frombuffer(self._buf, dtype=np.uint8)
-        self._zwire_header = np.frombuffer(self._zbuf_header, dtype=np.uint8)
-        self._zwire_payload = np.frombuffer(self._zbuf_payload, dtype=np.uint8)
-        self._osc_simple = osc_cfg.form == "simple"
-        self._osc_fd = self._show_fd = -2  # the poll result's fds (set by open)
-        self._osc_more: Any = None  # select.poll of the OSC socket (set by open)
-        self._osc_limit = osc_cfg.max_message_bytes
-        self._allow = frozenset(osc_cfg.allow)
-        try:  # [input.osc] key_file: signed datagrams only (PROTOCOLS.md 13)
-            self._osc_auth = osc_verifier(osc_cfg.key_file)
-        except KeyFileError as exc:  # changed since the config was checked
-            raise ConfigError(f"input.osc.key_file: {exc}") from None
+        self._show_fd = -2  # the poll result's fd (set by open)
+        self._show_buf = bytearray(_UDP_MAX)  # a show-control datagram
+        self._allow = frozenset(config.input.osc.allow)  # the markers' and show's
+        self._warn = OncePer(LOG_INTERVAL_NS)  # the inputs' warning lines, by key
+        rc = config.record
+        self.recording = LiveRecording(
+            rc.folder, rc.max_total_mb, rc.min_free_mb, rc.min_interval_s
+        )
+        # The marker inputs (OSC, ZeroMQ): sockets, buffers and a stream each.
+        self.inputs = Inputs(
+            config, self.stats, self.recording, self._warn,
+            self._accept, self._prepare_views, self._stale,
+        )  # fmt: skip
         self._reload_limit = RateLimiter(config.control.min_interval_s)
         self._log = RateLimitedLog(self.out, config.loop.log_interval_s)
         self._show_counters: dict[str, int] = {}
@@ -240,14 +214,9 @@ class Daemon(
         self._window = (self._t0_ns, 0, 0)
         self.last_stats_line = ""
         self.endpoints: dict[str, str] = {}
-        rc = config.record
-        self.recording = LiveRecording(
-            rc.folder, rc.max_total_mb, rc.min_free_mb, rc.min_interval_s
-        )
         # [[prop]]: rigid props and cameras, one part called per accepted frame
         self.props = LiveProps(config.props, vmc_destinations(config), self._send_pub,
                                self.out)  # fmt: skip
-        self._osc_form = FORM_OSC[osc_cfg.form]
         self._vmc_state = VmcEncoder(())  # the state datagram (no bones needed)
         self._last_frame_ns = 0
         self._prewarm = Prewarm(config.loop.prewarm_ms)
@@ -271,23 +240,8 @@ class Daemon(
     def open(self) -> None:
         """Bind every endpoint; prints one line each saying who can reach it."""
         c = self.config
-        if c.input.osc.enabled:
-            osc = c.input.osc
-            self._osc = self._udp_bind(osc.host, osc.port)
-            self._osc_fd = self._osc.fileno()
-            self._osc_more = select.poll()  # "another datagram waits?" (inputs.py)
-            self._osc_more.register(self._osc_fd, select.POLLIN)
-            allow = f", sources {', '.join(osc.allow)} only" if osc.allow else ""
-            local = is_loopback_host(osc.host)
-            who = who_reaches(local, osc.host)
-            signed = ", signed only (HMAC-SHA256)" if osc.key_file else ""
-            self._announce(
-                "osc markers",
-                f"udp://{self._addr(self._osc)} ({osc.form}; frames from {who}"
-                f"{allow}{signed})",
-            )
-            if not local and not osc.key_file:
-                self.out(unauthenticated_warning("osc", osc.host, "key_file"))
+        self.inputs.open(self._udp_bind, self._server_socket, self._own,
+                         self._announce, self.out)  # fmt: skip
         if c.show_control.enabled:
             show = c.show_control
             self._show = self._udp_bind(show.host, show.port)
@@ -301,46 +255,6 @@ class Daemon(
                 f"udp://{self._addr(self._show)} (OSC; "
                 f"{' and '.join(can) or 'nothing but status'} from {who}{token})",
             )
-        if c.input.zmq.enabled:
-            zin = c.input.zmq
-            local = endpoint_is_local(zin.endpoint)
-            pull = zin.mode == "pull"
-            # CURVE as the control socket's: a bound PULL is the server letting in
-            # the listed clients; a SUB is a client of the publisher's key.
-            self._zin = self._server_socket(
-                zmq.PULL if pull else zmq.SUB,
-                zin.secret_key if pull else "",
-                zin.client_keys,
-            )
-            if not pull and zin.secret_key:
-                curve_client(self._zin, zin.secret_key, zin.server_key)
-            self._zin.setsockopt(zmq.LINGER, 0)
-            # Bounded queue: 1,000 messages of parts of at most max_message_bytes;
-            # libzmq drops the connection of a peer sending a larger part, before
-            # buffering it (inproc bypasses this: the drain checks sizes too).
-            self._zin.setsockopt(zmq.RCVHWM, 1000)
-            self._zin.setsockopt(zmq.MAXMSGSIZE, zin.max_message_bytes)
-            if pull:
-                self._zin.bind(zin.endpoint)
-                who = f"frames from {who_reaches(local, zin.endpoint)}"
-            else:
-                self._zin.setsockopt(zmq.SUBSCRIBE, b"RTD")
-                self._zin.connect(zin.endpoint)
-                who = f"frames from the publisher at {zin.endpoint}"
-            self._poller.register(self._zin, zmq.POLLIN)
-            self._sockets.append(self._zin)
-            self._zmon = self._zin.get_monitor_socket(zmq.EVENT_DISCONNECTED)
-            self._zmon.setsockopt(zmq.LINGER, 0)
-            self._poller.register(self._zmon, zmq.POLLIN)
-            self._sockets.append(self._zmon)
-            ep = _last_endpoint(self._zin) or zin.endpoint
-            curve = ", CURVE" if zin.secret_key else ""
-            if pull and zin.secret_key:
-                curve += f": {len(zin.client_keys)} client key(s)"
-            self._announce("zmq markers", f"{ep} ({zin.mode}; {who}{curve})")
-            if not local and not zin.secret_key:
-                keys = "client_keys" if pull else "server_key"
-                self.out(unauthenticated_warning("zmq", zin.endpoint, keys))
         self._open_capture()
         if c.output.pose.enabled:
             pose = c.output.pose
@@ -350,7 +264,7 @@ class Daemon(
             self._pub.bind(pose.endpoint)
             self._sockets.append(self._pub)
             self._watch.watch("zmq poses", self._pub, bool(pose.secret_key))
-            ep = _last_endpoint(self._pub)
+            ep = last_endpoint(self._pub)
             who = who_reaches(endpoint_is_local(pose.endpoint), ep)
             curve = (
                 f", CURVE encrypted to {len(pose.client_keys)} client key(s)"
@@ -367,7 +281,7 @@ class Daemon(
         self._poller.register(self._ctl, zmq.POLLIN)
         self._sockets.append(self._ctl)
         self._watch.watch("control", self._ctl, bool(ctl.secret_key))
-        ep = _last_endpoint(self._ctl)
+        ep = last_endpoint(self._ctl)
         who = who_reaches(endpoint_is_local(ctl.endpoint), ep)
         curve = (
             f", CURVE: {len(ctl.client_keys)} client key(s)" if ctl.secret_key else ""
@@ -528,6 +442,11 @@ class Daemon(
         self.out(f"listening on {where}: {what}" if not what.startswith("vmc out")
                  else f"sending to {where}: {what}")  # fmt: skip
 
+    def _own(self, sock: Any) -> None:
+        """Poll ``sock`` and close it with the daemon's other sockets."""
+        self._poller.register(sock, zmq.POLLIN)
+        self._sockets.append(sock)
+
     def _udp_bind(self, host: str, port: int) -> socket.socket:
         sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)
@@ -571,6 +490,104 @@ class Daemon(
         if not self._shared_ctx and not self._ctx.closed:
             self._ctx.destroy(linger=0)  # its sockets are closed above
 
+    @property
+    def osc_stream(self) -> MarkerStream:
+        """The OSC input's stream (its current frame, counters, label set)."""
+        return self.inputs.osc_stream
+
+    @property
+    def zmq_stream(self) -> MarkerStream:
+        """The ZeroMQ input's stream."""
+        return self.inputs.zmq_stream
+
+    # ---- a frame's path ----------------------------------------------------------
+
+    def _service(self, events: list[tuple[Any, int]]) -> None:
+        """One wake-up, top-down: each readable input receives its packets (decoded
+        into its stream, refusals counted) and hands every accepted frame to
+        :meth:`_accept`, which solves and sends it at once while the wake-up is
+        within the budget; the newest frame left over is solved last (latest wins:
+        :meth:`_leave`); then the control sockets are served."""
+        every = self.config.loop.process_every_frame
+        self._wake_ns = time.monotonic_ns()
+        inputs = self.inputs
+        ready = inputs.ready(events)  # which inputs are readable: no allocation
+        if ready & READY_OSC:
+            self._leave(inputs.osc_stream, inputs.drain_osc(every))
+        if ready & READY_ZMQ:
+            self._leave(inputs.zmq_stream, inputs.drain_zmq(every))
+        if self._capture is not None:
+            got = self._drain_capture(events, every)
+            if got:
+                self._leave(self._capture.inp.stream, got)
+        if self._left is not None:
+            self._solve(self._left, self._left_ns)  # every performer on its input
+            self._left, self._left_ns = None, 0
+        if ready & READY_MONITOR:
+            inputs.drain_monitor()
+        self._serve_control_sockets(events)
+
+    def _accept(self, stream: MarkerStream, code: int, t_ns: int, every: bool) -> int:
+        """An input's decoded frame (``code``: the stream's verdict): counted, handed
+        to live calibrations and the props, then solved and sent by every performer
+        on its input at once while this wake-up is within the budget (frames that
+        merely arrived together are all solved). Past it the loop is behind and the
+        latest frame wins: returns its receive time, left for later, else 0."""
+        if code != ACCEPTED and code != RESTART:
+            self.inputs.refused(stream, code, t_ns)
+            return 0
+        self.stats.frames_in += 1
+        self._last_frame_ns = t_ns
+        self._prewarm.observe(t_ns)
+        stream.current.frame.t_ns = t_ns
+        if code == RESTART:
+            self.stats.restarts += 1
+            self._flag_frames(pose_stream.FRAME_RESTARTED)
+            self._restart_pipelines(stream)
+        self._collect(stream)  # live calibrations and face captures
+        self.props.on_frame(stream, t_ns)  # [[prop]]: every accepted frame
+        if every or time.monotonic_ns() - self._wake_ns < self._catch_up_ns:
+            self._solve(stream, t_ns)  # every performer on this input
+            return 0
+        return t_ns
+
+    def _leave(self, stream: MarkerStream, got_ns: int) -> None:
+        """An input's newest accepted frame left unsolved (``got_ns``, 0: none). With
+        one ``[performer]`` only the newest of the inputs' frames is solved, the
+        other counted stale; with ``[[performer]]`` tables each input's is."""
+        if not got_ns:
+            return
+        if self._left is not None:
+            if self._multi:
+                self._solve(self._left, self._left_ns)
+                self._left, self._left_ns = None, 0
+            else:
+                self._stale()
+        if got_ns >= self._left_ns:
+            self._left, self._left_ns = stream, got_ns
+
+    def _stale(self) -> None:
+        """An accepted frame superseded before it was solved: counted, and every
+        performer's next pose flagged."""
+        self.stats.stale += 1
+        self._flag_frames(pose_stream.FRAME_INPUT_DROPPED)
+
+    def _serve_control_sockets(self, events: list[tuple[Any, int]]) -> None:
+        """Show control, ``ctl`` requests and the watched sockets' monitors."""
+        ctl, show_fd = self._ctl, self._show_fd
+        show = serve = False
+        for sock, _flags in events:
+            if sock is ctl:
+                serve = True
+            elif sock == show_fd:
+                show = True
+            else:  # a watched socket's monitor (watch.py), else nothing
+                self._watch.drain(sock, self._wake_ns)
+        if show:
+            self._drain_show_control()
+        if serve:
+            self._serve_control()
+
     def run(self, should_exit: Callable[[], bool]) -> None:
         """Serve until ``should_exit()`` is true (checked every poll timeout).
 
@@ -613,12 +630,6 @@ class Daemon(
                 self._window = (now, self.stats.frames_in, self.stats.frames_out)
                 self.out(self.last_stats_line)
                 next_stats = now + int(c.stats_interval_s * 1e9)
-
-
-def _last_endpoint(sock: Any) -> str:
-    """The endpoint a socket bound (with the real port of a ``*`` wildcard)."""
-    value = sock.getsockopt(zmq.LAST_ENDPOINT)
-    return value.decode() if isinstance(value, bytes) else str(value)
 
 
 def _load_target(config: DaemonConfig) -> Any:

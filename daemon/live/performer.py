@@ -83,6 +83,7 @@ class StreamView:
 
     __slots__ = (
         "_layouts", "_source", "cols", "current", "prefix", "rivals", "rows", "stream",
+        "whole",
     )  # fmt: skip
 
     def __init__(
@@ -91,6 +92,9 @@ class StreamView:
         self.stream = stream
         self.prefix = prefix
         self.rivals = rivals
+        # Every label of the stream is this performer's, as it is (one performer,
+        # no prefix): it reads the stream itself, nothing copied.
+        self.whole = prefix == "" and all(r == "" for r in rivals)
         self.current = ViewPacket(MarkerFrame.empty(0), LabelSet(-1, ()))
         self.cols: IntArray = np.zeros(0, dtype=np.intp)
         # The same rows as a slice when they are one run (a subject's markers sent
@@ -260,6 +264,26 @@ class Performer:
     def label(self) -> str:
         """How messages name it: ``performer A`` (or ``the performer``)."""
         return f"performer {self.name}" if self.name else "the performer"
+
+    def frame_of(self, stream: MarkerStream, kind: str) -> FrameSource | None:
+        """What this performer reads of ``stream``'s current frame: the stream
+        itself when every label on it is this performer's (one performer), else its
+        view with its rows copied in; None when the input (``kind``) is not its own
+        or the frame carries none of its markers."""
+        view = self.view_of(stream, kind)
+        if view is None:
+            return None
+        if view.whole:
+            return stream
+        return view if view.refresh() else None
+
+    def key_of(self, stream: MarkerStream) -> int:
+        """The key of this performer's pipeline on ``stream`` (``id`` of what
+        :meth:`frame_of` returns), 0 when it has not read that stream."""
+        view = self.views.get(id(stream))
+        if view is None:
+            return 0
+        return id(stream) if view.whole else id(view)
 
     def view_of(self, stream: MarkerStream, kind: str) -> StreamView | None:
         """Its view of ``stream`` (input ``kind``: "osc", "zmq" or "source"), or

@@ -37,20 +37,16 @@ class PerformersMixin(DaemonState):
 
     def _solve(self, stream: MarkerStream, t_ns: int) -> None:
         """Solve and send the stream's current frame for every performer on it."""
-        if not self._multi:
-            self._solve_and_send(stream, t_ns)
-            return
-        first = self.performers[0]
         stats = self.stats
-        kind = self._kind(stream)
+        kind = self.inputs.kind_of(stream)
         try:
             for perf in self.performers:
-                view = perf.view_of(stream, kind)
-                if view is None or not view.refresh():
+                source = perf.frame_of(stream, kind)
+                if source is None:
                     continue
                 self._perf = perf
                 out, unsolved, unseen = stats.frames_out, stats.unsolved, stats.unseen
-                self._solve_and_send(view, t_ns)
+                self._solve_and_send(source, t_ns)
                 ps = perf.stats
                 if stats.frames_out != out:
                     ps.frames_out += 1
@@ -62,41 +58,31 @@ class PerformersMixin(DaemonState):
                 elif stats.unseen != unseen:
                     ps.unseen += 1
         finally:
-            self._perf = first
+            self._perf = self.performers[0]
 
     def _collect(self, stream: MarkerStream) -> None:
         """Hand an accepted frame to every live calibration and face capture."""
-        if not self._multi:
-            perf = self._perf
-            if perf.calib_target:
-                self._collect_calibration_frame(stream)
-            if perf.face is not None and perf.face.capturing:
-                self._collect_face_frame(stream)
-            return
-        kind = None
+        kind = ""
         for perf in self.performers:
             capturing = perf.face is not None and perf.face.capturing
             if not perf.calib_target and not capturing:
                 continue
-            kind = kind or self._kind(stream)
-            view = perf.view_of(stream, kind)
-            if view is None or not view.refresh():
+            kind = kind or self.inputs.kind_of(stream)
+            source = perf.frame_of(stream, kind)
+            if source is None:
                 continue
             with self._acting_for(perf):
                 if perf.calib_target:
-                    self._collect_calibration_frame(view)
+                    self._collect_calibration_frame(source)
                 if capturing:
-                    self._collect_face_frame(view)
+                    self._collect_face_frame(source)
 
     def _restart_pipelines(self, stream: MarkerStream) -> None:
         """The source of ``stream`` restarted: every pipeline on it starts over."""
         for perf in self.performers:
-            key = id(stream)
-            if self._multi:
-                view = perf.views.get(key)
-                if view is None:
-                    continue
-                key = id(view)
+            key = perf.key_of(stream)
+            if not key:
+                continue
             stage = perf.face_stages.get(key)  # a face alone (face_only.py)
             if stage is not None:
                 stage.face.solver.reset()
@@ -115,42 +101,34 @@ class PerformersMixin(DaemonState):
     def _prepare_views(self, stream: MarkerStream, label_set: LabelSet) -> None:
         """A label set was announced: build every performer's column index for it
         now (off the hot path), so its first frame finds them."""
-        if not self._multi or stream.label_set is not label_set:
+        if stream.label_set is not label_set:
             return
-        kind = self._kind(stream)
+        kind = self.inputs.kind_of(stream)
         for perf in self.performers:
             view = perf.view_of(stream, kind)
-            if view is not None:
+            if view is not None and not view.whole:
                 view.prepare(label_set)
 
-    def _kind(self, stream: MarkerStream) -> str:
-        if stream is self.osc_stream:
-            return "osc"
-        return "zmq" if stream is self.zmq_stream else "source"
-
     def _own_streams(self) -> list[FrameSource]:
-        """The current performer's views of the inputs (the inputs themselves with
-        one performer): where a new calibration's pipelines are built at once."""
-        streams: list[MarkerStream] = [self.osc_stream, self.zmq_stream]
-        if not self._multi:
-            return list(streams)
-        views: list[FrameSource] = []
-        for s in streams:
-            view = self._perf.view_of(s, self._kind(s))
-            if view is not None and view.refresh():
-                views.append(view)
-        return views
+        """What the current performer reads of each input now: where a new
+        calibration's pipelines are built at once."""
+        sources: list[FrameSource] = []
+        for s in self.inputs.streams():
+            source = self._perf.frame_of(s, self.inputs.kind_of(s))
+            if source is not None:
+                sources.append(source)
+        return sources
 
     # ---- per tick ----------------------------------------------------------------
 
     def _each_performer(self, fn: Callable[[int], None], now_ns: int) -> None:
         """``fn(now_ns)`` once for every performer, each the current one."""
-        if not self._multi:
-            fn(now_ns)
-            return
-        for perf in self.performers:
-            with self._acting_for(perf):
+        try:
+            for perf in self.performers:
+                self._perf = perf
                 fn(now_ns)
+        finally:
+            self._perf = self.performers[0]
 
     @contextmanager
     def _acting_for(self, perf: Performer) -> Iterator[None]:

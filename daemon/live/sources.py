@@ -291,9 +291,8 @@ class CaptureMixin(DaemonState):
                 got = self._accept(stream, code, t_ns, every)
                 if got:
                     if newest:  # a newer frame supersedes the unsolved one: stale
-                        self.stats.stale += 1
+                        self._stale()
                         superseded += 1
-                        self._flag_frames(pose_stream.FRAME_INPUT_DROPPED)
                     newest = got
         if frames > FLOOD_FRAMES:
             self._flood(
@@ -398,11 +397,10 @@ class CaptureMixin(DaemonState):
         if cap.lost and now >= cap.next_hold_ns:
             cap.next_hold_ns = now + HOLD_RESEND_NS
             for perf in self.performers:  # each performer's last pose
-                key = id(cap.last_stream)
-                view = perf.views.get(key)
+                key = perf.key_of(cap.last_stream)
                 self._perf = perf
                 try:
-                    self._resend_held(cap, now, key if view is None else id(view))
+                    self._resend_held(cap, now, key)
                 finally:
                     self._perf = self.performers[0]
 
@@ -472,10 +470,8 @@ class CaptureMixin(DaemonState):
 
     def _say_limited(self, key: str, t_ns: int, line: str) -> None:
         """``out(line)`` at most once per 10 s for ``key`` (counters hold the rest)."""
-        if t_ns < self._log_after_ns.get(key, 0):
-            return
-        self._log_after_ns[key] = t_ns + 10_000_000_000
-        self.out(line)
+        if self._warn.due(key, t_ns):
+            self.out(line)
 
 
 def capture_stats(doc: dict[str, Any] | None) -> str:

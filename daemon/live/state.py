@@ -29,10 +29,11 @@ from retargetd.daemon.body.solve_fit import FitSolver
 from retargetd.daemon.live.config import DaemonConfig
 from retargetd.daemon.live.emit import EmitPlan
 from retargetd.daemon.live.face import FaceStage, LiveFace
+from retargetd.daemon.live.inputs import Inputs
 from retargetd.daemon.live.performer import FrameSource, Performer
 from retargetd.daemon.live.prewarm import Prewarm
 from retargetd.daemon.live.props import LiveProps
-from retargetd.daemon.live.ratelog import RateLimitedLog, RateLimiter
+from retargetd.daemon.live.ratelog import OncePer, RateLimitedLog, RateLimiter
 from retargetd.daemon.live.recording import LiveRecording
 from retargetd.daemon.live.stats import LoopStats
 from retargetd.daemon.live.surface import CurveGuard
@@ -43,7 +44,6 @@ from retargetd.daemon.post.solve_post import SolvePost
 from retargetd.daemon.post.stance import StanceDetector
 from retargetd.protocols import pose_stream
 from retargetd.protocols.marker_input import MarkerStream
-from retargetd.protocols.osc_auth import DatagramVerifier
 from retargetd.protocols.vmc_out import VmcEncoder
 
 
@@ -166,37 +166,20 @@ class DaemonState:
     recording: LiveRecording
     props: LiveProps  # [[prop]] (live/props.py)
     last_stats_line: str
-    osc_stream: MarkerStream
-    zmq_stream: MarkerStream
     _ctx: Any
     _poller: zmq.Poller
     _sockets: list[Any]
-    _osc: socket.socket | None
-    _osc_more: Any  # select.poll of _osc: another datagram waiting?
     _show: socket.socket | None
     _vmc: bool  # [output.vmc] on: each performer has its socket (vmc_sock)
-    _zin: zmq.Socket[bytes] | None
-    _zmon: zmq.Socket[bytes] | None
     _pub: zmq.Socket[bytes] | None
     _ctl: zmq.Socket[bytes] | None
+    inputs: Inputs  # the marker inputs (inputs.py)
+    _show_fd: int  # show control's fd in a poll result (-2: closed)
+    _show_buf: bytearray  # a show-control datagram
+    _warn: OncePer  # once-per-interval warning lines, by key
     _names_id: int
     _t0_ns: int
-    _buf: bytearray
-    _zbuf_header: bytearray
-    _zbuf_payload: bytearray
-    _zbuf_extra: bytearray
-    _zview_header: memoryview
-    _zview_payload: memoryview
-    _view: memoryview  # of _buf
-    _wire: np.ndarray  # _buf as uint8 (the compiled decode's input)
-    _zwire_header: np.ndarray  # _zbuf_header as uint8
-    _zwire_payload: np.ndarray  # _zbuf_payload as uint8
-    _osc_simple: bool  # input.osc.form == "simple"
-    _osc_limit: int  # input.osc.max_message_bytes
-    _osc_fd: int  # the OSC input's and show control's fds (-2: closed)
-    _show_fd: int
     _allow: frozenset[str]
-    _osc_auth: DatagramVerifier | None  # [input.osc] key_file: signed datagrams only
     _reload_limit: RateLimiter
     _log: RateLimitedLog
     _show_counters: dict[str, int]  # show-control messages refused, by reason
@@ -207,17 +190,18 @@ class DaemonState:
     _budget_ns: int  # loop.solve_budget_ms: solve + send of one frame
     _catch_up_ns: int
     _window: tuple[int, int, int]
-    _osc_form: int
     _vmc_state: VmcEncoder  # the /VMC/Ext/OK state datagram (not calibrated yet)
     _last_frame_ns: int
     _prewarm: Prewarm  # [loop] prewarm_ms: the fit touched before a steady frame
-    _log_after_ns: dict[str, int]
     _capture: Any  # sources.CaptureInput when [input] source is set
 
     # The parts call each other through the daemon; each is implemented by one mixin
     # (or Daemon itself), declared here so every part type-checks on its own.
     def _accept(self, stream: MarkerStream, code: int, t_ns: int, every: bool) -> int:
-        raise NotImplementedError  # inputs
+        raise NotImplementedError  # loop
+
+    def _stale(self) -> None:  # loop
+        raise NotImplementedError
 
     def _send_pub(self, parts: list[Any], t_ns: int) -> None:  # send
         raise NotImplementedError

@@ -33,6 +33,7 @@ class StatusMixin(DaemonState):
         up_s = (time.monotonic_ns() - self._t0_ns) * 1e-9
         occluded, flagged = self._occluded_and_held()
         performers = self.performers_status()
+        inputs = self.inputs.status()
         return {
             "uptime_s": round(up_s, 3),
             "rig": self.rig.name,  # the first performer's (all: "performers")
@@ -47,9 +48,7 @@ class StatusMixin(DaemonState):
                 **self.stats.counters(),
                 "prewarm": self._prewarm.touches,
                 # markers occluded for a coordinate past max_coordinate_m, all inputs
-                "implausible_markers": int(
-                    self.osc_stream.implausible[0] + self.zmq_stream.implausible[0]
-                ),
+                "implausible_markers": inputs["implausible_markers"],
                 # episodes of descriptor exhaustion, and the failed accepts seen
                 "fd_episodes": self._watch.fd_episodes,
                 "fd_accept_failures": self._watch.fd_accept_failures,
@@ -60,19 +59,13 @@ class StatusMixin(DaemonState):
             "fps_in": self._fps(self.stats.frames_in, 1),
             "fps_out": self._fps(self.stats.frames_out, 2),
             "fps_window_s": round((time.monotonic_ns() - self._window[0]) * 1e-9, 3),
-            "drops": {
-                "osc": self.osc_stream.counters.as_dict(),
-                "zmq": self.zmq_stream.counters.as_dict(),
-            },
+            "drops": inputs["drops"],
             # Label announcements adopted or confirming (not in "drops"), per input.
-            "labels_taken": {
-                "osc": self.osc_stream.labels_taken,
-                "zmq": self.zmq_stream.labels_taken,
-            },
+            "labels_taken": inputs["labels_taken"],
             # Datagrams the kernel dropped (receive buffer full), per UDP input;
             # None where unknown (not Linux) or the input is off.
             "kernel_drops": {
-                "osc": udp_kernel_drops(self._osc),
+                "osc": inputs["kernel_drops_osc"],
                 "show_control": udp_kernel_drops(self._show),
             },
             "latency_us": latency,

@@ -585,7 +585,9 @@ def test_behind_each_input_keeps_its_own_latest_with_several_performers(
                 assert time.monotonic() < deadline, "frames did not arrive"
                 events = d._poller.poll(20)
                 ready = {sock for sock, _ in events}
-                if d._zin in ready and d._osc is not None and d._osc.fileno() in ready:
+                inputs = d.inputs
+                osc = inputs.osc
+                if inputs.zin in ready and osc is not None and osc.fileno() in ready:
                     break
             d._service(events)
         s = d.status()
