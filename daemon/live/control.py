@@ -24,6 +24,7 @@ from typing import Any
 
 import zmq
 
+from retargetd.daemon.live.performer import Performer
 from retargetd.daemon.live.recording import (
     input_infos,
 )
@@ -47,6 +48,8 @@ CONTROL_TRANSPORT_MAX_BYTES = 16 << 20
 #: Requests queued per control connection (``ZMQ_RCVHWM``): a REQ peer sends one at a
 #: time; a DEALER pipelining large requests is held back by TCP after this many.
 CONTROL_RCVHWM = 4
+#: Commands that act for one performer (the others act for the daemon).
+PER_PERFORMER_COMMANDS = ("calibrate", "face-capture")
 
 
 class ControlMixin(DaemonState):
@@ -124,16 +127,40 @@ class ControlMixin(DaemonState):
             self.stats.control_errors += 1
         return reply
 
-    def _control(self, req: dict[str, Any]) -> dict[str, Any]:
+    def _control_for(self, req: dict[str, Any]) -> dict[str, Any]:
+        """A control request acting for the performer it names (``performer``);
+        commands for the daemon as a whole (status, reload, record) take none."""
+        cmd = req.get("cmd")
+        name = req.get("performer")
+        if cmd == "calibrate" and req.get("prop") is not None:  # a [[prop]]'s
+            if not self.config.control.calibrate:
+                raise ValueError("calibrate is off on this path (control.calibrate)")
+            msg = self.props.request_calibration(req["prop"], req.get("count"), "ctl")
+            return {"ok": True, "message": msg, "prop": req["prop"]}
+        if cmd not in PER_PERFORMER_COMMANDS:
+            if name is not None:
+                raise ValueError(
+                    f"{cmd!r} acts for the whole daemon: leave out 'performer' "
+                    f"(it applies to {', '.join(PER_PERFORMER_COMMANDS)})"
+                )
+            return self._control(req, self.performers.first)
+        perf = self.performers.named(name)
+        reply = self._control(req, perf)
+        if perf.name:
+            reply["performer"] = perf.name
+        return reply
+
+    def _control(self, req: dict[str, Any], perf: Performer) -> dict[str, Any]:
+        """One command; ``perf``: the performer a per-performer one acts for."""
         cmd = req.get("cmd")
         if cmd == "status":
             return {"ok": True, "status": self.status(), "line": self.stats_line()}
         if cmd == "calibrate":
             if not self.config.control.calibrate:
                 raise ValueError("calibrate is off on this path (control.calibrate)")
-            msg = self.request_calibration(req.get("count"), "ctl", req.get("rom_s"))
+            msg = perf.calib.request(req.get("count"), "ctl", req.get("rom_s"))
             # ctl waits for this one's outcome (status: calibration_id / _state)
-            return {"ok": True, "message": msg, "calibration_id": self._calib_id}
+            return {"ok": True, "message": msg, "calibration_id": perf.calib.id}
         if cmd == "reload":
             if not self.config.control.reload:
                 raise ValueError("reload is off on this path (control.reload)")
@@ -149,7 +176,7 @@ class ControlMixin(DaemonState):
                 raise ValueError(f"count must be a positive integer; got {count!r}")
             return {
                 "ok": True,
-                "message": self.request_face_capture(name, count, "ctl"),
+                "message": perf.calib.request_face(name, count, "ctl"),
             }
         raise ValueError(
             f"unknown command {cmd!r} (status, calibrate, reload, record, face-capture)"
@@ -183,8 +210,7 @@ class ControlMixin(DaemonState):
             if str(exc).startswith("rate limited"):
                 self.stats.rate_limited += 1
             raise
-        for perf in self.performers:  # names messages open the recorded pose stream
-            perf.last_names_ns = 0
+        self.performers.announce_names()  # they open the recorded pose stream
         return msg
 
     def _drain_show_control(self) -> None:
@@ -261,7 +287,7 @@ class ControlMixin(DaemonState):
                 )  # fmt: skip
                 return
             try:
-                msg = self.calibrate_performer(performer, count, by)
+                msg = self.performers.calibrate(performer, count, by)
             except ValueError as exc:
                 limited = str(exc).startswith("rate")
                 reason = "rate_limited" if limited else "bad_argument"

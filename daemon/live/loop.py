@@ -50,7 +50,6 @@ import zmq
 
 from retargetd.daemon.body.match import warm_up as warm_up_match
 from retargetd.daemon.body.solve_fit import warm_up as warm_up_fit
-from retargetd.daemon.live.calibrate import CalibrationMixin
 from retargetd.daemon.live.config import ConfigError, DaemonConfig, check_pipeline
 from retargetd.daemon.live.console_feed import ConsoleFeed
 from retargetd.daemon.live.console_feed import dispatch as dispatch_console
@@ -69,18 +68,19 @@ from retargetd.daemon.live.inputs import (
     Inputs,
     last_endpoint,
 )
+from retargetd.daemon.live.outputs import Outputs, VmcOut
 from retargetd.daemon.live.performer import build_performers
-from retargetd.daemon.live.performers import PerformersMixin
+from retargetd.daemon.live.performers import Performers
 from retargetd.daemon.live.prewarm import Prewarm
 from retargetd.daemon.live.props import LiveProps, vmc_destinations
 from retargetd.daemon.live.ratelog import (
     OncePer,
     RateLimitedLog,
-    RateLimiter,
     print_line,
 )
 from retargetd.daemon.live.recording import LiveRecording
-from retargetd.daemon.live.send import SendMixin, spine_stage
+from retargetd.daemon.live.send import BodyPath, spine_stage
+from retargetd.daemon.live.shared import Shared
 from retargetd.daemon.live.sources import CaptureMixin
 from retargetd.daemon.live.stats import LoopStats
 from retargetd.daemon.live.status import StatusMixin
@@ -99,27 +99,25 @@ from retargetd.daemon.retarget.retarget import (
     default_humanoid,
     warm_up,
 )
-from retargetd.daemon.validate.live import LiveValidator
 from retargetd.protocols import kernels as protocol_kernels
 from retargetd.protocols import pose_stream
-from retargetd.protocols.marker_input import ACCEPTED, RESTART, MarkerStream
-from retargetd.protocols.vmc_out import VmcEncoder
+from retargetd.protocols.marker_input import ACCEPTED, RESTART, LabelSet, MarkerStream
 
 logger = logging.getLogger(__name__)
 
 _UDP_MAX = 65536
 
 
-class Daemon(
-    CaptureMixin,
-    SendMixin,
-    CalibrationMixin,
-    StatusMixin,
-    ControlMixin,
-    PerformersMixin,
-):
+class Daemon(CaptureMixin, StatusMixin, ControlMixin):
     """The live daemon (one performer, or several: ``[[performer]]``). ``open()``,
     then ``run(should_exit)``.
+
+    It composes parts, each owning its state: ``inputs`` (``inputs.Inputs``: the
+    marker sockets, buffers and streams), ``performers`` (``performers.Performers``:
+    each performer's frame path and live calibration), ``outputs``
+    (``outputs.Outputs``: the pose stream, the VMC destinations), ``recording``,
+    ``props``; control and status are served from the parts' calls and counters.
+    A frame's path is :meth:`_service`.
 
     Args:
         config: validated configuration.
@@ -137,16 +135,12 @@ class Daemon(
         out: Callable[[str], None] | None = None,
         config_path: str | Path | None = None,
     ) -> None:
-        self.config = config
-        self.config_path = config_path  # re-read by reload for [[pipeline]]
         self.out = out or print_line
         self.stats = LoopStats()
-        # Each performer's rig, calibration, face, VMC destination... (performer.py);
-        # the attributes of one (self.rig, self.calibration ...) are the current's.
-        self.performers = build_performers(config)
-        for perf in self.performers:  # each performer's rig, after any --rig
+        # Each performer's rig, calibration, face, VMC destination (performer.py).
+        performers = build_performers(config)
+        for perf in performers:  # each performer's rig, after any --rig
             check_pipeline(config.pipeline, perf.rig)
-        self._perf = self.performers[0]
         # [[performer]] tables: status per performer, and each input's latest frame
         # solved (an input may carry other performers' markers, or none of one's);
         # one [performer] reads every input, and the newest of them is its frame.
@@ -154,7 +148,7 @@ class Daemon(
         self._left: MarkerStream | None = None  # the wake-up's frame left unsolved
         self._left_ns = 0  # its receive time
         self.target = _load_target(config)
-        for perf in self.performers:  # [target] spine = "pivot": target and rig fit
+        for perf in performers:  # [target] spine = "pivot": target and rig fit
             try:
                 spine = spine_stage(config.target, self.target, perf.rig)
                 if spine is not None:  # load (or compile) its kernel now, not live
@@ -174,11 +168,8 @@ class Daemon(
         self._poller = zmq.Poller()
         self._sockets: list[Any] = []
         self._show: socket.socket | None = None
-        self._vmc = False  # [output.vmc] on (each performer's vmc_sock, open())
-        self._pub: zmq.Socket[bytes] | None = None
         self._ctl: zmq.Socket[bytes] | None = None
         self._capture: Any = None  # a capture system ([input] source), sources.py
-        self._names_id = 0
         self._t0_ns = time.monotonic_ns()
         self._show_fd = -2  # the poll result's fd (set by open)
         self._show_buf = bytearray(_UDP_MAX)  # a show-control datagram
@@ -191,9 +182,25 @@ class Daemon(
         # The marker inputs (OSC, ZeroMQ): sockets, buffers and a stream each.
         self.inputs = Inputs(
             config, self.stats, self.recording, self._warn,
-            self._accept, self._prepare_views, self._stale,
+            self._accept, self._on_labels, self._stale,
         )  # fmt: skip
-        self._reload_limit = RateLimiter(config.control.min_interval_s)
+        # The pose stream and each performer's VMC destination.
+        vmc = [VmcOut(p.vmc_addr, p.vmc_max_datagram, self.stats) for p in performers]
+        self.outputs = Outputs(self.stats, self.recording, vmc)
+        # A wake-up solves the frames that arrived together while within the budget
+        # of their solves: a frame of N performers is N solves, each with the budget.
+        budget_ns = int(config.loop.solve_budget_ms * 1e6)  # solve + send
+        self._catch_up_ns = budget_ns * len(performers)
+        self._prewarm = Prewarm(config.loop.prewarm_ms)
+        self.shared = Shared(
+            config, self.target, self.stats, self.outputs, self.recording,
+            self._prewarm, self.out, self.status, self._t0_ns, budget_ns,
+        )  # fmt: skip
+        # The performers: each its frame path and live calibration.
+        self.performers = Performers(
+            performers, self.shared, self.inputs.kind_of, self.inputs.streams,
+            config_path,
+        )  # fmt: skip
         self._log = RateLimitedLog(self.out, config.loop.log_interval_s)
         self._show_counters: dict[str, int] = {}
         # CURVE handshake failures and descriptor exhaustion on the bound ZeroMQ
@@ -206,34 +213,72 @@ class Daemon(
         self._show_token_prefix = f"/{token}" if token else ""
         self._guards: list[CurveGuard] = []
         self._wake_ns = 0  # when the current wake-up began
-        # A wake-up solves the frames that arrived together while within the budget
-        # of their solves: a frame of N performers is N solves, each with the budget.
-        self._budget_ns = int(config.loop.solve_budget_ms * 1e6)  # solve + send
-        self._catch_up_ns = self._budget_ns * len(self.performers)
         # (t_ns, frames_in, frames_out) at the last stats line: fps over that window.
         self._window = (self._t0_ns, 0, 0)
         self.last_stats_line = ""
         self.endpoints: dict[str, str] = {}
         # [[prop]]: rigid props and cameras, one part called per accepted frame
-        self.props = LiveProps(config.props, vmc_destinations(config), self._send_pub,
-                               self.out)  # fmt: skip
-        self._vmc_state = VmcEncoder(())  # the state datagram (no bones needed)
-        self._last_frame_ns = 0
-        self._prewarm = Prewarm(config.loop.prewarm_ms)
+        self.props = LiveProps(config.props, vmc_destinations(config),
+                               self.outputs.send_pub, self.out)  # fmt: skip
         # The console shows the first performer (its buttons act for that one);
         # its t counts from the daemon's start, as the pose stream's t does.
-        self.console = (
-            ConsoleFeed(
-                config.console,
-                self.out,
-                t0_ns=self._t0_ns,
-                face_capture=self.performers[0].face is not None,
-            )
-            if config.console.enabled
-            else None
-        )
-        if self.console is not None:  # it draws the props too
-            self.console.props = self.props
+        first = self.performers.first
+        if config.console.enabled:
+            first.console = ConsoleFeed(
+                config.console, self.out, t0_ns=self._t0_ns,
+                face_capture=first.face is not None,
+            )  # fmt: skip
+            first.console.props = self.props  # it draws the props too
+
+    @property
+    def config(self) -> DaemonConfig:
+        """The running configuration (``reload`` replaces its ``[[pipeline]]``)."""
+        return self.shared.config
+
+    @property
+    def console(self) -> ConsoleFeed | None:
+        """The browser console's feed ([console] on; it shows the first performer)."""
+        console: ConsoleFeed | None = self.performers.first.console
+        return console
+
+    @property
+    def rig(self) -> Any:
+        """The first performer's rig."""
+        return self.performers.first.rig
+
+    @property
+    def calibration(self) -> Any:
+        """The first performer's calibration (None before one)."""
+        return self.performers.first.calibration
+
+    @property
+    def validator(self) -> Any:
+        """The first performer's live validator ([validate] on, once calibrated)."""
+        return self.performers.first.path.validator
+
+    @property
+    def face(self) -> Any:
+        """The first performer's live face (None: no face)."""
+        return self.performers.first.face
+
+    def request_calibration(
+        self, count: object = None, by: str = "", rom_s: object = None
+    ) -> str:
+        """A live calibration of the first performer (the console's button)."""
+        msg: str = self.performers.first.calib.request(count, by, rom_s)
+        return msg
+
+    def request_face_capture(
+        self, name: str, count: int | None = None, by: str = ""
+    ) -> str:
+        """A face capture of the first performer (the console's button)."""
+        msg: str = self.performers.first.calib.request_face(name, count, by)
+        return msg
+
+    def reload(self) -> str:
+        """Reload every performer's rig and calibration files and the config
+        file's ``[[pipeline]]`` (``Performers.reload``; ValueError: rate limited)."""
+        return self.performers.reload()
 
     # ---- lifecycle -------------------------------------------------------------------
 
@@ -258,20 +303,17 @@ class Daemon(
         self._open_capture()
         if c.output.pose.enabled:
             pose = c.output.pose
-            self._pub = self._server_socket(zmq.PUB, pose.secret_key, pose.client_keys)
-            self._pub.setsockopt(zmq.LINGER, 0)
-            self._pub.setsockopt(zmq.SNDHWM, pose.sndhwm)
-            self._pub.bind(pose.endpoint)
-            self._sockets.append(self._pub)
-            self._watch.watch("zmq poses", self._pub, bool(pose.secret_key))
-            ep = last_endpoint(self._pub)
-            who = who_reaches(endpoint_is_local(pose.endpoint), ep)
+            pub = self._server_socket(zmq.PUB, pose.secret_key, pose.client_keys)
             curve = (
                 f", CURVE encrypted to {len(pose.client_keys)} client key(s)"
                 if pose.secret_key
                 else ", plain"
             )
-            self._announce("zmq poses", f"{ep} (pub; poses to {who}{curve})")
+            self.outputs.open_pub(
+                pub, pose.endpoint, pose.sndhwm, curve, self._announce
+            )
+            self._sockets.append(pub)
+            self._watch.watch("zmq poses", pub, bool(pose.secret_key))
         ctl = c.control
         self._ctl = self._server_socket(zmq.REP, ctl.secret_key, ctl.client_keys)
         self._ctl.setsockopt(zmq.LINGER, 0)
@@ -291,11 +333,10 @@ class Daemon(
         )
         if c.output.vmc.enabled:
             vmc = c.output.vmc
-            self._vmc = True
+            self.outputs.open_vmc(vmc.allow_broadcast, self.out)
             kind = "broadcast allowed" if vmc.allow_broadcast else "unicast"
-            for perf in self.performers:  # one avatar per destination, one socket
+            for perf in self.performers.all:  # one avatar per destination, one socket
                 host, port = perf.vmc_addr
-                self._open_vmc(perf, vmc.allow_broadcast)
                 self._announce(
                     f"vmc out {perf.name}" if perf.name else "vmc out",
                     f"udp://{host}:{port} (plain OSC, {kind}, datagrams up to "
@@ -307,15 +348,13 @@ class Daemon(
             url = self.console.start(self.rig)
             self._announce("console", f"{url} (browser; buttons act like ctl)")
         self._warm_up()
-        for perf in self.performers:
-            with self._acting_for(perf):
-                self._start_validator()
+        self.performers.start_validators()
         # Everything built so far lives as long as the daemon: keep it out of the
         # garbage collector's full passes (one took ~50 ms here, holding the GIL).
         gc.collect()
         gc.freeze()
         if self.hint_uncalibrated:
-            self._hint_uncalibrated()
+            self.performers.hint_uncalibrated()
 
     def _warm_up(self) -> None:
         """Load the compiled kernel and run every stage once before the first frame
@@ -345,12 +384,13 @@ class Daemon(
             for t_s in (0.0, 0.02):  # a tick on a pose and one between two
                 probe.t_s = t_s
                 res.push(probe)
-        if self.calibration is None:
+        first = self.performers.first
+        if first.calibration is None or not isinstance(first.path, BodyPath):
             return
         # A stream naming every marker as the rig's labels do (its names need not
         # be labels: such a warm-up would call every marker missing).
-        labels = tuple(aliases[0] for aliases in self.rig.markers.values())
-        pipe = self._build_pipeline(labels, with_face=False)
+        labels = tuple(aliases[0] for aliases in first.rig.markers.values())
+        pipe = first.path.build_pipeline(labels, with_face=False)
         nan_frame = np.full((len(labels), 3), np.nan)
         pose = pipe.solver.solve_frame(nan_frame, pipe.pose)
         pipe.retargeter.apply(pose, pipe.target_pose)
@@ -359,7 +399,7 @@ class Daemon(
         # measured): run them here on the rest pose, two frames apart (the filters'
         # second-frame path), so no streamed frame pays for it.
         if pipe.post is not None or pipe.spine is not None:
-            pose.parent_from_bone_quat[:] = self.calibration.rest_parent_from_bone_quat
+            pose.parent_from_bone_quat[:] = first.calibration.rest_parent_from_bone_quat
             pose.root_pos[:] = 0.0
             now_ns = time.monotonic_ns()
             for k in range(2):
@@ -372,59 +412,7 @@ class Daemon(
                 pipe.retargeter.apply(pose, tp)
                 pipe.spine.apply(tp.world_from_bone_quat, tp.rest_from_bone_quat)
         pipe.solver.reset()
-        self._names_id -= 1  # this pipeline is thrown away; keep the ids dense
-
-    def _start_validator(self) -> None:
-        """(Re)start the live validator on the current calibration ([validate] on).
-
-        Builds the MuJoCo model (cached by skeleton hash) and warms the kernels
-        (tens of ms; seconds on a cold numba cache): at start-up, and after a live
-        calibration or a reload, never per frame."""
-        v = self.config.validate
-        old, self.validator = self.validator, None
-        if old is not None:
-            old.close()
-        self._validation_bits = 0
-        self._validation_bones = None
-        self._validation_values.fill(np.nan)
-        if not v.enabled or self.calibration is None:
-            return
-
-        validator = LiveValidator(
-            self.rig,
-            self.calibration,
-            body_mass_kg=v.body_mass_kg or None,
-            rate_hz=v.rate_hz,
-            queue_size=v.queue,
-        )
-        validator.start()
-        self._validation_results = [None] * validator.results_capacity
-        self.validator = validator
-        self.out(
-            f"live validator on: MuJoCo model {validator.vm.digest[:12]}, "
-            f"queue {v.queue}, frame numbers at {v.rate_hz:g} Hz"
-        )
-
-    def _open_vmc(self, perf: Any, allow_broadcast: bool) -> None:
-        """``perf``'s VMC socket, connected to its destination: a connected UDP
-        socket sends without parsing an address or looking up the route per call
-        (a receiver absent on this machine then shows as refused sends, counted in
-        ``vmc_errors``). Without a route to the host yet (a network not up), it
-        stays unconnected and sends with ``sendto``, as the route may come later."""
-        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        sock.setblocking(False)
-        if allow_broadcast:  # without it the kernel refuses broadcast sends
-            sock.setsockopt(socket.SOL_SOCKET, socket.SO_BROADCAST, 1)
-        perf.vmc_sock, perf.vmc_connected = sock, False
-        try:
-            sock.connect(perf.vmc_addr)
-        except OSError as exc:
-            self.out(
-                f"vmc out: no route to {perf.vmc_addr[0]} yet ({exc.strerror}): "
-                "sending unconnected"
-            )
-        else:
-            perf.vmc_connected = True
+        self.shared.names_id -= 1  # this pipeline is thrown away; keep the ids dense
 
     def _server_socket(
         self, kind: int, secret_key: str, client_keys: tuple[str, ...]
@@ -469,21 +457,14 @@ class Daemon(
         self._close_capture()
         if self.console is not None:
             self.console.stop()
-        for perf in self.performers:
-            if perf.validator is not None:
-                perf.validator.close()
-                perf.validator = None
+        self.performers.close()  # their live validators
         self._watch.close()  # the monitors before their sockets
         for sock in self._sockets:
             with contextlib.suppress(KeyError):
                 self._poller.unregister(sock)
             sock.close()
         self._sockets.clear()
-        for perf in self.performers:
-            if perf.vmc_sock is not None:
-                perf.vmc_sock.close()
-                perf.vmc_sock = None
-        self._vmc = False
+        self.outputs.close()  # the VMC sockets
         for guard in self._guards:
             guard.close()
         self._guards.clear()
@@ -520,8 +501,8 @@ class Daemon(
             got = self._drain_capture(events, every)
             if got:
                 self._leave(self._capture.inp.stream, got)
-        if self._left is not None:
-            self._solve(self._left, self._left_ns)  # every performer on its input
+        if self._left is not None:  # every performer on its input
+            self.performers.solve(self._left, self._left_ns)
             self._left, self._left_ns = None, 0
         if ready & READY_MONITOR:
             inputs.drain_monitor()
@@ -537,17 +518,18 @@ class Daemon(
             self.inputs.refused(stream, code, t_ns)
             return 0
         self.stats.frames_in += 1
-        self._last_frame_ns = t_ns
+        self.shared.last_frame_ns = t_ns
         self._prewarm.observe(t_ns)
         stream.current.frame.t_ns = t_ns
+        performers = self.performers
         if code == RESTART:
             self.stats.restarts += 1
-            self._flag_frames(pose_stream.FRAME_RESTARTED)
-            self._restart_pipelines(stream)
-        self._collect(stream)  # live calibrations and face captures
+            performers.flag(pose_stream.FRAME_RESTARTED)
+            performers.restart(stream)
+        performers.collect(stream)  # live calibrations and face captures
         self.props.on_frame(stream, t_ns)  # [[prop]]: every accepted frame
         if every or time.monotonic_ns() - self._wake_ns < self._catch_up_ns:
-            self._solve(stream, t_ns)  # every performer on this input
+            performers.solve(stream, t_ns)  # every performer on this input
             return 0
         return t_ns
 
@@ -559,7 +541,7 @@ class Daemon(
             return
         if self._left is not None:
             if self._multi:
-                self._solve(self._left, self._left_ns)
+                self.performers.solve(self._left, self._left_ns)
                 self._left, self._left_ns = None, 0
             else:
                 self._stale()
@@ -570,7 +552,11 @@ class Daemon(
         """An accepted frame superseded before it was solved: counted, and every
         performer's next pose flagged."""
         self.stats.stale += 1
-        self._flag_frames(pose_stream.FRAME_INPUT_DROPPED)
+        self.performers.flag(pose_stream.FRAME_INPUT_DROPPED)
+
+    def _on_labels(self, stream: MarkerStream, label_set: LabelSet) -> None:
+        """An input took a label set: the performers build their columns now."""
+        self.performers.prepare(stream, label_set)
 
     def _serve_control_sockets(self, events: list[tuple[Any, int]]) -> None:
         """Show control, ``ctl`` requests and the watched sockets' monitors."""
@@ -600,7 +586,9 @@ class Daemon(
         next_stats = time.monotonic_ns() + int(c.stats_interval_s * 1e9)
         while not should_exit():
             wait = timeout
-            tick_ns = self.next_tick_ns()  # output_rate_hz: a resampled tick queued
+            tick_ns = (
+                self.performers.next_tick_ns()
+            )  # output_rate_hz: a resampled tick queued
             if tick_ns >= 0:  # wake for it (rounded up to the poll's 1 ms)
                 left_ms = -(-(tick_ns - time.monotonic_ns()) // 1_000_000)
                 wait = max(0, min(timeout, left_ms))
@@ -617,9 +605,7 @@ class Daemon(
                 cmd = self.console.commands.poll()  # nothing allocated when empty
                 if cmd is not None:
                     dispatch_console(self, cmd)
-            self._each_performer(self._calibration_tick, now)
-            self._each_performer(self._send_vmc_state, now)
-            self._each_performer(self._send_due_ticks, time.monotonic_ns())
+            self.performers.tick(now)  # calibration timeouts, VMC state, ticks due
             self._log.flush(now)
             self._watch.tick(now)  # descriptor exhaustion: its end, once
             stopped = self.recording.check_limits(now)  # [record] limits, once a s

@@ -42,6 +42,7 @@ from typing import Any
 import zmq
 
 from retargetd.daemon.body.calibration import match_markers
+from retargetd.daemon.live.performer import Performer
 from retargetd.daemon.live.state import DaemonState
 from retargetd.protocols import natnet, natnet_client, pose_stream, qtm
 from retargetd.protocols.marker_input import ACCEPTED, RESTART, RESTART_GAP_NS
@@ -349,7 +350,7 @@ class CaptureMixin(DaemonState):
             return
         labels = stream.label_set.labels
         known: set[int] = set()  # the labels some performer's rig matches
-        for p in self.performers:
+        for p in self.performers.all:
             mine = [i for i, lb in enumerate(labels) if lb.startswith(p.prefix)]
             cols = match_markers(p.rig, [labels[i][len(p.prefix) :] for i in mine])
             known.update(mine[c] for c in cols if c >= 0)
@@ -360,7 +361,7 @@ class CaptureMixin(DaemonState):
             self.out(
                 f"{cap.system}: {len(unknown)} of {len(stream.label_set.labels)} "
                 f"labels are not markers of rig "
-                f"{', '.join(sorted({p.rig.name for p in self.performers}))} "
+                f"{', '.join(sorted({p.rig.name for p in self.performers.all}))} "
                 f"(ignored): {shown}"
             )
         cap.unknown_labels = unknown
@@ -396,32 +397,30 @@ class CaptureMixin(DaemonState):
             )
         if cap.lost and now >= cap.next_hold_ns:
             cap.next_hold_ns = now + HOLD_RESEND_NS
-            for perf in self.performers:  # each performer's last pose
-                key = perf.key_of(cap.last_stream)
-                self._perf = perf
-                try:
-                    self._resend_held(cap, now, key)
-                finally:
-                    self._perf = self.performers[0]
+            for perf in self.performers.all:  # each performer's last pose
+                self._resend_held(cap, now, perf, perf.key_of(cap.last_stream))
 
-    def _resend_held(self, cap: CaptureInput, now_ns: int, key: int) -> None:
-        """The current performer's last pose message on the pipeline ``key`` sent
-        again (its encoder's buffers still hold it), flagged held and source_lost,
-        with a new sent time."""
-        pipe = self._pipelines.get(key)
+    def _resend_held(
+        self, cap: CaptureInput, now_ns: int, perf: Performer, key: int
+    ) -> None:
+        """``perf``'s last pose message on the pipeline ``key`` sent again (its
+        encoder's buffers still hold it), flagged held and source_lost, with a new
+        sent time."""
+        pipe = perf.path.pipelines.get(key)
         if pipe is None:
             return
-        if self._vmc:
+        outputs = self.outputs
+        if outputs.vmc_on:
             # VMC has no frame flags; its own word for this is /VMC/Ext/OK with
             # tracking 0 (VMC 2.7): the model is loaded and calibrated, tracking is
             # lost. Receivers keep the last pose they got and hear the performer is
             # still there (silence reads as "no performer" in EVMC4U and VSeeFace).
-            dgram = self._vmc_state.encode_state(
+            dgram = perf.vmc.state.encode_state(
                 CALIBRATION_CALIBRATED, False, (now_ns - self._t0_ns) * 1e-9
             )
-            self._send_vmc_datagrams((dgram,))
+            perf.vmc.send((dgram,))
             cap.counts["held_vmc"] += 1
-        if self._pub is None and self.recording.poses is None:
+        if not outputs.publishing:
             return
         parts = pipe.pose_enc.parts
         header = parts[0]
@@ -429,7 +428,7 @@ class CaptureMixin(DaemonState):
         flags |= pose_stream.FRAME_HELD | pose_stream.FRAME_SOURCE_LOST
         _FLAGS.pack_into(header, _FLAGS_OFFSET, flags)
         pose_stream.stamp_sent(header, now_ns)
-        self._send_pub(parts, now_ns)
+        outputs.send_pub(parts, now_ns)
         cap.counts["held_poses"] += 1
 
     def _capture_status(self) -> dict[str, Any] | None:

@@ -9,9 +9,6 @@ import math
 import time
 from typing import Any
 
-import numpy as np
-
-from retargetd.daemon.body.solve import FLAG_HELD
 from retargetd.daemon.live.kernel_drops import udp_kernel_drops
 from retargetd.daemon.live.sources import capture_stats
 from retargetd.daemon.live.state import DaemonState
@@ -31,17 +28,18 @@ class StatusMixin(DaemonState):
             for k, (p50, p99) in self.stats.latency_us().items()
         }
         up_s = (time.monotonic_ns() - self._t0_ns) * 1e-9
-        occluded, flagged = self._occluded_and_held()
-        performers = self.performers_status()
+        first = self.performers.first
+        occluded, flagged = first.path.occluded_and_held()
+        performers = self.performers.status()
         inputs = self.inputs.status()
         return {
             "uptime_s": round(up_s, 3),
             "rig": self.rig.name,  # the first performer's (all: "performers")
             "calibrated": all(p["calibrated"] for p in performers),
             "calibrating": any(p["calibrating"] for p in performers),
-            "calibration_message": self._calib_message,
-            "calibration_id": self._calib_id,
-            "calibration_state": self._calib_state,
+            "calibration_message": first.calib.message,
+            "calibration_id": first.calib.id,
+            "calibration_state": first.calib.state,
             "performers": performers,
             "endpoints": self.endpoints,
             "counters": {
@@ -79,27 +77,6 @@ class StatusMixin(DaemonState):
             "props": self.props.status(),  # [[prop]] (live/props.py)
         }
 
-    def _occluded_and_held(self) -> tuple[list[str], list[str]]:
-        """The current performer's occluded rig markers and held bones, from the
-        last frame its (first) pipeline solved."""
-        pipe = next(iter(self._pipelines.values()), None)
-        occluded: list[str] = []
-        flagged: list[str] = []
-        if pipe is not None:
-            seen = getattr(pipe.solver, "_seen", None)  # the construction's markers
-            pts_seen = (
-                seen[: len(self.rig.markers)]
-                if seen is not None
-                else np.isfinite(pipe.pose.marker_residual)  # the fit's
-            )
-            occluded = [
-                m for m, s in zip(self.rig.marker_names, pts_seen, strict=True) if not s
-            ]
-            flags = pipe.pose.bone_flags
-            names = self.rig.bone_names
-            flagged = [b for b, f in zip(names, flags, strict=True) if f & FLAG_HELD]
-        return occluded, flagged
-
     def _validate_status(self) -> dict[str, Any] | None:
         v = self.validator
         if v is None:
@@ -135,7 +112,7 @@ class StatusMixin(DaemonState):
             f"{len(s['occluded_markers'])} held {len(s['held_bones'])}"
             f" | kernel_drops {sum(v for v in s['kernel_drops'].values() if v)}"
             + capture_stats(s["capture"])
-            + self.performers_line(s["performers"])
+            + self.performers.line(s["performers"])
             + ("" if s["calibrated"] or self._multi else " | NOT CALIBRATED")
             + (
                 f" | REC {s['record']['path']} dropped {s['record']['dropped']}"

@@ -160,7 +160,7 @@ def test_live_console_calibrate_and_skeleton(
             (docs / "console-live.png").write_bytes(
                 (tmp_path / "live-console.png").read_bytes()
             )
-        pipe = next(iter(live.daemon._pipelines.values()))
+        pipe = next(iter(live.daemon.performers.first.path.pipelines.values()))
         joints = pipe.pose.joint_centres
         names = pipe.solver.joint_names
         mids = []

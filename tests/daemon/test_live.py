@@ -128,7 +128,7 @@ def test_stream_vmc_and_pose_stream_match_the_solver(
     assert live.daemon.status()["calibrated"]
     # The frames went through the emit kernel's compiled function, past numba's
     # dispatcher (EmitPlan.call; the bytes checked below are what it wrote).
-    (pipe,) = live.daemon._pipelines.values()
+    (pipe,) = live.daemon.performers.first.path.pipelines.values()
     assert pipe.emit is not None and pipe.emit.call is not emit_frame
     assert any(line.startswith("fps in") for line in live.lines)
 

@@ -53,7 +53,8 @@ def test_capture_label_check_knows_the_rigs_labels_not_its_names() -> None:
     labels = (*_opensim_labels(), "ghost")
     said: list[str] = []
     state = SimpleNamespace(
-        performers=[SimpleNamespace(prefix="", rig=rig)], out=said.append
+        performers=SimpleNamespace(all=[SimpleNamespace(prefix="", rig=rig)]),
+        out=said.append,
     )
     cap = CaptureInput(system="qtm", url="qtm://127.0.0.1", form=0, inp=None)
     stream = SimpleNamespace(label_set=SimpleNamespace(labels=labels))

@@ -216,7 +216,7 @@ def test_reload_picks_up_changed_stages(
             return str(d.reload())
 
         def solve_one() -> tuple[str, ...]:
-            pipe = d._build_pipeline(labels, with_face=False)
+            pipe = d.performers.first.path.build_pipeline(labels, with_face=False)
             assert pipe.post is not None
             return pipe.post.stage_names
 
@@ -237,7 +237,7 @@ def test_reload_picks_up_changed_stages(
         # Stages removed: none built.
         path.write_text(path.read_text().split("[[pipeline]]")[0])
         assert "pipeline" not in reload()
-        pipe = d._build_pipeline(labels, with_face=False)
+        pipe = d.performers.first.path.build_pipeline(labels, with_face=False)
         assert pipe.post is None
     finally:
         d.close()

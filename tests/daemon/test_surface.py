@@ -161,7 +161,7 @@ def test_calibrate_arguments_are_checked_and_the_count_bounded(
     assert not live.daemon.status()["calibrating"]
     reply = live.ctl({"cmd": "calibrate", "count": CALIBRATE_MAX_FRAMES})
     assert reply["ok"], reply
-    assert live.daemon._calib_target == CALIBRATE_MAX_FRAMES
+    assert live.daemon.performers.first.calib.target == CALIBRATE_MAX_FRAMES
 
 
 def test_calibrate_off_on_show_control_but_on_for_ctl(
