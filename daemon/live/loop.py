@@ -53,11 +53,7 @@ from retargetd.daemon.body.solve_fit import warm_up as warm_up_fit
 from retargetd.daemon.live.config import ConfigError, DaemonConfig, check_pipeline
 from retargetd.daemon.live.console_feed import ConsoleFeed
 from retargetd.daemon.live.console_feed import dispatch as dispatch_console
-from retargetd.daemon.live.control import (
-    CONTROL_RCVHWM,
-    CONTROL_TRANSPORT_MAX_BYTES,
-    ControlMixin,
-)
+from retargetd.daemon.live.control import Control
 from retargetd.daemon.live.emit import warm_up as warm_up_emit
 from retargetd.daemon.live.face import warm_up as warm_up_face
 from retargetd.daemon.live.inputs import (
@@ -66,7 +62,6 @@ from retargetd.daemon.live.inputs import (
     READY_OSC,
     READY_ZMQ,
     Inputs,
-    last_endpoint,
 )
 from retargetd.daemon.live.outputs import Outputs, VmcOut
 from retargetd.daemon.live.performer import build_performers
@@ -81,14 +76,12 @@ from retargetd.daemon.live.ratelog import (
 from retargetd.daemon.live.recording import LiveRecording
 from retargetd.daemon.live.send import BodyPath, spine_stage
 from retargetd.daemon.live.shared import Shared
-from retargetd.daemon.live.sources import CaptureMixin
+from retargetd.daemon.live.sources import CaptureSource
 from retargetd.daemon.live.stats import LoopStats
-from retargetd.daemon.live.status import StatusMixin
+from retargetd.daemon.live.status import Health
 from retargetd.daemon.live.surface import (
     CurveGuard,
-    endpoint_is_local,
     is_loopback_host,
-    who_reaches,
 )
 from retargetd.daemon.live.watch import SocketWatch
 from retargetd.daemon.post.interp import RateResampler
@@ -108,16 +101,16 @@ logger = logging.getLogger(__name__)
 _UDP_MAX = 65536
 
 
-class Daemon(CaptureMixin, StatusMixin, ControlMixin):
+class Daemon:
     """The live daemon (one performer, or several: ``[[performer]]``). ``open()``,
     then ``run(should_exit)``.
 
-    It composes parts, each owning its state: ``inputs`` (``inputs.Inputs``: the
-    marker sockets, buffers and streams), ``performers`` (``performers.Performers``:
-    each performer's frame path and live calibration), ``outputs``
-    (``outputs.Outputs``: the pose stream, the VMC destinations), ``recording``,
-    ``props``; control and status are served from the parts' calls and counters.
-    A frame's path is :meth:`_service`.
+    It composes parts, each owning its state (``daemon/live/__init__.py`` tells who
+    owns what): ``inputs`` and ``capture`` (the marker sources), ``performers``
+    (each performer's frame path and live calibration), ``outputs`` (the pose
+    stream, the VMC destinations), ``recording``, ``props``, ``control`` (``ctl``
+    and show control) and ``health`` (status and the stats line). A frame's path is
+    :meth:`_service`.
 
     Args:
         config: validated configuration.
@@ -141,10 +134,6 @@ class Daemon(CaptureMixin, StatusMixin, ControlMixin):
         performers = build_performers(config)
         for perf in performers:  # each performer's rig, after any --rig
             check_pipeline(config.pipeline, perf.rig)
-        # [[performer]] tables: status per performer, and each input's latest frame
-        # solved (an input may carry other performers' markers, or none of one's);
-        # one [performer] reads every input, and the newest of them is its frame.
-        self._multi = bool(config.performers)
         self._left: MarkerStream | None = None  # the wake-up's frame left unsolved
         self._left_ns = 0  # its receive time
         self.target = _load_target(config)
@@ -167,13 +156,7 @@ class Daemon(CaptureMixin, StatusMixin, ControlMixin):
         self._ctx: Any = zmq.Context.instance() if self._shared_ctx else zmq.Context()
         self._poller = zmq.Poller()
         self._sockets: list[Any] = []
-        self._show: socket.socket | None = None
-        self._ctl: zmq.Socket[bytes] | None = None
-        self._capture: Any = None  # a capture system ([input] source), sources.py
         self._t0_ns = time.monotonic_ns()
-        self._show_fd = -2  # the poll result's fd (set by open)
-        self._show_buf = bytearray(_UDP_MAX)  # a show-control datagram
-        self._allow = frozenset(config.input.osc.allow)  # the markers' and show's
         self._warn = OncePer(LOG_INTERVAL_NS)  # the inputs' warning lines, by key
         rc = config.record
         self.recording = LiveRecording(
@@ -202,24 +185,35 @@ class Daemon(CaptureMixin, StatusMixin, ControlMixin):
             config_path,
         )  # fmt: skip
         self._log = RateLimitedLog(self.out, config.loop.log_interval_s)
-        self._show_counters: dict[str, int] = {}
         # CURVE handshake failures and descriptor exhaustion on the bound ZeroMQ
         # sockets (their monitors: watch.py)
         self._watch = SocketWatch(self._poller, self._log, self.out)
         #: open() tells how to calibrate a performer without a calibration (False:
         #: the caller calibrates itself and says so, as ``retargetd demo`` does)
         self.hint_uncalibrated = True
-        token = config.show_control.token
-        self._show_token_prefix = f"/{token}" if token else ""
         self._guards: list[CurveGuard] = []
         self._wake_ns = 0  # when the current wake-up began
-        # (t_ns, frames_in, frames_out) at the last stats line: fps over that window.
-        self._window = (self._t0_ns, 0, 0)
         self.last_stats_line = ""
         self.endpoints: dict[str, str] = {}
         # [[prop]]: rigid props and cameras, one part called per accepted frame
         self.props = LiveProps(config.props, vmc_destinations(config),
                                self.outputs.send_pub, self.out)  # fmt: skip
+        # A capture system ([input] source: QTM, NatNet): an input of its own.
+        self.capture = CaptureSource(
+            self.shared, self.performers, self._poller, self.endpoints, self._warn,
+            self._accept, self._stale,
+        )  # fmt: skip
+        # ctl requests and show control: each command a call on a part.
+        self.control = Control(
+            self.shared, self.performers, self.props, self.inputs, self.endpoints,
+            self._log, self._status_and_line,
+        )  # fmt: skip
+        # The status document and the stats line, read from the parts' counters.
+        self.health = Health(
+            self.stats, self.performers, self.inputs, self.recording, self.props,
+            self._watch, self._prewarm, self.endpoints, self._t0_ns,
+            self.capture.status, self.control.status,
+        )  # fmt: skip
         # The console shows the first performer (its buttons act for that one);
         # its t counts from the daemon's start, as the pose stream's t does.
         first = self.performers.first
@@ -280,6 +274,26 @@ class Daemon(CaptureMixin, StatusMixin, ControlMixin):
         file's ``[[pipeline]]`` (``Performers.reload``; ValueError: rate limited)."""
         return self.performers.reload()
 
+    def status(self) -> dict[str, Any]:
+        """The status document (``retargetd ctl status --json``)."""
+        return self.health.document()
+
+    def stats_line(self) -> str:
+        """The periodic one-line health summary."""
+        return self.health.line()
+
+    def _status_and_line(self) -> tuple[dict[str, Any], str]:
+        """``ctl status``: the document and the line."""
+        return self.status(), self.stats_line()
+
+    def control_reply(self, parts: list[bytes]) -> dict[str, Any]:
+        """The reply to one control request (``control.Control.control_reply``)."""
+        return self.control.control_reply(parts)
+
+    def _record_control(self, req: dict[str, Any]) -> str:
+        """``record start`` / ``stop`` (the console's buttons)."""
+        return self.control.record(req)
+
     # ---- lifecycle -------------------------------------------------------------------
 
     def open(self) -> None:
@@ -287,20 +301,7 @@ class Daemon(CaptureMixin, StatusMixin, ControlMixin):
         c = self.config
         self.inputs.open(self._udp_bind, self._server_socket, self._own,
                          self._announce, self.out)  # fmt: skip
-        if c.show_control.enabled:
-            show = c.show_control
-            self._show = self._udp_bind(show.host, show.port)
-            self._show_fd = self._show.fileno()
-            can = [w for w, on in (("calibrate", show.calibrate),
-                                   ("reload", show.reload)) if on]  # fmt: skip
-            who = who_reaches(is_loopback_host(show.host), show.host)
-            token = ", token required" if show.token else ""
-            self._announce(
-                "show control",
-                f"udp://{self._addr(self._show)} (OSC; "
-                f"{' and '.join(can) or 'nothing but status'} from {who}{token})",
-            )
-        self._open_capture()
+        self.capture.open()
         if c.output.pose.enabled:
             pose = c.output.pose
             pub = self._server_socket(zmq.PUB, pose.secret_key, pose.client_keys)
@@ -314,23 +315,8 @@ class Daemon(CaptureMixin, StatusMixin, ControlMixin):
             )
             self._sockets.append(pub)
             self._watch.watch("zmq poses", pub, bool(pose.secret_key))
-        ctl = c.control
-        self._ctl = self._server_socket(zmq.REP, ctl.secret_key, ctl.client_keys)
-        self._ctl.setsockopt(zmq.LINGER, 0)
-        self._ctl.setsockopt(zmq.MAXMSGSIZE, CONTROL_TRANSPORT_MAX_BYTES)
-        self._ctl.setsockopt(zmq.RCVHWM, CONTROL_RCVHWM)
-        self._ctl.bind(ctl.endpoint)
-        self._poller.register(self._ctl, zmq.POLLIN)
-        self._sockets.append(self._ctl)
-        self._watch.watch("control", self._ctl, bool(ctl.secret_key))
-        ep = last_endpoint(self._ctl)
-        who = who_reaches(endpoint_is_local(ctl.endpoint), ep)
-        curve = (
-            f", CURVE: {len(ctl.client_keys)} client key(s)" if ctl.secret_key else ""
-        )
-        self._announce(
-            "control", f"{ep} (retargetd ctl --endpoint {ep}; from {who}{curve})"
-        )
+        self.control.open(self._udp_bind, self._server_socket, self._own,
+                          self._watch, self._announce)  # fmt: skip
         if c.output.vmc.enabled:
             vmc = c.output.vmc
             self.outputs.open_vmc(vmc.allow_broadcast, self.out)
@@ -444,17 +430,12 @@ class Daemon(CaptureMixin, StatusMixin, ControlMixin):
         self._sockets.append(sock)
         return sock
 
-    @staticmethod
-    def _addr(sock: socket.socket) -> str:
-        host, port = sock.getsockname()[:2]
-        return f"{host}:{port}"
-
     def close(self) -> None:
         """Stop an active recording (its file is finished, bounded wait) and close
         every socket (idempotent)."""
         self.recording.close()
         self.props.close()
-        self._close_capture()
+        self.capture.close()
         if self.console is not None:
             self.console.stop()
         self.performers.close()  # their live validators
@@ -497,16 +478,17 @@ class Daemon(CaptureMixin, StatusMixin, ControlMixin):
             self._leave(inputs.osc_stream, inputs.drain_osc(every))
         if ready & READY_ZMQ:
             self._leave(inputs.zmq_stream, inputs.drain_zmq(every))
-        if self._capture is not None:
-            got = self._drain_capture(events, every)
+        if self.capture.on:
+            got = self.capture.drain(events, every)
             if got:
-                self._leave(self._capture.inp.stream, got)
+                self._leave(self.capture.stream, got)
         if self._left is not None:  # every performer on its input
             self.performers.solve(self._left, self._left_ns)
             self._left, self._left_ns = None, 0
         if ready & READY_MONITOR:
             inputs.drain_monitor()
-        self._serve_control_sockets(events)
+        self.control.serve(events)  # ctl requests, show control
+        self._watch.drain_ready(events, self._wake_ns)  # watched sockets' monitors
 
     def _accept(self, stream: MarkerStream, code: int, t_ns: int, every: bool) -> int:
         """An input's decoded frame (``code``: the stream's verdict): counted, handed
@@ -540,7 +522,9 @@ class Daemon(CaptureMixin, StatusMixin, ControlMixin):
         if not got_ns:
             return
         if self._left is not None:
-            if self._multi:
+            # [[performer]] tables: an input may carry other performers' markers,
+            # or none of one's; one [performer] reads every input.
+            if self.performers.several:
                 self.performers.solve(self._left, self._left_ns)
                 self._left, self._left_ns = None, 0
             else:
@@ -557,22 +541,6 @@ class Daemon(CaptureMixin, StatusMixin, ControlMixin):
     def _on_labels(self, stream: MarkerStream, label_set: LabelSet) -> None:
         """An input took a label set: the performers build their columns now."""
         self.performers.prepare(stream, label_set)
-
-    def _serve_control_sockets(self, events: list[tuple[Any, int]]) -> None:
-        """Show control, ``ctl`` requests and the watched sockets' monitors."""
-        ctl, show_fd = self._ctl, self._show_fd
-        show = serve = False
-        for sock, _flags in events:
-            if sock is ctl:
-                serve = True
-            elif sock == show_fd:
-                show = True
-            else:  # a watched socket's monitor (watch.py), else nothing
-                self._watch.drain(sock, self._wake_ns)
-        if show:
-            self._drain_show_control()
-        if serve:
-            self._serve_control()
 
     def run(self, should_exit: Callable[[], bool]) -> None:
         """Serve until ``should_exit()`` is true (checked every poll timeout).
@@ -598,8 +566,8 @@ class Daemon(CaptureMixin, StatusMixin, ControlMixin):
                 self._service(events)
             elif self._prewarm.due(time.monotonic_ns()):
                 self._prewarm.touch()  # the fit, warm for the frame that comes next
-            if self._capture is not None:
-                self._tick_capture()  # requests, lost check, held pose: never blocks
+            if self.capture.on:
+                self.capture.tick()  # requests, lost check, held pose: never blocks
             now = time.monotonic_ns()
             if self.console is not None:
                 cmd = self.console.commands.poll()  # nothing allocated when empty
@@ -612,8 +580,8 @@ class Daemon(CaptureMixin, StatusMixin, ControlMixin):
             if stopped:
                 self.out(stopped)
             if now >= next_stats:
-                self.last_stats_line = self.stats_line()
-                self._window = (now, self.stats.frames_in, self.stats.frames_out)
+                self.last_stats_line = self.health.line()
+                self.health.roll(now)
                 self.out(self.last_stats_line)
                 next_stats = now + int(c.stats_interval_s * 1e9)
 

@@ -42,8 +42,11 @@ from typing import Any
 import zmq
 
 from retargetd.daemon.body.calibration import match_markers
+from retargetd.daemon.live.inputs import Accept
 from retargetd.daemon.live.performer import Performer
-from retargetd.daemon.live.state import DaemonState
+from retargetd.daemon.live.performers import Performers
+from retargetd.daemon.live.ratelog import OncePer
+from retargetd.daemon.live.shared import Shared
 from retargetd.protocols import natnet, natnet_client, pose_stream, qtm
 from retargetd.protocols.marker_input import ACCEPTED, RESTART, RESTART_GAP_NS
 from retargetd.protocols.vmc_out import CALIBRATION_CALIBRATED
@@ -213,13 +216,56 @@ def _natnet_reader(
     return lambda: client.read(sock)
 
 
-class CaptureMixin(DaemonState):
-    """The capture-system input of the loop: open, drain, tick, hold, status."""
+class CaptureSource:
+    """The capture-system input of the loop ([input] source: QTM or NatNet), one
+    part: open, drain, tick, hold, status.
 
-    _capture: CaptureInput | None
+    Args:
+        shared: the loop's side (config, counters, outputs, recording, out).
+        performers: whose rigs the labels are checked against and whose last poses
+            are sent again, held, while the source is lost.
+        poller: the loop's poller (the capture's descriptors are polled).
+        endpoints: what is listening where.
+        warn: the loop's once-per-interval gate for warning lines.
+        accept: the loop's hand-off of a decoded frame (``inputs.Accept``).
+        stale: called when an accepted frame is superseded before it was solved.
+    """
 
-    def _open_capture(self) -> None:
-        url = self.config.input.source
+    def __init__(
+        self,
+        shared: Shared,
+        performers: Performers,
+        poller: zmq.Poller,
+        endpoints: dict[str, str],
+        warn: OncePer,
+        accept: Accept,
+        stale: Callable[[], None],
+    ) -> None:
+        self.shared = shared
+        self.out = shared.out
+        self.recording = shared.recording
+        self.performers = performers
+        self._poller = poller
+        self.endpoints = endpoints
+        self._warn = warn
+        self._accept = accept
+        self._stale = stale
+        self._capture: CaptureInput | None = None
+
+    @property
+    def on(self) -> bool:
+        """Whether a capture system is connected (or being connected)."""
+        return self._capture is not None
+
+    @property
+    def stream(self) -> Any:
+        """The capture input's stream (``on`` only)."""
+        assert self._capture is not None
+        return self._capture.inp.stream
+
+    def open(self) -> None:
+        """Start connecting to ``[input] source`` (nothing when it is unset)."""
+        url = self.shared.config.input.source
         if not url:
             return
         cap = open_capture(url, self.out)
@@ -233,7 +279,8 @@ class CaptureMixin(DaemonState):
             "connects and reconnects by itself, the loop never waits for it"
         )
 
-    def _close_capture(self) -> None:
+    def close(self) -> None:
+        """Disconnect (idempotent)."""
         cap = self._capture
         if cap is None:
             return
@@ -243,7 +290,7 @@ class CaptureMixin(DaemonState):
         cap.close()
         self._capture = None
 
-    def _drain_capture(self, events: list[tuple[Any, int]], every: bool) -> int:
+    def drain(self, events: list[tuple[Any, int]], every: bool) -> int:
         """Read, record and decode every waiting packet; the receive time of the
         newest accepted frame left unsolved (latest wins), else 0."""
         cap = self._capture
@@ -373,7 +420,7 @@ class CaptureMixin(DaemonState):
             f"{(t_ns - cap.lost_since_ns) * 1e-9:.1f} s; streaming"
         )
 
-    def _tick_capture(self) -> None:
+    def tick(self) -> None:
         """Every wake-up and poll timeout: the NatNet client's requests, the lost
         check, and the held pose while lost. Never blocks."""
         cap = self._capture
@@ -409,14 +456,14 @@ class CaptureMixin(DaemonState):
         pipe = perf.path.pipelines.get(key)
         if pipe is None:
             return
-        outputs = self.outputs
+        outputs = self.shared.outputs
         if outputs.vmc_on:
             # VMC has no frame flags; its own word for this is /VMC/Ext/OK with
             # tracking 0 (VMC 2.7): the model is loaded and calibrated, tracking is
             # lost. Receivers keep the last pose they got and hear the performer is
             # still there (silence reads as "no performer" in EVMC4U and VSeeFace).
             dgram = perf.vmc.state.encode_state(
-                CALIBRATION_CALIBRATED, False, (now_ns - self._t0_ns) * 1e-9
+                CALIBRATION_CALIBRATED, False, (now_ns - self.shared.t0_ns) * 1e-9
             )
             perf.vmc.send((dgram,))
             cap.counts["held_vmc"] += 1
@@ -431,7 +478,7 @@ class CaptureMixin(DaemonState):
         outputs.send_pub(parts, now_ns)
         cap.counts["held_poses"] += 1
 
-    def _capture_status(self) -> dict[str, Any] | None:
+    def status(self) -> dict[str, Any] | None:
         """``status["capture"]``: the source's state, counters and drops."""
         cap = self._capture
         if cap is None:
