@@ -58,7 +58,7 @@ from retargetd.daemon.live import send as live_send
 from retargetd.daemon.live.config import DaemonConfig
 from retargetd.daemon.live.loop import Daemon
 from retargetd.daemon.synth import performer as pf
-from retargetd.protocols import osc_in, zmq_wire
+from retargetd.protocols import engine_unity, osc_in, zmq_wire
 from retargetd.protocols.marker_input import LabelSet
 
 
@@ -212,7 +212,7 @@ def profile(
             pipe.pose_enc.encode = t["pose encode"].wrap(pipe.pose_enc.encode)  # type: ignore[method-assign]
             if d.validator is not None:
                 d.validator.submit = t["validator submit"].wrap(d.validator.submit)  # type: ignore[method-assign]
-            eu = live_send.engine_unity
+            eu = engine_unity
             saved_eu = (eu.unity_quat_xyzw_from_world, eu.unity_pos_from_world)
             eu.unity_quat_xyzw_from_world = t["engine frame"].wrap(saved_eu[0])
             eu.unity_pos_from_world = t["engine frame"].wrap(saved_eu[1])

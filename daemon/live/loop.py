@@ -74,7 +74,7 @@ from retargetd.daemon.live.ratelog import (
     print_line,
 )
 from retargetd.daemon.live.recording import LiveRecording
-from retargetd.daemon.live.send import BodyPath, spine_stage
+from retargetd.daemon.live.send import BodyPath
 from retargetd.daemon.live.shared import Shared
 from retargetd.daemon.live.sources import CaptureSource
 from retargetd.daemon.live.stats import LoopStats
@@ -85,6 +85,7 @@ from retargetd.daemon.live.surface import (
 )
 from retargetd.daemon.live.watch import SocketWatch
 from retargetd.daemon.post.interp import RateResampler
+from retargetd.daemon.post.pivot import spine_stage
 from retargetd.daemon.post.pose import PoseBuffer
 from retargetd.daemon.progress import Progress
 from retargetd.daemon.retarget.retarget import (

@@ -1,26 +1,36 @@
 """The pipeline of one performer on one stream (or view): everything that depends on
-(rig, calibration, label set), built off the hot path when one of them changes and
-reused for every frame (``send.BodyPath``).
+(rig, calibration, label set), built off the hot path when one of them changes
+(:func:`new_pipeline`) and reused for every frame (``send.BodyPath``).
 """
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
+from retargetd.daemon.body.method import make_body_solver
 from retargetd.daemon.body.solve import BodySolver
 from retargetd.daemon.body.solve_fit import FitSolver
 from retargetd.daemon.live.emit import EmitPlan
 from retargetd.daemon.live.face import FaceStage
-from retargetd.daemon.post.pivot import SpinePivot
-from retargetd.daemon.post.plant import FootPlant
+from retargetd.daemon.live.performer import Performer
+from retargetd.daemon.live.shared import Shared
+from retargetd.daemon.post.pipeline import build_pipeline
+from retargetd.daemon.post.pivot import SpinePivot, spine_stage
+from retargetd.daemon.post.plant import FootPlant, plant_stage
 from retargetd.daemon.post.solve_post import SolvePost
 from retargetd.daemon.post.stance import StanceDetector
-from retargetd.protocols import pose_stream
+from retargetd.daemon.retarget.retarget import Retargeter
+from retargetd.daemon.validate.limits import JOINT_LIMITS_DEG
+from retargetd.daemon.validate.model import SEGMENT_KIND
+from retargetd.protocols import engine_unity, pose_stream
 from retargetd.protocols.vmc_out import VmcEncoder
+
+logger = logging.getLogger(__name__)
 
 
 @dataclass(slots=True)
@@ -55,3 +65,124 @@ class Pipeline:
     # the last solved frame's source time, frame number and receive time (the fit's
     # frame time, BodyPath._frame_dt_s)
     last_times: tuple[float, int, int] = (math.nan, -1, 0)
+
+
+def new_pipeline(
+    perf: Performer, sh: Shared, labels: tuple[str, ...], *, with_face: bool = True
+) -> Pipeline:
+    """A new pipeline of ``perf`` for a stream of ``labels`` (with the face stage
+    unless ``with_face`` is False); its names id is the next of ``sh``."""
+    config, rig, calibration, target = (
+        sh.config,
+        perf.rig,
+        perf.calibration,
+        sh.target,
+    )
+    assert calibration is not None
+    solver = make_body_solver(
+        config.solve.method, rig, calibration, labels,
+        joint_limits=JOINT_LIMITS_DEG, segment_kind=SEGMENT_KIND,
+        rate_hz=config.validate.rate_hz,
+    )  # fmt: skip
+    if solver.missing_markers:
+        logger.warning(
+            "rig %s markers not in the stream (occluded): %s",
+            rig.name,
+            " ".join(solver.missing_markers),
+        )
+    retargeter = Retargeter(
+        rig, calibration, target,
+        compensate_base_pose=config.target.compensate_base_pose,
+    )  # fmt: skip
+    target_pose = retargeter.new_pose()
+    names = tuple(target.bone_names)
+    n = len(names)
+    bone_pos_unity = np.zeros((n, 3))
+    engine_unity.unity_pos_from_world(
+        np.asarray(target_pose.rest_offsets, dtype=np.float64), bone_pos_unity
+    )
+    names_id = sh.next_names_id()
+    n_bones = len(rig.bones)
+    face = None
+    if with_face and perf.face is not None:
+        face = perf.face.stage(labels)
+    weight_names = face.weight_names if face is not None else ()
+    face_markers = face.marker_names if face is not None else ()
+    names_msg = pose_stream.PoseNames(
+        rig=rig.name,
+        bone_names=rig.bone_names,
+        bone_parents=rig.bone_parent_indices(),
+        weight_names=weight_names,
+        names_id=names_id,
+        face_markers=face_markers,
+        performer=perf.name,
+        performer_id=perf.index,
+        bone_humanoid=tuple(b.humanoid or "" for b in rig.bones),
+        unobserved=face.unobserved if face is not None else (),
+    )
+    vmc = VmcEncoder(
+        names,
+        face.output_names if face is not None else (),
+        max_datagram=perf.vmc.max_datagram,
+    )
+    pose_enc = pose_stream.PoseEncoder(
+        n_bones,
+        len(weight_names),
+        names_id=names_id,
+        n_face_markers=len(face_markers) if face is not None else None,
+        performer=perf.index,
+    )
+    emit = EmitPlan(retargeter, vmc, pose_enc, bone_pos_unity)
+    stance = StanceDetector(rig, calibration)
+    pose = solver.new_pose()
+    blend = face.blend if face is not None else np.zeros(0)
+    weights = face.weights if face is not None else np.zeros(0)
+    emit.bind(pose, blend, weights)
+    return Pipeline(
+        solver=solver,
+        retargeter=retargeter,
+        pose=pose,
+        target_pose=emit.target_pose,
+        vmc=vmc,
+        bone_pos_unity=bone_pos_unity,
+        bone_quat_xyzw=np.zeros((n, 4)),
+        root_pos_unity=np.zeros(3),
+        root_quat_xyzw=np.array([0.0, 0.0, 0.0, 1.0]),
+        blend=blend,
+        pose_enc=pose_enc,
+        names_parts=pose_stream.encode_pose_names(names_msg),
+        weights=weights,
+        bone_flags=np.zeros(n_bones, dtype=np.uint8),
+        face=face,
+        shape_enc=(
+            pose_stream.ShapeStateEncoder(len(weight_names), names_id)
+            if face is not None
+            else None
+        ),
+        post=_post_stages(perf, sh),
+        spine=spine_stage(config.target, target, rig),
+        plant=plant_stage(config.target.feet, retargeter, stance),
+        emit=emit,
+        stance=stance,
+    )
+
+
+def _post_stages(perf: Performer, sh: Shared) -> SolvePost | None:
+    """The ``[[pipeline]]`` stages for ``perf``'s rig and calibration (fresh
+    state)."""
+    config, rig, calibration = sh.config, perf.rig, perf.calibration
+    rate = config.loop.output_rate_hz
+    if not config.pipeline and not rate > 0.0:
+        return None
+    assert calibration is not None
+    parents = rig.bone_parent_indices()
+    rest = np.asarray(calibration.rest_parent_from_bone_quat, np.float64)
+    stages = build_pipeline(
+        config.pipeline,
+        bone_names=rig.bone_names,
+        bone_parents=parents,
+        rest_parent_from_bone_quat=rest,
+    )
+    post = SolvePost(stages, parents, rest, output_rate_hz=rate)
+    sh.stats.set_post_stages(post.stage_names)
+    return post

@@ -16,35 +16,22 @@ from typing import Any
 import numpy as np
 
 from retargetd.daemon.body.match import MatchWindow
-from retargetd.daemon.body.method import make_body_solver
 from retargetd.daemon.body.solve import FLAG_HELD
 from retargetd.daemon.live.emit import (
     DO_POSE,
     DO_RETARGET,
     DO_VMC,
     NO_FLAGS,
-    EmitPlan,
 )
 from retargetd.daemon.live.outputs import VMC_STATE_INTERVAL_NS
 from retargetd.daemon.live.performer import FrameSource, Performer
-from retargetd.daemon.live.pipeline import Pipeline
+from retargetd.daemon.live.pipeline import Pipeline, new_pipeline
 from retargetd.daemon.live.shared import Shared
-from retargetd.daemon.post.pipeline import build_pipeline
-from retargetd.daemon.post.pivot import spine_stage
-from retargetd.daemon.post.plant import plant_stage
-from retargetd.daemon.post.solve_post import SolvePost
-from retargetd.daemon.post.stance import StanceDetector
-from retargetd.daemon.retarget.retarget import (
-    Retargeter,
-)
-from retargetd.daemon.validate.limits import JOINT_LIMITS_DEG
 from retargetd.daemon.validate.live import LiveValidator
-from retargetd.daemon.validate.model import SEGMENT_KIND
-from retargetd.protocols import engine_unity, pose_stream
+from retargetd.protocols import pose_stream
 from retargetd.protocols.vmc_out import (
     CALIBRATION_CALIBRATING,
     CALIBRATION_WAITING,
-    VmcEncoder,
 )
 
 logger = logging.getLogger(__name__)
@@ -159,126 +146,10 @@ class BodyPath:
     def build_pipeline(
         self, labels: tuple[str, ...], *, with_face: bool = True
     ) -> Pipeline:
-        """A new pipeline for a stream of ``labels`` (with the face stage unless
-        ``with_face`` is False)."""
-        perf, sh = self.perf, self.shared
-        config, rig, calibration, target = (
-            sh.config,
-            perf.rig,
-            perf.calibration,
-            sh.target,
-        )
-        assert calibration is not None
-        solver = make_body_solver(
-            config.solve.method, rig, calibration, labels,
-            joint_limits=JOINT_LIMITS_DEG, segment_kind=SEGMENT_KIND,
-            rate_hz=config.validate.rate_hz,
-        )  # fmt: skip
-        if solver.missing_markers:
-            logger.warning(
-                "rig %s markers not in the stream (occluded): %s",
-                rig.name,
-                " ".join(solver.missing_markers),
-            )
-        retargeter = Retargeter(
-            rig, calibration, target,
-            compensate_base_pose=config.target.compensate_base_pose,
-        )  # fmt: skip
-        target_pose = retargeter.new_pose()
-        names = tuple(target.bone_names)
-        n = len(names)
-        bone_pos_unity = np.zeros((n, 3))
-        engine_unity.unity_pos_from_world(
-            np.asarray(target_pose.rest_offsets, dtype=np.float64), bone_pos_unity
-        )
-        names_id = sh.next_names_id()
-        self.last_names_ns = 0  # new names: announce them with the next frame
-        n_bones = len(rig.bones)
-        face = None
-        if with_face and perf.face is not None:
-            face = perf.face.stage(labels)
-        weight_names = face.weight_names if face is not None else ()
-        face_markers = face.marker_names if face is not None else ()
-        names_msg = pose_stream.PoseNames(
-            rig=rig.name,
-            bone_names=rig.bone_names,
-            bone_parents=rig.bone_parent_indices(),
-            weight_names=weight_names,
-            names_id=names_id,
-            face_markers=face_markers,
-            performer=perf.name,
-            performer_id=perf.index,
-            bone_humanoid=tuple(b.humanoid or "" for b in rig.bones),
-            unobserved=face.unobserved if face is not None else (),
-        )
-        vmc = VmcEncoder(
-            names,
-            face.output_names if face is not None else (),
-            max_datagram=perf.vmc.max_datagram,
-        )
-        pose_enc = pose_stream.PoseEncoder(
-            n_bones,
-            len(weight_names),
-            names_id=names_id,
-            n_face_markers=len(face_markers) if face is not None else None,
-            performer=perf.index,
-        )
-        emit = EmitPlan(retargeter, vmc, pose_enc, bone_pos_unity)
-        stance = StanceDetector(rig, calibration)
-        pose = solver.new_pose()
-        blend = face.blend if face is not None else np.zeros(0)
-        weights = face.weights if face is not None else np.zeros(0)
-        emit.bind(pose, blend, weights)
-        return Pipeline(
-            solver=solver,
-            retargeter=retargeter,
-            pose=pose,
-            target_pose=emit.target_pose,
-            vmc=vmc,
-            bone_pos_unity=bone_pos_unity,
-            bone_quat_xyzw=np.zeros((n, 4)),
-            root_pos_unity=np.zeros(3),
-            root_quat_xyzw=np.array([0.0, 0.0, 0.0, 1.0]),
-            blend=blend,
-            pose_enc=pose_enc,
-            names_parts=pose_stream.encode_pose_names(names_msg),
-            weights=weights,
-            bone_flags=np.zeros(n_bones, dtype=np.uint8),
-            face=face,
-            shape_enc=(
-                pose_stream.ShapeStateEncoder(len(weight_names), names_id)
-                if face is not None
-                else None
-            ),
-            post=self._build_post(),
-            spine=spine_stage(config.target, target, rig),
-            plant=plant_stage(config.target.feet, retargeter, stance),
-            emit=emit,
-            stance=stance,
-        )
-
-    def _build_post(self) -> SolvePost | None:
-        """The ``[[pipeline]]`` stages for this rig and calibration (fresh state)."""
-        config, rig, calibration = (
-            self.shared.config,
-            self.perf.rig,
-            self.perf.calibration,
-        )
-        rate = config.loop.output_rate_hz
-        if not config.pipeline and not rate > 0.0:
-            return None
-        assert calibration is not None
-        parents = rig.bone_parent_indices()
-        rest = np.asarray(calibration.rest_parent_from_bone_quat, np.float64)
-        stages = build_pipeline(
-            config.pipeline,
-            bone_names=rig.bone_names,
-            bone_parents=parents,
-            rest_parent_from_bone_quat=rest,
-        )
-        post = SolvePost(stages, parents, rest, output_rate_hz=rate)
-        self.shared.stats.set_post_stages(post.stage_names)
-        return post
+        """A new pipeline for a stream of ``labels`` (``pipeline.new_pipeline``);
+        its names are announced with the next frame."""
+        self.last_names_ns = 0
+        return new_pipeline(self.perf, self.shared, labels, with_face=with_face)
 
     def process(self, stream: FrameSource, received_ns: int) -> None:
         """Solve ``stream``'s current frame (received at ``received_ns``), post-process,
