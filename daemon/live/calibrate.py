@@ -1,7 +1,7 @@
 """Live calibration and face capture, one per performer (:class:`LiveCalibration`,
 its own state): average the next N accepted frames while the
 stream goes on with the old calibration, swap the new one in atomically (the loop
-thread is its only reader) and save it; face training poses captured the same way;
+thread is its only reader) and save it; face training poses captured the same way
 (the reload of the rig and calibration files is ``performers.Performers.reload``).
 
 A calibration is taken only from a still performer: the markers' drift over the
@@ -97,6 +97,20 @@ class LiveCalibration:
         self.rom_frames: list[np.ndarray] = []
         self.rom_times: list[tuple[float, int, int]] = []
         self.limit = RateLimiter(min_interval_s)
+
+    @property
+    def pending(self) -> bool:
+        """A calibration request is collecting frames."""
+        return self.target > 0
+
+    def status(self) -> dict[str, Any]:
+        """The performer's calibration state (status)."""
+        return {
+            "calibrating": self.target > 0,
+            "calibration_message": self.message,
+            "calibration_id": self.id,
+            "calibration_state": self.state,
+        }
 
     def request(self, count: object = None, by: str = "", rom_s: object = None) -> str:
         """Start a live calibration over the next ``count`` accepted frames.
@@ -246,7 +260,7 @@ class LiveCalibration:
             # The next frame solves with the new training set; pipelines rebuilt now,
             # off the frame that completed the capture.
             self.shared.stats.face_captures += 1
-            self.perf.path.rebuild(labels, self._sources())
+            self.perf.use_face(labels, self._sources())
         self.shared.recording.event("face_capture", ok=ok, message=msg)
         self.shared.out(self._named(msg))
 

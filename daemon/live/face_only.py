@@ -67,6 +67,25 @@ class FacePath:
         self.last_names_ns = 0
         self.frame_flags = 0
 
+    def flag(self, bits: int) -> None:
+        """Frame flags for the next pose (restarted, input dropped)."""
+        self.frame_flags |= bits
+
+    def announce_names(self) -> None:
+        """The next pose is preceded by its names message."""
+        self.last_names_ns = 0
+
+    def match_status(self) -> dict[str, Any] | None:
+        """No body: no calibration to match."""
+        return None
+
+    def resend_held(self, key: int, now_ns: int) -> tuple[bool, bool]:
+        """Nothing held is sent again for a face alone."""
+        return False, False
+
+    def warm_up(self) -> None:
+        """Nothing to warm (the face kernels warm up with the loop's)."""
+
     def restart(self, key: int) -> None:
         """The source of ``key`` restarted: its face solve starts over."""
         stage = self.stages.get(key)
@@ -156,17 +175,8 @@ class FacePath:
         stats.frames_solved += 1
         flags = self.frame_flags
         self.frame_flags = 0
-        sock = vmc.sock
-        if sock is not None:
-            dgrams = stage.vmc.encode(stage.face.blend, (solved_ns - sh.t0_ns) * 1e-9)
-            if vmc.connected:
-                for dgram in dgrams:
-                    try:
-                        sock.send(dgram)
-                    except OSError:
-                        stats.vmc_errors += 1
-            else:
-                vmc.send(dgrams)
+        if vmc.sock is not None:
+            vmc.send(stage.vmc.encode(stage.face.blend, (solved_ns - sh.t0_ns) * 1e-9))
         if outputs.publishing:
             if solved_ns - self.last_names_ns >= 1_000_000_000:
                 outputs.send_pub(stage.names_parts, solved_ns)

@@ -1,4 +1,6 @@
-"""The live loop: one thread owns the sockets and the solve.
+"""The live loop: one thread owns the sockets and the solve. :class:`Daemon` composes
+the parts (inputs, performers, outputs, control, health; ``daemon/live/__init__.py``
+says who owns what) and :meth:`Daemon._service` is a frame's path, top-down.
 
 A ``zmq.Poller`` waits on every input at once (plain UDP sockets and ZeroMQ sockets
 alike). Each wake-up drains every readable socket, decoding marker packets straight
@@ -19,17 +21,17 @@ local ZeroMQ REP socket; show-control arrives as OSC on VMC's performer port
 stream goes on with the old calibration, then swaps the new one in atomically (the
 loop thread is the only one that reads it) and saves it.
 
-``record`` starts and stops a recording inside the daemon (``live_recording.py``):
+``record`` starts and stops a recording inside the daemon (``recording.py``):
 the loop hands packets, poses and control events to a writer thread with
 ``put_nowait`` only, and never writes to the disk itself.
 
-With ``[face]`` on, the same frame is also solved for the face (``live_face.py``:
+With ``[face]`` on, the same frame is also solved for the face (``face.py``:
 stabilized markers and blendshape weights) before the send: the weights go out as
 VMC blendshapes under the target's names and in the pose stream with the stabilized
 markers. ``face-capture`` captures training poses live.
 
 With ``[validate]`` on, every sent pose is handed to the live validator
-(``validate_live.py``) with a non-blocking submit after the send; its results come
+(``validate/live.py``) with a non-blocking submit after the send; its results come
 back on later frames: their bits are ORed into the next pose and each is published
 as an ``RTDV`` message (``protocols/PROTOCOLS.md``).
 """
@@ -74,7 +76,6 @@ from retargetd.daemon.live.ratelog import (
     print_line,
 )
 from retargetd.daemon.live.recording import LiveRecording
-from retargetd.daemon.live.send import BodyPath
 from retargetd.daemon.live.shared import Shared
 from retargetd.daemon.live.sources import CaptureSource
 from retargetd.daemon.live.stats import LoopStats
@@ -371,35 +372,7 @@ class Daemon:
             for t_s in (0.0, 0.02):  # a tick on a pose and one between two
                 probe.t_s = t_s
                 res.push(probe)
-        first = self.performers.first
-        if first.calibration is None or not isinstance(first.path, BodyPath):
-            return
-        # A stream naming every marker as the rig's labels do (its names need not
-        # be labels: such a warm-up would call every marker missing).
-        labels = tuple(aliases[0] for aliases in first.rig.markers.values())
-        pipe = first.path.build_pipeline(labels, with_face=False)
-        nan_frame = np.full((len(labels), 3), np.nan)
-        pose = pipe.solver.solve_frame(nan_frame, pipe.pose)
-        pipe.retargeter.apply(pose, pipe.target_pose)
-        # The [[pipeline]] stages and the spine pivot compile on their first finite
-        # pose (a twist and a One Euro stage: 4.1 s into the stream on a cold cache,
-        # measured): run them here on the rest pose, two frames apart (the filters'
-        # second-frame path), so no streamed frame pays for it.
-        if pipe.post is not None or pipe.spine is not None:
-            pose.parent_from_bone_quat[:] = first.calibration.rest_parent_from_bone_quat
-            pose.root_pos[:] = 0.0
-            now_ns = time.monotonic_ns()
-            for k in range(2):
-                if pipe.post is not None:
-                    t_ns = now_ns + k * 10_000_000
-                    pipe.post.apply(pose, k * 0.01, t_ns, k)
-                    pipe.post.pop_due(pose, t_ns)
-            if pipe.spine is not None:
-                tp = pipe.target_pose
-                pipe.retargeter.apply(pose, tp)
-                pipe.spine.apply(tp.world_from_bone_quat, tp.rest_from_bone_quat)
-        pipe.solver.reset()
-        self.shared.names_id -= 1  # this pipeline is thrown away; keep the ids dense
+        self.performers.first.path.warm_up()  # its stages, on a throwaway pipeline
 
     def _server_socket(
         self, kind: int, secret_key: str, client_keys: tuple[str, ...]

@@ -66,10 +66,18 @@ class FramePath(Protocol):
 
     pipelines: dict[int, Any]
     validator: Any
-    frame_flags: int
-    last_names_ns: int
 
     def process(self, stream: FrameSource, received_ns: int) -> None: ...
+
+    def flag(self, bits: int) -> None: ...
+
+    def announce_names(self) -> None: ...
+
+    def match_status(self) -> dict[str, Any] | None: ...
+
+    def resend_held(self, key: int, now_ns: int) -> tuple[bool, bool]: ...
+
+    def warm_up(self) -> None: ...
 
     def restart(self, key: int) -> None: ...
 
@@ -95,11 +103,24 @@ class _NoPath:
 
     pipelines: dict[int, Any] = {}  # noqa: RUF012 (never written)
     validator: Any = None
-    frame_flags = 0
-    last_names_ns = 0
 
     def process(self, stream: FrameSource, received_ns: int) -> None:
         raise RuntimeError("a performer without its frame path")
+
+    def flag(self, bits: int) -> None:
+        pass
+
+    def announce_names(self) -> None:
+        pass
+
+    def match_status(self) -> dict[str, Any] | None:
+        return None
+
+    def resend_held(self, key: int, now_ns: int) -> tuple[bool, bool]:
+        return False, False
+
+    def warm_up(self) -> None:
+        pass
 
     def restart(self, key: int) -> None:
         pass
@@ -307,6 +328,11 @@ class Performer:
         self.calibration = calibration
         self.path.rebuild(labels, sources)
         self.path.start_validator()
+
+    def use_face(self, labels: tuple[str, ...], sources: list[FrameSource]) -> None:
+        """Its face has a new training set: the pipelines of the ``sources``
+        carrying ``labels`` built now with it."""
+        self.path.rebuild(labels, sources)
 
     @property
     def label(self) -> str:

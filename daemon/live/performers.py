@@ -104,13 +104,13 @@ class Performers:
         for perf in self.all:
             calib = perf.calib
             capturing = perf.face is not None and perf.face.capturing
-            if not calib.target and not capturing:
+            if not calib.pending and not capturing:
                 continue
             kind = kind or self._kind_of(stream)
             source = perf.frame_of(stream, kind)
             if source is None:
                 continue
-            if calib.target:
+            if calib.pending:
                 calib.collect(source)
             if capturing:
                 calib.collect_face(source)
@@ -125,7 +125,7 @@ class Performers:
     def flag(self, bits: int) -> None:
         """Set frame flags on every performer's next pose (restarted, dropped)."""
         for perf in self.all:
-            perf.path.frame_flags |= bits
+            perf.path.flag(bits)
 
     def prepare(self, stream: MarkerStream, label_set: LabelSet) -> None:
         """A label set was announced: build every performer's column index for it
@@ -160,7 +160,7 @@ class Performers:
         for perf in self.all:
             perf.calib.tick(now_ns)
         for perf in self.all:
-            perf.path.send_vmc_state(now_ns, perf.calib.target > 0)
+            perf.path.send_vmc_state(now_ns, perf.calib.pending)
         now_ns = time.monotonic_ns()
         for perf in self.all:
             perf.path.send_due_ticks(now_ns)
@@ -210,7 +210,7 @@ class Performers:
         """Every performer's next pose is preceded by its names message (a
         recording of the pose stream opens with them)."""
         for perf in self.all:
-            perf.path.last_names_ns = 0
+            perf.path.announce_names()
 
     def reload(self) -> str:
         """Reload the rig file, the calibration file and the config file's
@@ -304,7 +304,6 @@ class Performers:
         docs = []
         for perf in self.all:
             occluded, held = perf.path.occluded_and_held()
-            calib = perf.calib
             ps = perf.stats if self.several else stats
             docs.append(
                 {
@@ -316,11 +315,8 @@ class Performers:
                     "body": perf.body,
                     # a face alone has nothing to calibrate
                     "calibrated": perf.calibration is not None or not perf.body,
-                    "calibrating": calib.target > 0,
-                    "calibration_message": calib.message,
-                    "calibration_id": calib.id,
-                    "calibration_state": calib.state,
-                    "calibration_match": _match_status(perf),
+                    **perf.calib.status(),
+                    "calibration_match": perf.path.match_status(),
                     "vmc": f"{perf.vmc_addr[0]}:{perf.vmc_addr[1]}",
                     "frames_out": ps.frames_out,
                     "unsolved": ps.unsolved,
@@ -353,21 +349,6 @@ class Performers:
                 f"{'-' if p99 is None else f'{p99:.0f}'} us{state}"
             )
         return " | performers " + ", ".join(parts)
-
-
-def _match_status(perf: Performer) -> dict[str, Any] | None:
-    """``calibration_match`` of a performer's status: None before its first second
-    of frames with its calibration has been checked (``body.match``)."""
-    window = getattr(perf.path, "match_window", None)  # a face alone has none
-    if window is None or window.result is None:
-        return None
-    found = window.result
-    return {
-        "matches": found.matches,
-        "frames": found.frames,
-        "warning": found.warning(),
-        "segments": found.to_json(),
-    }
 
 
 def _round(value: float) -> float | None:

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import logging
 import math
+import time
 from dataclasses import dataclass
 from typing import Any
 
@@ -186,3 +187,39 @@ def _post_stages(perf: Performer, sh: Shared) -> SolvePost | None:
     post = SolvePost(stages, parents, rest, output_rate_hz=rate)
     sh.stats.set_post_stages(post.stage_names)
     return post
+
+
+def warm_up_pipeline(perf: Performer, sh: Shared) -> None:
+    """Run every stage of a throwaway pipeline of ``perf`` once (its calibration
+    needed), so that no streamed frame pays for a first call: the solve, the
+    retarget, and the ``[[pipeline]]`` stages and spine pivot that compile on their
+    first finite pose."""
+    calibration = perf.calibration
+    if calibration is None:
+        return
+    # A stream naming every marker as the rig's labels do (its names need not
+    # be labels: such a warm-up would call every marker missing).
+    labels = tuple(aliases[0] for aliases in perf.rig.markers.values())
+    pipe = new_pipeline(perf, sh, labels, with_face=False)
+    nan_frame = np.full((len(labels), 3), np.nan)
+    pose = pipe.solver.solve_frame(nan_frame, pipe.pose)
+    pipe.retargeter.apply(pose, pipe.target_pose)
+    # The [[pipeline]] stages and the spine pivot compile on their first finite
+    # pose (a twist and a One Euro stage: 4.1 s into the stream on a cold cache,
+    # measured): run them here on the rest pose, two frames apart (the filters'
+    # second-frame path), so no streamed frame pays for it.
+    if pipe.post is not None or pipe.spine is not None:
+        pose.parent_from_bone_quat[:] = calibration.rest_parent_from_bone_quat
+        pose.root_pos[:] = 0.0
+        now_ns = time.monotonic_ns()
+        for k in range(2):
+            if pipe.post is not None:
+                t_ns = now_ns + k * 10_000_000
+                pipe.post.apply(pose, k * 0.01, t_ns, k)
+                pipe.post.pop_due(pose, t_ns)
+        if pipe.spine is not None:
+            tp = pipe.target_pose
+            pipe.retargeter.apply(pose, tp)
+            pipe.spine.apply(tp.world_from_bone_quat, tp.rest_from_bone_quat)
+    pipe.solver.reset()
+    sh.names_id -= 1  # this pipeline is thrown away; keep the ids dense

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import math
+import struct
 import time
 from typing import Any
 
@@ -25,11 +26,12 @@ from retargetd.daemon.live.emit import (
 )
 from retargetd.daemon.live.outputs import VMC_STATE_INTERVAL_NS
 from retargetd.daemon.live.performer import FrameSource, Performer
-from retargetd.daemon.live.pipeline import Pipeline, new_pipeline
+from retargetd.daemon.live.pipeline import Pipeline, new_pipeline, warm_up_pipeline
 from retargetd.daemon.live.shared import Shared
 from retargetd.daemon.validate.live import LiveValidator
 from retargetd.protocols import pose_stream
 from retargetd.protocols.vmc_out import (
+    CALIBRATION_CALIBRATED,
     CALIBRATION_CALIBRATING,
     CALIBRATION_WAITING,
 )
@@ -69,6 +71,10 @@ def frame_interval_s(
 
 
 _PERFORMER_MASK = pose_stream.PERFORMER_MASK
+#: Byte offset of the frame flags in the pose-stream data header (PROTOCOLS.md): a
+#: held pose sent again is flagged in place.
+_FLAGS_OFFSET = struct.calcsize("<4sHHqdqqq")
+_FLAGS = struct.Struct("<I")
 
 
 class BodyPath:
@@ -119,6 +125,11 @@ class BodyPath:
         self.labels_of[key] = labels
         self.shared.prewarm.register((id(perf), key), pipe.solver, stream.current.frame)
         return pipe
+
+    def warm_up(self) -> None:
+        """Every stage run once on a throwaway pipeline (``warm_up_pipeline``)."""
+        self.last_names_ns = 0
+        warm_up_pipeline(self.perf, self.shared)
 
     def rebuild(self, labels: tuple[str, ...], sources: list[FrameSource]) -> None:
         """The calibration or face changed: every pipeline goes, and those of the
@@ -357,9 +368,9 @@ class BodyPath:
                     self._take_validation_bits(results[n_results - 1])
             flags |= self.validation_bits
         vmc = perf.vmc
-        vmc_sock = vmc.sock  # None: [output.vmc] off
-        publish = outputs.pub is not None or recording.poses is not None
-        if vmc_sock is not None:
+        vmc_on = vmc.sock is not None  # False: [output.vmc] off
+        publish = outputs.publishing
+        if vmc_on:
             what |= DO_VMC
         if publish:
             what |= DO_POSE
@@ -370,15 +381,8 @@ class BodyPath:
             (solved_ns - sh.t0_ns) * 1e-9, frame_id, source_t, received_ns,
             solved_ns, flags_word,
         )  # fmt: skip
-        if vmc_sock is not None:
-            if vmc.connected:  # (one datagram to a loopback receiver)
-                for dgram in pipe.vmc.datagrams:
-                    try:
-                        vmc_sock.send(dgram)
-                    except OSError:  # receiver absent, buffer full: never block
-                        stats.vmc_errors += 1
-            else:
-                vmc.send(pipe.vmc.datagrams)
+        if vmc_on:  # (one datagram to a loopback receiver; never blocks)
+            vmc.send(pipe.vmc.datagrams)
         bone_flags = pose.bone_flags
         if publish:
             if solved_ns - self.last_names_ns >= 1_000_000_000:
@@ -469,6 +473,57 @@ class BodyPath:
                     r.frame_flags, r.values, r.bone_flags,
                 )  # fmt: skip
                 outputs.send_pub(msg, r.validated_ns)
+
+    def flag(self, bits: int) -> None:
+        """Frame flags for the next pose (restarted, input dropped)."""
+        self.frame_flags |= bits
+
+    def announce_names(self) -> None:
+        """The next pose is preceded by its names message."""
+        self.last_names_ns = 0
+
+    def match_status(self) -> dict[str, Any] | None:
+        """``calibration_match`` of the status: None before the first second of
+        frames with this calibration has been checked (``body.match``)."""
+        window = self.match_window
+        if window is None or window.result is None:
+            return None
+        found = window.result
+        return {
+            "matches": found.matches,
+            "frames": found.frames,
+            "warning": found.warning(),
+            "segments": found.to_json(),
+        }
+
+    def resend_held(self, key: int, now_ns: int) -> tuple[bool, bool]:
+        """The last pose message on the pipeline ``key`` sent again (its encoder's
+        buffers still hold it), flagged held and source_lost, with a new sent time:
+        the capture system is lost. Returns (VMC state sent, pose sent)."""
+        pipe = self.pipelines.get(key)
+        if pipe is None:
+            return False, False
+        sh, vmc = self.shared, self.perf.vmc
+        outputs = sh.outputs
+        if outputs.vmc_on:
+            # VMC has no frame flags; its own word for this is /VMC/Ext/OK with
+            # tracking 0 (VMC 2.7): the model is loaded and calibrated, tracking is
+            # lost. Receivers keep the last pose they got and hear the performer is
+            # still there (silence reads as "no performer" in EVMC4U and VSeeFace).
+            dgram = vmc.state.encode_state(
+                CALIBRATION_CALIBRATED, False, (now_ns - sh.t0_ns) * 1e-9
+            )
+            vmc.send((dgram,))
+        if not outputs.publishing:
+            return outputs.vmc_on, False
+        parts = pipe.pose_enc.parts
+        header = parts[0]
+        (flags,) = _FLAGS.unpack_from(header, _FLAGS_OFFSET)
+        flags |= pose_stream.FRAME_HELD | pose_stream.FRAME_SOURCE_LOST
+        _FLAGS.pack_into(header, _FLAGS_OFFSET, flags)
+        pose_stream.stamp_sent(header, now_ns)
+        outputs.send_pub(parts, now_ns)
+        return outputs.vmc_on, True
 
     def send_vmc_state(self, now_ns: int, calibrating: bool) -> None:
         """Before a calibration, and while one collects frames, tell the VMC receiver

@@ -33,7 +33,6 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import struct
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -47,9 +46,8 @@ from retargetd.daemon.live.performer import Performer
 from retargetd.daemon.live.performers import Performers
 from retargetd.daemon.live.ratelog import OncePer
 from retargetd.daemon.live.shared import Shared
-from retargetd.protocols import natnet, natnet_client, pose_stream, qtm
+from retargetd.protocols import natnet, natnet_client, qtm
 from retargetd.protocols.marker_input import ACCEPTED, RESTART, RESTART_GAP_NS
-from retargetd.protocols.vmc_out import CALIBRATION_CALIBRATED
 from retargetd.replay import recording as rf
 
 logger = logging.getLogger(__name__)
@@ -72,9 +70,6 @@ FLOOD_FRAMES = 10
 #: at its capture rate (ratio ~1).
 FLOOD_WINDOW = 50
 FLOOD_RATIO = 0.5
-#: Byte offset of the frame flags in the pose-stream data header (PROTOCOLS.md).
-_FLAGS_OFFSET = struct.calcsize("<4sHHqdqqq")
-_FLAGS = struct.Struct("<I")
 
 SCHEMES = ("natnet", "qtm")
 
@@ -450,33 +445,11 @@ class CaptureSource:
     def _resend_held(
         self, cap: CaptureInput, now_ns: int, perf: Performer, key: int
     ) -> None:
-        """``perf``'s last pose message on the pipeline ``key`` sent again (its
-        encoder's buffers still hold it), flagged held and source_lost, with a new
-        sent time."""
-        pipe = perf.path.pipelines.get(key)
-        if pipe is None:
-            return
-        outputs = self.shared.outputs
-        if outputs.vmc_on:
-            # VMC has no frame flags; its own word for this is /VMC/Ext/OK with
-            # tracking 0 (VMC 2.7): the model is loaded and calibrated, tracking is
-            # lost. Receivers keep the last pose they got and hear the performer is
-            # still there (silence reads as "no performer" in EVMC4U and VSeeFace).
-            dgram = perf.vmc.state.encode_state(
-                CALIBRATION_CALIBRATED, False, (now_ns - self.shared.t0_ns) * 1e-9
-            )
-            perf.vmc.send((dgram,))
-            cap.counts["held_vmc"] += 1
-        if not outputs.publishing:
-            return
-        parts = pipe.pose_enc.parts
-        header = parts[0]
-        (flags,) = _FLAGS.unpack_from(header, _FLAGS_OFFSET)
-        flags |= pose_stream.FRAME_HELD | pose_stream.FRAME_SOURCE_LOST
-        _FLAGS.pack_into(header, _FLAGS_OFFSET, flags)
-        pose_stream.stamp_sent(header, now_ns)
-        outputs.send_pub(parts, now_ns)
-        cap.counts["held_poses"] += 1
+        """``perf``'s last pose on the pipeline ``key`` sent again, flagged held and
+        source_lost (``BodyPath.resend_held``); counted."""
+        vmc_sent, pose_sent = perf.path.resend_held(key, now_ns)
+        cap.counts["held_vmc"] += vmc_sent
+        cap.counts["held_poses"] += pose_sent
 
     def status(self) -> dict[str, Any] | None:
         """``status["capture"]``: the source's state, counters and drops."""

@@ -84,6 +84,7 @@ class Health:
         up_s = (time.monotonic_ns() - self.t0_ns) * 1e-9
         first = self.performers.first
         occluded, flagged = first.path.occluded_and_held()
+        calib = first.calib.status()
         performers = self.performers.status()
         inputs = self.inputs.status()
         control = self._control()
@@ -92,9 +93,9 @@ class Health:
             "rig": first.rig.name,  # the first performer's (all: "performers")
             "calibrated": all(p["calibrated"] for p in performers),
             "calibrating": any(p["calibrating"] for p in performers),
-            "calibration_message": first.calib.message,
-            "calibration_id": first.calib.id,
-            "calibration_state": first.calib.state,
+            "calibration_message": calib["calibration_message"],
+            "calibration_id": calib["calibration_id"],
+            "calibration_state": calib["calibration_state"],
             "performers": performers,
             "endpoints": self.endpoints,
             "counters": {
