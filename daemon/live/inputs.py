@@ -56,6 +56,8 @@ _UDP_MAX = 65536
 
 #: :meth:`Inputs.ready` bits: which of the inputs' sockets the poll found readable.
 READY_OSC, READY_ZMQ, READY_MONITOR = 1, 2, 4
+#: How many poll events the ``READY_*`` bits stand for (index: the bits).
+READY_EVENTS = tuple(bin(bits).count("1") for bits in range(8))
 
 #: ``accept(stream, code, t_ns, every) -> int``: the loop's hand-off of a decoded
 #: frame (the receive time when it is left unsolved for later, else 0).

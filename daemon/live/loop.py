@@ -60,6 +60,7 @@ from retargetd.daemon.live.emit import warm_up as warm_up_emit
 from retargetd.daemon.live.face import warm_up as warm_up_face
 from retargetd.daemon.live.inputs import (
     LOG_INTERVAL_NS,
+    READY_EVENTS,
     READY_MONITOR,
     READY_OSC,
     READY_ZMQ,
@@ -100,8 +101,6 @@ from retargetd.protocols.marker_input import ACCEPTED, RESTART, LabelSet, Marker
 
 logger = logging.getLogger(__name__)
 
-_UDP_MAX = 65536
-
 
 class Daemon:
     """The live daemon (one performer, or several: ``[[performer]]``). ``open()``,
@@ -136,6 +135,7 @@ class Daemon:
         performers = build_performers(config)
         for perf in performers:  # each performer's rig, after any --rig
             check_pipeline(config.pipeline, perf.rig)
+        self._every = config.loop.process_every_frame  # offline replay: no drops
         self._left: MarkerStream | None = None  # the wake-up's frame left unsolved
         self._left_ns = 0  # its receive time
         self.target = _load_target(config)
@@ -444,7 +444,7 @@ class Daemon:
         :meth:`_accept`, which solves and sends it at once while the wake-up is
         within the budget; the newest frame left over is solved last (latest wins:
         :meth:`_leave`); then the control sockets are served."""
-        every = self.config.loop.process_every_frame
+        every = self._every
         self._wake_ns = time.monotonic_ns()
         inputs = self.inputs
         ready = inputs.ready(events)  # which inputs are readable: no allocation
@@ -461,8 +461,9 @@ class Daemon:
             self._left, self._left_ns = None, 0
         if ready & READY_MONITOR:
             inputs.drain_monitor()
-        self.control.serve(events)  # ctl requests, show control
-        self._watch.drain_ready(events, self._wake_ns)  # watched sockets' monitors
+        if len(events) > READY_EVENTS[ready]:  # more than the inputs' sockets
+            self.control.serve(events)  # ctl requests, show control
+            self._watch.drain_ready(events, self._wake_ns)  # watched monitors
 
     def _accept(self, stream: MarkerStream, code: int, t_ns: int, every: bool) -> int:
         """An input's decoded frame (``code``: the stream's verdict): counted, handed

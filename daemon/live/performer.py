@@ -344,7 +344,9 @@ class Performer:
         itself when every label on it is this performer's (one performer), else its
         view with its rows copied in; None when the input (``kind``) is not its own
         or the frame carries none of its markers."""
-        view = self.view_of(stream, kind)
+        view = self.views.get(id(stream), _UNSEEN)  # one lookup per frame
+        if view is _UNSEEN:
+            view = self.view_of(stream, kind)
         if view is None:
             return None
         if view.whole:
@@ -371,6 +373,10 @@ class Performer:
             view = StreamView(stream, self.prefix, rivals)
         self.views[key] = view
         return view
+
+
+#: ``Performer.views`` has no entry for a stream yet (None: not its input).
+_UNSEEN: Any = object()
 
 
 def build_performers(config: DaemonConfig) -> list[Performer]:

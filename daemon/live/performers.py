@@ -79,24 +79,32 @@ class Performers:
 
     def solve(self, stream: MarkerStream, t_ns: int) -> None:
         """Solve and send the stream's current frame for every performer on it."""
-        stats = self.shared.stats
         kind = self._kind_of(stream)
         for perf in self.all:
             source = perf.frame_of(stream, kind)
             if source is None:
                 continue
-            out, unsolved, unseen = stats.frames_out, stats.unsolved, stats.unseen
-            perf.path.process(source, t_ns)
-            ps = perf.stats
-            if stats.frames_out != out:
-                ps.frames_out += 1
-                j = (stats.ring_pos - 1) % stats.rings.shape[1]
-                r = stats.rings
-                ps.record(int(r[0, j]), int(r[1, j]), int(r[2, j]), int(r[3, j]))
-            elif stats.unsolved != unsolved:
-                ps.unsolved += 1
-            elif stats.unseen != unseen:
-                ps.unseen += 1
+            if self.several:  # each its own counters (one: the loop's are its own)
+                self._process_counted(perf, source, t_ns)
+            else:
+                perf.path.process(source, t_ns)
+
+    def _process_counted(self, perf: Performer, source: FrameSource, t_ns: int) -> None:
+        """``perf.path.process``, its frame counted in ``perf.stats`` too (sent,
+        with its latencies; unsolved; unseen)."""
+        stats = self.shared.stats
+        out, unsolved, unseen = stats.frames_out, stats.unsolved, stats.unseen
+        perf.path.process(source, t_ns)
+        ps = perf.stats
+        if stats.frames_out != out:
+            ps.frames_out += 1
+            j = (stats.ring_pos - 1) % stats.rings.shape[1]
+            r = stats.rings
+            ps.record(int(r[0, j]), int(r[1, j]), int(r[2, j]), int(r[3, j]))
+        elif stats.unsolved != unsolved:
+            ps.unsolved += 1
+        elif stats.unseen != unseen:
+            ps.unseen += 1
 
     def collect(self, stream: MarkerStream) -> None:
         """Hand an accepted frame to every live calibration and face capture."""

@@ -246,11 +246,7 @@ class CaptureSource:
         self._accept = accept
         self._stale = stale
         self._capture: CaptureInput | None = None
-
-    @property
-    def on(self) -> bool:
-        """Whether a capture system is connected (or being connected)."""
-        return self._capture is not None
+        self.on = False  # a capture system is connected (or being connected)
 
     @property
     def stream(self) -> Any:
@@ -265,6 +261,7 @@ class CaptureSource:
             return
         cap = open_capture(url, self.out)
         self._capture = cap
+        self.on = True
         for fd, _ in cap.readers:
             self._poller.register(fd, zmq.POLLIN)
         name = "Motive (NatNet)" if cap.system == "natnet" else "QTM (qtm-rt)"
@@ -284,6 +281,7 @@ class CaptureSource:
                 self._poller.unregister(fd)
         cap.close()
         self._capture = None
+        self.on = False
 
     def drain(self, events: list[tuple[Any, int]], every: bool) -> int:
         """Read, record and decode every waiting packet; the receive time of the
