@@ -54,6 +54,8 @@ class StatusMixin(DaemonState):
                 "fd_episodes": self._watch.fd_episodes,
                 "fd_accept_failures": self._watch.fd_accept_failures,
             },
+            # phases of a loop iteration over 50 ms, by name (stalls.py)
+            "loop_stalls": self._stalls.status(),
             "fd_exhausted": self._watch.exhausted,  # an episode is going on
             # CURVE handshakes refused, by socket and reason (sockets with a key)
             "curve_refused": self._watch.status(),
