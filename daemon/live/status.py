@@ -46,6 +46,7 @@ class StatusMixin(DaemonState):
             "counters": {
                 **self.stats.counters(),
                 "prewarm": self._prewarm.touches,
+                "prewarm_resets": self._prewarm.resets,  # after a flagged/slow touch
                 # markers occluded for a coordinate past max_coordinate_m, all inputs
                 "implausible_markers": int(
                     self.osc_stream.implausible[0] + self.zmq_stream.implausible[0]
