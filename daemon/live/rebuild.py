@@ -14,13 +14,16 @@ worker must not read the daemon's state, which only the loop thread touches, so 
 build gets the rig, the calibration and the labels as they were when it was asked
 for, and reads nothing else.
 
+The worker shares the GIL with the loop: its Python and small LAPACK calls take turns
+with the frames at the interpreter's switch interval (5 ms), so a frame may be solved a
+few ms late while a build runs, never held for the whole build.
+
 The first pipeline of a stream, and a new label set's, are still built in the loop:
 there is no pipeline to solve their frames with meanwhile.
 """
 
 from __future__ import annotations
 
-import sys
 import threading
 from collections.abc import Sequence
 from typing import Any
@@ -74,40 +77,16 @@ class Rebuild:
         ).start()
 
     def _run(self, *args: Any) -> None:
-        _switch_fast(+1)
         try:
             self.solver = body_solver(*args)
         except BaseException as exc:  # handed to the loop thread, raised there
             self.error = exc
         finally:
-            _switch_fast(-1)
             self._done.set()
 
     def done(self) -> bool:
         """Whether the build has ended (built or failed)."""
         return self._done.is_set()
-
-
-#: The interpreter's switch interval while a build runs (s). The build is Python
-#: and small LAPACK calls holding the GIL; the loop thread takes the GIL back after
-#: every socket call (a frame's receive, its VMC datagrams, the pose message), and
-#: each time waits up to the interval for the builder to drop it: 5 ms by default,
-#: more than a 240 Hz frame period (4.2 ms) per wait. 0.5 ms bounds a frame's ~10
-#: waits to ~5 ms; more switching slows the build a little, only while it runs.
-REBUILD_SWITCH_S = 0.0005
-_switch = {"running": 0, "saved": 0.0}
-_switch_lock = threading.Lock()
-
-
-def _switch_fast(step: int) -> None:
-    """One build more (+1) or fewer (-1): the short switch interval while any runs."""
-    with _switch_lock:
-        if step > 0 and _switch["running"] == 0:
-            _switch["saved"] = sys.getswitchinterval()
-            sys.setswitchinterval(REBUILD_SWITCH_S)
-        _switch["running"] += step
-        if step < 0 and _switch["running"] == 0:
-            sys.setswitchinterval(_switch["saved"])
 
 
 def rebuilt_solver(

@@ -90,6 +90,7 @@ def _wake(d: Daemon) -> None:
     while True:
         events = d._poller.poll(50)
         if events:
+            d._stalls.mark()  # as Daemon.run after each poll (its "poll" lap)
             d._service(events)
             return
         assert time.monotonic() < deadline, "no input event within 2 s"
