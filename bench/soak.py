@@ -1189,6 +1189,7 @@ def run(
             sent={k: v for k, v in vars_of(sent).items() if isinstance(v, int)},
             accounting=accounting(status, driver.sent),
             counters=status["counters"],
+            loop_stalls=status.get("loop_stalls"),  # phases over 50 ms (stalls.py)
             gaps_sub=pose_gaps(driver.pose_ns, driver.sent, driver.t0_ns, driver.t1_ns),
             poses=len(driver.pose_ns),
             pose_rate_hz=len(driver.pose_ns) / ((driver.t1_ns - driver.t0_ns) * 1e-9),
@@ -1323,6 +1324,7 @@ def print_result(result: dict[str, Any]) -> None:
         f"{result['pose_rate_phases']}",
         f"gaps > 100 ms (s), daemon side: {result['gaps']}",
         f"gaps > 100 ms (s), at the driver's SUB: {result['gaps_sub']}",
+        f"loop stalls (phases over 50 ms): {result['loop_stalls']}",
         f"RSS MB: first {r['first']:.1f}, after warm-up {r['after_warmup']:.1f}, max "
         f"{r['max']:.1f}, growth {r['growth']:.2f}; phases {result['rss_phases_mb']}",
         f"control: {result['control_sent']} sent, {result['control_replies']} "

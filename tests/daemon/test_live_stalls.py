@@ -33,7 +33,7 @@ from retargetd.daemon.live import rebuild
 from retargetd.daemon.live.config import DaemonConfig
 from retargetd.daemon.live.loop import Daemon
 from retargetd.daemon.live.ratelog import RateLimitedLog
-from retargetd.daemon.live.stalls import STALL_NS, LoopStalls
+from retargetd.daemon.live.stalls import STALL_NS, LoopStalls, is_waiting
 from retargetd.protocols import osc_in
 from retargetd.protocols.marker_input import LabelSet
 from retargetd.replay import recording as rf
@@ -234,6 +234,7 @@ def test_a_slow_phase_is_counted_by_name_in_status(
     stalls = d.status()["loop_stalls"]
     assert stalls["by_phase"] == {"control.status": 1}, stalls
     assert stalls["count"] == 1 and stalls["longest_phase"] == "control.status"
+    assert stalls["waiting"] == 1  # (it slept)
     assert stalls["longest_ms"] >= 2 * STALL_NS / 1e6
 
 
@@ -247,7 +248,10 @@ def test_stalls_count_phases_over_the_bound_and_collector_passes() -> None:
     time.sleep(1.2 * STALL_NS * 1e-9)
     stalls.lap("markers")
     assert stalls.by_phase == {"markers": 1} and stalls.longest_phase == "markers"
-    assert lines and lines[0].startswith("loop: markers held the frame path for")
+    # asleep, not on a CPU: waiting (for a core or the GIL), not the loop's work
+    assert stalls.waiting == 1 and "waiting for a CPU or the GIL" in lines[0]
+    assert lines[0].startswith("loop: markers held the frame path for"), lines
+    assert is_waiting(10, 100) and not is_waiting(60, 100)
     # A collector pass, from start to stop, timed as its own phase.
     stalls._gc_callback("start", {"generation": 2})
     time.sleep(1.2 * STALL_NS * 1e-9)
