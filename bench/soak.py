@@ -1182,6 +1182,9 @@ def run(
                     time.sleep(0.1)
         finally:
             rc = daemon.stop()
+        # the stalls' log lines (rate limited per phase): own work or waiting, ms
+        log = daemon.log.read_text().splitlines()
+        stall_lines = [ln for ln in log if ln.startswith("loop: ")]
         sent = driver.sent
         result.update(
             alive=alive, rc=rc, errors=driver.errors,
@@ -1190,6 +1193,7 @@ def run(
             accounting=accounting(status, driver.sent),
             counters=status["counters"],
             loop_stalls=status.get("loop_stalls"),  # phases over 50 ms (stalls.py)
+            loop_stall_lines=stall_lines,
             gaps_sub=pose_gaps(driver.pose_ns, driver.sent, driver.t0_ns, driver.t1_ns),
             poses=len(driver.pose_ns),
             pose_rate_hz=len(driver.pose_ns) / ((driver.t1_ns - driver.t0_ns) * 1e-9),
@@ -1325,6 +1329,7 @@ def print_result(result: dict[str, Any]) -> None:
         f"gaps > 100 ms (s), daemon side: {result['gaps']}",
         f"gaps > 100 ms (s), at the driver's SUB: {result['gaps_sub']}",
         f"loop stalls (phases over 50 ms): {result['loop_stalls']}",
+        *(f"  {ln}" for ln in result["loop_stall_lines"][:20]),
         f"RSS MB: first {r['first']:.1f}, after warm-up {r['after_warmup']:.1f}, max "
         f"{r['max']:.1f}, growth {r['growth']:.2f}; phases {result['rss_phases_mb']}",
         f"control: {result['control_sent']} sent, {result['control_replies']} "
