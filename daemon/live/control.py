@@ -17,6 +17,7 @@ import hmac
 import json
 import logging
 import os
+import re
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -63,15 +64,19 @@ class ControlMixin(DaemonState):
             frames = self._ctl.recv_multipart(zmq.NOBLOCK, copy=False)
         except zmq.Again:
             return
+        self._stalls.lap("control.read")
         size = sum(len(f) for f in frames)
         if size > CONTROL_MAX_BYTES:
             reply = self._oversize(size, frames[0])
+            phase = "control.oversize"
         else:
             reply = self.control_reply([f.bytes for f in frames])
+            phase = _phase(bytes(frames[0].buffer[:64]))
         try:
             self._ctl.send(json.dumps(reply).encode(), zmq.NOBLOCK)
         except zmq.ZMQError as exc:  # the requester vanished: nothing to answer
             logger.warning("control reply not sent: %s", exc)
+        self._stalls.lap(phase)
 
     def _oversize(self, size: int, frame: Any) -> dict[str, Any]:
         """The reply to a request over :data:`CONTROL_MAX_BYTES` (unread): counted in
@@ -422,3 +427,16 @@ def _osc_messages(packet: bytes, out: list[bytes], depth: int = 0) -> int:
         del out[mark:]
         return bad + 1
     return bad
+
+
+#: The ``cmd`` of a request, read from its first bytes for a stall's name only
+#: (``stalls.py``): never trusted, the request is parsed as JSON for its answer.
+_CMD = re.compile(rb'"cmd"\s*:\s*"([a-z-]{1,16})"')
+_COMMANDS = ("status", "calibrate", "reload", "record", "face-capture")
+
+
+def _phase(head: bytes) -> str:
+    """``control.<cmd>`` for a known command in ``head``, else ``control.other``."""
+    m = _CMD.search(head)
+    cmd = m.group(1).decode() if m else ""
+    return f"control.{cmd}" if cmd in _COMMANDS else "control.other"

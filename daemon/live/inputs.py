@@ -93,12 +93,15 @@ class InputsMixin(DaemonState):
                 newest, newest_ns = self._capture.inp.stream, got
         if newest is not None and not every:
             self._solve(newest, newest_ns)
+        stalls = self._stalls
+        stalls.lap("markers")  # the drain and the solves
         if zmon:
             self._drain_zmq_monitor()
         if show:
             self._drain_show_control()
+            stalls.lap("show_control")
         if ctl:
-            self._serve_control()
+            self._serve_control()  # its lap names the command
 
     def _accept(self, stream: MarkerStream, code: int, t_ns: int, every: bool) -> int:
         """Book-keeping for one decoded packet; returns its receive time when it was

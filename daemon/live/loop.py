@@ -68,12 +68,10 @@ from retargetd.daemon.live.performers import PerformersMixin
 from retargetd.daemon.live.prewarm import Prewarm
 from retargetd.daemon.live.props import LiveProps, vmc_destinations
 from retargetd.daemon.live.ratelog import RateLimitedLog, RateLimiter, print_line
-from retargetd.daemon.live.recording import (
-    FORM_OSC,
-    LiveRecording,
-)
+from retargetd.daemon.live.recording import FORM_OSC, LiveRecording
 from retargetd.daemon.live.send import SendMixin, spine_stage
 from retargetd.daemon.live.sources import CaptureMixin
+from retargetd.daemon.live.stalls import LoopStalls
 from retargetd.daemon.live.stats import LoopStats
 from retargetd.daemon.live.status import StatusMixin
 from retargetd.daemon.live.surface import (
@@ -90,11 +88,7 @@ from retargetd.daemon.live.watch import SocketWatch
 from retargetd.daemon.post.interp import RateResampler
 from retargetd.daemon.post.pose import PoseBuffer
 from retargetd.daemon.progress import Progress
-from retargetd.daemon.target.retarget import (
-    TargetSkeleton,
-    default_humanoid,
-    warm_up,
-)
+from retargetd.daemon.target.retarget import TargetSkeleton, default_humanoid, warm_up
 from retargetd.daemon.validate.live import LiveValidator
 from retargetd.protocols import kernels as protocol_kernels
 from retargetd.protocols.marker_input import LabelSet, MarkerStream
@@ -225,6 +219,7 @@ class Daemon(
         # CURVE handshake failures and descriptor exhaustion on the bound ZeroMQ
         # sockets (their monitors: watch.py)
         self._watch = SocketWatch(self._poller, self._log, self.out)
+        self._stalls = LoopStalls(self._log)  # phases over 50 ms (stalls.py)
         #: open() tells how to calibrate a performer without a calibration (False:
         #: the caller calibrates itself and says so, as ``retargetd demo`` does)
         self.hint_uncalibrated = True
@@ -546,6 +541,7 @@ class Daemon(
         """Stop an active recording (its file is finished, bounded wait) and close
         every socket (idempotent)."""
         self.recording.close()
+        self._stalls.close()
         self.props.close()
         self._close_capture()
         if self.console is not None:
@@ -581,31 +577,36 @@ class Daemon(
         c = self.config.loop
         timeout = c.poll_timeout_ms
         next_stats = time.monotonic_ns() + int(c.stats_interval_s * 1e9)
+        stalls = self._stalls.watch_gc()  # and the collector's passes
         while not should_exit():
             wait = timeout
             tick_ns = self.next_tick_ns()  # output_rate_hz: a resampled tick queued
             if tick_ns >= 0:  # wake for it (rounded up to the poll's 1 ms)
                 left_ms = -(-(tick_ns - time.monotonic_ns()) // 1_000_000)
                 wait = max(0, min(timeout, left_ms))
-            wait = self._prewarm.wait_ms(time.monotonic_ns(), wait)
+            wait = self._prewarm.wait_ms(stalls.mark(), wait)
             events = self._poller.poll(wait)  # [(socket or fd, flags)]
+            stalls.lap("poll", wait * 1_000_000)  # past its timeout
             if events:
-                self._service(events)
+                self._service(events)  # its phases timed inside (inputs.py)
             elif self._prewarm.due(time.monotonic_ns()):
                 self._prewarm.touch()  # the fit, warm for the frame that comes next
             if self._capture is not None:
                 self._tick_capture()  # requests, lost check, held pose: never blocks
-            now = time.monotonic_ns()
+            now = stalls.lap("prewarm_capture")
             if self.console is not None:
                 cmd = self.console.commands.poll()  # nothing allocated when empty
                 if cmd is not None:
                     dispatch_console(self, cmd)
+                    stalls.lap("console")
             self._each_performer(self._calibration_tick, now)
+            stalls.lap("calibration")
             self._each_performer(self._send_vmc_state, now)
             self._each_performer(self._send_due_ticks, time.monotonic_ns())
             self._log.flush(now)
             self._watch.tick(now)  # descriptor exhaustion: its end, once
             stopped = self.recording.check_limits(now)  # [record] limits, once a s
+            stalls.lap("ticks")
             if stopped:
                 self.out(stopped)
             if now >= next_stats:
@@ -613,6 +614,7 @@ class Daemon(
                 self._window = (now, self.stats.frames_in, self.stats.frames_out)
                 self.out(self.last_stats_line)
                 next_stats = now + int(c.stats_interval_s * 1e9)
+                stalls.lap("stats_line")
 
 
 def _last_endpoint(sock: Any) -> str:

@@ -214,6 +214,9 @@ class Performer:
         self.console: Any = None
         self.pipelines: dict[int, Any] = {}  # id(stream or view) -> Pipeline
         self.labels_of: dict[int, tuple[str, ...]] = {}
+        # (digest of its rig, calibration and config files, the rig, the calibration)
+        # at the last reload: a reload of the same files and objects does nothing
+        self.reload_files: tuple[bytes, Any, Any] | None = None
         self.views: dict[int, StreamView | None] = {}  # id(stream) -> view
         self.last_names_ns = 0
         self.frame_flags = 0

@@ -15,27 +15,17 @@ import numpy as np
 import zmq
 
 from retargetd.daemon.body.match import MatchWindow
-from retargetd.daemon.body.method import make_body_solver
-from retargetd.daemon.live.emit import (
-    DO_POSE,
-    DO_RETARGET,
-    DO_VMC,
-    NO_FLAGS,
-    EmitPlan,
-)
+from retargetd.daemon.live.emit import DO_POSE, DO_RETARGET, DO_VMC, NO_FLAGS, EmitPlan
 from retargetd.daemon.live.face_only import FaceOnlyMixin
 from retargetd.daemon.live.performer import FrameSource
+from retargetd.daemon.live.rebuild import body_solver, rebuilt_solver
 from retargetd.daemon.live.state import Pipeline
 from retargetd.daemon.post.pipeline import build_pipeline
 from retargetd.daemon.post.pivot import spine_stage
 from retargetd.daemon.post.plant import plant_stage
 from retargetd.daemon.post.solve_post import SolvePost
 from retargetd.daemon.post.stance import StanceDetector
-from retargetd.daemon.target.retarget import (
-    Retargeter,
-)
-from retargetd.daemon.validate.limits import JOINT_LIMITS_DEG
-from retargetd.daemon.validate.model import SEGMENT_KIND
+from retargetd.daemon.target.retarget import Retargeter
 from retargetd.protocols import engine_unity, pose_stream
 from retargetd.protocols.vmc_out import (
     CALIBRATION_CALIBRATING,
@@ -96,9 +86,20 @@ class SendMixin(FaceOnlyMixin):
         labels = stream.current.label_set.labels
         key = id(stream)
         pipe = perf.pipelines.get(key)
+        solver = None
         if pipe is not None and perf.labels_of.get(key) == labels:
-            return pipe
-        pipe = self._build_pipeline(labels)
+            rig, cal = pipe.built_for
+            if rig is perf.rig and cal is perf.calibration:
+                return pipe
+            # A reload or a new calibration: the old pipeline solves until the new
+            # solver is built off the loop (rebuild.py).
+            solver = rebuilt_solver(pipe, perf.rig, perf.calibration, labels,
+                                    self.config.solve.method,
+                                    self.config.validate.rate_hz)  # fmt: skip
+            if solver is None:
+                return pipe
+            self.recording.event("pipeline", received_ns=stream.current.frame.t_ns)
+        pipe = self._build_pipeline(labels, solver=solver)
         self.stats.pipeline_builds += 1
         self._pipelines[key] = pipe
         self._labels_of[key] = labels
@@ -106,14 +107,14 @@ class SendMixin(FaceOnlyMixin):
         return pipe
 
     def _build_pipeline(
-        self, labels: tuple[str, ...], *, with_face: bool = True
+        self, labels: tuple[str, ...], *, with_face: bool = True, solver: Any = None
     ) -> Pipeline:
+        """A stream's pipeline; ``solver``: its body solver, built already (off the
+        loop: rebuild.py), else built here."""
         assert self.calibration is not None
-        solver = make_body_solver(
-            self.config.solve.method, self.rig, self.calibration, labels,
-            joint_limits=JOINT_LIMITS_DEG, segment_kind=SEGMENT_KIND,
-            rate_hz=self.config.validate.rate_hz,
-        )  # fmt: skip
+        if solver is None:
+            solver = body_solver(self.config.solve.method, self.rig, self.calibration,
+                                 labels, self.config.validate.rate_hz)  # fmt: skip
         if solver.missing_markers:
             logger.warning(
                 "rig %s markers not in the stream (occluded): %s",
@@ -170,6 +171,7 @@ class SendMixin(FaceOnlyMixin):
         weights = face.weights if face is not None else np.zeros(0)
         emit.bind(pose, blend, weights)
         return Pipeline(
+            built_for=(self.rig, self.calibration),
             solver=solver,
             retargeter=retargeter,
             pose=pose,

@@ -33,7 +33,9 @@ from retargetd.daemon.live.performer import FrameSource, Performer
 from retargetd.daemon.live.prewarm import Prewarm
 from retargetd.daemon.live.props import LiveProps
 from retargetd.daemon.live.ratelog import RateLimitedLog, RateLimiter
+from retargetd.daemon.live.rebuild import Rebuild
 from retargetd.daemon.live.recording import LiveRecording
+from retargetd.daemon.live.stalls import LoopStalls
 from retargetd.daemon.live.stats import LoopStats
 from retargetd.daemon.live.surface import CurveGuard
 from retargetd.daemon.live.watch import SocketWatch
@@ -79,6 +81,9 @@ class Pipeline:
     # the last solved frame's source time, frame number and receive time (the fit's
     # frame time, SendMixin._frame_dt_s)
     last_times: tuple[float, int, int] = (math.nan, -1, 0)
+    # the (rig, calibration) it was built for: another one is rebuilt (rebuild.py)
+    built_for: tuple[Any, Any] = (None, None)
+    rebuild: Rebuild | None = None  # its successor's body solver, being built
 
 
 T = TypeVar("T")
@@ -203,6 +208,7 @@ class DaemonState:
     _show_token_prefix: str  # "/TOKEN" when show_control.token is set, else ""
     _guards: list[CurveGuard]
     _watch: SocketWatch  # the bound ZeroMQ sockets' monitors (CURVE, descriptors)
+    _stalls: LoopStalls  # phases of a loop iteration over 50 ms (stalls.py)
     _wake_ns: int
     _budget_ns: int  # loop.solve_budget_ms: solve + send of one frame
     _catch_up_ns: int

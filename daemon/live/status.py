@@ -46,6 +46,7 @@ class StatusMixin(DaemonState):
             "counters": {
                 **self.stats.counters(),
                 "prewarm": self._prewarm.touches,
+                "prewarm_resets": self._prewarm.resets,  # after a flagged/slow touch
                 # markers occluded for a coordinate past max_coordinate_m, all inputs
                 "implausible_markers": int(
                     self.osc_stream.implausible[0] + self.zmq_stream.implausible[0]
@@ -54,6 +55,8 @@ class StatusMixin(DaemonState):
                 "fd_episodes": self._watch.fd_episodes,
                 "fd_accept_failures": self._watch.fd_accept_failures,
             },
+            # phases of a loop iteration over 50 ms, by name (stalls.py)
+            "loop_stalls": self._stalls.status(),
             "fd_exhausted": self._watch.exhausted,  # an episode is going on
             # CURVE handshakes refused, by socket and reason (sockets with a key)
             "curve_refused": self._watch.status(),
