@@ -165,6 +165,11 @@ THRESHOLDS: dict[str, float] = {
     "foot_skate_m_s": 0.1,
     "foot_skate_min_s": 0.1,
     "foot_skate_edge_s": 0.1,
+    # ... and only while the foot's lowest sole point is within 1 cm of the stance's
+    # support (its median over the stance core): above it the foot is off the
+    # floor (swing toe clearance 1.29 +- 0.45 cm, Winter 1992, Phys Ther 72:45-53),
+    # so a detected stance that lifts is the detector's, not a slide.
+    "foot_skate_support_m": 0.01,
 }
 
 #: How each threshold was set, one line per check (the report header prints these).
@@ -197,10 +202,10 @@ THRESHOLDS_BASIS: dict[str, str] = {
     "marker_residual_max": "the fit's marker residual, per-frame max: 40 mm, past the "
     "largest soft-tissue artefact (Leardini 2005), under the 50-100 mm marker "
     "spacing on a segment; the same marker for >= 0.25 s",
-    "foot_skate": "stance foot's slowest floor point (heel, ball, toe) horizontally, "
-    "detected stance less 0.1 s at either end, >= 0.1 s: one fifth of the 0.5 m/s "
-    "landing speed of Ghoussayni 2004 / Bonci 2022 (a non-slipping foot has a point "
-    "at rest, Perry & Burnfield 2010)",
+    "foot_skate": "stance foot's least-moving sole point horizontally (the whole sole "
+    "region, so a roll or a pivot on the floor is no skate), detected stance less "
+    "0.1 s at either end, on its support (within 1 cm), >= 0.1 s: one fifth of the "
+    "0.5 m/s landing speed of Ghoussayni 2004 / Bonci 2022",
 }
 
 
@@ -535,7 +540,7 @@ def validate_take(
         sk = vs.skate_check(
             skel_stream, origins, wfb, stance, rate_hz,
             speed_m_s=th["foot_skate_m_s"], min_s=th["foot_skate_min_s"],
-            edge_s=th["foot_skate_edge_s"],
+            edge_s=th["foot_skate_edge_s"], support_m=th["foot_skate_support_m"],
         )  # fmt: skip
         checks["foot_skate"] = CheckResult(
             "foot_skate", sk.values, th["foot_skate_m_s"], "m/s", flagged=sk.flagged,

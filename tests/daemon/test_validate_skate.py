@@ -1,7 +1,9 @@
 """The stance-foot skate check (issue 34 item 5, ``daemon/validate/skate.py``): the
 real PiG walk passes it; the same take with the left foot's markers (LHEE, LTOE,
 LANK) slid 5 cm forward during one detected stance fails it, naming the left foot and
-frames inside that stance. The stance is the detector's (``post/stance.py``), handed
+frames inside that stance; turned about its midfoot instead it passes (a pivot is no
+skate); the synthetic level walk (feet that stay put) passes. The stance is the
+detector's (``post/stance.py``), handed
 over as ``retargetd validate`` does (``cli.validate.stance_by_bone``)."""
 
 from __future__ import annotations
@@ -93,6 +95,60 @@ def test_sliding_stance_foot_fails_and_is_named() -> None:
     assert flagged.size >= 10, check.detail
     assert a <= flagged.min() and flagged.max() < b  # inside the slid stance
     assert check.detail and all(d.startswith("lfoot: frames") for d in check.detail)
+
+
+def test_a_foot_turning_on_its_sole_is_not_a_skate() -> None:
+    """The left foot's markers (LHEE, LTOE, LANK) turned 30 deg about a vertical
+    axis through the midfoot (40 % of the way from LHEE to LTOE) over one detected
+    left stance core: the heel and the toe travel ~0.13 m/s (what the check on the
+    heel, ball and toe tip alone flagged), but a point of the sole stays put, so it
+    passes; the same foot translated 5 cm fails (the test above)."""
+    walk = _pig()[2]
+    _, stance = _check(walk.positions)
+    a, b = _left_stance(stance, walk.rate_hz)
+    pos = walk.positions.copy()
+    heel = pos[a, walk.labels.index("LHEE")]
+    toe = pos[a, walk.labels.index("LTOE")]
+    pivot = heel + 0.4 * (toe - heel)
+    angle = np.radians(30.0) * np.clip((np.arange(walk.n_frames) - a) / (b - a), 0, 1)
+    c, s = np.cos(angle), np.sin(angle)
+    for m in ("LHEE", "LTOE", "LANK"):
+        d = pos[:, walk.labels.index(m), :2] - pivot[:2]
+        pos[:, walk.labels.index(m), 0] = pivot[0] + c * d[:, 0] - s * d[:, 1]
+        pos[:, walk.labels.index(m), 1] = pivot[1] + s * d[:, 0] + c * d[:, 1]
+    heel_speed = np.linalg.norm(
+        np.diff(pos[a:b, walk.labels.index("LHEE"), :2], axis=0), axis=-1
+    )
+    assert np.median(heel_speed) * walk.rate_hz > 0.1  # the heel itself moves
+    check, _ = _check(pos)
+    core = np.isfinite(check.values[a:b])
+    print(f"\nturned 30 deg on the midfoot: {np.nanmax(check.values[a:b]):.3f} m/s")
+    assert core.sum() >= 10
+    assert check.n_flagged == 0, check.detail
+
+
+def test_synthetic_walk_whose_feet_stay_put_passes() -> None:
+    """Data not used to choose the threshold: the synthetic level walk, whose stance
+    feet do not slide (``synth/gait.py``), Plug-in Gait markers, 6 s at 120 Hz,
+    calibrated on its T-pose hold: no skate (0.033 m/s at most, measured)."""
+    from retargetd.daemon.synth import performer as pf
+
+    take = pf.synthesize(
+        seconds=6.0, rate_hz=120.0, markerset="plug-in-gait", motions=("level_walk",)
+    )
+    rig = load_rig("plug-in-gait")
+    cal = calibrate(rig, take.markers_world[take.base_pose_frames], take.labels)
+    solve = BodySolver(rig, cal, take.labels).solve_take(take.markers_world)
+    stance = stance_by_bone(rig, cal, solve, take.rate_hz)
+    vm = build_model(skeleton_from_calibration(rig, cal))
+    rep = validate_take(
+        vm, solve, take.rate_hz, fit=fit_pairs(rig, solve.joint_names),
+        dynamics=False, stance=stance,
+    )  # fmt: skip
+    check = rep.checks["foot_skate"]
+    print(f"\nsynthetic level walk foot_skate: max {np.nanmax(check.values):.3f} m/s")
+    assert np.isfinite(check.values).sum() > 300
+    assert check.n_flagged == 0, check.detail
 
 
 def test_cli_report_carries_the_skate_check(
