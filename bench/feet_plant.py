@@ -87,38 +87,47 @@ _SIDES = ("Left", "Right")
 
 
 def leg_target(rig: Any, calibration: Any, k: float) -> TargetSkeleton:
-    """The default humanoid with legs k times the calibrated performer's: thigh and
-    shank lengths, ankle height (mean of both sides), the foot scaled with the ankle
-    height; the torso and arms the default's, the hips raised or lowered with the
-    legs."""
+    """The default humanoid with legs k times the calibrated performer's: each leg
+    segment (hip to knee, knee to ankle, ankle to the foot bone's aim) the
+    performer's calibrated one, scaled by k and pointing where it points in the
+    calibration pose (so the calibration pose maps onto the target's rest, feet on
+    its floor); the torso and arms the default's, the hips raised or lowered with the
+    legs. Target axes: x to the right, y forward, z up (the performer faces +x)."""
     base = default_humanoid()
     origins = np.asarray(calibration.rest_bone_origin_pos)
     names = list(calibration.bone_names)
+    rest = np.asarray(calibration.rest_world_from_bone_quat)
+    lengths = np.asarray(calibration.bone_lengths)
+
+    def bone(h: str) -> int:
+        return names.index(rig.humanoid[h])
 
     def joint(h: str) -> np.ndarray:
-        return origins[names.index(rig.humanoid[h])]
+        return origins[bone(h)]
 
-    thigh = np.mean([np.linalg.norm(joint(s + "LowerLeg") - joint(s + "UpperLeg"))
-                     for s in _SIDES])  # fmt: skip
-    shank = np.mean([np.linalg.norm(joint(s + "Foot") - joint(s + "LowerLeg"))
-                     for s in _SIDES])  # fmt: skip
-    ankle = np.mean([joint(s + "Foot")[2] for s in _SIDES])
+    def to_target(v: np.ndarray) -> np.ndarray:
+        return np.array([-v[1], v[0], v[2]])  # world (fwd, left, up) -> target
+
     hip_drop = 0.05  # the default's UpperLeg below its Hips
-    foot = k * ankle / 0.08  # the default's ankle height 0.08 m, toes at 0.02
+    hip_z = float(np.mean([joint(s + "UpperLeg")[2] for s in _SIDES]))
     offsets = np.array(base.rest_offsets)
     aims = np.array(base.aim_offsets)
-    hips = hip_drop + k * (thigh + shank + ankle)
+    hips = hip_drop + k * hip_z
     offsets[0] = (0.0, 0.0, hips)
     for s, sx in (("Left", -1.0), ("Right", 1.0)):
         i = {b: base.index(s + b) for b in ("UpperLeg", "LowerLeg", "Foot", "Toes")}
+        f = bone(s + "Foot")
+        toe = origins[f] + rot.quat_rotate(rest[f], np.array([0.0, lengths[f], 0.0]))
         offsets[i["UpperLeg"]] = (sx * 0.09, 0.0, -hip_drop)
-        offsets[i["LowerLeg"]] = (0.0, 0.0, -k * thigh)
-        offsets[i["Foot"]] = (0.0, 0.0, -k * shank)
-        offsets[i["Toes"]] = (0.0, foot * 0.13, -foot * 0.06)
+        offsets[i["LowerLeg"]] = k * to_target(
+            joint(s + "LowerLeg") - joint(s + "UpperLeg")
+        )
+        offsets[i["Foot"]] = k * to_target(joint(s + "Foot") - joint(s + "LowerLeg"))
+        offsets[i["Toes"]] = k * to_target(toe - joint(s + "Foot"))
         aims[i["UpperLeg"]] = offsets[i["LowerLeg"]]
         aims[i["LowerLeg"]] = offsets[i["Foot"]]
         aims[i["Foot"]] = offsets[i["Toes"]]
-        aims[i["Toes"]] = (0.0, foot * 0.06, -foot * 0.02)
+        aims[i["Toes"]] = k * np.array([0.0, 0.05, 0.0])  # flat toes ahead
     return dataclasses.replace(
         base,
         name=f"humanoid, legs {k:g}x",
