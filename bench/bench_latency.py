@@ -39,7 +39,15 @@ floor of any Python process in between: the same raw payload through a relay pro
 that polls its UDP socket with ``zmq.Poller`` (the daemon's poll, its default 100 ms
 timeout), receives into a buffer and sends the datagram on to the receiver, unchanged;
 its added latency is what one Python hop costs on this machine at this rate, before any
-decoding or solving.
+decoding or solving. One such relay per input -> output pair the daemon offers, with
+the daemon's own socket options (issue 35 item 1): ``relay`` UDP -> UDP (OSC in, VMC
+out), ``relay-zmq`` ZeroMQ PUSH -> the relay's PULL -> UDP (ZeroMQ in, VMC out),
+``relay-pub`` UDP -> PUB -> the receiver's SUB (OSC in, pose stream out: two parts, as
+the daemon's pose message), ``relay-zmq-pub`` PULL -> PUB; the ZeroMQ input's relays
+run only with ``--transports zmq``. Every daemon case's added p99 is printed against
+raw UDP and against its pair's relay (the ratio issue 35 bounds by 1.25; with
+``--rounds``, the median of the rounds of each side). The capture inputs (NatNet,
+QTM) have no relay here: their sender is an emulator the daemon connects to.
 
 Each case first sends ``--warmup`` seconds of frames (pipeline build on the first
 labelled frame) that are left out of every figure, then snapshots the daemon's
@@ -133,8 +141,32 @@ HOT_PATH_TARGETS_US = {"body": 150.0, "fit+face": 250.0, "face+fit": 250.0}
 #: Transports whose sender is a capture system the daemon connects to.
 CAPTURE_TRANSPORTS = ("natnet", "qtm")
 #: Cases without the daemon: raw UDP sender -> receiver, and the same through the
-#: Python relay (the floor of any Python process in between).
-BASELINES = ("raw", "relay", "relay+")
+#: Python relay (the floor of any Python process in between). One relay per input ->
+#: output pair the daemon offers (issue 35 item 1): ``relay`` UDP -> UDP (OSC in, VMC
+#: out), ``relay-zmq`` ZeroMQ PULL -> UDP (ZeroMQ in, VMC out), ``relay-pub`` UDP ->
+#: ZeroMQ PUB (OSC in, pose stream out), ``relay-zmq-pub`` PULL -> PUB; ``relay+``
+#: adds the least per-frame work to ``relay``.
+BASELINES = ("raw", "relay", "relay+", "relay-zmq", "relay-pub", "relay-zmq-pub")
+#: The relay whose floor each (input transport, output) pair of the daemon is judged
+#: against. The capture inputs (NatNet, QTM) have no relay of their own here: their
+#: sender is a capture emulator the daemon connects to (README, issue 35 note).
+PAIR_RELAY = {
+    ("osc", "vmc"): "relay",
+    ("osc", "pose"): "relay-pub",
+    ("zmq", "vmc"): "relay-zmq",
+    ("zmq", "pose"): "relay-zmq-pub",
+}
+#: The daemon's own socket options for those pairs (live/loop.py): its ZeroMQ input
+#: PULL (RCVHWM 1000, LINGER 0, MAXMSGSIZE the default max_message_bytes) and its pose
+#: PUB (LINGER 0, SNDHWM the default [output.pose] sndhwm, 4).
+DAEMON_PULL_RCVHWM = 1000
+DAEMON_PULL_MAXMSGSIZE = 65_507
+DAEMON_PUB_SNDHWM = 4
+RELAY_WHAT = {
+    "relay-zmq": "ZeroMQ PULL -> UDP",
+    "relay-pub": "UDP -> PUB",
+    "relay-zmq-pub": "PULL -> PUB",
+}
 #: relay+: the size of its first datagram, VMC's bones (/VMC/Ext/Bone/Pos bundle of
 #: the humanoid bones at 240 Hz is 1-2 KB; the root and T come in the second).
 RELAY_BONES_BYTES = 1400
@@ -299,7 +331,7 @@ def _sender(spec: dict[str, Any], conn: Connection) -> None:
     udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     push = None
     udp_addr = (LOCALHOST, spec.get("port", 0))
-    if mode == "zmq":
+    if mode in ("zmq", "rawzmq"):
         push = ctx.socket(zmq.PUSH)
         push.setsockopt(zmq.LINGER, 0)
         push.connect(spec["endpoint"])
@@ -326,7 +358,7 @@ def _sender(spec: dict[str, Any], conn: Connection) -> None:
     def prepare(frame: int) -> None:
         nonlocal next_labels_ns
         now = time.monotonic_ns()
-        if mode != "raw" and now >= next_labels_ns:  # first, then every second
+        if mode not in ("raw", "rawzmq") and now >= next_labels_ns:  # first, each s
             if push is not None:
                 push.send_multipart(labels_zmq)
             else:
@@ -344,7 +376,10 @@ def _sender(spec: dict[str, Any], conn: Connection) -> None:
             current[0] = raw
 
     def send(_frame: int) -> None:
-        if push is not None:
+        if mode == "rawzmq":
+            assert push is not None
+            push.send(current[0])
+        elif push is not None:
             push.send_multipart(current[0])
         else:
             udp.sendto(current[0], udp_addr)
@@ -372,7 +407,13 @@ def _sender(spec: dict[str, Any], conn: Connection) -> None:
         ctx.term()
 
 
-def _relay(port: int, conn: Connection, work: bool = False) -> None:
+def _relay(
+    port: int,
+    conn: Connection,
+    work: bool = False,
+    zmq_in: bool = False,
+    pub_out: bool = False,
+) -> None:
     """The floor of any Python daemon (``relay`` baseline): what the daemon's loop
     must do per frame at the least, and nothing else. A UDP socket polled by
     ``zmq.Poller`` (as the daemon's loop polls its inputs, same timeout), each
@@ -387,7 +428,13 @@ def _relay(port: int, conn: Connection, work: bool = False) -> None:
     makes a VMC send and a two-part pose send): one numba call that copies the
     datagram into two output buffers, then a first datagram of VMC's bone size (1400
     bytes) to a socket nobody reads and the copy to the receiver. A lower bound on any
-    daemon built so."""
+    daemon built so.
+
+    ``zmq_in`` (``relay-zmq``): the input is a ZeroMQ PULL bound on 127.0.0.1 with the
+    daemon's options, drained as the daemon drains its input (``ZMQ_EVENTS``, then
+    ``recv_into`` a preallocated buffer). ``pub_out`` (``relay-pub``): the output is a
+    ZeroMQ PUB with the daemon's pose-stream options, each frame sent as two parts
+    (the datagram, then a VMC-bone-sized body) as the daemon sends a pose message."""
     import zmq
 
     copy_into = None
@@ -410,10 +457,23 @@ def _relay(port: int, conn: Connection, work: bool = False) -> None:
     sink.bind((LOCALHOST, 0))
     sink_addr = sink.getsockname()
 
+    zctx = zmq.Context()
     udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     udp.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4 << 20)
     udp.bind((LOCALHOST, 0))
     udp.setblocking(False)
+    pull = pub = None
+    if zmq_in:
+        pull = zctx.socket(zmq.PULL)
+        pull.setsockopt(zmq.LINGER, 0)
+        pull.setsockopt(zmq.RCVHWM, DAEMON_PULL_RCVHWM)
+        pull.setsockopt(zmq.MAXMSGSIZE, DAEMON_PULL_MAXMSGSIZE)
+        pull.bind(f"tcp://{LOCALHOST}:*")
+    if pub_out:
+        pub = zctx.socket(zmq.PUB)
+        pub.setsockopt(zmq.LINGER, 0)
+        pub.setsockopt(zmq.SNDHWM, DAEMON_PUB_SNDHWM)
+        pub.bind(f"tcp://{LOCALHOST}:*")
     out = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     out.connect((LOCALHOST, port))  # the cheapest sends, as the daemon's VMC socket
     side = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -421,18 +481,47 @@ def _relay(port: int, conn: Connection, work: bool = False) -> None:
     more = select.poll()  # "another datagram waits?", as the daemon's OSC drain
     more.register(udp.fileno(), select.POLLIN)
     poller = zmq.Poller()
-    poller.register(udp, zmq.POLLIN)
+    poller.register(pull if pull is not None else udp, zmq.POLLIN)
     poller.register(conn.fileno(), zmq.POLLIN)
-    conn.send(("port", udp.getsockname()[1]))
+    conn.send(
+        ("port", udp.getsockname()[1])
+        if pull is None
+        else ("endpoint", pull.getsockopt_string(zmq.LAST_ENDPOINT))
+    )
+    if pub is not None:
+        conn.send(("pub", pub.getsockopt_string(zmq.LAST_ENDPOINT)))
     buf = bytearray(65536)
     view = memoryview(buf)
     src, a, b = (np.frombuffer(x, np.uint8) for x in (buf, bones, frame_out))
     out_view = memoryview(frame_out)
+    body = bytes(RELAY_BONES_BYTES)
     fd = udp.fileno()  # zmq.Poller reports a plain socket by its descriptor
+
+    def forward(n: int) -> None:
+        if pub is not None:  # as the daemon's pose send: part by part, copied
+            try:
+                pub.send(view[:n], zmq.NOBLOCK | zmq.SNDMORE)
+                pub.send(body, zmq.NOBLOCK)
+            except zmq.Again:
+                pass
+        elif copy_into is None:
+            out.send(view[:n])
+        else:
+            copy_into(src, n, a, b)
+            side.send(bones)
+            out.send(out_view[:n])
+
     gc.disable()
     try:
         while True:
             events = dict(poller.poll(RELAY_POLL_MS))
+            if pull is not None and pull in events:
+                while int(pull.get(zmq.EVENTS)) & zmq.POLLIN:
+                    try:
+                        n = pull.recv_into(buf, flags=zmq.NOBLOCK)
+                    except zmq.Again:
+                        break
+                    forward(min(n, len(buf)))
             if fd in events:
                 k = 0
                 while k == 0 or more.poll(0):
@@ -441,12 +530,7 @@ def _relay(port: int, conn: Connection, work: bool = False) -> None:
                         n = udp.recv_into(buf)
                     except (BlockingIOError, InterruptedError):
                         break
-                    if copy_into is None:
-                        out.send(view[:n])
-                    else:
-                        copy_into(src, n, a, b)
-                        side.send(bones)
-                        out.send(out_view[:n])
+                    forward(n)
             if conn.fileno() in events:
                 conn.recv()
                 return
@@ -455,6 +539,10 @@ def _relay(port: int, conn: Connection, work: bool = False) -> None:
         out.close()
         side.close()
         sink.close()
+        for z in (pull, pub):
+            if z is not None:
+                z.close()
+        zctx.term()
 
 
 def _receiver(capacity: int, raw_mode: bool, conn: Connection) -> None:
@@ -476,7 +564,8 @@ def _receiver(capacity: int, raw_mode: bool, conn: Connection) -> None:
     sub = ctx.socket(zmq.SUB)
     sub.setsockopt(zmq.LINGER, 0)
     sub.setsockopt(zmq.RCVHWM, 100_000)
-    sub.setsockopt(zmq.SUBSCRIBE, b"RTDP")
+    # raw_mode: a relay's PUB carries the raw payload (frame number first), no topic
+    sub.setsockopt(zmq.SUBSCRIBE, b"" if raw_mode else b"RTDP")
     poller = zmq.Poller()
     poller.register(udp, zmq.POLLIN)
     poller.register(sub, zmq.POLLIN)
@@ -520,6 +609,12 @@ def _receiver(capacity: int, raw_mode: bool, conn: Connection) -> None:
                     except zmq.Again:
                         break
                     t = clock()
+                    if raw_mode:
+                        if n_t < capacity and len(parts[0]) >= 8:
+                            udp_ns[n_t] = t
+                            raw_frame[n_t] = _RAW_FRAME.unpack_from(parts[0], 0)[0]
+                            n_t += 1
+                        continue
                     if n_pose < capacity and len(parts[0]) == 68:
                         pose[n_pose, 0] = t
                         pose[n_pose, 1:] = _POSE_FIELDS.unpack_from(parts[0])
@@ -801,16 +896,28 @@ def run_case(
             )
         if transport == "raw":
             spec["port"] = port
-        elif transport in ("relay", "relay+"):
+        elif transport.startswith("relay"):
             relay_conn, relay_child = ctx.Pipe()
+            zmq_in = transport.startswith("relay-zmq")
+            pub_out = transport.endswith("-pub")
             relay = ctx.Process(
-                target=_relay, args=(port, relay_child, transport == "relay+")
+                target=_relay,
+                args=(port, relay_child, transport == "relay+", zmq_in, pub_out),
             )
             relay.start()
             procs.append(relay)
             if not relay_conn.poll(30):
                 raise RuntimeError("relay did not start")
-            spec["port"] = relay_conn.recv()[1]
+            kind, where = relay_conn.recv()
+            if kind == "endpoint":
+                spec["mode"], spec["endpoint"] = "rawzmq", where
+            else:
+                spec["port"] = where
+            if pub_out:
+                if not relay_conn.poll(30):
+                    raise RuntimeError("relay did not say its PUB")
+                recv_conn.send(("sub", relay_conn.recv()[1]))
+                recv_conn.recv()
         else:
             assert calibration is not None
             stem = f"{transport}_{rate_hz:g}_{variant}"
@@ -1155,6 +1262,8 @@ def print_report(summaries: list[Summary], args: argparse.Namespace) -> None:
             if r.name.startswith("relay+")
             else "poll, receive, send; nothing else"
         )
+        if r.name.startswith("relay-"):
+            what = RELAY_WHAT[r.name.split(" ", 1)[0]]
         if b is not None:
             print(
                 f"floor: a Python relay ({what}) adds "
@@ -1164,6 +1273,14 @@ def print_report(summaries: list[Summary], args: argparse.Namespace) -> None:
 
 
 # ---- main ----------------------------------------------------------------------------
+
+
+def _print_pairs(summaries: list[Summary]) -> None:
+    lines = pair_floor_lines(summaries)
+    if lines:
+        print("\nagainst the pair's relay (added p99 over raw UDP, same rate)")
+        for line in lines:
+            print(line)
 
 
 def _load() -> str:
@@ -1265,7 +1382,7 @@ def main(argv: list[str] | None = None) -> int:
                 f"{training.k} shapes on the walk's head; {len(labels)} markers "
                 f"per frame (compact frame {48 + 12 * len(labels)} bytes)"
             )
-        plan = [(b, r, "body") for b in BASELINES for r in rates] + [
+        plan = [(b, r, "body") for b in _baselines(transports) for r in rates] + [
             (t, r, v) for v in variants for t in transports for r in rates
         ]
         rounds: list[list[Summary]] = []
@@ -1287,10 +1404,56 @@ def main(argv: list[str] | None = None) -> int:
         if args.rounds > 1:
             print(f"\n======== round {k + 1} of {args.rounds}")
         print_report(summaries, args)
+        _print_pairs(summaries)
     if args.rounds > 1:
         print_rounds(rounds)
     print(f"load average at the end: {_load()}")
     return 0
+
+
+def _baselines(transports: list[str]) -> list[str]:
+    """The baselines a run needs: raw UDP, the UDP relays, and each pair relay of the
+    transports asked for (the ZeroMQ input's only with ``zmq``)."""
+    keep = ["raw", "relay", "relay+", "relay-pub"]
+    if "zmq" in transports:
+        keep += ["relay-zmq", "relay-zmq-pub"]
+    return [b for b in BASELINES if b in keep]
+
+
+def _transport(name: str) -> str:
+    """A case's input transport, from its name (``"zmq 240 Hz fit"`` -> ``zmq``)."""
+    return name.split(" ", 1)[0]
+
+
+def pair_floor_lines(summaries: list[Summary]) -> list[str]:
+    """Each daemon case's added p99 (over raw UDP, same rate) against the added p99
+    of the relay of its input -> output pair (:data:`PAIR_RELAY`), same rate and
+    round: the ratio issue 35 item 2 bounds by 1.25."""
+    raw = {s.rate_hz: s for s in summaries if s.name.startswith("raw")}
+    relays = {(s.name.split(" ", 1)[0], s.rate_hz): s for s in summaries
+              if s.name.startswith("relay")}  # fmt: skip
+    out = []
+    for s in summaries:
+        if s.name.startswith(BASELINES):
+            continue
+        b = raw.get(s.rate_hz)
+        for what, p in (("vmc", s.vmc), ("pose", s.pose)):
+            relay_name = PAIR_RELAY.get((_transport(s.name), what))
+            r = relays.get((relay_name, s.rate_hz)) if relay_name else None
+            if b is None:
+                continue
+            added = p[1] - b.raw[1]
+            label = f"{s.name} -> {'VMC T' if what == 'vmc' else 'pose'}"
+            if r is None:
+                out.append(f"{label:<36} added p99 {_f(added):>6} µs; no pair relay")
+                continue
+            floor = r.raw[1] - b.raw[1]
+            ratio = added / floor if floor > 0 else float("nan")
+            out.append(
+                f"{label:<36} added p99 {_f(added):>6} µs; {relay_name} "
+                f"{_f(floor):>6} µs; ratio {ratio:5.2f} (target <= 1.25)"
+            )
+    return out
 
 
 def print_rounds(rounds: list[list[Summary]]) -> None:
@@ -1324,6 +1487,33 @@ def print_rounds(rounds: list[list[Summary]]) -> None:
             f"{first.name:<28} {cols[0]:>22} {cols[1]:>22}   "
             + " ".join(_f(x) for x in per)
         )
+    # each case against its pair's relay: the median over rounds of each side
+    print("\nagainst the pair's relay, median of rounds (added p99 over raw UDP), µs")
+    for j, first in enumerate(rounds[0]):
+        if first.name.startswith(BASELINES):
+            continue
+        for what in ("vmc", "pose"):
+            relay_name = PAIR_RELAY.get((_transport(first.name), what))
+            if relay_name is None:
+                continue
+            case_v, relay_v = [], []
+            for summaries in rounds:
+                s = summaries[j]
+                b = next(x for x in summaries if x.name == f"raw {s.rate_hz:g} Hz")
+                want = f"{relay_name} {s.rate_hz:g} Hz"
+                r = next((x for x in summaries if x.name == want), None)
+                if r is None:
+                    continue
+                case_v.append(getattr(s, what)[1] - b.raw[1])
+                relay_v.append(r.raw[1] - b.raw[1])
+            if not case_v:
+                continue
+            c, f = float(np.median(case_v)), float(np.median(relay_v))
+            print(
+                f"{first.name + (' -> VMC T' if what == 'vmc' else ' -> pose'):<36} "
+                f"{_f(c):>6} vs {relay_name} {_f(f):>6}: ratio "
+                f"{c / f if f > 0 else float('nan'):5.2f} (target <= 1.25)"
+            )
 
 
 if __name__ == "__main__":

@@ -5,12 +5,16 @@ whose legs are 0.8x, 1.0x and 1.25x the performer's, without and with
     python bench/feet_plant.py --out docs/feet.md [--seconds 8] [--rate 120]
         [--no-real]
 
-The synthetic performer (``daemon/synth``, menache markers, noise 0) walks, runs,
-climbs and descends stairs (its stair gaits are the stair joint angles on a flat
-floor: ``synth/motion.py``); it is calibrated on its own T-pose hold, solved with the
-construction, retargeted onto a humanoid target (the default humanoid's torso and
-arms) whose leg segments (thigh, shank, ankle height, foot) are k times the
-calibrated performer's, and run through three ways:
+The synthetic performer (``daemon/synth``, Plug-in Gait markers: its TOE marker rides
+on the foot, so the solved foot is the foot while the toes extend at push-off; noise
+0) walks straight (``level_walk``), climbs and descends 0.17 m stairs
+(``stair_ascent``, ``stair_descent``): gaits placed from their stance feet, which
+neither slide nor sink (``synth/gait.py``); and runs (``run``: not yet placed so, its
+stance feet slide at about the running speed, shown for contrast). It is calibrated
+on its own T-pose hold, solved with the construction, retargeted onto a humanoid
+target (the default humanoid's torso and arms) whose leg segments (thigh, shank,
+ankle height, foot) are k times the calibrated performer's, and run through three
+ways:
 
 - ``free``: the rotations alone (the retarget's root scaled by the hips-height ratio);
 - ``scaled``: the root scaled by the leg-length ratio, no foot held (the plant stage
@@ -19,22 +23,25 @@ calibrated performer's, and run through three ways:
   contact (``daemon/post/stance.py``) on the solve.
 
 Measured on the target (forward kinematics of the emitted pose), per foot, over the
-frames the detector marks in contact (its contact is the performer's; the synthetic
-gaits slide their own stance feet, ~1 m/s, so that contact is sparse and short: the
-detector calls stance only where the solved foot slows below 0.5 m/s):
+frames the detector marks in contact (its contact is the performer's):
 
 - **skate**: per frame, the horizontal travel of the foot's floor points (heel and
   ball: the points within 1 cm of the foot's lowest), the least of them (a foot
   rolling about its ball holds its ball); summed over each contact run. Columns: the
   p95 over contact frames and the p95 over runs of that sum, mm;
 - **sink**: the foot's lowest point (heel, ball, toe tip) below its support level (the
-  detector's, times the leg ratio), max over contact frames, mm;
+  detector's, times the leg ratio; for a synthetic gait the truth's floor or step,
+  times the leg ratio, over the frames both the truth and the detector call contact),
+  max over contact frames, mm;
 - **knee**: at the blend edges (the frame before each contact onset through the
   blend-in, the frame before each release through the blend-out), the most the plant
   adds to the knee's frame-to-frame change (|d flex plant - d flex scaled|), deg;
 - **swing**: in swing once the release has blended out, the largest distance of the
   planted ankle from the scaled one, mm;
-- **unreached**: frames flagged ``plant_unreached``.
+- **unreached**: frames flagged ``plant_unreached``;
+- **events** (synthetic gaits): each contact onset and release of the truth
+  (``synth --truth``'s ``foot_contact``) from its first heel strike on, the frames to
+  the detector's nearest of the same kind: median / max (count).
 
 With ``--no-real`` the real takes are left out; else the takes in
 ``../shared/datasets`` (the PiG walk, OpenSim's subject01 walk, the MOTEK ballet, the
@@ -62,51 +69,65 @@ from retargetd.daemon.post.stance import SUPPORT_COLUMN, StanceDetector
 from retargetd.daemon.retarget.retarget import Retargeter, default_humanoid
 from retargetd.daemon.retarget.skeleton import TargetSkeleton
 from retargetd.daemon.synth import performer as pf
+from retargetd.daemon.synth.motion import GAIT_MOTIONS
 from retargetd.daemon.validate.limits import JOINT_LIMITS_DEG
 from retargetd.daemon.validate.model import SEGMENT_KIND
 
 REPO = Path(__file__).resolve().parent.parent
 DATASETS = REPO.parent / "shared" / "datasets"
-ACTIVITIES = ("walk", "run", "stair_ascent", "stair_descent")
+ACTIVITIES = ("level_walk", "run", "stair_ascent", "stair_descent")
 LEG_SCALES = (0.8, 1.0, 1.25)
+#: The synthetic performer's marker set and rig: Plug-in Gait's TOE marker rides on
+#: the foot (the 2nd metatarsal head), so the solved foot is the foot when the toes
+#: extend at push-off (menache's toe marker rides on the toes).
+SYNTH_RIG = "plug-in-gait"
 #: A floor point: within this of the foot's lowest (the plant's pivot_switch_m).
 ON_FLOOR_M = PLANT["pivot_switch_m"]
 _SIDES = ("Left", "Right")
 
 
 def leg_target(rig: Any, calibration: Any, k: float) -> TargetSkeleton:
-    """The default humanoid with legs k times the calibrated performer's: thigh and
-    shank lengths, ankle height (mean of both sides), the foot scaled with the ankle
-    height; the torso and arms the default's, the hips raised or lowered with the
-    legs."""
+    """The default humanoid with legs k times the calibrated performer's: each leg
+    segment (hip to knee, knee to ankle, ankle to the foot bone's aim) the
+    performer's calibrated one, scaled by k and pointing where it points in the
+    calibration pose (so the calibration pose maps onto the target's rest, feet on
+    its floor); the torso and arms the default's, the hips raised or lowered with the
+    legs. Target axes: x to the right, y forward, z up (the performer faces +x)."""
     base = default_humanoid()
     origins = np.asarray(calibration.rest_bone_origin_pos)
     names = list(calibration.bone_names)
+    rest = np.asarray(calibration.rest_world_from_bone_quat)
+    lengths = np.asarray(calibration.bone_lengths)
+
+    def bone(h: str) -> int:
+        return names.index(rig.humanoid[h])
 
     def joint(h: str) -> np.ndarray:
-        return origins[names.index(rig.humanoid[h])]
+        return origins[bone(h)]
 
-    thigh = np.mean([np.linalg.norm(joint(s + "LowerLeg") - joint(s + "UpperLeg"))
-                     for s in _SIDES])  # fmt: skip
-    shank = np.mean([np.linalg.norm(joint(s + "Foot") - joint(s + "LowerLeg"))
-                     for s in _SIDES])  # fmt: skip
-    ankle = np.mean([joint(s + "Foot")[2] for s in _SIDES])
+    def to_target(v: np.ndarray) -> np.ndarray:
+        return np.array([-v[1], v[0], v[2]])  # world (fwd, left, up) -> target
+
     hip_drop = 0.05  # the default's UpperLeg below its Hips
-    foot = k * ankle / 0.08  # the default's ankle height 0.08 m, toes at 0.02
+    hip_z = float(np.mean([joint(s + "UpperLeg")[2] for s in _SIDES]))
     offsets = np.array(base.rest_offsets)
     aims = np.array(base.aim_offsets)
-    hips = hip_drop + k * (thigh + shank + ankle)
+    hips = hip_drop + k * hip_z
     offsets[0] = (0.0, 0.0, hips)
     for s, sx in (("Left", -1.0), ("Right", 1.0)):
         i = {b: base.index(s + b) for b in ("UpperLeg", "LowerLeg", "Foot", "Toes")}
+        f = bone(s + "Foot")
+        toe = origins[f] + rot.quat_rotate(rest[f], np.array([0.0, lengths[f], 0.0]))
         offsets[i["UpperLeg"]] = (sx * 0.09, 0.0, -hip_drop)
-        offsets[i["LowerLeg"]] = (0.0, 0.0, -k * thigh)
-        offsets[i["Foot"]] = (0.0, 0.0, -k * shank)
-        offsets[i["Toes"]] = (0.0, foot * 0.13, -foot * 0.06)
+        offsets[i["LowerLeg"]] = k * to_target(
+            joint(s + "LowerLeg") - joint(s + "UpperLeg")
+        )
+        offsets[i["Foot"]] = k * to_target(joint(s + "Foot") - joint(s + "LowerLeg"))
+        offsets[i["Toes"]] = k * to_target(toe - joint(s + "Foot"))
         aims[i["UpperLeg"]] = offsets[i["LowerLeg"]]
         aims[i["LowerLeg"]] = offsets[i["Foot"]]
         aims[i["Foot"]] = offsets[i["Toes"]]
-        aims[i["Toes"]] = (0.0, foot * 0.06, -foot * 0.02)
+        aims[i["Toes"]] = k * np.array([0.0, 0.05, 0.0])  # flat toes ahead
     return dataclasses.replace(
         base,
         name=f"humanoid, legs {k:g}x",
@@ -213,15 +234,20 @@ def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
     return list(zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1), strict=True))
 
 
-def skate_sink(g: dict, contact: np.ndarray, floor: np.ndarray) -> dict[str, float]:
-    """Skate (per contact frame and per contact run, mm) and sink (mm) of one way,
-    both feet pooled (module docstring)."""
+def skate_sink(
+    g: dict, contact: np.ndarray, floor: np.ndarray, sink_on: np.ndarray | None = None
+) -> dict[str, float]:
+    """Skate (per contact frame and per contact run, mm) and sink (mm; over the
+    frames ``sink_on``, default ``contact``) of one way, both feet pooled (module
+    docstring)."""
     per_frame, per_run, sink = [], [], []
+    on_ = contact if sink_on is None else sink_on
     for s in range(2):
         pts = np.stack([g["heel"][:, s], g["ball"][:, s]], axis=1)  # (T, 2, 3)
         low = np.minimum(pts[..., 2].min(axis=1), g["tip"][:, s, 2])
+        below = np.maximum(floor[:, s] - low, 0.0)[on_[:, s]]
+        sink.extend(below)
         for a, b in _runs(contact[:, s]):
-            sink.extend(np.maximum(floor[a:b, s] - low[a:b], 0.0))
             if b - a < 2:
                 continue
             step = np.linalg.norm(np.diff(pts[a:b, :, :2], axis=0), axis=-1)  # (n, 2)
@@ -240,7 +266,7 @@ def skate_sink(g: dict, contact: np.ndarray, floor: np.ndarray) -> dict[str, flo
         "skate_frame_p95_mm": float(np.percentile(pf_, 95)) if pf_.size else np.nan,
         "skate_run_p95_mm": float(np.percentile(pr, 95)) if pr.size else np.nan,
         "skate_run_max_mm": float(pr.max()) if pr.size else np.nan,
-        "sink_max_mm": float(np.max(sink) * 1e3) if sink else np.nan,
+        "sink_max_mm": float(np.max(sink) * 1e3) if sink else 0.0,
     }
 
 
@@ -277,36 +303,84 @@ def edges_and_swing(
     }
 
 
+def event_errors(detected: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """|frames| from each truth contact event (onset or release, either foot) to the
+    nearest detected event of the same kind and foot, from the truth's first onset
+    on (gait initiation, when a foot is let go while it still stands, is left out);
+    a truth event with no detected one gets the take's length."""
+    out = []
+    for s in range(2):
+        d = np.diff(detected[:, s].astype(np.int8))
+        g = np.diff(truth[:, s].astype(np.int8))
+        first = np.flatnonzero(g == 1)
+        if not first.size:
+            continue
+        for kind in (1, -1):
+            det = np.flatnonzero(d == kind)
+            for e in np.flatnonzero(g == kind):
+                if e < first[0]:
+                    continue
+                near = np.abs(det - e).min() if det.size else len(truth)
+                out.append(int(near))
+    return np.asarray(out, dtype=np.int64)
+
+
 def measure(
-    res: Any, rig: Any, cal: Any, target: TargetSkeleton, rate_hz: float
+    res: Any,
+    rig: Any,
+    cal: Any,
+    target: TargetSkeleton,
+    rate_hz: float,
+    truth: Any = None,
 ) -> dict[str, Any]:
-    """Every figure of one take on one target (module docstring)."""
+    """Every figure of one take on one target (module docstring). With ``truth``
+    (the synthetic take of a gait, ``synth.motion.GAIT_MOTIONS``): the contact
+    events against its ``foot_contact``, and the sink against its supports (floor or
+    step, times the leg ratio) over the frames both it and the detector call
+    contact."""
     ways = run_modes(res, rig, cal, target, rate_hz)
     contact, k = ways["contact"], ways["leg_ratio"]
     floor = ways["support"] * k
+    sink_on = contact
+    events = np.zeros(0, dtype=np.int64)
+    if truth is not None and set(truth.motions) & set(GAIT_MOTIONS):
+        floor = (np.asarray(truth.foot_support_m) - truth.origin_world[2]) * k
+        sink_on = contact & np.asarray(truth.foot_contact)
+        events = event_errors(contact, np.asarray(truth.foot_contact))
     geo = {m: foot_geometry(target, ways[m]["wfb"], ways[m]["root"])
            for m in ("free", "scaled", "plant")}  # fmt: skip
-    return {
+    out = {
         "leg_ratio": k,
-        "free": skate_sink(geo["free"], contact, floor),
-        "scaled": skate_sink(geo["scaled"], contact, floor),
-        "plant": skate_sink(geo["plant"], contact, floor),
+        "free": skate_sink(geo["free"], contact, floor, sink_on),
+        "scaled": skate_sink(geo["scaled"], contact, floor, sink_on),
+        "plant": skate_sink(geo["plant"], contact, floor, sink_on),
         **edges_and_swing(geo["plant"], geo["scaled"], contact, rate_hz),
         "unreached": int(np.count_nonzero(ways["flags"])),
         "n_frames": len(contact),
+        "events_frames": events,
     }
+    return out
 
 
-def synthetic(activity: str, seconds: float, rate_hz: float) -> tuple[Any, ...]:
-    """(solve, rig, calibration) of the synthetic performer doing ``activity``."""
-    take = pf.synthesize(seconds=seconds, rate_hz=rate_hz, motions=(activity,), seed=0)
-    rig = load_rig("menache")
+def synthetic(
+    activity: str, seconds: float, rate_hz: float, rig_name: str = SYNTH_RIG
+) -> tuple[Any, ...]:
+    """(solve, rig, calibration, take) of the synthetic performer doing
+    ``activity``, wearing ``rig_name``'s marker set."""
+    take = pf.synthesize(
+        seconds=seconds,
+        rate_hz=rate_hz,
+        markerset=rig_name,
+        motions=(activity,),
+        seed=0,
+    )
+    rig = load_rig(rig_name)
     cal = calibrate(rig, take.markers_world[: int(0.5 * rate_hz)], take.labels)
     solver = make_body_solver(
         "construction", rig, cal, take.labels,
         joint_limits=JOINT_LIMITS_DEG, segment_kind=SEGMENT_KIND,
     )  # fmt: skip
-    return solver.solve_take(take.markers_world), rig, cal
+    return solver.solve_take(take.markers_world), rig, cal, take
 
 
 #: The real takes, calibrated as ``bench/batch_datasets.toml`` does: (label, take,
@@ -377,7 +451,10 @@ def _row(label: str, m: dict[str, Any], *, synthetic_row: bool) -> str:
         f"{m['swing_max_mm']:.2f}",
         str(m["unreached"]),
     ]
-    del synthetic_row
+    if synthetic_row:
+        ev = m["events_frames"]
+        cells.append(f"{int(np.median(ev))} / {int(ev.max())} ({ev.size})"
+                     if ev.size else "-")  # fmt: skip
     return "| " + " | ".join(cells) + " |"
 
 
@@ -386,6 +463,12 @@ HEADER = (
     "run) | skate plant, mm | sink free, mm (max) | sink plant, mm | knee at blend "
     "edges, deg: added (raw) | swing off path, mm (max) | unreached frames |\n"
     "|---|---|---|---|---|---|---|---|---|---|"
+)
+SYNTH_HEADER = (
+    HEADER.split("\n")[0]
+    + " contact events off the truth, frames: median / max (events) |\n"
+    + HEADER.split("\n")[1]
+    + "---|"
 )
 
 
@@ -399,12 +482,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--no-real", action="store_true")
     args = ap.parse_args(argv)
     started = time.perf_counter()
-    lines = ["### Synthetic performer", "", HEADER]
+    lines = ["### Synthetic performer", "", SYNTH_HEADER]
     results: dict[str, Any] = {}
     for activity in args.activities.split(","):
-        res, rig, cal = synthetic(activity, args.seconds, args.rate)
+        res, rig, cal, take = synthetic(activity, args.seconds, args.rate)
         for k in LEG_SCALES:
-            m = measure(res, rig, cal, leg_target(rig, cal, k), args.rate)
+            m = measure(res, rig, cal, leg_target(rig, cal, k), args.rate, take)
             results[f"{activity} {k:g}x"] = m
             lines.append(_row(f"{activity}, legs {k:g}x", m, synthetic_row=True))
             print(lines[-1], flush=True)

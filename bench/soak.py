@@ -931,7 +931,8 @@ def replay_check(
 ) -> dict[str, Any]:  # fmt: skip
     """The recording's marker packets through the live decoders and a fresh body
     solver of the daemon's ``method`` (the default, the fit; reset where the daemon
-    reset its own: restarts, reloads, new label sets), solving exactly the frames the
+    reset its own: restarts, new label sets, and the frame a pipeline rebuilt after
+    a reload took over: its ``pipeline`` control event), solving exactly the frames the
     daemon solved (the recorded poses, matched by receive time, and the frames it
     solved with no marker seen, streaming no pose: its ``unseen`` control events),
     against the recorded ``/poses``.
@@ -962,7 +963,9 @@ def replay_check(
             poses[msg.received_ns] = msg
     pose_sent_ns = sorted(m.sent_ns for m in poses.values())
     events = list(rec.json(rf.CONTROL_TOPIC))
-    reloads = sorted(e["t_ns"] for e in events if e.get("event") == "reload")
+    # where the daemon swapped in a pipeline rebuilt off its loop after a reload
+    # (live/rebuild.py): the receive time of the first frame it solved
+    swaps = sorted(e["received_ns"] for e in events if e.get("event") == "pipeline")
     # frames the daemon solved with nothing seen (no pose streamed)
     unseen_rx = {e["received_ns"] for e in events if e.get("event") == "unseen"}
     rig = load_rig("plug-in-gait")
@@ -982,8 +985,8 @@ def replay_check(
     for p in rec.packets():
         if p.input != "osc":
             continue
-        while r_i < len(reloads) and reloads[r_i] <= p.t_ns:
-            solvers, r_i = [None, None], r_i + 1  # the daemon rebuilt its pipelines
+        while r_i < len(swaps) and swaps[r_i] <= p.t_ns:
+            solvers, r_i = [None, None], r_i + 1  # the daemon rebuilt its pipeline
         if p.kind == rf.KIND_LABELS:
             for stream in streams:
                 with contextlib.suppress(DecodeError):  # counted by the stream
@@ -1078,7 +1081,9 @@ def recovery(
         after = (t > end) & (t < nxt) & ~flags
         back = after & (deg <= RECOVERED_DEG) & (root <= RECOVERED_M)
         rec_s = (int(t[back][0]) - end) * 1e-9 if back.any() else math.inf
-        during = (t >= int(mine.min())) & (t <= end + int(max(rec_s, 0) * 1e9))
+        # (not back before the next burst: the whole span to it; int(inf) raised)
+        stop = end + int(max(rec_s, 0) * 1e9) if math.isfinite(rec_s) else nxt
+        during = (t >= int(mine.min())) & (t <= stop)
         worst = float(np.nanmax(deg[during], initial=0.0)) if during.any() else 0.0
         out.append({"kind": kind, "frames": n, "recovery_s": round(rec_s, 4),
                     "worst_deg": round(worst, 2)})  # fmt: skip
@@ -1177,6 +1182,9 @@ def run(
                     time.sleep(0.1)
         finally:
             rc = daemon.stop()
+        # the stalls' log lines (rate limited per phase): own work or waiting, ms
+        log = daemon.log.read_text().splitlines()
+        stall_lines = [ln for ln in log if ln.startswith("loop: ")]
         sent = driver.sent
         result.update(
             alive=alive, rc=rc, errors=driver.errors,
@@ -1184,6 +1192,8 @@ def run(
             sent={k: v for k, v in vars_of(sent).items() if isinstance(v, int)},
             accounting=accounting(status, driver.sent),
             counters=status["counters"],
+            loop_stalls=status.get("loop_stalls"),  # phases over 50 ms (stalls.py)
+            loop_stall_lines=stall_lines,
             gaps_sub=pose_gaps(driver.pose_ns, driver.sent, driver.t0_ns, driver.t1_ns),
             poses=len(driver.pose_ns),
             pose_rate_hz=len(driver.pose_ns) / ((driver.t1_ns - driver.t0_ns) * 1e-9),
@@ -1318,6 +1328,8 @@ def print_result(result: dict[str, Any]) -> None:
         f"{result['pose_rate_phases']}",
         f"gaps > 100 ms (s), daemon side: {result['gaps']}",
         f"gaps > 100 ms (s), at the driver's SUB: {result['gaps_sub']}",
+        f"loop stalls (phases over 50 ms): {result['loop_stalls']}",
+        *(f"  {ln}" for ln in result["loop_stall_lines"][:20]),
         f"RSS MB: first {r['first']:.1f}, after warm-up {r['after_warmup']:.1f}, max "
         f"{r['max']:.1f}, growth {r['growth']:.2f}; phases {result['rss_phases_mb']}",
         f"control: {result['control_sent']} sent, {result['control_replies']} "

@@ -1,6 +1,7 @@
 """``retargetd blend A B --rig RIG (--calibration FILE | --calibrate-frames a:b)
 --at a:b --frames N --out OUT.glb|OUT.bvh|OUT.npz [--no-align-root]
-[--pipeline FILE.toml] [--bvh-order ORDER]``: cross-fade take A into take B.
+[--pipeline FILE.toml] [--bvh-order ORDER] [--plant-feet]``: cross-fade take A into
+take B.
 
 Both takes are solved with the same rig and calibration (``--calibrate-frames``
 calibrates on rows of A). ``--at a:b`` names the fade's first frame in each take
@@ -16,6 +17,11 @@ skeleton, ``--bvh-order`` channels), ``.npz`` (``bone_names``, ``bone_parents``,
 ``parent_from_bone_quat``, ``world_from_bone_quat``, ``root_pos``, ``rate_hz``).
 Prints the largest pose change across the fade beside the takes' own
 frame-to-frame motion.
+
+``--plant-feet`` (``.npz`` only): the blended motion also mapped onto the target
+skeleton (``--pipeline``'s ``[target]``, else the default humanoid) with its stance
+feet planted, as ``solve --plant-feet`` (README "Feet that plant"): the ``target_*``
+arrays beside the clip's, the stance detected on the blended motion.
 """
 
 from __future__ import annotations
@@ -35,6 +41,7 @@ def add_parser(subparsers: Any) -> None:
     from retargetd.daemon.cli.post_io import (
         add_glb_mesh_argument,
         add_pipeline_argument,
+        add_plant_feet_argument,
     )
 
     parser = subparsers.add_parser(
@@ -63,6 +70,7 @@ def add_parser(subparsers: Any) -> None:
         help="the blended take; the suffix picks the format",
     )  # fmt: skip
     add_glb_mesh_argument(parser)
+    add_plant_feet_argument(parser)
     parser.set_defaults(run=run)
 
 
@@ -84,8 +92,10 @@ def run(args: argparse.Namespace) -> int:
         CLIP_SUFFIXES,
         check_bvh_order,
         clip_of,
+        clip_plant_config,
         glb_mesh_of,
         humanoid_names,
+        plant_clip,
         pose_steps_deg,
         solve_other_take,
         solved_take,
@@ -105,6 +115,7 @@ def run(args: argparse.Namespace) -> int:
     at_a, at_b = _parse_at(args.at)
     if args.frames < 1:
         raise UsageError(f"--frames: expected >= 1; got {args.frames}")
+    plant_cfg = clip_plant_config(args, suffix)
     rig, take_a, cal, res_a = solved_take(args)
     take_b, res_b = solve_other_take(args, args.take_b, rig, cal)
     if take_a.rate_hz != take_b.rate_hz:
@@ -119,9 +130,10 @@ def run(args: argparse.Namespace) -> int:
         )
     except ValueError as exc:
         raise UsageError(f"--at/--frames: {exc}") from None
+    planted = None if plant_cfg is None else plant_clip(out_clip, rig, cal, plant_cfg)
     write_clip(
         args.out, out_clip, cal, bvh_order=args.bvh_order,
-        humanoid=humanoid_names(rig), glb_mesh=glb_mesh,
+        humanoid=humanoid_names(rig), glb_mesh=glb_mesh, extra=planted,
     )  # fmt: skip
     steps = pose_steps_deg(out_clip.parent_from_bone_quat)
     fade = steps[max(at_a - 1, 0) : at_a + args.frames]

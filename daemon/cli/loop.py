@@ -1,6 +1,7 @@
 """``retargetd loop TAKE --rig RIG (--calibration FILE | --calibrate-frames a:b)
 --frames N [--range a:b] [--find-cycle-s S] --out OUT.glb|OUT.bvh|OUT.npz
-[--pipeline FILE.toml] [--bvh-order ORDER]``: a seamless loop of a cyclic take.
+[--pipeline FILE.toml] [--bvh-order ORDER] [--plant-feet]``: a seamless loop of a
+cyclic take.
 
 The take is solved; ``--range a:b`` (0-based rows, half-open) keeps the cyclic part
 (leave out a calibration hold, say). With ``--find-cycle-s S`` the cycle's end is
@@ -16,6 +17,11 @@ round).
 Output by suffix: ``.glb`` (glTF 2.0 binary, every frame), ``.bvh``, ``.npz`` (as
 ``retargetd blend``). Prints the pose change at the seam (last frame -> first) beside
 the take's own frame-to-frame motion.
+
+``--plant-feet`` (``.npz`` only): the loop also mapped onto the target skeleton
+(``--pipeline``'s ``[target]``, else the default humanoid) with its stance feet
+planted, as ``solve --plant-feet``: the ``target_*`` arrays beside the clip's (one
+pass over the loop's frames: the plant does not wrap round the seam).
 """
 
 from __future__ import annotations
@@ -33,6 +39,7 @@ def add_parser(subparsers: Any) -> None:
     from retargetd.daemon.cli.post_io import (
         add_glb_mesh_argument,
         add_pipeline_argument,
+        add_plant_feet_argument,
     )
 
     parser = subparsers.add_parser(
@@ -61,6 +68,7 @@ def add_parser(subparsers: Any) -> None:
         help="the loop; the suffix picks the format",
     )  # fmt: skip
     add_glb_mesh_argument(parser)
+    add_plant_feet_argument(parser)
     parser.set_defaults(run=run)
 
 
@@ -73,8 +81,10 @@ def run(args: argparse.Namespace) -> int:
         CLIP_SUFFIXES,
         check_bvh_order,
         clip_of,
+        clip_plant_config,
         glb_mesh_of,
         humanoid_names,
+        plant_clip,
         pose_steps_deg,
         solved_take,
         suffix_of,
@@ -92,6 +102,7 @@ def run(args: argparse.Namespace) -> int:
         check_bvh_order("--bvh-order", args.bvh_order)
     if args.frames < 1:
         raise UsageError(f"--frames: expected >= 1; got {args.frames}")
+    plant_cfg = clip_plant_config(args, suffix)
     rig, take, cal, res = solved_take(args)
     full = clip_of(res, cal, take.rate_hz, args.take)
     sel = parse_frames(args.range, full.n_frames, option="--range")
@@ -114,9 +125,10 @@ def run(args: argparse.Namespace) -> int:
         looped, travel = loop(clip, args.frames)
     except ValueError as exc:
         raise UsageError(f"--frames: {exc}") from None
+    planted = None if plant_cfg is None else plant_clip(looped, rig, cal, plant_cfg)
     write_clip(
         args.out, looped, cal, bvh_order=args.bvh_order, travel_m=travel,
-        humanoid=humanoid_names(rig), glb_mesh=glb_mesh,
+        humanoid=humanoid_names(rig), glb_mesh=glb_mesh, extra=planted,
     )  # fmt: skip
     q = looped.parent_from_bone_quat
     seam = float(np.degrees(pose_distance(q[-1], q[0])))

@@ -65,6 +65,48 @@ def plant_target_config(target_config: Any, out: str, out_format: str) -> Any:
     return dataclasses.replace(base, feet="plant")
 
 
+def clip_plant_config(args: argparse.Namespace, out_format: str) -> Any:
+    """``blend`` / ``loop`` ``--plant-feet``: the ``[target]`` config to plant on
+    (``--pipeline``'s ``[target]``, else the defaults: the humanoid), checked before
+    any solve; None without ``--plant-feet``.
+
+    Raises:
+        UsageError: an output other than ``.npz``, or a bad ``[target]``.
+    """
+    if not getattr(args, "plant_feet", False):
+        return None
+    target_cfg = None
+    if getattr(args, "pipeline", None) is not None:
+        target_cfg = load_target_section(args.pipeline)
+    return plant_target_config(target_cfg, args.out, out_format)
+
+
+def plant_clip(
+    clip: Any, rig: Any, calibration: Any, target_config: Any
+) -> dict[str, np.ndarray]:
+    """``--plant-feet`` on a clip (``blend``'s or ``loop``'s output): the clip's
+    motion mapped onto the target with its stance feet planted, as
+    :func:`retarget_solve` maps a solve, the stance detected on the clip itself (the
+    motion that is written: a fade or a seam is walked on like any frame).
+
+    Returns:
+        The ``target_*`` NPZ arrays (:func:`retarget_solve`).
+    """
+    from types import SimpleNamespace
+
+    from retargetd.daemon.retarget.bvh import world_from_parent_chain
+
+    n_frames, n_bones = clip.parent_from_bone_quat.shape[:2]
+    motion = SimpleNamespace(
+        world_from_bone_quat=world_from_parent_chain(
+            calibration.bone_parents, clip.parent_from_bone_quat
+        ),
+        root_pos=np.asarray(clip.root_pos, dtype=np.float64),
+        bone_flags=np.zeros((n_frames, n_bones), dtype=np.uint8),
+    )
+    return retarget_solve(motion, rig, calibration, target_config, rate_hz=clip.rate_hz)
+
+
 def add_glb_mesh_argument(parser: argparse.ArgumentParser) -> None:
     """``--glb-mesh none|capsules`` (glTF output: the skin alone, or a capsule per
     bone on it; :mod:`retargetd.replay.gltf_mesh`)."""
@@ -397,6 +439,7 @@ def write_clip(
     travel_m: Any = None,
     humanoid: Any = None,
     glb_mesh: str = "none",
+    extra: dict[str, Any] | None = None,
 ) -> None:
     """Write a clip as ``.glb`` (every frame), ``.bvh`` or ``.npz``.
 
@@ -415,6 +458,7 @@ def write_clip(
         humanoid: (B,) humanoid name per bone or ``""`` (:func:`humanoid_names`):
             glTF node names.
         glb_mesh: glTF: ``"none"`` or ``"capsules"`` (``--glb-mesh``).
+        extra: more NPZ arrays (``--plant-feet``'s ``target_*``: :func:`plant_clip`).
 
     Raises:
         UsageError: a bad suffix, or a calibration that cannot be exported.
@@ -449,6 +493,7 @@ def write_clip(
             }
             if travel_m is not None:
                 arrays["travel_m"] = np.asarray(travel_m, dtype=np.float64)
+            arrays.update(extra or {})
             np.savez(path, **arrays)
     except CalibrationError as exc:
         raise UsageError(str(exc)) from None

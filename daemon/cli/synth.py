@@ -6,8 +6,9 @@
 
 The format follows the suffix of ``--out``: ``.c3d`` is written +Z up (the C3D lab
 convention), ``.trc`` +Y up (what TRC readers assume). ``--truth`` also writes the
-ground truth (joint centres and rotations) as an NPZ readable with
-``allow_pickle=False`` (:func:`retargetd.daemon.synth.performer.load_truth`). A short
+ground truth (joint centres and rotations, each foot's contact and support per frame)
+as an NPZ readable with ``allow_pickle=False``
+(:func:`retargetd.daemon.synth.performer.load_truth`). A short
 summary goes to stdout.
 """
 

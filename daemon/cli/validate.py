@@ -40,9 +40,12 @@ import json
 import logging
 import sys
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from retargetd.daemon.errors import UsageError
+
+if TYPE_CHECKING:
+    import numpy as np
 
 logger = logging.getLogger(__name__)
 
@@ -120,6 +123,24 @@ def run(args: argparse.Namespace) -> int:
         return EXIT_INTERNAL
 
 
+def stance_by_bone(
+    rig: Any, cal: Any, solve: Any, rate_hz: float
+) -> dict[str, np.ndarray]:
+    """Foot bone name -> (T,) bool: the stance the detector of ``post/stance.py``
+    finds on the solve (the NPZ's ``foot_contact``), for the skate check
+    (``validate.skate``: validate may not import post, the command line hands it
+    over); empty when the rig maps no LeftFoot/RightFoot."""
+    from retargetd.daemon.post.stance import foot_contact
+
+    feet = [rig.humanoid.get(f) for f in ("LeftFoot", "RightFoot")]
+    if None in feet or cal.rest_bone_origin_pos is None:
+        return {}
+    contact = foot_contact(
+        rig, cal, solve.root_pos, solve.world_from_bone_quat, rate_hz
+    )
+    return {str(name): contact[:, k] for k, name in enumerate(feet)}
+
+
 def _validate(
     args: argparse.Namespace,
     rig: Any,
@@ -153,7 +174,7 @@ def _validate(
     ) as bar:
         rep = validate_take(
             vm, res, take.rate_hz, fit=fit_pairs(rig, res.joint_names),
-            progress=bar.update,
+            progress=bar.update, stance=stance_by_bone(rig, cal, res, take.rate_hz),
         )  # fmt: skip
     doc = {
         "take": str(take.path),

@@ -17,6 +17,7 @@ import hmac
 import json
 import logging
 import os
+import re
 import socket
 import time
 from collections.abc import Callable
@@ -37,6 +38,7 @@ from retargetd.daemon.live.recording import (
     input_infos,
 )
 from retargetd.daemon.live.shared import Shared
+from retargetd.daemon.live.stalls import LoopStalls
 from retargetd.daemon.live.surface import (
     endpoint_is_local,
     is_loopback_host,
@@ -77,6 +79,7 @@ class Control:
         inputs: the label sets a recording opens with.
         endpoints: what is listening where (a recording's header names them).
         log: the rate-limited log (refusals).
+        stalls: the loop's phase timer (a slow command is counted by name).
         status: the status document and the stats line (``ctl status``).
     """
 
@@ -88,6 +91,7 @@ class Control:
         inputs: Inputs,
         endpoints: dict[str, str],
         log: RateLimitedLog,
+        stalls: LoopStalls,
         status: Callable[[], tuple[dict[str, Any], str]],
     ) -> None:
         self.shared = shared
@@ -99,6 +103,7 @@ class Control:
         self.inputs = inputs
         self.endpoints = endpoints
         self._log = log
+        self._stalls = stalls
         self._status = status
         config = shared.config
         self._allow = frozenset(config.input.osc.allow)  # the markers' list too
@@ -165,8 +170,9 @@ class Control:
                 show = True
         if show:
             self._drain_show_control()
+            self._stalls.lap("show_control")
         if serve:
-            self._serve_control()
+            self._serve_control()  # its lap names the command
 
     def status(self) -> dict[str, Any]:
         """Show control's refusals by reason and its kernel drops (status)."""
@@ -184,15 +190,19 @@ class Control:
             frames = self._ctl.recv_multipart(zmq.NOBLOCK, copy=False)
         except zmq.Again:
             return
+        self._stalls.lap("control.read")
         size = sum(len(f) for f in frames)
         if size > CONTROL_MAX_BYTES:
             reply = self._oversize(size, frames[0])
+            phase = "control.oversize"
         else:
             reply = self.control_reply([f.bytes for f in frames])
+            phase = _phase(bytes(frames[0].buffer[:64]))
         try:
             self._ctl.send(json.dumps(reply).encode(), zmq.NOBLOCK)
         except zmq.ZMQError as exc:  # the requester vanished: nothing to answer
             logger.warning("control reply not sent: %s", exc)
+        self._stalls.lap(phase)
 
     def _oversize(self, size: int, frame: Any) -> dict[str, Any]:
         """The reply to a request over :data:`CONTROL_MAX_BYTES` (unread): counted in
@@ -558,3 +568,16 @@ def _osc_messages(packet: bytes, out: list[bytes], depth: int = 0) -> int:
         del out[mark:]
         return bad + 1
     return bad
+
+
+#: The ``cmd`` of a request, read from its first bytes for a stall's name only
+#: (``stalls.py``): never trusted, the request is parsed as JSON for its answer.
+_CMD = re.compile(rb'"cmd"\s*:\s*"([a-z-]{1,16})"')
+_COMMANDS = ("status", "calibrate", "reload", "record", "face-capture")
+
+
+def _phase(head: bytes) -> str:
+    """``control.<cmd>`` for a known command in ``head``, else ``control.other``."""
+    m = _CMD.search(head)
+    cmd = m.group(1).decode() if m else ""
+    return f"control.{cmd}" if cmd in _COMMANDS else "control.other"

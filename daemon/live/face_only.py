@@ -95,8 +95,8 @@ class FacePath:
     def rebuild(self, labels: tuple[str, ...], sources: list[FrameSource]) -> None:
         """Nothing to rebuild (no body pipelines)."""
 
-    def forget(self) -> None:
-        """Nothing to forget (no body pipelines)."""
+    def renew(self, labels: tuple[str, ...], sources: list[FrameSource]) -> None:
+        """Nothing to renew (no body pipelines)."""
 
     def send_due_ticks(self, now_ns: int) -> None:
         """No resampled body ticks."""

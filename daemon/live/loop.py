@@ -79,6 +79,7 @@ from retargetd.daemon.live.ratelog import (
 from retargetd.daemon.live.recording import LiveRecording
 from retargetd.daemon.live.shared import Shared
 from retargetd.daemon.live.sources import CaptureSource
+from retargetd.daemon.live.stalls import LoopStalls
 from retargetd.daemon.live.stats import LoopStats
 from retargetd.daemon.live.status import Health
 from retargetd.daemon.live.surface import (
@@ -190,6 +191,7 @@ class Daemon:
         # CURVE handshake failures and descriptor exhaustion on the bound ZeroMQ
         # sockets (their monitors: watch.py)
         self._watch = SocketWatch(self._poller, self._log, self.out)
+        self._stalls = LoopStalls(self._log)  # phases over 50 ms (stalls.py)
         #: open() tells how to calibrate a performer without a calibration (False:
         #: the caller calibrates itself and says so, as ``retargetd demo`` does)
         self.hint_uncalibrated = True
@@ -208,12 +210,12 @@ class Daemon:
         # ctl requests and show control: each command a call on a part.
         self.control = Control(
             self.shared, self.performers, self.props, self.inputs, self.endpoints,
-            self._log, self._status_and_line,
+            self._log, self._stalls, self._status_and_line,
         )  # fmt: skip
         # The status document and the stats line, read from the parts' counters.
         self.health = Health(
             self.stats, self.performers, self.inputs, self.recording, self.props,
-            self._watch, self._prewarm, self.endpoints, self._t0_ns,
+            self._watch, self._stalls, self._prewarm, self.endpoints, self._t0_ns,
             self.capture.status, self.control.status,
         )  # fmt: skip
         # The console shows the first performer (its buttons act for that one);
@@ -408,6 +410,7 @@ class Daemon:
         """Stop an active recording (its file is finished, bounded wait) and close
         every socket (idempotent)."""
         self.recording.close()
+        self._stalls.close()
         self.props.close()
         self.capture.close()
         if self.console is not None:
@@ -459,10 +462,11 @@ class Daemon:
         if self._left is not None:  # every performer on its input
             self.performers.solve(self._left, self._left_ns)
             self._left, self._left_ns = None, 0
+        self._stalls.lap("markers")  # the drains and the solves
         if ready & READY_MONITOR:
             inputs.drain_monitor()
         if len(events) > READY_EVENTS[ready]:  # more than the inputs' sockets
-            self.control.serve(events)  # ctl requests, show control
+            self.control.serve(events)  # ctl requests, show control (timed inside)
             self._watch.drain_ready(events, self._wake_ns)  # watched monitors
 
     def _accept(self, stream: MarkerStream, code: int, t_ns: int, every: bool) -> int:
@@ -527,31 +531,36 @@ class Daemon:
         c = self.config.loop
         timeout = c.poll_timeout_ms
         next_stats = time.monotonic_ns() + int(c.stats_interval_s * 1e9)
+        stalls = self._stalls.watch_gc()  # and the collector's passes
+        performers = self.performers
         while not should_exit():
             wait = timeout
-            tick_ns = (
-                self.performers.next_tick_ns()
-            )  # output_rate_hz: a resampled tick queued
+            tick_ns = performers.next_tick_ns()  # output_rate_hz: a tick queued
             if tick_ns >= 0:  # wake for it (rounded up to the poll's 1 ms)
                 left_ms = -(-(tick_ns - time.monotonic_ns()) // 1_000_000)
                 wait = max(0, min(timeout, left_ms))
-            wait = self._prewarm.wait_ms(time.monotonic_ns(), wait)
+            wait = self._prewarm.wait_ms(stalls.mark(), wait)
             events = self._poller.poll(wait)  # [(socket or fd, flags)]
+            stalls.lap("poll", wait * 1_000_000)  # past its timeout
             if events:
-                self._service(events)
+                self._service(events)  # its phases timed inside
             elif self._prewarm.due(time.monotonic_ns()):
                 self._prewarm.touch()  # the fit, warm for the frame that comes next
             if self.capture.on:
                 self.capture.tick()  # requests, lost check, held pose: never blocks
-            now = time.monotonic_ns()
+            now = stalls.lap("prewarm_capture")
             if self.console is not None:
                 cmd = self.console.commands.poll()  # nothing allocated when empty
                 if cmd is not None:
                     dispatch_console(self, cmd)
-            self.performers.tick(now)  # calibration timeouts, VMC state, ticks due
+                    stalls.lap("console")
+            performers.tick_calibrations(now)  # a pending one's timeout
+            stalls.lap("calibration")
+            performers.tick_sends(now)  # VMC state before a calibration, ticks due
             self._log.flush(now)
             self._watch.tick(now)  # descriptor exhaustion: its end, once
             stopped = self.recording.check_limits(now)  # [record] limits, once a s
+            stalls.lap("ticks")
             if stopped:
                 self.out(stopped)
             if now >= next_stats:
@@ -559,6 +568,7 @@ class Daemon:
                 self.health.roll(now)
                 self.out(self.last_stats_line)
                 next_stats = now + int(c.stats_interval_s * 1e9)
+                stalls.lap("stats_line")
 
 
 def _load_target(config: DaemonConfig) -> Any:

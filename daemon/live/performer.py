@@ -83,7 +83,7 @@ class FramePath(Protocol):
 
     def rebuild(self, labels: tuple[str, ...], sources: list[FrameSource]) -> None: ...
 
-    def forget(self) -> None: ...
+    def renew(self, labels: tuple[str, ...], sources: list[FrameSource]) -> None: ...
 
     def send_due_ticks(self, now_ns: int) -> None: ...
 
@@ -128,7 +128,7 @@ class _NoPath:
     def rebuild(self, labels: tuple[str, ...], sources: list[FrameSource]) -> None:
         pass
 
-    def forget(self) -> None:
+    def renew(self, labels: tuple[str, ...], sources: list[FrameSource]) -> None:
         pass
 
     def send_due_ticks(self, now_ns: int) -> None:
@@ -305,6 +305,9 @@ class Performer:
         self.vmc = VmcOut(vmc_addr, vmc_max_datagram, None)
         self.console: Any = None  # live.console_feed.ConsoleFeed (the first's)
         self.views: dict[int, StreamView | None] = {}  # id(stream) -> view
+        # (digest of its rig, calibration and config files, the rig, the calibration)
+        # at the last reload: a reload of the same files and objects does nothing
+        self.reload_files: tuple[bytes, Any, Any] | None = None
         # This performer's frames out, unsolved frames and latency rings (the
         # daemon's LoopStats counts every performer together).
         self.stats = LoopStats()
@@ -323,10 +326,11 @@ class Performer:
         sources: list[FrameSource],
     ) -> None:
         """Swap ``calibration`` in (atomically: the loop thread is the only reader):
-        the pipelines of the ``sources`` carrying ``labels`` built now, the live
-        validator restarted on it."""
+        each stream's new body solver built off the loop from now (``rebuild.py``),
+        its old pipeline solving meanwhile, a stream of the ``sources`` carrying
+        ``labels`` without one getting it now; the live validator restarted on it."""
         self.calibration = calibration
-        self.path.rebuild(labels, sources)
+        self.path.renew(labels, sources)
         self.path.start_validator()
 
     def use_face(self, labels: tuple[str, ...], sources: list[FrameSource]) -> None:

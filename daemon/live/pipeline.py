@@ -13,12 +13,12 @@ from typing import Any
 
 import numpy as np
 
-from retargetd.daemon.body.method import make_body_solver
 from retargetd.daemon.body.solve import BodySolver
 from retargetd.daemon.body.solve_fit import FitSolver
 from retargetd.daemon.live.emit import EmitPlan
 from retargetd.daemon.live.face import FaceStage
 from retargetd.daemon.live.performer import Performer
+from retargetd.daemon.live.rebuild import Rebuild, body_solver
 from retargetd.daemon.live.shared import Shared
 from retargetd.daemon.post.pipeline import build_pipeline
 from retargetd.daemon.post.pivot import SpinePivot, spine_stage
@@ -26,8 +26,6 @@ from retargetd.daemon.post.plant import FootPlant, plant_stage
 from retargetd.daemon.post.solve_post import SolvePost
 from retargetd.daemon.post.stance import StanceDetector
 from retargetd.daemon.retarget.retarget import Retargeter
-from retargetd.daemon.validate.limits import JOINT_LIMITS_DEG
-from retargetd.daemon.validate.model import SEGMENT_KIND
 from retargetd.protocols import engine_unity, pose_stream
 from retargetd.protocols.vmc_out import VmcEncoder
 
@@ -66,13 +64,22 @@ class Pipeline:
     # the last solved frame's source time, frame number and receive time (the fit's
     # frame time, BodyPath._frame_dt_s)
     last_times: tuple[float, int, int] = (math.nan, -1, 0)
+    # the (rig, calibration) it was built for: another one is rebuilt (rebuild.py)
+    built_for: tuple[Any, Any] = (None, None)
+    rebuild: Rebuild | None = None  # its successor's body solver, being built
 
 
 def new_pipeline(
-    perf: Performer, sh: Shared, labels: tuple[str, ...], *, with_face: bool = True
+    perf: Performer,
+    sh: Shared,
+    labels: tuple[str, ...],
+    *,
+    with_face: bool = True,
+    solver: Any = None,
 ) -> Pipeline:
     """A new pipeline of ``perf`` for a stream of ``labels`` (with the face stage
-    unless ``with_face`` is False); its names id is the next of ``sh``."""
+    unless ``with_face`` is False); its names id is the next of ``sh``. ``solver``:
+    its body solver, built already (off the loop: rebuild.py), else built here."""
     config, rig, calibration, target = (
         sh.config,
         perf.rig,
@@ -80,11 +87,9 @@ def new_pipeline(
         sh.target,
     )
     assert calibration is not None
-    solver = make_body_solver(
-        config.solve.method, rig, calibration, labels,
-        joint_limits=JOINT_LIMITS_DEG, segment_kind=SEGMENT_KIND,
-        rate_hz=config.validate.rate_hz,
-    )  # fmt: skip
+    if solver is None:
+        solver = body_solver(config.solve.method, rig, calibration, labels,
+                             config.validate.rate_hz)  # fmt: skip
     if solver.missing_markers:
         logger.warning(
             "rig %s markers not in the stream (occluded): %s",
@@ -140,6 +145,7 @@ def new_pipeline(
     weights = face.weights if face is not None else np.zeros(0)
     emit.bind(pose, blend, weights)
     return Pipeline(
+        built_for=(rig, calibration),
         solver=solver,
         retargeter=retargeter,
         pose=pose,

@@ -23,9 +23,11 @@ touch comes between ``prewarm_ms`` and ``prewarm_ms + 1`` ms before the frame.
 
 from __future__ import annotations
 
+import time
 from typing import Any
 
 from retargetd.daemon.body.solve_fit import FitSolver
+from retargetd.protocols.pose_stream import FRAME_UNEXPLAINED
 
 #: Weight of each new spacing in the running means (a time constant of 8 frames).
 GAIN = 0.125
@@ -41,6 +43,7 @@ class Prewarm:
         self.last_ns = 0
         self.touched_ns = 0  # the last frame whose successor was touched for
         self.touches = 0
+        self.resets = 0  # scratch solvers reset after a flagged or slow touch
         # (performer, input) -> (scratch fit, its pose, the input's frame buffer)
         self._scratch: dict[tuple[int, int], tuple[FitSolver, Any, Any]] = {}
 
@@ -102,5 +105,16 @@ class Prewarm:
         solver."""
         self.touched_ns = self.last_ns
         for scratch, pose, frame in self._scratch.values():
+            t0 = time.monotonic_ns()
             scratch.solve_frame(frame.markers_world, pose)
             self.touches += 1
+            # A scratch whose markers fit no pose searches again at its next touch
+            # (one touch flagged so took 98 ms of the loop's CPU in the soak, after
+            # a burst of bad frames; measured), and a touch longer than the lead
+            # makes the frame wait: reset it, its next touch starts afresh (a reset
+            # fit's first solve took 0.1-0.2 ms on the walk, measured).
+            if pose.frame_flags & FRAME_UNEXPLAINED or (
+                time.monotonic_ns() - t0 > self.lead_ns
+            ):
+                scratch.reset()
+                self.resets += 1

@@ -27,6 +27,7 @@ from retargetd.daemon.live.emit import (
 from retargetd.daemon.live.outputs import VMC_STATE_INTERVAL_NS
 from retargetd.daemon.live.performer import FrameSource, Performer
 from retargetd.daemon.live.pipeline import Pipeline, new_pipeline, warm_up_pipeline
+from retargetd.daemon.live.rebuild import rebuilt_solver
 from retargetd.daemon.live.shared import Shared
 from retargetd.daemon.validate.live import LiveValidator
 from retargetd.protocols import pose_stream
@@ -117,9 +118,24 @@ class BodyPath:
         labels = stream.current.label_set.labels
         key = id(stream)
         pipe = self.pipelines.get(key)
+        solver = None
         if pipe is not None and self.labels_of.get(key) == labels:
-            return pipe
-        pipe = self.build_pipeline(labels)
+            rig, cal = pipe.built_for
+            if rig is perf.rig and cal is perf.calibration:
+                return pipe
+            # A reload or a new calibration: the old pipeline solves until the new
+            # solver is built off the loop (rebuild.py).
+            config = self.shared.config
+            solver = rebuilt_solver(pipe, perf.rig, perf.calibration, labels,
+                                    config.solve.method,
+                                    config.validate.rate_hz)  # fmt: skip
+            if solver is None:
+                return pipe
+            self.shared.recording.event(
+                "pipeline", received_ns=stream.current.frame.t_ns
+            )
+        self.last_names_ns = 0  # new names: announce them with the next frame
+        pipe = new_pipeline(perf, self.shared, labels, solver=solver)
         self.shared.stats.pipeline_builds += 1
         self.pipelines[key] = pipe
         self.labels_of[key] = labels
@@ -132,18 +148,19 @@ class BodyPath:
         warm_up_pipeline(self.perf, self.shared)
 
     def rebuild(self, labels: tuple[str, ...], sources: list[FrameSource]) -> None:
-        """The calibration or face changed: every pipeline goes, and those of the
+        """The face's training set changed: every pipeline goes, and those of the
         sources now carrying ``labels`` are built at once (off the next frame)."""
         self.pipelines.clear()
         self.labels_of.clear()
+        self.renew(labels, sources)
+
+    def renew(self, labels: tuple[str, ...], sources: list[FrameSource]) -> None:
+        """The rig or calibration changed: each stream's new body solver is built off
+        the loop from now (rebuild.py), its old pipeline solving meanwhile; a stream
+        of ``sources`` carrying ``labels`` without one gets it built now."""
         for s in sources:
             if s.current.label_set.labels == labels:
                 self.pipeline(s)
-
-    def forget(self) -> None:
-        """Every pipeline goes (a reload): rebuilt on the next frames."""
-        self.pipelines.clear()
-        self.labels_of.clear()
 
     def restart(self, key: int) -> None:
         """The source of the pipeline ``key`` restarted: it starts over."""

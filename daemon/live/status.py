@@ -17,6 +17,7 @@ from retargetd.daemon.live.prewarm import Prewarm
 from retargetd.daemon.live.props import LiveProps
 from retargetd.daemon.live.recording import LiveRecording
 from retargetd.daemon.live.sources import capture_stats
+from retargetd.daemon.live.stalls import LoopStalls
 from retargetd.daemon.live.stats import POST_PREFIX, LoopStats
 from retargetd.daemon.live.watch import SocketWatch
 
@@ -34,6 +35,7 @@ class Health:
         recording: the live recording.
         props: the ``[[prop]]`` part.
         watch: the bound ZeroMQ sockets' monitors (CURVE refusals, descriptors).
+        stalls: the loop's phases over 50 ms.
         prewarm: the fit's warm touches.
         endpoints: what is listening where (``open`` fills it).
         t0_ns: the daemon's start.
@@ -50,6 +52,7 @@ class Health:
         recording: LiveRecording,
         props: LiveProps,
         watch: SocketWatch,
+        stalls: LoopStalls,
         prewarm: Prewarm,
         endpoints: dict[str, str],
         t0_ns: int,
@@ -62,6 +65,7 @@ class Health:
         self.recording = recording
         self.props = props
         self.watch = watch
+        self.stalls = stalls
         self.prewarm = prewarm
         self.endpoints = endpoints
         self.t0_ns = t0_ns
@@ -101,12 +105,15 @@ class Health:
             "counters": {
                 **self.stats.counters(),
                 "prewarm": self.prewarm.touches,
+                "prewarm_resets": self.prewarm.resets,  # after a flagged/slow touch
                 # markers occluded for a coordinate past max_coordinate_m, all inputs
                 "implausible_markers": inputs["implausible_markers"],
                 # episodes of descriptor exhaustion, and the failed accepts seen
                 "fd_episodes": self.watch.fd_episodes,
                 "fd_accept_failures": self.watch.fd_accept_failures,
             },
+            # phases of a loop iteration over 50 ms, by name (stalls.py)
+            "loop_stalls": self.stalls.status(),
             "fd_exhausted": self.watch.exhausted,  # an episode is going on
             # CURVE handshakes refused, by socket and reason (sockets with a key)
             "curve_refused": self.watch.status(),

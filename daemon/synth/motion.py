@@ -10,7 +10,9 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.interpolate import CubicSpline
 
+from retargetd.daemon.synth.gait import GaitPlan
 from retargetd.daemon.synth.skeleton import Skeleton
 from retargetd.protocols.frames import F64Array
 
@@ -27,6 +29,7 @@ DEFAULT_MOTIONS: tuple[str, ...] = (
 #: come from (``validate.limits``), each meant to be synthesized alone (optionally
 #: with ``head_turn``): see :func:`_deep_squat` ... :func:`_jump`.
 ACTIVITY_MOTIONS: tuple[str, ...] = (
+    "level_walk",
     "stair_ascent",
     "stair_descent",
     "run",
@@ -34,6 +37,9 @@ ACTIVITY_MOTIONS: tuple[str, ...] = (
     "deep_squat",
     "kick",
 )
+#: The activities that are gaits placed from their stance feet (``synth.gait``): their
+#: truth's ``foot_contact`` is each foot's stance.
+GAIT_MOTIONS: tuple[str, ...] = ("level_walk", "stair_ascent", "stair_descent")
 #: A range-of-motion take for a functional calibration (``calibrate --rom``), meant to
 #: be synthesized alone: :func:`_rom`.
 CALIBRATION_MOTIONS: tuple[str, ...] = ("rom",)
@@ -90,12 +96,13 @@ class Motion:
     plant: tuple[str, ...] = ()
     plant_weight: F64Array = field(default_factory=lambda: np.zeros(0))
     flight_m: F64Array = field(default_factory=lambda: np.zeros(0))
-    # Gaits: low-pass the floor-contact lift (Hz; 0 = off): the hard switch of the
-    # lowest sole from one foot to the other would drop the body faster than gravity.
+    # The run: low-pass the floor-contact lift (Hz; 0 = off), and never let the body
+    # fall faster than gravity (where the floor contact would drop it faster, it
+    # flies: a flight phase).
     floor_smooth_hz: float = 0.0
-    # Runs: the body never falls faster than gravity; where the floor contact would
-    # drop it faster, it flies (the feet leave the floor: a flight phase).
     ballistic: bool = False
+    # Gaits whose stance feet stay put (synth.gait): the root is placed from them.
+    gait: GaitPlan | None = None
 
     def add(self, segment: str, axis: int, deg: F64Array) -> None:
         """Add ``deg`` (T,) degrees, already weighted, about one axis of one segment."""
@@ -334,11 +341,149 @@ def _jump(m: Motion) -> None:
     m.plant_weight = m.w
 
 
+#: A gait's anterior pelvic tilt, degrees: ~10 through the walking cycle (Perry &
+#: Burnfield 2010, Gait Analysis, 2nd ed., ch. 8; hip angles are the thigh's on the
+#: pelvis, so the thigh's angle to the vertical is the hip's less this).
+PELVIS_TILT_DEG = 10.0
+
+#: A joint's angle through a gait cycle: (percent of the cycle from heel strike,
+#: degrees) key points, joined by a periodic cubic spline.
+Profile = tuple[tuple[float, float], ...]
+
+
+def _profile(points: Profile, phase: F64Array) -> F64Array:
+    """The periodic cubic spline through ``points`` at ``phase`` (radians)."""
+    pct = np.array([p for p, _ in points] + [points[0][0] + 100.0])
+    deg = np.array([d for _, d in points] + [points[0][1]])
+    spline = CubicSpline(pct, deg, bc_type="periodic")
+    return np.asarray(spline(pct[0] + np.mod(100.0 * phase / (2.0 * np.pi) - pct[0],
+                                             100.0)))  # fmt: skip
+
+
+def _gait(
+    m: Motion,
+    *,
+    cadence_hz: float,
+    hip: Profile,
+    knee: Profile,
+    ankle: Profile,
+    trunk_deg: float,
+    toe_off: float,
+    pelvis_tilt_deg: float = PELVIS_TILT_DEG,
+    rise_m: float = 0.0,
+    ramp_s: float = RAMP_S,
+    flight: bool = False,
+    toes_flat: bool = True,
+) -> None:
+    """A straight gait along +x: sagittal hip flexion, knee flexion and ankle
+    dorsiflexion profiles (degrees against the percent of the cycle), ``cadence_hz``
+    strides a second once the ramp is over (the phase speeds up with the angles over
+    ``ramp_s``). The body is placed from the stance feet
+    (:func:`synth.gait.plant_gait`): the feet do not slide, and the speed and stride
+    length are the legs' own."""
+    t0 = np.maximum(m.t, 0.0)
+    # The right starts in mid-stance (30 % of its cycle), the left in mid-swing: the
+    # first step is the left's, from standing.
+    phase = (
+        2.0 * np.pi * (0.3 + cadence_hz * ramp_s * _smootherstep_integral(t0 / ramp_s))
+    )
+    w = smootherstep(m.t / ramp_s)  # the angles grow with the cadence
+    for side_phase, side in ((phase + np.pi, "l"), (phase, "r")):
+        _legs(m, side, w * _profile(hip, side_phase), w * _profile(knee, side_phase),
+              w * _profile(ankle, side_phase))  # fmt: skip
+    # The pelvis tilts forward (hip angles are the thigh's on the pelvis), the trunk
+    # above it comes back up to lean ``trunk_deg``.
+    m.add("pelvis", _Y, w * pelvis_tilt_deg)
+    m.add("abdomen", _Y, w * (trunk_deg - pelvis_tilt_deg))
+    _arms_down(m)
+    m.add_bilateral(
+        "upper_arm", _Y, w * 25.0 * np.cos(phase), -w * 25.0 * np.cos(phase)
+    )
+    m.add_bilateral("forearm", _Z, -w * 60.0, -w * 60.0)
+    m.gait = GaitPlan(
+        phase=np.stack([phase + np.pi, phase], axis=1),
+        toe_off=toe_off,
+        rise_m=rise_m,
+        flight=flight,
+        moving=m.t > 0.0,
+        toes_flat=toes_flat,
+    )
+
+
+#: Walking toe-off, fraction of the cycle (Winter 2009, normative gait: ~60 %).
+WALK_TOE_OFF = 0.60
+#: Stair toe-off (McFadyen & Winter 1988, J Biomech 21:733-744: stance ~64 % of the
+#: stair cycle, up and down).
+STAIR_TOE_OFF = 0.64
+#: The stairs' riser, metres: a common domestic rise (the stance detector's stair
+#: test climbs 0.17 m risers too).
+STAIR_RISER_M = 0.17
+
+
+def _level_walk(m: Motion) -> None:
+    """A straight level walk at a natural cadence (~54 strides a minute), the
+    sagittal angles' key points read off the normative curves (Winter 2009,
+    Biomechanics and Motor Control of Human Movement, 4th ed., app. A; Perry &
+    Burnfield 2010, ch. 5-8): hip flexion 30 at heel strike to extension 10 at 50 %,
+    33 in terminal swing; knee 18 in loading, 38 at toe-off, 62 in swing; ankle
+    plantarflexion 6 at foot flat, dorsiflexion 10 at 45 %, plantarflexion 18 at
+    toe-off; pelvis tilted 10 forward, trunk 3."""
+    _gait(
+        m,
+        cadence_hz=0.9,
+        hip=((0, 30), (10, 28), (30, 10), (50, -10), (60, -2), (73, 20), (87, 33)),
+        knee=((0, 3), (15, 18), (40, 4), (60, 38), (73, 62), (87, 25), (97, 3)),
+        ankle=((0, 0), (7, -6), (45, 10), (62, -18), (75, -4), (87, 1)),
+        trunk_deg=3.0,
+        toe_off=WALK_TOE_OFF,
+    )
+
+
+def _stair_ascent(m: Motion) -> None:
+    """Stair ascent, step over step on 0.17 m risers (McFadyen & Winter 1988;
+    Protopapadaki et al. 2007, Clin Biomech 22:203-210), key points read off their
+    curves: hip flexion 60 at foot contact, 5 late in stance, 65 in swing; knee 60 at
+    contact, 10 at 50 %, 95 in swing; ankle dorsiflexion 20 early in stance,
+    plantarflexion 15 at push-off; trunk forward 10; 0.55 strides a second."""
+    _gait(
+        m,
+        cadence_hz=0.55,
+        hip=((0, 60), (20, 45), (50, 5), (64, 10), (80, 55), (92, 65)),
+        knee=((0, 60), (20, 45), (50, 10), (64, 35), (78, 95), (92, 75)),
+        ankle=((0, 10), (15, 20), (45, 5), (64, -15), (78, 10), (92, 15)),
+        trunk_deg=10.0,
+        toe_off=STAIR_TOE_OFF,
+        rise_m=STAIR_RISER_M,
+    )
+
+
+def _stair_descent(m: Motion) -> None:
+    """Stair descent, step over step on 0.17 m risers (McFadyen & Winter 1988), key
+    points read off their curves: contact on the forefoot (plantarflexion 25), the
+    ankle dorsiflexing (54 in the profile; 40-45 reported, and the held foot's
+    inverse kinematics and the solve take some of it back: the solved peak is then
+    the 40 ``tests/daemon/test_validate_activities.py`` asks) and the knee flexing
+    to 90 as the stance leg lowers the body, knee 100 in swing, plantarflexion 30
+    reaching for the step below; hip 10-35; trunk forward 5; 0.55 strides a
+    second. The stance foot rolls onto the tips of its toes (no toe extension)."""
+    _gait(
+        m,
+        cadence_hz=0.55,
+        hip=((0, 10), (30, 8), (60, 25), (75, 35), (90, 20)),
+        knee=((0, 10), (20, 20), (45, 45), (64, 90), (75, 100), (90, 40)),
+        ankle=((0, -25), (15, 5), (50, 44), (64, 54), (78, 10), (95, -30)),
+        trunk_deg=5.0,
+        toe_off=STAIR_TOE_OFF,
+        rise_m=-STAIR_RISER_M,
+        toes_flat=False,
+    )
+
+
 #: Sharpness of a gait's stance knee-flexion bump (a power of the raised cosine).
 STANCE_POWER = 3
 
 
-def _gait(
+def _sliding_gait(
     m: Motion,
     *,
     speed_m_s: float,
@@ -354,10 +499,11 @@ def _gait(
     ramp_s: float = RAMP_S,
     ballistic: bool = False,
 ) -> None:
-    """A gait round the walk circle with its own joint-angle profile: hip flexion
+    """The run's gait, round a circle with its own joint-angle profile: hip flexion
     ``hip[0] + hip[1] cos(phase)``, knee flexion bumps in stance and swing, ankle
     dorsiflexion in stance and plantarflexion at push-off; the lowest sole kept on
-    the floor (the steps of a stair gait are not modelled: its angles are)."""
+    the floor while the root moves at ``speed_m_s``, so its stance feet slide (not
+    yet placed from its stance feet as the other gaits are: ``synth.gait``)."""
     t0 = np.maximum(m.t, 0.0)
     dist = speed_m_s * ramp_s * _smootherstep_integral(t0 / ramp_s)
     phase = 2.0 * np.pi * dist / stride_m
@@ -386,40 +532,6 @@ def _gait(
     m.ballistic = ballistic
 
 
-def _stair_ascent(m: Motion) -> None:
-    """Stair-ascent joint angles (McFadyen & Winter 1988; Protopapadaki et al. 2007):
-    hip flexion to 65, knee flexion to 95, ankle dorsiflexion 20, push-off
-    plantarflexion 15, trunk forward 10; 0.5 m/s."""
-    _gait(
-        m,
-        speed_m_s=0.5,
-        stride_m=0.6,
-        hip=(27.5, 37.5),
-        knee_stance=60.0,
-        knee_swing=95.0,
-        ankle_dorsi=20.0,
-        ankle_plantar=15.0,
-        trunk_deg=10.0,
-    )
-
-
-def _stair_descent(m: Motion) -> None:
-    """Stair-descent joint angles (McFadyen & Winter 1988; the issue's stair walk):
-    hip flexion to 40, knee flexion to 100, ankle dorsiflexion to 45 as the stance
-    leg lowers the body, plantarflexion 30 reaching for the step below; 0.5 m/s."""
-    _gait(
-        m,
-        speed_m_s=0.5,
-        stride_m=0.6,
-        hip=(17.5, 22.5),
-        knee_stance=85.0,
-        knee_swing=100.0,
-        ankle_dorsi=45.0,
-        ankle_plantar=30.0,
-        trunk_deg=5.0,
-    )
-
-
 #: The run's circle: at 3 m/s a 15 m radius asks 0.6 m/s^2 of centripetal
 #: acceleration, the walk's on its 1.5 m circle (0.67 m/s^2); on the walk's circle it
 #: would be 6 m/s^2, which a runner leans into and the synthetic one does not.
@@ -433,7 +545,7 @@ def _run(m: Motion) -> None:
     speeding up over 2 s, on a 15 m circle. The body never falls faster than gravity:
     where the floor contact would drop it faster it flies, so each step has a flight
     phase (~0.1 s)."""
-    _gait(
+    _sliding_gait(
         m,
         speed_m_s=3.0,
         stride_m=2.4,
@@ -491,6 +603,7 @@ def _rom(m: Motion) -> None:
 
 COMPONENTS: dict[str, Callable[[Motion], None]] = {
     "walk": _walk,
+    "level_walk": _level_walk,
     "arm_raise": _arm_raise,
     "forearm_twist": _forearm_twist,
     "spine": _spine,

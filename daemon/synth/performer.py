@@ -35,6 +35,7 @@ import numpy as np
 from scipy.signal import butter, filtfilt
 
 from retargetd.daemon import rotations as rot
+from retargetd.daemon.synth.gait import plant_gait
 from retargetd.daemon.synth.markerset import (
     MarkerSet,
     load_markerset,
@@ -111,6 +112,12 @@ class SynthTake:
         seed: the random seed.
         height_m: the performer's height.
         origin_world: (3,) float64, metres: floor point under the pelvis at rest.
+        foot_contact: (T, 2) bool, left / right foot in contact with its support. The
+            gaits (``level_walk``, ``run``, ``stair_ascent``, ``stair_descent``:
+            ``synth.gait``) hold each foot put while this is set; other motions: a
+            sole point within :data:`CONTACT_M` of the floor.
+        foot_support_m: (T, 2) float64, metres, world z of each foot's support (the
+            floor, or a stair's step).
     """
 
     labels: tuple[str, ...]
@@ -134,6 +141,8 @@ class SynthTake:
     seed: int
     height_m: float
     origin_world: F64Array
+    foot_contact: BoolArray
+    foot_support_m: F64Array
 
     @property
     def n_frames(self) -> int:
@@ -166,6 +175,11 @@ class SynthTake:
 
 
 _TRUTH_FIELDS = tuple(SynthTake.__dataclass_fields__)
+#: Truth fields added later; a file without them reads as this (contact unknown).
+_LATER_FIELDS = ("foot_contact", "foot_support_m")
+#: Outside the gaits, a foot is in contact when a sole point is this near the floor
+#: (metres): the soft floor contact keeps the lowest sole within 1 mm of it.
+CONTACT_M = 1e-3
 
 
 def load_truth(path: str | Path) -> SynthTake:
@@ -180,6 +194,8 @@ def load_truth(path: str | Path) -> SynthTake:
     kwargs: dict[str, object] = {}
     with np.load(path, allow_pickle=False) as npz:
         for name in _TRUTH_FIELDS:
+            if name in _LATER_FIELDS and name not in npz.files:
+                continue
             value = npz[name]
             if name == "base_pose_frames":
                 kwargs[name] = slice(int(value[0]), int(value[1]))
@@ -189,6 +205,9 @@ def load_truth(path: str | Path) -> SynthTake:
                 kwargs[name] = value.item()
             else:
                 kwargs[name] = readonly(value)
+    n_frames = len(np.asarray(kwargs["times_s"]))
+    kwargs.setdefault("foot_contact", readonly(np.zeros((n_frames, 2), dtype=bool)))
+    kwargs.setdefault("foot_support_m", readonly(np.full((n_frames, 2), np.nan)))
     return SynthTake(**kwargs)  # type: ignore[arg-type]
 
 
@@ -392,6 +411,24 @@ def synthesize(
     world_from_segment, joint_pos = _forward_kinematics(
         skeleton, parent_from_segment, work.root_pos
     )
+    contact = np.zeros((n_frames, 2), dtype=bool)
+    support = np.full((n_frames, 2), np.nan)
+    if work.gait is not None:
+        # Gaits: the body placed from the stance feet (synth.gait), legs corrected.
+        placed = plant_gait(
+            skeleton,
+            parent_from_segment,
+            world_from_segment,
+            joint_pos - work.root_pos[:, None],
+            work.root_pos[0],
+            work.gait,
+            rate_hz,
+        )
+        parent_from_segment = placed.parent_from_segment
+        world_from_segment, joint_pos = _forward_kinematics(
+            skeleton, parent_from_segment, placed.root_pos
+        )
+        contact, support = placed.contact, placed.support_m
     if work.walk_weight.size:
         # Vertical bob: keep the lowest sole point on the floor (soft minimum, so the
         # root height stays smooth); zero correction while the ramp weight is 0.
@@ -432,6 +469,14 @@ def synthesize(
         joint_pos[..., :2] -= (work.plant_weight[:, None] * drift)[:, None, :]
     if work.flight_m.size:
         joint_pos[..., 2] += work.flight_m[:, None]
+    if work.gait is None:
+        seg = skeleton.sole_segments
+        sole_z = (
+            joint_pos[:, seg, 2]
+            + rot.quat_rotate(world_from_segment[:, seg], skeleton.sole_points)[..., 2]
+        ).reshape(n_frames, 2, -1)
+        contact = sole_z.min(axis=-1) <= origin_world[2] + CONTACT_M
+        support = np.full((n_frames, 2), origin_world[2])
 
     marker_segments = np.array(
         [skeleton.index(s) for s in markerset.segments], dtype=np.int64
@@ -473,4 +518,6 @@ def synthesize(
         seed=int(seed),
         height_m=height_m,
         origin_world=readonly(origin_world.copy()),
+        foot_contact=readonly(contact),
+        foot_support_m=readonly(support),
     )

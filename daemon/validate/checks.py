@@ -25,7 +25,8 @@ offline the ghost force (:mod:`validate_dynamics`: the inverse-dynamics root wre
 inferred foot contacts cannot explain, in body weights). A solve that carries marker
 residuals (the fit) also gets the marker residual checks (:mod:`validate.residual`):
 for the fit, whose joint centres are its rigid skeleton's own, "fit" reads ~1e-12 mm
-and measures nothing; what the fit cannot match is in its residuals.
+and measures nothing; what the fit cannot match is in its residuals. Given the stance
+the detector found (``stance``), also the stance-foot skate (:mod:`validate.skate`).
 """
 
 from __future__ import annotations
@@ -43,6 +44,7 @@ from retargetd.daemon.body.rig import Rig
 from retargetd.daemon.body.solve import BodySolve
 from retargetd.daemon.validate import dynamics as vd
 from retargetd.daemon.validate import residual as vr
+from retargetd.daemon.validate import skate as vs
 from retargetd.daemon.validate.limits import TYPICAL_LIMITS_DEG, limit_violation_deg
 from retargetd.daemon.validate.model import (
     Skeleton,
@@ -148,6 +150,26 @@ THRESHOLDS: dict[str, float] = {
     # fail: the 0.25 s within which issue 28 asks the fit to recover from any burst of
     # bad frames; shorter ones are transients (swaps, ghosts, glitches), reported.
     "marker_residual_min_s": 0.25,
+    # Stance-foot skate (validate.skate; the stance the detector of post/stance.py
+    # found, handed over by the caller): the horizontal speed of the foot's slowest
+    # floor point (heel, ball, toe tip). A stance foot that does not slip has one of
+    # them at rest (Perry & Burnfield 2010, the three rockers); the gait-event
+    # methods call a heel or forefoot landed below 0.5 m/s (Ghoussayni et al. 2004,
+    # Gait Posture 20:266-272; Bonci et al. 2022, Front Bioeng Biotechnol
+    # 10:868928, M5) and off above 1.0 m/s (Bonci M5): a foot the detector holds in
+    # stance that keeps one fifth of the landing speed, 0.1 m/s, for the length of
+    # a loading response (0.1 s: 1 cm of travel) slides. The stance's first and last
+    # 0.1 s are left out (loading response and pre-swing, ~10 % of the cycle each,
+    # Perry & Burnfield: the heel still braking, the foot already leaving).
+    # Measured after the choice: README "Stance-foot skate" (every real take).
+    "foot_skate_m_s": 0.1,
+    "foot_skate_min_s": 0.1,
+    "foot_skate_edge_s": 0.1,
+    # ... and only while the foot's lowest sole point is within 1 cm of the stance's
+    # support (its median over the stance core): above it the foot is off the
+    # floor (swing toe clearance 1.29 +- 0.45 cm, Winter 1992, Phys Ther 72:45-53),
+    # so a detected stance that lifts is the detector's, not a slide.
+    "foot_skate_support_m": 0.01,
 }
 
 #: How each threshold was set, one line per check (the report header prints these).
@@ -180,6 +202,10 @@ THRESHOLDS_BASIS: dict[str, str] = {
     "marker_residual_max": "the fit's marker residual, per-frame max: 40 mm, past the "
     "largest soft-tissue artefact (Leardini 2005), under the 50-100 mm marker "
     "spacing on a segment; the same marker for >= 0.25 s",
+    "foot_skate": "stance foot's least-moving sole point horizontally (the whole sole "
+    "region, so a roll or a pivot on the floor is no skate), detected stance less "
+    "0.1 s at either end, on its support (within 1 cm), >= 0.1 s: one fifth of the "
+    "0.5 m/s landing speed of Ghoussayni 2004 / Bonci 2022",
 }
 
 
@@ -372,6 +398,7 @@ def validate_take(
     thresholds: dict[str, float] | None = None,
     dynamics: bool = True,
     progress: Callable[[int], None] | None = None,
+    stance: dict[str, np.ndarray] | None = None,
 ) -> TakeReport:
     """Run every check on a solved take.
 
@@ -385,6 +412,9 @@ def validate_take(
         progress: called with the number of frames checked since the last call
             (every :data:`PROGRESS_FRAMES` frames of the per-frame MuJoCo loop;
             a progress bar).
+        stance: foot bone name -> (T,) bool, the stance the detector found
+            (``post.stance.foot_contact``, handed over by the caller:
+            :mod:`validate.skate`); None skips the skate check.
 
     Returns:
         The report.
@@ -506,6 +536,16 @@ def validate_take(
         f"frame {t}: {names[self_pairs[t, 0]]} / {names[self_pairs[t, 1]]}"
         for t in np.flatnonzero(checks["self_penetration"].flagged)[:5]
     ]
+    if stance:
+        sk = vs.skate_check(
+            skel_stream, origins, wfb, stance, rate_hz,
+            speed_m_s=th["foot_skate_m_s"], min_s=th["foot_skate_min_s"],
+            edge_s=th["foot_skate_edge_s"], support_m=th["foot_skate_support_m"],
+        )  # fmt: skip
+        checks["foot_skate"] = CheckResult(
+            "foot_skate", sk.values, th["foot_skate_m_s"], "m/s", flagged=sk.flagged,
+            detail=sk.detail, transients=sk.transients,
+        )  # fmt: skip
     checks.update(_residual_checks(solve, th, rate_hz))
     return TakeReport(checks=checks, n_frames=n, seconds_per_frame=per_frame)
 

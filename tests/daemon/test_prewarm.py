@@ -101,3 +101,41 @@ def test_the_daemon_touches_the_fit_and_streams_the_same_poses(
     print(f"\nprewarm: {touches} touches over {len(rows)} paced frames")
     assert touches >= len(rows) // 2  # most frames (the first few set the period)
     assert dots.min() > 1.0 - 1e-6, dots.min()
+
+
+class _Scratch:
+    """A scratch solver stand-in: its solve flags the pose and takes ``sleep_s``."""
+
+    def __init__(self, flags: int, sleep_s: float) -> None:
+        self.flags, self.sleep_s, self.resets = flags, sleep_s, 0
+
+    def solve_frame(self, markers: Any, pose: Any) -> Any:
+        time.sleep(self.sleep_s)  # never returns early
+        pose.frame_flags = self.flags
+        return pose
+
+    def reset(self) -> None:
+        self.resets += 1
+
+
+class _Pose:
+    frame_flags = 0
+
+
+class _Frame:
+    markers_world = np.zeros((3, 3))
+
+
+def test_a_flagged_or_slow_touch_resets_its_scratch_and_counts() -> None:
+    from retargetd.protocols.pose_stream import FRAME_RESEEDED, FRAME_UNEXPLAINED
+
+    p = Prewarm(1.5)
+    ok = _Scratch(FRAME_RESEEDED, 0.0)  # reseeded alone: a pose explains them
+    lost = _Scratch(FRAME_UNEXPLAINED, 0.0)
+    slow = _Scratch(0, 0.002)  # longer than the 1.5 ms lead
+    p._scratch = {
+        (0, k): (s, _Pose(), _Frame()) for k, s in enumerate((ok, lost, slow))
+    }
+    p.touch()
+    assert p.touches == 3 and p.resets == 2
+    assert (ok.resets, lost.resets, slow.resets) == (0, 1, 1)

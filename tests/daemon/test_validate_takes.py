@@ -188,6 +188,11 @@ class Recorded:
 
 
 #: name -> (rig, take, calibration take, calibration frames or None, validate extras).
+#: The stance-foot skate check (``retargetd validate`` hands it the detected stance):
+#: the serve's feet slide on the floor (the heel pivoting with the toes up, the back
+#: foot dragged: LHEE, LTOE and LANK translate together 4-30 cm with the foot on its
+#: support; README "Stance-foot skate"), so it fails there.
+SKATES: dict[str, list[str]] = {"tennis-serve": ["foot_skate"]}
 CASES: dict[str, tuple[str, str, str, str | None, tuple[str, ...]]] = {
     # The walk's Bodymass, from its C3D (a recording carries no measurements).
     "pig-walk": (
@@ -307,7 +312,7 @@ def test_recorded_replay_validates_clean(
         *("validate", str(rec.recording), "--rig", rec.rig),
         *("--calibration", str(rec.calibration), "--report", str(report), *rec.extra),
     ]
-    expected = _expected_failures(name, "fit")
+    expected = SKATES.get(name, []) + _expected_failures(name, "fit")
     assert main(argv) == (1 if expected else 0)
     doc: dict[str, Any] = json.loads((report / "report.json").read_text())
     assert doc["passed"] == (not expected) and doc["failed"] == expected
@@ -318,6 +323,9 @@ def test_recorded_replay_validates_clean(
     checks = doc["checks"]
     assert set(checks) == {*THRESHOLDS_BASIS}
     for check_name, check in checks.items():
+        if check_name == "foot_skate" and check_name in expected:
+            assert check["frames_flagged"] > 0 and check["detail"]
+            continue
         if check_name in expected:
             _check_misfit(name, check["markers"])
             continue
@@ -331,6 +339,6 @@ def test_recorded_replay_validates_clean(
     assert 0.0 < checks["ghost_force"]["max"] < THRESHOLDS["ghost_force_bw"]
     assert checks["floating"]["max"] == 0.0
     text = (report / "report.txt").read_text()
-    result = "Result: FAIL: marker_residual_max" if expected else "Result: PASS"
+    result = f"Result: FAIL: {', '.join(expected)}" if expected else "Result: PASS"
     assert result in text and "How the thresholds were set" in text
     assert (report / "model.xml").is_file() and (report / "checks.png").is_file()

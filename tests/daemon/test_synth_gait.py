@@ -1,0 +1,135 @@
+"""The synthetic gaits whose stance feet stay put (issue 34 item 3, ``synth/gait.py``):
+the level walk and the stair gaits place the body from the stance feet, so a foot in
+contact (the truth's ``foot_contact``) neither slides nor sinks, contact follows the
+gait's schedule, and the truth file carries it (``synth --truth``)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from retargetd.daemon import rotations as rot
+from retargetd.daemon.synth import motion
+from retargetd.daemon.synth import performer as pf
+
+RATE_HZ = 120.0
+GAITS = ("level_walk", "stair_ascent", "stair_descent")
+#: Scheduled toe-off per gait (fraction of the cycle).
+TOE_OFF = {
+    "level_walk": motion.WALK_TOE_OFF,
+    "stair_ascent": motion.STAIR_TOE_OFF,
+    "stair_descent": motion.STAIR_TOE_OFF,
+}
+
+
+def _soles(take: pf.SynthTake) -> np.ndarray:
+    """(T, 2, 3, 3) heel, ball, toe tip of each foot, world metres."""
+    sk = pf.make_skeleton(take.height_m)
+    seg = sk.sole_segments
+    pts = take.joint_pos_world[:, seg] + rot.quat_rotate(
+        take.world_from_segment_quat[:, seg], sk.sole_points
+    )
+    return pts.reshape(len(pts), 2, 3, 3)
+
+
+@pytest.fixture(scope="module", params=GAITS)
+def gait(request: pytest.FixtureRequest) -> tuple[str, pf.SynthTake]:
+    name = str(request.param)
+    return name, pf.synthesize(seconds=6.0, rate_hz=RATE_HZ, motions=(name,))
+
+
+def test_a_foot_in_contact_neither_slides_nor_sinks(
+    gait: tuple[str, pf.SynthTake],
+) -> None:
+    """In contact, the sole point that moved least (heel, ball or toe tip, on the
+    support) travels under 0.05 mm a frame (6 mm/s; the old gaits slid ~1 m/s), the
+    foot's lowest point is on its support (within 1 um), and no sole point is
+    ever below the lowest support reached so far (the floor, or the step; going
+    down a stair, the step below it)."""
+    name, take = gait
+    soles = _soles(take)
+    contact = take.foot_contact
+    support = take.foot_support_m
+    assert contact.any(axis=0).all(), name
+    both = contact[1:] & contact[:-1]
+    step = np.linalg.norm(np.diff(soles[..., :2], axis=0), axis=-1)  # (T-1, 2, 3)
+    on = soles[1:, :, :, 2] <= support[1:, :, None] + 1e-6
+    least = np.where(on, step, np.inf).min(axis=-1)
+    assert np.isfinite(least[both]).all(), name
+    print(f"\n{name}: stance travel max {1e3 * least[both].max():.4f} mm/frame")
+    assert least[both].max() < 5e-5, name
+    lowest = soles[..., 2].min(axis=-1)
+    gap = np.abs(lowest - support)[contact]
+    assert gap.max() < 1e-6, name
+    floor_so_far = np.minimum.accumulate(support.min(axis=1))
+    if name == "stair_descent":  # the swing foot goes down to the next step
+        floor_so_far = floor_so_far - motion.STAIR_RISER_M
+    assert (soles[..., 2].min(axis=(1, 2)) >= floor_so_far - 1e-6).all(), name
+
+
+def test_contact_follows_the_gait_schedule(gait: tuple[str, pf.SynthTake]) -> None:
+    """Once under way, each stance lasts the gait's toe-off fraction of the cycle
+    (within 2 frames), a stair gait's supports step by the riser, and the level
+    gaits stay on the floor."""
+    name, take = gait
+    c = take.foot_contact
+    runs = []
+    for s in range(2):
+        d = np.diff(c[:, s].astype(np.int8))
+        on, off = np.flatnonzero(d == 1) + 1, np.flatnonzero(d == -1) + 1
+        runs += [(a, off[off > a][0]) for a in on if (off > a).any()]
+    assert len(runs) >= 4, name
+    lengths = np.array([b - a for a, b in runs])
+    strikes = np.sort([a for a, _ in runs])
+    cycle = np.median(np.diff(strikes)) * 2.0  # strikes alternate feet
+    assert np.abs(lengths - TOE_OFF[name] * cycle).max() <= 2.0, (name, lengths, cycle)
+    levels = np.unique(np.round(take.foot_support_m, 6))
+    if name.startswith("stair"):
+        assert np.allclose(np.diff(levels), motion.STAIR_RISER_M, atol=1e-6), levels
+    else:
+        assert levels.tolist() == [0.0]
+
+
+def test_double_support_and_never_airborne(gait: tuple[str, pf.SynthTake]) -> None:
+    """Walking and stairs: frames with both feet down (double support), none with
+    neither."""
+    name, take = gait
+    c = take.foot_contact[int(3 * RATE_HZ) :]
+    assert c.all(axis=1).mean() > 0.1, name
+    assert c.any(axis=1).all(), name
+
+
+def test_the_default_motion_is_unplaced() -> None:
+    """The default motion is not a gait: no body placement, its contact is the
+    sole within 1 mm of the floor (the walk's soft floor contact)."""
+    take = pf.synthesize(seconds=3.0, rate_hz=60.0)
+    soles = _soles(take)
+    near = soles[..., 2].min(axis=-1) <= take.origin_world[2] + pf.CONTACT_M
+    assert np.array_equal(take.foot_contact, near)
+    assert np.all(take.foot_support_m == take.origin_world[2])
+
+
+def test_synth_truth_holds_foot_contact(tmp_path: Path) -> None:
+    """``retargetd synth --truth`` writes ``foot_contact`` (T, 2) and
+    ``foot_support_m`` (T, 2); ``load_truth`` reads them back, and reads a truth
+    file written before them (contact unknown: all False, supports NaN)."""
+    out, truth = tmp_path / "walk.c3d", tmp_path / "walk.truth.npz"
+    cmd = [sys.executable, "-m", "retargetd.daemon", "synth", "--seconds", "3",
+           "--rate", "60", "--motions", "level_walk", "--out", str(out),
+           "--truth", str(truth)]  # fmt: skip
+    subprocess.run(cmd, check=True, capture_output=True, timeout=120)
+    with np.load(truth) as d:
+        assert d["foot_contact"].shape == (180, 2) and d["foot_contact"].dtype == bool
+        assert d["foot_support_m"].shape == (180, 2)
+        old = {k: d[k] for k in d.files if not k.startswith("foot_")}
+    back = pf.load_truth(truth)
+    assert back.foot_contact.any()
+    legacy = tmp_path / "old.npz"
+    np.savez(legacy, **old)
+    back = pf.load_truth(legacy)
+    assert back.foot_contact.shape == (180, 2) and not back.foot_contact.any()
+    assert np.isnan(back.foot_support_m).all()
