@@ -452,9 +452,13 @@ class Daemon:
         inputs = self.inputs
         ready = inputs.ready(events)  # which inputs are readable: no allocation
         if ready & READY_OSC:
-            self._leave(inputs.osc_stream, inputs.drain_osc(every))
+            got = inputs.drain_osc(every)  # 0: every frame solved already
+            if got:
+                self._leave(inputs.osc_stream, got)
         if ready & READY_ZMQ:
-            self._leave(inputs.zmq_stream, inputs.drain_zmq(every))
+            got = inputs.drain_zmq(every)
+            if got:
+                self._leave(inputs.zmq_stream, got)
         if self.capture.on:
             got = self.capture.drain(events, every)
             if got:

@@ -115,7 +115,7 @@ class Performers:
         for perf in self.all:
             calib = perf.calib
             capturing = perf.face is not None and perf.face.capturing
-            if not calib.pending and not capturing:
+            if not calib.target and not capturing:  # (frames wanted: 0, per frame)
                 continue
             kind = kind or self._kind_of(stream)
             source = perf.frame_of(stream, kind)
