@@ -58,6 +58,16 @@ def _performer_layout() -> tuple[Any, ConsoleLayout, list[tuple[int, int]]]:
     return take, layout, pairs
 
 
+def _commit(slot: SnapshotSlot, timeout_s: float = 5.0) -> None:
+    """Commit the back buffer as the daemon's writer does: a commit the console's
+    reader is copying through is skipped by design (``SnapshotSlot.commit``: the
+    back buffer keeps its contents), so it is tried again until it lands."""
+    end = time.monotonic() + timeout_s
+    while not slot.commit():
+        assert time.monotonic() < end, "the snapshot slot stayed locked"
+        time.sleep(0.001)
+
+
 def snap_now(slot: SnapshotSlot) -> Snapshot:
     """A copy of the slot's latest snapshot."""
     out = Snapshot.for_layout(slot.layout, slot.layout_id)
@@ -107,7 +117,7 @@ def test_console_in_chromium(driver: Any) -> None:
             s.latency_p99_ms[:] = (0.1, 0.9, 0.05)
             s.occluded = int(np.count_nonzero(~take.valid[frame]))
             s.calibrated = True
-            assert slot.commit()
+            _commit(slot)
 
         publish()
         driver.get(console.url)
@@ -197,7 +207,7 @@ def test_console_in_chromium(driver: Any) -> None:
         recording = slot.begin()
         recording.copy_from(snap_now(slot))
         recording.recording = True
-        assert slot.commit()
+        _commit(slot)
         stop = wait.until(ec.element_to_be_clickable((By.XPATH, rec.format("stop"))))
         stop.click()
         cmd = commands.get(timeout_s=15.0)
@@ -407,7 +417,7 @@ def test_follow_keeps_a_walking_performer_in_view(driver: Any) -> None:
         s = slot.begin()
         s.joint_pos[:] = pose + np.array([0.0, dy, 0.0])
         s.root_pos[:] = root + np.array([0.0, dy, 0.0])
-        assert slot.commit()
+        _commit(slot)
 
     def walk(a: float, b: float, seconds: float = 3.0) -> None:
         for dy in np.linspace(a, b, int(seconds * 30)):
