@@ -315,11 +315,8 @@ def per_performer(m: dict[str, Any], n: int) -> list[dict[str, Any]]:
 def micro(take: Any, n: int, calls: int = 20_000) -> None:
     """In process: what the split adds per performer and frame
     (``StreamView.refresh``: two slice copies, the labels being one run) against
-    fancy indexing of the same rows (allocating), and a per-performer attribute
-    read (``OfPerformer``, e.g. ``daemon.calibration``) against a plain attribute,
-    same run."""
+    fancy indexing of the same rows (allocating), same run."""
     from retargetd.daemon.live.performer import StreamView
-    from retargetd.daemon.live.state import OfPerformer
     from retargetd.protocols.marker_input import LabelSet, MarkerStream
 
     labels, positions = _stream(take, n)
@@ -335,31 +332,9 @@ def micro(take: Any, n: int, calls: int = 20_000) -> None:
         src.markers_world[cols]
         src.valid[cols]
 
-    class Perf:
-        calibration = None
-
-    class Plain:
-        def __init__(self) -> None:
-            self.calibration = None
-
-    class Described:
-        calibration: OfPerformer[None] = OfPerformer()
-
-        def __init__(self) -> None:
-            self._perf = Perf()
-
-    plain, described = Plain(), Described()
-
-    def read_plain() -> None:
-        plain.calibration  # noqa: B018
-
-    def read_described() -> None:
-        described.calibration  # noqa: B018
-
     clock = time.perf_counter_ns
     figures = {}
-    cases = (("refresh", view.refresh), ("fancy", fancy),
-             ("plain attr", read_plain), ("OfPerformer", read_described))  # fmt: skip
+    cases = (("refresh", view.refresh), ("fancy", fancy))
     for name, fn in cases:
         t = np.zeros(calls, np.int64)
         for i in range(calls):
@@ -368,21 +343,16 @@ def micro(take: Any, n: int, calls: int = 20_000) -> None:
             t[i] = clock() - t0
         figures[name] = (float(np.median(t)), float(np.percentile(t, 99)))
     r, f = figures["refresh"], figures["fancy"]
-    a, d = figures["plain attr"], figures["OfPerformer"]
     print(
         f"split of one performer ({len(cols)} of {len(labels)} markers), ns per call "
         f"median / p99: refresh {r[0]:.0f} / {r[1]:.0f}, fancy indexing (allocates) "
         f"{f[0]:.0f} / {f[1]:.0f}, ratio of medians {r[0] / f[0]:.2f}"
     )
-    print(
-        f"per-performer attribute read, ns: OfPerformer {d[0]:.0f} / {d[1]:.0f}, "
-        f"plain attribute {a[0]:.0f} / {a[1]:.0f} (the timer's own cost included)"
-    )
 
 
 def in_process(take: Any, n: int, calibration: Path, frames: int = 3000) -> None:
     """The loop's own work per frame, in process (no scheduling between processes):
-    ``Daemon._solve`` of an OSC frame fed to the stream (the decode not timed):
+    ``Performers.solve`` of an OSC frame fed to the stream (the decode not timed):
     every performer's solve, retarget, VMC and pose encode and send; 1 performer
     ([performer]) against N ([[performer]]) in the same run, after 500 frames of
     warm-up."""
@@ -423,7 +393,7 @@ def in_process(take: Any, n: int, calibration: Path, frames: int = 3000) -> None
             stream = d.osc_stream
             label_set = LabelSet(1, tuple(labels))
             stream.set_labels(label_set)
-            d._prepare_views(stream, label_set)
+            d.performers.prepare(stream, label_set)
             packets = [
                 osc_in.encode_compact_frame(
                     i, i / 240, 1, positions[i % len(positions)]
@@ -435,7 +405,7 @@ def in_process(take: Any, n: int, calibration: Path, frames: int = 3000) -> None
                 t_ns = time.monotonic_ns()
                 stream.feed(osc_in.decode_compact_frame, packet, t_ns=t_ns)
                 t0 = time.perf_counter_ns()
-                d._solve(stream, t_ns)
+                d.performers.solve(stream, t_ns)
                 cost[i] = time.perf_counter_ns() - t0
         finally:
             d.close()

@@ -53,8 +53,8 @@ from retargetd.daemon.post.reduce import reduce_clip
 from retargetd.daemon.post.solve_post import SolvePost
 from retargetd.daemon.post.stance import StanceDetector
 from retargetd.daemon.post.twist import TwistDistribution, arm_chains
-from retargetd.daemon.target.retarget import Retargeter
-from retargetd.daemon.target.skeleton import default_humanoid
+from retargetd.daemon.retarget.retarget import Retargeter
+from retargetd.daemon.retarget.skeleton import default_humanoid
 from retargetd.replay.takes import load_take
 
 DATASETS = Path(__file__).resolve().parent.parent.parent / "shared" / "datasets"

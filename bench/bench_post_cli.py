@@ -37,9 +37,9 @@ from retargetd.daemon.post.export_gltf import (
 )
 from retargetd.daemon.post.interp import blend, find_loop, loop
 from retargetd.daemon.post.reduce import reduce_clip
-from retargetd.daemon.target.bvh import write_solve_bvh
-from retargetd.daemon.target.bvh_retarget import retarget_bvh
-from retargetd.daemon.target.euler_csv import write_euler_csv
+from retargetd.daemon.retarget.bvh import write_solve_bvh
+from retargetd.daemon.retarget.bvh_retarget import retarget_bvh
+from retargetd.daemon.retarget.euler_csv import write_euler_csv
 from retargetd.replay.bvh import read_bvh_hierarchy
 from retargetd.replay.takes import load_take
 

@@ -32,8 +32,8 @@ import numpy as np
 from retargetd.daemon.body.calibration import calibrate
 from retargetd.daemon.body.rig import load_rig
 from retargetd.daemon.body.solve import BodyPose, BodySolver
+from retargetd.daemon.retarget import retarget as tg
 from retargetd.daemon.synth import performer as pf
-from retargetd.daemon.target import retarget as tg
 
 
 def _time(fn: Callable[[int], object], calls: int, n_frames: int) -> np.ndarray:

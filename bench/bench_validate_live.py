@@ -65,7 +65,7 @@ import numpy as np
 from retargetd.daemon.body.calibration import calibrate
 from retargetd.daemon.body.rig import load_rig
 from retargetd.daemon.body.solve import BodySolve, BodySolver
-from retargetd.daemon.target import retarget as tg
+from retargetd.daemon.retarget import retarget as tg
 from retargetd.daemon.validate import live as vl
 from retargetd.daemon.validate.checks import FrameChecker, fit_pairs, validate_take
 from retargetd.protocols import pose_stream

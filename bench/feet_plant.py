@@ -66,10 +66,10 @@ from retargetd.daemon.body.method import make_body_solver
 from retargetd.daemon.body.rig import load_rig
 from retargetd.daemon.post.plant import PLANT, FootPlant, foot_points, performer_leg_m
 from retargetd.daemon.post.stance import SUPPORT_COLUMN, StanceDetector
+from retargetd.daemon.retarget.retarget import Retargeter, default_humanoid
+from retargetd.daemon.retarget.skeleton import TargetSkeleton
 from retargetd.daemon.synth import performer as pf
 from retargetd.daemon.synth.motion import GAIT_MOTIONS
-from retargetd.daemon.target.retarget import Retargeter, default_humanoid
-from retargetd.daemon.target.skeleton import TargetSkeleton
 from retargetd.daemon.validate.limits import JOINT_LIMITS_DEG
 from retargetd.daemon.validate.model import SEGMENT_KIND
 

@@ -199,7 +199,7 @@ def _stream_outcomes(stream: Any) -> Counter[str]:
 
 
 def feed_osc(stream: Any, data: bytes, t_ns: int, simple: bool = False) -> None:
-    """One datagram into ``stream`` as ``InputsMixin._drain_osc`` routes it."""
+    """One datagram into ``stream`` as ``Inputs.drain_osc`` routes it."""
     from retargetd.protocols import osc_in
     from retargetd.protocols.errors import DecodeError
 
@@ -217,7 +217,7 @@ def feed_osc(stream: Any, data: bytes, t_ns: int, simple: bool = False) -> None:
 
 
 def feed_zmq(stream: Any, parts: list[bytes], t_ns: int) -> None:
-    """One ZeroMQ message into ``stream`` as ``InputsMixin._drain_zmq`` routes it."""
+    """One ZeroMQ message into ``stream`` as ``Inputs.drain_zmq`` routes it."""
     from retargetd.protocols import zmq_wire
     from retargetd.protocols.errors import DecodeError
 

@@ -18,14 +18,14 @@ installed (an older one, without ``live/emit.py``, shows its separate stages).
 
 Each stage of the frame is timed by a wrapper put around the call on the live objects
 (``time.perf_counter_ns`` before and after): the poll, the decode and book-keeping of
-the input (``_service`` minus ``_solve_and_send``), the body solve, the emit call
-(``live/emit.py``: the retarget, the engine-frame conversion, the VMC and pose packs in
-one compiled call), the VMC sends (``send`` on the connected socket), the pose send, the
-validator's submit (stages a configuration never calls are left out of the table: the
-separate retarget, engine frame, VMC and pose encode rows appear only where the loop
-still makes them, the retarget with ``[target] spine = "pivot"``); "glue" is
-``_solve_and_send`` minus the stages inside it (attribute reads, flags, the budget
-checks, the stats record, which is also timed alone on the same object after the run: a
+the input (``_service`` minus the performer's ``path.process``), the body solve, the
+emit call (``live/emit.py``: the retarget, the engine-frame conversion, the VMC and pose
+packs in one compiled call), the VMC sends (``send`` on the connected socket), the pose
+send, the validator's submit (stages a configuration never calls are left out of the
+table: the separate retarget, engine frame, VMC and pose encode rows appear only where
+the loop still makes them, the retarget with ``[target] spine = "pivot"``); "glue" is
+``path.process`` minus the stages inside it (attribute reads, flags, the budget checks,
+the stats record, which is also timed alone on the same object after the run: a
 slotted object cannot be wrapped in place). The wrapper's own cost (measured on an empty
 call, same run) is subtracted from each stage and printed. Medians and p99 per stage in
 µs, and what share of the median frame each one is.
@@ -58,7 +58,7 @@ from retargetd.daemon.live import send as live_send
 from retargetd.daemon.live.config import DaemonConfig
 from retargetd.daemon.live.loop import Daemon
 from retargetd.daemon.synth import performer as pf
-from retargetd.protocols import osc_in, zmq_wire
+from retargetd.protocols import engine_unity, osc_in, zmq_wire
 from retargetd.protocols.marker_input import LabelSet
 
 
@@ -188,7 +188,7 @@ def profile(
                 time.sleep(0.0002)
                 _wake(d, poll_fn)
                 drain()
-            pipe = next(iter(d._pipelines.values()))
+            pipe = next(iter(d.performers.first.path.pipelines.values()))
             names = (
                 "poll", "service", "solve_and_send", "body solve", "retarget",
                 "engine frame", "VMC encode", "emit call", "VMC send", "pose encode",
@@ -196,21 +196,23 @@ def profile(
             )  # fmt: skip
             t = {k: Timer(n_frames) for k in names}
             poll = t["poll"].wrap(poll_fn)
+            perf = d.performers.first
+            path, outputs = perf.path, d.outputs
             orig = {
                 "service": d._service,
-                "solve_and_send": d._solve_and_send,
-                "_send_pub": d._send_pub,
+                "solve_and_send": path.process,
+                "_send_pub": outputs.send_pub,
             }
             d._service = t["service"].wrap(orig["service"])  # type: ignore[method-assign]
-            d._solve_and_send = t["solve_and_send"].wrap(orig["solve_and_send"])  # type: ignore[method-assign]
-            d._send_pub = t["pose send"].wrap(orig["_send_pub"])  # type: ignore[method-assign]
+            path.process = t["solve_and_send"].wrap(orig["solve_and_send"])  # type: ignore[method-assign]
+            outputs.send_pub = t["pose send"].wrap(orig["_send_pub"])  # type: ignore[method-assign]
             pipe.solver.solve_frame = t["body solve"].wrap(pipe.solver.solve_frame)  # type: ignore[method-assign]
             pipe.retargeter.apply = t["retarget"].wrap(pipe.retargeter.apply)
             pipe.vmc.encode = t["VMC encode"].wrap(pipe.vmc.encode)  # type: ignore[method-assign]
             pipe.pose_enc.encode = t["pose encode"].wrap(pipe.pose_enc.encode)  # type: ignore[method-assign]
             if d.validator is not None:
                 d.validator.submit = t["validator submit"].wrap(d.validator.submit)  # type: ignore[method-assign]
-            eu = live_send.engine_unity
+            eu = engine_unity
             saved_eu = (eu.unity_quat_xyzw_from_world, eu.unity_pos_from_world)
             eu.unity_quat_xyzw_from_world = t["engine frame"].wrap(saved_eu[0])
             eu.unity_pos_from_world = t["engine frame"].wrap(saved_eu[1])
@@ -225,10 +227,9 @@ def profile(
                 saved_emit = getattr(live_send, "emit_frame", None)
                 if saved_emit is not None:
                     live_send.emit_frame = t["emit call"].wrap(saved_emit)
-            perf = d.performers[0]
-            real_vmc = perf.vmc_sock
+            real_vmc = perf.vmc.sock
             assert real_vmc is not None
-            perf.vmc_sock = SocketProxy(real_vmc, t["VMC send"])
+            perf.vmc.sock = SocketProxy(real_vmc, t["VMC send"])  # type: ignore[assignment]
             empty = t["empty wrapper"].wrap(lambda: None)
             prof = cProfile.Profile() if cprofile else None
             period_s = 1.0 / rate_hz if rate_hz > 0 else 0.0
@@ -257,7 +258,7 @@ def profile(
                     plan.call = saved_call
                 if saved_emit is not None:
                     live_send.emit_frame = saved_emit
-                perf.vmc_sock = real_vmc
+                perf.vmc.sock = real_vmc
             solved = d.stats.frames_solved
             # The stats record (a slotted object: not wrappable in place), alone on
             # the same object, same arguments' kind, as many calls.

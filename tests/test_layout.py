@@ -6,7 +6,7 @@ never a higher one nor another subpackage of its own layer::
 
     cli                                  the command line
     live, synth                          the live daemon; the synthetic performer
-    target, face, validate, post, console, props
+    retarget, face, validate, post, console, props
     body                                 rigs, calibration, the body solve
     shared leaves (daemon/*.py)          rotations, errors, version, compiled primitives
     replay, protocols                    outside daemon/ (tests/test_packaging.py)
@@ -31,7 +31,7 @@ PREFIX = "retargetd.daemon"
 #: Subpackage -> layer (higher imports lower). Leaves (daemon/*.py) are layer 1.
 LAYERS: dict[str, int] = {
     "body": 2,
-    "target": 3,
+    "retarget": 3,
     "face": 3,
     "validate": 3,
     "post": 3,
@@ -243,3 +243,56 @@ def test_no_shipped_module_is_over_the_size_limit() -> None:
             if n > MAX_CODE_LINES:
                 over.append(f"{path.relative_to(REPO_ROOT)}: {n}")
     assert not over, f"modules over {MAX_CODE_LINES} lines of code: {over}"
+
+
+LIVE = DAEMON / "live"
+
+
+def live_inheritance(sources: dict[str, str]) -> list[str]:
+    """``module.Class(Base)`` for every class of the live daemon (``sources``: module
+    name -> source) whose base is a class of another of its modules: a part mixed
+    into another instead of passed in (issue 33: parts own their state; the loop
+    composes them). A module's own classes (a config table and its named variant)
+    and bases from elsewhere (``Protocol``, ``Generic``, stdlib) are fine."""
+    trees = {name: ast.parse(src) for name, src in sources.items()}
+    home = {
+        node.name: name
+        for name, tree in trees.items()
+        for node in ast.walk(tree)
+        if isinstance(node, ast.ClassDef)
+    }
+    bad = []
+    for name, tree in sorted(trees.items()):
+        for node in ast.walk(tree):
+            if not isinstance(node, ast.ClassDef):
+                continue
+            for base in node.bases:
+                base_name = (
+                    base.id
+                    if isinstance(base, ast.Name)
+                    else base.attr
+                    if isinstance(base, ast.Attribute)
+                    else ""
+                )
+                if home.get(base_name, name) != name:
+                    bad.append(f"{name}.{node.name}({base_name})")
+    return bad
+
+
+def test_live_inheritance_finds_a_mixin() -> None:
+    sources = {
+        "inputs": "class InputsMixin:\n    pass\n",
+        "loop": "from typing import Protocol\n\nclass P(Protocol):\n    pass\n\n"
+        "class Q(P):\n    pass\n\nclass Daemon(InputsMixin):\n    pass\n",
+    }
+    assert live_inheritance(sources) == ["loop.Daemon(InputsMixin)"]
+
+
+def test_no_class_of_the_live_daemon_inherits_from_another_part() -> None:
+    sources = {p.stem: p.read_text(encoding="utf-8") for p in LIVE.glob("*.py")}
+    assert len(sources) > 20  # the live daemon's modules were read
+    bad = live_inheritance(sources)
+    assert not bad, (
+        f"classes of daemon/live/ built on another of its classes (compose parts, "
+        f"pass them in): {bad}"
+    )

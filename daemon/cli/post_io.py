@@ -94,7 +94,7 @@ def plant_clip(
     """
     from types import SimpleNamespace
 
-    from retargetd.daemon.target.bvh import world_from_parent_chain
+    from retargetd.daemon.retarget.bvh import world_from_parent_chain
 
     n_frames, n_bones = clip.parent_from_bone_quat.shape[:2]
     motion = SimpleNamespace(
@@ -209,7 +209,7 @@ def apply_pipeline_to_solve(
     from retargetd.daemon import rotations as rot
     from retargetd.daemon.post.pipeline import build_pipeline
     from retargetd.daemon.post.pose import PoseBuffer
-    from retargetd.daemon.target.bvh import world_from_parent_chain
+    from retargetd.daemon.retarget.bvh import world_from_parent_chain
 
     entries = load_pipeline_entries(path)
     try:
@@ -259,7 +259,7 @@ def retarget_solve(
     stance_solve: Any = None,
 ) -> dict[str, np.ndarray]:
     """A solve mapped onto the ``[target]`` skeleton frame by frame, as the live loop
-    maps it before VMC: :class:`~retargetd.daemon.target.retarget.Retargeter` (the
+    maps it before VMC: :class:`~retargetd.daemon.retarget.retarget.Retargeter` (the
     same ``compensate_base_pose``), then, with ``spine = "pivot"``, the same
     :class:`~retargetd.daemon.post.pivot.SpinePivot`
     (:func:`retargetd.daemon.post.pivot.spine_stage`), then, with ``feet = "plant"``,
@@ -292,7 +292,7 @@ def retarget_solve(
     from retargetd.daemon.post.pivot import spine_stage
     from retargetd.daemon.post.plant import plant_stage
     from retargetd.daemon.post.stance import StanceDetector
-    from retargetd.daemon.target.retarget import (
+    from retargetd.daemon.retarget.retarget import (
         Retargeter,
         TargetSkeleton,
         default_humanoid,
@@ -381,7 +381,7 @@ def fill_held_gaps(solve: Any, calibration: Any, max_frames: int) -> tuple[Any, 
     from retargetd.daemon import rotations as rot
     from retargetd.daemon.body.solve import FLAG_HELD
     from retargetd.daemon.post.interp import fill_gaps, fill_gaps_linear
-    from retargetd.daemon.target.bvh import world_from_parent_chain
+    from retargetd.daemon.retarget.bvh import world_from_parent_chain
 
     if max_frames < 1:
         raise UsageError(f"--fill-gaps: expected >= 1 frames; got {max_frames}")
@@ -465,7 +465,7 @@ def write_clip(
     """
     from retargetd.daemon.body.calibration import CalibrationError
     from retargetd.daemon.post.export_gltf import write_clip_glb
-    from retargetd.daemon.target.bvh import (
+    from retargetd.daemon.retarget.bvh import (
         DEFAULT_ROTATION_ORDER,
         world_from_parent_chain,
         write_clip_bvh,

@@ -20,7 +20,7 @@ chain's lower mapped end takes the last share). ``--spread hermite`` places the
 whole spine, from the joint mapped to Hips to the one mapped to Neck (else Head),
 along the chapter's Hermite curve (5.60-5.61) through the source's spine joints: K
 target joints at equal arc length, each bone aimed along the curve, the twist shared
-equally (other chains spread equally). See ``retargetd.daemon.target.bvh_retarget``,
+equally (other chains spread equally). See ``retargetd.daemon.retarget.bvh_retarget``,
 ``retargetd.daemon.post.pivot`` and ``retargetd.daemon.post.hermite``.
 
 ``.glb``: the target's joints as a glTF skin (named as in the target BVH; inverse
@@ -118,7 +118,7 @@ def _load_map(path: str) -> dict[str, str]:
 def run(args: argparse.Namespace) -> int:
     """Run ``retarget``."""
     from retargetd.daemon.cli.post_io import glb_mesh_of, suffix_of
-    from retargetd.daemon.target.bvh_retarget import (
+    from retargetd.daemon.retarget.bvh_retarget import (
         SpineCurve,
         retarget_bvh,
         spread_chains,

@@ -36,14 +36,14 @@ every joint's rotation channels in ``--bvh-order`` (default Z X Y), the root's i
 ``--bvh-root-order`` when given. BVH can express only the 6 Tait-Bryan channel orders
 XYZ, XZY, YXZ, YZX, ZXY, ZYX (one channel per axis, composed in the listed order);
 the 6 proper Euler orders (XYX ...) repeat an axis and are only in the CSV. See
-``retargetd.daemon.target.bvh``.
+``retargetd.daemon.retarget.bvh``.
 
 ``.csv``: one row per frame, spreadsheet-friendly: ``frame, time_s, root_x_m,
 root_y_m, root_z_m`` then three Euler angles per bone (``<bone>_1Z_deg`` ...) of the
 true parent-relative rotation in ``--euler-order`` (any of the 12: upper case
 intrinsic, ``ZXY`` = R_Z R_X R_Y about the moving axes; lower case extrinsic, about
 the fixed parent axes in that order; default ZXY), radians unless ``--degrees``,
-unwrapped over time. See ``retargetd.daemon.target.euler_csv``.
+unwrapped over time. See ``retargetd.daemon.retarget.euler_csv``.
 
 ``.glb``: glTF 2.0 binary, every frame as a key: the calibrated skeleton as a skin
 (one joint per bone, named by the rig's humanoid map where it has one, else the rig's
@@ -285,7 +285,7 @@ def run(args: argparse.Namespace) -> int:
     if out_format == "bvh":
         _write_bvh(args, cal, res, take.rate_hz)
     elif out_format == "csv":
-        from retargetd.daemon.target.euler_csv import write_euler_csv
+        from retargetd.daemon.retarget.euler_csv import write_euler_csv
 
         write_euler_csv(
             args.out, res.bone_names, res.parent_from_bone_quat, res.root_pos,
@@ -506,7 +506,7 @@ def _write_glb(
 
 def _write_bvh(args: argparse.Namespace, cal: Any, res: Any, rate_hz: float) -> None:
     from retargetd.daemon.body.calibration import CalibrationError
-    from retargetd.daemon.target.bvh import DEFAULT_ROTATION_ORDER, write_solve_bvh
+    from retargetd.daemon.retarget.bvh import DEFAULT_ROTATION_ORDER, write_solve_bvh
 
     try:
         write_solve_bvh(

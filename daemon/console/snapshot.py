@@ -214,7 +214,7 @@ def humanoid_positions(
 
     ``x_h = x_p + E_p o_h`` with ``E_p = G_p ⊗ T̄_p`` (the parent's world rotation
     from rest) and ``x_root = hips_pos``: the target's own definition
-    (``retargetd.daemon.target.retarget.joint_positions_world``).
+    (``retargetd.daemon.retarget.retarget.joint_positions_world``).
 
     Args:
         layout: with ``humanoid_parents`` (parents before children),

@@ -1,7 +1,8 @@
-"""Live calibration and face capture: average the next N accepted frames while the
+"""Live calibration and face capture, one per performer (:class:`LiveCalibration`,
+its own state): average the next N accepted frames while the
 stream goes on with the old calibration, swap the new one in atomically (the loop
-thread is its only reader) and save it; face training poses captured the same way;
-reload of the rig and calibration files.
+thread is its only reader) and save it; face training poses captured the same way
+(the reload of the rig and calibration files is ``performers.Performers.reload``).
 
 A calibration is taken only from a still performer: the markers' drift over the
 averaged frames (:func:`marker_drift_speeds_m_s`) must stay under
@@ -23,64 +24,95 @@ limited (``control.min_interval_s``). A calibration is saved atomically
 
 from __future__ import annotations
 
-import contextlib
-import dataclasses
-import hashlib
 import logging
 import math
 import time
-from pathlib import Path
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 
-from retargetd.daemon.body.calibration import CalibrationError, load_calibration
-from retargetd.daemon.body.rig import load_rig
+from retargetd.daemon.body.calibration import CalibrationError
 from retargetd.daemon.body.sanity import (
     BasePoseSource,
     SanityError,
     calibrate_checked,
 )
-from retargetd.daemon.body.solve import BodySolver
-from retargetd.daemon.files import MAX_TEXT_BYTES
-from retargetd.daemon.live.config import DaemonConfig, check_pipeline
 from retargetd.daemon.live.config_schema import (
     CALIBRATE_MAX_FRAMES,
     CALIBRATE_ROM_MAX_S,
 )
-from retargetd.daemon.live.performer import FrameSource
-from retargetd.daemon.live.send import spine_stage
-from retargetd.daemon.live.state import DaemonState
+from retargetd.daemon.live.performer import FrameSource, Performer
+from retargetd.daemon.live.ratelog import RateLimiter
+from retargetd.daemon.live.shared import Shared
 from retargetd.protocols.conventions import world_from_capture_mat
 
 logger = logging.getLogger(__name__)
 
 
-class CalibrationMixin(DaemonState):
-    """Live calibration, live face capture and reload."""
+class LiveCalibration:
+    """One performer's live calibration and face capture: the request, the frames
+    collected, how the last one ended.
 
-    def _hint_uncalibrated(self) -> None:
-        """Tell, once at start, how to calibrate each performer without a
-        calibration."""
-        for perf in self.performers:
-            if perf.calibration is not None:
-                continue
-            if not perf.name:
-                self.out(
-                    "no calibration loaded: streaming starts after 'retargetd ctl "
-                    "calibrate' (or /VMC/Ext/Set/Calib/Exec) with the performer in "
-                    "the base pose"
-                )
-            else:
-                self.out(
-                    f"performer {perf.name}: no calibration loaded: its streaming "
-                    f"starts after 'retargetd ctl calibrate --performer {perf.name}' "
-                    f'(or /rtd/calibrate "{perf.name}") with it in the base pose'
-                )
+    Args:
+        perf: the performer (its rig, config, face; a new calibration goes in
+            through ``perf.use_calibration``).
+        shared: the loop's side (config, counters, recording, out).
+        kind_of: the input a stream belongs to ("osc", "zmq", "source").
+        sources: what the performer reads of each input now (a new calibration's
+            pipelines are built on them at once).
+        min_interval_s: the least time between two calibration requests.
+    """
 
-    def request_calibration(
-        self, count: object = None, by: str = "", rom_s: object = None
-    ) -> str:
+    def __init__(
+        self,
+        perf: Performer,
+        shared: Shared,
+        kind_of: Callable[[object], str],
+        sources: Callable[[], list[FrameSource]],
+        min_interval_s: float,
+    ) -> None:
+        self.perf = perf
+        self.shared = shared
+        self._kind_of = kind_of
+        self._sources = sources
+        self.target = 0  # frames still wanted (0: nothing pending)
+        self.frames: list[np.ndarray] = []
+        self.labels: tuple[str, ...] = ()
+        self.requested_by = ""
+        self.times: list[tuple[float, int, int]] = []  # (source s, frame id, t_ns)
+        self.last_ns = 0  # the request or the last collected frame (timeout)
+        self.message = ""  # how the last calibration ended ("" = none yet)
+        # Requests so far (the ctl reply and status name the one they are about) and
+        # how the last one stands: "", "pending", "rom" (the base pose held, the range
+        # of motion under way), "calibrated", "not_saved" (in use,
+        # its file not written), "refused", "expired".
+        self.id = 0
+        self.state = ""
+        self.stream: Any = None  # where the frames come from (its input)
+        # A range of motion after the base pose (``ctl calibrate --rom``): seconds
+        # wanted (0: none), the base pose held while it is collected, its frames.
+        self.rom_s = 0.0
+        self.base: Any = None  # (frames, labels, times_s) once still
+        self.rom_frames: list[np.ndarray] = []
+        self.rom_times: list[tuple[float, int, int]] = []
+        self.limit = RateLimiter(min_interval_s)
+
+    @property
+    def pending(self) -> bool:
+        """A calibration request is collecting frames."""
+        return self.target > 0
+
+    def status(self) -> dict[str, Any]:
+        """The performer's calibration state (status)."""
+        return {
+            "calibrating": self.target > 0,
+            "calibration_message": self.message,
+            "calibration_id": self.id,
+            "calibration_state": self.state,
+        }
+
+    def request(self, count: object = None, by: str = "", rom_s: object = None) -> str:
         """Start a live calibration over the next ``count`` accepted frames.
 
         Args:
@@ -95,12 +127,13 @@ class CalibrationMixin(DaemonState):
             ValueError: a bad count, or rate limited (the message says which); the
                 pending calibration, if any, goes on untouched.
         """
-        if not self._perf.body:
+        perf, sh = self.perf, self.shared
+        if not perf.body:
             raise ValueError(
-                f"{self._perf.label} has no body (body = false): nothing to calibrate"
+                f"{perf.label} has no body (body = false): nothing to calibrate"
             )
         if count is None:
-            n = self._perf.config.calibrate_frames
+            n = perf.config.calibrate_frames
         elif type(count) is not int or not 3 <= count <= CALIBRATE_MAX_FRAMES:
             raise ValueError(
                 f"count must be an integer in [3, {CALIBRATE_MAX_FRAMES}]; "
@@ -117,156 +150,152 @@ class CalibrationMixin(DaemonState):
                     f"seconds of range of motion must be a number in [1, "
                     f"{CALIBRATE_ROM_MAX_S:g}]; got {rom_s!r}"
                 )
-            if not self.rig.functional:
+            if not perf.rig.functional:
                 raise ValueError(
-                    f"rig {self.rig.name} has no [functional] joints: a range of "
+                    f"rig {perf.rig.name} has no [functional] joints: a range of "
                     "motion has nothing to place"
                 )
         now = time.monotonic_ns()
-        if not self._calibrate_limit.allow(now):
-            self.stats.rate_limited += 1
+        if not self.limit.allow(now):
+            sh.stats.rate_limited += 1
             raise ValueError(
                 "rate limited: one calibration request per "
-                f"{self.config.control.min_interval_s:g} s"
+                f"{sh.config.control.min_interval_s:g} s"
             )
-        self._calib_target = n
-        self._calib_frames = []
-        self._calib_times = []
-        self._calib_labels = ()
-        self._calib_requested_by = by
-        self._calib_last_ns = now
-        self._calib_id += 1
-        self._calib_state = "pending"
-        self._calib_stream = None
-        self._calib_rom_s = rom
+        self.target = n
+        self.frames = []
+        self.times = []
+        self.labels = ()
+        self.requested_by = by
+        self.last_ns = now
+        self.id += 1
+        self.state = "pending"
+        self.stream = None
+        self.rom_s = rom
         self._end_rom()
-        self.recording.event(
-            "calibration_requested", count=n, by=by, rom_s=self._calib_rom_s
-        )
+        sh.recording.event("calibration_requested", count=n, by=by, rom_s=self.rom_s)
         logger.info("calibration requested (%s): averaging %d frames", by, n)
         if rom_s is None:
             return f"calibrating over the next {n} frames: hold the base pose"
         return (
             f"calibrating over the next {n} frames: hold the base pose, then move "
-            f"each joint through its range for {self._calib_rom_s:g} s"
+            f"each joint through its range for {self.rom_s:g} s"
         )
 
-    def _collect_calibration_frame(self, stream: FrameSource) -> None:
-        if self._calib_base is not None:
+    def collect(self, stream: FrameSource) -> None:
+        """One accepted frame of the performer's (its view of the input's)."""
+        if self.base is not None:
             self._collect_rom_frame(stream)
             return
         labels = stream.current.label_set.labels
-        if self._calib_labels and labels != self._calib_labels:
-            self._calib_frames = []  # the marker layout changed: start again
-            self._calib_times = []
-        self._calib_labels = labels
-        self._calib_stream = stream
+        if self.labels and labels != self.labels:
+            self.frames = []  # the marker layout changed: start again
+            self.times = []
+        self.labels = labels
+        self.stream = stream
         frame = stream.current.frame
-        self._calib_frames.append(frame.markers_world.copy())
-        self._calib_times.append(
+        self.frames.append(frame.markers_world.copy())
+        self.times.append(
             (frame.source_time_s, frame.frame_id, frame.t_ns)
         )  # fmt: skip
-        self._calib_last_ns = time.monotonic_ns()
-        if len(self._calib_frames) >= self._calib_target:
+        self.last_ns = time.monotonic_ns()
+        if len(self.frames) >= self.target:
             self._finish_calibration()
 
     def _collect_rom_frame(self, stream: FrameSource) -> None:
         """One frame of the range of motion; the last one calibrates."""
         frame = stream.current.frame
-        base: tuple[np.ndarray, tuple[str, ...], np.ndarray] = self._calib_base
+        base: tuple[np.ndarray, tuple[str, ...], np.ndarray] = self.base
         if stream.current.label_set.labels != base[1]:
             self._refuse_calibration(
                 "the marker labels changed during the range of motion"
             )
             return
-        self._calib_rom_frames.append(frame.markers_world.copy())
-        self._calib_rom_times.append((frame.source_time_s, frame.frame_id, frame.t_ns))
-        self._calib_last_ns = time.monotonic_ns()
+        self.rom_frames.append(frame.markers_world.copy())
+        self.rom_times.append((frame.source_time_s, frame.frame_id, frame.t_ns))
+        self.last_ns = time.monotonic_ns()
         span = _window_times_s(
-            [self._calib_rom_times[0], self._calib_rom_times[-1]],
-            self.config.validate.rate_hz,
+            [self.rom_times[0], self.rom_times[-1]],
+            self.shared.config.validate.rate_hz,
         )
-        if span[1] - span[0] >= self._calib_rom_s:
+        if span[1] - span[0] >= self.rom_s:
             frames, labels, times_s = base
             rom = (
-                np.stack(self._calib_rom_frames), labels,
-                {"live": True, "seconds": self._calib_rom_s,
-                 "frames": len(self._calib_rom_frames)},
+                np.stack(self.rom_frames), labels,
+                {"live": True, "seconds": self.rom_s,
+                 "frames": len(self.rom_frames)},
             )  # fmt: skip
             self._calibrate_on(frames, labels, times_s, rom)
 
-    def _calibration_tick(self, now_ns: int) -> None:
+    def tick(self, now_ns: int) -> None:
         """Expire a pending calibration that has collected no frame for
         ``performer.calibrate_timeout_s`` (nothing changes; one line says so)."""
-        if not self._calib_target:
+        if not self.target:
             return
-        timeout_s = self._perf.config.calibrate_timeout_s
-        if now_ns - self._calib_last_ns < int(timeout_s * 1e9):
+        timeout_s = self.perf.config.calibrate_timeout_s
+        if now_ns - self.last_ns < int(timeout_s * 1e9):
             return
-        got, wanted = len(self._calib_frames), self._calib_target
+        got, wanted = len(self.frames), self.target
         self._end_calibration_request()
-        self.stats.calibrations_expired += 1
-        self._calib_state = "expired"
+        self.shared.stats.calibrations_expired += 1
+        self.state = "expired"
         msg = (
             f"calibration expired: no marker frames for {timeout_s:g} s "
             f"({got} of {wanted} collected); the old calibration is kept"
         )
-        self._calib_message = msg
-        self.recording.event("calibration_expired", collected=got, count=wanted)
-        self.out(self._named(msg))
+        self.message = msg
+        self.shared.recording.event("calibration_expired", collected=got, count=wanted)
+        self.shared.out(self._named(msg))
 
-    def _collect_face_frame(self, stream: FrameSource) -> None:
-        assert self.face is not None
+    def collect_face(self, stream: FrameSource) -> None:
+        """One accepted frame for the face capture under way."""
+        face = self.perf.face
+        assert face is not None
         labels = stream.current.label_set.labels
-        done = self.face.collect(stream.current.frame.markers_world, labels)
+        done = face.collect(stream.current.frame.markers_world, labels)
         if done is None:
             return
         ok, msg = done
         if ok:
             # The next frame solves with the new training set; pipelines rebuilt now,
             # off the frame that completed the capture.
-            self.stats.face_captures += 1
-            self._pipelines.clear()
-            self._labels_of.clear()
-            for s in self._own_streams():
-                if s.current.label_set.labels == labels:
-                    self._pipeline(s)
-        self.recording.event("face_capture", ok=ok, message=msg)
-        self.out(self._named(msg))
+            self.shared.stats.face_captures += 1
+            self.perf.use_face(labels, self._sources())
+        self.shared.recording.event("face_capture", ok=ok, message=msg)
+        self.shared.out(self._named(msg))
 
-    def request_face_capture(
-        self, name: str, count: int | None = None, by: str = ""
-    ) -> str:
+    def request_face(self, name: str, count: int | None = None, by: str = "") -> str:
         """Start capturing face pose ``name`` over the next ``count`` frames."""
-        if self.face is None:
+        face = self.perf.face
+        if face is None:
             raise ValueError("the face is off: set [face] enabled = true")
-        msg = self.face.request_capture(name, count)
-        self.recording.event("face_capture_requested", name=name, by=by)
+        msg = face.request_capture(name, count)
+        self.shared.recording.event("face_capture_requested", name=name, by=by)
         return msg
 
     def _end_calibration_request(self) -> None:
         """Nothing pending any more (the frames collected let go)."""
-        self._calib_target = 0
-        self._calib_frames = []
-        self._calib_times = []
+        self.target = 0
+        self.frames = []
+        self.times = []
         self._end_rom()
 
     def _end_rom(self) -> None:
         """No range of motion under way."""
-        self._calib_base = None
-        self._calib_rom_frames = []
-        self._calib_rom_times = []
+        self.base = None
+        self.rom_frames = []
+        self.rom_times = []
 
     def _finish_calibration(self) -> None:
         """The base pose is collected: still, it calibrates, or holds for the range
         of motion when one was asked for."""
-        frames = np.stack(self._calib_frames)
-        labels = self._calib_labels
-        times = self._calib_times
-        self._calib_frames = []
-        self._calib_times = []
-        limit = self._perf.config.calibrate_max_speed_m_s
-        times_s = _window_times_s(times, self.config.validate.rate_hz)
+        frames = np.stack(self.frames)
+        labels = self.labels
+        times = self.times
+        self.frames = []
+        self.times = []
+        limit = self.perf.config.calibrate_max_speed_m_s
+        times_s = _window_times_s(times, self.shared.config.validate.rate_hz)
         if not times_s[-1] > times_s[0]:  # no speed can be told: never "still"
             self._refuse_calibration(
                 f"the {frames.shape[0]} frames span no time (source, frame number "
@@ -283,16 +312,16 @@ class CalibrationMixin(DaemonState):
                 "frames)"
             )
             return
-        if self._calib_rom_s > 0.0:
-            self._calib_base = (frames, labels, times_s)
-            self._calib_state = "rom"
-            self._calib_last_ns = time.monotonic_ns()
+        if self.rom_s > 0.0:
+            self.base = (frames, labels, times_s)
+            self.state = "rom"
+            self.last_ns = time.monotonic_ns()
             msg = (
                 f"base pose held ({frames.shape[0]} frames): move each joint "
-                f"through its range for {self._calib_rom_s:g} s"
+                f"through its range for {self.rom_s:g} s"
             )
-            self._calib_message = msg
-            self.out(self._named(msg))
+            self.message = msg
+            self.shared.out(self._named(msg))
             return
         self._calibrate_on(frames, labels, times_s, None)
 
@@ -308,29 +337,24 @@ class CalibrationMixin(DaemonState):
         self._end_calibration_request()
         try:
             cal, notes = calibrate_checked(
-                self.rig, frames, labels, self._base_pose_source(times_s),
+                self.perf.rig, frames, labels, self._base_pose_source(times_s),
                 base_pose={"live": True, "frames": int(frames.shape[0]),
-                           "requested_by": self._calib_requested_by},
-                rom=rom, up_levers=self.config.solve.method == "construction",
+                           "requested_by": self.requested_by},
+                rom=rom, up_levers=self.shared.config.solve.method == "construction",
             )  # fmt: skip
         except (SanityError, CalibrationError) as exc:
             self._refuse_calibration(str(exc))
             return
         for note in notes:
-            self.out(self._named(f"calibration warning: {note}"))
-        # Atomic: the loop thread is the only reader. Each stream's new body solver
-        # is built off the loop from now (rebuild.py), its old pipeline solving
-        # meanwhile; a stream without one gets it built now, not on its next frame.
-        self.calibration = cal
-        for stream in self._own_streams():
-            if stream.current.label_set.labels == labels:
-                self._pipeline(stream)
-        self._start_validator()
-        self.stats.calibrations += 1
-        self._calib_state = "calibrated"  # "not_saved" below when the save fails
-        path = self._perf.config.save_calibration or self._perf.config.calibration
-        self.recording.event(
-            "calibrated", frames=int(frames.shape[0]), by=self._calib_requested_by,
+            self.shared.out(self._named(f"calibration warning: {note}"))
+        # Atomic: the loop thread is the only reader; the next frame uses the new one,
+        # with its pipeline built now rather than on the next frame.
+        self.perf.use_calibration(cal, labels, self._sources())
+        self.shared.stats.calibrations += 1
+        self.state = "calibrated"  # "not_saved" below when the save fails
+        path = self.perf.config.save_calibration or self.perf.config.calibration
+        self.shared.recording.event(
+            "calibrated", frames=int(frames.shape[0]), by=self.requested_by,
             path=path or "", warnings=notes,
         )  # fmt: skip
         what = f"{frames.shape[0]} frames"
@@ -348,11 +372,11 @@ class CalibrationMixin(DaemonState):
                 msg = f"calibrated on {what}; saved {path}"
             except OSError as exc:  # the old file is whole (an atomic save)
                 msg = f"calibrated on {what}; NOT saved: {exc}"
-                self._calib_state = "not_saved"
+                self.state = "not_saved"
         else:
             msg = f"calibrated on {what} (not saved: no path)"
-        self._calib_message = msg
-        self.out(self._named(msg))
+        self.message = msg
+        self.shared.out(self._named(msg))
 
     def _refuse_calibration(self, why: str) -> None:
         """A live calibration refused: counted, said in one line (to the log and,
@@ -364,23 +388,20 @@ class CalibrationMixin(DaemonState):
         )
         logger.warning("%s", self._named(msg))
         self._end_calibration_request()
-        self.stats.calibrations_refused += 1
-        self._calib_state = "refused"
-        self._calib_message = msg
-        self.recording.event("calibration_refused", message=msg)
-        self.out(self._named(msg))
+        self.shared.stats.calibrations_refused += 1
+        self.state = "refused"
+        self.message = msg
+        self.shared.recording.event("calibration_refused", message=msg)
+        self.shared.out(self._named(msg))
 
     def _base_pose_source(self, times_s: np.ndarray) -> BasePoseSource:
         """How the calibration frames were read: the unit and up axis of the input
         they came from (``[input.osc]`` / ``[input.zmq]``), the frame rate of the
         window; a refusal names the config key to change."""
-        stream = getattr(self._calib_stream, "stream", self._calib_stream)  # a view's
-        key = (
-            "input.osc" if stream is self.osc_stream
-            else "input.zmq" if stream is self.zmq_stream
-            else ""
-        )  # fmt: skip
-        cfg = getattr(self.config.input, key.split(".")[-1]) if key else None
+        stream = getattr(self.stream, "stream", self.stream)  # a view's
+        kind = self._kind_of(stream)
+        key = f"input.{kind}" if kind != "source" else ""
+        cfg = getattr(self.shared.config.input, key.split(".")[-1]) if key else None
         units = cfg.units if cfg is not None else "m"
         up = cfg.up if cfg is not None else "+Z"
         where = f"config {key}" if key else "the capture input"
@@ -396,82 +417,7 @@ class CalibrationMixin(DaemonState):
 
     def _named(self, msg: str) -> str:
         """A calibration line, naming the performer when there are several."""
-        return f"{self._perf.name}: {msg}" if self._perf.name else msg
-
-    def reload(self) -> str:
-        """Reload the rig file, the calibration file and the config file's
-        ``[[pipeline]]`` stages from disk (at most once per ``control.min_interval_s``:
-        it blocks the loop while it parses; the body solvers are rebuilt off it,
-        ``rebuild.py``). The other config keys need a restart; a file that no longer
-        validates keeps everything as it was.
-
-        Raises:
-            ValueError: rate limited (counted).
-        """
-        if not self._reload_limit.allow(time.monotonic_ns()):
-            self.stats.rate_limited += 1
-            raise ValueError(
-                f"rate limited: one reload per {self.config.control.min_interval_s:g} s"
-            )
-        if len(self.performers) == 1:
-            return self._reload_performer()
-        first = self.performers[0]
-        msgs = []
-        try:
-            for perf in self.performers:  # each its own rig and calibration
-                self._perf = perf
-                msgs.append(f"{perf.name}: {self._reload_performer()}")
-        finally:
-            self._perf = first
-        return "; ".join(msgs)
-
-    def _reload_performer(self) -> str:
-        """Reload the current performer's rig and calibration files (files unchanged
-        since the last reload, and the rig and calibration still theirs: nothing to
-        parse or rebuild; parsing them took 40-70 ms of the loop, measured)."""
-        perf = self._perf
-        files = files_digest(perf.config.rig, perf.config.calibration, self.config_path)
-        last = perf.reload_files
-        if (
-            last
-            and last[0] == files
-            and last[1] is self.rig
-            and last[2] is self.calibration
-        ):
-            msg = f"reloaded rig {self.rig.name}: its files and the config unchanged"
-            self.recording.event("reload", ok=True, message=msg)
-            return msg
-        try:
-            rig = load_rig(self._perf.config.rig)
-            cal = (
-                load_calibration(self._perf.config.calibration)
-                if self._perf.config.calibration
-                else self.calibration
-            )
-            if cal is not None:
-                BodySolver(rig, cal, ())  # checks the calibration fits the rig
-            stages = self.config.pipeline
-            if self.config_path:  # the file's [[pipeline]] as it is now
-                stages = DaemonConfig.from_toml(self.config_path).pipeline
-            check_pipeline(stages, rig, str(self.config_path or "config"))
-            spine_stage(self.config.target, self.target, rig)  # its spine fits
-        except ValueError as exc:
-            msg = f"reload failed, kept the running rig and calibration: {exc}"
-            self.recording.event("reload", ok=False, message=msg)
-            return msg
-        self.rig, self.calibration = rig, cal
-        perf.reload_files = (files, rig, cal)
-        self.config = dataclasses.replace(self.config, pipeline=stages)
-        # The pipelines are rebuilt for the new rig and calibration, their body
-        # solvers off the loop (rebuild.py): the old ones solve until then.
-        self.stats.set_post_stages(())  # named again as the pipelines are rebuilt
-        self._start_validator()
-        msg = f"reloaded rig {rig.name}" + (" and calibration" if cal else "")
-        if stages:
-            msg += f", pipeline {' -> '.join(str(e['kind']) for e in stages)}"
-
-        self.recording.event("reload", ok=True, message=msg)
-        return msg
+        return f"{self.perf.name}: {msg}" if self.perf.name else msg
 
 
 def marker_drift_speeds_m_s(frames: np.ndarray, times_s: np.ndarray) -> np.ndarray:
@@ -527,17 +473,3 @@ def _window_times_s(times: list[tuple[float, int, int]], rate_hz: float) -> np.n
     if np.all(ids >= 0) and ids[-1] > ids[0] and math.isfinite(rate_hz):
         return ids / rate_hz
     return np.array([t[2] for t in times], dtype=np.float64) * 1e-9
-
-
-def files_digest(*paths: Any) -> bytes:
-    """SHA-256 over the bytes of every file named (a shipped rig's name, an empty or
-    None path, and a file that cannot be read count as their names: the reload that
-    follows then parses and says what is wrong)."""
-    h = hashlib.sha256()
-    for p in paths:
-        h.update(str(p).encode() + b"\0")
-        with contextlib.suppress(OSError, ValueError):
-            if p and Path(p).is_file():  # (at most MAX_TEXT_BYTES: as the readers)
-                with open(p, "rb") as fh:
-                    h.update(fh.read(MAX_TEXT_BYTES + 1))
-    return h.digest()

@@ -46,7 +46,7 @@ from retargetd.daemon.console.snapshot import (
 )
 from retargetd.daemon.live.config import ConsoleConfig
 from retargetd.daemon.live.stats import STAGES, LoopStats
-from retargetd.daemon.target.retarget import performer_left_from_calibration
+from retargetd.daemon.retarget.retarget import performer_left_from_calibration
 from retargetd.protocols import pose_stream
 from retargetd.protocols.frames import MarkerFrame
 

@@ -18,19 +18,33 @@ import json
 import logging
 import os
 import re
+import socket
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import zmq
 
+from retargetd.daemon.live.config import DaemonConfig
+from retargetd.daemon.live.inputs import Inputs, last_endpoint
+from retargetd.daemon.live.kernel_drops import udp_kernel_drops
+from retargetd.daemon.live.performer import Performer
+from retargetd.daemon.live.performers import Performers
+from retargetd.daemon.live.props import LiveProps
+from retargetd.daemon.live.ratelog import RateLimitedLog
 from retargetd.daemon.live.recording import (
-    FORM_ZMQ,
     input_infos,
 )
-from retargetd.daemon.live.state import DaemonState
-from retargetd.protocols import osc_in, zmq_wire
+from retargetd.daemon.live.shared import Shared
+from retargetd.daemon.live.stalls import LoopStalls
+from retargetd.daemon.live.surface import (
+    endpoint_is_local,
+    is_loopback_host,
+    who_reaches,
+)
+from retargetd.daemon.live.watch import SocketWatch
 from retargetd.protocols.errors import DecodeError
 from retargetd.protocols.osc_wire import iter_bundle_elements, parse_message
 
@@ -50,10 +64,122 @@ CONTROL_TRANSPORT_MAX_BYTES = 16 << 20
 #: Requests queued per control connection (``ZMQ_RCVHWM``): a REQ peer sends one at a
 #: time; a DEALER pipelining large requests is held back by TCP after this many.
 CONTROL_RCVHWM = 4
+#: Commands that act for one performer (the others act for the daemon).
+PER_PERFORMER_COMMANDS = ("calibrate", "face-capture")
 
 
-class ControlMixin(DaemonState):
-    """Control requests (``retargetd ctl``) and OSC show control."""
+class Control:
+    """Control requests (``retargetd ctl``) and OSC show control: their sockets and
+    refusal counters; each command becomes a call on the part it is about.
+
+    Args:
+        shared: the loop's side (config, counters, recording, out).
+        performers: calibrate, face-capture and reload act on them.
+        props: a prop's calibration, a camera's field of view.
+        inputs: the label sets a recording opens with.
+        endpoints: what is listening where (a recording's header names them).
+        log: the rate-limited log (refusals).
+        stalls: the loop's phase timer (a slow command is counted by name).
+        status: the status document and the stats line (``ctl status``).
+    """
+
+    def __init__(
+        self,
+        shared: Shared,
+        performers: Performers,
+        props: LiveProps,
+        inputs: Inputs,
+        endpoints: dict[str, str],
+        log: RateLimitedLog,
+        stalls: LoopStalls,
+        status: Callable[[], tuple[dict[str, Any], str]],
+    ) -> None:
+        self.shared = shared
+        self.stats = shared.stats
+        self.recording = shared.recording
+        self.out = shared.out
+        self.performers = performers
+        self.props = props
+        self.inputs = inputs
+        self.endpoints = endpoints
+        self._log = log
+        self._stalls = stalls
+        self._status = status
+        config = shared.config
+        self._allow = frozenset(config.input.osc.allow)  # the markers' list too
+        token = config.show_control.token
+        self._show_token_prefix = f"/{token}" if token else ""
+        self._ctl: Any = None
+        self._show: socket.socket | None = None
+        self._show_fd = -2  # the poll result's fd (set by open)
+        self._show_buf = bytearray(65536)  # a show-control datagram
+        self.show_counters: dict[str, int] = {}  # refused, by reason
+
+    @property
+    def config(self) -> DaemonConfig:
+        """The running configuration."""
+        return self.shared.config
+
+    def open(
+        self,
+        udp_bind: Callable[[str, int], socket.socket],
+        server_socket: Callable[[int, str, tuple[str, ...]], Any],
+        own: Callable[[Any], None],
+        watch: SocketWatch,
+        announce: Callable[[str, str], None],
+    ) -> None:
+        """Bind show control ([show_control] on) and the control socket."""
+        c = self.config
+        if c.show_control.enabled:
+            show = c.show_control
+            sock = udp_bind(show.host, show.port)
+            self._show, self._show_fd = sock, sock.fileno()
+            can = [w for w, on in (("calibrate", show.calibrate),
+                                   ("reload", show.reload)) if on]  # fmt: skip
+            who = who_reaches(is_loopback_host(show.host), show.host)
+            token = ", token required" if show.token else ""
+            host, port = sock.getsockname()[:2]
+            announce(
+                "show control",
+                f"udp://{host}:{port} (OSC; "
+                f"{' and '.join(can) or 'nothing but status'} from {who}{token})",
+            )
+        ctl = c.control
+        self._ctl = server_socket(zmq.REP, ctl.secret_key, ctl.client_keys)
+        self._ctl.setsockopt(zmq.LINGER, 0)
+        self._ctl.setsockopt(zmq.MAXMSGSIZE, CONTROL_TRANSPORT_MAX_BYTES)
+        self._ctl.setsockopt(zmq.RCVHWM, CONTROL_RCVHWM)
+        self._ctl.bind(ctl.endpoint)
+        own(self._ctl)
+        watch.watch("control", self._ctl, bool(ctl.secret_key))
+        ep = last_endpoint(self._ctl)
+        who = who_reaches(endpoint_is_local(ctl.endpoint), ep)
+        curve = (
+            f", CURVE: {len(ctl.client_keys)} client key(s)" if ctl.secret_key else ""
+        )
+        announce("control", f"{ep} (retargetd ctl --endpoint {ep}; from {who}{curve})")
+
+    def serve(self, events: list[tuple[Any, int]]) -> None:
+        """Show-control datagrams and ``ctl`` requests the poll found waiting."""
+        ctl, show_fd = self._ctl, self._show_fd
+        show = serve = False
+        for sock, _flags in events:
+            if sock is ctl:
+                serve = True
+            elif sock == show_fd:
+                show = True
+        if show:
+            self._drain_show_control()
+            self._stalls.lap("show_control")
+        if serve:
+            self._serve_control()  # its lap names the command
+
+    def status(self) -> dict[str, Any]:
+        """Show control's refusals by reason and its kernel drops (status)."""
+        return {
+            "refused": dict(self.show_counters),
+            "kernel_drops": udp_kernel_drops(self._show),
+        }
 
     def _serve_control(self) -> None:
         assert self._ctl is not None
@@ -131,23 +257,48 @@ class ControlMixin(DaemonState):
             self.stats.control_errors += 1
         return reply
 
-    def _control(self, req: dict[str, Any]) -> dict[str, Any]:
+    def _control_for(self, req: dict[str, Any]) -> dict[str, Any]:
+        """A control request acting for the performer it names (``performer``);
+        commands for the daemon as a whole (status, reload, record) take none."""
+        cmd = req.get("cmd")
+        name = req.get("performer")
+        if cmd == "calibrate" and req.get("prop") is not None:  # a [[prop]]'s
+            if not self.config.control.calibrate:
+                raise ValueError("calibrate is off on this path (control.calibrate)")
+            msg = self.props.request_calibration(req["prop"], req.get("count"), "ctl")
+            return {"ok": True, "message": msg, "prop": req["prop"]}
+        if cmd not in PER_PERFORMER_COMMANDS:
+            if name is not None:
+                raise ValueError(
+                    f"{cmd!r} acts for the whole daemon: leave out 'performer' "
+                    f"(it applies to {', '.join(PER_PERFORMER_COMMANDS)})"
+                )
+            return self._control(req, self.performers.first)
+        perf = self.performers.named(name)
+        reply = self._control(req, perf)
+        if perf.name:
+            reply["performer"] = perf.name
+        return reply
+
+    def _control(self, req: dict[str, Any], perf: Performer) -> dict[str, Any]:
+        """One command; ``perf``: the performer a per-performer one acts for."""
         cmd = req.get("cmd")
         if cmd == "status":
-            return {"ok": True, "status": self.status(), "line": self.stats_line()}
+            status, line = self._status()
+            return {"ok": True, "status": status, "line": line}
         if cmd == "calibrate":
             if not self.config.control.calibrate:
                 raise ValueError("calibrate is off on this path (control.calibrate)")
-            msg = self.request_calibration(req.get("count"), "ctl", req.get("rom_s"))
+            msg = perf.calib.request(req.get("count"), "ctl", req.get("rom_s"))
             # ctl waits for this one's outcome (status: calibration_id / _state)
-            return {"ok": True, "message": msg, "calibration_id": self._calib_id}
+            return {"ok": True, "message": msg, "calibration_id": perf.calib.id}
         if cmd == "reload":
             if not self.config.control.reload:
                 raise ValueError("reload is off on this path (control.reload)")
-            msg = self.reload()
+            msg = self.performers.reload()
             return {"ok": "reload failed" not in msg, "message": msg}
         if cmd == "record":
-            return {"ok": True, "message": self._record_control(req)}
+            return {"ok": True, "message": self.record(req)}
         if cmd == "face-capture":
             name, count = req.get("name"), req.get("count")
             if not isinstance(name, str) or not name:
@@ -156,13 +307,13 @@ class ControlMixin(DaemonState):
                 raise ValueError(f"count must be a positive integer; got {count!r}")
             return {
                 "ok": True,
-                "message": self.request_face_capture(name, count, "ctl"),
+                "message": perf.calib.request_face(name, count, "ctl"),
             }
         raise ValueError(
             f"unknown command {cmd!r} (status, calibrate, reload, record, face-capture)"
         )
 
-    def _record_control(self, req: dict[str, Any]) -> str:
+    def record(self, req: dict[str, Any]) -> str:
         """``{"cmd": "record", "action": "start", "path": FILE, "poses": bool}`` or
         ``{"cmd": "record", "action": "stop"}``; ValueError names what is wrong."""
         action = req.get("action")
@@ -177,37 +328,27 @@ class ControlMixin(DaemonState):
         path = recording_path(self.config.record.folder, path)
         if type(poses) is not bool:
             raise ValueError(f"'poses' must be true or false; got {poses!r}")
-        announcements: list[tuple[str, int, tuple[bytes, ...]]] = []
-        if self._osc is not None and self.config.input.osc.form == "compact":
-            ls = self.osc_stream.label_set
-            if ls is not None:
-                announcements.append(
-                    ("osc", self._osc_form, (osc_in.encode_labels(ls),))
-                )
-        if self._zin is not None and self.zmq_stream.label_set is not None:
-            parts = tuple(zmq_wire.encode_zmq_labels(self.zmq_stream.label_set))
-            announcements.append(("zmq", FORM_ZMQ, parts))
+        announcements = self.inputs.label_announcements()
         force = req.get("force", False)
         if type(force) is not bool:
             raise ValueError(f"'force' must be true or false; got {force!r}")
         try:
             msg = self.recording.start(
                 path, poses, input_infos(self.config, self.endpoints), announcements,
-                force=force, rig=self.rig,
+                force=force, rig=self.performers.first.rig,
             )  # fmt: skip
         except ValueError as exc:
             if str(exc).startswith("rate limited"):
                 self.stats.rate_limited += 1
             raise
-        for perf in self.performers:  # names messages open the recorded pose stream
-            perf.last_names_ns = 0
+        self.performers.announce_names()  # they open the recorded pose stream
         return msg
 
     def _drain_show_control(self) -> None:
         assert self._show is not None
         while True:
             try:
-                n, addr = self._show.recvfrom_into(self._buf)
+                n, addr = self._show.recvfrom_into(self._show_buf)
             except (BlockingIOError, InterruptedError):
                 break
             if self._allow and addr[0] not in self._allow:
@@ -215,7 +356,7 @@ class ControlMixin(DaemonState):
                 continue
             self.stats.show_control_in += 1
             parsed = parse_show_control(
-                bytes(self._buf[:n]), self._show_token_prefix.encode()
+                bytes(self._show_buf[:n]), self._show_token_prefix.encode()
             )
             if parsed.refused:  # the whole datagram, once, before any parsing
                 self._show_refused(parsed.refused, parsed.why, addr)
@@ -230,7 +371,7 @@ class ControlMixin(DaemonState):
 
     def _show_refused(self, reason: str, why: str, addr: Any = None) -> None:
         """Count a refused show-control message by reason; one rate-limited line."""
-        self._show_counters[reason] = self._show_counters.get(reason, 0) + 1
+        self.show_counters[reason] = self.show_counters.get(reason, 0) + 1
         who = f" from {addr[0]}" if addr is not None else ""
         self._log.line(
             f"show control {reason}",
@@ -277,7 +418,7 @@ class ControlMixin(DaemonState):
                 )  # fmt: skip
                 return
             try:
-                msg = self.calibrate_performer(performer, count, by)
+                msg = self.performers.calibrate(performer, count, by)
             except ValueError as exc:
                 limited = str(exc).startswith("rate")
                 reason = "rate_limited" if limited else "bad_argument"
@@ -289,7 +430,7 @@ class ControlMixin(DaemonState):
                 self._show_refused("reload_off", f"{address}: reload is off", addr)
                 return
             try:
-                self.out(self.reload())
+                self.out(self.performers.reload())
             except ValueError as exc:
                 self._show_refused("rate_limited", f"{address}: {exc}", addr)
         elif self._show_prop_fov(address, args, addr):

@@ -30,9 +30,9 @@ from typing import Any
 import numpy as np
 
 from retargetd.daemon.compiled import direct, kernel
-from retargetd.daemon.target import kernel as kt
-from retargetd.daemon.target.kernel import retarget_one
-from retargetd.daemon.target.retarget import Retargeter, TargetPose
+from retargetd.daemon.retarget import kernel as kt
+from retargetd.daemon.retarget.kernel import retarget_one
+from retargetd.daemon.retarget.retarget import Retargeter, TargetPose
 from retargetd.protocols import engine_unity
 from retargetd.protocols.kernels import pose_pack, vmc_pack
 from retargetd.protocols.pose_stream import PoseEncoder

@@ -20,13 +20,13 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
-import zmq
 
 from retargetd.daemon.live.face import FaceStage
-from retargetd.daemon.live.performer import FrameSource
-from retargetd.daemon.live.state import DaemonState
+from retargetd.daemon.live.performer import FrameSource, Performer
+from retargetd.daemon.live.shared import Shared
 from retargetd.protocols import pose_stream
 from retargetd.protocols.vmc_out import BlendEncoder
 
@@ -47,25 +47,93 @@ class FaceOnlyStage:
     no_flags: np.ndarray  # (0,) uint8
 
 
-class FaceOnlyMixin(DaemonState):
-    """Solving and sending the face of a performer without a body."""
+class FacePath:
+    """The frame path of a performer without a body: the face solved and sent.
+    The same calls as :class:`~retargetd.daemon.live.send.BodyPath`; those about a
+    body (pipelines, validation, the VMC calibration state) do nothing.
 
-    def _face_only_stage(self, stream: FrameSource) -> FaceOnlyStage | None:
-        perf = self._perf
+    Args:
+        perf: the performer (its face, VMC destination).
+        shared: the loop's side (config, counters, outputs, clocks).
+    """
+
+    validator: Any = None  # no body: nothing to validate
+
+    def __init__(self, perf: Performer, shared: Shared) -> None:
+        self.perf = perf
+        self.shared = shared
+        self.stages: dict[int, FaceOnlyStage] = {}  # id(stream or view) -> stage
+        self.pipelines: dict[int, Any] = {}  # none: no body
+        self.last_names_ns = 0
+        self.frame_flags = 0
+
+    def flag(self, bits: int) -> None:
+        """Frame flags for the next pose (restarted, input dropped)."""
+        self.frame_flags |= bits
+
+    def announce_names(self) -> None:
+        """The next pose is preceded by its names message."""
+        self.last_names_ns = 0
+
+    def match_status(self) -> dict[str, Any] | None:
+        """No body: no calibration to match."""
+        return None
+
+    def resend_held(self, key: int, now_ns: int) -> tuple[bool, bool]:
+        """Nothing held is sent again for a face alone."""
+        return False, False
+
+    def warm_up(self) -> None:
+        """Nothing to warm (the face kernels warm up with the loop's)."""
+
+    def restart(self, key: int) -> None:
+        """The source of ``key`` restarted: its face solve starts over."""
+        stage = self.stages.get(key)
+        if stage is not None:
+            stage.face.solver.reset()
+
+    def rebuild(self, labels: tuple[str, ...], sources: list[FrameSource]) -> None:
+        """Nothing to rebuild (no body pipelines)."""
+
+    def renew(self, labels: tuple[str, ...], sources: list[FrameSource]) -> None:
+        """Nothing to renew (no body pipelines)."""
+
+    def send_due_ticks(self, now_ns: int) -> None:
+        """No resampled body ticks."""
+
+    def next_tick_ns(self) -> int:
+        """No resampled body ticks: -1."""
+        return -1
+
+    def send_vmc_state(self, now_ns: int, calibrating: bool) -> None:
+        """No calibration state to tell (no body)."""
+
+    def start_validator(self) -> None:
+        """No body to validate."""
+
+    def close(self) -> None:
+        """Nothing to stop."""
+
+    def occluded_and_held(self) -> tuple[list[str], list[str]]:
+        """No body: no rig markers or bones to report."""
+        return [], []
+
+    def _stage(self, stream: FrameSource) -> FaceOnlyStage | None:
+        perf = self.perf
         labels = stream.current.label_set.labels
         key = id(stream)
-        stage = perf.face_stages.get(key)
+        stage = self.stages.get(key)
         if stage is not None and stage.labels == labels:
             return stage
         face = perf.face.stage(labels) if perf.face is not None else None
         if face is None:  # no training set yet
-            perf.face_stages.pop(key, None)
+            self.stages.pop(key, None)
             return None
-        self._names_id = (self._names_id + 1) % 65536
-        perf.last_names_ns = 0
+        names_id = self.shared.next_names_id()
+        self.last_names_ns = 0
         names = pose_stream.PoseNames(
             rig="", bone_names=(), bone_parents=(), weight_names=face.weight_names,
-            names_id=self._names_id, face_markers=face.marker_names,
+            names_id=names_id, face_markers=face.marker_names,
             performer=perf.name, performer_id=perf.index, unobserved=face.unobserved,
         )  # fmt: skip
         stage = FaceOnlyStage(
@@ -74,31 +142,30 @@ class FaceOnlyMixin(DaemonState):
             pose_enc=pose_stream.PoseEncoder(
                 0,
                 len(face.weight_names),
-                names_id=self._names_id,
+                names_id=names_id,
                 n_face_markers=len(face.marker_names),
                 performer=perf.index,
             ),
             names_parts=pose_stream.encode_pose_names(names),
-            shape_enc=pose_stream.ShapeStateEncoder(
-                len(face.weight_names), self._names_id
-            ),
-            vmc=BlendEncoder(face.output_names, perf.vmc_max_datagram),
+            shape_enc=pose_stream.ShapeStateEncoder(len(face.weight_names), names_id),
+            vmc=BlendEncoder(face.output_names, perf.vmc.max_datagram),
             no_quat=np.zeros((0, 4)),
             no_flags=np.zeros(0, np.uint8),
         )
-        perf.face_stages[key] = stage
-        self.stats.pipeline_builds += 1
+        self.stages[key] = stage
+        self.shared.stats.pipeline_builds += 1
         return stage
 
-    def _solve_and_send_face(self, stream: FrameSource, received_ns: int) -> None:
+    def process(self, stream: FrameSource, received_ns: int) -> None:
         """The face-only performer's frame: solve, then the pose stream and VMC."""
         t_start = time.monotonic_ns()
-        stage = self._face_only_stage(stream)
-        stats = self.stats
+        stage = self._stage(stream)
+        sh = self.shared
+        stats, outputs = sh.stats, sh.outputs
         if stage is None:
             stats.unsolved += 1
             return
-        perf = self._perf
+        vmc = self.perf.vmc
         frame = stream.current.frame
         fo = stage.face.solve(frame.markers_world, frame.valid)
         stats.face_solved += 1
@@ -106,25 +173,14 @@ class FaceOnlyMixin(DaemonState):
             stats.face_head_lost += 1
         solved_ns = time.monotonic_ns()
         stats.frames_solved += 1
-        flags = perf.frame_flags
-        perf.frame_flags = 0
-        sock = perf.vmc_sock
-        if sock is not None:
-            dgrams = stage.vmc.encode(
-                stage.face.blend, (solved_ns - self._t0_ns) * 1e-9
-            )
-            if perf.vmc_connected:
-                for dgram in dgrams:
-                    try:
-                        sock.send(dgram)
-                    except OSError:
-                        stats.vmc_errors += 1
-            else:
-                self._send_vmc_datagrams(dgrams)
-        if self._pub is not None or self.recording.poses is not None:
-            if solved_ns - perf.last_names_ns >= 1_000_000_000:
-                self._send_pub(stage.names_parts, solved_ns)
-                perf.last_names_ns = solved_ns
+        flags = self.frame_flags
+        self.frame_flags = 0
+        if vmc.sock is not None:
+            vmc.send(stage.vmc.encode(stage.face.blend, (solved_ns - sh.t0_ns) * 1e-9))
+        if outputs.publishing:
+            if solved_ns - self.last_names_ns >= 1_000_000_000:
+                outputs.send_pub(stage.names_parts, solved_ns)
+                self.last_names_ns = solved_ns
             enc = stage.pose_enc
             parts = enc.encode(
                 frame.frame_id, frame.source_time_s, received_ns, solved_ns, flags,
@@ -137,18 +193,14 @@ class FaceOnlyMixin(DaemonState):
             )  # fmt: skip
             sent_ns = time.monotonic_ns()
             pose_stream.stamp_sent(parts[0], sent_ns)
-            self._send_pub(parts, sent_ns)
-            if self._pub is not None:
-                try:  # per-shape states, right after their pose (not recorded)
-                    self._pub.send(
-                        stage.shape_enc.encode(frame.frame_id, fo.shape_state),
-                        zmq.NOBLOCK,
-                    )
-                except zmq.Again:
-                    stats.send_drops += 1
+            outputs.send_pub(parts, sent_ns)
+            # per-shape states, right after their pose (not recorded)
+            outputs.send_unrecorded(
+                stage.shape_enc.encode(frame.frame_id, fo.shape_state)
+            )
         sent_ns = time.monotonic_ns()
         stats.frames_out += 1
-        if sent_ns - t_start > self._budget_ns:
+        if sent_ns - t_start > sh.budget_ns:
             stats.overruns += 1
         stats.record(
             solved_ns - received_ns, solved_ns - t_start, sent_ns - solved_ns,

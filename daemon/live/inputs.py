@@ -1,22 +1,39 @@
-"""One wake-up of the loop: drain every readable marker input (OSC and ZeroMQ), decoding
-straight into preallocated buffers; malformed packets counted by reason and dropped;
-accepted frames solved at once while the wake-up is within ``solve_budget_ms``, past it
-the latest frame wins (the rest counted ``stale``).
+"""The marker inputs of the loop (OSC over UDP and ZeroMQ), one part: their sockets,
+receive buffers and :class:`MarkerStream` each (the frame buffer a packet is decoded
+and sequenced into). A drain reads every waiting packet, decodes it straight into the
+preallocated buffers, counts what it refuses by reason and hands each accepted frame
+to the loop (``accept``, which solves it at once while the wake-up is within
+``solve_budget_ms``); it returns the receive time of the newest accepted frame left
+unsolved (latest wins: an older one left unsolved is ``stale``).
 """
 
 from __future__ import annotations
 
 import logging
+import select
+import socket
 import time
+from collections.abc import Callable
 from typing import Any
 
+import numpy as np
 import zmq
 
-from retargetd.daemon.live.recording import (
-    FORM_ZMQ,
+from retargetd.daemon.live.config import ConfigError, DaemonConfig
+from retargetd.daemon.live.kernel_drops import udp_kernel_drops
+from retargetd.daemon.live.ratelog import OncePer
+from retargetd.daemon.live.recording import FORM_OSC, FORM_ZMQ, LiveRecording
+from retargetd.daemon.live.stats import LoopStats
+from retargetd.daemon.live.surface import (
+    KeyFileError,
+    curve_client,
+    endpoint_is_local,
+    is_loopback_host,
+    osc_verifier,
+    unauthenticated_warning,
+    who_reaches,
 )
-from retargetd.daemon.live.state import DaemonState
-from retargetd.protocols import osc_auth, osc_in, pose_stream, zmq_wire
+from retargetd.protocols import osc_auth, osc_in, zmq_wire
 from retargetd.protocols.errors import DecodeError
 from retargetd.protocols.marker_input import (
     ACCEPTED,
@@ -35,122 +52,219 @@ logger = logging.getLogger(__name__)
 #: counters carry the exact numbers, the log only says that it happens.
 LOG_INTERVAL_NS = 10_000_000_000
 
+_UDP_MAX = 65536
 
-class InputsMixin(DaemonState):
-    """Draining the marker inputs in one wake-up: decode into preallocated buffers,
-    count what is dropped, solve while within the budget, latest wins past it.
+#: :meth:`Inputs.ready` bits: which of the inputs' sockets the poll found readable.
+READY_OSC, READY_ZMQ, READY_MONITOR = 1, 2, 4
+#: How many poll events the ``READY_*`` bits stand for (index: the bits).
+READY_EVENTS = tuple(bin(bits).count("1") for bits in range(8))
+
+#: ``accept(stream, code, t_ns, every) -> int``: the loop's hand-off of a decoded
+#: frame (the receive time when it is left unsolved for later, else 0).
+Accept = Callable[[MarkerStream, int, int, bool], int]
+
+
+class Inputs:
+    """The OSC and ZeroMQ marker inputs: sockets, buffers, streams, drains.
+
+    Args:
+        config: the daemon's configuration (``[input.osc]``, ``[input.zmq]``).
+        stats: the loop's counters (frames refused by source, stale, disconnects).
+        recording: the live recording (raw packets, when one records them).
+        warn: the loop's once-per-interval gate for warning lines.
+        accept: the loop's hand-off of an accepted frame (see :data:`Accept`).
+        on_labels: told of every label set an input takes (the performers build
+            their columns for it then, off the hot path).
+        stale: called when an accepted frame is superseded before it was solved.
+
+    Raises:
+        ConfigError: ``[input.osc] key_file`` unreadable since the config was read.
     """
 
-    def _service(self, events: list[tuple[Any, int]]) -> None:
-        every = self.config.loop.process_every_frame
-        self._wake_ns = time.monotonic_ns()
-        # Which sockets are readable: a scan of the poll result (no dict per wake-up).
-        osc = zin = zmon = show = ctl = False
-        osc_fd, show_fd = self._osc_fd, self._show_fd
+    def __init__(
+        self,
+        config: DaemonConfig,
+        stats: LoopStats,
+        recording: LiveRecording,
+        warn: OncePer,
+        accept: Accept,
+        on_labels: Callable[[MarkerStream, LabelSet], None],
+        stale: Callable[[], None],
+    ) -> None:
+        self.config = config
+        self.stats = stats
+        self.recording = recording
+        self._warn = warn
+        self._accept = accept
+        self._on_labels = on_labels
+        self._stale = stale
+        osc_cfg, zmq_cfg = config.input.osc, config.input.zmq
+        simple_labels = (
+            LabelSet(0, osc_cfg.labels) if osc_cfg.form == "simple" else None
+        )
+        self.osc_stream = MarkerStream(
+            simple_labels,
+            osc_cfg.up,
+            osc_cfg.units,
+            max_rate_hz=osc_cfg.max_rate_hz,
+            max_markers=osc_cfg.max_markers,
+            zero_is_occluded=osc_cfg.zero_is_occluded,
+            max_coordinate_m=osc_cfg.max_coordinate_m,
+        )
+        self.zmq_stream = MarkerStream(
+            None,
+            zmq_cfg.up,
+            zmq_cfg.units,
+            max_rate_hz=zmq_cfg.max_rate_hz,
+            max_markers=zmq_cfg.max_markers,
+            zero_is_occluded=zmq_cfg.zero_is_occluded,
+            max_coordinate_m=zmq_cfg.max_coordinate_m,
+        )
+        self.osc: socket.socket | None = None
+        self.zin: zmq.Socket[bytes] | None = None
+        self._zmon: zmq.Socket[bytes] | None = None  # the input's disconnect events
+        self._buf = bytearray(_UDP_MAX)
+        # ZeroMQ input parts, received in place: header (a frame's or a label set's
+        # is 32 / 16 bytes; 64 leaves room to see a wrong one), payload (the limit).
+        self._zbuf_header = bytearray(64)
+        self._zbuf_payload = bytearray(zmq_cfg.max_message_bytes)
+        self._zbuf_extra = bytearray(64)
+        self._zview_header = memoryview(self._zbuf_header)
+        self._zview_payload = memoryview(self._zbuf_payload)
+        # The same buffers as uint8 arrays: the compiled decode reads them in place.
+        self._view = memoryview(self._buf)
+        self._wire = np.frombuffer(self._buf, dtype=np.uint8)
+        self._zwire_header = np.frombuffer(self._zbuf_header, dtype=np.uint8)
+        self._zwire_payload = np.frombuffer(self._zbuf_payload, dtype=np.uint8)
+        self._osc_simple = osc_cfg.form == "simple"
+        self._osc_fd = -2  # the poll result's fd (set by open)
+        self._osc_more: Any = None  # select.poll of the OSC socket (set by open)
+        self._osc_limit = osc_cfg.max_message_bytes
+        self.allow = frozenset(osc_cfg.allow)
+        self.osc_form = FORM_OSC[osc_cfg.form]
+        try:  # [input.osc] key_file: signed datagrams only (PROTOCOLS.md 13)
+            self._osc_auth = osc_verifier(osc_cfg.key_file)
+        except KeyFileError as exc:  # changed since the config was checked
+            raise ConfigError(f"input.osc.key_file: {exc}") from None
+
+    # ---- lifecycle -------------------------------------------------------------------
+
+    def open(
+        self,
+        udp_bind: Callable[[str, int], socket.socket],
+        server_socket: Callable[[int, str, tuple[str, ...]], Any],
+        own: Callable[[Any], None],
+        announce: Callable[[str, str], None],
+        out: Callable[[str], None],
+    ) -> None:
+        """Bind (or connect) the enabled inputs.
+
+        Args:
+            udp_bind: the loop's UDP bind (registered with its poller).
+            server_socket: the loop's ZeroMQ socket factory (CURVE when keyed).
+            own: registers a ZeroMQ socket with the loop's poller and closes it
+                with the others.
+            announce: says an endpoint ("listening on ...").
+            out: where warnings go.
+        """
+        c = self.config
+        if c.input.osc.enabled:
+            osc = c.input.osc
+            self.osc = udp_bind(osc.host, osc.port)
+            self._osc_fd = self.osc.fileno()
+            self._osc_more = select.poll()  # "another datagram waits?" (drain_osc)
+            self._osc_more.register(self._osc_fd, select.POLLIN)
+            allow = f", sources {', '.join(osc.allow)} only" if osc.allow else ""
+            local = is_loopback_host(osc.host)
+            who = who_reaches(local, osc.host)
+            signed = ", signed only (HMAC-SHA256)" if osc.key_file else ""
+            host, port = self.osc.getsockname()[:2]
+            announce(
+                "osc markers",
+                f"udp://{host}:{port} ({osc.form}; frames from {who}{allow}{signed})",
+            )
+            if not local and not osc.key_file:
+                out(unauthenticated_warning("osc", osc.host, "key_file"))
+        if not c.input.zmq.enabled:
+            return
+        zin = c.input.zmq
+        local = endpoint_is_local(zin.endpoint)
+        pull = zin.mode == "pull"
+        # CURVE as the control socket's: a bound PULL is the server letting in
+        # the listed clients; a SUB is a client of the publisher's key.
+        sock = server_socket(
+            zmq.PULL if pull else zmq.SUB,
+            zin.secret_key if pull else "",
+            zin.client_keys,
+        )
+        self.zin = sock
+        if not pull and zin.secret_key:
+            curve_client(sock, zin.secret_key, zin.server_key)
+        sock.setsockopt(zmq.LINGER, 0)
+        # Bounded queue: 1,000 messages of parts of at most max_message_bytes;
+        # libzmq drops the connection of a peer sending a larger part, before
+        # buffering it (inproc bypasses this: the drain checks sizes too).
+        sock.setsockopt(zmq.RCVHWM, 1000)
+        sock.setsockopt(zmq.MAXMSGSIZE, zin.max_message_bytes)
+        if pull:
+            sock.bind(zin.endpoint)
+            who = f"frames from {who_reaches(local, zin.endpoint)}"
+        else:
+            sock.setsockopt(zmq.SUBSCRIBE, b"RTD")
+            sock.connect(zin.endpoint)
+            who = f"frames from the publisher at {zin.endpoint}"
+        own(sock)
+        self._zmon = sock.get_monitor_socket(zmq.EVENT_DISCONNECTED)
+        self._zmon.setsockopt(zmq.LINGER, 0)
+        own(self._zmon)
+        ep = last_endpoint(sock) or zin.endpoint
+        curve = ", CURVE" if zin.secret_key else ""
+        if pull and zin.secret_key:
+            curve += f": {len(zin.client_keys)} client key(s)"
+        announce("zmq markers", f"{ep} ({zin.mode}; {who}{curve})")
+        if not local and not zin.secret_key:
+            keys = "client_keys" if pull else "server_key"
+            out(unauthenticated_warning("zmq", zin.endpoint, keys))
+
+    # ---- one wake-up -----------------------------------------------------------------
+
+    def ready(self, events: list[tuple[Any, int]]) -> int:
+        """Which inputs the poll found readable (``READY_*`` bits): a scan of the
+        poll result, no allocation."""
+        bits = 0
+        zin, zmon, osc_fd = self.zin, self._zmon, self._osc_fd
         for sock, _flags in events:
-            if sock is self._zin:
-                zin = True
-            elif sock is self._ctl:
-                ctl = True
-            elif sock is self._zmon:
-                zmon = True
+            if sock is zin:
+                bits |= READY_ZMQ
+            elif sock is zmon:
+                bits |= READY_MONITOR
             elif sock == osc_fd:
-                osc = True
-            elif sock == show_fd:
-                show = True
-            else:  # a watched socket's monitor (watch.py): never on the hot path
-                self._watch.drain(sock, self._wake_ns)
-        newest: MarkerStream | None = None
-        newest_ns = 0
-        if osc:
-            got = self._drain_osc(every)
-            if got:
-                newest, newest_ns = self.osc_stream, got
-        if zin:
-            got = self._drain_zmq(every)
-            if got and newest is not None and not every:
-                if self._multi:  # several performers: each input's own latest
-                    self._solve(newest, newest_ns)
-                    newest, newest_ns = None, 0
-                else:
-                    # Both inputs delivered in one wake-up: only the newer one is
-                    # solved, so the other's newest frame is stale too (counted,
-                    # never silent).
-                    self.stats.stale += 1
-                    self._flag_frames(pose_stream.FRAME_INPUT_DROPPED)
-            if got and got >= newest_ns:
-                newest, newest_ns = self.zmq_stream, got
-        if self._capture is not None:
-            got = self._drain_capture(events, every)
-            if got and newest is not None and not every:
-                if self._multi:  # as above
-                    self._solve(newest, newest_ns)
-                    newest, newest_ns = None, 0
-                else:
-                    self.stats.stale += 1  # two inputs in one wake-up, as above
-                    self._flag_frames(pose_stream.FRAME_INPUT_DROPPED)
-            if got and got >= newest_ns:
-                newest, newest_ns = self._capture.inp.stream, got
-        if newest is not None and not every:
-            self._solve(newest, newest_ns)
-        stalls = self._stalls
-        stalls.lap("markers")  # the drain and the solves
-        if zmon:
-            self._drain_zmq_monitor()
-        if show:
-            self._drain_show_control()
-            stalls.lap("show_control")
-        if ctl:
-            self._serve_control()  # its lap names the command
+                bits |= READY_OSC
+        return bits
 
-    def _accept(self, stream: MarkerStream, code: int, t_ns: int, every: bool) -> int:
-        """Book-keeping for one decoded packet; returns its receive time when it was
-        accepted and left for later (latest wins), else 0."""
-        if code != ACCEPTED and code != RESTART:
-            if code == IMPLAUSIBLE_JUMP:
-                name = (
-                    "osc"
-                    if stream is self.osc_stream
-                    else "zmq"
-                    if stream is self.zmq_stream
-                    else "capture"
-                )
-                self._log_limited(
-                    f"{name}.implausible_jump",
-                    t_ns,
-                    "%s input: frame number jumped implausibly past %d (faster than "
-                    "max_rate_hz); dropped (implausible_jump)",
-                    name,
-                    stream.sequencer.last_frame,
-                )
-            return 0
-        self.stats.frames_in += 1
-        self._last_frame_ns = t_ns
-        self._prewarm.observe(t_ns)
-        stream.current.frame.t_ns = t_ns
-        if code == RESTART:
-            self.stats.restarts += 1
-            self._flag_frames(pose_stream.FRAME_RESTARTED)
-            self._restart_pipelines(stream)
-        self._collect(stream)  # live calibrations and face captures
-        self.props.on_frame(stream, t_ns)  # [[prop]]: every accepted frame
-        # Solve at once while this wake-up is within the budget (frames that merely
-        # arrived together are all solved); past it the loop is behind, and the
-        # latest frame wins: this one waits and is dropped if a newer one comes.
-        if every or time.monotonic_ns() - self._wake_ns < self._catch_up_ns:
-            if self._multi:
-                self._solve(stream, t_ns)  # every performer on this input
-            else:
-                self._solve_and_send(stream, t_ns)  # (what _solve does for one)
-            return 0
-        return t_ns
+    def refused(self, stream: MarkerStream, code: int, t_ns: int) -> None:
+        """A decoded frame the stream refused (counted by the stream): a frame number
+        jumping implausibly is said, once per interval and input."""
+        if code != IMPLAUSIBLE_JUMP:
+            return
+        name = self.kind_of(stream)
+        self._log_limited(
+            f"{name}.implausible_jump",
+            t_ns,
+            "%s input: frame number jumped implausibly past %d (faster than "
+            "max_rate_hz); dropped (implausible_jump)",
+            name,
+            stream.sequencer.last_frame,
+        )
 
-    def _drain_osc(self, every: bool) -> int:
-        assert self._osc is not None
-        sock, buf, stream = self._osc, self._buf, self.osc_stream
+    def drain_osc(self, every: bool) -> int:
+        """Read every waiting OSC datagram; the receive time of the newest accepted
+        frame left unsolved, else 0."""
+        assert self.osc is not None
+        sock, buf, stream = self.osc, self._buf, self.osc_stream
         simple = self._osc_simple
         limit = self._osc_limit
-        allow = self._allow
+        allow = self.allow
         more = self._osc_more
         auth, view = self._osc_auth, self._view
         newest = 0  # receive time of the newest accepted frame not yet solved
@@ -189,7 +303,7 @@ class InputsMixin(DaemonState):
                 n = m  # the datagram without its trailer (recorded, decoded)
             rec = self.recording.packets
             if rec is not None:
-                rec.record_packet("osc", self._osc_form, t_ns, self._view[:n])
+                rec.record_packet("osc", self.osc_form, t_ns, self._view[:n])
             if simple:
                 code = stream.feed(
                     osc_in.decode_simple_bundle, self._view[:n], t_ns=t_ns
@@ -204,11 +318,13 @@ class InputsMixin(DaemonState):
                 continue
             else:  # checks and store in one compiled call, from the buffer itself
                 code = stream.feed(osc_in.decode_compact_into, self._wire, n, t_ns=t_ns)
+            if code != ACCEPTED and code != RESTART:
+                self.refused(stream, code, t_ns)
+                continue
             got = self._accept(stream, code, t_ns, every)
             if got:
                 if newest:  # a newer frame supersedes the unsolved one: stale
-                    self.stats.stale += 1
-                    self._flag_frames(pose_stream.FRAME_INPUT_DROPPED)
+                    self._stale()
                 newest = got
         return newest
 
@@ -237,9 +353,10 @@ class InputsMixin(DaemonState):
             "osc input: a datagram refused, %s (auth_failed)", what,
         )  # fmt: skip
 
-    def _drain_zmq(self, every: bool) -> int:
-        assert self._zin is not None
-        sock, stream = self._zin, self.zmq_stream
+    def drain_zmq(self, every: bool) -> int:
+        """Read every waiting ZeroMQ message; as :meth:`drain_osc`."""
+        assert self.zin is not None
+        sock, stream = self.zin, self.zmq_stream
         limit = self.config.input.zmq.max_message_bytes
         # Parts are received into preallocated buffers (``recv_into`` returns the
         # part's full size, so a larger one shows as n > the buffer): no Frame objects,
@@ -290,15 +407,17 @@ class InputsMixin(DaemonState):
                 zmq_wire.decode_zmq_into, self._zwire_header, n0, self._zwire_payload,
                 n1, t_ns=t_ns,
             )  # fmt: skip
+            if code != ACCEPTED and code != RESTART:
+                self.refused(stream, code, t_ns)
+                continue
             got = self._accept(stream, code, t_ns, every)
             if got:
                 if newest:  # a newer frame supersedes the unsolved one: stale
-                    self.stats.stale += 1
-                    self._flag_frames(pose_stream.FRAME_INPUT_DROPPED)
+                    self._stale()
                 newest = got
         return newest
 
-    def _drain_zmq_monitor(self) -> None:
+    def drain_monitor(self) -> None:
         """Count the ZeroMQ input's disconnect events (a part over MAXMSGSIZE makes
         libzmq drop the peer before buffering it; a sender closing does too)."""
         assert self._zmon is not None
@@ -325,7 +444,7 @@ class InputsMixin(DaemonState):
         self.stats.labels_in += 1
         before = stream.counters.counts.copy()  # announcements are rare: not hot
         stream.set_labels(label_set, t_ns)
-        self._prepare_views(stream, label_set)  # performers' columns, built now
+        self._on_labels(stream, label_set)  # performers' columns, built now
         after = stream.counters
         if after["conflicting_labels"] > before[_CONFLICTING]:
             self._log_limited(
@@ -351,10 +470,50 @@ class InputsMixin(DaemonState):
 
     def _log_limited(self, key: str, t_ns: int, msg: str, *args: Any) -> None:
         """``logger.warning`` at most once per ``LOG_INTERVAL_NS`` for ``key``."""
-        if t_ns < self._log_after_ns.get(key, 0):
-            return
-        self._log_after_ns[key] = t_ns + LOG_INTERVAL_NS
-        logger.warning(msg, *args)
+        if self._warn.due(key, t_ns):
+            logger.warning(msg, *args)
+
+    # ---- what the other parts read --------------------------------------------------
+
+    def kind_of(self, stream: object) -> str:
+        """The input a stream belongs to: "osc", "zmq" or "source" (the capture
+        system's)."""
+        if stream is self.osc_stream:
+            return "osc"
+        return "zmq" if stream is self.zmq_stream else "source"
+
+    def streams(self) -> tuple[MarkerStream, MarkerStream]:
+        """The OSC and ZeroMQ inputs' streams (whether on or off)."""
+        return self.osc_stream, self.zmq_stream
+
+    def label_announcements(self) -> list[tuple[str, int, tuple[bytes, ...]]]:
+        """The label sets in use, as their inputs' packets: a recording started
+        mid-stream opens with them."""
+        out: list[tuple[str, int, tuple[bytes, ...]]] = []
+        if self.osc is not None and self.config.input.osc.form == "compact":
+            ls = self.osc_stream.label_set
+            if ls is not None:
+                out.append(("osc", self.osc_form, (osc_in.encode_labels(ls),)))
+        if self.zin is not None and self.zmq_stream.label_set is not None:
+            parts = tuple(zmq_wire.encode_zmq_labels(self.zmq_stream.label_set))
+            out.append(("zmq", FORM_ZMQ, parts))
+        return out
+
+    def status(self) -> dict[str, Any]:
+        """The inputs' part of the status document."""
+        osc, zin = self.osc_stream, self.zmq_stream
+        return {
+            "implausible_markers": int(osc.implausible[0] + zin.implausible[0]),
+            "drops": {"osc": osc.counters.as_dict(), "zmq": zin.counters.as_dict()},
+            "labels_taken": {"osc": osc.labels_taken, "zmq": zin.labels_taken},
+            "kernel_drops_osc": udp_kernel_drops(self.osc),
+        }
+
+
+def last_endpoint(sock: Any) -> str:
+    """The endpoint a socket bound (with the real port of a ``*`` wildcard)."""
+    value = sock.getsockopt(zmq.LAST_ENDPOINT)
+    return value.decode() if isinstance(value, bytes) else str(value)
 
 
 _CONFLICTING = REASON_INDEX["conflicting_labels"]

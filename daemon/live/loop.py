@@ -1,4 +1,6 @@
-"""The live loop: one thread owns the sockets and the solve.
+"""The live loop: one thread owns the sockets and the solve. :class:`Daemon` composes
+the parts (inputs, performers, outputs, control, health; ``daemon/live/__init__.py``
+says who owns what) and :meth:`Daemon._service` is a frame's path, top-down.
 
 A ``zmq.Poller`` waits on every input at once (plain UDP sockets and ZeroMQ sockets
 alike). Each wake-up drains every readable socket, decoding marker packets straight
@@ -19,17 +21,17 @@ local ZeroMQ REP socket; show-control arrives as OSC on VMC's performer port
 stream goes on with the old calibration, then swaps the new one in atomically (the
 loop thread is the only one that reads it) and saves it.
 
-``record`` starts and stops a recording inside the daemon (``live_recording.py``):
+``record`` starts and stops a recording inside the daemon (``recording.py``):
 the loop hands packets, poses and control events to a writer thread with
 ``put_nowait`` only, and never writes to the disk itself.
 
-With ``[face]`` on, the same frame is also solved for the face (``live_face.py``:
+With ``[face]`` on, the same frame is also solved for the face (``face.py``:
 stabilized markers and blendshape weights) before the send: the weights go out as
 VMC blendshapes under the target's names and in the pose stream with the stabilized
 markers. ``face-capture`` captures training poses live.
 
 With ``[validate]`` on, every sent pose is handed to the live validator
-(``validate_live.py``) with a non-blocking submit after the send; its results come
+(``validate/live.py``) with a non-blocking submit after the send; its results come
 back on later frames: their bits are ORed into the next pose and each is published
 as an ``RTDV`` message (``protocols/PROTOCOLS.md``).
 """
@@ -39,7 +41,6 @@ from __future__ import annotations
 import contextlib
 import gc
 import logging
-import select
 import socket
 import time
 from collections.abc import Callable
@@ -51,65 +52,67 @@ import zmq
 
 from retargetd.daemon.body.match import warm_up as warm_up_match
 from retargetd.daemon.body.solve_fit import warm_up as warm_up_fit
-from retargetd.daemon.live.calibrate import CalibrationMixin
 from retargetd.daemon.live.config import ConfigError, DaemonConfig, check_pipeline
 from retargetd.daemon.live.console_feed import ConsoleFeed
 from retargetd.daemon.live.console_feed import dispatch as dispatch_console
-from retargetd.daemon.live.control import (
-    CONTROL_RCVHWM,
-    CONTROL_TRANSPORT_MAX_BYTES,
-    ControlMixin,
-)
+from retargetd.daemon.live.control import Control
 from retargetd.daemon.live.emit import warm_up as warm_up_emit
 from retargetd.daemon.live.face import warm_up as warm_up_face
-from retargetd.daemon.live.inputs import InputsMixin
+from retargetd.daemon.live.inputs import (
+    LOG_INTERVAL_NS,
+    READY_EVENTS,
+    READY_MONITOR,
+    READY_OSC,
+    READY_ZMQ,
+    Inputs,
+)
+from retargetd.daemon.live.outputs import Outputs, VmcOut
 from retargetd.daemon.live.performer import build_performers
-from retargetd.daemon.live.performers import PerformersMixin
+from retargetd.daemon.live.performers import Performers
 from retargetd.daemon.live.prewarm import Prewarm
 from retargetd.daemon.live.props import LiveProps, vmc_destinations
-from retargetd.daemon.live.ratelog import RateLimitedLog, RateLimiter, print_line
-from retargetd.daemon.live.recording import FORM_OSC, LiveRecording
-from retargetd.daemon.live.send import SendMixin, spine_stage
-from retargetd.daemon.live.sources import CaptureMixin
+from retargetd.daemon.live.ratelog import (
+    OncePer,
+    RateLimitedLog,
+    print_line,
+)
+from retargetd.daemon.live.recording import LiveRecording
+from retargetd.daemon.live.shared import Shared
+from retargetd.daemon.live.sources import CaptureSource
 from retargetd.daemon.live.stalls import LoopStalls
 from retargetd.daemon.live.stats import LoopStats
-from retargetd.daemon.live.status import StatusMixin
+from retargetd.daemon.live.status import Health
 from retargetd.daemon.live.surface import (
     CurveGuard,
-    KeyFileError,
-    curve_client,
-    endpoint_is_local,
     is_loopback_host,
-    osc_verifier,
-    unauthenticated_warning,
-    who_reaches,
 )
 from retargetd.daemon.live.watch import SocketWatch
 from retargetd.daemon.post.interp import RateResampler
+from retargetd.daemon.post.pivot import spine_stage
 from retargetd.daemon.post.pose import PoseBuffer
 from retargetd.daemon.progress import Progress
-from retargetd.daemon.target.retarget import TargetSkeleton, default_humanoid, warm_up
-from retargetd.daemon.validate.live import LiveValidator
+from retargetd.daemon.retarget.retarget import (
+    TargetSkeleton,
+    default_humanoid,
+    warm_up,
+)
 from retargetd.protocols import kernels as protocol_kernels
-from retargetd.protocols.marker_input import LabelSet, MarkerStream
-from retargetd.protocols.vmc_out import VmcEncoder
+from retargetd.protocols import pose_stream
+from retargetd.protocols.marker_input import ACCEPTED, RESTART, LabelSet, MarkerStream
 
 logger = logging.getLogger(__name__)
 
-_UDP_MAX = 65536
 
-
-class Daemon(
-    InputsMixin,
-    CaptureMixin,
-    SendMixin,
-    CalibrationMixin,
-    StatusMixin,
-    ControlMixin,
-    PerformersMixin,
-):
+class Daemon:
     """The live daemon (one performer, or several: ``[[performer]]``). ``open()``,
     then ``run(should_exit)``.
+
+    It composes parts, each owning its state (``daemon/live/__init__.py`` tells who
+    owns what): ``inputs`` and ``capture`` (the marker sources), ``performers``
+    (each performer's frame path and live calibration), ``outputs`` (the pose
+    stream, the VMC destinations), ``recording``, ``props``, ``control`` (``ctl``
+    and show control) and ``health`` (status and the stats line). A frame's path is
+    :meth:`_service`.
 
     Args:
         config: validated configuration.
@@ -127,19 +130,17 @@ class Daemon(
         out: Callable[[str], None] | None = None,
         config_path: str | Path | None = None,
     ) -> None:
-        self.config = config
-        self.config_path = config_path  # re-read by reload for [[pipeline]]
         self.out = out or print_line
         self.stats = LoopStats()
-        # Each performer's rig, calibration, face, VMC destination... (performer.py);
-        # the attributes of one (self.rig, self.calibration ...) are the current's.
-        self.performers = build_performers(config)
-        for perf in self.performers:  # each performer's rig, after any --rig
+        # Each performer's rig, calibration, face, VMC destination (performer.py).
+        performers = build_performers(config)
+        for perf in performers:  # each performer's rig, after any --rig
             check_pipeline(config.pipeline, perf.rig)
-        self._perf = self.performers[0]
-        self._multi = bool(config.performers)
+        self._every = config.loop.process_every_frame  # offline replay: no drops
+        self._left: MarkerStream | None = None  # the wake-up's frame left unsolved
+        self._left_ns = 0  # its receive time
         self.target = _load_target(config)
-        for perf in self.performers:  # [target] spine = "pivot": target and rig fit
+        for perf in performers:  # [target] spine = "pivot": target and rig fit
             try:
                 spine = spine_stage(config.target, self.target, perf.rig)
                 if spine is not None:  # load (or compile) its kernel now, not live
@@ -158,64 +159,35 @@ class Daemon(
         self._ctx: Any = zmq.Context.instance() if self._shared_ctx else zmq.Context()
         self._poller = zmq.Poller()
         self._sockets: list[Any] = []
-        self._osc: socket.socket | None = None
-        self._show: socket.socket | None = None
-        self._vmc = False  # [output.vmc] on (each performer's vmc_sock, open())
-        self._zin: zmq.Socket[bytes] | None = None
-        self._zmon: zmq.Socket[bytes] | None = None  # the input's disconnect events
-        self._pub: zmq.Socket[bytes] | None = None
-        self._ctl: zmq.Socket[bytes] | None = None
-        self._capture: Any = None  # a capture system ([input] source), sources.py
-        osc_cfg, zmq_cfg = config.input.osc, config.input.zmq
-        simple_labels = (
-            LabelSet(0, osc_cfg.labels) if osc_cfg.form == "simple" else None
-        )
-        self.osc_stream = MarkerStream(
-            simple_labels,
-            osc_cfg.up,
-            osc_cfg.units,
-            max_rate_hz=osc_cfg.max_rate_hz,
-            max_markers=osc_cfg.max_markers,
-            zero_is_occluded=osc_cfg.zero_is_occluded,
-            max_coordinate_m=osc_cfg.max_coordinate_m,
-        )
-        self.zmq_stream = MarkerStream(
-            None,
-            zmq_cfg.up,
-            zmq_cfg.units,
-            max_rate_hz=zmq_cfg.max_rate_hz,
-            max_markers=zmq_cfg.max_markers,
-            zero_is_occluded=zmq_cfg.zero_is_occluded,
-            max_coordinate_m=zmq_cfg.max_coordinate_m,
-        )
-        self._log_after_ns: dict[str, int] = {}  # rate-limited log lines, by key
-        self._names_id = 0
         self._t0_ns = time.monotonic_ns()
-        self._buf = bytearray(_UDP_MAX)
-        # ZeroMQ input parts, received in place: header (a frame's or a label set's
-        # is 32 / 16 bytes; 64 leaves room to see a wrong one), payload (the limit).
-        self._zbuf_header = bytearray(64)
-        self._zbuf_payload = bytearray(config.input.zmq.max_message_bytes)
-        self._zbuf_extra = bytearray(64)
-        self._zview_header = memoryview(self._zbuf_header)
-        self._zview_payload = memoryview(self._zbuf_payload)
-        # The same buffers as uint8 arrays: the compiled decode reads them in place.
-        self._view = memoryview(self._buf)
-        self._wire = np.frombuffer(self._buf, dtype=np.uint8)
-        self._zwire_header = np.frombuffer(self._zbuf_header, dtype=np.uint8)
-        self._zwire_payload = np.frombuffer(self._zbuf_payload, dtype=np.uint8)
-        self._osc_simple = osc_cfg.form == "simple"
-        self._osc_fd = self._show_fd = -2  # the poll result's fds (set by open)
-        self._osc_more: Any = None  # select.poll of the OSC socket (set by open)
-        self._osc_limit = osc_cfg.max_message_bytes
-        self._allow = frozenset(osc_cfg.allow)
-        try:  # [input.osc] key_file: signed datagrams only (PROTOCOLS.md 13)
-            self._osc_auth = osc_verifier(osc_cfg.key_file)
-        except KeyFileError as exc:  # changed since the config was checked
-            raise ConfigError(f"input.osc.key_file: {exc}") from None
-        self._reload_limit = RateLimiter(config.control.min_interval_s)
+        self._warn = OncePer(LOG_INTERVAL_NS)  # the inputs' warning lines, by key
+        rc = config.record
+        self.recording = LiveRecording(
+            rc.folder, rc.max_total_mb, rc.min_free_mb, rc.min_interval_s
+        )
+        # The marker inputs (OSC, ZeroMQ): sockets, buffers and a stream each.
+        self.inputs = Inputs(
+            config, self.stats, self.recording, self._warn,
+            self._accept, self._on_labels, self._stale,
+        )  # fmt: skip
+        # The pose stream and each performer's VMC destination.
+        vmc = [VmcOut(p.vmc_addr, p.vmc_max_datagram, self.stats) for p in performers]
+        self.outputs = Outputs(self.stats, self.recording, vmc)
+        # A wake-up solves the frames that arrived together while within the budget
+        # of their solves: a frame of N performers is N solves, each with the budget.
+        budget_ns = int(config.loop.solve_budget_ms * 1e6)  # solve + send
+        self._catch_up_ns = budget_ns * len(performers)
+        self._prewarm = Prewarm(config.loop.prewarm_ms)
+        self.shared = Shared(
+            config, self.target, self.stats, self.outputs, self.recording,
+            self._prewarm, self.out, self.status, self._t0_ns, budget_ns,
+        )  # fmt: skip
+        # The performers: each its frame path and live calibration.
+        self.performers = Performers(
+            performers, self.shared, self.inputs.kind_of, self.inputs.streams,
+            config_path,
+        )  # fmt: skip
         self._log = RateLimitedLog(self.out, config.loop.log_interval_s)
-        self._show_counters: dict[str, int] = {}
         # CURVE handshake failures and descriptor exhaustion on the bound ZeroMQ
         # sockets (their monitors: watch.py)
         self._watch = SocketWatch(self._poller, self._log, self.out)
@@ -223,160 +195,138 @@ class Daemon(
         #: open() tells how to calibrate a performer without a calibration (False:
         #: the caller calibrates itself and says so, as ``retargetd demo`` does)
         self.hint_uncalibrated = True
-        token = config.show_control.token
-        self._show_token_prefix = f"/{token}" if token else ""
         self._guards: list[CurveGuard] = []
         self._wake_ns = 0  # when the current wake-up began
-        # A wake-up solves the frames that arrived together while within the budget
-        # of their solves: a frame of N performers is N solves, each with the budget.
-        self._budget_ns = int(config.loop.solve_budget_ms * 1e6)  # solve + send
-        self._catch_up_ns = self._budget_ns * len(self.performers)
-        # (t_ns, frames_in, frames_out) at the last stats line: fps over that window.
-        self._window = (self._t0_ns, 0, 0)
         self.last_stats_line = ""
         self.endpoints: dict[str, str] = {}
-        rc = config.record
-        self.recording = LiveRecording(
-            rc.folder, rc.max_total_mb, rc.min_free_mb, rc.min_interval_s
-        )
         # [[prop]]: rigid props and cameras, one part called per accepted frame
-        self.props = LiveProps(config.props, vmc_destinations(config), self._send_pub,
-                               self.out)  # fmt: skip
-        self._osc_form = FORM_OSC[osc_cfg.form]
-        self._vmc_state = VmcEncoder(())  # the state datagram (no bones needed)
-        self._last_frame_ns = 0
-        self._prewarm = Prewarm(config.loop.prewarm_ms)
+        self.props = LiveProps(config.props, vmc_destinations(config),
+                               self.outputs.send_pub, self.out)  # fmt: skip
+        # A capture system ([input] source: QTM, NatNet): an input of its own.
+        self.capture = CaptureSource(
+            self.shared, self.performers, self._poller, self.endpoints, self._warn,
+            self._accept, self._stale,
+        )  # fmt: skip
+        # ctl requests and show control: each command a call on a part.
+        self.control = Control(
+            self.shared, self.performers, self.props, self.inputs, self.endpoints,
+            self._log, self._stalls, self._status_and_line,
+        )  # fmt: skip
+        # The status document and the stats line, read from the parts' counters.
+        self.health = Health(
+            self.stats, self.performers, self.inputs, self.recording, self.props,
+            self._watch, self._stalls, self._prewarm, self.endpoints, self._t0_ns,
+            self.capture.status, self.control.status,
+        )  # fmt: skip
         # The console shows the first performer (its buttons act for that one);
         # its t counts from the daemon's start, as the pose stream's t does.
-        self.console = (
-            ConsoleFeed(
-                config.console,
-                self.out,
-                t0_ns=self._t0_ns,
-                face_capture=self.performers[0].face is not None,
-            )
-            if config.console.enabled
-            else None
-        )
-        if self.console is not None:  # it draws the props too
-            self.console.props = self.props
+        first = self.performers.first
+        if config.console.enabled:
+            first.console = ConsoleFeed(
+                config.console, self.out, t0_ns=self._t0_ns,
+                face_capture=first.face is not None,
+            )  # fmt: skip
+            first.console.props = self.props  # it draws the props too
+
+    @property
+    def config(self) -> DaemonConfig:
+        """The running configuration (``reload`` replaces its ``[[pipeline]]``)."""
+        return self.shared.config
+
+    @property
+    def console(self) -> ConsoleFeed | None:
+        """The browser console's feed ([console] on; it shows the first performer)."""
+        console: ConsoleFeed | None = self.performers.first.console
+        return console
+
+    @property
+    def rig(self) -> Any:
+        """The first performer's rig."""
+        return self.performers.first.rig
+
+    @property
+    def calibration(self) -> Any:
+        """The first performer's calibration (None before one)."""
+        return self.performers.first.calibration
+
+    @property
+    def validator(self) -> Any:
+        """The first performer's live validator ([validate] on, once calibrated)."""
+        return self.performers.first.path.validator
+
+    @property
+    def face(self) -> Any:
+        """The first performer's live face (None: no face)."""
+        return self.performers.first.face
+
+    def request_calibration(
+        self, count: object = None, by: str = "", rom_s: object = None
+    ) -> str:
+        """A live calibration of the first performer (the console's button)."""
+        msg: str = self.performers.first.calib.request(count, by, rom_s)
+        return msg
+
+    def request_face_capture(
+        self, name: str, count: int | None = None, by: str = ""
+    ) -> str:
+        """A face capture of the first performer (the console's button)."""
+        msg: str = self.performers.first.calib.request_face(name, count, by)
+        return msg
+
+    def reload(self) -> str:
+        """Reload every performer's rig and calibration files and the config
+        file's ``[[pipeline]]`` (``Performers.reload``; ValueError: rate limited)."""
+        return self.performers.reload()
+
+    def status(self) -> dict[str, Any]:
+        """The status document (``retargetd ctl status --json``)."""
+        return self.health.document()
+
+    def stats_line(self) -> str:
+        """The periodic one-line health summary."""
+        return self.health.line()
+
+    def _status_and_line(self) -> tuple[dict[str, Any], str]:
+        """``ctl status``: the document and the line."""
+        return self.status(), self.stats_line()
+
+    def control_reply(self, parts: list[bytes]) -> dict[str, Any]:
+        """The reply to one control request (``control.Control.control_reply``)."""
+        return self.control.control_reply(parts)
+
+    def _record_control(self, req: dict[str, Any]) -> str:
+        """``record start`` / ``stop`` (the console's buttons)."""
+        return self.control.record(req)
 
     # ---- lifecycle -------------------------------------------------------------------
 
     def open(self) -> None:
         """Bind every endpoint; prints one line each saying who can reach it."""
         c = self.config
-        if c.input.osc.enabled:
-            osc = c.input.osc
-            self._osc = self._udp_bind(osc.host, osc.port)
-            self._osc_fd = self._osc.fileno()
-            self._osc_more = select.poll()  # "another datagram waits?" (inputs.py)
-            self._osc_more.register(self._osc_fd, select.POLLIN)
-            allow = f", sources {', '.join(osc.allow)} only" if osc.allow else ""
-            local = is_loopback_host(osc.host)
-            who = who_reaches(local, osc.host)
-            signed = ", signed only (HMAC-SHA256)" if osc.key_file else ""
-            self._announce(
-                "osc markers",
-                f"udp://{self._addr(self._osc)} ({osc.form}; frames from {who}"
-                f"{allow}{signed})",
-            )
-            if not local and not osc.key_file:
-                self.out(unauthenticated_warning("osc", osc.host, "key_file"))
-        if c.show_control.enabled:
-            show = c.show_control
-            self._show = self._udp_bind(show.host, show.port)
-            self._show_fd = self._show.fileno()
-            can = [w for w, on in (("calibrate", show.calibrate),
-                                   ("reload", show.reload)) if on]  # fmt: skip
-            who = who_reaches(is_loopback_host(show.host), show.host)
-            token = ", token required" if show.token else ""
-            self._announce(
-                "show control",
-                f"udp://{self._addr(self._show)} (OSC; "
-                f"{' and '.join(can) or 'nothing but status'} from {who}{token})",
-            )
-        if c.input.zmq.enabled:
-            zin = c.input.zmq
-            local = endpoint_is_local(zin.endpoint)
-            pull = zin.mode == "pull"
-            # CURVE as the control socket's: a bound PULL is the server letting in
-            # the listed clients; a SUB is a client of the publisher's key.
-            self._zin = self._server_socket(
-                zmq.PULL if pull else zmq.SUB,
-                zin.secret_key if pull else "",
-                zin.client_keys,
-            )
-            if not pull and zin.secret_key:
-                curve_client(self._zin, zin.secret_key, zin.server_key)
-            self._zin.setsockopt(zmq.LINGER, 0)
-            # Bounded queue: 1,000 messages of parts of at most max_message_bytes;
-            # libzmq drops the connection of a peer sending a larger part, before
-            # buffering it (inproc bypasses this: the drain checks sizes too).
-            self._zin.setsockopt(zmq.RCVHWM, 1000)
-            self._zin.setsockopt(zmq.MAXMSGSIZE, zin.max_message_bytes)
-            if pull:
-                self._zin.bind(zin.endpoint)
-                who = f"frames from {who_reaches(local, zin.endpoint)}"
-            else:
-                self._zin.setsockopt(zmq.SUBSCRIBE, b"RTD")
-                self._zin.connect(zin.endpoint)
-                who = f"frames from the publisher at {zin.endpoint}"
-            self._poller.register(self._zin, zmq.POLLIN)
-            self._sockets.append(self._zin)
-            self._zmon = self._zin.get_monitor_socket(zmq.EVENT_DISCONNECTED)
-            self._zmon.setsockopt(zmq.LINGER, 0)
-            self._poller.register(self._zmon, zmq.POLLIN)
-            self._sockets.append(self._zmon)
-            ep = _last_endpoint(self._zin) or zin.endpoint
-            curve = ", CURVE" if zin.secret_key else ""
-            if pull and zin.secret_key:
-                curve += f": {len(zin.client_keys)} client key(s)"
-            self._announce("zmq markers", f"{ep} ({zin.mode}; {who}{curve})")
-            if not local and not zin.secret_key:
-                keys = "client_keys" if pull else "server_key"
-                self.out(unauthenticated_warning("zmq", zin.endpoint, keys))
-        self._open_capture()
+        self.inputs.open(self._udp_bind, self._server_socket, self._own,
+                         self._announce, self.out)  # fmt: skip
+        self.capture.open()
         if c.output.pose.enabled:
             pose = c.output.pose
-            self._pub = self._server_socket(zmq.PUB, pose.secret_key, pose.client_keys)
-            self._pub.setsockopt(zmq.LINGER, 0)
-            self._pub.setsockopt(zmq.SNDHWM, pose.sndhwm)
-            self._pub.bind(pose.endpoint)
-            self._sockets.append(self._pub)
-            self._watch.watch("zmq poses", self._pub, bool(pose.secret_key))
-            ep = _last_endpoint(self._pub)
-            who = who_reaches(endpoint_is_local(pose.endpoint), ep)
+            pub = self._server_socket(zmq.PUB, pose.secret_key, pose.client_keys)
             curve = (
                 f", CURVE encrypted to {len(pose.client_keys)} client key(s)"
                 if pose.secret_key
                 else ", plain"
             )
-            self._announce("zmq poses", f"{ep} (pub; poses to {who}{curve})")
-        ctl = c.control
-        self._ctl = self._server_socket(zmq.REP, ctl.secret_key, ctl.client_keys)
-        self._ctl.setsockopt(zmq.LINGER, 0)
-        self._ctl.setsockopt(zmq.MAXMSGSIZE, CONTROL_TRANSPORT_MAX_BYTES)
-        self._ctl.setsockopt(zmq.RCVHWM, CONTROL_RCVHWM)
-        self._ctl.bind(ctl.endpoint)
-        self._poller.register(self._ctl, zmq.POLLIN)
-        self._sockets.append(self._ctl)
-        self._watch.watch("control", self._ctl, bool(ctl.secret_key))
-        ep = _last_endpoint(self._ctl)
-        who = who_reaches(endpoint_is_local(ctl.endpoint), ep)
-        curve = (
-            f", CURVE: {len(ctl.client_keys)} client key(s)" if ctl.secret_key else ""
-        )
-        self._announce(
-            "control", f"{ep} (retargetd ctl --endpoint {ep}; from {who}{curve})"
-        )
+            self.outputs.open_pub(
+                pub, pose.endpoint, pose.sndhwm, curve, self._announce
+            )
+            self._sockets.append(pub)
+            self._watch.watch("zmq poses", pub, bool(pose.secret_key))
+        self.control.open(self._udp_bind, self._server_socket, self._own,
+                          self._watch, self._announce)  # fmt: skip
         if c.output.vmc.enabled:
             vmc = c.output.vmc
-            self._vmc = True
+            self.outputs.open_vmc(vmc.allow_broadcast, self.out)
             kind = "broadcast allowed" if vmc.allow_broadcast else "unicast"
-            for perf in self.performers:  # one avatar per destination, one socket
+            for perf in self.performers.all:  # one avatar per destination, one socket
                 host, port = perf.vmc_addr
-                self._open_vmc(perf, vmc.allow_broadcast)
                 self._announce(
                     f"vmc out {perf.name}" if perf.name else "vmc out",
                     f"udp://{host}:{port} (plain OSC, {kind}, datagrams up to "
@@ -388,15 +338,13 @@ class Daemon(
             url = self.console.start(self.rig)
             self._announce("console", f"{url} (browser; buttons act like ctl)")
         self._warm_up()
-        for perf in self.performers:
-            with self._acting_for(perf):
-                self._start_validator()
+        self.performers.start_validators()
         # Everything built so far lives as long as the daemon: keep it out of the
         # garbage collector's full passes (one took ~50 ms here, holding the GIL).
         gc.collect()
         gc.freeze()
         if self.hint_uncalibrated:
-            self._hint_uncalibrated()
+            self.performers.hint_uncalibrated()
 
     def _warm_up(self) -> None:
         """Load the compiled kernel and run every stage once before the first frame
@@ -426,86 +374,7 @@ class Daemon(
             for t_s in (0.0, 0.02):  # a tick on a pose and one between two
                 probe.t_s = t_s
                 res.push(probe)
-        if self.calibration is None:
-            return
-        # A stream naming every marker as the rig's labels do (its names need not
-        # be labels: such a warm-up would call every marker missing).
-        labels = tuple(aliases[0] for aliases in self.rig.markers.values())
-        pipe = self._build_pipeline(labels, with_face=False)
-        nan_frame = np.full((len(labels), 3), np.nan)
-        pose = pipe.solver.solve_frame(nan_frame, pipe.pose)
-        pipe.retargeter.apply(pose, pipe.target_pose)
-        # The [[pipeline]] stages and the spine pivot compile on their first finite
-        # pose (a twist and a One Euro stage: 4.1 s into the stream on a cold cache,
-        # measured): run them here on the rest pose, two frames apart (the filters'
-        # second-frame path), so no streamed frame pays for it.
-        if pipe.post is not None or pipe.spine is not None:
-            pose.parent_from_bone_quat[:] = self.calibration.rest_parent_from_bone_quat
-            pose.root_pos[:] = 0.0
-            now_ns = time.monotonic_ns()
-            for k in range(2):
-                if pipe.post is not None:
-                    t_ns = now_ns + k * 10_000_000
-                    pipe.post.apply(pose, k * 0.01, t_ns, k)
-                    pipe.post.pop_due(pose, t_ns)
-            if pipe.spine is not None:
-                tp = pipe.target_pose
-                pipe.retargeter.apply(pose, tp)
-                pipe.spine.apply(tp.world_from_bone_quat, tp.rest_from_bone_quat)
-        pipe.solver.reset()
-        self._names_id -= 1  # this pipeline is thrown away; keep the ids dense
-
-    def _start_validator(self) -> None:
-        """(Re)start the live validator on the current calibration ([validate] on).
-
-        Builds the MuJoCo model (cached by skeleton hash) and warms the kernels
-        (tens of ms; seconds on a cold numba cache): at start-up, and after a live
-        calibration or a reload, never per frame."""
-        v = self.config.validate
-        old, self.validator = self.validator, None
-        if old is not None:
-            old.close()
-        self._validation_bits = 0
-        self._validation_bones = None
-        self._validation_values.fill(np.nan)
-        if not v.enabled or self.calibration is None:
-            return
-
-        validator = LiveValidator(
-            self.rig,
-            self.calibration,
-            body_mass_kg=v.body_mass_kg or None,
-            rate_hz=v.rate_hz,
-            queue_size=v.queue,
-        )
-        validator.start()
-        self._validation_results = [None] * validator.results_capacity
-        self.validator = validator
-        self.out(
-            f"live validator on: MuJoCo model {validator.vm.digest[:12]}, "
-            f"queue {v.queue}, frame numbers at {v.rate_hz:g} Hz"
-        )
-
-    def _open_vmc(self, perf: Any, allow_broadcast: bool) -> None:
-        """``perf``'s VMC socket, connected to its destination: a connected UDP
-        socket sends without parsing an address or looking up the route per call
-        (a receiver absent on this machine then shows as refused sends, counted in
-        ``vmc_errors``). Without a route to the host yet (a network not up), it
-        stays unconnected and sends with ``sendto``, as the route may come later."""
-        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        sock.setblocking(False)
-        if allow_broadcast:  # without it the kernel refuses broadcast sends
-            sock.setsockopt(socket.SOL_SOCKET, socket.SO_BROADCAST, 1)
-        perf.vmc_sock, perf.vmc_connected = sock, False
-        try:
-            sock.connect(perf.vmc_addr)
-        except OSError as exc:
-            self.out(
-                f"vmc out: no route to {perf.vmc_addr[0]} yet ({exc.strerror}): "
-                "sending unconnected"
-            )
-        else:
-            perf.vmc_connected = True
+        self.performers.first.path.warm_up()  # its stages, on a throwaway pipeline
 
     def _server_socket(
         self, kind: int, secret_key: str, client_keys: tuple[str, ...]
@@ -523,6 +392,11 @@ class Daemon(
         self.out(f"listening on {where}: {what}" if not what.startswith("vmc out")
                  else f"sending to {where}: {what}")  # fmt: skip
 
+    def _own(self, sock: Any) -> None:
+        """Poll ``sock`` and close it with the daemon's other sockets."""
+        self._poller.register(sock, zmq.POLLIN)
+        self._sockets.append(sock)
+
     def _udp_bind(self, host: str, port: int) -> socket.socket:
         sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)
@@ -532,40 +406,124 @@ class Daemon(
         self._sockets.append(sock)
         return sock
 
-    @staticmethod
-    def _addr(sock: socket.socket) -> str:
-        host, port = sock.getsockname()[:2]
-        return f"{host}:{port}"
-
     def close(self) -> None:
         """Stop an active recording (its file is finished, bounded wait) and close
         every socket (idempotent)."""
         self.recording.close()
         self._stalls.close()
         self.props.close()
-        self._close_capture()
+        self.capture.close()
         if self.console is not None:
             self.console.stop()
-        for perf in self.performers:
-            if perf.validator is not None:
-                perf.validator.close()
-                perf.validator = None
+        self.performers.close()  # their live validators
         self._watch.close()  # the monitors before their sockets
         for sock in self._sockets:
             with contextlib.suppress(KeyError):
                 self._poller.unregister(sock)
             sock.close()
         self._sockets.clear()
-        for perf in self.performers:
-            if perf.vmc_sock is not None:
-                perf.vmc_sock.close()
-                perf.vmc_sock = None
-        self._vmc = False
+        self.outputs.close()  # the VMC sockets
         for guard in self._guards:
             guard.close()
         self._guards.clear()
         if not self._shared_ctx and not self._ctx.closed:
             self._ctx.destroy(linger=0)  # its sockets are closed above
+
+    @property
+    def osc_stream(self) -> MarkerStream:
+        """The OSC input's stream (its current frame, counters, label set)."""
+        return self.inputs.osc_stream
+
+    @property
+    def zmq_stream(self) -> MarkerStream:
+        """The ZeroMQ input's stream."""
+        return self.inputs.zmq_stream
+
+    # ---- a frame's path ----------------------------------------------------------
+
+    def _service(self, events: list[tuple[Any, int]]) -> None:
+        """One wake-up, top-down: each readable input receives its packets (decoded
+        into its stream, refusals counted) and hands every accepted frame to
+        :meth:`_accept`, which solves and sends it at once while the wake-up is
+        within the budget; the newest frame left over is solved last (latest wins:
+        :meth:`_leave`); then the control sockets are served."""
+        every = self._every
+        self._wake_ns = time.monotonic_ns()
+        inputs = self.inputs
+        ready = inputs.ready(events)  # which inputs are readable: no allocation
+        if ready & READY_OSC:
+            got = inputs.drain_osc(every)  # 0: every frame solved already
+            if got:
+                self._leave(inputs.osc_stream, got)
+        if ready & READY_ZMQ:
+            got = inputs.drain_zmq(every)
+            if got:
+                self._leave(inputs.zmq_stream, got)
+        if self.capture.on:
+            got = self.capture.drain(events, every)
+            if got:
+                self._leave(self.capture.stream, got)
+        if self._left is not None:  # every performer on its input
+            self.performers.solve(self._left, self._left_ns)
+            self._left, self._left_ns = None, 0
+        self._stalls.lap("markers")  # the drains and the solves
+        if ready & READY_MONITOR:
+            inputs.drain_monitor()
+        if len(events) > READY_EVENTS[ready]:  # more than the inputs' sockets
+            self.control.serve(events)  # ctl requests, show control (timed inside)
+            self._watch.drain_ready(events, self._wake_ns)  # watched monitors
+
+    def _accept(self, stream: MarkerStream, code: int, t_ns: int, every: bool) -> int:
+        """An input's decoded frame (``code``: the stream's verdict): counted, handed
+        to live calibrations and the props, then solved and sent by every performer
+        on its input at once while this wake-up is within the budget (frames that
+        merely arrived together are all solved). Past it the loop is behind and the
+        latest frame wins: returns its receive time, left for later, else 0."""
+        if code != ACCEPTED and code != RESTART:
+            self.inputs.refused(stream, code, t_ns)
+            return 0
+        self.stats.frames_in += 1
+        self.shared.last_frame_ns = t_ns
+        self._prewarm.observe(t_ns)
+        stream.current.frame.t_ns = t_ns
+        performers = self.performers
+        if code == RESTART:
+            self.stats.restarts += 1
+            performers.flag(pose_stream.FRAME_RESTARTED)
+            performers.restart(stream)
+        performers.collect(stream)  # live calibrations and face captures
+        self.props.on_frame(stream, t_ns)  # [[prop]]: every accepted frame
+        if every or time.monotonic_ns() - self._wake_ns < self._catch_up_ns:
+            performers.solve(stream, t_ns)  # every performer on this input
+            return 0
+        return t_ns
+
+    def _leave(self, stream: MarkerStream, got_ns: int) -> None:
+        """An input's newest accepted frame left unsolved (``got_ns``, 0: none). With
+        one ``[performer]`` only the newest of the inputs' frames is solved, the
+        other counted stale; with ``[[performer]]`` tables each input's is."""
+        if not got_ns:
+            return
+        if self._left is not None:
+            # [[performer]] tables: an input may carry other performers' markers,
+            # or none of one's; one [performer] reads every input.
+            if self.performers.several:
+                self.performers.solve(self._left, self._left_ns)
+                self._left, self._left_ns = None, 0
+            else:
+                self._stale()
+        if got_ns >= self._left_ns:
+            self._left, self._left_ns = stream, got_ns
+
+    def _stale(self) -> None:
+        """An accepted frame superseded before it was solved: counted, and every
+        performer's next pose flagged."""
+        self.stats.stale += 1
+        self.performers.flag(pose_stream.FRAME_INPUT_DROPPED)
+
+    def _on_labels(self, stream: MarkerStream, label_set: LabelSet) -> None:
+        """An input took a label set: the performers build their columns now."""
+        self.performers.prepare(stream, label_set)
 
     def run(self, should_exit: Callable[[], bool]) -> None:
         """Serve until ``should_exit()`` is true (checked every poll timeout).
@@ -578,9 +536,10 @@ class Daemon(
         timeout = c.poll_timeout_ms
         next_stats = time.monotonic_ns() + int(c.stats_interval_s * 1e9)
         stalls = self._stalls.watch_gc()  # and the collector's passes
+        performers = self.performers
         while not should_exit():
             wait = timeout
-            tick_ns = self.next_tick_ns()  # output_rate_hz: a resampled tick queued
+            tick_ns = performers.next_tick_ns()  # output_rate_hz: a tick queued
             if tick_ns >= 0:  # wake for it (rounded up to the poll's 1 ms)
                 left_ms = -(-(tick_ns - time.monotonic_ns()) // 1_000_000)
                 wait = max(0, min(timeout, left_ms))
@@ -588,21 +547,20 @@ class Daemon(
             events = self._poller.poll(wait)  # [(socket or fd, flags)]
             stalls.lap("poll", wait * 1_000_000)  # past its timeout
             if events:
-                self._service(events)  # its phases timed inside (inputs.py)
+                self._service(events)  # its phases timed inside
             elif self._prewarm.due(time.monotonic_ns()):
                 self._prewarm.touch()  # the fit, warm for the frame that comes next
-            if self._capture is not None:
-                self._tick_capture()  # requests, lost check, held pose: never blocks
+            if self.capture.on:
+                self.capture.tick()  # requests, lost check, held pose: never blocks
             now = stalls.lap("prewarm_capture")
             if self.console is not None:
                 cmd = self.console.commands.poll()  # nothing allocated when empty
                 if cmd is not None:
                     dispatch_console(self, cmd)
                     stalls.lap("console")
-            self._each_performer(self._calibration_tick, now)
+            performers.tick_calibrations(now)  # a pending one's timeout
             stalls.lap("calibration")
-            self._each_performer(self._send_vmc_state, now)
-            self._each_performer(self._send_due_ticks, time.monotonic_ns())
+            performers.tick_sends(now)  # VMC state before a calibration, ticks due
             self._log.flush(now)
             self._watch.tick(now)  # descriptor exhaustion: its end, once
             stopped = self.recording.check_limits(now)  # [record] limits, once a s
@@ -610,17 +568,11 @@ class Daemon(
             if stopped:
                 self.out(stopped)
             if now >= next_stats:
-                self.last_stats_line = self.stats_line()
-                self._window = (now, self.stats.frames_in, self.stats.frames_out)
+                self.last_stats_line = self.health.line()
+                self.health.roll(now)
                 self.out(self.last_stats_line)
                 next_stats = now + int(c.stats_interval_s * 1e9)
                 stalls.lap("stats_line")
-
-
-def _last_endpoint(sock: Any) -> str:
-    """The endpoint a socket bound (with the real port of a ``*`` wildcard)."""
-    value = sock.getsockopt(zmq.LAST_ENDPOINT)
-    return value.decode() if isinstance(value, bytes) else str(value)
 
 
 def _load_target(config: DaemonConfig) -> Any:

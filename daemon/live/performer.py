@@ -1,5 +1,7 @@
-"""One performer of the live daemon: its rig, calibration, face, VMC destination,
-pipelines, live-calibration state and counters, and its view of a marker stream.
+"""One performer of the live daemon: its rig, calibration, face, VMC destination and
+counters, its view of a marker stream, and the parts that work for it: its frame path
+(``send.BodyPath``, or ``face_only.FacePath`` for a face alone) and its live
+calibration (``calibrate.LiveCalibration``), each owning its own state.
 
 With no ``[[performer]]`` in the config the daemon has one performer (``[performer]``)
 that takes every marker of every input, and its "view" of a stream is the stream
@@ -23,14 +25,12 @@ from typing import Any, Protocol
 import numpy as np
 
 from retargetd.daemon.body.calibration import Calibration, load_calibration
-from retargetd.daemon.body.match import MatchWindow
 from retargetd.daemon.body.rig import Rig, load_rig
 from retargetd.daemon.live.config import DaemonConfig, PerformerConfig
 from retargetd.daemon.live.face import LiveFace
-from retargetd.daemon.live.ratelog import RateLimiter
+from retargetd.daemon.live.outputs import VmcOut
 from retargetd.daemon.live.stats import LoopStats
 from retargetd.daemon.live.surface import is_loopback_host
-from retargetd.protocols import pose_stream
 from retargetd.protocols.frames import IntArray, MarkerFrame
 from retargetd.protocols.marker_input import LabelSet, MarkerStream
 from retargetd.protocols.vmc_out import datagram_limit
@@ -60,6 +60,99 @@ class FrameSource(Protocol):
     def current(self) -> PacketLike: ...
 
 
+class FramePath(Protocol):
+    """A performer's frame path (``send.BodyPath``, ``face_only.FacePath``): what
+    the loop and the other parts call on it."""
+
+    pipelines: dict[int, Any]
+    validator: Any
+
+    def process(self, stream: FrameSource, received_ns: int) -> None: ...
+
+    def flag(self, bits: int) -> None: ...
+
+    def announce_names(self) -> None: ...
+
+    def match_status(self) -> dict[str, Any] | None: ...
+
+    def resend_held(self, key: int, now_ns: int) -> tuple[bool, bool]: ...
+
+    def warm_up(self) -> None: ...
+
+    def restart(self, key: int) -> None: ...
+
+    def rebuild(self, labels: tuple[str, ...], sources: list[FrameSource]) -> None: ...
+
+    def renew(self, labels: tuple[str, ...], sources: list[FrameSource]) -> None: ...
+
+    def send_due_ticks(self, now_ns: int) -> None: ...
+
+    def next_tick_ns(self) -> int: ...
+
+    def send_vmc_state(self, now_ns: int, calibrating: bool) -> None: ...
+
+    def start_validator(self) -> None: ...
+
+    def close(self) -> None: ...
+
+    def occluded_and_held(self) -> tuple[list[str], list[str]]: ...
+
+
+class _NoPath:
+    """The path of a performer before ``Performers`` gives it one."""
+
+    pipelines: dict[int, Any] = {}  # noqa: RUF012 (never written)
+    validator: Any = None
+
+    def process(self, stream: FrameSource, received_ns: int) -> None:
+        raise RuntimeError("a performer without its frame path")
+
+    def flag(self, bits: int) -> None:
+        pass
+
+    def announce_names(self) -> None:
+        pass
+
+    def match_status(self) -> dict[str, Any] | None:
+        return None
+
+    def resend_held(self, key: int, now_ns: int) -> tuple[bool, bool]:
+        return False, False
+
+    def warm_up(self) -> None:
+        pass
+
+    def restart(self, key: int) -> None:
+        pass
+
+    def rebuild(self, labels: tuple[str, ...], sources: list[FrameSource]) -> None:
+        pass
+
+    def renew(self, labels: tuple[str, ...], sources: list[FrameSource]) -> None:
+        pass
+
+    def send_due_ticks(self, now_ns: int) -> None:
+        pass
+
+    def next_tick_ns(self) -> int:
+        return -1
+
+    def send_vmc_state(self, now_ns: int, calibrating: bool) -> None:
+        pass
+
+    def start_validator(self) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+    def occluded_and_held(self) -> tuple[list[str], list[str]]:
+        return [], []
+
+
+_NO_PATH = _NoPath()
+
+
 class ViewPacket:
     """What the solve reads of a stream's current packet: ``frame`` and
     ``label_set`` (this performer's rows and names)."""
@@ -83,6 +176,7 @@ class StreamView:
 
     __slots__ = (
         "_layouts", "_source", "cols", "current", "prefix", "rivals", "rows", "stream",
+        "whole",
     )  # fmt: skip
 
     def __init__(
@@ -91,6 +185,9 @@ class StreamView:
         self.stream = stream
         self.prefix = prefix
         self.rivals = rivals
+        # Every label of the stream is this performer's, as it is (one performer,
+        # no prefix): it reads the stream itself, nothing copied.
+        self.whole = prefix == "" and all(r == "" for r in rivals)
         self.current = ViewPacket(MarkerFrame.empty(0), LabelSet(-1, ()))
         self.cols: IntArray = np.zeros(0, dtype=np.intp)
         # The same rows as a slice when they are one run (a subject's markers sent
@@ -168,7 +265,6 @@ class Performer:
         vmc_max_datagram: the largest VMC datagram sent to it, bytes
             (``vmc_out.datagram_limit``).
         face: its ``[face]`` settings, or None for no face.
-        min_interval_s: the least time between two calibration requests.
     """
 
     def __init__(
@@ -182,7 +278,6 @@ class Performer:
         vmc_addr: tuple[str, int],
         vmc_max_datagram: int,
         face: Any,
-        min_interval_s: float,
     ) -> None:
         self.index = index
         self.name = name
@@ -197,7 +292,6 @@ class Performer:
                 f"{self.label}: body = false needs a face ([face] enabled = true"
                 f"{' and its face key' if name else ''})"
             )
-        self.face_stages: dict[int, Any] = {}  # id(stream or view) -> FaceOnlyStage
         self.calibration: Calibration | None = (
             load_calibration(config.calibration) if config.calibration else None
         )
@@ -206,63 +300,70 @@ class Performer:
         )
         self.vmc_addr = vmc_addr
         self.vmc_max_datagram = vmc_max_datagram
-        # Its VMC socket (``Daemon.open``), connected to vmc_addr when the route is
-        # there: send() skips sendto's per-call address parse and route lookup.
-        self.vmc_sock: Any = None
-        self.vmc_connected = False
-        self.validator: Any = None
-        self.console: Any = None
-        self.pipelines: dict[int, Any] = {}  # id(stream or view) -> Pipeline
-        self.labels_of: dict[int, tuple[str, ...]] = {}
+        # Its VMC destination (``outputs.VmcOut``): its socket, opened by the loop;
+        # ``Performers`` gives it the loop's counters.
+        self.vmc = VmcOut(vmc_addr, vmc_max_datagram, None)
+        self.console: Any = None  # live.console_feed.ConsoleFeed (the first's)
+        self.views: dict[int, StreamView | None] = {}  # id(stream) -> view
         # (digest of its rig, calibration and config files, the rig, the calibration)
         # at the last reload: a reload of the same files and objects does nothing
         self.reload_files: tuple[bytes, Any, Any] | None = None
-        self.views: dict[int, StreamView | None] = {}  # id(stream) -> view
-        self.last_names_ns = 0
-        self.frame_flags = 0
-        self.next_vmc_state_ns = 0
-        self.calib_target = 0
-        self.calib_frames: list[np.ndarray] = []
-        self.calib_labels: tuple[str, ...] = ()
-        self.calib_requested_by = ""
-        self.calib_times: list[tuple[float, int, int]] = []
-        self.calib_last_ns = 0
-        self.calib_message = ""
-        # Requests so far (the ctl reply and status name the one they are about) and
-        # how the last one stands: "", "pending", "rom" (the base pose held, the range
-        # of motion under way), "calibrated", "not_saved" (in use,
-        # its file not written), "refused", "expired".
-        self.calib_id = 0
-        self.calib_state = ""
-        self.calib_stream: Any = None  # where the frames come from (its input)
-        # A range of motion after the base pose (``ctl calibrate --rom``): seconds
-        # wanted (0: none), the base pose held while it is collected, its frames.
-        self.calib_rom_s = 0.0
-        self.calib_base: Any = None  # (frames, labels, times_s) once still
-        self.calib_rom_frames: list[np.ndarray] = []
-        self.calib_rom_times: list[tuple[float, int, int]] = []
-        self.calibrate_limit = RateLimiter(min_interval_s)
-        self.validation_bits = 0
-        # The calibration-match check over the stream's first second
-        # (``body.match.MatchWindow``; ``send._check_calibration_match``) and the
-        # frame flag it leaves on every later pose (``calibration_mismatch``).
-        self.match_window: MatchWindow | None = None
-        self.match_flags = 0
-        self.validation_bones: np.ndarray | None = None
-        # the latest result's values (VALIDATION_CHECKS order), for the console
-        self.validation_values = np.full(len(pose_stream.VALIDATION_CHECKS), np.nan)
-        self.validation_enc: pose_stream.ValidationEncoder | None = None
-        self.validation_results: list[Any] = []
         # This performer's frames out, unsolved frames and latency rings (the
         # daemon's LoopStats counts every performer together).
         self.stats = LoopStats()
         # The prefixes of the performers on each input (build_performers).
         self.rivals_by_input: dict[str, tuple[str, ...]] = {}
+        # Its frame path and live calibration (``performers.Performers`` makes
+        # them: ``send.BodyPath`` or ``face_only.FacePath``, and
+        # ``calibrate.LiveCalibration``).
+        self.path: FramePath = _NO_PATH
+        self.calib: Any = None
+
+    def use_calibration(
+        self,
+        calibration: Calibration | None,
+        labels: tuple[str, ...],
+        sources: list[FrameSource],
+    ) -> None:
+        """Swap ``calibration`` in (atomically: the loop thread is the only reader):
+        each stream's new body solver built off the loop from now (``rebuild.py``),
+        its old pipeline solving meanwhile, a stream of the ``sources`` carrying
+        ``labels`` without one getting it now; the live validator restarted on it."""
+        self.calibration = calibration
+        self.path.renew(labels, sources)
+        self.path.start_validator()
+
+    def use_face(self, labels: tuple[str, ...], sources: list[FrameSource]) -> None:
+        """Its face has a new training set: the pipelines of the ``sources``
+        carrying ``labels`` built now with it."""
+        self.path.rebuild(labels, sources)
 
     @property
     def label(self) -> str:
         """How messages name it: ``performer A`` (or ``the performer``)."""
         return f"performer {self.name}" if self.name else "the performer"
+
+    def frame_of(self, stream: MarkerStream, kind: str) -> FrameSource | None:
+        """What this performer reads of ``stream``'s current frame: the stream
+        itself when every label on it is this performer's (one performer), else its
+        view with its rows copied in; None when the input (``kind``) is not its own
+        or the frame carries none of its markers."""
+        view = self.views.get(id(stream), _UNSEEN)  # one lookup per frame
+        if view is _UNSEEN:
+            view = self.view_of(stream, kind)
+        if view is None:
+            return None
+        if view.whole:
+            return stream
+        return view if view.refresh() else None
+
+    def key_of(self, stream: MarkerStream) -> int:
+        """The key of this performer's pipeline on ``stream`` (``id`` of what
+        :meth:`frame_of` returns), 0 when it has not read that stream."""
+        view = self.views.get(id(stream))
+        if view is None:
+            return 0
+        return id(stream) if view.whole else id(view)
 
     def view_of(self, stream: MarkerStream, kind: str) -> StreamView | None:
         """Its view of ``stream`` (input ``kind``: "osc", "zmq" or "source"), or
@@ -278,6 +379,10 @@ class Performer:
         return view
 
 
+#: ``Performer.views`` has no entry for a stream yet (None: not its input).
+_UNSEEN: Any = object()
+
+
 def build_performers(config: DaemonConfig) -> list[Performer]:
     """The daemon's performers: one from ``[performer]``, or one per
     ``[[performer]]`` table (index = its order in the file).
@@ -286,7 +391,6 @@ def build_performers(config: DaemonConfig) -> list[Performer]:
         ValueError: a rig, calibration or face file that cannot be used.
     """
     vmc = config.output.vmc
-    min_interval_s = config.control.min_interval_s
     if not config.performers:
         face = config.face if config.face.enabled else None
         one = Performer(
@@ -295,7 +399,7 @@ def build_performers(config: DaemonConfig) -> list[Performer]:
             vmc_max_datagram=datagram_limit(
                 is_loopback_host(vmc.host), vmc.max_datagram_bytes
             ),
-            face=face, min_interval_s=min_interval_s,
+            face=face,
         )  # fmt: skip
         return [one]
     out = []
@@ -321,7 +425,6 @@ def build_performers(config: DaemonConfig) -> list[Performer]:
                     is_loopback_host(host), vmc.max_datagram_bytes
                 ),
                 face=face,
-                min_interval_s=min_interval_s,
             )
         )
     for perf in out:

@@ -1,231 +1,340 @@
-"""Several performers on one daemon (``[[performer]]`` tables): the loop's work done
-once per performer, each as the *current* performer (``state.OfPerformer``).
+"""The performers of the daemon, one part: one performer (``[performer]``) or one per
+``[[performer]]`` table, each with its own frame path and live calibration; one
+performer is the N = 1 case of many, on the same path.
 
 A frame from an input is solved for every performer reading that input, in config
-order, each from its own view of the frame (its labels, prefix stripped; see
-``performer.py``), with its own pipeline, calibration, face and VMC destination; the
-pose messages of all of them go out on the one pose stream, each carrying its
-performer id. A live calibration, face capture, the calibration timeout and the
-VMC state datagrams are per performer; control commands name one (``"performer":
-NAME``, ``retargetd ctl calibrate --performer NAME``), which may be left out when
-there is only one. With one performer (no ``[[performer]]``) everything here is a
-direct call of what the loop did before.
+order, each from what it reads of the frame (the stream itself when every label on it
+is its own, else its view: its labels, prefix stripped; see ``performer.py``), with
+its own pipeline, calibration, face and VMC destination; the pose messages of all of
+them go out on the one pose stream, each carrying its performer id. A live
+calibration, face capture, the calibration timeout and the VMC state datagrams are
+per performer; control commands name one (``"performer": NAME``, ``retargetd ctl
+calibrate --performer NAME``), which may be left out when there is only one.
 """
 
 from __future__ import annotations
 
+import contextlib
+import dataclasses
+import hashlib
 import logging
 import math
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+import time
+from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
+from retargetd.daemon.body.calibration import load_calibration
+from retargetd.daemon.body.rig import load_rig
+from retargetd.daemon.body.solve import BodySolver
+from retargetd.daemon.files import MAX_TEXT_BYTES
+from retargetd.daemon.live.calibrate import LiveCalibration
+from retargetd.daemon.live.config import DaemonConfig, check_pipeline
+from retargetd.daemon.live.face_only import FacePath
 from retargetd.daemon.live.performer import FrameSource, Performer
-from retargetd.daemon.live.state import DaemonState
+from retargetd.daemon.live.ratelog import RateLimiter
+from retargetd.daemon.live.send import BodyPath
+from retargetd.daemon.live.shared import Shared
+from retargetd.daemon.post.pivot import spine_stage
 from retargetd.protocols.marker_input import LabelSet, MarkerStream
 
 logger = logging.getLogger(__name__)
 
-#: Commands that act for one performer (the others act for the daemon).
-PER_PERFORMER_COMMANDS = ("calibrate", "face-capture")
 
+class Performers:
+    """Every performer and what works for it.
 
-class PerformersMixin(DaemonState):
-    """The per-performer loop: solve, collect, restart, flags, ticks, control."""
+    Args:
+        performers: the performers (``performer.build_performers``); each is given
+            its VMC destination from ``shared.outputs`` (same order), its frame
+            path and its live calibration here.
+        shared: the loop's side (config, counters, outputs, clocks).
+        kind_of: the input a stream belongs to ("osc", "zmq", "source").
+        streams: the inputs' streams (what a new calibration is built on).
+        config_path: the config file (``reload`` re-reads its ``[[pipeline]]``).
+    """
 
-    # ---- per frame ---------------------------------------------------------------
+    def __init__(
+        self,
+        performers: list[Performer],
+        shared: Shared,
+        kind_of: Callable[[object], str],
+        streams: Callable[[], tuple[MarkerStream, ...]],
+        config_path: str | Path | None,
+    ) -> None:
+        self.all = performers
+        self.first = performers[0]
+        self.shared = shared
+        self.several = bool(shared.config.performers)  # [[performer]] tables
+        self._kind_of = kind_of
+        self._streams = streams
+        self._config_path = config_path
+        self._reload_limit = RateLimiter(shared.config.control.min_interval_s)
+        min_interval_s = shared.config.control.min_interval_s
+        for perf, vmc in zip(performers, shared.outputs.vmc, strict=True):
+            perf.vmc = vmc
+            perf.path = BodyPath(perf, shared) if perf.body else FacePath(perf, shared)
+            perf.calib = LiveCalibration(
+                perf, shared, kind_of, self._sources_of(perf), min_interval_s
+            )
 
-    def _solve(self, stream: MarkerStream, t_ns: int) -> None:
+    # ---- per frame -------------------------------------------------------------------
+
+    def solve(self, stream: MarkerStream, t_ns: int) -> None:
         """Solve and send the stream's current frame for every performer on it."""
-        if not self._multi:
-            self._solve_and_send(stream, t_ns)
-            return
-        first = self.performers[0]
-        stats = self.stats
-        kind = self._kind(stream)
-        try:
-            for perf in self.performers:
-                view = perf.view_of(stream, kind)
-                if view is None or not view.refresh():
-                    continue
-                self._perf = perf
-                out, unsolved, unseen = stats.frames_out, stats.unsolved, stats.unseen
-                self._solve_and_send(view, t_ns)
-                ps = perf.stats
-                if stats.frames_out != out:
-                    ps.frames_out += 1
-                    j = (stats.ring_pos - 1) % stats.rings.shape[1]
-                    r = stats.rings
-                    ps.record(int(r[0, j]), int(r[1, j]), int(r[2, j]), int(r[3, j]))
-                elif stats.unsolved != unsolved:
-                    ps.unsolved += 1
-                elif stats.unseen != unseen:
-                    ps.unseen += 1
-        finally:
-            self._perf = first
+        kind = self._kind_of(stream)
+        for perf in self.all:
+            source = perf.frame_of(stream, kind)
+            if source is None:
+                continue
+            if self.several:  # each its own counters (one: the loop's are its own)
+                self._process_counted(perf, source, t_ns)
+            else:
+                perf.path.process(source, t_ns)
 
-    def _collect(self, stream: MarkerStream) -> None:
+    def _process_counted(self, perf: Performer, source: FrameSource, t_ns: int) -> None:
+        """``perf.path.process``, its frame counted in ``perf.stats`` too (sent,
+        with its latencies; unsolved; unseen)."""
+        stats = self.shared.stats
+        out, unsolved, unseen = stats.frames_out, stats.unsolved, stats.unseen
+        perf.path.process(source, t_ns)
+        ps = perf.stats
+        if stats.frames_out != out:
+            ps.frames_out += 1
+            j = (stats.ring_pos - 1) % stats.rings.shape[1]
+            r = stats.rings
+            ps.record(int(r[0, j]), int(r[1, j]), int(r[2, j]), int(r[3, j]))
+        elif stats.unsolved != unsolved:
+            ps.unsolved += 1
+        elif stats.unseen != unseen:
+            ps.unseen += 1
+
+    def collect(self, stream: MarkerStream) -> None:
         """Hand an accepted frame to every live calibration and face capture."""
-        if not self._multi:
-            perf = self._perf
-            if perf.calib_target:
-                self._collect_calibration_frame(stream)
-            if perf.face is not None and perf.face.capturing:
-                self._collect_face_frame(stream)
-            return
-        kind = None
-        for perf in self.performers:
+        kind = ""
+        for perf in self.all:
+            calib = perf.calib
             capturing = perf.face is not None and perf.face.capturing
-            if not perf.calib_target and not capturing:
+            if not calib.target and not capturing:  # (frames wanted: 0, per frame)
                 continue
-            kind = kind or self._kind(stream)
-            view = perf.view_of(stream, kind)
-            if view is None or not view.refresh():
+            kind = kind or self._kind_of(stream)
+            source = perf.frame_of(stream, kind)
+            if source is None:
                 continue
-            with self._acting_for(perf):
-                if perf.calib_target:
-                    self._collect_calibration_frame(view)
-                if capturing:
-                    self._collect_face_frame(view)
+            if calib.pending:
+                calib.collect(source)
+            if capturing:
+                calib.collect_face(source)
 
-    def _restart_pipelines(self, stream: MarkerStream) -> None:
+    def restart(self, stream: MarkerStream) -> None:
         """The source of ``stream`` restarted: every pipeline on it starts over."""
-        for perf in self.performers:
-            key = id(stream)
-            if self._multi:
-                view = perf.views.get(key)
-                if view is None:
-                    continue
-                key = id(view)
-            stage = perf.face_stages.get(key)  # a face alone (face_only.py)
-            if stage is not None:
-                stage.face.solver.reset()
-            pipe = perf.pipelines.get(key)
-            if pipe is not None:
-                pipe.solver.reset()
-                pipe.vmc.reset_continuity()
-                if pipe.face is not None:
-                    pipe.face.solver.reset()
+        for perf in self.all:
+            key = perf.key_of(stream)
+            if key:
+                perf.path.restart(key)
 
-    def _flag_frames(self, bits: int) -> None:
+    def flag(self, bits: int) -> None:
         """Set frame flags on every performer's next pose (restarted, dropped)."""
-        for perf in self.performers:
-            perf.frame_flags |= bits
+        for perf in self.all:
+            perf.path.flag(bits)
 
-    def _prepare_views(self, stream: MarkerStream, label_set: LabelSet) -> None:
+    def prepare(self, stream: MarkerStream, label_set: LabelSet) -> None:
         """A label set was announced: build every performer's column index for it
         now (off the hot path), so its first frame finds them."""
-        if not self._multi or stream.label_set is not label_set:
+        if stream.label_set is not label_set:
             return
-        kind = self._kind(stream)
-        for perf in self.performers:
+        kind = self._kind_of(stream)
+        for perf in self.all:
             view = perf.view_of(stream, kind)
-            if view is not None:
+            if view is not None and not view.whole:
                 view.prepare(label_set)
 
-    def _kind(self, stream: MarkerStream) -> str:
-        if stream is self.osc_stream:
-            return "osc"
-        return "zmq" if stream is self.zmq_stream else "source"
+    def _sources_of(self, perf: Performer) -> Callable[[], list[FrameSource]]:
+        """What ``perf`` reads of each input now (where a new calibration's
+        pipelines are built at once)."""
 
-    def _own_streams(self) -> list[FrameSource]:
-        """The current performer's views of the inputs (the inputs themselves with
-        one performer): where a new calibration's pipelines are built at once."""
-        streams: list[MarkerStream] = [self.osc_stream, self.zmq_stream]
-        if not self._multi:
-            return list(streams)
-        views: list[FrameSource] = []
-        for s in streams:
-            view = self._perf.view_of(s, self._kind(s))
-            if view is not None and view.refresh():
-                views.append(view)
-        return views
+        def sources() -> list[FrameSource]:
+            found: list[FrameSource] = []
+            for s in self._streams():
+                source = perf.frame_of(s, self._kind_of(s))
+                if source is not None:
+                    found.append(source)
+            return found
 
-    # ---- per tick ----------------------------------------------------------------
+        return sources
 
-    def _each_performer(self, fn: Callable[[int], None], now_ns: int) -> None:
-        """``fn(now_ns)`` once for every performer, each the current one."""
-        if not self._multi:
-            fn(now_ns)
-            return
-        for perf in self.performers:
-            with self._acting_for(perf):
-                fn(now_ns)
+    # ---- per tick --------------------------------------------------------------------
 
-    @contextmanager
-    def _acting_for(self, perf: Performer) -> Iterator[None]:
-        """Make ``perf`` the current performer (the one before again after)."""
-        before, self._perf = self._perf, perf
-        try:
-            yield
-        finally:
-            self._perf = before
+    def tick_calibrations(self, now_ns: int) -> None:
+        """Every loop pass: a pending calibration that collects no frame expires."""
+        for perf in self.all:
+            perf.calib.tick(now_ns)
 
-    # ---- control -----------------------------------------------------------------
+    def tick_sends(self, now_ns: int) -> None:
+        """Every loop pass: the VMC state datagrams before a calibration, and the
+        resampled output ticks now due."""
+        for perf in self.all:
+            perf.path.send_vmc_state(now_ns, perf.calib.pending)
+        now_ns = time.monotonic_ns()
+        for perf in self.all:
+            perf.path.send_due_ticks(now_ns)
 
-    def performer_named(self, name: object) -> Performer:
+    def next_tick_ns(self) -> int:
+        """The earliest send time of a queued output tick over every performer
+        (``time.monotonic_ns()``), -1 when none is queued: the loop's poll wakes up
+        for it."""
+        best = -1
+        for perf in self.all:
+            due = perf.path.next_tick_ns()
+            if due >= 0 and (best < 0 or due < best):
+                best = due
+        return best
+
+    # ---- control ---------------------------------------------------------------------
+
+    def named(self, name: object) -> Performer:
         """The performer a request names; None/"" = the only one.
 
         Raises:
             ValueError: an unknown name, or none given with several performers.
         """
-        names = ", ".join(p.name for p in self.performers if p.name)
+        names = ", ".join(p.name for p in self.all if p.name)
         if name is None or name == "":
-            if len(self.performers) == 1:
-                return self.performers[0]
+            if len(self.all) == 1:
+                return self.first
             raise ValueError(
-                f"this daemon has {len(self.performers)} performers ({names}): name "
+                f"this daemon has {len(self.all)} performers ({names}): name "
                 "one (--performer NAME)"
             )
         if not isinstance(name, str):
             raise ValueError(f"'performer' must be a name string; got {name!r}")
-        for perf in self.performers:
+        for perf in self.all:
             if perf.name and perf.name == name:
                 return perf
         known = f"performers: {names}" if names else "one unnamed performer"
         raise ValueError(f"unknown performer {name!r} (this daemon has {known})")
 
-    def _control_for(self, req: dict[str, Any]) -> dict[str, Any]:
-        """A control request acting for the performer it names (``performer``);
-        commands for the daemon as a whole (status, reload, record) take none."""
-        cmd = req.get("cmd")
-        name = req.get("performer")
-        if cmd == "calibrate" and req.get("prop") is not None:  # a [[prop]]'s
-            if not self.config.control.calibrate:
-                raise ValueError("calibrate is off on this path (control.calibrate)")
-            msg = self.props.request_calibration(req["prop"], req.get("count"), "ctl")
-            return {"ok": True, "message": msg, "prop": req["prop"]}
-        if cmd not in PER_PERFORMER_COMMANDS:
-            if name is not None:
-                raise ValueError(
-                    f"{cmd!r} acts for the whole daemon: leave out 'performer' "
-                    f"(it applies to {', '.join(PER_PERFORMER_COMMANDS)})"
-                )
-            return self._control(req)
-        perf = self.performer_named(name)
-        with self._acting_for(perf):
-            reply = self._control(req)
-        if perf.name:
-            reply["performer"] = perf.name
-        return reply
-
-    def calibrate_performer(self, name: object, count: object, by: str) -> str:
-        """``request_calibration`` for the performer named (show control)."""
-        perf = self.performer_named(name)
-        with self._acting_for(perf):
-            msg = self.request_calibration(count, by)
+    def calibrate(self, name: object, count: object, by: str) -> str:
+        """A calibration request for the performer named (show control)."""
+        perf = self.named(name)
+        msg: str = perf.calib.request(count, by)
         return f"{perf.name}: {msg}" if perf.name else msg
 
-    # ---- status ------------------------------------------------------------------
+    def announce_names(self) -> None:
+        """Every performer's next pose is preceded by its names message (a
+        recording of the pose stream opens with them)."""
+        for perf in self.all:
+            perf.path.announce_names()
 
-    def performers_status(self) -> list[dict[str, Any]]:
+    def reload(self) -> str:
+        """Reload the rig file, the calibration file and the config file's
+        ``[[pipeline]]`` stages from disk (at most once per ``control.min_interval_s``:
+        it blocks the loop while it parses; the body solvers are rebuilt off it,
+        ``rebuild.py``). The other config keys need a restart; a file that no longer
+        validates keeps everything as it was.
+
+        Raises:
+            ValueError: rate limited (counted).
+        """
+        sh = self.shared
+        if not self._reload_limit.allow(time.monotonic_ns()):
+            sh.stats.rate_limited += 1
+            raise ValueError(
+                f"rate limited: one reload per {sh.config.control.min_interval_s:g} s"
+            )
+        if len(self.all) == 1:
+            return self._reload(self.first)
+        return "; ".join(f"{perf.name}: {self._reload(perf)}" for perf in self.all)
+
+    def _reload(self, perf: Performer) -> str:
+        """Reload ``perf``'s rig and calibration files (files unchanged since the
+        last reload, and the rig and calibration still theirs: nothing to parse or
+        rebuild; parsing them took 40-70 ms of the loop, measured)."""
+        sh = self.shared
+        path = self._config_path
+        files = files_digest(perf.config.rig, perf.config.calibration, path)
+        last = perf.reload_files
+        if (
+            last
+            and last[0] == files
+            and last[1] is perf.rig
+            and last[2] is perf.calibration
+        ):
+            msg = f"reloaded rig {perf.rig.name}: its files and the config unchanged"
+            sh.recording.event("reload", ok=True, message=msg)
+            return msg
+        try:
+            rig = load_rig(perf.config.rig)
+            cal = (
+                load_calibration(perf.config.calibration)
+                if perf.config.calibration
+                else perf.calibration
+            )
+            if cal is not None:
+                BodySolver(rig, cal, ())  # checks the calibration fits the rig
+            stages = sh.config.pipeline
+            if path:  # the file's [[pipeline]] as it is now
+                stages = DaemonConfig.from_toml(path).pipeline
+            check_pipeline(stages, rig, str(path or "config"))
+            spine_stage(sh.config.target, sh.target, rig)  # its spine fits
+        except ValueError as exc:
+            msg = f"reload failed, kept the running rig and calibration: {exc}"
+            sh.recording.event("reload", ok=False, message=msg)
+            return msg
+        perf.rig, perf.calibration = rig, cal
+        perf.reload_files = (files, rig, cal)
+        sh.config = dataclasses.replace(sh.config, pipeline=stages)
+        # The pipelines are rebuilt for the new rig and calibration, their body
+        # solvers off the loop (rebuild.py): the old ones solve until then.
+        sh.stats.set_post_stages(())  # named again as the pipelines are rebuilt
+        perf.path.start_validator()
+        msg = f"reloaded rig {rig.name}" + (" and calibration" if cal else "")
+        if stages:
+            msg += f", pipeline {' -> '.join(str(e['kind']) for e in stages)}"
+        sh.recording.event("reload", ok=True, message=msg)
+        return msg
+
+    # ---- lifecycle -------------------------------------------------------------------
+
+    def start_validators(self) -> None:
+        """Start every performer's live validator ([validate] on)."""
+        for perf in self.all:
+            perf.path.start_validator()
+
+    def hint_uncalibrated(self) -> None:
+        """Tell, once at start, how to calibrate each performer without a
+        calibration."""
+        out = self.shared.out
+        for perf in self.all:
+            if perf.calibration is not None:
+                continue
+            if not perf.name:
+                out(
+                    "no calibration loaded: streaming starts after 'retargetd ctl "
+                    "calibrate' (or /VMC/Ext/Set/Calib/Exec) with the performer in "
+                    "the base pose"
+                )
+            else:
+                out(
+                    f"performer {perf.name}: no calibration loaded: its streaming "
+                    f"starts after 'retargetd ctl calibrate --performer {perf.name}' "
+                    f'(or /rtd/calibrate "{perf.name}") with it in the base pose'
+                )
+
+    def close(self) -> None:
+        """Stop every performer's live validator."""
+        for perf in self.all:
+            perf.path.close()
+
+    # ---- status ----------------------------------------------------------------------
+
+    def status(self) -> list[dict[str, Any]]:
         """``status["performers"]``: one document per performer."""
+        stats = self.shared.stats
         docs = []
-        for perf in self.performers:
-            with self._acting_for(perf):
-                occluded, held = self._occluded_and_held()
-            s = perf.stats
-            lat = s.latency_us()
+        for perf in self.all:
+            occluded, held = perf.path.occluded_and_held()
+            ps = perf.stats if self.several else stats
             docs.append(
                 {
                     "id": perf.index,
@@ -236,37 +345,30 @@ class PerformersMixin(DaemonState):
                     "body": perf.body,
                     # a face alone has nothing to calibrate
                     "calibrated": perf.calibration is not None or not perf.body,
-                    "calibrating": perf.calib_target > 0,
-                    "calibration_message": perf.calib_message,
-                    "calibration_id": perf.calib_id,
-                    "calibration_state": perf.calib_state,
-                    "calibration_match": _match_status(perf),
+                    **perf.calib.status(),
+                    "calibration_match": perf.path.match_status(),
                     "vmc": f"{perf.vmc_addr[0]}:{perf.vmc_addr[1]}",
-                    "frames_out": (
-                        perf.stats.frames_out if self._multi else self.stats.frames_out
-                    ),
-                    "unsolved": (
-                        perf.stats.unsolved if self._multi else self.stats.unsolved
-                    ),
+                    "frames_out": ps.frames_out,
+                    "unsolved": ps.unsolved,
                     "latency_us": {
                         k: [_round(p50), _round(p99)]
-                        for k, (p50, p99) in (
-                            lat if self._multi else self.stats.latency_us()
-                        ).items()
+                        for k, (p50, p99) in ps.latency_us().items()
                     },
                     "occluded_markers": occluded,
                     "held_bones": held,
                     "face": perf.face.status() if perf.face is not None else None,
                     "validate": (
-                        perf.validator.status() if perf.validator is not None else None
+                        perf.path.validator.status()
+                        if perf.path.validator is not None
+                        else None
                     ),
                 }
             )
         return docs
 
-    def performers_line(self, docs: list[dict[str, Any]]) -> str:
-        """The stats line's per-performer part (several performers only)."""
-        if not self._multi:
+    def line(self, docs: list[dict[str, Any]]) -> str:
+        """The stats line's per-performer part (``[[performer]]`` tables only)."""
+        if not self.several:
             return ""
         parts = []
         for d in docs:
@@ -279,20 +381,19 @@ class PerformersMixin(DaemonState):
         return " | performers " + ", ".join(parts)
 
 
-def _match_status(perf: Performer) -> dict[str, Any] | None:
-    """``calibration_match`` of a performer's status: None before its first second
-    of frames with its calibration has been checked (``body.match``)."""
-    window = perf.match_window
-    if window is None or window.result is None:
-        return None
-    found = window.result
-    return {
-        "matches": found.matches,
-        "frames": found.frames,
-        "warning": found.warning(),
-        "segments": found.to_json(),
-    }
-
-
 def _round(value: float) -> float | None:
     return round(value, 1) if math.isfinite(value) else None
+
+
+def files_digest(*paths: Any) -> bytes:
+    """SHA-256 over the bytes of every file named (a shipped rig's name, an empty or
+    None path, and a file that cannot be read count as their names: the reload that
+    follows then parses and says what is wrong)."""
+    h = hashlib.sha256()
+    for p in paths:
+        h.update(str(p).encode() + b"\0")
+        with contextlib.suppress(OSError, ValueError):
+            if p and Path(p).is_file():  # (at most MAX_TEXT_BYTES: as the readers)
+                with open(p, "rb") as fh:
+                    h.update(fh.read(MAX_TEXT_BYTES + 1))
+    return h.digest()

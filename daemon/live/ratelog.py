@@ -101,3 +101,25 @@ class RateLimiter:
             return False
         self._last_ns = now_ns
         return True
+
+
+class OncePer:
+    """A line per key at most once per interval (the counters carry the numbers;
+    the log only says that it happens): shared by the inputs and the capture input,
+    so one key is one line however many parts say it.
+
+    Args:
+        interval_ns: the least time between two lines of one key.
+    """
+
+    def __init__(self, interval_ns: int) -> None:
+        self.interval_ns = interval_ns
+        self._after_ns: dict[str, int] = {}
+
+    def due(self, key: str, t_ns: int) -> bool:
+        """True (and the key's next line held back an interval) when ``key`` may
+        say its line at ``t_ns``."""
+        if t_ns < self._after_ns.get(key, 0):
+            return False
+        self._after_ns[key] = t_ns + self.interval_ns
+        return True

@@ -1,36 +1,40 @@
-"""Solve and send: the pipeline of a (rig, calibration, label set) built once off the
-hot path; per frame the body and face solve, the retarget, VMC datagrams and the
-ZeroMQ pose message from reused buffers, sends that never block, the hand-off to the
-live validator after the send, and the per-stage latency record.
+"""A performer's frame path (with a body): the pipeline of a (rig, calibration, label
+set) built once off the hot path; per frame the body and face solve, the retarget,
+VMC datagrams and the ZeroMQ pose message from reused buffers, sends that never
+block, the hand-off to the live validator after the send, and the per-stage latency
+record. Its state is its own (:class:`BodyPath`); the loop's side comes in as
+:class:`~retargetd.daemon.live.shared.Shared`.
 """
 
 from __future__ import annotations
 
 import logging
 import math
+import struct
 import time
 from typing import Any
 
 import numpy as np
-import zmq
 
 from retargetd.daemon.body.match import MatchWindow
-from retargetd.daemon.live.emit import DO_POSE, DO_RETARGET, DO_VMC, NO_FLAGS, EmitPlan
-from retargetd.daemon.live.face_only import FaceOnlyMixin
-from retargetd.daemon.live.performer import FrameSource
-from retargetd.daemon.live.rebuild import body_solver, rebuilt_solver
-from retargetd.daemon.live.state import Pipeline
-from retargetd.daemon.post.pipeline import build_pipeline
-from retargetd.daemon.post.pivot import spine_stage
-from retargetd.daemon.post.plant import plant_stage
-from retargetd.daemon.post.solve_post import SolvePost
-from retargetd.daemon.post.stance import StanceDetector
-from retargetd.daemon.target.retarget import Retargeter
-from retargetd.protocols import engine_unity, pose_stream
+from retargetd.daemon.body.solve import FLAG_HELD
+from retargetd.daemon.live.emit import (
+    DO_POSE,
+    DO_RETARGET,
+    DO_VMC,
+    NO_FLAGS,
+)
+from retargetd.daemon.live.outputs import VMC_STATE_INTERVAL_NS
+from retargetd.daemon.live.performer import FrameSource, Performer
+from retargetd.daemon.live.pipeline import Pipeline, new_pipeline, warm_up_pipeline
+from retargetd.daemon.live.rebuild import rebuilt_solver
+from retargetd.daemon.live.shared import Shared
+from retargetd.daemon.validate.live import LiveValidator
+from retargetd.protocols import pose_stream
 from retargetd.protocols.vmc_out import (
+    CALIBRATION_CALIBRATED,
     CALIBRATION_CALIBRATING,
     CALIBRATION_WAITING,
-    VmcEncoder,
 )
 
 logger = logging.getLogger(__name__)
@@ -67,175 +71,134 @@ def frame_interval_s(
     return max(received_ns - last_ns, 0) * 1e-9, now
 
 
-_NOBLOCK_MORE = zmq.NOBLOCK | zmq.SNDMORE
 _PERFORMER_MASK = pose_stream.PERFORMER_MASK
+#: Byte offset of the frame flags in the pose-stream data header (PROTOCOLS.md): a
+#: held pose sent again is flagged in place.
+_FLAGS_OFFSET = struct.calcsize("<4sHHqdqqq")
+_FLAGS = struct.Struct("<I")
 
-#: How often the VMC state is sent while nothing is streamed (0.5 s).
-VMC_STATE_INTERVAL_NS = 500_000_000
 
+class BodyPath:
+    """One performer's frame path when it has a body: its pipelines (one per stream
+    or view it reads, rebuilt off the hot path when the rig, calibration or label
+    set changes), and per frame the body solve, the post stages, the face, the
+    retarget, the encoding and the sends; the live validator fed after the send.
 
-class SendMixin(FaceOnlyMixin):
-    """Building the per-stream pipelines and solving, retargeting, encoding and sending
-    one frame.
+    Args:
+        perf: the performer (its rig, calibration, face, VMC destination).
+        shared: the loop's side (config, counters, outputs, clocks).
     """
 
-    def _pipeline(self, stream: FrameSource) -> Pipeline | None:
-        perf = self._perf  # (its attributes directly: no descriptor per frame)
+    def __init__(self, perf: Performer, shared: Shared) -> None:
+        self.perf = perf
+        self.shared = shared
+        self.pipelines: dict[int, Pipeline] = {}  # id(stream or view) -> Pipeline
+        self.labels_of: dict[int, tuple[str, ...]] = {}
+        self.last_names_ns = 0  # the names message last sent (again every second)
+        self.frame_flags = 0  # set for the next pose (restarted, input dropped)
+        # The calibration-match check over the stream's first second
+        # (``body.match.MatchWindow``) and the frame flag it leaves on every later
+        # pose (``calibration_mismatch``).
+        self.match_window: MatchWindow | None = None
+        self.match_flags = 0
+        self.validator: Any = None  # validate.live.LiveValidator ([validate] on)
+        self.validation_bits = 0
+        self.validation_bones: np.ndarray | None = None
+        # the latest result's values (VALIDATION_CHECKS order), for the console
+        self.validation_values = np.full(len(pose_stream.VALIDATION_CHECKS), np.nan)
+        self.validation_enc: pose_stream.ValidationEncoder | None = None
+        self.validation_results: list[Any] = []  # reused by drain_results
+
+    def pipeline(self, stream: FrameSource) -> Pipeline | None:
+        """The pipeline of ``stream`` for its current label set (built now when
+        there is none yet); None before a calibration."""
+        perf = self.perf
         if perf.calibration is None:
             return None
         labels = stream.current.label_set.labels
         key = id(stream)
-        pipe = perf.pipelines.get(key)
+        pipe = self.pipelines.get(key)
         solver = None
-        if pipe is not None and perf.labels_of.get(key) == labels:
+        if pipe is not None and self.labels_of.get(key) == labels:
             rig, cal = pipe.built_for
             if rig is perf.rig and cal is perf.calibration:
                 return pipe
             # A reload or a new calibration: the old pipeline solves until the new
             # solver is built off the loop (rebuild.py).
+            config = self.shared.config
             solver = rebuilt_solver(pipe, perf.rig, perf.calibration, labels,
-                                    self.config.solve.method,
-                                    self.config.validate.rate_hz)  # fmt: skip
+                                    config.solve.method,
+                                    config.validate.rate_hz)  # fmt: skip
             if solver is None:
                 return pipe
-            self.recording.event("pipeline", received_ns=stream.current.frame.t_ns)
-        pipe = self._build_pipeline(labels, solver=solver)
-        self.stats.pipeline_builds += 1
-        self._pipelines[key] = pipe
-        self._labels_of[key] = labels
-        self._prewarm.register((id(perf), key), pipe.solver, stream.current.frame)
+            self.shared.recording.event(
+                "pipeline", received_ns=stream.current.frame.t_ns
+            )
+        self.last_names_ns = 0  # new names: announce them with the next frame
+        pipe = new_pipeline(perf, self.shared, labels, solver=solver)
+        self.shared.stats.pipeline_builds += 1
+        self.pipelines[key] = pipe
+        self.labels_of[key] = labels
+        self.shared.prewarm.register((id(perf), key), pipe.solver, stream.current.frame)
         return pipe
 
-    def _build_pipeline(
-        self, labels: tuple[str, ...], *, with_face: bool = True, solver: Any = None
+    def warm_up(self) -> None:
+        """Every stage run once on a throwaway pipeline (``warm_up_pipeline``)."""
+        self.last_names_ns = 0
+        warm_up_pipeline(self.perf, self.shared)
+
+    def rebuild(self, labels: tuple[str, ...], sources: list[FrameSource]) -> None:
+        """The face's training set changed: every pipeline goes, and those of the
+        sources now carrying ``labels`` are built at once (off the next frame)."""
+        self.pipelines.clear()
+        self.labels_of.clear()
+        self.renew(labels, sources)
+
+    def renew(self, labels: tuple[str, ...], sources: list[FrameSource]) -> None:
+        """The rig or calibration changed: each stream's new body solver is built off
+        the loop from now (rebuild.py), its old pipeline solving meanwhile; a stream
+        of ``sources`` carrying ``labels`` without one gets it built now."""
+        for s in sources:
+            if s.current.label_set.labels == labels:
+                self.pipeline(s)
+
+    def restart(self, key: int) -> None:
+        """The source of the pipeline ``key`` restarted: it starts over."""
+        pipe = self.pipelines.get(key)
+        if pipe is not None:
+            pipe.solver.reset()
+            pipe.vmc.reset_continuity()
+            if pipe.face is not None:
+                pipe.face.solver.reset()
+
+    def build_pipeline(
+        self, labels: tuple[str, ...], *, with_face: bool = True
     ) -> Pipeline:
-        """A stream's pipeline; ``solver``: its body solver, built already (off the
-        loop: rebuild.py), else built here."""
-        assert self.calibration is not None
-        if solver is None:
-            solver = body_solver(self.config.solve.method, self.rig, self.calibration,
-                                 labels, self.config.validate.rate_hz)  # fmt: skip
-        if solver.missing_markers:
-            logger.warning(
-                "rig %s markers not in the stream (occluded): %s",
-                self.rig.name,
-                " ".join(solver.missing_markers),
-            )
-        retargeter = Retargeter(
-            self.rig, self.calibration, self.target,
-            compensate_base_pose=self.config.target.compensate_base_pose,
-        )  # fmt: skip
-        target_pose = retargeter.new_pose()
-        names = tuple(self.target.bone_names)
-        n = len(names)
-        bone_pos_unity = np.zeros((n, 3))
-        engine_unity.unity_pos_from_world(
-            np.asarray(target_pose.rest_offsets, dtype=np.float64), bone_pos_unity
-        )
-        self._names_id = (self._names_id + 1) % 65536
-        self._last_names_ns = 0  # new names: announce them with the next frame
-        n_bones = len(self.rig.bones)
-        face = None
-        if with_face and self.face is not None:
-            face = self.face.stage(labels)
-        weight_names = face.weight_names if face is not None else ()
-        face_markers = face.marker_names if face is not None else ()
-        names_msg = pose_stream.PoseNames(
-            rig=self.rig.name,
-            bone_names=self.rig.bone_names,
-            bone_parents=self.rig.bone_parent_indices(),
-            weight_names=weight_names,
-            names_id=self._names_id,
-            face_markers=face_markers,
-            performer=self._perf.name,
-            performer_id=self._perf.index,
-            bone_humanoid=tuple(b.humanoid or "" for b in self.rig.bones),
-            unobserved=face.unobserved if face is not None else (),
-        )
-        vmc = VmcEncoder(
-            names,
-            face.output_names if face is not None else (),
-            max_datagram=self._perf.vmc_max_datagram,
-        )
-        pose_enc = pose_stream.PoseEncoder(
-            n_bones,
-            len(weight_names),
-            names_id=self._names_id,
-            n_face_markers=len(face_markers) if face is not None else None,
-            performer=self._perf.index,
-        )
-        emit = EmitPlan(retargeter, vmc, pose_enc, bone_pos_unity)
-        stance = StanceDetector(self.rig, self.calibration)
-        pose = solver.new_pose()
-        blend = face.blend if face is not None else np.zeros(0)
-        weights = face.weights if face is not None else np.zeros(0)
-        emit.bind(pose, blend, weights)
-        return Pipeline(
-            built_for=(self.rig, self.calibration),
-            solver=solver,
-            retargeter=retargeter,
-            pose=pose,
-            target_pose=emit.target_pose,
-            vmc=vmc,
-            bone_pos_unity=bone_pos_unity,
-            bone_quat_xyzw=np.zeros((n, 4)),
-            root_pos_unity=np.zeros(3),
-            root_quat_xyzw=np.array([0.0, 0.0, 0.0, 1.0]),
-            blend=blend,
-            pose_enc=pose_enc,
-            names_parts=pose_stream.encode_pose_names(names_msg),
-            weights=weights,
-            bone_flags=np.zeros(n_bones, dtype=np.uint8),
-            face=face,
-            shape_enc=(
-                pose_stream.ShapeStateEncoder(len(weight_names), self._names_id)
-                if face is not None
-                else None
-            ),
-            post=self._build_post(),
-            spine=spine_stage(self.config.target, self.target, self.rig),
-            plant=plant_stage(self.config.target.feet, retargeter, stance),
-            emit=emit,
-            stance=stance,
-        )
+        """A new pipeline for a stream of ``labels`` (``pipeline.new_pipeline``);
+        its names are announced with the next frame."""
+        self.last_names_ns = 0
+        return new_pipeline(self.perf, self.shared, labels, with_face=with_face)
 
-    def _build_post(self) -> SolvePost | None:
-        """The ``[[pipeline]]`` stages for this rig and calibration (fresh state)."""
-        rate = self.config.loop.output_rate_hz
-        if not self.config.pipeline and not rate > 0.0:
-            return None
-        assert self.calibration is not None
-        parents = self.rig.bone_parent_indices()
-        rest = np.asarray(self.calibration.rest_parent_from_bone_quat, np.float64)
-        stages = build_pipeline(
-            self.config.pipeline,
-            bone_names=self.rig.bone_names,
-            bone_parents=parents,
-            rest_parent_from_bone_quat=rest,
-        )
-        post = SolvePost(stages, parents, rest, output_rate_hz=rate)
-        self.stats.set_post_stages(post.stage_names)
-        return post
-
-    def _solve_and_send(self, stream: FrameSource, received_ns: int) -> None:
+    def process(self, stream: FrameSource, received_ns: int) -> None:
+        """Solve ``stream``'s current frame (received at ``received_ns``), post-process,
+        retarget, encode and send it."""
         # The clock starts before the pipeline lookup: a pipeline built here (the
         # first frame after a new label set) shows its cost in this frame's solve
         # stage and overrun check, not hidden before it.
-        if not self._perf.body:  # a face alone (face_only.py)
-            return self._solve_and_send_face(stream, received_ns)
         t_start = time.monotonic_ns()
-        pipe = self._pipeline(stream)
+        sh, perf = self.shared, self.perf
+        stats = sh.stats
+        pipe = self.pipeline(stream)
         if pipe is None:  # no calibration yet: counted, never silent
-            self.stats.unsolved += 1
-            if self.console is not None:  # the markers, for the base pose
-                self.console.publish_markers(
+            stats.unsolved += 1
+            if perf.console is not None:  # the markers, for the base pose
+                perf.console.publish_markers(
                     t_start, stream.current.frame, stream.current.label_set.labels,
-                    self.stats, self.status,
+                    stats, sh.status,
                 )  # fmt: skip
             return
         frame = stream.current.frame
-        perf = self._perf
-        window = perf.match_window
+        window = self.match_window
         if (
             window is None
             or window.result is None
@@ -249,20 +212,20 @@ class SendMixin(FaceOnlyMixin):
             if fit_bits & pose_stream.FRAME_UNSEEN:
                 # the performer's markers not seen: no pose to stream (counted;
                 # the console still shows the markers)
-                self.stats.unseen += 1
-                self.stats.frames_solved += 1
-                if self.recording.packets is not None:  # a replay solves it too
-                    self.recording.event("unseen", received_ns=received_ns)
-                if self.console is not None:
-                    self.console.publish_markers(
+                stats.unseen += 1
+                stats.frames_solved += 1
+                if sh.recording.packets is not None:  # a replay solves it too
+                    sh.recording.event("unseen", received_ns=received_ns)
+                if perf.console is not None:
+                    perf.console.publish_markers(
                         t_start, frame, stream.current.label_set.labels,
-                        self.stats, self.status,
+                        stats, sh.status,
                     )  # fmt: skip
                 return
             if fit_bits & pose_stream.FRAME_UNEXPLAINED:
-                self.stats.unexplained += 1
+                stats.unexplained += 1
             if fit_bits & pose_stream.FRAME_RESEEDED:
-                self.stats.reseeded += 1
+                stats.reseeded += 1
         if pipe.stance is not None:  # on the solve, before the post stages (as solve)
             pipe.stance_bits = pipe.stance.update(
                 pose.root_pos, pose.world_from_bone_quat, dt
@@ -275,26 +238,24 @@ class SendMixin(FaceOnlyMixin):
             pipe.tick_source_clock = math.isfinite(source_t)
             due = post.apply(
                 pose,
-                source_t
-                if pipe.tick_source_clock
-                else (received_ns - self._t0_ns) * 1e-9,
+                source_t if pipe.tick_source_clock else (received_ns - sh.t0_ns) * 1e-9,
                 received_ns,
                 frame.frame_id,
             )
-            self.stats.post_restarts += post.restarts - counts[0]
-            self.stats.resample_dropped += post.dropped_ticks - counts[1]
-            self.stats.record_post(post.stage_ns)
+            stats.post_restarts += post.restarts - counts[0]
+            stats.resample_dropped += post.dropped_ticks - counts[1]
+            stats.record_post(post.stage_ns)
             if not due:  # output_rate_hz: no output tick in this frame
-                self.stats.frames_solved += 1
-                self.stats.resample_skipped += 1
+                stats.frames_solved += 1
+                stats.resample_skipped += 1
                 return
             if post.resampler is not None:  # the tick's time and its input's
                 if pipe.tick_source_clock:
                     source_t = post.t_s
                 frame_id, arrival_ns = post.tag, post.arrival_ns
-        self.stats.frames_solved += 1
-        self.stats.held_bone_frames += pose.n_held
-        self.stats.occluded_samples += pose.n_occluded
+        stats.frames_solved += 1
+        stats.held_bone_frames += pose.n_held
+        stats.occluded_samples += pose.n_occluded
         self._emit(pipe, stream, frame_id, source_t, arrival_ns, t_start)
         if post is not None and post.resampler is not None:
             self._send_due_ticks_of(pipe, time.monotonic_ns())  # overdue ones too
@@ -306,13 +267,13 @@ class SendMixin(FaceOnlyMixin):
         segments' markers against their calibrated layout (``body.match``). A
         mismatch is one warning line, ``calibration_match`` in status and the
         ``calibration_mismatch`` frame flag on every later pose."""
-        perf = self._perf
+        perf = self.perf
         calibration = perf.calibration
         if calibration is None:
             return
         if window is None or window.calibration is not calibration:
-            window = perf.match_window = MatchWindow(calibration, perf.rig.marker_names)
-            perf.match_flags = 0
+            window = self.match_window = MatchWindow(calibration, perf.rig.marker_names)
+            self.match_flags = 0
         t_s = frame.source_time_s
         if not math.isfinite(t_s):
             t_s = received_ns * 1e-9
@@ -323,20 +284,20 @@ class SendMixin(FaceOnlyMixin):
         if line is None:
             logger.info("%s: %s", perf.label, found.summary())
             return
-        perf.match_flags = pose_stream.FRAME_CALIBRATION_MISMATCH
+        self.match_flags = pose_stream.FRAME_CALIBRATION_MISMATCH
         logger.warning("%s: %s", perf.label, line)
 
     def _frame_dt_s(self, pipe: Pipeline, frame: Any, received_ns: int) -> float:
         """Seconds since the pipeline's last solved frame (:func:`frame_interval_s`)."""
         dt, pipe.last_times = frame_interval_s(
-            pipe.last_times, frame, received_ns, self.config.validate.rate_hz
+            pipe.last_times, frame, received_ns, self.shared.config.validate.rate_hz
         )
         return dt
 
-    def _send_due_ticks(self, now_ns: int) -> None:
+    def send_due_ticks(self, now_ns: int) -> None:
         """From the loop's timer: every resampled output tick whose send time has
         come (``output_rate_hz`` above the input's rate: between input frames)."""
-        for pipe in self._pipelines.values():
+        for pipe in self.pipelines.values():
             post = pipe.post
             if post is not None and post.resampler is not None:
                 self._send_due_ticks_of(pipe, now_ns)
@@ -345,23 +306,21 @@ class SendMixin(FaceOnlyMixin):
         post = pipe.post
         assert post is not None
         while post.pop_due(pipe.pose, now_ns):
-            self.stats.resample_timer += 1
+            self.shared.stats.resample_timer += 1
             source_t = post.t_s if pipe.tick_source_clock else math.nan
             self._emit(pipe, None, post.tag, source_t, post.arrival_ns, now_ns)
 
     def next_tick_ns(self) -> int:
-        """The earliest send time of a queued output tick over every performer's
-        pipelines (``time.monotonic_ns()``), -1 when none is queued: the loop's
-        poll wakes up for it."""
+        """The earliest send time of a queued output tick over the pipelines
+        (``time.monotonic_ns()``), -1 when none is queued."""
         best = -1
-        for perf in self.performers:
-            for pipe in perf.pipelines.values():
-                post = pipe.post
-                if post is None or post.resampler is None:
-                    continue
-                due = post.next_due_ns()
-                if due >= 0 and (best < 0 or due < best):
-                    best = due
+        for pipe in self.pipelines.values():
+            post = pipe.post
+            if post is None or post.resampler is None:
+                continue
+            due = post.next_due_ns()
+            if due >= 0 and (best < 0 or due < best):
+                best = due
         return best
 
     def _emit(
@@ -382,8 +341,8 @@ class SendMixin(FaceOnlyMixin):
         (``emit.emit_frame``) retargets, converts to the engine's frame and packs the
         VMC datagrams and the pose message; Python sends them."""
         pose = pipe.pose
-        perf = self._perf  # its attributes read once (not one descriptor each)
-        stats = self.stats
+        perf, sh = self.perf, self.shared
+        stats, outputs, recording = sh.stats, sh.outputs, sh.recording
         frame = stream.current.frame if stream is not None else None
         emit = pipe.emit
         assert emit is not None
@@ -398,8 +357,8 @@ class SendMixin(FaceOnlyMixin):
         if pipe.plant is not None:  # [target] feet = "plant", after the retarget
             if what:
                 pipe.retargeter.apply(pose, tp)
-            what = 0  # its plant_unreached flag rides perf.frame_flags
-            perf.frame_flags |= pipe.plant.apply_pose(tp)
+            what = 0  # its plant_unreached flag rides self.frame_flags
+            self.frame_flags |= pipe.plant.apply_pose(tp)
         face = pipe.face
         fo = face.out if face is not None else None
         if face is not None and frame is not None:
@@ -409,51 +368,45 @@ class SendMixin(FaceOnlyMixin):
                 stats.face_head_lost += 1
         solved_ns = time.monotonic_ns()
         flags = (
-            perf.frame_flags
-            | perf.match_flags  # calibration_mismatch, from the first second on
+            self.frame_flags
+            | self.match_flags  # calibration_mismatch, from the first second on
             | pose.frame_flags  # the fit's reseeded and unexplained bits
             | (pose_stream.FRAME_HELD if pose.n_held else 0)
             | pipe.stance_bits  # foot contact (FRAME_CONTACT_*)
         )
-        perf.frame_flags = 0
-        validator = perf.validator
-        results = perf.validation_results
+        self.frame_flags = 0
+        validator = self.validator
+        results = self.validation_results
         n_results = 0
         if validator is not None:
             if frame is not None:
                 n_results = validator.drain_results(results)  # no allocation
                 if n_results:
                     self._take_validation_bits(results[n_results - 1])
-            flags |= perf.validation_bits
-        vmc_sock = perf.vmc_sock  # None: [output.vmc] off
-        publish = self._pub is not None or self.recording.poses is not None
-        if vmc_sock is not None:
+            flags |= self.validation_bits
+        vmc = perf.vmc
+        vmc_on = vmc.sock is not None  # False: [output.vmc] off
+        publish = outputs.publishing
+        if vmc_on:
             what |= DO_VMC
         if publish:
             what |= DO_POSE
-        vb = perf.validation_bones
+        vb = self.validation_bones
         flags_word = (flags & ~_PERFORMER_MASK) | emit.performer_bits
         emit.call(  # emit_frame's compiled function (EmitPlan.bind)
             what, *emit.args, NO_FLAGS if vb is None else vb,
-            (solved_ns - self._t0_ns) * 1e-9, frame_id, source_t, received_ns,
+            (solved_ns - sh.t0_ns) * 1e-9, frame_id, source_t, received_ns,
             solved_ns, flags_word,
         )  # fmt: skip
-        if vmc_sock is not None:
-            if perf.vmc_connected:  # (one datagram to a loopback receiver)
-                for dgram in pipe.vmc.datagrams:
-                    try:
-                        vmc_sock.send(dgram)
-                    except OSError:  # receiver absent, buffer full: never block
-                        stats.vmc_errors += 1
-            else:
-                self._send_vmc_datagrams(pipe.vmc.datagrams)
+        if vmc_on:  # (one datagram to a loopback receiver; never blocks)
+            vmc.send(pipe.vmc.datagrams)
         bone_flags = pose.bone_flags
         if publish:
-            if solved_ns - perf.last_names_ns >= 1_000_000_000:
-                self._send_pub(pipe.names_parts, solved_ns)
-                perf.last_names_ns = solved_ns
+            if solved_ns - self.last_names_ns >= 1_000_000_000:
+                outputs.send_pub(pipe.names_parts, solved_ns)
+                self.last_names_ns = solved_ns
             parts = pipe.pose_enc.parts
-            if time.monotonic_ns() - t_start > self._budget_ns:  # sent late, flagged
+            if time.monotonic_ns() - t_start > sh.budget_ns:  # sent late, flagged
                 pose_stream.stamp_flags(parts[0], flags_word | pose_stream.FRAME_LATE)
             if vb is not None and len(vb) == len(bone_flags):  # as sent, for the rest
                 bone_flags = np.bitwise_or(bone_flags, vb, out=pipe.bone_flags)
@@ -464,20 +417,16 @@ class SendMixin(FaceOnlyMixin):
                 )  # fmt: skip
             sent_ns = time.monotonic_ns()
             pose_stream.stamp_sent(parts[0], sent_ns)
-            self._send_pub(parts, sent_ns)
-            if fo is not None and pipe.shape_enc is not None and self._pub is not None:
-                try:  # per-shape states, right after their pose (not recorded)
-                    self._pub.send(
-                        pipe.shape_enc.encode(frame_id, fo.shape_state), zmq.NOBLOCK
-                    )
-                except zmq.Again:
-                    self.stats.send_drops += 1
+            outputs.send_pub(parts, sent_ns)
+            if fo is not None and pipe.shape_enc is not None:
+                # per-shape states, right after their pose (not recorded)
+                outputs.send_unrecorded(pipe.shape_enc.encode(frame_id, fo.shape_state))
         sent_ns = time.monotonic_ns()
-        self.stats.frames_out += 1
+        stats.frames_out += 1
         if frame is None or stream is None:  # a timer tick: sent, nothing else
             return
-        if self.recording.skeleton is not None:  # Foxglove channels: a queued copy
-            self.recording.record_skeleton(
+        if recording.skeleton is not None:  # Foxglove channels: a queued copy
+            recording.record_skeleton(
                 pipe.solver,
                 received_ns,
                 pose,
@@ -485,110 +434,183 @@ class SendMixin(FaceOnlyMixin):
                 frame.markers_world,
                 frame.valid,
             )
-            self.recording.record_health(
-                received_ns, self.status, pose.n_occluded, self.stats.validation_flagged
+            recording.record_health(
+                received_ns, sh.status, pose.n_occluded, stats.validation_flagged
             )
         # After the send: a copy into the validator's ring, never a wait.
         if validator is not None and not validator.submit(
             frame.frame_id, received_ns, pose.root_pos, pose.world_from_bone_quat,
             pose.rest_from_bone_quat, pose.joint_centres,
         ):  # fmt: skip
-            self.stats.validation_drops += 1
+            stats.validation_drops += 1
         if n_results:  # published after this frame's pose: never ahead of a send
             self._publish_validation(results, n_results, pipe)
-        if self.console is not None:  # a decimated copy, only when one is due
-            self.console.publish(
-                sent_ns, self.rig, pipe.solver, frame, stream.current.label_set.labels,
+        if perf.console is not None:  # a decimated copy, only when one is due
+            perf.console.publish(
+                sent_ns, perf.rig, pipe.solver, frame, stream.current.label_set.labels,
                 pose, bone_flags,
                 face.weight_names if face is not None else (),
-                pipe.weights if face is not None else None, self.stats, self.status,
-                self.target, tp, perf.validation_bits, perf.validation_values, vb,
+                pipe.weights if face is not None else None, stats, sh.status,
+                sh.target, tp, self.validation_bits, self.validation_values, vb,
             )  # fmt: skip
-        if sent_ns - t_start > self._budget_ns:
-            self.stats.overruns += 1
-        self.stats.record(
+        if sent_ns - t_start > sh.budget_ns:
+            stats.overruns += 1
+        stats.record(
             solved_ns - received_ns, solved_ns - t_start, sent_ns - solved_ns,
             sent_ns - received_ns,
         )  # fmt: skip
 
     def _take_validation_bits(self, last: Any) -> None:
         """Keep the latest result's bits for this and the next poses."""
-        self._validation_bits = last.frame_flags & pose_stream.FRAME_VALIDATION_MASK
+        self.validation_bits = last.frame_flags & pose_stream.FRAME_VALIDATION_MASK
         bones = last.bone_flags
-        if self._validation_bones is None or len(self._validation_bones) != len(bones):
-            self._validation_bones = np.zeros(len(bones), dtype=np.uint8)
+        if self.validation_bones is None or len(self.validation_bones) != len(bones):
+            self.validation_bones = np.zeros(len(bones), dtype=np.uint8)
         np.bitwise_and(bones, pose_stream.BONE_VALIDATION_MASK,
-                       out=self._validation_bones)  # fmt: skip
-        np.copyto(self._validation_values, last.values, casting="same_kind")
+                       out=self.validation_bones)  # fmt: skip
+        np.copyto(self.validation_values, last.values, casting="same_kind")
 
     def _publish_validation(self, results: list[Any], n: int, pipe: Pipeline) -> None:
         """Count the first ``n`` results and publish each as an ``RTDV`` message (the
         frame it belongs to, its values), written into a reused buffer. The validator
         sets only the validation bits (frame bits 8-15, bone bits 4-7)."""
+        stats, outputs = self.shared.stats, self.shared.outputs
         for k in range(n):
             r = results[k]
-            self.stats.validated += 1
+            stats.validated += 1
             if r.frame_flags:
-                self.stats.validation_flagged += 1
-            if self._pub is not None or self.recording.poses is not None:
-                enc = self._validation_enc
+                stats.validation_flagged += 1
+            if outputs.publishing:
+                enc = self.validation_enc
                 if enc is None or enc.n_bones != len(r.bone_flags):
                     enc = pose_stream.ValidationEncoder(len(r.bone_flags))
-                    self._validation_enc = enc
+                    self.validation_enc = enc
                 msg = enc.encode(
                     pipe.pose_enc.names_id, r.frame_id, r.t_ns, r.validated_ns,
                     r.frame_flags, r.values, r.bone_flags,
                 )  # fmt: skip
-                self._send_pub(msg, r.validated_ns)
+                outputs.send_pub(msg, r.validated_ns)
 
-    def _send_pub(self, parts: list[Any], t_ns: int) -> None:
-        rec = self.recording.poses
-        if rec is not None:
-            rec.record_pose(t_ns, *parts)
-        pub = self._pub
-        if pub is None:
-            return
-        # Part by part, each copied into its message: for parts this small a copy is
-        # cheaper than send_multipart's zero-copy Frames (pose send at 240 Hz 45 -> ~20
-        # µs median, bench/profile_loop.py). libzmq queues the parts and delivers the
-        # message whole; a PUB at its high-water mark drops it whole (Again is
-        # raised, if ever, by the first part only, before anything is queued).
-        last = len(parts) - 1
-        try:
-            for i in range(last):
-                pub.send(parts[i], _NOBLOCK_MORE)
-            pub.send(parts[last], zmq.NOBLOCK)
-        except zmq.Again:
-            self.stats.send_drops += 1
+    def flag(self, bits: int) -> None:
+        """Frame flags for the next pose (restarted, input dropped)."""
+        self.frame_flags |= bits
 
-    def _send_vmc_state(self, now_ns: int) -> None:
+    def announce_names(self) -> None:
+        """The next pose is preceded by its names message."""
+        self.last_names_ns = 0
+
+    def match_status(self) -> dict[str, Any] | None:
+        """``calibration_match`` of the status: None before the first second of
+        frames with this calibration has been checked (``body.match``)."""
+        window = self.match_window
+        if window is None or window.result is None:
+            return None
+        found = window.result
+        return {
+            "matches": found.matches,
+            "frames": found.frames,
+            "warning": found.warning(),
+            "segments": found.to_json(),
+        }
+
+    def resend_held(self, key: int, now_ns: int) -> tuple[bool, bool]:
+        """The last pose message on the pipeline ``key`` sent again (its encoder's
+        buffers still hold it), flagged held and source_lost, with a new sent time:
+        the capture system is lost. Returns (VMC state sent, pose sent)."""
+        pipe = self.pipelines.get(key)
+        if pipe is None:
+            return False, False
+        sh, vmc = self.shared, self.perf.vmc
+        outputs = sh.outputs
+        if outputs.vmc_on:
+            # VMC has no frame flags; its own word for this is /VMC/Ext/OK with
+            # tracking 0 (VMC 2.7): the model is loaded and calibrated, tracking is
+            # lost. Receivers keep the last pose they got and hear the performer is
+            # still there (silence reads as "no performer" in EVMC4U and VSeeFace).
+            dgram = vmc.state.encode_state(
+                CALIBRATION_CALIBRATED, False, (now_ns - sh.t0_ns) * 1e-9
+            )
+            vmc.send((dgram,))
+        if not outputs.publishing:
+            return outputs.vmc_on, False
+        parts = pipe.pose_enc.parts
+        header = parts[0]
+        (flags,) = _FLAGS.unpack_from(header, _FLAGS_OFFSET)
+        flags |= pose_stream.FRAME_HELD | pose_stream.FRAME_SOURCE_LOST
+        _FLAGS.pack_into(header, _FLAGS_OFFSET, flags)
+        pose_stream.stamp_sent(header, now_ns)
+        outputs.send_pub(parts, now_ns)
+        return outputs.vmc_on, True
+
+    def send_vmc_state(self, now_ns: int, calibrating: bool) -> None:
         """Before a calibration, and while one collects frames, tell the VMC receiver
         the state (``/VMC/Ext/OK`` calibration state 1 waiting or 2 calibrating, the
         tracking flag) about twice a second: no pose is streamed then, and silence
         reads as "no performer" in EVMC4U and VSeeFace."""
-        if not self._vmc or now_ns < self._next_vmc_state_ns or not self._perf.body:
+        vmc, sh = self.perf.vmc, self.shared
+        if not sh.outputs.vmc_on or now_ns < vmc.next_state_ns:
             return
-        calibrating = self._calib_target > 0
-        if self.calibration is not None and not calibrating:
+        if self.perf.calibration is not None and not calibrating:
             return
-        self._next_vmc_state_ns = now_ns + VMC_STATE_INTERVAL_NS
+        vmc.next_state_ns = now_ns + VMC_STATE_INTERVAL_NS
         state = CALIBRATION_CALIBRATING if calibrating else CALIBRATION_WAITING
-        tracking = now_ns - self._last_frame_ns < 1_000_000_000
-        dgram = self._vmc_state.encode_state(
-            state, tracking, (now_ns - self._t0_ns) * 1e-9
-        )
-        self._send_vmc_datagrams((dgram,))
+        tracking = now_ns - sh.last_frame_ns < 1_000_000_000
+        dgram = vmc.state.encode_state(state, tracking, (now_ns - sh.t0_ns) * 1e-9)
+        vmc.send((dgram,))
 
-    def _send_vmc_datagrams(self, datagrams: Any) -> None:
-        """Send datagrams to the current performer's VMC receiver, never blocking: a
-        refused one (receiver absent, buffer full, no route) is counted."""
-        sock, addr = self._vmc_sock, self._vmc_addr
-        assert sock is not None
-        for dgram in datagrams:
-            try:
-                if self._vmc_connected:
-                    sock.send(dgram)
-                else:
-                    sock.sendto(dgram, addr)
-            except OSError:
-                self.stats.vmc_errors += 1
+    def start_validator(self) -> None:
+        """(Re)start the live validator on the current calibration ([validate] on).
+
+        Builds the MuJoCo model (cached by skeleton hash) and warms the kernels
+        (tens of ms; seconds on a cold numba cache): at start-up, and after a live
+        calibration or a reload, never per frame."""
+        v = self.shared.config.validate
+        self.close()
+        self.validation_bits = 0
+        self.validation_bones = None
+        self.validation_values.fill(np.nan)
+        calibration = self.perf.calibration
+        if not v.enabled or calibration is None:
+            return
+        validator = LiveValidator(
+            self.perf.rig,
+            calibration,
+            body_mass_kg=v.body_mass_kg or None,
+            rate_hz=v.rate_hz,
+            queue_size=v.queue,
+        )
+        validator.start()
+        self.validation_results = [None] * validator.results_capacity
+        self.validator = validator
+        self.shared.out(
+            f"live validator on: MuJoCo model {validator.vm.digest[:12]}, "
+            f"queue {v.queue}, frame numbers at {v.rate_hz:g} Hz"
+        )
+
+    def close(self) -> None:
+        """Stop the live validator (idempotent)."""
+        old, self.validator = self.validator, None
+        if old is not None:
+            old.close()
+
+    def occluded_and_held(self) -> tuple[list[str], list[str]]:
+        """The rig markers occluded and the bones held in the last frame its first
+        pipeline solved."""
+        pipe = next(iter(self.pipelines.values()), None)
+        occluded: list[str] = []
+        flagged: list[str] = []
+        if pipe is not None:
+            rig = self.perf.rig
+            seen = getattr(pipe.solver, "_seen", None)  # the construction's markers
+            pts_seen = (
+                seen[: len(rig.markers)]
+                if seen is not None
+                else np.isfinite(pipe.pose.marker_residual)  # the fit's
+            )
+            occluded = [
+                m for m, s in zip(rig.marker_names, pts_seen, strict=True) if not s
+            ]
+            flags = pipe.pose.bone_flags
+            names = rig.bone_names
+            flagged = [b for b, f in zip(names, flags, strict=True) if f & FLAG_HELD]
+        return occluded, flagged

@@ -33,7 +33,6 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import struct
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -42,10 +41,13 @@ from typing import Any
 import zmq
 
 from retargetd.daemon.body.calibration import match_markers
-from retargetd.daemon.live.state import DaemonState
-from retargetd.protocols import natnet, natnet_client, pose_stream, qtm
+from retargetd.daemon.live.inputs import Accept
+from retargetd.daemon.live.performer import Performer
+from retargetd.daemon.live.performers import Performers
+from retargetd.daemon.live.ratelog import OncePer
+from retargetd.daemon.live.shared import Shared
+from retargetd.protocols import natnet, natnet_client, qtm
 from retargetd.protocols.marker_input import ACCEPTED, RESTART, RESTART_GAP_NS
-from retargetd.protocols.vmc_out import CALIBRATION_CALIBRATED
 from retargetd.replay import recording as rf
 
 logger = logging.getLogger(__name__)
@@ -68,9 +70,6 @@ FLOOD_FRAMES = 10
 #: at its capture rate (ratio ~1).
 FLOOD_WINDOW = 50
 FLOOD_RATIO = 0.5
-#: Byte offset of the frame flags in the pose-stream data header (PROTOCOLS.md).
-_FLAGS_OFFSET = struct.calcsize("<4sHHqdqqq")
-_FLAGS = struct.Struct("<I")
 
 SCHEMES = ("natnet", "qtm")
 
@@ -212,17 +211,57 @@ def _natnet_reader(
     return lambda: client.read(sock)
 
 
-class CaptureMixin(DaemonState):
-    """The capture-system input of the loop: open, drain, tick, hold, status."""
+class CaptureSource:
+    """The capture-system input of the loop ([input] source: QTM or NatNet), one
+    part: open, drain, tick, hold, status.
 
-    _capture: CaptureInput | None
+    Args:
+        shared: the loop's side (config, counters, outputs, recording, out).
+        performers: whose rigs the labels are checked against and whose last poses
+            are sent again, held, while the source is lost.
+        poller: the loop's poller (the capture's descriptors are polled).
+        endpoints: what is listening where.
+        warn: the loop's once-per-interval gate for warning lines.
+        accept: the loop's hand-off of a decoded frame (``inputs.Accept``).
+        stale: called when an accepted frame is superseded before it was solved.
+    """
 
-    def _open_capture(self) -> None:
-        url = self.config.input.source
+    def __init__(
+        self,
+        shared: Shared,
+        performers: Performers,
+        poller: zmq.Poller,
+        endpoints: dict[str, str],
+        warn: OncePer,
+        accept: Accept,
+        stale: Callable[[], None],
+    ) -> None:
+        self.shared = shared
+        self.out = shared.out
+        self.recording = shared.recording
+        self.performers = performers
+        self._poller = poller
+        self.endpoints = endpoints
+        self._warn = warn
+        self._accept = accept
+        self._stale = stale
+        self._capture: CaptureInput | None = None
+        self.on = False  # a capture system is connected (or being connected)
+
+    @property
+    def stream(self) -> Any:
+        """The capture input's stream (``on`` only)."""
+        assert self._capture is not None
+        return self._capture.inp.stream
+
+    def open(self) -> None:
+        """Start connecting to ``[input] source`` (nothing when it is unset)."""
+        url = self.shared.config.input.source
         if not url:
             return
         cap = open_capture(url, self.out)
         self._capture = cap
+        self.on = True
         for fd, _ in cap.readers:
             self._poller.register(fd, zmq.POLLIN)
         name = "Motive (NatNet)" if cap.system == "natnet" else "QTM (qtm-rt)"
@@ -232,7 +271,8 @@ class CaptureMixin(DaemonState):
             "connects and reconnects by itself, the loop never waits for it"
         )
 
-    def _close_capture(self) -> None:
+    def close(self) -> None:
+        """Disconnect (idempotent)."""
         cap = self._capture
         if cap is None:
             return
@@ -241,8 +281,9 @@ class CaptureMixin(DaemonState):
                 self._poller.unregister(fd)
         cap.close()
         self._capture = None
+        self.on = False
 
-    def _drain_capture(self, events: list[tuple[Any, int]], every: bool) -> int:
+    def drain(self, events: list[tuple[Any, int]], every: bool) -> int:
         """Read, record and decode every waiting packet; the receive time of the
         newest accepted frame left unsolved (latest wins), else 0."""
         cap = self._capture
@@ -291,9 +332,8 @@ class CaptureMixin(DaemonState):
                 got = self._accept(stream, code, t_ns, every)
                 if got:
                     if newest:  # a newer frame supersedes the unsolved one: stale
-                        self.stats.stale += 1
+                        self._stale()
                         superseded += 1
-                        self._flag_frames(pose_stream.FRAME_INPUT_DROPPED)
                     newest = got
         if frames > FLOOD_FRAMES:
             self._flood(
@@ -350,7 +390,7 @@ class CaptureMixin(DaemonState):
             return
         labels = stream.label_set.labels
         known: set[int] = set()  # the labels some performer's rig matches
-        for p in self.performers:
+        for p in self.performers.all:
             mine = [i for i, lb in enumerate(labels) if lb.startswith(p.prefix)]
             cols = match_markers(p.rig, [labels[i][len(p.prefix) :] for i in mine])
             known.update(mine[c] for c in cols if c >= 0)
@@ -361,7 +401,7 @@ class CaptureMixin(DaemonState):
             self.out(
                 f"{cap.system}: {len(unknown)} of {len(stream.label_set.labels)} "
                 f"labels are not markers of rig "
-                f"{', '.join(sorted({p.rig.name for p in self.performers}))} "
+                f"{', '.join(sorted({p.rig.name for p in self.performers.all}))} "
                 f"(ignored): {shown}"
             )
         cap.unknown_labels = unknown
@@ -373,7 +413,7 @@ class CaptureMixin(DaemonState):
             f"{(t_ns - cap.lost_since_ns) * 1e-9:.1f} s; streaming"
         )
 
-    def _tick_capture(self) -> None:
+    def tick(self) -> None:
         """Every wake-up and poll timeout: the NatNet client's requests, the lost
         check, and the held pose while lost. Never blocks."""
         cap = self._capture
@@ -397,44 +437,19 @@ class CaptureMixin(DaemonState):
             )
         if cap.lost and now >= cap.next_hold_ns:
             cap.next_hold_ns = now + HOLD_RESEND_NS
-            for perf in self.performers:  # each performer's last pose
-                key = id(cap.last_stream)
-                view = perf.views.get(key)
-                self._perf = perf
-                try:
-                    self._resend_held(cap, now, key if view is None else id(view))
-                finally:
-                    self._perf = self.performers[0]
+            for perf in self.performers.all:  # each performer's last pose
+                self._resend_held(cap, now, perf, perf.key_of(cap.last_stream))
 
-    def _resend_held(self, cap: CaptureInput, now_ns: int, key: int) -> None:
-        """The current performer's last pose message on the pipeline ``key`` sent
-        again (its encoder's buffers still hold it), flagged held and source_lost,
-        with a new sent time."""
-        pipe = self._pipelines.get(key)
-        if pipe is None:
-            return
-        if self._vmc:
-            # VMC has no frame flags; its own word for this is /VMC/Ext/OK with
-            # tracking 0 (VMC 2.7): the model is loaded and calibrated, tracking is
-            # lost. Receivers keep the last pose they got and hear the performer is
-            # still there (silence reads as "no performer" in EVMC4U and VSeeFace).
-            dgram = self._vmc_state.encode_state(
-                CALIBRATION_CALIBRATED, False, (now_ns - self._t0_ns) * 1e-9
-            )
-            self._send_vmc_datagrams((dgram,))
-            cap.counts["held_vmc"] += 1
-        if self._pub is None and self.recording.poses is None:
-            return
-        parts = pipe.pose_enc.parts
-        header = parts[0]
-        (flags,) = _FLAGS.unpack_from(header, _FLAGS_OFFSET)
-        flags |= pose_stream.FRAME_HELD | pose_stream.FRAME_SOURCE_LOST
-        _FLAGS.pack_into(header, _FLAGS_OFFSET, flags)
-        pose_stream.stamp_sent(header, now_ns)
-        self._send_pub(parts, now_ns)
-        cap.counts["held_poses"] += 1
+    def _resend_held(
+        self, cap: CaptureInput, now_ns: int, perf: Performer, key: int
+    ) -> None:
+        """``perf``'s last pose on the pipeline ``key`` sent again, flagged held and
+        source_lost (``BodyPath.resend_held``); counted."""
+        vmc_sent, pose_sent = perf.path.resend_held(key, now_ns)
+        cap.counts["held_vmc"] += vmc_sent
+        cap.counts["held_poses"] += pose_sent
 
-    def _capture_status(self) -> dict[str, Any] | None:
+    def status(self) -> dict[str, Any] | None:
         """``status["capture"]``: the source's state, counters and drops."""
         cap = self._capture
         if cap is None:
@@ -472,10 +487,8 @@ class CaptureMixin(DaemonState):
 
     def _say_limited(self, key: str, t_ns: int, line: str) -> None:
         """``out(line)`` at most once per 10 s for ``key`` (counters hold the rest)."""
-        if t_ns < self._log_after_ns.get(key, 0):
-            return
-        self._log_after_ns[key] = t_ns + 10_000_000_000
-        self.out(line)
+        if self._warn.due(key, t_ns):
+            self.out(line)
 
 
 def capture_stats(doc: dict[str, Any] | None) -> str:

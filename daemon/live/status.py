@@ -1,5 +1,6 @@
-"""Health: the status document (``retargetd ctl status --json``) and the one-line stats
-summary printed every ``stats_interval_s``.
+"""Health, one part (:class:`Health`): the status document (``retargetd ctl status
+--json``) and the one-line stats summary printed every ``stats_interval_s``, read from
+the other parts' counters.
 """
 
 from __future__ import annotations
@@ -7,111 +8,140 @@ from __future__ import annotations
 import logging
 import math
 import time
+from collections.abc import Callable
 from typing import Any
 
-import numpy as np
-
-from retargetd.daemon.body.solve import FLAG_HELD
-from retargetd.daemon.live.kernel_drops import udp_kernel_drops
+from retargetd.daemon.live.inputs import Inputs
+from retargetd.daemon.live.performers import Performers
+from retargetd.daemon.live.prewarm import Prewarm
+from retargetd.daemon.live.props import LiveProps
+from retargetd.daemon.live.recording import LiveRecording
 from retargetd.daemon.live.sources import capture_stats
-from retargetd.daemon.live.state import DaemonState
-from retargetd.daemon.live.stats import POST_PREFIX
+from retargetd.daemon.live.stalls import LoopStalls
+from retargetd.daemon.live.stats import POST_PREFIX, LoopStats
+from retargetd.daemon.live.watch import SocketWatch
 
 logger = logging.getLogger(__name__)
 
 
-class StatusMixin(DaemonState):
-    """The status document and the periodic stats line."""
+class Health:
+    """The status document and the periodic stats line, read from the parts'
+    counters (it changes none of them).
 
-    def status(self) -> dict[str, Any]:
+    Args:
+        stats: the loop's counters.
+        performers: every performer (their status, the first's calibration).
+        inputs: the marker inputs (drops by reason, label sets taken).
+        recording: the live recording.
+        props: the ``[[prop]]`` part.
+        watch: the bound ZeroMQ sockets' monitors (CURVE refusals, descriptors).
+        stalls: the loop's phases over 50 ms.
+        prewarm: the fit's warm touches.
+        endpoints: what is listening where (``open`` fills it).
+        t0_ns: the daemon's start.
+        capture: the capture input's status (None: no ``[input] source``).
+        control: the control part's status (show control refused, its kernel
+            drops).
+    """
+
+    def __init__(
+        self,
+        stats: LoopStats,
+        performers: Performers,
+        inputs: Inputs,
+        recording: LiveRecording,
+        props: LiveProps,
+        watch: SocketWatch,
+        stalls: LoopStalls,
+        prewarm: Prewarm,
+        endpoints: dict[str, str],
+        t0_ns: int,
+        capture: Callable[[], dict[str, Any] | None],
+        control: Callable[[], dict[str, Any]],
+    ) -> None:
+        self.stats = stats
+        self.performers = performers
+        self.inputs = inputs
+        self.recording = recording
+        self.props = props
+        self.watch = watch
+        self.stalls = stalls
+        self.prewarm = prewarm
+        self.endpoints = endpoints
+        self.t0_ns = t0_ns
+        self._capture = capture
+        self._control = control
+        # (t_ns, frames_in, frames_out) at the last stats line: fps over that window.
+        self._window = (t0_ns, 0, 0)
+
+    def roll(self, now_ns: int) -> None:
+        """A stats line was printed: the fps window starts again."""
+        self._window = (now_ns, self.stats.frames_in, self.stats.frames_out)
+
+    def document(self) -> dict[str, Any]:
         """The status document (``retargetd ctl status --json``)."""
         # None until the first frame: NaN is not JSON (jq and browsers refuse it).
         latency = {
             k: [_round_or_none(p50), _round_or_none(p99)]
             for k, (p50, p99) in self.stats.latency_us().items()
         }
-        up_s = (time.monotonic_ns() - self._t0_ns) * 1e-9
-        occluded, flagged = self._occluded_and_held()
-        performers = self.performers_status()
+        up_s = (time.monotonic_ns() - self.t0_ns) * 1e-9
+        first = self.performers.first
+        occluded, flagged = first.path.occluded_and_held()
+        calib = first.calib.status()
+        performers = self.performers.status()
+        inputs = self.inputs.status()
+        control = self._control()
         return {
             "uptime_s": round(up_s, 3),
-            "rig": self.rig.name,  # the first performer's (all: "performers")
+            "rig": first.rig.name,  # the first performer's (all: "performers")
             "calibrated": all(p["calibrated"] for p in performers),
             "calibrating": any(p["calibrating"] for p in performers),
-            "calibration_message": self._calib_message,
-            "calibration_id": self._calib_id,
-            "calibration_state": self._calib_state,
+            "calibration_message": calib["calibration_message"],
+            "calibration_id": calib["calibration_id"],
+            "calibration_state": calib["calibration_state"],
             "performers": performers,
             "endpoints": self.endpoints,
             "counters": {
                 **self.stats.counters(),
-                "prewarm": self._prewarm.touches,
-                "prewarm_resets": self._prewarm.resets,  # after a flagged/slow touch
+                "prewarm": self.prewarm.touches,
+                "prewarm_resets": self.prewarm.resets,  # after a flagged/slow touch
                 # markers occluded for a coordinate past max_coordinate_m, all inputs
-                "implausible_markers": int(
-                    self.osc_stream.implausible[0] + self.zmq_stream.implausible[0]
-                ),
+                "implausible_markers": inputs["implausible_markers"],
                 # episodes of descriptor exhaustion, and the failed accepts seen
-                "fd_episodes": self._watch.fd_episodes,
-                "fd_accept_failures": self._watch.fd_accept_failures,
+                "fd_episodes": self.watch.fd_episodes,
+                "fd_accept_failures": self.watch.fd_accept_failures,
             },
             # phases of a loop iteration over 50 ms, by name (stalls.py)
-            "loop_stalls": self._stalls.status(),
-            "fd_exhausted": self._watch.exhausted,  # an episode is going on
+            "loop_stalls": self.stalls.status(),
+            "fd_exhausted": self.watch.exhausted,  # an episode is going on
             # CURVE handshakes refused, by socket and reason (sockets with a key)
-            "curve_refused": self._watch.status(),
+            "curve_refused": self.watch.status(),
             "fps_in": self._fps(self.stats.frames_in, 1),
             "fps_out": self._fps(self.stats.frames_out, 2),
             "fps_window_s": round((time.monotonic_ns() - self._window[0]) * 1e-9, 3),
-            "drops": {
-                "osc": self.osc_stream.counters.as_dict(),
-                "zmq": self.zmq_stream.counters.as_dict(),
-            },
+            "drops": inputs["drops"],
             # Label announcements adopted or confirming (not in "drops"), per input.
-            "labels_taken": {
-                "osc": self.osc_stream.labels_taken,
-                "zmq": self.zmq_stream.labels_taken,
-            },
+            "labels_taken": inputs["labels_taken"],
             # Datagrams the kernel dropped (receive buffer full), per UDP input;
             # None where unknown (not Linux) or the input is off.
             "kernel_drops": {
-                "osc": udp_kernel_drops(self._osc),
-                "show_control": udp_kernel_drops(self._show),
+                "osc": inputs["kernel_drops_osc"],
+                "show_control": control["kernel_drops"],
             },
             "latency_us": latency,
             "occluded_markers": occluded,
             "held_bones": flagged,
-            "show_control": {"refused": dict(self._show_counters)},
+            "show_control": {"refused": control["refused"]},
             "record": self.recording.status(),
-            "face": self.face.status() if self.face is not None else None,
+            "face": first.face.status() if first.face is not None else None,
             "validate": self._validate_status(),
-            "capture": self._capture_status(),
+            "capture": self._capture(),
             "props": self.props.status(),  # [[prop]] (live/props.py)
         }
 
-    def _occluded_and_held(self) -> tuple[list[str], list[str]]:
-        """The current performer's occluded rig markers and held bones, from the
-        last frame its (first) pipeline solved."""
-        pipe = next(iter(self._pipelines.values()), None)
-        occluded: list[str] = []
-        flagged: list[str] = []
-        if pipe is not None:
-            seen = getattr(pipe.solver, "_seen", None)  # the construction's markers
-            pts_seen = (
-                seen[: len(self.rig.markers)]
-                if seen is not None
-                else np.isfinite(pipe.pose.marker_residual)  # the fit's
-            )
-            occluded = [
-                m for m, s in zip(self.rig.marker_names, pts_seen, strict=True) if not s
-            ]
-            flags = pipe.pose.bone_flags
-            names = self.rig.bone_names
-            flagged = [b for b, f in zip(names, flags, strict=True) if f & FLAG_HELD]
-        return occluded, flagged
-
     def _validate_status(self) -> dict[str, Any] | None:
-        v = self.validator
+        v = self.performers.first.path.validator
         if v is None:
             return None
         status: dict[str, Any] = v.status()
@@ -123,9 +153,9 @@ class StatusMixin(DaemonState):
         dt = (time.monotonic_ns() - self._window[0]) * 1e-9
         return round((count - self._window[which]) / dt, 2) if dt > 0 else 0.0
 
-    def stats_line(self) -> str:
+    def line(self) -> str:
         """The periodic one-line health summary."""
-        s = self.status()
+        s = self.document()
         lat = s["latency_us"]
         drops = {
             **s["drops"]["osc"],
@@ -145,8 +175,12 @@ class StatusMixin(DaemonState):
             f"{len(s['occluded_markers'])} held {len(s['held_bones'])}"
             f" | kernel_drops {sum(v for v in s['kernel_drops'].values() if v)}"
             + capture_stats(s["capture"])
-            + self.performers_line(s["performers"])
-            + ("" if s["calibrated"] or self._multi else " | NOT CALIBRATED")
+            + self.performers.line(s["performers"])
+            + (
+                ""
+                if s["calibrated"] or self.performers.several
+                else " | NOT CALIBRATED"
+            )
             + (
                 f" | REC {s['record']['path']} dropped {s['record']['dropped']}"
                 if s["record"]["active"]
@@ -165,6 +199,9 @@ class StatusMixin(DaemonState):
                 else ""
             )
         )
+
+
+NOT_CALIBRATED = " | NOT CALIBRATED"
 
 
 def _unobserved(face: dict[str, Any]) -> str:

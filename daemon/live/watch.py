@@ -167,6 +167,13 @@ class SocketWatch:
         if w is not None:
             self._drain(w, now_ns, DRAIN_MAX)
 
+    def drain_ready(self, events: list[tuple[Any, int]], now_ns: int) -> None:
+        """:meth:`drain` every socket of a poll result (the monitors among them)."""
+        for sock, _flags in events:
+            w = self._by_monitor.get(sock)
+            if w is not None:
+                self._drain(w, now_ns, DRAIN_MAX)
+
     def tick(self, now_ns: int) -> None:
         """During an episode, every :data:`EPISODE_CHECK_NS`: read the paused monitors;
         none failing any more ends the episode (call it every loop pass)."""

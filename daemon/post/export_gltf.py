@@ -1,7 +1,7 @@
 """A solved take as glTF 2.0 binary: every frame, or the keys of a reduction.
 
 The calibrated skeleton is a glTF **skin** (:mod:`retargetd.replay.gltf`): one joint
-node per bone (as :mod:`retargetd.daemon.target.bvh`: the calibration pose is the rest
+node per bone (as :mod:`retargetd.daemon.retarget.bvh`: the calibration pose is the rest
 pose and the bind pose, bone lengths fixed), under a scene root node ``world`` that
 turns our +Z-up world into glTF's +Y up (:data:`GLTF_FROM_WORLD_QUAT`, the same axes
 as the BVH export: world +Z -> +Y, world -Y -> +Z):

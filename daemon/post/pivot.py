@@ -250,7 +250,7 @@ def pivot_chains(
     Args:
         glob: (T, J', 4) float64 (w, x, y, z) world rotations of the target joints,
             the mapped ones set; the chains' joints are written.
-        chains: from :func:`retargetd.daemon.target.bvh_retarget.spread_chains`.
+        chains: from :func:`retargetd.daemon.retarget.bvh_retarget.spread_chains`.
         limit_deg: the most rotation per joint about x and z, degrees.
 
     Returns:
@@ -342,7 +342,7 @@ class SpinePivot:
     """Per-frame target stage: a target's Spine, Chest and UpperChest from the solved
     lumbar-to-thorax rotation by the shifting pivot (``[target] spine = "pivot"``).
 
-    On a retargeted frame (``retargetd.daemon.target.retarget``: world deltas since
+    On a retargeted frame (``retargetd.daemon.retarget.retarget``: world deltas since
     calibration ``E_h = G_h ⊗ conj(T_h)``, rotations relative to rest along world axes
     ``L_h = conj(E_parent) ⊗ E_h``), the group is the whole bend from the Hips to the
     highest spine bone the rig solves (the thorax on the shipped rigs: ``Q =

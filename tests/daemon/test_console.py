@@ -307,8 +307,8 @@ def test_humanoid_posed_on_the_console_thread_matches_the_target() -> None:
     target's own (``target.retarget.joint_positions_world``) on a real solve."""
     from retargetd.daemon.console.snapshot import humanoid_positions
     from retargetd.daemon.live.console_feed import _layout
-    from retargetd.daemon.target.retarget import Retargeter, joint_positions_world
-    from retargetd.daemon.target.skeleton import default_humanoid
+    from retargetd.daemon.retarget.retarget import Retargeter, joint_positions_world
+    from retargetd.daemon.retarget.skeleton import default_humanoid
 
     take = synthesize(seconds=2.0, rate_hz=60.0, seed=1)
     rig = load_rig("menache")

@@ -160,7 +160,7 @@ def test_live_console_calibrate_and_skeleton(
             (docs / "console-live.png").write_bytes(
                 (tmp_path / "live-console.png").read_bytes()
             )
-        pipe = next(iter(live.daemon._pipelines.values()))
+        pipe = next(iter(live.daemon.performers.first.path.pipelines.values()))
         joints = pipe.pose.joint_centres
         names = pipe.solver.joint_names
         mids = []
@@ -183,7 +183,7 @@ def test_live_console_calibrate_and_skeleton(
         assert inside.sum() >= 4 and hits.mean() >= 0.6, (hits, px)
         # The retargeted humanoid beside it: the target's own forward kinematics of
         # the daemon's retargeted pose, shifted by the layout's offset.
-        from retargetd.daemon.target.retarget import joint_positions_world
+        from retargetd.daemon.retarget.retarget import joint_positions_world
 
         layout = feed.slot.layout
         assert len(layout.humanoid_pairs) == len(live.daemon.target.bone_names) - 1

@@ -21,7 +21,7 @@ from retargetd.daemon.body.calibration import Calibration, calibrate, load_calib
 from retargetd.daemon.body.rig import load_rig
 from retargetd.daemon.body.solve import BodySolve, BodySolver
 from retargetd.daemon.cli.main import main
-from retargetd.daemon.target.bvh import (
+from retargetd.daemon.retarget.bvh import (
     BVH_CM_PER_M,
     BVH_FROM_WORLD,
     posed_bone_origins,

@@ -129,7 +129,7 @@ def test_a_frame_allocates_nothing_beyond_the_kernels(
             _wake(daemon)
         solved_before = daemon.stats.frames_solved
         assert solved_before >= WARM_FRAMES - 1
-        pipe = next(iter(daemon._pipelines.values()))
+        pipe = next(iter(daemon.performers.first.path.pipelines.values()))
         frame = (
             daemon.osc_stream.current.frame
             if transport == "osc"

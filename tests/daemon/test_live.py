@@ -9,7 +9,7 @@ The performer is the synthetic one wearing ``tests/data/synth-exact-markers.toml
 solved with ``tests/data/synth-exact-rig.toml`` (every bone rigid on one segment, so
 the solve is exact and poses can be worked by hand).
 
-Hand-worked Unity quaternions (``tests/daemon/test_target.py`` derives them; Unity
+Hand-worked Unity quaternions (``tests/daemon/test_retarget.py`` derives them; Unity
 ``(w, -M v)`` with M: world (x, y, z) -> Unity (x, z, y)), for a performer calibrated in
 the T-pose facing world +Y like the target (heading identity):
 
@@ -80,7 +80,7 @@ from retargetd.daemon.cli.ctl import request
 from retargetd.daemon.cli.main import build_parser
 from retargetd.daemon.cli.main import main as cli_main
 from retargetd.daemon.live.emit import emit_frame
-from retargetd.daemon.target.retarget import default_humanoid
+from retargetd.daemon.retarget.retarget import default_humanoid
 from retargetd.protocols import engine_unity, osc_in, pose_stream, vmc_out, zmq_wire
 from retargetd.protocols.marker_input import LabelSet
 
@@ -128,7 +128,7 @@ def test_stream_vmc_and_pose_stream_match_the_solver(
     assert live.daemon.status()["calibrated"]
     # The frames went through the emit kernel's compiled function, past numba's
     # dispatcher (EmitPlan.call; the bytes checked below are what it wrote).
-    (pipe,) = live.daemon._pipelines.values()
+    (pipe,) = live.daemon.performers.first.path.pipelines.values()
     assert pipe.emit is not None and pipe.emit.call is not emit_frame
     assert any(line.startswith("fps in") for line in live.lines)
 

@@ -20,7 +20,7 @@ from retargetd.daemon.live.emit import (
     EmitPlan,
     emit_frame,
 )
-from retargetd.daemon.target.retarget import Retargeter, default_humanoid
+from retargetd.daemon.retarget.retarget import Retargeter, default_humanoid
 from retargetd.protocols import engine_unity, pose_stream
 from retargetd.protocols.vmc_out import VmcEncoder
 from retargetd.replay.takes import load_take

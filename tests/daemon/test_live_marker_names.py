@@ -24,7 +24,7 @@ from retargetd.daemon.body.rig import load_rig
 from retargetd.daemon.cli.main import main
 from retargetd.daemon.live.config import FaceSectionConfig
 from retargetd.daemon.live.face import LiveFace
-from retargetd.daemon.live.sources import CaptureInput, CaptureMixin
+from retargetd.daemon.live.sources import CaptureInput, CaptureSource
 from retargetd.replay.takes import load_take
 
 OPENSIM_STATIC = "opensim-core/subject01_static.trc"
@@ -53,11 +53,12 @@ def test_capture_label_check_knows_the_rigs_labels_not_its_names() -> None:
     labels = (*_opensim_labels(), "ghost")
     said: list[str] = []
     state = SimpleNamespace(
-        performers=[SimpleNamespace(prefix="", rig=rig)], out=said.append
+        performers=SimpleNamespace(all=[SimpleNamespace(prefix="", rig=rig)]),
+        out=said.append,
     )
     cap = CaptureInput(system="qtm", url="qtm://127.0.0.1", form=0, inp=None)
     stream = SimpleNamespace(label_set=SimpleNamespace(labels=labels))
-    CaptureMixin._check_capture_labels(state, cap, stream)  # type: ignore[arg-type]
+    CaptureSource._check_capture_labels(state, cap, stream)  # type: ignore[arg-type]
     cols = set(match_markers(rig, labels))
     want = tuple(lb for i, lb in enumerate(labels) if i not in cols)
     assert cap.unknown_labels == want and "ghost" in want

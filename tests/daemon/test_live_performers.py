@@ -137,6 +137,31 @@ def test_each_performer_its_own_rig_face_and_destination(
     assert (one.name, one.prefix, one.face) == ("", "", None)
 
 
+def test_one_performer_reads_the_stream_itself_several_read_views() -> None:
+    """One performer is the N = 1 case of many, on the same path
+    (``Performer.frame_of``): the one performer of ``[performer]`` reads each input's
+    stream itself (nothing copied, its pipelines keyed by the stream); a performer
+    of several reads its view, and none when a frame has none of its markers."""
+    stream = MarkerStream(LabelSet(1, ("A:X", "B:X", "A:Y")))
+    (one,) = build_performers(DaemonConfig.from_dict({}))
+    assert one.key_of(stream) == 0  # not read yet
+    assert one.frame_of(stream, "osc") is stream
+    assert one.key_of(stream) == id(stream)
+    c = DaemonConfig.from_dict(
+        _doc(
+            {"name": "A", "rig": str(EXACT_RIG), "vmc": "127.0.0.1:40001"},
+            {"name": "B", "rig": str(EXACT_RIG), "vmc": "127.0.0.1:40002"},
+        )
+    )
+    a, b = build_performers(c)
+    view = a.frame_of(stream, "osc")
+    assert isinstance(view, StreamView) and view.current.label_set.labels == ("X", "Y")
+    assert a.key_of(stream) == id(view)  # its pipelines are keyed by its view
+    assert b.frame_of(stream, "osc").current.label_set.labels == ("X",)
+    stream.current = type(stream.current).create(LabelSet(2, ("B:X",)))
+    assert a.frame_of(stream, "osc") is None  # none of A's markers in this frame
+
+
 def test_run_rig_and_calibration_flags_refused_with_performer_tables(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -585,7 +610,9 @@ def test_behind_each_input_keeps_its_own_latest_with_several_performers(
                 assert time.monotonic() < deadline, "frames did not arrive"
                 events = d._poller.poll(20)
                 ready = {sock for sock, _ in events}
-                if d._zin in ready and d._osc is not None and d._osc.fileno() in ready:
+                inputs = d.inputs
+                osc = inputs.osc
+                if inputs.zin in ready and osc is not None and osc.fileno() in ready:
                     break
             d._service(events)
         s = d.status()

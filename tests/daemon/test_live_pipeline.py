@@ -43,8 +43,8 @@ from retargetd.daemon.live.config import ConfigError, DaemonConfig
 from retargetd.daemon.live.config_schema import TargetConfig
 from retargetd.daemon.live.loop import Daemon
 from retargetd.daemon.post.interp import resample
+from retargetd.daemon.retarget.bvh import world_from_parent_chain
 from retargetd.daemon.rotations import quat_angle, quat_conj, quat_mul
-from retargetd.daemon.target.bvh import world_from_parent_chain
 from retargetd.protocols import engine_unity, zmq_wire
 from retargetd.protocols.marker_input import LabelSet
 
@@ -216,7 +216,7 @@ def test_reload_picks_up_changed_stages(
             return str(d.reload())
 
         def solve_one() -> tuple[str, ...]:
-            pipe = d._build_pipeline(labels, with_face=False)
+            pipe = d.performers.first.path.build_pipeline(labels, with_face=False)
             assert pipe.post is not None
             return pipe.post.stage_names
 
@@ -237,7 +237,7 @@ def test_reload_picks_up_changed_stages(
         # Stages removed: none built.
         path.write_text(path.read_text().split("[[pipeline]]")[0])
         assert "pipeline" not in reload()
-        pipe = d._build_pipeline(labels, with_face=False)
+        pipe = d.performers.first.path.build_pipeline(labels, with_face=False)
         assert pipe.post is None
     finally:
         d.close()

@@ -145,7 +145,7 @@ def test_a_reload_rebuilds_the_solver_off_the_loop_while_the_old_one_solves(
         _ctl(d, {"cmd": "record", "action": "start", "path": "r.mcap"})
         _frames(d, src, 5)
         assert d.stats.pipeline_builds == 1  # the stream's first: in the loop
-        (key, old), = d._pipelines.items()  # fmt: skip
+        (key, old), = d.performers.first.path.pipelines.items()  # fmt: skip
         out = d.stats.frames_out
         assert "reloaded rig" in _ctl(d, {"cmd": "reload"})["message"]
         _frames(d, src, 20)
@@ -153,7 +153,10 @@ def test_a_reload_rebuilds_the_solver_off_the_loop_while_the_old_one_solves(
         # solved and sent by the old pipeline: before, the reload dropped the
         # pipelines and the next frame rebuilt one in the loop.
         assert begun == [1]
-        assert d._pipelines[key] is old and d.stats.pipeline_builds == 1
+        assert (
+            d.performers.first.path.pipelines[key] is old
+            and d.stats.pipeline_builds == 1
+        )
         assert d.stats.frames_out == out + 20 and _accounted(d)
         assert old.built_for[1] is not d.calibration  # the reload's is new
         gate.set()
@@ -163,11 +166,11 @@ def test_a_reload_rebuilds_the_solver_off_the_loop_while_the_old_one_solves(
             time.sleep(0.01)
             _frames(d, src, 1)
         swap_rx = d.osc_stream.current.frame.t_ns  # the frame that took it
-        new = d._pipelines[key]
+        new = d.performers.first.path.pipelines[key]
         assert new is not old and new.built_for == (d.rig, d.calibration)
         assert new.rebuild is None and begun == [1] and _accounted(d)
         _frames(d, src, 3)
-        assert d._pipelines[key] is new  # swapped once, kept
+        assert d.performers.first.path.pipelines[key] is new  # swapped once, kept
         _ctl(d, {"cmd": "record", "action": "stop"})
         deadline = time.monotonic() + 30.0
         while d.recording.status()["finishing"]:
@@ -213,13 +216,13 @@ def test_a_slow_phase_is_counted_by_name_in_status(
     daemon: Daemon, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     d = daemon
-    real = d._control
+    real = d.control._control
 
-    def slow(req: dict[str, Any]) -> dict[str, Any]:
+    def slow(req: dict[str, Any], perf: Any) -> dict[str, Any]:
         time.sleep(2 * STALL_NS * 1e-9)  # never returns early
-        return real(req)
+        return real(req, perf)
 
-    monkeypatch.setattr(d, "_control", slow)
+    monkeypatch.setattr(d.control, "_control", slow)
     req = zmq.Context.instance().socket(zmq.REQ)
     req.setsockopt(zmq.LINGER, 0)
     req.connect(d.endpoints["control"].split()[0])

@@ -243,10 +243,10 @@ def test_marker_inputs_off_loopback_without_keys_print_one_warning_each(
     keys: Path,
 ) -> None:
     # Taken as off loopback without binding anything but 127.0.0.1.
-    from retargetd.daemon.live import loop
+    from retargetd.daemon.live import inputs
 
-    monkeypatch.setattr(loop, "is_loopback_host", lambda host: False)
-    monkeypatch.setattr(loop, "endpoint_is_local", lambda ep: False)
+    monkeypatch.setattr(inputs, "is_loopback_host", lambda host: False)
+    monkeypatch.setattr(inputs, "endpoint_is_local", lambda ep: False)
     live = start_daemon()
     warnings = [ln for ln in live.lines if ln.startswith("warning")]
     assert len(warnings) == 2, warnings

@@ -19,8 +19,8 @@ from scipy.spatial.transform import Rotation
 
 from retargetd.daemon.cli.main import main
 from retargetd.daemon.post.pivot import ShiftingPivot
-from retargetd.daemon.target.bvh_retarget import rig_bone_humanoid_map
-from retargetd.daemon.target.skeleton import DEFAULT_BVH_NAME_MAP
+from retargetd.daemon.retarget.bvh_retarget import rig_bone_humanoid_map
+from retargetd.daemon.retarget.skeleton import DEFAULT_BVH_NAME_MAP
 from retargetd.replay.bvh import (
     BvhSkeleton,
     bvh_motion,

@@ -127,7 +127,7 @@ def test_calibrate_exec_while_walking_is_refused_and_the_file_kept(
     show.sendto(_osc("/VMC/Ext/Set/Calib/Exec"), live.udp("show control"))
     _wait_until(
         lambda: sum("calibrating over" in ln for ln in live.lines) == 2,
-        f"the second request ({live.lines}, {live.daemon._show_counters})",
+        f"the second request ({live.lines}, {live.daemon.control.show_counters})",
     )
     _send_still(src, 25)
     _wait_until(
@@ -161,7 +161,7 @@ def test_calibrate_arguments_are_checked_and_the_count_bounded(
     assert not live.daemon.status()["calibrating"]
     reply = live.ctl({"cmd": "calibrate", "count": CALIBRATE_MAX_FRAMES})
     assert reply["ok"], reply
-    assert live.daemon._calib_target == CALIBRATE_MAX_FRAMES
+    assert live.daemon.performers.first.calib.target == CALIBRATE_MAX_FRAMES
 
 
 def test_calibrate_off_on_show_control_but_on_for_ctl(

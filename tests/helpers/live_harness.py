@@ -35,8 +35,8 @@ from retargetd.daemon.body.solve import BodySolver
 from retargetd.daemon.cli.ctl import request
 from retargetd.daemon.live.config import DaemonConfig
 from retargetd.daemon.live.loop import Daemon
+from retargetd.daemon.retarget.retarget import Retargeter, default_humanoid
 from retargetd.daemon.synth import performer as pf
-from retargetd.daemon.target.retarget import Retargeter, default_humanoid
 from retargetd.protocols import osc_in, pose_stream, vmc_out
 from retargetd.protocols.marker_input import LabelSet
 

@@ -8,8 +8,8 @@ import numpy as np
 from retargetd.daemon import rotations as rot
 from retargetd.daemon.body.kernel import FLAG_HELD
 from retargetd.daemon.body.solve import BodyPose
-from retargetd.daemon.target.kernel import FLAG_SOURCE_HELD
-from retargetd.daemon.target.retarget import Retargeter, TargetPose
+from retargetd.daemon.retarget.kernel import FLAG_SOURCE_HELD
+from retargetd.daemon.retarget.retarget import Retargeter, TargetPose
 from retargetd.protocols.frames import F64Array
 
 _IDENTITY = np.array([1.0, 0.0, 0.0, 0.0])

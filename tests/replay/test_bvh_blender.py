@@ -29,8 +29,12 @@ from retargetd.daemon.body.calibration import load_calibration
 from retargetd.daemon.body.rig import load_rig
 from retargetd.daemon.body.solve import BodySolver
 from retargetd.daemon.cli.main import main
+from retargetd.daemon.retarget.bvh import (
+    BVH_CM_PER_M,
+    BVH_FROM_WORLD,
+    posed_bone_origins,
+)
 from retargetd.daemon.rotations import quat_rotate
-from retargetd.daemon.target.bvh import BVH_CM_PER_M, BVH_FROM_WORLD, posed_bone_origins
 from retargetd.replay.bvh import read_bvh_hierarchy
 from retargetd.replay.takes import load_take
 

@@ -17,7 +17,7 @@ from retargetd.daemon.post.export_gltf import (
     write_reduced_glb,
 )
 from retargetd.daemon.post.reduce import reduce_clip
-from retargetd.daemon.target.bvh import posed_bone_origins
+from retargetd.daemon.retarget.bvh import posed_bone_origins
 from retargetd.protocols.conventions import world_from_capture_mat
 
 #: float32 storage: a unit quaternion's components are rounded by <= 2^-24, which

@@ -47,7 +47,7 @@ from retargetd.daemon.post.export_gltf import (
     node_names,
     write_clip_glb,
 )
-from retargetd.daemon.target.bvh import posed_bone_origins
+from retargetd.daemon.retarget.bvh import posed_bone_origins
 from retargetd.replay.gltf_mesh import capsule_mesh
 
 MAX_ANGLE_DEG = 0.1

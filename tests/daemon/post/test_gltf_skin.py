@@ -32,7 +32,7 @@ from retargetd.daemon.post.export_gltf import (
     write_reduced_glb,
 )
 from retargetd.daemon.post.reduce import reduce_clip
-from retargetd.daemon.target.bvh import posed_bone_origins
+from retargetd.daemon.retarget.bvh import posed_bone_origins
 from retargetd.replay.gltf_mesh import capsule_mesh
 
 MAX_VERTEX_MM = 0.01

@@ -16,7 +16,7 @@ from retargetd.daemon.post.pivot import (
     distribute,
     shifting_pivot,
 )
-from retargetd.daemon.target.skeleton import default_humanoid
+from retargetd.daemon.retarget.skeleton import default_humanoid
 
 
 @pytest.mark.parametrize("sign", [1.0, -1.0])

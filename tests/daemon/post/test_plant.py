@@ -17,7 +17,7 @@ import pytest
 
 from retargetd.daemon import rotations as rot
 from retargetd.daemon.post.plant import PLANT, FootPlant, foot_points
-from retargetd.daemon.target.retarget import default_humanoid, joint_positions_world
+from retargetd.daemon.retarget.retarget import default_humanoid, joint_positions_world
 from retargetd.protocols.pose_stream import FRAME_PLANT_UNREACHED
 
 RATE_HZ = 120.0

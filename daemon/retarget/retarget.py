@@ -58,7 +58,7 @@ child joint, or the tip for a leaf, at rest, world axes).
 
 Everything is in the internal world (+Z up, metres); ``protocols/engine_unity``
 converts for VMC. :meth:`Retargeter.apply` is one call of the compiled kernel
-(``retargetd.daemon.target.kernel``) and allocates nothing in steady state; the numpy
+(``retargetd.daemon.retarget.kernel``) and allocates nothing in steady state; the numpy
 version it replaced is the tests' oracle (``tests/helpers/retarget_oracle.py``).
 """
 
@@ -75,9 +75,9 @@ from retargetd.daemon.body.calibration import Calibration, check_calibration_fit
 from retargetd.daemon.body.rig import HUMANOID_BONES, Rig
 from retargetd.daemon.body.solve import BodyPose
 from retargetd.daemon.body.solve import warm_up as warm_up_body
-from retargetd.daemon.target import kernel as kt
-from retargetd.daemon.target.kernel import FLAG_FILLED
-from retargetd.daemon.target.skeleton import (
+from retargetd.daemon.retarget import kernel as kt
+from retargetd.daemon.retarget.kernel import FLAG_FILLED
+from retargetd.daemon.retarget.skeleton import (
     _UP,
     CHAIN_CHILD,
     CMU_BVH_NAME_MAP,

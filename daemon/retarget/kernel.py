@@ -1,8 +1,8 @@
 """The compiled per-frame retarget kernel (numba): ``Retargeter.apply`` in one call.
 
-``retargetd.daemon.target.retarget`` flattens a rig + calibration + target into a small
-"program" once (:class:`~.retarget.Retargeter`); the kernel walks it
-once per frame with scalar loops and no allocation (notation: the ``target`` module
+``retargetd.daemon.retarget.retarget`` flattens a rig + calibration + target into a
+small "program" once (:class:`~.retarget.Retargeter`); the kernel walks it
+once per frame with scalar loops and no allocation (notation: the ``retarget`` module
 docstring):
 
 1. mapped bones: ``E_h = W_b(t) ⊗ K_h``;

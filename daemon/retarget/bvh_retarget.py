@@ -45,7 +45,7 @@ are not written.
 Joint names (:func:`match_joints`): an explicit map first (``--map FILE.toml``,
 ``[joints]`` table ``"source name" = "target name"``), then equal names (ignoring a
 ``prefix:``), then both names through the humanoid bone maps (the BVH maps of
-:mod:`retargetd.daemon.target.skeleton` and the shipped rigs' bone names).
+:mod:`retargetd.daemon.retarget.skeleton` and the shipped rigs' bone names).
 """
 
 from __future__ import annotations
@@ -60,7 +60,7 @@ import numpy as np
 
 from retargetd.daemon import rotations as rot
 from retargetd.daemon.body.rig import load_rig, shipped_rigs
-from retargetd.daemon.target.skeleton import CMU_BVH_NAME_MAP, DEFAULT_BVH_NAME_MAP
+from retargetd.daemon.retarget.skeleton import CMU_BVH_NAME_MAP, DEFAULT_BVH_NAME_MAP
 from retargetd.protocols.frames import F64Array
 from retargetd.replay.bvh import (
     BvhSkeleton,

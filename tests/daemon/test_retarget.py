@@ -33,9 +33,9 @@ from retargetd.daemon.body.calibration import Calibration, calibrate
 from retargetd.daemon.body.kernel import FLAG_HELD
 from retargetd.daemon.body.rig import HUMANOID_BONES, Bone, Rig, load_rig
 from retargetd.daemon.body.solve import BodyPose, BodySolver
+from retargetd.daemon.retarget import retarget as tg
+from retargetd.daemon.retarget.kernel import FLAG_FILLED, FLAG_SOURCE_HELD
 from retargetd.daemon.synth import performer as pf
-from retargetd.daemon.target import retarget as tg
-from retargetd.daemon.target.kernel import FLAG_FILLED, FLAG_SOURCE_HELD
 from retargetd.protocols import engine_unity
 from retargetd.protocols.conventions import world_from_capture_mat
 from retargetd.protocols.humanoid import HUMANOID_PARENTS
@@ -492,8 +492,8 @@ def test_compiled_apply_equals_numpy_oracle_on_menache(synth: pf.SynthTake) -> N
 
 
 def test_warm_up_loads_the_retarget_kernel(hand: tuple) -> None:
-    from retargetd.daemon.target import kernel as kernel_target
-    from retargetd.daemon.target.retarget import warm_up
+    from retargetd.daemon.retarget import kernel as kernel_target
+    from retargetd.daemon.retarget.retarget import warm_up
 
     warm_up()
     signatures = list(kernel_target.retarget_one.signatures)

@@ -1,0 +1,3 @@
+"""``retargetd.daemon.retarget.retarget``: the target side: the target skeleton and name
+maps, the retargeter and its compiled kernel, and BVH export.
+"""

@@ -1,3 +1,0 @@
-"""``retargetd.daemon.target.retarget``: the target side: the target skeleton and name
-maps, the retargeter and its compiled kernel, and BVH export.
-"""
