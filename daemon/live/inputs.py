@@ -102,24 +102,8 @@ class Inputs:
         simple_labels = (
             LabelSet(0, osc_cfg.labels) if osc_cfg.form == "simple" else None
         )
-        self.osc_stream = MarkerStream(
-            simple_labels,
-            osc_cfg.up,
-            osc_cfg.units,
-            max_rate_hz=osc_cfg.max_rate_hz,
-            max_markers=osc_cfg.max_markers,
-            zero_is_occluded=osc_cfg.zero_is_occluded,
-            max_coordinate_m=osc_cfg.max_coordinate_m,
-        )
-        self.zmq_stream = MarkerStream(
-            None,
-            zmq_cfg.up,
-            zmq_cfg.units,
-            max_rate_hz=zmq_cfg.max_rate_hz,
-            max_markers=zmq_cfg.max_markers,
-            zero_is_occluded=zmq_cfg.zero_is_occluded,
-            max_coordinate_m=zmq_cfg.max_coordinate_m,
-        )
+        self.osc_stream = _stream(simple_labels, osc_cfg)
+        self.zmq_stream = _stream(None, zmq_cfg)
         self.osc: socket.socket | None = None
         self.zin: zmq.Socket[bytes] | None = None
         self._zmon: zmq.Socket[bytes] | None = None  # the input's disconnect events
@@ -518,3 +502,17 @@ def last_endpoint(sock: Any) -> str:
 
 _CONFLICTING = REASON_INDEX["conflicting_labels"]
 _TOO_MANY = REASON_INDEX["too_many_markers"]
+
+
+def _stream(labels: LabelSet | None, cfg: Any) -> MarkerStream:
+    """An input's marker stream, as its ``[input.osc]`` / ``[input.zmq]`` table sets
+    it (``labels``: the simple OSC form's fixed set, else None until announced)."""
+    return MarkerStream(
+        labels,
+        cfg.up,
+        cfg.units,
+        max_rate_hz=cfg.max_rate_hz,
+        max_markers=cfg.max_markers,
+        zero_is_occluded=cfg.zero_is_occluded,
+        max_coordinate_m=cfg.max_coordinate_m,
+    )
