@@ -108,6 +108,10 @@ class FacePath:
     def send_vmc_state(self, now_ns: int, calibrating: bool) -> None:
         """No calibration state to tell (no body)."""
 
+    def validation_status(self) -> dict[str, Any] | None:
+        """No body, no validator: None."""
+        return None
+
     def start_validator(self) -> None:
         """No body to validate."""
 
@@ -175,7 +179,7 @@ class FacePath:
         stats.frames_solved += 1
         flags = self.frame_flags
         self.frame_flags = 0
-        if vmc.sock is not None:
+        if vmc.on:
             vmc.send(stage.vmc.encode(stage.face.blend, (solved_ns - sh.t0_ns) * 1e-9))
         if outputs.publishing:
             if solved_ns - self.last_names_ns >= 1_000_000_000:

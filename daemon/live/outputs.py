@@ -47,6 +47,11 @@ class VmcOut:
         self.next_state_ns = 0  # the next "waiting / calibrating" state datagram
         self.state = VmcEncoder(())  # the state datagram (no bones needed)
 
+    @property
+    def on(self) -> bool:
+        """Whether its socket is open ([output.vmc] on and not closed)."""
+        return self.sock is not None
+
     def open(self, allow_broadcast: bool, out: Callable[[str], None]) -> None:
         """Open the socket and connect it; without a route to the host yet (a network
         not up) it stays unconnected and sends with ``sendto``, as the route may

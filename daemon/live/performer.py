@@ -93,9 +93,38 @@ class FramePath(Protocol):
 
     def start_validator(self) -> None: ...
 
+    def validation_status(self) -> dict[str, Any] | None: ...
+
     def close(self) -> None: ...
 
     def occluded_and_held(self) -> tuple[list[str], list[str]]: ...
+
+
+class Calibrating(Protocol):
+    """A performer's live calibration (``calibrate.LiveCalibration``): what the
+    loop and the other parts call on it."""
+
+    id: int  # the last request's id
+    target: int  # frames still wanted (0: nothing pending)
+
+    @property
+    def pending(self) -> bool: ...
+
+    def status(self) -> dict[str, Any]: ...
+
+    def request(
+        self, count: object = None, by: str = "", rom_s: object = None
+    ) -> str: ...
+
+    def request_face(
+        self, name: str, count: int | None = None, by: str = ""
+    ) -> str: ...
+
+    def tick(self, now_ns: int) -> None: ...
+
+    def collect(self, stream: FrameSource) -> None: ...
+
+    def collect_face(self, stream: FrameSource) -> None: ...
 
 
 class _NoPath:
@@ -142,6 +171,9 @@ class _NoPath:
 
     def start_validator(self) -> None:
         pass
+
+    def validation_status(self) -> dict[str, Any] | None:
+        return None
 
     def close(self) -> None:
         pass
@@ -267,6 +299,10 @@ class Performer:
         face: its ``[face]`` settings, or None for no face.
     """
 
+    #: Its live calibration (``calibrate.LiveCalibration``), given by ``Performers``
+    #: right after it is built.
+    calib: Calibrating
+
     def __init__(
         self,
         index: int,
@@ -317,7 +353,6 @@ class Performer:
         # them: ``send.BodyPath`` or ``face_only.FacePath``, and
         # ``calibrate.LiveCalibration``).
         self.path: FramePath = _NO_PATH
-        self.calib: Any = None
 
     def use_calibration(
         self,

@@ -101,9 +101,7 @@ class Performers:
         ps = perf.stats
         if stats.frames_out != out:
             ps.frames_out += 1
-            j = (stats.ring_pos - 1) % stats.rings.shape[1]
-            r = stats.rings
-            ps.record(int(r[0, j]), int(r[1, j]), int(r[2, j]), int(r[3, j]))
+            ps.record(*stats.last())
         elif stats.unsolved != unsolved:
             ps.unsolved += 1
         elif stats.unseen != unseen:
@@ -357,11 +355,7 @@ class Performers:
                     "occluded_markers": occluded,
                     "held_bones": held,
                     "face": perf.face.status() if perf.face is not None else None,
-                    "validate": (
-                        perf.path.validator.status()
-                        if perf.path.validator is not None
-                        else None
-                    ),
+                    "validate": perf.path.validation_status(),
                 }
             )
         return docs

@@ -385,7 +385,7 @@ class BodyPath:
                     self._take_validation_bits(results[n_results - 1])
             flags |= self.validation_bits
         vmc = perf.vmc
-        vmc_on = vmc.sock is not None  # False: [output.vmc] off
+        vmc_on = vmc.on  # False: [output.vmc] off
         publish = outputs.publishing
         if vmc_on:
             what |= DO_VMC
@@ -586,6 +586,12 @@ class BodyPath:
             f"live validator on: MuJoCo model {validator.vm.digest[:12]}, "
             f"queue {v.queue}, frame numbers at {v.rate_hz:g} Hz"
         )
+
+    def validation_status(self) -> dict[str, Any] | None:
+        """The live validator's status (``ctl status``'s ``validate``); None when
+        it is off."""
+        v = self.validator
+        return None if v is None else dict(v.status())
 
     def close(self) -> None:
         """Stop the live validator (idempotent)."""

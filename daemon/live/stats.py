@@ -162,6 +162,12 @@ class LoopStats:
         if self.ring_count < RING:
             self.ring_count += 1
 
+    def last(self) -> tuple[int, ...]:
+        """The stage durations (ns) :meth:`record` stored last, in :data:`STAGES`
+        order (zeros before the first)."""
+        j = (self.ring_pos - 1) % self.rings.shape[1]
+        return tuple(int(d) for d in self.rings[:, j])
+
     def latency_us(self) -> dict[str, tuple[float, float]]:
         """Per stage (p50, p99) in microseconds over the last frames."""
         nan = (float("nan"), float("nan"))

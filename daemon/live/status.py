@@ -135,17 +135,10 @@ class Health:
             "show_control": {"refused": control["refused"]},
             "record": self.recording.status(),
             "face": first.face.status() if first.face is not None else None,
-            "validate": self._validate_status(),
+            "validate": self.performers.first.path.validation_status(),
             "capture": self._capture(),
             "props": self.props.status(),  # [[prop]] (live/props.py)
         }
-
-    def _validate_status(self) -> dict[str, Any] | None:
-        v = self.performers.first.path.validator
-        if v is None:
-            return None
-        status: dict[str, Any] = v.status()
-        return status
 
     def _fps(self, count: int, which: int) -> float:
         """Frames per second since the last stats line (the recent rate, not the
