@@ -280,6 +280,10 @@ class LoopConfig:
     # rounding; a stream faster than 2x this per frame, or whose spacing deviates by
     # half of this on average, is not touched.
     prewarm_ms: float = between(1.5, 0.0, 100.0)
+    # Poll without sleeping from this long before a steady stream's next frame until
+    # this long after it (live/spin.py), 0 = never (the default): for a machine with
+    # a core to spare for the loop; on one whose cores are busy it delays the frame.
+    spin_us: float = between(0.0, 0.0, 10_000.0)
     # A repeated log line (per reason) is printed once, then summarized with its
     # count at most once per this interval (a flood cannot grow the log).
     log_interval_s: float = between(10.0, 0.1, 3600.0)

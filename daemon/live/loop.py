@@ -79,6 +79,7 @@ from retargetd.daemon.live.ratelog import (
 from retargetd.daemon.live.recording import LiveRecording
 from retargetd.daemon.live.shared import Shared
 from retargetd.daemon.live.sources import CaptureSource
+from retargetd.daemon.live.spin import Spin
 from retargetd.daemon.live.stalls import LoopStalls
 from retargetd.daemon.live.stats import LoopStats
 from retargetd.daemon.live.status import Health
@@ -178,6 +179,8 @@ class Daemon:
         budget_ns = int(config.loop.solve_budget_ms * 1e6)  # solve + send
         self._catch_up_ns = budget_ns * len(performers)
         self._prewarm = Prewarm(config.loop.prewarm_ms)
+        spin_us = config.loop.spin_us  # [loop] spin_us: None = off (the default)
+        self._spin = Spin(spin_us) if spin_us > 0.0 else None
         self.shared = Shared(
             config, self.target, self.stats, self.outputs, self.recording,
             self._prewarm, self.out, self.status, self._t0_ns, budget_ns,
@@ -215,7 +218,8 @@ class Daemon:
         # The status document and the stats line, read from the parts' counters.
         self.health = Health(
             self.stats, self.performers, self.inputs, self.recording, self.props,
-            self._watch, self._stalls, self._prewarm, self.endpoints, self._t0_ns,
+            self._watch, self._stalls, self._prewarm, self._spin, self.endpoints,
+            self._t0_ns,
             self.capture.status, self.control.status,
         )  # fmt: skip
         # The console shows the first performer (its buttons act for that one);
@@ -485,6 +489,8 @@ class Daemon:
         self.stats.frames_in += 1
         self.shared.last_frame_ns = t_ns
         self._prewarm.observe(t_ns)
+        if self._spin is not None:
+            self._spin.observe(t_ns)
         stream.current.frame.t_ns = t_ns
         performers = self.performers
         if code == RESTART:
@@ -543,9 +549,15 @@ class Daemon:
             if tick_ns >= 0:  # wake for it (rounded up to the poll's 1 ms)
                 left_ms = -(-(tick_ns - time.monotonic_ns()) // 1_000_000)
                 wait = max(0, min(timeout, left_ms))
-            wait = self._prewarm.wait_ms(stalls.mark(), wait)
+            now = stalls.mark()
+            wait = self._prewarm.wait_ms(now, wait)
+            spin, allow = self._spin, 0
+            if spin is not None:  # [loop] spin_us: wake for the window, spin in it
+                wait, allow = spin.wait_ms(now, wait), spin.allow_ns
             events = self._poller.poll(wait)  # [(socket or fd, flags)]
-            stalls.lap("poll", wait * 1_000_000)  # past its timeout
+            if not events and spin is not None:
+                events = spin.spin(self._poller.poll)
+            stalls.lap("poll", wait * 1_000_000 + allow)  # past its timeout
             if events:
                 self._service(events)  # its phases timed inside
             elif self._prewarm.due(time.monotonic_ns()):

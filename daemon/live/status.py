@@ -17,6 +17,7 @@ from retargetd.daemon.live.prewarm import Prewarm
 from retargetd.daemon.live.props import LiveProps
 from retargetd.daemon.live.recording import LiveRecording
 from retargetd.daemon.live.sources import capture_stats
+from retargetd.daemon.live.spin import Spin, spin_counters
 from retargetd.daemon.live.stalls import LoopStalls
 from retargetd.daemon.live.stats import POST_PREFIX, LoopStats
 from retargetd.daemon.live.watch import SocketWatch
@@ -37,6 +38,7 @@ class Health:
         watch: the bound ZeroMQ sockets' monitors (CURVE refusals, descriptors).
         stalls: the loop's phases over 50 ms.
         prewarm: the fit's warm touches.
+        spin: the loop's spins before a frame (None: ``[loop] spin_us`` off).
         endpoints: what is listening where (``open`` fills it).
         t0_ns: the daemon's start.
         capture: the capture input's status (None: no ``[input] source``).
@@ -54,6 +56,7 @@ class Health:
         watch: SocketWatch,
         stalls: LoopStalls,
         prewarm: Prewarm,
+        spin: Spin | None,
         endpoints: dict[str, str],
         t0_ns: int,
         capture: Callable[[], dict[str, Any] | None],
@@ -67,6 +70,7 @@ class Health:
         self.watch = watch
         self.stalls = stalls
         self.prewarm = prewarm
+        self.spin = spin
         self.endpoints = endpoints
         self.t0_ns = t0_ns
         self._capture = capture
@@ -106,6 +110,8 @@ class Health:
                 **self.stats.counters(),
                 "prewarm": self.prewarm.touches,
                 "prewarm_resets": self.prewarm.resets,  # after a flagged/slow touch
+                # [loop] spin_us: windows spun in, and those a frame ended
+                **spin_counters(self.spin),
                 # markers occluded for a coordinate past max_coordinate_m, all inputs
                 "implausible_markers": inputs["implausible_markers"],
                 # episodes of descriptor exhaustion, and the failed accepts seen

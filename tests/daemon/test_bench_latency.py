@@ -69,3 +69,23 @@ def test_each_case_is_judged_against_its_pair_relay() -> None:
     # only the relays a run needs
     assert bl._baselines(["osc"]) == ["raw", "relay", "relay+", "relay-pub"]
     assert "relay-zmq-pub" in bl._baselines(["osc", "zmq"])
+
+
+def test_the_spin_variant_turns_spin_us_on_and_body_leaves_it_off(
+    tmp_path: Path,
+) -> None:
+    """``+spin`` puts ``[loop] spin_us`` in the daemon's config (a config the daemon
+    reads), ``body`` leaves the default (off)."""
+    import tomllib
+
+    from retargetd.daemon.live.config import DaemonConfig
+
+    bl = bench_module("bench_latency")
+    assert bl._valid_variant("body+spin") and bl._valid_variant("fit+plant+spin")
+    assert not bl._valid_variant("spin")
+    got = {}
+    for variant in ("body", "body+spin"):
+        text = bl._config_toml(tmp_path / "c.json", "osc", 9, variant, tmp_path / "f")
+        loop = tomllib.loads(text)["loop"]  # its [loop], as the daemon reads it
+        got[variant] = DaemonConfig.from_dict({"loop": loop}).loop.spin_us
+    assert got == {"body": 0.0, "body+spin": bl.SPIN_US} and bl.SPIN_US > 0
