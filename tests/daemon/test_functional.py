@@ -123,8 +123,9 @@ def test_rom_places_hip_and_knee_centres_and_knee_axes_near_the_truth() -> None:
     (the synthetic pelvis markers sit where Harrington et al. 2007 put the hip centres;
     22 mm, and the knees 9 mm, before they did); the range of motion brings each centre
     within 10 mm and the hips closer than the base pose, the knee axes within 3 deg
-    (the rig's epicondyle axis: 9 deg). The knees' base-pose centres (4 mm) are already
-    within the tolerance, as close as the range of motion's at 1 mm noise."""
+    (the rig's epicondyle axis: 4 deg, 9 before). The knees' base-pose centres (4 mm)
+    are already within the tolerance, as close as the range of motion's at 1 mm
+    noise."""
     take, base, rom = _calibrations()
     before, after = _centre_errors(take, base), _centre_errors(take, rom)
     moved = {j: f"{1e3 * before[j]:.1f} -> {1e3 * after[j]:.1f}" for j in JOINTS}
