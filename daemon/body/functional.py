@@ -33,7 +33,7 @@ from retargetd.protocols.frames import F64Array
 
 #: The largest predicted standard error (worst direction) a functional estimate may
 #: have and be used, metres: half of the 10 mm issue 29 asks of a hip or knee centre
-#: (the regression it replaces is 22 mm off on the synthetic performer; functional
+#: (the regression it replaces is 15 mm off on the synthetic performer; functional
 #: hip centres beat the predictive ones against roentgen stereophotogrammetry,
 #: Leardini et al. 1999, J Biomech 32:99-103).
 MAX_SE_M = 0.005

@@ -66,7 +66,9 @@ from retargetd.protocols.frames import F64Array
 VERTICAL_KINDS = ("thigh", "shank")
 #: A long axis leaning less than this from upright is taken as upright, degrees: the
 #: lean is read from joint centres a base pose places to 22 mm (hips) and 9 mm (knees)
-#: median on the synthetic performer (issue 29), 31 mm across a 400 mm thigh, 4.4 deg;
+#: median on the synthetic performer (issue 29; 15 and 4 mm since its pelvis markers
+#: follow Harrington et al. 2007: the threshold keeps the larger figures), 31 mm
+#: across a 400 mm thigh, 4.4 deg;
 #: the limit table's margins already allow for a rest pose that far from neutral
 #: (``validate.limits``: 5-10 deg past the literature).
 LEAN_MIN_DEG = 4.4

@@ -119,17 +119,23 @@ def test_estimators_recover_a_known_centre_and_axis() -> None:
 
 
 def test_rom_places_hip_and_knee_centres_and_knee_axes_near_the_truth() -> None:
-    """The issue's numbers: the base pose's regression leaves the hips 22 mm and the
-    knees 9 mm off; the range of motion brings each within 10 mm, the knee axes
-    within 3 deg (the rig's epicondyle axis: 9 deg)."""
+    """The base pose's regression (Plug-in Gait's Davis hip) leaves the hips 15 mm off
+    (the synthetic pelvis markers sit where Harrington et al. 2007 put the hip centres;
+    22 mm, and the knees 9 mm, before they did); the range of motion brings each centre
+    within 10 mm and the hips closer than the base pose, the knee axes within 3 deg
+    (the rig's epicondyle axis: 4 deg, 9 before). The knees' base-pose centres (4 mm)
+    are already within the tolerance, as close as the range of motion's at 1 mm
+    noise."""
     take, base, rom = _calibrations()
     before, after = _centre_errors(take, base), _centre_errors(take, rom)
     moved = {j: f"{1e3 * before[j]:.1f} -> {1e3 * after[j]:.1f}" for j in JOINTS}
     print("median centre error (mm), base pose -> rom:", moved)
     for j in JOINTS:
         assert after[j] <= CENTRE_TOL_M, (j, after[j])
+    for j in ("LHJC", "RHJC"):
         assert after[j] < before[j], (j, before[j], after[j])
-    assert min(before["LHJC"], before["RHJC"]) > 0.015  # the regression's error shows
+    # the regression's error shows: past the tolerance the range of motion meets
+    assert min(before["LHJC"], before["RHJC"]) > CENTRE_TOL_M
     joints = rom.functional["joints"]
     rig = load_rig("plug-in-gait")
     for bone in ("llowerleg", "rlowerleg"):

@@ -100,7 +100,8 @@ def test_menache_and_plug_in_gait_labels() -> None:
     assert seg["RIELBOW"] == seg["REELBOW"] == "r_upper_arm"
     assert seg["LIKNEE"] == seg["LEKNEE"] == "l_thigh"
     assert seg["LANKLE"] == "l_shank" and seg["LHEEL"] == seg["LFOOT"] == "l_foot"
-    assert seg["LTOE"] == "l_toes" and seg["LHIP"] == seg["SACRUM"] == "pelvis"
+    # TOE over the 2nd metatarsal head: the foot segment (the rig has no toes bone).
+    assert seg["LTOE"] == "l_foot" and seg["LHIP"] == seg["SACRUM"] == "pelvis"
 
 
 def test_load_markerset_by_path_and_errors(tmp_path: Path) -> None:
