@@ -17,6 +17,8 @@ pose is back within 0.25 s of the intact solve."""
 
 from __future__ import annotations
 
+import itertools
+
 import pytest
 from bench_scripts import bench_module
 from paths import require, require_datasets
@@ -77,3 +79,14 @@ def test_soak_with_faults() -> None:
     assert solved == a["frames_solved"], replay
     assert replay["unseen_solved"] == result["counters"]["unseen"], replay
     assert replay["ok"], replay
+
+
+def test_the_walk_plays_forward_then_backward_without_a_jump() -> None:
+    """The soak's source never jumps from the take's end to its start (a teleport
+    every loop that disturbs the recovery check's second solver as well)."""
+    soak = bench_module("soak")
+    rows = [soak.walk_row(k, 5) for k in range(20)]
+    assert rows[:10] == [0, 1, 2, 3, 4, 3, 2, 1, 0, 1]
+    steps = [abs(a - b) for a, b in itertools.pairwise(rows)]
+    assert max(steps) == 1 and set(rows) == set(range(5))
+    assert soak.walk_row(7, 1) == 0
