@@ -339,6 +339,7 @@ class Daemon:
             self._announce("console", f"{url} (browser; buttons act like ctl)")
         self._warm_up()
         self.performers.start_validators()
+        self.performers.prepare_streams()  # configured labels: pipelines built now
         # Everything built so far lives as long as the daemon: keep it out of the
         # garbage collector's full passes (one took ~50 ms here, holding the GIL).
         gc.collect()
@@ -560,6 +561,7 @@ class Daemon:
                     stalls.lap("console")
             performers.tick_calibrations(now)  # a pending one's timeout
             stalls.lap("calibration")
+            self.control.tick()  # a reload's files read: swapped in, answered
             performers.tick_sends(now)  # VMC state before a calibration, ticks due
             self._log.flush(now)
             self._watch.tick(now)  # descriptor exhaustion: its end, once

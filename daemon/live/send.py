@@ -26,8 +26,14 @@ from retargetd.daemon.live.emit import (
 )
 from retargetd.daemon.live.outputs import VMC_STATE_INTERVAL_NS
 from retargetd.daemon.live.performer import FrameSource, Performer
-from retargetd.daemon.live.pipeline import Pipeline, new_pipeline, warm_up_pipeline
-from retargetd.daemon.live.rebuild import rebuilt_solver
+from retargetd.daemon.live.pipeline import (
+    Pipeline,
+    adopt,
+    new_pipeline,
+    start_build,
+    warm_up_pipeline,
+)
+from retargetd.daemon.live.rebuild import Build, reads_same
 from retargetd.daemon.live.shared import Shared
 from retargetd.daemon.validate.live import LiveValidator
 from retargetd.protocols import pose_stream
@@ -94,6 +100,8 @@ class BodyPath:
         self.shared = shared
         self.pipelines: dict[int, Pipeline] = {}  # id(stream or view) -> Pipeline
         self.labels_of: dict[int, tuple[str, ...]] = {}
+        # id(stream or view) -> its next pipeline, being built off the loop
+        self.builds: dict[int, Build] = {}
         self.last_names_ns = 0  # the names message last sent (again every second)
         self.frame_flags = 0  # set for the next pose (restarted, input dropped)
         # The calibration-match check over the stream's first second
@@ -110,37 +118,108 @@ class BodyPath:
         self.validation_results: list[Any] = []  # reused by drain_results
 
     def pipeline(self, stream: FrameSource) -> Pipeline | None:
-        """The pipeline of ``stream`` for its current label set (built now when
-        there is none yet); None before a calibration."""
+        """The pipeline to solve ``stream``'s current frame with: its own, built for
+        the current label set, rig, calibration and face training set; while that
+        one is built off the loop (``rebuild.py``), the old one if it reads the same
+        markers from this label set; else None (no calibration yet, or nothing that
+        can solve the frame yet: counted unsolved)."""
         perf = self.perf
         if perf.calibration is None:
             return None
         labels = stream.current.label_set.labels
         key = id(stream)
         pipe = self.pipelines.get(key)
-        solver = None
         if pipe is not None and self.labels_of.get(key) == labels:
-            rig, cal = pipe.built_for
-            if rig is perf.rig and cal is perf.calibration:
+            rig, cal, training = pipe.built_for
+            face = perf.face
+            if (
+                rig is perf.rig
+                and cal is perf.calibration
+                and training is (face.training if face is not None else None)
+            ):
                 return pipe
-            # A reload or a new calibration: the old pipeline solves until the new
-            # solver is built off the loop (rebuild.py).
-            config = self.shared.config
-            solver = rebuilt_solver(pipe, perf.rig, perf.calibration, labels,
-                                    config.solve.method,
-                                    config.validate.rate_hz)  # fmt: skip
-            if solver is None:
-                return pipe
-            self.shared.recording.event(
-                "pipeline", received_ns=stream.current.frame.t_ns
-            )
+        job = self._job(key, labels)
+        if job.done():
+            return self._swap(key, job, stream)
+        if pipe is not None and reads_same(self.labels_of[key], labels, pipe.cols):
+            return pipe  # the old pipeline, until the new one is built
+        if self.shared.config.loop.process_every_frame:
+            # Offline replay: every frame solved, none dropped; the loop waits for
+            # the build (latency is not what this mode is for).
+            job.wait()
+            return self._swap(key, job, stream)
+        return None
+
+    def _job(self, key: int, labels: tuple[str, ...]) -> Build:
+        """The build of the pipeline ``key`` for ``labels`` and the performer's rig,
+        calibration and training set now, started now unless one runs for them (one
+        for anything else is forgotten: its result is never used)."""
+        perf = self.perf
+        face = perf.face
+        want = (perf.rig, perf.calibration, face.training if face else None, labels)
+        job = self.builds.get(key)
+        if job is None or not job.wants(want):
+            job = self.builds[key] = start_build(perf, self.shared, labels)
+        return job
+
+    def _swap(self, key: int, job: Build, stream: FrameSource) -> Pipeline:
+        """The built pipeline ``job`` swapped in for ``key`` at ``stream``'s current
+        frame (one replacing another is recorded: a replay resets its solver there;
+        a stream's first starts with its first solved frame); its names are
+        announced with this frame. Raises what the build raised."""
+        del self.builds[key]
+        sh = self.shared
+        pipe = adopt(job.take(), sh)
+        frame = stream.current.frame
+        if key in self.pipelines:
+            sh.recording.event("pipeline", received_ns=frame.t_ns)
         self.last_names_ns = 0  # new names: announce them with the next frame
-        pipe = new_pipeline(perf, self.shared, labels, solver=solver)
-        self.shared.stats.pipeline_builds += 1
+        sh.stats.pipeline_builds += 1
         self.pipelines[key] = pipe
-        self.labels_of[key] = labels
-        self.shared.prewarm.register((id(perf), key), pipe.solver, stream.current.frame)
+        self.labels_of[key] = job.want[3]
+        sh.prewarm.register((id(self.perf), key), pipe.solver, frame)
         return pipe
+
+    def prepare(self, key: int, labels: tuple[str, ...]) -> None:
+        """A stream (or view) ``key`` took a label set, ``labels`` being this
+        performer's of it: its pipeline's build starts now (off the loop), so its
+        first frames find it built, or nearly."""
+        if self.perf.calibration is None or not labels:
+            return
+        if key in self.pipelines and self.labels_of.get(key) == labels:
+            rig, cal, _ = self.pipelines[key].built_for
+            if rig is self.perf.rig and cal is self.perf.calibration:
+                return  # (the training set's change is caught by the next frame)
+        self._job(key, labels)
+
+    def ready(self, key: int, labels: tuple[str, ...]) -> bool:
+        """Whether a frame of ``labels`` on ``key`` would now be solved by its own
+        pipeline (built, or its build done; no calibration: nothing to build).
+        Reads only (tests call it from another thread)."""
+        perf = self.perf
+        if perf.calibration is None:
+            return True
+        face = perf.face
+        want = (perf.rig, perf.calibration, face.training if face else None, labels)
+        pipe = self.pipelines.get(key)
+        if (
+            pipe is not None
+            and self.labels_of.get(key) == labels
+            and all(a is b for a, b in zip(pipe.built_for, want, strict=False))
+        ):
+            return True
+        job = self.builds.get(key)
+        return job is not None and job.wants(want) and job.done()
+
+    def done_building(self, timeout_s: float) -> bool:
+        """Wait until every build under way has ended (tests, which drive the loop
+        one wake-up at a time, and need a deterministic point where the next frame
+        is solved by the new pipeline); False if ``timeout_s`` passed first."""
+        deadline = time.monotonic() + timeout_s
+        for job in list(self.builds.values()):
+            if not job.wait(max(0.0, deadline - time.monotonic())):
+                return False
+        return True
 
     def warm_up(self) -> None:
         """Every stage run once on a throwaway pipeline (``warm_up_pipeline``)."""
@@ -148,19 +227,18 @@ class BodyPath:
         warm_up_pipeline(self.perf, self.shared)
 
     def rebuild(self, labels: tuple[str, ...], sources: list[FrameSource]) -> None:
-        """The face's training set changed: every pipeline goes, and those of the
-        sources now carrying ``labels`` are built at once (off the next frame)."""
-        self.pipelines.clear()
-        self.labels_of.clear()
+        """The face's training set changed: as :meth:`renew` (the training set is
+        part of what a pipeline is built for)."""
         self.renew(labels, sources)
 
     def renew(self, labels: tuple[str, ...], sources: list[FrameSource]) -> None:
-        """The rig or calibration changed: each stream's new body solver is built off
-        the loop from now (rebuild.py), its old pipeline solving meanwhile; a stream
-        of ``sources`` carrying ``labels`` without one gets it built now."""
+        """The rig, calibration or face training set changed: the new pipeline of
+        each of the ``sources`` carrying ``labels`` is built off the loop from now
+        (``rebuild.py``), its old one solving meanwhile; the other streams' when
+        their next frame comes."""
         for s in sources:
             if s.current.label_set.labels == labels:
-                self.pipeline(s)
+                self._job(id(s), labels)
 
     def restart(self, key: int) -> None:
         """The source of the pipeline ``key`` restarted: it starts over."""
@@ -182,15 +260,17 @@ class BodyPath:
     def process(self, stream: FrameSource, received_ns: int) -> None:
         """Solve ``stream``'s current frame (received at ``received_ns``), post-process,
         retarget, encode and send it."""
-        # The clock starts before the pipeline lookup: a pipeline built here (the
-        # first frame after a new label set) shows its cost in this frame's solve
-        # stage and overrun check, not hidden before it.
+        # The clock starts before the pipeline lookup: a pipeline swapped in here
+        # shows its cost in this frame's solve stage and overrun check.
         t_start = time.monotonic_ns()
         sh, perf = self.shared, self.perf
         stats = sh.stats
         pipe = self.pipeline(stream)
-        if pipe is None:  # no calibration yet: counted, never silent
+        if pipe is None:  # no calibration, or no pipeline built yet: counted
             stats.unsolved += 1
+            if perf.calibration is not None:  # its pipeline being built (rebuild.py)
+                stats.unsolved_building += 1
+                self.frame_flags |= pose_stream.FRAME_INPUT_DROPPED
             if perf.console is not None:  # the markers, for the base pose
                 perf.console.publish_markers(
                     t_start, stream.current.frame, stream.current.label_set.labels,

@@ -105,6 +105,16 @@ def _frames(d: Daemon, src: _Source, n: int) -> None:
             _wake(d)
 
 
+def _first_pipeline(d: Daemon, src: _Source) -> None:
+    """One frame (its label set taken: the build started), every build under way
+    waited for, and one more frame, which swaps the built pipeline in."""
+    _frames(d, src, 1)
+    assert d.performers.done_building(60.0), "the pipeline was never built"
+    builds = d.stats.pipeline_builds
+    _frames(d, src, 1)
+    assert d.stats.pipeline_builds == builds + 1
+
+
 def _ctl(d: Daemon, req: dict[str, Any]) -> dict[str, Any]:
     time.sleep(0.02)  # past control.min_interval_s since the last reload
     reply = d.control_reply([json.dumps(req).encode()])
@@ -142,9 +152,12 @@ def test_a_reload_rebuilds_the_solver_off_the_loop_while_the_old_one_solves(
     d, (gate, begun) = daemon, gated_builds
     src = _Source(d)
     try:
+        gate.set()  # the stream's first pipeline, built off the loop too
+        _first_pipeline(d, src)
+        gate.clear()
         _ctl(d, {"cmd": "record", "action": "start", "path": "r.mcap"})
         _frames(d, src, 5)
-        assert d.stats.pipeline_builds == 1  # the stream's first: in the loop
+        assert d.stats.pipeline_builds == 1
         (key, old), = d.performers.first.path.pipelines.items()  # fmt: skip
         out = d.stats.frames_out
         assert "reloaded rig" in _ctl(d, {"cmd": "reload"})["message"]
@@ -152,7 +165,7 @@ def test_a_reload_rebuilds_the_solver_off_the_loop_while_the_old_one_solves(
         # The build runs (on the worker, held at the gate) while every frame is
         # solved and sent by the old pipeline: before, the reload dropped the
         # pipelines and the next frame rebuilt one in the loop.
-        assert begun == [1]
+        assert begun == [1, 1]
         assert (
             d.performers.first.path.pipelines[key] is old
             and d.stats.pipeline_builds == 1
@@ -167,8 +180,9 @@ def test_a_reload_rebuilds_the_solver_off_the_loop_while_the_old_one_solves(
             _frames(d, src, 1)
         swap_rx = d.osc_stream.current.frame.t_ns  # the frame that took it
         new = d.performers.first.path.pipelines[key]
-        assert new is not old and new.built_for == (d.rig, d.calibration)
-        assert new.rebuild is None and begun == [1] and _accounted(d)
+        assert new is not old and new.built_for == (d.rig, d.calibration, None)
+        assert not d.performers.first.path.builds and begun == [1, 1]
+        assert _accounted(d)
         _frames(d, src, 3)
         assert d.performers.first.path.pipelines[key] is new  # swapped once, kept
         _ctl(d, {"cmd": "record", "action": "stop"})
@@ -196,6 +210,7 @@ def test_a_reload_of_unchanged_files_parses_and_rebuilds_nothing(
     gate.set()
     src = _Source(d)
     try:
+        _first_pipeline(d, src)
         _frames(d, src, 3)
         _ctl(d, {"cmd": "reload"})  # the first reload reads the files
         rig, cal = d.rig, d.calibration
@@ -206,7 +221,8 @@ def test_a_reload_of_unchanged_files_parses_and_rebuilds_nothing(
         msg = _ctl(d, {"cmd": "reload"})["message"]
         assert "unchanged" not in msg and d.rig is not rig, msg
         _frames(d, src, 1)
-        assert len(begun) == 1  # the pipeline's rebuild for the newest rig only
+        # the first pipeline's build, and the rebuild for the newest rig only
+        assert len(begun) == 2
     finally:
         src.sock.close()
 
