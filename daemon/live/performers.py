@@ -14,9 +14,7 @@ calibrate --performer NAME``), which may be left out when there is only one.
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
-import hashlib
 import logging
 import math
 import time
@@ -24,7 +22,6 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from retargetd.daemon.files import MAX_TEXT_BYTES
 from retargetd.daemon.live.calibrate import LiveCalibration
 from retargetd.daemon.live.face_only import FacePath
 from retargetd.daemon.live.performer import FrameSource, Performer
@@ -475,17 +472,3 @@ _NOT_PREPARED: Any = object()
 
 def _round(value: float) -> float | None:
     return round(value, 1) if math.isfinite(value) else None
-
-
-def files_digest(*paths: Any) -> bytes:
-    """SHA-256 over the bytes of every file named (a shipped rig's name, an empty or
-    None path, and a file that cannot be read count as their names: the reload that
-    follows then parses and says what is wrong)."""
-    h = hashlib.sha256()
-    for p in paths:
-        h.update(str(p).encode() + b"\0")
-        with contextlib.suppress(OSError, ValueError):
-            if p and Path(p).is_file():  # (at most MAX_TEXT_BYTES: as the readers)
-                with open(p, "rb") as fh:
-                    h.update(fh.read(MAX_TEXT_BYTES + 1))
-    return h.digest()

@@ -15,6 +15,8 @@ meanwhile), show control's and the console's outcome is printed then.
 
 from __future__ import annotations
 
+import contextlib
+import hashlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -22,6 +24,7 @@ from typing import Any
 from retargetd.daemon.body.calibration import load_calibration
 from retargetd.daemon.body.rig import load_rig
 from retargetd.daemon.body.solve import BodySolver
+from retargetd.daemon.files import MAX_TEXT_BYTES
 from retargetd.daemon.live.config import DaemonConfig, check_pipeline
 from retargetd.daemon.post.pivot import spine_stage
 
@@ -68,8 +71,6 @@ def read_files(
         One result per request: unchanged, refused with the reason, or the new rig,
         calibration and stages.
     """
-    from retargetd.daemon.live.performers import files_digest  # (no import cycle)
-
     stages: Any = None
     out = []
     for req in requests:
@@ -97,3 +98,17 @@ def read_files(
             continue
         out.append(ReloadResult(digest=digest, rig=rig, calibration=cal, stages=stages))
     return tuple(out)
+
+
+def files_digest(*paths: Any) -> bytes:
+    """SHA-256 over the bytes of every file named (a shipped rig's name, an empty or
+    None path, and a file that cannot be read count as their names: the reload that
+    follows then parses and says what is wrong)."""
+    h = hashlib.sha256()
+    for p in paths:
+        h.update(str(p).encode() + b"\0")
+        with contextlib.suppress(OSError, ValueError):
+            if p and Path(p).is_file():  # (at most MAX_TEXT_BYTES: as the readers)
+                with open(p, "rb") as fh:
+                    h.update(fh.read(MAX_TEXT_BYTES + 1))
+    return h.digest()

@@ -26,14 +26,8 @@ from retargetd.daemon.live.emit import (
 )
 from retargetd.daemon.live.outputs import VMC_STATE_INTERVAL_NS
 from retargetd.daemon.live.performer import FrameSource, Performer
-from retargetd.daemon.live.pipeline import (
-    Pipeline,
-    adopt,
-    new_pipeline,
-    start_build,
-    warm_up_pipeline,
-)
-from retargetd.daemon.live.rebuild import Build, reads_same
+from retargetd.daemon.live.pipeline import Pipeline, new_pipeline, warm_up_pipeline
+from retargetd.daemon.live.pipelines import Pipelines
 from retargetd.daemon.live.shared import Shared
 from retargetd.daemon.validate.live import LiveValidator
 from retargetd.protocols import pose_stream
@@ -98,10 +92,12 @@ class BodyPath:
     def __init__(self, perf: Performer, shared: Shared) -> None:
         self.perf = perf
         self.shared = shared
-        self.pipelines: dict[int, Pipeline] = {}  # id(stream or view) -> Pipeline
-        self.labels_of: dict[int, tuple[str, ...]] = {}
-        # id(stream or view) -> its next pipeline, being built off the loop
-        self.builds: dict[int, Build] = {}
+        # Its pipeline per stream or view, each built off the loop (pipelines.py);
+        # the dicts are the store's own, read here.
+        self.store = Pipelines(perf, shared, self.announce_names)
+        self.pipelines = self.store.pipelines  # id(stream or view) -> Pipeline
+        self.labels_of = self.store.labels_of
+        self.builds = self.store.builds  # id(stream or view) -> its next, building
         self.last_names_ns = 0  # the names message last sent (again every second)
         self.frame_flags = 0  # set for the next pose (restarted, input dropped)
         # The calibration-match check over the stream's first second
@@ -118,108 +114,23 @@ class BodyPath:
         self.validation_results: list[Any] = []  # reused by drain_results
 
     def pipeline(self, stream: FrameSource) -> Pipeline | None:
-        """The pipeline to solve ``stream``'s current frame with: its own, built for
-        the current label set, rig, calibration and face training set; while that
-        one is built off the loop (``rebuild.py``), the old one if it reads the same
-        markers from this label set; else None (no calibration yet, or nothing that
-        can solve the frame yet: counted unsolved)."""
-        perf = self.perf
-        if perf.calibration is None:
-            return None
-        labels = stream.current.label_set.labels
-        key = id(stream)
-        pipe = self.pipelines.get(key)
-        if pipe is not None and self.labels_of.get(key) == labels:
-            rig, cal, training = pipe.built_for
-            face = perf.face
-            if (
-                rig is perf.rig
-                and cal is perf.calibration
-                and training is (face.training if face is not None else None)
-            ):
-                return pipe
-        job = self._job(key, labels)
-        if job.done():
-            return self._swap(key, job, stream)
-        if pipe is not None and reads_same(self.labels_of[key], labels, pipe.cols):
-            return pipe  # the old pipeline, until the new one is built
-        if self.shared.config.loop.process_every_frame:
-            # Offline replay: every frame solved, none dropped; the loop waits for
-            # the build (latency is not what this mode is for).
-            job.wait()
-            return self._swap(key, job, stream)
-        return None
-
-    def _job(self, key: int, labels: tuple[str, ...]) -> Build:
-        """The build of the pipeline ``key`` for ``labels`` and the performer's rig,
-        calibration and training set now, started now unless one runs for them (one
-        for anything else is forgotten: its result is never used)."""
-        perf = self.perf
-        face = perf.face
-        want = (perf.rig, perf.calibration, face.training if face else None, labels)
-        job = self.builds.get(key)
-        if job is None or not job.wants(want):
-            job = self.builds[key] = start_build(perf, self.shared, labels)
-        return job
-
-    def _swap(self, key: int, job: Build, stream: FrameSource) -> Pipeline:
-        """The built pipeline ``job`` swapped in for ``key`` at ``stream``'s current
-        frame (one replacing another is recorded: a replay resets its solver there;
-        a stream's first starts with its first solved frame); its names are
-        announced with this frame. Raises what the build raised."""
-        del self.builds[key]
-        sh = self.shared
-        pipe = adopt(job.take(), sh)
-        frame = stream.current.frame
-        if key in self.pipelines:
-            sh.recording.event("pipeline", received_ns=frame.t_ns)
-        self.last_names_ns = 0  # new names: announce them with the next frame
-        sh.stats.pipeline_builds += 1
-        self.pipelines[key] = pipe
-        self.labels_of[key] = job.want[3]
-        sh.prewarm.register((id(self.perf), key), pipe.solver, frame)
-        return pipe
+        """The pipeline to solve ``stream``'s current frame with, or None
+        (``pipelines.Pipelines.for_frame``)."""
+        return self.store.for_frame(stream)
 
     def prepare(self, key: int, labels: tuple[str, ...]) -> None:
-        """A stream (or view) ``key`` took a label set, ``labels`` being this
-        performer's of it: its pipeline's build starts now (off the loop), so its
-        first frames find it built, or nearly."""
-        if self.perf.calibration is None or not labels:
-            return
-        if key in self.pipelines and self.labels_of.get(key) == labels:
-            rig, cal, _ = self.pipelines[key].built_for
-            if rig is self.perf.rig and cal is self.perf.calibration:
-                return  # (the training set's change is caught by the next frame)
-        self._job(key, labels)
+        """A stream (or view) ``key`` took a label set: its pipeline's build starts
+        now, off the loop (``pipelines.Pipelines.prepare``)."""
+        self.store.prepare(key, labels)
 
     def ready(self, key: int, labels: tuple[str, ...]) -> bool:
-        """Whether a frame of ``labels`` on ``key`` would now be solved by its own
-        pipeline (built, or its build done; no calibration: nothing to build).
-        Reads only (tests call it from another thread)."""
-        perf = self.perf
-        if perf.calibration is None:
-            return True
-        face = perf.face
-        want = (perf.rig, perf.calibration, face.training if face else None, labels)
-        pipe = self.pipelines.get(key)
-        if (
-            pipe is not None
-            and self.labels_of.get(key) == labels
-            and all(a is b for a, b in zip(pipe.built_for, want, strict=False))
-        ):
-            return True
-        job = self.builds.get(key)
-        return job is not None and job.wants(want) and job.done()
+        """Whether a frame of ``labels`` on ``key`` would be solved by its own
+        pipeline now (``pipelines.Pipelines.ready``; tests)."""
+        return self.store.ready(key, labels)
 
     def done_building(self, timeout_s: float) -> bool:
-        """Wait until every build under way has ended (tests, which drive the loop
-        one wake-up at a time, and need a deterministic point where the next frame
-        is solved by the new pipeline); False if ``timeout_s`` passed first."""
-        deadline = time.monotonic() + timeout_s
-        for job in list(self.builds.values()):
-            if not job.wait(max(0.0, deadline - time.monotonic())):
-                return False
-        return True
+        """Wait for every build under way (``pipelines.Pipelines``; tests)."""
+        return self.store.done_building(timeout_s)
 
     def warm_up(self) -> None:
         """Every stage run once on a throwaway pipeline (``warm_up_pipeline``)."""
@@ -229,16 +140,12 @@ class BodyPath:
     def rebuild(self, labels: tuple[str, ...], sources: list[FrameSource]) -> None:
         """The face's training set changed: as :meth:`renew` (the training set is
         part of what a pipeline is built for)."""
-        self.renew(labels, sources)
+        self.store.renew(labels, sources)
 
     def renew(self, labels: tuple[str, ...], sources: list[FrameSource]) -> None:
-        """The rig, calibration or face training set changed: the new pipeline of
-        each of the ``sources`` carrying ``labels`` is built off the loop from now
-        (``rebuild.py``), its old one solving meanwhile; the other streams' when
-        their next frame comes."""
-        for s in sources:
-            if s.current.label_set.labels == labels:
-                self._job(id(s), labels)
+        """The rig, calibration or face training set changed: the new pipelines
+        are built off the loop from now (``pipelines.Pipelines.renew``)."""
+        self.store.renew(labels, sources)
 
     def restart(self, key: int) -> None:
         """The source of the pipeline ``key`` restarted: it starts over."""
