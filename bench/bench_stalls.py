@@ -17,8 +17,10 @@ is sent the walk at 240 Hz over OSC; at set times the driver
 - ``face``: ``ctl face-capture neutral --count 24`` (a new training set; face on only).
 
 Per event it prints the longest gap between two poses at a SUB on the pose stream in
-the 2 s after the event (``first``: from the announcement to the first pose) and the
-loop stalls (phases over 50 ms, ``stalls.py``) counted in that window; at the end the
+the 2 s after the event (``first``: from the announcement to the first pose), the
+sender's own longest gap there (the bench process not scheduled: a pose gap that long
+is the source's) and the loop stalls (phases over 50 ms, ``stalls.py``) counted in
+that window; at the end the
 daemon's ``loop_stalls`` and the median and p99 of the pose intervals over the run.
 With ``--baseline DIR`` (a folder holding ``retargetd/{daemon,protocols,replay}``, as
 ``PYTHONPATH`` would name it: another tree, e.g. ``git archive`` of main) the same run
@@ -73,6 +75,7 @@ class _Sender(threading.Thread):
         self.label_set = LabelSet(1, tuple(walk.labels))
         self.cols = np.arange(len(walk.labels))
         self.streaming = threading.Event()
+        self.sent: list[float] = []  # each frame's send time (monotonic s)
 
     def announce(self, label_set: Any) -> None:
         from retargetd.protocols import osc_in
@@ -94,6 +97,7 @@ class _Sender(threading.Thread):
             row[cols < 0] = np.nan  # a marker the walk lacks: occluded
             data = osc_in.encode_compact_frame(i, i / RATE_HZ, self.label_set.id, row)
             self.sock.sendto(data, self.addr)
+            self.sent.append(time.monotonic())
             i += 1
             wait = t0 + i / RATE_HZ - time.monotonic()
             if wait > 0:
@@ -106,7 +110,7 @@ class _Sub(threading.Thread):
     def __init__(self, endpoint: str) -> None:
         super().__init__(name="bench-stalls-sub", daemon=True)
         self.sock = zmq.Context.instance().socket(zmq.SUB)
-        self.sock.setsockopt(zmq.SUBSCRIBE, b"RTD0")  # data messages only
+        self.sock.setsockopt(zmq.SUBSCRIBE, b"RTDP")  # pose data messages only
         self.sock.setsockopt(zmq.RCVHWM, 100_000)
         self.sock.setsockopt(zmq.LINGER, 0)
         self.sock.connect(endpoint)
@@ -209,8 +213,13 @@ def _drive(
     sender.join(5.0)
     sub.join(5.0)
     times = np.asarray(sub.times)
-    gaps = {}
+    sent = np.asarray(sender.sent)
+    gaps, source = {}, {}
     for name, t in at.items():
+        # the sender's own longest gap in the window (the bench process not
+        # scheduled: a pose gap that long is the source's, not the daemon's)
+        d_sent = np.diff(sent[(sent > t - 1.0) & (sent < t + WINDOW_S)])
+        source[name] = float(d_sent.max()) if len(d_sent) else float("nan")
         # from the last pose before the event to the last within the window
         inside = times[(times > t - 1.0) & (times < t + WINDOW_S)]
         if name == "first":  # from the announcement to the first pose
@@ -222,6 +231,7 @@ def _drive(
     steady = np.diff(times[times > at["first"] + 0.5]) if len(times) else np.zeros(0)
     return {
         "gaps_s": gaps,
+        "source_gaps_s": source,
         "interval_ms": (
             float(np.median(steady) * 1e3),
             float(np.percentile(steady, 99) * 1e3),
@@ -239,7 +249,8 @@ def _drive(
 
 def _line(tag: str, r: dict[str, Any]) -> str:
     gaps = ", ".join(
-        f"{k} {v * 1e3:.0f} ms ({r['stalls_by_event'].get(k, 0)} stalls)"
+        f"{k} {v * 1e3:.0f} ms ({r['stalls_by_event'].get(k, 0)} stalls; source's "
+        f"{r['source_gaps_s'][k] * 1e3:.0f} ms)"
         for k, v in r["gaps_s"].items()
     )
     med, p99 = r["interval_ms"]
