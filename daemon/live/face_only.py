@@ -187,9 +187,13 @@ class FacePath:
             self.stages.pop(key, None)
             return None
         job = self._job(key, labels)
-        if not job.done() and self.shared.config.loop.process_every_frame:
-            job.wait()  # offline replay: every frame solved (as send.BodyPath)
-        if job.done():
+        if self.shared.config.loop.process_every_frame:  # offline replay: every
+            if job is None:  # frame solved (as pipelines.Pipelines)
+                self.builds[key].wait()
+                job = self._job(key, labels)
+            if job is not None:
+                job.wait()
+        if job is not None and job.done():
             del self.builds[key]
             stage = self.stages[key] = job.take()
             self.shared.stats.pipeline_builds += 1
@@ -199,14 +203,17 @@ class FacePath:
             return stage  # the old stage, until the new one is built
         return None
 
-    def _job(self, key: int, labels: tuple[str, ...]) -> Build:
-        """The build of ``key``'s stage for ``labels`` and the training set now,
-        started unless one runs for them."""
+    def _job(self, key: int, labels: tuple[str, ...]) -> Build | None:
+        """The build of ``key``'s stage for ``labels`` and the training set now:
+        the one under way, else one started now; None while one for anything else
+        still runs (one at a time per stream, as ``pipelines.Pipelines``)."""
         perf = self.perf
         face = perf.face
         assert face is not None and face.training is not None
         want = (face.training, labels)
         job = self.builds.get(key)
+        if job is not None and not job.wants(want) and not job.done():
+            return None
         if job is None or not job.wants(want):
             names_id = self.shared.next_names_id()
             job = self.builds[key] = Build(

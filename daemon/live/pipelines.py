@@ -59,27 +59,37 @@ class Pipelines:
             ):
                 return pipe
         job = self._job(key, labels)
-        if job.done():
+        if job is not None and job.done():
             return self._swap(key, job, stream)
         if pipe is not None and reads_same(self.labels_of[key], labels, pipe.cols):
             return pipe  # the old pipeline, until the new one is built
         if self.shared.config.loop.process_every_frame:
             # Offline replay: every frame solved, none dropped; the loop waits for
-            # the build (latency is not what this mode is for).
+            # the build (latency is not what this mode is for), after the one that
+            # runs for something else, if any.
+            if job is None:
+                self.builds[key].wait()
+                job = self._job(key, labels)
+                assert job is not None
             job.wait()
             return self._swap(key, job, stream)
         return None
 
-    def _job(self, key: int, labels: tuple[str, ...]) -> Build:
+    def _job(self, key: int, labels: tuple[str, ...]) -> Build | None:
         """The build of the pipeline ``key`` for ``labels`` and the performer's rig,
-        calibration and training set now, started now unless one runs for them (one
-        for anything else is forgotten: its result is never used)."""
+        calibration and training set now: the one under way for them, else one
+        started now; None while a build for anything else still runs (one build
+        per stream at a time, however fast label sets or reloads come: the one
+        wanted then starts when it ends; its result is never used)."""
         perf = self.perf
         face = perf.face
         want = (perf.rig, perf.calibration, face.training if face else None, labels)
         job = self.builds.get(key)
-        if job is None or not job.wants(want):
-            job = self.builds[key] = start_build(perf, self.shared, labels)
+        if job is not None and job.wants(want):
+            return job
+        if job is not None and not job.done():
+            return None
+        job = self.builds[key] = start_build(perf, self.shared, labels)
         return job
 
     def _swap(self, key: int, job: Build, stream: FrameSource) -> Pipeline:

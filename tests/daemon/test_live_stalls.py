@@ -456,3 +456,36 @@ def test_ctl_reload_reads_its_files_off_the_loop_and_answers_after(
         read_gate.set()
         req.close()
         src.sock.close()
+
+
+@pytest.mark.timeout(120)
+def test_one_build_at_a_time_per_stream_however_fast_label_sets_come(
+    daemon: Daemon, gated_builds: tuple[threading.Event, list[int]]
+) -> None:
+    """Label sets announced faster than a pipeline builds (a sender cycling ids, or
+    a hostile one) start one build per stream at a time, never a thread each: the
+    one wanted last is built when the running one ends, and taken."""
+    d, (gate, begun) = daemon, gated_builds
+    src = _Source(d)
+    path = d.performers.first.path
+    labels = src.take.labels
+    try:
+        gate.set()
+        _first_pipeline(d, src)
+        gate.clear()
+        (key,) = path.pipelines
+        for k in range(1, 6):  # five label sets, each moving every marker
+            src.announce(LabelSet(1 + k, labels[k:] + labels[:k]))
+            _frames(d, src, 2)
+        assert len(begun) == 2  # the first pipeline's, and one held at the gate
+        assert d.status()["pipelines_building"] == 1
+        gate.set()
+        assert d.performers.done_building(60.0)  # the held one (no longer wanted)
+        _frames(d, src, 1)  # starts the build for the labels in use
+        assert d.performers.done_building(60.0)
+        _frames(d, src, 1)
+        assert len(begun) == 3 and path.labels_of[key] == labels[5:] + labels[:5]
+        assert _accounted(d)
+    finally:
+        gate.set()
+        src.sock.close()
