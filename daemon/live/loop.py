@@ -275,7 +275,10 @@ class Daemon:
 
     def reload(self) -> str:
         """Reload every performer's rig and calibration files and the config
-        file's ``[[pipeline]]`` (``Performers.reload``; ValueError: rate limited)."""
+        file's ``[[pipeline]]``, waiting for the worker that reads them
+        (``Performers.reload``: for tests and callers off the loop; ``ctl``, show
+        control and the console go through ``Control.reload_later``, which never
+        waits). ValueError: rate limited."""
         return self.performers.reload()
 
     def status(self) -> dict[str, Any]:
