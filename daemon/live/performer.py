@@ -241,6 +241,10 @@ class StreamView:
             source, index, rows, ViewPacket(MarkerFrame.empty(len(cols)), labels)
         )  # fmt: skip
 
+    def prepared(self, source: LabelSet) -> bool:
+        """Whether the layout of ``source`` is built (reads only)."""
+        return id(source) in self._layouts
+
     def labels_of(self, source: LabelSet) -> tuple[str, ...]:
         """This performer's labels of ``source`` (prefix stripped; its layout built
         now, off the hot path)."""

@@ -169,6 +169,8 @@ class Performers:
                 continue  # not its input
             if view.whole:
                 key, labels = id(stream), label_set.labels
+            elif not view.prepared(label_set):
+                return False  # (its layout is the loop's to build)
             else:
                 key, labels = id(view), view.labels_of(label_set)
             if labels and not perf.path.ready(key, labels):
