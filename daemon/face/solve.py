@@ -299,6 +299,11 @@ class FaceSolver:
         self._head_cols = np.array([col.get(n, -1) for n in t.head_names], np.int64)
         self._face_cols = np.array([col.get(n, -1) for n in t.marker_names], np.int64)
 
+    def columns(self) -> list[int]:
+        """The stream columns it reads: the head's then the facial markers' (-1:
+        not in the stream)."""
+        return [int(c) for c in (*self._head_cols, *self._face_cols)]
+
     def reset(self) -> None:
         """Forget the warm start and the held pose (new take or performer)."""
         self._w_prev[:] = 0.0

@@ -330,8 +330,9 @@ def dispatch(daemon: Any, cmd: Any) -> None:
             msg = daemon._record_control({"cmd": "record", "action": "stop"})
         elif cmd.kind == CMD_FACE_CAPTURE:
             msg = daemon.request_face_capture(cmd.arg or "neutral", None, "console")
-        elif cmd.kind == CMD_RELOAD:
-            msg = daemon.reload()
+        elif cmd.kind == CMD_RELOAD:  # its files read off the loop: printed then
+            daemon.control.reload_later("out")
+            return
         else:
             msg = f"console: unknown command {cmd.kind!r}"
     except (ValueError, TypeError, OSError) as exc:

@@ -34,6 +34,7 @@ from retargetd.daemon.live.performer import Performer
 from retargetd.daemon.live.performers import Performers
 from retargetd.daemon.live.props import LiveProps
 from retargetd.daemon.live.ratelog import RateLimitedLog
+from retargetd.daemon.live.rebuild import Build
 from retargetd.daemon.live.recording import (
     input_infos,
 )
@@ -114,6 +115,12 @@ class Control:
         self._show_fd = -2  # the poll result's fd (set by open)
         self._show_buf = bytearray(65536)  # a show-control datagram
         self.show_counters: dict[str, int] = {}  # refused, by reason
+        # A reload whose files a worker reads (live/reload.py) and who waits for
+        # its outcome: "ctl" (the REP socket's reply, owed until then) or "out"
+        # (show control, the console: printed).
+        self._reload: Build | None = None
+        self._reload_waiters: list[str] = []
+        self._serving = False  # a ctl request from the socket is being answered
 
     @property
     def config(self) -> DaemonConfig:
@@ -183,6 +190,8 @@ class Control:
 
     def _serve_control(self) -> None:
         assert self._ctl is not None
+        if "ctl" in self._reload_waiters:  # a reply owed: no request read before it
+            return
         try:
             # Every part of the request, so the REP socket is always ready to reply
             # (a multipart request read with recv() left it mid-message); as frames,
@@ -196,13 +205,55 @@ class Control:
             reply = self._oversize(size, frames[0])
             phase = "control.oversize"
         else:
-            reply = self.control_reply([f.bytes for f in frames])
+            self._serving = True
+            try:
+                reply = self.control_reply([f.bytes for f in frames])
+            finally:
+                self._serving = False
             phase = _phase(bytes(frames[0].buffer[:64]))
+        if reply is not _LATER:  # (a reload: answered when its files are read)
+            self._send_reply(reply)
+        self._stalls.lap(phase)
+
+    def _send_reply(self, reply: dict[str, Any]) -> None:
+        assert self._ctl is not None
         try:
             self._ctl.send(json.dumps(reply).encode(), zmq.NOBLOCK)
         except zmq.ZMQError as exc:  # the requester vanished: nothing to answer
             logger.warning("control reply not sent: %s", exc)
-        self._stalls.lap(phase)
+
+    def reload_later(self, who: str) -> None:
+        """Start a reload, its files read off the loop (``Performers.begin_reload``),
+        or join the one under way; its outcome goes to ``who`` ("ctl": the reply
+        owed on the control socket; "out": printed) when :meth:`tick` finds it done.
+
+        Raises:
+            ValueError: rate limited (counted).
+        """
+        if self._reload is None:
+            self._reload = self.performers.begin_reload()
+        else:  # the same files being read: the rate limit still applies
+            self.performers.allow_reload()
+        self._reload_waiters.append(who)
+
+    def tick(self) -> None:
+        """Every loop pass: a reload whose files are read is swapped in (or
+        refused) and its outcome answered and printed."""
+        job = self._reload
+        if job is None or not job.done():
+            return
+        self._reload = None
+        msg = self.performers.end_reload(job)
+        ok = "reload failed" not in msg
+        for who in self._reload_waiters:
+            if who == "ctl":
+                if not ok:
+                    self.stats.control_errors += 1
+                self._send_reply({"ok": ok, "message": msg})
+            else:
+                self.out(msg)
+        self._reload_waiters.clear()
+        self._stalls.lap("control.reload")
 
     def _oversize(self, size: int, frame: Any) -> dict[str, Any]:
         """The reply to a request over :data:`CONTROL_MAX_BYTES` (unread): counted in
@@ -295,7 +346,10 @@ class Control:
         if cmd == "reload":
             if not self.config.control.reload:
                 raise ValueError("reload is off on this path (control.reload)")
-            msg = self.performers.reload()
+            if self._serving:  # from the socket: answered when the files are read
+                self.reload_later("ctl")
+                return _LATER
+            msg = self.performers.reload()  # (a direct caller: waits for them)
             return {"ok": "reload failed" not in msg, "message": msg}
         if cmd == "record":
             return {"ok": True, "message": self.record(req)}
@@ -430,7 +484,7 @@ class Control:
                 self._show_refused("reload_off", f"{address}: reload is off", addr)
                 return
             try:
-                self.out(self.performers.reload())
+                self.reload_later("out")  # printed when its files are read
             except ValueError as exc:
                 self._show_refused("rate_limited", f"{address}: {exc}", addr)
         elif self._show_prop_fov(address, args, addr):
@@ -574,6 +628,9 @@ def _osc_messages(packet: bytes, out: list[bytes], depth: int = 0) -> int:
 #: (``stalls.py``): never trusted, the request is parsed as JSON for its answer.
 _CMD = re.compile(rb'"cmd"\s*:\s*"([a-z-]{1,16})"')
 _COMMANDS = ("status", "calibrate", "reload", "record", "face-capture")
+#: ``_control``'s reply to a reload from the socket: none yet (``Control.tick``
+#: answers it once the worker has read the files).
+_LATER: dict[str, Any] = {"ok": True, "later": True}
 
 
 def _phase(head: bytes) -> str:

@@ -172,9 +172,14 @@ class LiveFace:
         except FacialMarkerError:
             return ()
 
-    def stage(self, labels: Sequence[str]) -> FaceStage | None:
-        """The solve stage for a stream (None without a training set)."""
-        t = self.training
+    def stage(
+        self, labels: Sequence[str], training: TrainingSet | None = None
+    ) -> FaceStage | None:
+        """The solve stage for a stream (None without a training set): of
+        ``training`` when given (a build off the loop: the set when it was asked
+        for), else of the current one. Reads only the face config and settings
+        besides, never the capture state: any thread may call it."""
+        t = self.training if training is None else training
         if t is None:
             return None
         head_w = None

@@ -11,7 +11,11 @@ Per frame of its markers: the face stage (``face.FaceStage``, the same solver as
 - VMC: the blendshapes alone (``vmc_out.BlendEncoder``: no Root/Pos, no Bone/Pos).
 
 No training set yet: the frame is counted unsolved, as a body before its calibration.
-A face capture (``ctl face-capture``) works as with a body. ``ctl calibrate`` is
+A face capture (``ctl face-capture``) works as with a body. A stream's stage (its
+solver bound to the labels, its encoders) is built off the loop (``rebuild.py``) for
+each label set and training set: while one is built, the old stage solves if it reads
+the same markers (a new training set, or a label set that keeps them); else the frame
+is counted unsolved. ``ctl calibrate`` is
 refused for it (nothing to calibrate).
 """
 
@@ -26,6 +30,7 @@ import numpy as np
 
 from retargetd.daemon.live.face import FaceStage
 from retargetd.daemon.live.performer import FrameSource, Performer
+from retargetd.daemon.live.rebuild import Build, reads_same
 from retargetd.daemon.live.shared import Shared
 from retargetd.protocols import pose_stream
 from retargetd.protocols.vmc_out import BlendEncoder
@@ -45,6 +50,49 @@ class FaceOnlyStage:
     vmc: BlendEncoder
     no_quat: np.ndarray  # (0, 4)
     no_flags: np.ndarray  # (0,) uint8
+    training: Any = None  # the training set it was built for
+    cols: tuple[int, ...] = ()  # the stream columns it reads (-1: absent)
+
+
+def build_stage(
+    face: Any, labels: tuple[str, ...], training: Any, names_id: int, name: str,
+    index: int, max_datagram: int,
+) -> FaceOnlyStage:  # fmt: skip
+    """A face-only stage for ``labels`` and ``training``, reading only its arguments
+    (any thread may call it: a build off the loop, ``rebuild.py``).
+
+    Args:
+        face: the performer's ``LiveFace`` (its config: ``stage`` reads no state).
+        labels: (M,) the stream's labels.
+        training: the training set to solve with.
+        names_id: its names message's id (taken in the loop).
+        name, index: the performer's name and pose-stream id.
+        max_datagram: its VMC destination's largest datagram, bytes.
+    """
+    stage = face.stage(labels, training)
+    names = pose_stream.PoseNames(
+        rig="", bone_names=(), bone_parents=(), weight_names=stage.weight_names,
+        names_id=names_id, face_markers=stage.marker_names,
+        performer=name, performer_id=index, unobserved=stage.unobserved,
+    )  # fmt: skip
+    return FaceOnlyStage(
+        face=stage,
+        labels=labels,
+        pose_enc=pose_stream.PoseEncoder(
+            0,
+            len(stage.weight_names),
+            names_id=names_id,
+            n_face_markers=len(stage.marker_names),
+            performer=index,
+        ),
+        names_parts=pose_stream.encode_pose_names(names),
+        shape_enc=pose_stream.ShapeStateEncoder(len(stage.weight_names), names_id),
+        vmc=BlendEncoder(stage.output_names, max_datagram),
+        no_quat=np.zeros((0, 4)),
+        no_flags=np.zeros(0, np.uint8),
+        training=training,
+        cols=tuple(stage.solver.columns()),
+    )
 
 
 class FacePath:
@@ -63,6 +111,7 @@ class FacePath:
         self.perf = perf
         self.shared = shared
         self.stages: dict[int, FaceOnlyStage] = {}  # id(stream or view) -> stage
+        self.builds: dict[int, Build] = {}  # its next stage, built off the loop
         self.pipelines: dict[int, Any] = {}  # none: no body
         self.last_names_ns = 0
         self.frame_flags = 0
@@ -93,7 +142,12 @@ class FacePath:
             stage.face.solver.reset()
 
     def rebuild(self, labels: tuple[str, ...], sources: list[FrameSource]) -> None:
-        """Nothing to rebuild (no body pipelines)."""
+        """The face's training set changed: the stages of the ``sources`` carrying
+        ``labels`` are built with it off the loop from now, the old ones solving
+        meanwhile (the others' when their next frame comes)."""
+        for s in sources:
+            if s.current.label_set.labels == labels:
+                self.prepare(id(s), labels)
 
     def renew(self, labels: tuple[str, ...], sources: list[FrameSource]) -> None:
         """Nothing to renew (no body pipelines)."""
@@ -123,42 +177,92 @@ class FacePath:
         return [], []
 
     def _stage(self, stream: FrameSource) -> FaceOnlyStage | None:
-        perf = self.perf
+        """``stream``'s stage for its labels and the face's training set now; while
+        that is built off the loop, the old one when it reads the same markers; else
+        None (no training set, or nothing built that can solve the frame yet)."""
+        face = self.perf.face
+        training = face.training if face is not None else None
         labels = stream.current.label_set.labels
         key = id(stream)
         stage = self.stages.get(key)
-        if stage is not None and stage.labels == labels:
+        if stage is not None and stage.labels == labels and stage.training is training:
             return stage
-        face = perf.face.stage(labels) if perf.face is not None else None
-        if face is None:  # no training set yet
+        if training is None:  # no training set yet
             self.stages.pop(key, None)
             return None
-        names_id = self.shared.next_names_id()
-        self.last_names_ns = 0
-        names = pose_stream.PoseNames(
-            rig="", bone_names=(), bone_parents=(), weight_names=face.weight_names,
-            names_id=names_id, face_markers=face.marker_names,
-            performer=perf.name, performer_id=perf.index, unobserved=face.unobserved,
-        )  # fmt: skip
-        stage = FaceOnlyStage(
-            face=face,
-            labels=labels,
-            pose_enc=pose_stream.PoseEncoder(
-                0,
-                len(face.weight_names),
-                names_id=names_id,
-                n_face_markers=len(face.marker_names),
-                performer=perf.index,
-            ),
-            names_parts=pose_stream.encode_pose_names(names),
-            shape_enc=pose_stream.ShapeStateEncoder(len(face.weight_names), names_id),
-            vmc=BlendEncoder(face.output_names, perf.vmc.max_datagram),
-            no_quat=np.zeros((0, 4)),
-            no_flags=np.zeros(0, np.uint8),
+        job = self._job(key, labels)
+        if self.shared.config.loop.process_every_frame:  # offline replay: every
+            if job is None:  # frame solved (as pipelines.Pipelines)
+                self.builds[key].wait()
+                job = self._job(key, labels)
+            if job is not None:
+                job.wait()
+        if job is not None and job.done():
+            del self.builds[key]
+            stage = self.stages[key] = job.take()
+            self.shared.stats.pipeline_builds += 1
+            self.last_names_ns = 0  # its names go out with this frame
+            return stage
+        if stage is not None and reads_same(stage.labels, labels, stage.cols):
+            return stage  # the old stage, until the new one is built
+        return None
+
+    def _job(self, key: int, labels: tuple[str, ...]) -> Build | None:
+        """The build of ``key``'s stage for ``labels`` and the training set now:
+        the one under way, else one started now; None while one for anything else
+        still runs (one at a time per stream, as ``pipelines.Pipelines``)."""
+        perf = self.perf
+        face = perf.face
+        assert face is not None and face.training is not None
+        want = (face.training, labels)
+        job = self.builds.get(key)
+        if job is not None and not job.wants(want) and not job.done():
+            return None
+        if job is None or not job.wants(want):
+            names_id = self.shared.next_names_id()
+            job = self.builds[key] = Build(
+                want, build_stage, face, labels, face.training, names_id, perf.name,
+                perf.index, perf.vmc.max_datagram,
+            )  # fmt: skip
+        return job
+
+    def prepare(self, key: int, labels: tuple[str, ...]) -> None:
+        """A stream (or view) ``key`` took a label set: its stage's build starts
+        now (off the loop) when there is a training set."""
+        face = self.perf.face
+        if face is None or face.training is None or not labels:
+            return
+        stage = self.stages.get(key)
+        if (
+            stage is None
+            or stage.labels != labels
+            or stage.training is not face.training
+        ):
+            self._job(key, labels)
+
+    def ready(self, key: int, labels: tuple[str, ...]) -> bool:
+        """Whether a frame of ``labels`` on ``key`` would now be solved by its own
+        stage (no training set: nothing to build). Reads only (tests)."""
+        face = self.perf.face
+        if face is None or face.training is None:
+            return True
+        stage = self.stages.get(key)
+        if (
+            stage is not None
+            and stage.labels == labels
+            and stage.training is face.training
+        ):
+            return True
+        job = self.builds.get(key)
+        return job is not None and job.wants((face.training, labels)) and job.done()
+
+    def done_building(self, timeout_s: float) -> bool:
+        """Wait until every build under way has ended (tests); False on timeout."""
+        deadline = time.monotonic() + timeout_s
+        return all(
+            job.wait(max(0.0, deadline - time.monotonic()))
+            for job in list(self.builds.values())
         )
-        self.stages[key] = stage
-        self.shared.stats.pipeline_builds += 1
-        return stage
 
     def process(self, stream: FrameSource, received_ns: int) -> None:
         """The face-only performer's frame: solve, then the pose stream and VMC."""
@@ -168,6 +272,9 @@ class FacePath:
         stats, outputs = sh.stats, sh.outputs
         if stage is None:
             stats.unsolved += 1
+            if self.builds:  # its stage being built (rebuild.py)
+                stats.unsolved_building += 1
+                self.frame_flags |= pose_stream.FRAME_INPUT_DROPPED
             return
         vmc = self.perf.vmc
         frame = stream.current.frame

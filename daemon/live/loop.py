@@ -279,7 +279,10 @@ class Daemon:
 
     def reload(self) -> str:
         """Reload every performer's rig and calibration files and the config
-        file's ``[[pipeline]]`` (``Performers.reload``; ValueError: rate limited)."""
+        file's ``[[pipeline]]``, waiting for the worker that reads them
+        (``Performers.reload``: for tests and callers off the loop; ``ctl``, show
+        control and the console go through ``Control.reload_later``, which never
+        waits). ValueError: rate limited."""
         return self.performers.reload()
 
     def status(self) -> dict[str, Any]:
@@ -343,6 +346,7 @@ class Daemon:
             self._announce("console", f"{url} (browser; buttons act like ctl)")
         self._warm_up()
         self.performers.start_validators()
+        self.performers.prepare_streams()  # configured labels: pipelines built now
         # Everything built so far lives as long as the daemon: keep it out of the
         # garbage collector's full passes (one took ~50 ms here, holding the GIL).
         gc.collect()
@@ -572,6 +576,7 @@ class Daemon:
                     stalls.lap("console")
             performers.tick_calibrations(now)  # a pending one's timeout
             stalls.lap("calibration")
+            self.control.tick()  # a reload's files read: swapped in, answered
             performers.tick_sends(now)  # VMC state before a calibration, ticks due
             self._log.flush(now)
             self._watch.tick(now)  # descriptor exhaustion: its end, once

@@ -65,6 +65,7 @@ class FramePath(Protocol):
     the loop and the other parts call on it."""
 
     pipelines: dict[int, Any]
+    builds: dict[int, Any]  # its next pipelines (or stages), built off the loop
     validator: Any
 
     def process(self, stream: FrameSource, received_ns: int) -> None: ...
@@ -80,6 +81,12 @@ class FramePath(Protocol):
     def warm_up(self) -> None: ...
 
     def restart(self, key: int) -> None: ...
+
+    def prepare(self, key: int, labels: tuple[str, ...]) -> None: ...
+
+    def ready(self, key: int, labels: tuple[str, ...]) -> bool: ...
+
+    def done_building(self, timeout_s: float) -> bool: ...
 
     def rebuild(self, labels: tuple[str, ...], sources: list[FrameSource]) -> None: ...
 
@@ -131,6 +138,7 @@ class _NoPath:
     """The path of a performer before ``Performers`` gives it one."""
 
     pipelines: dict[int, Any] = {}  # noqa: RUF012 (never written)
+    builds: dict[int, Any] = {}  # noqa: RUF012 (never written)
     validator: Any = None
 
     def process(self, stream: FrameSource, received_ns: int) -> None:
@@ -153,6 +161,15 @@ class _NoPath:
 
     def restart(self, key: int) -> None:
         pass
+
+    def prepare(self, key: int, labels: tuple[str, ...]) -> None:
+        pass
+
+    def ready(self, key: int, labels: tuple[str, ...]) -> bool:
+        return True
+
+    def done_building(self, timeout_s: float) -> bool:
+        return True
 
     def rebuild(self, labels: tuple[str, ...], sources: list[FrameSource]) -> None:
         pass
@@ -255,6 +272,16 @@ class StreamView:
         self._layouts[id(source)] = (
             source, index, rows, ViewPacket(MarkerFrame.empty(len(cols)), labels)
         )  # fmt: skip
+
+    def prepared(self, source: LabelSet) -> bool:
+        """Whether the layout of ``source`` is built (reads only)."""
+        return id(source) in self._layouts
+
+    def labels_of(self, source: LabelSet) -> tuple[str, ...]:
+        """This performer's labels of ``source`` (prefix stripped; its layout built
+        now, off the hot path)."""
+        self.prepare(source)
+        return self._layouts[id(source)][3].label_set.labels
 
     def refresh(self) -> bool:
         """Copy this performer's rows of the stream's current frame into
@@ -370,7 +397,8 @@ class Performer:
 
     def use_face(self, labels: tuple[str, ...], sources: list[FrameSource]) -> None:
         """Its face has a new training set: the pipelines of the ``sources``
-        carrying ``labels`` built now with it."""
+        carrying ``labels`` built with it off the loop from now (``rebuild.py``),
+        the old ones solving meanwhile."""
         self.path.rebuild(labels, sources)
 
     @property

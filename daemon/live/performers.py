@@ -14,9 +14,7 @@ calibrate --performer NAME``), which may be left out when there is only one.
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
-import hashlib
 import logging
 import math
 import time
@@ -24,18 +22,14 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from retargetd.daemon.body.calibration import load_calibration
-from retargetd.daemon.body.rig import load_rig
-from retargetd.daemon.body.solve import BodySolver
-from retargetd.daemon.files import MAX_TEXT_BYTES
 from retargetd.daemon.live.calibrate import LiveCalibration
-from retargetd.daemon.live.config import DaemonConfig, check_pipeline
 from retargetd.daemon.live.face_only import FacePath
 from retargetd.daemon.live.performer import FrameSource, Performer
 from retargetd.daemon.live.ratelog import RateLimiter
+from retargetd.daemon.live.rebuild import Build
+from retargetd.daemon.live.reload import ReloadRequest, ReloadResult, read_files
 from retargetd.daemon.live.send import BodyPath
 from retargetd.daemon.live.shared import Shared
-from retargetd.daemon.post.pivot import spine_stage
 from retargetd.protocols.marker_input import LabelSet, MarkerStream
 
 logger = logging.getLogger(__name__)
@@ -137,15 +131,65 @@ class Performers:
             perf.path.flag(bits)
 
     def prepare(self, stream: MarkerStream, label_set: LabelSet) -> None:
-        """A label set was announced: build every performer's column index for it
-        now (off the hot path), so its first frame finds them."""
+        """A label set was taken: build every performer's column index for it now
+        (off the hot path), and start building its pipeline for it off the loop
+        (``rebuild.py``), so its first frames find them."""
         if stream.label_set is not label_set:
             return
         kind = self._kind_of(stream)
         for perf in self.all:
             view = perf.view_of(stream, kind)
-            if view is not None and not view.whole:
-                view.prepare(label_set)
+            if view is None:
+                continue
+            if view.whole:
+                perf.path.prepare(id(stream), label_set.labels)
+            else:
+                perf.path.prepare(id(view), view.labels_of(label_set))
+
+    def prepare_streams(self) -> None:
+        """At the start: :meth:`prepare` each input's configured label set."""
+        for stream in self._streams():
+            if stream.label_set is not None:
+                self.prepare(stream, stream.label_set)
+
+    def ready(self, stream: MarkerStream) -> bool:
+        """Whether the next frame of ``stream``'s label set would be solved by each
+        performer's own pipeline (its build started when the set was taken, and
+        done). Reads only: a test waits on it from another thread."""
+        label_set = stream.label_set
+        if label_set is None:
+            return False
+        for perf in self.all:
+            view = perf.views.get(id(stream), _NOT_PREPARED)
+            if view is _NOT_PREPARED:
+                return False  # the label set not taken yet
+            if view is None:
+                continue  # not its input
+            if view.whole:
+                key, labels = id(stream), label_set.labels
+            elif not view.prepared(label_set):
+                return False  # (its layout is the loop's to build)
+            else:
+                key, labels = id(view), view.labels_of(label_set)
+            if labels and not perf.path.ready(key, labels):
+                return False
+        return True
+
+    def building(self) -> int:
+        """How many pipelines (and face stages) are being built off the loop now
+        (``status``: ``pipelines_building``)."""
+        return sum(
+            not job.done() for perf in self.all for job in perf.path.builds.values()
+        )
+
+    def done_building(self, timeout_s: float = 60.0) -> bool:
+        """Wait until every pipeline build under way has ended (tests that drive
+        the loop one wake-up at a time); False if ``timeout_s`` passed first."""
+        deadline = time.monotonic() + timeout_s
+        return all(
+            perf.path.done_building(max(0.0, deadline - time.monotonic()))
+            for perf in self.all
+        )
 
     def _sources_of(self, perf: Performer) -> Callable[[], list[FrameSource]]:
         """What ``perf`` reads of each input now (where a new calibration's
@@ -226,10 +270,20 @@ class Performers:
 
     def reload(self) -> str:
         """Reload the rig file, the calibration file and the config file's
-        ``[[pipeline]]`` stages from disk (at most once per ``control.min_interval_s``:
-        it blocks the loop while it parses; the body solvers are rebuilt off it,
-        ``rebuild.py``). The other config keys need a restart; a file that no longer
-        validates keeps everything as it was.
+        ``[[pipeline]]`` stages from disk, waiting here for the worker that reads
+        them (:meth:`begin_reload`, :meth:`end_reload`: the loop's own paths, ``ctl``,
+        show control and the console, never wait; this is for tests and callers off
+        the loop). Returns the outcome line.
+
+        Raises:
+            ValueError: rate limited (counted).
+        """
+        job = self.begin_reload()
+        job.wait()
+        return self.end_reload(job)
+
+    def allow_reload(self) -> None:
+        """A reload's turn (at most one per ``control.min_interval_s``).
 
         Raises:
             ValueError: rate limited (counted).
@@ -240,50 +294,83 @@ class Performers:
             raise ValueError(
                 f"rate limited: one reload per {sh.config.control.min_interval_s:g} s"
             )
-        if len(self.all) == 1:
-            return self._reload(self.first)
-        return "; ".join(f"{perf.name}: {self._reload(perf)}" for perf in self.all)
 
-    def _reload(self, perf: Performer) -> str:
-        """Reload ``perf``'s rig and calibration files (files unchanged since the
-        last reload, and the rig and calibration still theirs: nothing to parse or
-        rebuild; parsing them took 40-70 ms of the loop, measured)."""
+    def begin_reload(self) -> Build:
+        """Start a reload: every performer's files read and checked on a worker
+        thread (``reload.read_files``; at most once per ``control.min_interval_s``).
+        The other config keys need a restart. Finish it with :meth:`end_reload`
+        once the job is done.
+
+        Raises:
+            ValueError: rate limited (counted).
+        """
+        self.allow_reload()
         sh = self.shared
-        path = self._config_path
-        files = files_digest(perf.config.rig, perf.config.calibration, path)
-        last = perf.reload_files
-        if (
-            last
-            and last[0] == files
-            and last[1] is perf.rig
-            and last[2] is perf.calibration
-        ):
+        requests = []
+        for perf in self.all:
+            last = perf.reload_files
+            same = (
+                last is not None and last[1] is perf.rig and last[2] is perf.calibration
+            )
+            requests.append(
+                ReloadRequest(
+                    rig_path=perf.config.rig,
+                    calibration_path=perf.config.calibration,
+                    rig=perf.rig,
+                    calibration=perf.calibration,
+                    last_digest=last[0] if same and last is not None else None,
+                )
+            )
+        reqs = tuple(requests)
+        return Build(reqs, read_files, reqs, self._config_path, sh.config, sh.target)
+
+    def end_reload(self, job: Build) -> str:
+        """Swap in what the reload ``job`` (done) read, performer by performer, or
+        keep what runs and say why; returns the outcome line (one per performer
+        with ``[[performer]]`` tables). A file that no longer validates keeps
+        everything as it was."""
+        try:
+            results = job.take()
+        except Exception as exc:  # a fault of ours: answered, logged, never fatal
+            logger.error("reload failed", exc_info=exc)
+            why = f"internal error ({type(exc).__name__}): see the daemon's log"
+            results = [ReloadResult(digest=b"", error=why) for _ in self.all]
+        msgs = [
+            self._apply(perf, req, res)
+            for perf, req, res in zip(self.all, job.want, results, strict=True)
+        ]
+        if len(self.all) == 1:
+            return msgs[0]
+        return "; ".join(f"{p.name}: {m}" for p, m in zip(self.all, msgs, strict=True))
+
+    def _apply(self, perf: Performer, req: ReloadRequest, res: ReloadResult) -> str:
+        """``perf``'s part of a reload: unchanged files (nothing parsed or rebuilt;
+        parsing them took 40-70 ms, measured), refused files, or the new rig,
+        calibration and stages swapped in (its pipelines rebuilt off the loop, the
+        old ones solving meanwhile: ``rebuild.py``)."""
+        sh = self.shared
+        if res.unchanged:
             msg = f"reloaded rig {perf.rig.name}: its files and the config unchanged"
             sh.recording.event("reload", ok=True, message=msg)
             return msg
-        try:
-            rig = load_rig(perf.config.rig)
-            cal = (
-                load_calibration(perf.config.calibration)
-                if perf.config.calibration
-                else perf.calibration
+        error = res.error
+        if not error and (
+            perf.rig is not req.rig or perf.calibration is not req.calibration
+        ):
+            error = (
+                "the rig or calibration changed while the files were read (a live "
+                "calibration): reload again"
             )
-            if cal is not None:
-                BodySolver(rig, cal, ())  # checks the calibration fits the rig
-            stages = sh.config.pipeline
-            if path:  # the file's [[pipeline]] as it is now
-                stages = DaemonConfig.from_toml(path).pipeline
-            check_pipeline(stages, rig, str(path or "config"))
-            spine_stage(sh.config.target, sh.target, rig)  # its spine fits
-        except ValueError as exc:
-            msg = f"reload failed, kept the running rig and calibration: {exc}"
+        if error:
+            msg = f"reload failed, kept the running rig and calibration: {error}"
             sh.recording.event("reload", ok=False, message=msg)
             return msg
+        rig, cal, stages = res.rig, res.calibration, res.stages
         perf.rig, perf.calibration = rig, cal
-        perf.reload_files = (files, rig, cal)
+        perf.reload_files = (res.digest, rig, cal)
         sh.config = dataclasses.replace(sh.config, pipeline=stages)
-        # The pipelines are rebuilt for the new rig and calibration, their body
-        # solvers off the loop (rebuild.py): the old ones solve until then.
+        # The pipelines are rebuilt for the new rig and calibration, off the loop
+        # (rebuild.py): the old ones solve until then.
         sh.stats.set_post_stages(())  # named again as the pipelines are rebuilt
         perf.path.start_validator()
         msg = f"reloaded rig {rig.name}" + (" and calibration" if cal else "")
@@ -375,19 +462,9 @@ class Performers:
         return " | performers " + ", ".join(parts)
 
 
+#: ``Performer.views`` has no entry for a stream (no label set of it taken yet).
+_NOT_PREPARED: Any = object()
+
+
 def _round(value: float) -> float | None:
     return round(value, 1) if math.isfinite(value) else None
-
-
-def files_digest(*paths: Any) -> bytes:
-    """SHA-256 over the bytes of every file named (a shipped rig's name, an empty or
-    None path, and a file that cannot be read count as their names: the reload that
-    follows then parses and says what is wrong)."""
-    h = hashlib.sha256()
-    for p in paths:
-        h.update(str(p).encode() + b"\0")
-        with contextlib.suppress(OSError, ValueError):
-            if p and Path(p).is_file():  # (at most MAX_TEXT_BYTES: as the readers)
-                with open(p, "rb") as fh:
-                    h.update(fh.read(MAX_TEXT_BYTES + 1))
-    return h.digest()

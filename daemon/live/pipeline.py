@@ -1,6 +1,12 @@
 """The pipeline of one performer on one stream (or view): everything that depends on
-(rig, calibration, label set), built off the hot path when one of them changes
-(:func:`new_pipeline`) and reused for every frame (``send.BodyPath``).
+(rig, calibration, face training set, label set), built off the loop when one of them
+changes (:func:`start_build` on a worker thread, ``rebuild.py``) and reused for every
+frame (``send.BodyPath``).
+
+A build reads only its :class:`PipelineSpec`, taken in the loop when it was asked
+for (the performer's rig, calibration and training set, the config, the target, the
+labels and the names id then); the loop's side of a new pipeline (the post stages'
+names in the latency stats) is :func:`adopt`, at the swap.
 """
 
 from __future__ import annotations
@@ -8,17 +14,18 @@ from __future__ import annotations
 import logging
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
 from retargetd.daemon.body.solve import BodySolver
 from retargetd.daemon.body.solve_fit import FitSolver
+from retargetd.daemon.live import rebuild
 from retargetd.daemon.live.emit import EmitPlan
 from retargetd.daemon.live.face import FaceStage
 from retargetd.daemon.live.performer import Performer
-from retargetd.daemon.live.rebuild import Rebuild, body_solver
+from retargetd.daemon.live.rebuild import Build
 from retargetd.daemon.live.shared import Shared
 from retargetd.daemon.post.pipeline import build_pipeline
 from retargetd.daemon.post.pivot import SpinePivot, spine_stage
@@ -64,9 +71,63 @@ class Pipeline:
     # the last solved frame's source time, frame number and receive time (the fit's
     # frame time, BodyPath._frame_dt_s)
     last_times: tuple[float, int, int] = (math.nan, -1, 0)
-    # the (rig, calibration) it was built for: another one is rebuilt (rebuild.py)
-    built_for: tuple[Any, Any] = (None, None)
-    rebuild: Rebuild | None = None  # its successor's body solver, being built
+    # the (rig, calibration, face training set) it was built for: another one is
+    # rebuilt off the loop (rebuild.py)
+    built_for: tuple[Any, ...] = (None, None, None)
+    # the stream columns it reads (the body solver's and the face's, -1: absent):
+    # a new label set keeping their markers is solved by it until its own is built
+    cols: tuple[int, ...] = field(default=())
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class PipelineSpec:
+    """What one pipeline is built from, taken in the loop (:meth:`of`): a build on
+    the worker reads nothing else."""
+
+    name: str  # the performer's
+    index: int
+    max_datagram: int  # its VMC destination's
+    face: Any  # its LiveFace (its config, never its changing state) or None
+    training: Any  # the face training set then (None: no face solve)
+    rig: Any
+    calibration: Any
+    labels: tuple[str, ...]
+    config: Any  # DaemonConfig
+    target: Any
+    names_id: int
+
+    @classmethod
+    def of(
+        cls, perf: Performer, sh: Shared, labels: tuple[str, ...], with_face: bool
+    ) -> PipelineSpec:
+        """``perf``'s pipeline for ``labels`` as things are now (the next names id
+        taken: a build never used leaves its id unused)."""
+        face = perf.face if with_face else None
+        return cls(
+            name=perf.name, index=perf.index, max_datagram=perf.vmc.max_datagram,
+            face=face, training=face.training if face is not None else None,
+            rig=perf.rig, calibration=perf.calibration, labels=labels,
+            config=sh.config, target=sh.target, names_id=sh.next_names_id(),
+        )  # fmt: skip
+
+    @property
+    def want(self) -> tuple[Any, ...]:
+        """What it is built for, compared by identity (``Build.wants``)."""
+        return (self.rig, self.calibration, self.training, self.labels)
+
+
+def start_build(perf: Performer, sh: Shared, labels: tuple[str, ...]) -> Build:
+    """``perf``'s pipeline for ``labels`` (with its face) built on a worker thread
+    from now (``rebuild.Build``; its ``want``: :attr:`PipelineSpec.want`)."""
+    spec = PipelineSpec.of(perf, sh, labels, True)
+    return Build(spec.want, make_pipeline, spec)
+
+
+def adopt(pipe: Pipeline, sh: Shared) -> Pipeline:
+    """The loop's side of a new pipeline: its post stages named in the stats."""
+    if pipe.post is not None:
+        sh.stats.set_post_stages(pipe.post.stage_names)
+    return pipe
 
 
 def new_pipeline(
@@ -78,18 +139,24 @@ def new_pipeline(
     solver: Any = None,
 ) -> Pipeline:
     """A new pipeline of ``perf`` for a stream of ``labels`` (with the face stage
-    unless ``with_face`` is False); its names id is the next of ``sh``. ``solver``:
-    its body solver, built already (off the loop: rebuild.py), else built here."""
+    unless ``with_face`` is False), built now in the calling thread (the warm-up,
+    tests); its names id is the next of ``sh``. ``solver``: its body solver, built
+    already, else built here."""
+    spec = PipelineSpec.of(perf, sh, labels, with_face)
+    return adopt(make_pipeline(spec, solver), sh)
+
+
+def make_pipeline(spec: PipelineSpec, solver: Any = None) -> Pipeline:
+    """The pipeline ``spec`` describes, reading nothing else (any thread may call
+    it: the worker's job). ``solver``: its body solver, built already."""
     config, rig, calibration, target = (
-        sh.config,
-        perf.rig,
-        perf.calibration,
-        sh.target,
-    )
+        spec.config, spec.rig, spec.calibration, spec.target
+    )  # fmt: skip
+    labels = spec.labels
     assert calibration is not None
-    if solver is None:
-        solver = body_solver(config.solve.method, rig, calibration, labels,
-                             config.validate.rate_hz)  # fmt: skip
+    if solver is None:  # (through the module: tests hold the worker's builds)
+        solver = rebuild.body_solver(config.solve.method, rig, calibration, labels,
+                                     config.validate.rate_hz)  # fmt: skip
     if solver.missing_markers:
         logger.warning(
             "rig %s markers not in the stream (occluded): %s",
@@ -107,11 +174,11 @@ def new_pipeline(
     engine_unity.unity_pos_from_world(
         np.asarray(target_pose.rest_offsets, dtype=np.float64), bone_pos_unity
     )
-    names_id = sh.next_names_id()
+    names_id = spec.names_id
     n_bones = len(rig.bones)
     face = None
-    if with_face and perf.face is not None:
-        face = perf.face.stage(labels)
+    if spec.face is not None and spec.training is not None:
+        face = spec.face.stage(labels, spec.training)
     weight_names = face.weight_names if face is not None else ()
     face_markers = face.marker_names if face is not None else ()
     names_msg = pose_stream.PoseNames(
@@ -121,22 +188,22 @@ def new_pipeline(
         weight_names=weight_names,
         names_id=names_id,
         face_markers=face_markers,
-        performer=perf.name,
-        performer_id=perf.index,
+        performer=spec.name,
+        performer_id=spec.index,
         bone_humanoid=tuple(b.humanoid or "" for b in rig.bones),
         unobserved=face.unobserved if face is not None else (),
     )
     vmc = VmcEncoder(
         names,
         face.output_names if face is not None else (),
-        max_datagram=perf.vmc.max_datagram,
+        max_datagram=spec.max_datagram,
     )
     pose_enc = pose_stream.PoseEncoder(
         n_bones,
         len(weight_names),
         names_id=names_id,
         n_face_markers=len(face_markers) if face is not None else None,
-        performer=perf.index,
+        performer=spec.index,
     )
     emit = EmitPlan(retargeter, vmc, pose_enc, bone_pos_unity)
     stance = StanceDetector(rig, calibration)
@@ -144,8 +211,12 @@ def new_pipeline(
     blend = face.blend if face is not None else np.zeros(0)
     weights = face.weights if face is not None else np.zeros(0)
     emit.bind(pose, blend, weights)
+    cols = [int(c) for c in solver.marker_cols]
+    if face is not None:
+        cols += face.solver.columns()
     return Pipeline(
-        built_for=(rig, calibration),
+        built_for=(rig, calibration, spec.training),
+        cols=tuple(cols),
         solver=solver,
         retargeter=retargeter,
         pose=pose,
@@ -166,7 +237,7 @@ def new_pipeline(
             if face is not None
             else None
         ),
-        post=_post_stages(perf, sh),
+        post=_post_stages(spec),
         spine=spine_stage(config.target, target, rig),
         plant=plant_stage(config.target.feet, retargeter, stance),
         emit=emit,
@@ -174,10 +245,10 @@ def new_pipeline(
     )
 
 
-def _post_stages(perf: Performer, sh: Shared) -> SolvePost | None:
-    """The ``[[pipeline]]`` stages for ``perf``'s rig and calibration (fresh
-    state)."""
-    config, rig, calibration = sh.config, perf.rig, perf.calibration
+def _post_stages(spec: PipelineSpec) -> SolvePost | None:
+    """The ``[[pipeline]]`` stages for ``spec``'s rig and calibration (fresh
+    state; their names go into the stats at :func:`adopt`)."""
+    config, rig, calibration = spec.config, spec.rig, spec.calibration
     rate = config.loop.output_rate_hz
     if not config.pipeline and not rate > 0.0:
         return None
@@ -190,9 +261,7 @@ def _post_stages(perf: Performer, sh: Shared) -> SolvePost | None:
         bone_parents=parents,
         rest_parent_from_bone_quat=rest,
     )
-    post = SolvePost(stages, parents, rest, output_rate_hz=rate)
-    sh.stats.set_post_stages(post.stage_names)
-    return post
+    return SolvePost(stages, parents, rest, output_rate_hz=rate)
 
 
 def warm_up_pipeline(perf: Performer, sh: Shared) -> None:

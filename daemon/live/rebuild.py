@@ -1,31 +1,38 @@
-"""Body solvers rebuilt off the loop: after a reload or a new live calibration each
-stream's pipeline needs a new body solver, and the fit's (its model, hold tables and
-marginals: LAPACK calls by the thousand) took 85-330 ms on the soak's 2-core machine
-and ~400-470 ms alone in a process (measured): built in the loop, it held every frame
-that long (the soak's ``loop_late`` pose gaps, issue 30).
+"""Pipelines, face stages and reloaded files built off the loop (issue 30 item 6: "no
+pose gap over 100 ms the source did not cause").
 
-So the loop hands the build to a worker thread and goes on solving with the stream's
-old pipeline (the old rig and calibration: a fraction of a second more of what it
-streamed before the request); the first frame that finds the new solver built swaps
-it into a new pipeline, recorded as a ``pipeline`` control event with that frame's
-receive time (a replay resets its solver there). The rest of the pipeline
-(retargeter, encoders, face stage: a few ms) is built in the loop at the swap: the
-worker must not read the daemon's state, which only the loop thread touches, so a
-build gets the rig, the calibration and the labels as they were when it was asked
-for, and reads nothing else.
+Built in the loop, each of these held every frame behind it (measured, in the loop,
+on the soak's 2-core machine): a stream's pipeline 100-470 ms (the fit's body solver,
+its model's eigh and pinv, ~410 ms of it), after a reload, a live calibration, a new
+label set or a face capture; a reload's file parsing 23-70 ms. Now the loop hands
+each to a worker thread (:class:`Build`: one daemon thread per job, running a function
+of what the loop gave it when it asked: the rig, the calibration, the face training
+set, the labels, the config as they were then; the worker never reads the daemon's
+state, which only the loop thread touches) and goes on; the first loop pass that finds
+the job done swaps the result in, whole.
+
+What the frames get meanwhile (``send.BodyPath.pipeline``): a stream whose pipeline is
+being replaced for a new rig, calibration or training set is solved by its old one (a
+fraction of a second more of what it streamed before the request); so is a stream
+whose new label set keeps, in every column the old pipeline reads, the marker it had
+there (:func:`reads_same`: a label set that only adds markers, or renames ones the
+solve ignores). Any other frame (no pipeline yet: a stream's first, or columns that now
+hold other markers) is counted ``unsolved`` (and ``unsolved_building``) with no pose
+sent, never a pose solved from the wrong markers; the first pose after such frames
+carries ``FRAME_INPUT_DROPPED``. With ``[loop] process_every_frame`` (offline replay:
+every frame solved, none dropped) such a frame waits for the build instead, in the
+loop, as before. A swap is recorded as a ``pipeline`` control event
+with its frame's receive time (a replay resets its solver there).
 
 The worker shares the GIL with the loop: its Python and small LAPACK calls take turns
 with the frames at the interpreter's switch interval (5 ms), so a frame may be solved a
 few ms late while a build runs, never held for the whole build.
-
-The first pipeline of a stream, and a new label set's, are still built in the loop:
-there is no pipeline to solve their frames with meanwhile.
 """
 
 from __future__ import annotations
 
 import threading
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 from retargetd.daemon.body.method import make_body_solver
@@ -52,67 +59,84 @@ def body_solver(
     )  # fmt: skip
 
 
-class Rebuild:
-    """One body solver being built on its own (daemon) thread.
+class Build:
+    """One job on its own (daemon) thread: ``fn(*args)``, its result or its error
+    handed to the loop thread by :meth:`take`.
 
     Args:
-        rig, calibration: what it is built for (kept: compared by identity).
-        labels: (M,) the stream's marker labels.
-        method, rate_hz: as :func:`body_solver`.
+        want: what the result is built for (the loop compares it, by identity, with
+            what it wants now: a job for anything else is forgotten, never used).
+        fn, args: the job; ``fn`` reads only its arguments.
     """
 
-    __slots__ = ("_done", "calibration", "error", "rig", "solver")
+    __slots__ = ("_done", "error", "result", "want")
 
     def __init__(
-        self, rig: Any, calibration: Any, labels: Sequence[str], method: str,
-        rate_hz: float,
-    ) -> None:  # fmt: skip
-        self.rig, self.calibration = rig, calibration
-        self.solver: Any = None
+        self, want: tuple[Any, ...], fn: Callable[..., Any], *args: Any
+    ) -> None:
+        self.want = want
+        self.result: Any = None
         self.error: BaseException | None = None
         self._done = threading.Event()
-        args = (method, rig, calibration, tuple(labels), rate_hz)
         threading.Thread(
-            target=self._run, args=args, name="retargetd-rebuild", daemon=True
+            target=self._run, args=(fn, args), name="retargetd-build", daemon=True
         ).start()
 
-    def _run(self, *args: Any) -> None:
+    def _run(self, fn: Callable[..., Any], args: tuple[Any, ...]) -> None:
         try:
-            self.solver = body_solver(*args)
+            self.result = fn(*args)
         except BaseException as exc:  # handed to the loop thread, raised there
             self.error = exc
         finally:
             self._done.set()
 
     def done(self) -> bool:
-        """Whether the build has ended (built or failed)."""
+        """Whether the job has ended (built or failed)."""
         return self._done.is_set()
 
+    def wait(self, timeout_s: float | None = None) -> bool:
+        """Wait for the job to end (not on the loop: tests and offline callers);
+        False when ``timeout_s`` passed first."""
+        return self._done.wait(timeout_s)
 
-def rebuilt_solver(
-    pipe: Any, rig: Any, calibration: Any, labels: Sequence[str], method: str,
-    rate_hz: float,
-) -> Any:  # fmt: skip
-    """``pipe``'s new body solver for (``rig``, ``calibration``) when its build is
-    done, else None, having started the build if none runs for these (one for
-    anything else is forgotten: its result is never used).
+    def wants(self, want: tuple[Any, ...]) -> bool:
+        """Whether this job builds for ``want``: each item the same object, or an
+        equal tuple (labels)."""
+        return len(want) == len(self.want) and all(
+            a is b or (type(a) is tuple and a == b)
+            for a, b in zip(want, self.want, strict=True)
+        )
+
+    def take(self) -> Any:
+        """The job's result (it must be done).
+
+        Raises:
+            Exception: what the job raised (a calibration the fit cannot use), in
+                the calling (loop) thread, as the job run there would have.
+        """
+        if self.error is not None:
+            raise self.error
+        return self.result
+
+
+def reads_same(
+    old_labels: Sequence[str], new_labels: Sequence[str], cols: Sequence[int]
+) -> bool:
+    """Whether a pipeline built for ``old_labels`` reading the columns ``cols`` (its
+    body solver's and face's: -1 for a marker not in the stream) reads the same
+    markers from a frame of ``new_labels``: every such column still holds the label
+    it held (a marker the old one lacked stays ignored: less data, nothing wrong).
 
     Args:
-        pipe: the stream's current pipeline (``state.Pipeline``: its ``rebuild``).
-        rig, calibration: the performer's current ones.
-        labels: (M,) the stream's labels (the pipeline's own).
-        method, rate_hz: as :func:`body_solver`.
-
-    Raises:
-        Exception: what the build raised (a calibration the fit cannot use), in the
-            calling (loop) thread, as a build in the loop would have.
+        old_labels: (M,) the labels it was built for.
+        new_labels: (M',) the stream's new ones.
+        cols: the column indices it reads (any order, -1 ignored).
     """
-    job = pipe.rebuild
-    if job is None or job.rig is not rig or job.calibration is not calibration:
-        pipe.rebuild = Rebuild(rig, calibration, labels, method, rate_hz)
-        return None
-    if not job.done():
-        return None
-    if job.error is not None:
-        raise job.error
-    return job.solver
+    n = len(new_labels)
+    for c in cols:
+        c = int(c)
+        if c < 0:
+            continue
+        if c >= n or new_labels[c] != old_labels[c]:
+            return False
+    return True

@@ -27,7 +27,7 @@ from retargetd.daemon.live.emit import (
 from retargetd.daemon.live.outputs import VMC_STATE_INTERVAL_NS
 from retargetd.daemon.live.performer import FrameSource, Performer
 from retargetd.daemon.live.pipeline import Pipeline, new_pipeline, warm_up_pipeline
-from retargetd.daemon.live.rebuild import rebuilt_solver
+from retargetd.daemon.live.pipelines import Pipelines
 from retargetd.daemon.live.shared import Shared
 from retargetd.daemon.validate.live import LiveValidator
 from retargetd.protocols import pose_stream
@@ -92,8 +92,12 @@ class BodyPath:
     def __init__(self, perf: Performer, shared: Shared) -> None:
         self.perf = perf
         self.shared = shared
-        self.pipelines: dict[int, Pipeline] = {}  # id(stream or view) -> Pipeline
-        self.labels_of: dict[int, tuple[str, ...]] = {}
+        # Its pipeline per stream or view, each built off the loop (pipelines.py);
+        # the dicts are the store's own, read here.
+        self.store = Pipelines(perf, shared, self.announce_names)
+        self.pipelines = self.store.pipelines  # id(stream or view) -> Pipeline
+        self.labels_of = self.store.labels_of
+        self.builds = self.store.builds  # id(stream or view) -> its next, building
         self.last_names_ns = 0  # the names message last sent (again every second)
         self.frame_flags = 0  # set for the next pose (restarted, input dropped)
         # The calibration-match check over the stream's first second
@@ -110,37 +114,23 @@ class BodyPath:
         self.validation_results: list[Any] = []  # reused by drain_results
 
     def pipeline(self, stream: FrameSource) -> Pipeline | None:
-        """The pipeline of ``stream`` for its current label set (built now when
-        there is none yet); None before a calibration."""
-        perf = self.perf
-        if perf.calibration is None:
-            return None
-        labels = stream.current.label_set.labels
-        key = id(stream)
-        pipe = self.pipelines.get(key)
-        solver = None
-        if pipe is not None and self.labels_of.get(key) == labels:
-            rig, cal = pipe.built_for
-            if rig is perf.rig and cal is perf.calibration:
-                return pipe
-            # A reload or a new calibration: the old pipeline solves until the new
-            # solver is built off the loop (rebuild.py).
-            config = self.shared.config
-            solver = rebuilt_solver(pipe, perf.rig, perf.calibration, labels,
-                                    config.solve.method,
-                                    config.validate.rate_hz)  # fmt: skip
-            if solver is None:
-                return pipe
-            self.shared.recording.event(
-                "pipeline", received_ns=stream.current.frame.t_ns
-            )
-        self.last_names_ns = 0  # new names: announce them with the next frame
-        pipe = new_pipeline(perf, self.shared, labels, solver=solver)
-        self.shared.stats.pipeline_builds += 1
-        self.pipelines[key] = pipe
-        self.labels_of[key] = labels
-        self.shared.prewarm.register((id(perf), key), pipe.solver, stream.current.frame)
-        return pipe
+        """The pipeline to solve ``stream``'s current frame with, or None
+        (``pipelines.Pipelines.for_frame``)."""
+        return self.store.for_frame(stream)
+
+    def prepare(self, key: int, labels: tuple[str, ...]) -> None:
+        """A stream (or view) ``key`` took a label set: its pipeline's build starts
+        now, off the loop (``pipelines.Pipelines.prepare``)."""
+        self.store.prepare(key, labels)
+
+    def ready(self, key: int, labels: tuple[str, ...]) -> bool:
+        """Whether a frame of ``labels`` on ``key`` would be solved by its own
+        pipeline now (``pipelines.Pipelines.ready``; tests)."""
+        return self.store.ready(key, labels)
+
+    def done_building(self, timeout_s: float) -> bool:
+        """Wait for every build under way (``pipelines.Pipelines``; tests)."""
+        return self.store.done_building(timeout_s)
 
     def warm_up(self) -> None:
         """Every stage run once on a throwaway pipeline (``warm_up_pipeline``)."""
@@ -148,19 +138,14 @@ class BodyPath:
         warm_up_pipeline(self.perf, self.shared)
 
     def rebuild(self, labels: tuple[str, ...], sources: list[FrameSource]) -> None:
-        """The face's training set changed: every pipeline goes, and those of the
-        sources now carrying ``labels`` are built at once (off the next frame)."""
-        self.pipelines.clear()
-        self.labels_of.clear()
-        self.renew(labels, sources)
+        """The face's training set changed: as :meth:`renew` (the training set is
+        part of what a pipeline is built for)."""
+        self.store.renew(labels, sources)
 
     def renew(self, labels: tuple[str, ...], sources: list[FrameSource]) -> None:
-        """The rig or calibration changed: each stream's new body solver is built off
-        the loop from now (rebuild.py), its old pipeline solving meanwhile; a stream
-        of ``sources`` carrying ``labels`` without one gets it built now."""
-        for s in sources:
-            if s.current.label_set.labels == labels:
-                self.pipeline(s)
+        """The rig, calibration or face training set changed: the new pipelines
+        are built off the loop from now (``pipelines.Pipelines.renew``)."""
+        self.store.renew(labels, sources)
 
     def restart(self, key: int) -> None:
         """The source of the pipeline ``key`` restarted: it starts over."""
@@ -182,15 +167,17 @@ class BodyPath:
     def process(self, stream: FrameSource, received_ns: int) -> None:
         """Solve ``stream``'s current frame (received at ``received_ns``), post-process,
         retarget, encode and send it."""
-        # The clock starts before the pipeline lookup: a pipeline built here (the
-        # first frame after a new label set) shows its cost in this frame's solve
-        # stage and overrun check, not hidden before it.
+        # The clock starts before the pipeline lookup: a pipeline swapped in here
+        # shows its cost in this frame's solve stage and overrun check.
         t_start = time.monotonic_ns()
         sh, perf = self.shared, self.perf
         stats = sh.stats
         pipe = self.pipeline(stream)
-        if pipe is None:  # no calibration yet: counted, never silent
+        if pipe is None:  # no calibration, or no pipeline built yet: counted
             stats.unsolved += 1
+            if perf.calibration is not None:  # its pipeline being built (rebuild.py)
+                stats.unsolved_building += 1
+                self.frame_flags |= pose_stream.FRAME_INPUT_DROPPED
             if perf.console is not None:  # the markers, for the base pose
                 perf.console.publish_markers(
                     t_start, stream.current.frame, stream.current.label_set.labels,

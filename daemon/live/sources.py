@@ -384,10 +384,12 @@ class CaptureSource:
             cap.control_packets[qtm.PACKET_XML] = bytes(pkt)
 
     def _check_capture_labels(self, cap: CaptureInput, stream: Any) -> None:
-        """A new label set: say which labels the rig does not know (not hot)."""
+        """A new label set: its pipelines' builds start (off the loop), and say
+        which labels the rig does not know (not hot)."""
         cap.labels_seen = stream.label_set
         if stream.label_set is None:
             return
+        self.performers.prepare(stream, stream.label_set)  # pipelines built now
         labels = stream.label_set.labels
         known: set[int] = set()  # the labels some performer's rig matches
         for p in self.performers.all:

@@ -58,8 +58,13 @@ class LoopStats:
         zmq_disconnects: ZeroMQ marker peers disconnected: by libzmq for a message
             part over ``input.zmq.max_message_bytes`` (never buffered, so not
             counted by reason), or by the peer itself.
-        unsolved: accepted frames not solved because no calibration is loaded yet
-            (so ``frames_in = frames_solved + stale + unsolved``).
+        unsolved: accepted frames not solved because no calibration is loaded yet,
+            or their performer's pipeline for them is being built (so ``frames_in =
+            frames_solved + stale + unsolved``).
+        unsolved_building: of those, frames whose pipeline was being built off the
+            loop (``rebuild.py``: a stream's first, or a label set that moved the
+            markers the old one read): no pose sent for them, and the next pose
+            flagged ``FRAME_INPUT_DROPPED``.
         unseen: solved frames in which too few of the performer's markers were
             seen to place a pose (``FRAME_UNSEEN``): nothing streamed for them.
         unexplained: solved frames whose markers fit no pose the fit found
@@ -100,6 +105,7 @@ class LoopStats:
     validation_drops: int = 0
     zmq_disconnects: int = 0
     unsolved: int = 0
+    unsolved_building: int = 0
     unseen: int = 0
     unexplained: int = 0
     reseeded: int = 0
@@ -204,7 +210,8 @@ class LoopStats:
                 "rejected_sources",
                 "face_solved", "face_head_lost", "face_captures", "validated",
                 "validation_flagged", "validation_drops", "zmq_disconnects",
-                "unsolved", "unseen", "unexplained", "reseeded", "labels_in",
+                "unsolved", "unsolved_building", "unseen", "unexplained", "reseeded",
+                "labels_in",
                 "show_control_in", "show_control_malformed",
                 "control_requests", "control_errors", "control_oversize",
                 "post_restarts",

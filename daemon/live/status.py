@@ -120,6 +120,8 @@ class Health:
             },
             # phases of a loop iteration over 50 ms, by name (stalls.py)
             "loop_stalls": self.stalls.status(),
+            # pipelines (and face stages) being built off the loop (rebuild.py)
+            "pipelines_building": self.performers.building(),
             "fd_exhausted": self.watch.exhausted,  # an episode is going on
             # CURVE handshakes refused, by socket and reason (sockets with a key)
             "curve_refused": self.watch.status(),

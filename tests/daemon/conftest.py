@@ -194,6 +194,20 @@ class DaemonProc:
 
         return request(self.endpoints["control"], req, timeout_ms)
 
+    def wait_pipelines(self, input: str = "osc", timeout_s: float = 30.0) -> None:
+        """Wait until the daemon has taken a label set on ``input`` and built every
+        pipeline for it (off its loop, ``live/rebuild.py``): the next frame is
+        solved (status: ``labels_taken``, ``pipelines_building``)."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            reply = self.ctl({"cmd": "status"})
+            assert reply is not None and reply["ok"], reply
+            st = reply["status"]
+            if st["labels_taken"][input] and not st["pipelines_building"]:
+                return
+            assert time.monotonic() < deadline, "the pipelines were never built"
+            time.sleep(0.01)
+
     def counters(self) -> dict[str, Any]:
         """The status document's counters."""
         reply = self.ctl({"cmd": "status"})
@@ -314,6 +328,8 @@ class PoseCapture:
                 push.send_multipart(zmq_wire.encode_zmq_labels(label_set))
             else:
                 udp.sendto(osc_in.encode_labels(label_set), daemon.udp("osc markers"))
+            # its pipeline, built off the daemon's loop: the first frame is solved
+            daemon.wait_pipelines(via)
             deadline = time.monotonic() + 10.0
             i = 0
             while not self.poses:

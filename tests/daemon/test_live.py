@@ -695,7 +695,7 @@ def test_osc_allow_list(
     take = _take()
     live = start_daemon({"input": {"osc": {"allow": allow}}})
     src = osc_source(live)
-    src.announce()
+    src.announce(wait=accepted)  # (refused: never taken)
     for row in range(5):
         src.send(take.markers_world[row])
     s = live.daemon.stats
@@ -1363,7 +1363,7 @@ def test_oversized_messages_and_label_sets_are_refused_before_decoding(
 
     src = osc_source(live)
     src.raw(b"\0" * 2001)  # one byte over max_message_bytes
-    src.announce()  # n names > max_markers = n - 1
+    src.announce(wait=False)  # n names > max_markers = n - 1: refused
     stream = live.daemon.osc_stream
     _wait_until(
         lambda: stream.counters["too_many_markers"] == 1, "the refused label set"

@@ -50,7 +50,7 @@ def test_live_daemon_reports_a_mismatched_performer_in_status(
         {"performer": {"rig": str(EXACT_RIG), "calibration": str(path)}}
     )
     sub = PoseSub(zmq_socket(zmq.SUB), live.tcp("zmq poses"))
-    src = OscSource(udp_socket(), live.udp("osc markers"))
+    src = OscSource(udp_socket(), live.udp("osc markers"), live=live)
     src.announce()
     frames = iter(range(take.markers_world.shape[0]))
     # the subscriber connected before the frames that matter (slow joiner): poses
@@ -87,7 +87,7 @@ def test_live_daemon_own_calibration_stays_quiet(
     live = start_daemon(
         {"performer": {"rig": str(EXACT_RIG), "calibration": str(exact_calibration)}}
     )
-    src = OscSource(udp_socket(), live.udp("osc markers"))
+    src = OscSource(udp_socket(), live.udp("osc markers"), live=live)
     src.announce()
     for k in range(int(1.2 * take.rate_hz)):
         src.send(take.markers_world[k])

@@ -57,6 +57,14 @@ class Harness:
     def announce(self, labels: tuple[str, ...], label_set_id: int = 3) -> None:
         self.label_set = LabelSet(label_set_id, labels)
         self.push.send_multipart(zmq_wire.encode_zmq_labels(self.label_set))
+        self.wait_pipelines()
+
+    def wait_pipelines(self) -> None:
+        """Until the daemon's pipelines for the label set, its calibration and
+        its face's training set now are built (off its loop, ``live/rebuild.py``):
+        the next frame is solved with them."""
+        assert self.label_set is not None
+        self.live.wait_pipelines(self.live.daemon.zmq_stream, self.label_set)
 
     def send(self, frames: np.ndarray) -> None:
         ls_id = self.label_set.id if self.label_set is not None else 3
@@ -276,6 +284,7 @@ def test_face_capture_live_neutral_then_expressions(
     assert cli_main(["ctl", "--endpoint", ep, "face-capture", "neutral"]) == 0
     h.send(neutral)
     _wait_until(lambda: h.live.daemon.stats.face_captures == 1, "neutral captured")
+    h.wait_pipelines()  # its pipeline, built off the loop
     t1 = TrainingSet.load(path)
     assert t1.k == 0 and t1.marker_names == training.marker_names
     # Neutral only: stabilized markers stream, no weights.
@@ -295,6 +304,7 @@ def test_face_capture_live_neutral_then_expressions(
         before = h.live.daemon.stats.face_captures
         h.send(pose_frames)
         _wait_until(lambda b=before: h.live.daemon.stats.face_captures == b + 1, name)
+        h.wait_pipelines()  # its pipeline, built off the loop
     t3 = TrainingSet.load(path)
     assert t3.expression_names == ("jawOpen", "mouthSmileLeft")  # config order
     np.testing.assert_allclose(t3.deltas[0], training.deltas[jaw], atol=2e-6)

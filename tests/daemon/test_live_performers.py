@@ -379,7 +379,7 @@ def test_two_performers_calibrated_apart_each_to_its_own_vmc_port(
     assert live.udp("vmc out B") == ("127.0.0.1", vb.port)
     ep = live.tcp("control")
     sub = PoseSub(zmq_socket(zmq.SUB), live.tcp("zmq poses"))
-    src = OscSource(udp_socket(), live.udp("osc markers"))
+    src = OscSource(udp_socket(), live.udp("osc markers"), live=live)
     feed = two_streamer(src)
 
     def ctl(*argv: str) -> tuple[int, str, str]:
@@ -500,7 +500,7 @@ def test_performers_on_separate_inputs_and_the_unprefixed_labels(
             ],
         }
     )  # fmt: skip
-    src = OscSource(udp_socket(), live.udp("osc markers"))
+    src = OscSource(udp_socket(), live.udp("osc markers"), live=live)
     hold = _take().markers_world[_take().base_pose_frames]
     src.announce()
     for k in range(20):
@@ -537,7 +537,7 @@ def test_two_performers_each_with_its_validator_and_face(
         }
     )
     assert sum("live validator on" in ln for ln in live.lines) == 2
-    src = OscSource(udp_socket(), live.udp("osc markers"))
+    src = OscSource(udp_socket(), live.udp("osc markers"), live=live)
     take = _take()
     src.label_set = LabelSet(
         1, tuple(f"A:{n}" for n in take.labels) + tuple(f"B:{n}" for n in take.labels)
@@ -598,6 +598,8 @@ def test_behind_each_input_keeps_its_own_latest_with_several_performers(
             events = d._poller.poll(20)
             if events:
                 d._service(events)
+        # their pipelines, built off the loop: the first frames are solved
+        assert d.performers.done_building(60.0), "the pipelines were never built"
         d._catch_up_ns = 0
         for k in range(3):
             tx.sendto(

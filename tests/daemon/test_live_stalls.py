@@ -18,6 +18,7 @@ from __future__ import annotations
 import gc
 import json
 import socket
+import struct
 import threading
 import time
 from collections.abc import Iterator
@@ -29,12 +30,13 @@ import numpy as np
 import pytest
 import zmq
 
+from retargetd.daemon.live import performers as performers_module
 from retargetd.daemon.live import rebuild
 from retargetd.daemon.live.config import DaemonConfig
 from retargetd.daemon.live.loop import Daemon
 from retargetd.daemon.live.ratelog import RateLimitedLog
 from retargetd.daemon.live.stalls import STALL_NS, LoopStalls, is_waiting
-from retargetd.protocols import osc_in
+from retargetd.protocols import osc_in, pose_stream
 from retargetd.protocols.marker_input import LabelSet
 from retargetd.replay import recording as rf
 
@@ -66,7 +68,9 @@ def daemon(exact_calibration: Path, rig_copy: Path, tmp_path: Path) -> Iterator[
 
 
 class _Source:
-    """The exact take's frames, one datagram per call, to the daemon's OSC port."""
+    """The exact take's frames, one datagram per call, to the daemon's OSC port:
+    under its own labels, or another label set's (:meth:`announce`: its columns
+    are the take's, moved and padded as its labels say)."""
 
     def __init__(self, d: Daemon) -> None:
         host, port = d.endpoints["osc markers"].split()[0][6:].rsplit(":", 1)
@@ -74,12 +78,22 @@ class _Source:
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.take = lh._take()
         self.i = 0
-        self.sock.sendto(osc_in.encode_labels(LabelSet(1, self.take.labels)), self.addr)
+        self.announce(LabelSet(1, self.take.labels))
+
+    def announce(self, label_set: LabelSet) -> None:
+        self.label_set = label_set
+        col = {name: k for k, name in enumerate(self.take.labels)}
+        self.cols = [col.get(name, -1) for name in label_set.labels]
+        self.sock.sendto(osc_in.encode_labels(label_set), self.addr)
 
     def send(self) -> None:
-        row = self.take.markers_world[self.i % self.take.n_frames]
+        take_row = np.asarray(self.take.markers_world[self.i % self.take.n_frames])
+        row = np.full((len(self.cols), 3), np.nan)
+        for k, c in enumerate(self.cols):
+            if c >= 0:
+                row[k] = take_row[c]
         self.sock.sendto(
-            osc_in.encode_compact_frame(self.i, self.i / 100, 1, np.asarray(row)),
+            osc_in.encode_compact_frame(self.i, self.i / 100, self.label_set.id, row),
             self.addr,
         )
         self.i += 1
@@ -103,6 +117,16 @@ def _frames(d: Daemon, src: _Source, n: int) -> None:
         src.send()
         while d.stats.frames_in == before:  # (the announcement may wake it first)
             _wake(d)
+
+
+def _first_pipeline(d: Daemon, src: _Source) -> None:
+    """One frame (its label set taken: the build started; solved if the build was
+    quicker), every build under way waited for, and one more frame, by which the
+    built pipeline is in."""
+    _frames(d, src, 1)
+    assert d.performers.done_building(60.0), "the pipeline was never built"
+    _frames(d, src, 1)
+    assert d.stats.pipeline_builds == 1 and d.performers.first.path.pipelines
 
 
 def _ctl(d: Daemon, req: dict[str, Any]) -> dict[str, Any]:
@@ -142,9 +166,12 @@ def test_a_reload_rebuilds_the_solver_off_the_loop_while_the_old_one_solves(
     d, (gate, begun) = daemon, gated_builds
     src = _Source(d)
     try:
+        gate.set()  # the stream's first pipeline, built off the loop too
+        _first_pipeline(d, src)
+        gate.clear()
         _ctl(d, {"cmd": "record", "action": "start", "path": "r.mcap"})
         _frames(d, src, 5)
-        assert d.stats.pipeline_builds == 1  # the stream's first: in the loop
+        assert d.stats.pipeline_builds == 1
         (key, old), = d.performers.first.path.pipelines.items()  # fmt: skip
         out = d.stats.frames_out
         assert "reloaded rig" in _ctl(d, {"cmd": "reload"})["message"]
@@ -152,7 +179,7 @@ def test_a_reload_rebuilds_the_solver_off_the_loop_while_the_old_one_solves(
         # The build runs (on the worker, held at the gate) while every frame is
         # solved and sent by the old pipeline: before, the reload dropped the
         # pipelines and the next frame rebuilt one in the loop.
-        assert begun == [1]
+        assert begun == [1, 1]
         assert (
             d.performers.first.path.pipelines[key] is old
             and d.stats.pipeline_builds == 1
@@ -167,8 +194,9 @@ def test_a_reload_rebuilds_the_solver_off_the_loop_while_the_old_one_solves(
             _frames(d, src, 1)
         swap_rx = d.osc_stream.current.frame.t_ns  # the frame that took it
         new = d.performers.first.path.pipelines[key]
-        assert new is not old and new.built_for == (d.rig, d.calibration)
-        assert new.rebuild is None and begun == [1] and _accounted(d)
+        assert new is not old and new.built_for == (d.rig, d.calibration, None)
+        assert not d.performers.first.path.builds and begun == [1, 1]
+        assert _accounted(d)
         _frames(d, src, 3)
         assert d.performers.first.path.pipelines[key] is new  # swapped once, kept
         _ctl(d, {"cmd": "record", "action": "stop"})
@@ -196,6 +224,7 @@ def test_a_reload_of_unchanged_files_parses_and_rebuilds_nothing(
     gate.set()
     src = _Source(d)
     try:
+        _first_pipeline(d, src)
         _frames(d, src, 3)
         _ctl(d, {"cmd": "reload"})  # the first reload reads the files
         rig, cal = d.rig, d.calibration
@@ -206,7 +235,8 @@ def test_a_reload_of_unchanged_files_parses_and_rebuilds_nothing(
         msg = _ctl(d, {"cmd": "reload"})["message"]
         assert "unchanged" not in msg and d.rig is not rig, msg
         _frames(d, src, 1)
-        assert len(begun) == 1  # the pipeline's rebuild for the newest rig only
+        # the first pipeline's build, and the rebuild for the newest rig only
+        assert len(begun) == 2
     finally:
         src.sock.close()
 
@@ -266,3 +296,196 @@ def test_stalls_count_phases_over_the_bound_and_collector_passes() -> None:
     finally:
         stalls.close()
     assert stalls._gc_callback not in gc.callbacks
+
+
+def _sent_flags(d: Daemon) -> int:
+    """The frame flags of the pose the first pipeline sent last (its encoder's
+    header, reused per frame)."""
+    pipe = next(iter(d.performers.first.path.pipelines.values()))
+    header = pipe.pose_enc.parts[0]
+    (flags,) = struct.unpack_from("<I", header, struct.calcsize("<4sHHqdqqq"))
+    return int(flags)
+
+
+@pytest.mark.timeout(120)
+def test_a_streams_first_pipeline_is_built_off_the_loop_its_frames_unsolved(
+    daemon: Daemon, gated_builds: tuple[threading.Event, list[int]]
+) -> None:
+    """Before: the first frame of a stream built its pipeline in the loop (100-470
+    ms: every frame behind it waited). Now the build starts when the label set is
+    taken, on the worker; the frames meanwhile are counted unsolved (no pose: none
+    solved yet), the loop goes on; the first pose after them is flagged."""
+    d, (gate, begun) = daemon, gated_builds
+    src = _Source(d)
+    try:
+        _frames(d, src, 12)  # the build held at the gate all along
+        assert begun == [1] and d.status()["pipelines_building"] == 1
+        assert not d.performers.first.path.pipelines
+        c = d.stats
+        assert c.unsolved == c.unsolved_building == 12 and c.frames_out == 0
+        assert _accounted(d)
+        gate.set()
+        assert d.performers.done_building(60.0)
+        assert d.status()["pipelines_building"] == 0
+        _frames(d, src, 1)  # takes the built pipeline: solved and sent
+        assert c.pipeline_builds == 1 and c.frames_out == 1 and _accounted(d)
+        assert _sent_flags(d) & pose_stream.FRAME_INPUT_DROPPED  # 12 not posed
+        _frames(d, src, 1)
+        assert c.frames_out == 2 and c.unsolved == 12
+        assert not _sent_flags(d) & pose_stream.FRAME_INPUT_DROPPED
+    finally:
+        gate.set()
+        src.sock.close()
+
+
+@pytest.mark.timeout(120)
+def test_a_new_label_set_is_solved_by_the_old_pipeline_only_if_it_keeps_its_markers(
+    daemon: Daemon, gated_builds: tuple[threading.Event, list[int]]
+) -> None:
+    """A new label set's pipeline is built off the loop too. Meanwhile a set that
+    keeps, in every column the old pipeline reads, the same marker (here one marker
+    added at the end) is solved by the old pipeline; one that moves them (the labels
+    rotated by one) is not solved at all until its own is built: no pose from the
+    wrong markers."""
+    d, (gate, begun) = daemon, gated_builds
+    src = _Source(d)
+    path = d.performers.first.path
+    labels = src.take.labels
+    try:
+        gate.set()
+        _first_pipeline(d, src)
+        gate.clear()
+        (key, old), = path.pipelines.items()  # fmt: skip
+        c = d.stats
+        # One marker more, at the end: the old columns keep their markers.
+        src.announce(LabelSet(2, (*labels, "EXTRA")))
+        out, unsolved = c.frames_out, c.unsolved_building  # (the first frame's)
+        _frames(d, src, 10)
+        assert len(begun) == 2 and path.pipelines[key] is old  # still building
+        assert c.frames_out == out + 10 and c.unsolved_building == unsolved
+        gate.set()
+        assert d.performers.done_building(60.0)
+        _frames(d, src, 1)
+        new = path.pipelines[key]
+        assert new is not old and path.labels_of[key] == (*labels, "EXTRA")
+        assert c.frames_out == out + 11 and _accounted(d)
+        # The labels rotated by one: every column now holds another marker.
+        gate.clear()
+        src.announce(LabelSet(3, labels[1:] + labels[:1]))
+        out = c.frames_out
+        _frames(d, src, 10)
+        assert len(begun) == 3 and path.pipelines[key] is new  # not used
+        assert c.frames_out == out and c.unsolved_building == unsolved + 10
+        assert _accounted(d)
+        gate.set()
+        assert d.performers.done_building(60.0)
+        _frames(d, src, 1)
+        assert path.labels_of[key] == labels[1:] + labels[:1]
+        assert c.frames_out == out + 1 and _accounted(d)
+        assert _sent_flags(d) & pose_stream.FRAME_INPUT_DROPPED
+    finally:
+        gate.set()
+        src.sock.close()
+
+
+@pytest.fixture
+def gated_reads(monkeypatch: pytest.MonkeyPatch) -> threading.Event:
+    """A reload's file reading (on the worker) waits for the returned gate."""
+    gate = threading.Event()
+    real = performers_module.read_files
+
+    def gated(*args: Any) -> Any:
+        assert gate.wait(30.0), "the test never opened the gate"
+        return real(*args)
+
+    monkeypatch.setattr(performers_module, "read_files", gated)
+    return gate
+
+
+@pytest.mark.timeout(120)
+def test_ctl_reload_reads_its_files_off_the_loop_and_answers_after(
+    daemon: Daemon,
+    gated_builds: tuple[threading.Event, list[int]],
+    gated_reads: threading.Event,
+    rig_copy: Path,
+) -> None:
+    """Before: a reload parsed the rig, calibration and config in the loop (23-70
+    ms). Now a worker reads them: the frames go on being solved while it does, the
+    ``ctl reload`` reply comes once they are read, and only then is the new rig
+    swapped in; a file that does not validate is answered with its reason and the
+    running rig kept."""
+    d, (gate, _begun), read_gate = daemon, gated_builds, gated_reads
+    gate.set()
+    src = _Source(d)
+    req = zmq.Context.instance().socket(zmq.REQ)
+    req.setsockopt(zmq.LINGER, 0)
+    req.connect(d.endpoints["control"].split()[0])
+    try:
+        _first_pipeline(d, src)
+        rig = d.rig
+        rig_copy.write_text(rig_copy.read_text() + "\n# edited\n")
+        asked = d.stats.control_requests
+        req.send(json.dumps({"cmd": "reload"}).encode())
+        while d.stats.control_requests == asked:
+            _wake(d)
+        out = d.stats.frames_out
+        _frames(d, src, 10)  # the files being read: the loop goes on solving
+        assert d.stats.frames_out == out + 10
+        assert not req.poll(0), "answered before its files were read"
+        assert d.rig is rig  # nothing swapped in yet
+        read_gate.set()
+        while not req.poll(0):  # the loop's tick swaps it in and answers
+            _frames(d, src, 1)
+            d.control.tick()  # (as Daemon.run, every pass)
+        reply = json.loads(req.recv())
+        assert reply["ok"] and reply["message"].startswith("reloaded rig"), reply
+        assert d.rig is not rig
+        # A rig file that no longer parses: its reason, the running rig kept.
+        rig = d.rig
+        rig_copy.write_text("[markers\n")
+        time.sleep(0.02)  # past control.min_interval_s since the last reload
+        req.send(json.dumps({"cmd": "reload"}).encode())
+        while not req.poll(0):
+            _frames(d, src, 1)
+            d.control.tick()
+        reply = json.loads(req.recv())
+        assert not reply["ok"] and reply["message"].startswith("reload failed, kept")
+        assert d.rig is rig, reply
+    finally:
+        gate.set()
+        read_gate.set()
+        req.close()
+        src.sock.close()
+
+
+@pytest.mark.timeout(120)
+def test_one_build_at_a_time_per_stream_however_fast_label_sets_come(
+    daemon: Daemon, gated_builds: tuple[threading.Event, list[int]]
+) -> None:
+    """Label sets announced faster than a pipeline builds (a sender cycling ids, or
+    a hostile one) start one build per stream at a time, never a thread each: the
+    one wanted last is built when the running one ends, and taken."""
+    d, (gate, begun) = daemon, gated_builds
+    src = _Source(d)
+    path = d.performers.first.path
+    labels = src.take.labels
+    try:
+        gate.set()
+        _first_pipeline(d, src)
+        gate.clear()
+        (key,) = path.pipelines
+        for k in range(1, 6):  # five label sets, each moving every marker
+            src.announce(LabelSet(1 + k, labels[k:] + labels[:k]))
+            _frames(d, src, 2)
+        assert len(begun) == 2  # the first pipeline's, and one held at the gate
+        assert d.status()["pipelines_building"] == 1
+        gate.set()
+        assert d.performers.done_building(60.0)  # the held one (no longer wanted)
+        _frames(d, src, 1)  # starts the build for the labels in use
+        assert d.performers.done_building(60.0)
+        _frames(d, src, 1)
+        assert len(begun) == 3 and path.labels_of[key] == labels[5:] + labels[:5]
+        assert _accounted(d)
+    finally:
+        gate.set()
+        src.sock.close()

@@ -244,6 +244,16 @@ class Live:
     def tcp(self, what: str) -> str:
         return self.daemon.endpoints[what].split()[0]
 
+    def wait_pipelines(self, stream: Any, label_set: LabelSet) -> None:
+        """Wait until ``stream`` took ``label_set`` and every performer's pipeline
+        for it is built (off the loop: ``live/rebuild.py``), so that its next frame
+        is solved; a performer without a calibration has none to wait for."""
+        performers = self.daemon.performers
+        _wait_until(
+            lambda: stream.label_set == label_set and performers.ready(stream),
+            f"the pipelines of label set {label_set.id}",
+        )
+
     def ctl(self, req: dict[str, Any]) -> dict[str, Any]:
         reply = request(self.tcp("control"), req, int(WAIT_S * 1000))
         assert reply is not None, f"no control reply to {req}"
@@ -281,10 +291,16 @@ class OscSource:
     """A compact-form OSC marker sender; remembers what it sent (for the oracle)."""
 
     def __init__(
-        self, sock: socket.socket, addr: tuple[str, int], label_set_id: int = 1
+        self,
+        sock: socket.socket,
+        addr: tuple[str, int],
+        label_set_id: int = 1,
+        live: Live | None = None,
     ):
         self.sock = sock
         self.addr = addr
+        #: The daemon it sends to: :meth:`announce` waits for its pipelines.
+        self.live = live
         self.label_set = LabelSet(label_set_id, _take().labels)
         self.next_id = 0
         self.sent: list[tuple[int, np.ndarray]] = []
@@ -292,10 +308,15 @@ class OscSource:
         #: Applied to every datagram before it is sent (e.g. ``DatagramSigner.sign``).
         self.sign: Callable[[bytes], bytes] | None = None
 
-    def announce(self, label_set_id: int | None = None) -> None:
+    def announce(self, label_set_id: int | None = None, wait: bool = True) -> None:
+        """Announce the labels (under ``label_set_id``: a new id); with a ``live``
+        daemon and ``wait``, return once it has taken them and built every
+        pipeline for them (off its loop), so the next frame is solved."""
         if label_set_id is not None:
             self.label_set = LabelSet(label_set_id, self.label_set.labels)
         self.raw(osc_in.encode_labels(self.label_set))
+        if self.live is not None and wait:
+            self.live.wait_pipelines(self.live.daemon.osc_stream, self.label_set)
 
     def send(self, markers: np.ndarray, frame_id: int | None = None) -> int:
         fid = self.next_id if frame_id is None else frame_id
@@ -455,7 +476,7 @@ def vmc(udp_socket: Callable[..., socket.socket]) -> VmcReceiver:
 @pytest.fixture
 def osc_source(udp_socket: Callable[..., socket.socket]) -> Callable[..., OscSource]:
     def make(live: Live, label_set_id: int = 1) -> OscSource:
-        return OscSource(udp_socket(), live.udp("osc markers"), label_set_id)
+        return OscSource(udp_socket(), live.udp("osc markers"), label_set_id, live)
 
     return make
 

@@ -1,0 +1,161 @@
+"""One performer's pipelines (``send.BodyPath``'s part): one per stream or view it
+reads, each built off the loop (``rebuild.py``) when what it depends on changes (the
+label set, the rig, the calibration, the face's training set), swapped in by the
+first frame that finds it built. What a frame gets meanwhile (the old pipeline when
+it reads the same markers, else nothing: counted unsolved) is :meth:`for_frame`.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+
+from retargetd.daemon.live.performer import FrameSource, Performer
+from retargetd.daemon.live.pipeline import Pipeline, adopt, start_build
+from retargetd.daemon.live.rebuild import Build, reads_same
+from retargetd.daemon.live.shared import Shared
+
+
+class Pipelines:
+    """The pipelines of one performer's frame path, and their builds.
+
+    Args:
+        perf: the performer (its rig, calibration, face).
+        shared: the loop's side (config, counters, recording, prewarm).
+        announce: called when a new pipeline is swapped in (its names go out
+            with the next pose).
+    """
+
+    def __init__(
+        self, perf: Performer, shared: Shared, announce: Callable[[], None]
+    ) -> None:
+        self.perf = perf
+        self.shared = shared
+        self._announce = announce
+        self.pipelines: dict[int, Pipeline] = {}  # id(stream or view) -> Pipeline
+        self.labels_of: dict[int, tuple[str, ...]] = {}
+        # id(stream or view) -> its next pipeline, being built off the loop
+        self.builds: dict[int, Build] = {}
+
+    def for_frame(self, stream: FrameSource) -> Pipeline | None:
+        """The pipeline to solve ``stream``'s current frame with: its own, built for
+        the current label set, rig, calibration and face training set; while that
+        one is built off the loop (``rebuild.py``), the old one if it reads the same
+        markers from this label set; else None (no calibration yet, or nothing that
+        can solve the frame yet: counted unsolved)."""
+        perf = self.perf
+        if perf.calibration is None:
+            return None
+        labels = stream.current.label_set.labels
+        key = id(stream)
+        pipe = self.pipelines.get(key)
+        if pipe is not None and self.labels_of.get(key) == labels:
+            rig, cal, training = pipe.built_for
+            face = perf.face
+            if (
+                rig is perf.rig
+                and cal is perf.calibration
+                and training is (face.training if face is not None else None)
+            ):
+                return pipe
+        job = self._job(key, labels)
+        if job is not None and job.done():
+            return self._swap(key, job, stream)
+        if pipe is not None and reads_same(self.labels_of[key], labels, pipe.cols):
+            return pipe  # the old pipeline, until the new one is built
+        if self.shared.config.loop.process_every_frame:
+            # Offline replay: every frame solved, none dropped; the loop waits for
+            # the build (latency is not what this mode is for), after the one that
+            # runs for something else, if any.
+            if job is None:
+                self.builds[key].wait()
+                job = self._job(key, labels)
+                assert job is not None
+            job.wait()
+            return self._swap(key, job, stream)
+        return None
+
+    def _job(self, key: int, labels: tuple[str, ...]) -> Build | None:
+        """The build of the pipeline ``key`` for ``labels`` and the performer's rig,
+        calibration and training set now: the one under way for them, else one
+        started now; None while a build for anything else still runs (one build
+        per stream at a time, however fast label sets or reloads come: the one
+        wanted then starts when it ends; its result is never used)."""
+        perf = self.perf
+        face = perf.face
+        want = (perf.rig, perf.calibration, face.training if face else None, labels)
+        job = self.builds.get(key)
+        if job is not None and job.wants(want):
+            return job
+        if job is not None and not job.done():
+            return None
+        job = self.builds[key] = start_build(perf, self.shared, labels)
+        return job
+
+    def _swap(self, key: int, job: Build, stream: FrameSource) -> Pipeline:
+        """The built pipeline ``job`` swapped in for ``key`` at ``stream``'s current
+        frame (one replacing another is recorded: a replay resets its solver there;
+        a stream's first starts with its first solved frame); its names are
+        announced with this frame. Raises what the build raised."""
+        del self.builds[key]
+        sh = self.shared
+        pipe = adopt(job.take(), sh)
+        frame = stream.current.frame
+        if key in self.pipelines:
+            sh.recording.event("pipeline", received_ns=frame.t_ns)
+        self._announce()  # new names: announce them with the next frame
+        sh.stats.pipeline_builds += 1
+        self.pipelines[key] = pipe
+        self.labels_of[key] = job.want[3]
+        sh.prewarm.register((id(self.perf), key), pipe.solver, frame)
+        return pipe
+
+    def prepare(self, key: int, labels: tuple[str, ...]) -> None:
+        """A stream (or view) ``key`` took a label set, ``labels`` being this
+        performer's of it: its pipeline's build starts now (off the loop), so its
+        first frames find it built, or nearly."""
+        if self.perf.calibration is None or not labels:
+            return
+        if key in self.pipelines and self.labels_of.get(key) == labels:
+            rig, cal, _ = self.pipelines[key].built_for
+            if rig is self.perf.rig and cal is self.perf.calibration:
+                return  # (the training set's change is caught by the next frame)
+        self._job(key, labels)
+
+    def ready(self, key: int, labels: tuple[str, ...]) -> bool:
+        """Whether a frame of ``labels`` on ``key`` would now be solved by its own
+        pipeline (built, or its build done; no calibration: nothing to build).
+        Reads only (tests call it from another thread)."""
+        perf = self.perf
+        if perf.calibration is None:
+            return True
+        face = perf.face
+        want = (perf.rig, perf.calibration, face.training if face else None, labels)
+        pipe = self.pipelines.get(key)
+        if (
+            pipe is not None
+            and self.labels_of.get(key) == labels
+            and all(a is b for a, b in zip(pipe.built_for, want, strict=False))
+        ):
+            return True
+        job = self.builds.get(key)
+        return job is not None and job.wants(want) and job.done()
+
+    def done_building(self, timeout_s: float) -> bool:
+        """Wait until every build under way has ended (tests, which drive the loop
+        one wake-up at a time, and need a deterministic point where the next frame
+        is solved by the new pipeline); False if ``timeout_s`` passed first."""
+        deadline = time.monotonic() + timeout_s
+        for job in list(self.builds.values()):
+            if not job.wait(max(0.0, deadline - time.monotonic())):
+                return False
+        return True
+
+    def renew(self, labels: tuple[str, ...], sources: list[FrameSource]) -> None:
+        """The rig, calibration or face training set changed: the new pipeline of
+        each of the ``sources`` carrying ``labels`` is built off the loop from now
+        (``rebuild.py``), its old one solving meanwhile; the other streams' when
+        their next frame comes."""
+        for s in sources:
+            if s.current.label_set.labels == labels:
+                self._job(id(s), labels)
