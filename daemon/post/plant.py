@@ -31,11 +31,7 @@ detector (:mod:`~retargetd.daemon.post.stance`) found on the performer's solve.
    A goal out of reach (farther than the straight leg, or nearer than the knee's
    most flexion, ``knee_max_deg``) leaves the leg straight (or at that flexion) aimed
    at it and sets the frame's ``plant_unreached`` flag; the knee is never bent
-   backwards (the flexion is never below 0). A leg longer than the hip-goal distance
-   (the knee lagging its flexion by ``knee_step_deg``, or at its most) is aimed level
-   with the goal, the excess taken horizontally: aimed along the hip-goal line it would
-   put the ankle past the goal, below the support (on the synthetic walk, 1.6 mm for a
-   frame as the leg comes back into reach late in stance).
+   backwards (the flexion is never below 0).
 
 One frame is one compiled call (:func:`_plant_step`, numba, nothing allocated), on
 state the stage owns. Offline (``solve --plant-feet``) runs the same objects frame by
@@ -417,17 +413,7 @@ def _leg_ik(
     wx = vx + 2.0 * (qw_ * cxk + qy_ * czk - qz_ * cyk)
     wy = vy + 2.0 * (qw_ * cyk + qz_ * cxk - qx_ * czk)
     wz = vz + 2.0 * (qw_ * czk + qx_ * cyk - qy_ * cxk)
-    lx, ly, lz = ux + wx, uy + wy, uz + wz
-    # A leg longer than the hip-goal distance (the knee lagging its flexion, or at
-    # its most) aimed along that line would put the ankle past the goal, below it:
-    # it is aimed level with the goal instead, the excess taken horizontally (the
-    # support is a hard limit; a frame's slip is not).
-    r2 = lx * lx + ly * ly + lz * lz
-    hz2 = dx * dx + dy * dy
-    if dz < 0.0 and r2 > dist * dist * (1.0 + 1e-9) and hz2 > 1e-12:
-        sc = math.sqrt(max(r2 - dz * dz, 0.0) / hz2)
-        dx, dy = dx * sc, dy * sc
-    sw, sx, sy, sz = _swing(lx, ly, lz, dx, dy, dz)
+    sw, sx, sy, sz = _swing(ux + wx, uy + wy, uz + wz, dx, dy, dz)
     # E' of the thigh and shank; G = E' T, L = Ē'_parent E'.
     tw, tx, ty, tz = qmul(sw, sx, sy, sz, e[s, u, 0], e[s, u, 1], e[s, u, 2],
                           e[s, u, 3])  # fmt: skip
