@@ -54,6 +54,7 @@ import numpy as np
 from retargetd.daemon.body.calibration import Calibration
 from retargetd.daemon.body.rig import Rig
 from retargetd.daemon.compiled import direct, kernel, qmul, qrot
+from retargetd.daemon.post.foot_roll import ball_roll
 from retargetd.daemon.post.stance import CONTACT_COLUMN, SUPPORT_COLUMN
 from retargetd.protocols.frames import F64Array
 from retargetd.protocols.pose_stream import FRAME_PLANT_UNREACHED
@@ -352,55 +353,6 @@ def _toe_roll(
 
 
 @kernel(inline="always")
-def _ball_roll(
-    ef: np.ndarray,  # (4,) the foot's E
-    left: np.ndarray,  # (3,) the target's left at rest
-    ax: float,  # the ankle less the ball (the roll's pivot)
-    ay: float,
-    az: float,
-    qx: float,  # the ball less the hip
-    qy: float,
-    qz: float,
-    r2: float,  # the squared distance from the hip the ankle is to be at
-    hx: float,  # the heel less the ball
-    hy: float,
-    hz: float,
-) -> tuple[float, float, float, float]:  # pragma: no cover - compiled
-    """The least rotation of the foot about its left axis through the ball that puts
-    the ankle at ``sqrt(r2)`` from the hip with the heel not below the ball;
-    (1, 0, 0, 0) when there is none. With R a = a cos t + (n x a) sin t
-    + n (n.a)(1 - cos t), |q + R a|^2 = r2 is A cos t + B sin t = C."""
-    nx, ny, nz = _rot(ef, left[0], left[1], left[2])
-    nn = math.sqrt(nx * nx + ny * ny + nz * nz)
-    nx, ny, nz = nx / nn, ny / nn, nz / nn
-    na = nx * ax + ny * ay + nz * az
-    cx, cy, cz = ny * az - nz * ay, nz * ax - nx * az, nx * ay - ny * ax
-    gam = (qx * nx + qy * ny + qz * nz) * na
-    a_ = qx * ax + qy * ay + qz * az - gam
-    b_ = qx * cx + qy * cy + qz * cz
-    c_ = 0.5 * (r2 - (qx * qx + qy * qy + qz * qz) - (ax * ax + ay * ay + az * az))
-    c_ -= gam
-    m = math.sqrt(a_ * a_ + b_ * b_)
-    if not (m > 1e-12 and abs(c_) <= m):
-        return 1.0, 0.0, 0.0, 0.0
-    base = math.atan2(b_, a_)
-    half = math.acos(c_ / m)
-    best = math.inf
-    for t in (base - half, base + half):
-        t = math.atan2(math.sin(t), math.cos(t))
-        # the heel's height above the ball after the turn
-        nh = nx * hx + ny * hy + nz * hz
-        ch = nx * hy - ny * hx  # (n x h)_z
-        up = hz * math.cos(t) + ch * math.sin(t) + nz * nh * (1.0 - math.cos(t))
-        if up >= 0.0 and abs(t) < abs(best):
-            best = t
-    if best == math.inf:
-        return 1.0, 0.0, 0.0, 0.0
-    sh = math.sin(0.5 * best)
-    return math.cos(0.5 * best), nx * sh, ny * sh, nz * sh
-
-
-@kernel(inline="always")
 def _leg_ik(
     s: int,
     n: int,
@@ -489,7 +441,7 @@ def _leg_ik(
         # The foot rolls about its ball instead (the ball stays where it is held;
         # the heel, risen at heel-off, comes down, never below the ball) until the
         # ankle is at the leg's reach.
-        rw, rx_, ry_, rz_ = _ball_roll(e[s, f], left, gx - px, gy - py, gz - pz,
+        rw, rx_, ry_, rz_ = ball_roll(e[s, f], left, gx - px, gy - py, gz - pz,
                                        px - hipx, py - hipy, pz - hipz, r2, hx, hy,
                                        hz)  # fmt: skip
         if rw < 1.0:
