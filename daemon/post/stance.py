@@ -392,10 +392,13 @@ def foot_contact(
     root_pos: F64Array,
     world_from_bone_quat: F64Array,
     rate_hz: float,
+    support: np.ndarray | None = None,
 ) -> np.ndarray:
     """(T, 2) bool, left and right foot in contact per frame of a solved take: the
     live detector run over the frames at ``rate_hz`` (``retargetd solve``'s
-    ``foot_contact``; all False when the rig maps no LeftFoot/RightFoot)."""
+    ``foot_contact``; all False when the rig maps no LeftFoot/RightFoot). With
+    ``support`` ((T, 2) float64), also each foot's support level per frame, metres
+    above the calibration's floor (the module docstring's; 0 where unknown)."""
     det = StanceDetector(rig, calibration)
     root = np.ascontiguousarray(root_pos, dtype=np.float64)
     wfb = np.ascontiguousarray(world_from_bone_quat, dtype=np.float64)
@@ -406,4 +409,6 @@ def foot_contact(
         bits = det.update(root[t], wfb[t], dt if t else 0.0)
         out[t, 0] = bool(bits & LEFT)
         out[t, 1] = bool(bits & RIGHT)
+        if support is not None:
+            support[t] = det.state[:, _SUPPORT]
     return out

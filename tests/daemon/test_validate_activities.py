@@ -14,7 +14,11 @@ from retargetd.daemon.body.calibration import calibrate
 from retargetd.daemon.body.rig import load_rig
 from retargetd.daemon.body.solve import BodySolver
 from retargetd.daemon.synth import performer as pf
-from retargetd.daemon.validate.checks import THRESHOLDS, fit_pairs, validate_take
+from retargetd.daemon.validate.checks import (
+    fit_pairs,
+    lowest_support,
+    validate_take,
+)
 from retargetd.daemon.validate.limits import JointLimit, limit_violation_deg
 from retargetd.daemon.validate.model import build_model, skeleton_from_calibration
 
@@ -90,18 +94,19 @@ def test_activity_reaches_the_published_range_and_passes(motion: str) -> None:
         peak = _peak_deg(skel, solve.rest_from_bone_quat, bone, what)
         assert peak >= least, f"{motion}: {bone} {what} peaks at {peak:.1f} deg"
     # The stair descent steps down below the floor it calibrated on (synth.gait:
-    # real 0.17 m risers), which validation's floor (the calibration's) cannot know.
-    thresholds = (
-        {**THRESHOLDS, "floor_penetration_mm": np.inf}
-        if motion == "stair_descent"
-        else None
+    # real 0.17 m risers): validation is given the truth's supports (the lowest
+    # under the feet, a swing foot's the step it lands on), as the command line
+    # gives it the stance detector's.
+    support = lowest_support(
+        np.asarray(take.foot_contact),
+        np.nan_to_num(np.asarray(take.foot_support_m) - take.origin_world[2], nan=0.0),
     )
     rep = validate_take(
         build_model(skel),
         solve,
         RATE_HZ,
         fit=fit_pairs(rig, solve.joint_names),
-        thresholds=thresholds,
+        support_m=support,
     )
     limits = rep.checks["limits"]
     assert limits.n_flagged == 0 and limits.transients.size == 0
