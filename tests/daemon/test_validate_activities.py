@@ -164,3 +164,18 @@ def test_the_demo_take_validates(method: str) -> None:
     rep = validate_take(vm, res, 120.0, fit=fit_pairs(rig, res.joint_names))
     failed = {n: c.summary() for n, c in rep.checks.items() if c.n_flagged}
     assert rep.passed, failed
+
+
+def test_the_lowest_support_looks_ahead_to_each_swing_foots_next_step() -> None:
+    """``lowest_support``: a foot in swing is over the step its next contact is on
+    (a stair down: 0.17 m below), the lower foot's level counts; while standing, a
+    foot's own support."""
+    contact = np.array([[1, 1], [1, 1], [0, 1], [0, 1], [1, 1]], dtype=bool)
+    support = np.zeros((5, 2))
+    support[4, 0] = -0.17
+    np.testing.assert_allclose(
+        lowest_support(contact, support), [0.0, 0.0, -0.17, -0.17, -0.17]
+    )
+    up = support.copy()
+    up[4, 0] = 0.17  # a step up: the lower foot's floor stays
+    np.testing.assert_allclose(lowest_support(contact, up), np.zeros(5))
