@@ -265,7 +265,7 @@ def main() -> None:
     # this row), both feet; the PiG walk's contact holds a foot most frames.
     plant = FootPlant(humanoid, retargeter.root_scale, performer_leg_m(solver.rig, cal))
     detector = StanceDetector(solver.rig, cal)
-    stance_states = np.empty((n, 2, 4))
+    stance_states = np.empty((n, *detector.state.shape))
     mapped_root = np.empty((n, 3))
     for i in range(n):
         detector.update(body_p[i], body_w[i], 1.0 / clip.rate_hz if i else 0.0)
@@ -275,7 +275,11 @@ def main() -> None:
         retargeter.apply(body, tpose)
         mapped_root[i] = tpose.root_pos
     plant_g, plant_r = np.empty_like(mapped_w[0]), np.empty_like(mapped_r[0])
-    plant_root, plant_hips, plant_st = np.empty(3), np.empty(3), np.empty((2, 4))
+    plant_root, plant_hips, plant_st = (
+        np.empty(3),
+        np.empty(3),
+        np.empty(detector.state.shape),
+    )
 
     def plant_step(i: int) -> None:
         k = i % n

@@ -124,20 +124,32 @@ def run(args: argparse.Namespace) -> int:
 
 
 def stance_by_bone(
-    rig: Any, cal: Any, solve: Any, rate_hz: float
+    rig: Any, cal: Any, solve: Any, rate_hz: float, support: np.ndarray | None = None
 ) -> dict[str, np.ndarray]:
     """Foot bone name -> (T,) bool: the stance the detector of ``post/stance.py``
     finds on the solve (the NPZ's ``foot_contact``), for the skate check
     (``validate.skate``: validate may not import post, the command line hands it
-    over); empty when the rig maps no LeftFoot/RightFoot."""
+    over); empty when the rig maps no LeftFoot/RightFoot. With ``support`` ((T,)),
+    also the lowest level under the feet per frame from the detector's supports
+    (``validate.checks.lowest_support``: the floor check's floor where it is below
+    the calibration's, a stair down; 0 without feet)."""
+    import numpy as np
+
     from retargetd.daemon.post.stance import foot_contact
 
     feet = [rig.humanoid.get(f) for f in ("LeftFoot", "RightFoot")]
     if None in feet or cal.rest_bone_origin_pos is None:
+        if support is not None:
+            support[:] = 0.0
         return {}
+    levels = np.zeros((len(solve.root_pos), 2))
     contact = foot_contact(
-        rig, cal, solve.root_pos, solve.world_from_bone_quat, rate_hz
+        rig, cal, solve.root_pos, solve.world_from_bone_quat, rate_hz, levels
     )
+    if support is not None:
+        from retargetd.daemon.validate.checks import lowest_support
+
+        support[:] = lowest_support(contact, levels)
     return {str(name): contact[:, k] for k, name in enumerate(feet)}
 
 
@@ -150,6 +162,8 @@ def _validate(
     mass: float | None,
     report_dir: Path,
 ) -> int:
+    import numpy
+
     from retargetd.daemon.cli.args import print_json, solve_take_progress
     from retargetd.daemon.progress import Progress
     from retargetd.daemon.validate.checks import (
@@ -172,9 +186,11 @@ def _validate(
     with Progress(
         take.n_frames, "checks", unit="frames", enabled=False if args.quiet else None
     ) as bar:
+        support = numpy.zeros(len(res.root_pos))
+        stance = stance_by_bone(rig, cal, res, take.rate_hz, support)
         rep = validate_take(
             vm, res, take.rate_hz, fit=fit_pairs(rig, res.joint_names),
-            progress=bar.update, stance=stance_by_bone(rig, cal, res, take.rate_hz),
+            progress=bar.update, stance=stance, support_m=support,
         )  # fmt: skip
     doc = {
         "take": str(take.path),

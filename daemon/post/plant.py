@@ -31,7 +31,12 @@ detector (:mod:`~retargetd.daemon.post.stance`) found on the performer's solve.
    A goal out of reach (farther than the straight leg, or nearer than the knee's
    most flexion, ``knee_max_deg``) leaves the leg straight (or at that flexion) aimed
    at it and sets the frame's ``plant_unreached`` flag; the knee is never bent
-   backwards (the flexion is never below 0).
+   backwards (the flexion is never below 0). On its ball (past heel-off), a foot whose
+   leg the knee's rate limit leaves longer than the hip-goal distance rolls about the
+   ball (the heel comes down, never below the ball) until the ankle is at the leg's
+   reach: aimed at the goal, the leg would push the ball into the floor (on the
+   synthetic walk, 0.7-1.6 mm for a frame as the leg comes back into reach late in
+   stance).
 
 One frame is one compiled call (:func:`_plant_step`, numba, nothing allocated), on
 state the stage owns. Offline (``solve --plant-feet``) runs the same objects frame by
@@ -49,6 +54,7 @@ import numpy as np
 from retargetd.daemon.body.calibration import Calibration
 from retargetd.daemon.body.rig import Rig
 from retargetd.daemon.compiled import direct, kernel, qmul, qrot
+from retargetd.daemon.post.foot_roll import ball_roll
 from retargetd.daemon.post.stance import CONTACT_COLUMN, SUPPORT_COLUMN
 from retargetd.protocols.frames import F64Array
 from retargetd.protocols.pose_stream import FRAME_PLANT_UNREACHED
@@ -293,8 +299,12 @@ def _plant_step(
             st[_S_PREV] = 0.0
         cx, cy, cz = st[_S_AX], st[_S_AY], st[_S_AZ]
         if not (cx == 0.0 and cy == 0.0 and cz == 0.0 and st[_S_FLEX] == 0.0):
+            # on the ball (heel-off), a leg too long for its goal rolls the foot
+            roll = contact and st[_S_PIVOT] == 1.0
             out |= _leg_ik(s, n, wfb, rfb, rest, chain, e, x, left, knee_max,
-                           knee_step, ax_ + cx, ay_ + cy, az_ + cz, st)  # fmt: skip
+                           knee_step, ax_ + cx, ay_ + cy, az_ + cz, st, roll,
+                           ball_x + cx, ball_y + cy, ball_z + cz, toes[s],
+                           hx - bx, hy - by, hz - bz)  # fmt: skip
         if contact and toes[s] >= 0:
             _toe_roll(s, wfb, rfb, toes[s], e[s, f], rest, offsets, tip,
                       x[s, f, 2], support)  # fmt: skip
@@ -359,9 +369,19 @@ def _leg_ik(
     gy: float,
     gz: float,
     st: np.ndarray,
+    roll: bool,
+    px: float,
+    py: float,
+    pz: float,
+    toe: int,
+    hx: float,
+    hy: float,
+    hz: float,
 ) -> int:  # pragma: no cover - compiled
-    """Two-bone IK of side ``s``'s leg, the ankle to the goal g (module docstring);
-    returns ``1 << s`` when the goal is out of reach, else 0."""
+    """Two-bone IK of side ``s``'s leg, the ankle to the goal g (module docstring;
+    with ``roll``, the foot on its ball at p may roll about it, ``toe`` its Toes bone
+    or -1, h its heel less its ball); returns ``1 << s`` when the goal is out of
+    reach, else 0."""
     out = 0
     f, kk, u = n - 1, n - 2, n - 3
     ax_, ay_, az_ = x[s, f, 0], x[s, f, 1], x[s, f, 2]
@@ -413,7 +433,36 @@ def _leg_ik(
     wx = vx + 2.0 * (qw_ * cxk + qy_ * czk - qz_ * cyk)
     wy = vy + 2.0 * (qw_ * cyk + qz_ * cxk - qx_ * czk)
     wz = vz + 2.0 * (qw_ * czk + qx_ * cyk - qy_ * cxk)
-    sw, sx, sy, sz = _swing(ux + wx, uy + wy, uz + wz, dx, dy, dz)
+    lx, ly, lz = ux + wx, uy + wy, uz + wz
+    r2 = lx * lx + ly * ly + lz * lz
+    if roll and r2 > dist * dist * (1.0 + 1e-9):
+        # The leg (its knee lagging, knee_step) is longer than the hip-goal distance:
+        # aimed at the goal the ankle would go past it, the ball into the floor.
+        # The foot rolls about its ball instead (the ball stays where it is held;
+        # the heel, risen at heel-off, comes down, never below the ball) until the
+        # ankle is at the leg's reach.
+        rw, rx_, ry_, rz_ = ball_roll(e[s, f], left, gx - px, gy - py, gz - pz,
+                                       px - hipx, py - hipy, pz - hipz, r2, hx, hy,
+                                       hz)  # fmt: skip
+        if rw < 1.0:
+            ox, oy, oz = qrot(rw, rx_, ry_, rz_, gx - px, gy - py, gz - pz)
+            dx, dy, dz = px + ox - hipx, py + oy - hipy, pz + oz - hipz
+            ew, ex, ey, ez = qmul(rw, rx_, ry_, rz_, e[s, f, 0], e[s, f, 1],
+                                  e[s, f, 2], e[s, f, 3])  # fmt: skip
+            e[s, f, 0], e[s, f, 1], e[s, f, 2], e[s, f, 3] = ew, ex, ey, ez
+            h = chain[s, f]
+            wfb[h, 0], wfb[h, 1], wfb[h, 2], wfb[h, 3] = qmul(
+                ew, ex, ey, ez, rest[h, 0], rest[h, 1], rest[h, 2], rest[h, 3]
+            )
+            if toe >= 0:  # the toes keep their world rotation (the MTP extends)
+                tw, tx, ty, tz = qmul(
+                    wfb[toe, 0], wfb[toe, 1], wfb[toe, 2], wfb[toe, 3],
+                    rest[toe, 0], -rest[toe, 1], -rest[toe, 2], -rest[toe, 3],
+                )  # fmt: skip
+                rfb[toe, 0], rfb[toe, 1], rfb[toe, 2], rfb[toe, 3] = qmul(
+                    ew, -ex, -ey, -ez, tw, tx, ty, tz
+                )
+    sw, sx, sy, sz = _swing(lx, ly, lz, dx, dy, dz)
     # E' of the thigh and shank; G = E' T, L = Ē'_parent E'.
     tw, tx, ty, tz = qmul(sw, sx, sy, sz, e[s, u, 0], e[s, u, 1], e[s, u, 2],
                           e[s, u, 3])  # fmt: skip

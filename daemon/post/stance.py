@@ -28,14 +28,31 @@ detector owns.
 Contact (with hysteresis: two speeds, after the foot-velocity algorithms):
 
 * on when some point is slower than ``on_speed_m_s`` within ``near_m`` of the support
-  level, or when the foot has been slower than ``still_speed_m_s`` for ``still_s`` at
-  any height (a foot that stops on a step: the level moves there);
+  level (above or below it); or when the foot has *landed* at another level while the
+  other foot stands (a step onto a riser or down a stair: some point stationary,
+  slower than ``still_speed_m_s``, in the frame its descent was braked, i.e. its
+  vertical speed was negative and rose: gravity alone only speeds a descent up, so a
+  foot at a ballistic apex never qualifies); or when the foot has been slower than
+  ``still_speed_m_s`` for ``still_s`` at any height (a foot set down slowly, or
+  landing from a flight);
 * off when no point is both slower than ``off_speed_m_s`` and within ``near_m``, and the
   foot is not still.
 
-Known limits: a foot held still in the air for longer than ``still_s`` reads as a foot
-on a support (the feet alone cannot tell a riser from a held pose); a held (occluded)
-foot bone does not move, so it reads as standing.
+Support. A contact that starts at another level (landed, or stopped) takes the level
+of the foot's lowest point then; while the foot is still it follows that point as the
+foot settles (a forefoot landing lowers its heel), until the heel rises (``heel_rise_m``
+above the lowest point and going up: heel-off), when it is frozen for the rest of the
+contact: from heel-off the foot rolls about its forefoot, and a point fixed in the foot
+ahead of the roll's axis dips below its standing height (the PiG walk's forefoot aim:
+6.6 mm) without the support moving. A level within ``near_m`` of the calibration's floor
+is the floor (0): the solved foot's standing height wanders a few mm with the pose
+(-2.5 to +4 mm on the synthetic walk), the floor's height is known.
+
+Known limits: a foot held still in the air for longer than ``still_s`` (or, while the
+other foot stands, braked to a stop there) reads as a foot on a support (the feet alone
+cannot tell a riser from a held pose); a held (occluded) foot bone does not move, so it
+reads as standing; a support within ``near_m`` of the floor (a mat, a low platform) is
+the floor.
 """
 
 from __future__ import annotations
@@ -74,8 +91,9 @@ STANCE: dict[str, float] = {
     # height only excludes a slow foot aloft (a jump's apex); 4 cm admits the solved
     # foot's height error in stance (a heel or forefoot rocking on the floor).
     "near_m": 0.04,
-    # Stopped at any height (a step): slower than this for still_s. 0.2 m/s is the
-    # stationary speed of the floating check (validate/dynamics.py CONTACT); a
+    # Stopped at any height (a step): slower than this for still_s, or at once in
+    # the frame a descent is braked while the other foot stands (landed). 0.2 m/s is
+    # the stationary speed of the floating check (validate/dynamics.py CONTACT); a
     # ballistic foot is under it for 2 * 0.2 / 9.81 = 41 ms at a jump's apex, so
     # still_s is twice that.
     "still_speed_m_s": 0.20,
@@ -83,15 +101,23 @@ STANCE: dict[str, float] = {
     # Low-pass of the stillness speed, Hz: Winter's ~6 Hz for gait kinematics
     # (Winter 2009, Biomechanics and Motor Control of Human Movement, 4th ed., ch. 2).
     "cutoff_hz": 6.0,
+    # Heel-off: the heel this far above the foot's lowest point and rising. The
+    # plant's pivot switch (post/plant.py PLANT pivot_switch_m, a quarter of near_m):
+    # above the solved foot's rocking on a flat floor, far below a heel-off's rise.
+    "heel_rise_m": 0.01,
 }
-_PARAMS = ("on_speed_m_s", "off_speed_m_s", "near_m", "still_speed_m_s", "still_s")
+_PARAMS = (
+    "on_speed_m_s", "off_speed_m_s", "near_m", "still_speed_m_s", "still_s",
+    "heel_rise_m",
+)  # fmt: skip
 
 #: The flag bits :meth:`StanceDetector.update` returns (the pose stream's).
 LEFT, RIGHT, KNOWN = FRAME_CONTACT_LEFT, FRAME_CONTACT_RIGHT, FRAME_CONTACT_KNOWN
 _SIDES = (("LeftFoot", "LeftToes"), ("RightFoot", "RightToes"))
 _MAX_POINTS = 4  # ankle, forefoot (the foot's aim), toe tip (a toes bone), heel
-# State columns per foot: has history, seconds still, support level, contact.
-_HAS, _STILL, _SUPPORT, _CONTACT = 0, 1, 2, 3
+# State columns per foot: has history, seconds still, support level, contact, the
+# support frozen (heel-off) for the rest of this contact.
+_HAS, _STILL, _SUPPORT, _CONTACT, _FROZEN = 0, 1, 2, 3, 4
 #: :attr:`StanceDetector.state`'s columns a later stage reads (post/plant.py): the
 #: support level (metres above the calibration's floor) and the contact (0 or 1).
 SUPPORT_COLUMN, CONTACT_COLUMN = _SUPPORT, _CONTACT
@@ -176,17 +202,20 @@ def _step(
     pt_local: np.ndarray,  # (2, P, 3)
     n_pts: np.ndarray,  # (2,) int64
     rest_z: np.ndarray,  # (2, P)
-    params: np.ndarray,  # (6,) _PARAMS, then the low-pass time constant, s
+    params: np.ndarray,  # (7,) _PARAMS, then the low-pass time constant, s
     origins: np.ndarray,  # (2, C, 3) scratch
-    prev: np.ndarray,  # (2, P, 3) state: last frame's points
+    prev: np.ndarray,  # (2, P, 4) state: last frame's points, their vertical speed
     vel: np.ndarray,  # (2, P, 3) state: low-passed velocity
-    state: np.ndarray,  # (2, 4) state: _HAS, _STILL, _SUPPORT, _CONTACT
+    state: np.ndarray,  # (2, 5) state: _HAS, _STILL, _SUPPORT, _CONTACT, _FROZEN
 ) -> int:  # pragma: no cover - compiled
     """One frame of both feet (module docstring); returns the contact bits 0-1."""
-    on_v, off_v, near_m, still_v, still_s, tau = (
-        params[0], params[1], params[2], params[3], params[4], params[5],
+    on_v, off_v, near_m, still_v, still_s, rise_m, tau = (
+        params[0], params[1], params[2], params[3], params[4], params[5], params[6],
     )  # fmt: skip
     out = 0
+    # Last frame's contact of each foot: a landing at a new level is a step (the
+    # other foot stands); a foot coming down from a flight waits to be still.
+    stood = (state[0, _CONTACT] != 0.0, state[1, _CONTACT] != 0.0)
     for s in range(2):
         for k in range(3):
             origins[s, 0, k] = root_pos[k]
@@ -200,10 +229,15 @@ def _step(
             origins[s, j, 2] = origins[s, j - 1, 2] + rz
         fresh = state[s, _HAS] == 0.0 or not dt > 0.0
         alpha = 0.0 if fresh else dt / (dt + tau)
+        support = state[s, _SUPPORT]
         slowest = math.inf
         lowest = math.inf
         any_on = False
         any_hold = False
+        landed = False
+        heel = n_pts[s] - 1  # the heel is the last point (_Plan)
+        heel_level = 0.0
+        heel_vz = 0.0
         for i in range(n_pts[s]):
             j = pt_link[s, i]
             b = chain[s, j]
@@ -214,22 +248,32 @@ def _step(
             py = origins[s, j, 1] + ry
             pz = origins[s, j, 2] + rz
             speed = 0.0
+            vz = 0.0
             if fresh:
                 vel[s, i, 0] = vel[s, i, 1] = vel[s, i, 2] = 0.0
             else:
                 dx = (px - prev[s, i, 0]) / dt
                 dy = (py - prev[s, i, 1]) / dt
-                dz = (pz - prev[s, i, 2]) / dt
-                speed = math.sqrt(dx * dx + dy * dy + dz * dz)
+                vz = (pz - prev[s, i, 2]) / dt
+                speed = math.sqrt(dx * dx + dy * dy + vz * vz)
                 vel[s, i, 0] += alpha * (dx - vel[s, i, 0])
                 vel[s, i, 1] += alpha * (dy - vel[s, i, 1])
-                vel[s, i, 2] += alpha * (dz - vel[s, i, 2])
+                vel[s, i, 2] += alpha * (vz - vel[s, i, 2])
+                # Landed: stationary (still_v) at once, its descent braked (it
+                # came down and something stopped it: gravity alone only speeds a
+                # descent up, so a ballistic foot at its apex never qualifies).
+                vz_prev = prev[s, i, 3]
+                if speed < still_v and vz_prev < 0.0 and vz > vz_prev:
+                    landed = True
             prev[s, i, 0], prev[s, i, 1], prev[s, i, 2] = px, py, pz
+            prev[s, i, 3] = vz
             v = vel[s, i]
             slowest = min(slowest, math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]))
             level = pz - rest_z[s, i]
             lowest = min(lowest, level)
-            if level - state[s, _SUPPORT] < near_m:
+            if i == heel:
+                heel_level, heel_vz = level, vz
+            if abs(level - support) < near_m:
                 any_on = any_on or speed < on_v
                 any_hold = any_hold or speed < off_v
         if fresh:
@@ -240,9 +284,28 @@ def _step(
             state[s, _STILL] = 0.0
         state[s, _HAS] = 1.0
         still = state[s, _STILL] >= still_s
-        if still:  # stopped here: this is the foot's support now
-            state[s, _SUPPORT] = lowest
-        on = still or (any_hold if state[s, _CONTACT] != 0.0 else any_on)
+        was = state[s, _CONTACT] != 0.0
+        # held by the near rule (hysteresis), else on by it, or landed on a new
+        # level while the other foot stands
+        on = still or (any_hold if was else any_on or (landed and stood[1 - s]))
+        # The support: the calibration's floor where the foot stands within near_m
+        # of it, else the level of its lowest point (a step, a riser).
+        here = 0.0 if abs(lowest) < near_m else lowest
+        if on and not was:
+            state[s, _FROZEN] = 0.0
+            if not any_on:  # a new level: the foot came down (or stopped) there
+                state[s, _SUPPORT] = here
+        if on and still and state[s, _FROZEN] == 0.0:
+            # Settling (the foot lowering onto its support): the support follows
+            # the foot's lowest point, until the heel rises (heel-off, Perry &
+            # Burnfield's terminal stance): the foot then rolls about its
+            # forefoot and its points' height no longer tells the support's.
+            if heel_level - lowest > rise_m and heel_vz > 0.0:
+                state[s, _FROZEN] = 1.0
+            else:
+                state[s, _SUPPORT] = here
+        if not on:
+            state[s, _FROZEN] = 0.0
         state[s, _CONTACT] = 1.0 if on else 0.0
         if on:
             out |= 1 << s
@@ -266,9 +329,9 @@ class StanceDetector:
         self._params = np.array([*(p[k] for k in _PARAMS), tau])
         n_chain = self._plan.chain.shape[1] if self._plan is not None else 1
         self._origins = np.zeros((2, n_chain, 3))
-        self._prev = np.zeros((2, _MAX_POINTS, 3))
+        self._prev = np.zeros((2, _MAX_POINTS, 4))
         self._vel = np.zeros((2, _MAX_POINTS, 3))
-        self._state = np.zeros((2, 4))
+        self._state = np.zeros((2, 5))
         self.clock = np.zeros(1)
         """(1,) seconds: the sum of the frame intervals given to :meth:`update` (a
         later stage's clock, post/plant.py)."""
@@ -281,7 +344,7 @@ class StanceDetector:
 
     @property
     def state(self) -> np.ndarray:
-        """(2, 4) the detector's own state array (left, right), updated in place
+        """(2, 5) the detector's own state array (left, right), updated in place
         every frame: read :data:`SUPPORT_COLUMN` and :data:`CONTACT_COLUMN` without a
         copy (the plant stage's input)."""
         return self._state
@@ -329,10 +392,13 @@ def foot_contact(
     root_pos: F64Array,
     world_from_bone_quat: F64Array,
     rate_hz: float,
+    support: np.ndarray | None = None,
 ) -> np.ndarray:
     """(T, 2) bool, left and right foot in contact per frame of a solved take: the
     live detector run over the frames at ``rate_hz`` (``retargetd solve``'s
-    ``foot_contact``; all False when the rig maps no LeftFoot/RightFoot)."""
+    ``foot_contact``; all False when the rig maps no LeftFoot/RightFoot). With
+    ``support`` ((T, 2) float64), also each foot's support level per frame, metres
+    above the calibration's floor (the module docstring's; 0 where unknown)."""
     det = StanceDetector(rig, calibration)
     root = np.ascontiguousarray(root_pos, dtype=np.float64)
     wfb = np.ascontiguousarray(world_from_bone_quat, dtype=np.float64)
@@ -343,4 +409,6 @@ def foot_contact(
         bits = det.update(root[t], wfb[t], dt if t else 0.0)
         out[t, 0] = bool(bits & LEFT)
         out[t, 1] = bool(bits & RIGHT)
+        if support is not None:
+            support[t] = det.state[:, _SUPPORT]
     return out

@@ -389,6 +389,29 @@ class TakeReport:
 PROGRESS_FRAMES = 64
 
 
+def lowest_support(contact: np.ndarray, support: np.ndarray) -> np.ndarray:
+    """(T,) the lowest level under the feet per frame, metres above the
+    calibration's floor, for :func:`validate_take`'s ``support_m``: per foot, the
+    lower of the support it stands on (or last left) and the one its next contact
+    is on (a swing foot reaching down a stair is over the step it lands on); then
+    the lower foot's. Offline only (it looks ahead to the next contact).
+
+    Args:
+        contact: (T, 2) bool, each foot in contact.
+        support: (T, 2) each foot's support level (the stance detector's, or a
+            synthetic take's truth), metres above the calibration's floor.
+    """
+    n = len(contact)
+    out = np.array(support, dtype=np.float64)
+    for s in range(contact.shape[1]):
+        nxt = np.inf
+        for t in range(n - 1, -1, -1):
+            if contact[t, s]:
+                nxt = support[t, s]
+            out[t, s] = min(out[t, s], nxt)
+    return out.min(axis=1) if out.shape[1] else np.zeros(n)
+
+
 def validate_take(
     vm: ValidationModel,
     solve: BodySolve,
@@ -399,6 +422,7 @@ def validate_take(
     dynamics: bool = True,
     progress: Callable[[int], None] | None = None,
     stance: dict[str, np.ndarray] | None = None,
+    support_m: np.ndarray | None = None,
 ) -> TakeReport:
     """Run every check on a solved take.
 
@@ -415,6 +439,10 @@ def validate_take(
         stance: foot bone name -> (T,) bool, the stance the detector found
             (``post.stance.foot_contact``, handed over by the caller:
             :mod:`validate.skate`); None skips the skate check.
+        support_m: (T,) metres above the calibration's floor, the lowest support
+            under the feet per frame (the stance detector's, or a synthetic take's
+            truth): where it is below the floor (a stair down), floor penetration
+            is measured below it; None: the calibration's floor alone.
 
     Returns:
         The report.
@@ -444,6 +472,8 @@ def validate_take(
         self_depth[t] = fc.self_depth
         self_pairs[t] = fc.self_pair
         floor_depth[t] = fc.floor_depth
+        if support_m is not None and support_m[t] < 0.0:  # standing below the floor
+            floor_depth[t] = max(0.0, fc.floor_depth + float(support_m[t]))
         if progress is not None and (t + 1) % PROGRESS_FRAMES == 0:
             progress(PROGRESS_FRAMES)
     if progress is not None and n % PROGRESS_FRAMES:

@@ -14,7 +14,11 @@ from retargetd.daemon.body.calibration import calibrate
 from retargetd.daemon.body.rig import load_rig
 from retargetd.daemon.body.solve import BodySolver
 from retargetd.daemon.synth import performer as pf
-from retargetd.daemon.validate.checks import THRESHOLDS, fit_pairs, validate_take
+from retargetd.daemon.validate.checks import (
+    fit_pairs,
+    lowest_support,
+    validate_take,
+)
 from retargetd.daemon.validate.limits import JointLimit, limit_violation_deg
 from retargetd.daemon.validate.model import build_model, skeleton_from_calibration
 
@@ -90,18 +94,19 @@ def test_activity_reaches_the_published_range_and_passes(motion: str) -> None:
         peak = _peak_deg(skel, solve.rest_from_bone_quat, bone, what)
         assert peak >= least, f"{motion}: {bone} {what} peaks at {peak:.1f} deg"
     # The stair descent steps down below the floor it calibrated on (synth.gait:
-    # real 0.17 m risers), which validation's floor (the calibration's) cannot know.
-    thresholds = (
-        {**THRESHOLDS, "floor_penetration_mm": np.inf}
-        if motion == "stair_descent"
-        else None
+    # real 0.17 m risers): validation is given the truth's supports (the lowest
+    # under the feet, a swing foot's the step it lands on), as the command line
+    # gives it the stance detector's.
+    support = lowest_support(
+        np.asarray(take.foot_contact),
+        np.nan_to_num(np.asarray(take.foot_support_m) - take.origin_world[2], nan=0.0),
     )
     rep = validate_take(
         build_model(skel),
         solve,
         RATE_HZ,
         fit=fit_pairs(rig, solve.joint_names),
-        thresholds=thresholds,
+        support_m=support,
     )
     limits = rep.checks["limits"]
     assert limits.n_flagged == 0 and limits.transients.size == 0
@@ -159,3 +164,18 @@ def test_the_demo_take_validates(method: str) -> None:
     rep = validate_take(vm, res, 120.0, fit=fit_pairs(rig, res.joint_names))
     failed = {n: c.summary() for n, c in rep.checks.items() if c.n_flagged}
     assert rep.passed, failed
+
+
+def test_the_lowest_support_looks_ahead_to_each_swing_foots_next_step() -> None:
+    """``lowest_support``: a foot in swing is over the step its next contact is on
+    (a stair down: 0.17 m below), the lower foot's level counts; while standing, a
+    foot's own support."""
+    contact = np.array([[1, 1], [1, 1], [0, 1], [0, 1], [1, 1]], dtype=bool)
+    support = np.zeros((5, 2))
+    support[4, 0] = -0.17
+    np.testing.assert_allclose(
+        lowest_support(contact, support), [0.0, 0.0, -0.17, -0.17, -0.17]
+    )
+    up = support.copy()
+    up[4, 0] = 0.17  # a step up: the lower foot's floor stays
+    np.testing.assert_allclose(lowest_support(contact, up), np.zeros(5))

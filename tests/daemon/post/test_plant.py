@@ -158,6 +158,50 @@ def test_out_of_reach_the_leg_straightens_toward_its_hold_and_is_flagged() -> No
     assert np.degrees(np.arccos(min(1.0, aim @ want))) < 0.01
 
 
+def test_a_knee_lagging_its_flexion_rolls_the_foot_about_its_ball() -> None:
+    """The left foot stands on its ball, heel up 20 deg (past heel-off), when the
+    hips drop 4 cm in a frame: the knee needs more flexion than ``knee_step_deg``
+    allows in a frame, so for some frames the leg is longer than the hip-goal
+    distance. The foot rolls about its ball instead of the leg pushing it into the
+    floor: the ball stays where it is held (1e-9 m) and never below the floor, the
+    heel comes down but never below the ball."""
+    target = default_humanoid()
+    stage = FootPlant(target, 1.0, LEG_M)
+    z = _on_floor_z()
+    lf, lt = target.index("LeftFoot"), target.index("LeftToes")
+    heel_up = rot.quat_from_axis_angle(np.array([1.0, 0.0, 0.0]), math.radians(-20.0))
+    heel, ball = foot_points(target)
+    # the root raised so that the pitched foot's ball is on the floor
+    z += ball[0, 2] - rot.quat_rotate(heel_up, ball[0])[2]
+    rest = np.asarray(target.rest_world_from_bone_quat)
+    balls, heels, knees = [], [], []
+    for t in range(40):
+        pose = _crouch(target, 0.0, z - (0.04 if t >= 20 else 0.0))
+        g = pose.world_from_bone_quat
+        g[lf] = rot.quat_mul(heel_up, g[lf])
+        g[lt] = rot.quat_mul(heel_up, g[lt])
+        pose.rest_from_bone_quat[lf] = rot.quat_mul(
+            rot.quat_conj(g[target.parents[lf]]), g[lf]
+        )
+        stage.apply(
+            g, pose.rest_from_bone_quat, pose.root_pos, pose.hips_pos,
+            _stance(True, False), t / RATE_HZ,
+        )  # fmt: skip
+        j = joint_positions_world(target, pose)
+        e = rot.quat_mul(g[lf], rot.quat_conj(rest[lf]))
+        balls.append(j[lf] + rot.quat_rotate(e, ball[0]))
+        heels.append(j[lf] + rot.quat_rotate(e, heel[0]))
+        knees.append(_knee_deg(target, j))
+    b, h = np.array(balls), np.array(heels)
+    lagged = np.diff(knees)[19:] >= PLANT["knee_step_deg"] - 1e-9
+    assert lagged.sum() >= 2  # the knee was rate limited for some frames
+    assert h[0, 2] - b[0, 2] > 0.03  # on the ball: heel-off
+    assert b[:, 2].min() >= -1e-9
+    assert np.abs(b[12:] - b[12]).max() < 1e-9
+    assert (h[:, 2] - b[:, 2]).min() >= -1e-9
+    assert h[20:, 2].min() < h[19, 2] - 1e-3  # the heel came down
+
+
 def test_the_release_blends_out_and_the_knee_never_pops() -> None:
     """Held while the hips travel 6 cm, then released: the ankle rejoins the
     unplanted path within ``blend_out_s`` (to 1e-9 m after it), the correction
