@@ -394,6 +394,9 @@ def in_process(take: Any, n: int, calibration: Path, frames: int = 3000) -> None
             label_set = LabelSet(1, tuple(labels))
             stream.set_labels(label_set)
             d.performers.prepare(stream, label_set)
+            # its pipelines are built off the loop (live/rebuild.py): timed once built
+            if not d.performers.done_building(120.0):
+                raise RuntimeError("the performers' pipelines were not built in 120 s")
             packets = [
                 osc_in.encode_compact_frame(
                     i, i / 240, 1, positions[i % len(positions)]
