@@ -180,7 +180,7 @@ class Daemon:
         self._catch_up_ns = budget_ns * len(performers)
         self._prewarm = Prewarm(config.loop.prewarm_ms)
         spin_us = config.loop.spin_us  # [loop] spin_us: None = off (the default)
-        self._spin = Spin(spin_us) if spin_us > 0.0 else None
+        self._spin = Spin(spin_us, self._prewarm) if spin_us > 0.0 else None
         self.shared = Shared(
             config, self.target, self.stats, self.outputs, self.recording,
             self._prewarm, self.out, self.status, self._t0_ns, budget_ns,
@@ -492,9 +492,7 @@ class Daemon:
             return 0
         self.stats.frames_in += 1
         self.shared.last_frame_ns = t_ns
-        self._prewarm.observe(t_ns)
-        if self._spin is not None:
-            self._spin.observe(t_ns)
+        self._prewarm.observe(t_ns)  # (the spin reads the same cadence)
         stream.current.frame.t_ns = t_ns
         performers = self.performers
         if code == RESTART:

@@ -33,19 +33,15 @@ from retargetd.protocols.pose_stream import FRAME_UNEXPLAINED
 GAIN = 0.125
 
 
-class Prewarm:
-    """The predictor and the scratch solvers of one daemon (one loop)."""
+class Cadence:
+    """A stream's pace from its accepted frames' receive times: the running mean of
+    their spacing (:data:`GAIN` a frame) and of its deviation, and the last one
+    (shared by the touch and ``live/spin.py``)."""
 
-    def __init__(self, lead_ms: float) -> None:
-        self.lead_ns = int(lead_ms * 1e6)
+    def __init__(self) -> None:
         self.period_ns = 0.0
         self.dev_ns = 0.0
         self.last_ns = 0
-        self.touched_ns = 0  # the last frame whose successor was touched for
-        self.touches = 0
-        self.resets = 0  # scratch solvers reset after a flagged or slow touch
-        # (performer, input) -> (scratch fit, its pose, the input's frame buffer)
-        self._scratch: dict[tuple[int, int], tuple[FitSolver, Any, Any]] = {}
 
     def observe(self, t_ns: int) -> None:
         """An accepted frame received at ``t_ns``."""
@@ -58,6 +54,19 @@ class Prewarm:
                 self.period_ns += GAIN * err
                 self.dev_ns += GAIN * (abs(err) - self.dev_ns)
         self.last_ns = t_ns
+
+
+class Prewarm(Cadence):
+    """The predictor and the scratch solvers of one daemon (one loop)."""
+
+    def __init__(self, lead_ms: float) -> None:
+        super().__init__()
+        self.lead_ns = int(lead_ms * 1e6)
+        self.touched_ns = 0  # the last frame whose successor was touched for
+        self.touches = 0
+        self.resets = 0  # scratch solvers reset after a flagged or slow touch
+        # (performer, input) -> (scratch fit, its pose, the input's frame buffer)
+        self._scratch: dict[tuple[int, int], tuple[FitSolver, Any, Any]] = {}
 
     def next_ns(self) -> int:
         """When the next frame is due, or -1 (off, not steady, or too fast)."""

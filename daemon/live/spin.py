@@ -19,8 +19,8 @@ thread) needed, and the frame arrives later, not sooner (measured in issue 35; R
 "The hot path, per frame"). Off (0, the default) the loop pays one ``is None`` test
 per pass.
 
-The period is a running mean of the accepted frames' spacing (the same estimate as
-``live/prewarm.py``, weight 1/8 a frame); the loop spins only for a stream whose
+The period is a running mean of the accepted frames' spacing (``prewarm.Cadence``,
+the touch's own estimate, weight 1/8 a frame); the loop spins only for a stream whose
 spacing deviates on average by less than ``spin_us`` (a frame that jitters more would
 mostly land outside the window) and whose period is over twice the window (a faster
 stream keeps the loop awake anyway). A due time whose window passed without a frame
@@ -33,7 +33,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from retargetd.daemon.live.prewarm import GAIN
+from retargetd.daemon.live.prewarm import Cadence
 
 #: The poll's timeout is whole milliseconds: it may wake up to this much before the
 #: window opens, and the loop spins from there.
@@ -45,38 +45,27 @@ class Spin:
 
     Args:
         spin_us: the window, microseconds on either side of the frame's due time.
+        cadence: the stream's pace (the loop's ``Prewarm``, which observes every
+            accepted frame).
     """
 
-    def __init__(self, spin_us: float) -> None:
+    def __init__(self, spin_us: float, cadence: Cadence) -> None:
         self.window_ns = int(spin_us * 1000.0)
         # the poll phase's allowance beyond its timeout (live/stalls.py): the spin
         self.allow_ns = 2 * self.window_ns + POLL_ROUNDING_NS
-        self.period_ns = 0.0
-        self.dev_ns = 0.0
-        self.last_ns = 0
+        self.cadence = cadence
         self._missed = -1  # a due time whose window passed without a frame
         self.spins = 0  # windows spun in
         self.caught = 0  # ... that a frame ended (received while spinning)
 
-    def observe(self, t_ns: int) -> None:
-        """An accepted frame received at ``t_ns``."""
-        if self.last_ns:
-            d = float(t_ns - self.last_ns)
-            if self.period_ns == 0.0:
-                self.period_ns = d
-            else:
-                err = d - self.period_ns
-                self.period_ns += GAIN * err
-                self.dev_ns += GAIN * (abs(err) - self.dev_ns)
-        self.last_ns = t_ns
-
     def due_ns(self) -> int:
         """When the next frame is due, or -1 (not steady, too fast, or its window
         already spun through without it)."""
-        p = self.period_ns
-        if p <= 2.0 * self.window_ns or self.dev_ns >= self.window_ns:
+        c = self.cadence
+        p = c.period_ns
+        if p <= 2.0 * self.window_ns or c.dev_ns >= self.window_ns:
             return -1
-        due = self.last_ns + int(p)
+        due = c.last_ns + int(p)
         return -1 if due == self._missed else due
 
     def wait_ms(self, now_ns: int, wait_ms: int) -> int:

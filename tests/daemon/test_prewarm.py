@@ -88,11 +88,7 @@ def test_the_daemon_touches_the_fit_and_streams_the_same_poses(
     _prime(sub, lambda: src.send(take.markers_world[0]))
     n0 = len(src.sent)
     rows = range(100, 250)
-    t_next = time.monotonic()
-    for row in rows:  # paced at 100 Hz, as a capture system sends
-        t_next += 0.01
-        time.sleep(max(0.0, t_next - time.monotonic()))
-        src.send(take.markers_world[row])
+    src.send_paced([take.markers_world[row] for row in rows], 100.0)
     sub.wait(lambda: len(sub.poses) >= len(rows), "the fitted poses", 30.0)
     touches = live.ctl({"cmd": "status"})["status"]["counters"]["prewarm"]
     want = [q for q, _ in _fit_oracle(exact_calibration, [m for _, m in src.sent])]

@@ -14,6 +14,7 @@ import pytest
 import zmq
 from live_harness import Live, OscSource, PoseSub, _prime, _take
 
+from retargetd.daemon.live.prewarm import Cadence
 from retargetd.daemon.live.spin import POLL_ROUNDING_NS, Spin, spin_counters
 
 MS = 1_000_000
@@ -25,12 +26,12 @@ def _steady(s: Spin, period_ns: int, n: int, jitter: float = 0.0) -> int:
     t = time.monotonic_ns() - n * period_ns
     for _ in range(n):
         t += int(period_ns * (1.0 + jitter * rng.uniform(-1.0, 1.0)))
-        s.observe(t)
+        s.cadence.observe(t)
     return t
 
 
 def test_a_steady_stream_wakes_the_poll_before_its_window() -> None:
-    s = Spin(500.0)
+    s = Spin(500.0, Cadence())
     last = _steady(s, PERIOD, 50, jitter=0.02)
     due = s.due_ns()
     assert abs(due - (last + PERIOD)) < 0.05 * PERIOD
@@ -42,9 +43,13 @@ def test_a_steady_stream_wakes_the_poll_before_its_window() -> None:
 
 
 def test_spinning_returns_what_arrives_and_gives_up_at_the_window_end() -> None:
-    s = Spin(2000.0)  # 2 ms either side: the test's own clock jitter is far under
+    s = Spin(
+        2000.0, Cadence()
+    )  # 2 ms either side: the test's own clock jitter is far under
     last = _steady(s, 10 * MS, 30)  # 100 Hz, the last frame just now
-    s.last_ns = time.monotonic_ns() - 10 * MS + 1 * MS  # due in 1 ms: window open
+    s.cadence.last_ns = (
+        time.monotonic_ns() - 10 * MS + 1 * MS
+    )  # due in 1 ms: window open
     calls = []
 
     def poll(timeout: int) -> list[int]:
@@ -56,24 +61,24 @@ def test_spinning_returns_what_arrives_and_gives_up_at_the_window_end() -> None:
     calls.clear()
     t0 = time.monotonic_ns()
     assert s.spin(lambda timeout: []) == []  # nothing comes: until the window ends
-    assert time.monotonic_ns() >= s.last_ns + int(s.period_ns) + 2 * MS
+    assert time.monotonic_ns() >= s.cadence.last_ns + int(s.cadence.period_ns) + 2 * MS
     assert time.monotonic_ns() - t0 < 10 * MS
     assert s.spins == 2 and s.caught == 1
     # that due time is not spun for again, nor woken for
     assert s.due_ns() == -1 and s.wait_ms(time.monotonic_ns(), 100) == 100
     assert s.spin(lambda timeout: pytest.fail("spun for a missed frame")) == []
-    s.observe(time.monotonic_ns())  # the frame came late: the next one is armed
+    s.cadence.observe(time.monotonic_ns())  # the frame came late: the next one is armed
     assert s.due_ns() > 0
     assert last > 0
 
 
 def test_no_spin_before_the_window_nor_for_an_unsteady_or_too_fast_stream() -> None:
-    s = Spin(500.0)
+    s = Spin(500.0, Cadence())
     _steady(s, PERIOD, 50)
-    s.last_ns = time.monotonic_ns()  # due in 4.2 ms: far before the window
+    s.cadence.last_ns = time.monotonic_ns()  # due in 4.2 ms: far before the window
     assert s.spin(lambda timeout: pytest.fail("spun early")) == []
     for period, jitter in ((PERIOD, 0.6), (MS, 0.0)):  # unsteady; 1000 Hz < 2 x 0.5
-        s = Spin(500.0)
+        s = Spin(500.0, Cadence())
         last = _steady(s, period, 60, jitter)
         assert s.due_ns() == -1
         assert s.wait_ms(last + 1000, 100) == 100
@@ -82,7 +87,7 @@ def test_no_spin_before_the_window_nor_for_an_unsteady_or_too_fast_stream() -> N
 
 def test_status_counts_zero_when_off() -> None:
     assert spin_counters(None) == {"spins": 0, "spins_caught": 0}
-    s = Spin(100.0)
+    s = Spin(100.0, Cadence())
     s.spins, s.caught = 3, 2
     assert spin_counters(s) == {"spins": 3, "spins_caught": 2}
 
@@ -112,11 +117,7 @@ def test_the_daemon_spins_for_a_paced_stream_and_loses_no_frame(
     _prime(sub, lambda: src.send(take.markers_world[0]))
     n0 = len(sub.poses)
     rows = range(100, 250)
-    t_next = time.monotonic()
-    for row in rows:  # paced at 100 Hz, as a capture system sends
-        t_next += 0.01
-        time.sleep(max(0.0, t_next - time.monotonic()))
-        src.send(take.markers_world[row])
+    src.send_paced([take.markers_world[row] for row in rows], 100.0)
     sub.wait(lambda: len(sub.poses) >= n0 + len(rows), "every frame's pose", 30.0)
     c = live.ctl({"cmd": "status"})["status"]["counters"]
     print(f"\nspin_us {spin_us}: {c['spins']} spins, {c['spins_caught']} caught")

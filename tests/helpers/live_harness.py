@@ -329,6 +329,15 @@ class OscSource:
         self.sent.append((fid, _f32(markers)))
         return fid
 
+    def send_paced(self, rows: list[np.ndarray], rate_hz: float) -> None:
+        """Send ``rows`` one every ``1 / rate_hz`` s, as a capture system sends
+        (each at its own time, not as fast as possible)."""
+        t_next = time.monotonic()
+        for markers in rows:
+            t_next += 1.0 / rate_hz
+            time.sleep(max(0.0, t_next - time.monotonic()))
+            self.send(markers)
+
     def raw(self, data: bytes) -> None:
         self.sock.sendto(data if self.sign is None else self.sign(data), self.addr)
 
