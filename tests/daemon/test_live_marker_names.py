@@ -52,13 +52,18 @@ def test_capture_label_check_knows_the_rigs_labels_not_its_names() -> None:
     rig = load_rig("opensim-gait2354")
     labels = (*_opensim_labels(), "ghost")
     said: list[str] = []
+    prepared: list[Any] = []  # (the pipelines' builds start for the new label set)
     state = SimpleNamespace(
-        performers=SimpleNamespace(all=[SimpleNamespace(prefix="", rig=rig)]),
+        performers=SimpleNamespace(
+            all=[SimpleNamespace(prefix="", rig=rig)],
+            prepare=lambda stream, label_set: prepared.append(label_set),
+        ),
         out=said.append,
     )
     cap = CaptureInput(system="qtm", url="qtm://127.0.0.1", form=0, inp=None)
     stream = SimpleNamespace(label_set=SimpleNamespace(labels=labels))
     CaptureSource._check_capture_labels(state, cap, stream)  # type: ignore[arg-type]
+    assert prepared == [stream.label_set]
     cols = set(match_markers(rig, labels))
     want = tuple(lb for i, lb in enumerate(labels) if i not in cols)
     assert cap.unknown_labels == want and "ghost" in want
