@@ -432,7 +432,54 @@ def _damage_section(rows: Sequence[DamageRow], settings: Settings) -> list[str]:
             for (kind, length), group in groups.items():
                 out.append(_damage_line(kind, length, group, rate))
             out.append("")
+            out += _hidden_markers(groups, rate)
     return out
+
+
+def _past(m: DamageMetrics) -> bool:
+    """What issue 28 item 6 forbids of a hidden marker."""
+    return (
+        m.max_joint_mm > HIDE_JOINT_MM
+        or m.max_bone_deg > HIDE_BONE_DEG
+        or m.new_steps > 0
+        or m.nan_frames > 0
+    )
+
+
+def _hidden_markers(
+    groups: dict[tuple[str, int], list[DamageRow]], rate: float
+) -> list[str]:
+    """Per hidden marker that passes a limit in any hide window: its joint, bone
+    (the bone named) and new steps in each window, so each failure is traceable."""
+    hides = {length: {r.marker: r.metrics for r in group}
+             for (kind, length), group in groups.items() if kind == "hide"}  # fmt: skip
+    if not hides:
+        return []
+    markers = list(dict.fromkeys(k for by in hides.values() for k in by))
+    failing = [k for k in markers if any(_past(by[k]) for by in hides.values()
+                                         if k in by)]  # fmt: skip
+    if not failing:
+        return []
+    head = " | ".join(f"hide {length / rate:g} s" for length in hides)
+    out = [
+        "Hidden markers past a limit (joint mm / bone deg (bone) / new steps):",
+        "",
+        f"| marker | {head} |",
+        "|---|" + "---|" * len(hides),
+    ]
+    for k in failing:
+        cells = []
+        for by in hides.values():
+            m = by.get(k)
+            cells.append(
+                "" if m is None else _bold(
+                    f"{_mm(m.max_joint_mm)} / {_deg(m.max_bone_deg)} "
+                    f"({m.max_bone}) / {m.new_steps}",
+                    _past(m),
+                )
+            )  # fmt: skip
+        out.append(f"| {k} | " + " | ".join(cells) + " |")
+    return [*out, ""]
 
 
 def _damage_line(kind: str, length: int, group: list[DamageRow], rate: float) -> str:
@@ -457,13 +504,7 @@ def _damage_line(kind: str, length: int, group: list[DamageRow], rate: float) ->
     late = rec.metrics.recovery_frames is None or (
         rec.metrics.recovery_frames / rate > RECOVERY_S
     )
-    past = sum(
-        r.metrics.max_joint_mm > HIDE_JOINT_MM
-        or r.metrics.max_bone_deg > HIDE_BONE_DEG
-        or r.metrics.new_steps > 0
-        or r.metrics.nan_frames > 0
-        for r in group
-    )
+    past = sum(_past(r.metrics) for r in group)
     label = (
         f"hide {length / rate:g} s ({len(group)} markers, {past} past a limit)"
         if hide
