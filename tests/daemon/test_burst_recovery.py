@@ -1,0 +1,49 @@
+"""``bench/burst_recovery.py``: the soak's bursts of bad frames replayed offline
+(issue 28 item 3, issue 30 item 6), its short version."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from bench_scripts import bench_module
+
+
+def test_the_bad_frames_are_the_soaks() -> None:
+    """Each kind of bad frame as the soak's source makes it, as the solver gets it
+    (zeros and 1e30 occluded by the live decoder: not seen)."""
+    br = bench_module("burst_recovery")
+    labels = ["LASI", "RASI", "T10", "LKNE", "RKNE"]
+    swap = br._swap(labels)
+    assert swap.tolist() == [1, 0, 2, 4, 3]
+    row = np.arange(15, dtype=float).reshape(5, 3)
+    row[2] = np.nan
+    assert np.isnan(br._bad("zeros", row, swap)).all()
+    assert np.isnan(br._bad("far", row, swap)).all()
+    assert np.array_equal(br._bad("swapped", row, swap), row[swap], equal_nan=True)
+    collapsed = br._bad("collapsed", row, swap)
+    seen = [0, 1, 3, 4]
+    assert np.allclose(collapsed[seen], row[seen].mean(axis=0))
+    assert np.isnan(collapsed[2]).all()
+
+
+@pytest.mark.timeout(300)
+def test_short_run_measures_every_burst(datasets: Path) -> None:
+    """Eight bursts, two of each kind, 1, 2, 10 and 50 frames long in turn: each
+    measured; the bursts of 1 and 2 frames are back within the issue's 0.25 s (the
+    longer ones are printed: issue 28 item 3 is open on them; the soak's random
+    lengths: bench/burst_recovery.py)."""
+    br = bench_module("burst_recovery")
+    result = br.run(datasets, bursts=8, seed=1, method="fit", every_s=1.0,
+                    rate_hz=240.0, dropout=0.10, lengths=(1, 2, 10, 50))  # fmt: skip
+    rows = result["bursts"]
+    assert [b["kind"] for b in rows] == list(br.soak.BURSTS) * 2
+    assert [b["frames"] for b in rows] == [1, 2, 10, 50] * 2
+    assert all(b["recovery_s"] > 0.0 for b in rows)
+    short = [b for b in rows if b["frames"] <= 2]
+    assert len(short) == 4
+    assert all(b["recovery_s"] <= br.soak.MAX_RECOVERY_S for b in short), short
+    lines = br.report(result)
+    print("\n" + "\n".join(lines))
+    assert any(line.startswith("late (over 0.25 s):") for line in lines)
