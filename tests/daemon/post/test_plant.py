@@ -202,6 +202,53 @@ def test_a_knee_lagging_its_flexion_rolls_the_foot_about_its_ball() -> None:
     assert h[20:, 2].min() < h[19, 2] - 1e-3  # the heel came down
 
 
+def test_a_forefoot_coming_down_faster_than_the_knee_is_stopped_by_the_floor() -> None:
+    """The left foot stands flat on its heel when, in a frame, it plantarflexes 4 deg
+    (the forefoot slapping down, as the tennis serve's): its lowest point is then the
+    ball, 9 mm below the floor (less than ``pivot_switch_m`` below the heel: the foot
+    is still on its heel, no roll about the ball), and lifting it needs more knee
+    flexion than ``knee_step_deg`` allows in a frame. The leg lags, its ankle low;
+    the foot is turned toes up about the ankle so the ball stays on the floor (never
+    below it, the heel neither; 4 mm below without the turn) until the knee has
+    caught up, when the foot has its solved rotation again."""
+    target = default_humanoid()
+    stage = FootPlant(target, 1.0, LEG_M)
+    z = _on_floor_z()
+    lf, lt = target.index("LeftFoot"), target.index("LeftToes")
+    down = rot.quat_from_axis_angle(np.array([1.0, 0.0, 0.0]), math.radians(-4.0))
+    heel, ball = foot_points(target)
+    rest = np.asarray(target.rest_world_from_bone_quat)
+    balls, heels, knees, turned = [], [], [], []
+    for t in range(40):
+        pose = _crouch(target, 0.0, z)
+        g = pose.world_from_bone_quat
+        if t >= 20:
+            g[lf] = rot.quat_mul(down, g[lf])
+            g[lt] = rot.quat_mul(down, g[lt])
+            pose.rest_from_bone_quat[lf] = rot.quat_mul(
+                rot.quat_conj(g[target.parents[lf]]), g[lf]
+            )
+        solved = np.array(g[lf])
+        stage.apply(
+            g, pose.rest_from_bone_quat, pose.root_pos, pose.hips_pos,
+            _stance(True, False), t / RATE_HZ,
+        )  # fmt: skip
+        j = joint_positions_world(target, pose)
+        e = rot.quat_mul(g[lf], rot.quat_conj(rest[lf]))
+        balls.append(j[lf] + rot.quat_rotate(e, ball[0]))
+        heels.append(j[lf] + rot.quat_rotate(e, heel[0]))
+        knees.append(_knee_deg(target, j))
+        turned.append(abs(float(np.dot(solved, g[lf]))))
+    b, h = np.array(balls), np.array(heels)
+    lagged = np.diff(knees)[19:] >= PLANT["knee_step_deg"] - 1e-9
+    assert lagged.any()  # the knee was rate limited
+    assert b[:, 2].min() >= -1e-9 and h[:, 2].min() >= -1e-9
+    assert min(turned[20:]) < 1.0 - 1e-6  # the foot was turned while the knee lagged
+    assert turned[-1] == pytest.approx(1.0, abs=1e-12)  # and has its own rotation
+    assert b[-1, 2] == pytest.approx(0.0, abs=1e-9)
+    assert h[-1, 2] > 0.005  # heel up 9 mm: the foot as solved
+
+
 def test_the_release_blends_out_and_the_knee_never_pops() -> None:
     """Held while the hips travel 6 cm, then released: the ankle rejoins the
     unplanted path within ``blend_out_s`` (to 1e-9 m after it), the correction
