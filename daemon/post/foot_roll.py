@@ -13,6 +13,23 @@ from retargetd.daemon.compiled import kernel, qmul, qrot
 
 
 @kernel(inline="always")
+def _arc_range(k: float, p: float, r: float, t: float) -> tuple[float, float]:
+    """The least and the greatest of k + p cos s + r sin s for s from 0 to t
+    (|t| <= pi): the ends, and its minimum (at atan2(r, p) + pi) or maximum (at
+    atan2(r, p)) where the arc passes them."""
+    g0 = k + p
+    g1 = k + p * math.cos(t) + r * math.sin(t)
+    lo, hi = min(g0, g1), max(g0, g1)
+    amp = math.sqrt(p * p + r * r)
+    top = math.atan2(r, p)
+    for s, v in ((top, k + amp), (top + math.pi, k - amp)):
+        s = math.atan2(math.sin(s), math.cos(s))
+        if (0.0 <= s <= t) or (t <= s <= 0.0):
+            lo, hi = min(lo, v), max(hi, v)
+    return lo, hi
+
+
+@kernel(inline="always")
 def ball_roll(
     ef: np.ndarray,  # (4,) the foot's E
     left: np.ndarray,  # (3,) the target's left at rest
@@ -28,11 +45,12 @@ def ball_roll(
     hz: float,
 ) -> tuple[float, float, float, float]:  # pragma: no cover - compiled
     """The least rotation of the foot about its left axis through the ball that puts
-    the ankle at ``sqrt(r2)`` from the hip with the heel not below the ball and not
-    raised (the roll brings the heel down: a turn that lifts it is the other root, a
-    flip; the tennis serve's left foot went heel up by 115 mm for a frame on it);
-    (1, 0, 0, 0) when there is none. With R a = a cos t + (n x a) sin t
-    + n (n.a)(1 - cos t), |q + R a|^2 = r2 is A cos t + B sin t = C."""
+    the ankle at ``sqrt(r2)`` from the hip, the heel only coming down on the way and
+    never below the ball (the roll brings the heel down: a turn that lifts it, or
+    swings it round under the ball, is a flip: the tennis serve's left foot went heel
+    up by 115 mm for a frame on one); (1, 0, 0, 0) when there is none. With
+    R a = a cos t + (n x a) sin t + n (n.a)(1 - cos t), |q + R a|^2 = r2 is
+    A cos t + B sin t = C."""
     nx, ny, nz = qrot(ef[0], ef[1], ef[2], ef[3], left[0], left[1], left[2])
     nn = math.sqrt(nx * nx + ny * ny + nz * nz)
     nx, ny, nz = nx / nn, ny / nn, nz / nn
@@ -49,13 +67,13 @@ def ball_roll(
     base = math.atan2(b_, a_)
     half = math.acos(c_ / m)
     best = math.inf
+    # the heel's height above the ball over the turn: k + p cos s + r sin s
+    nh = nx * hx + ny * hy + nz * hz
+    k_, p_, r_ = nz * nh, hz - nz * nh, nx * hy - ny * hx  # (n x h)_z
     for t in (base - half, base + half):
         t = math.atan2(math.sin(t), math.cos(t))
-        # the heel's height above the ball after the turn
-        nh = nx * hx + ny * hy + nz * hz
-        ch = nx * hy - ny * hx  # (n x h)_z
-        up = hz * math.cos(t) + ch * math.sin(t) + nz * nh * (1.0 - math.cos(t))
-        if 0.0 <= up <= hz and abs(t) < abs(best):
+        lo, hi = _arc_range(k_, p_, r_, t)
+        if lo >= -1e-12 and hi <= hz + 1e-12 and abs(t) < abs(best):
             best = t
     if best == math.inf:
         return 1.0, 0.0, 0.0, 0.0

@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 from retargetd.daemon import rotations as rot
+from retargetd.daemon.post.foot_roll import ball_roll
 from retargetd.daemon.post.plant import PLANT, FootPlant, foot_points
 from retargetd.daemon.retarget.retarget import default_humanoid, joint_positions_world
 from retargetd.protocols.pose_stream import FRAME_PLANT_UNREACHED
@@ -200,6 +201,33 @@ def test_a_knee_lagging_its_flexion_rolls_the_foot_about_its_ball() -> None:
     assert np.abs(b[12:] - b[12]).max() < 1e-9
     assert (h[:, 2] - b[:, 2]).min() >= -1e-9
     assert h[20:, 2].min() < h[19, 2] - 1e-3  # the heel came down
+
+
+def test_the_ball_roll_only_brings_the_heel_down() -> None:
+    """``ball_roll`` (the foot on its ball, 1 cm heel up, the hip 0.4 m ahead and 0.7
+    m above the ball): where the leg's reach is met by raising the heel 1 cm more
+    (0.05 rad) or by swinging the foot 173 deg round (the other root, the heel past
+    20 cm on the way), it does not roll (before: the first, a flip of the kind the
+    tennis serve showed, then the second); where it is met by lowering the heel to
+    half its height, it turns the foot that way."""
+    left, ef = np.array([0.0, 1.0, 0.0]), np.array([1.0, 0.0, 0.0, 0.0])
+    ankle = np.array([-0.13, 0.0, 0.08])  # less the ball
+    heel = np.array([-0.2, 0.0, 0.02])
+    hip = np.array([0.4, 0.0, 0.7])
+
+    def turned(t: float, v: np.ndarray) -> np.ndarray:  # about +y (left)
+        c, s_ = math.cos(t), math.sin(t)
+        return np.array([v[0] * c + v[2] * s_, v[1], -v[0] * s_ + v[2] * c])
+
+    for t, rolls in ((0.05, False), (-0.05, True)):
+        r2 = float(np.sum((turned(t, ankle) - hip) ** 2))
+        q = ball_roll(ef, left, *ankle, *(-hip), r2, *heel)
+        if not rolls:
+            assert q == (1.0, 0.0, 0.0, 0.0)
+            continue
+        got = 2.0 * math.atan2(q[2], q[0])
+        assert got == pytest.approx(t, abs=1e-9)
+        assert 0.0 <= turned(got, heel)[2] < heel[2]
 
 
 def test_a_forefoot_coming_down_faster_than_the_knee_is_stopped_by_the_floor() -> None:
