@@ -36,7 +36,11 @@ detector (:mod:`~retargetd.daemon.post.stance`) found on the performer's solve.
    ball (the heel comes down, never below the ball) until the ankle is at the leg's
    reach: aimed at the goal, the leg would push the ball into the floor (on the
    synthetic walk, 0.7-1.6 mm for a frame as the leg comes back into reach late in
-   stance).
+   stance). A stance foot whose ball the lagging leg leaves below the support is
+   turned toes up about the ankle until the ball is on it (the heel not below it:
+   where both cannot be, the foot levelled): the floor stops a forefoot coming down
+   faster than the knee may follow (the tennis serve's 8.9 mm, the PiG walk's
+   landings; ``post/foot_roll.py``).
 
 One frame is one compiled call (:func:`_plant_step`, numba, nothing allocated), on
 state the stage owns. Offline (``solve --plant-feet``) runs the same objects frame by
@@ -54,7 +58,7 @@ import numpy as np
 from retargetd.daemon.body.calibration import Calibration
 from retargetd.daemon.body.rig import Rig
 from retargetd.daemon.compiled import direct, kernel, qmul, qrot
-from retargetd.daemon.post.foot_roll import ball_roll
+from retargetd.daemon.post.foot_roll import ball_roll, pitch_onto_floor
 from retargetd.daemon.post.stance import CONTACT_COLUMN, SUPPORT_COLUMN
 from retargetd.protocols.frames import F64Array
 from retargetd.protocols.pose_stream import FRAME_PLANT_UNREACHED
@@ -305,6 +309,9 @@ def _plant_step(
                            knee_step, ax_ + cx, ay_ + cy, az_ + cz, st, roll,
                            ball_x + cx, ball_y + cy, ball_z + cz, toes[s],
                            hx - bx, hy - by, hz - bz)  # fmt: skip
+        if contact:
+            pitch_onto_floor(s, f, wfb, rfb, rest, chain, e, x, left, heel, ball,
+                             toes[s], support)  # fmt: skip
         if contact and toes[s] >= 0:
             _toe_roll(s, wfb, rfb, toes[s], e[s, f], rest, offsets, tip,
                       x[s, f, 2], support)  # fmt: skip

@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 from retargetd.daemon import rotations as rot
+from retargetd.daemon.post.foot_roll import ball_roll
 from retargetd.daemon.post.plant import PLANT, FootPlant, foot_points
 from retargetd.daemon.retarget.retarget import default_humanoid, joint_positions_world
 from retargetd.protocols.pose_stream import FRAME_PLANT_UNREACHED
@@ -200,6 +201,80 @@ def test_a_knee_lagging_its_flexion_rolls_the_foot_about_its_ball() -> None:
     assert np.abs(b[12:] - b[12]).max() < 1e-9
     assert (h[:, 2] - b[:, 2]).min() >= -1e-9
     assert h[20:, 2].min() < h[19, 2] - 1e-3  # the heel came down
+
+
+def test_the_ball_roll_only_brings_the_heel_down() -> None:
+    """``ball_roll`` (the foot on its ball, 1 cm heel up, the hip 0.4 m ahead and 0.7
+    m above the ball): where the leg's reach is met by raising the heel 1 cm more
+    (0.05 rad) or by swinging the foot 173 deg round (the other root, the heel past
+    20 cm on the way), it does not roll (before: the first, a flip of the kind the
+    tennis serve showed, then the second); where it is met by lowering the heel to
+    half its height, it turns the foot that way."""
+    left, ef = np.array([0.0, 1.0, 0.0]), np.array([1.0, 0.0, 0.0, 0.0])
+    ankle = np.array([-0.13, 0.0, 0.08])  # less the ball
+    heel = np.array([-0.2, 0.0, 0.02])
+    hip = np.array([0.4, 0.0, 0.7])
+
+    def turned(t: float, v: np.ndarray) -> np.ndarray:  # about +y (left)
+        c, s_ = math.cos(t), math.sin(t)
+        return np.array([v[0] * c + v[2] * s_, v[1], -v[0] * s_ + v[2] * c])
+
+    for t, rolls in ((0.05, False), (-0.05, True)):
+        r2 = float(np.sum((turned(t, ankle) - hip) ** 2))
+        q = ball_roll(ef, left, *ankle, *(-hip), r2, *heel)
+        if not rolls:
+            assert q == (1.0, 0.0, 0.0, 0.0)
+            continue
+        got = 2.0 * math.atan2(q[2], q[0])
+        assert got == pytest.approx(t, abs=1e-9)
+        assert 0.0 <= turned(got, heel)[2] < heel[2]
+
+
+def test_a_forefoot_coming_down_faster_than_the_knee_is_stopped_by_the_floor() -> None:
+    """The left foot stands flat on its heel when, in a frame, it plantarflexes 4 deg
+    (the forefoot slapping down, as the tennis serve's): its lowest point is then the
+    ball, 9 mm below the floor (less than ``pivot_switch_m`` below the heel: the foot
+    is still on its heel, no roll about the ball), and lifting it needs more knee
+    flexion than ``knee_step_deg`` allows in a frame. The leg lags, its ankle low;
+    the foot is turned toes up about the ankle so the ball stays on the floor (never
+    below it, the heel neither; 4 mm below without the turn) until the knee has
+    caught up, when the foot has its solved rotation again."""
+    target = default_humanoid()
+    stage = FootPlant(target, 1.0, LEG_M)
+    z = _on_floor_z()
+    lf, lt = target.index("LeftFoot"), target.index("LeftToes")
+    down = rot.quat_from_axis_angle(np.array([1.0, 0.0, 0.0]), math.radians(-4.0))
+    heel, ball = foot_points(target)
+    rest = np.asarray(target.rest_world_from_bone_quat)
+    balls, heels, knees, turned = [], [], [], []
+    for t in range(40):
+        pose = _crouch(target, 0.0, z)
+        g = pose.world_from_bone_quat
+        if t >= 20:
+            g[lf] = rot.quat_mul(down, g[lf])
+            g[lt] = rot.quat_mul(down, g[lt])
+            pose.rest_from_bone_quat[lf] = rot.quat_mul(
+                rot.quat_conj(g[target.parents[lf]]), g[lf]
+            )
+        solved = np.array(g[lf])
+        stage.apply(
+            g, pose.rest_from_bone_quat, pose.root_pos, pose.hips_pos,
+            _stance(True, False), t / RATE_HZ,
+        )  # fmt: skip
+        j = joint_positions_world(target, pose)
+        e = rot.quat_mul(g[lf], rot.quat_conj(rest[lf]))
+        balls.append(j[lf] + rot.quat_rotate(e, ball[0]))
+        heels.append(j[lf] + rot.quat_rotate(e, heel[0]))
+        knees.append(_knee_deg(target, j))
+        turned.append(abs(float(np.dot(solved, g[lf]))))
+    b, h = np.array(balls), np.array(heels)
+    lagged = np.diff(knees)[19:] >= PLANT["knee_step_deg"] - 1e-9
+    assert lagged.any()  # the knee was rate limited
+    assert b[:, 2].min() >= -1e-9 and h[:, 2].min() >= -1e-9
+    assert min(turned[20:]) < 1.0 - 1e-6  # the foot was turned while the knee lagged
+    assert turned[-1] == pytest.approx(1.0, abs=1e-12)  # and has its own rotation
+    assert b[-1, 2] == pytest.approx(0.0, abs=1e-9)
+    assert h[-1, 2] > 0.005  # heel up 9 mm: the foot as solved
 
 
 def test_the_release_blends_out_and_the_knee_never_pops() -> None:
