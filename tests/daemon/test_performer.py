@@ -143,17 +143,17 @@ def test_load_markerset_by_path_and_errors(tmp_path: Path) -> None:
 
 
 def test_plug_in_gait_holds_its_static_with_the_elbows_bent() -> None:
-    """Plug-in Gait's static bends the elbows (its marker set's ``[base_pose]``): 40
-    deg in the hold, none once the motion has ramped out of it; menache's T-pose
-    stays straight."""
+    """Plug-in Gait's static bends the elbows (its marker set's ``[base_pose]``): a
+    right angle in the hold, none once the motion has ramped out of it; menache's
+    T-pose stays straight."""
     ms = pf.load_markerset("plug-in-gait")
-    assert ms.elbow_flexion_deg == 40.0
+    assert ms.elbow_flexion_deg == 90.0
     assert pf.load_markerset("menache").elbow_flexion_deg == 0.0
     take = pf.synthesize(seconds=2.0, rate_hz=60.0, markerset=ms, motions=())
     for side in ("l", "r"):
         q = take.parent_from_segment_quat[:, _seg(take, f"{side}_forearm")]
         bend = np.rad2deg(rot.quat_angle(q))
-        np.testing.assert_allclose(bend[: take.base_pose_frames.stop], 40.0)
+        np.testing.assert_allclose(bend[: take.base_pose_frames.stop], 90.0)
         np.testing.assert_allclose(bend[-10:], 0.0, atol=1e-9)
         # about the upper arm's z (the flexion axis in the T-pose)
         axis = q[0, 1:] / np.linalg.norm(q[0, 1:])
