@@ -49,6 +49,7 @@ import sys
 import tempfile
 import threading
 import time
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -173,6 +174,108 @@ def one_run(tree: str | None, face: bool) -> dict[str, Any]:
             os.environ.pop("PYTHONPATH", None)
         else:
             os.environ["PYTHONPATH"] = old_path
+
+
+#: The live-calibration run: seconds from the start of streaming the static to
+#: ``ctl calibrate``, and how long after it the loop is watched.
+CALIBRATE_AT_S = 1.5
+CALIBRATE_WINDOW_S = 4.0
+
+
+def calibrate_run(tree: str | None) -> dict[str, Any]:
+    """A daemon started without a calibration (the soak's config otherwise: the
+    fit, the validator on, no face) is sent the PiG static at 240 Hz, then ``ctl
+    calibrate``: the live calibration (``calibrate_checked`` and its file's write,
+    in the loop), the stream's first pipeline (off the loop) and the first live
+    validator of the process (its kernels loaded from numba's cache: in the loop
+    before, off it now). The loop stalls over the window after the request, by
+    phase, and the frames counted ``stale`` (left behind while the loop was busy)
+    are the measure: no pose comes before a calibration to measure a gap on."""
+    from retargetd.protocols.marker_input import LabelSet
+    from retargetd.replay.takes import load_take
+
+    old_path = os.environ.get("PYTHONPATH")
+    if tree is not None:
+        os.environ["PYTHONPATH"] = tree
+    try:
+        with tempfile.TemporaryDirectory(prefix="stalls_cal_") as tmp_name:
+            tmp = Path(tmp_name)
+            static = load_take(fuzz.PIG_STATIC)
+            # its base pose (rows 0:94, as ``calibrate_pig``), held perfectly still:
+            # the take's own sway fails the live stillness check (LFIN 0.13 m/s)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)  # (all-NaN markers)
+                hold = np.nanmedian(np.asarray(static.positions)[:94], axis=0)
+            still = fuzz.Walk(tuple(static.labels), hold[None], RATE_HZ)
+            config = tmp / "stalls.toml"
+            with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+                probe.bind((soak.LOCALHOST, 0))
+                vmc_port = int(probe.getsockname()[1])
+            live = tmp / "live_calibration.json"
+            text = soak._config(live, vmc_port, None)
+            text = text.replace(
+                f"calibration = {json.dumps(str(live))}",
+                f"save_calibration = {json.dumps(str(live))}",
+            )
+            config.write_text(text)
+            daemon = soak.DaemonProcess(config, tmp)
+            try:
+                sender = _Sender(daemon.udp("osc markers"), still)
+                sender.start()
+                load_before = os.getloadavg()
+                sender.announce(LabelSet(1, still.labels))
+                sender.streaming.set()
+                time.sleep(CALIBRATE_AT_S)
+                before = daemon.status()
+                reply = daemon.ctl({"cmd": "calibrate"}, 10_000)
+                time.sleep(CALIBRATE_WINDOW_S)
+                after = daemon.status()
+                sender.stop.set()
+                sender.join(5.0)
+                load_after = os.getloadavg()
+            finally:
+                daemon.stop()
+            lines = [  # each stall's own line: its CPU time (own work or waiting)
+                ln.strip()
+                for ln in daemon.log.read_text(errors="replace").splitlines()
+                if "held the frame path" in ln
+            ]
+            ls0, ls1 = before["loop_stalls"], after["loop_stalls"]
+            phases = {
+                p: n - ls0["by_phase"].get(p, 0)
+                for p, n in ls1["by_phase"].items()
+                if n != ls0["by_phase"].get(p, 0)
+            }
+            return {
+                "reply": (reply or {}).get("message"),
+                "calibration_message": after.get("calibration_message"),
+                "stalls": ls1["count"] - ls0["count"],
+                "stall_phases": phases,
+                "longest_ms": ls1["longest_ms"],
+                "longest_phase": ls1["longest_phase"],
+                "stale": after["counters"]["stale"] - before["counters"]["stale"],
+                "frames_out": after["counters"]["frames_out"],
+                "validating": after.get("validate") is not None,
+                "stall_lines": lines,
+                "load": (load_before, load_after),
+            }
+    finally:
+        if old_path is None:
+            os.environ.pop("PYTHONPATH", None)
+        else:
+            os.environ["PYTHONPATH"] = old_path
+
+
+def _calibrate_line(tag: str, r: dict[str, Any]) -> str:
+    lb, la = r["load"]
+    return (
+        f"{tag}: live calibration without one at the start: {r['stalls']} loop "
+        f"stalls {json.dumps(r['stall_phases'])} (the run's longest "
+        f"{r['longest_ms']} ms in {r['longest_phase']}), stale {r['stale']}, "
+        f"frames out after it {r['frames_out']}, validating {r['validating']}; "
+        f"load {lb[0]:.2f} -> {la[0]:.2f}\n  {r['calibration_message']}"
+        + "".join(f"\n  {ln}" for ln in r["stall_lines"])
+    )
 
 
 def op_costs(calibration: Path, face_npz: Path | None, n: int = 6) -> dict[str, Any]:
@@ -370,13 +473,22 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--baseline", help="PYTHONPATH of the tree to compare with")
     parser.add_argument("--no-face", action="store_true", help="face off")
     parser.add_argument("--json", type=Path, help="write the figures here")
+    parser.add_argument(
+        "--no-calibrate", action="store_true", help="no live-calibration run"
+    )
     args = parser.parse_args(argv)
     results: dict[str, Any] = {}
     if args.baseline:
         results["baseline"] = one_run(args.baseline, not args.no_face)
         print(_line("baseline", results["baseline"]), flush=True)
+        if not args.no_calibrate:
+            results["baseline_calibrate"] = calibrate_run(args.baseline)
+            print(_calibrate_line("baseline", results["baseline_calibrate"]))
     results["this"] = one_run(None, not args.no_face)
     print(_line("this tree", results["this"]))
+    if not args.no_calibrate:
+        results["this_calibrate"] = calibrate_run(None)
+        print(_calibrate_line("this tree", results["this_calibrate"]), flush=True)
     if args.baseline:
         b, t = results["baseline"], results["this"]
         ratios = {
