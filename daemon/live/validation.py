@@ -2,12 +2,13 @@
 results put in the stream (issue 30 item 6: no pose gap the source did not cause).
 
 Building one (``validate.live.LiveValidator``: the MuJoCo model of the calibration's
-skeleton, its check tables, its kernels warmed, its thread started) took 8-32 ms,
-and 382 ms the first time in a process (numba's cache loaded; 5.4 s on a cold
-cache), measured on the exact synthetic rig at load 4. It happens at the start,
-after a live calibration and after a reload: in the loop, every frame behind it
-waited (a daemon started without a calibration loads the kernels on its first
-live calibration). Now the loop hands the build to a worker thread
+skeleton, its check tables, its kernels warmed, its thread started) took 3-32 ms
+(the PiG and exact synthetic rigs, load 4), 300-380 ms the first time in a process
+that has not loaded its kernels (numba's cache; 5.4 s on a cold cache). It happens
+at the start, after a live calibration and after a reload: in the loop, every frame
+behind it waited (a live calibration's stalled phase: 31-41 ms of the loop's CPU
+before, 12-16 ms without it, ``bench/bench_stalls.py``). Now the loop hands the
+build to a worker thread
 (``rebuild.Build``, with the rig, calibration and ``[validate]`` settings as they
 were when it was asked for) and goes on; the old validator keeps checking the poses
 meanwhile. The first loop pass that finds the build done (:meth:`Validation.tick`)

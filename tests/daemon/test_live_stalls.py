@@ -531,9 +531,10 @@ def test_a_validators_restart_is_built_off_the_loop_and_a_failure_counted(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     """Before: a reload or a live calibration built the new live validator in the
-    loop (its MuJoCo model, tables and kernels: 8-32 ms, 382 ms the first in a
-    process). Now a worker builds it while the old one goes on checking the poses,
-    every frame solved and sent; the loop swaps it in once built. A build that
+    loop (its MuJoCo model, tables and kernels: 3-32 ms, 300-380 ms where the
+    process had not loaded its kernels). Now a worker builds it while the old one
+    goes on checking the poses, every frame solved and sent; the loop swaps it in
+    once built. A build that
     raises is counted and said in one line, the validator off, the loop serving."""
     (d, lines), gate = daemon_lines, threading.Event()
     real = validation_module.new_validator
