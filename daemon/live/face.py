@@ -352,6 +352,8 @@ class LiveFace:
         job, self._save = self._save, None
         if job is not None:
             job.wait()
+            if job.error is not None:
+                logger.warning("face training set NOT saved: %s", job.error)
         pending, self._next_save = self._next_save, None
         if pending is not None:
             training, path, _ = pending

@@ -664,6 +664,20 @@ def test_a_face_training_sets_save_runs_off_the_loop_and_a_failure_is_counted(
         assert "No space left on device" in lines[-1]
         _frames(d, src, 3)
         assert _accounted(d)
+        # The daemon's close waits for the write under way, and writes the one
+        # waiting: the last capture is not lost.
+        gate.clear()
+        later = str(tmp_path / "later.npz")
+        face._save_later(training, str(tmp_path / "first.npz"), "a")
+        face._save_later(training, later, "b")  # waits for the first
+        closing = threading.Thread(target=face.close)
+        closing.start()
+        closing.join(0.2)
+        assert closing.is_alive() and not Path(later).exists()
+        gate.set()
+        closing.join(30.0)
+        assert not closing.is_alive() and not face.saving
+        assert TrainingSet.load(later).k == 1
     finally:
         gate.set()
         src.sock.close()
