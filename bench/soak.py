@@ -389,6 +389,7 @@ class Driver:
         self.errors: list[str] = []
         self.ctx = zmq.Context()
         self.pose_ns: list[int] = []
+        self.pose_sent_ns: list[int] = []  # each one's own sent_ns (its header)
         self.rss: list[tuple[float, int]] = []
         self.vmc_datagrams = 0
         self.flood_ns = (0, 0)
@@ -415,15 +416,19 @@ class Driver:
         sub.setsockopt(zmq.RCVHWM, 0)
         sub.setsockopt(zmq.SUBSCRIBE, pose_stream.DATA_MAGIC)
         sub.connect(self.d.endpoints["zmq poses"])
+        at = pose_stream.SENT_NS_OFFSET  # the header's sent_ns, int64 LE
         try:
             while not self.stop.is_set():
                 if sub.poll(50):
                     while True:
                         try:
-                            sub.recv_multipart(zmq.NOBLOCK)
+                            parts = sub.recv_multipart(zmq.NOBLOCK)
                         except zmq.Again:
                             break
                         self.pose_ns.append(time.monotonic_ns())
+                        self.pose_sent_ns.append(
+                            int.from_bytes(parts[0][at : at + 8], "little")
+                        )
         finally:
             sub.close()
 
@@ -924,6 +929,31 @@ def pose_gaps(
     return out
 
 
+def late_deliveries(
+    received_ns: list[int], sent_ns: list[int]
+) -> list[dict[str, float]]:
+    """The gaps over MAX_GAP_S at the driver's SUB that the daemon did not send: two
+    poses received that far apart whose own ``sent_ns`` (the daemon's clock, the
+    same CLOCK_MONOTONIC) are at most MAX_GAP_S apart. The pose ending such a gap
+    was delivered late (the daemon's ZeroMQ I/O thread or the driver's receiving
+    thread not run in time: the host or the driver's own GIL), after the daemon
+    sent it on time. Each: the gap at the SUB, the daemon's gap between the same two
+    sends, and the later pose's delivery latency (s)."""
+    rx = np.asarray(received_ns, dtype=np.int64)
+    tx = np.asarray(sent_ns, dtype=np.int64)
+    slack = int(MAX_GAP_S * 1e9)
+    out = []
+    for i in np.flatnonzero(np.diff(rx) > slack):
+        sent_gap = int(tx[i + 1] - tx[i])
+        if 0 < sent_gap <= slack:
+            out.append({
+                "gap_s": round((rx[i + 1] - rx[i]) * 1e-9, 3),
+                "sent_gap_s": round(sent_gap * 1e-9, 3),
+                "latency_s": round(int(rx[i + 1] - tx[i + 1]) * 1e-9, 3),
+            })  # fmt: skip
+    return out
+
+
 def rss_growth(
     rss: list[tuple[float, int]], seconds: float
 ) -> tuple[float, float, float]:
@@ -1206,6 +1236,8 @@ def run(
             loop_stalls=status.get("loop_stalls"),  # phases over 50 ms (stalls.py)
             loop_stall_lines=stall_lines,
             gaps_sub=pose_gaps(driver.pose_ns, driver.sent, driver.t0_ns, driver.t1_ns),
+            # SUB gaps the daemon did not send: delivered late after a timely send
+            late_deliveries=late_deliveries(driver.pose_ns, driver.pose_sent_ns),
             poses=len(driver.pose_ns),
             pose_rate_hz=len(driver.pose_ns) / ((driver.t1_ns - driver.t0_ns) * 1e-9),
             vmc_datagrams=driver.vmc_datagrams,
@@ -1338,7 +1370,8 @@ def print_result(result: dict[str, Any]) -> None:
         f"poses {result['poses']} ({result['pose_rate_hz']:.1f} Hz); rates "
         f"{result['pose_rate_phases']}",
         f"gaps > 100 ms (s), daemon side: {result['gaps']}",
-        f"gaps > 100 ms (s), at the driver's SUB: {result['gaps_sub']}",
+        f"gaps > 100 ms (s), at the driver's SUB: {result['gaps_sub']}; of them "
+        f"sent on time, delivered late: {result['late_deliveries']}",
         f"loop stalls (phases over 50 ms): {result['loop_stalls']}",
         *(f"  {ln}" for ln in result["loop_stall_lines"][:20]),
         f"RSS MB: first {r['first']:.1f}, after warm-up {r['after_warmup']:.1f}, max "

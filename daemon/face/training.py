@@ -5,6 +5,7 @@ code here, so the config check can read a training file without loading the solv
 
 from __future__ import annotations
 
+import io
 import math
 import zipfile
 from dataclasses import dataclass
@@ -12,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from retargetd.daemon.files import write_atomic
 from retargetd.protocols.frames import F64Array
 
 TRAINING_FORMAT = "retargetd-face-training/1"
@@ -88,9 +90,20 @@ class TrainingSet:
         return len(self.expression_names)
 
     def save(self, path: str | Path) -> None:
-        """Write ``face.npz`` (no pickle)."""
+        """Write ``face.npz`` (no pickle; ``.npz`` appended to a name without it, as
+        ``numpy.savez`` does), atomically (``files.write_atomic``): a crash, a full
+        disk or a process ending mid-write (a live capture's save runs on a worker
+        thread) leaves the file that was there whole.
+
+        Raises:
+            OSError: not written (one line naming the file); the old file is kept.
+        """
+        path = Path(path)
+        if path.suffix != ".npz":
+            path = path.with_name(path.name + ".npz")
+        buf = io.BytesIO()
         np.savez(
-            path,
+            buf,
             format=np.array(TRAINING_FORMAT),
             head_names=np.array(self.head_names, dtype=str),
             marker_names=np.array(self.marker_names, dtype=str),
@@ -100,6 +113,7 @@ class TrainingSet:
             deltas=self.deltas,
             noise_rms_m=np.array(self.noise_rms_m),
         )
+        write_atomic(path, buf.getvalue())
 
     @classmethod
     def load(cls, path: str | Path) -> TrainingSet:

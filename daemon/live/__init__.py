@@ -10,7 +10,8 @@ of another of these modules):
   stream and hands accepted frames to the loop;
 - performers: ``performers.Performers`` over each ``performer.Performer``, whose
   frame path (``send.BodyPath`` or ``face_only.FacePath``) solves, post-processes,
-  retargets, encodes and sends its frame, and whose ``calibrate.LiveCalibration``
+  retargets, encodes and sends its frame (its live validator:
+  ``validation.Validation``), and whose ``calibrate.LiveCalibration``
   collects live calibrations and face captures;
 - outputs: ``outputs.Outputs`` (the pose stream, each performer's ``VmcOut``) and
   the recording (``recording.LiveRecording``);

@@ -229,7 +229,11 @@ class LiveCalibration:
 
     def tick(self, now_ns: int) -> None:
         """Expire a pending calibration that has collected no frame for
-        ``performer.calibrate_timeout_s`` (nothing changes; one line says so)."""
+        ``performer.calibrate_timeout_s`` (nothing changes; one line says so); say
+        how a face training set's save (off the loop) ended."""
+        face = self.perf.face
+        if face is not None and face.saving:
+            self._face_saved(face.take_saved())
         if not self.target:
             return
         timeout_s = self.perf.config.calibrate_timeout_s
@@ -262,6 +266,15 @@ class LiveCalibration:
             self.shared.stats.face_captures += 1
             self.perf.use_face(labels, self._sources())
         self.shared.recording.event("face_capture", ok=ok, message=msg)
+        self.shared.out(self._named(msg))
+
+    def _face_saved(self, outcome: tuple[bool, str] | None) -> None:
+        """A face training set's save ended: one line; a failure counted."""
+        if outcome is None:
+            return
+        ok, msg = outcome
+        if not ok:
+            self.shared.stats.face_save_failures += 1
         self.shared.out(self._named(msg))
 
     def request_face(self, name: str, count: int | None = None, by: str = "") -> str:

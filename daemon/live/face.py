@@ -14,7 +14,12 @@ neutral markers and keeps the expression deltas; a captured expression replaces 
 delta (``mean - neutral``). Expressions are kept in the face config's order; those
 not yet captured are simply absent (their output terms contribute nothing). Each
 capture rebuilds the solver and saves the training set (``face.save_training`` or
-``face.training``).
+``face.training``) on a worker thread (``rebuild.Build``; issue 30 item 6: a write
+and its fsync in the loop held every frame behind it for as long as the disk took):
+one save at a time, the newest set waiting while one is written, its outcome said
+when the loop finds it done (:meth:`LiveFace.take_saved`; a failure is counted
+``face_save_failures``, the file kept whole by the atomic write). ``ctl status``'s
+``face.saving`` is true meanwhile; the daemon's close waits for the last one.
 
 Facial markers (``face.markers``): the face config's list, refused at the start (a
 config error, exit 2) when a body rig names one of them: the daemon's rig or the
@@ -61,6 +66,7 @@ from retargetd.daemon.face.solve import (
 )
 from retargetd.daemon.face.take import face_solver
 from retargetd.daemon.live.config import ConfigError, FaceSectionConfig
+from retargetd.daemon.live.rebuild import Build
 from retargetd.protocols.frames import F64Array
 
 logger = logging.getLogger(__name__)
@@ -144,6 +150,9 @@ class LiveFace:
         self._capture_labels: tuple[str, ...] = ()
         self.captures = 0
         self.last_message = ""
+        self._save: Build | None = None  # the training set being written
+        # the newest set to write next: (set, path, its capture's line)
+        self._next_save: tuple[TrainingSet, str, str] | None = None
         self._unobserved_cache: tuple[TrainingSet | None, tuple[str, ...]] = (None, ())
 
     def _check_training(self, t: TrainingSet) -> None:
@@ -294,15 +303,64 @@ class LiveFace:
             f"({training.k} expressions)"
         )
         if path:
-            try:
-                training.save(path)
-                msg += f"; saved {path}"
-            except OSError as exc:
-                msg += f"; NOT saved: {exc}"
+            self._save_later(training, path, msg)
+            msg += f"; saving {path}"
         else:
             msg += " (not saved: no face.training path)"
         self.last_message = msg
         return True, msg
+
+    # ---- the training set's file, written off the loop -------------------------------
+
+    def _save_later(self, training: TrainingSet, path: str, captured: str) -> None:
+        """Write ``training`` to ``path`` on a worker: now, or after the one being
+        written (only the newest waits); ``captured``: its capture's line."""
+        if self._save is None:
+            self._save = Build((training, path, captured), training.save, path)
+        else:
+            self._next_save = (training, path, captured)
+
+    @property
+    def saving(self) -> bool:
+        """A training set is being written (or waits to be)."""
+        return self._save is not None
+
+    def take_saved(self) -> tuple[bool, str] | None:
+        """Every loop pass: the outcome of a save that has ended, (written, one
+        line), the next one started; None while none has ended."""
+        job = self._save
+        if job is None or not job.done():
+            return None
+        training, path, captured = job.want
+        self._save = None
+        if self._next_save is not None:
+            self._save_later(*self._next_save)
+            self._next_save = None
+        try:
+            job.take()
+        except Exception as exc:  # OSError: the disk; any other: said, never fatal
+            outcome, ok = f"NOT saved: {exc}", False
+        else:
+            outcome, ok = f"saved {path}", True
+        if self.last_message == f"{captured}; saving {path}":  # (no later capture)
+            self.last_message = f"{captured}; {outcome}"
+        return ok, f"face training set ({training.k} expressions) {outcome}"
+
+    def close(self) -> None:
+        """Finish writing (the daemon's close, never in the loop): the save under
+        way waited for, the one waiting written here."""
+        job, self._save = self._save, None
+        if job is not None:
+            job.wait()
+            if job.error is not None:
+                logger.warning("face training set NOT saved: %s", job.error)
+        pending, self._next_save = self._next_save, None
+        if pending is not None:
+            training, path, _ = pending
+            try:
+                training.save(path)
+            except OSError as exc:
+                logger.warning("face training set NOT saved: %s", exc)
 
     def status(self) -> dict[str, object]:
         """The face part of ``ctl status --json``."""
@@ -316,6 +374,7 @@ class LiveFace:
             "noise_mm": 1e3 * t.noise_rms_m if t is not None else None,
             "capturing": self._capture_name if self.capturing else "",
             "captures": self.captures,
+            "saving": self.saving,  # its training set being written (off the loop)
             "last_capture": self.last_message,
         }
 

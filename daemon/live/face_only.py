@@ -166,8 +166,15 @@ class FacePath:
         """No body, no validator: None."""
         return None
 
-    def start_validator(self) -> None:
+    def start_validator(self, wait: bool = False) -> None:
         """No body to validate."""
+
+    def tick_validator(self) -> None:
+        """No validator to swap in."""
+
+    def validator_building(self) -> bool:
+        """No validator: False."""
+        return False
 
     def close(self) -> None:
         """Nothing to stop."""

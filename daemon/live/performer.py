@@ -66,7 +66,9 @@ class FramePath(Protocol):
 
     pipelines: dict[int, Any]
     builds: dict[int, Any]  # its next pipelines (or stages), built off the loop
-    validator: Any
+
+    @property
+    def validator(self) -> Any: ...  # its running live validator, or None
 
     def process(self, stream: FrameSource, received_ns: int) -> None: ...
 
@@ -98,7 +100,11 @@ class FramePath(Protocol):
 
     def send_vmc_state(self, now_ns: int, calibrating: bool) -> None: ...
 
-    def start_validator(self) -> None: ...
+    def start_validator(self, wait: bool = False) -> None: ...
+
+    def tick_validator(self) -> None: ...
+
+    def validator_building(self) -> bool: ...
 
     def validation_status(self) -> dict[str, Any] | None: ...
 
@@ -186,8 +192,14 @@ class _NoPath:
     def send_vmc_state(self, now_ns: int, calibrating: bool) -> None:
         pass
 
-    def start_validator(self) -> None:
+    def start_validator(self, wait: bool = False) -> None:
         pass
+
+    def tick_validator(self) -> None:
+        pass
+
+    def validator_building(self) -> bool:
+        return False
 
     def validation_status(self) -> dict[str, Any] | None:
         return None

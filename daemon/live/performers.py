@@ -208,9 +208,12 @@ class Performers:
     # ---- per tick --------------------------------------------------------------------
 
     def tick_calibrations(self, now_ns: int) -> None:
-        """Every loop pass: a pending calibration that collects no frame expires."""
+        """Every loop pass: a pending calibration that collects no frame expires; a
+        face training set written and a live validator built off the loop are
+        taken (``face.py``, ``validation.py``)."""
         for perf in self.all:
             perf.calib.tick(now_ns)
+            perf.path.tick_validator()
 
     def tick_sends(self, now_ns: int) -> None:
         """Every loop pass: the VMC state datagrams before a calibration, and the
@@ -382,9 +385,17 @@ class Performers:
     # ---- lifecycle -------------------------------------------------------------------
 
     def start_validators(self) -> None:
-        """Start every performer's live validator ([validate] on)."""
+        """Start every performer's live validator ([validate] on), at the start:
+        built on workers, all at once, and waited for."""
         for perf in self.all:
             perf.path.start_validator()
+        for perf in self.all:
+            perf.path.start_validator(wait=True)
+
+    def validators_building(self) -> int:
+        """How many performers' live validators are being built off the loop now
+        (``status``: ``validators_building``)."""
+        return sum(perf.path.validator_building() for perf in self.all)
 
     def hint_uncalibrated(self) -> None:
         """Tell, once at start, how to calibrate each performer without a
@@ -407,9 +418,12 @@ class Performers:
                 )
 
     def close(self) -> None:
-        """Stop every performer's live validator."""
+        """Stop every performer's live validator; finish writing its face training
+        set."""
         for perf in self.all:
             perf.path.close()
+            if perf.face is not None:
+                perf.face.close()
 
     # ---- status ----------------------------------------------------------------------
 

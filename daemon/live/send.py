@@ -29,7 +29,7 @@ from retargetd.daemon.live.performer import FrameSource, Performer
 from retargetd.daemon.live.pipeline import Pipeline, new_pipeline, warm_up_pipeline
 from retargetd.daemon.live.pipelines import Pipelines
 from retargetd.daemon.live.shared import Shared
-from retargetd.daemon.validate.live import LiveValidator
+from retargetd.daemon.live.validation import Validation
 from retargetd.protocols import pose_stream
 from retargetd.protocols.vmc_out import (
     CALIBRATION_CALIBRATED,
@@ -105,13 +105,8 @@ class BodyPath:
         # pose (``calibration_mismatch``).
         self.match_window: MatchWindow | None = None
         self.match_flags = 0
-        self.validator: Any = None  # validate.live.LiveValidator ([validate] on)
-        self.validation_bits = 0
-        self.validation_bones: np.ndarray | None = None
-        # the latest result's values (VALIDATION_CHECKS order), for the console
-        self.validation_values = np.full(len(pose_stream.VALIDATION_CHECKS), np.nan)
-        self.validation_enc: pose_stream.ValidationEncoder | None = None
-        self.validation_results: list[Any] = []  # reused by drain_results
+        # Its live validator ([validate] on), built off the loop (validation.py).
+        self.validation = Validation(perf, shared)
 
     def pipeline(self, stream: FrameSource) -> Pipeline | None:
         """The pipeline to solve ``stream``'s current frame with, or None
@@ -362,15 +357,16 @@ class BodyPath:
             | pipe.stance_bits  # foot contact (FRAME_CONTACT_*)
         )
         self.frame_flags = 0
-        validator = self.validator
-        results = self.validation_results
+        val = self.validation
+        validator = val.validator
         n_results = 0
         if validator is not None:
             if frame is not None:
+                results = val.results
                 n_results = validator.drain_results(results)  # no allocation
                 if n_results:
-                    self._take_validation_bits(results[n_results - 1])
-            flags |= self.validation_bits
+                    val.take_bits(results[n_results - 1])
+            flags |= val.bits
         vmc = perf.vmc
         vmc_on = vmc.on  # False: [output.vmc] off
         publish = outputs.publishing
@@ -378,7 +374,7 @@ class BodyPath:
             what |= DO_VMC
         if publish:
             what |= DO_POSE
-        vb = self.validation_bones
+        vb = val.bones
         flags_word = (flags & ~_PERFORMER_MASK) | emit.performer_bits
         emit.call(  # emit_frame's compiled function (EmitPlan.bind)
             what, *emit.args, NO_FLAGS if vb is None else vb,
@@ -431,14 +427,14 @@ class BodyPath:
         ):  # fmt: skip
             stats.validation_drops += 1
         if n_results:  # published after this frame's pose: never ahead of a send
-            self._publish_validation(results, n_results, pipe)
+            val.publish(n_results, pipe.pose_enc.names_id)
         if perf.console is not None:  # a decimated copy, only when one is due
             perf.console.publish(
                 sent_ns, perf.rig, pipe.solver, frame, stream.current.label_set.labels,
                 pose, bone_flags,
                 face.weight_names if face is not None else (),
                 pipe.weights if face is not None else None, stats, sh.status,
-                sh.target, tp, self.validation_bits, self.validation_values, vb,
+                sh.target, tp, val.bits, val.values, vb,
             )  # fmt: skip
         if sent_ns - t_start > sh.budget_ns:
             stats.overruns += 1
@@ -446,37 +442,6 @@ class BodyPath:
             solved_ns - received_ns, solved_ns - t_start, sent_ns - solved_ns,
             sent_ns - received_ns,
         )  # fmt: skip
-
-    def _take_validation_bits(self, last: Any) -> None:
-        """Keep the latest result's bits for this and the next poses."""
-        self.validation_bits = last.frame_flags & pose_stream.FRAME_VALIDATION_MASK
-        bones = last.bone_flags
-        if self.validation_bones is None or len(self.validation_bones) != len(bones):
-            self.validation_bones = np.zeros(len(bones), dtype=np.uint8)
-        np.bitwise_and(bones, pose_stream.BONE_VALIDATION_MASK,
-                       out=self.validation_bones)  # fmt: skip
-        np.copyto(self.validation_values, last.values, casting="same_kind")
-
-    def _publish_validation(self, results: list[Any], n: int, pipe: Pipeline) -> None:
-        """Count the first ``n`` results and publish each as an ``RTDV`` message (the
-        frame it belongs to, its values), written into a reused buffer. The validator
-        sets only the validation bits (frame bits 8-15, bone bits 4-7)."""
-        stats, outputs = self.shared.stats, self.shared.outputs
-        for k in range(n):
-            r = results[k]
-            stats.validated += 1
-            if r.frame_flags:
-                stats.validation_flagged += 1
-            if outputs.publishing:
-                enc = self.validation_enc
-                if enc is None or enc.n_bones != len(r.bone_flags):
-                    enc = pose_stream.ValidationEncoder(len(r.bone_flags))
-                    self.validation_enc = enc
-                msg = enc.encode(
-                    pipe.pose_enc.names_id, r.frame_id, r.t_ns, r.validated_ns,
-                    r.frame_flags, r.values, r.bone_flags,
-                )  # fmt: skip
-                outputs.send_pub(msg, r.validated_ns)
 
     def flag(self, bits: int) -> None:
         """Frame flags for the next pose (restarted, input dropped)."""
@@ -545,46 +510,32 @@ class BodyPath:
         dgram = vmc.state.encode_state(state, tracking, (now_ns - sh.t0_ns) * 1e-9)
         vmc.send((dgram,))
 
-    def start_validator(self) -> None:
-        """(Re)start the live validator on the current calibration ([validate] on).
+    @property
+    def validator(self) -> Any:
+        """The running live validator (``validate.live.LiveValidator``), or None."""
+        return self.validation.validator
 
-        Builds the MuJoCo model (cached by skeleton hash) and warms the kernels
-        (tens of ms; seconds on a cold numba cache): at start-up, and after a live
-        calibration or a reload, never per frame."""
-        v = self.shared.config.validate
-        self.close()
-        self.validation_bits = 0
-        self.validation_bones = None
-        self.validation_values.fill(np.nan)
-        calibration = self.perf.calibration
-        if not v.enabled or calibration is None:
-            return
-        validator = LiveValidator(
-            self.perf.rig,
-            calibration,
-            body_mass_kg=v.body_mass_kg or None,
-            rate_hz=v.rate_hz,
-            queue_size=v.queue,
-        )
-        validator.start()
-        self.validation_results = [None] * validator.results_capacity
-        self.validator = validator
-        self.shared.out(
-            f"live validator on: MuJoCo model {validator.vm.digest[:12]}, "
-            f"queue {v.queue}, frame numbers at {v.rate_hz:g} Hz"
-        )
+    def start_validator(self, wait: bool = False) -> None:
+        """(Re)start the live validator on the current calibration ([validate] on):
+        built off the loop (``validation.Validation.start``; ``wait``: at once)."""
+        self.validation.start(wait)
+
+    def tick_validator(self) -> None:
+        """Every loop pass: a validator built off the loop swapped in."""
+        self.validation.tick()
+
+    def validator_building(self) -> bool:
+        """A live validator is being built off the loop now."""
+        return self.validation.building
 
     def validation_status(self) -> dict[str, Any] | None:
         """The live validator's status (``ctl status``'s ``validate``); None when
-        it is off."""
-        v = self.validator
-        return None if v is None else dict(v.status())
+        none runs."""
+        return self.validation.status()
 
     def close(self) -> None:
         """Stop the live validator (idempotent)."""
-        old, self.validator = self.validator, None
-        if old is not None:
-            old.close()
+        self.validation.close()
 
     def occluded_and_held(self) -> tuple[list[str], list[str]]:
         """The rig markers occluded and the bones held in the last frame its first

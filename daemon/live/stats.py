@@ -52,6 +52,11 @@ class LoopStats:
         face_solved: frames the face was solved on.
         face_head_lost: of those, frames with fewer than 3 head markers (face held).
         face_captures: live face training captures applied.
+        face_save_failures: training sets a capture made that could not be written
+            (its file kept as it was; ``face.py``, written off the loop).
+        validator_failures: live validators whose build (off the loop,
+            ``validation.py``) raised: the validator off until the next
+            calibration or reload.
         validated: frames the live validator finished (results taken by the loop).
         validation_flagged: of those, frames with at least one check over threshold.
         validation_drops: sent frames the validator's queue had no room for.
@@ -100,6 +105,8 @@ class LoopStats:
     face_solved: int = 0
     face_head_lost: int = 0
     face_captures: int = 0
+    face_save_failures: int = 0
+    validator_failures: int = 0
     validated: int = 0
     validation_flagged: int = 0
     validation_drops: int = 0
@@ -208,7 +215,8 @@ class LoopStats:
                 "calibrations_refused", "calibrations_expired", "rate_limited",
                 "held_bone_frames", "occluded_samples", "pipeline_builds",
                 "rejected_sources",
-                "face_solved", "face_head_lost", "face_captures", "validated",
+                "face_solved", "face_head_lost", "face_captures", "face_save_failures",
+                "validator_failures", "validated",
                 "validation_flagged", "validation_drops", "zmq_disconnects",
                 "unsolved", "unsolved_building", "unseen", "unexplained", "reseeded",
                 "labels_in",

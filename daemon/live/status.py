@@ -122,6 +122,8 @@ class Health:
             "loop_stalls": self.stalls.status(),
             # pipelines (and face stages) being built off the loop (rebuild.py)
             "pipelines_building": self.performers.building(),
+            # live validators being built off the loop (validation.py)
+            "validators_building": self.performers.validators_building(),
             "fd_exhausted": self.watch.exhausted,  # an episode is going on
             # CURVE handshakes refused, by socket and reason (sockets with a key)
             "curve_refused": self.watch.status(),

@@ -66,6 +66,12 @@ class Harness:
         assert self.label_set is not None
         self.live.wait_pipelines(self.live.daemon.zmq_stream, self.label_set)
 
+    def wait_saved(self) -> None:
+        """Until the daemon has written its face's training set (off its loop,
+        ``live/face.py``) and said so."""
+        face = self.live.daemon.face
+        _wait_until(lambda: not face.saving, "the training set written")
+
     def send(self, frames: np.ndarray) -> None:
         ls_id = self.label_set.id if self.label_set is not None else 3
         for f in frames:
@@ -285,6 +291,7 @@ def test_face_capture_live_neutral_then_expressions(
     h.send(neutral)
     _wait_until(lambda: h.live.daemon.stats.face_captures == 1, "neutral captured")
     h.wait_pipelines()  # its pipeline, built off the loop
+    h.wait_saved()  # its file, written off the loop
     t1 = TrainingSet.load(path)
     assert t1.k == 0 and t1.marker_names == training.marker_names
     # Neutral only: stabilized markers stream, no weights.
@@ -305,6 +312,7 @@ def test_face_capture_live_neutral_then_expressions(
         h.send(pose_frames)
         _wait_until(lambda b=before: h.live.daemon.stats.face_captures == b + 1, name)
         h.wait_pipelines()  # its pipeline, built off the loop
+    h.wait_saved()
     t3 = TrainingSet.load(path)
     assert t3.expression_names == ("jawOpen", "mouthSmileLeft")  # config order
     np.testing.assert_allclose(t3.deltas[0], training.deltas[jaw], atol=2e-6)

@@ -30,8 +30,10 @@ import numpy as np
 import pytest
 import zmq
 
+from retargetd.daemon.face.training import TrainingSet
 from retargetd.daemon.live import performers as performers_module
 from retargetd.daemon.live import rebuild
+from retargetd.daemon.live import validation as validation_module
 from retargetd.daemon.live.config import DaemonConfig
 from retargetd.daemon.live.loop import Daemon
 from retargetd.daemon.live.ratelog import RateLimitedLog
@@ -489,3 +491,204 @@ def test_one_build_at_a_time_per_stream_however_fast_label_sets_come(
     finally:
         gate.set()
         src.sock.close()
+
+
+@pytest.fixture
+def daemon_lines(
+    exact_calibration: Path, rig_copy: Path, tmp_path: Path
+) -> Iterator[tuple[Daemon, list[str]]]:
+    """The exact performer with the live validator and the face on (no training
+    set: nothing to solve, a set to write), and the lines it prints."""
+    doc = lh._deep_merge(
+        lh._ephemeral_doc(lh._unused_udp_port()),
+        {
+            "performer": {"rig": str(rig_copy), "calibration": str(exact_calibration)},
+            "control": {"min_interval_s": 0.01},
+            "validate": {"enabled": True, "rate_hz": 100.0},
+            "face": {"enabled": True, "config": "arkit52",
+                     "training": str(tmp_path / "face.npz")},
+        },
+    )  # fmt: skip
+    lines: list[str] = []
+    d = Daemon(DaemonConfig.from_dict(doc, source="test"), out=lines.append)
+    try:
+        d.open()
+        yield d, lines
+    finally:
+        d.close()
+
+
+def _ticks(d: Daemon) -> None:
+    """The loop pass's ticks after the wake-up (as ``Daemon.run``): a validator
+    built or a training set written off the loop taken."""
+    d.performers.tick_calibrations(time.monotonic_ns())
+
+
+@pytest.mark.timeout(120)
+def test_a_validators_restart_is_built_off_the_loop_and_a_failure_counted(
+    daemon_lines: tuple[Daemon, list[str]],
+    rig_copy: Path,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Before: a reload or a live calibration built the new live validator in the
+    loop (its MuJoCo model, tables and kernels: 3-32 ms, 300-380 ms where the
+    process had not loaded its kernels). Now a worker builds it while the old one
+    goes on checking the poses, every frame solved and sent; the loop swaps it in
+    once built. A build that
+    raises is counted and said in one line, the validator off, the loop serving."""
+    (d, lines), gate = daemon_lines, threading.Event()
+    real = validation_module.new_validator
+    begun: list[int] = []
+
+    def gated(*args: Any) -> Any:
+        begun.append(1)
+        assert gate.wait(30.0), "the test never opened the gate"
+        return real(*args)
+
+    monkeypatch.setattr(validation_module, "new_validator", gated)
+    src = _Source(d)
+    try:
+        old = d.validator  # built at the start, waited for there
+        assert old is not None and old.running
+        _first_pipeline(d, src)
+        _frames(d, src, 3)
+        rig_copy.write_text(rig_copy.read_text() + "\n# edited\n")
+        assert "reloaded rig" in _ctl(d, {"cmd": "reload"})["message"]
+        submitted, out = old.submitted, d.stats.frames_out
+        for _ in range(20):
+            _frames(d, src, 1)
+            _ticks(d)
+        assert begun == [1] and d.status()["validators_building"] == 1
+        assert d.stats.frames_out == out + 20 and _accounted(d)
+        assert d.validator is old and old.submitted == submitted + 20  # still checking
+        gate.set()
+        deadline = time.monotonic() + 30.0
+        while d.validator is old:
+            assert time.monotonic() < deadline, "the new validator never swapped in"
+            time.sleep(0.01)
+            _ticks(d)
+        new = d.validator
+        assert (
+            new is not None and new.running and d.status()["validators_building"] == 0
+        )
+        _frames(d, src, 3)
+        assert new.submitted == 3
+        _wait(lambda: not old.running, "the old validator closed (off the loop)")
+        assert sum("live validator on" in line for line in lines) == 2, lines
+
+        # A build that raises: counted, one line, the validator off; frames go on.
+        def broken(*args: Any) -> Any:
+            raise ValueError("a calibration without rest bone origins\nmore")
+
+        monkeypatch.setattr(validation_module, "new_validator", broken)
+        rig_copy.write_text(rig_copy.read_text() + "\n# edited again\n")
+        _ctl(d, {"cmd": "reload"})
+        out = d.stats.frames_out
+        deadline = time.monotonic() + 30.0
+        while d.validator is new:
+            assert time.monotonic() < deadline, "the failed build never ended"
+            _frames(d, src, 1)
+            _ticks(d)
+        assert d.validator is None and d.status()["validate"] is None
+        assert d.status()["counters"]["validator_failures"] == 1
+        off = [line for line in lines if "live validator off" in line]
+        assert off == [
+            "live validator off: its build failed (ValueError: a calibration "
+            "without rest bone origins); validator_failures 1"
+        ], lines
+        _frames(d, src, 5)
+        assert d.stats.frames_out > out + 4 and _accounted(d)
+    finally:
+        gate.set()
+        src.sock.close()
+
+
+def _wait(cond: Any, what: str, timeout_s: float = 10.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not cond():
+        assert time.monotonic() < deadline, what
+        time.sleep(0.01)
+
+
+@pytest.mark.timeout(120)
+def test_a_face_training_sets_save_runs_off_the_loop_and_a_failure_is_counted(
+    daemon_lines: tuple[Daemon, list[str]],
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Before: a face capture wrote its training set in the loop (np.savez; a slow
+    or full disk held every frame for as long as it took). Now a worker writes it,
+    atomically: here a writer held at a gate (a disk that does not answer) while
+    the loop solves and sends every frame; ``face.saving`` says it is in flight.
+    A write that fails is counted, said in one line, the old file kept whole."""
+    (d, lines), gate = daemon_lines, threading.Event()
+    real = TrainingSet.save
+
+    def slow(self: TrainingSet, path: str | Path) -> None:
+        assert gate.wait(30.0), "the test never opened the gate"
+        if Path(path).parent.name == "full":
+            raise OSError(28, f"cannot write {path}: No space left on device")
+        real(self, path)
+
+    monkeypatch.setattr(TrainingSet, "save", slow)
+    face = d.face
+    assert face is not None and not d.status()["face"]["saving"]
+    training = _tiny_training()
+    path = str(tmp_path / "face.npz")
+    src = _Source(d)
+    try:
+        _first_pipeline(d, src)
+        face._save_later(training, path, "face pose 'neutral' captured")
+        face.last_message = f"face pose 'neutral' captured; saving {path}"
+        out = d.stats.frames_out
+        for _ in range(20):
+            _frames(d, src, 1)
+            _ticks(d)
+        assert d.stats.frames_out == out + 20 and _accounted(d)
+        assert d.status()["face"]["saving"] and not Path(path).exists()
+        gate.set()
+        _wait(lambda: face._save is not None and face._save.done(), "written")
+        _ticks(d)
+        assert not d.status()["face"]["saving"]
+        assert TrainingSet.load(path).marker_names == training.marker_names
+        assert d.status()["face"]["last_capture"].endswith(f"; saved {path}")
+        assert lines[-1] == f"face training set (1 expressions) saved {path}"
+        # A disk that is full: counted, one line, the file that was there kept.
+        (tmp_path / "full").mkdir()
+        bad = str(tmp_path / "full" / "face.npz")
+        face._save_later(training, bad, "face pose 'jawOpen' captured")
+        _wait(lambda: face._save is not None and face._save.done(), "refused")
+        _ticks(d)
+        assert d.status()["counters"]["face_save_failures"] == 1
+        assert lines[-1].startswith("face training set (1 expressions) NOT saved: ")
+        assert "No space left on device" in lines[-1]
+        _frames(d, src, 3)
+        assert _accounted(d)
+        # The daemon's close waits for the write under way, and writes the one
+        # waiting: the last capture is not lost.
+        gate.clear()
+        later = str(tmp_path / "later.npz")
+        face._save_later(training, str(tmp_path / "first.npz"), "a")
+        face._save_later(training, later, "b")  # waits for the first
+        closing = threading.Thread(target=face.close)
+        closing.start()
+        closing.join(0.2)
+        assert closing.is_alive() and not Path(later).exists()
+        gate.set()
+        closing.join(30.0)
+        assert not closing.is_alive() and not face.saving
+        assert TrainingSet.load(later).k == 1
+    finally:
+        gate.set()
+        src.sock.close()
+
+
+def _tiny_training() -> TrainingSet:
+    """A training set of 3 head markers, 2 facial markers and one expression."""
+    layout = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.0, 0.1, 0.0]])
+    return TrainingSet(
+        head_names=("H1", "H2", "H3"), marker_names=("F1", "F2"),
+        expression_names=("e",), head_layout=layout,
+        neutral=np.array([[0.0, 0.05, -0.05], [0.05, 0.0, -0.05]]),
+        deltas=np.array([[[0.0, 0.0, 0.01], [0.0, 0.01, 0.0]]]),
+    )  # fmt: skip

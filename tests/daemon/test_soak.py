@@ -90,3 +90,19 @@ def test_the_walk_plays_forward_then_backward_without_a_jump() -> None:
     steps = [abs(a - b) for a, b in itertools.pairwise(rows)]
     assert max(steps) == 1 and set(rows) == set(range(5))
     assert soak.walk_row(7, 1) == 0
+
+
+def test_a_gap_only_at_the_sub_is_told_apart_from_one_the_daemon_sent() -> None:
+    """A gap at the driver's SUB whose two poses the daemon sent close together
+    (their own ``sent_ns``) was delivered late, after a timely send; one the
+    daemon's sends show too is not."""
+    soak = bench_module("soak")
+    ms = 1_000_000
+    sent = [0, 4 * ms, 8 * ms, 12 * ms, 200 * ms, 204 * ms]
+    received = [1 * ms, 5 * ms, 9 * ms, 130 * ms, 201 * ms, 205 * ms]
+    late = soak.late_deliveries(received, sent)
+    # 9 -> 130 ms at the SUB, 8 -> 12 ms sent: late; 130 -> 201 ms is under 100 ms
+    assert late == [{"gap_s": 0.121, "sent_gap_s": 0.004, "latency_s": 0.118}]
+    # the daemon's own 12 -> 200 ms gap, received as sent: not a late delivery
+    received = [1 * ms, 5 * ms, 9 * ms, 13 * ms, 201 * ms, 205 * ms]
+    assert soak.late_deliveries(received, sent) == []

@@ -180,6 +180,27 @@ def test_training_set_round_trip(tmp_path: Path, rng: np.random.Generator) -> No
         sf.TrainingSet.load(tmp_path / "other.npz")
 
 
+def test_a_training_set_is_written_atomically_npz_appended(
+    tmp_path: Path, rng: np.random.Generator, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A live capture's save runs on a worker thread (``live/face.py``): a write cut
+    short (a full disk, the process ending) must leave the file that was there
+    whole. A name without ``.npz`` gets it, as ``numpy.savez`` did."""
+    tr = _random_training(rng)
+    tr.save(tmp_path / "face")
+    assert sf.TrainingSet.load(tmp_path / "face.npz").k == tr.k
+    before = (tmp_path / "face.npz").read_bytes()
+
+    def full(*args: object, **kwargs: object) -> None:
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(os, "fsync", full)
+    with pytest.raises(OSError, match=r"cannot write .*face\.npz"):
+        dataclasses.replace(tr, noise_rms_m=1e-3).save(tmp_path / "face.npz")
+    assert (tmp_path / "face.npz").read_bytes() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["face.npz"]
+
+
 def test_bad_training_shapes_are_rejected(rng: np.random.Generator) -> None:
     tr = _random_training(rng)
     with pytest.raises(ValueError, match="deltas"):
