@@ -105,7 +105,7 @@ def test_swing_stays_on_the_unplanted_path(measured: Any, gait: str) -> None:
         _known(
             "stair_ascent",
             "releases 3 frames late (6 of 14 events; onsets 1): at the truth's "
-            "toe-off the solved forefoot point (the foot's aim) moves 0.26, 0.60, "
+            "toe-off the solved ball (under the foot's aim; legs 1x) moves 0.26, 0.60, "
             "0.96, 1.13 m/s in that frame and the next three, under Bonci's 1.0 m/s "
             "foot-off speed until the 3rd (level walk: past it the frame after); "
             "the synthetic foot's speed after a stair toe-off is not checked against "
