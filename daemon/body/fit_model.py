@@ -150,6 +150,8 @@ class FitModel:
             in that bone's frame; ``marker_weight`` (Mr,) residual weights.
         joint_names: (J,); ``joint_bone`` (J,), ``joint_local`` (J, 3) metres.
         hinge_axis: (B, 3) unit hinge axis in the bone's rest axes, zeros = ball.
+        twist_axis: (B, 3) unit twist axis of a "hinge_twist" in the bone's rest
+            axes (``twist_to``: to that marker; else, and for every other bone, +Y).
         twist_lock: (B,) 1.0 for a swing joint (no rotation about the bone's own +Y
             relative to its calibration pose), 2.0 for a hinge with the bone's twist
             ("hinge_twist": the bone's axis stays on the cone the hinge sweeps it
@@ -205,6 +207,7 @@ class FitModel:
     joint_bone: IntArray
     joint_local: F64Array
     hinge_axis: F64Array
+    twist_axis: F64Array
     twist_lock: F64Array
     prior_mat: F64Array
     hide_axes: F64Array
@@ -252,6 +255,7 @@ def parse_fit_options(rig: Rig, table: Any, *, source: str) -> FitOptions:
     return parse_fit_table(
         table,
         markers=rig.markers,
+        points=[p.name for p in rig.points],
         bones=rig.bone_names,
         roots=[b.name for b in rig.bones if b.parent is None],
         fail=lambda key, message: RigError(f"{source}: {key}: {message}"),
@@ -282,6 +286,23 @@ def _local_mean(pos: F64Array, origin: F64Array, wfb: F64Array) -> tuple[F64Arra
     if not ok.any():
         return np.full(3, np.nan), 0
     return local[ok].mean(axis=0), int(ok.sum())
+
+
+def _twist_axis(
+    name: str, marker: str, rig: Rig, pts: Mapping[str, F64Array], wfb: F64Array
+) -> F64Array:
+    """``twist_to``'s axis: the unit line from bone ``name``'s origin to ``marker``
+    over the base-pose frames, in the bone's axes (one line, exit 2, when the marker
+    is never seen there or sits on the origin)."""
+    origin = rig.bones[rig.bone_names.index(name)].origin
+    loc, used = _local_mean(pts[marker], pts[origin], wfb)
+    n = float(np.linalg.norm(loc)) if used else 0.0
+    if not n > AXIS_MARKERS_MIN_M:
+        raise CalibrationError(
+            f"fit.bones.{name}.twist_to: {marker} is not seen in the base pose or "
+            f"lies within {AXIS_MARKERS_MIN_M * 1e3:.0f} mm of the bone's origin"
+        )
+    return np.asarray(loc / n, dtype=np.float64)
 
 
 def _segment_distance(p: F64Array, a: F64Array, b: F64Array) -> float:
@@ -610,6 +631,7 @@ def build_fit_model(
     # Joint models, the rig's own priors, and the automatic priors on what the
     # markers do not observe (fit_observe).
     hinge = np.zeros((n_bones, 3))
+    twist_axis = np.tile(np.array([0.0, 1.0, 0.0]), (n_bones, 1))
     twist_lock = np.zeros(n_bones)
     explicit = np.zeros((n_bones, 3, 3))
     dof = ["root" if parents[b] < 0 else "ball" for b in range(n_bones)]
@@ -628,11 +650,15 @@ def build_fit_model(
                     rest_pfb[b], axes[name],
                 )  # fmt: skip
             if bopt.dof == "hinge_twist":
-                if abs(hinge[b][1]) > HINGE_TWIST_MAX_COS:  # one line, exit 2
+                if bopt.twist_to:
+                    twist_axis[b] = _twist_axis(
+                        name, bopt.twist_to, rig, pts, wfb[:, b]
+                    )
+                if abs(hinge[b] @ twist_axis[b]) > HINGE_TWIST_MAX_COS:  # exit 2
                     raise CalibrationError(
                         f"fit.bones.{name}: the hinge axis is within "
                         f"{math.degrees(math.acos(HINGE_TWIST_MAX_COS)):.0f} deg of "
-                        "the bone's own axis, so a hinge about it is its twist"
+                        "the twist axis, so a hinge about it is its twist"
                     )
                 twist_lock[b] = 2.0
         elif bopt.dof == "swing":
@@ -644,6 +670,7 @@ def build_fit_model(
         parent=parents, root_of=bone_root, off_parent=off_parent, rest_pfb=rest_pfb,
         root_rest_pos=root_rest_pos, marker_bone=np.asarray(bones_of, dtype=np.int64),
         marker_local=local, marker_weight=weight, dof=dof, hinge_axis=hinge,
+        twist_axis=twist_axis,
     )  # fmt: skip
     observation = observe(chain, bone_names=rig.bone_names, explicit_prior=explicit)
     prior_mat = explicit + np.stack([o.prior for o in observation])
@@ -696,6 +723,7 @@ def build_fit_model(
         joint_bone=_readonly(joint_bone),
         joint_local=_readonly(joint_local),
         hinge_axis=_readonly(hinge),
+        twist_axis=_readonly(twist_axis),
         twist_lock=_readonly(twist_lock),
         prior_mat=_readonly(prior_mat),
         hide_axes=_readonly(hide_axes),

@@ -14,6 +14,7 @@ import math
 from retargetd.daemon.body.fit_terms import (
     C_LAM_ROT,
     C_LAM_TRANS,
+    L_TWIST_AXIS,
     P_KAPPA_HINGE,
     P_KAPPA_LIMIT,
     neutral_w,
@@ -209,18 +210,32 @@ def build_normal(m: tuple, s: tuple) -> None:
                 j0 = s_hinge * (rw * rz + rx * ry) / den
                 j1 = s_hinge
                 j2 = s_hinge * (ry * rz - rw * rx) / den
-            else:  # the bone's axis R Y off the cone about h: d (h . R Y)
+            else:  # the twist axis R a off the cone about h: d (h . R a) / d w
+                # = (R^T h) . (e_k x a) = (a x R^T h)_k (a: lim[b, L_TWIST_AXIS:])
                 hv = hinge[b]
-                sc_h = s_hinge / math.sqrt(1.0 - hv[1] * hv[1])
-                c2x = 2.0 * (rx * rz + rw * ry)  # R Z
-                c2y = 2.0 * (ry * rz - rw * rx)
-                c2z = 1.0 - 2.0 * (rx * rx + ry * ry)
-                c0x = 1.0 - 2.0 * (ry * ry + rz * rz)  # R X
-                c0y = 2.0 * (rx * ry + rw * rz)
-                c0z = 2.0 * (rx * rz - rw * ry)
-                j0 = sc_h * (hv[0] * c2x + hv[1] * c2y + hv[2] * c2z)
-                j1 = 0.0
-                j2 = -sc_h * (hv[0] * c0x + hv[1] * c0y + hv[2] * c0z)
+                lb = lim[b]
+                a0, a1 = lb[L_TWIST_AXIS], lb[L_TWIST_AXIS + 1]
+                a2 = lb[L_TWIST_AXIS + 2]
+                ah = a0 * hv[0] + a1 * hv[1] + a2 * hv[2]
+                sc_h = s_hinge / math.sqrt(1.0 - ah * ah)
+                t0 = (
+                    hv[0] * (1.0 - 2.0 * (ry * ry + rz * rz))  # h . R X
+                    + hv[1] * 2.0 * (rx * ry + rw * rz)
+                    + hv[2] * 2.0 * (rx * rz - rw * ry)
+                )
+                t1 = (
+                    hv[0] * 2.0 * (rx * ry - rw * rz)  # h . R Y
+                    + hv[1] * (1.0 - 2.0 * (rx * rx + rz * rz))
+                    + hv[2] * 2.0 * (ry * rz + rw * rx)
+                )
+                t2 = (
+                    hv[0] * 2.0 * (rx * rz + rw * ry)  # h . R Z
+                    + hv[1] * 2.0 * (ry * rz - rw * rx)
+                    + hv[2] * (1.0 - 2.0 * (rx * rx + ry * ry))
+                )
+                j0 = sc_h * (a1 * t2 - a2 * t1)
+                j1 = sc_h * (a2 * t0 - a0 * t2)
+                j2 = sc_h * (a0 * t1 - a1 * t0)
             u0 = j0 * wm[b, 0, 0] + j1 * wm[b, 0, 1] + j2 * wm[b, 0, 2]
             u1 = j0 * wm[b, 1, 0] + j1 * wm[b, 1, 1] + j2 * wm[b, 1, 2]
             u2 = j0 * wm[b, 2, 0] + j1 * wm[b, 2, 1] + j2 * wm[b, 2, 2]

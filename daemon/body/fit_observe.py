@@ -131,12 +131,16 @@ def _axis_name(axis: F64Array) -> str:
     return "[" + ", ".join(f"{v:+.2f}" for v in axis) + "]"
 
 
-def joint_basis(dof: str, hinge_axis: F64Array) -> F64Array:
+def joint_basis(
+    dof: str, hinge_axis: F64Array, twist_axis: F64Array | None = None
+) -> F64Array:
     """The rotations a joint model allows at its calibration pose.
 
     Args:
         dof: "root", "ball", "hinge", "hinge_twist", "swing" or "fixed".
         hinge_axis: (3,) the hinge axis in the bone's rest axes (hinges only).
+        twist_axis: (3,) a hinge_twist's twist axis in the bone's rest axes (None:
+            the bone's own +Y).
 
     Returns:
         (3, d) orthonormal columns in the bone's rest axes.
@@ -151,8 +155,9 @@ def joint_basis(dof: str, hinge_axis: F64Array) -> F64Array:
     h = h / np.linalg.norm(h)
     if dof == "hinge":
         return h[:, None]
-    if dof == "hinge_twist":  # the hinge, then the bone's own twist about +Y
-        q, _ = np.linalg.qr(np.stack([h, _EYE[1]], axis=1))
+    if dof == "hinge_twist":  # the hinge, then the twist (the bone's own +Y default)
+        a = _EYE[1] if twist_axis is None else np.asarray(twist_axis, dtype=np.float64)
+        q, _ = np.linalg.qr(np.stack([h, a], axis=1))
         return np.asarray(q)
     raise ValueError(f"unknown joint model {dof!r}")
 
@@ -194,6 +199,8 @@ class Chain:
             metres in its frame; ``marker_weight`` (Mr,) (0: not used).
         dof: (B,) each joint's model ("root" for roots).
         hinge_axis: (B, 3) hinge axes in the bones' rest axes (hinges).
+        twist_axis: (B, 3) a ``hinge_twist``'s twist axis in the bone's rest axes
+            (None: every bone's own +Y).
     """
 
     parent: IntArray
@@ -206,6 +213,7 @@ class Chain:
     marker_weight: F64Array
     dof: Sequence[str]
     hinge_axis: F64Array
+    twist_axis: F64Array | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -235,7 +243,11 @@ def _linearize(chain: Chain) -> _Linearized:
     )
     # Columns: each bone's free rotations (world directions), then each root's
     # translation.
-    bases = [joint_basis(dof[b], hinge_axis[b]) for b in range(n_b)]
+    tw = ch.twist_axis
+    bases = [
+        joint_basis(dof[b], hinge_axis[b], None if tw is None else tw[b])
+        for b in range(n_b)
+    ]
     col0 = np.cumsum([0] + [B.shape[1] for B in bases])
     n_roots = int(root_rest_pos.shape[0])
     n_col = int(col0[-1]) + 3 * n_roots
@@ -384,6 +396,7 @@ def hinges_at_right_angles(chain: Chain) -> Chain:
         rest_pfb=pfb, root_rest_pos=chain.root_rest_pos,
         marker_bone=chain.marker_bone, marker_local=chain.marker_local,
         marker_weight=chain.marker_weight, dof=chain.dof, hinge_axis=chain.hinge_axis,
+        twist_axis=chain.twist_axis,
     )  # fmt: skip
 
 

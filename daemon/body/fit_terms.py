@@ -69,6 +69,10 @@ N_STATS = 9
 
 INF = 1e300
 
+#: A joint's penalty row (``m[11]``, ``lim``): fit_model's limit columns (N_LIM of
+#: them), then a "hinge_twist"'s twist axis in the bone's rest axes (3).
+L_TWIST_AXIS = 10
+
 
 @kernel
 def qexp(vx: float, vy: float, vz: float) -> tuple[float, float, float, float]:
@@ -283,14 +287,20 @@ def pen_components(
             if cone > lim[5]:
                 out[2] = s_lim * (cone - lim[5])
     if lock == 2.0:
-        # A hinge about h, then the bone's own twist: q = R_h(t) R_y(u) moves the
-        # bone's axis +Y on the cone about h, (q Y) . h = Y . h = h_y. The residual is
-        # the distance off that cone, in radians (/ sin of the cone's half-angle).
-        ax = 2.0 * (hx * hy - hw * hz)
-        ay = 1.0 - 2.0 * (hx * hx + hz * hz)
-        az = 2.0 * (hy * hz + hw * hx)
-        d = ax * hinge[0] + ay * hinge[1] + az * hinge[2] - hinge[1]
-        out[3] = s_hinge * d / math.sqrt(1.0 - hinge[1] * hinge[1])
+        # A hinge about h, then the twist about a (the bone's rest axes, lim[10:13]):
+        # q = R_h(t) R_a(u) moves a on the cone about h, (q a) . h = a . h. The
+        # residual is the distance off that cone, in radians (/ sin of the cone's
+        # half-angle).
+        a0, a1, a2 = lim[L_TWIST_AXIS], lim[L_TWIST_AXIS + 1], lim[L_TWIST_AXIS + 2]
+        ax = (1.0 - 2.0 * (hy * hy + hz * hz)) * a0 + 2.0 * (hx * hy - hw * hz) * a1
+        ax += 2.0 * (hx * hz + hw * hy) * a2
+        ay = 2.0 * (hx * hy + hw * hz) * a0 + (1.0 - 2.0 * (hx * hx + hz * hz)) * a1
+        ay += 2.0 * (hy * hz - hw * hx) * a2
+        az = 2.0 * (hx * hz - hw * hy) * a0 + 2.0 * (hy * hz + hw * hx) * a1
+        az += (1.0 - 2.0 * (hx * hx + hy * hy)) * a2
+        ah = a0 * hinge[0] + a1 * hinge[1] + a2 * hinge[2]
+        d = ax * hinge[0] + ay * hinge[1] + az * hinge[2] - ah
+        out[3] = s_hinge * d / math.sqrt(1.0 - ah * ah)
     elif lock != 0.0:
         # Zero twist about +Y <=> q_y = 0 <=> the rotation's axis is perpendicular to
         # the bone: a pure swing (of the calibration-relative rotation).

@@ -299,6 +299,7 @@ class _Parser:
         fit = parse_fit_table(
             doc.get("fit", {}),
             markers=markers,
+            points={p.name for p in points},
             bones={b.name for b in bones},
             roots={b.name for b in bones if b.parent is None},
             fail=self.fail,

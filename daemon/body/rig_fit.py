@@ -13,6 +13,9 @@ axis_from_bend_deg = 0  # bent at least this much in the calibration pose: the a
                         # there perpendicular to the bone and its parent instead
 axis_markers = ["LIKNEE", "LEKNEE"]  # the axis is the line through these two markers
                         # of the parent bone at the calibration pose (signed like axis)
+twist_to = "LUS"     # hinge_twist: the twist turns about the line from the bone's
+                        # origin to this marker or point at the calibration pose
+                        # (default: the bone's own +Y)
 stiffness_mm = 0     # pull towards the calibration pose, mm of residual per radian
 ```
 
@@ -41,6 +44,7 @@ BONE_KEYS = (
     "axis_in",
     "axis_from_bend_deg",
     "axis_markers",
+    "twist_to",
     "stiffness_mm",
 )
 #: ``stiffness_mm`` at most a hinge's stiffness (FitParams.kappa_hinge: 1 m/rad);
@@ -97,6 +101,14 @@ class BoneFitOptions:
     The line is the anatomical axis itself; a bone frame's axis is that line made
     perpendicular to a bone whose other end is an estimate (a hip or shoulder
     centre), so it carries the estimate's error into every flexion.
+    ``twist_to``: a "hinge_twist" only: the twist turns about the line from the
+    bone's origin to this marker or derived point where the calibration placed it,
+    not about the bone's own +Y (empty: +Y). A forearm pronates about the line from
+    the radial head to the ulnar head (Hollister et al., Clin Orthop Relat Res
+    298:272-276, 1994), which the ISB takes as the line from the elbow centre to the
+    ulnar styloid (Wu et al., J Biomech 38(5):981-992, 2005); a forearm bone that
+    aims at the wrist centre names its ulnar styloid (a marker on it, or a point the
+    rig derives for it) here.
     ``stiffness_mm``: a pull of the joint towards its calibration pose, in mm of
     marker residual per radian (0: none), like OpenSim IK's coordinate tasks.
     """
@@ -106,6 +118,7 @@ class BoneFitOptions:
     axis_in: str = "bone"
     axis_from_bend_deg: float = 0.0
     axis_markers: tuple[str, ...] = ()
+    twist_to: str = ""
     stiffness_mm: float = 0.0
 
 
@@ -154,12 +167,14 @@ def parse_fit_table(
     bones: Collection[str],
     roots: Collection[str],
     fail: Callable[[str, str], Exception],
+    points: Collection[str] = (),
 ) -> FitOptions:
     """Validate a rig's ``[fit]`` table against the rig's names.
 
     Args:
         table: the TOML value of ``fit``.
         markers, bones: the rig's marker and bone names; ``roots`` its root bones.
+        points: its derived points' names (``twist_to`` may name one).
         fail: ``fail(key, message)`` -> the exception to raise (the rig parser's:
             one line naming the file and ``fit.KEY``).
 
@@ -291,8 +306,16 @@ def parse_fit_table(
                 f"{key}.axis_markers",
                 "give axis_markers or axis_from_bend_deg, not both",
             )
+        twist_to = spec.get("twist_to", "")
+        if "twist_to" in spec and dof != "hinge_twist":
+            raise fail(f"{key}.twist_to", "only a hinge_twist has a twist axis")
+        if not isinstance(twist_to, str) or (
+            twist_to and twist_to not in markers and twist_to not in points
+        ):
+            raise fail(f"{key}.twist_to", f"expected a marker or point: {twist_to!r}")
         out_b[name] = BoneFitOptions(
             dof=dof, axis=axis, axis_in=axis_in, stiffness_mm=float(stiff),
             axis_from_bend_deg=float(from_bend), axis_markers=tuple(pair),
+            twist_to=twist_to,
         )  # fmt: skip
     return FitOptions(markers=out_m, bones=out_b)

@@ -27,6 +27,7 @@ from retargetd.daemon.body import fit_terms as ft
 from retargetd.daemon.body import kernel_fit as kf
 from retargetd.daemon.body.calibration import Calibration, calibrate
 from retargetd.daemon.body.fit_model import (
+    N_LIM,
     FitModel,
     FitOptions,
     JointLimitLike,
@@ -61,6 +62,10 @@ __all__ = [
     "FitSolve",
     "FitSolver",
 ]
+
+
+if N_LIM != ft.L_TWIST_AXIS:  # the kernel's penalty row: the limits, then the axis
+    raise ImportError("solve_fit: fit_model.N_LIM and fit_terms.L_TWIST_AXIS differ")
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -365,7 +370,8 @@ class FitSolver:
             model.bone_parent, model.bone_root, model.off_parent, model.rest_pfb,
             con.marker_cols, model.marker_bone, model.marker_local,
             model.marker_weight, model.joint_bone, model.joint_local,
-            model.hinge_axis, model.limits, model.limit_left, model.limit_forward,
+            model.hinge_axis, np.hstack([model.limits, model.twist_axis]),
+            model.limit_left, model.limit_forward,
             model.anc_ptr, model.anc_idx, model.node_ptr, model.node_idx,
             self._params_arr, model.penalty_cos, model.twist_lock, model.prior_mat,
             model.hide_axes, model.hide_lam, model.hide_lost, model.hide_hinge,

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import io
+import math
 import sys
 from typing import Any
 
@@ -230,10 +231,20 @@ def _print_observability(
         note = f"; the rig's stiffness {stiff:g} mm/rad" if stiff else ""
         out(f"  {obs.bone} ({obs.dof}{note}): {obs.describe()}\n")
         out(f"      markers riding it: {' '.join(riders) or '(none)'}\n")
+        twist = model.twist_axis[rig.bone_names.index(obs.bone)]
+        if obs.dof == "hinge_twist":
+            to = explicit.twist_to if explicit is not None else ""
+            off = math.degrees(math.acos(min(1.0, abs(float(twist[1])))))
+            out(
+                f"      twist axis [{twist[0]:+.3f} {twist[1]:+.3f} {twist[2]:+.3f}] "
+                f"in its axes, {off:.1f} deg off its +Y "
+                f"({'to ' + to if to else 'its own axis'})\n"
+            )
         bones[obs.bone] = {
             "dof": obs.dof,
             "markers": riders,
             "stiffness_mm": stiff,
+            "twist_axis": [round(float(v), 4) for v in twist],
             "rotations": [
                 {
                     "axis": [round(float(v), 4) for v in axis],

@@ -13,9 +13,11 @@ the base-pose hold (``t <= base_pose_s``, exact T-pose) and rises to 1 over
 :data:`RAMP_S` with a quintic smoothstep. Angles are summed per joint into channels
 about the segment's x, y, z axes and turned into ``parent_from_segment`` quaternions
 with one intrinsic Euler sequence per segment (:data:`EULER_ORDERS`; the long-axis
-rotation last). Left-side formulas are anatomical; the right side mirrors them through
-the sagittal plane (x and z angles negated) with its own phases. Frequencies are
-irrational ratios of each other, so the pose never repeats.
+rotation last; the forearm's, its pronation, is about the ISB's forearm axis from the
+elbow centre to the ulnar styloid, ``skeleton.pronation_axis``). Left-side formulas
+are anatomical; the right side mirrors them through the sagittal plane (x and z
+angles negated) with its own phases. Frequencies are irrational ratios of each other,
+so the pose never repeats.
 
 Root: the pelvis starts at ``origin + (0, 0, 0.530 H)`` (``origin`` is the floor point
 under the pelvis; soles at z = 0). ``walk`` moves it counter-clockwise round a circle
@@ -57,6 +59,7 @@ from retargetd.daemon.synth.skeleton import (
     SEGMENT_NAMES,
     Skeleton,
     make_skeleton,
+    pronation_axis,
     readonly,
 )
 from retargetd.protocols.conventions import MM_TO_M
@@ -405,6 +408,17 @@ def synthesize(
         columns = ["xyz".index(c) for c in order.lower()]
         parent_from_segment[:, idx] = rot.quat_from_euler(
             work.angles[:, idx][..., columns], order
+        )
+    # The forearm's long-axis angle (pronation) turns it about the ISB's forearm
+    # axis, elbow -> ulnar styloid, not about its own y: Rz Rx Ry -> Rz Rx R_axis.
+    y_axis = np.array([0.0, 1.0, 0.0])
+    for side in ("l", "r"):
+        i = skeleton.index(f"{side}_forearm")
+        pron = work.angles[:, i, 1]
+        about_axis = rot.quat_from_axis_angle(pronation_axis(side), pron)
+        not_y = rot.quat_conj(rot.quat_from_axis_angle(y_axis, pron))
+        parent_from_segment[:, i] = rot.quat_mul(
+            parent_from_segment[:, i], rot.quat_mul(not_y, about_axis)
         )
     heading_quat = rot.quat_from_axis_angle(np.array([0.0, 0.0, 1.0]), work.heading)
     parent_from_segment[:, 0] = rot.quat_mul(heading_quat, parent_from_segment[:, 0])

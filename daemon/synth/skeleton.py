@@ -43,6 +43,17 @@ _REST_POS_H: dict[str, tuple[str | None, tuple[float, float, float]]] = {
     "foot": ("shank", (0.0, 0.050, 0.039)),  # ankle
     "toes": ("foot", (0.075, 0.050, 0.008)),  # 2nd metatarsophalangeal joint
 }
+#: The ulnar styloid in the left forearm's frame, as a fraction of height: at the
+#: wrist (0.154 H along the forearm), 0.020 H (35 mm at 1.75 m) to the little-finger
+#: side (backward with the palms down), where both shipped marker sets wear their
+#: ulnar styloid marker. The forearm pronates and supinates about the line from the
+#: elbow centre to it (:func:`pronation_axis`): the ISB's forearm axis Yf, the
+#: elbow's third joint-coordinate-system axis (Wu et al., "ISB recommendation on
+#: definitions of joint coordinate systems of various joints ... Part II: shoulder,
+#: elbow, wrist and hand", J Biomech 38(5):981-992, 2005), near the anatomical axis
+#: through the ulnar head (Hollister et al., Clin Orthop Relat Res 298:272-276,
+#: 1994): the ulna stays, and the radius, with the hand, turns round it.
+ULNAR_STYLOID_H = (-0.020, 0.154, 0.0)
 #: Intrinsic Euler sequence per segment kind (long-axis rotation last).
 EULER_ORDERS: dict[str, str] = {
     **dict.fromkeys(("pelvis", "abdomen", "thorax", "neck", "head"), "YXZ"),
@@ -59,6 +70,16 @@ _SOLE_H = (
     ("foot", (0.075, 0.0, -0.039)),
     ("toes", (0.040, 0.0, -0.008)),
 )
+
+
+def pronation_axis(side: str) -> F64Array:
+    """The forearm's pronation axis, a unit vector in the ``side`` ("l" or "r")
+    forearm's frame: elbow centre -> ulnar styloid (:data:`ULNAR_STYLOID_H`); the
+    right one mirrors the left's through the sagittal plane as a rotation axis (x
+    negated), so the same angle turns both the same anatomical way."""
+    x, y, z = ULNAR_STYLOID_H
+    axis = np.array([x if side == "l" else -x, y, z])
+    return axis / np.linalg.norm(axis)
 
 
 def _segment_names() -> tuple[str, ...]:

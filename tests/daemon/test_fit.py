@@ -43,6 +43,7 @@ from retargetd.daemon.body.solve_fit import (
     warm_up,
 )
 from retargetd.daemon.synth import performer as pf
+from retargetd.daemon.synth import skeleton as pf_skeleton
 from retargetd.daemon.validate.limits import JOINT_LIMITS_DEG, limit_violation_deg
 from retargetd.daemon.validate.model import SEGMENT_KIND, skeleton_from_calibration
 from retargetd.replay.takes import load_take
@@ -434,6 +435,15 @@ def test_fit_keys_parse_and_act(tmp_path: Path) -> None:
             },
             "not both",
         ),
+        ({"bones": {"l_shank": {"dof": "hinge", "twist_to": "LANK"}}}, "hinge_twist"),
+        (
+            {"bones": {"l_shank": {"dof": "hinge_twist", "twist_to": "NOPE"}}},
+            "twist_to: expected a marker or point: 'NOPE'",
+        ),
+        (
+            {"bones": {"l_shank": {"dof": "hinge_twist", "twist_to": ["LANK"]}}},
+            "twist_to: expected a marker or point",
+        ),
         ({"bones": {"pelvis": {"dof": "swing"}}}, "root"),
         ({"bones": {"pelvis": {"stiffness_mm": 10}}}, "root"),
         ({"bones": {"l_shank": {"stiffness_mm": -1}}}, "out of range"),
@@ -527,9 +537,10 @@ def test_hinge_twist_elbow_flexes_about_the_parents_axis_and_twists(
 ) -> None:
     """``dof = "hinge_twist"``, ``axis_in = "parent"``: the synthetic performer's
     elbows flex about the upper arm's epicondyle axis (its +X, up = the epicondyle
-    pair) and its forearms pronate +-70 deg about their own axis. As such joints the
-    forearms stay on the hinge's cone (as ball joints noise moves them off it) and
-    still follow the truth's twist."""
+    pair) and its forearms pronate +-70 deg (about the ISB's axis, 7.4 deg off
+    their own; with ``twist_to`` below). As such joints, twisting about their own
+    axis, the forearms stay on the hinge's cone (as ball joints noise moves them off
+    it) and still follow the truth's twist."""
     keys = 'dof = "hinge_twist"\naxis = "x"\naxis_in = "parent"'
     f = _forearms_as(tmp_path, keys, noise_mm=1.0)
     text, path, rig, take, base, cal = f.text, f.path, f.rig, f.take, f.base, f.cal
@@ -560,6 +571,59 @@ def test_hinge_twist_elbow_flexes_about_the_parents_axis_and_twists(
     path.write_text(along)
     with pytest.raises(CalibrationError, match="hinge axis is within 30 deg"):
         build_fit_model(rig, cal, base, take.labels, load_fit_rig(path)[1])
+
+
+def test_hinge_twist_pronates_about_twist_to(tmp_path: Path) -> None:
+    """``twist_to``: the performer pronates about the line from the elbow centre to
+    the ulnar styloid (``synth.skeleton.pronation_axis``, the ISB's forearm axis),
+    7.4 deg off the exact rig's forearm bone (which aims at the wrist centre). A
+    point on that line (the styloid: 35 of the bar's 60 mm to the little-finger side)
+    named in ``twist_to`` gives the fit that axis; twisting about the bone's own +Y
+    instead, a pronation swings the styloid side off the hinge's plane and the fit
+    turns the humerus to follow."""
+    points = "".join(
+        f'\n[points.{s.upper()}US]\nline = ["{s.upper()}WRA", "{s.upper()}WRB"]\n'
+        f"u = {95.0 / 120.0!r}\n"
+        for s in ("l", "r")
+    )
+    keys = 'dof = "hinge_twist"\naxis = "x"\naxis_in = "parent"'
+    own = _forearms_as(tmp_path, keys, noise_mm=1.0)
+    rig_text = EXACT_RIG.read_text()
+    text = own.text.replace(rig_text, rig_text + points)
+    for s in ("l", "r"):
+        text = text.replace(
+            f"[fit.bones.{s}_forearm]\n{keys}\n",
+            f'[fit.bones.{s}_forearm]\n{keys}\ntwist_to = "{s.upper()}US"\n',
+        )
+    path = tmp_path / "rig_twist_to.toml"
+    path.write_text(text)
+    rig, opts = load_fit_rig(path)
+    assert opts.bones["l_forearm"].twist_to == "LUS"
+    cal = calibrate(rig, own.base, own.take.labels)  # (the rig has two more points)
+    model = build_fit_model(rig, cal, own.base, own.take.labels, opts)
+    for side, b in zip("lr", own.idx, strict=True):
+        # the fit's axis and the truth's, as lines in the world at frame 0
+        k = own.take.segment_names.index(f"{side}_forearm")
+        truth = rot.quat_rotate(
+            own.take.world_from_segment_quat[0, k], pf_skeleton.pronation_axis(side)
+        )
+        fit = rot.quat_rotate(cal.rest_world_from_bone_quat[b], model.twist_axis[b])
+        off = np.degrees(np.arccos(min(1.0, abs(float(fit @ truth)))))
+        assert off < 0.5, (side, off)  # 1 mm of noise over the 272 mm line: 0.2 deg
+    res = FitSolver(rig, cal, own.take.labels, model=model).solve_take(
+        own.take.markers_world
+    )
+    arms = [rig.bone_names.index(b) for b in ("l_upper_arm", "r_upper_arm")]
+    err = _bone_errors_deg(rig, cal, res, own.take)
+    err_own = _bone_errors_deg(own.rig, own.cal, own.res, own.take)
+    p95 = np.percentile(err[:, arms + own.idx], 95, axis=0)
+    p95_own = np.percentile(err_own[:, arms + own.idx], 95, axis=0)
+    print(
+        f"\ntwist_to: upper arms, forearms p95 {np.round(p95, 2)} deg; about +Y "
+        f"{np.round(p95_own, 2)}"
+    )
+    assert (p95_own[:2] > 3.0).all()  # the own axis turns the humerus
+    assert (p95 <= 3.0).all()  # test_exact_rig_1mm_noise: p95 within 3 deg
 
 
 def test_a_hinge_bent_in_the_calibration_pose_turns_about_its_bend() -> None:

@@ -93,6 +93,19 @@ def test_rig_check_prints_what_the_markers_observe(
                 assert pull >= fit_observe.PRIOR_STIFFNESS * 0.99, (name, pull)
     twist = {"menache": "loneck", "plug-in-gait": "spine"}[rig_name]
     assert any(n == twist and abs(u[1]) > 0.9 for n, u in held), held
+    # the forearm twists about the ulna (elbow centre to ulnar styloid): menache's
+    # forearm bone itself; 7.4 deg off Plug-in Gait's, which aims at the wrist
+    # centre (the performer's styloid 35 mm beside it over 269.5 mm; the calibration's
+    # elbow centre and bar moved it by 0.5 deg at most)
+    for side in ("l", "r"):
+        fore = {"menache": f"{side}ulna", "plug-in-gait": f"{side}lowerarm"}[rig_name]
+        got = np.asarray(obs["bones"][fore]["twist_axis"])
+        np.testing.assert_allclose(
+            got, model.twist_axis[rig.bone_names.index(fore)], atol=1e-4
+        )
+        off = np.degrees(np.arccos(abs(got[1])))
+        want = {"menache": 0.0, "plug-in-gait": np.degrees(np.arctan(35.0 / 269.5))}
+        assert abs(off - want[rig_name]) <= 0.5, (fore, off)
     print(f"\n{rig_name}: held by the automatic prior: {[n for n, _ in held]}")
 
 
