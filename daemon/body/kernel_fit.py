@@ -584,8 +584,11 @@ def fit_one_t(
     cp2(s[42], tlast)
     cp2(qlast, q)
     cp2(tlast, t)
+    # the velocity the next prediction takes from the last two explained frames is
+    # known only when they were consecutive (fit_track.predict): one after a gap
+    # starts the history again
+    have[0] = 2 if (have[0] >= 1 and sc[C_GAP] <= 1.0) else 1
     sc[C_GAP] = 1.0
-    have[0] = 2 if have[0] >= 1 else 1
     return n_held
 
 
