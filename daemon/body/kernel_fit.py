@@ -281,7 +281,7 @@ def fit_one(
     si: np.ndarray,
     sb: np.ndarray,
     lay: np.ndarray,  # (fit_pack.N_ROWS, 4) the layout
-    c: tuple,  # the construction kernel's (plan, state, output) plain tuples
+    c: tuple,  # the construction kernel's (plan, state, output) buffers, its state kept
     of: np.ndarray,  # the pose's float64, float32, uint8 and bool buffers
     of4: np.ndarray,
     ou1: np.ndarray,
@@ -316,7 +316,7 @@ def fit_one_t(
     markers: np.ndarray,  # (M_stream, 3) world metres, NaN = occluded
     m: tuple,  # the model (solve_fit.FitSolver._model)
     s: tuple,  # state and scratch (solve_fit.FitSolver._state)
-    c: tuple,  # the construction kernel's (plan, state, output) plain tuples
+    c: tuple,  # the construction kernel's (plan, state, output) buffers, its state kept
     out_joints: np.ndarray,  # (J, 3)
     out_wfb: np.ndarray,  # (B, 4)
     out_pfb: np.ndarray,  # (B, 4) parent_from_bone
@@ -395,6 +395,7 @@ def fit_one_t(
             hold_priors(m, s)
             virtual_markers(m, s)
         iters, _conv, cost = _fit_phases(m, s)
+        c_kept = False
         ss, n_in, n_rej = score(m, s)
         rms = truncated_rms(ss, n_in, n_rej, sc[C_GATE])
         # the take's own residual: its running level, or the last explained frame's
@@ -417,6 +418,14 @@ def fit_one_t(
             # markers last agreed with it: after a gap or a marker rejected for
             # `persist` frames its continuity weight is that of so many frames.
             sc[C_SINCE_TRY] = 0.0
+            # the construction keeps a memory (a bone whose markers are hidden
+            # holds its last value): what it took from a frame that turns out
+            # unexplained (a burst's mirrored labels) must not be held into the
+            # frames after it; its state is kept (c[8:11]) and restored below
+            c[8][:] = c[2]
+            c[9][:] = c[3]
+            c[10][:] = c[4]
+            c_kept = True
             continuity_weights(params, sc, max(sc[C_GAP], persist))
             cost_a = _whole_cost(m, s)
             cp2(qb, q)
@@ -455,6 +464,10 @@ def fit_one_t(
                     unexplained = True
         if unexplained:
             _hold(m, s)
+            if c_kept:
+                c[2][:] = c[8]
+                c[3][:] = c[9]
+                c[4][:] = c[10]
         else:
             tau = params[P_LEVEL_TAU_S]
             a = min(1.0, sc[C_DT] / tau) if tau > 0.0 else 1.0
@@ -571,8 +584,11 @@ def fit_one_t(
     cp2(s[42], tlast)
     cp2(qlast, q)
     cp2(tlast, t)
+    # the velocity the next prediction takes from the last two explained frames is
+    # known only when they were consecutive (fit_track.predict): one after a gap
+    # starts the history again
+    have[0] = 2 if (have[0] >= 1 and sc[C_GAP] <= 1.0) else 1
     sc[C_GAP] = 1.0
-    have[0] = 2 if have[0] >= 1 else 1
     return n_held
 
 

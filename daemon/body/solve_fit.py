@@ -415,7 +415,10 @@ class FitSolver:
         assert self._con_pose.kernel_buffers is not None
         # The construction's packed buffers (``body.kernel.solve_one``): a NamedTuple
         # argument costs Python allocations at every dispatch, each array ~80 ns.
-        self._con = con.packed_buffers(self._con_pose)
+        # Three more: a copy of its state, kept before a frame's reseed candidate and
+        # restored when the frame turns out unexplained (kernel_fit.fit_one_t).
+        packed = con.packed_buffers(self._con_pose)
+        self._con = (*packed, packed[2].copy(), packed[3].copy(), packed[4].copy())
         self.reset()
 
     def reset(self) -> None:
