@@ -30,7 +30,7 @@ import numpy as np
 
 from retargetd.daemon.live.face import FaceStage
 from retargetd.daemon.live.performer import FrameSource, Performer
-from retargetd.daemon.live.rebuild import Build, reads_same
+from retargetd.daemon.live.rebuild import Build, build_failed, reads_same, same_want
 from retargetd.daemon.live.shared import Shared
 from retargetd.protocols import pose_stream
 from retargetd.protocols.vmc_out import BlendEncoder
@@ -112,6 +112,9 @@ class FacePath:
         self.shared = shared
         self.stages: dict[int, FaceOnlyStage] = {}  # id(stream or view) -> stage
         self.builds: dict[int, Build] = {}  # its next stage, built off the loop
+        # id(stream or view) -> what its last build was for, when it raised
+        # (as pipelines.Pipelines.failed)
+        self.failed: dict[int, tuple[Any, ...]] = {}
         self.pipelines: dict[int, Any] = {}  # none: no body
         self.last_names_ns = 0
         self.frame_flags = 0
@@ -197,6 +200,11 @@ class FacePath:
         if training is None:  # no training set yet
             self.stages.pop(key, None)
             return None
+        failed = self.failed.get(key)
+        if failed is not None:
+            if same_want(failed, (training, labels)):
+                return None  # its build raised: counted unsolved_failed
+            del self.failed[key]
         job = self._job(key, labels)
         if self.shared.config.loop.process_every_frame:  # offline replay: every
             if job is None:  # frame solved (as pipelines.Pipelines)
@@ -206,7 +214,15 @@ class FacePath:
                 job.wait()
         if job is not None and job.done():
             del self.builds[key]
-            stage = self.stages[key] = job.take()
+            try:
+                stage = self.stages[key] = job.take()
+            except Exception as exc:  # counted and said; the loop goes on
+                self.failed[key] = job.want
+                sh = self.shared
+                build_failed(
+                    self.perf.name, sh.stats, sh.out, "face stage", len(labels), exc
+                )
+                return None
             self.shared.stats.pipeline_builds += 1
             self.last_names_ns = 0  # its names go out with this frame
             return stage
@@ -239,6 +255,9 @@ class FacePath:
         face = self.perf.face
         if face is None or face.training is None or not labels:
             return
+        failed = self.failed.get(key)
+        if failed is not None and same_want(failed, (face.training, labels)):
+            return  # (the same as the one that raised: not again)
         stage = self.stages.get(key)
         if (
             stage is None
@@ -279,7 +298,10 @@ class FacePath:
         stats, outputs = sh.stats, sh.outputs
         if stage is None:
             stats.unsolved += 1
-            if self.builds:  # its stage being built (rebuild.py)
+            if id(stream) in self.failed:  # its stage's build raised
+                stats.unsolved_failed += 1
+                self.frame_flags |= pose_stream.FRAME_INPUT_DROPPED
+            elif self.builds:  # its stage being built (rebuild.py)
                 stats.unsolved_building += 1
                 self.frame_flags |= pose_stream.FRAME_INPUT_DROPPED
             return

@@ -66,6 +66,8 @@ class FramePath(Protocol):
 
     pipelines: dict[int, Any]
     builds: dict[int, Any]  # its next pipelines (or stages), built off the loop
+    # the streams whose last build raised -> what it was for (a reload clears it)
+    failed: dict[int, Any]
 
     @property
     def validator(self) -> Any: ...  # its running live validator, or None
@@ -145,6 +147,7 @@ class _NoPath:
 
     pipelines: dict[int, Any] = {}  # noqa: RUF012 (never written)
     builds: dict[int, Any] = {}  # noqa: RUF012 (never written)
+    failed: dict[int, Any] = {}  # noqa: RUF012 (never written)
     validator: Any = None
 
     def process(self, stream: FrameSource, received_ns: int) -> None:

@@ -338,6 +338,8 @@ class Performers:
             logger.error("reload failed", exc_info=exc)
             why = f"internal error ({type(exc).__name__}): see the daemon's log"
             results = [ReloadResult(digest=b"", error=why) for _ in self.all]
+        for perf in self.all:  # a build that raised is tried again
+            perf.path.failed.clear()
         msgs = [
             self._apply(perf, req, res)
             for perf, req, res in zip(self.all, job.want, results, strict=True)

@@ -9,10 +9,11 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
+from typing import Any
 
 from retargetd.daemon.live.performer import FrameSource, Performer
 from retargetd.daemon.live.pipeline import Pipeline, adopt, start_build
-from retargetd.daemon.live.rebuild import Build, reads_same
+from retargetd.daemon.live.rebuild import Build, build_failed, reads_same, same_want
 from retargetd.daemon.live.shared import Shared
 
 
@@ -36,6 +37,11 @@ class Pipelines:
         self.labels_of: dict[int, tuple[str, ...]] = {}
         # id(stream or view) -> its next pipeline, being built off the loop
         self.builds: dict[int, Build] = {}
+        # id(stream or view) -> what its last build was for, when that build
+        # raised: its frames unsolved (``unsolved_failed``) until what it wants
+        # changes (a label set, a calibration, a training set) or a reload
+        # (``Performers.end_reload``: even of unchanged files) clears it
+        self.failed: dict[int, tuple[Any, ...]] = {}
 
     def for_frame(self, stream: FrameSource) -> Pipeline | None:
         """The pipeline to solve ``stream``'s current frame with: its own, built for
@@ -58,6 +64,11 @@ class Pipelines:
                 and training is (face.training if face is not None else None)
             ):
                 return pipe
+        failed = self.failed.get(key)
+        if failed is not None:
+            if same_want(failed, self._want(labels)):
+                return None  # counted unsolved_failed (send.BodyPath.process)
+            del self.failed[key]  # something else wanted now: built again
         job = self._job(key, labels)
         if job is not None and job.done():
             return self._swap(key, job, stream)
@@ -75,31 +86,44 @@ class Pipelines:
             return self._swap(key, job, stream)
         return None
 
+    def _want(self, labels: tuple[str, ...]) -> tuple[Any, ...]:
+        """What a pipeline for ``labels`` is built for now (``PipelineSpec.want``)."""
+        perf = self.perf
+        face = perf.face
+        return (perf.rig, perf.calibration, face.training if face else None, labels)
+
+    def is_failed(self, key: int) -> bool:
+        """Whether ``key``'s last build raised and nothing since asked for another
+        (its frames: ``unsolved_failed``)."""
+        return key in self.failed
+
     def _job(self, key: int, labels: tuple[str, ...]) -> Build | None:
         """The build of the pipeline ``key`` for ``labels`` and the performer's rig,
         calibration and training set now: the one under way for them, else one
         started now; None while a build for anything else still runs (one build
         per stream at a time, however fast label sets or reloads come: the one
         wanted then starts when it ends; its result is never used)."""
-        perf = self.perf
-        face = perf.face
-        want = (perf.rig, perf.calibration, face.training if face else None, labels)
+        want = self._want(labels)
         job = self.builds.get(key)
         if job is not None and job.wants(want):
             return job
         if job is not None and not job.done():
             return None
-        job = self.builds[key] = start_build(perf, self.shared, labels)
+        job = self.builds[key] = start_build(self.perf, self.shared, labels)
         return job
 
-    def _swap(self, key: int, job: Build, stream: FrameSource) -> Pipeline:
+    def _swap(self, key: int, job: Build, stream: FrameSource) -> Pipeline | None:
         """The built pipeline ``job`` swapped in for ``key`` at ``stream``'s current
         frame (one replacing another is recorded: a replay resets its solver there;
         a stream's first starts with its first solved frame); its names are
-        announced with this frame. Raises what the build raised."""
+        announced with this frame. A build that raised: None (:meth:`_failed`)."""
         del self.builds[key]
         sh = self.shared
-        pipe = adopt(job.take(), sh)
+        try:
+            pipe = adopt(job.take(), sh)
+        except Exception as exc:  # counted and said; the loop goes on
+            self._failed(key, job.want, exc)
+            return None
         frame = stream.current.frame
         if key in self.pipelines:
             sh.recording.event("pipeline", received_ns=frame.t_ns)
@@ -110,12 +134,23 @@ class Pipelines:
         sh.prewarm.register((id(self.perf), key), pipe.solver, frame)
         return pipe
 
+    def _failed(self, key: int, want: tuple[Any, ...], exc: Exception) -> None:
+        """``key``'s build for ``want`` raised: counted, one line naming the
+        performer and the reason; its frames unsolved until something else is
+        wanted (:meth:`for_frame`)."""
+        self.failed[key] = want
+        sh = self.shared
+        build_failed(self.perf.name, sh.stats, sh.out, "pipeline", len(want[3]), exc)
+
     def prepare(self, key: int, labels: tuple[str, ...]) -> None:
         """A stream (or view) ``key`` took a label set, ``labels`` being this
         performer's of it: its pipeline's build starts now (off the loop), so its
         first frames find it built, or nearly."""
         if self.perf.calibration is None or not labels:
             return
+        failed = self.failed.get(key)
+        if failed is not None and same_want(failed, self._want(labels)):
+            return  # (the same as the one that raised: not again)
         if key in self.pipelines and self.labels_of.get(key) == labels:
             rig, cal, _ = self.pipelines[key].built_for
             if rig is self.perf.rig and cal is self.perf.calibration:
@@ -126,11 +161,9 @@ class Pipelines:
         """Whether a frame of ``labels`` on ``key`` would now be solved by its own
         pipeline (built, or its build done; no calibration: nothing to build).
         Reads only (tests call it from another thread)."""
-        perf = self.perf
-        if perf.calibration is None:
+        if self.perf.calibration is None:
             return True
-        face = perf.face
-        want = (perf.rig, perf.calibration, face.training if face else None, labels)
+        want = self._want(labels)
         pipe = self.pipelines.get(key)
         if (
             pipe is not None

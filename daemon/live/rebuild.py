@@ -102,10 +102,7 @@ class Build:
     def wants(self, want: tuple[Any, ...]) -> bool:
         """Whether this job builds for ``want``: each item the same object, or an
         equal tuple (labels)."""
-        return len(want) == len(self.want) and all(
-            a is b or (type(a) is tuple and a == b)
-            for a, b in zip(want, self.want, strict=True)
-        )
+        return same_want(want, self.want)
 
     def take(self) -> Any:
         """The job's result (it must be done).
@@ -117,6 +114,35 @@ class Build:
         if self.error is not None:
             raise self.error
         return self.result
+
+
+def build_failed(
+    performer: str,
+    stats: Any,
+    out: Callable[[str], None],
+    what: str,
+    n_labels: int,
+    exc: BaseException,
+) -> None:
+    """A ``what`` (pipeline, face-only stage) build of the performer's for a
+    stream of ``n_labels`` labels raised: ``stats.pipeline_failures`` counted, one
+    line to ``out`` naming the performer and the reason's first line."""
+    stats.pipeline_failures += 1
+    why = str(exc).splitlines()[0] if str(exc) else ""
+    out(
+        f"performer {performer or '(default)'}: its {what} for {n_labels} labels "
+        f"failed to build ({type(exc).__name__}: {why}); its frames unsolved until "
+        f"a new label set, reload or calibration; pipeline_failures "
+        f"{stats.pipeline_failures}"
+    )
+
+
+def same_want(a: tuple[Any, ...], b: tuple[Any, ...]) -> bool:
+    """Whether two builds' ``want`` are for the same thing: each item the same
+    object, or an equal tuple (labels)."""
+    return len(a) == len(b) and all(
+        x is y or (type(x) is tuple and x == y) for x, y in zip(a, b, strict=True)
+    )
 
 
 def reads_same(

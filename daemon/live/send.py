@@ -98,6 +98,7 @@ class BodyPath:
         self.pipelines = self.store.pipelines  # id(stream or view) -> Pipeline
         self.labels_of = self.store.labels_of
         self.builds = self.store.builds  # id(stream or view) -> its next, building
+        self.failed = self.store.failed  # id(stream or view) -> a build that raised
         self.last_names_ns = 0  # the names message last sent (again every second)
         self.frame_flags = 0  # set for the next pose (restarted, input dropped)
         # The calibration-match check over the stream's first second
@@ -171,7 +172,10 @@ class BodyPath:
         if pipe is None:  # no calibration, or no pipeline built yet: counted
             stats.unsolved += 1
             if perf.calibration is not None:  # its pipeline being built (rebuild.py)
-                stats.unsolved_building += 1
+                if self.store.is_failed(id(stream)):  # or its build raised
+                    stats.unsolved_failed += 1
+                else:
+                    stats.unsolved_building += 1
                 self.frame_flags |= pose_stream.FRAME_INPUT_DROPPED
             if perf.console is not None:  # the markers, for the base pose
                 perf.console.publish_markers(

@@ -54,6 +54,10 @@ class LoopStats:
         face_captures: live face training captures applied.
         face_save_failures: training sets a capture made that could not be written
             (its file kept as it was; ``face.py``, written off the loop).
+        pipeline_failures: pipelines (and face-only stages) whose build (off the
+            loop, ``rebuild.py``) raised: said in one line; the stream's frames
+            unsolved (``unsolved_failed``) until a new label set, reload,
+            calibration or training set asks for another.
         validator_failures: live validators whose build (off the loop,
             ``validation.py``) raised: the validator off until the next
             calibration or reload.
@@ -70,6 +74,8 @@ class LoopStats:
             loop (``rebuild.py``: a stream's first, or a label set that moved the
             markers the old one read): no pose sent for them, and the next pose
             flagged ``FRAME_INPUT_DROPPED``.
+        unsolved_failed: of those, frames whose pipeline's build raised
+            (``pipeline_failures``): no pose, the next one flagged as above.
         unseen: solved frames in which too few of the performer's markers were
             seen to place a pose (``FRAME_UNSEEN``): nothing streamed for them.
         unexplained: solved frames whose markers fit no pose the fit found
@@ -106,6 +112,7 @@ class LoopStats:
     face_head_lost: int = 0
     face_captures: int = 0
     face_save_failures: int = 0
+    pipeline_failures: int = 0
     validator_failures: int = 0
     validated: int = 0
     validation_flagged: int = 0
@@ -113,6 +120,7 @@ class LoopStats:
     zmq_disconnects: int = 0
     unsolved: int = 0
     unsolved_building: int = 0
+    unsolved_failed: int = 0
     unseen: int = 0
     unexplained: int = 0
     reseeded: int = 0
@@ -216,9 +224,10 @@ class LoopStats:
                 "held_bone_frames", "occluded_samples", "pipeline_builds",
                 "rejected_sources",
                 "face_solved", "face_head_lost", "face_captures", "face_save_failures",
-                "validator_failures", "validated",
+                "pipeline_failures", "validator_failures", "validated",
                 "validation_flagged", "validation_drops", "zmq_disconnects",
-                "unsolved", "unsolved_building", "unseen", "unexplained", "reseeded",
+                "unsolved", "unsolved_building", "unsolved_failed",
+                "unseen", "unexplained", "reseeded",
                 "labels_in",
                 "show_control_in", "show_control_malformed",
                 "control_requests", "control_errors", "control_oversize",
