@@ -25,7 +25,8 @@ import live_harness as lh
 import numpy as np
 import pytest
 
-from retargetd.daemon.live import rebuild
+from retargetd.daemon.face.training import TrainingSet
+from retargetd.daemon.live import face_only, rebuild
 from retargetd.protocols import osc_in
 from retargetd.protocols.marker_input import LabelSet
 
@@ -122,3 +123,63 @@ def test_a_pipeline_build_that_raises_is_counted_and_the_loop_serves_on(
         k += 1
         time.sleep(0.01)
     assert live.running and _status(live)["counters"]["pipeline_failures"] == 2
+
+
+@pytest.mark.timeout(120)
+def test_a_face_only_stage_build_that_raises_is_counted_and_the_loop_serves_on(
+    start_daemon: Callable[..., lh.Live],
+    osc_source: Callable[..., lh.OscSource],
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The same for a performer with a face and no body: its stage's build raised
+    in the loop (``face_only.FacePath._stage``); now counted, one line, its frames
+    ``unsolved_failed``, the loop answering."""
+    npz = tmp_path / "face.npz"
+    layout = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.0, 0.1, 0.0]])
+    TrainingSet(
+        head_names=("LFHD", "RFHD", "LBHD"), marker_names=("F1", "F2"),
+        expression_names=("jawOpen",), head_layout=layout,
+        neutral=np.array([[0.0, 0.05, -0.05], [0.05, 0.0, -0.05]]),
+        deltas=np.array([[[0.0, 0.0, 0.01], [0.0, 0.01, 0.0]]]),
+    ).save(npz)  # fmt: skip
+
+    def broken(*args: Any) -> Any:
+        raise RuntimeError("a fault of ours\nsecond line")
+
+    live = start_daemon(
+        {
+            "performer": {"body": False},
+            "face": {"enabled": True, "config": "arkit52", "training": str(npz)},
+        }
+    )
+    monkeypatch.setattr(face_only, "build_stage", broken)
+    src = osc_source(live)
+    src.label_set = LabelSet(4, ("LFHD", "RFHD", "LBHD", "F1", "F2"))
+    src.announce(wait=False)
+    row = np.array(
+        [[0.0, 0.0, 1.7], [0.1, 0.0, 1.7], [0.0, 0.1, 1.7], [0.0, 0.05, 1.65],
+         [0.05, 0.0, 1.65]]
+    )  # fmt: skip
+    deadline = time.monotonic() + lh.WAIT_S
+    while _status(live)["counters"]["pipeline_failures"] == 0:
+        assert time.monotonic() < deadline, "the failed build was never counted"
+        src.send(row)
+        time.sleep(0.01)
+    before = _status(live)["counters"]["unsolved_failed"]
+    for _ in range(10):
+        src.send(row)
+        time.sleep(0.005)
+    lh._wait_until(
+        lambda: _status(live)["counters"]["unsolved_failed"] >= before + 10,
+        "the frames after the failure counted",
+    )
+    c = _status(live)["counters"]
+    assert live.running and c["pipeline_failures"] == 1
+    assert c["frames_in"] == c["frames_solved"] + c["stale"] + c["unsolved"]
+    failed = [line for line in live.lines if "failed to build" in line]
+    assert failed == [
+        "performer (default): its face stage for 5 labels failed to build "
+        "(RuntimeError: a fault of ours); its frames unsolved until a new label "
+        "set, reload or calibration; pipeline_failures 1"
+    ], live.lines
