@@ -142,6 +142,21 @@ class Pipelines:
         sh = self.shared
         build_failed(self.perf.name, sh.stats, sh.out, "pipeline", len(want[3]), exc)
 
+    def tick(self) -> None:
+        """Every loop pass: a build that ended for what is no longer wanted (a
+        calibration, rig or training set that changed while it ran) replaced by
+        the one wanted now, for the same labels, without waiting for the stream's
+        next frame (a source that waits for its pipeline before sending, as
+        ``ready`` lets it, would otherwise wait forever)."""
+        for key, job in list(self.builds.items()):
+            labels = job.want[3]
+            if (
+                job.done()
+                and self.perf.calibration is not None
+                and not job.wants(self._want(labels))
+            ):
+                self.builds[key] = start_build(self.perf, self.shared, labels)
+
     def prepare(self, key: int, labels: tuple[str, ...]) -> None:
         """A stream (or view) ``key`` took a label set, ``labels`` being this
         performer's of it: its pipeline's build starts now (off the loop), so its

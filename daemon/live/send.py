@@ -525,8 +525,11 @@ class BodyPath:
         self.validation.start(wait)
 
     def tick_validator(self) -> None:
-        """Every loop pass: a validator built off the loop swapped in."""
+        """Every loop pass: a validator built off the loop swapped in; a pipeline
+        build that waited for another one started (``Pipelines.tick``)."""
         self.validation.tick()
+        if self.builds:
+            self.store.tick()
 
     def validator_building(self) -> bool:
         """A live validator is being built off the loop now."""
