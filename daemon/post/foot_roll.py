@@ -189,11 +189,23 @@ def pitch_onto_floor(
     rfb[h, 0], rfb[h, 1], rfb[h, 2], rfb[h, 3] = qmul(
         ek[0], -ek[1], -ek[2], -ek[3], ew, ex, ey, ez
     )
-    if toe >= 0:  # the toes keep their world rotation
-        tw, tx, ty, tz = qmul(
-            wfb[toe, 0], wfb[toe, 1], wfb[toe, 2], wfb[toe, 3],
-            rest[toe, 0], -rest[toe, 1], -rest[toe, 2], -rest[toe, 3],
-        )  # fmt: skip
-        rfb[toe, 0], rfb[toe, 1], rfb[toe, 2], rfb[toe, 3] = qmul(
-            ew, -ex, -ey, -ez, tw, tx, ty, tz
-        )
+    keep_toe_world(wfb, rfb, rest, toe, ew, ex, ey, ez)
+
+
+@kernel
+def keep_toe_world(
+    wfb: np.ndarray, rfb: np.ndarray, rest: np.ndarray, toe: int,
+    ew: float, ex: float, ey: float, ez: float,
+) -> None:  # fmt: skip
+    # The toes keep their world rotation (the MTP extends) when the foot turns to
+    # (ew, ex, ey, ez) (world_from_bone over rest): their rest_from_bone is taken
+    # relative to the foot's new one. toe < 0: a foot without toes, nothing to do.
+    if toe < 0:
+        return
+    tw, tx, ty, tz = qmul(
+        wfb[toe, 0], wfb[toe, 1], wfb[toe, 2], wfb[toe, 3],
+        rest[toe, 0], -rest[toe, 1], -rest[toe, 2], -rest[toe, 3],
+    )  # fmt: skip
+    rfb[toe, 0], rfb[toe, 1], rfb[toe, 2], rfb[toe, 3] = qmul(
+        ew, -ex, -ey, -ez, tw, tx, ty, tz
+    )

@@ -58,7 +58,7 @@ import numpy as np
 from retargetd.daemon.body.calibration import Calibration
 from retargetd.daemon.body.rig import Rig
 from retargetd.daemon.compiled import direct, kernel, qmul, qrot
-from retargetd.daemon.post.foot_roll import ball_roll, pitch_onto_floor
+from retargetd.daemon.post.foot_roll import ball_roll, keep_toe_world, pitch_onto_floor
 from retargetd.daemon.post.stance import CONTACT_COLUMN, SUPPORT_COLUMN
 from retargetd.protocols.frames import F64Array
 from retargetd.protocols.pose_stream import FRAME_PLANT_UNREACHED
@@ -461,14 +461,7 @@ def _leg_ik(
             wfb[h, 0], wfb[h, 1], wfb[h, 2], wfb[h, 3] = qmul(
                 ew, ex, ey, ez, rest[h, 0], rest[h, 1], rest[h, 2], rest[h, 3]
             )
-            if toe >= 0:  # the toes keep their world rotation (the MTP extends)
-                tw, tx, ty, tz = qmul(
-                    wfb[toe, 0], wfb[toe, 1], wfb[toe, 2], wfb[toe, 3],
-                    rest[toe, 0], -rest[toe, 1], -rest[toe, 2], -rest[toe, 3],
-                )  # fmt: skip
-                rfb[toe, 0], rfb[toe, 1], rfb[toe, 2], rfb[toe, 3] = qmul(
-                    ew, -ex, -ey, -ez, tw, tx, ty, tz
-                )
+            keep_toe_world(wfb, rfb, rest, toe, ew, ex, ey, ez)
     sw, sx, sy, sz = _swing(lx, ly, lz, dx, dy, dz)
     # E' of the thigh and shank; G = E' T, L = Ē'_parent E'.
     tw, tx, ty, tz = qmul(sw, sx, sy, sz, e[s, u, 0], e[s, u, 1], e[s, u, 2],
