@@ -420,10 +420,11 @@ class Performers:
                 )
 
     def close(self) -> None:
-        """Stop every performer's live validator; finish writing its face training
-        set."""
+        """Stop every performer's live validator; finish writing its calibration
+        and face training set."""
         for perf in self.all:
             perf.path.close()
+            perf.calib.close()
             if perf.face is not None:
                 perf.face.close()
 

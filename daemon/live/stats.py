@@ -58,6 +58,9 @@ class LoopStats:
             loop, ``rebuild.py``) raised: said in one line; the stream's frames
             unsolved (``unsolved_failed``) until a new label set, reload,
             calibration or training set asks for another.
+        calibration_save_failures: live calibrations (in use) whose file could not
+            be written (off the loop, ``calibrate.py``): said in one line, the old
+            file kept whole, ``calibration_state`` "not_saved".
         validator_failures: live validators whose build (off the loop,
             ``validation.py``) raised: the validator off until the next
             calibration or reload.
@@ -113,6 +116,7 @@ class LoopStats:
     face_captures: int = 0
     face_save_failures: int = 0
     pipeline_failures: int = 0
+    calibration_save_failures: int = 0
     validator_failures: int = 0
     validated: int = 0
     validation_flagged: int = 0
@@ -224,7 +228,8 @@ class LoopStats:
                 "held_bone_frames", "occluded_samples", "pipeline_builds",
                 "rejected_sources",
                 "face_solved", "face_head_lost", "face_captures", "face_save_failures",
-                "pipeline_failures", "validator_failures", "validated",
+                "pipeline_failures", "calibration_save_failures",
+                "validator_failures", "validated",
                 "validation_flagged", "validation_drops", "zmq_disconnects",
                 "unsolved", "unsolved_building", "unsolved_failed",
                 "unseen", "unexplained", "reseeded",
