@@ -249,6 +249,8 @@ class LiveCalibration:
         if self._save is not None and self._save.done():
             self._saved(self._save)
         face = self.perf.face
+        if face is not None and face.averaging:
+            self._face_captured(face.take_captured())
         if face is not None and face.saving:
             self._face_saved(face.take_saved())
         if not self.target:
@@ -274,9 +276,19 @@ class LiveCalibration:
         assert face is not None
         labels = stream.current.label_set.labels
         done = face.collect(stream.current.frame.markers_world, labels)
-        if done is None:
+        if done is not None:  # refused at once
+            self._face_captured((*done, labels))
+        elif face.averaging and self.shared.config.loop.process_every_frame:
+            face.wait_averaged()  # offline replay: in use from the next frame
+            self._face_captured(face.take_captured())
+        # (else averaged off the loop: taken by tick)
+
+    def _face_captured(self, outcome: tuple[bool, str, tuple[str, ...]] | None) -> None:
+        """A face capture ended (its averaging done off the loop, or refused): its
+        training set in use, one line, recorded."""
+        if outcome is None:
             return
-        ok, msg = done
+        ok, msg, labels = outcome
         if ok:
             # The next frame solves with the new training set; pipelines rebuilt now,
             # off the frame that completed the capture.

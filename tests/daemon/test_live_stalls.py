@@ -31,6 +31,7 @@ import pytest
 import zmq
 
 from retargetd.daemon.face.training import TrainingSet
+from retargetd.daemon.live import face as face_module
 from retargetd.daemon.live import performers as performers_module
 from retargetd.daemon.live import rebuild
 from retargetd.daemon.live import validation as validation_module
@@ -678,6 +679,68 @@ def test_a_face_training_sets_save_runs_off_the_loop_and_a_failure_is_counted(
         closing.join(30.0)
         assert not closing.is_alive() and not face.saving
         assert TrainingSet.load(later).k == 1
+    finally:
+        gate.set()
+        src.sock.close()
+
+
+@pytest.mark.timeout(120)
+def test_a_face_captures_averaging_runs_off_the_loop(
+    daemon_lines: tuple[Daemon, list[str]], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Before: the frame that completed a face capture averaged its frames in the
+    loop (``capture_into``: a rigid fit per frame, twice for the first neutral; 7.9
+    ms for the default 60 frames, 31 ms for 240, measured: past a frame at 240 Hz).
+    Now a worker averages them, held here at a gate, while the loop solves and sends
+    every frame; ``face.averaging`` says so and a new capture is refused meanwhile;
+    the loop pass that finds it done takes the new training set."""
+    (d, lines), gate = daemon_lines, threading.Event()
+    real = face_module.capture_into
+
+    def held(*args: Any) -> Any:
+        assert gate.wait(30.0), "the test never opened the gate"
+        return real(*args)
+
+    monkeypatch.setattr(face_module, "capture_into", held)
+    face = d.face
+    assert face is not None and face.training is None
+    head = face.face.head_markers
+    labels = (*head, "FLIPU", "FLIPL")
+    rng = np.random.default_rng(3)
+    pose = np.array(
+        [[0.05, 0.1, 1.70], [-0.05, 0.1, 1.70], [0.05, -0.05, 1.72],
+         [-0.05, -0.05, 1.72], [0.0, 0.12, 1.62], [0.0, 0.12, 1.60]]
+    )  # fmt: skip
+    src = _Source(d)
+    try:
+        _first_pipeline(d, src)
+        face.request_capture("neutral", 3)
+        for _ in range(3):
+            assert face.collect(pose + rng.normal(0, 1e-4, pose.shape), labels) is None
+        assert face.averaging and not face.capturing
+        assert d.status()["face"]["averaging"]
+        with pytest.raises(ValueError, match="still being averaged"):
+            face.request_capture("neutral", 3)
+        out = d.stats.frames_out
+        for _ in range(20):
+            _frames(d, src, 1)
+            _ticks(d)
+        assert d.stats.frames_out == out + 20 and _accounted(d)
+        assert face.averaging and face.training is None
+        gate.set()
+        _wait(lambda: face._averaging is None or face._averaging.done(), "averaged")
+        _ticks(d)
+        assert not face.averaging and not d.status()["face"]["averaging"]
+        assert face.training is not None and face.training.marker_names == (
+            "FLIPU", "FLIPL",
+        )  # fmt: skip
+        assert d.stats.face_captures == 1
+        assert any(
+            line.startswith("face pose 'neutral' captured on 3 frames")
+            for line in lines
+        ), lines
+        _frames(d, src, 3)
+        assert _accounted(d)
     finally:
         gate.set()
         src.sock.close()
