@@ -229,18 +229,72 @@ def test_a_reload_of_unchanged_files_parses_and_rebuilds_nothing(
     try:
         _first_pipeline(d, src)
         _frames(d, src, 3)
+        gate.clear()  # the reloads' builds held: their order, not their speed
+        path = d.performers.first.path
         _ctl(d, {"cmd": "reload"})  # the first reload reads the files
         rig, cal = d.rig, d.calibration
+        # Its rebuild starts with the reload, not with the stream's next frame.
+        (job,) = path.builds.values()
+        assert job.want[0] is rig and job.want[1] is cal
+        assert d.performers.building() == 1
         msg = _ctl(d, {"cmd": "reload"})["message"]
         assert "unchanged" in msg and d.rig is rig and d.calibration is cal, msg
+        assert list(path.builds.values()) == [job]  # unchanged: nothing started
         # An edited rig file is read again (a comment changes its bytes).
         rig_copy.write_text(rig_copy.read_text() + "\n# edited\n")
         msg = _ctl(d, {"cmd": "reload"})["message"]
         assert "unchanged" not in msg and d.rig is not rig, msg
         _frames(d, src, 1)
-        # the first pipeline's build, and the rebuild for the newest rig only
-        assert len(begun) == 2
+        # The newest rig's build waits for the one under way (one build per
+        # stream at a time), the old pipeline solving meanwhile.
+        assert list(path.builds.values()) == [job] and d.stats.pipeline_builds == 1
+        lh._wait_until(lambda: len(begun) == 2, "the first reload's build begun")
+        gate.set()
+        deadline = time.monotonic() + 30.0
+        while not d.performers.ready(d.osc_stream):
+            assert time.monotonic() < deadline, "the newest rig's build never began"
+            _frames(d, src, 1)  # loop passes: the waiting build starts on one
+            d.performers.done_building(30.0)
+        _frames(d, src, 3)
+        # 3 begun: the first pipeline's; the first reload's (its files parsed
+        # anew: a rig and calibration of their own, built for at once, its result
+        # never used); the edited rig's, once. The unchanged reload's: none.
+        assert len(begun) == 3 and d.stats.pipeline_builds == 2
+        (pipe,) = path.pipelines.values()
+        assert pipe.built_for[0] is d.rig
     finally:
+        gate.set()
+        src.sock.close()
+
+
+@pytest.mark.timeout(120)
+def test_a_reload_builds_the_new_pipeline_without_waiting_for_a_frame(
+    daemon: Daemon, gated_builds: tuple[threading.Event, list[int]]
+) -> None:
+    """A source that sends its next frame only once its pipeline is ready (as the
+    tests' streamer does after each announcement) is not left waiting by a reload:
+    the new rig and calibration's pipeline is built with no frame after it."""
+    d, (gate, begun) = daemon, gated_builds
+    gate.set()
+    src = _Source(d)
+    try:
+        _first_pipeline(d, src)
+        assert d.performers.ready(d.osc_stream)
+        gate.clear()  # (held: the state between the reload and its build's end)
+        _ctl(d, {"cmd": "reload"})  # (control_reply swaps the new files in)
+        assert not d.performers.ready(d.osc_stream)  # built for the old ones
+        # Its build begun, no frame sent since.
+        (job,) = d.performers.first.path.builds.values()
+        assert job.want[0] is d.rig and job.want[1] is d.calibration
+        gate.set()
+        assert d.performers.done_building(60.0)
+        assert d.performers.ready(d.osc_stream) and len(begun) == 2
+        _frames(d, src, 1)  # the first frame after it takes the new pipeline
+        (pipe,) = d.performers.first.path.pipelines.values()
+        assert pipe.built_for[:2] == (d.rig, d.calibration)
+        assert d.stats.pipeline_builds == 2 and len(begun) == 2
+    finally:
+        gate.set()
         src.sock.close()
 
 
