@@ -11,6 +11,9 @@ checks (``body.sanity.calibrate_checked``: up axis, units, stillness, left/right
 then stature and symmetry of the result). Otherwise it is refused: one line says why
 (to the ``ctl`` client too: the status' ``calibration_state`` / ``_message``), it is
 counted (``calibrations_refused``) and the old calibration is kept (its file untouched).
+Anything else ``calibrate_checked`` raises is a fault of ours, not the performer's: it
+is counted (``calibration_failures``), said in one line (its traceback in the log),
+``calibration_state`` "failed", the old calibration kept; the loop serves on.
 With a range of motion (``ctl calibrate --rom --seconds S``) the still base pose is
 kept and the next S seconds of frames are collected as the performer moves each joint
 through its range; the rig's functional joints are then placed from them
@@ -95,7 +98,7 @@ class LiveCalibration:
         # how the last one stands: "", "pending", "rom" (the base pose held, the range
         # of motion under way), "saving" (in use, its file being written off the
         # loop), "calibrated", "not_saved" (in use, its file not written),
-        # "refused", "expired".
+        # "refused", "failed" (an internal error: the old one kept), "expired".
         self.id = 0
         self.state = ""
         self.stream: Any = None  # where the frames come from (its input)
@@ -387,6 +390,9 @@ class LiveCalibration:
         except (SanityError, CalibrationError) as exc:
             self._refuse_calibration(str(exc))
             return
+        except Exception as exc:  # a fault of ours: counted, said, never fatal
+            self._calibration_failed(exc)
+            return
         for note in notes:
             self.shared.out(self._named(f"calibration warning: {note}"))
         # Atomic: the loop thread is the only reader; the next frame uses the new one,
@@ -482,6 +488,23 @@ class LiveCalibration:
         self.state = "refused"
         self.message = msg
         self.shared.recording.event("calibration_refused", message=msg)
+        self.shared.out(self._named(msg))
+
+    def _calibration_failed(self, exc: Exception) -> None:
+        """``calibrate_checked`` raised something other than a refusal (a fault of
+        ours, not the performer's): counted (``calibration_failures``), one line
+        (its traceback in the log), recorded; the old calibration keeps streaming,
+        its file untouched, and the loop serves on."""
+        why = str(exc).splitlines()[0] if str(exc) else ""
+        msg = (
+            f"calibration failed: internal error ({type(exc).__name__}: {why}); the "
+            "old calibration is kept: see the daemon's log"
+        )
+        logger.error("%s", self._named(msg), exc_info=exc)
+        self.shared.stats.calibration_failures += 1
+        self.state = "failed"
+        self.message = msg
+        self.shared.recording.event("calibration_failed", message=msg)
         self.shared.out(self._named(msg))
 
     def _base_pose_source(self, times_s: np.ndarray) -> BasePoseSource:

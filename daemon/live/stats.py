@@ -33,6 +33,9 @@ class LoopStats:
         calibrations: live calibrations applied.
         calibrations_refused: live calibrations refused (the performer moved).
         calibrations_expired: live calibrations that collected no frame in time.
+        calibration_failures: live calibrations that raised an internal error (not
+            a refusal; ``calibrate.py``): said in one line, the old calibration
+            kept, ``calibration_state`` "failed"; the loop serves on.
         rate_limited: reload and calibration requests refused as too frequent.
         held_bone_frames: bone-frames held (too little data).
         occluded_samples: rig-marker samples occluded in solved frames.
@@ -106,6 +109,7 @@ class LoopStats:
     calibrations: int = 0
     calibrations_refused: int = 0
     calibrations_expired: int = 0
+    calibration_failures: int = 0
     rate_limited: int = 0
     held_bone_frames: int = 0
     occluded_samples: int = 0
@@ -224,7 +228,8 @@ class LoopStats:
             for name in (
                 "frames_in", "frames_solved", "frames_out", "stale", "overruns",
                 "send_drops", "vmc_errors", "restarts", "calibrations",
-                "calibrations_refused", "calibrations_expired", "rate_limited",
+                "calibrations_refused", "calibrations_expired",
+                "calibration_failures", "rate_limited",
                 "held_bone_frames", "occluded_samples", "pipeline_builds",
                 "rejected_sources",
                 "face_solved", "face_head_lost", "face_captures", "face_save_failures",

@@ -26,6 +26,7 @@ import pytest
 from retargetd.daemon.body import sanity
 from retargetd.daemon.body.calibration import Calibration, load_calibration
 from retargetd.daemon.cli.main import main as cli_main
+from retargetd.daemon.live import calibrate as calibrate_module
 from retargetd.daemon.live.calibrate import marker_drift_speeds_m_s
 from retargetd.protocols.marker_input import LabelSet
 
@@ -346,3 +347,76 @@ def _status(live: Any) -> dict[str, Any]:
     assert reply["ok"], reply
     status: dict[str, Any] = reply["status"]
     return status
+
+
+@pytest.mark.timeout(120)
+def test_an_internal_error_in_the_checks_is_counted_and_the_daemon_serves_on(
+    start_daemon: Callable[..., Any],
+    osc_source: Callable[..., Any],
+    stream: Callable[..., _Streamer],
+    vmc: _live.VmcReceiver,
+    exact_calibration: Path,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """``calibrate_checked`` raising something other than a refusal (a fault of
+    ours) used to propagate out of the loop and end the daemon. Now it is counted,
+    said in one line, the old calibration kept, and the loop goes on sending VMC
+    and answering ``status``; the next calibration is taken."""
+
+    def broken(*_args: object, **_kwargs: object) -> None:
+        raise TypeError("a bug of ours")
+
+    cal_path = tmp_path / "performer.json"
+    cal_path.write_bytes(exact_calibration.read_bytes())
+    before = cal_path.read_bytes()
+    live = start_daemon(
+        {
+            "performer": {"calibration": str(cal_path)},
+            "control": {"min_interval_s": 0.01},
+        },
+        vmc_port=vmc.port,
+    )
+    first_cal = live.daemon.calibration
+    stream(osc_source(live), "genuine")
+    monkeypatch.setattr(calibrate_module, "calibrate_checked", broken)
+    capsys.readouterr()
+    assert cli_main(_ctl_calibrate(live)) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1, err
+    assert err[0].startswith(
+        "retargetd ctl: calibration failed: internal error (TypeError: a bug of ours)"
+    ), err
+    assert "the old calibration is kept" in err[0]
+    assert live.running  # the loop did not die
+    status = _status(live)
+    assert status["counters"]["calibration_failures"] == 1
+    assert status["counters"]["calibrations"] == 0
+    assert status["counters"]["calibrations_refused"] == 0
+    assert status["calibration_state"] == "failed"
+    assert sum(ln.startswith("calibration failed") for ln in live.lines) == 1
+    assert live.daemon.calibration is first_cal and cal_path.read_bytes() == before
+    # VMC after the failure: the datagrams sent before it drained (reading is far
+    # faster than the ~200 Hz they arrive at), then fresh ones received.
+    vmc.sock.setblocking(False)
+    for _ in range(1_000_000):
+        try:
+            vmc.sock.recv(65536)
+        except BlockingIOError:
+            break
+    vmc.sock.settimeout(0.05)
+    n = len(vmc.frames)
+    deadline = time.monotonic() + _live.WAIT_S
+    while len(vmc.frames) < n + 10:
+        assert time.monotonic() < deadline, "no VMC frame after the failure"
+        vmc.pump(50)
+    out = status["counters"]["frames_out"]
+    _live._wait_until(
+        lambda: _status(live)["counters"]["frames_out"] >= out + 10,
+        "poses after the failure",
+    )
+    monkeypatch.undo()  # the real checks: the next calibration is taken
+    assert cli_main(_ctl_calibrate(live)) == 0, capsys.readouterr()
+    assert _status(live)["calibration_state"] == "calibrated"
+    assert live.daemon.calibration is not first_cal and live.running
