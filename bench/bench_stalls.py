@@ -25,7 +25,8 @@ median and p99 of the pose intervals there, the sender's own longest gap there (
 bench process not scheduled: a pose gap that long is the source's), the loop stalls
 (phases over 50 ms, ``stalls.py``) counted in that window by phase, and what the
 status showed in flight off the loop meanwhile (read every 0.25 s:
-``pipelines_building``, ``validators_building``, ``face.saving``; work that ended
+``pipelines_building``, ``validators_building``, ``face.averaging``, ``face.saving``,
+``calibration_saving``; work that ended
 between two reads is not seen); at the end the daemon's ``loop_stalls``, the median
 and p99 of the pose intervals over the run and the load (``os.getloadavg``) before
 and after.
@@ -361,12 +362,17 @@ def _drive(
         nxt = EVENTS[k + 1][1] + t0 if k + 1 < len(EVENTS) else end
         stop = min(end, nxt - 0.05)
         seen = in_flight[name] = {"pipelines_building": 0, "validators_building": 0,
-                                  "face_saving": False}  # fmt: skip
+                                  "face_averaging": False, "face_saving": False,
+                                  "calibration_saving": False}  # fmt: skip
         while True:
             st = daemon.status()
             for key in ("pipelines_building", "validators_building"):
                 seen[key] = max(seen[key], int(st.get(key) or 0))
+            seen["face_averaging"] |= bool((st.get("face") or {}).get("averaging"))
             seen["face_saving"] |= bool((st.get("face") or {}).get("saving"))
+            seen["calibration_saving"] |= any(
+                p.get("calibration_saving") for p in st.get("performers") or []
+            )
             if time.monotonic() + POLL_S >= stop:
                 break
             time.sleep(POLL_S)

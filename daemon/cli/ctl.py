@@ -303,7 +303,7 @@ def _wait_calibration(args: argparse.Namespace, reply: dict[str, Any]) -> int:
                 doc["calibration_state"] = "pending"
         if doc is not None and doc.get("calibration_id") == wanted:
             state = doc.get("calibration_state")
-            if state not in ("pending", "rom", None):
+            if state not in ("pending", "rom", "saving", None):
                 line = str(doc.get("calibration_message", ""))
                 if state == "calibrated":
                     sys.stdout.write(line + "\n")

@@ -11,6 +11,9 @@ checks (``body.sanity.calibrate_checked``: up axis, units, stillness, left/right
 then stature and symmetry of the result). Otherwise it is refused: one line says why
 (to the ``ctl`` client too: the status' ``calibration_state`` / ``_message``), it is
 counted (``calibrations_refused``) and the old calibration is kept (its file untouched).
+Anything else ``calibrate_checked`` raises is a fault of ours, not the performer's: it
+is counted (``calibration_failures``), said in one line (its traceback in the log),
+``calibration_state`` "failed", the old calibration kept; the loop serves on.
 With a range of motion (``ctl calibrate --rom --seconds S``) the still base pose is
 kept and the next S seconds of frames are collected as the performer moves each joint
 through its range; the rig's functional joints are then placed from them
@@ -19,7 +22,14 @@ determine named in a warning line and left at its base-pose estimate.
 A request with a bad count is refused; one that collects no frame for
 ``performer.calibrate_timeout_s`` expires. Calibration requests and reloads are rate
 limited (``control.min_interval_s``). A calibration is saved atomically
-(``Calibration.save``).
+(``Calibration.save``: a temporary file fsynced, then renamed over the old one) on a
+worker thread (``rebuild.Build``, one write at a time, the newest waiting): the write
+and its fsync took 12-16 ms in the loop, and a slow or stalled disk held every frame
+for as long as it took. Meanwhile ``calibration_state`` is "saving" (``ctl calibrate``
+waits through it) and the new calibration is already in use; the loop pass that finds
+the write ended says so in one line: "calibrated", or "not_saved" with the reason
+(counted ``calibration_save_failures``, the old file whole). The daemon's close waits
+for the write under way and writes the one waiting.
 """
 
 from __future__ import annotations
@@ -44,6 +54,7 @@ from retargetd.daemon.live.config_schema import (
 )
 from retargetd.daemon.live.performer import FrameSource, Performer
 from retargetd.daemon.live.ratelog import RateLimiter
+from retargetd.daemon.live.rebuild import Build
 from retargetd.daemon.live.shared import Shared
 from retargetd.protocols.conventions import world_from_capture_mat
 
@@ -85,8 +96,9 @@ class LiveCalibration:
         self.message = ""  # how the last calibration ended ("" = none yet)
         # Requests so far (the ctl reply and status name the one they are about) and
         # how the last one stands: "", "pending", "rom" (the base pose held, the range
-        # of motion under way), "calibrated", "not_saved" (in use,
-        # its file not written), "refused", "expired".
+        # of motion under way), "saving" (in use, its file being written off the
+        # loop), "calibrated", "not_saved" (in use, its file not written),
+        # "refused", "failed" (an internal error: the old one kept), "expired".
         self.id = 0
         self.state = ""
         self.stream: Any = None  # where the frames come from (its input)
@@ -97,6 +109,10 @@ class LiveCalibration:
         self.rom_frames: list[np.ndarray] = []
         self.rom_times: list[tuple[float, int, int]] = []
         self.limit = RateLimiter(min_interval_s)
+        # The calibration file being written off the loop, and the newest waiting
+        # for it: (request id, calibration, path, what it was calibrated on).
+        self._save: Build | None = None
+        self._next_save: tuple[int, Any, str, str] | None = None
 
     @property
     def pending(self) -> bool:
@@ -110,6 +126,7 @@ class LiveCalibration:
             "calibration_message": self.message,
             "calibration_id": self.id,
             "calibration_state": self.state,
+            "calibration_saving": self._save is not None,
         }
 
     def request(self, count: object = None, by: str = "", rom_s: object = None) -> str:
@@ -230,8 +247,13 @@ class LiveCalibration:
     def tick(self, now_ns: int) -> None:
         """Expire a pending calibration that has collected no frame for
         ``performer.calibrate_timeout_s`` (nothing changes; one line says so); say
-        how a face training set's save (off the loop) ended."""
+        how a calibration file's or a face training set's save (off the loop)
+        ended."""
+        if self._save is not None and self._save.done():
+            self._saved(self._save)
         face = self.perf.face
+        if face is not None and face.averaging:
+            self._face_captured(face.take_captured())
         if face is not None and face.saving:
             self._face_saved(face.take_saved())
         if not self.target:
@@ -257,9 +279,19 @@ class LiveCalibration:
         assert face is not None
         labels = stream.current.label_set.labels
         done = face.collect(stream.current.frame.markers_world, labels)
-        if done is None:
+        if done is not None:  # refused at once
+            self._face_captured((*done, labels))
+        elif face.averaging and self.shared.config.loop.process_every_frame:
+            face.wait_averaged()  # offline replay: in use from the next frame
+            self._face_captured(face.take_captured())
+        # (else averaged off the loop: taken by tick)
+
+    def _face_captured(self, outcome: tuple[bool, str, tuple[str, ...]] | None) -> None:
+        """A face capture ended (its averaging done off the loop, or refused): its
+        training set in use, one line, recorded."""
+        if outcome is None:
             return
-        ok, msg = done
+        ok, msg, labels = outcome
         if ok:
             # The next frame solves with the new training set; pipelines rebuilt now,
             # off the frame that completed the capture.
@@ -358,13 +390,16 @@ class LiveCalibration:
         except (SanityError, CalibrationError) as exc:
             self._refuse_calibration(str(exc))
             return
+        except Exception as exc:  # a fault of ours: counted, said, never fatal
+            self._calibration_failed(exc)
+            return
         for note in notes:
             self.shared.out(self._named(f"calibration warning: {note}"))
         # Atomic: the loop thread is the only reader; the next frame uses the new one,
         # with its pipeline built now rather than on the next frame.
         self.perf.use_calibration(cal, labels, self._sources())
         self.shared.stats.calibrations += 1
-        self.state = "calibrated"  # "not_saved" below when the save fails
+        self.state = "calibrated"  # "saving" below while its file is written
         path = self.perf.config.save_calibration or self.perf.config.calibration
         self.shared.recording.event(
             "calibrated", frames=int(frames.shape[0]), by=self.requested_by,
@@ -379,17 +414,65 @@ class LiveCalibration:
                 f" and {rom[0].shape[0]} frames of range of motion (placed: "
                 f"{', '.join(placed) or 'none'})"
             )
-        if path:
-            try:
-                cal.save(path)
-                msg = f"calibrated on {what}; saved {path}"
-            except OSError as exc:  # the old file is whole (an atomic save)
-                msg = f"calibrated on {what}; NOT saved: {exc}"
-                self.state = "not_saved"
-        else:
-            msg = f"calibrated on {what} (not saved: no path)"
+        if path:  # written off the loop; its line when the write ends (tick)
+            self.state = "saving"
+            self.message = f"calibrated on {what}; saving {path}"
+            self._save_later((self.id, cal, path, what))
+            return
+        msg = f"calibrated on {what} (not saved: no path)"
         self.message = msg
         self.shared.out(self._named(msg))
+
+    # ---- the calibration file, written off the loop ----------------------------------
+
+    def _save_later(self, want: tuple[int, Any, str, str]) -> None:
+        """Write ``want``'s calibration (request id, calibration, path, what it was
+        calibrated on) on a worker: now, or after the one being written (only the
+        newest waits)."""
+        if self._save is None:
+            _, cal, path, _ = want
+            self._save = Build(want, cal.save, path)
+        else:
+            self._next_save = want
+
+    def _saved(self, job: Build) -> None:
+        """A calibration file's write ended (every loop pass, ``tick``): the next
+        one started; its line said; a failure counted; the request's state and
+        message, when it is still the latest, "calibrated" or "not_saved"."""
+        self._save = None
+        if self._next_save is not None:
+            self._save_later(self._next_save)
+            self._next_save = None
+        ident, _, path, what = job.want
+        try:
+            job.take()
+        except Exception as exc:  # OSError: the disk; any other: said, never fatal
+            why = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+            msg, state = f"calibrated on {what}; NOT saved: {why}", "not_saved"
+            self.shared.stats.calibration_save_failures += 1
+            logger.warning("%s", self._named(msg))
+        else:
+            msg, state = f"calibrated on {what}; saved {path}", "calibrated"
+        if ident == self.id and self.state == "saving":
+            self.state = state
+            self.message = msg
+        self.shared.out(self._named(msg))
+
+    def close(self) -> None:
+        """Finish writing (the daemon's close, never in the loop): the write under
+        way waited for, the one waiting written here; a failure logged."""
+        job, self._save = self._save, None
+        if job is not None:
+            job.wait()
+            if job.error is not None:
+                logger.warning("calibration NOT saved: %s", job.error)
+        pending, self._next_save = self._next_save, None
+        if pending is not None:
+            _, cal, path, _ = pending
+            try:
+                cal.save(path)
+            except Exception as exc:  # the old file is whole (an atomic save)
+                logger.warning("calibration NOT saved: %s", exc)
 
     def _refuse_calibration(self, why: str) -> None:
         """A live calibration refused: counted, said in one line (to the log and,
@@ -405,6 +488,23 @@ class LiveCalibration:
         self.state = "refused"
         self.message = msg
         self.shared.recording.event("calibration_refused", message=msg)
+        self.shared.out(self._named(msg))
+
+    def _calibration_failed(self, exc: Exception) -> None:
+        """``calibrate_checked`` raised something other than a refusal (a fault of
+        ours, not the performer's): counted (``calibration_failures``), one line
+        (its traceback in the log), recorded; the old calibration keeps streaming,
+        its file untouched, and the loop serves on."""
+        why = str(exc).splitlines()[0] if str(exc) else ""
+        msg = (
+            f"calibration failed: internal error ({type(exc).__name__}: {why}); the "
+            "old calibration is kept: see the daemon's log"
+        )
+        logger.error("%s", self._named(msg), exc_info=exc)
+        self.shared.stats.calibration_failures += 1
+        self.state = "failed"
+        self.message = msg
+        self.shared.recording.event("calibration_failed", message=msg)
         self.shared.out(self._named(msg))
 
     def _base_pose_source(self, times_s: np.ndarray) -> BasePoseSource:

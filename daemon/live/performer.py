@@ -141,6 +141,8 @@ class Calibrating(Protocol):
 
     def collect_face(self, stream: FrameSource) -> None: ...
 
+    def close(self) -> None: ...  # its file's write under way finished
+
 
 class _NoPath:
     """The path of a performer before ``Performers`` gives it one."""

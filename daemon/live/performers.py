@@ -147,7 +147,8 @@ class Performers:
                 perf.path.prepare(id(view), view.labels_of(label_set))
 
     def prepare_streams(self) -> None:
-        """At the start: :meth:`prepare` each input's configured label set."""
+        """At the start and after a reload (:meth:`end_reload`): :meth:`prepare`
+        each input's label set (configured, or the one it took last)."""
         for stream in self._streams():
             if stream.label_set is not None:
                 self.prepare(stream, stream.label_set)
@@ -344,6 +345,11 @@ class Performers:
             self._apply(perf, req, res)
             for perf, req, res in zip(self.all, job.want, results, strict=True)
         ]
+        # Every stream's new pipelines start building now, as at the start: left to
+        # the stream's next frame, a source that sends only once its pipeline is
+        # ready (``ready``) would wait forever. A pipeline already built (or being
+        # built) for the rig and calibration now starts nothing (``Pipelines.prepare``).
+        self.prepare_streams()
         if len(self.all) == 1:
             return msgs[0]
         return "; ".join(f"{p.name}: {m}" for p, m in zip(self.all, msgs, strict=True))
@@ -351,8 +357,8 @@ class Performers:
     def _apply(self, perf: Performer, req: ReloadRequest, res: ReloadResult) -> str:
         """``perf``'s part of a reload: unchanged files (nothing parsed or rebuilt;
         parsing them took 40-70 ms, measured), refused files, or the new rig,
-        calibration and stages swapped in (its pipelines rebuilt off the loop, the
-        old ones solving meanwhile: ``rebuild.py``)."""
+        calibration and stages swapped in (its pipelines rebuilt off the loop from
+        :meth:`end_reload` on, the old ones solving meanwhile: ``rebuild.py``)."""
         sh = self.shared
         if res.unchanged:
             msg = f"reloaded rig {perf.rig.name}: its files and the config unchanged"
@@ -375,7 +381,7 @@ class Performers:
         perf.reload_files = (res.digest, rig, cal)
         sh.config = dataclasses.replace(sh.config, pipeline=stages)
         # The pipelines are rebuilt for the new rig and calibration, off the loop
-        # (rebuild.py): the old ones solve until then.
+        # (rebuild.py, started by end_reload): the old ones solve until then.
         sh.stats.set_post_stages(())  # named again as the pipelines are rebuilt
         perf.path.start_validator()
         msg = f"reloaded rig {rig.name}" + (" and calibration" if cal else "")
@@ -420,10 +426,11 @@ class Performers:
                 )
 
     def close(self) -> None:
-        """Stop every performer's live validator; finish writing its face training
-        set."""
+        """Stop every performer's live validator; finish writing its calibration
+        and face training set."""
         for perf in self.all:
             perf.path.close()
+            perf.calib.close()
             if perf.face is not None:
                 perf.face.close()
 

@@ -33,6 +33,9 @@ class LoopStats:
         calibrations: live calibrations applied.
         calibrations_refused: live calibrations refused (the performer moved).
         calibrations_expired: live calibrations that collected no frame in time.
+        calibration_failures: live calibrations that raised an internal error (not
+            a refusal; ``calibrate.py``): said in one line, the old calibration
+            kept, ``calibration_state`` "failed"; the loop serves on.
         rate_limited: reload and calibration requests refused as too frequent.
         held_bone_frames: bone-frames held (too little data).
         occluded_samples: rig-marker samples occluded in solved frames.
@@ -58,6 +61,9 @@ class LoopStats:
             loop, ``rebuild.py``) raised: said in one line; the stream's frames
             unsolved (``unsolved_failed``) until a new label set, reload,
             calibration or training set asks for another.
+        calibration_save_failures: live calibrations (in use) whose file could not
+            be written (off the loop, ``calibrate.py``): said in one line, the old
+            file kept whole, ``calibration_state`` "not_saved".
         validator_failures: live validators whose build (off the loop,
             ``validation.py``) raised: the validator off until the next
             calibration or reload.
@@ -103,6 +109,7 @@ class LoopStats:
     calibrations: int = 0
     calibrations_refused: int = 0
     calibrations_expired: int = 0
+    calibration_failures: int = 0
     rate_limited: int = 0
     held_bone_frames: int = 0
     occluded_samples: int = 0
@@ -113,6 +120,7 @@ class LoopStats:
     face_captures: int = 0
     face_save_failures: int = 0
     pipeline_failures: int = 0
+    calibration_save_failures: int = 0
     validator_failures: int = 0
     validated: int = 0
     validation_flagged: int = 0
@@ -220,11 +228,13 @@ class LoopStats:
             for name in (
                 "frames_in", "frames_solved", "frames_out", "stale", "overruns",
                 "send_drops", "vmc_errors", "restarts", "calibrations",
-                "calibrations_refused", "calibrations_expired", "rate_limited",
+                "calibrations_refused", "calibrations_expired",
+                "calibration_failures", "rate_limited",
                 "held_bone_frames", "occluded_samples", "pipeline_builds",
                 "rejected_sources",
                 "face_solved", "face_head_lost", "face_captures", "face_save_failures",
-                "pipeline_failures", "validator_failures", "validated",
+                "pipeline_failures", "calibration_save_failures",
+                "validator_failures", "validated",
                 "validation_flagged", "validation_drops", "zmq_disconnects",
                 "unsolved", "unsolved_building", "unsolved_failed",
                 "unseen", "unexplained", "reseeded",

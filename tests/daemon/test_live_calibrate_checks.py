@@ -24,8 +24,9 @@ import numpy as np
 import pytest
 
 from retargetd.daemon.body import sanity
-from retargetd.daemon.body.calibration import load_calibration
+from retargetd.daemon.body.calibration import Calibration, load_calibration
 from retargetd.daemon.cli.main import main as cli_main
+from retargetd.daemon.live import calibrate as calibrate_module
 from retargetd.daemon.live.calibrate import marker_drift_speeds_m_s
 from retargetd.protocols.marker_input import LabelSet
 
@@ -258,6 +259,7 @@ def test_a_live_save_on_a_full_disk_keeps_the_old_file(
     status = live.ctl({"cmd": "status"})["status"]
     assert status["calibration_state"] == "not_saved"
     assert status["counters"]["calibrations"] == 1
+    assert status["counters"]["calibration_save_failures"] == 1
     assert live.daemon.calibration is not first_cal  # taken, in use
     assert cal_path.read_bytes() == before
     load_calibration(cal_path)  # readable
@@ -274,3 +276,147 @@ def test_the_live_drift_check_judges_any_window(n: int) -> None:
     still = np.stack([hold] * n)
     assert np.nanmax(marker_drift_speeds_m_s(walk, times)) == pytest.approx(1.3)
     assert np.nanmax(marker_drift_speeds_m_s(still, times)) == 0.0
+
+
+@pytest.mark.timeout(120)
+def test_a_live_calibrations_file_is_written_off_the_loop_and_ctl_waits_for_it(
+    session: Callable[[str], _Session],
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Before: the frame that completed a live calibration also wrote its file, with
+    fsync, in the loop (12-16 ms; a stalled disk held every frame). Now a worker
+    writes it: here a writer held at a gate (a disk that does not answer) while the
+    loop goes on sending poses with the new calibration and answering ``status``
+    ("saving"); ``ctl calibrate`` waits through the save and answers its true
+    outcome; a write that fails is counted."""
+    gate, begun = threading.Event(), []
+    real = Calibration.save
+
+    def held(self: Calibration, path: str | Path) -> None:
+        begun.append(1)
+        assert gate.wait(60.0), "the test never opened the gate"
+        if gate.is_set() and len(begun) > 1:  # the second write: a full disk
+            raise OSError(errno.ENOSPC, f"cannot write {path}: No space left")
+        real(self, path)
+
+    monkeypatch.setattr(Calibration, "save", held)
+    live, cal_path, before, first_cal = session("genuine")
+    rc: list[int] = []
+    ctl = threading.Thread(target=lambda: rc.append(cli_main(_ctl_calibrate(live))))
+    ctl.start()
+    try:
+        _live._wait_until(lambda: begun == [1], "the calibration's write begun")
+        out = _status(live)["counters"]["frames_out"]
+        _live._wait_until(
+            lambda: _status(live)["counters"]["frames_out"] >= out + 20,
+            "poses sent while the write hangs",
+        )
+        status = _status(live)
+        assert status["calibration_state"] == "saving", status
+        assert status["performers"][0]["calibration_saving"]
+        assert live.daemon.calibration is not first_cal  # in use already
+        assert cal_path.read_bytes() == before and ctl.is_alive() and not rc
+    finally:
+        gate.set()
+    ctl.join(_live.WAIT_S)
+    assert rc == [0], capsys.readouterr()
+    assert f"calibrated on {COUNT} frames; saved {cal_path}" in capsys.readouterr().out
+    status = _status(live)
+    assert status["calibration_state"] == "calibrated"
+    assert not status["performers"][0]["calibration_saving"]
+    assert cal_path.read_bytes() != before
+    # A write that fails: counted, the state and ctl say so, the loop serves on.
+    assert cli_main(_ctl_calibrate(live)) == 1
+    err = capsys.readouterr().err
+    assert "NOT saved" in err and "No space left" in err, err
+    status = _status(live)
+    assert status["calibration_state"] == "not_saved"
+    assert status["counters"]["calibration_save_failures"] == 1
+    out = status["counters"]["frames_out"]
+    _live._wait_until(
+        lambda: _status(live)["counters"]["frames_out"] >= out + 10,
+        "poses after the failed write",
+    )
+    load_calibration(cal_path)  # the first write's file, whole
+
+
+def _status(live: Any) -> dict[str, Any]:
+    reply = live.ctl({"cmd": "status"})
+    assert reply["ok"], reply
+    status: dict[str, Any] = reply["status"]
+    return status
+
+
+@pytest.mark.timeout(120)
+def test_an_internal_error_in_the_checks_is_counted_and_the_daemon_serves_on(
+    start_daemon: Callable[..., Any],
+    osc_source: Callable[..., Any],
+    stream: Callable[..., _Streamer],
+    vmc: _live.VmcReceiver,
+    exact_calibration: Path,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """``calibrate_checked`` raising something other than a refusal (a fault of
+    ours) used to propagate out of the loop and end the daemon. Now it is counted,
+    said in one line, the old calibration kept, and the loop goes on sending VMC
+    and answering ``status``; the next calibration is taken."""
+
+    def broken(*_args: object, **_kwargs: object) -> None:
+        raise TypeError("a bug of ours")
+
+    cal_path = tmp_path / "performer.json"
+    cal_path.write_bytes(exact_calibration.read_bytes())
+    before = cal_path.read_bytes()
+    live = start_daemon(
+        {
+            "performer": {"calibration": str(cal_path)},
+            "control": {"min_interval_s": 0.01},
+        },
+        vmc_port=vmc.port,
+    )
+    first_cal = live.daemon.calibration
+    stream(osc_source(live), "genuine")
+    monkeypatch.setattr(calibrate_module, "calibrate_checked", broken)
+    capsys.readouterr()
+    assert cli_main(_ctl_calibrate(live)) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1, err
+    assert err[0].startswith(
+        "retargetd ctl: calibration failed: internal error (TypeError: a bug of ours)"
+    ), err
+    assert "the old calibration is kept" in err[0]
+    assert live.running  # the loop did not die
+    status = _status(live)
+    assert status["counters"]["calibration_failures"] == 1
+    assert status["counters"]["calibrations"] == 0
+    assert status["counters"]["calibrations_refused"] == 0
+    assert status["calibration_state"] == "failed"
+    assert sum(ln.startswith("calibration failed") for ln in live.lines) == 1
+    assert live.daemon.calibration is first_cal and cal_path.read_bytes() == before
+    # VMC after the failure: the datagrams sent before it drained (reading is far
+    # faster than the ~200 Hz they arrive at), then fresh ones received.
+    vmc.sock.setblocking(False)
+    for _ in range(1_000_000):
+        try:
+            vmc.sock.recv(65536)
+        except BlockingIOError:
+            break
+    vmc.sock.settimeout(0.05)
+    n = len(vmc.frames)
+    deadline = time.monotonic() + _live.WAIT_S
+    while len(vmc.frames) < n + 10:
+        assert time.monotonic() < deadline, "no VMC frame after the failure"
+        vmc.pump(50)
+    out = status["counters"]["frames_out"]
+    _live._wait_until(
+        lambda: _status(live)["counters"]["frames_out"] >= out + 10,
+        "poses after the failure",
+    )
+    monkeypatch.undo()  # the real checks: the next calibration is taken
+    assert cli_main(_ctl_calibrate(live)) == 0, capsys.readouterr()
+    assert _status(live)["calibration_state"] == "calibrated"
+    assert live.daemon.calibration is not first_cal and live.running

@@ -104,7 +104,7 @@ def test_live_rom_places_the_hips_and_says_which(
         src.send(frame)
         if k % 50 == 0:
             time.sleep(0.02)  # let the loop keep up
-    while state == "rom" and time.monotonic() < deadline:
+    while state in ("rom", "saving") and time.monotonic() < deadline:
         time.sleep(0.05)
         state = str(_status(live)["calibration_state"])
     status = _status(live)

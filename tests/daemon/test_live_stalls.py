@@ -31,6 +31,7 @@ import pytest
 import zmq
 
 from retargetd.daemon.face.training import TrainingSet
+from retargetd.daemon.live import face as face_module
 from retargetd.daemon.live import performers as performers_module
 from retargetd.daemon.live import rebuild
 from retargetd.daemon.live import validation as validation_module
@@ -228,18 +229,72 @@ def test_a_reload_of_unchanged_files_parses_and_rebuilds_nothing(
     try:
         _first_pipeline(d, src)
         _frames(d, src, 3)
+        gate.clear()  # the reloads' builds held: their order, not their speed
+        path = d.performers.first.path
         _ctl(d, {"cmd": "reload"})  # the first reload reads the files
         rig, cal = d.rig, d.calibration
+        # Its rebuild starts with the reload, not with the stream's next frame.
+        (job,) = path.builds.values()
+        assert job.want[0] is rig and job.want[1] is cal
+        assert d.performers.building() == 1
         msg = _ctl(d, {"cmd": "reload"})["message"]
         assert "unchanged" in msg and d.rig is rig and d.calibration is cal, msg
+        assert list(path.builds.values()) == [job]  # unchanged: nothing started
         # An edited rig file is read again (a comment changes its bytes).
         rig_copy.write_text(rig_copy.read_text() + "\n# edited\n")
         msg = _ctl(d, {"cmd": "reload"})["message"]
         assert "unchanged" not in msg and d.rig is not rig, msg
         _frames(d, src, 1)
-        # the first pipeline's build, and the rebuild for the newest rig only
-        assert len(begun) == 2
+        # The newest rig's build waits for the one under way (one build per
+        # stream at a time), the old pipeline solving meanwhile.
+        assert list(path.builds.values()) == [job] and d.stats.pipeline_builds == 1
+        lh._wait_until(lambda: len(begun) == 2, "the first reload's build begun")
+        gate.set()
+        deadline = time.monotonic() + 30.0
+        while not d.performers.ready(d.osc_stream):
+            assert time.monotonic() < deadline, "the newest rig's build never began"
+            _frames(d, src, 1)  # loop passes: the waiting build starts on one
+            d.performers.done_building(30.0)
+        _frames(d, src, 3)
+        # 3 begun: the first pipeline's; the first reload's (its files parsed
+        # anew: a rig and calibration of their own, built for at once, its result
+        # never used); the edited rig's, once. The unchanged reload's: none.
+        assert len(begun) == 3 and d.stats.pipeline_builds == 2
+        (pipe,) = path.pipelines.values()
+        assert pipe.built_for[0] is d.rig
     finally:
+        gate.set()
+        src.sock.close()
+
+
+@pytest.mark.timeout(120)
+def test_a_reload_builds_the_new_pipeline_without_waiting_for_a_frame(
+    daemon: Daemon, gated_builds: tuple[threading.Event, list[int]]
+) -> None:
+    """A source that sends its next frame only once its pipeline is ready (as the
+    tests' streamer does after each announcement) is not left waiting by a reload:
+    the new rig and calibration's pipeline is built with no frame after it."""
+    d, (gate, begun) = daemon, gated_builds
+    gate.set()
+    src = _Source(d)
+    try:
+        _first_pipeline(d, src)
+        assert d.performers.ready(d.osc_stream)
+        gate.clear()  # (held: the state between the reload and its build's end)
+        _ctl(d, {"cmd": "reload"})  # (control_reply swaps the new files in)
+        assert not d.performers.ready(d.osc_stream)  # built for the old ones
+        # Its build begun, no frame sent since.
+        (job,) = d.performers.first.path.builds.values()
+        assert job.want[0] is d.rig and job.want[1] is d.calibration
+        gate.set()
+        assert d.performers.done_building(60.0)
+        assert d.performers.ready(d.osc_stream) and len(begun) == 2
+        _frames(d, src, 1)  # the first frame after it takes the new pipeline
+        (pipe,) = d.performers.first.path.pipelines.values()
+        assert pipe.built_for[:2] == (d.rig, d.calibration)
+        assert d.stats.pipeline_builds == 2 and len(begun) == 2
+    finally:
+        gate.set()
         src.sock.close()
 
 
@@ -678,6 +733,68 @@ def test_a_face_training_sets_save_runs_off_the_loop_and_a_failure_is_counted(
         closing.join(30.0)
         assert not closing.is_alive() and not face.saving
         assert TrainingSet.load(later).k == 1
+    finally:
+        gate.set()
+        src.sock.close()
+
+
+@pytest.mark.timeout(120)
+def test_a_face_captures_averaging_runs_off_the_loop(
+    daemon_lines: tuple[Daemon, list[str]], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Before: the frame that completed a face capture averaged its frames in the
+    loop (``capture_into``: a rigid fit per frame, twice for the first neutral; 7.9
+    ms for the default 60 frames, 31 ms for 240, measured: past a frame at 240 Hz).
+    Now a worker averages them, held here at a gate, while the loop solves and sends
+    every frame; ``face.averaging`` says so and a new capture is refused meanwhile;
+    the loop pass that finds it done takes the new training set."""
+    (d, lines), gate = daemon_lines, threading.Event()
+    real = face_module.capture_into
+
+    def held(*args: Any) -> Any:
+        assert gate.wait(30.0), "the test never opened the gate"
+        return real(*args)
+
+    monkeypatch.setattr(face_module, "capture_into", held)
+    face = d.face
+    assert face is not None and face.training is None
+    head = face.face.head_markers
+    labels = (*head, "FLIPU", "FLIPL")
+    rng = np.random.default_rng(3)
+    pose = np.array(
+        [[0.05, 0.1, 1.70], [-0.05, 0.1, 1.70], [0.05, -0.05, 1.72],
+         [-0.05, -0.05, 1.72], [0.0, 0.12, 1.62], [0.0, 0.12, 1.60]]
+    )  # fmt: skip
+    src = _Source(d)
+    try:
+        _first_pipeline(d, src)
+        face.request_capture("neutral", 3)
+        for _ in range(3):
+            assert face.collect(pose + rng.normal(0, 1e-4, pose.shape), labels) is None
+        assert face.averaging and not face.capturing
+        assert d.status()["face"]["averaging"]
+        with pytest.raises(ValueError, match="still being averaged"):
+            face.request_capture("neutral", 3)
+        out = d.stats.frames_out
+        for _ in range(20):
+            _frames(d, src, 1)
+            _ticks(d)
+        assert d.stats.frames_out == out + 20 and _accounted(d)
+        assert face.averaging and face.training is None
+        gate.set()
+        _wait(lambda: face._averaging is None or face._averaging.done(), "averaged")
+        _ticks(d)
+        assert not face.averaging and not d.status()["face"]["averaging"]
+        assert face.training is not None and face.training.marker_names == (
+            "FLIPU", "FLIPL",
+        )  # fmt: skip
+        assert d.stats.face_captures == 1
+        assert any(
+            line.startswith("face pose 'neutral' captured on 3 frames")
+            for line in lines
+        ), lines
+        _frames(d, src, 3)
+        assert _accounted(d)
     finally:
         gate.set()
         src.sock.close()
