@@ -325,7 +325,13 @@ def test_menache_markers_sit_where_the_chapter_rules_put_the_joints(
         if str(humanoid[name]).removeprefix("Left").removeprefix("Right") in LIMBS
     ]
     assert len(limbs) == 14, limbs
-    assert all(top <= 1e-3 for _, top in limbs), limbs
+    # 0.01 deg, not exactly 0: the clavicle's CLAVICLE and the upper arm's UPARM are
+    # built through LONECK, held in the frame of T1, THORAX and T7, and THORAX rides
+    # the lumbar markers, so the trunk's counter-rotation in the walk moves LONECK
+    # on the ribcage (0.0023-0.0033 deg since LONECK lies 57 mm in front of T1, its
+    # depth shift in menache.toml; under 0.001 at 17 mm); a marker off its site is
+    # degrees (above)
+    assert all(top <= 1e-2 for _, top in limbs), limbs
 
 
 @pytest.mark.parametrize("motion", ["level_walk", "jump"])
