@@ -19,6 +19,7 @@ from retargetd.daemon.body.calibration import calibrate
 from retargetd.daemon.body.method import make_body_solver
 from retargetd.daemon.body.rig import Rig, load_rig
 from retargetd.daemon.body.solve import BodySolve
+from retargetd.daemon.body.solve_fit import FitSolver
 from retargetd.daemon.synth import performer as pf
 from retargetd.daemon.synth.truth import compare_with_truth, truth_map
 from retargetd.daemon.validate.limits import JOINT_LIMITS_DEG
@@ -325,7 +326,70 @@ def test_menache_markers_sit_where_the_chapter_rules_put_the_joints(
         if str(humanoid[name]).removeprefix("Left").removeprefix("Right") in LIMBS
     ]
     assert len(limbs) == 14, limbs
-    assert all(top <= 1e-3 for _, top in limbs), limbs
+    # 0.01 deg, not exactly 0: the clavicle's CLAVICLE and the upper arm's UPARM are
+    # built through LONECK, held in the frame of T1, THORAX and T7, and THORAX rides
+    # the lumbar markers, so the trunk's counter-rotation in the walk moves LONECK
+    # on the ribcage: 0.0028-0.0043 deg with LONECK 61 mm in front of T1 (the depth
+    # shift, menache.toml), 0.0006-0.0010 at d = 0 (17 mm); a marker off its site is
+    # degrees (above)
+    assert all(top <= 1e-2 for _, top in limbs), limbs
+
+
+@functools.cache
+def _menache_fit_default() -> tuple[Rig, pf.SynthTake, BodySolve, dict[str, list]]:
+    """The default motions (the head turning 60 deg, 18 of them in the neck), 10 s as
+    ``docs/fit-truth.md``'s, solved with the fit; and the rotations its markers leave
+    unobserved per bone (``fit_observe``)."""
+    take = pf.synthesize(seconds=10.0, rate_hz=RATE_HZ, markerset="menache")
+    rig = load_rig("menache")
+    cal = calibrate(rig, take.markers_world[take.base_pose_frames], take.labels)
+    solver = make_body_solver(
+        "fit", rig, cal, take.labels, joint_limits=JOINT_LIMITS_DEG,
+        segment_kind=SEGMENT_KIND, rate_hz=take.rate_hz,
+    )  # fmt: skip
+    assert isinstance(solver, FitSolver)
+    unobserved = {
+        o.bone: o.axes[~o.observed].tolist()
+        for o in solver.model.observation
+        if not o.observed.all() and o.dof != "root"
+    }
+    return rig, take, solver.solve_take(take.markers_world), unobserved
+
+
+def test_menache_neck_joints_lie_inside_the_neck() -> None:
+    """LONECK and UPNECK, "the same method as THORAX" with its depth shift carried
+    from the joint below (menache.toml), lie in front of the posterior markers they
+    are built from in the base pose. Halfway to the joint below (d = 0) put UPNECK
+    18 mm behind the C1 marker, outside the body, on this performer whose cervical
+    spine leans forward of T1 as a standing one does."""
+    _, take, solve, _ = _menache_fit_default()
+    f = take.base_pose_frames.start
+    mk = dict(zip(take.labels, np.asarray(take.markers_world)[f], strict=True))
+    joints = dict(
+        zip(solve.joint_names, np.asarray(solve.joint_centres)[f], strict=True)
+    )
+    width = mk["LHIP"] - mk["RHIP"]
+    width[2] = 0.0
+    forward = np.cross(width / np.linalg.norm(width), [0.0, 0.0, 1.0])
+    for joint, marker in (("LONECK", "T1"), ("UPNECK", "C1")):
+        depth_mm = 1000.0 * float((joints[joint] - mk[marker]) @ forward)
+        assert depth_mm > 0.0, (joint, marker, depth_mm)
+
+
+@pytest.mark.parametrize("bone", ["loneck", "head"])
+def test_menache_neck_and_head_follow_the_truth_as_the_head_turns(bone: str) -> None:
+    """Issue 28 item 6 on the head and neck in the default motions, the fit: p95
+    5 deg, max 10 deg against the truth (less the truth's excursion in a rotation the
+    markers leave unobserved). At d = 0 (menache.toml, THORAX) loneck was 39.5/39.8
+    deg (23.5/24.0 less the truth's twist excursion), the head 12.5/13.8."""
+    rig, take, solve, unobserved = _menache_fit_default()
+    cmp = compare_with_truth(
+        solve, take, rig, frames=slice(take.base_pose_frames.stop, None),
+        unobserved={b: a for b, a in unobserved.items() if b in ("loneck", "head")},
+    )  # fmt: skip
+    k = cmp.bone_names.index(bone)
+    p95, top = cmp.excess_p95_deg[k], cmp.excess_max_deg[k]
+    assert p95 <= 5.0 and top <= 10.0, (bone, p95, top)
 
 
 @pytest.mark.parametrize("motion", ["level_walk", "jump"])
