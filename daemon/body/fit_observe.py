@@ -26,7 +26,14 @@ rotation the markers count as measuring, so the prior decides exactly where the
 markers cannot). Bones are decided parents first, each with the priors already given
 to the bones before it: when two joints turn about one axis that no marker between
 them sees (a spine bone without markers under the chest, a neck under a head) the
-proximal one is held and the distal one, whose markers see the sum, carries it.
+proximal one is held first. The distal one, whose markers see the sum, is then told
+apart from it by that prior alone: its lever comes out ``sqrt(M k / (M + k))`` with
+``k = PRIOR_STIFFNESS`` and ``M`` what its markers see of the sum, just under
+``MIN_LEVER_M`` however large ``M`` is, so it is held too and the fit splits the sum
+between the two by their equal priors (Plug-in Gait's chest twist: 11.44 mm/rad under
+a spine twist of 0, its head twist 11.43 under a neck of 0; on the synthetic
+performer's default motions the fit's spine takes a median 0.55 of the trunk's twist
+on the pelvis, the performer's abdomen 0.41).
 
 Joint models (``rig_fit``: ball, hinge, hinge_twist, swing, fixed) set which rotations
 a joint has at all; a root has three rotations and three translations.
