@@ -52,7 +52,7 @@ C_LAM_ROT = 5  # this frame's continuity weights, m^2 / rad^2 and m^2 / m^2
 C_LAM_TRANS = 6
 C_LEVEL = 7  # the take's running inlier residual RMS, metres (0: none yet)
 C_SINCE_TRY = 8  # frames since the last reseed attempt
-C_LAST_RMS = 9  # the last explained frame's residual RMS, metres
+C_LAST_RMS = 9  # the last explained, not suspect, frame's residual RMS, metres
 N_SCALARS = 10
 
 # stats (float64 array) slots

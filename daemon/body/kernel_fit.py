@@ -36,8 +36,10 @@ Per frame (``fit_one_t``; the rules' numbers are ``solve_fit.FitParams``):
    last explained pose (the calibration pose before any) is held, flagged.
 2. the first frame is seeded from the construction (``body.kernel.solve_one``) where
    the performer is; later ones start from the pose predicted from the last two
-   explained frames (``fit_track.predict``), with hidden markers' holds and virtual
-   measurements (``fit_track.hold_priors``, ``virtual_markers``).
+   explained frames (``fit_track.predict``), with hidden markers' holds
+   (``fit_track.hold_priors``) and, unless the last frame was not explained (a
+   gap: the prediction is then a held pose), virtual measurements
+   (``virtual_markers``).
 3. fit ungated, then again without the markers the gate rejects (``fit_track``).
 4. suspect (residual above twice the take's own, too many rejects, the first frame
    after a gap, or a marker rejected for ``persist_s``): a second fit seeded from the
@@ -393,14 +395,22 @@ def fit_one_t(
             predict(m, s)
             continuity_weights(params, sc, sc[C_GAP])
             hold_priors(m, s)
-            virtual_markers(m, s)
+            if sc[C_GAP] <= 1.0:
+                # hidden markers are measured on the prediction only when it is one:
+                # after a gap the prediction is the last explained pose held (no
+                # velocity is known across it), where the body was gap frames ago,
+                # root included; measured there they would pull the fit back to it
+                # as hard as seen markers and gate out the markers that disagree
+                # (the burst replay, bench/burst_recovery.py: an arm 25-49 deg off
+                # with its seen markers rejected). The holds, parent-relative, stay.
+                virtual_markers(m, s)
         iters, _conv, cost = _fit_phases(m, s)
         c_kept = False
         ss, n_in, n_rej = score(m, s)
         rms = truncated_rms(ss, n_in, n_rej, sc[C_GATE])
         # the take's own residual: its running level, or the last explained frame's
-        # when higher (a misfit that grows with the motion is the take's own; a
-        # burst of garbage jumps from one frame to the next)
+        # that was not suspect, when higher (a misfit that grows with the motion is
+        # the take's own; a burst of garbage jumps from one frame to the next)
         level = max(sc[C_LEVEL], sc[C_LAST_RMS])
         persist = 0.0
         for i in range(n_mk):
@@ -473,7 +483,12 @@ def fit_one_t(
             a = min(1.0, sc[C_DT] / tau) if tau > 0.0 else 1.0
             lv = sc[C_LEVEL]
             sc[C_LEVEL] = rms if lv <= 0.0 else lv + a * (rms - lv)
-            sc[C_LAST_RMS] = rms
+            if rms <= lost_at:
+                # a frame kept while still suspect (no candidate brought it under
+                # the suspect level) is no reference for the next: counted as the
+                # take's own it raised the level each frame judged by (a swapped
+                # burst got in at 2-4x the level a frame and, once in, stayed)
+                sc[C_LAST_RMS] = rms
     # 3. outputs
     rej, rref, rage = s[45], s[47], s[48]
     n_rej = 0

@@ -31,9 +31,12 @@ def test_the_bad_frames_are_the_soaks() -> None:
 @pytest.mark.timeout(300)
 def test_short_run_measures_every_burst(datasets: Path) -> None:
     """Eight bursts, two of each kind, 1, 2, 10 and 50 frames long in turn: each
-    measured; the bursts of 1 and 2 frames are back within the issue's 0.25 s (the
-    longer ones are printed: issue 28 item 3 is open on them; the soak's random
-    lengths: bench/burst_recovery.py)."""
+    measured, and every one back within the issue's 0.25 s of the solve without the
+    bursts (before the first frame after a gap stopped measuring hidden markers on
+    the held pose, and a frame kept while suspect stopped raising the level, the 50
+    frames at 1e30 took 0.467 s, the head 109 deg off). The soak's random lengths,
+    where a few are still late: bench/burst_recovery.py, README "What is not right
+    yet"."""
     br = bench_module("burst_recovery")
     result = br.run(datasets, bursts=8, seed=1, method="fit", every_s=1.0,
                     rate_hz=240.0, dropout=0.10, lengths=(1, 2, 10, 50))  # fmt: skip
@@ -41,9 +44,9 @@ def test_short_run_measures_every_burst(datasets: Path) -> None:
     assert [b["kind"] for b in rows] == list(br.soak.BURSTS) * 2
     assert [b["frames"] for b in rows] == [1, 2, 10, 50] * 2
     assert all(b["recovery_s"] > 0.0 for b in rows)
-    short = [b for b in rows if b["frames"] <= 2]
-    assert len(short) == 4
-    assert all(b["recovery_s"] <= br.soak.MAX_RECOVERY_S for b in short), short
+    assert all(b["recovery_s"] <= br.soak.MAX_RECOVERY_S for b in rows), rows
+    # the second measure (against the solve with nothing hidden) is the weaker one
+    assert all(b["no_worse_s"] <= b["recovery_s"] for b in rows), rows
     lines = br.report(result)
     print("\n" + "\n".join(lines))
     assert any(line.startswith("late (over 0.25 s):") for line in lines)
