@@ -7,10 +7,9 @@ whose legs are 0.8x, 1.0x and 1.25x the performer's, without and with
 
 The synthetic performer (``daemon/synth``, Plug-in Gait markers: its TOE marker rides
 on the foot, so the solved foot is the foot while the toes extend at push-off; noise
-0) walks straight (``level_walk``), climbs and descends 0.17 m stairs
-(``stair_ascent``, ``stair_descent``): gaits placed from their stance feet, which
-neither slide nor sink (``synth/gait.py``); and runs (``run``: not yet placed so, its
-stance feet slide at about the running speed, shown for contrast). It is calibrated
+0) walks straight (``level_walk``), runs (``run``, with a flight phase), climbs and
+descends 0.17 m stairs (``stair_ascent``, ``stair_descent``): gaits placed from their
+stance feet, which neither slide nor sink (``synth/gait.py``). It is calibrated
 on its own T-pose hold, solved with the construction, retargeted onto a humanoid
 target (the default humanoid's torso and arms) whose leg segments (thigh, shank,
 ankle height, foot) are k times the calibrated performer's, and run through three

@@ -1,8 +1,9 @@
 """Gaits whose stance feet stay put: the root's travel derived from the stance leg.
 
-A gait (``synth.motion``: ``level_walk``, ``stair_ascent``, ``stair_descent``)
-gives joint angles and a contact schedule (each foot's phase, its toe-off); this
-module places the body so that no foot slides or sinks (:func:`plant_gait`).
+A gait (``synth.motion``: ``level_walk``, ``run``, ``stair_ascent``,
+``stair_descent``) gives joint angles and a contact schedule (each foot's phase, its
+toe-off); this module places the body so that no foot slides or sinks
+(:func:`plant_gait`).
 
 - **Foot flat, toes flat.** In stance the foot is held flat from the moment its
   joint-angle pitch first comes down to the floor until the heel rises for good; from
@@ -32,12 +33,10 @@ module places the body so that no foot slides or sinks (:func:`plant_gait`).
 - **Toe-off.** A held foot lets go at its scheduled toe-off; the correction its hold
   needed blends out over :data:`RELEASE_S`, in the air. A foot in the air is never
   let below the support it left or the one it is to land on (the inverse kinematics
-  raises it). With flight (``GaitPlan.flight``; no shipped gait yet: the run's
-  joint angles, placed this way, swing the pelvis between 0.8 and 5.7 m/s within a
-  stance, which validation's ghost force rejects) the driver lets go too: the root
-  is eased over the push-off onto a ballistic path (gravity alone) whose take-off
-  velocity lands it on time, and passes to the new stance foot's placement over
-  :data:`LOAD_S`.
+  raises it). With flight (``GaitPlan.flight``: the run) the driver lets go too: the
+  root is eased over the push-off onto a ballistic path (gravity alone) whose
+  take-off velocity lands it on time, and passes to the new stance foot's placement
+  over :data:`LOAD_S`.
 
 The truth then holds where each foot is in contact (``foot_contact``: driving or
 held, the held ankle within :data:`REACH_TOL_M` of its goal) and on which support

@@ -39,7 +39,7 @@ ACTIVITY_MOTIONS: tuple[str, ...] = (
 )
 #: The activities that are gaits placed from their stance feet (``synth.gait``): their
 #: truth's ``foot_contact`` is each foot's stance.
-GAIT_MOTIONS: tuple[str, ...] = ("level_walk", "stair_ascent", "stair_descent")
+GAIT_MOTIONS: tuple[str, ...] = ("level_walk", "run", "stair_ascent", "stair_descent")
 #: A range-of-motion take for a functional calibration (``calibrate --rom``), meant to
 #: be synthesized alone: :func:`_rom`.
 CALIBRATION_MOTIONS: tuple[str, ...] = ("rom",)
@@ -96,11 +96,6 @@ class Motion:
     plant: tuple[str, ...] = ()
     plant_weight: F64Array = field(default_factory=lambda: np.zeros(0))
     flight_m: F64Array = field(default_factory=lambda: np.zeros(0))
-    # The run: low-pass the floor-contact lift (Hz; 0 = off), and never let the body
-    # fall faster than gravity (where the floor contact would drop it faster, it
-    # flies: a flight phase).
-    floor_smooth_hz: float = 0.0
-    ballistic: bool = False
     # Gaits whose stance feet stay put (synth.gait): the root is placed from them.
     gait: GaitPlan | None = None
 
@@ -490,86 +485,54 @@ def _stair_descent(m: Motion) -> None:
     )
 
 
-#: Sharpness of a gait's stance knee-flexion bump (a power of the raised cosine).
-STANCE_POWER = 3
-
-
-def _sliding_gait(
-    m: Motion,
-    *,
-    speed_m_s: float,
-    stride_m: float,
-    hip: tuple[float, float],
-    knee_stance: float,
-    knee_swing: float,
-    ankle_dorsi: float,
-    ankle_plantar: float,
-    trunk_deg: float,
-    smooth_hz: float = 4.0,
-    radius_m: float = WALK_RADIUS_M,
-    ramp_s: float = RAMP_S,
-    ballistic: bool = False,
-) -> None:
-    """The run's gait, round a circle with its own joint-angle profile: hip flexion
-    ``hip[0] + hip[1] cos(phase)``, knee flexion bumps in stance and swing, ankle
-    dorsiflexion in stance and plantarflexion at push-off; the lowest sole kept on
-    the floor while the root moves at ``speed_m_s``, so its stance feet slide (not
-    yet placed from its stance feet as the other gaits are: ``synth.gait``)."""
-    t0 = np.maximum(m.t, 0.0)
-    dist = speed_m_s * ramp_s * _smootherstep_integral(t0 / ramp_s)
-    phase = 2.0 * np.pi * dist / stride_m
-    w = smootherstep(m.t / ramp_s)  # the angles grow with the speed
-    for side_phase, side in ((phase + np.pi, "l"), (phase, "r")):
-        hip_flex = hip[0] + hip[1] * np.cos(side_phase)
-        knee = knee_swing * _bump(side_phase - 4.6, 4) + knee_stance * _bump(
-            side_phase - 0.9, STANCE_POWER
-        )
-        ankle = ankle_dorsi * _bump(side_phase - 2.4, 3) - ankle_plantar * _bump(
-            side_phase - 3.9, 6
-        )
-        _legs(m, side, w * hip_flex, w * knee, w * ankle)
-    m.add("abdomen", _Y, w * trunk_deg)
-    _arms_down(m)
-    m.add_bilateral(
-        "upper_arm", _Y, w * 25.0 * np.cos(phase), -w * 25.0 * np.cos(phase)
-    )
-    m.add_bilateral("forearm", _Z, -w * 60.0, -w * 60.0)
-    heading = dist / radius_m
-    m.heading += heading
-    m.root_pos[:, 0] += radius_m * np.sin(heading)
-    m.root_pos[:, 1] += radius_m - radius_m * np.cos(heading)
-    m.floor_weight = w
-    m.floor_smooth_hz = smooth_hz
-    m.ballistic = ballistic
-
-
-#: The run's circle: at 3 m/s a 15 m radius asks 0.6 m/s^2 of centripetal
-#: acceleration, the walk's on its 1.5 m circle (0.67 m/s^2); on the walk's circle it
-#: would be 6 m/s^2, which a runner leans into and the synthetic one does not.
-RUN_RADIUS_M = 15.0
+#: Running toe-off, fraction of the cycle: 39 % at 3.2 m/s (Novacheck 1998, Gait
+#: Posture 7:77-95; 36 % sprinting, 62 % walking), so each step has a flight of
+#: (50 - 39) % of the cycle.
+RUN_TOE_OFF = 0.39
+#: Running strides a second: 1.4, a 0.71 s cycle (distance runners near 3-3.5 m/s
+#: take about 1.4 strides a second: Cavanagh & Kram 1989, Med Sci Sports Exerc
+#: 21:467-479), so a stance lasts 0.28 s (contact times of ~0.2-0.3 s in distance
+#: running: Cavanagh & Lafortune 1980, J Biomech 13:397-406).
+RUN_CADENCE_HZ = 1.4
+#: The run gets up to speed (its cadence and angles) over this, seconds.
+RUN_RAMP_S = 2.0
 
 
 def _run(m: Motion) -> None:
-    """Running (Novacheck 1998, running 3.2 m/s to sprinting): hip flexion 10..60
-    about 25 +- 35 (extension 10 at toe-off), stance knee flexion 45, swing 120,
-    ankle dorsiflexion 25, push-off plantarflexion 25, trunk forward 10; 3 m/s,
-    speeding up over 2 s, on a 15 m circle. The body never falls faster than gravity:
-    where the floor contact would drop it faster it flies, so each step has a flight
-    phase (~0.1 s)."""
-    _sliding_gait(
+    """Running, straight, rearfoot strike, placed from its stance feet with a flight
+    phase (``synth.gait``: the driver lets go at toe-off, the pelvis flies a
+    ballistic path to the other foot's heel strike). Sagittal key points after
+    Novacheck 1998 (running at 3.2 m/s; Dugan & Bhat 2005, Phys Med Rehabil Clin N
+    Am 16:603-621): hip flexion 38 at initial contact, extending to 8 of extension
+    at toe-off (39 %), 58 in late swing; knee 18 at contact, 44 at mid-stance
+    (20 %), 22 at toe-off, 120 in swing (swing knee flexion 105-130, rising with
+    speed: the figure ``test_validate_activities`` holds the run to); ankle neutral
+    at contact (the foot lands heel first, 7-13 deg toes up), plantarflexion 22 at
+    toe-off, ~10 dorsiflexion in swing; trunk forward 10; 1.4 strides a second, up
+    to speed over 2 s (about 3.0 m/s follows from the legs).
+
+    The stance ankle is the foot-flat constraint, not a curve read off: between
+    contact and heel-off the rigid foot is flat on the floor only while the ankle's
+    dorsiflexion equals the shank's forward lean (knee flexion less the thigh's
+    forward angle, hip flexion less the pelvis's tilt), so the ankle key points at
+    8, 15 and 22 % (3, 19, 28 deg) are the lean the hip and knee make there (28 deg
+    at mid-stance, a little past the ~20-25 peak reported: the lean of this hip and
+    knee). Read off the curves instead (dorsiflexion peaking 22 at 18 % with hip 25
+    at 15 %), the foot stood on its toe tip from 5 % to toe-off, its heel 50-64 mm
+    up, rocking heel -> tip within 4 frames of contact, and the pelvis's speed swung
+    2.4-3.7 m/s within a stance (ghost force 1.02 body weights, past validation's
+    0.75); the run's former profiles (hip 25 + 35 cos, knee and ankle bumps, its
+    feet sliding), placed so, swung it 0.8-5.7 m/s (2.6 body weights)."""
+    _gait(
         m,
-        speed_m_s=3.0,
-        stride_m=2.4,
-        hip=(25.0, 35.0),
-        knee_stance=45.0,
-        knee_swing=120.0,
-        ankle_dorsi=25.0,
-        ankle_plantar=25.0,
+        cadence_hz=RUN_CADENCE_HZ,
+        hip=((0, 38), (20, 26), (39, -8), (55, 10), (85, 58)),
+        knee=((0, 18), (20, 44), (39, 22), (72, 120), (90, 40)),
+        ankle=((0, 0), (8, 3), (15, 19), (22, 28), (39, -22), (70, 10), (92, 5)),
         trunk_deg=10.0,
-        smooth_hz=0.0,
-        radius_m=RUN_RADIUS_M,
-        ramp_s=2.0,
-        ballistic=True,
+        toe_off=RUN_TOE_OFF,
+        ramp_s=RUN_RAMP_S,
+        flight=True,
     )
 
 

@@ -34,7 +34,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scipy.signal import butter, filtfilt
 
 from retargetd.daemon import rotations as rot
 from retargetd.daemon.synth.gait import plant_gait
@@ -212,23 +211,6 @@ def load_truth(path: str | Path) -> SynthTake:
     kwargs.setdefault("foot_contact", readonly(np.zeros((n_frames, 2), dtype=bool)))
     kwargs.setdefault("foot_support_m", readonly(np.full((n_frames, 2), np.nan)))
     return SynthTake(**kwargs)  # type: ignore[arg-type]
-
-
-def _no_faster_than_gravity(z: F64Array, rate_hz: float) -> F64Array:
-    """The least height curve >= ``z`` (T,) whose downward acceleration never exceeds
-    g (9.81 m/s^2): ballistic flight wherever ``z`` would fall faster."""
-    out = np.array(z, dtype=np.float64)
-    drop = 9.81 / (rate_hz * rate_hz)
-    for i in range(2, out.size):
-        out[i] = max(out[i], 2.0 * out[i - 1] - out[i - 2] - drop)
-    return out
-
-
-def _low_pass(x: F64Array, cutoff_hz: float, rate_hz: float) -> F64Array:
-    """Zero-phase 2nd-order Butterworth low-pass of ``x`` (T,)."""
-    b, a = butter(2, min(cutoff_hz / (0.5 * rate_hz), 0.99))
-    pad = min(3 * max(len(a), len(b)), len(x) - 1)
-    return np.asarray(filtfilt(b, a, x, padlen=pad))
 
 
 def _softmin(z: F64Array, temperature: float) -> F64Array:
@@ -463,10 +445,6 @@ def synthesize(
         )
         rest_z = origin_world[2] + (skeleton.rest_pos[seg] + skeleton.sole_points)[:, 2]
         lift = _softmin(rest_z, FLOOR_SOFTMIN_M) - _softmin(sole_z, FLOOR_SOFTMIN_M)
-        if work.floor_smooth_hz > 0.0 and n_frames > 12:
-            lift = _low_pass(lift, work.floor_smooth_hz, rate_hz)
-        if work.ballistic:
-            lift = _no_faster_than_gravity(lift, rate_hz)
         if work.flight_m.size:
             # In flight the body is ballistic: the lift stays what it was at take-off.
             air = np.flatnonzero(work.flight_m > 0.0)
