@@ -40,6 +40,24 @@ intact solve for good) and the damaged solve's worst bone against the truth. Hid
 show the worst marker; bold marks what issue 28 item 6 forbids (a hide: a joint past
 20 mm, a bone past 10 deg, a new step, NaN; a burst: recovery over 0.25 s, NaN).
 
+**Beyond the hold** (hides; ``synth.hold``): a marker that alone sees a rotation
+(Plug-in Gait's LFIN: the hand's flexion) leaves it unobserved while hidden; the fit
+holds it at its last seen value (``fit_track.hold_priors``), and the best any solve
+can do is then off by the truth's own motion in it. Beside the plain figures (kept:
+they are the issue's letter), each hide is judged against the truth: per compared
+bone, its rotation change since the hide's start against its truth segment's, less
+the intact take's solve's same error, less the truth's excursion since the hide's
+start in the rotations the fit holds for that marker (decided as the kernel decides:
+``fit_observe.hidden_information``'s tables and the threshold ``(max(noise, residual
+level) / resolution)^2`` at the frame before the hide, and the local floor; the
+excursion is the length of the truth joint's swing-twist coordinates in the bone's
+axes, the hold prior's own, projected on the held directions, summed over the bone
+and its ancestors), over the hidden frames and ``synth.hold.TAIL_S`` (0.25 s) after
+them. Its largest over the bones, past ``HIDE_BONE_DEG`` (10 deg), is a runaway: a
+bone turned further than the hold can explain; within it, a failure of the plain
+columns is the unavoidable hold. The construction is judged with the fit's held
+rotations (what the marker alone resolved does not depend on the method).
+
 Cases run in ``--jobs`` processes (default: every core); the output is the same
 whatever the number. Nothing is timed: the document is a function of the code and
 the arguments (its header names both). The machine's load is printed, not written.
@@ -68,9 +86,15 @@ from retargetd.daemon.body.calibration import Calibration, calibrate
 from retargetd.daemon.body.method import METHODS, make_body_solver
 from retargetd.daemon.body.rig import Rig, load_rig
 from retargetd.daemon.body.solve import BodySolve, BodySolver
-from retargetd.daemon.body.solve_fit import FitSolver
+from retargetd.daemon.body.solve_fit import FitSolve, FitSolver
 from retargetd.daemon.synth import performer as pf
 from retargetd.daemon.synth.damage import DamageMetrics, damage, damage_metrics
+from retargetd.daemon.synth.hold import (
+    TAIL_S,
+    HideTruth,
+    held_directions,
+    hide_truth_excess,
+)
 from retargetd.daemon.synth.motion import ROM_PERIOD_S
 from retargetd.daemon.synth.truth import compare_with_truth, truth_map
 from retargetd.daemon.validate.limits import JOINT_LIMITS_DEG
@@ -154,6 +178,7 @@ class DamageRow:
     length: int
     marker: str  # hidden marker ("" for a burst)
     metrics: DamageMetrics
+    hold: HideTruth | None = None  # a hide: against the truth less the hold's share
 
 
 # --- work (in the worker processes) ----------------------------------------------
@@ -275,6 +300,18 @@ def _run_damage(case: DamageCase, settings: Settings) -> list[DamageRow]:
     start = round(settings.damage_at_s * settings.rate_hz)
     rows = []
     markers = range(len(take.labels)) if case.kind == "hide" else (0,)
+    # what each hidden marker alone resolved, the fit's decision at the hide's start
+    # (synth.hold; the same directions judge the construction: the markers' loss)
+    fit = _solver(case.rig, "default", "fit", settings)
+    assert isinstance(fit, FitSolver)
+    fit_intact = (
+        intact if case.method == "fit" else _solve(case.rig, "default", "fit", settings)
+    )
+    level = (
+        fit_intact.residual_level[start - 1]
+        if isinstance(fit_intact, FitSolve)
+        else 0.0
+    )
     for length in case.lengths:
         window = slice(start, start + length)
         for marker in markers:
@@ -287,7 +324,17 @@ def _run_damage(case: DamageCase, settings: Settings) -> list[DamageRow]:
                 step_deg=STEP_DEG, truth=take, rig=rig,
             )  # fmt: skip
             name = take.labels[marker] if case.kind == "hide" else ""
-            rows.append(DamageRow(case, length, name, metrics))
+            hold = None
+            rig_marker = np.flatnonzero(fit.marker_cols == marker)
+            if case.kind == "hide" and rig_marker.size:
+                held = held_directions(
+                    fit.model, fit.params, int(rig_marker[0]),
+                    fit_intact.parent_from_bone_quat[start - 1],
+                    float(level),
+                )  # fmt: skip
+                hold = hide_truth_excess(take, rig, intact, damaged, held, window,
+                                         settings.rate_hz)  # fmt: skip
+            rows.append(DamageRow(case, length, name, metrics, hold))
     again = _solve(case.rig, "default", case.method, settings)
     if not np.array_equal(
         again.world_from_bone_quat, intact.world_from_bone_quat, equal_nan=True
@@ -413,6 +460,23 @@ def _damage_section(rows: Sequence[DamageRow], settings: Settings) -> list[str]:
         f"burst: recovery over {RECOVERY_S:g} s, NaN). The collapse is onto the "
         "take's first marker.",
         "",
+        "Beyond the hold (hides): when a marker alone sees a rotation (a hand's "
+        "flexion seen by one marker on the hand), hiding it leaves that rotation "
+        "unobserved; the fit holds it at its last seen value, and no solve can do "
+        "better than the truth's own motion in it, so the plain columns cannot tell "
+        "such a hold from a runaway. This column judges each hide against the "
+        "truth: per bone, its rotation change since the hide's start against its "
+        "truth segment's, less the intact solve's same error, less the truth's own "
+        "excursion since the hide's start in the rotations the fit holds for that "
+        "marker (`synth.hold`: the fit's own tables and threshold at the frame "
+        "before the hide; the excursion in the hold prior's swing-twist coordinates "
+        "of the bone's axes, projected on the held directions, summed over the bone "
+        "and its ancestors), over the hidden frames and "
+        f"{TAIL_S:g} s after them; the largest over the bones, **bold** past "
+        f"{HIDE_BONE_DEG:g} deg: a runaway. A marker past a limit in the plain "
+        "columns but within this one is a hold no solve can avoid. The "
+        "construction is judged on the fit's held rotations.",
+        "",
     ]
     for rig in dict.fromkeys(r.case.rig for r in rows):
         for method in dict.fromkeys(r.case.method for r in rows):
@@ -423,8 +487,8 @@ def _damage_section(rows: Sequence[DamageRow], settings: Settings) -> list[str]:
                 f"### {rig}, {method}",
                 "",
                 "| damage | joint mm | bone deg | new steps | NaN | recovery "
-                "| truth max deg |",
-                "|---|---|---|---|---|---|---|",
+                "| truth max deg | beyond the hold deg |",
+                "|---|---|---|---|---|---|---|---|",
             ]
             groups: dict[tuple[str, int], list[DamageRow]] = {}
             for r in block:
@@ -434,6 +498,26 @@ def _damage_section(rows: Sequence[DamageRow], settings: Settings) -> list[str]:
             out.append("")
             out += _hidden_markers(groups, rate)
     return out
+
+
+def _beyond(r: DamageRow) -> float:
+    """A hide's largest bone error against the truth beyond the intact solve's and
+    the hold's share (``synth.hold``); 0 for a burst."""
+    return float(r.hold.excess_deg.max()) if r.hold and r.hold.excess_deg.size else 0.0
+
+
+def _beyond_cell(r: DamageRow | None) -> str:
+    """The figure with its bone, bold past the bone limit."""
+    if r is None or r.hold is None or not r.hold.excess_deg.size:
+        return ""
+    h = r.hold
+    w = h.worst
+    parts = (h.excess_deg[w], h.error_deg[w], h.intact_deg[w], h.allowance_deg[w])
+    ex, err, base, allow = (_deg(float(v)) for v in parts)
+    return _bold(
+        f"{ex} ({h.bone_names[w]}: {err} - {base} - {allow})",
+        _beyond(r) > HIDE_BONE_DEG,
+    )
 
 
 def _past(m: DamageMetrics) -> bool:
@@ -451,26 +535,37 @@ def _hidden_markers(
 ) -> list[str]:
     """Per hidden marker that passes a limit in any hide window: its joint, bone
     (the bone named) and new steps in each window, so each failure is traceable."""
-    hides = {length: {r.marker: r.metrics for r in group}
+    hides = {length: {r.marker: r for r in group}
              for (kind, length), group in groups.items() if kind == "hide"}  # fmt: skip
     if not hides:
         return []
     markers = list(dict.fromkeys(k for by in hides.values() for k in by))
-    failing = [k for k in markers if any(_past(by[k]) for by in hides.values()
-                                         if k in by)]  # fmt: skip
+    failing = [
+        k for k in markers
+        if any(_past(by[k].metrics) or _beyond(by[k]) > HIDE_BONE_DEG
+               for by in hides.values() if k in by)
+    ]  # fmt: skip
     if not failing:
         return []
-    head = " | ".join(f"hide {length / rate:g} s" for length in hides)
+    head = " | ".join(
+        f"hide {length / rate:g} s | beyond the hold, {length / rate:g} s"
+        for length in hides
+    )
     out = [
-        "Hidden markers past a limit (joint mm / bone deg (bone) / new steps):",
+        "Hidden markers past a limit (joint mm / bone deg (bone) / new steps against "
+        "the intact solve; beyond the hold: deg (bone: damaged - intact - the "
+        "truth's excursion in what the fit held, each since the hide's start, "
+        "against the truth), bold past "
+        f"{HIDE_BONE_DEG:g} deg: a runaway, not a hold):",
         "",
         f"| marker | {head} |",
-        "|---|" + "---|" * len(hides),
+        "|---|" + "---|---|" * len(hides),
     ]
     for k in failing:
         cells = []
         for by in hides.values():
-            m = by.get(k)
+            r = by.get(k)
+            m = None if r is None else r.metrics
             cells.append(
                 "" if m is None else _bold(
                     f"{_mm(m.max_joint_mm)} / {_deg(m.max_bone_deg)} "
@@ -478,6 +573,7 @@ def _hidden_markers(
                     _past(m),
                 )
             )  # fmt: skip
+            cells.append(_beyond_cell(r))
         out.append(f"| {k} | " + " | ".join(cells) + " |")
     return [*out, ""]
 
@@ -505,8 +601,10 @@ def _damage_line(kind: str, length: int, group: list[DamageRow], rate: float) ->
         rec.metrics.recovery_frames / rate > RECOVERY_S
     )
     past = sum(_past(r.metrics) for r in group)
+    beyond = sum(_beyond(r) > HIDE_BONE_DEG for r in group)
     label = (
-        f"hide {length / rate:g} s ({len(group)} markers, {past} past a limit)"
+        f"hide {length / rate:g} s ({len(group)} markers, {past} past a limit, "
+        f"{beyond} beyond the hold)"
         if hide
         else f"{kind} {length} frame{'s' if length > 1 else ''}"
     )
@@ -532,6 +630,11 @@ def _damage_line(kind: str, length: int, group: list[DamageRow], rate: float) ->
         f"{_deg(t.metrics.truth_max_deg or 0.0)}{at(t)} "
         f"[{_deg(t.metrics.intact_truth_max_deg or 0.0)}]",
     ]
+    if hide:
+        h = max(group, key=_beyond)
+        cells.append(_bold(f"{_deg(_beyond(h))}{at(h)}", _beyond(h) > HIDE_BONE_DEG))
+    else:
+        cells.append("")
     return "| " + " | ".join(cells) + " |"
 
 

@@ -198,8 +198,15 @@ def test_fit_truth_bench_writes_its_tables(tmp_path: Path) -> None:
     assert "| menache | default | fit |" in text
     assert "### menache, fit: p95 / max, degrees" in text
     assert "| lhand |" in text
-    hide = re.search(r"\| hide 0\.05 s \(37 markers, (\d+) past a limit\) \|", text)
-    assert hide is not None and 0 <= int(hide.group(1)) <= 37
+    hide = re.search(
+        r"\| hide 0\.05 s \(37 markers, (\d+) past a limit, (\d+) beyond the "
+        r"hold\) \|.* \| \**(-?\d+\.\d) \((\w+)\)\** \|\n",
+        text,
+    )
+    assert hide is not None and int(hide.group(1)) <= 37 and int(hide.group(2)) <= 37
+    assert hide.group(4) in load_rig("menache").marker_names  # the worst, named
+    assert "| damage | joint mm | bone deg | new steps | NaN | recovery " in text
+    assert "beyond the hold deg |" in text
     assert "| zeros 2 frames |" in text
 
 
