@@ -17,9 +17,16 @@ detector (:mod:`~retargetd.daemon.post.stance`) found on the performer's solve.
    moved so its pivot stays on the anchor horizontally and its lowest point sits on
    the support level (the detector's, times ``k``: the floor or a step). The pivot
    passes to the other point when that one is lower by :data:`PLANT`
-   ``pivot_switch_m`` (heel-off: the foot then rolls about its ball), re-anchored
-   where it is. The vertical correction blends in over ``blend_in_s``, except that
-   the foot is never left below its support (no sink).
+   ``pivot_switch_m`` (heel-off), re-anchored where it is. On the ball the foot
+   rolls about its MTP joint (the target's Toes joint, :func:`roll_radius` above the
+   ball at rest; the ball itself for a foot without toes): what is held is that
+   joint, horizontally on the anchor and its rest height above the support, so the
+   ball, a point of the foot under it, rises and moves back as the foot pitches, as
+   a foot whose toes stay flat on the floor does (held on the floor instead, the
+   ball put the synthetic walk's foot up to 18 mm below and 6 mm ahead of the solved
+   one by toe-off: the leg ran straight and the foot dragged; docs/feet.md). The
+   vertical correction blends in over ``blend_in_s``, except that the foot is never
+   left below its support (no sink).
 3. **Release.** When contact ends, the correction left blends out over
    ``blend_out_s`` (smoothstep), so the swing foot rejoins the unplanted path.
 4. **Leg.** Analytic two-bone IK on the target's UpperLeg - LowerLeg - Foot: the knee
@@ -32,9 +39,9 @@ detector (:mod:`~retargetd.daemon.post.stance`) found on the performer's solve.
    most flexion, ``knee_max_deg``) leaves the leg straight (or at that flexion) aimed
    at it and sets the frame's ``plant_unreached`` flag; the knee is never bent
    backwards (the flexion is never below 0). On its ball (past heel-off), a foot whose
-   leg the knee's rate limit leaves longer than the hip-goal distance rolls about the
-   ball (the heel comes down, never below the ball) until the ankle is at the leg's
-   reach: aimed at the goal, the leg would push the ball into the floor (on the
+   leg the knee's rate limit leaves longer than the hip-goal distance rolls about its
+   MTP joint (the heel comes down, never below the ball) until the ankle is at the
+   leg's reach: aimed at the goal, the leg would push the ball into the floor (on the
    synthetic walk, 0.7-1.6 mm for a frame as the leg comes back into reach late in
    stance). A stance foot whose ball the lagging leg leaves below the support is
    turned toes up about the ankle until the ball is on it (the heel not below it:
@@ -157,6 +164,18 @@ def foot_points(target: Any) -> tuple[F64Array, F64Array]:
     return heel, ball
 
 
+def roll_radius(target: Any) -> F64Array:
+    """(2,) each foot's roll centre's height above its ball at rest: the Toes joint's
+    (the MTP joint, which the foot rolls about from heel-off on) height above the
+    floor; 0 for a foot without a Toes bone (it rolls about its ball)."""
+    pos = target_rest_joints(target)
+    r = np.zeros(2)
+    for s, side in enumerate(_SIDES):
+        if side + "Toes" in target.bone_names:
+            r[s] = max(float(pos[target.index(side + "Toes"), 2]), 0.0)
+    return r
+
+
 @kernel(inline="always")
 def _rot(
     q: np.ndarray, vx: float, vy: float, vz: float
@@ -211,6 +230,7 @@ def _plant_step(
     chain_len: np.ndarray,  # (2,) int64
     heel: np.ndarray,  # (2, 3)
     ball: np.ndarray,  # (2, 3)
+    roll_r: np.ndarray,  # (2,) each foot's roll centre's height above its ball
     toes: np.ndarray,  # (2,) int64: each Toes bone (child of Foot), -1 if none
     tip: np.ndarray,  # (2, 3): each Toes bone's aim (its tip), rest, world axes
     left: np.ndarray,  # (3,) the target's left at rest
@@ -249,9 +269,12 @@ def _plant_step(
         f = n - 1  # the Foot; n - 2 the LowerLeg (knee), n - 3 the UpperLeg (hip)
         hx, hy, hz = _rot(e[s, f], heel[s, 0], heel[s, 1], heel[s, 2])
         bx, by, bz = _rot(e[s, f], ball[s, 0], ball[s, 1], ball[s, 2])
+        r_ = roll_r[s]
+        mx, my, mz = _rot(e[s, f], ball[s, 0], ball[s, 1], ball[s, 2] + r_)
         ax_, ay_, az_ = x[s, f, 0], x[s, f, 1], x[s, f, 2]
         heel_x, heel_y, heel_z = ax_ + hx, ay_ + hy, az_ + hz
-        ball_x, ball_y, ball_z = ax_ + bx, ay_ + by, az_ + bz
+        ball_z = az_ + bz
+        mtp_x, mtp_y, mtp_z = ax_ + mx, ay_ + my, az_ + mz
         st = state[s]
         dt = 0.0
         if st[_S_HAS] != 0.0 and t_s > st[_S_T]:
@@ -264,7 +287,7 @@ def _plant_step(
         if contact:
             if st[_S_PREV] == 0.0:  # onset: anchor the lower point where it is
                 st[_S_PIVOT] = 0.0 if heel_z <= ball_z else 1.0
-                px, py = (heel_x, heel_y) if st[_S_PIVOT] == 0.0 else (ball_x, ball_y)
+                px, py = (heel_x, heel_y) if st[_S_PIVOT] == 0.0 else (mtp_x, mtp_y)
                 st[_S_ANX] = px + st[_S_AX]
                 st[_S_ANY] = py + st[_S_AY]
                 st[_S_AZ0] = st[_S_AZ]
@@ -278,15 +301,15 @@ def _plant_step(
                 )
                 if other_lower:  # roll onto the other point, anchored where it is
                     st[_S_PIVOT] = 1.0 - st[_S_PIVOT]
-                    px, py = (
-                        (heel_x, heel_y) if st[_S_PIVOT] == 0.0 else (ball_x, ball_y)
-                    )
+                    px, py = (heel_x, heel_y) if st[_S_PIVOT] == 0.0 else (mtp_x, mtp_y)
                     st[_S_ANX] = px + st[_S_AX]
                     st[_S_ANY] = py + st[_S_AY]
-            px, py = (heel_x, heel_y) if st[_S_PIVOT] == 0.0 else (ball_x, ball_y)
+            px, py = (heel_x, heel_y) if st[_S_PIVOT] == 0.0 else (mtp_x, mtp_y)
             st[_S_AX] = st[_S_ANX] - px
             st[_S_AY] = st[_S_ANY] - py
             need = support - lowest
+            if st[_S_PIVOT] == 1.0:  # the roll centre r above the support
+                need = max(need, support + r_ - mtp_z)
             w = _smooth(st[_S_TAU] / t_in) if t_in > 0.0 else 1.0
             st[_S_AZ] = max((1.0 - w) * st[_S_AZ0] + w * need, need)
             st[_S_PREV] = 1.0
@@ -307,7 +330,7 @@ def _plant_step(
             roll = contact and st[_S_PIVOT] == 1.0
             out |= _leg_ik(s, n, wfb, rfb, rest, chain, e, x, left, knee_max,
                            knee_step, ax_ + cx, ay_ + cy, az_ + cz, st, roll,
-                           ball_x + cx, ball_y + cy, ball_z + cz, toes[s],
+                           mtp_x + cx, mtp_y + cy, mtp_z + cz, toes[s],
                            hx - bx, hy - by, hz - bz)  # fmt: skip
         if contact:
             pitch_onto_floor(s, f, wfb, rfb, rest, chain, e, x, left, heel, ball,
@@ -562,6 +585,8 @@ class FootPlant:
         self.leg_ratio = target_leg_m(target) / performer_leg
         """Target leg length over the performer's: the root's and supports' scale."""
         self.heel, self.ball = foot_points(target)
+        self.roll_r = roll_radius(target)
+        """(2,) m: each foot's roll centre (its MTP joint) above its ball."""
         self._toes = np.full(2, -1, dtype=np.int64)
         self._tip = np.zeros((2, 3))
         for s, side in enumerate(_SIDES):
@@ -592,8 +617,8 @@ class FootPlant:
         binds the detector's own array)."""
         self._const = (
             self._rest, self._offsets, self._parents, self.chain, self.chain_len,
-            self.heel, self.ball, self._toes, self._tip, self._left, self._params,
-            self._e, self._x, self._state,
+            self.heel, self.ball, self.roll_r, self._toes, self._tip, self._left,
+            self._params, self._e, self._x, self._state,
         )  # fmt: skip
 
     def apply_pose(self, pose: Any) -> int:

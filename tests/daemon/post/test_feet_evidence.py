@@ -28,7 +28,7 @@ def measured() -> dict[str, list[dict[str, Any]]]:
     for gait in GAITS:
         res, rig, cal, take = fp.synthetic(gait, SECONDS, RATE_HZ)
         out[gait] = [
-            fp.measure(res, rig, cal, fp.leg_target(rig, cal, k), RATE_HZ, take)
+            fp.measure(res, rig, cal, fp.leg_target(rig, cal, k, take), RATE_HZ, take)
             for k in fp.LEG_SCALES
         ]
     return out

@@ -17,7 +17,7 @@ import pytest
 
 from retargetd.daemon import rotations as rot
 from retargetd.daemon.post.foot_roll import ball_roll
-from retargetd.daemon.post.plant import PLANT, FootPlant, foot_points
+from retargetd.daemon.post.plant import PLANT, FootPlant, foot_points, roll_radius
 from retargetd.daemon.retarget.retarget import default_humanoid, joint_positions_world
 from retargetd.protocols.pose_stream import FRAME_PLANT_UNREACHED
 
@@ -159,13 +159,14 @@ def test_out_of_reach_the_leg_straightens_toward_its_hold_and_is_flagged() -> No
     assert np.degrees(np.arccos(min(1.0, aim @ want))) < 0.01
 
 
-def test_a_knee_lagging_its_flexion_rolls_the_foot_about_its_ball() -> None:
+def test_a_knee_lagging_its_flexion_rolls_the_foot_about_its_mtp_joint() -> None:
     """The left foot stands on its ball, heel up 20 deg (past heel-off), when the
     hips drop 4 cm in a frame: the knee needs more flexion than ``knee_step_deg``
     allows in a frame, so for some frames the leg is longer than the hip-goal
-    distance. The foot rolls about its ball instead of the leg pushing it into the
-    floor: the ball stays where it is held (1e-9 m) and never below the floor, the
-    heel comes down but never below the ball."""
+    distance. The foot rolls about its MTP joint (the Toes joint) instead of the leg
+    pushing it into the floor: the joint stays where it is held (1e-9 m), its rest
+    height above the floor, the ball never below the floor, the heel comes down but
+    never below the ball."""
     target = default_humanoid()
     stage = FootPlant(target, 1.0, LEG_M)
     z = _on_floor_z()
@@ -175,7 +176,7 @@ def test_a_knee_lagging_its_flexion_rolls_the_foot_about_its_ball() -> None:
     # the root raised so that the pitched foot's ball is on the floor
     z += ball[0, 2] - rot.quat_rotate(heel_up, ball[0])[2]
     rest = np.asarray(target.rest_world_from_bone_quat)
-    balls, heels, knees = [], [], []
+    balls, heels, knees, mtps = [], [], [], []
     for t in range(40):
         pose = _crouch(target, 0.0, z - (0.04 if t >= 20 else 0.0))
         g = pose.world_from_bone_quat
@@ -192,13 +193,17 @@ def test_a_knee_lagging_its_flexion_rolls_the_foot_about_its_ball() -> None:
         e = rot.quat_mul(g[lf], rot.quat_conj(rest[lf]))
         balls.append(j[lf] + rot.quat_rotate(e, ball[0]))
         heels.append(j[lf] + rot.quat_rotate(e, heel[0]))
+        mtps.append(j[lt])
         knees.append(_knee_deg(target, j))
-    b, h = np.array(balls), np.array(heels)
+    b, h, m = np.array(balls), np.array(heels), np.array(mtps)
     lagged = np.diff(knees)[19:] >= PLANT["knee_step_deg"] - 1e-9
     assert lagged.sum() >= 2  # the knee was rate limited for some frames
     assert h[0, 2] - b[0, 2] > 0.03  # on the ball: heel-off
     assert b[:, 2].min() >= -1e-9
-    assert np.abs(b[12:] - b[12]).max() < 1e-9
+    assert np.abs(m[12:] - m[12]).max() < 1e-9
+    assert m[12, 2] == pytest.approx(roll_radius(target)[0], abs=1e-9)
+    assert roll_radius(target)[0] > 0.01  # the joint, not the ball, held
+    assert np.abs(b[20:, 1] - b[19, 1]).max() > 1e-4  # the ball rolls with the foot
     assert (h[:, 2] - b[:, 2]).min() >= -1e-9
     assert h[20:, 2].min() < h[19, 2] - 1e-3  # the heel came down
 
