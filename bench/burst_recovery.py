@@ -206,6 +206,16 @@ def report(result: dict[str, Any]) -> list[str]:
     return lines
 
 
+def add_datasets_option(ap: argparse.ArgumentParser) -> None:
+    """``--datasets``: the shared datasets folder (``$RETARGETD_SHARED/datasets``, else
+    ``../shared/datasets`` beside the repository)."""
+    ap.add_argument(
+        "--datasets", type=Path,
+        default=Path(os.environ.get("RETARGETD_SHARED", REPO.parent / "shared"))
+        / "datasets",
+    )  # fmt: skip
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--bursts", type=int, default=40)
@@ -214,11 +224,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--every-s", type=float, default=2.5)
     ap.add_argument("--rate-hz", type=float, default=soak.RATE_HZ)
     ap.add_argument("--dropout", type=float, default=0.10)
-    ap.add_argument(
-        "--datasets", type=Path,
-        default=Path(os.environ.get("RETARGETD_SHARED", REPO.parent / "shared"))
-        / "datasets",
-    )  # fmt: skip
+    add_datasets_option(ap)
     args = ap.parse_args(argv)
     if args.bursts < 1:
         print("error: --bursts must be at least 1", file=sys.stderr)

@@ -24,6 +24,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import fit_truth as ft
+from burst_recovery import add_datasets_option
 
 from retargetd.daemon.body.calibration import calibrate
 from retargetd.daemon.body.method import make_body_solver
@@ -116,11 +117,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--at-s", type=float, default=4.0, help="synthetic: hidden from")
     ap.add_argument("--rows", default="30,150", help="walk: hidden from these rows")
     ap.add_argument("--markers", default="", help="only these (comma-separated)")
-    ap.add_argument(
-        "--datasets", type=Path,
-        default=Path(os.environ.get("RETARGETD_SHARED", REPO.parent / "shared"))
-        / "datasets",
-    )  # fmt: skip
+    add_datasets_option(ap)
     args = ap.parse_args(argv)
     if args.seconds <= 0.0:
         print("error: --seconds must be positive", file=sys.stderr)
