@@ -308,12 +308,12 @@ def test_a_live_calibrations_file_is_written_off_the_loop_and_ctl_waits_for_it(
     ctl.start()
     try:
         _live._wait_until(lambda: begun == [1], "the calibration's write begun")
-        out = _status(live)["counters"]["frames_out"]
+        out = live.status()["counters"]["frames_out"]
         _live._wait_until(
-            lambda: _status(live)["counters"]["frames_out"] >= out + 20,
+            lambda: live.status()["counters"]["frames_out"] >= out + 20,
             "poses sent while the write hangs",
         )
-        status = _status(live)
+        status = live.status()
         assert status["calibration_state"] == "saving", status
         assert status["performers"][0]["calibration_saving"]
         assert live.daemon.calibration is not first_cal  # in use already
@@ -323,7 +323,7 @@ def test_a_live_calibrations_file_is_written_off_the_loop_and_ctl_waits_for_it(
     ctl.join(_live.WAIT_S)
     assert rc == [0], capsys.readouterr()
     assert f"calibrated on {COUNT} frames; saved {cal_path}" in capsys.readouterr().out
-    status = _status(live)
+    status = live.status()
     assert status["calibration_state"] == "calibrated"
     assert not status["performers"][0]["calibration_saving"]
     assert cal_path.read_bytes() != before
@@ -331,22 +331,15 @@ def test_a_live_calibrations_file_is_written_off_the_loop_and_ctl_waits_for_it(
     assert cli_main(_ctl_calibrate(live)) == 1
     err = capsys.readouterr().err
     assert "NOT saved" in err and "No space left" in err, err
-    status = _status(live)
+    status = live.status()
     assert status["calibration_state"] == "not_saved"
     assert status["counters"]["calibration_save_failures"] == 1
     out = status["counters"]["frames_out"]
     _live._wait_until(
-        lambda: _status(live)["counters"]["frames_out"] >= out + 10,
+        lambda: live.status()["counters"]["frames_out"] >= out + 10,
         "poses after the failed write",
     )
     load_calibration(cal_path)  # the first write's file, whole
-
-
-def _status(live: Any) -> dict[str, Any]:
-    reply = live.ctl({"cmd": "status"})
-    assert reply["ok"], reply
-    status: dict[str, Any] = reply["status"]
-    return status
 
 
 @pytest.mark.timeout(120)
@@ -390,7 +383,7 @@ def test_an_internal_error_in_the_checks_is_counted_and_the_daemon_serves_on(
     ), err
     assert "the old calibration is kept" in err[0]
     assert live.running  # the loop did not die
-    status = _status(live)
+    status = live.status()
     assert status["counters"]["calibration_failures"] == 1
     assert status["counters"]["calibrations"] == 0
     assert status["counters"]["calibrations_refused"] == 0
@@ -413,10 +406,10 @@ def test_an_internal_error_in_the_checks_is_counted_and_the_daemon_serves_on(
         vmc.pump(50)
     out = status["counters"]["frames_out"]
     _live._wait_until(
-        lambda: _status(live)["counters"]["frames_out"] >= out + 10,
+        lambda: live.status()["counters"]["frames_out"] >= out + 10,
         "poses after the failure",
     )
     monkeypatch.undo()  # the real checks: the next calibration is taken
     assert cli_main(_ctl_calibrate(live)) == 0, capsys.readouterr()
-    assert _status(live)["calibration_state"] == "calibrated"
+    assert live.status()["calibration_state"] == "calibrated"
     assert live.daemon.calibration is not first_cal and live.running

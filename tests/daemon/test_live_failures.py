@@ -31,13 +31,6 @@ from retargetd.protocols import osc_in
 from retargetd.protocols.marker_input import LabelSet
 
 
-def _status(live: lh.Live) -> dict[str, Any]:
-    reply = live.ctl({"cmd": "status"})
-    assert reply["ok"], reply
-    status: dict[str, Any] = reply["status"]
-    return status
-
-
 @pytest.mark.timeout(120)
 def test_a_pipeline_build_that_raises_is_counted_and_the_loop_serves_on(
     start_daemon: Callable[..., lh.Live],
@@ -72,27 +65,27 @@ def test_a_pipeline_build_that_raises_is_counted_and_the_loop_serves_on(
     src.announce(wait=False)
     k = 0
     deadline = time.monotonic() + lh.WAIT_S
-    while _status(live)["counters"]["pipeline_failures"] == 0:
+    while live.status()["counters"]["pipeline_failures"] == 0:
         assert time.monotonic() < deadline, "the failed build was never counted"
         src.send(rows[k % len(rows)])
         k += 1
         time.sleep(0.01)
     # The loop lives on: frames still read, answered, counted unsolved.
-    before = _status(live)["counters"]
+    before = live.status()["counters"]
     for _ in range(20):
         src.send(rows[k % len(rows)])
         k += 1
         time.sleep(0.005)
     lh._wait_until(
-        lambda: _status(live)["counters"]["frames_in"] >= before["frames_in"] + 20,
+        lambda: live.status()["counters"]["frames_in"] >= before["frames_in"] + 20,
         "the frames after the failure read",
     )
-    c = _status(live)["counters"]
+    c = live.status()["counters"]
     assert live.running
     assert c["pipeline_failures"] == 1  # not tried again for the same labels
     assert c["unsolved_failed"] >= before["unsolved_failed"] + 20
     assert c["frames_in"] == c["frames_solved"] + c["stale"] + c["unsolved"]
-    assert c["frames_out"] == 0 and _status(live)["pipelines_building"] == 0
+    assert c["frames_out"] == 0 and live.status()["pipelines_building"] == 0
     failed = [line for line in live.lines if "failed to build" in line]
     assert failed == [
         "performer (default): its pipeline for "
@@ -109,7 +102,7 @@ def test_a_pipeline_build_that_raises_is_counted_and_the_loop_serves_on(
         src.send(rows[k % len(rows)])
         k += 1
         vmc.pump(max_datagrams=50)
-    c = _status(live)["counters"]
+    c = live.status()["counters"]
     assert c["pipeline_failures"] == 1 and c["frames_out"] >= 5
     assert c["pipeline_builds"] == 1
     # A new label set whose build raises again: counted again, the loop serves.
@@ -117,12 +110,12 @@ def test_a_pipeline_build_that_raises_is_counted_and_the_loop_serves_on(
     src.label_set = LabelSet(2, (*take.labels, "EXTRA"))
     src.raw(osc_in.encode_labels(src.label_set))
     deadline = time.monotonic() + lh.WAIT_S
-    while _status(live)["counters"]["pipeline_failures"] < 2:
+    while live.status()["counters"]["pipeline_failures"] < 2:
         assert time.monotonic() < deadline, "the second failure was never counted"
         src.send(np.append(rows[k % len(rows)], [[0.0, 0.0, 0.0]], axis=0))
         k += 1
         time.sleep(0.01)
-    assert live.running and _status(live)["counters"]["pipeline_failures"] == 2
+    assert live.running and live.status()["counters"]["pipeline_failures"] == 2
 
 
 @pytest.mark.timeout(120)
@@ -162,19 +155,19 @@ def test_a_face_only_stage_build_that_raises_is_counted_and_the_loop_serves_on(
          [0.05, 0.0, 1.65]]
     )  # fmt: skip
     deadline = time.monotonic() + lh.WAIT_S
-    while _status(live)["counters"]["pipeline_failures"] == 0:
+    while live.status()["counters"]["pipeline_failures"] == 0:
         assert time.monotonic() < deadline, "the failed build was never counted"
         src.send(row)
         time.sleep(0.01)
-    before = _status(live)["counters"]["unsolved_failed"]
+    before = live.status()["counters"]["unsolved_failed"]
     for _ in range(10):
         src.send(row)
         time.sleep(0.005)
     lh._wait_until(
-        lambda: _status(live)["counters"]["unsolved_failed"] >= before + 10,
+        lambda: live.status()["counters"]["unsolved_failed"] >= before + 10,
         "the frames after the failure counted",
     )
-    c = _status(live)["counters"]
+    c = live.status()["counters"]
     assert live.running and c["pipeline_failures"] == 1
     assert c["frames_in"] == c["frames_solved"] + c["stale"] + c["unsolved"]
     failed = [line for line in live.lines if "failed to build" in line]

@@ -259,6 +259,13 @@ class Live:
         assert reply is not None, f"no control reply to {req}"
         return reply
 
+    def status(self) -> dict[str, Any]:
+        """``ctl status``'s status object (the reply asserted ok)."""
+        reply = self.ctl({"cmd": "status"})
+        assert reply["ok"], reply
+        status: dict[str, Any] = reply["status"]
+        return status
+
 
 @pytest.fixture
 def start_daemon() -> Iterator[Callable[..., Live]]:
