@@ -450,6 +450,22 @@ def test_fit_keys_parse_and_act(tmp_path: Path) -> None:
         ({"bones": {"l_shank": {"stiffness_mm": 1e9}}}, "out of range"),
         ({"bones": {"l_shank": {"stiffness_mm": float("nan")}}}, "out of range"),
         ({"bones": {"l_shank": {"stiffness_mm": "stiff"}}}, "stiffness_mm"),
+        (
+            {"bones": {"l_foot": {"stiffness_mm": 46, "stiffness_about": ["LHEE"]}}},
+            "stiffness_about: expected two of the rig.s markers",
+        ),
+        (
+            {
+                "bones": {
+                    "l_foot": {"stiffness_mm": 46, "stiffness_about": ["LHEE", "X"]}
+                }
+            },
+            "stiffness_about: expected two of the rig.s markers",
+        ),
+        (
+            {"bones": {"l_foot": {"stiffness_about": ["LHEE", "LMT1"]}}},
+            "stiffness_about: needs a stiffness_mm",
+        ),
         ({"other": 1}, "unknown key"),
     ):
         with pytest.raises(RigError, match=message):
@@ -751,6 +767,41 @@ def test_stiffness_pulls_towards_the_calibration_pose(tmp_path: Path) -> None:
     np.testing.assert_array_equal(
         default.world_from_bone_quat, results[0][1].world_from_bone_quat
     )
+
+
+def test_stiffness_about_pulls_only_the_rotation_about_its_markers_line(
+    tmp_path: Path,
+) -> None:
+    """``stiffness_about``: the pull acts on the rotation about the line through the
+    two markers alone (a foot's roll about its heel-toe line), the rotations those
+    markers see left free; two markers of another bone are the rig's error."""
+    take = _exact_take(noise_mm=0.0, seconds=1.0)
+    base = take.markers_world[take.base_pose_frames]
+    path = tmp_path / "rig.toml"
+    path.write_text(
+        EXACT_RIG.read_text()
+        + "\n[fit.bones.l_foot]\nstiffness_mm = 46\n"
+        + 'stiffness_about = ["LHEE", "LMT1"]\n'
+    )
+    rig, opts = load_fit_rig(path)
+    cal = calibrate(rig, base, take.labels)
+    model = build_fit_model(rig, cal, base, take.labels, opts)
+    b = rig.bone_names.index("l_foot")
+    i, k = (rig.marker_names.index(m) for m in ("LHEE", "LMT1"))
+    line = model.marker_local[k] - model.marker_local[i]
+    u = line / np.linalg.norm(line)
+    np.testing.assert_allclose(
+        model.prior_mat[b], 0.046**2 * np.outer(u, u), atol=1e-12
+    )
+    assert np.linalg.matrix_rank(model.prior_mat[b], tol=1e-9) == 1
+    bad = tmp_path / "bad.toml"
+    bad.write_text(path.read_text().replace('"LMT1"]', '"LKNL"]'))
+    rig_bad, opts_bad = load_fit_rig(bad)
+    with pytest.raises(
+        CalibrationError, match=r"stiffness_about.*must both ride l_foot"
+    ):
+        build_fit_model(rig_bad, calibrate(rig_bad, base, take.labels), base,
+                        take.labels, opts_bad)  # fmt: skip
 
 
 # --- kernel contract --------------------------------------------------------------
