@@ -642,17 +642,17 @@ def build_fit_model(
     for name, bopt in options.bones.items():
         b = rig.bone_names.index(name)
         dof[b] = bopt.dof
-        line = None
-        if bopt.stiffness_about:
-            i, k = (rig.marker_names.index(m) for m in bopt.stiffness_about)
+        normal = None
+        if bopt.stiffness_free_plane:
+            i, k = (rig.marker_names.index(m) for m in bopt.stiffness_free_plane)
             if weight[i] > 0.0 and weight[k] > 0.0:  # (one never seen: every rotation)
                 if bones_of[i] != b or bones_of[k] != b:
                     raise CalibrationError(
-                        f"fit.bones.{name}.stiffness_about: {bopt.stiffness_about} "
-                        f"must both ride {name}"
+                        f"fit.bones.{name}.stiffness_free_plane: "
+                        f"{bopt.stiffness_free_plane} must both ride {name}"
                     )
-                line = local[k] - local[i]
-        explicit[b] = stiffness_matrix(bopt.stiffness_mm, line)
+                normal = np.cross(local[i], local[k])  # (the origin: the joint)
+        explicit[b] = stiffness_matrix(bopt.stiffness_mm, normal)
         if name in axes:  # calibrate --rom's functional axis first, the rig's else
             hinge[b] = functional_axes.get(name, axes[name])
             if bopt.axis_markers and name not in functional_axes:
