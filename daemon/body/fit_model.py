@@ -82,6 +82,7 @@ from retargetd.daemon.body.rig_fit import (
     MarkerFitOptions,
     hinge_axes_in_bone,
     parse_fit_table,
+    stiffness_matrix,
 )
 
 __all__ = [
@@ -641,7 +642,17 @@ def build_fit_model(
     for name, bopt in options.bones.items():
         b = rig.bone_names.index(name)
         dof[b] = bopt.dof
-        explicit[b] = (1e-3 * bopt.stiffness_mm) ** 2 * np.eye(3)
+        normal = None
+        if bopt.stiffness_free_plane:
+            i, k = (rig.marker_names.index(m) for m in bopt.stiffness_free_plane)
+            if weight[i] > 0.0 and weight[k] > 0.0:  # (one never seen: every rotation)
+                if bones_of[i] != b or bones_of[k] != b:
+                    raise CalibrationError(
+                        f"fit.bones.{name}.stiffness_free_plane: "
+                        f"{bopt.stiffness_free_plane} must both ride {name}"
+                    )
+                normal = np.cross(local[i], local[k])  # (the origin: the joint)
+        explicit[b] = stiffness_matrix(bopt.stiffness_mm, normal)
         if name in axes:  # calibrate --rom's functional axis first, the rig's else
             hinge[b] = functional_axes.get(name, axes[name])
             if bopt.axis_markers and name not in functional_axes:

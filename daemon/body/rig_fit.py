@@ -17,6 +17,9 @@ twist_to = "LUS"     # hinge_twist: the twist turns about the line from the bone
                         # origin to this marker or point at the calibration pose
                         # (default: the bone's own +Y)
 stiffness_mm = 0     # pull towards the calibration pose, mm of residual per radian
+stiffness_free_plane = ["LHEE", "LTOE"]  # the pull spares the rotation about the
+                        # normal of the plane through the joint and these two
+                        # markers of the bone (default: it pulls every rotation)
 ```
 
 ``body.rig`` parses the table with :func:`parse_fit_table` into the rig's
@@ -46,6 +49,7 @@ BONE_KEYS = (
     "axis_markers",
     "twist_to",
     "stiffness_mm",
+    "stiffness_free_plane",
 )
 #: ``stiffness_mm`` at most a hinge's stiffness (FitParams.kappa_hinge: 1 m/rad);
 #: ``body.rig_model.RIG_RANGES`` lists the same range.
@@ -111,6 +115,13 @@ class BoneFitOptions:
     rig derives for it) here.
     ``stiffness_mm``: a pull of the joint towards its calibration pose, in mm of
     marker residual per radian (0: none), like OpenSim IK's coordinate tasks.
+    ``stiffness_free_plane``: two markers riding the bone: the pull spares the
+    rotation about the normal of the plane through the joint and the two markers
+    where the calibration placed them (the one both markers see at their full
+    lever: a foot's plantarflexion, with its heel and toe markers), and acts on the
+    rotations about the axes in that plane (the foot's roll about its heel-toe line,
+    which those markers cannot see, and its turn about the vertical, which only the
+    toe marker sees) (empty: it pulls every rotation).
     """
 
     dof: str = "ball"
@@ -120,6 +131,7 @@ class BoneFitOptions:
     axis_markers: tuple[str, ...] = ()
     twist_to: str = ""
     stiffness_mm: float = 0.0
+    stiffness_free_plane: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -277,6 +289,21 @@ def parse_fit_table(
             )
         if name in roots and stiff:
             raise fail(f"{key}.stiffness_mm", "a root bone is free (no stiffness)")
+        about = spec.get("stiffness_free_plane", [])
+        if (
+            not isinstance(about, list)
+            or len(about) not in (0, 2)
+            or not all(isinstance(m, str) and m in markers for m in about)
+            or (about and about[0] == about[1])
+        ):
+            raise fail(
+                f"{key}.stiffness_free_plane",
+                f"expected two of the rig's markers: {about!r}",
+            )
+        if about and not stiff:
+            raise fail(
+                f"{key}.stiffness_free_plane", "needs a stiffness_mm to act with"
+            )
         from_bend = spec.get("axis_from_bend_deg", 0.0)
         if "axis_from_bend_deg" in spec and dof not in HINGES:
             raise fail(f"{key}.axis_from_bend_deg", "only a hinge has an axis")
@@ -316,6 +343,21 @@ def parse_fit_table(
         out_b[name] = BoneFitOptions(
             dof=dof, axis=axis, axis_in=axis_in, stiffness_mm=float(stiff),
             axis_from_bend_deg=float(from_bend), axis_markers=tuple(pair),
-            twist_to=twist_to,
+            twist_to=twist_to, stiffness_free_plane=tuple(about),
         )  # fmt: skip
     return FitOptions(markers=out_m, bones=out_b)
+
+
+def stiffness_matrix(stiffness_mm: float, normal: F64Array | None) -> F64Array:
+    """A joint's pull towards its calibration pose (m^2 / rad^2, in the chart of its
+    bone's rest axes: ``fit_model.FitModel.prior_mat``): ``stiffness_mm`` squared in
+    metres on every rotation, or on every rotation but the one about ``normal`` (the
+    normal of the plane through the joint and the bone's ``stiffness_free_plane``
+    markers, in its rest axes) where one is given and the calibration placed the
+    joint and the markers off one line."""
+    k2 = (1e-3 * stiffness_mm) ** 2
+    n = float(np.linalg.norm(normal)) if normal is not None else 0.0
+    if not (math.isfinite(n) and n > 0.0):
+        return k2 * np.eye(3)
+    u = np.asarray(normal, dtype=np.float64) / n
+    return k2 * (np.eye(3) - np.outer(u, u))

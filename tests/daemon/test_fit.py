@@ -33,6 +33,7 @@ from retargetd.daemon.body.fit_model import (
     parse_fit_options,
 )
 from retargetd.daemon.body.rig import Rig, RigError, load_rig
+from retargetd.daemon.body.rig_fit import stiffness_matrix
 from retargetd.daemon.body.solve import BodySolver
 from retargetd.daemon.body.solve_fit import (
     FLAG_HELD,
@@ -450,6 +451,29 @@ def test_fit_keys_parse_and_act(tmp_path: Path) -> None:
         ({"bones": {"l_shank": {"stiffness_mm": 1e9}}}, "out of range"),
         ({"bones": {"l_shank": {"stiffness_mm": float("nan")}}}, "out of range"),
         ({"bones": {"l_shank": {"stiffness_mm": "stiff"}}}, "stiffness_mm"),
+        (
+            {
+                "bones": {
+                    "l_foot": {"stiffness_mm": 46, "stiffness_free_plane": ["LHEE"]}
+                }
+            },
+            "stiffness_free_plane: expected two of the rig.s markers",
+        ),
+        (
+            {
+                "bones": {
+                    "l_foot": {
+                        "stiffness_mm": 46,
+                        "stiffness_free_plane": ["LHEE", "X"],
+                    }
+                }
+            },
+            "stiffness_free_plane: expected two of the rig.s markers",
+        ),
+        (
+            {"bones": {"l_foot": {"stiffness_free_plane": ["LHEE", "LMT1"]}}},
+            "stiffness_free_plane: needs a stiffness_mm",
+        ),
         ({"other": 1}, "unknown key"),
     ):
         with pytest.raises(RigError, match=message):
@@ -751,6 +775,52 @@ def test_stiffness_pulls_towards_the_calibration_pose(tmp_path: Path) -> None:
     np.testing.assert_array_equal(
         default.world_from_bone_quat, results[0][1].world_from_bone_quat
     )
+
+
+def test_stiffness_free_plane_spares_the_rotation_in_its_markers_plane(
+    tmp_path: Path,
+) -> None:
+    """``stiffness_free_plane``: the pull spares the rotation about the normal of the
+    plane through the joint and the two markers (a foot's plantarflexion, which its
+    heel and toe markers see at their full lever) and acts on the two rotations in
+    that plane (the roll about the heel-toe line, the turn about the vertical) as on
+    every rotation without the key; two markers of another bone are the rig's
+    error."""
+    take = _exact_take(noise_mm=0.0, seconds=1.0)
+    base = take.markers_world[take.base_pose_frames]
+    path = tmp_path / "rig.toml"
+    path.write_text(
+        EXACT_RIG.read_text()
+        + "\n[fit.bones.l_foot]\nstiffness_mm = 46\n"
+        + 'stiffness_free_plane = ["LHEE", "LMT1"]\n'
+    )
+    rig, opts = load_fit_rig(path)
+    cal = calibrate(rig, base, take.labels)
+    model = build_fit_model(rig, cal, base, take.labels, opts)
+    b = rig.bone_names.index("l_foot")
+    i, k = (rig.marker_names.index(m) for m in ("LHEE", "LMT1"))
+    heel, toe = model.marker_local[i], model.marker_local[k]
+    normal = np.cross(heel, toe)
+    normal /= np.linalg.norm(normal)
+    pull = model.prior_mat[b]
+    assert np.linalg.matrix_rank(pull, tol=1e-9) == 2
+    np.testing.assert_allclose(pull @ normal, 0.0, atol=1e-12)  # spared
+    line = (toe - heel) / np.linalg.norm(toe - heel)  # the roll: pulled in full
+    np.testing.assert_allclose(pull @ line, 0.046**2 * line, atol=1e-12)
+    third = np.cross(normal, line)  # the turn in the plane: pulled in full
+    np.testing.assert_allclose(pull @ third, 0.046**2 * third, atol=1e-12)
+    # the joint on the markers' line: no plane, the pull on every rotation
+    np.testing.assert_allclose(
+        stiffness_matrix(46.0, np.zeros(3)), 0.046**2 * np.eye(3), atol=1e-15
+    )
+    bad = tmp_path / "bad.toml"
+    bad.write_text(path.read_text().replace('"LMT1"]', '"LKNL"]'))
+    rig_bad, opts_bad = load_fit_rig(bad)
+    with pytest.raises(
+        CalibrationError, match=r"stiffness_free_plane.*must both ride l_foot"
+    ):
+        build_fit_model(rig_bad, calibrate(rig_bad, base, take.labels), base,
+                        take.labels, opts_bad)  # fmt: skip
 
 
 # --- kernel contract --------------------------------------------------------------
