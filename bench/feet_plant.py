@@ -70,7 +70,11 @@ from retargetd.daemon.body.method import make_body_solver
 from retargetd.daemon.body.rig import load_rig
 from retargetd.daemon.post import plant as plant_mod
 from retargetd.daemon.post.plant import PLANT, FootPlant, foot_points, performer_leg_m
-from retargetd.daemon.post.stance import SUPPORT_COLUMN, StanceDetector
+from retargetd.daemon.post.stance import (
+    CONTACT_COLUMN,
+    SUPPORT_COLUMN,
+    take_stance_states,
+)
 from retargetd.daemon.retarget.retarget import Retargeter, default_humanoid
 from retargetd.daemon.retarget.skeleton import TargetSkeleton
 from retargetd.daemon.synth import performer as pf
@@ -176,7 +180,12 @@ def run_modes(
     plant = FootPlant(target, rt.root_scale, leg)
     scaled = FootPlant(target, rt.root_scale, leg)
     no_contact = np.zeros((2, 4))
-    det = StanceDetector(rig, cal)
+    # As ``solve --plant-feet`` (cli/post_io.retarget_solve): the detector over the
+    # whole take, each contact's support the level it settled on.
+    states = take_stance_states(
+        rig, cal, np.ascontiguousarray(res.root_pos, dtype=np.float64),
+        np.ascontiguousarray(res.world_from_bone_quat, dtype=np.float64), rate_hz,
+    )  # fmt: skip
     n_frames, n = len(res.root_pos), len(target.bone_names)
     out: dict[str, Any] = {
         m: {"wfb": np.empty((n_frames, n, 4)), "root": np.empty((n_frames, 3))}
@@ -188,10 +197,8 @@ def run_modes(
     pose = rt.new_pose()
     for t in range(n_frames):
         frame = _Frame(res, t)
-        bits = det.update(frame.root_pos, frame.world_from_bone_quat,
-                          1.0 / rate_hz if t else 0.0)  # fmt: skip
-        contact[t] = (bool(bits & 1 << 25), bool(bits & 1 << 26))
-        support[t] = det.state[:, SUPPORT_COLUMN]
+        contact[t] = states[t, :, CONTACT_COLUMN] != 0.0
+        support[t] = states[t, :, SUPPORT_COLUMN]
         for mode in ("free", "scaled", "plant"):
             rt.apply(frame, pose)  # type: ignore[arg-type]
             if mode == "scaled":
@@ -202,7 +209,7 @@ def run_modes(
             elif mode == "plant":
                 flags[t] = plant.apply(
                     pose.world_from_bone_quat, pose.rest_from_bone_quat,
-                    pose.root_pos, pose.hips_pos, det.state, t / rate_hz,
+                    pose.root_pos, pose.hips_pos, states[t], t / rate_hz,
                 )  # fmt: skip
             out[mode]["wfb"][t] = pose.world_from_bone_quat
             out[mode]["root"][t] = pose.root_pos

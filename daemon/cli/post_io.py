@@ -265,7 +265,9 @@ def retarget_solve(
     (:func:`retargetd.daemon.post.pivot.spine_stage`), then, with ``feet = "plant"``,
     the same :class:`~retargetd.daemon.post.plant.FootPlant`
     (:func:`retargetd.daemon.live.send.plant_stage`) fed by the stance detector run
-    on ``stance_solve`` (the solve before any post stage, as live).
+    on ``stance_solve`` (the solve before any post stage, as live), each contact's
+    support the level it settled on over the whole contact
+    (:func:`~retargetd.daemon.post.stance.take_stance_states`; live, the level so far).
 
     Args:
         solve: the (processed) :class:`~retargetd.daemon.body.solve.BodySolve`.
@@ -291,7 +293,7 @@ def retarget_solve(
 
     from retargetd.daemon.post.pivot import spine_stage
     from retargetd.daemon.post.plant import plant_stage
-    from retargetd.daemon.post.stance import StanceDetector
+    from retargetd.daemon.post.stance import StanceDetector, take_stance_states
     from retargetd.daemon.retarget.retarget import (
         Retargeter,
         TargetSkeleton,
@@ -320,6 +322,11 @@ def retarget_solve(
     if plant is not None and not rate_hz > 0.0:
         raise UsageError("feet = 'plant': the take's frame rate is needed")
     src = solve if stance_solve is None else stance_solve
+    if plant is not None:  # the whole take known: each support settled per contact
+        states = take_stance_states(
+            rig, calibration, np.ascontiguousarray(src.root_pos, dtype=np.float64),
+            np.ascontiguousarray(src.world_from_bone_quat, dtype=np.float64), rate_hz,
+        )  # fmt: skip
     out = rt.new_pose()
     n_frames, n = len(solve.world_from_bone_quat), len(target.bone_names)
     wfb, rfb = np.empty((n_frames, n, 4)), np.empty((n_frames, n, 4))
@@ -335,11 +342,8 @@ def retarget_solve(
         if spine is not None:
             spine.apply(out.world_from_bone_quat, out.rest_from_bone_quat)
         if plant is not None:
-            stance.update(
-                np.ascontiguousarray(src.root_pos[k], dtype=np.float64),
-                np.ascontiguousarray(src.world_from_bone_quat[k], dtype=np.float64),
-                1.0 / rate_hz if k else 0.0,
-            )
+            plant.stance_state = states[k]
+            plant.stance_clock[0] = k / rate_hz
             plant_flags[k] = plant.apply_pose(out)
         wfb[k], rfb[k], root[k] = (
             out.world_from_bone_quat,

@@ -36,7 +36,14 @@ Contact (with hysteresis: two speeds, after the foot-velocity algorithms):
   ``still_speed_m_s`` for ``still_s`` at any height (a foot set down slowly, or
   landing from a flight);
 * off when no point is both slower than ``off_speed_m_s`` and within ``near_m``, and the
-  foot is not still.
+  foot is not still; or when it *lifts off*: a foot on its support turns about its
+  lowest point, which stays on it, so that point rising faster than
+  ``still_speed_m_s`` (frame to frame) while more than ``heel_rise_m`` above the
+  support has left it. A slow toe-off (stair ascent and descent, a run's first
+  strides) reaches Bonci's foot-off speed only on the 3rd-4th frame after the toe
+  leaves (synthetic stair ascent at 120 Hz: the forefoot at 0.21, 0.58, 0.93, 1.10
+  m/s in the four frames after), its lowest point 11 mm up and rising at 0.9 m/s on
+  the 3rd.
 
 Support. A contact that starts at another level (landed, or stopped) takes the level
 of the foot's lowest point then; while the foot is still it follows that point as the
@@ -47,6 +54,19 @@ ahead of the roll's axis dips below its standing height (the PiG walk's forefoot
 6.6 mm) without the support moving. A level within ``near_m`` of the calibration's floor
 is the floor (0): the solved foot's standing height wanders a few mm with the pose
 (-2.5 to +4 mm on the synthetic walk), the floor's height is known.
+
+Support, offline. Where the whole take is known (``solve --plant-feet`` and the other
+offline commands, ``cli/post_io.retarget_solve``), each contact's support is, the
+whole contact long, the level the detector had settled on by its last frame
+(:func:`settled_support`): the foot's evidence over the whole contact rather than its
+landing frame. The solved foot's height carries the solve's error of the moment, which
+is largest with the thigh flexed: on the synthetic stair ascent (Plug-in Gait), the
+regression hip joint centre 12 mm below the performer's puts the solved foot 2.9 mm
+below the step at landing (thigh flexed) and 0.1 mm below it once settled, the thigh
+near the calibration's standing pose; live, the planted foot stands at the landing's
+level until the support follows it up (2.9 mm below the step at most there). The
+contact itself is the live detector's, so offline and live differ only in a support
+off the floor that moved during its contact.
 
 Known limits: a foot held still in the air for longer than ``still_s`` (or, while the
 other foot stands, braked to a stop there) reads as a foot on a support (the feet alone
@@ -101,9 +121,10 @@ STANCE: dict[str, float] = {
     # Low-pass of the stillness speed, Hz: Winter's ~6 Hz for gait kinematics
     # (Winter 2009, Biomechanics and Motor Control of Human Movement, 4th ed., ch. 2).
     "cutoff_hz": 6.0,
-    # Heel-off: the heel this far above the foot's lowest point and rising. The
-    # plant's pivot switch (post/plant.py PLANT pivot_switch_m, a quarter of near_m):
-    # above the solved foot's rocking on a flat floor, far below a heel-off's rise.
+    # Heel-off: the heel this far above the foot's lowest point and rising; and
+    # lift-off: the lowest point this far above the support and rising. The plant's
+    # pivot switch (post/plant.py PLANT pivot_switch_m, a quarter of near_m): above
+    # the solved foot's rocking on a flat floor, far below a heel-off's rise.
     "heel_rise_m": 0.01,
 }
 _PARAMS = (
@@ -238,6 +259,7 @@ def _step(
         heel = n_pts[s] - 1  # the heel is the last point (_Plan)
         heel_level = 0.0
         heel_vz = 0.0
+        lowest_vz = 0.0
         for i in range(n_pts[s]):
             j = pt_link[s, i]
             b = chain[s, j]
@@ -270,7 +292,8 @@ def _step(
             v = vel[s, i]
             slowest = min(slowest, math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]))
             level = pz - rest_z[s, i]
-            lowest = min(lowest, level)
+            if level < lowest:
+                lowest, lowest_vz = level, vz
             if i == heel:
                 heel_level, heel_vz = level, vz
             if abs(level - support) < near_m:
@@ -288,6 +311,12 @@ def _step(
         # held by the near rule (hysteresis), else on by it, or landed on a new
         # level while the other foot stands
         on = still or (any_hold if was else any_on or (landed and stood[1 - s]))
+        # Lift-off: a foot on its support turns about its lowest point, which stays
+        # on it; that point rising, faster than a stationary point moves
+        # (still_v), and above the support by more than the solved foot rocks on a
+        # flat floor (rise_m) has left it, whatever the other rules hold.
+        if was and lowest_vz > still_v and lowest - support > rise_m:
+            on = False
         # The support: the calibration's floor where the foot stands within near_m
         # of it, else the level of its lowest point (a step, a riser).
         here = 0.0 if abs(lowest) < near_m else lowest
@@ -411,4 +440,39 @@ def foot_contact(
         out[t, 1] = bool(bits & RIGHT)
         if support is not None:
             support[t] = det.state[:, _SUPPORT]
+    return out
+
+
+def settled_support(contact: np.ndarray, support: np.ndarray) -> F64Array:
+    """(T, 2) each foot's support level, per contact run the level the detector had
+    settled on by the run's last frame (the contact's evidence as a whole, module
+    docstring "Support, offline"); as ``support`` outside contact. ``contact``
+    (T, 2) bool and ``support`` (T, 2) metres are :func:`foot_contact`'s."""
+    out = np.array(support, dtype=np.float64)
+    for s in range(2):
+        d = np.diff(np.concatenate([[0], contact[:, s].astype(np.int8), [0]]))
+        for a, b in zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1), strict=True):
+            out[a:b, s] = support[b - 1, s]
+    return out
+
+
+def take_stance_states(
+    rig: Rig,
+    calibration: Calibration,
+    root_pos: F64Array,
+    world_from_bone_quat: F64Array,
+    rate_hz: float,
+) -> F64Array:
+    """(T, 2, 5) per frame of a whole take, the :attr:`StanceDetector.state` a later
+    stage reads (:data:`CONTACT_COLUMN`, :data:`SUPPORT_COLUMN`; the other columns
+    0): the live detector's contact, with the support of each contact settled over
+    the whole contact (:func:`settled_support`). The offline plant's input
+    (``cli/post_io.retarget_solve``), where the take is known in full."""
+    support = np.zeros((len(root_pos), 2))
+    contact = foot_contact(
+        rig, calibration, root_pos, world_from_bone_quat, rate_hz, support
+    )
+    out = np.zeros((len(root_pos), 2, 5))
+    out[:, :, CONTACT_COLUMN] = contact
+    out[:, :, SUPPORT_COLUMN] = settled_support(contact, support)
     return out

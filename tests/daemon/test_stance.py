@@ -26,7 +26,11 @@ from retargetd.daemon import rotations as rot
 from retargetd.daemon.body.calibration import calibrate
 from retargetd.daemon.body.method import make_body_solver
 from retargetd.daemon.body.rig import load_rig, shipped_rigs
-from retargetd.daemon.post.stance import StanceDetector, foot_contact
+from retargetd.daemon.post.stance import (
+    StanceDetector,
+    foot_contact,
+    settled_support,
+)
 from retargetd.daemon.synth import performer as pf
 from retargetd.daemon.synth.skeleton import make_skeleton
 from retargetd.daemon.validate.limits import JOINT_LIMITS_DEG
@@ -226,3 +230,23 @@ def test_pig_walk_against_vicon_gait_events(tmp_path: pytest.TempPathFactory) ->
         f"max {err.max():.0f} ms"
     )
     assert err.size >= 8 and err.max() <= 80.0
+
+
+def test_settled_support_is_each_contacts_last_level() -> None:
+    """Offline (``solve --plant-feet``), each contact's support is the level the
+    detector had settled on by its last frame, the whole contact long; the frames
+    outside contact keep the detector's level."""
+    contact = np.array(
+        [[0, 1], [1, 1], [1, 1], [1, 0], [0, 0], [1, 1], [1, 1]], dtype=bool
+    )
+    support = np.array(
+        [[0.5, 0.10], [0.20, 0.12], [0.21, 0.13], [0.22, 0.14], [0.3, 0.0],
+         [0.40, 0.0], [0.41, 0.02]]
+    )  # fmt: skip
+    got = settled_support(contact, support)
+    want = np.array(
+        [[0.5, 0.13], [0.22, 0.13], [0.22, 0.13], [0.22, 0.14], [0.3, 0.0],
+         [0.41, 0.02], [0.41, 0.02]]
+    )  # fmt: skip
+    np.testing.assert_array_equal(got, want)
+    assert support[1, 0] == 0.20  # the input is left as it was

@@ -2,10 +2,11 @@
 (``synth/gait.py``: the level walk, the run, stair ascent and descent, 8 s at 120 Hz,
 Plug-in Gait markers) retargeted onto legs 0.8x, 1x and 1.25x the performer's with
 ``feet = "plant"`` (``bench/feet_plant.py``'s measures, the table in
-``docs/feet.md``). Each criterion of the issue is one test per gait; where the plant
-or the detector does not meet it yet the case is an expected failure (strict: it
-fails the suite once it passes, so the marks follow the code), with the measured
-figure in its reason."""
+``docs/feet.md``), offline as ``solve --plant-feet`` runs it (each contact's support
+settled over the whole contact, ``post/stance.py``). Each criterion of the issue is
+one test per gait; where the plant or the detector does not meet one, mark the case
+an expected failure (strict, so the mark follows the code) with the measured figure
+in its reason."""
 
 from __future__ import annotations
 
@@ -34,15 +35,8 @@ def measured() -> dict[str, list[dict[str, Any]]]:
     return out
 
 
-def _known(gait: str, why: str) -> Any:
-    return pytest.param(gait, marks=pytest.mark.xfail(strict=True, reason=why))
-
-
 @pytest.mark.timeout(600)
-@pytest.mark.parametrize(
-    "gait",
-    GAITS,
-)
+@pytest.mark.parametrize("gait", GAITS)
 def test_planted_stance_skates_at_most_2_mm(measured: Any, gait: str) -> None:
     """Skate on the target with the plant: the p95 over contact frames of the
     horizontal travel of the foot's floor point that moved least, <= 2 mm (at
@@ -53,26 +47,7 @@ def test_planted_stance_skates_at_most_2_mm(measured: Any, gait: str) -> None:
 
 
 @pytest.mark.timeout(600)
-@pytest.mark.parametrize(
-    "gait",
-    [
-        "level_walk",
-        "run",
-        _known(
-            "stair_ascent",
-            "sinks 2.4 / 2.9 / 3.7 mm (legs 0.8 / 1 / 1.25x): the support is where "
-            "the solved foot stopped, below the truth's step; traced before the "
-            "ankle markers moved and the ascent's foot went flat in stance: the solved "
-            "ankle is 3 mm below the truth's early in stance on a step (0.15 mm "
-            "standing): Plug-in Gait's hip joint centre, from its pelvis-marker "
-            "regression, is 12 mm below the performer's (thigh 416.6 mm against "
-            "428.7), so with the thigh flexed t the ankle is about 12.1 (1 - cos t) "
-            "mm low (45 deg early in stance: 3.6 predicted, 2.7-2.9 measured); "
-            "the markers are exact (noise 0), the foot model is not the cause",
-        ),
-        "stair_descent",
-    ],
-)
+@pytest.mark.parametrize("gait", GAITS)
 def test_planted_feet_do_not_sink(measured: Any, gait: str) -> None:
     """No penetration: a contact foot's lowest point (heel, ball, toe tip) never
     more than 1 mm below the truth's floor or step (times the leg ratio)."""
@@ -99,32 +74,7 @@ def test_swing_stays_on_the_unplanted_path(measured: Any, gait: str) -> None:
 
 
 @pytest.mark.timeout(600)
-@pytest.mark.parametrize(
-    "gait",
-    [
-        "level_walk",
-        _known(
-            "run",
-            "1 of 33 events 3 frames late: the first stance's release (left foot, the "
-            "truth's frame 287, 1.4 s into the run's 2 s ramp, its cadence still "
-            "rising); the other 32 within 1 frame (onsets and releases 1 frame late)",
-        ),
-        _known(
-            "stair_ascent",
-            "releases 3 frames late (6 of 14 events; onsets 1): at the truth's "
-            "toe-off the solved ball (under the foot's aim; legs 1x) moves 0.26, 0.60, "
-            "0.96, 1.13 m/s in that frame and the next three, under Bonci's 1.0 m/s "
-            "foot-off speed until the 3rd (level walk: past it the frame after); "
-            "the synthetic foot's speed after a stair toe-off is not checked against "
-            "people's (no stair foot speeds at hand)",
-        ),
-        _known(
-            "stair_descent",
-            "releases 3 frames late (6 of 14 events; onsets 1): the slow toe-off "
-            "under Bonci's 1.0 m/s foot-off speed",
-        ),
-    ],
-)
+@pytest.mark.parametrize("gait", GAITS)
 def test_contact_events_within_2_frames_of_the_truth(measured: Any, gait: str) -> None:
     """The stance detector's contact onsets and releases within 2 frames (17 ms)
     of the synthetic truth's, from the first heel strike on."""
