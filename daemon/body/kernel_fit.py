@@ -395,14 +395,20 @@ def fit_one_t(
             predict(m, s)
             continuity_weights(params, sc, sc[C_GAP])
             hold_priors(m, s)
-            if sc[C_GAP] <= 1.0:
+            if sc[C_GAP] <= 1.0 and have[0] >= 2:
                 # hidden markers are measured on the prediction only when it is one:
                 # after a gap the prediction is the last explained pose held (no
                 # velocity is known across it), where the body was gap frames ago,
                 # root included; measured there they would pull the fit back to it
                 # as hard as seen markers and gate out the markers that disagree
                 # (the burst replay, bench/burst_recovery.py: an arm 25-49 deg off
-                # with its seen markers rejected). The holds, parent-relative, stay.
+                # with its seen markers rejected). The same holds one frame later:
+                # the first explained frame after a gap has no velocity either
+                # (predict holds it), so the second is predicted where the body was
+                # a frame ago, and the velocity of the next ones starts from that
+                # lag (the replay: a hidden knee marker measured 8 -> 36 mm from
+                # where it was, the thigh turned 8 deg against its seen marker).
+                # The holds, parent-relative, stay.
                 virtual_markers(m, s)
         iters, _conv, cost = _fit_phases(m, s)
         c_kept = False
