@@ -344,6 +344,9 @@ class CheckResult:
         markers blamed, for the residual checks)."""
         v = np.where(np.isfinite(self.values), self.values, -np.inf)
         worst = np.argsort(-v)[:n_worst]
+        # NaN: a frame the check does not apply to (a foot in no contact, say); one
+        # with none it applies to reads as an empty check, not as a NaN.
+        known = self.values[~np.isnan(self.values)]
         blamed = {} if self.markers is None else {"markers": dict(self.markers)}
         return blamed | {
             "threshold": self.threshold,
@@ -352,8 +355,8 @@ class CheckResult:
             "first_flagged": (
                 int(np.flatnonzero(self.flagged)[0]) if self.n_flagged else None
             ),
-            "max": float(np.nanmax(self.values)) if self.values.size else 0.0,
-            "median": float(np.nanmedian(self.values)) if self.values.size else 0.0,
+            "max": float(known.max()) if known.size else 0.0,
+            "median": float(np.median(known)) if known.size else 0.0,
             "worst_frames": [int(i) for i in worst],
             "worst_values": [float(self.values[i]) for i in worst],
             "transient_frames": [int(i) for i in self.transients],

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import functools
 import json
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -21,7 +22,12 @@ from retargetd.daemon.body.calibration import calibrate
 from retargetd.daemon.body.rig import load_rig
 from retargetd.daemon.body.solve import BodySolver
 from retargetd.daemon.cli.validate import stance_by_bone
-from retargetd.daemon.validate.checks import THRESHOLDS, fit_pairs, validate_take
+from retargetd.daemon.validate.checks import (
+    THRESHOLDS,
+    CheckResult,
+    fit_pairs,
+    validate_take,
+)
 from retargetd.daemon.validate.model import build_model, skeleton_from_calibration
 from retargetd.daemon.validate.skate import stance_core
 from retargetd.replay.takes import load_take
@@ -168,3 +174,18 @@ def test_cli_report_carries_the_skate_check(
     assert skate["frames_flagged"] == 0 and skate["unit"] == "m/s"
     assert 0.0 < skate["max"] <= THRESHOLDS["foot_skate_m_s"]
     assert "foot_skate" in (report / "report.txt").read_text()
+
+
+def test_a_check_with_no_frame_it_applies_to_summarises_as_empty() -> None:
+    """A take with no detected stance leaves the skate check all NaN (the frames it
+    does not apply to): its summary reads as an empty check, max and median 0, with
+    no NumPy warning (``validate --frames 120:240`` of the synthetic default take
+    stopped on "All-NaN slice encountered", exit 3)."""
+    res = CheckResult("foot_skate", np.full(12, np.nan), 0.1, "m/s")
+    res.flagged = np.zeros(12, dtype=bool)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        s = res.summary()
+    assert s["max"] == 0.0 and s["median"] == 0.0 and s["frames_flagged"] == 0
+    res.values[3] = 0.4  # one frame it applies to: that frame's value, NaN ignored
+    assert res.summary()["max"] == 0.4
