@@ -229,6 +229,13 @@ def _print_observability(
         explicit = rig.fit.bones.get(obs.bone)
         stiff = explicit.stiffness_mm if explicit is not None else 0.0
         note = f"; the rig's stiffness {stiff:g} mm/rad" if stiff else ""
+        spared = _spared_axis(model, explicit.stiffness_free_plane if explicit else ())
+        if stiff and spared is not None:
+            note += (
+                f" on every rotation but the one about [{spared[0]:+.2f}, "
+                f"{spared[1]:+.2f}, {spared[2]:+.2f}] (the normal of the plane "
+                f"through the joint, {' and '.join(explicit.stiffness_free_plane)})"
+            )
         out(f"  {obs.bone} ({obs.dof}{note}): {obs.describe()}\n")
         out(f"      markers riding it: {' '.join(riders) or '(none)'}\n")
         twist = model.twist_axis[rig.bone_names.index(obs.bone)]
@@ -244,6 +251,9 @@ def _print_observability(
             "dof": obs.dof,
             "markers": riders,
             "stiffness_mm": stiff,
+            "stiffness_spares_axis": (
+                None if spared is None else [round(float(v), 4) for v in spared]
+            ),
             "twist_axis": [round(float(v), 4) for v in twist],
             "rotations": [
                 {
@@ -263,6 +273,22 @@ def _print_observability(
         "prior_stiffness_mm_per_rad": round(lever_min, 3),
         "bones": bones,
     }
+
+
+def _spared_axis(model: Any, plane: tuple[str, ...]) -> Any:
+    """The unit axis a bone's ``stiffness_free_plane`` spares, in its axes (the
+    normal of the plane through the joint and the two markers, as ``fit_model``
+    builds the pull), or None where there is none or the points are collinear."""
+    import numpy as np
+
+    if len(plane) != 2 or not all(m in model.marker_names for m in plane):
+        return None
+    i, k = (model.marker_names.index(m) for m in plane)
+    if model.marker_weight[i] <= 0.0 or model.marker_weight[k] <= 0.0:
+        return None
+    normal = np.cross(model.marker_local[i], model.marker_local[k])
+    n = float(np.linalg.norm(normal))
+    return normal / n if math.isfinite(n) and n > 0.0 else None
 
 
 def _check_take(

@@ -93,7 +93,22 @@ def test_rig_check_prints_what_the_markers_observe(
                 assert pull >= fit_observe.PRIOR_STIFFNESS * 0.99, (name, pull)
     if rig_name == "plug-in-gait":  # its spine's twist, which the chest carries
         assert any(n == "spine" and abs(u[1]) > 0.9 for n, u in held), held
+        # the feet's pull spares the plantarflexion: rig check names the axis the
+        # model's stiffness leaves free (the automatic prior aside: both observed)
+        for foot in ("lfoot", "rfoot"):
+            entry = obs["bones"][foot]
+            spared = np.asarray(entry["stiffness_spares_axis"])
+            assert abs(np.linalg.norm(spared) - 1.0) < 1e-3, entry
+            b = rig.bone_names.index(foot)
+            k2 = (1e-3 * entry["stiffness_mm"]) ** 2
+            assert spared @ model.prior_mat[b] @ spared < 1e-3 * k2, foot
+            other = np.cross(spared, [1.0, 0.0, 0.0])
+            other /= np.linalg.norm(other)
+            assert other @ model.prior_mat[b] @ other >= 0.99 * k2, foot
     else:  # menache's neck twist, seen by C1 with the neck joints inside the neck
+        assert all(e["stiffness_spares_axis"] is None for e in obs["bones"].values()), (
+            "menache has no stiffness_free_plane"
+        )
         # (menache.toml, LONECK: 8 mm/rad with them behind it, at d = 0)
         twist = [
             r
