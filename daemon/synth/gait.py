@@ -37,6 +37,10 @@ toe-off); this module places the body so that no foot slides or sinks
   root is eased over the push-off onto a ballistic path (gravity alone) whose
   take-off velocity lands it on time, and passes to the new stance foot's placement
   over :data:`LOAD_S`.
+- **Swing.** A foot swinging from one support to a strike on the same level clears
+  it by :data:`SWING_CLEARANCE_M` at mid-swing (the minimum toe clearance; the
+  inverse kinematics raises it where the joint angles would not, as in a ramp's
+  first strides).
 
 The truth then holds where each foot is in contact (``foot_contact``: driving or
 held, the held ankle within :data:`REACH_TOL_M` of its goal) and on which support
@@ -74,6 +78,14 @@ LAND_S = 0.15
 REACH_FRACTION = 0.99
 #: A held ankle this far from its goal has let go of its support (metres).
 REACH_TOL_M = 3e-3
+#: A swing foot between two supports on one level clears it by at least this in
+#: mid-swing (metres): the minimum toe clearance, 1.29 +- 0.45 cm (Winter 1992, Phys
+#: Ther 72:45-53). The floor it sets rises as sin^2 from 0 at toe-off to this at
+#: mid-swing and back to 0 at the strike (no faster than the foot leaves and meets
+#: the floor), so a swing that clears it anyway is unchanged; without it the joint
+#: angles of a ramp's first strides (scaled down with the cadence) left the swing
+#: foot on the floor, dragged along it (the run's first swing: 63 mm).
+SWING_CLEARANCE_M = 0.0129
 
 _DRIVE, _LOCK, _RELEASE, _SWING = 0, 1, 2, 3
 
@@ -394,6 +406,7 @@ def plant_gait(
             if in_air[t, f]:
                 least = support_out[t, f] - lowest[t, f]
                 goal[t, f, 2] = max(goal[t, f, 2], least)
+    _swing_clearance(goal, in_air, support_out, lowest)
     pfs = np.array(parent_from_segment, dtype=np.float64)
     missed = _legs_to_goals(skeleton, pfs, world_from_segment, joint_pos_root, root,
                             goal)  # fmt: skip
@@ -409,6 +422,24 @@ def plant_gait(
 
 
 Flight = tuple[int, F64Array, F64Array, float]
+
+
+def _swing_clearance(
+    goal: F64Array, in_air: BoolArray, support: F64Array, lowest: F64Array
+) -> None:
+    """Each swing from a support to a strike on the same level keeps its lowest sole
+    point :data:`SWING_CLEARANCE_M` sin^2(pi u) above it (u from 0 at the last frame
+    on the ground to 1 at the strike), in place on the ankle goals (T, 2, 3)."""
+    n_frames = in_air.shape[0]
+    for f in range(2):
+        air = np.concatenate([[False], in_air[:, f], [False]])
+        edges = np.flatnonzero(air[1:] != air[:-1])
+        for a, b in zip(edges[::2], edges[1::2], strict=True):
+            if a == 0 or b >= n_frames or support[a - 1, f] != support[b, f]:
+                continue  # no strike to end it, or a step up or down
+            u = (np.arange(a, b) - a + 1.0) / (b - a + 1.0)
+            floor = support[b, f] + SWING_CLEARANCE_M * np.sin(np.pi * u) ** 2
+            goal[a:b, f, 2] = np.maximum(goal[a:b, f, 2], floor - lowest[a:b, f])
 
 
 def _flight(
