@@ -97,7 +97,8 @@ class GaitPlan:
     Attributes:
         phase: (T, 2) float64 radians, each foot's gait phase (left, right): 0 at its
             heel strike, increasing.
-        toe_off: toe-off as a fraction of the cycle (stance = [0, toe_off)).
+        toe_off: toe-off as a fraction of the cycle (stance = [0, toe_off)), or (T,)
+            one per frame (a gait whose stance shortens as it gets up to speed).
         rise_m: the support's change from one foot's step to the other's, metres (0:
             level ground; + up a stair, - down).
         flight: whether the driver may leave before the other foot lands (a run).
@@ -108,7 +109,7 @@ class GaitPlan:
     """
 
     phase: F64Array
-    toe_off: float
+    toe_off: float | F64Array
     rise_m: float = 0.0
     flight: bool = False
     moving: BoolArray
@@ -170,13 +171,14 @@ def plant_gait(
     pts = skeleton.sole_points.reshape(2, 3, 3)
     feet = np.array([skeleton.index("l_foot"), skeleton.index("r_foot")])
     frac = np.mod(plan.phase / (2.0 * np.pi), 1.0)
+    toe = np.broadcast_to(np.asarray(plan.toe_off, dtype=np.float64), (n_frames,))
     world_from_segment = np.array(world_from_segment, dtype=np.float64)
     parent_from_segment = np.array(parent_from_segment, dtype=np.float64)
     _flat_feet(
         skeleton,
         parent_from_segment,
         world_from_segment,
-        frac < plan.toe_off,
+        frac < toe[:, None],
         max(RELEASE_S * rate_hz, 1.0) if plan.toes_flat else 0.0,
     )
     joint_pos_root = np.array(joint_pos_root, dtype=np.float64)
@@ -213,7 +215,7 @@ def plant_gait(
         floor = float(root0[2] + sole[0].reshape(-1, 3)[:, 2].min())
         # From standing: the foot in its stance phase drives, the other is held until
         # the gait gets under way (then it is past its toe-off: it steps off).
-        first = 1 if frac[0, 1] < plan.toe_off else 0
+        first = 1 if frac[0, 1] < toe[0] else 0
         mode = [_LOCK, _LOCK]
         mode[first] = _DRIVE
         pivot = [int(np.argmin(on_ankle[0, f, :, 2])) for f in range(2)]
@@ -328,7 +330,7 @@ def plant_gait(
             for f in range(2):
                 if mode[f] in (_RELEASE, _SWING) or not go:
                     continue
-                if frac[t, f] < plan.toe_off:
+                if frac[t, f] < toe[t]:
                     continue
                 held = anchor[f] - on_ankle[t, f, pivot[f]]
                 free = root[t] + ankle_rel[t, f]
