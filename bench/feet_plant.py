@@ -73,6 +73,7 @@ from retargetd.daemon.post.plant import PLANT, FootPlant, foot_points, performer
 from retargetd.daemon.post.stance import (
     CONTACT_COLUMN,
     SUPPORT_COLUMN,
+    StanceDetector,
     take_stance_states,
 )
 from retargetd.daemon.retarget.retarget import Retargeter, default_humanoid
@@ -169,23 +170,31 @@ def leg_target(
 
 
 def run_modes(
-    res: Any, rig: Any, cal: Any, target: TargetSkeleton, rate_hz: float
+    res: Any,
+    rig: Any,
+    cal: Any,
+    target: TargetSkeleton,
+    rate_hz: float,
+    live: bool = False,
 ) -> dict[str, Any]:
     """The solve through ``free``, ``scaled`` and ``plant`` (module docstring): each
     way's target ``wfb`` (T, N, 4) and ``root`` (T, 3); the detector's ``contact``
     (T, 2) and ``support`` (T, 2) (the performer's, metres); ``flags`` (T,);
-    ``leg_ratio``."""
+    ``leg_ratio``. ``live``: the plant fed the detector's state frame by frame, as
+    the daemon's (``live/send.py``), instead of the offline settled support."""
     rt = Retargeter(rig, cal, target)
     leg = performer_leg_m(rig, cal)
     plant = FootPlant(target, rt.root_scale, leg)
     scaled = FootPlant(target, rt.root_scale, leg)
     no_contact = np.zeros((2, 4))
     # As ``solve --plant-feet`` (cli/post_io.retarget_solve): the detector over the
-    # whole take, each contact's support the level it settled on.
-    states = take_stance_states(
+    # whole take, each contact's support the level it settled on; live, the
+    # detector's state of each frame.
+    take_args = (
         rig, cal, np.ascontiguousarray(res.root_pos, dtype=np.float64),
         np.ascontiguousarray(res.world_from_bone_quat, dtype=np.float64), rate_hz,
     )  # fmt: skip
+    states = live_stance_states(*take_args) if live else take_stance_states(*take_args)
     n_frames, n = len(res.root_pos), len(target.bone_names)
     out: dict[str, Any] = {
         m: {"wfb": np.empty((n_frames, n, 4)), "root": np.empty((n_frames, 3))}
@@ -215,6 +224,19 @@ def run_modes(
             out[mode]["root"][t] = pose.root_pos
     out.update(contact=contact, support=support, flags=flags,
                leg_ratio=plant.leg_ratio)  # fmt: skip
+    return out
+
+
+def live_stance_states(
+    rig: Any, cal: Any, root_pos: np.ndarray, wfb: np.ndarray, rate_hz: float
+) -> np.ndarray:
+    """(T, 2, 5) the live detector's state after each frame (what the daemon's plant
+    reads: ``live/send.py``)."""
+    det = StanceDetector(rig, cal)
+    out = np.zeros((len(root_pos), 2, 5))
+    for t in range(len(root_pos)):
+        det.update(root_pos[t], wfb[t], 1.0 / rate_hz if t else 0.0)
+        out[t] = det.state
     return out
 
 
@@ -376,13 +398,14 @@ def measure(
     target: TargetSkeleton,
     rate_hz: float,
     truth: Any = None,
+    live: bool = False,
 ) -> dict[str, Any]:
     """Every figure of one take on one target (module docstring). With ``truth``
     (the synthetic take of a gait, ``synth.motion.GAIT_MOTIONS``): the contact
     events against its ``foot_contact``, and the sink against its supports (floor or
     step, times the leg ratio) over the frames both it and the detector call
-    contact."""
-    ways = run_modes(res, rig, cal, target, rate_hz)
+    contact. ``live``: as :func:`run_modes`."""
+    ways = run_modes(res, rig, cal, target, rate_hz, live)
     contact, k = ways["contact"], ways["leg_ratio"]
     floor = ways["support"] * k
     sink_on = contact
@@ -524,6 +547,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--rate", type=float, default=120.0)
     ap.add_argument("--activities", default=",".join(ACTIVITIES))
     ap.add_argument("--no-real", action="store_true")
+    ap.add_argument(
+        "--live",
+        action="store_true",
+        help="feed the plant the detector's state frame by frame (the daemon's)",
+    )
     args = ap.parse_args(argv)
     started = time.perf_counter()
     lines = ["### Synthetic performer", "", SYNTH_HEADER]
@@ -531,7 +559,8 @@ def main(argv: list[str] | None = None) -> int:
     for activity in args.activities.split(","):
         res, rig, cal, take = synthetic(activity, args.seconds, args.rate)
         for k in LEG_SCALES:
-            m = measure(res, rig, cal, leg_target(rig, cal, k, take), args.rate, take)
+            target = leg_target(rig, cal, k, take)
+            m = measure(res, rig, cal, target, args.rate, take, args.live)
             results[f"{activity} {k:g}x"] = m
             lines.append(_row(f"{activity}, legs {k:g}x", m, synthetic_row=True))
             print(lines[-1], flush=True)
@@ -547,7 +576,7 @@ def main(argv: list[str] | None = None) -> int:
             res, rig, cal, rate = real(
                 take_rel, rig_name, static_rel, rows, measures, work
             )
-            m = measure(res, rig, cal, default_humanoid(), rate)
+            m = measure(res, rig, cal, default_humanoid(), rate, live=args.live)
             results[label] = m
             lines.append(_row(f"{label} ({rig_name}, {rate:g} Hz)", m,
                               synthetic_row=False))  # fmt: skip

@@ -37,6 +37,10 @@ toe-off); this module places the body so that no foot slides or sinks
   root is eased over the push-off onto a ballistic path (gravity alone) whose
   take-off velocity lands it on time, and passes to the new stance foot's placement
   over :data:`LOAD_S`.
+- **Swing.** A foot swinging from one support to a strike on the same level clears
+  it by :data:`SWING_CLEARANCE_M` at mid-swing (the minimum toe clearance; the
+  inverse kinematics raises it where the joint angles would not, as in a ramp's
+  first strides).
 
 The truth then holds where each foot is in contact (``foot_contact``: driving or
 held, the held ankle within :data:`REACH_TOL_M` of its goal) and on which support
@@ -74,6 +78,14 @@ LAND_S = 0.15
 REACH_FRACTION = 0.99
 #: A held ankle this far from its goal has let go of its support (metres).
 REACH_TOL_M = 3e-3
+#: A swing foot between two supports on one level clears it by at least this in
+#: mid-swing (metres): the minimum toe clearance, 1.29 +- 0.45 cm (Winter 1992, Phys
+#: Ther 72:45-53). The floor it sets rises as sin^2 from 0 at toe-off to this at
+#: mid-swing and back to 0 at the strike (no faster than the foot leaves and meets
+#: the floor), so a swing that clears it anyway is unchanged; without it the joint
+#: angles of a ramp's first strides (scaled down with the cadence) left the swing
+#: foot on the floor, dragged along it (the run's first swing: 63 mm).
+SWING_CLEARANCE_M = 0.0129
 
 _DRIVE, _LOCK, _RELEASE, _SWING = 0, 1, 2, 3
 
@@ -85,7 +97,8 @@ class GaitPlan:
     Attributes:
         phase: (T, 2) float64 radians, each foot's gait phase (left, right): 0 at its
             heel strike, increasing.
-        toe_off: toe-off as a fraction of the cycle (stance = [0, toe_off)).
+        toe_off: toe-off as a fraction of the cycle (stance = [0, toe_off)), or (T,)
+            one per frame (a gait whose stance shortens as it gets up to speed).
         rise_m: the support's change from one foot's step to the other's, metres (0:
             level ground; + up a stair, - down).
         flight: whether the driver may leave before the other foot lands (a run).
@@ -96,7 +109,7 @@ class GaitPlan:
     """
 
     phase: F64Array
-    toe_off: float
+    toe_off: float | F64Array
     rise_m: float = 0.0
     flight: bool = False
     moving: BoolArray
@@ -158,13 +171,14 @@ def plant_gait(
     pts = skeleton.sole_points.reshape(2, 3, 3)
     feet = np.array([skeleton.index("l_foot"), skeleton.index("r_foot")])
     frac = np.mod(plan.phase / (2.0 * np.pi), 1.0)
+    toe = np.broadcast_to(np.asarray(plan.toe_off, dtype=np.float64), (n_frames,))
     world_from_segment = np.array(world_from_segment, dtype=np.float64)
     parent_from_segment = np.array(parent_from_segment, dtype=np.float64)
     _flat_feet(
         skeleton,
         parent_from_segment,
         world_from_segment,
-        frac < plan.toe_off,
+        frac < toe[:, None],
         max(RELEASE_S * rate_hz, 1.0) if plan.toes_flat else 0.0,
     )
     joint_pos_root = np.array(joint_pos_root, dtype=np.float64)
@@ -201,7 +215,7 @@ def plant_gait(
         floor = float(root0[2] + sole[0].reshape(-1, 3)[:, 2].min())
         # From standing: the foot in its stance phase drives, the other is held until
         # the gait gets under way (then it is past its toe-off: it steps off).
-        first = 1 if frac[0, 1] < plan.toe_off else 0
+        first = 1 if frac[0, 1] < toe[0] else 0
         mode = [_LOCK, _LOCK]
         mode[first] = _DRIVE
         pivot = [int(np.argmin(on_ankle[0, f, :, 2])) for f in range(2)]
@@ -316,7 +330,7 @@ def plant_gait(
             for f in range(2):
                 if mode[f] in (_RELEASE, _SWING) or not go:
                     continue
-                if frac[t, f] < plan.toe_off:
+                if frac[t, f] < toe[t]:
                     continue
                 held = anchor[f] - on_ankle[t, f, pivot[f]]
                 free = root[t] + ankle_rel[t, f]
@@ -394,6 +408,7 @@ def plant_gait(
             if in_air[t, f]:
                 least = support_out[t, f] - lowest[t, f]
                 goal[t, f, 2] = max(goal[t, f, 2], least)
+    _swing_clearance(goal, in_air, support_out, lowest)
     pfs = np.array(parent_from_segment, dtype=np.float64)
     missed = _legs_to_goals(skeleton, pfs, world_from_segment, joint_pos_root, root,
                             goal)  # fmt: skip
@@ -409,6 +424,24 @@ def plant_gait(
 
 
 Flight = tuple[int, F64Array, F64Array, float]
+
+
+def _swing_clearance(
+    goal: F64Array, in_air: BoolArray, support: F64Array, lowest: F64Array
+) -> None:
+    """Each swing from a support to a strike on the same level keeps its lowest sole
+    point :data:`SWING_CLEARANCE_M` sin^2(pi u) above it (u from 0 at the last frame
+    on the ground to 1 at the strike), in place on the ankle goals (T, 2, 3)."""
+    n_frames = in_air.shape[0]
+    for f in range(2):
+        air = np.concatenate([[False], in_air[:, f], [False]])
+        edges = np.flatnonzero(air[1:] != air[:-1])
+        for a, b in zip(edges[::2], edges[1::2], strict=True):
+            if a == 0 or b >= n_frames or support[a - 1, f] != support[b, f]:
+                continue  # no strike to end it, or a step up or down
+            u = (np.arange(a, b) - a + 1.0) / (b - a + 1.0)
+            floor = support[b, f] + SWING_CLEARANCE_M * np.sin(np.pi * u) ** 2
+            goal[a:b, f, 2] = np.maximum(goal[a:b, f, 2], floor - lowest[a:b, f])
 
 
 def _flight(

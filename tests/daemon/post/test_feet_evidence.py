@@ -6,7 +6,11 @@ Plug-in Gait markers) retargeted onto legs 0.8x, 1x and 1.25x the performer's wi
 settled over the whole contact, ``post/stance.py``). Each criterion of the issue is
 one test per gait; where the plant or the detector does not meet one, mark the case
 an expected failure (strict, so the mark follows the code) with the measured figure
-in its reason."""
+in its reason.
+
+Live (``[target] feet = "plant"`` in the daemon, ``live/send.py``) the plant reads the
+detector's state of each frame, a support not yet settled: the no-sink and the knee
+criteria are checked that way too (``feet_plant.measure(..., live=True)``)."""
 
 from __future__ import annotations
 
@@ -22,17 +26,72 @@ GAITS = ("level_walk", "run", "stair_ascent", "stair_descent")
 
 
 @pytest.fixture(scope="module")
-def measured() -> dict[str, list[dict[str, Any]]]:
-    """Per gait, ``feet_plant.measure`` on each leg scale (0.8, 1, 1.25)."""
+def solved() -> dict[str, tuple[Any, ...]]:
+    """Per gait, ``feet_plant.synthetic``'s (solve, rig, calibration, take)."""
+    fp = bench_module("feet_plant")
+    return {gait: fp.synthetic(gait, SECONDS, RATE_HZ) for gait in GAITS}
+
+
+def _measure(solved: dict[str, tuple[Any, ...]], live: bool) -> dict[str, Any]:
     fp = bench_module("feet_plant")
     out = {}
-    for gait in GAITS:
-        res, rig, cal, take = fp.synthetic(gait, SECONDS, RATE_HZ)
+    for gait, (res, rig, cal, take) in solved.items():
         out[gait] = [
-            fp.measure(res, rig, cal, fp.leg_target(rig, cal, k, take), RATE_HZ, take)
+            fp.measure(
+                res, rig, cal, fp.leg_target(rig, cal, k, take), RATE_HZ, take, live
+            )
             for k in fp.LEG_SCALES
         ]
     return out
+
+
+@pytest.fixture(scope="module")
+def measured(solved: dict[str, tuple[Any, ...]]) -> dict[str, list[dict[str, Any]]]:
+    """Per gait, ``feet_plant.measure`` on each leg scale (0.8, 1, 1.25), offline."""
+    return _measure(solved, live=False)
+
+
+@pytest.fixture(scope="module")
+def measured_live(
+    solved: dict[str, tuple[Any, ...]],
+) -> dict[str, list[dict[str, Any]]]:
+    """As :func:`measured`, the plant fed the detector's state frame by frame."""
+    return _measure(solved, live=True)
+
+
+#: Live, the support of a step contact is the level the foot landed at until it has
+#: settled (``post/stance.py``): measured (``bench/feet_plant.py --live``).
+LIVE_ASCENT_SINK = pytest.param(
+    "stair_ascent",
+    marks=pytest.mark.xfail(
+        strict=True,
+        reason="live, the ascent sinks 2.36 / 2.94 / 3.68 mm (legs 0.8 / 1 / 1.25x): "
+        "the solved foot lands 2.93-2.94 mm below the step (Plug-in Gait's hip "
+        "centre, the thigh flexed) and rises to 0.09-0.15 mm below it by heel-off; "
+        "no causal rule sees the step above the foot at landing (docs/feet.md)",
+    ),
+)
+
+
+@pytest.mark.timeout(900)
+@pytest.mark.parametrize(
+    "gait", ["level_walk", "run", LIVE_ASCENT_SINK, "stair_descent"]
+)
+def test_live_planted_feet_do_not_sink(measured_live: Any, gait: str) -> None:
+    """Live, as :func:`test_planted_feet_do_not_sink`: a contact foot's lowest point
+    never more than 1 mm below the truth's floor or step (times the leg ratio)."""
+    for m in measured_live[gait]:
+        print(gait, m["leg_ratio"], m["plant"]["sink_max_mm"])
+        assert m["plant"]["sink_max_mm"] <= 1.0
+
+
+@pytest.mark.timeout(900)
+@pytest.mark.parametrize("gait", GAITS)
+def test_live_knee_never_pops_at_the_blend_edges(measured_live: Any, gait: str) -> None:
+    """Live, the plant adds at most 3 deg to the knee's frame-to-frame change at the
+    blend edges."""
+    for m in measured_live[gait]:
+        assert m["knee_added_deg"] <= 3.0
 
 
 @pytest.mark.timeout(600)
