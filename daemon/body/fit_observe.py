@@ -33,9 +33,7 @@ apart from it by that prior alone: its lever comes out ``sqrt(M k / (M + k))`` w
 between the two by their equal priors (Plug-in Gait's chest twist: 11.44 mm/rad under
 a spine twist of 0, its head twist 11.43 under a neck of 0; on the synthetic
 performer's default motions the fit's spine takes a median 0.55 of the trunk's twist
-on the pelvis, the performer's abdomen 0.41). Such a marker-less bone between two
-observed ones is a link: the fit's output gives it its length's share of the
-chain's whole rotation instead (``fit_links``).
+on the pelvis, the performer's abdomen 0.41).
 
 Joint models (``rig_fit``: ball, hinge, hinge_twist, swing, fixed) set which rotations
 a joint has at all; a root has three rotations and three translations.

@@ -63,7 +63,6 @@ import numpy as np
 
 from retargetd.daemon.body import fit_pack
 from retargetd.daemon.body import kernel as body_kernel
-from retargetd.daemon.body.fit_links import spread_link
 from retargetd.daemon.body.fit_normal import apply_step, build_normal, solve_step
 from retargetd.daemon.body.fit_terms import (
     C_DT,
@@ -335,7 +334,6 @@ def fit_one_t(
     parent, rest_pfb, cols = m[0], m[3], m[4]
     mk_bone, mk_weight, jt_bone, jt_local = m[5], m[7], m[8], m[9]
     params = m[18]
-    link_frac, link_child = m[26], m[27]
     q, t, have = s[0], s[1], s[4]
     prev_out = s[5]
     wq, wm, o = s[29], s[8], s[9]
@@ -535,22 +533,17 @@ def fit_one_t(
         if held_all or (natt[b] > 0 and nvis[b] == 0):
             out_flags[b] |= FLAG_HELD
             n_held += 1
-        # world rotation (a link: its share of its chain's, fit_links), sign
-        # continuous with the last frame's output
-        p = parent[b]
-        if link_frac[b] > 0.0:
-            wb4 = spread_link(wq, rest_pfb, p, b, link_child[b], link_frac[b])
-        else:
-            wb4 = (wq[b, 0], wq[b, 1], wq[b, 2], wq[b, 3])
+        # world rotation, sign continuous with the last frame's output
         dot = 0.0
         for j in range(4):
-            dot += wb4[j] * prev_out[b, j]
+            dot += wq[b, j] * prev_out[b, j]
         sign = -1.0 if (have[0] != 0 and dot < 0.0) else 1.0
         for j in range(4):
-            out_wfb[b, j] = sign * wb4[j]
+            out_wfb[b, j] = sign * wq[b, j]
             prev_out[b, j] = out_wfb[b, j]
         # parent-relative (the root's parent: the world), from the streamed world
         # rotations as the construction does; and relative to the calibration pose
+        p = parent[b]
         if p < 0:
             for j in range(4):
                 out_pfb[b, j] = out_wfb[b, j]

@@ -26,7 +26,6 @@ from retargetd.daemon.body import fit_observe, fit_pack
 from retargetd.daemon.body import fit_terms as ft
 from retargetd.daemon.body import kernel_fit as kf
 from retargetd.daemon.body.calibration import Calibration, calibrate
-from retargetd.daemon.body.fit_links import link_spread
 from retargetd.daemon.body.fit_model import (
     N_LIM,
     FitModel,
@@ -347,12 +346,6 @@ class FitSolver:
             )
         self.model = model
         self.params = params or FitParams()
-        #: Each link's share of its chain's rotation and its child (``fit_links``:
-        #: a marker-less bone between two the markers see; the output only).
-        self.links = link_spread(
-            model.bone_parent, model.marker_bone, model.marker_weight,
-            model.joint_dof, np.asarray(calibration.bone_lengths, dtype=np.float64),
-        )  # fmt: skip
         self.construction = BodySolver(rig, calibration, labels)
         con = self.construction
         self.rig = rig
@@ -382,7 +375,6 @@ class FitSolver:
             model.anc_ptr, model.anc_idx, model.node_ptr, model.node_idx,
             self._params_arr, model.penalty_cos, model.twist_lock, model.prior_mat,
             model.hide_axes, model.hide_lam, model.hide_lost, model.hide_hinge,
-            *self.links,
         )  # fmt: skip
         # packed (fit_pack): the kernel gets one buffer per dtype; self._model keeps
         # the same memory as a tuple of views (for fit_many and hand-made poses)
