@@ -119,7 +119,7 @@ class FitParams:
             residual RMS exceeds gate_m (every marker, on average, beyond the
             largest soft-tissue artefact), and the next frame is seeded afresh.
             A collapse onto one point or mirrored labels as a restart's first
-            frame fit at 390-430 mm RMS on the PiG walk (its own first frame:
+            frame fit at 370-430 mm RMS on the PiG walk (its own first frame:
             4.6 mm; README's loosest real take, the ``cmu41`` tennis serve: p95
             31 mm); taken as the first pose, such a frame became the take's level,
             and at 4x ~0.4 m nothing was unexplained or suspect for seconds (the
