@@ -46,10 +46,12 @@ Per frame (``fit_one_t``; the rules' numbers are ``solve_fit.FitParams``):
    construction, the one with the lower whole cost (every marker under the Cauchy
    loss, continuity, priors, limits) kept.
 5. **unexplained** (residual far above the take's own, half the markers rejected, or
-   a joint further from its prediction than a body moves): the last explained pose
-   is held, flagged, and the next frame's prediction and continuity account for the
-   gap. Else the frame is explained: the running residual level, the gate's
-   references and the prediction's history move on.
+   a joint further from its prediction than a body moves; a first frame, which has
+   neither a level nor a past, only past an absolute residual no performer leaves):
+   the last explained pose is held, flagged, and the next frame's prediction and
+   continuity account for the gap (after a first frame: seeded afresh, the solver
+   as ``FitSolver.reset`` left it). Else the frame is explained: the running
+   residual level, the gate's references and the prediction's history move on.
 
 No output is ever NaN. Everything is preallocated by ``solve_fit.FitSolver``: no
 allocation per frame.
@@ -371,6 +373,8 @@ def fit_one_t(
     for i in range(n_mk):
         s[58][i] = 0.0  # no virtual marker but where _virtual_markers puts one
     reseeded = False
+    c_kept = False
+    mu_kept = 0.0
     unseen = n_seen < MIN_SEEN if have[0] == 0 else n_seen == 0
     unexplained = False
     iters = 0
@@ -385,6 +389,13 @@ def fit_one_t(
         # 2b. seed (first frame), or predict and fit, and judge the result
         first = have[0] == 0
         if first:
+            # (the construction's memory kept: a first frame that turns out
+            # unexplained must not leave its bones in the construction, step 5)
+            c[8][:] = c[2]
+            c[9][:] = c[3]
+            c[10][:] = c[4]
+            c_kept = True
+            mu_kept = sc[C_MU]
             _seed_from_construction(clean, m, s, c)
             cp2(s[2], q)
             cp2(s[3], t)
@@ -411,7 +422,6 @@ def fit_one_t(
                 # The holds, parent-relative, stay.
                 virtual_markers(m, s)
         iters, _conv, cost = _fit_phases(m, s)
-        c_kept = False
         ss, n_in, n_rej = score(m, s)
         rms = truncated_rms(ss, n_in, n_rej, sc[C_GATE])
         # the take's own residual: its running level, or the last explained frame's
@@ -468,11 +478,19 @@ def fit_one_t(
         # Unexplained: the markers are far from any pose the fit found (a burst of
         # garbage, a collapse, mirrored labels). The pose is held, never carried.
         far = max(params[P_LOST_FLOOR_M], params[P_UNEXPLAINED_K] * level)
-        unexplained = (
-            rms > far
-            or n_rej > params[P_UNEXPLAINED_FRAC] * n_seen
-            or impossible(m, s, max(sc[C_GAP], persist))
-        ) and not first
+        if first:
+            # no level of its own yet, nor a past to jump from: only a residual
+            # no performer's markers leave (past the gate on average: a collapse
+            # or mirrored labels as a restart's first frame), else that frame
+            # would become the level that judges the next ones (FitParams.gate_m);
+            # unexplained, the next is seeded afresh
+            unexplained = rms > params[P_GATE_M]
+        else:
+            unexplained = (
+                rms > far
+                or n_rej > params[P_UNEXPLAINED_FRAC] * n_seen
+                or impossible(m, s, max(sc[C_GAP], persist))
+            )
         # never NaN: a non-finite state (cannot happen with finite inputs) is held
         for b in range(n_b):
             for j in range(4):
@@ -480,6 +498,13 @@ def fit_one_t(
                     unexplained = True
         if unexplained:
             _hold(m, s)
+            if first:
+                # nor its damping (a fit to no body's markers ends far up,
+                # Marquardt's x10 per refused step, and the next first frame would
+                # start there and run out of iterations), nor a count towards a
+                # retry: the solver stays as FitSolver.reset left it
+                sc[C_MU] = mu_kept
+                sc[C_SINCE_TRY] = 0.0
             if c_kept:
                 c[2][:] = c[8]
                 c[3][:] = c[9]

@@ -113,6 +113,19 @@ class FitParams:
             the same review, below the 50-100 mm spacing of markers on one segment. A
             marker never accepted since the take began (beyond the gate from its first
             frame: a steady misfit) is not gated; the Cauchy loss weighs it down.
+            The same bound judges a first frame (the take's first, or the first
+            after a reset: a source that restarts), which has neither a level of
+            its own nor a past to jump from: its pose is unexplained when its
+            residual RMS exceeds gate_m (every marker, on average, beyond the
+            largest soft-tissue artefact), and the next frame is seeded afresh.
+            A collapse onto one point or mirrored labels as a restart's first
+            frame fit at 370-430 mm RMS on the PiG walk (its own first frame:
+            4.6 mm; README's loosest real take, the ``cmu41`` tennis serve: p95
+            31 mm); taken as the first pose, such a frame became the take's level,
+            and at 4x ~0.4 m nothing was unexplained or suspect for seconds (the
+            soak: the arms 150-180 deg off for 1.3 s after a collapse at a
+            restart, and the next burst 1 s). 100 mm (the marker spacing below)
+            let a mirrored frame of 99 mm in on an occluded walk.
         gate_k: see gate_m (5: a factor that keeps the gate above the fit's own residual
             level when the model fits a performer loosely).
         gate_memory: frames, see gate_m (30: 0.125-0.5 s at 240-60 Hz).
@@ -545,11 +558,12 @@ class FitSolver:
             root, quality, flags, resid, rejected, stats,
         )  # fmt: skip
         unseen = stats[:, ft.S_UNSEEN] > 0.5
-        seen = np.flatnonzero(~unseen)
+        unexplained = stats[:, ft.S_UNEXPLAINED] > 0.5
+        seen = np.flatnonzero(~unseen & ~unexplained)
         if seen.size and seen[0] > 0:
-            # Before the performer is first seen there is no pose: those frames
-            # (flagged) take the first seen one, so a file has no jump from the
-            # calibration spot.
+            # Before the performer is first seen (or first explained: FitParams.
+            # start_max_m) there is no pose: those frames (flagged) take the first
+            # one, so a file has no jump from the calibration spot.
             lead = slice(0, int(seen[0]))
             for arr in (joints, wfb, pfb, rfb, root):
                 arr[lead] = arr[seen[0]]
@@ -571,7 +585,7 @@ class FitSolver:
             marker_rejected=rejected,
             iterations=stats[:, ft.S_ITER].astype(np.int64),
             reseeded=stats[:, ft.S_RESEEDED] > 0.5,
-            unexplained=stats[:, ft.S_UNEXPLAINED] > 0.5,
+            unexplained=unexplained,
             unseen=unseen,
             residual_level=stats[:, ft.S_LEVEL].copy(),
         )
