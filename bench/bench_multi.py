@@ -29,10 +29,13 @@ in ``bench_latency.match_vmc_t``). Baseline, in the same run: raw UDP one way, s
 pacing and payload size as the N-performer frame. Added = the performer's percentile
 minus raw UDP's. Drops per performer = timed frames sent minus that performer's poses
 sent (``frames_out`` in ``ctl status --json`` ``performers``, deltas over the timed
-phase); ``stale`` (latest wins) is the daemon's. With ``--no-single`` left out, the
-single-performer daemon (``[performer]``) on the plain walk runs too, for scale.
-Performers are solved in config order for each frame, so performer k's latency
-includes the solves of performers 0..k-1 of the same frame.
+phase); ``stale`` (latest wins), ``unsolved`` and ``unseen`` are the daemon's, and
+each performer's ``unsolved`` is printed beside its drops. The timed phase starts once
+the daemon has built every performer's pipeline (off its loop, from the first label
+set: 3-9 s at load 4-6 here), so its drops are the steady stream's. With
+``--no-single`` left out, the single-performer daemon (``[performer]``) on the plain
+walk runs too, for scale. Performers are solved in config order for each frame, so
+performer k's latency includes the solves of performers 0..k-1 of the same frame.
 
 In process first, for the figures the machine's scheduling does not blur: the label
 split per performer and frame (``StreamView.refresh``) against fancy indexing, a
@@ -250,7 +253,17 @@ def run_multi(
             raise RuntimeError("sender did not finish its warm-up")
         send_conn.recv()
         time.sleep(0.2)
+        # The performers' pipelines are built off the loop once the labels arrive
+        # (live/rebuild.py); a frame before is unsolved. Timed once they are built,
+        # so the drops are the steady stream's (the wait is printed).
+        t_wait = time.monotonic()
         status0 = daemon.status()
+        while status0 is None or status0.get("pipelines_building", 0):
+            if time.monotonic() - t_wait > 120.0:
+                raise RuntimeError("the pipelines were not built in 120 s")
+            time.sleep(0.1)
+            status0 = daemon.status()
+        built_s = time.monotonic() - t_wait
         send_conn.send("go")
         if not send_conn.poll(args.seconds * 3 + 30):
             raise RuntimeError("sender did not finish")
@@ -263,7 +276,7 @@ def run_multi(
         recv = recv_conn.recv()
         return {
             "sent_ns": sent_ns, "frame0": frame0, "slips": slips, "recv": recv,
-            "status0": status0 or {}, "status1": status1 or {},
+            "status0": status0 or {}, "status1": status1 or {}, "built_s": built_s,
             "frame_bytes": 48 + 12 * len(labels), "stream": (labels, positions),
         }  # fmt: skip
     finally:
@@ -295,11 +308,15 @@ def per_performer(m: dict[str, Any], n: int) -> list[dict[str, Any]]:
         out_delta = p1.get(name, {}).get("frames_out", 0) - p0.get(name, {}).get(
             "frames_out", 0
         )
+        unsolved = p1.get(name, {}).get("unsolved", 0) - p0.get(name, {}).get(
+            "unsolved", 0
+        )
         out.append(
             {
                 "name": name,
                 "drops": n_sent - out_delta,
                 "frames_out": out_delta,
+                "unsolved": unsolved,
                 "pose_rx": int(np.count_nonzero(timed)),
                 "vmc_rx": int(np.count_nonzero(vt)),
                 "vmc_unmatched": int(np.count_nonzero(~ok)),
@@ -492,14 +509,17 @@ def main(argv: list[str] | None = None) -> int:
         f"({m['frame_bytes']} bytes) p50/p99 {_f(rp[0])} / {_f(rp[1])}"
     )
     print(
-        f"daemon counters over the timed phase: frames_in {dc.get('frames_in', 0)} "
-        f"solved {dc.get('frames_solved', 0)} stale {dc.get('stale', 0)} overruns "
-        f"{dc.get('overruns', 0)} send_drops {dc.get('send_drops', 0)} vmc_errors "
-        f"{dc.get('vmc_errors', 0)}"
+        f"daemon counters over the timed phase (timed once its pipelines were built, "
+        f"{m['built_s']:.1f} s after the warm-up): frames_in {dc.get('frames_in', 0)} "
+        f"solved {dc.get('frames_solved', 0)} (per performer) stale "
+        f"{dc.get('stale', 0)} (per frame: every performer's) unsolved "
+        f"{dc.get('unsolved', 0)} (building {dc.get('unsolved_building', 0)}) unseen "
+        f"{dc.get('unseen', 0)} overruns {dc.get('overruns', 0)} send_drops "
+        f"{dc.get('send_drops', 0)} vmc_errors {dc.get('vmc_errors', 0)}"
     )
     head = (
-        f"{'performer':<10} {'drops':>5} {'out':>6} {'VMC T p50/p99':>14} "
-        f"{'added p99':>9} {'pose p50/p99':>13} {'added p99':>9} "
+        f"{'performer':<10} {'drops':>5} {'unsolv':>6} {'out':>6} "
+        f"{'VMC T p50/p99':>14} {'added p99':>9} {'pose p50/p99':>13} {'added p99':>9} "
         f"{'solve p50/p99':>14} {'send p50/p99':>13}"
     )
     print(head)
@@ -507,6 +527,7 @@ def main(argv: list[str] | None = None) -> int:
     if single is not None:
         print(
             f"{'1 alone':<10} {single.drops:>5} "
+            f"{single.counters.get('unsolved', 0):>6} "
             f"{single.counters.get('frames_out', 0):>6} "
             f"{_f(single.vmc[0]):>6} / {_f(single.vmc[1]):<5} "
             f"{_f(single.vmc[1] - rp[1]):>9} "
@@ -517,7 +538,7 @@ def main(argv: list[str] | None = None) -> int:
         )
     for r in rows:
         print(
-            f"{r['name']:<10} {r['drops']:>5} {r['frames_out']:>6} "
+            f"{r['name']:<10} {r['drops']:>5} {r['unsolved']:>6} {r['frames_out']:>6} "
             f"{_f(r['vmc'][0]):>6} / {_f(r['vmc'][1]):<5} {_f(r['vmc'][1] - rp[1]):>9} "
             f"{_f(r['pose'][0]):>5} / {_f(r['pose'][1]):<5} "
             f"{_f(r['pose'][1] - rp[1]):>9} "
@@ -525,7 +546,8 @@ def main(argv: list[str] | None = None) -> int:
             f"{_f(r['send'][0]):>5} / {_f(r['send'][1]):<5}"
         )
     print(
-        "drops = timed frames sent - that performer's poses sent (daemon counters); "
+        "drops = timed frames sent - that performer's poses sent (daemon counters: "
+        "stale, unsolved, unseen); unsolv = its frames with no pipeline to solve them; "
         "solve = received -> solved, send = solved -> sent (pose header stamps; a "
         "later performer's 'received' is the frame's, so its solve includes the "
         "earlier performers' of the same frame)"

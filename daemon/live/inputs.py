@@ -2,9 +2,10 @@
 receive buffers and :class:`MarkerStream` each (the frame buffer a packet is decoded
 and sequenced into). A drain reads every waiting packet, decodes it straight into the
 preallocated buffers, counts what it refuses by reason and hands each accepted frame
-to the loop (``accept``, which solves it at once while the wake-up is within
-``solve_budget_ms``); it returns the receive time of the newest accepted frame left
-unsolved (latest wins: an older one left unsolved is ``stale``).
+to the loop (``accept``, which solves it at once until the frames that waited behind
+a solve have been caught up for a frame period: ``catchup.py``); it returns the
+receive time of the newest accepted frame left unsolved (latest wins: an older one
+left unsolved is ``stale``).
 """
 
 from __future__ import annotations

@@ -5,8 +5,8 @@ says who owns what) and :meth:`Daemon._service` is a frame's path, top-down.
 A ``zmq.Poller`` waits on every input at once (plain UDP sockets and ZeroMQ sockets
 alike). Each wake-up drains every readable socket, decoding marker packets straight
 into preallocated buffers (``retargetd.protocols``); malformed packets are counted by
-reason and dropped. Accepted frames are solved as they are decoded while the wake-up is
-within ``solve_budget_ms`` (frames that merely arrived together are all solved); past
+reason and dropped. Accepted frames are solved as they are decoded; frames that waited
+behind a solve are caught up for one frame period of the source (``catchup.py``); past
 that the loop is behind and the latest frame wins: the older ones are counted as
 ``stale`` and dropped. ``process_every_frame`` solves every accepted frame in order
 whatever the time (offline replay). A solved frame is retargeted onto the engine
@@ -52,6 +52,7 @@ import zmq
 
 from retargetd.daemon.body.match import warm_up as warm_up_match
 from retargetd.daemon.body.solve_fit import warm_up as warm_up_fit
+from retargetd.daemon.live.catchup import CatchUp
 from retargetd.daemon.live.config import ConfigError, DaemonConfig, check_pipeline
 from retargetd.daemon.live.console_feed import ConsoleFeed
 from retargetd.daemon.live.console_feed import dispatch as dispatch_console
@@ -174,11 +175,12 @@ class Daemon:
         # The pose stream and each performer's VMC destination.
         vmc = [VmcOut(p.vmc_addr, p.vmc_max_datagram, self.stats) for p in performers]
         self.outputs = Outputs(self.stats, self.recording, vmc)
-        # A wake-up solves the frames that arrived together while within the budget
-        # of their solves: a frame of N performers is N solves, each with the budget.
         budget_ns = int(config.loop.solve_budget_ms * 1e6)  # solve + send
-        self._catch_up_ns = budget_ns * len(performers)
         self._prewarm = Prewarm(config.loop.prewarm_ms)
+        # A wake-up catches up the frames that waited behind a solve for one frame
+        # period of the source (catchup.py); until its cadence is known, for the
+        # budget of their solves: a frame of N performers is N solves.
+        self._catch_up = CatchUp(self._prewarm, budget_ns * len(performers))
         spin_us = config.loop.spin_us  # [loop] spin_us: None = off (the default)
         self._spin = Spin(spin_us, self._prewarm) if spin_us > 0.0 else None
         self.shared = Shared(
@@ -452,11 +454,13 @@ class Daemon:
     def _service(self, events: list[tuple[Any, int]]) -> None:
         """One wake-up, top-down: each readable input receives its packets (decoded
         into its stream, refusals counted) and hands every accepted frame to
-        :meth:`_accept`, which solves and sends it at once while the wake-up is
-        within the budget; the newest frame left over is solved last (latest wins:
-        :meth:`_leave`); then the control sockets are served."""
+        :meth:`_accept`, which solves and sends it at once until the frames that
+        waited have been caught up for a frame period; the newest frame left over is
+        solved last (latest wins: :meth:`_leave`); then the control sockets are
+        served."""
         every = self._every
         self._wake_ns = time.monotonic_ns()
+        self._catch_up.wake()
         inputs = self.inputs
         ready = inputs.ready(events)  # which inputs are readable: no allocation
         if ready & READY_OSC:
@@ -484,9 +488,10 @@ class Daemon:
     def _accept(self, stream: MarkerStream, code: int, t_ns: int, every: bool) -> int:
         """An input's decoded frame (``code``: the stream's verdict): counted, handed
         to live calibrations and the props, then solved and sent by every performer
-        on its input at once while this wake-up is within the budget (frames that
-        merely arrived together are all solved). Past it the loop is behind and the
-        latest frame wins: returns its receive time, left for later, else 0."""
+        on its input at once, unless the frames that waited behind this wake-up's
+        solves have been caught up for a frame period already (``catchup.py``).
+        Then the loop is behind and the latest frame wins: returns its receive
+        time, left for later, else 0."""
         if code != ACCEPTED and code != RESTART:
             self.inputs.refused(stream, code, t_ns)
             return 0
@@ -501,10 +506,11 @@ class Daemon:
             performers.restart(stream)
         performers.collect(stream)  # live calibrations and face captures
         self.props.on_frame(stream, t_ns)  # [[prop]]: every accepted frame
-        if every or time.monotonic_ns() - self._wake_ns < self._catch_up_ns:
-            performers.solve(stream, t_ns)  # every performer on this input
-            return 0
-        return t_ns
+        if not every and self._catch_up.behind(time.monotonic_ns()):
+            return t_ns  # past the catch-up window: the latest wins
+        performers.solve(stream, t_ns)  # every performer on this input
+        self._catch_up.solved()
+        return 0
 
     def _leave(self, stream: MarkerStream, got_ns: int) -> None:
         """An input's newest accepted frame left unsolved (``got_ns``, 0: none). With

@@ -338,7 +338,7 @@ class CaptureSource:
         if frames > FLOOD_FRAMES:
             self._flood(
                 cap,
-                f"{frames} frames in one wake-up (solved while within the budget, "
+                f"{frames} frames in one wake-up (caught up for a frame period, "
                 f"then the latest wins: {superseded} stale here)",
             )
         return newest

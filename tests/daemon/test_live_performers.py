@@ -39,6 +39,7 @@ from live_harness import (
 from pythonosc.osc_message_builder import OscMessageBuilder
 
 from retargetd.daemon.cli.main import main as cli_main
+from retargetd.daemon.live.catchup import CatchUp
 from retargetd.daemon.live.config import ConfigError, DaemonConfig
 from retargetd.daemon.live.loop import Daemon
 from retargetd.daemon.live.performer import StreamView, build_performers
@@ -562,12 +563,15 @@ def test_two_performers_each_with_its_validator_and_face(
 
 @pytest.mark.parametrize("several", [False, True])
 def test_behind_each_input_keeps_its_own_latest_with_several_performers(
-    exact_calibration: Path, several: bool
+    exact_calibration: Path, several: bool, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    # The loop behind (catch-up window 0: every accepted frame waits for the end of
-    # the wake-up, latest wins). An OSC and a ZeroMQ frame in one wake-up: with one
-    # performer only the newer is solved (the other is stale); with a performer per
-    # input each input's latest is its own performer's, so both are solved.
+    # The loop behind (catch-up window 0: every accepted frame after the wake-up's
+    # first solve waits for the end of the wake-up, latest wins). Two OSC frames and
+    # a ZeroMQ frame in one wake-up: the first OSC frame is solved at once; of the
+    # two left, with one performer only the newer is solved (the other is stale);
+    # with a performer per input each input's latest is its own performer's, so
+    # both are solved.
+    monkeypatch.setattr(CatchUp, "window_ns", lambda _self: 0.0)
     doc = lh._deep_merge(lh._ephemeral_doc(lh._unused_udp_port()), {})
     base = {"rig": str(EXACT_RIG), "calibration": str(exact_calibration)}
     if several:
@@ -600,11 +604,12 @@ def test_behind_each_input_keeps_its_own_latest_with_several_performers(
                 d._service(events)
         # their pipelines, built off the loop: the first frames are solved
         assert d.performers.done_building(60.0), "the pipelines were never built"
-        d._catch_up_ns = 0
         for k in range(3):
-            tx.sendto(
-                osc_in.encode_compact_frame(k, k / 100, 1, hold[k]), (host, int(port))
-            )
+            for j in (2 * k, 2 * k + 1):  # both in the socket before the wake-up
+                tx.sendto(
+                    osc_in.encode_compact_frame(j, j / 100, 1, hold[k]),
+                    (host, int(port)),
+                )
             push.send_multipart(zmq_wire.encode_zmq_frame(k, k / 100, 1, hold[k]))
             # Both waiting, then one wake-up drains both inputs.
             deadline = time.monotonic() + WAIT_S
@@ -619,11 +624,12 @@ def test_behind_each_input_keeps_its_own_latest_with_several_performers(
             d._service(events)
         s = d.status()
         c = s["counters"]
-        if several:
-            assert [p["frames_out"] for p in s["performers"]] == [3, 3]
+        if several:  # the osc performer both its frames, the zmq one its one
+            assert [p["frames_out"] for p in s["performers"]] == [6, 3]
             assert c["stale"] == 0
-        else:
-            assert c["stale"] == 3 and c["frames_out"] == 3, c
+        else:  # the first OSC frame and the ZeroMQ one; the second OSC one stale
+            assert c["stale"] == 3 and c["frames_out"] == 6, c
+        assert c["frames_in"] == c["frames_solved"] + c["stale"] + c["unsolved"]
     finally:
         tx.close()
         push.close()
