@@ -217,6 +217,28 @@ def _other_names(data: bytes, labels: Any) -> bool:
     return bool(got.id == labels.id and got.labels != labels.labels)
 
 
+def handshake_request(sock: Any, data: bytes, timeout_ms: int) -> bytes | None:
+    """Send ``data`` on a REQ socket whose handshake may fail, and wait
+    ``timeout_ms`` for a reply; the reply, or None. Never blocks longer: a REQ
+    socket with reconnection off (``RECONNECT_IVL`` -1) whose CURVE handshake
+    failed before the send has no peer left, and a plain ``send`` waits for one
+    forever (measured, libzmq 4.3.5: 87 of 200 tries with a wrong server key had
+    failed before an immediate send; the 10-minute soak's attack thread hung so
+    after its 27th wrong server key, until the context's termination raised
+    ``ContextTerminated`` in it). Such a send gives up: the handshake failed, as the
+    attack meant, and the daemon counted it."""
+    import zmq
+
+    sock.setsockopt(zmq.SNDTIMEO, timeout_ms)
+    try:
+        sock.send(data)
+    except zmq.Again:
+        return None
+    if sock.poll(timeout_ms):
+        return bytes(sock.recv())
+    return None
+
+
 def _rss_kb(pid: int) -> int:
     with open(f"/proc/{pid}/status") as f:
         for line in f:
@@ -614,10 +636,11 @@ class Driver:
         elif kind == "wrong_server_key":
             curve_client(sock, keys / "operator.key_secret", keys / "intruder.key")
         sock.connect(self.d.endpoints["control"])
-        sock.send(b'{"cmd": "calibrate"}')
-        if sock.poll(300):
-            self.errors.append(f"a {kind} control client got a reply")
-        sock.close()
+        try:
+            if handshake_request(sock, b'{"cmd": "calibrate"}', 300) is not None:
+                self.errors.append(f"a {kind} control client got a reply")
+        finally:
+            sock.close()
 
     def _plain_client(self, endpoint: str) -> None:
         """The whole ZMTP greeting of a client without CURVE in one write, then wait
@@ -794,7 +817,9 @@ class Driver:
 
     def run(self) -> None:
         threads = [
-            threading.Thread(target=self._guard, args=(fn,), daemon=True)
+            threading.Thread(
+                target=self._guard, args=(fn,), daemon=True, name=fn.__name__
+            )
             for fn in (self._sub, self._vmc, self._rss, self._control)
         ]
         if self.f.flood_hz > 0:
@@ -805,11 +830,17 @@ class Driver:
                     target=self._guard,
                     args=(self._flood, now + a * self.seconds, now + b * self.seconds),
                     daemon=True,
+                    name="_flood",
                 )
             )
         if self.f.attacks:
             threads.append(
-                threading.Thread(target=self._guard, args=(self._attacks,), daemon=True)
+                threading.Thread(
+                    target=self._guard,
+                    args=(self._attacks,),
+                    daemon=True,
+                    name="_attacks",
+                )
             )
         self.t_end_ns = time.monotonic_ns() + int((0.3 + self.seconds) * 1e9)
         for t in threads:
@@ -822,8 +853,10 @@ class Driver:
             time.sleep(0.5)  # the last frames through
             self.t1_ns = time.monotonic_ns()
             self.stop.set()
-            for t in threads:
+            for t in threads:  # each blocking call of theirs is bounded (< 10 s)
                 t.join(timeout=10.0)
+                if t.is_alive():  # its socket closed under it below: said so
+                    self.errors.append(f"{t.name} still running 10 s after the end")
             self.ctx.destroy(linger=0)
 
 
