@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import itertools
 import threading
+from typing import Any
 
 import pytest
 from bench_scripts import bench_module
@@ -156,3 +157,23 @@ def test_a_failed_handshakes_request_never_blocks_the_attack_thread() -> None:
             sock.close(linger=0)
     finally:
         ctx.destroy(linger=0)
+
+
+def test_a_loop_late_gap_is_the_hosts_only_if_its_stalls_were_all_unscheduled() -> None:
+    """A gap the loop's stalls explain, each one its thread runnable without a CPU
+    (``unscheduled``), is the host's; one blocked stall in it (the GIL or a lock),
+    none at all, or too short a stall leaves it the daemon's (``loop_late``)."""
+    soak = bench_module("soak")
+    ms = 1_000_000
+    a, b = 1000 * ms, 1118 * ms  # a 118 ms gap
+
+    def stall(end: int, length: float, why: str) -> dict[str, Any]:
+        return {"end_ns": end, "ms": length, "why": why}
+
+    host = stall(1117 * ms, 119.0, "unscheduled")
+    assert soak.host_stalled(a, b, [host])
+    assert not soak.host_stalled(a, b, [host, stall(1060 * ms, 55.0, "blocked")])
+    assert not soak.host_stalled(a, b, [])
+    assert not soak.host_stalled(a, b, None)
+    assert not soak.host_stalled(a, b, [stall(1117 * ms, 52.0, "unscheduled")])
+    assert not soak.host_stalled(a, b, [stall(900 * ms, 119.0, "unscheduled")])
