@@ -34,7 +34,10 @@ Pass (all printed, exit 1 if any fails):
   unsolved``;
 - no gap in the pose stream longer than 100 ms except where the source paused
   (restarts) or a spoofed label announcement held the id's frames until the source
-  announced its names again (listed apart: ``label_conflict`` drops, by design);
+  announced its names again (listed apart: ``label_conflict`` drops, by design), or
+  where the daemon's loop was runnable without a CPU (``host_late``: every loop stall
+  in the gap ``unscheduled``, from its thread's schedstat, ``daemon/live/stalls.py``;
+  a stall blocked on the GIL or a lock, or a gap no stall explains, stays a failure);
 - the recording replays to the same poses: its marker packets, fed through the live
   decoders and a fresh body solver of the daemon's method (the fit by default; reset
   where the daemon reset its own), give the recorded ``/poses`` (float32-equal);
@@ -215,6 +218,28 @@ def _other_names(data: bytes, labels: Any) -> bool:
     except DecodeError:
         return False
     return bool(got.id == labels.id and got.labels != labels.labels)
+
+
+def handshake_request(sock: Any, data: bytes, timeout_ms: int) -> bytes | None:
+    """Send ``data`` on a REQ socket whose handshake may fail, and wait
+    ``timeout_ms`` for a reply; the reply, or None. Never blocks longer: a REQ
+    socket with reconnection off (``RECONNECT_IVL`` -1) whose CURVE handshake
+    failed before the send has no peer left, and a plain ``send`` waits for one
+    forever (measured, libzmq 4.3.5: 87 of 200 tries with a wrong server key had
+    failed before an immediate send; the 10-minute soak's attack thread hung so
+    after its 27th wrong server key, until the context's termination raised
+    ``ContextTerminated`` in it). Such a send gives up: the handshake failed, as the
+    attack meant, and the daemon counted it."""
+    import zmq
+
+    sock.setsockopt(zmq.SNDTIMEO, timeout_ms)
+    try:
+        sock.send(data)
+    except zmq.Again:
+        return None
+    if sock.poll(timeout_ms):
+        return bytes(sock.recv())
+    return None
 
 
 def _rss_kb(pid: int) -> int:
@@ -614,10 +639,11 @@ class Driver:
         elif kind == "wrong_server_key":
             curve_client(sock, keys / "operator.key_secret", keys / "intruder.key")
         sock.connect(self.d.endpoints["control"])
-        sock.send(b'{"cmd": "calibrate"}')
-        if sock.poll(300):
-            self.errors.append(f"a {kind} control client got a reply")
-        sock.close()
+        try:
+            if handshake_request(sock, b'{"cmd": "calibrate"}', 300) is not None:
+                self.errors.append(f"a {kind} control client got a reply")
+        finally:
+            sock.close()
 
     def _plain_client(self, endpoint: str) -> None:
         """The whole ZMTP greeting of a client without CURVE in one write, then wait
@@ -794,7 +820,9 @@ class Driver:
 
     def run(self) -> None:
         threads = [
-            threading.Thread(target=self._guard, args=(fn,), daemon=True)
+            threading.Thread(
+                target=self._guard, args=(fn,), daemon=True, name=fn.__name__
+            )
             for fn in (self._sub, self._vmc, self._rss, self._control)
         ]
         if self.f.flood_hz > 0:
@@ -805,11 +833,17 @@ class Driver:
                     target=self._guard,
                     args=(self._flood, now + a * self.seconds, now + b * self.seconds),
                     daemon=True,
+                    name="_flood",
                 )
             )
         if self.f.attacks:
             threads.append(
-                threading.Thread(target=self._guard, args=(self._attacks,), daemon=True)
+                threading.Thread(
+                    target=self._guard,
+                    args=(self._attacks,),
+                    daemon=True,
+                    name="_attacks",
+                )
             )
         self.t_end_ns = time.monotonic_ns() + int((0.3 + self.seconds) * 1e9)
         for t in threads:
@@ -822,8 +856,10 @@ class Driver:
             time.sleep(0.5)  # the last frames through
             self.t1_ns = time.monotonic_ns()
             self.stop.set()
-            for t in threads:
+            for t in threads:  # each blocking call of theirs is bounded (< 10 s)
                 t.join(timeout=10.0)
+                if t.is_alive():  # its socket closed under it below: said so
+                    self.errors.append(f"{t.name} still running 10 s after the end")
             self.ctx.destroy(linger=0)
 
 
@@ -864,6 +900,7 @@ def pose_gaps(
     t0_ns: int,
     t1_ns: int,
     received: list[tuple[int, int]] | None = None,
+    stalls: list[dict[str, Any]] | None = None,
 ) -> dict[str, list[float]]:
     """Gaps over MAX_GAP_S between poses (s), by cause.
 
@@ -875,6 +912,8 @@ def pose_gaps(
         t0_ns, t1_ns: the run.
         received: (receive time, reason index) of every marker frame the daemon
             read, from the recording (None without one).
+        stalls: the daemon's last loop stalls (its status's ``loop_stalls``
+            ``recent``: ``end_ns``, ``ms``, ``why``), None without them.
 
     Returns:
         Gap lengths (s) under ``paused`` (a source restart's pause), ``bad_burst``
@@ -886,15 +925,20 @@ def pose_gaps(
         source dropped until its new sequence was confirmed), ``loop_late`` (the
         daemon read nothing, or read and queued frames, in the gap: its loop was not
         scheduled in time, or was busy elsewhere; a failure like ``other``, since on
-        a quiet host it is the daemon's, whatever the load says) and ``other`` (none
-        of these: a failure).
+        a quiet host it is the daemon's, whatever the load says), ``host_late`` (a
+        ``loop_late`` gap that the daemon's loop stalls in it explain, every one of
+        them ``unscheduled``: its loop thread runnable without a CPU for at least
+        half the stall, the host's, not a failure; printed with the load) and
+        ``other`` (none of these: a failure).
     """
     from retargetd.protocols.marker_input import BACKWARDS, LABEL_CONFLICT
 
     t = np.asarray([x for x in pose_ns if t0_ns <= x <= t1_ns], dtype=np.int64)
     kinds = ("paused", "bad_burst", "source_stalled", "label_conflict",
              "restart_confirm")  # fmt: skip
-    out: dict[str, list[float]] = {k: [] for k in (*kinds, "loop_late", "other")}
+    out: dict[str, list[float]] = {
+        k: [] for k in (*kinds, "loop_late", "host_late", "other")
+    }
     if len(t) < 2:
         out["other"].append((t1_ns - t0_ns) * 1e-9)
         return out
@@ -922,11 +966,28 @@ def pose_gaps(
         elif codes.size and np.count_nonzero(codes == BACKWARDS) * 2 >= codes.size:
             kind = "restart_confirm"
         elif codes.size == 0 or (rx_t >= b).any():
-            kind = "loop_late"  # read nothing while frames were sent, or read late
+            # read nothing while frames were sent, or read late: the host's only
+            # if the loop's stalls in the gap were all the loop not scheduled
+            kind = "host_late" if host_stalled(a, b, stalls) else "loop_late"
         else:
             kind = "other"
         out[kind].append(gap)
     return out
+
+
+def host_stalled(a_ns: int, b_ns: int, stalls: list[dict[str, Any]] | None) -> bool:
+    """The daemon's loop stalls overlapping ``a_ns``-``b_ns`` (each from its end
+    less its length) explain a gap there as the host's: at least one, and every
+    one ``unscheduled`` with at least half the gap's length (the loop thread
+    runnable without a CPU for at least half of it)."""
+    within = [
+        st for st in stalls or ()
+        if st["end_ns"] - st["ms"] * 1e6 <= b_ns and st["end_ns"] >= a_ns
+    ]  # fmt: skip
+    return bool(within) and all(
+        st.get("why") == "unscheduled" and 2 * st["ms"] * 1e6 >= b_ns - a_ns
+        for st in within
+    )
 
 
 def late_deliveries(
@@ -1263,8 +1324,9 @@ def run(
             if faults.attacks:
                 result["recovery"] = recovery(sent.bursts, track, bad_rx)
             result["gaps"] = pose_gaps(
-                replay.pop("pose_sent_ns"), sent, driver.t0_ns, driver.t1_ns, received
-            )
+                replay.pop("pose_sent_ns"), sent, driver.t0_ns, driver.t1_ns, received,
+                (status.get("loop_stalls") or {}).get("recent"),
+            )  # fmt: skip
             result["replay"] = replay
         else:
             result["gaps"] = result["gaps_sub"]
@@ -1288,7 +1350,7 @@ def run(
             "gaps": not any(
                 v
                 for k, v in result["gaps"].items()
-                if k not in ("paused", "source_stalled", "bad_burst")
+                if k not in ("paused", "source_stalled", "bad_burst", "host_late")
             ),
             "replay": (not record) or result["replay"]["ok"],
         }  # fmt: skip

@@ -17,8 +17,11 @@ from __future__ import annotations
 
 import gc
 import json
+import os
 import socket
 import struct
+import subprocess
+import sys
 import threading
 import time
 from collections.abc import Iterator
@@ -339,7 +342,9 @@ def test_stalls_count_phases_over_the_bound_and_collector_passes() -> None:
     stalls.lap("markers")
     assert stalls.by_phase == {"markers": 1} and stalls.longest_phase == "markers"
     # asleep, not on a CPU: waiting (for a core or the GIL), not the loop's work
-    assert stalls.waiting == 1 and "waiting for a CPU or the GIL" in lines[0]
+    # (asleep is not runnable: with schedstat, blocked, not the host's)
+    why = "blocked: the GIL" if _schedstat() else "waiting for a CPU or the GIL"
+    assert stalls.waiting == 1 and why in lines[0], lines
     assert lines[0].startswith("loop: markers held the frame path for"), lines
     assert is_waiting(10, 100) and not is_waiting(60, 100)
     # A collector pass, from start to stop, timed as its own phase.
@@ -809,3 +814,78 @@ def _tiny_training() -> TrainingSet:
         neutral=np.array([[0.0, 0.05, -0.05], [0.05, 0.0, -0.05]]),
         deltas=np.array([[[0.0, 0.0, 0.01], [0.0, 0.01, 0.0]]]),
     )  # fmt: skip
+
+
+def _schedstat() -> bool:
+    return Path(f"/proc/self/task/{threading.get_native_id()}/schedstat").exists()
+
+
+def test_a_stall_blocked_while_another_thread_ran_names_that_thread() -> None:
+    """Off a CPU and not runnable (asleep, as when waiting for the GIL): ``blocked``,
+    the daemon's, and the thread that ran meanwhile is named."""
+    if not _schedstat():
+        pytest.skip("no schedstat (a kernel without CONFIG_SCHED_INFO)")
+    lines: list[str] = []
+    stalls = LoopStalls(RateLimitedLog(lines.append, 10.0))
+    go, stop = threading.Event(), threading.Event()
+
+    def spin() -> None:
+        go.wait()
+        while not stop.is_set():
+            pass
+
+    spinner = threading.Thread(target=spin, name="spinner", daemon=True)
+    spinner.start()
+    try:
+        stalls.mark()  # (the threads' times read)
+        go.set()
+        time.sleep(2 * STALL_NS * 1e-9)
+        stalls.lap("markers")
+    finally:
+        stop.set()
+        spinner.join()
+    status = stalls.status()
+    assert status["waiting"] == 1 and status["blocked"] == 1, status
+    assert status["unscheduled"] == 0, status
+    (entry,) = status["recent"]
+    assert entry["why"] == "blocked" and entry["phase"] == "markers", entry
+    assert entry["busiest"][0] == "spinner" and entry["others_cpu_ms"] > 0, entry
+    assert "blocked: the GIL held by another thread" in lines[0], lines
+    assert "most spinner" in lines[0], lines
+
+
+def test_a_stall_runnable_without_a_cpu_is_the_hosts() -> None:
+    """The loop's thread busy on one core with three busy processes on that core:
+    runnable without a CPU most of the phase, ``unscheduled`` (the host's)."""
+    if not _schedstat() or not hasattr(os, "sched_setaffinity"):
+        pytest.skip("no schedstat or CPU affinity")
+    lines: list[str] = []
+    stalls = LoopStalls(RateLimitedLog(lines.append, 10.0))
+    before = os.sched_getaffinity(0)
+    cpu = min(before)
+    busy = [
+        subprocess.Popen(
+            [sys.executable, "-c", "while True: pass"],
+            preexec_fn=lambda: os.sched_setaffinity(0, {cpu}),
+        )
+        for _ in range(3)
+    ]
+    try:
+        os.sched_setaffinity(0, {cpu})  # this thread only (Linux)
+        time.sleep(0.2)  # the three running
+        stalls.mark()
+        end = time.monotonic() + 4 * STALL_NS * 1e-9
+        while time.monotonic() < end:
+            pass
+        stalls.lap("markers")
+    finally:
+        os.sched_setaffinity(0, before)
+        for p in busy:
+            p.kill()
+            p.wait()
+    status = stalls.status()
+    assert status["unscheduled"] == 1 and status["blocked"] == 0, status
+    (entry,) = status["recent"]
+    assert entry["why"] == "unscheduled", entry
+    assert 2 * entry["runqueue_ms"] >= entry["ms"], entry
+    assert "the host did not schedule it" in lines[0], lines

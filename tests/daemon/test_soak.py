@@ -18,6 +18,8 @@ pose is back within 0.25 s of the intact solve."""
 from __future__ import annotations
 
 import itertools
+import threading
+from typing import Any
 
 import pytest
 from bench_scripts import bench_module
@@ -106,3 +108,72 @@ def test_a_gap_only_at_the_sub_is_told_apart_from_one_the_daemon_sent() -> None:
     # the daemon's own 12 -> 200 ms gap, received as sent: not a late delivery
     received = [1 * ms, 5 * ms, 9 * ms, 13 * ms, 201 * ms, 205 * ms]
     assert soak.late_deliveries(received, sent) == []
+
+
+@pytest.mark.timeout(60)
+def test_a_failed_handshakes_request_never_blocks_the_attack_thread() -> None:
+    """A REQ socket with reconnection off whose CURVE handshake (a wrong server key)
+    failed before its send has no peer: a plain send blocked the soak's attack
+    thread until the context was terminated (``ContextTerminated``). The soak's
+    send gives up within its timeout."""
+    import zmq
+
+    soak = bench_module("soak")
+    ctx = zmq.Context()
+    try:
+        server_public, server_secret = zmq.curve_keypair()
+        client_public, client_secret = zmq.curve_keypair()
+        wrong_public, _ = zmq.curve_keypair()
+        rep = ctx.socket(zmq.REP)
+        rep.curve_server = True
+        rep.curve_secretkey, rep.curve_publickey = server_secret, server_public
+        port = rep.bind_to_random_port("tcp://127.0.0.1")
+        req = ctx.socket(zmq.REQ)
+        req.setsockopt(zmq.LINGER, 0)
+        req.setsockopt(zmq.RECONNECT_IVL, -1)
+        req.curve_secretkey, req.curve_publickey = client_secret, client_public
+        req.curve_serverkey = wrong_public
+        monitor = req.get_monitor_socket()
+        req.connect(f"tcp://127.0.0.1:{port}")
+        # the handshake fails (the server cannot read the HELLO): the peer is gone
+        assert monitor.poll(10_000), "no monitor event"
+        while monitor.poll(10_000):
+            event = zmq.utils.monitor.recv_monitor_message(monitor)["event"]
+            if event == zmq.EVENT_DISCONNECTED:
+                break
+        else:
+            pytest.fail("the handshake never failed")
+        got: list[bytes | None] = []
+        thread = threading.Thread(
+            target=lambda: got.append(soak.handshake_request(req, b"{}", 300)),
+            daemon=True,
+        )
+        thread.start()
+        thread.join(5.0)
+        assert not thread.is_alive(), "the send blocked"
+        assert got == [None]
+        req.disable_monitor()
+        for sock in (monitor, req, rep):
+            sock.close(linger=0)
+    finally:
+        ctx.destroy(linger=0)
+
+
+def test_a_loop_late_gap_is_the_hosts_only_if_its_stalls_were_all_unscheduled() -> None:
+    """A gap the loop's stalls explain, each one its thread runnable without a CPU
+    (``unscheduled``), is the host's; one blocked stall in it (the GIL or a lock),
+    none at all, or too short a stall leaves it the daemon's (``loop_late``)."""
+    soak = bench_module("soak")
+    ms = 1_000_000
+    a, b = 1000 * ms, 1118 * ms  # a 118 ms gap
+
+    def stall(end: int, length: float, why: str) -> dict[str, Any]:
+        return {"end_ns": end, "ms": length, "why": why}
+
+    host = stall(1117 * ms, 119.0, "unscheduled")
+    assert soak.host_stalled(a, b, [host])
+    assert not soak.host_stalled(a, b, [host, stall(1060 * ms, 55.0, "blocked")])
+    assert not soak.host_stalled(a, b, [])
+    assert not soak.host_stalled(a, b, None)
+    assert not soak.host_stalled(a, b, [stall(1117 * ms, 52.0, "unscheduled")])
+    assert not soak.host_stalled(a, b, [stall(900 * ms, 119.0, "unscheduled")])
