@@ -229,12 +229,13 @@ def _print_observability(
         explicit = rig.fit.bones.get(obs.bone)
         stiff = explicit.stiffness_mm if explicit is not None else 0.0
         note = f"; the rig's stiffness {stiff:g} mm/rad" if stiff else ""
-        spared = _spared_axis(model, explicit.stiffness_free_plane if explicit else ())
+        plane = explicit.stiffness_free_plane if explicit is not None else ()
+        spared = _spared_axis(model, plane)
         if stiff and spared is not None:
             note += (
                 f" on every rotation but the one about [{spared[0]:+.2f}, "
                 f"{spared[1]:+.2f}, {spared[2]:+.2f}] (the normal of the plane "
-                f"through the joint, {' and '.join(explicit.stiffness_free_plane)})"
+                f"through the joint, {' and '.join(plane)})"
             )
         out(f"  {obs.bone} ({obs.dof}{note}): {obs.describe()}\n")
         out(f"      markers riding it: {' '.join(riders) or '(none)'}\n")
