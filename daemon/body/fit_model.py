@@ -80,6 +80,7 @@ from retargetd.daemon.body.rig_fit import (
     BoneFitOptions,
     FitOptions,
     MarkerFitOptions,
+    free_plane_axis,
     hinge_axes_in_bone,
     parse_fit_table,
     stiffness_matrix,
@@ -651,7 +652,7 @@ def build_fit_model(
                         f"fit.bones.{name}.stiffness_free_plane: "
                         f"{bopt.stiffness_free_plane} must both ride {name}"
                     )
-                normal = np.cross(local[i], local[k])  # (the origin: the joint)
+                normal = free_plane_axis(local[i], local[k])  # (None: collinear)
         explicit[b] = stiffness_matrix(bopt.stiffness_mm, normal)
         if name in axes:  # calibrate --rom's functional axis first, the rig's else
             hinge[b] = functional_axes.get(name, axes[name])

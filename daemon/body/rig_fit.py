@@ -348,6 +348,15 @@ def parse_fit_table(
     return FitOptions(markers=out_m, bones=out_b)
 
 
+def free_plane_axis(a: F64Array, b: F64Array) -> F64Array | None:
+    """The unit normal of the plane through a joint (the origin) and two markers at
+    ``a`` and ``b`` in its bone's axes: the rotation a ``stiffness_free_plane`` pull
+    spares; None where the three lie on one line."""
+    normal = np.cross(np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64))
+    n = float(np.linalg.norm(normal))
+    return normal / n if math.isfinite(n) and n > 0.0 else None
+
+
 def stiffness_matrix(stiffness_mm: float, normal: F64Array | None) -> F64Array:
     """A joint's pull towards its calibration pose (m^2 / rad^2, in the chart of its
     bone's rest axes: ``fit_model.FitModel.prior_mat``): ``stiffness_mm`` squared in

@@ -200,6 +200,7 @@ def _print_observability(
     from retargetd.daemon.body import fit_observe
     from retargetd.daemon.body.calibration import CalibrationError
     from retargetd.daemon.body.fit_model import build_fit_model
+    from retargetd.daemon.body.rig_fit import free_plane_axis
     from retargetd.daemon.cli.args import held_log_warnings
 
     base = cal.base_marker_pos
@@ -230,7 +231,11 @@ def _print_observability(
         stiff = explicit.stiffness_mm if explicit is not None else 0.0
         note = f"; the rig's stiffness {stiff:g} mm/rad" if stiff else ""
         plane = explicit.stiffness_free_plane if explicit is not None else ()
-        spared = _spared_axis(model, plane)
+        spared = None
+        if len(plane) == 2 and all(m in model.marker_names for m in plane):
+            i, k = (model.marker_names.index(m) for m in plane)
+            if model.marker_weight[i] > 0.0 and model.marker_weight[k] > 0.0:
+                spared = free_plane_axis(model.marker_local[i], model.marker_local[k])
         if stiff and spared is not None:
             note += (
                 f" on every rotation but the one about [{spared[0]:+.2f}, "
@@ -274,22 +279,6 @@ def _print_observability(
         "prior_stiffness_mm_per_rad": round(lever_min, 3),
         "bones": bones,
     }
-
-
-def _spared_axis(model: Any, plane: tuple[str, ...]) -> Any:
-    """The unit axis a bone's ``stiffness_free_plane`` spares, in its axes (the
-    normal of the plane through the joint and the two markers, as ``fit_model``
-    builds the pull), or None where there is none or the points are collinear."""
-    import numpy as np
-
-    if len(plane) != 2 or not all(m in model.marker_names for m in plane):
-        return None
-    i, k = (model.marker_names.index(m) for m in plane)
-    if model.marker_weight[i] <= 0.0 or model.marker_weight[k] <= 0.0:
-        return None
-    normal = np.cross(model.marker_local[i], model.marker_local[k])
-    n = float(np.linalg.norm(normal))
-    return normal / n if math.isfinite(n) and n > 0.0 else None
 
 
 def _check_take(
