@@ -561,8 +561,8 @@ class FitSolver:
         unexplained = stats[:, ft.S_UNEXPLAINED] > 0.5
         seen = np.flatnonzero(~unseen & ~unexplained)
         if seen.size and seen[0] > 0:
-            # Before the performer is first seen (or first explained: FitParams.
-            # start_max_m) there is no pose: those frames (flagged) take the first
+            # Before the performer is first seen (or first explained: FitParams.gate_m
+            # on a first frame) there is no pose: those frames (flagged) take the first
             # one, so a file has no jump from the calibration spot.
             lead = slice(0, int(seen[0]))
             for arr in (joints, wfb, pfb, rfb, root):
