@@ -40,7 +40,10 @@ P_JUMP_FLOOR_RAD = 20  # ... from its prediction is no motion a body makes
 P_RESOLUTION_RAD = 21  # the hold: a joint angle's resolution (fit_observe)
 P_VELOCITY_TAU_S = 22  # a hidden marker's velocity decays with this time constant
 P_HOLD_STRAIGHT_RAD = 23  # the hold: a limb's hinge bent less reads the straight table
-N_PARAMS = 24
+P_OMEGA_MAX = 24  # peak angular velocity of a joint (parent-relative), rad/s
+P_OMEGA_ROOT = 25  # peak angular velocity of a root (its world rotation), rad/s
+P_SPEED_MAX = 26  # peak speed of a root, m/s
+N_PARAMS = 27
 
 # per-frame scalars (the state's ``s[36]``)
 C_GATE = 0  # this frame's gate, metres

@@ -23,7 +23,10 @@ from retargetd.daemon.body.fit_terms import (
     P_JUMP_FLOOR_RAD,
     P_JUMP_Z,
     P_NOISE_M,
+    P_OMEGA_MAX,
+    P_OMEGA_ROOT,
     P_RESOLUTION_RAD,
+    P_SPEED_MAX,
     P_VELOCITY_TAU_S,
     cp2,
     fk,
@@ -70,23 +73,45 @@ def predict(m: tuple, s: tuple) -> None:
 
 
 @kernel
+def jump_bound(
+    z: float, a_max: float, v_max: float, h: float, known: bool, floor: float
+) -> float:
+    # How far a segment (or a root's position) can be from its prediction h seconds
+    # after the last explained frame, at least the floor. With its velocity known
+    # (predict extrapolated it) it misses by at most 1/2 a_max h^2 (times z, the
+    # acceleration's margin), and by at most 2 v_max h (its speed then and now both
+    # under v_max). With the prediction held (no velocity is known across a gap) it
+    # has moved by at most v_max h: its speed never passes v_max, whatever it was
+    # when the markers went.
+    b = min(z * 0.5 * a_max * h * h, 2.0 * v_max * h) if known else v_max * h
+    return max(b, floor)
+
+
+@kernel
 def impossible(m: tuple, s: tuple, frames: float) -> bool:
     # Whether the fitted pose moved a joint (or a root) further from its prediction
-    # than a body can in `frames` frames: the bound 1/2 a (frames dt)^2 times
-    # P_JUMP_Z, or the floor (noise on a short lever makes a few degrees of jitter
-    # at any rate; the root: the gate).
+    # than a body can in `frames` frames (jump_bound): a joint under the peak
+    # angular acceleration and velocity, a root's world rotation under the whole
+    # body's turn, a root's position under a sprint; at least the floor (noise on a
+    # short lever makes a few degrees of jitter at any rate; a root's position: the
+    # gate).
     params, parent = m[18], m[0]
     q, t, qpred, tpred = s[0], s[1], s[2], s[3]
     h = frames * s[36][C_DT]
     z = params[P_JUMP_Z]
-    lim_r = max(z * 0.5 * params[P_ALPHA_MAX] * h * h, params[P_JUMP_FLOOR_RAD])
-    lim_t = max(z * 0.5 * params[P_ACC_MAX] * h * h, params[P_GATE_M])
+    known = s[4][0] >= 2 and s[36][C_GAP] <= 1.0  # as predict decides
+    a_rot, floor_r = params[P_ALPHA_MAX], params[P_JUMP_FLOOR_RAD]
+    lim_j = jump_bound(z, a_rot, params[P_OMEGA_MAX], h, known, floor_r)
+    lim_root = jump_bound(z, a_rot, params[P_OMEGA_ROOT], h, known, floor_r)
+    lim_t = jump_bound(
+        z, params[P_ACC_MAX], params[P_SPEED_MAX], h, known, params[P_GATE_M]
+    )
     for b in range(parent.shape[0]):
         d = qmul(qpred[b, 0], -qpred[b, 1], -qpred[b, 2], -qpred[b, 3],
                   q[b, 0], q[b, 1], q[b, 2], q[b, 3])  # fmt: skip
         w = abs(d[0])
         ang = 2.0 * math.acos(w if w < 1.0 else 1.0)
-        if ang > lim_r:
+        if ang > (lim_root if parent[b] < 0 else lim_j):
             return True
     for rr in range(t.shape[0]):
         dx = t[rr, 0] - tpred[rr, 0]

@@ -169,12 +169,41 @@ class FitParams:
             own prediction and ran away (menache's neck, C1 hidden). 0.1 s; 0.05 and
             0.3 s gave the same hide sweeps within one case.
         jump_z, jump_floor_deg: a frame is unexplained too when its pose moves a joint
-            further from its prediction than max(jump_z x the bound above,
-            jump_floor_deg) (a root: max(jump_z x acc_max's bound, gate_m)): a body
+            further from its prediction than max(jump_z x what a body can,
+            jump_floor_deg) (a root's position: max(jump_z x that, gate_m)): a body
             cannot, mirrored or permuted labels can (the rigid skeleton turned half
-            round fits a left-right swap with a small residual). 3 (thrice the peak
-            acceleration) and 10 deg (twice RESOLUTION_RAD of ``fit_observe``: noise on
-            a short lever jitters a few degrees a frame at any rate).
+            round fits a left-right swap with a small residual). What a body can,
+            h seconds after the last explained frame (``fit_track.jump_bound``):
+            with the velocity known (the prediction extrapolated) min(jump_z x
+            alpha_max h^2 / 2, 2 omega h); with the prediction held (after a gap,
+            and the frame after the first one explained: no velocity is known
+            across a gap) omega h, the speed never passing omega whatever it was
+            when the markers went (acc_max and speed_max for a root's position).
+            3 (thrice the peak acceleration: the extrapolation's miss; a peak speed
+            is a bound as it stands, the fastest the body turns or runs) and 10 deg
+            (twice RESOLUTION_RAD of ``fit_observe``: noise on a short lever
+            jitters a few degrees a frame at any rate).
+            Before, the held prediction was bounded by alpha_max alone, past pi
+            after 4 frames at 240 Hz: a swapped burst's frame came in at gap 3-8
+            with the pelvis turned 44-50 deg from its prediction
+            (``tests/daemon/test_burst_recovery.py``). The real takes' fastest
+            frames (README "The fit's rules") stay under the bound.
+        omega_max: rad/s, the peak angular velocity of a joint (parent-relative): the
+            throwing arm's internal rotation, about 7000 deg/s (Fleisig et al. 1995,
+            above; the fastest joint rotation measured in sport), for every joint.
+        omega_root: rad/s, the peak angular velocity of a root's rotation in the
+            world (the whole body turning): 3 rev/s, the top of a ballet dancer's
+            pirouette (2-3 rev/s; Kim et al., "Generation of vertical angular
+            momentum in single, double, and triple-turn pirouette en dehors in
+            ballet", Sports Biomech 13(3):215-229, 2014), about the pitcher's upper
+            trunk (~1170 deg/s) and far above the pitcher's pelvis (~660 deg/s;
+            Fleisig et al., "Kinematic and kinetic comparison of baseball pitching
+            among various levels of development", J Biomech 32(12):1371-1375,
+            1999).
+        speed_max: m/s, the peak speed of a root: 12.3, a world-record sprinter's
+            top speed (Graubner & Nixdorf, "Biomechanical analysis of the sprint
+            and hurdles events at the 2009 IAAF World Championships in Athletics",
+            New Studies in Athletics 26(1/2):19-53, 2011).
         level_tau_s: time constant of the running residual level (that RMS) over
             explained frames: 1 s, a gait cycle (its artefact pattern), long against a
             burst.
@@ -207,6 +236,9 @@ class FitParams:
     velocity_tau_s: float = 0.1
     jump_z: float = 3.0
     jump_floor_deg: float = 10.0
+    omega_max: float = math.radians(7000.0)
+    omega_root: float = 6.0 * math.pi
+    speed_max: float = 12.3
     level_tau_s: float = 1.0
     max_iter: int = 10
     tol: float = 1e-4
@@ -236,6 +268,9 @@ class FitParams:
         out[ft.P_RESOLUTION_RAD] = math.radians(self.resolution_deg)
         out[ft.P_HOLD_STRAIGHT_RAD] = math.radians(self.hold_straight_deg)
         out[ft.P_JUMP_FLOOR_RAD] = math.radians(self.jump_floor_deg)
+        out[ft.P_OMEGA_MAX] = self.omega_max
+        out[ft.P_OMEGA_ROOT] = self.omega_root
+        out[ft.P_SPEED_MAX] = self.speed_max
         out[ft.P_MAX_ITER] = self.max_iter
         out[ft.P_TOL] = self.tol
         out[ft.P_FTOL] = self.ftol

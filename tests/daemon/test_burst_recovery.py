@@ -146,3 +146,57 @@ def test_a_burst_at_a_restart_leaves_nothing(datasets: Path, kind: str) -> None:
     rec_s = (after[0] + 1) / rate
     print(f"{kind}: level {level * 1e3:.1f} mm, second burst back in {rec_s:.3f} s")
     assert rec_s <= soak.MAX_RECOVERY_S
+
+
+@pytest.mark.timeout(300)
+@pytest.mark.parametrize(("n_mask", "t0"), [(480, 230), (240 * 97, 120)])
+def test_a_swapped_burst_is_not_let_in_across_its_gap(
+    datasets: Path, n_mask: int, t0: int
+) -> None:
+    """Left and right labels swapped for 8 frames of the walk at 240 Hz (the soak's
+    occlusions, drawn for ``n_mask`` frames): every swapped frame is unexplained, and
+    the solve is back within 0.25 s. Before, after a gap the prediction was held and
+    bounded by the peak acceleration alone (3 x 1/2 8000 rad/s^2 h^2: 191 deg after 4
+    frames), so a swapped frame came in, fitted at 5-6 mm RMS with the pelvis turned
+    50 deg from its prediction: the fourth at gap 4 (52 deg off the intact solve, a
+    leg 62 deg), the last at gap 8 (a shank 67 deg from its prediction), and the
+    true frames after it were judged against it. A root turns at most 3 rev/s (the
+    top of a pirouette; ``FitParams.omega_root``): 18 and 36 deg in those 4 and 8
+    frames."""
+    br = bench_module("burst_recovery")
+    soak = br.soak
+    static, walk = load_take(datasets / br.STATIC), load_take(datasets / br.WALK)
+    rig = load_rig("plug-in-gait")
+    cal = calibrate(rig, static.positions, static.labels,
+                    take_measurements=static.measurements)  # fmt: skip
+    rate, n, n_bad = 240.0, t0 + 250, 8
+    pos = walk.positions
+    rows = np.array([soak.walk_row(k, pos.shape[0]) for k in range(n)])
+    clean = pos[rows].copy()
+    hide = soak.occlusion_mask(np.random.default_rng(1), n_mask, pos.shape[1], 0.10)
+    clean[hide[:n]] = np.nan
+    bad = clean.copy()
+    swap = br._swap(list(walk.labels))
+    for f in range(t0, t0 + n_bad):
+        bad[f] = br._bad("swapped", clean[f], swap)
+
+    def solve(markers: np.ndarray) -> Any:
+        return make_body_solver(
+            "fit", rig, cal, walk.labels, joint_limits=JOINT_LIMITS_DEG,
+            segment_kind=SEGMENT_KIND, rate_hz=rate,
+        ).solve_take(markers)  # fmt: skip
+
+    hit, intact = solve(bad), solve(clean)
+    assert not hit.unexplained[:t0].any()
+    assert hit.unexplained[t0 : t0 + n_bad].all(), hit.unexplained[t0 : t0 + n_bad]
+    deg = bone_deviation_deg(
+        np.asarray(hit.world_from_bone_quat), np.asarray(intact.world_from_bone_quat)
+    ).max(axis=1)
+    root = np.linalg.norm(hit.root_pos - intact.root_pos, axis=1)
+    back = (deg <= soak.RECOVERED_DEG) & (root <= soak.RECOVERED_M)
+    back &= ~hit.unexplained & ~hit.unseen
+    after = np.flatnonzero(back[t0 + n_bad :])
+    assert after.size, f"never back: {np.nanmax(deg[t0 + n_bad :]):.1f} deg"
+    rec_s = (after[0] + 1) / rate
+    print(f"swapped {n_bad} frames: back in {rec_s:.3f} s")
+    assert rec_s <= soak.MAX_RECOVERY_S
