@@ -284,6 +284,10 @@ class LoopConfig:
     # this long after it (live/spin.py), 0 = never (the default): for a machine with
     # a core to spare for the loop; on one whose cores are busy it delays the frame.
     spin_us: float = between(0.0, 0.0, 10_000.0)
+    # With several [[performer]] tables: the threads their body solves run on, the
+    # loop's included (live/solve_threads.py); 1 = all on the loop thread. The
+    # solves are compiled nogil, so each thread can take a core of its own.
+    solve_threads: int = between(2, 1, 64)
     # A repeated log line (per reason) is printed once, then summarized with its
     # count at most once per this interval (a flood cannot grow the log).
     log_interval_s: float = between(10.0, 0.1, 3600.0)

@@ -348,6 +348,7 @@ class Daemon:
             self._announce("console", f"{url} (browser; buttons act like ctl)")
         self._warm_up()
         self.performers.start_validators()
+        self.performers.start_solve_threads()  # [loop] solve_threads
         self.performers.prepare_streams()  # configured labels: pipelines built now
         # Everything built so far lives as long as the daemon: keep it out of the
         # garbage collector's full passes (one took ~50 ms here, holding the GIL).
