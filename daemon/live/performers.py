@@ -112,9 +112,10 @@ class Performers:
     def _solve_threaded(self, n: int, t_ns: int) -> None:
         """The ``n`` performers in ``self._due`` (config order) on their frames in
         ``self._sources``: each one's begin on the loop thread; the body solves
-        spread over the solve threads (``solve_threads.py``); each one finished on
-        the loop thread in order. A solve that raised skips its performer's finish;
-        the first such exception is raised once the others are finished."""
+        taken by the loop and the solve threads (``solve_threads.py``); each one
+        finished on the loop thread in order. A solve that raised skips its
+        performer's finish; the first such exception is raised once the others
+        are finished."""
         threads = self._threads
         assert threads is not None
         due, sources, begun = self._due, self._sources, self._begun
@@ -127,15 +128,15 @@ class Performers:
                 m += 1
             else:  # no pipeline: counted unsolved
                 self._tally(due[i], out, unsolved, unseen)
+        paths = threads.paths
         for j in range(m):
-            if not threads.mine(j):
-                threads.hand(j, due[begun[j]].path)
-        threads.go()
+            paths[j] = due[begun[j]].path
+        threads.open(m)  # the workers take solves from the end
         failed: Exception | None = None
         try:
             for j in range(m):
                 perf = due[begun[j]]
-                if threads.mine(j):
+                if threads.take(j):  # no worker took it: the loop solves it
                     try:
                         perf.path.solve_begun()
                         exc = None
@@ -151,7 +152,7 @@ class Performers:
                 perf.path.finish(sources[begun[j]], t_ns)
                 self._tally(perf, out, unsolved, unseen)
         finally:
-            threads.settle(m)
+            threads.settle()
         if failed is not None:
             raise failed
 

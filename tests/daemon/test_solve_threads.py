@@ -15,7 +15,7 @@ from typing import Any
 import live_harness as lh
 import numpy as np
 import pytest
-from live_harness import EXACT_RIG, _take
+from live_harness import EXACT_RIG, WAIT_S, _take
 
 from retargetd.daemon.live.config import DaemonConfig
 from retargetd.daemon.live.loop import Daemon
@@ -76,11 +76,34 @@ class _Sent:
         self.messages.append(key + tuple(bytes(p) for p in parts[1:]))
 
 
+def _hold_for_the_worker(d: Daemon) -> None:
+    """Make the loop's first solve of each frame (performer A's) wait until a worker
+    has solved the last one (C's, the first a worker takes), so every frame has a
+    solve on a worker whatever the machine's scheduling."""
+    a, c = d.performers.all[0].path, d.performers.all[-1].path
+    solve_a, solve_c = a.solve_begun, c.solve_begun
+    solved = threading.Event()
+
+    def first() -> None:
+        if not solved.wait(WAIT_S):
+            raise AssertionError("no worker took C's solve")
+        solved.clear()
+        solve_a()
+
+    def last() -> None:
+        solve_c()
+        solved.set()
+
+    a.solve_begun = first  # type: ignore[method-assign]
+    c.solve_begun = last  # type: ignore[method-assign]
+
+
 def _run(
     calibration: Path, solve_threads: int, method: str, hide: int = -1
 ) -> tuple[_Sent, dict[str, Any], Daemon]:
     """Feed FRAMES (performer ``hide``'s markers all NaN on every 5th frame: unseen)
-    to a daemon of three performers and solve each; closed on return."""
+    to a daemon of three performers and solve each; closed on return. With solve
+    threads, C's solve always on a worker (:func:`_hold_for_the_worker`)."""
     take = _take()
     labels = tuple(f"{n}:{label}" for n in NAMES for label in take.labels)
     d = _daemon(calibration, solve_threads, method)
@@ -88,6 +111,8 @@ def _run(
     d.outputs.send_pub = sent  # type: ignore[method-assign]
     try:
         d.open()
+        if solve_threads > 1:
+            _hold_for_the_worker(d)
         stream = d.osc_stream
         label_set = LabelSet(1, labels)
         stream.set_labels(label_set)
@@ -113,7 +138,7 @@ def test_threads_send_the_serial_poses_in_the_serial_order(
     assert d1.performers.solve_threads is None
     threads = d2.performers.solve_threads
     assert threads is not None and threads.n_threads == 2
-    assert threads.solves == len(FRAMES)  # each frame's second solve on the worker
+    assert threads.solves >= len(FRAMES)  # C's at least, every frame
     assert threaded.messages == serial.messages  # bytes, order, frame ids, flags
     data = [m for m in threaded.messages if m[0] == pose_stream.DATA_MAGIC]
     assert [m[3] for m in data if m[1] == FRAMES[1]] == [0, 1, 2]  # config order
@@ -246,27 +271,48 @@ class _Path:
             raise _Boom("solve")
 
 
-def test_solve_threads_hand_out_wait_and_return_what_raised() -> None:
-    t = SolveThreads(4, 3)  # the loop and two workers
+def test_the_loop_and_a_worker_take_each_solve_once() -> None:
+    t = SolveThreads(4, 2)  # the loop and one worker
     t.start()
     try:
-        paths = [_Path(), _Path(fail=True), _Path(), _Path()]
-        assert [t.mine(j) for j in range(4)] == [True, False, False, True]
-        for j in (1, 2):
-            t.hand(j, paths[j])
-        t.go()
-        assert isinstance(t.wait(1), _Boom)
-        assert t.wait(2) is None
-        t.settle(4)
         me = threading.get_ident()
-        assert paths[1].threads[0] != me and paths[2].threads[0] != me
-        assert paths[1].threads[0] != paths[2].threads[0]  # one worker each
-        assert t.solves == 2
-        # a frame left without waiting (a finish raised): settle waits for it
-        t.hand(2, paths[2])
-        t.go()
-        t.settle(4)
-        assert len(paths[2].threads) == 2 and t.solves == 3
+        for frame in range(3):
+            paths = [_Path(), _Path(fail=True), _Path(), _Path()]
+            t.paths[:4] = paths
+            t.open(4)
+            # the loop takes solve 0 at once; it waits for the worker's 3, 2, 1
+            # (taken from the end) rather than taking them
+            assert t.take(0)
+            paths[0].solve_begun()
+            assert t.wait(3) is None and t.wait(2) is None
+            assert isinstance(t.wait(1), _Boom)
+            t.settle()
+            assert [len(p.threads) for p in paths] == [1, 1, 1, 1]  # each once
+            assert paths[0].threads == [me]
+            assert all(p.threads[0] != me for p in paths[1:])
+            assert t.solves == 3 * (frame + 1)
+        # a frame the loop takes whole (the worker not scheduled yet: it takes
+        # only what is open when it runs): nothing solved twice, nothing waited
+        paths = [_Path(), _Path()]
+        t.paths[:2] = paths
+        t.open(2)
+        took = [t.take(j) for j in range(2)]
+        for j, mine in enumerate(took):
+            if mine:
+                paths[j].solve_begun()
+            else:
+                assert t.wait(j) is None
+        t.settle()
+        assert [len(p.threads) for p in paths] == [1, 1]
+        # a frame left early (a finish raised): settle waits for a worker's solve
+        # and takes the rest, solved by nobody
+        paths = [_Path(), _Path(), _Path()]
+        t.paths[:3] = paths
+        t.open(3)
+        assert t.take(0)
+        t.settle()
+        assert len(paths[0].threads) == 0 and sum(len(p.threads) for p in paths) <= 2
+        assert not any(lock.acquire(False) for lock in t.claim)  # nothing left open
     finally:
         t.close()
     assert t.alive() == 0
