@@ -297,8 +297,9 @@ class FacePath:
     def solve_begun(self) -> None:
         """No body to solve (the face is solved in :meth:`finish`, on the loop)."""
 
-    def finish(self, stream: FrameSource, received_ns: int) -> None:
-        """The whole frame (:meth:`process`), in its turn among the performers."""
+    def finish(self, stream: FrameSource, received_ns: int, turn_ns: int = 0) -> None:
+        """The whole frame (:meth:`process`, its clock started there), in its turn
+        among the performers."""
         self.process(stream, received_ns)
 
     def process(self, stream: FrameSource, received_ns: int) -> None:

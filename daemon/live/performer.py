@@ -80,7 +80,9 @@ class FramePath(Protocol):
 
     def solve_begun(self) -> None: ...
 
-    def finish(self, stream: FrameSource, received_ns: int) -> None: ...
+    def finish(
+        self, stream: FrameSource, received_ns: int, turn_ns: int = 0
+    ) -> None: ...
 
     def flag(self, bits: int) -> None: ...
 
@@ -169,7 +171,7 @@ class _NoPath:
     def solve_begun(self) -> None:
         raise RuntimeError("a performer without its frame path")
 
-    def finish(self, stream: FrameSource, received_ns: int) -> None:
+    def finish(self, stream: FrameSource, received_ns: int, turn_ns: int = 0) -> None:
         raise RuntimeError("a performer without its frame path")
 
     def flag(self, bits: int) -> None:

@@ -136,6 +136,7 @@ class Performers:
         try:
             for j in range(m):
                 perf = due[begun[j]]
+                turn_ns = time.monotonic_ns()  # its budget's start (path.finish)
                 if threads.take(j):  # no worker took it: the loop solves it
                     try:
                         perf.path.solve_begun()
@@ -149,7 +150,7 @@ class Performers:
                         failed = exc
                     continue
                 out, unsolved, unseen = stats.frames_out, stats.unsolved, stats.unseen
-                perf.path.finish(sources[begun[j]], t_ns)
+                perf.path.finish(sources[begun[j]], t_ns, turn_ns)
                 self._tally(perf, out, unsolved, unseen)
         finally:
             threads.settle()

@@ -222,16 +222,19 @@ class BodyPath:
         assert pipe is not None
         pipe.solver.solve_frame(self._begun_markers, pipe.pose, self._begun_dt)
 
-    def finish(self, stream: FrameSource, received_ns: int) -> None:
+    def finish(self, stream: FrameSource, received_ns: int, turn_ns: int = 0) -> None:
         """The rest of the frame :meth:`begin` took and :meth:`solve_begun` solved,
         on the loop thread: the fit's flags, stance, post stages, face, retarget,
-        encodes and sends, counters and latencies."""
+        encodes and sends, counters and latencies. ``turn_ns`` (not 0): when the
+        loop turned to this performer, its solve taken or waited for since (with
+        solve threads): its budget and solve stage count from then, as the serial
+        path's count from its begin, after the performers before it."""
         pipe = self._begun
         assert pipe is not None
         self._begun = None
         sh, perf = self.shared, self.perf
         stats = sh.stats
-        t_start = self._t_start
+        t_start = turn_ns or self._t_start
         frame = stream.current.frame
         dt = self._begun_dt
         pose = pipe.pose
