@@ -4,6 +4,11 @@ Run from the repository root::
 
     python bench/bench_multi.py [--performers 4] [--rate 240] [--seconds S]
         [--warmup W] [--no-single] [--method fit|construction]
+        [--solve-threads 1,2] [--rounds R]
+
+Issue 35 item 4 on a quiet machine: ``--seconds 60 --rounds 3 --solve-threads 2
+--no-single`` (the default threads; ``--solve-threads 1,2`` puts the serial run beside
+each); on a shared machine shorter rounds, e.g. ``--seconds 15 --rounds 3``.
 
 What runs (issue 19 item 2), all on 127.0.0.1, every process ended at the end even on
 error, with the machinery of ``bench_latency.py`` (its sender, pacing, daemon process
@@ -34,8 +39,13 @@ each performer's ``unsolved`` is printed beside its drops. The timed phase start
 the daemon has built every performer's pipeline (off its loop, from the first label
 set: 3-9 s at load 4-6 here), so its drops are the steady stream's. With
 ``--no-single`` left out, the single-performer daemon (``[performer]``) on the plain
-walk runs too, for scale. Performers are solved in config order for each frame, so
-performer k's latency includes the solves of performers 0..k-1 of the same frame.
+walk runs too, for scale. Performers are finished and sent in config order for each
+frame, so performer k's latency includes the work of performers 0..k-1 of the same
+frame; with ``[loop] solve_threads`` 2 some of their body solves run on the second
+thread meanwhile (``daemon/live/solve_threads.py``). Each round runs a raw UDP
+baseline, then the N-performer daemon once per ``--solve-threads`` setting (their
+order turned every other round), each run's table with the load average after it,
+and a summary line per run at the end.
 
 In process first, for the figures the machine's scheduling does not blur: the label
 split per performer and frame (``StreamView.refresh``) against fancy indexing, a
