@@ -1160,7 +1160,7 @@ def print_report(summaries: list[Summary], args: argparse.Namespace) -> None:
     head = (
         f"{'case':<24} {'sent':>6} {'rate Hz':>8} {'solved':>6} {'stale':>5} "
         f"{'drops':>5} {'pose rx':>7} {'VMC T rx':>8} {'unmatch':>7} "
-        f"{'overrun':>7} {'pub drop':>8}  input drops"
+        f"{'overrun':>7} {'pub drop':>8} {'touched':>7} {'spun':>11}  input drops"
     )
     print("\nframes (timed phase; daemon counters are deltas over it)")
     print(head)
@@ -1175,12 +1175,17 @@ def print_report(summaries: list[Summary], args: argparse.Namespace) -> None:
             f"{s.name:<24} {s.sent:>6} {s.send_rate_hz:8.1f} "
             f"{c.get('frames_solved', 0):>6} {c.get('stale', 0):>5} {s.drops:>5} "
             f"{s.pose_recv:>7} {s.vmc_recv:>8} {s.vmc_unmatched:>7} "
-            f"{c.get('overruns', 0):>7} {c.get('send_drops', 0):>8}  "
+            f"{c.get('overruns', 0):>7} {c.get('send_drops', 0):>8} "
+            f"{c.get('prewarm', 0):>7} "
+            f"{c.get('spins_caught', 0):>5}/{c.get('spins', 0):<5}  "
             f"{s.input_drops or 0}"
         )
     print(
         "drops = sent - solved; stale = received but skipped for a newer frame "
-        "(latest wins); unmatch = VMC Ts whose pose message never arrived"
+        "(latest wins); unmatch = VMC Ts whose pose message never arrived; touched "
+        "= the fit's touches before a frame ([loop] prewarm_ms); spun = windows a "
+        "frame ended / windows spun in ([loop] spin_us): how often the paced "
+        "stream was steady enough for them on this machine"
     )
     head = (
         f"{'case':<24} {'raw UDP p50/p99':>16} {'VMC T p50/p99':>14} "

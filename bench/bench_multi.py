@@ -4,6 +4,11 @@ Run from the repository root::
 
     python bench/bench_multi.py [--performers 4] [--rate 240] [--seconds S]
         [--warmup W] [--no-single] [--method fit|construction]
+        [--solve-threads 1,2] [--rounds R]
+
+Issue 35 item 4 on a quiet machine: ``--seconds 60 --rounds 3 --solve-threads 2
+--no-single`` (the default threads; ``--solve-threads 1,2`` puts the serial run beside
+each); on a shared machine shorter rounds, e.g. ``--seconds 15 --rounds 3``.
 
 What runs (issue 19 item 2), all on 127.0.0.1, every process ended at the end even on
 error, with the machinery of ``bench_latency.py`` (its sender, pacing, daemon process
@@ -34,8 +39,13 @@ each performer's ``unsolved`` is printed beside its drops. The timed phase start
 the daemon has built every performer's pipeline (off its loop, from the first label
 set: 3-9 s at load 4-6 here), so its drops are the steady stream's. With
 ``--no-single`` left out, the single-performer daemon (``[performer]``) on the plain
-walk runs too, for scale. Performers are solved in config order for each frame, so
-performer k's latency includes the solves of performers 0..k-1 of the same frame.
+walk runs too, for scale. Performers are finished and sent in config order for each
+frame, so performer k's latency includes the work of performers 0..k-1 of the same
+frame; with ``[loop] solve_threads`` 2 some of their body solves run on the second
+thread meanwhile (``daemon/live/solve_threads.py``). Each round runs a raw UDP
+baseline, then the N-performer daemon once per ``--solve-threads`` setting (their
+order turned every other round), each run's table with the load average after it,
+and a summary line per run at the end.
 
 In process first, for the figures the machine's scheduling does not blur: the label
 split per performer and frame (``StreamView.refresh``) against fancy indexing, a
@@ -175,7 +185,9 @@ def _multi_receiver(n: int, capacity: int, conn: Connection) -> None:
         ctx.term()
 
 
-def _config(calibration: Path, ports: list[int], method: str = "fit") -> str:
+def _config(
+    calibration: Path, ports: list[int], method: str = "fit", solve_threads: int = 1
+) -> str:
     tables = "".join(
         f"""
 [[performer]]
@@ -200,6 +212,7 @@ endpoint = "tcp://{LOCALHOST}:*"
 enabled = false
 [loop]
 process_every_frame = false
+solve_threads = {solve_threads}
 [solve]
 method = "{method}"
 """
@@ -217,9 +230,15 @@ def _stream(take: Any, n: int) -> tuple[tuple[str, ...], np.ndarray]:
 
 
 def run_multi(
-    ctx: Any, args: argparse.Namespace, take: Any, calibration: Path, tmp: Path
+    ctx: Any,
+    args: argparse.Namespace,
+    take: Any,
+    calibration: Path,
+    tmp: Path,
+    solve_threads: int = 1,
 ) -> dict[str, Any]:
-    """The N-performer case: observations and the daemon's counters."""
+    """The N-performer case (``[loop] solve_threads``): observations and the
+    daemon's counters."""
     n, rate = args.performers, args.rate
     labels, positions = _stream(take, n)
     capacity = int(rate * (args.seconds + args.warmup + 5)) + 1000
@@ -235,7 +254,7 @@ def run_multi(
             raise RuntimeError("receiver did not start")
         _, ports = recv_conn.recv()
         config = tmp / "multi.toml"
-        config.write_text(_config(calibration, ports, args.method))
+        config.write_text(_config(calibration, ports, args.method, solve_threads))
         daemon = Daemon(config, tmp / "multi.log")
         daemon.wait_ready()
         recv_conn.send(("sub", daemon.endpoints["zmq poses"]))
@@ -367,19 +386,25 @@ def micro(take: Any, n: int, calls: int = 20_000) -> None:
     )
 
 
-def in_process(take: Any, n: int, calibration: Path, frames: int = 3000) -> None:
+def in_process(
+    take: Any,
+    n: int,
+    calibration: Path,
+    frames: int = 3000,
+    threads: tuple[int, ...] = (1,),
+) -> None:
     """The loop's own work per frame, in process (no scheduling between processes):
     ``Performers.solve`` of an OSC frame fed to the stream (the decode not timed):
     every performer's solve, retarget, VMC and pose encode and send; 1 performer
-    ([performer]) against N ([[performer]]) in the same run, after 500 frames of
-    warm-up."""
+    ([performer]) against N ([[performer]]) with each ``[loop] solve_threads`` of
+    ``threads``, in the same run, after 500 frames of warm-up."""
     from retargetd.daemon.live.config import DaemonConfig
     from retargetd.daemon.live.loop import Daemon
     from retargetd.protocols import osc_in
     from retargetd.protocols.marker_input import LabelSet
 
     figures = []
-    for count in (0, n):
+    for count, solve_threads in [(0, 1)] + [(n, t) for t in threads]:
         if count == 0:
             doc: dict[str, Any] = {
                 "performer": {"rig": "plug-in-gait", "calibration": str(calibration)}
@@ -402,6 +427,7 @@ def in_process(take: Any, n: int, calibration: Path, frames: int = 3000) -> None
                 "output": {"pose": {"endpoint": f"tcp://{LOCALHOST}:*"}},
                 "control": {"endpoint": f"tcp://{LOCALHOST}:*"},
                 "show_control": {"enabled": False},
+                "loop": {"solve_threads": solve_threads},
             }
         )
         d = Daemon(DaemonConfig.from_dict(doc, source="bench"), out=lambda _: None)
@@ -434,12 +460,16 @@ def in_process(take: Any, n: int, calibration: Path, frames: int = 3000) -> None
                     sink.close()
         us = cost[500:] / 1e3
         figures.append((float(np.median(us)), float(np.percentile(us, 99))))
-    (m1, p1), (mn, pn) = figures
+    (m1, p1), *several = figures
+    cases = ", ".join(
+        f"{n} performers solve_threads {t}: {mn:.0f} / {pn:.0f} (ratio of medians "
+        f"{mn / m1:.2f})"
+        for t, (mn, pn) in zip(threads, several, strict=True)
+    )
     print(
         f"in process, the loop's work per frame (solve, retarget, VMC + pose send of "
-        f"every performer), µs median / p99: 1 performer {m1:.0f} / {p1:.0f}, {n} "
-        f"performers {mn:.0f} / {pn:.0f} (ratio of medians {mn / m1:.2f}; the 240 Hz "
-        f"frame period is 4167 µs)"
+        f"every performer), µs median / p99: 1 performer {m1:.0f} / {p1:.0f}, "
+        f"{cases}; the 240 Hz frame period is 4167 µs; load average {_load()}"
     )
 
 
@@ -461,7 +491,19 @@ def main(argv: list[str] | None = None) -> int:
         "--method", choices=("fit", "construction"), default="fit",
         help="the body solve (default: the daemon's default, the fit)",
     )  # fmt: skip
+    parser.add_argument(
+        "--solve-threads", type=_threads_list, default=(1, 2), metavar="T[,T...]",
+        help="[loop] solve_threads of the N-performer daemon, each a run per round "
+        "(default 1,2: the loop alone, then with one solve thread)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--rounds", type=int, default=1,
+        help="rounds, each a raw UDP baseline then every --solve-threads setting "
+        "(their order turned every other round)",
+    )  # fmt: skip
     args = parser.parse_args(argv)
+    if args.rounds < 1:
+        parser.error("--rounds >= 1")
     if not 1 <= args.performers <= 64 or not 1 <= args.rate <= 10_000:
         parser.error("--performers in [1, 64], --rate in [1, 10000]")
     if args.seconds <= 0 or args.warmup < 0:
@@ -480,24 +522,57 @@ def main(argv: list[str] | None = None) -> int:
     )
     micro(take, n)
     ctx = mp.get_context("spawn")
+    threads = args.solve_threads
+    summary: list[tuple[int, int, int, float, str]] = []
     with tempfile.TemporaryDirectory(prefix="bench_multi_") as tmp_name:
         tmp = Path(tmp_name)
         calibration = _calibrate(tmp)
-        in_process(take, n, calibration)
+        in_process(take, n, calibration, threads=threads)
         stream = _stream(take, n)
-        raw = summarize(
-            run_case(ctx, "raw", args.rate, args, take, None, tmp, "body", stream)
-        )
-        print(f"  raw UDP: done (load {_load()})", flush=True)
         single = None
-        if not args.no_single:
-            variant = "fit" if args.method == "fit" else "body"  # bench_latency's
-            single = summarize(run_case(ctx, "osc", args.rate, args, take, calibration,
-                                        tmp, variant))  # fmt: skip
-            print(f"  1 performer: done (load {_load()})", flush=True)
-        m = run_multi(ctx, args, take, calibration, tmp)
-        print(f"  {n} performers: done (load {_load()})", flush=True)
-    rows = per_performer(m, n)
+        for r in range(args.rounds):
+            # the settings interleaved, their order turned every round; a raw UDP
+            # baseline in every round
+            order = threads if r % 2 == 0 else threads[::-1]
+            raw = summarize(
+                run_case(ctx, "raw", args.rate, args, take, None, tmp, "body", stream)
+            )
+            print(f"  round {r + 1}: raw UDP done (load {_load()})", flush=True)
+            if r == 0 and not args.no_single:
+                variant = "fit" if args.method == "fit" else "body"  # bench_latency's
+                single = summarize(run_case(ctx, "osc", args.rate, args, take,
+                                            calibration, tmp, variant))  # fmt: skip
+                print(f"  1 performer: done (load {_load()})", flush=True)
+            for t in order:
+                m = run_multi(ctx, args, take, calibration, tmp, t)
+                load = _load()
+                print(f"  {n} performers, solve_threads {t}: done (load {load})")
+                rows = per_performer(m, n)
+                _report(args, m, rows, raw, single if t == order[0] else None)
+                worst = max(x["vmc"][1] - raw.raw[1] for x in rows)
+                drops = sum(x["drops"] for x in rows)
+                summary.append((r + 1, t, drops, worst, load))
+    print(
+        f"\n{n} performers x {args.rate:g} Hz, {args.seconds:g} s a run: drops (target "
+        f"0) and worst added VMC p99 per run"
+    )
+    for r, t, drops, worst, load in summary:
+        print(
+            f"  round {r} solve_threads {t}: drops {drops}, worst added VMC p99 "
+            f"{_f(worst)} µs (load average after the run {load})"
+        )
+    return 0
+
+
+def _report(
+    args: argparse.Namespace,
+    m: dict[str, Any],
+    rows: list[dict[str, Any]],
+    raw: Any,
+    single: Any,
+) -> None:
+    """One N-performer run's table (and the 1-performer reference above it)."""
+    n = len(rows)
     c0 = m["status0"].get("counters", {})
     c1 = m["status1"].get("counters", {})
     dc = {k: c1.get(k, 0) - c0.get(k, 0) for k in c1}
@@ -555,10 +630,20 @@ def main(argv: list[str] | None = None) -> int:
     total = sum(r["drops"] for r in rows)
     worst = max(r["vmc"][1] - rp[1] for r in rows)
     print(
-        f"\n{n} performers x {args.rate:g} Hz: drops {total} (target 0), worst added "
+        f"{n} performers x {args.rate:g} Hz: drops {total} (target 0), worst added "
         f"VMC p99 {_f(worst)} µs; load average at the end: {_load()}"
     )
-    return 0
+
+
+def _threads_list(text: str) -> tuple[int, ...]:
+    """``--solve-threads 1,2``: the settings, each in [1, 64]."""
+    try:
+        values = tuple(int(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a list of integers: {text!r}") from None
+    if not values or not all(1 <= v <= 64 for v in values):
+        raise argparse.ArgumentTypeError("each solve_threads in [1, 64]")
+    return values
 
 
 if __name__ == "__main__":

@@ -284,6 +284,12 @@ class LoopConfig:
     # this long after it (live/spin.py), 0 = never (the default): for a machine with
     # a core to spare for the loop; on one whose cores are busy it delays the frame.
     spin_us: float = between(0.0, 0.0, 10_000.0)
+    # With several [[performer]] tables: the threads their body solves run on, the
+    # loop's included (live/solve_threads.py); 1 = all on the loop thread. The
+    # solves are compiled nogil, so each thread can take a core of its own; at most
+    # one thread per performer is started. 2: fewer drops than 1 in 7 of 9 paired
+    # runs of 4 performers on the shared 2-core VM (README "Solves side by side").
+    solve_threads: int = between(2, 1, 64)
     # A repeated log line (per reason) is printed once, then summarized with its
     # count at most once per this interval (a flood cannot grow the log).
     log_interval_s: float = between(10.0, 0.1, 3600.0)

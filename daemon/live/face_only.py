@@ -290,6 +290,18 @@ class FacePath:
             for job in list(self.builds.values())
         )
 
+    def begin(self, stream: FrameSource, received_ns: int) -> bool:
+        """As ``BodyPath.begin``: the face's frame is done in :meth:`finish`."""
+        return True
+
+    def solve_begun(self) -> None:
+        """No body to solve (the face is solved in :meth:`finish`, on the loop)."""
+
+    def finish(self, stream: FrameSource, received_ns: int, turn_ns: int = 0) -> None:
+        """The whole frame (:meth:`process`, its clock started there), in its turn
+        among the performers."""
+        self.process(stream, received_ns)
+
     def process(self, stream: FrameSource, received_ns: int) -> None:
         """The face-only performer's frame: solve, then the pose stream and VMC."""
         t_start = time.monotonic_ns()

@@ -348,6 +348,7 @@ class Daemon:
             self._announce("console", f"{url} (browser; buttons act like ctl)")
         self._warm_up()
         self.performers.start_validators()
+        self.performers.start_solve_threads()  # [loop] solve_threads
         self.performers.prepare_streams()  # configured labels: pipelines built now
         # Everything built so far lives as long as the daemon: keep it out of the
         # garbage collector's full passes (one took ~50 ms here, holding the GIL).
@@ -551,14 +552,17 @@ class Daemon:
         next_stats = time.monotonic_ns() + int(c.stats_interval_s * 1e9)
         stalls = self._stalls.watch_gc()  # and the collector's passes
         performers = self.performers
+        prewarm = self._prewarm
+        clock = prewarm.clock
         while not should_exit():
             wait = timeout
             tick_ns = performers.next_tick_ns()  # output_rate_hz: a tick queued
             if tick_ns >= 0:  # wake for it (rounded up to the poll's 1 ms)
                 left_ms = -(-(tick_ns - time.monotonic_ns()) // 1_000_000)
                 wait = max(0, min(timeout, left_ms))
-            now = stalls.mark()
-            wait = self._prewarm.wait_ms(now, wait)
+            stalls.mark()
+            now = clock()  # (the cadence's clock: time.monotonic_ns)
+            wait = prewarm.wait_ms(now, wait)
             spin, allow = self._spin, 0
             if spin is not None:  # [loop] spin_us: wake for the window, spin in it
                 wait, allow = spin.wait_ms(now, wait), spin.allow_ns
@@ -568,8 +572,8 @@ class Daemon:
             stalls.lap("poll", wait * 1_000_000 + allow)  # past its timeout
             if events:
                 self._service(events)  # its phases timed inside
-            elif self._prewarm.due(time.monotonic_ns()):
-                self._prewarm.touch()  # the fit, warm for the frame that comes next
+            elif prewarm.due(clock()):
+                prewarm.touch()  # the fit, warm for the frame that comes next
             if self.capture.on:
                 self.capture.tick()  # requests, lost check, held pose: never blocks
             now = stalls.lap("prewarm_capture")

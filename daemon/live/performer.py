@@ -74,6 +74,16 @@ class FramePath(Protocol):
 
     def process(self, stream: FrameSource, received_ns: int) -> None: ...
 
+    # process() in three steps (send.BodyPath): only solve_begun() may run on
+    # another thread, between the loop's begin() and finish() of the same frame.
+    def begin(self, stream: FrameSource, received_ns: int) -> bool: ...
+
+    def solve_begun(self) -> None: ...
+
+    def finish(
+        self, stream: FrameSource, received_ns: int, turn_ns: int = 0
+    ) -> None: ...
+
     def flag(self, bits: int) -> None: ...
 
     def announce_names(self) -> None: ...
@@ -153,6 +163,15 @@ class _NoPath:
     validator: Any = None
 
     def process(self, stream: FrameSource, received_ns: int) -> None:
+        raise RuntimeError("a performer without its frame path")
+
+    def begin(self, stream: FrameSource, received_ns: int) -> bool:
+        raise RuntimeError("a performer without its frame path")
+
+    def solve_begun(self) -> None:
+        raise RuntimeError("a performer without its frame path")
+
+    def finish(self, stream: FrameSource, received_ns: int, turn_ns: int = 0) -> None:
         raise RuntimeError("a performer without its frame path")
 
     def flag(self, bits: int) -> None:

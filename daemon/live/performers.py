@@ -30,6 +30,7 @@ from retargetd.daemon.live.rebuild import Build
 from retargetd.daemon.live.reload import ReloadRequest, ReloadResult, read_files
 from retargetd.daemon.live.send import BodyPath
 from retargetd.daemon.live.shared import Shared
+from retargetd.daemon.live.solve_threads import SolveThreads
 from retargetd.protocols.marker_input import LabelSet, MarkerStream
 
 logger = logging.getLogger(__name__)
@@ -65,6 +66,14 @@ class Performers:
         self._config_path = config_path
         self._reload_limit = RateLimiter(shared.config.control.min_interval_s)
         min_interval_s = shared.config.control.min_interval_s
+        # [loop] solve_threads > 1 with several performers: the solve threads,
+        # started by start_solve_threads (the daemon's open), and the frame's
+        # performers, their sources and those begun (no allocation per frame).
+        self._threads: SolveThreads | None = None
+        n = len(performers)
+        self._due: list[Any] = [None] * n
+        self._sources: list[Any] = [None] * n
+        self._begun = [0] * n
         for perf, vmc in zip(performers, shared.outputs.vmc, strict=True):
             perf.vmc = vmc
             perf.path = BodyPath(perf, shared) if perf.body else FacePath(perf, shared)
@@ -75,8 +84,22 @@ class Performers:
     # ---- per frame -------------------------------------------------------------------
 
     def solve(self, stream: MarkerStream, t_ns: int) -> None:
-        """Solve and send the stream's current frame for every performer on it."""
+        """Solve and send the stream's current frame for every performer on it
+        (with ``[loop] solve_threads`` > 1 and two or more performers on it, their
+        body solves on that many threads: :meth:`_solve_threaded`)."""
         kind = self._kind_of(stream)
+        if self._threads is not None:
+            due, sources, n = self._due, self._sources, 0
+            for perf in self.all:
+                source = perf.frame_of(stream, kind)
+                if source is not None:
+                    due[n], sources[n] = perf, source
+                    n += 1
+            if n > 1:
+                self._solve_threaded(n, t_ns)
+            elif n:
+                self._process_counted(due[0], sources[0], t_ns)
+            return
         for perf in self.all:
             source = perf.frame_of(stream, kind)
             if source is None:
@@ -86,12 +109,66 @@ class Performers:
             else:
                 perf.path.process(source, t_ns)
 
+    def _solve_threaded(self, n: int, t_ns: int) -> None:
+        """The ``n`` performers in ``self._due`` (config order) on their frames in
+        ``self._sources``: each one's begin on the loop thread; the body solves
+        taken by the loop and the solve threads (``solve_threads.py``); each one
+        finished on the loop thread in order. A solve that raised skips its
+        performer's finish; the first such exception is raised once the others
+        are finished."""
+        threads = self._threads
+        assert threads is not None
+        due, sources, begun = self._due, self._sources, self._begun
+        stats = self.shared.stats
+        m = 0
+        for i in range(n):  # the frames with a pipeline: begun, in order
+            out, unsolved, unseen = stats.frames_out, stats.unsolved, stats.unseen
+            if due[i].path.begin(sources[i], t_ns):
+                begun[m] = i
+                m += 1
+            else:  # no pipeline: counted unsolved
+                self._tally(due[i], out, unsolved, unseen)
+        paths = threads.paths
+        for j in range(m):
+            paths[j] = due[begun[j]].path
+        threads.open(m)  # the workers take solves from the end
+        failed: Exception | None = None
+        try:
+            for j in range(m):
+                perf = due[begun[j]]
+                turn_ns = time.monotonic_ns()  # its budget's start (path.finish)
+                if threads.take(j):  # no worker took it: the loop solves it
+                    try:
+                        perf.path.solve_begun()
+                        exc = None
+                    except Exception as raised:  # the others still go out
+                        exc = raised
+                else:
+                    exc = threads.wait(j)
+                if exc is not None:
+                    if failed is None:
+                        failed = exc
+                    continue
+                out, unsolved, unseen = stats.frames_out, stats.unsolved, stats.unseen
+                perf.path.finish(sources[begun[j]], t_ns, turn_ns)
+                self._tally(perf, out, unsolved, unseen)
+        finally:
+            threads.settle()
+        if failed is not None:
+            raise failed
+
     def _process_counted(self, perf: Performer, source: FrameSource, t_ns: int) -> None:
         """``perf.path.process``, its frame counted in ``perf.stats`` too (sent,
         with its latencies; unsolved; unseen)."""
         stats = self.shared.stats
         out, unsolved, unseen = stats.frames_out, stats.unsolved, stats.unseen
         perf.path.process(source, t_ns)
+        self._tally(perf, out, unsolved, unseen)
+
+    def _tally(self, perf: Performer, out: int, unsolved: int, unseen: int) -> None:
+        """Count in ``perf.stats`` what its frame added to the loop's counters
+        since they read ``out``, ``unsolved`` and ``unseen``."""
+        stats = self.shared.stats
         ps = perf.stats
         if stats.frames_out != out:
             ps.frames_out += 1
@@ -392,6 +469,19 @@ class Performers:
 
     # ---- lifecycle -------------------------------------------------------------------
 
+    def start_solve_threads(self) -> None:
+        """Start the solve threads (``[loop] solve_threads`` > 1, two or more
+        ``[[performer]]`` tables; ``solve_threads.py``), at the start."""
+        want = min(self.shared.config.loop.solve_threads, len(self.all))
+        if self._threads is None and self.several and want > 1:
+            self._threads = SolveThreads(len(self.all), want)
+            self._threads.start()
+
+    @property
+    def solve_threads(self) -> SolveThreads | None:
+        """The running solve threads, or None (every solve on the loop thread)."""
+        return self._threads
+
     def start_validators(self) -> None:
         """Start every performer's live validator ([validate] on), at the start:
         built on workers, all at once, and waited for."""
@@ -427,7 +517,9 @@ class Performers:
 
     def close(self) -> None:
         """Stop every performer's live validator; finish writing its calibration
-        and face training set."""
+        and face training set; join the solve threads."""
+        if self._threads is not None:
+            self._threads.close()
         for perf in self.all:
             perf.path.close()
             perf.calib.close()

@@ -24,6 +24,7 @@ touch comes between ``prewarm_ms`` and ``prewarm_ms + 1`` ms before the frame.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from typing import Any
 
 from retargetd.daemon.body.solve_fit import FitSolver
@@ -36,12 +37,17 @@ GAIN = 0.125
 class Cadence:
     """A stream's pace from its accepted frames' receive times: the running mean of
     their spacing (:data:`GAIN` a frame) and of its deviation, and the last one
-    (shared by the touch and ``live/spin.py``)."""
+    (shared by the touch and ``live/spin.py``).
+
+    ``clock`` is the clock the receive times come from, read by the loop when it
+    decides on a touch and by the spin (``time.monotonic_ns``; a test's own clock
+    makes those decisions exact: tests/daemon/test_prewarm.py, test_spin.py)."""
 
     def __init__(self) -> None:
         self.period_ns = 0.0
         self.dev_ns = 0.0
         self.last_ns = 0
+        self.clock: Callable[[], int] = time.monotonic_ns
 
     def observe(self, t_ns: int) -> None:
         """An accepted frame received at ``t_ns``."""

@@ -108,6 +108,12 @@ class BodyPath:
         self.match_flags = 0
         # Its live validator ([validate] on), built off the loop (validation.py).
         self.validation = Validation(perf, shared)
+        # The frame between begin() and finish(): its pipeline, interval, markers
+        # and start time (set before its solve, read by the solve and the finish).
+        self._begun: Pipeline | None = None
+        self._begun_dt = 0.0
+        self._begun_markers: Any = None
+        self._t_start = 0
 
     def pipeline(self, stream: FrameSource) -> Pipeline | None:
         """The pipeline to solve ``stream``'s current frame with, or None
@@ -162,7 +168,18 @@ class BodyPath:
 
     def process(self, stream: FrameSource, received_ns: int) -> None:
         """Solve ``stream``'s current frame (received at ``received_ns``), post-process,
-        retarget, encode and send it."""
+        retarget, encode and send it: :meth:`begin`, :meth:`solve_begun` and
+        :meth:`finish` in a row (``performers.Performers`` may run several
+        performers' middle steps on more threads: ``solve_threads.py``)."""
+        if self.begin(stream, received_ns):
+            self.solve_begun()
+            self.finish(stream, received_ns)
+
+    def begin(self, stream: FrameSource, received_ns: int) -> bool:
+        """The frame's first step, on the loop thread: its pipeline (a frame with
+        none is counted unsolved here: False), the calibration-match check and the
+        interval since the pipeline's last frame. True: :meth:`solve_begun` and
+        then :meth:`finish` follow, before another frame begins."""
         # The clock starts before the pipeline lookup: a pipeline swapped in here
         # shows its cost in this frame's solve stage and overrun check.
         t_start = time.monotonic_ns()
@@ -182,7 +199,7 @@ class BodyPath:
                     t_start, stream.current.frame, stream.current.label_set.labels,
                     stats, sh.status,
                 )  # fmt: skip
-            return
+            return False
         frame = stream.current.frame
         window = self.match_window
         if (
@@ -191,8 +208,36 @@ class BodyPath:
             or window.calibration is not perf.calibration
         ):
             self._check_calibration_match(window, pipe, frame, received_ns)
-        dt = self._frame_dt_s(pipe, frame, received_ns)
-        pose = pipe.solver.solve_frame(frame.markers_world, pipe.pose, dt)
+        self._begun = pipe
+        self._begun_dt = self._frame_dt_s(pipe, frame, received_ns)
+        self._begun_markers = frame.markers_world
+        self._t_start = t_start
+        return True
+
+    def solve_begun(self) -> None:
+        """The body solve of the frame :meth:`begin` took: its compiled call, which
+        releases the GIL, the one step that may run on another thread. It touches
+        only the pipeline's own solver state and pose."""
+        pipe = self._begun
+        assert pipe is not None
+        pipe.solver.solve_frame(self._begun_markers, pipe.pose, self._begun_dt)
+
+    def finish(self, stream: FrameSource, received_ns: int, turn_ns: int = 0) -> None:
+        """The rest of the frame :meth:`begin` took and :meth:`solve_begun` solved,
+        on the loop thread: the fit's flags, stance, post stages, face, retarget,
+        encodes and sends, counters and latencies. ``turn_ns`` (not 0): when the
+        loop turned to this performer, its solve taken or waited for since (with
+        solve threads): its budget and solve stage count from then, as the serial
+        path's count from its begin, after the performers before it."""
+        pipe = self._begun
+        assert pipe is not None
+        self._begun = None
+        sh, perf = self.shared, self.perf
+        stats = sh.stats
+        t_start = turn_ns or self._t_start
+        frame = stream.current.frame
+        dt = self._begun_dt
+        pose = pipe.pose
         fit_bits = pose.frame_flags
         if fit_bits:
             if fit_bits & pose_stream.FRAME_UNSEEN:

@@ -29,7 +29,6 @@ is not spun for again: the loop sleeps in ``poll`` as usual until the next frame
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable
 from typing import Any
 
@@ -84,7 +83,7 @@ class Spin:
         due = self.due_ns()
         if due < 0:
             return []
-        now = time.monotonic_ns()
+        now = self.cadence.clock()
         if now < due - self.window_ns - POLL_ROUNDING_NS:
             return []  # woken for something else (the prewarm's touch, a tick)
         end = due + self.window_ns
@@ -94,7 +93,7 @@ class Spin:
             if events:
                 self.caught += 1
                 return events
-            if time.monotonic_ns() >= end:
+            if self.cadence.clock() >= end:
                 self._missed = due
                 return events
 
