@@ -135,6 +135,14 @@ class FitParams:
             construction and the better of the two on the whole cost (markers,
             continuity, priors, limits) is kept. 10 mm (the low end of skin artefact: a
             misfit below it is never a lost track) and 2 (the running level doubled).
+            The take's own is the running level, or the last explained frame's RMS
+            where higher (a misfit that grows with the motion), and a frame's RMS
+            becomes that last one only under max(lost_floor_m, lost_k x the running
+            level): the same factor, so that no frame the running level alone would
+            call suspect vouches for the next. Judged against the frame before it
+            alone, a misfit growing by under 2x a frame raised its own reference
+            (the walk's LKNE hidden from row 30: 5.7 -> 43 mm over 20 rows, the
+            thigh run 58 deg off and nothing suspect).
         reject_frac: suspect too when more than this fraction of the visible markers is
             rejected (a quarter: more than an occasional swap or ghost).
         persist_s: a marker rejected this long (seconds) makes the fit try that
