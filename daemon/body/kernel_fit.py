@@ -105,6 +105,7 @@ from retargetd.daemon.body.fit_terms import (
     reg_cost,
 )
 from retargetd.daemon.body.fit_track import (
+    hinge_bend,
     hold_priors,
     impossible,
     mark_outliers,
@@ -619,7 +620,7 @@ def fit_one_t(
         if have[0] != 0:
             sc[C_GAP] += 1.0
         return n_held
-    rloc = s[56]
+    rloc, rbend, limb = s[56], s[59], m[25]
     for i in range(n_mk):
         if vis[i] and not rej[i]:
             b = mk_bone[i]
@@ -630,6 +631,10 @@ def fit_one_t(
                     + wm[b, 1, j] * res[i, 1]
                     + wm[b, 2, j] * res[i, 2]
                 )
+            # its limb's hinge bend there: the pose the residual was measured at
+            # (fit_track.virtual_markers)
+            h = limb[i]
+            rbend[i] = hinge_bend(q[h]) if h >= 0 else 0.0
             rage[i] = 0.0
             rej_run[i] = 0.0
         else:

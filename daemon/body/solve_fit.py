@@ -167,7 +167,12 @@ class FitParams:
             frame, else those made at the calibration pose
             (``fit_observe.hidden_information``): 30 deg,
             ``fit_observe.HOLD_TABLE_STRAIGHT_RAD``, below which the hinge's two twists
-            are told apart by less than half what a right angle gives.
+            are told apart by less than half what a right angle gives. The same
+            angle fades a hidden marker's virtual offset (its last residual) by
+            exp(-change / this) as the hinge where its segment ends (its own bone's or
+            its child's) bends away from where that residual was measured
+            (``fit_track.virtual_markers``): soft-tissue artefact follows the joint's
+            motion, not the clock.
         velocity_tau_s: a hidden marker is measured on the pose whose joints move on
             from their last explained values with their last velocity damped by
             exp(-dt / velocity_tau_s) per frame (Singer's manoeuvre model): the
@@ -418,7 +423,7 @@ class FitSolver:
             z(n_b, 4), z(n_r, 3), z(n_b, 4), z(n_r, 3),
             np.zeros(n_m, dtype=bool), np.zeros(n_m, dtype=bool), z(n_m, 3), z(n_m),
             z(n_b, 4), z(n_r, 3), z(n_m), z(self.n_stream, 3),
-            z(n_b, 3, 3), z(n_b, 4), z(n_b), z(n_m, 3), z(n_m, 3), z(n_m),
+            z(n_b, 3, 3), z(n_b, 4), z(n_b), z(n_m, 3), z(n_m, 3), z(n_m), z(n_m),
         )  # fmt: skip
         sbuf, srows, self._state = fit_pack.pack(state_arrays, fit_pack.S_KINDS)
         self._sf, self._si, self._sb = sbuf["f8"], sbuf["i8"], sbuf["b1"]
