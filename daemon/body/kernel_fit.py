@@ -105,6 +105,7 @@ from retargetd.daemon.body.fit_terms import (
     reg_cost,
 )
 from retargetd.daemon.body.fit_track import (
+    hinge_bend,
     hold_priors,
     impossible,
     mark_outliers,
@@ -514,11 +515,20 @@ def fit_one_t(
             a = min(1.0, sc[C_DT] / tau) if tau > 0.0 else 1.0
             lv = sc[C_LEVEL]
             sc[C_LEVEL] = rms if lv <= 0.0 else lv + a * (rms - lv)
-            if rms <= lost_at:
-                # a frame kept while still suspect (no candidate brought it under
-                # the suspect level) is no reference for the next: counted as the
-                # take's own it raised the level each frame judged by (a swapped
-                # burst got in at 2-4x the level a frame and, once in, stayed)
+            # a frame kept while still suspect (no candidate brought it under the
+            # suspect level) is no reference for the next: counted as the take's
+            # own it raised the level each frame judged by (a swapped burst got in
+            # at 2-4x the level a frame and, once in, stayed). Nor is one past the
+            # suspect factor of the running level alone: judged against the last
+            # frame's RMS, a misfit growing under 2x a frame vouched for itself and
+            # ratcheted the reference (the walk's LKNE hidden from row 30: 5.7 ->
+            # 43 mm over rows 100-119, the thigh run 58 deg off, never suspect)
+            own_at = lost_at
+            if lv > 0.0:
+                own_at = min(
+                    lost_at, max(params[P_LOST_FLOOR_M], params[P_LOST_K] * lv)
+                )
+            if rms <= own_at:
                 sc[C_LAST_RMS] = rms
     # 3. outputs
     rej, rref, rage = s[45], s[47], s[48]
@@ -610,7 +620,7 @@ def fit_one_t(
         if have[0] != 0:
             sc[C_GAP] += 1.0
         return n_held
-    rloc = s[56]
+    rloc, rbend, limb = s[56], s[59], m[25]
     for i in range(n_mk):
         if vis[i] and not rej[i]:
             b = mk_bone[i]
@@ -621,6 +631,10 @@ def fit_one_t(
                     + wm[b, 1, j] * res[i, 1]
                     + wm[b, 2, j] * res[i, 2]
                 )
+            # its limb's hinge bend there: the pose the residual was measured at
+            # (fit_track.virtual_markers)
+            h = limb[i]
+            rbend[i] = hinge_bend(q[h]) if h >= 0 else 0.0
             rage[i] = 0.0
             rej_run[i] = 0.0
         else:

@@ -135,6 +135,14 @@ class FitParams:
             construction and the better of the two on the whole cost (markers,
             continuity, priors, limits) is kept. 10 mm (the low end of skin artefact: a
             misfit below it is never a lost track) and 2 (the running level doubled).
+            The take's own is the running level, or the last explained frame's RMS
+            where higher (a misfit that grows with the motion), and a frame's RMS
+            becomes that last one only under max(lost_floor_m, lost_k x the running
+            level): the same factor, so that no frame the running level alone would
+            call suspect vouches for the next. Judged against the frame before it
+            alone, a misfit growing by under 2x a frame raised its own reference
+            (the walk's LKNE hidden from row 30: 5.7 -> 43 mm over 20 rows, the
+            thigh run 58 deg off and nothing suspect).
         reject_frac: suspect too when more than this fraction of the visible markers is
             rejected (a quarter: more than an occasional swap or ghost).
         persist_s: a marker rejected this long (seconds) makes the fit try that
@@ -159,7 +167,12 @@ class FitParams:
             frame, else those made at the calibration pose
             (``fit_observe.hidden_information``): 30 deg,
             ``fit_observe.HOLD_TABLE_STRAIGHT_RAD``, below which the hinge's two twists
-            are told apart by less than half what a right angle gives.
+            are told apart by less than half what a right angle gives. The same
+            angle fades a hidden marker's virtual offset (its last residual) by
+            exp(-change / this) as the hinge where its segment ends (its own bone's or
+            its child's) bends away from where that residual was measured
+            (``fit_track.virtual_markers``): soft-tissue artefact follows the joint's
+            motion, not the clock.
         velocity_tau_s: a hidden marker is measured on the pose whose joints move on
             from their last explained values with their last velocity damped by
             exp(-dt / velocity_tau_s) per frame (Singer's manoeuvre model): the
@@ -445,7 +458,7 @@ class FitSolver:
             z(n_b, 4), z(n_r, 3), z(n_b, 4), z(n_r, 3),
             np.zeros(n_m, dtype=bool), np.zeros(n_m, dtype=bool), z(n_m, 3), z(n_m),
             z(n_b, 4), z(n_r, 3), z(n_m), z(self.n_stream, 3),
-            z(n_b, 3, 3), z(n_b, 4), z(n_b), z(n_m, 3), z(n_m, 3), z(n_m),
+            z(n_b, 3, 3), z(n_b, 4), z(n_b), z(n_m, 3), z(n_m, 3), z(n_m), z(n_m),
         )  # fmt: skip
         sbuf, srows, self._state = fit_pack.pack(state_arrays, fit_pack.S_KINDS)
         self._sf, self._si, self._sb = sbuf["f8"], sbuf["i8"], sbuf["b1"]

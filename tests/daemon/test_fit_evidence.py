@@ -17,10 +17,11 @@ import pytest
 
 from retargetd.daemon import rotations as rot
 from retargetd.daemon.body import fit_observe
+from retargetd.daemon.body import fit_terms as ft
 from retargetd.daemon.body.calibration import calibrate
 from retargetd.daemon.body.method import make_body_solver
 from retargetd.daemon.body.rig import load_rig
-from retargetd.daemon.body.solve_fit import FitSolve
+from retargetd.daemon.body.solve_fit import FitParams, FitSolve
 from retargetd.daemon.cli.main import main
 from retargetd.daemon.synth import performer as pf
 from retargetd.daemon.synth.damage import damage, damage_metrics
@@ -241,6 +242,62 @@ def test_the_issues_hidden_markers_keep_the_pose(
     )
     assert not m.any_nan
     assert m.max_joint_mm <= 20.0 and m.max_bone_deg <= 10.0
+
+
+def test_a_slow_runaway_does_not_raise_its_own_reference(datasets: Path) -> None:
+    """A misfit growing by under 2x a frame judged only against the frame before it
+    raised its own reference: the walk's LKNE hidden 1 s from row 30 ran the thigh
+    58 deg off from row 100 (RMS 5.7, 7.4, 11.3, 15.6 ... 43.0 mm, the suspect line
+    11.5 -> 86 mm, no construction candidate tried). Here the same rule on a marker
+    that slides off (LKNE moved 3 mm x 1.25^k along x from row 100 for 25 rows, then
+    lost; the old rule: the reference 4.0 -> 27.1 mm, the running level 6.0): a
+    frame's RMS becomes that reference only under the suspect line of the running
+    level alone, max(lost_floor_m, lost_k x level)."""
+    walk, cal = _pig(datasets)
+    fit = _fit("plug-in-gait", cal, walk.labels, walk.rate_hz)
+    pos = walk.positions.copy()
+    k = walk.labels.index("LKNE")
+    pos[100:125, k, 0] += 0.003 * 1.25 ** np.arange(25)
+    pos[125:, k] = np.nan
+    pose = fit.new_pose()
+    ref = np.zeros(130)
+    level_before = np.zeros(130)
+    for f in range(130):
+        level_before[f] = pose.stats[ft.S_LEVEL] if f else 0.0
+        fit.solve_frame(pos[f], pose)
+        ref[f] = fit._scalars[ft.C_LAST_RMS]
+    p = FitParams()
+    changed = np.flatnonzero(np.diff(ref) != 0.0) + 1
+    bound = np.maximum(p.lost_floor_m, p.lost_k * level_before[changed])
+    over = changed[ref[changed] > bound + 1e-12]
+    assert changed[changed >= 110].size > 0  # the drift's frames counted
+    assert over.size == 0, [(int(f), 1e3 * ref[f], 1e3 * level_before[f]) for f in over]
+
+
+def test_the_walks_lkne_hidden_1s_keeps_the_pose(datasets: Path) -> None:
+    """Item 6's limits on the walk's LKNE hidden 1 s from row 30: no joint centre
+    past 20 mm, no bone past 10 deg, no step over 5 deg the intact solve lacks. Its
+    virtual marker carried the 25.6 mm residual it had at row 29, the peak of its
+    gait cycle, while its intact residual fell to 2-5 mm within 0.15 s: 59.0 mm,
+    34.7 deg, 4 new steps (172.3 mm, 58.0 deg, 12 with the reference ratcheting). The
+    offset now fades as the knee bends away from where it was measured (measured
+    11.1 mm, 7.7 deg, no new step)."""
+    walk, cal = _pig(datasets)
+    fit = _fit("plug-in-gait", cal, walk.labels, walk.rate_hz)
+    intact = fit.solve_take(walk.positions)
+    fit.reset()
+    window = slice(30, 130)
+    res = fit.solve_take(
+        damage(walk.positions, walk.labels, "hide", window,
+               marker=walk.labels.index("LKNE"))
+    )  # fmt: skip
+    m = damage_metrics(intact, res, window, walk.rate_hz)
+    print(
+        f"\nLKNE hidden rows 30-129: joint {m.max_joint_mm:.1f} mm ({m.max_joint}), "
+        f"bone {m.max_bone_deg:.1f} deg ({m.max_bone}), new steps {m.new_steps}"
+    )
+    assert not m.any_nan
+    assert m.max_joint_mm <= 20.0 and m.max_bone_deg <= 10.0 and m.new_steps == 0
 
 
 def test_hold_tables_for_a_straight_hinge_are_read_by_its_bend() -> None:
