@@ -13,8 +13,9 @@ GIL, so one off the loop stalls it too).
 
 Run as a script, in a fresh interpreter: a kernel that an earlier test of the same
 process had called would hide a lazy one. ``python live_compiles.py CALIBRATION
-[OVERRIDES_JSON]`` prints one JSON object: ``new`` (dispatcher -> overloads added
-while streaming) and ``stats`` (what the stream exercised).
+[OVERRIDES_JSON [DATASETS]]`` (with the datasets folder, the ICT face on too) prints
+one JSON object: ``new`` (dispatcher -> overloads added while streaming) and
+``stats`` (what the stream exercised).
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from face_harness import _face, _stream
 from live_harness import (
     RATE_HZ,
     OscSource,
@@ -43,6 +45,8 @@ from numba.core.dispatcher import Dispatcher
 from retargetd.daemon.cli.ctl import request
 from retargetd.daemon.live.config import DaemonConfig
 from retargetd.daemon.live.loop import Daemon
+from retargetd.daemon.synth import face as fs
+from retargetd.protocols.marker_input import LabelSet
 
 
 def overloads() -> dict[str, int]:
@@ -60,19 +64,35 @@ def overloads() -> dict[str, int]:
     return found
 
 
-def _rows(n: int, start: int = 0) -> list[np.ndarray]:
-    """``n`` frames of the take, from row ``start``, forward then backward (no
-    jump from its end to its start)."""
-    markers = _take().markers_world
-    period = 2 * (markers.shape[0] - 1)
-    out = []
-    for k in range(start, start + n):
-        j = k % period
-        out.append(markers[j if j < markers.shape[0] else period - j].copy())
-    return out
+class Frames:
+    """The take's frames, forward then backward (no jump from its end to its start);
+    with ``face`` ((training set, head rotations, head positions):
+    ``face_harness._face``), each with the ICT face's markers after the body's."""
+
+    def __init__(self, face: tuple[Any, Any, Any] | None = None) -> None:
+        take = _take()
+        self.face = face
+        self.labels = take.labels if face is None else _stream(*face, *_idx(1))[0]
+
+    def rows(self, n: int, start: int = 0) -> list[np.ndarray]:
+        """``n`` frames from the ``start``-th (float64 copies)."""
+        idx, weights = _idx(n, start)
+        if self.face is None:
+            return [_take().markers_world[i].copy() for i in idx]
+        return list(_stream(*self.face, idx, weights)[1])
 
 
-def stream(d: Daemon, src: OscSource, folder: Path) -> None:
+def _idx(n: int, start: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """The take's rows for frames ``start`` .. ``start + n`` (forward, then
+    backward) and seeded ARKit weights for them."""
+    rows = _take().markers_world.shape[0]
+    period = 2 * (rows - 1)
+    j = np.arange(start, start + n) % period
+    weights = fs.synth_weights(np.random.default_rng(start), n, RATE_HZ)
+    return np.where(j < rows, j, period - j), weights
+
+
+def stream(d: Daemon, src: OscSource, frames: Frames, folder: Path) -> None:
     """Every path a live frame can take, paced at the take's rate: a new label set
     (its pipeline built), the stream, one marker hidden, every marker hidden
     (unseen), bursts of bad frames (every marker on one point, at 1e30, at zero,
@@ -92,30 +112,30 @@ def stream(d: Daemon, src: OscSource, folder: Path) -> None:
         ),
         "the label set's pipeline",
     )
-    src.send_paced(_rows(150), RATE_HZ)
-    hidden = _rows(20, 150)
+    src.send_paced(frames.rows(150), RATE_HZ)
+    hidden = frames.rows(20, 150)
     for r in hidden:
         r[0] = np.nan
     src.send_paced(hidden, RATE_HZ)
-    src.send_paced([np.full_like(r, np.nan) for r in _rows(10, 170)], RATE_HZ)
-    src.send_paced(_rows(30, 180), RATE_HZ)
-    good = _rows(15, 210)
+    src.send_paced([np.full_like(r, np.nan) for r in frames.rows(10, 170)], RATE_HZ)
+    src.send_paced(frames.rows(30, 180), RATE_HZ)
+    good = frames.rows(15, 210)
     bursts = [np.broadcast_to(r.mean(axis=0), r.shape).copy() for r in good[:5]]
     bursts += [np.full_like(r, 1e30) for r in good[5:8]]
     bursts += [np.zeros_like(r) for r in good[8:10]]
     bursts += [r[::-1].copy() for r in good[10:]]
     src.send_paced(bursts, RATE_HZ)
-    src.send_paced(_rows(60, 225), RATE_HZ)
+    src.send_paced(frames.rows(60, 225), RATE_HZ)
     time.sleep(0.3)  # the source paused
-    src.send_paced(_rows(30, 285), RATE_HZ)
+    src.send_paced(frames.rows(30, 285), RATE_HZ)
     src.next_id = 0  # the source restarted: frame numbers from 0, labels again
     src.announce(wait=False)
-    src.send_paced(_rows(60, 315), RATE_HZ)
+    src.send_paced(frames.rows(60, 315), RATE_HZ)
     ask({"cmd": "status"})
     ask({"cmd": "record", "action": "start", "path": str(folder / "take.mcap")})
-    src.send_paced(_rows(60, 375), RATE_HZ)
+    src.send_paced(frames.rows(60, 375), RATE_HZ)
     ask({"cmd": "record", "action": "stop"})
-    src.send_paced(_rows(20, 435), RATE_HZ)
+    src.send_paced(frames.rows(20, 435), RATE_HZ)
     _wait_until(
         lambda: not ask({"cmd": "status"})["status"]["record"]["finishing"],
         "the recording to finish",
@@ -125,7 +145,14 @@ def stream(d: Daemon, src: OscSource, folder: Path) -> None:
 def main(argv: list[str]) -> int:
     calibration = argv[0]
     extra = json.loads(argv[1]) if len(argv) > 1 else {}
+    face = _face(Path(argv[2])) if len(argv) > 2 else None
     with tempfile.TemporaryDirectory(prefix="compiles-") as tmp:
+        if face is not None:  # the ICT face on the performer's head
+            face[0].save(Path(tmp) / "face.npz")
+            extra = _deep_merge(extra, {"face": {
+                "enabled": True, "config": "arkit52",
+                "training": str(Path(tmp) / "face.npz"),
+            }})  # fmt: skip
         doc = _deep_merge(
             _ephemeral_doc(_unused_udp_port()),
             {
@@ -139,7 +166,7 @@ def main(argv: list[str]) -> int:
             DaemonConfig.from_dict(_deep_merge(doc, extra), source="compiles"),
             out=lambda _l: None,
         )
-        new = _streamed(d, Path(tmp))
+        new = _streamed(d, Frames(face), Path(tmp))
     s = d.stats
     print(
         json.dumps(
@@ -147,7 +174,7 @@ def main(argv: list[str]) -> int:
                 "new": new,
                 "stats": {k: getattr(s, k) for k in (
                     "frames_solved", "unseen", "unexplained", "reseeded",
-                    "restarts", "post_restarts",
+                    "restarts", "post_restarts", "face_solved",
                 )},
             }
         )
@@ -155,7 +182,7 @@ def main(argv: list[str]) -> int:
     return 0
 
 
-def _streamed(d: Daemon, folder: Path) -> dict[str, int]:
+def _streamed(d: Daemon, frames: Frames, folder: Path) -> dict[str, int]:
     """Open ``d``, run its loop in a thread through :func:`stream`, close it; the
     overloads added after the warm-up, per dispatcher."""
     errors: list[BaseException] = []
@@ -175,7 +202,9 @@ def _streamed(d: Daemon, folder: Path) -> dict[str, int]:
         thread.start()
         host, port = d.endpoints["osc markers"].split()[0][6:].rsplit(":", 1)
         try:
-            stream(d, OscSource(sock, (host, int(port))), folder)
+            src = OscSource(sock, (host, int(port)))
+            src.label_set = LabelSet(1, frames.labels)
+            stream(d, src, frames, folder)
             time.sleep(0.2)  # the last frames through the loop and the validator
         finally:
             stop.set()
