@@ -267,8 +267,8 @@ def _post_stages(spec: PipelineSpec) -> SolvePost | None:
 def warm_up_pipeline(perf: Performer, sh: Shared) -> None:
     """Run every stage of a throwaway pipeline of ``perf`` once (its calibration
     needed), so that no streamed frame pays for a first call: the solve, the
-    retarget, and the ``[[pipeline]]`` stages and spine pivot that compile on their
-    first finite pose."""
+    retarget, the stance detector, and the ``[[pipeline]]`` stages, spine pivot and
+    foot plant that compile on their first finite pose."""
     calibration = perf.calibration
     if calibration is None:
         return
@@ -279,22 +279,29 @@ def warm_up_pipeline(perf: Performer, sh: Shared) -> None:
     nan_frame = np.full((len(labels), 3), np.nan)
     pose = pipe.solver.solve_frame(nan_frame, pipe.pose)
     pipe.retargeter.apply(pose, pipe.target_pose)
-    # The [[pipeline]] stages and the spine pivot compile on their first finite
-    # pose (a twist and a One Euro stage: 4.1 s into the stream on a cold cache,
-    # measured): run them here on the rest pose, two frames apart (the filters'
-    # second-frame path), so no streamed frame pays for it.
-    if pipe.post is not None or pipe.spine is not None:
-        pose.parent_from_bone_quat[:] = calibration.rest_parent_from_bone_quat
-        pose.root_pos[:] = 0.0
-        now_ns = time.monotonic_ns()
-        for k in range(2):
-            if pipe.post is not None:
-                t_ns = now_ns + k * 10_000_000
-                pipe.post.apply(pose, k * 0.01, t_ns, k)
-                pipe.post.pop_due(pose, t_ns)
+    # The stance detector, the [[pipeline]] stages, the spine pivot and the foot
+    # plant compile on their first solved (finite) pose: the stance detector on the
+    # soak's first solved frame, 2.3 s of the loop (1.1 s of it on a CPU, at load
+    # 4.9; issue 35), a twist and a One Euro stage 4.1 s into the stream (measured,
+    # cold caches). Run them here on the rest pose, two frames apart (the filters'
+    # and the detector's second-frame path), so no streamed frame pays for it.
+    pose.parent_from_bone_quat[:] = calibration.rest_parent_from_bone_quat
+    pose.root_pos[:] = 0.0
+    now_ns = time.monotonic_ns()
+    tp = pipe.target_pose
+    for k in range(2):
+        if pipe.stance is not None:  # (live: send.py, before the post stages)
+            pipe.stance_bits = pipe.stance.update(
+                pose.root_pos, pose.world_from_bone_quat, k * 0.01
+            )
+        if pipe.post is not None:
+            t_ns = now_ns + k * 10_000_000
+            pipe.post.apply(pose, k * 0.01, t_ns, k)
+            pipe.post.pop_due(pose, t_ns)
+        pipe.retargeter.apply(pose, tp)
         if pipe.spine is not None:
-            tp = pipe.target_pose
-            pipe.retargeter.apply(pose, tp)
             pipe.spine.apply(tp.world_from_bone_quat, tp.rest_from_bone_quat)
+        if pipe.plant is not None:
+            pipe.plant.apply_pose(tp)
     pipe.solver.reset()
     sh.names_id -= 1  # this pipeline is thrown away; keep the ids dense
