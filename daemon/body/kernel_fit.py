@@ -45,9 +45,11 @@ Per frame (``fit_one_t``; the rules' numbers are ``solve_fit.FitParams``):
    after a gap, or a marker rejected for ``persist_s``): a second fit seeded from the
    construction, the one with the lower whole cost (every marker under the Cauchy
    loss, continuity, priors, limits) kept.
-5. **unexplained** (residual far above the take's own, half the markers rejected, or
-   a joint further from its prediction than a body moves; a first frame, which has
-   neither a level nor a past, only past an absolute residual no performer leaves):
+5. **unexplained** (residual far above the take's own, half the markers rejected, a
+   joint further from its prediction than a body moves, or after a gap still suspect
+   with the better candidate: nothing to judge it against but its own markers; a
+   first frame, which has neither a level nor a past, only past an absolute
+   residual no performer leaves):
    the last explained pose is held, flagged, and the next frame's prediction and
    continuity account for the gap (after a first frame: seeded afresh, the solver
    as ``FitSolver.reset`` left it). Else the frame is explained: the running
@@ -486,8 +488,18 @@ def fit_one_t(
             # unexplained, the next is seeded afresh
             unexplained = rms > params[P_GATE_M]
         else:
+            # after a gap the prediction is the last explained pose held: nothing
+            # tells a marker the pose rejects from one the pose has wrong, so a
+            # frame still suspect with the better candidate (a quarter rejected,
+            # or twice the take's level) does not restart the track (a swapped
+            # frame came in at gap 11 with 14 of 29 rejected, and the true frames
+            # after the burst were held to it: bench/burst_recovery.py)
+            unsettled = sc[C_GAP] > 1.0 and (
+                rms > lost_at or n_rej > params[P_REJECT_FRAC] * n_seen
+            )
             unexplained = (
-                rms > far
+                unsettled
+                or rms > far
                 or n_rej > params[P_UNEXPLAINED_FRAC] * n_seen
                 or impossible(m, s, max(sc[C_GAP], persist))
             )

@@ -147,6 +147,12 @@ class FitParams:
             rejected: no skeleton pose accounts for the markers (a collapse, a burst of
             garbage, mirrored labels). Its pose is the last explained one, flagged, and
             the fit carries on from that. 4 (twice the suspect level) and one half.
+            After a gap (the prediction held: no track to tell a marker the pose
+            rejects from one it has wrong) a frame is unexplained too while it is
+            still suspect with the better candidate (lost_k, reject_frac): a
+            swapped burst's frame came in at gap 11 with 14 of 29 markers rejected,
+            the hidden markers' holds were anchored on it, and the true frames after
+            the burst kept it (``tests/daemon/test_burst_recovery.py``).
         resolution_deg: while a marker is hidden, what the markers still seen observe of
             a joint under (max(noise_m, the running residual level) / this)^2 m^2 /
             rad^2 is held at its last seen value with the information the hidden marker
