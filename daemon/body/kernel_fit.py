@@ -10,7 +10,8 @@ the fit minimizes
                                                       measured where predicted
   + 1/2 lambda_rot sum_b |log(conj(P_b) Q_b)|^2       pull to the predicted pose P
   + 1/2 lambda_trans sum_r |t_r - t_r^pred|^2         (weights from the peak
-                                                      accelerations and the frame time)
+                                                      accelerations and the frame
+                                                      time; speeds for a held one)
   + 1/2 kappa_limit |excess past the validator's swing/twist limits|^2
   + 1/2 kappa_hinge |rotation off a hinge's axis|^2   (hinge, hinge_twist, swing)
   + 1/2 c_b^T R_b c_b                                 priors towards the calibration
@@ -375,6 +376,7 @@ def fit_one_t(
     for i in range(n_mk):
         s[58][i] = 0.0  # no virtual marker but where _virtual_markers puts one
     reseeded = False
+    known = False  # the prediction extrapolated (a velocity known), not held
     c_kept = False
     mu_kept = 0.0
     unseen = n_seen < MIN_SEEN if have[0] == 0 else n_seen == 0
@@ -402,11 +404,12 @@ def fit_one_t(
             cp2(s[2], q)
             cp2(s[3], t)
             sc[C_GAP] = 1.0
-            continuity_weights(params, sc, math.inf)  # no continuity: no past
+            continuity_weights(params, sc, math.inf, True)  # no continuity: no past
             reseeded = True
         else:
             predict(m, s)
-            continuity_weights(params, sc, sc[C_GAP])
+            known = have[0] >= 2 and sc[C_GAP] <= 1.0  # as predict decides
+            continuity_weights(params, sc, sc[C_GAP], known)
             hold_priors(m, s)
             if sc[C_GAP] <= 1.0 and have[0] >= 2:
                 # hidden markers are measured on the prediction only when it is one:
@@ -454,7 +457,7 @@ def fit_one_t(
             c[9][:] = c[3]
             c[10][:] = c[4]
             c_kept = True
-            continuity_weights(params, sc, max(sc[C_GAP], persist))
+            continuity_weights(params, sc, max(sc[C_GAP], persist), known)
             cost_a = _whole_cost(m, s)
             cp2(qb, q)
             cp2(tb, t)
