@@ -171,13 +171,22 @@ def prior_normal(
 
 
 @kernel
-def continuity_weights(params: np.ndarray, sc: np.ndarray, frames: float) -> None:
+def continuity_weights(
+    params: np.ndarray, sc: np.ndarray, frames: float, known: bool
+) -> None:
     # The pull to the predicted pose: a constant-velocity prediction over `frames`
     # frames misses by at most 1/2 a (frames dt)^2 with a the peak acceleration, so
     # its weight is (sigma_m / that)^2 (the marker terms have unit weight per m^2).
+    # A held one (no velocity known: after a gap, and the frame after the first one
+    # explained) misses by the peak speed x h, as fit_track.jump_bound bounds it (a
+    # joint's omega_max for every rotation, a root's speed_max for its position).
     h = frames * sc[C_DT]
-    srot = 0.5 * params[P_ALPHA_MAX] * h * h
-    stra = 0.5 * params[P_ACC_MAX] * h * h
+    if known:
+        srot = 0.5 * params[P_ALPHA_MAX] * h * h
+        stra = 0.5 * params[P_ACC_MAX] * h * h
+    else:
+        srot = params[P_OMEGA_MAX] * h
+        stra = params[P_SPEED_MAX] * h
     nm = params[P_NOISE_M]
     sc[C_LAM_ROT] = (nm / srot) ** 2 if srot > 0.0 else 0.0
     sc[C_LAM_TRANS] = (nm / stra) ** 2 if stra > 0.0 else 0.0

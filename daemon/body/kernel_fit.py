@@ -10,7 +10,8 @@ the fit minimizes
                                                       measured where predicted
   + 1/2 lambda_rot sum_b |log(conj(P_b) Q_b)|^2       pull to the predicted pose P
   + 1/2 lambda_trans sum_r |t_r - t_r^pred|^2         (weights from the peak
-                                                      accelerations and the frame time)
+                                                      accelerations and the frame
+                                                      time; speeds for a held one)
   + 1/2 kappa_limit |excess past the validator's swing/twist limits|^2
   + 1/2 kappa_hinge |rotation off a hinge's axis|^2   (hinge, hinge_twist, swing)
   + 1/2 c_b^T R_b c_b                                 priors towards the calibration
@@ -45,9 +46,11 @@ Per frame (``fit_one_t``; the rules' numbers are ``solve_fit.FitParams``):
    after a gap, or a marker rejected for ``persist_s``): a second fit seeded from the
    construction, the one with the lower whole cost (every marker under the Cauchy
    loss, continuity, priors, limits) kept.
-5. **unexplained** (residual far above the take's own, half the markers rejected, or
-   a joint further from its prediction than a body moves; a first frame, which has
-   neither a level nor a past, only past an absolute residual no performer leaves):
+5. **unexplained** (residual far above the take's own, half the markers rejected, a
+   joint further from its prediction than a body moves, or after a gap still suspect
+   with the better candidate: nothing to judge it against but its own markers; a
+   first frame, which has neither a level nor a past, only past an absolute
+   residual no performer leaves):
    the last explained pose is held, flagged, and the next frame's prediction and
    continuity account for the gap (after a first frame: seeded afresh, the solver
    as ``FitSolver.reset`` left it). Else the frame is explained: the running
@@ -374,6 +377,7 @@ def fit_one_t(
     for i in range(n_mk):
         s[58][i] = 0.0  # no virtual marker but where _virtual_markers puts one
     reseeded = False
+    known = False  # the prediction extrapolated (a velocity known), not held
     c_kept = False
     mu_kept = 0.0
     unseen = n_seen < MIN_SEEN if have[0] == 0 else n_seen == 0
@@ -401,11 +405,12 @@ def fit_one_t(
             cp2(s[2], q)
             cp2(s[3], t)
             sc[C_GAP] = 1.0
-            continuity_weights(params, sc, math.inf)  # no continuity: no past
+            continuity_weights(params, sc, math.inf, True)  # no continuity: no past
             reseeded = True
         else:
             predict(m, s)
-            continuity_weights(params, sc, sc[C_GAP])
+            known = have[0] >= 2 and sc[C_GAP] <= 1.0  # as predict decides
+            continuity_weights(params, sc, sc[C_GAP], known)
             hold_priors(m, s)
             if sc[C_GAP] <= 1.0 and have[0] >= 2:
                 # hidden markers are measured on the prediction only when it is one:
@@ -453,7 +458,7 @@ def fit_one_t(
             c[9][:] = c[3]
             c[10][:] = c[4]
             c_kept = True
-            continuity_weights(params, sc, max(sc[C_GAP], persist))
+            continuity_weights(params, sc, max(sc[C_GAP], persist), known)
             cost_a = _whole_cost(m, s)
             cp2(qb, q)
             cp2(tb, t)
@@ -487,8 +492,18 @@ def fit_one_t(
             # unexplained, the next is seeded afresh
             unexplained = rms > params[P_GATE_M]
         else:
+            # after a gap the prediction is the last explained pose held: nothing
+            # tells a marker the pose rejects from one the pose has wrong, so a
+            # frame still suspect with the better candidate (a quarter rejected,
+            # or twice the take's level) does not restart the track (a swapped
+            # frame came in at gap 11 with 14 of 29 rejected, and the true frames
+            # after the burst were held to it: bench/burst_recovery.py)
+            unsettled = sc[C_GAP] > 1.0 and (
+                rms > lost_at or n_rej > params[P_REJECT_FRAC] * n_seen
+            )
             unexplained = (
-                rms > far
+                unsettled
+                or rms > far
                 or n_rej > params[P_UNEXPLAINED_FRAC] * n_seen
                 or impossible(m, s, max(sc[C_GAP], persist))
             )

@@ -87,7 +87,12 @@ class FitParams:
             alpha_max (n dt)^2 / 2 after n frames of dt seconds, weight (noise_m /
             sigma)^2: at 120 Hz sigma is 16 deg, so the pull never holds back a real
             motion, and what the markers leave undetermined it carries from frame to
-            frame.
+            frame. A held prediction (no velocity known: after a gap, and the frame
+            after the first one explained) misses by up to the peak speed x n dt
+            instead (omega_max, speed_max; as ``fit_track.jump_bound``): 29 deg a
+            frame at 240 Hz, where alpha_max gave 4 (seed 6 of
+            ``bench/burst_recovery.py``: 10 frames at 1e30 back in 0.212 s, was
+            0.308).
         acc_max: m/s^2, the same for a root's position: 100 (about 10 g, the body's
             centre of mass under a landing's peak ground reaction force of up to ~11
             body weights; Dufek & Bates, "Biomechanical factors associated with injury
@@ -155,6 +160,12 @@ class FitParams:
             rejected: no skeleton pose accounts for the markers (a collapse, a burst of
             garbage, mirrored labels). Its pose is the last explained one, flagged, and
             the fit carries on from that. 4 (twice the suspect level) and one half.
+            After a gap (the prediction held: no track to tell a marker the pose
+            rejects from one it has wrong) a frame is unexplained too while it is
+            still suspect with the better candidate (lost_k, reject_frac): a
+            swapped burst's frame came in at gap 11 with 14 of 29 markers rejected,
+            the hidden markers' holds were anchored on it, and the true frames after
+            the burst kept it (``tests/daemon/test_burst_recovery.py``).
         resolution_deg: while a marker is hidden, what the markers still seen observe of
             a joint under (max(noise_m, the running residual level) / this)^2 m^2 /
             rad^2 is held at its last seen value with the information the hidden marker
