@@ -497,9 +497,16 @@ def fit_one_t(
             # frame still suspect with the better candidate (a quarter rejected,
             # or twice the take's level) does not restart the track (a swapped
             # frame came in at gap 11 with 14 of 29 rejected, and the true frames
-            # after the burst were held to it: bench/burst_recovery.py)
-            unsettled = sc[C_GAP] > 1.0 and (
-                rms > lost_at or n_rej > params[P_REJECT_FRAC] * n_seen
+            # after the burst were held to it: bench/burst_recovery.py). Only
+            # while the gap is shorter than the level's own time constant: past
+            # it the level before the gap no longer speaks for the take (a
+            # performer whose markers fit worse after the gap, every one 20 mm
+            # further off on the PiG walk, was held for the rest of the take)
+            gap_s = sc[C_GAP] * sc[C_DT]
+            unsettled = (
+                sc[C_GAP] > 1.0
+                and gap_s <= params[P_LEVEL_TAU_S]
+                and (rms > lost_at or n_rej > params[P_REJECT_FRAC] * n_seen)
             )
             unexplained = (
                 unsettled

@@ -165,7 +165,12 @@ class FitParams:
             still suspect with the better candidate (lost_k, reject_frac): a
             swapped burst's frame came in at gap 11 with 14 of 29 markers rejected,
             the hidden markers' holds were anchored on it, and the true frames after
-            the burst kept it (``tests/daemon/test_burst_recovery.py``).
+            the burst kept it (``tests/daemon/test_burst_recovery.py``). Only
+            while the gap is shorter than level_tau_s: past it the level before
+            the gap no longer speaks for the take, and without that bound a
+            performer whose markers fit worse after a gap was held for good (the
+            PiG walk, every marker 20 mm further off after a 0.2 s gap: the rest
+            of the take, 1.95 s, unexplained; now 0.8 s).
         resolution_deg: while a marker is hidden, what the markers still seen observe of
             a joint under (max(noise_m, the running residual level) / this)^2 m^2 /
             rad^2 is held at its last seen value with the information the hidden marker
