@@ -79,6 +79,18 @@ class _Sent:
         self.messages.append(key + tuple(bytes(p) for p in parts[1:]))
 
 
+def _take_labels(d: Daemon, take: Any) -> Any:
+    """``d``'s OSC stream, announced the three performers' labels of ``take``, their
+    pipelines built."""
+    stream = d.osc_stream
+    labels = tuple(f"{n}:{label}" for n in NAMES for label in take.labels)
+    label_set = LabelSet(1, labels)
+    stream.set_labels(label_set)
+    d.performers.prepare(stream, label_set)
+    assert d.performers.done_building(60.0), "the pipelines were never built"
+    return stream
+
+
 def _hold_for_the_worker(d: Daemon) -> None:
     """Make the loop's first solve of each frame (performer A's) wait until a worker
     has solved the last one (C's, the first a worker takes), so every frame has a
@@ -108,7 +120,6 @@ def _run(
     to a daemon of three performers and solve each; closed on return. With solve
     threads, C's solve always on a worker (:func:`_hold_for_the_worker`)."""
     take = _take()
-    labels = tuple(f"{n}:{label}" for n in NAMES for label in take.labels)
     d = _daemon(calibration, solve_threads, method)
     sent = _Sent()
     d.outputs.send_pub = sent  # type: ignore[method-assign]
@@ -116,11 +127,7 @@ def _run(
         d.open()
         if solve_threads > 1:
             _hold_for_the_worker(d)
-        stream = d.osc_stream
-        label_set = LabelSet(1, labels)
-        stream.set_labels(label_set)
-        d.performers.prepare(stream, label_set)
-        assert d.performers.done_building(60.0), "the pipelines were never built"
+        stream = _take_labels(d, take)
         for row in FRAMES:
             packet = _packet(take, row, hide if row % 5 == 0 else -1)
             t_ns = time.monotonic_ns()
@@ -163,15 +170,10 @@ def threaded(exact_calibration: Path) -> Iterator[tuple[Daemon, Any, list[Any]]]
     """An open three-performer daemon with a solve thread, its stream taking the
     three performers' labels, and one frame's packet per call of ``feed``."""
     take = _take()
-    labels = tuple(f"{n}:{label}" for n in NAMES for label in take.labels)
     d = _daemon(exact_calibration, 2, "construction")
     try:
         d.open()
-        stream = d.osc_stream
-        label_set = LabelSet(1, labels)
-        stream.set_labels(label_set)
-        d.performers.prepare(stream, label_set)
-        assert d.performers.done_building(60.0), "the pipelines were never built"
+        stream = _take_labels(d, take)
         rows = iter(FRAMES)
 
         def feed() -> int:
@@ -325,15 +327,10 @@ def _frame_peaks(calibration: Path, solve_threads: int) -> float:
     """The median over 60 frames (after 40 of warm-up) of the memory a frame's
     ``Performers.solve`` holds above its start at its peak, every thread's."""
     take = _take()
-    labels = tuple(f"{n}:{label}" for n in NAMES for label in take.labels)
     d = _daemon(calibration, solve_threads, "fit")
     try:
         d.open()
-        stream = d.osc_stream
-        label_set = LabelSet(1, labels)
-        stream.set_labels(label_set)
-        d.performers.prepare(stream, label_set)
-        assert d.performers.done_building(60.0), "the pipelines were never built"
+        stream = _take_labels(d, take)
         packets = [_packet(take, row) for row in range(100, 200)]
         peaks = []
         for k, packet in enumerate(packets):
