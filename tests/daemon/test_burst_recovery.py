@@ -148,16 +148,7 @@ def test_a_burst_at_a_restart_leaves_nothing(datasets: Path, kind: str) -> None:
     assert np.abs(np.abs(dot) - 1.0).max() < 1e-9
     level = hit.residual_level[second - 1]
     assert level < 2.0 * twin.residual_level[second - 1], level
-    deg = bone_deviation_deg(
-        np.asarray(hit.world_from_bone_quat), np.asarray(twin.world_from_bone_quat)
-    ).max(axis=1)
-    root = np.linalg.norm(hit.root_pos - twin.root_pos, axis=1)
-    back = (deg <= soak.RECOVERED_DEG) & (root <= soak.RECOVERED_M)
-    back &= ~hit.unexplained & ~hit.unseen
-    end = second + n_bad
-    after = np.flatnonzero(back[end:])
-    assert after.size, f"never back: {np.nanmax(deg[end:]):.1f} deg"
-    rec_s = (after[0] + 1) / rate
+    rec_s = _recovery_s(hit, twin, second + n_bad, rate)
     print(f"{kind}: level {level * 1e3:.1f} mm, second burst back in {rec_s:.3f} s")
     assert rec_s <= soak.MAX_RECOVERY_S
 
@@ -197,15 +188,7 @@ def test_a_swapped_burst_is_not_let_in_across_its_gap(
     hit, intact = solve(bad), solve(clean)
     assert not hit.unexplained[:t0].any()
     assert hit.unexplained[t0 : t0 + n_bad].all(), hit.unexplained[t0 : t0 + n_bad]
-    deg = bone_deviation_deg(
-        np.asarray(hit.world_from_bone_quat), np.asarray(intact.world_from_bone_quat)
-    ).max(axis=1)
-    root = np.linalg.norm(hit.root_pos - intact.root_pos, axis=1)
-    back = (deg <= soak.RECOVERED_DEG) & (root <= soak.RECOVERED_M)
-    back &= ~hit.unexplained & ~hit.unseen
-    after = np.flatnonzero(back[t0 + n_bad :])
-    assert after.size, f"never back: {np.nanmax(deg[t0 + n_bad :]):.1f} deg"
-    rec_s = (after[0] + 1) / rate
+    rec_s = _recovery_s(hit, intact, t0 + n_bad, rate)
     print(f"swapped {n_bad} frames: back in {rec_s:.3f} s")
     assert rec_s <= soak.MAX_RECOVERY_S
 
@@ -291,7 +274,8 @@ def test_a_suspect_frame_after_a_gap_does_not_restart_the_track(
     "held-prediction continuity's own branch (h28k, 6e14ead). The difference is the "
     "hidden marker's offset fading with its hinge's bend (f07ad20): with the fade "
     "switched off in a scratch copy of the merged kernels it passes again (within "
-    "0.25 s). Not traced yet; the fade stays for the walk's LKNE runaway it ends (172 mm -> 11 mm)",
+    "0.25 s). Not traced yet; the fade stays for the walk's LKNE runaway it ends "
+    "(172 mm -> 11 mm)",
 )
 @pytest.mark.timeout(300)
 def test_the_frame_after_a_gap_is_pulled_as_a_held_prediction(datasets: Path) -> None:
