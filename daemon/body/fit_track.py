@@ -22,9 +22,11 @@ from retargetd.daemon.body.fit_terms import (
     P_HOLD_STRAIGHT_RAD,
     P_JUMP_FLOOR_RAD,
     P_JUMP_Z,
+    P_LEVEL_TAU_S,
     P_NOISE_M,
     P_OMEGA_MAX,
     P_OMEGA_ROOT,
+    P_REJECT_FRAC,
     P_RESOLUTION_RAD,
     P_SPEED_MAX,
     P_VELOCITY_TAU_S,
@@ -85,6 +87,27 @@ def jump_bound(
     # when the markers went.
     b = min(z * 0.5 * a_max * h * h, 2.0 * v_max * h) if known else v_max * h
     return max(b, floor)
+
+
+@kernel
+def unsettled(
+    params: np.ndarray, sc: np.ndarray, rms: float, lost_at: float, n_rej: int,
+    n_seen: int,
+) -> bool:  # fmt: skip
+    # After a gap the prediction is the last explained pose held: nothing tells a
+    # marker the pose rejects from one the pose has wrong, so a frame still suspect
+    # with the better candidate (a quarter rejected, or twice the take's level) does
+    # not restart the track (a swapped frame came in at gap 11 with 14 of 29
+    # rejected, and the true frames after the burst were held to it:
+    # bench/burst_recovery.py). Only while the gap is shorter than the level's own
+    # time constant: past it the level before the gap no longer speaks for the take
+    # (a performer whose markers fit worse after the gap, every one 20 mm further off
+    # on the PiG walk, was held for the rest of the take).
+    return (
+        sc[C_GAP] > 1.0
+        and sc[C_GAP] * sc[C_DT] <= params[P_LEVEL_TAU_S]
+        and (rms > lost_at or n_rej > params[P_REJECT_FRAC] * n_seen)
+    )
 
 
 @kernel

@@ -116,6 +116,7 @@ from retargetd.daemon.body.fit_track import (
     predict,
     score,
     truncated_rms,
+    unsettled,
     virtual_markers,
 )
 from retargetd.daemon.compiled import kernel, qmul
@@ -492,24 +493,11 @@ def fit_one_t(
             # unexplained, the next is seeded afresh
             unexplained = rms > params[P_GATE_M]
         else:
-            # after a gap the prediction is the last explained pose held: nothing
-            # tells a marker the pose rejects from one the pose has wrong, so a
-            # frame still suspect with the better candidate (a quarter rejected,
-            # or twice the take's level) does not restart the track (a swapped
-            # frame came in at gap 11 with 14 of 29 rejected, and the true frames
-            # after the burst were held to it: bench/burst_recovery.py). Only
-            # while the gap is shorter than the level's own time constant: past
-            # it the level before the gap no longer speaks for the take (a
-            # performer whose markers fit worse after the gap, every one 20 mm
-            # further off on the PiG walk, was held for the rest of the take)
-            gap_s = sc[C_GAP] * sc[C_DT]
-            unsettled = (
-                sc[C_GAP] > 1.0
-                and gap_s <= params[P_LEVEL_TAU_S]
-                and (rms > lost_at or n_rej > params[P_REJECT_FRAC] * n_seen)
-            )
+            # after a gap, a frame still suspect with the better candidate
+            # does not restart the track (fit_track.unsettled)
+            unsettled_ = unsettled(params, sc, rms, lost_at, n_rej, n_seen)
             unexplained = (
-                unsettled
+                unsettled_
                 or rms > far
                 or n_rej > params[P_UNEXPLAINED_FRAC] * n_seen
                 or impossible(m, s, max(sc[C_GAP], persist))
