@@ -124,6 +124,9 @@ class Health:
             "pipelines_building": self.performers.building(),
             # live validators being built off the loop (validation.py)
             "validators_building": self.performers.validators_building(),
+            # [loop] solve_threads: the threads solving (the loop's included), the
+            # solve threads alive and the solves they ran (solve_threads.py)
+            "solve_threads": self._solve_threads(),
             "fd_exhausted": self.watch.exhausted,  # an episode is going on
             # CURVE handshakes refused, by socket and reason (sockets with a key)
             "curve_refused": self.watch.status(),
@@ -149,6 +152,14 @@ class Health:
             "capture": self._capture(),
             "props": self.props.status(),  # [[prop]] (live/props.py)
         }
+
+    def _solve_threads(self) -> dict[str, int]:
+        """``[loop] solve_threads`` as running: 1 thread, none alive, no solves when
+        every solve is on the loop thread (one performer, or ``solve_threads`` 1)."""
+        t = self.performers.solve_threads
+        if t is None:
+            return {"threads": 1, "alive": 0, "worker_solves": 0}
+        return {"threads": t.n_threads, "alive": t.alive(), "worker_solves": t.solves}
 
     def _fps(self, count: int, which: int) -> float:
         """Frames per second since the last stats line (the recent rate, not the

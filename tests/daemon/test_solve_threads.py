@@ -149,6 +149,12 @@ def test_threads_send_the_serial_poses_in_the_serial_order(
     threads = d2.performers.solve_threads
     assert threads is not None and threads.n_threads == 2
     assert threads.solves >= len(FRAMES)  # C's at least, every frame
+    assert s2["solve_threads"] == {  # ctl status --json
+        "threads": 2,
+        "alive": 1,
+        "worker_solves": threads.solves,
+    }
+    assert s1["solve_threads"] == {"threads": 1, "alive": 0, "worker_solves": 0}
     assert threaded.messages == serial.messages  # bytes, order, frame ids, flags
     data = [m for m in threaded.messages if m[0] == pose_stream.DATA_MAGIC]
     assert [m[3] for m in data if m[1] == FRAMES[1]] == [0, 1, 2]  # config order
