@@ -37,6 +37,8 @@ frames the detector marks in contact (its contact is the performer's):
   detector's, times the leg ratio; for a synthetic gait the truth's floor or step,
   times the leg ratio, over the frames both the truth and the detector call contact),
   max over contact frames, mm;
+- **float**: the same point above that level, max, mm: ``scaled`` (the unplanted
+  foot, the root scaled by the leg ratio: where the solve stands it) and ``plant``;
 - **knee**: at the blend edges (the frame before each contact onset through the
   blend-in, the frame before each release through the blend-out), the most the plant
   adds to the knee's frame-to-frame change (|d flex plant - d flex scaled|), deg;
@@ -179,7 +181,8 @@ def run_modes(
 ) -> dict[str, Any]:
     """The solve through ``free``, ``scaled`` and ``plant`` (module docstring): each
     way's target ``wfb`` (T, N, 4) and ``root`` (T, 3); the detector's ``contact``
-    (T, 2) and ``support`` (T, 2) (the performer's, metres); ``flags`` (T,);
+    (T, 2) and ``support`` (T, 2) (the performer's, metres; offline, a contact off
+    the floor the plant's own settled level over the leg ratio); ``flags`` (T,);
     ``leg_ratio``. ``live``: the plant fed the detector's state frame by frame, as
     the daemon's (``live/send.py``), instead of the offline settled support."""
     rt = Retargeter(rig, cal, target)
@@ -200,28 +203,36 @@ def run_modes(
         m: {"wfb": np.empty((n_frames, n, 4)), "root": np.empty((n_frames, 3))}
         for m in ("free", "scaled", "plant")
     }
+    pre = {k: np.empty((n_frames, *a.shape)) for k, a in (
+        ("wfb", np.zeros((n, 4))), ("rfb", np.zeros((n, 4))), ("root", np.zeros(3)),
+        ("hips", np.zeros(3)))}  # fmt: skip
+    pose = rt.new_pose()
+    for t in range(n_frames):
+        rt.apply(_Frame(res, t), pose)  # type: ignore[arg-type]
+        pre["wfb"][t], pre["rfb"][t] = (
+            pose.world_from_bone_quat,
+            pose.rest_from_bone_quat,
+        )
+        pre["root"][t], pre["hips"][t] = pose.root_pos, pose.hips_pos
+    if not live:  # as cli/post_io.retarget_solve: each level settled per contact
+        states = plant.hold_settled(
+            pre["wfb"], pre["rfb"], pre["root"], pre["hips"], states, rate_hz
+        )
     contact = np.zeros((n_frames, 2), bool)
     support = np.zeros((n_frames, 2))
     flags = np.zeros(n_frames, np.uint32)
-    pose = rt.new_pose()
     for t in range(n_frames):
-        frame = _Frame(res, t)
         contact[t] = states[t, :, CONTACT_COLUMN] != 0.0
         support[t] = states[t, :, SUPPORT_COLUMN]
         for mode in ("free", "scaled", "plant"):
-            rt.apply(frame, pose)  # type: ignore[arg-type]
+            wfb, rfb = pre["wfb"][t].copy(), pre["rfb"][t].copy()
+            root, hips = pre["root"][t].copy(), pre["hips"][t].copy()
             if mode == "scaled":
-                scaled.apply(
-                    pose.world_from_bone_quat, pose.rest_from_bone_quat,
-                    pose.root_pos, pose.hips_pos, no_contact, t / rate_hz,
-                )  # fmt: skip
+                scaled.apply(wfb, rfb, root, hips, no_contact, t / rate_hz)
             elif mode == "plant":
-                flags[t] = plant.apply(
-                    pose.world_from_bone_quat, pose.rest_from_bone_quat,
-                    pose.root_pos, pose.hips_pos, states[t], t / rate_hz,
-                )  # fmt: skip
-            out[mode]["wfb"][t] = pose.world_from_bone_quat
-            out[mode]["root"][t] = pose.root_pos
+                flags[t] = plant.apply(wfb, rfb, root, hips, states[t], t / rate_hz)
+            out[mode]["wfb"][t] = wfb
+            out[mode]["root"][t] = root
     out.update(contact=contact, support=support, flags=flags,
                leg_ratio=plant.leg_ratio)  # fmt: skip
     return out
@@ -304,7 +315,7 @@ def skate_sink(
     """Skate (per contact frame and per contact run, mm) and sink (mm; over the
     frames ``sink_on``, default ``contact``) of one way, both feet pooled (module
     docstring)."""
-    per_frame, per_run, sink = [], [], []
+    per_frame, per_run, sink, above = [], [], [], []
     on_ = contact if sink_on is None else sink_on
     for s in range(2):
         pts = np.stack([g["heel"][:, s], g[BALL][:, s]], axis=1)  # (T, 2, 3)
@@ -313,6 +324,7 @@ def skate_sink(
         )
         below = np.maximum(floor[:, s] - low, 0.0)[on_[:, s]]
         sink.extend(below)
+        above.extend(np.maximum(low - floor[:, s], 0.0)[on_[:, s]])
         for a, b in _runs(contact[:, s]):
             if b - a < 2:
                 continue
@@ -333,6 +345,7 @@ def skate_sink(
         "skate_run_p95_mm": float(np.percentile(pr, 95)) if pr.size else np.nan,
         "skate_run_max_mm": float(pr.max()) if pr.size else np.nan,
         "sink_max_mm": float(np.max(sink) * 1e3) if sink else 0.0,
+        "float_p95_mm": float(np.percentile(above, 95) * 1e3) if above else 0.0,
     }
 
 
@@ -505,7 +518,7 @@ def real(
 
 
 def _row(label: str, m: dict[str, Any], *, synthetic_row: bool) -> str:
-    f, p = m["free"], m["plant"]
+    f, s, p = m["free"], m["scaled"], m["plant"]
     cells = [
         label,
         f"{m['leg_ratio']:.2f}",
@@ -514,6 +527,7 @@ def _row(label: str, m: dict[str, Any], *, synthetic_row: bool) -> str:
         f"{p['skate_frame_p95_mm']:.2f} / {p['skate_run_p95_mm']:.2f}",
         f"{f['sink_max_mm']:.1f}",
         f"{p['sink_max_mm']:.2f}",
+        f"{s['float_p95_mm']:.2f} / {p['float_p95_mm']:.2f}",
         f"{m['knee_added_deg']:.2f} ({m['knee_edge_deg']:.1f})",
         f"{m['swing_max_mm']:.2f}",
         str(m["unreached"]),
@@ -527,9 +541,10 @@ def _row(label: str, m: dict[str, Any], *, synthetic_row: bool) -> str:
 
 HEADER = (
     "| take | leg ratio | contact frames / runs | skate free, mm (p95 frame / p95 "
-    "run) | skate plant, mm | sink free, mm (max) | sink plant, mm | knee at blend "
-    "edges, deg: added (raw) | swing off path, mm (max) | unreached frames |\n"
-    "|---|---|---|---|---|---|---|---|---|---|"
+    "run) | skate plant, mm | sink free, mm (max) | sink plant, mm | float, mm (p95): "
+    "scaled / plant | knee at blend edges, deg: added (raw) | swing off path, mm "
+    "(max) | unreached frames |\n"
+    "|---|---|---|---|---|---|---|---|---|---|---|"
 )
 SYNTH_HEADER = (
     HEADER.split("\n")[0]

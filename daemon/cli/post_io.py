@@ -267,7 +267,9 @@ def retarget_solve(
     (:func:`retargetd.daemon.live.send.plant_stage`) fed by the stance detector run
     on ``stance_solve`` (the solve before any post stage, as live), each contact's
     support the level it settled on over the whole contact
-    (:func:`~retargetd.daemon.post.stance.take_stance_states`; live, the level so far).
+    (:func:`~retargetd.daemon.post.stance.take_stance_states`; off the floor the
+    target's own sole's, :meth:`~retargetd.daemon.post.plant.FootPlant.hold_settled`;
+    live, the level so far).
 
     Args:
         solve: the (processed) :class:`~retargetd.daemon.body.solve.BodySolve`.
@@ -330,8 +332,7 @@ def retarget_solve(
     out = rt.new_pose()
     n_frames, n = len(solve.world_from_bone_quat), len(target.bone_names)
     wfb, rfb = np.empty((n_frames, n, 4)), np.empty((n_frames, n, 4))
-    root = np.empty((n_frames, 3))
-    plant_flags = np.zeros(n_frames, dtype=np.uint32)
+    root, hips = np.empty((n_frames, 3)), np.empty((n_frames, 3))
     for k in range(n_frames):
         frame = SimpleNamespace(
             world_from_bone_quat=np.ascontiguousarray(solve.world_from_bone_quat[k]),
@@ -341,15 +342,15 @@ def retarget_solve(
         rt.apply(frame, out)  # type: ignore[arg-type]
         if spine is not None:
             spine.apply(out.world_from_bone_quat, out.rest_from_bone_quat)
-        if plant is not None:
-            plant.stance_state = states[k]
-            plant.stance_clock[0] = k / rate_hz
-            plant_flags[k] = plant.apply_pose(out)
-        wfb[k], rfb[k], root[k] = (
-            out.world_from_bone_quat,
-            out.rest_from_bone_quat,
-            out.root_pos,
-        )
+        wfb[k], rfb[k] = out.world_from_bone_quat, out.rest_from_bone_quat
+        root[k], hips[k] = out.root_pos, out.hips_pos
+    plant_flags = np.zeros(n_frames, dtype=np.uint32)
+    if plant is not None:  # each level off the floor settled per contact, then held
+        states = plant.hold_settled(wfb, rfb, root, hips, states, rate_hz)
+        for k in range(n_frames):
+            plant_flags[k] = plant.apply(
+                wfb[k], rfb[k], root[k], hips[k], states[k], k / rate_hz
+            )
     arrays = {
         "target_bone_names": np.asarray(target.bone_names, dtype=str),
         "target_world_from_bone_quat": wfb,

@@ -15,7 +15,9 @@ detector (:mod:`~retargetd.daemon.post.stance`) found on the performer's solve.
    When contact starts, the lower of the two (the *pivot*) is anchored where it is
    (the foot's planted position, so nothing jumps); while contact lasts the foot is
    moved so its pivot stays on the anchor horizontally and its lowest point sits on
-   the support level (the detector's, times ``k``: the floor or a step). The pivot
+   the support level: the floor, or off it the level of the target's own sole
+   (``post/plant_level.py``: where it came down, raised as the solve's foot rises
+   until heel-off; offline, each contact's settled level). The pivot
    passes to the other point when that one is lower by :data:`PLANT`
    ``pivot_switch_m`` (heel-off), re-anchored where it is. On the ball the foot
    rolls about its MTP joint (the target's Toes joint, :func:`roll_radius` above the
@@ -62,10 +64,21 @@ from typing import Any
 
 import numpy as np
 
-from retargetd.daemon.body.calibration import Calibration
-from retargetd.daemon.body.rig import Rig
 from retargetd.daemon.compiled import direct, kernel, qmul, qrot
 from retargetd.daemon.post.foot_roll import ball_roll, keep_toe_world, pitch_onto_floor
+from retargetd.daemon.post.plant_level import (
+    LEVEL,
+    N_LEVEL,
+    settled_levels,
+    sole_z,
+    step_level,
+)
+from retargetd.daemon.post.plant_target import (
+    foot_points,
+    performer_leg_m,
+    roll_radius,
+    target_leg_m,
+)
 from retargetd.daemon.post.stance import CONTACT_COLUMN, SUPPORT_COLUMN
 from retargetd.protocols.frames import F64Array
 from retargetd.protocols.pose_stream import FRAME_PLANT_UNREACHED
@@ -104,76 +117,6 @@ _SIDES = ("Left", "Right")
  _S_RZ, _S_AZ0, _S_T, _S_FLEX, _N_STATE) = range(16)  # fmt: skip
 #: Unreached bits :func:`_plant_step` returns (one per foot).
 UNREACHED_LEFT, UNREACHED_RIGHT = 1, 2
-
-
-def performer_leg_m(rig: Rig, calibration: Calibration) -> float:
-    """The performer's leg length: the mean height of the hip joints (the rig's
-    LeftUpperLeg and RightUpperLeg bone origins) above the calibration's floor
-    (z = 0; the calibration is taken standing on it).
-
-    Raises:
-        ValueError: the rig maps no upper legs, or the calibration has no bone
-            origins.
-    """
-    origins = calibration.rest_bone_origin_pos
-    names = list(calibration.bone_names)
-    legs = [rig.humanoid.get(s + "UpperLeg") for s in _SIDES]
-    if origins is None or not all(legs):
-        raise ValueError(
-            f"rig {rig.name}: feet = 'plant' needs LeftUpperLeg and RightUpperLeg "
-            "mapped and a calibration with bone origins"
-        )
-    z = [float(np.asarray(origins)[names.index(str(b)), 2]) for b in legs]
-    leg = 0.5 * (z[0] + z[1])
-    if not leg > 0.2:
-        raise ValueError(f"performer leg length must be > 0.2 m; got {leg:.3f} m")
-    return leg
-
-
-def target_rest_joints(target: Any) -> F64Array:
-    """(N, 3) each target joint at rest, world, the root on the floor at the origin."""
-    offsets = np.asarray(target.rest_offsets, dtype=np.float64)
-    pos = np.zeros_like(offsets)
-    for i, p in enumerate(target.parents):
-        pos[i] = offsets[i] if p < 0 else pos[p] + offsets[i]
-    return pos
-
-
-def target_leg_m(target: Any) -> float:
-    """The target's leg length: the mean height of its UpperLeg joints at rest."""
-    pos = target_rest_joints(target)
-    z = [pos[target.index(s + "UpperLeg"), 2] for s in _SIDES]
-    return float(0.5 * (z[0] + z[1]))
-
-
-def foot_points(target: Any) -> tuple[F64Array, F64Array]:
-    """Each foot's heel and ball, (2, 3) each: offsets from the ankle (the Foot joint)
-    at rest, world axes, both at floor level (z = -ankle height): the heel under the
-    ankle, the ball under the Toes joint (else the foot's aim)."""
-    pos = target_rest_joints(target)
-    heel, ball = np.zeros((2, 3)), np.zeros((2, 3))
-    for s, side in enumerate(_SIDES):
-        f = target.index(side + "Foot")
-        toes = side + "Toes"
-        if toes in target.bone_names:
-            ahead = pos[target.index(toes)] - pos[f]
-        else:
-            ahead = np.asarray(target.aim_offsets[f], dtype=np.float64).copy()
-        heel[s] = (0.0, 0.0, -pos[f, 2])
-        ball[s] = (ahead[0], ahead[1], -pos[f, 2])
-    return heel, ball
-
-
-def roll_radius(target: Any) -> F64Array:
-    """(2,) each foot's roll centre's height above its ball at rest: the Toes joint's
-    (the MTP joint, which the foot rolls about from heel-off on) height above the
-    floor; 0 for a foot without a Toes bone (it rolls about its ball)."""
-    pos = target_rest_joints(target)
-    r = np.zeros(2)
-    for s, side in enumerate(_SIDES):
-        if side + "Toes" in target.bone_names:
-            r[s] = max(float(pos[target.index(side + "Toes"), 2]), 0.0)
-    return r
 
 
 @kernel(inline="always")
@@ -234,11 +177,13 @@ def _plant_step(
     toes: np.ndarray,  # (2,) int64: each Toes bone (child of Foot), -1 if none
     tip: np.ndarray,  # (2, 3): each Toes bone's aim (its tip), rest, world axes
     left: np.ndarray,  # (3,) the target's left at rest
-    params: np.ndarray,  # (9,) blend in, blend out, switch, root factor, leg k,
-    #                      knee max rad, contact column, support column, knee step
+    params: np.ndarray,  # (10,) blend in, blend out, switch, root factor, leg k,
+    #                     knee max rad, contact column, support column, knee step,
+    #                     own level (1: off the floor, the target's sole's; 0: given)
     e: np.ndarray,  # (2, C, 4) scratch: E along the chain
     x: np.ndarray,  # (2, C, 3) scratch: joint positions
     state: np.ndarray,  # (2, _N_STATE)
+    level: np.ndarray,  # (2, N_LEVEL) plant_level's state
 ) -> int:  # pragma: no cover - compiled
     """One frame of both feet (module docstring); returns the unreached bits."""
     t_in, t_out, switch = params[0], params[1], params[2]
@@ -285,6 +230,11 @@ def _plant_step(
         support = stance[s, s_col] * k
         lowest = min(heel_z, ball_z)
         if contact:
+            # off the floor, the level of the target's own sole (plant_level.py)
+            sole = sole_z(lowest, wfb, rest, offsets, e[s, f], az_, toes[s], tip[s])
+            held = step_level(level[s], st[_S_PREV] == 0.0, sole, heel_z, switch)
+            if support != 0.0 and params[9] != 0.0:
+                support = held
             if st[_S_PREV] == 0.0:  # onset: anchor the lower point where it is
                 st[_S_PIVOT] = 0.0 if heel_z <= ball_z else 1.0
                 px, py = (heel_x, heel_y) if st[_S_PIVOT] == 0.0 else (mtp_x, mtp_y)
@@ -602,11 +552,12 @@ class FootPlant:
         self._params = np.array([
             *(p[key] for key in _PARAMS), self.leg_ratio / root_scale,
             self.leg_ratio, math.radians(p["knee_max_deg"]), CONTACT_COLUMN,
-            SUPPORT_COLUMN, math.radians(p["knee_step_deg"]),
+            SUPPORT_COLUMN, math.radians(p["knee_step_deg"]), 1.0,
         ])  # fmt: skip
         self._e = np.zeros((2, n_chain, 4))
         self._x = np.zeros((2, n_chain, 3))
         self._state = np.zeros((2, _N_STATE))
+        self._level = np.zeros((2, N_LEVEL))
         self._call: object = _plant_step
         self.n_bones = len(names)
         self.stance_clock = np.zeros(1)
@@ -618,7 +569,7 @@ class FootPlant:
         self._const = (
             self._rest, self._offsets, self._parents, self.chain, self.chain_len,
             self.heel, self.ball, self.roll_r, self._toes, self._tip, self._left,
-            self._params, self._e, self._x, self._state,
+            self._params, self._e, self._x, self._state, self._level,
         )  # fmt: skip
 
     def apply_pose(self, pose: Any) -> int:
@@ -633,6 +584,37 @@ class FootPlant:
     def reset(self) -> None:
         """Forget the history (a new stream): no foot held, no correction left."""
         self._state[:] = 0.0
+        self._level[:] = 0.0
+
+    def hold_settled(
+        self,
+        world_from_bone_quat: F64Array,
+        rest_from_bone_quat: F64Array,
+        root_pos: F64Array,
+        hips_pos: F64Array,
+        stance_states: F64Array,
+        rate_hz: float,
+    ) -> F64Array:
+        """Offline, the whole take known: run the stage over copies of the take's
+        retargeted frames ((T, N, 4), (T, N, 4), (T, 3), (T, 3), as :meth:`apply`'s)
+        and return ``stance_states`` ((T, 2, C), the detector's per frame) with each
+        contact off the floor given its own level as settled by its last frame
+        (``post/plant_level.py``); from then on the stage holds the supports it is
+        given (then :meth:`apply` each frame with the returned states)."""
+        self.reset()
+        self._params[9] = 1.0
+        level = np.zeros((len(root_pos), 2))
+        for t in range(len(root_pos)):
+            self.apply(
+                world_from_bone_quat[t].copy(), rest_from_bone_quat[t].copy(),
+                root_pos[t].copy(), hips_pos[t].copy(), stance_states[t], t / rate_hz,
+            )  # fmt: skip
+            level[t] = self._level[:, LEVEL]
+        self.reset()
+        self._params[9] = 0.0
+        return settled_levels(
+            stance_states, level / self.leg_ratio, CONTACT_COLUMN, SUPPORT_COLUMN
+        )
 
     def apply(
         self,

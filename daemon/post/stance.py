@@ -63,10 +63,11 @@ landing frame. The solved foot's height carries the solve's error of the moment,
 is largest with the thigh flexed: on the synthetic stair ascent (Plug-in Gait), the
 regression hip joint centre 12 mm below the performer's puts the solved foot 2.9 mm
 below the step at landing (thigh flexed) and 0.1 mm below it once settled, the thigh
-near the calibration's standing pose; live, the planted foot stands at the landing's
-level until the support follows it up (2.9 mm below the step at most there). The
-contact itself is the live detector's, so offline and live differ only in a support
-off the floor that moved during its contact.
+near the calibration's standing pose. The contact itself is the live detector's, so
+offline and live differ only in a support off the floor that moved during its
+contact. (Off the floor the plant holds the foot on the level of the target's own
+sole rather than on this one, which the points above the sole read high on a pitched
+foot: ``post/plant_level.py``.)
 
 Known limits: a foot held still in the air for longer than ``still_s`` (or, while the
 other foot stands, braked to a stop there) reads as a foot on a support (the feet alone

@@ -372,3 +372,50 @@ def test_solve_plant_feet_writes_the_planted_target(tmp_path: Any) -> None:
     assert d["target_plant_flags"].shape == (n,)
     assert d["target_world_from_bone_quat"].shape[0] == n
     assert 0.5 < float(d["target_leg_ratio"]) < 2.0
+
+
+def test_a_foot_on_a_step_stands_on_its_own_sole_not_the_detectors_level() -> None:
+    """Off the floor (a support other than 0: a step), the left foot is held at the
+    level its own sole came down to, raised as the solve's foot rises (0.1 mm a
+    frame) and not lowered when it dips (2 mm): live, frame by frame; offline
+    (``hold_settled``) the whole contact at the level it reached. The detector's
+    level, 36 mm higher here (its foot points read high on a pitched foot), is not
+    where the foot is put (``post/plant_level.py``)."""
+    target = default_humanoid()
+    step = 0.17
+    z0 = _on_floor_z() + step
+    zs = [z0] * 10 + [z0 + 1e-4 * i for i in range(1, 11)]
+    zs += [zs[-1] - 2e-3] * 5
+    lf = target.index("LeftFoot")
+
+    def run(stage: FootPlant, states: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        held, free = [], []
+        for t, z in enumerate(zs):
+            pose = _crouch(target, 0.0, z)
+            free.append(joint_positions_world(target, pose)[lf, 2])
+            g, r = pose.world_from_bone_quat, pose.rest_from_bone_quat
+            stage.apply(g, r, pose.root_pos, pose.hips_pos, states[t], t / RATE_HZ)
+            held.append(joint_positions_world(target, pose)[lf, 2])
+        return np.array(held), np.array(free)
+
+    live = FootPlant(target, 1.0, LEG_M)
+    states = np.zeros((len(zs), 2, 4))
+    states[:, 0, 3] = 1.0
+    states[:, 0, 2] = (step + 0.036) / live.leg_ratio
+    held, free = run(live, states)
+    top = free[:20].max()
+    np.testing.assert_allclose(held[:20], free[:20], atol=1e-9)  # came down, rose
+    np.testing.assert_allclose(held[20:], top, atol=1e-9)  # not lowered by the dip
+    assert free[20:].max() < top - 1.9e-3
+    offline = FootPlant(target, 1.0, LEG_M)
+    poses = [_crouch(target, 0.0, z) for z in zs]
+    settled = offline.hold_settled(
+        np.array([p.world_from_bone_quat for p in poses]),
+        np.array([p.rest_from_bone_quat for p in poses]),
+        np.array([p.root_pos for p in poses]),
+        np.array([p.hips_pos for p in poses]),
+        states,
+        RATE_HZ,
+    )
+    held, _ = run(offline, settled)
+    np.testing.assert_allclose(held, top, atol=1e-9)  # the level it reached, all along
