@@ -16,11 +16,11 @@ hidden rig marker ``k`` and each bone ``b``, each direction ``u`` of the
 that the marker gave (``lost > 0``) a hold of at least 1 % of ``sigma^2`` is held;
 the straight and the bent table are read with the kernel's shares (the bend of the
 marker's hinge, ``fit_observe.marker_hinges``, at ``t0``: ``sin(bend) /
-sin(hold_straight)``, at most 1). Then the kernel's local floor
-(``fit_track.local_floor``): for the hidden marker's bone and each of its ancestors,
-every direction in which the markers still seen on it and below it give less than
-``sigma^2`` about its origin (``sum w (|r|^2 I - r r^T)`` at the pose of ``t0``) is
-held too. The directions are unit vectors in each bone's own axes.
+sin(hold_straight)``, at most 1). The tables hold only the hidden marker's bone and
+its ancestors (the bones whose rotations move it). The kernel's local floor
+(``fit_track.local_floor``) adds nothing for one marker hidden: it holds a bone only
+while two or more hidden markers ride it or hang below it. The directions are unit
+vectors in each bone's own axes.
 
 **The truth's excursion in them** (:func:`hold_excursion_deg`): the hold pulls the
 fit's joint towards its anchor in swing-twist coordinates of the bone's axes
@@ -112,22 +112,6 @@ def chart(q: F64Array) -> F64Array:
     return np.stack([swing[..., 0], tw, swing[..., 2]], axis=-1)
 
 
-def _bone_frames(model: FitModel, pfb: F64Array) -> tuple[F64Array, F64Array]:
-    """World rotations (B, 3, 3) and origins (B, 3) of the chain posed at ``pfb``
-    (B, 4) with every root at the origin (only relative positions are used)."""
-    n_b = len(model.bone_names)
-    wq = np.zeros((n_b, 4))
-    org = np.zeros((n_b, 3))
-    for b in range(n_b):
-        p = int(model.bone_parent[b])
-        if p < 0:
-            wq[b] = pfb[b]
-        else:
-            wq[b] = rot.quat_mul(wq[p], pfb[b])
-            org[b] = org[p] + rot.quat_rotate(wq[p], model.off_parent[b])
-    return rot.mat_from_quat(wq), org
-
-
 def held_directions(
     model: FitModel,
     params: FitParams,
@@ -136,7 +120,7 @@ def held_directions(
     level_m: float,
 ) -> dict[int, F64Array]:
     """The rotations the fit holds while rig marker ``marker`` alone is hidden (the
-    module docstring: ``fit_track.hold_priors`` and its local floor).
+    module docstring: ``fit_track.hold_priors``; its local floor needs two hidden).
 
     Args:
         model: the fit's model (``FitSolver.model``).
@@ -177,33 +161,6 @@ def held_directions(
                 if share * min(lost, thr - lam) < _MIN_SHARE * thr:
                     continue
                 found.setdefault(b, []).append(model.hide_axes[row, 3 * j : 3 * j + 3])
-    # the local floor: the hidden marker's bone and its ancestors
-    wm, org = _bone_frames(model, np.asarray(pfb_t0, dtype=np.float64))
-    touched = []
-    k = int(model.marker_bone[marker])
-    while k >= 0:
-        touched.append(k)
-        k = int(model.bone_parent[k])
-    for k in touched:
-        if model.bone_parent[k] < 0:
-            continue
-        acc = np.zeros((3, 3))
-        for i in range(len(wt)):
-            if i == marker or wt[i] <= 0.0:
-                continue
-            sb = int(model.marker_bone[i])
-            a = sb
-            while a >= 0 and a != k:
-                a = int(model.bone_parent[a])
-            if a != k:
-                continue  # not on k or below it
-            p = org[sb] + wm[sb] @ model.marker_local[i]
-            r = wm[k].T @ (p - org[k])
-            acc += wt[i] * (float(r @ r) * np.eye(3) - np.outer(r, r))
-        lam, vec = np.linalg.eigh(acc)
-        for j in range(3):
-            if lam[j] < thr:
-                found.setdefault(k, []).append(vec[:, j])
     return {b: np.asarray(v, dtype=np.float64) for b, v in found.items()}
 
 

@@ -154,7 +154,10 @@ def test_plug_in_gait_lfin_hidden_is_a_hold_of_the_hand() -> None:
     window = slice(480, 600)
     held = _held(solver, intact, "LFIN", 479)
     hand = rig.bone_names.index("lhand")
-    assert hand in held and np.linalg.matrix_rank(held[hand]) == 3  # all of it
+    # all of it: every rotation the hand's joint has (a swing: no twist of its own;
+    # the local floor, which added a third direction, needs two markers hidden)
+    free = len(solver.model.observation[hand].axes)
+    assert hand in held and np.linalg.matrix_rank(held[hand]) == free
     assert hand not in _held(solver, intact, "LKNE", 479)
     solver.reset()
     pos = hide_marker(take.markers_world, take.labels.index("LFIN"), window)
@@ -174,3 +177,21 @@ def test_plug_in_gait_lfin_hidden_is_a_hold_of_the_hand() -> None:
     w = hide_truth_excess(take, rig, intact, worse, held, window, RATE_HZ)
     print(f"turned 20 deg more: {w.excess_deg[k]:.1f} deg beyond the hold")
     assert w.excess_deg[k] > 10.0
+
+
+def test_plug_in_gait_finger_hidden_moves_no_joint_centre_20mm() -> None:
+    """Issue 28 item 6 on the synthetic performer: RFIN (the hand's one marker)
+    hidden 1 s moves no joint centre more than 20 mm from the intact solve. With
+    the local floor made for one hidden marker, the forearm's twist, which the wrist
+    bar still sees, was held against the performer's 115 deg pronation in that
+    second and the wrist ran 79 mm off (``bench/hide_sweep.py``)."""
+    label = "RFIN"
+    _, take, solver, intact = _pig()
+    window = slice(480, 600)
+    solver.reset()
+    pos = hide_marker(take.markers_world, take.labels.index(label), window)
+    damaged = solver.solve_take(pos)
+    mt = damage_metrics(intact, damaged, window, RATE_HZ)
+    print(f"\n{label} hidden 1 s: joint {mt.max_joint_mm:.1f} mm ({mt.max_joint}), "
+          f"bone {mt.max_bone_deg:.1f} deg ({mt.max_bone})")  # fmt: skip
+    assert mt.max_joint_mm <= 20.0
