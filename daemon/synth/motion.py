@@ -524,8 +524,9 @@ RUN_RAMP_S = 2.0
 #: of the floor at the ramp's first frame, its phase barely moving: its first swing
 #: (the last 20 % of a cycle, the cadence near 0) took 116 frames at 120 Hz, and the
 #: stance detector held the foot through 86 of them (legs 1x). Now it stays down 61
-#: frames (0.51 s), then swings 56 (steady: 52), and the detector lets it go 6 frames
-#: after the truth.
+#: frames (0.51 s), then swings 56 (steady: 52); the detector lets it go 6 frames
+#: after the truth (but holds 7 frames of that swing, where the foot is still slow:
+#: docs/feet.md).
 RUN_START_LAG = 0.5
 #: ... by the end of the first step: steady gait's velocity is reached there (Brenière
 #: & Do 1986, J Biomech 19:1035-1040), and here the left's first strike comes 0.98 s
