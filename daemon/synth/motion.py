@@ -365,6 +365,8 @@ def _gait(
     trunk_deg: float,
     toe_off: float,
     start_toe_off: float | None = None,
+    start_lag: float = 0.0,
+    lag_close_s: float = 1.0,
     pelvis_tilt_deg: float = PELVIS_TILT_DEG,
     rise_m: float = 0.0,
     ramp_s: float = RAMP_S,
@@ -376,7 +378,8 @@ def _gait(
     strides a second once the ramp is over (the phase speeds up with the angles over
     ``ramp_s``). The body is placed from the stance feet
     (:func:`synth.gait.plant_gait`): the feet do not slide, and the speed and stride
-    length are the legs' own."""
+    length are the legs' own. The left starts ``start_lag`` of a cycle behind its
+    steady half-cycle lead on the right and makes it up over ``lag_close_s``."""
     t0 = np.maximum(m.t, 0.0)
     # The right starts in mid-stance (30 % of its cycle), the left in mid-swing: the
     # first step is the left's, from standing.
@@ -384,7 +387,9 @@ def _gait(
         2.0 * np.pi * (0.3 + cadence_hz * ramp_s * _smootherstep_integral(t0 / ramp_s))
     )
     w = smootherstep(m.t / ramp_s)  # the angles grow with the cadence
-    for side_phase, side in ((phase + np.pi, "l"), (phase, "r")):
+    lag = start_lag * (1.0 - smootherstep(m.t / lag_close_s))
+    left = phase + np.pi - 2.0 * np.pi * lag
+    for side_phase, side in ((left, "l"), (phase, "r")):
         _legs(m, side, w * _profile(hip, side_phase), w * _profile(knee, side_phase),
               w * _profile(ankle, side_phase))  # fmt: skip
     # The pelvis tilts forward (hip angles are the thigh's on the pelvis), the trunk
@@ -407,7 +412,7 @@ def _gait(
         else start_toe_off + w * (toe_off - start_toe_off)
     )
     m.gait = GaitPlan(
-        phase=np.stack([phase + np.pi, phase], axis=1),
+        phase=np.stack([left, phase], axis=1),
         toe_off=toe,
         rise_m=rise_m,
         flight=flight,
@@ -507,6 +512,29 @@ RUN_TOE_OFF = 0.39
 RUN_CADENCE_HZ = 1.4
 #: The run gets up to speed (its cadence and angles) over this, seconds.
 RUN_RAMP_S = 2.0
+#: From standing both legs are in mid-stance (30 % of the cycle, the right's start):
+#: the run's left starts half a cycle behind its steady lead on the right and makes
+#: it up over :data:`RUN_LAG_CLOSE_S`, so it stays down while the body is set moving,
+#: then swings a whole swing phase. Gait initiation keeps both feet down while the
+#: body is set moving, then lifts the swing foot, heel first (Yiou et al. 2017, World
+#: J Orthop 8:815-828, a review: anticipatory postural adjustments, then the swing
+#: foot's heel-off and toe-off), and reaches the steady pattern over about three steps
+#: (Mann et al. 1979, J Bone Joint Surg Am 61:232-239; here the ramp ends after the
+#: third strike). Started half a cycle ahead (at 80 %, in its swing), the left let go
+#: of the floor at the ramp's first frame, its phase barely moving: its first swing
+#: (the last 20 % of a cycle, the cadence near 0) took 116 frames at 120 Hz, and the
+#: stance detector held the foot through 86 of them (legs 1x). Now it stays down 61
+#: frames (0.51 s), then swings 56 (steady: 52); the detector lets it go 6 frames
+#: after the truth (but holds 7 frames of that swing, where the foot is still slow:
+#: docs/feet.md).
+RUN_START_LAG = 0.5
+#: ... by the end of the first step: steady gait's velocity is reached there (Brenière
+#: & Do 1986, J Biomech 19:1035-1040), and here the left's first strike comes 0.98 s
+#: into the ramp, where the right's stance ends. Made up over the whole ramp (2 s),
+#: the left struck 25 frames after the right's toe-off: a first flight of 25 frames
+#: (9 at speed) that raised the pelvis 6 cm; over 0.7 s it let go 45 frames into the
+#: ramp and swung 72 frames, slowly.
+RUN_LAG_CLOSE_S = 1.0
 
 
 def _run(m: Motion) -> None:
@@ -547,6 +575,8 @@ def _run(m: Motion) -> None:
         # fraction from the start, the first flight (the cadence still low) lasted
         # 25 frames against 9-10 at speed and raised the pelvis 7 cm.
         start_toe_off=WALK_TOE_OFF,
+        start_lag=RUN_START_LAG,
+        lag_close_s=RUN_LAG_CLOSE_S,
         ramp_s=RUN_RAMP_S,
         flight=True,
     )

@@ -109,6 +109,59 @@ def test_planted_stance_skates_at_most_2_mm(measured: Any, gait: str) -> None:
         assert m["plant"]["skate_frame_p95_mm"] <= 2.0
 
 
+def _per_contact(gait: str, k: float, reason: str = "") -> Any:
+    marks = [pytest.mark.xfail(strict=True, reason=reason)] if reason else []
+    return pytest.param(gait, k, marks=marks, id=f"{gait}-{k:g}x")
+
+
+@pytest.mark.timeout(600)
+@pytest.mark.parametrize(
+    ("gait", "k"),
+    [
+        *(_per_contact("level_walk", k) for k in (0.8, 1.0, 1.25)),
+        _per_contact("run", 0.8),
+        # Failed before the run started from both legs in mid-stance
+        # (``synth.motion.RUN_START_LAG``): 2.01 mm, its first contact 3.71 mm.
+        _per_contact("run", 1.0),
+        _per_contact(
+            "run",
+            1.25,
+            "the run's steady contacts each travel 2.08-2.26 mm at legs 1.25x, "
+            "nearly all of it (1.89-2.07 mm) in the contact's last frame, the one "
+            "after the truth's toe-off (the detector's release is 1 frame late): "
+            "p95 2.26 mm (1.47 / 1.82 at 0.8 / 1x)",
+        ),
+        _per_contact("stair_ascent", 0.8),
+        _per_contact("stair_ascent", 1.0),
+        _per_contact(
+            "stair_ascent",
+            1.25,
+            "the ascent's step contacts travel up to 2.31 mm (p95) at legs 1.25x "
+            "(1.71 / 2.00 at 0.8 / 1x); not traced here",
+        ),
+        *(_per_contact("stair_descent", k) for k in (0.8, 1.0, 1.25)),
+    ],
+)
+def test_planted_stance_skates_at_most_2_mm_per_contact(
+    measured: Any, gait: str, k: float
+) -> None:
+    """Skate summed over each contact (the least-moving floor point's horizontal
+    travel from onset to release), p95 over the contacts, <= 2 mm: the issue's
+    2 mm held over a whole stance, not only frame by frame."""
+    (m,) = [m for m in measured[gait] if m["leg_ratio"] == pytest.approx(k)]
+    print(gait, k, m["plant"]["skate_run_p95_mm"])
+    assert m["plant"]["skate_run_p95_mm"] <= 2.0
+
+
+@pytest.mark.timeout(600)
+def test_the_run_starts_within_the_legs_reach(measured: Any) -> None:
+    """The run's start from standing holds no stance foot out of the target's leg's
+    reach (``plant_unreached``): its first swing is slow and low no more, so the
+    detector does not hold a swinging foot (84 frames before, on every target)."""
+    for m in measured["run"]:
+        assert m["unreached"] == 0, (m["leg_ratio"], m["unreached"])
+
+
 #: Offline each contact off the floor is held at its own level settled by heel-off;
 #: the take ends on the first frame of a contact, whose only level is its landing.
 def _take_end(gait: str, figures: str, whole: str) -> Any:
