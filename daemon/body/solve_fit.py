@@ -171,7 +171,11 @@ class FitParams:
             the gap no longer speaks for the take, and without that bound a
             performer whose markers fit worse after a gap was held for good (the
             PiG walk, every marker 20 mm further off after a 0.2 s gap: the rest
-            of the take, 1.95 s, unexplained; now 0.8 s).
+            of the take, 1.95 s, unexplained; now 0.8 s). The far rule is bounded
+            the same way (``fit_track.far_at``): past level_tau_s a frame is judged
+            as a first frame is (past gate_m), and the level starts again from the
+            first one explained (the walk 35 mm further off: held for good before,
+            now 0.8 s).
         resolution_deg: while a marker is hidden, what the markers still seen observe of
             a joint under (max(noise_m, the running residual level) / this)^2 m^2 /
             rad^2 is held at its last seen value with the information the hidden marker
