@@ -93,7 +93,8 @@ class FitParams:
             frame at 240 Hz, where alpha_max gave 4 (seed 6 of
             ``bench/burst_recovery.py``: 10 frames at 1e30 back in 0.212 s, was
             0.308; with the hidden markers' offsets fading as their hinges bend,
-            merged after it, 0.346: xfail in tests/daemon/test_burst_recovery.py).
+            merged after it, 0.346; 0.113 once a hidden marker on a bone with no
+            marker seen fades, velocity_tau_s below).
         acc_max: m/s^2, the same for a root's position: 100 (about 10 g, the body's
             centre of mass under a landing's peak ground reaction force of up to ~11
             body weights; Dufek & Bates, "Biomechanical factors associated with injury
@@ -201,7 +202,10 @@ class FitParams:
             movement phases (0.03 s, a pitch's arm acceleration, to 0.1 s, a step's
             push-off), not longer; a velocity carried on undamped fed the fit its
             own prediction and ran away (menache's neck, C1 hidden). 0.1 s; 0.05 and
-            0.3 s gave the same hide sweeps within one case.
+            0.3 s gave the same hide sweeps within one case. The same time fades a
+            hidden marker measured on a bone none of whose markers is seen, by
+            exp(-age / velocity_tau_s): that bone's pose is its prediction alone
+            (``fit_track.virtual_markers``).
         jump_z, jump_floor_deg: a frame is unexplained too when its pose moves a joint
             further from its prediction than max(jump_z x what a body can,
             jump_floor_deg) (a root's position: max(jump_z x that, gate_m)): a body
