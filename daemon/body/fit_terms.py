@@ -337,7 +337,9 @@ def marker_cost(
     mk_bone, mk_local, mk_weight = m[5], m[6], m[7]
     params = m[18]
     meas, vis, rej = s[12], s[13], s[45]
-    virt = s[58]  # hidden markers measured where they are predicted (kernel_fit)
+    # hidden markers measured where they are predicted, with their weight factor
+    # (fit_track.virtual_markers; 0: none)
+    virt = s[58]
     c2 = params[P_CAUCHY_M] * params[P_CAUCHY_M]
     cost = 0.0
     for i in range(mk_bone.shape[0]):
@@ -356,7 +358,7 @@ def marker_cost(
         for j in range(3):
             res[i, j] = pm[i, j] - meas[i, j]
             n2 += res[i, j] * res[i, j]
-        w = mk_weight[i]
+        w = mk_weight[i] if vis[i] else mk_weight[i] * virt[i]
         if gated and rej[i] and vis[i]:
             wrob[i] = 0.0
         else:

@@ -14,6 +14,7 @@ import numpy as np
 from retargetd.daemon.body.fit_terms import (
     C_DT,
     C_GAP,
+    C_LAST_RMS,
     C_LEVEL,
     P_ACC_MAX,
     P_ALPHA_MAX,
@@ -23,12 +24,15 @@ from retargetd.daemon.body.fit_terms import (
     P_JUMP_FLOOR_RAD,
     P_JUMP_Z,
     P_LEVEL_TAU_S,
+    P_LOST_FLOOR_M,
+    P_LOST_K,
     P_NOISE_M,
     P_OMEGA_MAX,
     P_OMEGA_ROOT,
     P_REJECT_FRAC,
     P_RESOLUTION_RAD,
     P_SPEED_MAX,
+    P_UNEXPLAINED_K,
     P_VELOCITY_TAU_S,
     cp2,
     fk,
@@ -105,9 +109,63 @@ def unsettled(
     # on the PiG walk, was held for the rest of the take).
     return (
         sc[C_GAP] > 1.0
-        and sc[C_GAP] * sc[C_DT] <= params[P_LEVEL_TAU_S]
+        and not stale(params, sc)
         and (rms > lost_at or n_rej > params[P_REJECT_FRAC] * n_seen)
     )
+
+
+@kernel
+def stale(params: np.ndarray, sc: np.ndarray) -> bool:
+    # Whether the last explained frame is older than the running level's time
+    # constant: the level before the gap no longer speaks for the take.
+    return sc[C_GAP] * sc[C_DT] > params[P_LEVEL_TAU_S]
+
+
+@kernel
+def far_at(params: np.ndarray, sc: np.ndarray, level: float) -> float:
+    # The residual past which a frame is unexplained: unexplained_k x the take's own
+    # level. Bounded as unsettled is: past the level's time constant a frame is
+    # judged as a first frame is (past gate_m: no performer's markers leave that),
+    # and where it is explained the level starts again from it (kernel_fit). Without
+    # the bound a performer whose markers fit far worse after a gap (the PiG walk,
+    # every marker 35 mm further off after a 0.2 s gap: 5x the level before it) was
+    # held for the rest of the take, the level never moving (it moves on explained
+    # frames only).
+    far = max(params[P_LOST_FLOOR_M], params[P_UNEXPLAINED_K] * level)
+    if stale(params, sc):
+        far = max(far, params[P_GATE_M])
+    return far
+
+
+@kernel
+def advance_level(
+    params: np.ndarray, sc: np.ndarray, rms: float, lost_at: float
+) -> None:
+    # An explained frame moves the take's running residual level (time constant
+    # level_tau_s) and, where it is the take's own, the suspect test's reference
+    # (the last explained frame's RMS). After a gap past the level's time constant
+    # both start again from this frame, as from a take's first (far_at).
+    tau = params[P_LEVEL_TAU_S]
+    a = min(1.0, sc[C_DT] / tau) if tau > 0.0 else 1.0
+    restart = stale(params, sc)
+    if restart:
+        sc[C_LAST_RMS] = 0.0
+        lost_at = params[P_LOST_FLOOR_M]
+    lv = 0.0 if restart else sc[C_LEVEL]
+    sc[C_LEVEL] = rms if lv <= 0.0 else lv + a * (rms - lv)
+    # a frame kept while still suspect (no candidate brought it under the
+    # suspect level) is no reference for the next: counted as the take's
+    # own it raised the level each frame judged by (a swapped burst got in
+    # at 2-4x the level a frame and, once in, stayed). Nor is one past the
+    # suspect factor of the running level alone: judged against the last
+    # frame's RMS, a misfit growing under 2x a frame vouched for itself and
+    # ratcheted the reference (the walk's LKNE hidden from row 30: 5.7 ->
+    # 43 mm over rows 100-119, the thigh run 58 deg off, never suspect)
+    own_at = lost_at
+    if lv > 0.0:
+        own_at = min(lost_at, max(params[P_LOST_FLOOR_M], params[P_LOST_K] * lv))
+    if rms <= own_at:
+        sc[C_LAST_RMS] = rms
 
 
 @kernel
@@ -341,6 +399,13 @@ def virtual_markers(m: tuple, s: tuple) -> None:
     # a hinge for another pose. A thigh marker hidden at the peak of its artefact
     # kept it: the walk's LKNE hidden 1 s from row 30 carried 25.6 mm while its
     # intact residual fell to 2-5 mm, and the thigh ran 35 deg off.
+    # Where no marker of its bone is seen, there is no balance to keep: the bone's
+    # pose is its prediction alone, whose velocity is known for about tau_v (below),
+    # so the marker's weight (s[58]) fades by exp(-age / tau_v) with the time since
+    # it was last accepted, and the markers seen below the bone carry it. At full
+    # weight two hidden thigh markers held the thigh to its own prediction while
+    # the shank's markers, seen, were left 76-96 mm off (the thigh 43-52 deg from
+    # the solve with nothing hidden; bench/burst_recovery.py --seed 6).
     mk_bone, mk_local, wt = m[5], m[6], m[7]
     limb, rbend = m[25], s[59]
     vis, rage, meas = s[13], s[48], s[12]
@@ -397,7 +462,14 @@ def virtual_markers(m: tuple, s: tuple) -> None:
                 + wm[b, j, 1] * (mk_local[i, 1] - fo * rloc[i, 1])
                 + wm[b, j, 2] * (mk_local[i, 2] - fo * rloc[i, 2])
             )
-        virt[i] = 1.0
+        alone = True  # no marker of its bone seen
+        for j in range(mk_bone.shape[0]):
+            if vis[j] and wt[j] > 0.0 and mk_bone[j] == b:
+                alone = False
+                break
+        virt[i] = (
+            math.exp(-rage[i] * sc[C_DT] / params[P_VELOCITY_TAU_S]) if alone else 1.0
+        )
 
 
 @kernel

@@ -81,7 +81,6 @@ from retargetd.daemon.body.fit_terms import (
     P_FTOL,
     P_GATE_K,
     P_GATE_M,
-    P_LEVEL_TAU_S,
     P_LOST_FLOOR_M,
     P_LOST_K,
     P_MAX_ITER,
@@ -89,7 +88,6 @@ from retargetd.daemon.body.fit_terms import (
     P_REJECT_FRAC,
     P_TOL,
     P_UNEXPLAINED_FRAC,
-    P_UNEXPLAINED_K,
     S_COST,
     S_ITER,
     S_LEVEL,
@@ -108,6 +106,8 @@ from retargetd.daemon.body.fit_terms import (
     reg_cost,
 )
 from retargetd.daemon.body.fit_track import (
+    advance_level,
+    far_at,
     hinge_bend,
     hold_priors,
     impossible,
@@ -484,7 +484,7 @@ def fit_one_t(
             sc[C_SINCE_TRY] += 1.0
         # Unexplained: the markers are far from any pose the fit found (a burst of
         # garbage, a collapse, mirrored labels). The pose is held, never carried.
-        far = max(params[P_LOST_FLOOR_M], params[P_UNEXPLAINED_K] * level)
+        far = far_at(params, sc, level)  # (bounded after a long gap)
         if first:
             # no level of its own yet, nor a past to jump from: only a residual
             # no performer's markers leave (past the gate on average: a collapse
@@ -521,25 +521,7 @@ def fit_one_t(
                 c[3][:] = c[9]
                 c[4][:] = c[10]
         else:
-            tau = params[P_LEVEL_TAU_S]
-            a = min(1.0, sc[C_DT] / tau) if tau > 0.0 else 1.0
-            lv = sc[C_LEVEL]
-            sc[C_LEVEL] = rms if lv <= 0.0 else lv + a * (rms - lv)
-            # a frame kept while still suspect (no candidate brought it under the
-            # suspect level) is no reference for the next: counted as the take's
-            # own it raised the level each frame judged by (a swapped burst got in
-            # at 2-4x the level a frame and, once in, stayed). Nor is one past the
-            # suspect factor of the running level alone: judged against the last
-            # frame's RMS, a misfit growing under 2x a frame vouched for itself and
-            # ratcheted the reference (the walk's LKNE hidden from row 30: 5.7 ->
-            # 43 mm over rows 100-119, the thigh run 58 deg off, never suspect)
-            own_at = lost_at
-            if lv > 0.0:
-                own_at = min(
-                    lost_at, max(params[P_LOST_FLOOR_M], params[P_LOST_K] * lv)
-                )
-            if rms <= own_at:
-                sc[C_LAST_RMS] = rms
+            advance_level(params, sc, rms, lost_at)
     # 3. outputs
     rej, rref, rage = s[45], s[47], s[48]
     n_rej = 0
