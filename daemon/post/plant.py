@@ -19,8 +19,9 @@ detector (:mod:`~retargetd.daemon.post.stance`) found on the performer's solve.
    (``post/plant_level.py``: where it came down, raised as the solve's foot rises
    until heel-off; offline, each contact's settled level). The pivot
    passes to the other point when that one is lower by :data:`PLANT`
-   ``pivot_switch_m`` (heel-off), re-anchored where it stood the frame before (the
-   switch does not move it while the solve's foot moves). On the ball the foot
+   ``pivot_switch_m``: onto the ball (heel-off) re-anchored where the ball stood the
+   frame before (on the floor: the switch does not move it while the solve's foot
+   moves), onto the heel (coming down) where it lands. On the ball the foot
    rolls about its MTP joint (the target's Toes joint, :func:`roll_radius` above the
    ball at rest; the ball itself for a foot without toes): what is held is that
    joint, horizontally on the anchor and its rest height above the support, so the
@@ -119,8 +120,7 @@ _PARAMS = ("blend_in_s", "blend_out_s", "pivot_switch_m")
 _SIDES = ("Left", "Right")
 #: State columns per foot.
 (_S_HAS, _S_PREV, _S_PIVOT, _S_ANX, _S_ANY, _S_AX, _S_AY, _S_AZ, _S_TAU, _S_RX, _S_RY,
- _S_RZ, _S_AZ0, _S_T, _S_FLEX, _S_HX, _S_HY, _S_MX, _S_MY,
- _N_STATE) = range(20)  # fmt: skip
+ _S_RZ, _S_AZ0, _S_T, _S_FLEX, _S_MX, _S_MY, _N_STATE) = range(18)  # fmt: skip
 #: Unreached bits :func:`_plant_step` returns (one per foot).
 UNREACHED_LEFT, UNREACHED_RIGHT = 1, 2
 
@@ -256,12 +256,14 @@ def _plant_step(
                     else ball_z < heel_z - switch
                 )
                 if other_lower:
-                    # roll onto the other point, anchored where it stood last frame
-                    # (the solve's, plus last frame's correction): the switch does
-                    # not move it, though the solve's foot moves
+                    # Roll onto the other point. Onto the ball (heel-off), anchored
+                    # where it stood last frame (the solve's, plus last frame's
+                    # correction): it was on the floor, and the switch does not move
+                    # it though the solve's foot moves. Onto the heel (it comes
+                    # down), where it lands.
                     st[_S_PIVOT] = 1.0 - st[_S_PIVOT]
                     px, py = (
-                        (st[_S_HX], st[_S_HY])
+                        (heel_x, heel_y)
                         if st[_S_PIVOT] == 0.0
                         else (st[_S_MX], st[_S_MY])
                     )
@@ -287,7 +289,7 @@ def _plant_step(
                 w * st[_S_RX], w * st[_S_RY], w * st[_S_RZ],
             )  # fmt: skip
             st[_S_PREV] = 0.0
-        st[_S_HX], st[_S_HY], st[_S_MX], st[_S_MY] = heel_x, heel_y, mtp_x, mtp_y
+        st[_S_MX], st[_S_MY] = mtp_x, mtp_y
         cx, cy, cz = st[_S_AX], st[_S_AY], st[_S_AZ]
         if not (cx == 0.0 and cy == 0.0 and cz == 0.0 and st[_S_FLEX] == 0.0):
             # on the ball (heel-off), a leg too long for its goal rolls the foot
