@@ -124,7 +124,7 @@ def _per_contact(gait: str, k: float, reason: str = "") -> Any:
         # (``synth.motion.RUN_START_LAG``): 2.01 mm, its first contact 3.71 mm.
         _per_contact("run", 1.0),
         # Failed before the plant lagged a knee-limited leg straight up and
-        # re-anchored a pivot switch where the pivot stood (``post/plant.py``):
+        # anchored the ball at heel-off where it stood (``post/plant.py``):
         # 2.26 mm, the toe-off frame (the detector's release 1 frame late).
         _per_contact("run", 1.25),
         _per_contact("stair_ascent", 0.8),
