@@ -19,7 +19,9 @@ detector (:mod:`~retargetd.daemon.post.stance`) found on the performer's solve.
    (``post/plant_level.py``: where it came down, raised as the solve's foot rises
    until heel-off; offline, each contact's settled level). The pivot
    passes to the other point when that one is lower by :data:`PLANT`
-   ``pivot_switch_m`` (heel-off), re-anchored where it is. On the ball the foot
+   ``pivot_switch_m``: onto the ball (heel-off) re-anchored where the ball stood the
+   frame before (on the floor: the switch does not move it while the solve's foot
+   moves), onto the heel (coming down) where it lands. On the ball the foot
    rolls about its MTP joint (the target's Toes joint, :func:`roll_radius` above the
    ball at rest; the ball itself for a foot without toes): what is held is that
    joint, horizontally on the anchor and its rest height above the support, so the
@@ -31,25 +33,29 @@ detector (:mod:`~retargetd.daemon.post.stance`) found on the performer's solve.
    left below its support (no sink).
 3. **Release.** When contact ends, the correction left blends out over
    ``blend_out_s`` (smoothstep), so the swing foot rejoins the unplanted path.
-4. **Leg.** Analytic two-bone IK on the target's UpperLeg - LowerLeg - Foot: the knee
-   is bent about its own hinge, the normal of the solved thigh and shank (the solved
-   knee direction; the thigh's left axis when the leg is straight), to the flexion the
-   law of cosines gives for the hip-ankle distance, then the leg is swung about the
-   hip onto the ankle's goal. A zero correction leaves the leg exactly as solved. The
-   foot keeps its solved world rotation (its rotation relative to the shank changes).
-   A goal out of reach (farther than the straight leg, or nearer than the knee's
-   most flexion, ``knee_max_deg``) leaves the leg straight (or at that flexion) aimed
-   at it and sets the frame's ``plant_unreached`` flag; the knee is never bent
-   backwards (the flexion is never below 0). On its ball (past heel-off), a foot whose
-   leg the knee's rate limit leaves longer than the hip-goal distance rolls about its
-   MTP joint (the heel comes down, never below the ball) until the ankle is at the
-   leg's reach: aimed at the goal, the leg would push the ball into the floor (on the
-   synthetic walk, 0.7-1.6 mm for a frame as the leg comes back into reach late in
-   stance). A stance foot whose ball the lagging leg leaves below the support is
-   turned toes up about the ankle until the ball is on it (the heel not below it:
-   where both cannot be, the foot levelled): the floor stops a forefoot coming down
-   faster than the knee may follow (the tennis serve's 8.9 mm, the PiG walk's
-   landings; ``post/foot_roll.py``).
+4. **Leg.** Analytic two-bone IK on the target's UpperLeg - LowerLeg - Foot: the knee is
+   bent about its own hinge, the normal of the solved thigh and shank (the solved knee
+   direction; the thigh's left axis when the leg is straight), to the flexion the law of
+   cosines gives for the hip-ankle distance, then the leg is swung about the hip onto
+   the ankle's goal. A zero correction leaves the leg exactly as solved. The foot keeps
+   its solved world rotation (its rotation relative to the shank changes). A goal out of
+   reach (farther than the straight leg, or nearer than the knee's most flexion,
+   ``knee_max_deg``) leaves the leg straight (or at that flexion) aimed at it and sets
+   the frame's ``plant_unreached`` flag; the knee is never bent backwards (the flexion
+   is never below 0). A goal in reach that the knee's rate limit (``knee_step_deg``)
+   leaves the leg too short for is lagged straight up, the ankle over the goal, not
+   along the hip-goal line (up and toward the hip): a foot the leg cannot yet push down
+   is lifted where it stands, not slid (the synthetic run's toe-off frame, where the
+   solve's foot has risen 5 mm and the stance detector still holds it: the held ball
+   slid 1.96 mm, legs 1.25x). On its ball (past heel-off), a foot whose leg the knee's
+   rate limit leaves longer than the hip-goal distance rolls about its MTP joint (the
+   heel comes down, never below the ball) until the ankle is at the leg's reach: aimed
+   at the goal, the leg would push the ball into the floor (on the synthetic walk,
+   0.7-1.6 mm for a frame as the leg comes back into reach late in stance). A stance
+   foot whose ball the lagging leg leaves below the support is turned toes up about the
+   ankle until the ball is on it (the heel not below it: where both cannot be, the foot
+   levelled): the floor stops a forefoot coming down faster than the knee may follow
+   (the tennis serve's 8.9 mm, the PiG walk's landings; ``post/foot_roll.py``).
 
 One frame is one compiled call (:func:`_plant_step`, numba, nothing allocated), on
 state the stage owns. Offline (``solve --plant-feet``) runs the same objects frame by
@@ -114,7 +120,7 @@ _PARAMS = ("blend_in_s", "blend_out_s", "pivot_switch_m")
 _SIDES = ("Left", "Right")
 #: State columns per foot.
 (_S_HAS, _S_PREV, _S_PIVOT, _S_ANX, _S_ANY, _S_AX, _S_AY, _S_AZ, _S_TAU, _S_RX, _S_RY,
- _S_RZ, _S_AZ0, _S_T, _S_FLEX, _N_STATE) = range(16)  # fmt: skip
+ _S_RZ, _S_AZ0, _S_T, _S_FLEX, _S_MX, _S_MY, _N_STATE) = range(18)  # fmt: skip
 #: Unreached bits :func:`_plant_step` returns (one per foot).
 UNREACHED_LEFT, UNREACHED_RIGHT = 1, 2
 
@@ -249,9 +255,18 @@ def _plant_step(
                     if st[_S_PIVOT] == 1.0
                     else ball_z < heel_z - switch
                 )
-                if other_lower:  # roll onto the other point, anchored where it is
+                if other_lower:
+                    # Roll onto the other point. Onto the ball (heel-off), anchored
+                    # where it stood last frame (the solve's, plus last frame's
+                    # correction): it was on the floor, and the switch does not move
+                    # it though the solve's foot moves. Onto the heel (it comes
+                    # down), where it lands.
                     st[_S_PIVOT] = 1.0 - st[_S_PIVOT]
-                    px, py = (heel_x, heel_y) if st[_S_PIVOT] == 0.0 else (mtp_x, mtp_y)
+                    px, py = (
+                        (heel_x, heel_y)
+                        if st[_S_PIVOT] == 0.0
+                        else (st[_S_MX], st[_S_MY])
+                    )
                     st[_S_ANX] = px + st[_S_AX]
                     st[_S_ANY] = py + st[_S_AY]
             px, py = (heel_x, heel_y) if st[_S_PIVOT] == 0.0 else (mtp_x, mtp_y)
@@ -274,6 +289,7 @@ def _plant_step(
                 w * st[_S_RX], w * st[_S_RY], w * st[_S_RZ],
             )  # fmt: skip
             st[_S_PREV] = 0.0
+        st[_S_MX], st[_S_MY] = mtp_x, mtp_y
         cx, cy, cz = st[_S_AX], st[_S_AY], st[_S_AZ]
         if not (cx == 0.0 and cy == 0.0 and cz == 0.0 and st[_S_FLEX] == 0.0):
             # on the ball (heel-off), a leg too long for its goal rolls the foot
@@ -435,6 +451,13 @@ def _leg_ik(
                 ew, ex, ey, ez, rest[h, 0], rest[h, 1], rest[h, 2], rest[h, 3]
             )
             keep_toe_world(wfb, rfb, rest, toe, ew, ex, ey, ez)
+    hh = dx * dx + dy * dy
+    if out == 0 and dz < 0.0 and hh < r2 < dist * dist:
+        # The knee's rate limit leaves the leg short of a goal it can reach: the
+        # ankle lags it straight up, over the goal, rather than along the hip-goal
+        # line (up and toward the hip): a foot the leg cannot yet push down is
+        # lifted off the floor where it stands, not slid on it.
+        dz = -math.sqrt(r2 - hh)
     sw, sx, sy, sz = _swing(lx, ly, lz, dx, dy, dz)
     # E' of the thigh and shank; G = E' T, L = Ē'_parent E'.
     tw, tx, ty, tz = qmul(sw, sx, sy, sz, e[s, u, 0], e[s, u, 1], e[s, u, 2],

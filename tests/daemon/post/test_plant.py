@@ -208,6 +208,65 @@ def test_a_knee_lagging_its_flexion_rolls_the_foot_about_its_mtp_joint() -> None
     assert h[20:, 2].min() < h[19, 2] - 1e-3  # the heel came down
 
 
+def test_a_leg_the_knee_leaves_short_lifts_its_foot_where_it_stands() -> None:
+    """The left foot stands flat while the hips go 6 cm forward, then rise 1.5 cm in
+    a frame: the held foot is still in reach, but the knee needs more extension than
+    ``knee_step_deg`` allows in a frame, so for some frames the leg is too short.
+    The ankle lags its goal straight up, over it (horizontally where it is held,
+    1e-9 m), never below it, rather than along the hip-goal line toward the hips
+    (which slid it 0.72 mm here)."""
+    target = default_humanoid()
+    stage = FootPlant(target, 1.0, LEG_M)
+    z = _on_floor_z()
+    frames = [(0.06 * min(t / 20.0, 1.0), z + (0.015 if t >= 25 else 0.0), True)
+              for t in range(45)]  # fmt: skip
+    joints, flags, _ = _run(stage, target, frames)
+    lf = target.index("LeftFoot")
+    ankle = np.array([j[lf] for j in joints])
+    knees = [_knee_deg(target, j) for j in joints]
+    lagged = np.abs(np.diff(knees)[24:]) >= PLANT["knee_step_deg"] - 1e-9
+    assert lagged.sum() >= 2  # the knee was rate limited for some frames
+    assert not any(flags)  # in reach
+    assert np.abs(ankle[:, :2] - ankle[0, :2]).max() < 1e-9
+    assert ankle[:, 2].min() >= ankle[0, 2] - 1e-9
+    assert ankle[25:, 2].max() > ankle[0, 2] + 1e-3  # it lifted while the knee lagged
+
+
+def test_heel_off_anchors_the_ball_where_it_stood() -> None:
+    """The left foot stands flat (held on its heel) while the hips go forward, then in
+    one frame its heel rises 20 deg (heel-off) as the hips go on: the hold passes to
+    the ball, anchored where the ball (the MTP joint, the Toes joint) stood the frame
+    before, so the switch does not move it (1e-9 m) though the solve's foot moves
+    (before: anchored where the solve's motion of that frame took it, 25 mm here)."""
+    target = default_humanoid()
+    stage = FootPlant(target, 1.0, LEG_M)
+    z0 = _on_floor_z()
+    lf, lt = target.index("LeftFoot"), target.index("LeftToes")
+    heel_up = rot.quat_from_axis_angle(np.array([1.0, 0.0, 0.0]), math.radians(-20.0))
+    _, ball = foot_points(target)
+    lift = ball[0, 2] - rot.quat_rotate(heel_up, ball[0])[2]
+    mtps, free = [], []
+    for t in range(30):
+        up = t >= 20
+        pose = _crouch(target, 0.003 * t, z0 + (lift if up else 0.0))
+        g = pose.world_from_bone_quat
+        if up:
+            g[lf] = rot.quat_mul(heel_up, g[lf])
+            g[lt] = rot.quat_mul(heel_up, g[lt])
+            pose.rest_from_bone_quat[lf] = rot.quat_mul(
+                rot.quat_conj(g[target.parents[lf]]), g[lf]
+            )
+        free.append(joint_positions_world(target, pose)[lt])
+        stage.apply(
+            g, pose.rest_from_bone_quat, pose.root_pos, pose.hips_pos,
+            _stance(True, False), t / RATE_HZ,
+        )  # fmt: skip
+        mtps.append(joint_positions_world(target, pose)[lt])
+    m, f = np.array(mtps), np.array(free)
+    assert np.linalg.norm(f[20, :2] - f[19, :2]) > 0.005  # the solve's joint moved
+    assert np.abs(m[:, :2] - m[0, :2]).max() < 1e-9
+
+
 def test_the_ball_roll_only_brings_the_heel_down() -> None:
     """``ball_roll`` (the foot on its ball, 1 cm heel up, the hip 0.4 m ahead and 0.7
     m above the ball): where the leg's reach is met by raising the heel 1 cm more
