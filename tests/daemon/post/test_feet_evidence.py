@@ -59,30 +59,29 @@ def measured_live(
     return _measure(solved, live=True)
 
 
+def _xfail(gait: str, reason: str) -> Any:
+    """``gait`` as a parameter expected to fail (strict), for the measured reason."""
+    return pytest.param(gait, marks=pytest.mark.xfail(strict=True, reason=reason))
+
+
 #: Live, a step contact is held at the level the target's own sole came down to,
 #: raised as it rises until heel-off (``post/plant_level.py``): measured
 #: (``bench/feet_plant.py --live``).
-LIVE_ASCENT_SINK = pytest.param(
+LIVE_ASCENT_SINK = _xfail(
     "stair_ascent",
-    marks=pytest.mark.xfail(
-        strict=True,
-        reason="live, the ascent sinks 1.66 / 2.27 / 3.03 mm (legs 0.8 / 1 / 1.25x; "
-        "2.36 / 2.94 / 3.68 held on the detector's landing level): the solved "
-        "target's sole lands that far below the step (Plug-in Gait's hip centre, "
-        "the thigh flexed) in each step contact's first frame; no causal rule sees "
-        "the step above it there (docs/feet.md)",
-    ),
+    "live, the ascent sinks 1.66 / 2.27 / 3.03 mm (legs 0.8 / 1 / 1.25x; "
+    "2.36 / 2.94 / 3.68 held on the detector's landing level): the solved "
+    "target's sole lands that far below the step (Plug-in Gait's hip centre, "
+    "the thigh flexed) in each step contact's first frame; no causal rule sees "
+    "the step above it there (docs/feet.md)",
 )
 #: As the ascent, the solve's foot at landing: within 1 mm but at 1.25x.
-LIVE_DESCENT_SINK = pytest.param(
+LIVE_DESCENT_SINK = _xfail(
     "stair_descent",
-    marks=pytest.mark.xfail(
-        strict=True,
-        reason="live, the descent sinks 0.39 / 0.67 / 1.03 mm (legs 0.8 / 1 / "
-        "1.25x): the solved target's toe tip lands that far below the step; held on "
-        "the detector's level instead it sank 0 and floated 28-44 mm (p95) above "
-        "the step (the detector's foot points, pitched on the toe tip, read high)",
-    ),
+    "live, the descent sinks 0.39 / 0.67 / 1.03 mm (legs 0.8 / 1 / "
+    "1.25x): the solved target's toe tip lands that far below the step; held on "
+    "the detector's level instead it sank 0 and floated 28-44 mm (p95) above "
+    "the step (the detector's foot points, pitched on the toe tip, read high)",
 )
 
 
@@ -109,9 +108,8 @@ def test_planted_stance_skates_at_most_2_mm(measured: Any, gait: str) -> None:
         assert m["plant"]["skate_frame_p95_mm"] <= 2.0
 
 
-def _per_contact(gait: str, k: float, reason: str = "") -> Any:
-    marks = [pytest.mark.xfail(strict=True, reason=reason)] if reason else []
-    return pytest.param(gait, k, marks=marks, id=f"{gait}-{k:g}x")
+def _per_contact(gait: str, k: float) -> Any:
+    return pytest.param(gait, k, id=f"{gait}-{k:g}x")
 
 
 @pytest.mark.timeout(600)
@@ -158,15 +156,12 @@ def test_the_run_starts_within_the_legs_reach(measured: Any) -> None:
 #: Offline each contact off the floor is held at its own level settled by heel-off;
 #: the take ends on the first frame of a contact, whose only level is its landing.
 def _take_end(gait: str, figures: str, whole: str) -> Any:
-    return pytest.param(
+    return _xfail(
         gait,
-        marks=pytest.mark.xfail(
-            strict=True,
-            reason=f"offline, the {gait} sinks {figures} mm (legs 0.8 / 1 / 1.25x) "
-            "in one frame: the take's last, the first of a right-foot step contact, "
-            "its level the landing's (the solved target's sole there); the contacts "
-            f"the take holds whole sink {whole} mm",
-        ),
+        f"offline, the {gait} sinks {figures} mm (legs 0.8 / 1 / 1.25x) "
+        "in one frame: the take's last, the first of a right-foot step contact, "
+        "its level the landing's (the solved target's sole there); the contacts "
+        f"the take holds whole sink {whole} mm",
     )
 
 

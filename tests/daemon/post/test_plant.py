@@ -57,6 +57,29 @@ def _on_floor_z() -> float:
     return 0.82 * (math.cos(ALPHA) - 1.0)
 
 
+#: The left foot's heel raised 20 deg about the lateral axis (heel-off).
+HEEL_UP = rot.quat_from_axis_angle(np.array([1.0, 0.0, 0.0]), math.radians(-20.0))
+
+
+def _heel_lift(target: Any) -> float:
+    """How far the root rises so that the foot pitched by HEEL_UP keeps its ball on
+    the floor."""
+    _, ball = foot_points(target)
+    return float(ball[0, 2] - rot.quat_rotate(HEEL_UP, ball[0])[2])
+
+
+def _pitch_left_foot(target: Any, pose: SimpleNamespace) -> None:
+    """Pitch ``pose``'s left foot and toes by HEEL_UP in the world, its local
+    rotation following."""
+    lf, lt = target.index("LeftFoot"), target.index("LeftToes")
+    g = pose.world_from_bone_quat
+    g[lf] = rot.quat_mul(HEEL_UP, g[lf])
+    g[lt] = rot.quat_mul(HEEL_UP, g[lt])
+    pose.rest_from_bone_quat[lf] = rot.quat_mul(
+        rot.quat_conj(g[target.parents[lf]]), g[lf]
+    )
+
+
 def _stance(left: bool, right: bool) -> np.ndarray:
     st = np.zeros((2, 4))
     st[0, 3], st[1, 3] = float(left), float(right)
@@ -171,20 +194,14 @@ def test_a_knee_lagging_its_flexion_rolls_the_foot_about_its_mtp_joint() -> None
     stage = FootPlant(target, 1.0, LEG_M)
     z = _on_floor_z()
     lf, lt = target.index("LeftFoot"), target.index("LeftToes")
-    heel_up = rot.quat_from_axis_angle(np.array([1.0, 0.0, 0.0]), math.radians(-20.0))
     heel, ball = foot_points(target)
-    # the root raised so that the pitched foot's ball is on the floor
-    z += ball[0, 2] - rot.quat_rotate(heel_up, ball[0])[2]
+    z += _heel_lift(target)  # the pitched foot's ball on the floor
     rest = np.asarray(target.rest_world_from_bone_quat)
     balls, heels, knees, mtps = [], [], [], []
     for t in range(40):
         pose = _crouch(target, 0.0, z - (0.04 if t >= 20 else 0.0))
+        _pitch_left_foot(target, pose)
         g = pose.world_from_bone_quat
-        g[lf] = rot.quat_mul(heel_up, g[lf])
-        g[lt] = rot.quat_mul(heel_up, g[lt])
-        pose.rest_from_bone_quat[lf] = rot.quat_mul(
-            rot.quat_conj(g[target.parents[lf]]), g[lf]
-        )
         stage.apply(
             g, pose.rest_from_bone_quat, pose.root_pos, pose.hips_pos,
             _stance(True, False), t / RATE_HZ,
@@ -241,21 +258,15 @@ def test_heel_off_anchors_the_ball_where_it_stood() -> None:
     target = default_humanoid()
     stage = FootPlant(target, 1.0, LEG_M)
     z0 = _on_floor_z()
-    lf, lt = target.index("LeftFoot"), target.index("LeftToes")
-    heel_up = rot.quat_from_axis_angle(np.array([1.0, 0.0, 0.0]), math.radians(-20.0))
-    _, ball = foot_points(target)
-    lift = ball[0, 2] - rot.quat_rotate(heel_up, ball[0])[2]
+    lt = target.index("LeftToes")
+    lift = _heel_lift(target)
     mtps, free = [], []
     for t in range(30):
         up = t >= 20
         pose = _crouch(target, 0.003 * t, z0 + (lift if up else 0.0))
-        g = pose.world_from_bone_quat
         if up:
-            g[lf] = rot.quat_mul(heel_up, g[lf])
-            g[lt] = rot.quat_mul(heel_up, g[lt])
-            pose.rest_from_bone_quat[lf] = rot.quat_mul(
-                rot.quat_conj(g[target.parents[lf]]), g[lf]
-            )
+            _pitch_left_foot(target, pose)
+        g = pose.world_from_bone_quat
         free.append(joint_positions_world(target, pose)[lt])
         stage.apply(
             g, pose.rest_from_bone_quat, pose.root_pos, pose.hips_pos,
