@@ -113,7 +113,8 @@ def test_a_seen_markers_pull_does_not_fall_while_a_marker_is_stood_in_for() -> N
     "each marker's Cauchy scale max(20 mm, 2.3849 x its running RMS, tau 1 s) 41.9 "
     "deg (and the pelvis 10.5-13.0 deg with LASI or RASI hidden, new); that scale "
     "with the weight 1 / scale^2 of an M-estimator's per-observation scale 54.5 deg; "
-    "max(20 mm, its running RMS) 48.1 deg",
+    "max(20 mm, its running RMS) 48.1 deg; a seen marker past the scale weighted "
+    "as at its gate reference residual (weighted least squares) 53.5 deg",
 )
 def test_strn_hidden_a_quarter_second_keeps_the_trunk() -> None:
     """Issue 28 item 6's limits on the trunk with STRN hidden 0.25 s: no bone past
