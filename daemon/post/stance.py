@@ -342,6 +342,11 @@ def _step(
     return out
 
 
+#: The compiled step of both feet, for a caller that runs it inside its own compiled
+#: call (``live/emit.py``, with :meth:`StanceDetector.step_arrays`).
+step = _step
+
+
 class StanceDetector:
     """Per-foot contact, causal, frame by frame (module docstring)."""
 
@@ -388,6 +393,20 @@ class StanceDetector:
         """Forget the history (a new stream): the next frame starts afresh."""
         self._state[:] = 0.0
         self.clock[0] = 0.0
+
+    def step_arrays(self) -> tuple[np.ndarray, ...] | None:
+        """What a caller that runs :meth:`update`'s step inside its own compiled
+        call passes (``live/emit.py``): the clock, then the step's arrays after
+        ``dt``, in its order (the plan, the parameters, the scratch and the state,
+        updated in place); None when the rig maps no feet (no step runs)."""
+        plan = self._plan
+        if plan is None:
+            return None
+        return (
+            self.clock, plan.chain, plan.chain_len, plan.offset, plan.pt_link,
+            plan.pt_local, plan.n_pts, plan.rest_z, self._params, self._origins,
+            self._prev, self._vel, self._state,
+        )  # fmt: skip
 
     def update(
         self, root_pos: F64Array, world_from_bone_quat: F64Array, dt: float
