@@ -19,8 +19,8 @@ take): ``Retargeter.apply``'s kernel (``target/kernel.py``) on the program
 When no post stage, pivot or plant runs between the solve and the send (the default
 pipeline), the call also runs the stance detector's step (``post/stance.py``, the
 foot contact) on the solved pose and ORs its bits into the pose header, what the loop
-did as a call of its own before (``DO_STANCE``; its arrays are the detector's, bound
-with the rest: :meth:`EmitPlan.bind`).
+did as a call of its own before (``DO_STANCE``; the detector's arrays packed into two
+flat arrays, ``StanceDetector.pack``, bound with the rest: :meth:`EmitPlan.bind`).
 
 The retarget's constants and scratch, the target pose (its arrays are views of this
 plan's float64 arena, :attr:`EmitPlan.target_pose`) and the engine constants live in
@@ -36,8 +36,7 @@ from typing import Any
 import numpy as np
 
 from retargetd.daemon.compiled import direct, kernel
-from retargetd.daemon.post.stance import KNOWN, LEFT, RIGHT, StanceDetector
-from retargetd.daemon.post.stance import step as stance_step
+from retargetd.daemon.post.stance import StanceDetector, step_packed
 from retargetd.daemon.retarget import kernel as kt
 from retargetd.daemon.retarget.kernel import retarget_one
 from retargetd.daemon.retarget.retarget import Retargeter, TargetPose
@@ -56,13 +55,8 @@ DO_POSE = 4
 DO_STANCE = 8
 
 #: The stance arrays of a pipeline whose stance runs outside the call (none, or
-#: before its post stages, pivot or plant): typed as a real detector's, never read.
-_NO_STANCE = (
-    np.zeros(1), np.zeros((2, 1), np.int64), np.zeros(2, np.int64),
-    np.zeros((2, 1, 3)), np.zeros((2, 1), np.int64), np.zeros((2, 1, 3)),
-    np.zeros(2, np.int64), np.zeros((2, 1)), np.zeros(7), np.zeros((2, 1, 3)),
-    np.zeros((2, 1, 4)), np.zeros((2, 1, 3)), np.zeros((2, 5)),
-)  # fmt: skip
+#: before its post stages, pivot or plant): typed as a packed detector's, never read.
+_NO_STANCE = (np.zeros(3, dtype=np.int64), np.zeros(1))
 
 # ``ei[:N_HEAD]``: the target's bone count, then the float arena's offsets.
 (I_N, I_CST, I_PARAMS, I_E, I_REST, I_WFB, I_ROOT, I_HIPS, I_OFFSETS, I_BONE_POS,
@@ -88,19 +82,8 @@ def emit_frame(
     body: np.ndarray,
     blend: np.ndarray,
     weights: np.ndarray,
-    s_clock: np.ndarray,
-    s_chain: np.ndarray,
-    s_chain_len: np.ndarray,
-    s_offset: np.ndarray,
-    s_pt_link: np.ndarray,
-    s_pt_local: np.ndarray,
-    s_n_pts: np.ndarray,
-    s_rest_z: np.ndarray,
-    s_params: np.ndarray,
-    s_origins: np.ndarray,
-    s_prev: np.ndarray,
-    s_vel: np.ndarray,
-    s_state: np.ndarray,
+    stance_ints: np.ndarray,
+    stance_floats: np.ndarray,
     or_flags: np.ndarray,
     t_s: float,
     frame_id: int,
@@ -124,7 +107,7 @@ def emit_frame(
         last_quat, stage32, offsets, wire: ``VmcEncoder.pack_buffers()``.
         header, body: ``PoseEncoder.header_bytes``, ``body_bytes``.
         blend: (K_vmc,) VMC blendshape values; weights: (K,) pose-stream weights.
-        s_clock .. s_state: ``StanceDetector.step_arrays()`` (or ``_NO_STANCE``).
+        stance_ints, stance_floats: ``StanceDetector.pack()`` (or ``_NO_STANCE``).
         or_flags: (B,) uint8 ORed into the sent bone flags (validation), or empty.
         t_s: ``/VMC/Ext/T``, seconds.
         frame_id, source_t, received_ns, solved_ns, flags_word: the pose header's
@@ -137,13 +120,7 @@ def emit_frame(
     """
     contact = 0
     if what & DO_STANCE:  # StanceDetector.update, before anything reads the pose
-        if dt > 0.0:
-            s_clock[0] += dt
-        b = stance_step(
-            root, wfb, dt, s_chain, s_chain_len, s_offset, s_pt_link, s_pt_local,
-            s_n_pts, s_rest_z, s_params, s_origins, s_prev, s_vel, s_state,
-        )  # fmt: skip
-        contact = KNOWN | (LEFT if b & 1 else 0) | (RIGHT if b & 2 else 0)
+        contact = step_packed(root, wfb, dt, stance_ints, stance_floats)
         flags_word |= contact
     n = ei[I_N]
     prog = ei[N_HEAD : N_HEAD + 4 * n].reshape((n, 4))
@@ -285,9 +262,9 @@ class EmitPlan:
         detector (``stance``: none of post stages, pivot or plant runs between the
         solve and the emit, so the contact can be found inside the call; None: the
         loop runs it, or there is none): :attr:`args` are then :func:`emit_frame`'s
-        array arguments from ``wfb`` to ``s_state``, one tuple read per frame
-        instead of thirty attributes."""
-        arrays = stance.step_arrays() if stance is not None else None
+        array arguments from ``wfb`` to ``stance_floats``, one tuple read per frame
+        instead of eighteen attributes."""
+        arrays = stance.pack() if stance is not None else None
         #: the call finds the contact (``DO_STANCE``): the loop leaves it to it
         self.stance = stance if arrays is not None else None
         self.args = (

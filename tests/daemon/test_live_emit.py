@@ -64,7 +64,7 @@ def test_emit_frame_equals_the_separate_steps_byte_for_byte(
     blend, weights = np.zeros(N_BLEND), np.zeros(3)  # bound: written in place
     # The contact inside the call unless the loop pivots (then it runs before).
     st_old, st_new = StanceDetector(rig, cal), StanceDetector(rig, cal)
-    assert st_new.step_arrays() is not None  # the walk's rig maps both feet
+    assert st_new.known  # the walk's rig maps both feet
     folded = None if spine else st_new
     plan.bind(pose, blend, weights, folded)
     assert plan.stance is folded
