@@ -19,7 +19,7 @@ back), the cases of a group alternated call by call so that they see the same ma
   1472 bytes with ``sendto`` (the baseline), the same with ``send`` on a connected
   socket, and one datagram of at most 8192 bytes on the connected socket (what the
   loop does to a loopback receiver);
-- **emit call** the loop's one compiled call per frame (``live/emit.py``, 24
+- **emit call** the loop's one compiled call per frame (``live/emit.py``, 27
   arguments): through numba's dispatcher (the baseline) and as its compiled function
   (``compiled.direct``, what ``EmitPlan.call`` holds).
 
@@ -179,8 +179,9 @@ def _vmc(calls: int, rate_hz: float) -> dict[str, np.ndarray]:
 
 
 def _emit(calls: int, rate_hz: float) -> dict[str, np.ndarray]:
-    """The live loop's emit call (24 arguments) on the real PiG-sized arrays of a
-    warm-up plan: through numba's dispatcher and as ``EmitPlan.call`` makes it."""
+    """The live loop's emit call (27 arguments; the foot contact's two off) on the
+    real PiG-sized arrays of a warm-up plan: through numba's dispatcher and as
+    ``EmitPlan.call`` makes it."""
     from retargetd.daemon.compiled import direct
     from retargetd.daemon.live import emit
 
@@ -194,8 +195,8 @@ def _emit(calls: int, rate_hz: float) -> dict[str, np.ndarray]:
         np.zeros(3), np.zeros(b, np.uint8), ei, np.zeros(at), np.zeros(n, np.uint8),
         np.zeros((n + 1, 4)), stage, np.arange(len(stage), dtype=np.int64) * 4,
         np.zeros(4 * len(stage), np.uint8), np.zeros(68, np.uint8),
-        np.zeros(52 + 60 * b, np.uint8), np.zeros(0), np.zeros(0),
-        np.zeros(0, np.uint8), 0.0, 0, 0.0, 0, 0, 0,
+        np.zeros(52 + 60 * b, np.uint8), np.zeros(0), np.zeros(0), *emit._NO_STANCE,
+        np.zeros(0, np.uint8), 0.0, 0, 0.0, 0, 0, 0, 0.0,
     )  # fmt: skip
     emit.emit_frame(*args)
     fn = direct(emit.emit_frame, *args)

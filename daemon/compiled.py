@@ -38,6 +38,8 @@ from typing import Any
 import numba
 import numpy as np
 
+from retargetd.protocols import kernels as protocol_kernels
+
 _PACKAGE = Path(__file__).resolve().parent
 _MARKERS = (
     "from retargetd.daemon.compiled import",
@@ -120,12 +122,9 @@ def direct(dispatcher: Any, *args: Any) -> Any:
 
     Only for a call whose arguments keep these types on every call (the live loop's
     emit call, its arrays bound once per pipeline): the compiled function converts
-    each argument to the type it was compiled for without checking it."""
-    try:
-        sig = tuple(numba.typeof(a) for a in args)
-        return dispatcher.overloads[sig].entry_point
-    except (KeyError, AttributeError, ValueError, TypeError):
-        return dispatcher
+    each argument to the type it was compiled for without checking it. (The wire
+    codecs' ``protocols.kernels.direct``, which the marker streams use too.)"""
+    return protocol_kernels.direct(dispatcher, *args)
 
 
 @kernel(inline="always")

@@ -7,6 +7,11 @@ on the live path by one call.
 - :func:`store_rows`: a decoded marker block into the frame (occlusion by NaN or an
   exact zero row, the inf check, the fused axis and unit conversion), what
   ``MarkerPacket.store`` did in twelve numpy calls (~1 µs each);
+- :func:`sequence_check`: ``marker_input.FrameSequencer``'s rules over its state
+  array (the sequencer calls it: one implementation), and :func:`feed_frame`: a
+  packet's decode, its sequencing and its counter in one call, what
+  ``MarkerStream.feed`` did around the decode in Python (the live loop's drains call
+  it through :func:`direct`);
 - :func:`vmc_pack`: one VMC frame's floats, hemisphere-continuous quaternions,
   big-endian into the datagram bytes, what ``VmcEncoder.encode`` did in ten numpy
   calls and a scatter;
@@ -204,6 +209,157 @@ def decode_frame(
     return frame_id
 
 
+def direct(dispatcher: object, *args: object) -> object:
+    """``dispatcher``'s compiled function for the types of ``args``, called without
+    the dispatcher's per-call type resolution, or ``dispatcher`` itself when no
+    compiled overload has those types yet (``daemon.compiled.direct`` is this one).
+
+    Only for a call whose arguments keep these types on every call: the compiled
+    function converts each argument to the type it was compiled for without
+    checking it."""
+    try:
+        sig = tuple(numba.typeof(a) for a in args)
+        return dispatcher.overloads[sig].entry_point  # type: ignore[attr-defined]
+    except (KeyError, AttributeError, ValueError, TypeError):
+        return dispatcher
+
+
+#: Sequencer outcomes (``marker_input.REASON_INDEX``'s first entries, in its order:
+#: ``tests/protocols/test_kernels.py`` checks they agree).
+S_ACCEPTED, S_RESTART, S_BACKWARDS, S_DUPLICATE = 0, 1, 2, 3
+S_IMPLAUSIBLE_JUMP = 6
+#: :func:`sequence_check`'s int64 state, by slot (``marker_input.FrameSequencer``).
+(Q_LAST_FRAME, Q_LAST_SET, Q_LAST_T, Q_CAND_N, Q_CAND_FRAME, Q_CAND_T, Q_RESTART_NEXT,
+ Q_RESTART_GAP, Q_CONFIRM, N_Q) = range(10)  # fmt: skip
+#: Its float64 parameters: frames per ns at the input's ``max_rate_hz``, and the
+#: jitter slack in frames (``JUMP_SLACK_NS`` at that rate, plus one).
+QF_RATE_PER_NS, QF_SLACK, N_QF = range(3)
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _plausible(qf: np.ndarray, advance: int, elapsed_ns: int) -> bool:
+    return advance <= elapsed_ns * qf[QF_RATE_PER_NS] + qf[QF_SLACK]
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _candidate(
+    q: np.ndarray, qf: np.ndarray, frame_id: int, t_ns: int, code: int
+) -> int:
+    n = q[Q_CAND_N]
+    if (
+        n
+        and frame_id > q[Q_CAND_FRAME]
+        and _plausible(qf, frame_id - q[Q_CAND_FRAME], t_ns - q[Q_CAND_T])
+    ):
+        n += 1
+    else:
+        n = 1
+    if n >= q[Q_CONFIRM]:
+        q[Q_CAND_N] = 0
+        q[Q_LAST_FRAME] = frame_id
+        q[Q_LAST_T] = t_ns
+        return S_RESTART
+    q[Q_CAND_N] = n
+    q[Q_CAND_FRAME] = frame_id
+    q[Q_CAND_T] = t_ns
+    return code
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def sequence_check(
+    q: np.ndarray, qf: np.ndarray, frame_id: int, label_set_id: int, t_ns: int
+) -> int:
+    """``marker_input.FrameSequencer.check``: classify a frame by its number against
+    the last accepted one (state ``q``, int64 ``Q_*`` slots; parameters ``qf``,
+    float64 ``QF_*``) and update the state when it is accepted.
+
+    Returns:
+        ``S_ACCEPTED`` or ``S_RESTART`` (use the frame), ``S_DUPLICATE``,
+        ``S_BACKWARDS`` or ``S_IMPLAUSIBLE_JUMP`` (drop it).
+    """
+    code = S_ACCEPTED
+    last = q[Q_LAST_FRAME]
+    if frame_id >= 0 and q[Q_RESTART_NEXT]:
+        code = S_RESTART
+    elif frame_id >= 0 and last >= 0:
+        new_set = label_set_id != q[Q_LAST_SET]
+        if frame_id > last:
+            if not _plausible(qf, frame_id - last, t_ns - q[Q_LAST_T]):
+                if not new_set:
+                    return _candidate(q, qf, frame_id, t_ns, S_IMPLAUSIBLE_JUMP)
+                code = S_RESTART
+        elif new_set or t_ns - q[Q_LAST_T] >= q[Q_RESTART_GAP]:
+            code = S_RESTART
+        elif frame_id == last:
+            return S_DUPLICATE
+        else:
+            return _candidate(q, qf, frame_id, t_ns, S_BACKWARDS)
+    if frame_id >= 0:
+        q[Q_LAST_FRAME] = frame_id
+        q[Q_RESTART_NEXT] = 0
+    q[Q_CAND_N] = 0
+    q[Q_LAST_SET] = label_set_id
+    q[Q_LAST_T] = t_ns
+    return code
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def feed_frame(
+    form: int,
+    head: np.ndarray,
+    n_head: int,
+    payload: np.ndarray,
+    n_payload: int,
+    t_ns: int,
+    label_set_id: int,
+    zero_is_occluded: bool,
+    rhs: np.ndarray,
+    raw32: np.ndarray,
+    occluded: np.ndarray,
+    valid: np.ndarray,
+    markers_world: np.ndarray,
+    limit_m: float,
+    implausible: np.ndarray,
+    q: np.ndarray,
+    qf: np.ndarray,
+    counts: np.ndarray,
+    source_time: np.ndarray,
+) -> tuple[int, int, float]:
+    """A frame packet fed to its stream in one call (``MarkerStream.feed_packed``):
+    :func:`decode_frame` into the spare packet's arrays, then, when it decoded,
+    :func:`sequence_check` and the outcome counted in ``counts`` (the stream's
+    ``DropCounters``), what ``MarkerStream.feed`` does in Python around the decode.
+
+    Args:
+        form .. implausible: :func:`decode_frame`'s (``implausible`` its ``counts``).
+        t_ns: ``time.monotonic_ns()`` at receive.
+        q, qf: the stream's sequencer state and parameters.
+        counts: the stream's drop counters, by ``REASON_INDEX``.
+        source_time: (1,) float64 scratch: the packet's source time, seconds.
+
+    Returns:
+        (code, frame number, source time s): the code a ``D_*`` (< 0) when the
+        decode refused it (nothing counted, the sequencer untouched: the caller
+        asks the Python decoder why), else the sequencer's outcome (counted),
+        ``S_ACCEPTED`` or ``S_RESTART`` when the spare now holds an accepted frame.
+        (One tuple back: two reads of numpy scalars cost more, cold.)
+    """
+    frame_id = decode_frame(
+        form, head, n_head, payload, n_payload, label_set_id, zero_is_occluded, rhs,
+        raw32, occluded, valid, markers_world, limit_m, implausible,
+    )  # fmt: skip
+    if frame_id < 0:
+        return frame_id, frame_id, math.nan
+    bits = source_time.view(np.int64)
+    if form == FORM_OSC_COMPACT:
+        bits[0] = _be(head, 28, 8)
+    else:
+        bits[0] = _le(head, 16, 8)
+    code = sequence_check(q, qf, frame_id, label_set_id, t_ns)
+    counts[code] += 1
+    return code, frame_id, source_time[0]
+
+
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def vmc_pack(
     root_pos: np.ndarray,
@@ -342,6 +498,15 @@ def warm_up() -> None:
         decode_frame(
             form, wire, 0, wire, 0, 0, True, np.eye(3), rows, np.zeros(2, np.bool_),
             np.zeros(2, dtype=np.bool_), np.zeros((2, 3)), 1000.0, counts,
+        )  # fmt: skip
+    q = np.zeros(N_Q, dtype=np.int64)
+    qf = np.zeros(N_QF)
+    sequence_check(q, qf, 0, 0, 0)
+    for form in (FORM_OSC_COMPACT, FORM_ZMQ):  # the stream's types: refused at once
+        feed_frame(
+            form, wire, 0, wire, 0, 0, 0, True, np.eye(3), rows,
+            np.zeros(2, np.bool_), np.zeros(2, dtype=np.bool_), np.zeros((2, 3)),
+            1000.0, counts, q, qf, np.zeros(32, dtype=np.int64), np.zeros(1),
         )  # fmt: skip
     quat = np.array([[1.0, 0.0, 0.0, 0.0]])
     pose_pack(

@@ -82,6 +82,7 @@ TOO_MANY_MARKERS = REASON_INDEX["too_many_markers"]
 AUTH_FAILED = REASON_INDEX["auth_failed"]  # unsigned, or a tag not the key's
 AUTH_REPLAYED = REASON_INDEX["auth_replayed"]  # signed, not newer than the last
 OTHER = REASON_INDEX["other"]
+UNKNOWN_LABEL_SET = REASON_INDEX["unknown_label_set"]
 
 #: A frame number that goes back after this long without an accepted frame is a
 #: restarted source (1 s).
@@ -182,6 +183,16 @@ class MarkerPacket:
     #: The simple form's layout cache (``osc_in.SimpleLayout``): None until a bundle
     #: decoded; reset with the label set.
     _simple: Any = field(default=None, repr=False)
+    #: ``kernels.decode_frame``'s per-packet arguments from ``zero_is_occluded`` to
+    #: ``implausible``, in order (``MarkerStream.feed_packed``: one tuple read).
+    packed_args: tuple[Any, ...] = field(default=(), repr=False)
+
+    def __post_init__(self) -> None:
+        frame = self.frame
+        self.packed_args = (
+            self.zero_is_occluded, self._rhs, self._raw32, self._occluded, frame.valid,
+            frame.markers_world, self.max_coordinate_m, self.implausible,
+        )  # fmt: skip
 
     @classmethod
     def create(
@@ -299,11 +310,9 @@ class MarkerPacket:
             The frame number, or a negative ``kernels.D_*`` code
             (:data:`KERNEL_REASONS`) with the frame untouched.
         """
-        frame = self.frame
         return kernels.decode_frame(
             form, head, n_head, payload, n_payload, self.label_set.id,
-            self.zero_is_occluded, self._rhs, self._raw32, self._occluded, frame.valid,
-            frame.markers_world, self.max_coordinate_m, self.implausible,
+            *self.packed_args,
         )  # fmt: skip
 
 
@@ -382,98 +391,76 @@ class FrameSequencer:
     - a frame number of -1 (a simple bundle without one) is accepted unordered.
     """
 
-    __slots__ = (
-        "_cand_frame",
-        "_cand_n",
-        "_cand_t_ns",
-        "_rate_per_ns",
-        "_restart_next",
-        "_slack_frames",
-        "last_frame",
-        "last_label_set_id",
-        "last_t_ns",
-        "restart_gap_ns",
-    )
+    __slots__ = ("q", "qf")
 
     def __init__(
         self, restart_gap_ns: int = RESTART_GAP_NS, max_rate_hz: float = MAX_RATE_HZ
     ) -> None:
         if not max_rate_hz > 0.0:
             raise ValueError(f"max_rate_hz must be > 0; got {max_rate_hz}")
-        self.restart_gap_ns = restart_gap_ns
-        self._rate_per_ns = max_rate_hz * 1e-9
-        self._slack_frames = JUMP_SLACK_NS * self._rate_per_ns + 1.0
-        self.last_frame = -1
-        self.last_label_set_id = 0
-        self.last_t_ns = 0
-        self._cand_n = 0  # frames of the candidate sequence so far
-        self._cand_frame = -1
-        self._cand_t_ns = 0
-        self._restart_next = False
+        # The state in one int64 array and the parameters in one float64 array
+        # (``kernels.Q_*``, ``QF_*``): the compiled check reads and writes them in
+        # place, from here and from ``MarkerStream.feed_packed``'s one call.
+        self.q: IntArray = np.zeros(kernels.N_Q, dtype=np.int64)
+        self.qf: F64Array = np.zeros(kernels.N_QF)
+        rate_per_ns = max_rate_hz * 1e-9
+        self.qf[kernels.QF_RATE_PER_NS] = rate_per_ns
+        self.qf[kernels.QF_SLACK] = JUMP_SLACK_NS * rate_per_ns + 1.0
+        self.q[kernels.Q_RESTART_GAP] = restart_gap_ns
+        self.q[kernels.Q_CONFIRM] = JUMP_CONFIRM_FRAMES
+        self.q[kernels.Q_LAST_FRAME] = -1
+        self.q[kernels.Q_CAND_FRAME] = -1
+
+    @property
+    def last_frame(self) -> int:
+        """The last accepted frame number (-1: none, or forgotten)."""
+        return int(self.q[kernels.Q_LAST_FRAME])
+
+    @property
+    def last_label_set_id(self) -> int:
+        """The label-set id of the last accepted frame."""
+        return int(self.q[kernels.Q_LAST_SET])
+
+    @property
+    def last_t_ns(self) -> int:
+        """When the last accepted frame was received (``time.monotonic_ns()``)."""
+        return int(self.q[kernels.Q_LAST_T])
+
+    @property
+    def restart_gap_ns(self) -> int:
+        """A frame number going back after this long is a restarted source."""
+        return int(self.q[kernels.Q_RESTART_GAP])
+
+    @restart_gap_ns.setter
+    def restart_gap_ns(self, value: int) -> None:
+        self.q[kernels.Q_RESTART_GAP] = value
 
     def reset(self) -> None:
         """Forget the last frame: the next one is accepted whatever its number."""
-        self.last_frame = -1
-        self._cand_n = 0
+        self.q[kernels.Q_LAST_FRAME] = -1
+        self.q[kernels.Q_CAND_N] = 0
 
     def restart_next(self) -> None:
         """Accept the next numbered frame as a ``RESTART`` whatever its number (the
         label set changed under the same id)."""
-        self._restart_next = True
-
-    def _plausible(self, advance: int, elapsed_ns: int) -> bool:
-        return advance <= elapsed_ns * self._rate_per_ns + self._slack_frames
+        self.q[kernels.Q_RESTART_NEXT] = 1
 
     def check(self, frame_id: int, label_set_id: int, t_ns: int) -> int:
-        """Classify a frame and update the state when it is accepted.
+        """Classify a frame and update the state when it is accepted
+        (``kernels.sequence_check``, the rules above).
+
+        Args:
+            frame_id: the frame number (int64; -1: none).
+            label_set_id: the label-set id it carries (int64).
+            t_ns: ``time.monotonic_ns()`` at receive.
 
         Returns:
             ``ACCEPTED`` or ``RESTART`` (use the frame), ``DUPLICATE``, ``BACKWARDS``
             or ``IMPLAUSIBLE_JUMP`` (drop it).
         """
-        code = ACCEPTED
-        last = self.last_frame
-        if frame_id >= 0 and self._restart_next:
-            code = RESTART
-        elif frame_id >= 0 and last >= 0:
-            new_set = label_set_id != self.last_label_set_id
-            if frame_id > last:
-                if not self._plausible(frame_id - last, t_ns - self.last_t_ns):
-                    if not new_set:
-                        return self._candidate(frame_id, t_ns, IMPLAUSIBLE_JUMP)
-                    code = RESTART
-            elif new_set or t_ns - self.last_t_ns >= self.restart_gap_ns:
-                code = RESTART
-            elif frame_id == last:
-                return DUPLICATE
-            else:
-                return self._candidate(frame_id, t_ns, BACKWARDS)
-        if frame_id >= 0:
-            self.last_frame = frame_id
-            self._restart_next = False
-        self._cand_n = 0
-        self.last_label_set_id = label_set_id
-        self.last_t_ns = t_ns
-        return code
-
-    def _candidate(self, frame_id: int, t_ns: int, code: int) -> int:
-        """A frame off the accepted sequence: drop it (``code``), or adopt its
-        sequence once it has continued alone for ``JUMP_CONFIRM_FRAMES`` frames."""
-        n = self._cand_n
-        if (
-            n
-            and frame_id > self._cand_frame
-            and self._plausible(frame_id - self._cand_frame, t_ns - self._cand_t_ns)
-        ):
-            n += 1
-        else:
-            n = 1
-        if n >= JUMP_CONFIRM_FRAMES:
-            self._cand_n = 0
-            self.last_frame = frame_id
-            self.last_t_ns = t_ns
-            return RESTART
-        self._cand_n, self._cand_frame, self._cand_t_ns = n, frame_id, t_ns
+        code: int = kernels.sequence_check(
+            self.q, self.qf, frame_id, label_set_id, t_ns
+        )
         return code
 
 
@@ -538,6 +525,12 @@ class MarkerStream:
         #: ``unknown_label`` (markers, not packets) + ``labels_taken``.
         self.labels_taken = 0
         self._pending_since_ns = 0
+        # feed_packed: the packet's source time (written by the compiled call), the
+        # call's stream arguments, and the call (its compiled function once typed).
+        self._source_time = np.zeros(1)
+        seq = self.sequencer
+        self._feed_tail = (seq.q, seq.qf, self.counters.counts, self._source_time)
+        self._feed_call: Any = kernels.feed_frame
 
     def _in_use(self, t_ns: int | None) -> bool:
         """Whether frames carrying the current id were accepted recently (within the
@@ -589,6 +582,61 @@ class MarkerStream:
         self.pending_labels = None
         if same_id:  # new names, same id: the sequence restarts at the next frame
             self.sequencer.restart_next()
+
+    def feed_packed(
+        self,
+        form: int,
+        head: np.ndarray,
+        n_head: int,
+        payload: np.ndarray,
+        n_payload: int,
+        t_ns: int,
+    ) -> int:
+        """:meth:`feed` of a compact OSC frame or a ZeroMQ frame (``form``:
+        ``kernels.FORM_*``) in one compiled call (``kernels.feed_frame``): the
+        decode into the spare packet, the sequencer and the outcome's counter;
+        Python only swaps the packets. The live loop's drains call it per frame.
+
+        Args:
+            head, payload: writable, contiguous uint8 arrays over the receive
+                buffers (their type is fixed by the first call: the compiled
+                function is then called past numba's dispatcher), the datagram or
+                the header part in ``head[:n_head]``, the ZeroMQ payload in
+                ``payload[:n_payload]`` (OSC: unused).
+            t_ns: ``time.monotonic_ns()`` at receive.
+
+        Returns:
+            As :meth:`feed` when the packet decoded (``ACCEPTED``, ``RESTART`` or
+            the sequencer's refusal, counted); a negative ``kernels.D_*`` code,
+            nothing counted and nothing changed, when the compiled checks refused
+            it: :meth:`feed` with the Python decoder then says why and counts it.
+        """
+        label_set = self.label_set
+        if label_set is None:
+            self.counters.add(UNKNOWN_LABEL_SET)
+            return UNKNOWN_LABEL_SET
+        spare = self._spare
+        if spare.label_set is not label_set:
+            spare = self._spare = spare.with_label_set(label_set)
+        code, frame_id, source_t = self._feed_call(
+            form, head, n_head, payload, n_payload, t_ns, label_set.id,
+            *spare.packed_args, *self._feed_tail,
+        )  # fmt: skip
+        if self._feed_call is kernels.feed_frame:  # its types known now: direct
+            self._feed_call = kernels.direct(
+                kernels.feed_frame, form, head, n_head, payload, n_payload, t_ns,
+                label_set.id, *spare.packed_args, *self._feed_tail,
+            )  # fmt: skip
+        if code > RESTART or code < 0:
+            return code
+        frame = spare.frame
+        frame.frame_id = frame_id
+        frame.source_time_s = source_t
+        frame.t_ns = t_ns
+        spare.label_set_id = label_set.id
+        spare.unknown_labels = 0
+        self._spare, self.current = self.current, spare
+        return code
 
     def feed(self, decode: Callable[..., MarkerPacket], *parts: Any, t_ns: int) -> int:
         """Decode one packet and classify it.

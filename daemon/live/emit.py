@@ -16,6 +16,12 @@ take): ``Retargeter.apply``'s kernel (``target/kernel.py``) on the program
 ``np.matmul``, from +0.0), ``kernels.vmc_pack`` into the encoder's datagrams and
 ``kernels.pose_pack`` into the pose encoder's two parts.
 
+When no post stage, pivot or plant runs between the solve and the send (the default
+pipeline), the call also runs the stance detector's step (``post/stance.py``, the
+foot contact) on the solved pose and ORs its bits into the pose header, what the loop
+did as a call of its own before (``DO_STANCE``; the detector's arrays packed into two
+flat arrays, ``StanceDetector.pack``, bound with the rest: :meth:`EmitPlan.bind`).
+
 The retarget's constants and scratch, the target pose (its arrays are views of this
 plan's float64 arena, :attr:`EmitPlan.target_pose`) and the engine constants live in
 two arenas, one int64 and one float64, so the call takes few arguments (each costs
@@ -30,6 +36,7 @@ from typing import Any
 import numpy as np
 
 from retargetd.daemon.compiled import direct, kernel
+from retargetd.daemon.post.stance import StanceDetector, step_packed
 from retargetd.daemon.retarget import kernel as kt
 from retargetd.daemon.retarget.kernel import retarget_one
 from retargetd.daemon.retarget.retarget import Retargeter, TargetPose
@@ -45,6 +52,11 @@ NO_FLAGS = np.zeros(0, dtype=np.uint8)
 DO_RETARGET = 1
 DO_VMC = 2
 DO_POSE = 4
+DO_STANCE = 8
+
+#: The stance arrays of a pipeline whose stance runs outside the call (none, or
+#: before its post stages, pivot or plant): typed as a packed detector's, never read.
+_NO_STANCE = (np.zeros(3, dtype=np.int64), np.zeros(1))
 
 # ``ei[:N_HEAD]``: the target's bone count, then the float arena's offsets.
 (I_N, I_CST, I_PARAMS, I_E, I_REST, I_WFB, I_ROOT, I_HIPS, I_OFFSETS, I_BONE_POS,
@@ -70,6 +82,8 @@ def emit_frame(
     body: np.ndarray,
     blend: np.ndarray,
     weights: np.ndarray,
+    stance_ints: np.ndarray,
+    stance_floats: np.ndarray,
     or_flags: np.ndarray,
     t_s: float,
     frame_id: int,
@@ -77,9 +91,10 @@ def emit_frame(
     received_ns: int,
     solved_ns: int,
     flags_word: int,
-) -> None:
-    """Retarget (``what & DO_RETARGET``), pack VMC (``DO_VMC``) and the pose message
-    (``DO_POSE``) of one solved frame.
+    dt: float,
+) -> int:
+    """The foot contact (``what & DO_STANCE``), the retarget (``DO_RETARGET``), VMC
+    (``DO_VMC``) and the pose message (``DO_POSE``) of one solved frame.
 
     Args:
         what: ``DO_*`` bits.
@@ -92,10 +107,21 @@ def emit_frame(
         last_quat, stage32, offsets, wire: ``VmcEncoder.pack_buffers()``.
         header, body: ``PoseEncoder.header_bytes``, ``body_bytes``.
         blend: (K_vmc,) VMC blendshape values; weights: (K,) pose-stream weights.
+        stance_ints, stance_floats: ``StanceDetector.pack()`` (or ``_NO_STANCE``).
         or_flags: (B,) uint8 ORed into the sent bone flags (validation), or empty.
         t_s: ``/VMC/Ext/T``, seconds.
-        frame_id, source_t, received_ns, solved_ns, flags_word: the pose header's.
+        frame_id, source_t, received_ns, solved_ns, flags_word: the pose header's
+            (the contact bits ORed into ``flags_word`` with ``DO_STANCE``).
+        dt: seconds since the pipeline's last frame (the stance's step).
+
+    Returns:
+        The contact's ``FRAME_CONTACT_*`` bits with ``DO_STANCE``
+        (``StanceDetector.update``'s), else 0.
     """
+    contact = 0
+    if what & DO_STANCE:  # StanceDetector.update, before anything reads the pose
+        contact = step_packed(root, wfb, dt, stance_ints, stance_floats)
+        flags_word |= contact
     n = ei[I_N]
     prog = ei[N_HEAD : N_HEAD + 4 * n].reshape((n, 4))
     cst = ef[ei[I_CST] : ei[I_CST] + n * kt.N_CST].reshape((n, kt.N_CST))
@@ -139,6 +165,7 @@ def emit_frame(
             header, body, frame_id, source_t, received_ns, solved_ns, flags_word, root,
             wfb, pfb, rfb, weights, bone_flags, or_flags,
         )  # fmt: skip
+    return contact
 
 
 def _arenas(n: int) -> tuple[np.ndarray, int]:
@@ -221,22 +248,35 @@ class EmitPlan:
         self.performer_bits = pose_enc.performer_bits
         self.args: tuple[np.ndarray, ...] = ()  # set by bind()
         self.call: Any = emit_frame  # its compiled function, once bound (bind())
+        self.stance: StanceDetector | None = None  # run inside the call (bind())
 
-    def bind(self, pose: Any, blend: np.ndarray, weights: np.ndarray) -> None:
+    def bind(
+        self,
+        pose: Any,
+        blend: np.ndarray,
+        weights: np.ndarray,
+        stance: StanceDetector | None = None,
+    ) -> None:
         """Fix the pipeline's solved pose (``BodyPose`` / ``FitPose``, its arrays
-        reused every frame) and face outputs: :attr:`args` are then
-        :func:`emit_frame`'s array arguments from ``wfb`` to ``weights``, one tuple
-        read per frame instead of sixteen attributes."""
+        reused every frame), face outputs and, when the call runs it, its stance
+        detector (``stance``: none of post stages, pivot or plant runs between the
+        solve and the emit, so the contact can be found inside the call; None: the
+        loop runs it, or there is none): :attr:`args` are then :func:`emit_frame`'s
+        array arguments from ``wfb`` to ``stance_floats``, one tuple read per frame
+        instead of eighteen attributes."""
+        arrays = stance.pack() if stance is not None else None
+        #: the call finds the contact (``DO_STANCE``): the loop leaves it to it
+        self.stance = stance if arrays is not None else None
         self.args = (
             pose.world_from_bone_quat, pose.parent_from_bone_quat,
             pose.rest_from_bone_quat, pose.root_pos, pose.bone_flags, self.ei, self.ef,
             self.target_pose.flags, *self.vmc_buffers, self.header, self.body, blend,
-            weights,
+            weights, *(arrays if arrays is not None else _NO_STANCE),
         )  # fmt: skip
         # The same argument types every frame: the compiled function itself, past
         # the dispatcher (the validation bone flags or NO_FLAGS: both (B,) uint8).
         self.call = direct(
-            emit_frame, DO_RETARGET, *self.args, NO_FLAGS, 0.0, 0, 0.0, 0, 0, 0
+            emit_frame, DO_RETARGET, *self.args, NO_FLAGS, 0.0, 0, 0.0, 0, 0, 0, 0.0
         )
 
     def view(self, slot: int, shape: tuple[int, ...]) -> np.ndarray:
@@ -259,5 +299,6 @@ def warm_up() -> None:
         np.zeros(at), np.zeros(n, dtype=np.uint8), np.zeros((n + 1, 4)), stage,
         np.arange(len(stage), dtype=np.int64) * 4, np.zeros(4 * len(stage), np.uint8),
         np.zeros(68, dtype=np.uint8), np.zeros(52, dtype=np.uint8), np.zeros(0),
-        np.zeros(0), np.zeros(0, dtype=np.uint8), 0.0, 0, 0.0, 0, 0, 0,
+        np.zeros(0), *_NO_STANCE, np.zeros(0, dtype=np.uint8), 0.0, 0, 0.0, 0, 0, 0,
+        0.0,
     )  # fmt: skip

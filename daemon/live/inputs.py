@@ -34,6 +34,7 @@ from retargetd.daemon.live.surface import (
     unauthenticated_warning,
     who_reaches,
 )
+from retargetd.protocols import kernels as protocol_kernels
 from retargetd.protocols import osc_auth, osc_in, zmq_wire
 from retargetd.protocols.errors import DecodeError
 from retargetd.protocols.marker_input import (
@@ -301,8 +302,12 @@ class Inputs:
                     continue
                 self._take_labels("osc", stream, label_set, t_ns)
                 continue
-            else:  # checks and store in one compiled call, from the buffer itself
-                code = stream.feed(osc_in.decode_compact_into, self._wire, n, t_ns=t_ns)
+            else:  # decode, sequencing and counter in one compiled call, in place
+                code = stream.feed_packed(_OSC_COMPACT, self._wire, n, self._wire, 0,
+                                          t_ns)  # fmt: skip
+                if code < 0:  # refused by the compiled checks: the decoder says why
+                    code = stream.feed(osc_in.decode_compact_into, self._wire, n,
+                                       t_ns=t_ns)  # fmt: skip
             if code != ACCEPTED and code != RESTART:
                 self.refused(stream, code, t_ns)
                 continue
@@ -388,10 +393,14 @@ class Inputs:
                     continue
                 self._take_labels("zmq", stream, label_set, t_ns)
                 continue
-            code = stream.feed(
-                zmq_wire.decode_zmq_into, self._zwire_header, n0, self._zwire_payload,
-                n1, t_ns=t_ns,
-            )  # fmt: skip
+            code = stream.feed_packed(
+                _ZMQ_FRAME, self._zwire_header, n0, self._zwire_payload, n1, t_ns
+            )  # decode, sequencing and counter in one compiled call, in place
+            if code < 0:  # refused by the compiled checks: the decoder says why
+                code = stream.feed(
+                    zmq_wire.decode_zmq_into, self._zwire_header, n0,
+                    self._zwire_payload, n1, t_ns=t_ns,
+                )  # fmt: skip
             if code != ACCEPTED and code != RESTART:
                 self.refused(stream, code, t_ns)
                 continue
@@ -502,6 +511,9 @@ def last_endpoint(sock: Any) -> str:
 
 
 _CONFLICTING = REASON_INDEX["conflicting_labels"]
+#: ``MarkerStream.feed_packed`` forms.
+_OSC_COMPACT = protocol_kernels.FORM_OSC_COMPACT
+_ZMQ_FRAME = protocol_kernels.FORM_ZMQ
 _TOO_MANY = REASON_INDEX["too_many_markers"]
 
 

@@ -210,7 +210,12 @@ def make_pipeline(spec: PipelineSpec, solver: Any = None) -> Pipeline:
     pose = solver.new_pose()
     blend = face.blend if face is not None else np.zeros(0)
     weights = face.weights if face is not None else np.zeros(0)
-    emit.bind(pose, blend, weights)
+    post = _post_stages(spec)
+    spine = spine_stage(config.target, target, rig)
+    plant = plant_stage(config.target.feet, retargeter, stance)
+    # Nothing between the solve and the emit: the emit call finds the contact too.
+    alone = post is None and spine is None and plant is None
+    emit.bind(pose, blend, weights, stance if alone else None)
     cols = [int(c) for c in solver.marker_cols]
     if face is not None:
         cols += face.solver.columns()
@@ -237,9 +242,9 @@ def make_pipeline(spec: PipelineSpec, solver: Any = None) -> Pipeline:
             if face is not None
             else None
         ),
-        post=_post_stages(spec),
-        spine=spine_stage(config.target, target, rig),
-        plant=plant_stage(config.target.feet, retargeter, stance),
+        post=post,
+        spine=spine,
+        plant=plant,
         emit=emit,
         stance=stance,
     )

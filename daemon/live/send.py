@@ -21,6 +21,7 @@ from retargetd.daemon.body.solve import FLAG_HELD
 from retargetd.daemon.live.emit import (
     DO_POSE,
     DO_RETARGET,
+    DO_STANCE,
     DO_VMC,
     NO_FLAGS,
 )
@@ -257,7 +258,11 @@ class BodyPath:
                 stats.unexplained += 1
             if fit_bits & pose_stream.FRAME_RESEEDED:
                 stats.reseeded += 1
-        if pipe.stance is not None:  # on the solve, before the post stages (as solve)
+        emit = pipe.emit
+        assert emit is not None
+        # On the solve, before the post stages (as solve); inside the emit call
+        # when nothing runs between (``EmitPlan.bind``: the default pipeline).
+        if pipe.stance is not None and emit.stance is None:
             pipe.stance_bits = pipe.stance.update(
                 pose.root_pos, pose.world_from_bone_quat, dt
             )
@@ -287,7 +292,7 @@ class BodyPath:
         stats.frames_solved += 1
         stats.held_bone_frames += pose.n_held
         stats.occluded_samples += pose.n_occluded
-        self._emit(pipe, stream, frame_id, source_t, arrival_ns, t_start)
+        self._emit(pipe, stream, frame_id, source_t, arrival_ns, t_start, dt)
         if post is not None and post.resampler is not None:
             self._send_due_ticks_of(pipe, time.monotonic_ns())  # overdue ones too
 
@@ -362,6 +367,7 @@ class BodyPath:
         source_t: float,
         received_ns: int,
         t_start: int,
+        dt: float = 0.0,
     ) -> None:
         """Retarget and send the pose in ``pipe.pose``: for ``stream``'s current
         frame (solved now: the face solved, the validator, recording and console fed,
@@ -369,8 +375,9 @@ class BodyPath:
         timer (VMC and the pose stream only; ``received_ns`` its input's arrival).
 
         The face is solved first; ``solved_ns`` is taken then, and one compiled call
-        (``emit.emit_frame``) retargets, converts to the engine's frame and packs the
-        VMC datagrams and the pose message; Python sends them."""
+        (``emit.emit_frame``) finds the foot contact (when the loop left it to it:
+        ``dt`` its step's interval), retargets, converts to the engine's frame and
+        packs the VMC datagrams and the pose message; Python sends them."""
         pose = pipe.pose
         perf, sh = self.perf, self.shared
         stats, outputs, recording = sh.stats, sh.outputs, sh.recording
@@ -379,6 +386,10 @@ class BodyPath:
         assert emit is not None
         tp = emit.target_pose
         what = DO_RETARGET
+        stance_bits = pipe.stance_bits  # found before, or (0) inside the call
+        if emit.stance is not None and frame is not None:
+            what |= DO_STANCE
+            stance_bits = 0
         if pipe.spine is not None:  # [target] spine = "pivot", timed as post.pivot
             pipe.retargeter.apply(pose, tp)
             what = 0
@@ -403,7 +414,7 @@ class BodyPath:
             | self.match_flags  # calibration_mismatch, from the first second on
             | pose.frame_flags  # the fit's reseeded and unexplained bits
             | (pose_stream.FRAME_HELD if pose.n_held else 0)
-            | pipe.stance_bits  # foot contact (FRAME_CONTACT_*)
+            | stance_bits  # foot contact (FRAME_CONTACT_*)
         )
         self.frame_flags = 0
         val = self.validation
@@ -425,11 +436,14 @@ class BodyPath:
             what |= DO_POSE
         vb = val.bones
         flags_word = (flags & ~_PERFORMER_MASK) | emit.performer_bits
-        emit.call(  # emit_frame's compiled function (EmitPlan.bind)
+        contact = emit.call(  # emit_frame's compiled function (EmitPlan.bind)
             what, *emit.args, NO_FLAGS if vb is None else vb,
             (solved_ns - sh.t0_ns) * 1e-9, frame_id, source_t, received_ns,
-            solved_ns, flags_word,
+            solved_ns, flags_word, dt,
         )  # fmt: skip
+        if what & DO_STANCE:  # the contact found inside the call, in the header
+            pipe.stance_bits = contact
+            flags_word |= contact
         if vmc_on:  # (one datagram to a loopback receiver; never blocks)
             vmc.send(pipe.vmc.datagrams)
         bone_flags = pose.bone_flags

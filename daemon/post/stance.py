@@ -342,6 +342,51 @@ def _step(
     return out
 
 
+@kernel
+def step_packed(
+    root_pos: np.ndarray,  # (3,)
+    wfb: np.ndarray,  # (B, 4)
+    dt: float,
+    ints: np.ndarray,  # int64: StanceDetector.pack()'s
+    floats: np.ndarray,  # float64: StanceDetector.pack()'s
+) -> int:  # pragma: no cover - compiled
+    """:meth:`StanceDetector.update` over the detector's arrays packed into two flat
+    arrays (:meth:`StanceDetector.pack`), for a caller that runs it inside its own
+    compiled call (``live/emit.py``: two arguments, not thirteen): the clock, then
+    :func:`_step`; returns the pose stream's flag bits (LEFT, RIGHT, KNOWN)."""
+    c, p, n_par = ints[0], ints[1], ints[2]
+    at = 3
+    chain = ints[at : at + 2 * c].reshape((2, c))
+    at += 2 * c
+    chain_len = ints[at : at + 2]
+    at += 2
+    pt_link = ints[at : at + 2 * p].reshape((2, p))
+    at += 2 * p
+    n_pts = ints[at : at + 2]
+    offset = floats[1 : 1 + 6 * c].reshape((2, c, 3))
+    k = 1 + 6 * c
+    pt_local = floats[k : k + 6 * p].reshape((2, p, 3))
+    k += 6 * p
+    rest_z = floats[k : k + 2 * p].reshape((2, p))
+    k += 2 * p
+    params = floats[k : k + n_par]
+    k += n_par
+    origins = floats[k : k + 6 * c].reshape((2, c, 3))
+    k += 6 * c
+    prev = floats[k : k + 8 * p].reshape((2, p, 4))
+    k += 8 * p
+    vel = floats[k : k + 6 * p].reshape((2, p, 3))
+    k += 6 * p
+    state = floats[k : k + 10].reshape((2, 5))
+    if dt > 0.0:
+        floats[0] += dt  # the clock
+    bits = _step(
+        root_pos, wfb, dt, chain, chain_len, offset, pt_link, pt_local, n_pts,
+        rest_z, params, origins, prev, vel, state,
+    )  # fmt: skip
+    return KNOWN | (LEFT if bits & 1 else 0) | (RIGHT if bits & 2 else 0)
+
+
 class StanceDetector:
     """Per-foot contact, causal, frame by frame (module docstring)."""
 
@@ -389,6 +434,33 @@ class StanceDetector:
         self._state[:] = 0.0
         self.clock[0] = 0.0
 
+    def pack(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """Its plan, parameters, scratch, state and clock in two flat arrays, int64
+        and float64 (:func:`step_packed`'s layout), which its own arrays become
+        views of (contents kept: :meth:`update`, :meth:`reset`, :attr:`state` and
+        :attr:`clock` read and write the same memory as :func:`step_packed`). For a
+        caller that runs the step inside its own compiled call (``live/emit.py``).
+        None when the rig maps no feet (no step runs)."""
+        plan = self._plan
+        if plan is None:
+            return None
+        c, p = plan.chain.shape[1], plan.pt_link.shape[1]
+        ints_of = (plan.chain, plan.chain_len, plan.pt_link, plan.n_pts)
+        floats_of = (
+            self.clock, plan.offset, plan.pt_local, plan.rest_z, self._params,
+            self._origins, self._prev, self._vel, self._state,
+        )  # fmt: skip
+        head = np.array([c, p, len(self._params)], dtype=np.int64)
+        ints = np.concatenate([head, *(a.ravel() for a in ints_of)]).astype(np.int64)
+        floats = np.concatenate([a.ravel() for a in floats_of])
+        plan.chain, plan.chain_len, plan.pt_link, plan.n_pts = _views(ints, 3, ints_of)
+        (
+            self.clock, plan.offset, plan.pt_local, plan.rest_z, self._params,
+            self._origins, self._prev, self._vel, self._state,
+        ) = _views(floats, 0, floats_of)  # fmt: skip
+        self._call = _step  # (its entry point found again for the views)
+        return ints, floats
+
     def update(
         self, root_pos: F64Array, world_from_bone_quat: F64Array, dt: float
     ) -> int:
@@ -414,6 +486,17 @@ class StanceDetector:
             self._call = direct(_step, *args)
         bits: int = self._call(*args)  # type: ignore[operator]
         return KNOWN | (LEFT if bits & 1 else 0) | (RIGHT if bits & 2 else 0)
+
+
+def _views(
+    flat: np.ndarray, at: int, arrays: tuple[np.ndarray, ...]
+) -> list[np.ndarray]:
+    """Views of ``flat`` from ``at`` on, one after the other, shaped as ``arrays``."""
+    out = []
+    for a in arrays:
+        out.append(flat[at : at + a.size].reshape(a.shape))
+        at += a.size
+    return out
 
 
 def foot_contact(

@@ -1,7 +1,8 @@
 """The live loop's one compiled call per frame (``live/emit.py``) writes exactly what
-the separate steps it replaced wrote: ``Retargeter.apply``, ``engine_unity``'s two
-conversions, ``VmcEncoder.encode`` and ``PoseEncoder.encode``, byte for byte, on the
-real Plug-in Gait walk solved both ways."""
+the separate steps it replaced wrote: ``StanceDetector.update`` (the foot contact),
+``Retargeter.apply``, ``engine_unity``'s two conversions, ``VmcEncoder.encode`` and
+``PoseEncoder.encode``, byte for byte, on the real Plug-in Gait walk solved both
+ways."""
 
 from __future__ import annotations
 
@@ -16,10 +17,12 @@ from retargetd.daemon.body.rig import load_rig
 from retargetd.daemon.live.emit import (
     DO_POSE,
     DO_RETARGET,
+    DO_STANCE,
     DO_VMC,
     EmitPlan,
     emit_frame,
 )
+from retargetd.daemon.post.stance import StanceDetector
 from retargetd.daemon.retarget.retarget import Retargeter, default_humanoid
 from retargetd.protocols import engine_unity, pose_stream
 from retargetd.protocols.vmc_out import VmcEncoder
@@ -58,22 +61,29 @@ def test_emit_frame_equals_the_separate_steps_byte_for_byte(
     tp_new = plan.target_pose
     bq, rp, root_quat = np.zeros((n, 4)), np.zeros(3), np.array([0.0, 0, 0, 1])
     pose = solver.new_pose()
-    plan.bind(pose, np.zeros(N_BLEND), np.zeros(3))
+    blend, weights = np.zeros(N_BLEND), np.zeros(3)  # bound: written in place
+    # The contact inside the call unless the loop pivots (then it runs before).
+    st_old, st_new = StanceDetector(rig, cal), StanceDetector(rig, cal)
+    assert st_new.known  # the walk's rig maps both feet
+    folded = None if spine else st_new
+    plan.bind(pose, blend, weights, folded)
+    assert plan.stance is folded
     # The loop calls the compiled function itself (EmitPlan.call), past numba's
     # dispatcher: found for these types (warm: compiled by the calls below at the
     # latest), and every other frame goes through it, byte for byte the same.
     emit_frame(
-        DO_RETARGET, *plan.args, np.zeros(0, np.uint8), 0.0, 0, 0.0, 0, 0, 0
+        DO_RETARGET, *plan.args, np.zeros(0, np.uint8), 0.0, 0, 0.0, 0, 0, 0, 0.0
     )  # fmt: skip
-    plan.bind(pose, np.zeros(N_BLEND), np.zeros(3))
+    plan.bind(pose, blend, weights, folded)
     assert plan.call is not emit_frame
+    contacts: set[int] = set()
     rng = np.random.default_rng(11)
     frames = np.asarray(take.positions, dtype=np.float64)
     checked = 0
     for i in range(len(frames)):
         solver.solve_frame(frames[i], pose)
-        blend = rng.uniform(size=N_BLEND)
-        weights = rng.uniform(size=3)
+        blend[:] = rng.uniform(size=N_BLEND)
+        weights[:] = rng.uniform(size=3)
         or_flags = (
             rng.integers(0, 16, b).astype(np.uint8) << 4
             if i % 3
@@ -83,7 +93,11 @@ def test_emit_frame_equals_the_separate_steps_byte_for_byte(
         t_s = 0.004 * i
         source_t = np.nan if i % 5 == 0 else i / 100.0
         stamps = (i, source_t, 10_000 + i, 20_000 + i)
+        dt = 0.0 if i == 0 else 1.0 / take.rate_hz
         # The steps the loop made before.
+        contact_old = 0
+        if not spine:
+            contact_old = st_old.update(pose.root_pos, pose.world_from_bone_quat, dt)
         rt.apply(pose, tp_old)
         engine_unity.unity_quat_xyzw_from_world(tp_old.rest_from_bone_quat, bq)
         engine_unity.unity_pos_from_world(tp_old.root_pos, rp)
@@ -94,23 +108,22 @@ def test_emit_frame_equals_the_separate_steps_byte_for_byte(
         if len(or_flags) == b:
             sent_flags = pose.bone_flags | or_flags
         pose_old.encode(
-            *stamps, flags, pose.root_pos, pose.world_from_bone_quat,
+            *stamps, flags | contact_old, pose.root_pos, pose.world_from_bone_quat,
             pose.parent_from_bone_quat, pose.rest_from_bone_quat, weights, sent_flags,
         )  # fmt: skip
         # The one call.
-        what = DO_VMC | DO_POSE
+        what = DO_VMC | DO_POSE | (0 if spine else DO_STANCE)
         if spine:  # the loop retargets itself (and pivots) first, then packs
             rt.apply(pose, tp_new)
         else:
             what |= DO_RETARGET
         word = (flags & ~pose_stream.PERFORMER_MASK) | pose_new.performer_bits
         call = plan.call if i % 2 else emit_frame
-        call(
-            what, pose.world_from_bone_quat, pose.parent_from_bone_quat,
-            pose.rest_from_bone_quat, pose.root_pos, pose.bone_flags, plan.ei, plan.ef,
-            tp_new.flags, *plan.vmc_buffers, plan.header, plan.body, blend, weights,
-            or_flags, t_s, *stamps, word,
-        )  # fmt: skip
+        contact = call(what, *plan.args, or_flags, t_s, *stamps, word, dt)
+        assert contact == contact_old, f"contact, frame {i}"
+        contacts.add(contact)
+        np.testing.assert_array_equal(st_new.state, st_old.state if not spine else 0)
+        np.testing.assert_array_equal(st_new.clock, st_old.clock)
         got_vmc = b"".join(bytes(d) for d in vmc_new.datagrams)
         assert got_vmc == want_vmc, f"VMC, frame {i}"
         assert _parts(pose_new) == _parts(pose_old), f"pose message, frame {i}"
@@ -121,6 +134,8 @@ def test_emit_frame_equals_the_separate_steps_byte_for_byte(
             )
         checked += 1
     assert checked == len(frames) > 300
+    if not spine:  # the walk's feet were seen in and out of contact
+        assert len(contacts) >= 3, contacts
 
 
 def test_stamp_flags_rewrites_only_the_flags_word() -> None:
