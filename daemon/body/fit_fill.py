@@ -10,8 +10,14 @@ Callaghan, "Quantitative assessment of the accuracy for three interpolation
 techniques in kinematic analysis of human movement", CMBBE 13(6):847-855, 2010;
 Gloersen & Federolf, PLoS ONE 11(3):e0152616, 2016 for the correlation-based kind.
 It is right where the model misfits (a marker on a segment the rig models rigid that
-is not) and it is causal. Where no rigid set of donors exists the fit's model stand-in
-(``fit_track.virtual_markers``) is unchanged.
+is not) and it is causal. Donors come only from the hidden marker's own bone and the
+bones proximal to it (its ancestors in the rig): by forward kinematics its position
+is a function of those bones' poses alone, while a distal donor is carried by the
+joints between (the elbow and the wrist for an upper-arm marker), which can flex
+with the donors still rigid with each other (the PiG walk's LELB, filled from the
+wrist and finger markers, ran 33 mm off in 0.25 s as the wrist flexed). Where no
+rigid set of donors exists the fit's model stand-in (``fit_track.virtual_markers``)
+is unchanged.
 
 State (``solve_fit.FitSolver``): s[60] (M, M, 3) per pair the distance's running mean,
 variance and coverage (1 - exp(-t / tau) after t seconds seen together); s[61] (M, K)
@@ -46,11 +52,23 @@ N_DONORS = 4
 #: filled from them ran 53 mm off in 0.25 s as the arm began to swing.
 MIN_COVERAGE = 1.0 - math.exp(-1.0)
 #: Whether a filled marker's hold (``fit_track.hold_priors``) is dropped: the fill
-#: measures what the marker alone saw. Measured both ways (bench/hide_sweep.py, past a
-#: limit, PiG / menache / the walk at 0.25 and 1 s): held 10 / 11, 8 / 12, 14 / 17;
-#: dropped 8 / 10, 8 / 12, 14 / 17 (the shoulders held against the fill: PiG's LSHO 1 s
-#: 155 -> 15 mm; the walk's elbows the other way, RELB from row 150 1 s 14 -> 19 mm).
+#: measures what the marker alone saw. Measured both ways (h28g, on 2882d7f, before
+#: the proximal-donor rule; bench/hide_sweep.py, past a limit, PiG / menache / the
+#: walk at 0.25 and 1 s): held 10 / 11, 8 / 12, 14 / 17; dropped 8 / 10, 8 / 12,
+#: 14 / 17 (the shoulders held against the fill: PiG's LSHO 1 s 155 -> 15 mm; the
+#: walk's elbows the other way, RELB from row 150 1 s 14 -> 19 mm).
 FILL_DROPS_HOLD = True
+
+
+@kernel
+def _on_chain(parent: np.ndarray, a: int, b: int) -> bool:
+    # bone b is bone a or one of its ancestors in the rig
+    k = a
+    while k >= 0:
+        if k == b:
+            return True
+        k = parent[k]
+    return False
 
 
 @kernel
@@ -91,8 +109,9 @@ def fill_update(m: tuple, s: tuple) -> None:
 @kernel
 def _choose_donors(m: tuple, s: tuple, i: int) -> None:
     # Marker i accepted in the last explained frame and hidden now: from the seen
-    # markers accepted in that frame too (their last positions are from it), the
-    # set rigid with it and with each other, picked greedily: each next donor the
+    # markers accepted in that frame too (their last positions are from it) on its
+    # own bone or a bone proximal to it (its ancestors in the rig), the set rigid
+    # with it and with each other, picked greedily: each next donor the
     # one whose largest distance variance, to i and to the donors already picked, is
     # smallest (a knee marker is rigid with the thigh's and with the shank's, but
     # the two are not rigid with each other). A pair counts when its distance
@@ -100,6 +119,7 @@ def _choose_donors(m: tuple, s: tuple, i: int) -> None:
     # at least the noise): a fill no better than that is no better than the model's
     # stand-in.
     params, sc, wt = m[18], s[36], m[7]
+    parent, mk_bone = m[0], m[5]
     vis, rage = s[13], s[48]
     pair, donors, ref, mem, scr = s[60], s[61], s[62], s[63], s[64]
     n = vis.shape[0]
@@ -115,6 +135,8 @@ def _choose_donors(m: tuple, s: tuple, i: int) -> None:
             if j == i or not vis[j] or wt[j] <= 0.0 or rage[j] != 0.0:
                 continue
             if pair[i, j, 2] < MIN_COVERAGE:
+                continue
+            if not _on_chain(parent, mk_bone[i], mk_bone[j]):
                 continue
             v = pair[i, j, 1]
             for k in range(nd):
