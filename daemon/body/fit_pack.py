@@ -39,7 +39,8 @@ S_KINDS: tuple[tuple[str, int], ...] = (
     ("f8", 1), ("f8", 1), ("f8", 2), ("f8", 2), ("i8", 1), ("i8", 1), ("f8", 2),
     ("f8", 2), ("f8", 2), ("f8", 2), ("b1", 1), ("b1", 1), ("f8", 2), ("f8", 1),
     ("f8", 2), ("f8", 2), ("f8", 1), ("f8", 2), ("f8", 3), ("f8", 2), ("f8", 1),
-    ("f8", 2), ("f8", 2), ("f8", 1), ("f8", 1),
+    ("f8", 2), ("f8", 2), ("f8", 1), ("f8", 1), ("f8", 3), ("i8", 2), ("f8", 3),
+    ("f8", 2), ("f8", 1),
 )  # fmt: skip
 #: (dtype, ndim) of the outputs: joint centres, world / parent / rest rotations, root,
 #: quality, flags, residuals, rejected, stats (``kernel_fit.fit_one_t``'s order).
@@ -50,7 +51,7 @@ O_KINDS: tuple[tuple[str, int], ...] = (
 ROW_S = len(M_KINDS)  #: first state row
 ROW_O = ROW_S + len(S_KINDS)  #: first output row
 N_ROWS = ROW_O + len(O_KINDS)
-if (ROW_S, ROW_O) != (26, 86):  # the literals of state_views and out_views
+if (ROW_S, ROW_O) != (26, 91):  # the literals of state_views and out_views
     raise ImportError("fit_pack: the kinds and the view functions disagree")
 
 
@@ -143,7 +144,9 @@ def state_views(f: np.ndarray, i: np.ndarray, b: np.ndarray, lay: np.ndarray) ->
         _v2(f, lay, r + 49), _v2(f, lay, r + 50), _v1(f, lay, r + 51),
         _v2(f, lay, r + 52), _v3(f, lay, r + 53), _v2(f, lay, r + 54),
         _v1(f, lay, r + 55), _v2(f, lay, r + 56), _v2(f, lay, r + 57),
-        _v1(f, lay, r + 58), _v1(f, lay, r + 59),
+        _v1(f, lay, r + 58), _v1(f, lay, r + 59), _v3(f, lay, r + 60),
+        _v2(i, lay, r + 61), _v3(f, lay, r + 62), _v2(f, lay, r + 63),
+        _v1(f, lay, r + 64),
     )  # fmt: skip
 
 
@@ -152,7 +155,7 @@ def out_views(
     f: np.ndarray, f4: np.ndarray, u1: np.ndarray, b: np.ndarray, lay: np.ndarray
 ) -> tuple:
     """The outputs (:data:`O_KINDS`) as views of a pose's buffers."""
-    r = 86  # ROW_O
+    r = 91  # ROW_O
     return (
         _v2(f, lay, r), _v2(f, lay, r + 1), _v2(f, lay, r + 2), _v2(f, lay, r + 3),
         _v1(f, lay, r + 4), _v1(f4, lay, r + 5), _v1(u1, lay, r + 6),

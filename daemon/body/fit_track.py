@@ -11,6 +11,7 @@ import math
 
 import numpy as np
 
+from retargetd.daemon.body.fit_fill import FILL_DROPS_HOLD
 from retargetd.daemon.body.fit_terms import (
     C_DT,
     C_GAP,
@@ -250,7 +251,7 @@ def hold_priors(m: tuple, s: tuple) -> None:
             for j in range(3):
                 hold[b, i, j] = 0.0
     for k in range(wt.shape[0]):
-        if wt[k] <= 0.0 or vis[k]:
+        if wt[k] <= 0.0 or vis[k] or (FILL_DROPS_HOLD and s[63][k, 4] > 0.0):
             continue
         new = rage[k] == 0.0  # accepted in the last explained frame: hidden now
         h = limb[k]
@@ -446,6 +447,8 @@ def virtual_markers(m: tuple, s: tuple) -> None:
             qv[b, j] = r[j]
     fk(parent, m[1], m[2], qv, s[1], wq, wm, o)
     for i in range(mk_bone.shape[0]):
+        if s[63][i, 4] > 0.0:  # filled from its rigid neighbours (fit_fill)
+            continue
         if vis[i] or wt[i] <= 0.0 or rage[i] == math.inf:
             virt[i] = 0.0
             continue

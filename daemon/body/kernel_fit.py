@@ -39,8 +39,9 @@ Per frame (``fit_one_t``; the rules' numbers are ``solve_fit.FitParams``):
    the performer is; later ones start from the pose predicted from the last two
    explained frames (``fit_track.predict``), with hidden markers' holds
    (``fit_track.hold_priors``) and, unless the last frame was not explained (a
-   gap: the prediction is then a held pose), virtual measurements
-   (``virtual_markers``).
+   gap: the prediction is then a held pose), virtual measurements: from the seen
+   markers that moved rigidly with a hidden one where it has them
+   (``fit_fill.rigid_fill``), else on the predicted pose (``virtual_markers``).
 3. fit ungated, then again without the markers the gate rejects (``fit_track``).
 4. suspect (residual above twice the take's own, too many rejects, the first frame
    after a gap, or a marker rejected for ``persist_s``): a second fit seeded from the
@@ -68,6 +69,7 @@ import numpy as np
 
 from retargetd.daemon.body import fit_pack
 from retargetd.daemon.body import kernel as body_kernel
+from retargetd.daemon.body.fit_fill import fill_update, rigid_fill
 from retargetd.daemon.body.fit_normal import apply_step, build_normal, solve_step
 from retargetd.daemon.body.fit_terms import (
     C_DT,
@@ -412,6 +414,9 @@ def fit_one_t(
             predict(m, s)
             known = have[0] >= 2 and sc[C_GAP] <= 1.0  # as predict decides
             continuity_weights(params, sc, sc[C_GAP], known)
+            # hidden markers with a rigid set of seen markers: placed by them
+            # (fit_fill), on the same terms as the model's stand-in below
+            rigid_fill(m, s, sc[C_GAP] <= 1.0 and have[0] >= 2)
             hold_priors(m, s)
             if sc[C_GAP] <= 1.0 and have[0] >= 2:
                 # hidden markers are measured on the prediction only when it is one:
@@ -632,6 +637,7 @@ def fit_one_t(
         else:
             rage[i] += 1.0
             rej_run[i] = rej_run[i] + 1.0 if (vis[i] and rej[i]) else 0.0
+    fill_update(m, s)
     cp2(s[41], qlast)
     cp2(s[42], tlast)
     cp2(qlast, q)

@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from retargetd.daemon.body import fit_observe, fit_pack
+from retargetd.daemon.body import fit_fill, fit_observe, fit_pack
 from retargetd.daemon.body import fit_terms as ft
 from retargetd.daemon.body import kernel_fit as kf
 from retargetd.daemon.body.calibration import Calibration, calibrate
@@ -485,6 +485,7 @@ class FitSolver:
             np.zeros(n_m, dtype=bool), np.zeros(n_m, dtype=bool), z(n_m, 3), z(n_m),
             z(n_b, 4), z(n_r, 3), z(n_m), z(self.n_stream, 3),
             z(n_b, 3, 3), z(n_b, 4), z(n_b), z(n_m, 3), z(n_m, 3), z(n_m), z(n_m),
+            *fit_fill.new_fill_state(n_m),
         )  # fmt: skip
         sbuf, srows, self._state = fit_pack.pack(state_arrays, fit_pack.S_KINDS)
         self._sf, self._si, self._sb = sbuf["f8"], sbuf["i8"], sbuf["b1"]
@@ -522,6 +523,12 @@ class FitSolver:
         self._rej_run[:] = 0.0
         self._hold_active[:] = 0.0
         self._state[58][:] = 0.0  # no misfit carried
+        for dst, src in zip(  # no pair statistics, no donors (fit_fill)
+            self._state[60:65],
+            fit_fill.new_fill_state(len(self.marker_names)),
+            strict=True,
+        ):
+            dst[...] = src
         self._prev_out[:] = 0.0
         self._have[0] = 0
         self._gate_age[:] = math.inf  # no marker has a gate reference yet

@@ -114,7 +114,9 @@ def test_a_seen_markers_pull_does_not_fall_while_a_marker_is_stood_in_for() -> N
     "deg (and the pelvis 10.5-13.0 deg with LASI or RASI hidden, new); that scale "
     "with the weight 1 / scale^2 of an M-estimator's per-observation scale 54.5 deg; "
     "max(20 mm, its running RMS) 48.1 deg; a seen marker past the scale weighted "
-    "as at its gate reference residual (weighted least squares) 53.5 deg",
+    "as at its gate reference residual (weighted least squares) 53.5 deg. With "
+    "the rigid-neighbour fill (h28g2, donors on STRN's own bone and proximal ones, "
+    "load 1.2) the same 34.1 deg: only CLAV and C7 are rigid with it on the chest",
 )
 def test_strn_hidden_a_quarter_second_keeps_the_trunk() -> None:
     """Issue 28 item 6's limits on the trunk with STRN hidden 0.25 s: no bone past
