@@ -22,12 +22,13 @@ is unchanged.
 Model: m[26] (P, 2) the pairs whose statistics are kept (:func:`chain_pairs`: only
 those the donor rule can read, a marker and one on its own bone or on a proximal or
 distal one; Plug-in Gait's 34 markers: 244 of 561 pairs). State
-(``solve_fit.FitSolver``): s[60] (M, M, 3) per pair the distance's running mean,
-variance and coverage (1 - exp(-t / tau) after t seconds seen together; zero for a
-pair not in m[26]); s[61] (M, K) each marker's donors (-1: none); s[62] (M, K + 1, 3)
-the donors' positions and the marker's own (row K) at its last accepted frame; s[63]
-(M, 5) the last accepted position (0:3), the donors' mean distance variance at the
-hide (3) and this frame's fill weight (4; 0: not filled); s[64] (48,) scratch.
+(``solve_fit.FitSolver``): s[60] (M, M, 3) per pair (in the row of its lower index;
+zero for a pair not in m[26]) the distance's running mean, variance and coverage
+(1 - exp(-t / tau) after t seconds seen together); s[61] (M, K) each marker's donors
+(-1: none); s[62] (M, K + 1, 3) the donors' positions and the marker's own (row K) at
+its last accepted frame; s[63] (M, 5) the last accepted position (0:3), the donors'
+mean distance variance at the hide (3) and this frame's fill weight (4; 0: not
+filled); s[64] (48,) scratch.
 """
 
 from __future__ import annotations
@@ -134,8 +135,12 @@ def fill_update(m: tuple, s: tuple) -> None:
         pair[i, k, 0] += b * dm
         pair[i, k, 1] = (1.0 - b) * (pair[i, k, 1] + b * dm * dm)
         pair[i, k, 2] = c
-        for e in range(3):
-            pair[k, i, e] = pair[i, k, e]
+
+
+@kernel
+def _pair(pair: np.ndarray, i: int, j: int) -> np.ndarray:
+    # a pair's statistics: kept in the row of its lower index only
+    return pair[i, j] if i < j else pair[j, i]
 
 
 @kernel
@@ -166,17 +171,17 @@ def _choose_donors(m: tuple, s: tuple, i: int) -> None:
         for j in range(n):
             if j == i or not vis[j] or wt[j] <= 0.0 or rage[j] != 0.0:
                 continue
-            if pair[i, j, 2] < MIN_COVERAGE:
+            if _pair(pair, i, j)[2] < MIN_COVERAGE:
                 continue
             if not _on_chain(parent, mk_bone[i], mk_bone[j]):
                 continue
-            v = pair[i, j, 1]
+            v = _pair(pair, i, j)[1]
             for k in range(nd):
                 d = donors[i, k]
-                if d == j or pair[j, d, 2] < MIN_COVERAGE:
+                if d == j or _pair(pair, j, d)[2] < MIN_COVERAGE:
                     v = math.inf
                 else:
-                    v = max(v, pair[j, d, 1])
+                    v = max(v, _pair(pair, j, d)[1])
             if v <= lim and v < bv:
                 best, bv = j, v
         if best < 0:
@@ -217,7 +222,7 @@ def _choose_donors(m: tuple, s: tuple, i: int) -> None:
     var = 0.0
     for k in range(nd):
         d = donors[i, k]
-        var += pair[i, d, 1] / nd
+        var += _pair(pair, i, d)[1] / nd
         for j in range(3):
             ref[i, k, j] = mem[d, j]
     for j in range(3):
@@ -255,7 +260,7 @@ def rigid_fill(m: tuple, s: tuple, known: bool) -> None:
         n2 = params[P_NOISE_M] ** 2
         for k in range(N_DONORS):
             d = donors[i, k]
-            wts[k] = 1.0 / (n2 + pair[i, d, 1]) if d >= 0 else 0.0
+            wts[k] = 1.0 / (n2 + _pair(pair, i, d)[1]) if d >= 0 else 0.0
         lay = ref[i, :N_DONORS]
         used = horn_fit(lay, meas, donors[i], vis, wts, n44, v44, q4, cen)
         if used < 3:
