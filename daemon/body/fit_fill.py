@@ -19,12 +19,16 @@ wrist and finger markers, ran 33 mm off in 0.25 s as the wrist flexed). Where no
 rigid set of donors exists the fit's model stand-in (``fit_track.virtual_markers``)
 is unchanged.
 
-State (``solve_fit.FitSolver``): s[60] (M, M, 3) per pair the distance's running mean,
-variance and coverage (1 - exp(-t / tau) after t seconds seen together); s[61] (M, K)
-each marker's donors (-1: none); s[62] (M, K + 1, 3) the donors' positions and the
-marker's own (row K) at its last accepted frame; s[63] (M, 5) the last accepted
-position (0:3), the donors' mean distance variance at the hide (3) and this frame's
-fill weight (4; 0: not filled); s[64] (48,) scratch.
+Model: m[26] (P, 2) the pairs whose statistics are kept (:func:`chain_pairs`: only
+those the donor rule can read, a marker and one on its own bone or on a proximal or
+distal one; Plug-in Gait's 34 markers: 244 of 561 pairs). State
+(``solve_fit.FitSolver``): s[60] (M, M, 3) per pair (in the row of its lower index;
+zero for a pair not in m[26]) the distance's running mean, variance and coverage
+(1 - exp(-t / tau) after t seconds seen together); s[61] (M, K) each marker's donors
+(-1: none); s[62] (M, K + 1, 3) the donors' positions and the marker's own (row K) at
+its last accepted frame; s[63] (M, 5) the last accepted position (0:3), the donors'
+mean distance variance at the hide (3) and this frame's fill weight (4; 0: not
+filled); s[64] (48,) scratch.
 """
 
 from __future__ import annotations
@@ -71,13 +75,39 @@ def _on_chain(parent: np.ndarray, a: int, b: int) -> bool:
     return False
 
 
+def chain_pairs(parent: np.ndarray, mk_bone: np.ndarray) -> np.ndarray:
+    """The marker pairs ``(i, k)``, ``i < k``, whose statistics the donor rule can
+    read (m[26]): one marker's bone is the other's or an ancestor of it. A donor is
+    on the hidden marker's chain (``_on_chain``) and so is every other donor, and
+    two bones on one chain are one the other's ancestor; no other pair is read.
+    Rows in the order of the full double loop, ``(P, 2)`` int64."""
+    chain: list[set[int]] = []  # each bone and its ancestors
+    for b in range(len(parent)):
+        up: set[int] = set()
+        k = b
+        while k >= 0:
+            up.add(k)
+            k = int(parent[k])
+        chain.append(up)
+    bone = [int(b) for b in mk_bone]
+    n = len(bone)
+    rows = [
+        (i, k)
+        for i in range(n)
+        for k in range(i + 1, n)
+        if min(bone[i], bone[k]) >= 0  # (a marker on no bone: on no chain)
+        and (bone[k] in chain[bone[i]] or bone[i] in chain[bone[k]])
+    ]
+    return np.array(rows, dtype=np.int64).reshape((len(rows), 2))
+
+
 @kernel
 def fill_update(m: tuple, s: tuple) -> None:
     """On an explained frame: each accepted marker's position, and the running
-    distance statistics of each pair accepted together."""
+    distance statistics of each chain pair (:func:`chain_pairs`) accepted together."""
     params, sc, wt = m[18], s[36], m[7]
     vis, rej, meas = s[13], s[45], s[12]
-    pair, mem = s[60], s[63]
+    pairs, pair, mem = m[26], s[60], s[63]
     tau = params[P_LEVEL_TAU_S]
     a = min(1.0, sc[C_DT] / tau) if tau > 0.0 else 1.0
     n = vis.shape[0]
@@ -86,24 +116,31 @@ def fill_update(m: tuple, s: tuple) -> None:
             continue
         for j in range(3):
             mem[i, j] = meas[i, j]
-        for k in range(i + 1, n):
-            if not vis[k] or rej[k] or wt[k] <= 0.0:
-                continue
-            dx = meas[i, 0] - meas[k, 0]
-            dy = meas[i, 1] - meas[k, 1]
-            dz = meas[i, 2] - meas[k, 2]
-            d = math.sqrt(dx * dx + dy * dy + dz * dz)
-            # exponentially weighted mean and variance, bias-corrected by the
-            # coverage (the first sample weighs 1): West, "Updating mean and
-            # variance estimates", CACM 22(9):532-535, 1979
-            c = pair[i, k, 2] + a * (1.0 - pair[i, k, 2])
-            b = a / c
-            dm = d - pair[i, k, 0]
-            pair[i, k, 0] += b * dm
-            pair[i, k, 1] = (1.0 - b) * (pair[i, k, 1] + b * dm * dm)
-            pair[i, k, 2] = c
-            for e in range(3):
-                pair[k, i, e] = pair[i, k, e]
+    for r in range(pairs.shape[0]):
+        i, k = pairs[r, 0], pairs[r, 1]
+        if not (vis[i] and vis[k]) or rej[i] or rej[k]:
+            continue
+        if wt[i] <= 0.0 or wt[k] <= 0.0:
+            continue
+        dx = meas[i, 0] - meas[k, 0]
+        dy = meas[i, 1] - meas[k, 1]
+        dz = meas[i, 2] - meas[k, 2]
+        d = math.sqrt(dx * dx + dy * dy + dz * dz)
+        # exponentially weighted mean and variance, bias-corrected by the
+        # coverage (the first sample weighs 1): West, "Updating mean and
+        # variance estimates", CACM 22(9):532-535, 1979
+        c = pair[i, k, 2] + a * (1.0 - pair[i, k, 2])
+        b = a / c
+        dm = d - pair[i, k, 0]
+        pair[i, k, 0] += b * dm
+        pair[i, k, 1] = (1.0 - b) * (pair[i, k, 1] + b * dm * dm)
+        pair[i, k, 2] = c
+
+
+@kernel
+def _pair(pair: np.ndarray, i: int, j: int) -> np.ndarray:
+    # a pair's statistics: kept in the row of its lower index only
+    return pair[i, j] if i < j else pair[j, i]
 
 
 @kernel
@@ -134,17 +171,17 @@ def _choose_donors(m: tuple, s: tuple, i: int) -> None:
         for j in range(n):
             if j == i or not vis[j] or wt[j] <= 0.0 or rage[j] != 0.0:
                 continue
-            if pair[i, j, 2] < MIN_COVERAGE:
+            if _pair(pair, i, j)[2] < MIN_COVERAGE:
                 continue
             if not _on_chain(parent, mk_bone[i], mk_bone[j]):
                 continue
-            v = pair[i, j, 1]
+            v = _pair(pair, i, j)[1]
             for k in range(nd):
                 d = donors[i, k]
-                if d == j or pair[j, d, 2] < MIN_COVERAGE:
+                if d == j or _pair(pair, j, d)[2] < MIN_COVERAGE:
                     v = math.inf
                 else:
-                    v = max(v, pair[j, d, 1])
+                    v = max(v, _pair(pair, j, d)[1])
             if v <= lim and v < bv:
                 best, bv = j, v
         if best < 0:
@@ -185,7 +222,7 @@ def _choose_donors(m: tuple, s: tuple, i: int) -> None:
     var = 0.0
     for k in range(nd):
         d = donors[i, k]
-        var += pair[i, d, 1] / nd
+        var += _pair(pair, i, d)[1] / nd
         for j in range(3):
             ref[i, k, j] = mem[d, j]
     for j in range(3):
@@ -223,7 +260,7 @@ def rigid_fill(m: tuple, s: tuple, known: bool) -> None:
         n2 = params[P_NOISE_M] ** 2
         for k in range(N_DONORS):
             d = donors[i, k]
-            wts[k] = 1.0 / (n2 + pair[i, d, 1]) if d >= 0 else 0.0
+            wts[k] = 1.0 / (n2 + _pair(pair, i, d)[1]) if d >= 0 else 0.0
         lay = ref[i, :N_DONORS]
         used = horn_fit(lay, meas, donors[i], vis, wts, n44, v44, q4, cen)
         if used < 3:

@@ -27,7 +27,7 @@ M_KINDS: tuple[tuple[str, int], ...] = (
     ("i8", 1), ("i8", 1), ("f8", 2), ("f8", 2), ("i8", 1), ("i8", 1), ("f8", 2),
     ("f8", 1), ("i8", 1), ("f8", 2), ("f8", 2), ("f8", 2), ("f8", 2), ("f8", 2),
     ("i8", 1), ("i8", 1), ("i8", 1), ("i8", 1), ("f8", 1), ("f8", 1), ("f8", 1),
-    ("f8", 3), ("f8", 2), ("f8", 2), ("f8", 2), ("i8", 1),
+    ("f8", 3), ("f8", 2), ("f8", 2), ("f8", 2), ("i8", 1), ("i8", 2),
 )  # fmt: skip
 #: (dtype, ndim) of each element of the state tuple ``s``.
 S_KINDS: tuple[tuple[str, int], ...] = (
@@ -51,7 +51,7 @@ O_KINDS: tuple[tuple[str, int], ...] = (
 ROW_S = len(M_KINDS)  #: first state row
 ROW_O = ROW_S + len(S_KINDS)  #: first output row
 N_ROWS = ROW_O + len(O_KINDS)
-if (ROW_S, ROW_O) != (26, 91):  # the literals of state_views and out_views
+if (ROW_S, ROW_O) != (27, 92):  # the literals of state_views and out_views
     raise ImportError("fit_pack: the kinds and the view functions disagree")
 
 
@@ -116,14 +116,14 @@ def model_views(f: np.ndarray, i: np.ndarray, lay: np.ndarray) -> tuple:
         _v2(f, lay, 12), _v2(f, lay, 13), _v1(i, lay, 14), _v1(i, lay, 15),
         _v1(i, lay, 16), _v1(i, lay, 17), _v1(f, lay, 18), _v1(f, lay, 19),
         _v1(f, lay, 20), _v3(f, lay, 21), _v2(f, lay, 22), _v2(f, lay, 23),
-        _v2(f, lay, 24), _v1(i, lay, 25),
+        _v2(f, lay, 24), _v1(i, lay, 25), _v2(i, lay, 26),
     )  # fmt: skip
 
 
 @kernel
 def state_views(f: np.ndarray, i: np.ndarray, b: np.ndarray, lay: np.ndarray) -> tuple:
     """The state tuple ``s`` (:data:`S_KINDS`) as views of its buffers."""
-    r = 26  # ROW_S
+    r = 27  # ROW_S
     return (
         _v2(f, lay, r), _v2(f, lay, r + 1), _v2(f, lay, r + 2), _v2(f, lay, r + 3),
         _v1(i, lay, r + 4), _v2(f, lay, r + 5), _v2(f, lay, r + 6),
@@ -155,7 +155,7 @@ def out_views(
     f: np.ndarray, f4: np.ndarray, u1: np.ndarray, b: np.ndarray, lay: np.ndarray
 ) -> tuple:
     """The outputs (:data:`O_KINDS`) as views of a pose's buffers."""
-    r = 91  # ROW_O
+    r = 92  # ROW_O
     return (
         _v2(f, lay, r), _v2(f, lay, r + 1), _v2(f, lay, r + 2), _v2(f, lay, r + 3),
         _v1(f, lay, r + 4), _v1(f4, lay, r + 5), _v1(u1, lay, r + 6),

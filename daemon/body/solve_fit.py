@@ -462,6 +462,7 @@ class FitSolver:
             model.anc_ptr, model.anc_idx, model.node_ptr, model.node_idx,
             self._params_arr, model.penalty_cos, model.twist_lock, model.prior_mat,
             model.hide_axes, model.hide_lam, model.hide_lost, model.hide_hinge,
+            fit_fill.chain_pairs(model.bone_parent, model.marker_bone),
         )  # fmt: skip
         # packed (fit_pack): the kernel gets one buffer per dtype; self._model keeps
         # the same memory as a tuple of views (for fit_many and hand-made poses)
