@@ -346,11 +346,7 @@ def retarget_solve(
         root[k], hips[k] = out.root_pos, out.hips_pos
     plant_flags = np.zeros(n_frames, dtype=np.uint32)
     if plant is not None:  # each level off the floor settled per contact, then held
-        states = plant.hold_settled(wfb, rfb, root, hips, states, rate_hz)
-        for k in range(n_frames):
-            plant_flags[k] = plant.apply(
-                wfb[k], rfb[k], root[k], hips[k], states[k], k / rate_hz
-            )
+        plant_flags = plant.plant_take(wfb, rfb, root, hips, states, rate_hz)
     arrays = {
         "target_bone_names": np.asarray(target.bone_names, dtype=str),
         "target_world_from_bone_quat": wfb,
