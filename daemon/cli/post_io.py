@@ -33,13 +33,16 @@ def add_pipeline_argument(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def add_plant_feet_argument(parser: argparse.ArgumentParser) -> None:
+def add_plant_feet_argument(
+    parser: argparse.ArgumentParser, help_text: str | None = None
+) -> None:
     """``--plant-feet`` (``[target] feet = "plant"`` offline; README "Feet that
-    plant")."""
+    plant"); ``help_text`` replaces the help of the commands that solve a take."""
     parser.add_argument(
         "--plant-feet",
         action="store_true",
-        help="map the motion onto the target skeleton (--pipeline's [target], else "
+        help=help_text
+        or "map the motion onto the target skeleton (--pipeline's [target], else "
         "the default humanoid) with the stance feet planted, as the live "
         '[target] feet = "plant" does: the root scaled by the leg-length ratio, '
         "each stance foot held where it landed by two-bone leg IK; written as the "

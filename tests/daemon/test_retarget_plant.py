@@ -1,0 +1,291 @@
+"""``retargetd retarget IN.bvh --target T.bvh --plant-feet`` (issue 34 item 2): a BVH
+take's stance feet planted on a BVH target (``cli/retarget_plant.py``,
+``retarget/bvh_legs.py``).
+
+The source: the synthetic performer's level walk (``synth/gait.py``: stance feet that
+neither slide nor sink, 8 s at 120 Hz) written as BVH from its true skeleton and
+rotations (Mixamo joint names, a toe joint at the MTP, the toe tip its End Site, the
+floor at y = 0). The targets: that hierarchy with every offset below the hip joints
+times 0.8 and 1.25 (legs 0.8x and 1.25x). Measured on the written take's forward
+kinematics with ``bench/feet_plant.py``'s measures (skate: per contact frame the
+horizontal travel of the foot's floor point that moved least, p95; sink: the lowest
+foot point below the floor; the knee's added change at the blend edges), without
+and with ``--plant-feet``; the figures are in README "Feet that plant"."""
+
+from __future__ import annotations
+
+import dataclasses
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from bench_scripts import bench_module
+
+from retargetd.daemon import rotations as rot
+from retargetd.daemon.cli.retarget_plant import plant_retarget
+from retargetd.daemon.post.plant_target import foot_points, roll_radius
+from retargetd.daemon.retarget.bvh import BVH_FROM_WORLD
+from retargetd.daemon.retarget.bvh_legs import PlantTarget, target_humanoid
+from retargetd.daemon.retarget.bvh_retarget import global_rotations, retarget_bvh
+from retargetd.daemon.synth import performer as pf
+from retargetd.daemon.synth.skeleton import make_skeleton
+from retargetd.protocols.conventions import world_from_capture_mat
+from retargetd.replay.bvh import (
+    BvhSkeleton,
+    bvh_motion,
+    bvh_skeleton,
+    read_bvh_hierarchy,
+    write_bvh,
+)
+
+RATE_HZ = 120.0
+SECONDS = 8.0
+CM = 0.01
+CLI = [sys.executable, "-m", "retargetd.daemon"]
+#: The synthetic performer's segments as Mixamo joints.
+NAMES = {
+    "pelvis": "Hips", "abdomen": "Spine", "thorax": "Spine1", "neck": "Neck",
+    "head": "Head",
+    **{f"{s[0].lower()}_{a}": f"{s}{b}" for s in ("Left", "Right") for a, b in (
+        ("clavicle", "Shoulder"), ("upper_arm", "Arm"), ("forearm", "ForeArm"),
+        ("hand", "Hand"), ("thigh", "UpLeg"), ("shank", "Leg"), ("foot", "Foot"),
+        ("toes", "ToeBase"))},
+}  # fmt: skip
+
+
+def truth_bvh(take: Any, path: Path) -> None:
+    """The synthetic take's true skeleton and rotations as BVH (Y up, cm, ZXY):
+    offsets ``100 M o``, rotations ``(w, M v)``, the root's position channels its
+    true position (``M`` world to BVH axes, ``retarget/bvh.py``)."""
+    m = np.asarray(BVH_FROM_WORLD)
+    parents = [int(p) for p in take.segment_parents]
+    offsets = 100.0 * np.asarray(take.rest_offsets) @ m.T
+    offsets[0] = 0.0
+    sk = make_skeleton(take.height_m)
+    ends = np.full((len(parents), 3), np.nan)
+    for g, p in zip(sk.sole_segments, sk.sole_points, strict=True):
+        if take.segment_names[g].endswith("toes"):
+            ends[g] = 100.0 * m @ p  # the toe tip
+    for j in range(len(parents)):
+        if j not in parents and not np.isfinite(ends[j]).all():
+            ends[j] = 0.5 * offsets[j]
+    q = np.array(take.parent_from_segment_quat, dtype=np.float64)
+    q[..., 1:] = q[..., 1:] @ m.T
+    skel = bvh_skeleton(
+        joint_names=[NAMES[n] for n in take.segment_names], parents=parents,
+        offsets=offsets, rotation_orders=["ZXY"] * len(parents), end_sites=ends,
+    )  # fmt: skip
+    ang = np.unwrap(np.degrees(rot.euler_from_quat(q, "ZXY")), period=360.0, axis=0)
+    pos = np.full_like(ang, np.nan)
+    pos[:, 0] = 100.0 * np.asarray(take.joint_pos_world)[:, 0] @ m.T
+    write_bvh(path, skel, bvh_motion(skel, ang, pos), 1.0 / take.rate_hz)
+
+
+def scaled_target(src: BvhSkeleton, k: float, toes: float = 1.0) -> BvhSkeleton:
+    """``src``'s hierarchy with every offset and End Site below the hip joints times
+    ``k`` (legs k times as long), the toes' times ``toes`` more."""
+    names = src.joint_names
+    below: set[int] = set()
+    for j, p in enumerate(src.parents):
+        if p >= 0 and (names[p].endswith("UpLeg") or p in below):
+            below.add(j)
+    off, ends = np.array(src.offsets), np.array(src.end_sites)
+    for j in below:
+        f = k * (toes if names[j].endswith("ToeBase") else 1.0)
+        off[j] *= f
+        ends[j] *= f
+    return bvh_skeleton(
+        joint_names=names, parents=src.parents, offsets=off,
+        rotation_orders=src.rotation_orders, end_sites=ends,
+    )  # fmt: skip
+
+
+def geometry(result: Any, legs: PlantTarget, floor_m: float) -> dict[str, Any]:
+    """``feet_plant.foot_geometry``'s points of a written take, read back by BVH
+    forward kinematics: world metres, the target's floor at z = 0."""
+    a = world_from_capture_mat("+Y")
+    aq = rot.quat_from_mat(a)
+    glob, pos = global_rotations(
+        dataclasses.replace(result.skeleton, frames=result.frames)
+    )
+    p = CM * pos @ a.T
+    p[..., 2] -= floor_m
+    delta = rot.quat_mul(rot.quat_mul(aq, glob), rot.quat_conj(aq))
+    heel_v, ball_v = foot_points(legs)
+    n_frames = len(p)
+    g: dict[str, Any] = {
+        k: np.zeros((n_frames, 2, 3))
+        for k in ("heel", "ball", "tip", "ankle", "under_mtp")
+    }
+    g["knee_deg"] = np.zeros((n_frames, 2))
+    for s, side in enumerate(("Left", "Right")):
+        ul, ll, ft, to = (
+            legs.index(side + b) for b in ("UpperLeg", "LowerLeg", "Foot", "Toes")
+        )
+        up = np.array([0.0, 0.0, roll_radius(legs)[s]])
+        g["ankle"][:, s] = p[:, ft]
+        g["heel"][:, s] = p[:, ft] + rot.quat_rotate(delta[:, ft], heel_v[s])
+        g["ball"][:, s] = p[:, ft] + rot.quat_rotate(delta[:, ft], ball_v[s])
+        g["under_mtp"][:, s] = (
+            p[:, ft] + rot.quat_rotate(delta[:, ft], ball_v[s] + up) - up
+        )
+        g["tip"][:, s] = p[:, to] + rot.quat_rotate(delta[:, to], legs.aim_offsets[to])
+        u, v = p[:, ll] - p[:, ul], p[:, ft] - p[:, ll]
+        cos = (
+            np.sum(u * v, -1) / np.linalg.norm(u, axis=-1) / np.linalg.norm(v, axis=-1)
+        )
+        g["knee_deg"][:, s] = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+    return g
+
+
+@pytest.fixture(scope="module")
+def walk(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Any]:
+    """The walk's BVH and the synthetic take (its truth)."""
+    take = pf.synthesize(
+        seconds=SECONDS, rate_hz=RATE_HZ, markerset="plug-in-gait",
+        motions=("level_walk",), seed=0,
+    )  # fmt: skip
+    path = tmp_path_factory.mktemp("retarget_plant") / "walk.bvh"
+    truth_bvh(take, path)
+    return path, take
+
+
+def _measure(walk: tuple[Path, Any], k: float, toes: float = 1.0) -> dict[str, Any]:
+    """Free and planted figures on legs ``k``x (toes ``toes`` more)."""
+    fp = bench_module("feet_plant")
+    src = read_bvh_hierarchy(walk[0], read_motion=True)
+    tgt = scaled_target(src, k, toes)
+    free = retarget_bvh(src, tgt)
+    pl = plant_retarget(src, tgt, free, source_m_per_unit=CM, target_m_per_unit=CM)
+    legs = PlantTarget.from_bvh(tgt, target_humanoid(src, tgt, free.mapping), CM)
+    floor_t = pl.leg_ratio * pl.floor_m  # the target's floor: k times the source's
+    gf, gp = geometry(free, legs, floor_t), geometry(pl.result, legs, floor_t)
+    contact = pl.contact
+    sink_on = contact & np.asarray(walk[1].foot_contact)
+    floor = np.zeros((len(contact), 2))
+    return {
+        "planted": pl,
+        "free": fp.skate_sink(gf, contact, floor, sink_on),
+        "plant": fp.skate_sink(gp, contact, floor, sink_on),
+        **fp.edges_and_swing(gp, gf, contact, RATE_HZ),
+        "events": fp.event_errors(contact, np.asarray(walk[1].foot_contact)),
+        "knee_free": gf["knee_deg"],
+        "knee_plant": gp["knee_deg"],
+    }
+
+
+@pytest.mark.timeout(600)
+@pytest.mark.parametrize("k", [0.8, 1.25])
+def test_planted_feet_neither_skate_nor_sink(walk: tuple[Path, Any], k: float) -> None:
+    """Legs 0.8x and 1.25x: the floor found where the truth's is (0.1 mm), the leg
+    ratio k; the stance detector's contact events within 2 frames of the truth's;
+    with ``--plant-feet`` a contact frame's skate p95 within the issue's 2 mm and
+    below the rotations alone, no foot below the floor (0.01 mm), the knee's added
+    change at the blend edges within 3 deg a frame, no frame unreached."""
+    m = _measure(walk, k)
+    pl, free, plant = m["planted"], m["free"], m["plant"]
+    print(k, "skate p95 free / plant", free["skate_frame_p95_mm"],
+          plant["skate_frame_p95_mm"], "sink", free["sink_max_mm"],
+          plant["sink_max_mm"], "knee", m["knee_added_deg"], "events",
+          m["events"].max(), "floor", pl.floor_m)  # fmt: skip
+    assert abs(pl.floor_m) < 1e-4
+    assert pl.leg_ratio == pytest.approx(k, rel=1e-9)
+    assert m["events"].size >= 20 and m["events"].max() <= 2
+    assert plant["skate_frame_p95_mm"] <= 2.0
+    assert plant["skate_frame_p95_mm"] < free["skate_frame_p95_mm"]
+    assert plant["skate_run_p95_mm"] < free["skate_run_p95_mm"]
+    assert plant["sink_max_mm"] <= 0.01
+    assert m["knee_added_deg"] <= 3.0
+    assert not pl.flags.any()
+
+
+@pytest.mark.timeout(600)
+def test_a_foot_that_cannot_reach_is_flagged(walk: tuple[Path, Any]) -> None:
+    """Toes half as long on legs 1x: rolling about a nearer MTP joint, the target's
+    ankle rises less than the performer's at heel-off, so the hold is past the
+    straight leg. Every flagged frame has a foot in contact and a planted leg
+    straighter than the unplanted one (straightened toward its hold); the
+    proportional targets above flag none."""
+    m = _measure(walk, 1.0, toes=0.5)
+    flags = m["planted"].flags != 0
+    print("unreached", flags.sum())
+    assert flags.sum() > 10
+    assert m["planted"].contact[flags].any(axis=1).all()
+    straighter = (m["knee_plant"] - m["knee_free"]).min(axis=1)
+    assert (straighter[flags] < 0.0).all()
+
+
+def _run(*argv: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [*CLI, *argv], capture_output=True, text=True, timeout=300, check=False
+    )
+
+
+@pytest.mark.timeout(600)
+def test_cli_writes_the_planted_take(walk: tuple[Path, Any], tmp_path: Path) -> None:
+    """``retarget --plant-feet`` (real files): the BVH it writes is the planted take
+    (1e-5, the file's precision), its summary line the plant's figures; ``.glb``
+    is written too."""
+    src = read_bvh_hierarchy(walk[0], read_motion=True)
+    tgt_sk = scaled_target(src, 1.25, toes=0.5)
+    target = tmp_path / "avatar.bvh"
+    write_bvh(target, tgt_sk, src.frames[:1], src.frame_time_s)
+    out = tmp_path / "out.bvh"
+    done = _run("retarget", str(walk[0]), "--target", str(target), "--out", str(out),
+                "--plant-feet")  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    tgt = read_bvh_hierarchy(target)
+    pl = plant_retarget(src, tgt, retarget_bvh(src, tgt), source_m_per_unit=CM,
+                        target_m_per_unit=CM)  # fmt: skip
+    written = read_bvh_hierarchy(out, read_motion=True)
+    assert written.frames is not None
+    np.testing.assert_allclose(written.frames, pl.result.frames, atol=1e-5)
+    line = next(x for x in done.stdout.splitlines() if x.startswith("planted feet"))
+    n = int(np.count_nonzero(pl.flags))
+    assert n > 0 and f"plant_unreached {n} frames" in line
+    assert f"leg ratio {pl.leg_ratio:.4g} " in line
+    left, right = pl.contact.sum(axis=0)
+    assert f"contact frames left {left} right {right}" in line
+    glb = tmp_path / "out.glb"
+    done = _run("retarget", str(walk[0]), "--target", str(target), "--out", str(glb),
+                "--plant-feet")  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    assert glb.stat().st_size > 0 and line in done.stdout
+
+
+@pytest.mark.parametrize(
+    ("which", "renamed", "missing"),
+    [
+        ("target", {"LeftLeg": "LeftKnee"}, "LeftLowerLeg"),
+        ("source", {"LeftFoot": "LeftAnkle", "RightUpLeg": "RightThigh"},
+         "LeftFoot, RightUpperLeg"),
+    ],
+)  # fmt: skip
+def test_cli_refuses_a_file_without_legs(
+    walk: tuple[Path, Any], tmp_path: Path, which: str, renamed: dict, missing: str
+) -> None:
+    """A source or target whose leg joints no map names: one line naming the file
+    and the joints it lacks, exit 2, nothing written; ``--root-scale`` with it
+    too (the plant sets the root's scale)."""
+    src = read_bvh_hierarchy(walk[0], read_motion=True)
+    sk = dataclasses.replace(
+        src, joint_names=tuple(renamed.get(n, n) for n in src.joint_names)
+    )
+    odd = tmp_path / f"{which}.bvh"
+    assert src.frames is not None
+    write_bvh(odd, sk, src.frames, src.frame_time_s)
+    source, target = (odd, walk[0]) if which == "source" else (walk[0], odd)
+    out = tmp_path / "out.bvh"
+    done = _run("retarget", str(source), "--target", str(target), "--out", str(out),
+                "--plant-feet")  # fmt: skip
+    assert done.returncode == 2
+    assert len(done.stderr.strip().splitlines()) == 1
+    assert f"the {which} {odd}" in done.stderr and missing in done.stderr
+    assert not out.exists()
+    done = _run("retarget", str(walk[0]), "--target", str(walk[0]), "--out",
+                str(out), "--plant-feet", "--root-scale", "1.1")  # fmt: skip
+    assert done.returncode == 2 and "--root-scale" in done.stderr
+    assert not out.exists()
