@@ -43,6 +43,10 @@ from retargetd.daemon.retarget.bvh_legs import (
 from retargetd.daemon.retarget.bvh_retarget import BvhRetarget, motion_lines
 from retargetd.replay.bvh import BvhSkeleton
 
+#: The shortest leg taken for a leg (``post/plant_target.performer_leg_m``'s bound):
+#: shorter, the file's unit is likely wrong.
+_LEG_MIN_M = 0.2
+
 
 @dataclass(frozen=True, slots=True, kw_only=True)
 class PlantedRetarget:
@@ -121,10 +125,16 @@ def plant_retarget(
     rate_hz = 1.0 / result.frame_time_s
     states = take_stance_states(rig, cal, root_s, wfb_s, rate_hz)
     legs = PlantTarget.from_bvh(target, tgt_h, target_m_per_unit)
+    units = "each file's length unit: --units, --source-units"
     try:
+        leg_t = target_leg_m(legs)
+        if not leg_t > _LEG_MIN_M:  # the plant's own bound on the performer's
+            raise ValueError(
+                f"target leg length must be > {_LEG_MIN_M} m; got {leg_t:.3f} m"
+            )
         plant = FootPlant(legs, 1.0, performer_leg_m(rig, cal))
     except ValueError as exc:
-        raise UsageError(f"--plant-feet: {exc}") from None
+        raise UsageError(f"--plant-feet: {exc} ({units})") from None
     wfb, rfb = legs.pose_world(result.parent_from_joint_quat)
     h_s = float(cal.root_rest_pos[2])  # the source root's rest height over its feet
     root = np.ascontiguousarray(root_s - np.array([0.0, 0.0, h_s]))
@@ -146,7 +156,7 @@ def plant_retarget(
         result=planted,
         leg_ratio=k,
         source_leg_m=performer_leg_m(rig, cal),
-        target_leg_m=target_leg_m(legs),
+        target_leg_m=leg_t,
         floor_m=floor,
         contact=states[:, :, CONTACT_COLUMN] != 0.0,
         flags=flags,

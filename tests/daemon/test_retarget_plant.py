@@ -289,3 +289,17 @@ def test_cli_refuses_a_file_without_legs(
                 str(out), "--plant-feet", "--root-scale", "1.1")  # fmt: skip
     assert done.returncode == 2 and "--root-scale" in done.stderr
     assert not out.exists()
+
+
+def test_cli_refuses_legs_too_short_for_their_unit(
+    walk: tuple[Path, Any], tmp_path: Path
+) -> None:
+    """Centimetre files read as millimetres: legs of 0.09 m, under the plant's
+    0.2 m; one line naming the unit options, exit 2."""
+    out = tmp_path / "out.bvh"
+    done = _run("retarget", str(walk[0]), "--target", str(walk[0]), "--out",
+                str(out), "--plant-feet", "--units", "mm")  # fmt: skip
+    assert done.returncode == 2
+    assert len(done.stderr.strip().splitlines()) == 1
+    assert "leg length must be > 0.2 m" in done.stderr and "--units" in done.stderr
+    assert not out.exists()
