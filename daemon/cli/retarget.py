@@ -165,6 +165,8 @@ def run(args: argparse.Namespace) -> int:
     limit = args.pivot_limit_deg
     if not (math.isfinite(limit) and 0.0 < limit <= 180.0):
         raise UsageError(f"--pivot-limit-deg: expected (0, 180]; got {limit}")
+    if args.source_units is not None and not args.plant_feet:
+        raise UsageError("--source-units applies to --plant-feet")
     if args.plant_feet and args.root_scale is not None:
         raise UsageError(
             "--root-scale and --plant-feet: the plant scales the root by the leg "

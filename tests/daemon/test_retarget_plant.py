@@ -153,10 +153,25 @@ def walk(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Any]:
     return path, take
 
 
-def _measure(walk: tuple[Path, Any], k: float, toes: float = 1.0) -> dict[str, Any]:
-    """Free and planted figures on legs ``k``x (toes ``toes`` more)."""
+def _raised(path: Path, up_cm: float) -> Path:
+    """A copy of the BVH take with its root (and so its floor) ``up_cm`` higher."""
+    src = read_bvh_hierarchy(path, read_motion=True)
+    assert src.frames is not None and src.channels[0][1] == "Yposition"
+    frames = np.array(src.frames)
+    frames[:, 1] += up_cm
+    out = path.with_name(f"{path.stem}_up{up_cm:g}.bvh")
+    write_bvh(out, src, frames, src.frame_time_s)
+    return out
+
+
+def _measure(
+    walk: tuple[Path, Any], k: float, toes: float = 1.0, up_cm: float = 0.0
+) -> dict[str, Any]:
+    """Free and planted figures on legs ``k``x (toes ``toes`` more), the take's
+    floor ``up_cm`` above the file's origin."""
     fp = bench_module("feet_plant")
-    src = read_bvh_hierarchy(walk[0], read_motion=True)
+    path = _raised(walk[0], up_cm) if up_cm else walk[0]
+    src = read_bvh_hierarchy(path, read_motion=True)
     tgt = scaled_target(src, k, toes)
     free = retarget_bvh(src, tgt)
     pl = plant_retarget(src, tgt, free, source_m_per_unit=CM, target_m_per_unit=CM)
@@ -178,20 +193,23 @@ def _measure(walk: tuple[Path, Any], k: float, toes: float = 1.0) -> dict[str, A
 
 
 @pytest.mark.timeout(600)
-@pytest.mark.parametrize("k", [0.8, 1.25])
-def test_planted_feet_neither_skate_nor_sink(walk: tuple[Path, Any], k: float) -> None:
-    """Legs 0.8x and 1.25x: the floor found where the truth's is (0.1 mm), the leg
-    ratio k; the stance detector's contact events within 2 frames of the truth's;
-    with ``--plant-feet`` a contact frame's skate p95 within the issue's 2 mm and
-    below the rotations alone, no foot below the floor (0.01 mm), the knee's added
-    change at the blend edges within 3 deg a frame, no frame unreached."""
-    m = _measure(walk, k)
+@pytest.mark.parametrize(("k", "up_cm"), [(0.8, 0.0), (1.25, 0.0), (1.25, 10.0)])
+def test_planted_feet_neither_skate_nor_sink(
+    walk: tuple[Path, Any], k: float, up_cm: float
+) -> None:
+    """Legs 0.8x and 1.25x: the floor found where the truth's is (0.1 mm; also with
+    the take raised 10 cm, the target's floor then k times as high), the leg ratio
+    k; the stance detector's contact events within 2 frames of the truth's; with
+    ``--plant-feet`` a contact frame's skate p95 within the issue's 2 mm and below
+    the rotations alone, no foot below the floor (0.01 mm), the knee's added change
+    at the blend edges within 3 deg a frame, no frame unreached."""
+    m = _measure(walk, k, up_cm=up_cm)
     pl, free, plant = m["planted"], m["free"], m["plant"]
     print(k, "skate p95 free / plant", free["skate_frame_p95_mm"],
           plant["skate_frame_p95_mm"], "sink", free["sink_max_mm"],
           plant["sink_max_mm"], "knee", m["knee_added_deg"], "events",
           m["events"].max(), "floor", pl.floor_m)  # fmt: skip
-    assert abs(pl.floor_m) < 1e-4
+    assert abs(pl.floor_m - up_cm * CM) < 1e-4
     assert pl.leg_ratio == pytest.approx(k, rel=1e-9)
     assert m["events"].size >= 20 and m["events"].max() <= 2
     assert plant["skate_frame_p95_mm"] <= 2.0
@@ -295,11 +313,16 @@ def test_cli_refuses_legs_too_short_for_their_unit(
     walk: tuple[Path, Any], tmp_path: Path
 ) -> None:
     """Centimetre files read as millimetres: legs of 0.09 m, under the plant's
-    0.2 m; one line naming the unit options, exit 2."""
+    0.2 m; one line naming the unit options, exit 2. ``--source-units`` without
+    ``--plant-feet`` is refused (it applies to nothing else)."""
     out = tmp_path / "out.bvh"
     done = _run("retarget", str(walk[0]), "--target", str(walk[0]), "--out",
                 str(out), "--plant-feet", "--units", "mm")  # fmt: skip
     assert done.returncode == 2
     assert len(done.stderr.strip().splitlines()) == 1
     assert "leg length must be > 0.2 m" in done.stderr and "--units" in done.stderr
+    assert not out.exists()
+    done = _run("retarget", str(walk[0]), "--target", str(walk[0]), "--out",
+                str(out), "--source-units", "mm")  # fmt: skip
+    assert done.returncode == 2 and "--source-units" in done.stderr
     assert not out.exists()
