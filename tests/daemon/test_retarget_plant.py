@@ -326,3 +326,42 @@ def test_cli_refuses_legs_too_short_for_their_unit(
                 str(out), "--source-units", "mm")  # fmt: skip
     assert done.returncode == 2 and "--source-units" in done.stderr
     assert not out.exists()
+
+
+def test_target_legs_named_by_the_joint_map(
+    walk: tuple[Path, Any], tmp_path: Path
+) -> None:
+    """A target whose leg joints no name map knows (``thigh_l`` ...), mapped from
+    the source's by ``--map``: its legs are the joints the map drives, planted as
+    the same skeleton with Mixamo names is (the same motion lines, 1e-9)."""
+    src = read_bvh_hierarchy(walk[0], read_motion=True)
+    named = scaled_target(src, 1.25)
+    odd_names = {
+        f"{s}{b}": f"{b.lower()}_{s[0].lower()}"
+        for s in ("Left", "Right")
+        for b in ("UpLeg", "Leg", "Foot", "ToeBase")
+    }
+    odd = dataclasses.replace(
+        named, joint_names=tuple(odd_names.get(n, n) for n in named.joint_names)
+    )
+    table = tmp_path / "map.toml"
+    table.write_text(
+        "[joints]\n" + "".join(f'"{a}" = "{b}"\n' for a, b in odd_names.items())
+    )
+    pl = {}
+    for name, sk, joint_map in (("named", named, None), ("odd", odd, odd_names)):
+        free = retarget_bvh(src, sk, name_map=joint_map)
+        pl[name] = plant_retarget(
+            src, sk, free, source_m_per_unit=CM, target_m_per_unit=CM
+        )
+    assert pl["named"].leg_ratio == pytest.approx(1.25)
+    np.testing.assert_allclose(
+        pl["odd"].result.frames, pl["named"].result.frames, atol=1e-9
+    )
+    target = tmp_path / "odd.bvh"
+    write_bvh(target, odd, src.frames[:1], src.frame_time_s)
+    out = tmp_path / "o.bvh"
+    done = _run("retarget", str(walk[0]), "--target", str(target), "--map",
+                str(table), "--out", str(out), "--plant-feet")  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    assert "planted feet: leg ratio 1.25 " in done.stdout
