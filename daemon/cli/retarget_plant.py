@@ -27,7 +27,11 @@ import numpy as np
 from retargetd.daemon import rotations as rot
 from retargetd.daemon.errors import UsageError
 from retargetd.daemon.post.plant import FootPlant
-from retargetd.daemon.post.plant_target import performer_leg_m, target_leg_m
+from retargetd.daemon.post.plant_target import (
+    LEG_MIN_M,
+    performer_leg_m,
+    target_leg_m,
+)
 from retargetd.daemon.post.stance import CONTACT_COLUMN, take_stance_states
 from retargetd.daemon.retarget.bvh_legs import (
     SOURCE_LEGS,
@@ -42,10 +46,6 @@ from retargetd.daemon.retarget.bvh_legs import (
 )
 from retargetd.daemon.retarget.bvh_retarget import BvhRetarget, motion_lines
 from retargetd.replay.bvh import BvhSkeleton
-
-#: The shortest leg taken for a leg (``post/plant_target.performer_leg_m``'s bound):
-#: shorter, the file's unit is likely wrong.
-_LEG_MIN_M = 0.2
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -128,9 +128,9 @@ def plant_retarget(
     units = "each file's length unit: --units, --source-units"
     try:
         leg_t = target_leg_m(legs)
-        if not leg_t > _LEG_MIN_M:  # the plant's own bound on the performer's
+        if not leg_t > LEG_MIN_M:  # the plant's own bound on the performer's
             raise ValueError(
-                f"target leg length must be > {_LEG_MIN_M} m; got {leg_t:.3f} m"
+                f"target leg length must be > {LEG_MIN_M} m; got {leg_t:.3f} m"
             )
         plant = FootPlant(legs, 1.0, performer_leg_m(rig, cal))
     except ValueError as exc:
