@@ -4,13 +4,14 @@ take's stance feet planted on a BVH target (``cli/retarget_plant.py``,
 
 The source: the synthetic performer's level walk (``synth/gait.py``: stance feet that
 neither slide nor sink, 8 s at 120 Hz) written as BVH from its true skeleton and
-rotations (Mixamo joint names, a toe joint at the MTP, the toe tip its End Site, the
-floor at y = 0). The targets: that hierarchy with every offset below the hip joints
-times 0.8 and 1.25 (legs 0.8x and 1.25x). Measured on the written take's forward
-kinematics with ``bench/feet_plant.py``'s measures (skate: per contact frame the
-horizontal travel of the foot's floor point that moved least, p95; sink: the lowest
-foot point below the floor; the knee's added change at the blend edges), without
-and with ``--plant-feet``; the figures are in README "Feet that plant"."""
+rotations (``bench/feet_plant_bvh.py`` ``truth_bvh``: Mixamo joint names, a toe joint
+at the MTP, the toe tip its End Site, the floor at y = 0). The targets: that
+hierarchy with every offset below the hip joints times 0.8 and 1.25 (legs 0.8x and
+1.25x). Measured on the written take's forward kinematics with
+``bench/feet_plant_bvh.py``'s ``measure`` (``bench/feet_plant.py``'s measures: skate,
+per contact frame the horizontal travel of the foot's floor point that moved least,
+p95; sink, the lowest foot point below the floor; the knee's added change at the
+blend edges), without and with ``--plant-feet``; the table is in ``docs/feet.md``."""
 
 from __future__ import annotations
 
@@ -24,19 +25,10 @@ import numpy as np
 import pytest
 from bench_scripts import bench_module
 
-from retargetd.daemon import rotations as rot
 from retargetd.daemon.cli.retarget_plant import plant_retarget
-from retargetd.daemon.post.plant_target import foot_points, roll_radius
-from retargetd.daemon.retarget.bvh import BVH_FROM_WORLD
-from retargetd.daemon.retarget.bvh_legs import PlantTarget, target_humanoid
-from retargetd.daemon.retarget.bvh_retarget import global_rotations, retarget_bvh
+from retargetd.daemon.retarget.bvh_retarget import retarget_bvh
 from retargetd.daemon.synth import performer as pf
-from retargetd.daemon.synth.skeleton import make_skeleton
-from retargetd.protocols.conventions import world_from_capture_mat
 from retargetd.replay.bvh import (
-    BvhSkeleton,
-    bvh_motion,
-    bvh_skeleton,
     read_bvh_hierarchy,
     write_bvh,
 )
@@ -45,100 +37,6 @@ RATE_HZ = 120.0
 SECONDS = 8.0
 CM = 0.01
 CLI = [sys.executable, "-m", "retargetd.daemon"]
-#: The synthetic performer's segments as Mixamo joints.
-NAMES = {
-    "pelvis": "Hips", "abdomen": "Spine", "thorax": "Spine1", "neck": "Neck",
-    "head": "Head",
-    **{f"{s[0].lower()}_{a}": f"{s}{b}" for s in ("Left", "Right") for a, b in (
-        ("clavicle", "Shoulder"), ("upper_arm", "Arm"), ("forearm", "ForeArm"),
-        ("hand", "Hand"), ("thigh", "UpLeg"), ("shank", "Leg"), ("foot", "Foot"),
-        ("toes", "ToeBase"))},
-}  # fmt: skip
-
-
-def truth_bvh(take: Any, path: Path) -> None:
-    """The synthetic take's true skeleton and rotations as BVH (Y up, cm, ZXY):
-    offsets ``100 M o``, rotations ``(w, M v)``, the root's position channels its
-    true position (``M`` world to BVH axes, ``retarget/bvh.py``)."""
-    m = np.asarray(BVH_FROM_WORLD)
-    parents = [int(p) for p in take.segment_parents]
-    offsets = 100.0 * np.asarray(take.rest_offsets) @ m.T
-    offsets[0] = 0.0
-    sk = make_skeleton(take.height_m)
-    ends = np.full((len(parents), 3), np.nan)
-    for g, p in zip(sk.sole_segments, sk.sole_points, strict=True):
-        if take.segment_names[g].endswith("toes"):
-            ends[g] = 100.0 * m @ p  # the toe tip
-    for j in range(len(parents)):
-        if j not in parents and not np.isfinite(ends[j]).all():
-            ends[j] = 0.5 * offsets[j]
-    q = np.array(take.parent_from_segment_quat, dtype=np.float64)
-    q[..., 1:] = q[..., 1:] @ m.T
-    skel = bvh_skeleton(
-        joint_names=[NAMES[n] for n in take.segment_names], parents=parents,
-        offsets=offsets, rotation_orders=["ZXY"] * len(parents), end_sites=ends,
-    )  # fmt: skip
-    ang = np.unwrap(np.degrees(rot.euler_from_quat(q, "ZXY")), period=360.0, axis=0)
-    pos = np.full_like(ang, np.nan)
-    pos[:, 0] = 100.0 * np.asarray(take.joint_pos_world)[:, 0] @ m.T
-    write_bvh(path, skel, bvh_motion(skel, ang, pos), 1.0 / take.rate_hz)
-
-
-def scaled_target(src: BvhSkeleton, k: float, toes: float = 1.0) -> BvhSkeleton:
-    """``src``'s hierarchy with every offset and End Site below the hip joints times
-    ``k`` (legs k times as long), the toes' times ``toes`` more."""
-    names = src.joint_names
-    below: set[int] = set()
-    for j, p in enumerate(src.parents):
-        if p >= 0 and (names[p].endswith("UpLeg") or p in below):
-            below.add(j)
-    off, ends = np.array(src.offsets), np.array(src.end_sites)
-    for j in below:
-        f = k * (toes if names[j].endswith("ToeBase") else 1.0)
-        off[j] *= f
-        ends[j] *= f
-    return bvh_skeleton(
-        joint_names=names, parents=src.parents, offsets=off,
-        rotation_orders=src.rotation_orders, end_sites=ends,
-    )  # fmt: skip
-
-
-def geometry(result: Any, legs: PlantTarget, floor_m: float) -> dict[str, Any]:
-    """``feet_plant.foot_geometry``'s points of a written take, read back by BVH
-    forward kinematics: world metres, the target's floor at z = 0."""
-    a = world_from_capture_mat("+Y")
-    aq = rot.quat_from_mat(a)
-    glob, pos = global_rotations(
-        dataclasses.replace(result.skeleton, frames=result.frames)
-    )
-    p = CM * pos @ a.T
-    p[..., 2] -= floor_m
-    delta = rot.quat_mul(rot.quat_mul(aq, glob), rot.quat_conj(aq))
-    heel_v, ball_v = foot_points(legs)
-    n_frames = len(p)
-    g: dict[str, Any] = {
-        k: np.zeros((n_frames, 2, 3))
-        for k in ("heel", "ball", "tip", "ankle", "under_mtp")
-    }
-    g["knee_deg"] = np.zeros((n_frames, 2))
-    for s, side in enumerate(("Left", "Right")):
-        ul, ll, ft, to = (
-            legs.index(side + b) for b in ("UpperLeg", "LowerLeg", "Foot", "Toes")
-        )
-        up = np.array([0.0, 0.0, roll_radius(legs)[s]])
-        g["ankle"][:, s] = p[:, ft]
-        g["heel"][:, s] = p[:, ft] + rot.quat_rotate(delta[:, ft], heel_v[s])
-        g["ball"][:, s] = p[:, ft] + rot.quat_rotate(delta[:, ft], ball_v[s])
-        g["under_mtp"][:, s] = (
-            p[:, ft] + rot.quat_rotate(delta[:, ft], ball_v[s] + up) - up
-        )
-        g["tip"][:, s] = p[:, to] + rot.quat_rotate(delta[:, to], legs.aim_offsets[to])
-        u, v = p[:, ll] - p[:, ul], p[:, ft] - p[:, ll]
-        cos = (
-            np.sum(u * v, -1) / np.linalg.norm(u, axis=-1) / np.linalg.norm(v, axis=-1)
-        )
-        g["knee_deg"][:, s] = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
-    return g
 
 
 @pytest.fixture(scope="module")
@@ -149,47 +47,18 @@ def walk(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Any]:
         motions=("level_walk",), seed=0,
     )  # fmt: skip
     path = tmp_path_factory.mktemp("retarget_plant") / "walk.bvh"
-    truth_bvh(take, path)
+    bench_module("feet_plant_bvh").truth_bvh(take, path)
     return path, take
-
-
-def _raised(path: Path, up_cm: float) -> Path:
-    """A copy of the BVH take with its root (and so its floor) ``up_cm`` higher."""
-    src = read_bvh_hierarchy(path, read_motion=True)
-    assert src.frames is not None and src.channels[0][1] == "Yposition"
-    frames = np.array(src.frames)
-    frames[:, 1] += up_cm
-    out = path.with_name(f"{path.stem}_up{up_cm:g}.bvh")
-    write_bvh(out, src, frames, src.frame_time_s)
-    return out
 
 
 def _measure(
     walk: tuple[Path, Any], k: float, toes: float = 1.0, up_cm: float = 0.0
 ) -> dict[str, Any]:
-    """Free and planted figures on legs ``k``x (toes ``toes`` more), the take's
+    """``feet_plant_bvh.measure`` on legs ``k``x (toes ``toes`` more), the take's
     floor ``up_cm`` above the file's origin."""
-    fp = bench_module("feet_plant")
-    path = _raised(walk[0], up_cm) if up_cm else walk[0]
-    src = read_bvh_hierarchy(path, read_motion=True)
-    tgt = scaled_target(src, k, toes)
-    free = retarget_bvh(src, tgt)
-    pl = plant_retarget(src, tgt, free, source_m_per_unit=CM, target_m_per_unit=CM)
-    legs = PlantTarget.from_bvh(tgt, target_humanoid(src, tgt, free.mapping), CM)
-    floor_t = pl.leg_ratio * pl.floor_m  # the target's floor: k times the source's
-    gf, gp = geometry(free, legs, floor_t), geometry(pl.result, legs, floor_t)
-    contact = pl.contact
-    sink_on = contact & np.asarray(walk[1].foot_contact)
-    floor = np.zeros((len(contact), 2))
-    return {
-        "planted": pl,
-        "free": fp.skate_sink(gf, contact, floor, sink_on),
-        "plant": fp.skate_sink(gp, contact, floor, sink_on),
-        **fp.edges_and_swing(gp, gf, contact, RATE_HZ),
-        "events": fp.event_errors(contact, np.asarray(walk[1].foot_contact)),
-        "knee_free": gf["knee_deg"],
-        "knee_plant": gp["knee_deg"],
-    }
+    fb = bench_module("feet_plant_bvh")
+    path = fb.raised(walk[0], up_cm) if up_cm else walk[0]
+    return fb.measure(path, walk[1], k, toes, truth_floor_m=up_cm * CM)
 
 
 @pytest.mark.timeout(600)
@@ -248,7 +117,7 @@ def test_cli_writes_the_planted_take(walk: tuple[Path, Any], tmp_path: Path) -> 
     (1e-5, the file's precision), its summary line the plant's figures; ``.glb``
     is written too."""
     src = read_bvh_hierarchy(walk[0], read_motion=True)
-    tgt_sk = scaled_target(src, 1.25, toes=0.5)
+    tgt_sk = bench_module("feet_plant_bvh").scaled_target(src, 1.25, toes=0.5)
     target = tmp_path / "avatar.bvh"
     write_bvh(target, tgt_sk, src.frames[:1], src.frame_time_s)
     out = tmp_path / "out.bvh"
@@ -335,7 +204,7 @@ def test_target_legs_named_by_the_joint_map(
     the source's by ``--map``: its legs are the joints the map drives, planted as
     the same skeleton with Mixamo names is (the same motion lines, 1e-9)."""
     src = read_bvh_hierarchy(walk[0], read_motion=True)
-    named = scaled_target(src, 1.25)
+    named = bench_module("feet_plant_bvh").scaled_target(src, 1.25)
     odd_names = {
         f"{s}{b}": f"{b.lower()}_{s[0].lower()}"
         for s in ("Left", "Right")
