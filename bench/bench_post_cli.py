@@ -1,5 +1,6 @@
 """Offline post-command benchmark: what ``solve --pipeline``, ``--out take.csv``,
-``--out take.glb``, ``reduce``, ``blend``, ``loop`` and ``retarget`` cost on a real
+``--out take.glb``, ``reduce``, ``blend``, ``loop`` and ``retarget`` (also with
+``--plant-feet``) cost on a real
 take, beside solving it.
 
 Run from the repository root::
@@ -30,6 +31,7 @@ from retargetd.daemon.body.calibration import calibrate
 from retargetd.daemon.body.rig import load_rig
 from retargetd.daemon.body.solve import BodySolver
 from retargetd.daemon.cli.post_io import apply_pipeline_to_solve, write_clip
+from retargetd.daemon.cli.retarget_plant import plant_retarget
 from retargetd.daemon.post.export_gltf import (
     clip_from_solve,
     write_clip_glb,
@@ -107,6 +109,9 @@ def main() -> None:
                 str(d / "l.npz"), loop(cut, 10)[0], cal)),
             ("retarget BVH -> BVH (same skel.)", lambda: retarget_bvh(
                 src_bvh, src_bvh)),
+            ("retarget --plant-feet (same skel.)", lambda: plant_retarget(
+                src_bvh, src_bvh, retarget_bvh(src_bvh, src_bvh),
+                source_m_per_unit=0.01, target_m_per_unit=0.01)),
         ]  # fmt: skip
         rows = [(name, _time(fn, args.repeats)) for name, fn in steps]
     base = float(np.median(rows[0][1]))

@@ -603,13 +603,14 @@ def main(argv: list[str] | None = None) -> int:
         f"--seconds {args.seconds:g} --rate {args.rate:g}`)",
     ]
     if args.out is not None:
-        _write(args.out, "\n".join(lines) + "\n")
+        write_between(args.out, "\n".join(lines) + "\n", "feet_plant.py")
     return 0
 
 
-def _write(path: Path, table: str) -> None:
-    """Replace the generated part of ``path`` (between the markers), else write it."""
-    start, end = "<!-- feet_plant.py: begin -->", "<!-- feet_plant.py: end -->"
+def write_between(path: Path, table: str, script: str) -> None:
+    """Replace the part of ``path`` that ``script`` generated (between its markers),
+    else append it."""
+    start, end = f"<!-- {script}: begin -->", f"<!-- {script}: end -->"
     text = path.read_text(encoding="utf-8") if path.exists() else ""
     if start in text and end in text:
         head, rest = text.split(start, 1)

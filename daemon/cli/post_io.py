@@ -33,13 +33,16 @@ def add_pipeline_argument(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def add_plant_feet_argument(parser: argparse.ArgumentParser) -> None:
+def add_plant_feet_argument(
+    parser: argparse.ArgumentParser, help_text: str | None = None
+) -> None:
     """``--plant-feet`` (``[target] feet = "plant"`` offline; README "Feet that
-    plant")."""
+    plant"); ``help_text`` replaces the help of the commands that solve a take."""
     parser.add_argument(
         "--plant-feet",
         action="store_true",
-        help="map the motion onto the target skeleton (--pipeline's [target], else "
+        help=help_text
+        or "map the motion onto the target skeleton (--pipeline's [target], else "
         "the default humanoid) with the stance feet planted, as the live "
         '[target] feet = "plant" does: the root scaled by the leg-length ratio, '
         "each stance foot held where it landed by two-bone leg IK; written as the "
@@ -346,11 +349,7 @@ def retarget_solve(
         root[k], hips[k] = out.root_pos, out.hips_pos
     plant_flags = np.zeros(n_frames, dtype=np.uint32)
     if plant is not None:  # each level off the floor settled per contact, then held
-        states = plant.hold_settled(wfb, rfb, root, hips, states, rate_hz)
-        for k in range(n_frames):
-            plant_flags[k] = plant.apply(
-                wfb[k], rfb[k], root[k], hips[k], states[k], k / rate_hz
-            )
+        plant_flags = plant.plant_take(wfb, rfb, root, hips, states, rate_hz)
     arrays = {
         "target_bone_names": np.asarray(target.bone_names, dtype=str),
         "target_world_from_bone_quat": wfb,

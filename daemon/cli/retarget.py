@@ -1,7 +1,7 @@
 """``retargetd retarget IN.bvh --target TARGET.bvh --out OUT.bvh|OUT.glb
-[--map FILE.toml] [--root-scale X] [--spread [equal|pivot]] [--pivot-limit-deg 15]
-[--units cm]``: map a BVH take onto
-another skeleton (rotational data in, the chapter's first section).
+[--map FILE.toml] [--root-scale X] [--spread [equal|pivot|hermite]]
+[--pivot-limit-deg 15] [--units cm] [--source-units U] [--plant-feet]``: map a BVH
+take onto another skeleton (rotational data in, the chapter's first section).
 
 Joints are matched by ``--map`` first (a ``[joints]`` table, ``"source joint" =
 "target joint"``), then by equal names (ignoring a ``prefix:``), then through the
@@ -27,6 +27,21 @@ equally (other chains spread equally). See ``retargetd.daemon.retarget.bvh_retar
 bind matrices at its rest pose; ``--units``: the BVH length unit, default cm, for
 glTF's metres), every frame as a LINEAR key on the joints; ``--glb-mesh capsules``
 adds a capsule per joint-to-child segment.
+
+``--plant-feet``: the stance feet held where they landed on the target (README "Feet
+that plant"). The source's stance comes from its foot and toe joints (the stance
+detector of ``solve``, its thresholds unchanged, the source's rest pose taken as
+standing on the floor and the floor as the lowest its heels come over the take); the
+root's height and travel are scaled by the target's leg length over the source's (the
+UpperLeg joints' height over the lowest foot point at rest); each stance foot is held
+by two-bone IK on the target's UpperLeg, LowerLeg and Foot joints (those the joint map
+drives from the source's legs, else named so), blended in and out. Both files' lengths
+in ``--units`` (``--source-units`` for the source's when it differs): the thresholds
+are metric. BVH and glTF hold no per-frame flags, so a line ``planted feet: ...``
+gives the leg ratio, the floor, the contact frames and the frames flagged
+``plant_unreached`` (a foot its leg could not reach; their runs, 0-based, half-open). A
+file without identifiable legs is refused (exit 2); ``--root-scale`` is refused with
+it (the plant sets the root's scale).
 """
 
 from __future__ import annotations
@@ -93,7 +108,23 @@ def add_parser(subparsers: Any) -> None:
         "--units",
         default="cm",
         choices=sorted(M_PER_UNIT),
-        help="the BVH length unit, for .glb metres (default cm)",
+        help="the BVH length unit (the target's; the source's too unless "
+        "--source-units), for .glb metres and --plant-feet (default cm)",
+    )
+    parser.add_argument(
+        "--source-units",
+        choices=sorted(M_PER_UNIT),
+        help="--plant-feet: the source BVH's length unit when it is not --units'",
+    )
+    from retargetd.daemon.cli.post_io import add_plant_feet_argument
+
+    add_plant_feet_argument(
+        parser,
+        "hold the stance feet where they landed on the target: stance detected on "
+        "the source's foot and toe joints, the root's height and travel scaled by "
+        "the target's leg length over the source's, two-bone IK on the target's "
+        "legs; prints the frames flagged plant_unreached (a foot that could not "
+        "reach its hold)",
     )
     parser.set_defaults(run=run)
 
@@ -134,6 +165,13 @@ def run(args: argparse.Namespace) -> int:
     limit = args.pivot_limit_deg
     if not (math.isfinite(limit) and 0.0 < limit <= 180.0):
         raise UsageError(f"--pivot-limit-deg: expected (0, 180]; got {limit}")
+    if args.source_units is not None and not args.plant_feet:
+        raise UsageError("--source-units applies to --plant-feet")
+    if args.plant_feet and args.root_scale is not None:
+        raise UsageError(
+            "--root-scale and --plant-feet: the plant scales the root by the leg "
+            "length ratio"
+        )
     distribute = None
     if args.spread == "pivot":
         from retargetd.daemon.post.pivot import pivot_chains
@@ -160,6 +198,16 @@ def run(args: argparse.Namespace) -> int:
         )
     except ValueError as exc:
         raise UsageError(str(exc)) from None
+    planted = None
+    if args.plant_feet:
+        from retargetd.daemon.cli.retarget_plant import plant_retarget
+
+        planted = plant_retarget(
+            source, target, result,
+            source_m_per_unit=M_PER_UNIT[args.source_units or args.units],
+            target_m_per_unit=M_PER_UNIT[args.units],
+        )  # fmt: skip
+        result = planted.result
     if suffix == "bvh":
         write_bvh(args.out, result.skeleton, result.frames, result.frame_time_s)
     else:
@@ -180,6 +228,10 @@ def run(args: argparse.Namespace) -> int:
     )
     w("mapped: " + " ".join(mapped) + "\n")
     w("unmapped (keep their rest): " + (" ".join(unmapped) or "none") + "\n")
+    if planted is not None:
+        from retargetd.daemon.cli.retarget_plant import summary_line
+
+        w(summary_line(planted) + "\n")
     if result.spine:
         inner = " ".join(target.joint_names[j] for j in result.spine[1:-1])
         w(f"on the Hermite spine curve: {inner}\n")

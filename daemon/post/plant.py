@@ -639,6 +639,43 @@ class FootPlant:
             stance_states, level / self.leg_ratio, CONTACT_COLUMN, SUPPORT_COLUMN
         )
 
+    def plant_take(
+        self,
+        world_from_bone_quat: F64Array,
+        rest_from_bone_quat: F64Array,
+        root_pos: F64Array,
+        hips_pos: F64Array,
+        stance_states: F64Array,
+        rate_hz: float,
+    ) -> np.ndarray:
+        """Offline, a whole retargeted take planted in place: each contact's level
+        settled first (:meth:`hold_settled`), then :meth:`apply` frame by frame at
+        ``t = frame / rate_hz`` (``solve --plant-feet``, ``retarget --plant-feet``).
+
+        Args:
+            world_from_bone_quat, rest_from_bone_quat: (T, N, 4) the target poses'
+                ``G`` and ``L``, rewritten on the legs.
+            root_pos, hips_pos: (T, 3) the target's root and Hips, rescaled.
+            stance_states: (T, 2, C) the stance detector's state per frame
+                (:func:`~retargetd.daemon.post.stance.take_stance_states`).
+            rate_hz: the take's frame rate.
+
+        Returns:
+            (T,) uint32: ``FRAME_PLANT_UNREACHED`` where a foot could not reach its
+            hold, else 0.
+        """
+        states = self.hold_settled(
+            world_from_bone_quat, rest_from_bone_quat, root_pos, hips_pos,
+            stance_states, rate_hz,
+        )  # fmt: skip
+        flags = np.zeros(len(root_pos), dtype=np.uint32)
+        for k in range(len(root_pos)):
+            flags[k] = self.apply(
+                world_from_bone_quat[k], rest_from_bone_quat[k], root_pos[k],
+                hips_pos[k], states[k], k / rate_hz,
+            )  # fmt: skip
+        return flags
+
     def apply(
         self,
         world_from_bone_quat: F64Array,

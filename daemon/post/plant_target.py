@@ -13,6 +13,9 @@ from retargetd.daemon.body.rig import Rig
 from retargetd.protocols.frames import F64Array
 
 _SIDES = ("Left", "Right")
+#: The shortest leg taken for a leg, metres: shorter, the calibration (or a BVH's
+#: unit) is wrong.
+LEG_MIN_M = 0.2
 
 
 def performer_leg_m(rig: Rig, calibration: Calibration) -> float:
@@ -34,8 +37,10 @@ def performer_leg_m(rig: Rig, calibration: Calibration) -> float:
         )
     z = [float(np.asarray(origins)[names.index(str(b)), 2]) for b in legs]
     leg = 0.5 * (z[0] + z[1])
-    if not leg > 0.2:
-        raise ValueError(f"performer leg length must be > 0.2 m; got {leg:.3f} m")
+    if not leg > LEG_MIN_M:
+        raise ValueError(
+            f"performer leg length must be > {LEG_MIN_M} m; got {leg:.3f} m"
+        )
     return leg
 
 

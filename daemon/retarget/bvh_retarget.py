@@ -479,27 +479,13 @@ def retarget_bvh(
         h_t = _rest_height(target, 0)
         root_scale = h_t / h_s if h_s > 0.0 and h_t > 0.0 else 1.0
     root_pos = root_scale * src_pos[:, mapping[0]]
-    orders = [o or FALLBACK_ORDER for o in target.rotation_orders]
-    out_sk = bvh_skeleton(
-        joint_names=target.joint_names,
-        parents=target.parents,
-        offsets=target.offsets,
-        rotation_orders=orders,
-        end_sites=target.end_sites,
-    )
-    angles = np.zeros((n_frames, n, 3))
-    for order in set(orders):
-        cols = [j for j, o in enumerate(orders) if o == order]
-        angles[:, cols] = rot.euler_from_quat(local[:, cols], order)
-    angles_deg = np.unwrap(np.degrees(angles), period=360.0, axis=0)
-    positions = np.full_like(angles_deg, np.nan)
-    positions[:, 0] = root_pos - target.offsets[0]
+    out_sk = output_skeleton(target)
     frame_time = source.frame_time_s
     if not (math.isfinite(frame_time) and frame_time > 0.0):
         raise ValueError(f"{source.source}: no valid Frame Time")
     return BvhRetarget(
         skeleton=out_sk,
-        frames=bvh_motion(out_sk, angles_deg, positions),
+        frames=motion_lines(out_sk, local, root_pos),
         parent_from_joint_quat=local,
         root_pos=root_pos,
         mapping=tuple(mapping),
@@ -507,6 +493,45 @@ def retarget_bvh(
         frame_time_s=float(frame_time),
         spine=spine,
     )
+
+
+def output_skeleton(target: BvhSkeleton) -> BvhSkeleton:
+    """The hierarchy a retarget writes: the target's joints, offsets and End Sites,
+    its rotation orders (:data:`FALLBACK_ORDER` for a joint without rotation
+    channels), position channels on the root only."""
+    return bvh_skeleton(
+        joint_names=target.joint_names,
+        parents=target.parents,
+        offsets=target.offsets,
+        rotation_orders=[o or FALLBACK_ORDER for o in target.rotation_orders],
+        end_sites=target.end_sites,
+    )
+
+
+def motion_lines(
+    skeleton: BvhSkeleton, parent_from_joint_quat: F64Array, root_pos: F64Array
+) -> F64Array:
+    """The motion lines of a retargeted take on ``skeleton``
+    (:func:`output_skeleton`'s).
+
+    Args:
+        skeleton: the output hierarchy (its rotation orders and root OFFSET).
+        parent_from_joint_quat: (T, J, 4) float64 (w, x, y, z), file axes.
+        root_pos: (T, 3) float64, the root's position, file unit and axes.
+
+    Returns:
+        (T, n_channels) float64: each joint's angles (degrees, unwrapped over time)
+        in its order, the root's position channels (its position less its OFFSET).
+    """
+    orders = skeleton.rotation_orders
+    angles = np.zeros((*parent_from_joint_quat.shape[:2], 3))
+    for order in set(orders):
+        cols = [j for j, o in enumerate(orders) if o == order]
+        angles[:, cols] = rot.euler_from_quat(parent_from_joint_quat[:, cols], order)
+    angles_deg = np.unwrap(np.degrees(angles), period=360.0, axis=0)
+    positions = np.full_like(angles_deg, np.nan)
+    positions[:, 0] = root_pos - skeleton.offsets[0]
+    return bvh_motion(skeleton, angles_deg, positions)
 
 
 def write_retarget_glb(
