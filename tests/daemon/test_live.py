@@ -715,6 +715,12 @@ def test_osc_allow_list(
 # ---- control -----------------------------------------------------------------------
 
 
+def _names_changes(poses: list[Any]) -> list[int]:
+    """The indices at which the pose stream's names id changes (a new pipeline)."""
+    ids = [p.names_id for p in poses]
+    return [i for i in range(1, len(ids)) if ids[i] != ids[i - 1]]
+
+
 def test_ctl_live_calibration_while_streaming_status_and_reload(
     start_daemon: Callable[..., Live],
     osc_source: Callable[..., OscSource],
@@ -770,6 +776,9 @@ def test_ctl_live_calibration_while_streaming_status_and_reload(
     assert status["endpoints"] == live.daemon.endpoints
     rc, out, _ = ctl("reload")
     assert rc == 0 and out.strip() == "reloaded rig synth-exact and calibration"
+    # The reload's pipeline is built off the loop ("Pipelines built off the loop"):
+    # wait for its first pose (its names id, the third change), then 20 more.
+    sub.wait(lambda: len(_names_changes(sub.poses)) >= 3, "the reload's pipeline")
     n_before = len(sub.poses)
     sub.wait(lambda: len(sub.poses) > n_before + 20, "poses after the reload")
     feed.stop()
@@ -784,8 +793,7 @@ def test_ctl_live_calibration_while_streaming_status_and_reload(
     assert ids == sorted(set(ids))
     # Every new pipeline (2 calibrations, 1 reload) announced its names before its data.
     names_ids = [p.names_id for p in sub.poses]
-    changes = [i for i in range(1, len(names_ids)) if names_ids[i] != names_ids[i - 1]]
-    assert len(changes) == 3
+    assert len(_names_changes(sub.poses)) == 3
     announced: set[int] = set()
     for kind, nid in sub.events:
         if kind == "names":
