@@ -298,7 +298,7 @@ def hold_priors(m: tuple, s: tuple) -> None:
                         for c2 in range(3):
                             hold[b, a, c2] += kk * u[a] * u[c2]
                     if lock[b] == 2.0 and rides[b] and parent[parent[b]] >= 0:
-                        twist_to_parent(m, s, b, kk, u, new)
+                        twist_to_parent(m, s, b, kk, u, new, thr)
     local_floor(m, s, thr)
     for b in range(n_b):
         tr = hold[b, 0, 0] + hold[b, 1, 1] + hold[b, 2, 2]
@@ -313,7 +313,9 @@ def hold_priors(m: tuple, s: tuple) -> None:
 
 
 @kernel
-def twist_to_parent(m: tuple, s: tuple, b: int, kk: float, u: tuple, new: bool) -> None:
+def twist_to_parent(
+    m: tuple, s: tuple, b: int, kk: float, u: tuple, new: bool, thr: float
+) -> None:
     # A hinge_twist's twist held (information kk along u, bone b's axes, from a
     # hidden marker's table) is held on its parent too, about the same axis in the
     # world: the twist axis runs along the limb through the hinge, and the markers
@@ -347,6 +349,26 @@ def twist_to_parent(m: tuple, s: tuple, b: int, kk: float, u: tuple, new: bool) 
     t1 = qmul(q[0], q[1], q[2], q[3], 0.0, a0, a1, a2)
     t2 = qmul(t1[0], t1[1], t1[2], t1[3], q[0], -q[1], -q[2], -q[3])
     ap = (t2[1], t2[2], t2[3])
+    # what the parent's own markers seen tell about its turn about that axis (the
+    # line through the hinge, the child's origin): as a hold is made, only what they
+    # resolve worse than the threshold, up to it (a thigh's wand sees it at a lever
+    # past the threshold's; an upper arm's one epicondyle marker, on the hinge's
+    # axis, at about its distance from the twist axis)
+    mk_bone, mk_local, wt, off, vis = m[5], m[6], m[7], m[2], s[13]
+    info = 0.0
+    for i in range(mk_bone.shape[0]):
+        if not vis[i] or wt[i] <= 0.0 or mk_bone[i] != p:
+            continue
+        d0 = mk_local[i, 0] - off[b, 0]
+        d1 = mk_local[i, 1] - off[b, 1]
+        d2 = mk_local[i, 2] - off[b, 2]
+        c0 = ap[1] * d2 - ap[2] * d1
+        c1 = ap[2] * d0 - ap[0] * d2
+        c2 = ap[0] * d1 - ap[1] * d0
+        info += wt[i] * (c0 * c0 + c1 * c1 + c2 * c2)
+    if info >= thr:
+        return
+    k = min(k, thr - info)
     if new:
         fresh[p] = 1
     for i in range(3):
