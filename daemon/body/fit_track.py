@@ -351,9 +351,10 @@ def twist_to_parent(
     ap = (t2[1], t2[2], t2[3])
     # what the parent's own markers seen tell about its turn about that axis (the
     # line through the hinge, the child's origin): as a hold is made, only what they
-    # resolve worse than the threshold, up to it (a thigh's wand sees it at a lever
-    # past the threshold's; an upper arm's one epicondyle marker, on the hinge's
-    # axis, at about its distance from the twist axis)
+    # resolve worse than the threshold, up to it (passed to a thigh regardless,
+    # whose wand sees that turn, the walk's shank markers hidden got new steps:
+    # RTIB from row 90, LTIB from row 200; an upper arm's one epicondyle marker sits
+    # on the hinge's axis, near the twist axis)
     mk_bone, mk_local, wt, off, vis = m[5], m[6], m[7], m[2], s[13]
     info = 0.0
     for i in range(mk_bone.shape[0]):
