@@ -19,8 +19,11 @@ marker's hinge, ``fit_observe.marker_hinges``, at ``t0``: ``sin(bend) /
 sin(hold_straight)``, at most 1). The tables hold only the hidden marker's bone and
 its ancestors (the bones whose rotations move it). The kernel's local floor
 (``fit_track.local_floor``) adds nothing for one marker hidden: it holds a bone only
-while two or more hidden markers ride it or hang below it. The directions are unit
-vectors in each bone's own axes.
+while two or more hidden markers ride it or hang below it. Nor is the share of a
+``hinge_twist``'s held twist that the kernel passes to the joint's parent
+(``fit_track.twist_to_parent``) counted: the parent's allowance stays its own
+table's (a stricter figure: the parent's turn about that axis counts against it).
+The directions are unit vectors in each bone's own axes.
 
 **The truth's excursion in them** (:func:`hold_excursion_deg`): the hold pulls the
 fit's joint towards its anchor in swing-twist coordinates of the bone's axes
