@@ -23,6 +23,11 @@ while two or more hidden markers ride it or hang below it. Nor is the share of a
 ``hinge_twist``'s held twist that the kernel passes to the joint's parent
 (``fit_track.twist_to_parent``) counted: the parent's allowance stays its own
 table's (a stricter figure: the parent's turn about that axis counts against it).
+A ``hinge_twist`` below the bones the marker rides, whose parent's own markers left
+resolve the parent's turn about its twist axis, has its twist taken off the hold by
+the kernel (the marker never moved with it); a held direction of such a bone with any
+twist in it is left out here whole (the kernel holds what is left of it off the twist:
+a stricter figure, which never counts a hinge's flexion excursion as held).
 The directions are unit vectors in each bone's own axes.
 
 **The truth's excursion in them** (:func:`hold_excursion_deg`): the hold pulls the
@@ -152,6 +157,13 @@ def held_directions(
         bent = min(1.0, math.sqrt(max(0.0, 1.0 - cos * cos))
                    / math.sin(math.radians(params.hold_straight_deg)))  # fmt: skip
     n_tab = len(wt) * n_b
+    # the bones the marker rides (its own and its ancestors): a hinge_twist below
+    # them has its twist taken off the hold (fit_track.hold_priors)
+    rides = set()
+    kb = int(model.marker_bone[marker])
+    while kb >= 0:
+        rides.add(kb)
+        kb = int(model.bone_parent[kb])
     for half, share in enumerate((1.0 - bent, bent)):
         if share <= 0.0:
             continue
@@ -163,8 +175,31 @@ def held_directions(
                     continue
                 if share * min(lost, thr - lam) < _MIN_SHARE * thr:
                     continue
-                found.setdefault(b, []).append(model.hide_axes[row, 3 * j : 3 * j + 3])
+                u = np.array(model.hide_axes[row, 3 * j : 3 * j + 3], dtype=np.float64)
+                if (
+                    model.twist_lock[b] == 2.0
+                    and b not in rides
+                    and _parent_turn_info(model, marker, b, pfb_t0[b]) >= thr
+                    and abs(float(u @ model.twist_axis[b])) > 0.0
+                ):
+                    continue
+                found.setdefault(b, []).append(u)
     return {b: np.asarray(v, dtype=np.float64) for b, v in found.items()}
+
+
+def _parent_turn_info(model: FitModel, hidden: int, b: int, pfb_b: F64Array) -> float:
+    """What the markers on bone ``b``'s parent, all but ``hidden`` seen, tell of the
+    parent's turn about ``b``'s twist axis through its hinge (m^2 / rad^2, every
+    other joint fixed; ``fit_track.parent_turn_info``)."""
+    p = int(model.bone_parent[b])
+    a = rot.quat_rotate(pfb_b, model.twist_axis[b])
+    info = 0.0
+    for i in np.flatnonzero(model.marker_bone == p):
+        if i == hidden or model.marker_weight[i] <= 0.0:
+            continue
+        c = np.cross(a, model.marker_local[i] - model.off_parent[b])
+        info += float(model.marker_weight[i] * (c @ c))
+    return info
 
 
 def _span(directions: F64Array) -> F64Array:
