@@ -279,3 +279,32 @@ def test_on_functional_hips_planted_feet_do_not_sink(
         assert m["knee_added_deg"] <= 3.0
         assert m["swing_max_mm"] <= 10.0
         assert p["float_p95_mm"] <= m["scaled"]["float_p95_mm"] + 0.05
+
+
+@pytest.mark.timeout(600)
+@pytest.mark.parametrize("gait", GAITS)
+def test_every_detected_contact_holds_a_truth_contact(
+    solved: dict[str, tuple[Any, ...]], gait: str
+) -> None:
+    """Each contact the detector finds (``post/stance.py``, causal, as live) overlaps
+    one of the truth's: a foot the lift-off rule let go is not back on by the near
+    rule until it comes down. Before, the run's first swing (its start-up ramp: the
+    forefoot 10-25 mm up, rising at 0.14-0.22 m/s, slower than the on-speed) was let
+    go and struck again by turns, frame by frame (188, 190), then held 192-198."""
+    from retargetd.daemon.post.stance import CONTACT_COLUMN, take_stance_states
+
+    res, rig, cal, take = solved[gait]
+    states = take_stance_states(
+        rig, cal, np.ascontiguousarray(res.root_pos, dtype=np.float64),
+        np.ascontiguousarray(res.world_from_bone_quat, dtype=np.float64), RATE_HZ,
+    )  # fmt: skip
+    found = states[:, :, CONTACT_COLUMN] != 0.0
+    truth = np.asarray(take.foot_contact, dtype=bool)
+    stray = []
+    for s in range(2):
+        on = np.concatenate([[0], found[:, s].astype(np.int8), [0]])
+        d = np.diff(on)
+        for a, b in zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1), strict=True):
+            if not truth[a:b, s].any():
+                stray.append((s, int(a), int(b)))
+    assert not stray, stray
