@@ -84,6 +84,7 @@ from retargetd.daemon.post.plant_target import (
     performer_leg_m,
     roll_radius,
     target_leg_m,
+    warn_unplaced_centres,
 )
 from retargetd.daemon.post.stance import CONTACT_COLUMN, SUPPORT_COLUMN
 from retargetd.protocols.frames import F64Array
@@ -504,10 +505,10 @@ def plant_stage(feet: str, retargeter: Any, stance: Any) -> FootPlant | None:
     """
     if feet != "plant":
         return None
+    warn_unplaced_centres(stance.rig, stance.calibration)
     leg = performer_leg_m(stance.rig, stance.calibration)
     stage = FootPlant(retargeter.target, retargeter.root_scale, leg)
-    stage.stance_state = stance.state
-    stage.stance_clock = stance.clock
+    stage.stance_state, stage.stance_clock = stance.state, stance.clock
     return stage
 
 

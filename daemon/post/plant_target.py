@@ -1,9 +1,11 @@
 """The target's and the performer's leg geometry the plant stage is built from
 (``post/plant.py``): the leg lengths whose ratio scales the root and the supports, and
-each target foot's heel, ball and roll centre at rest."""
+each target foot's heel, ball and roll centre at rest; and the performer's hip centres
+no range of motion placed (:func:`warn_unplaced_centres`)."""
 
 from __future__ import annotations
 
+import logging
 from typing import Any
 
 import numpy as np
@@ -11,6 +13,8 @@ import numpy as np
 from retargetd.daemon.body.calibration import Calibration
 from retargetd.daemon.body.rig import Rig
 from retargetd.protocols.frames import F64Array
+
+logger = logging.getLogger(__name__)
 
 _SIDES = ("Left", "Right")
 #: The shortest leg taken for a leg, metres: shorter, the calibration (or a BVH's
@@ -88,3 +92,34 @@ def roll_radius(target: Any) -> F64Array:
         if side + "Toes" in target.bone_names:
             r[s] = max(float(pos[target.index(side + "Toes"), 2]), 0.0)
     return r
+
+
+def unplaced_centres(rig: Rig, cal: Calibration) -> tuple[str, ...]:
+    """The functional joint centres of ``rig`` (its ``[functional]`` points:
+    Plug-in Gait's hip centres) that ``cal`` did not place from a range of motion
+    (``calibrate --rom``), so left at the rig's regression. With the regression's hip
+    12 mm below the synthetic performer's, the solved foot lands on a stair step 2.3
+    mm below it (thigh flexed, legs 1x), which the plant holds live; placed from a
+    range of motion, 0.00 (docs/feet.md: "The stairs' sink is the calibration's
+    hip")."""
+    joints = cal.functional.get("joints", {})
+    return tuple(
+        c.point
+        for c in rig.functional.points
+        if not joints.get(c.point, {}).get("used")
+    )
+
+
+def warn_unplaced_centres(rig: Rig, cal: Calibration) -> None:
+    """One warning line when :func:`unplaced_centres` names any (``feet = "plant"``,
+    ``post/plant.py`` ``plant_stage``: live at each pipeline build, offline once a
+    take)."""
+    unplaced = unplaced_centres(rig, cal)
+    if unplaced:
+        logger.warning(
+            'feet = "plant": %s from rig %s\'s regression, not a range of motion: a '
+            "stance foot on a stair step can stand a few mm below it (docs/feet.md); "
+            "calibrate with --rom to place them",
+            " ".join(unplaced),
+            rig.name,
+        )

@@ -43,7 +43,11 @@ Contact (with hysteresis: two speeds, after the foot-velocity algorithms):
   strides) reaches Bonci's foot-off speed only on the 3rd-4th frame after the toe
   leaves (synthetic stair ascent at 120 Hz: the forefoot at 0.21, 0.58, 0.93, 1.10
   m/s in the four frames after), its lowest point 11 mm up and rising at 0.9 m/s on
-  the 3rd.
+  the 3rd. A foot it let go is not on again by the near rule (a strike: slow near
+  the support) until it comes down: its lowest point descending, or back within
+  ``heel_rise_m`` of the support (the stop and landing rules are unchanged). A foot
+  rising slower than the on-speed near the floor (the synthetic run's first swing,
+  in its start-up ramp) was let go and struck again by turns, frame by frame.
 
 Support. A contact that starts at another level (landed, or stopped) takes the level
 of the foot's lowest point then; while the foot is still it follows that point as the
@@ -138,8 +142,10 @@ LEFT, RIGHT, KNOWN = FRAME_CONTACT_LEFT, FRAME_CONTACT_RIGHT, FRAME_CONTACT_KNOW
 _SIDES = (("LeftFoot", "LeftToes"), ("RightFoot", "RightToes"))
 _MAX_POINTS = 4  # ankle, forefoot (the foot's aim), toe tip (a toes bone), heel
 # State columns per foot: has history, seconds still, support level, contact, the
-# support frozen (heel-off) for the rest of this contact.
+# support frozen (heel-off) for the rest of this contact (1) or, out of contact, the
+# foot lifted off and not come down since (_LIFTED).
 _HAS, _STILL, _SUPPORT, _CONTACT, _FROZEN = 0, 1, 2, 3, 4
+_LIFTED = 2.0
 #: :attr:`StanceDetector.state`'s columns a later stage reads (post/plant.py): the
 #: support level (metres above the calibration's floor) and the contact (0 or 1).
 SUPPORT_COLUMN, CONTACT_COLUMN = _SUPPORT, _CONTACT
@@ -309,6 +315,13 @@ def _step(
         state[s, _HAS] = 1.0
         still = state[s, _STILL] >= still_s
         was = state[s, _CONTACT] != 0.0
+        # Lifted off and not come down since (below): the near rule's strike needs
+        # the foot to come back down first.
+        if not was and state[s, _FROZEN] == _LIFTED:
+            if lowest_vz < 0.0 or lowest - support <= rise_m:
+                state[s, _FROZEN] = 0.0
+            else:
+                any_on = False
         # held by the near rule (hysteresis), else on by it, or landed on a new
         # level while the other foot stands
         on = still or (any_hold if was else any_on or (landed and stood[1 - s]))
@@ -316,7 +329,8 @@ def _step(
         # on it; that point rising, faster than a stationary point moves
         # (still_v), and above the support by more than the solved foot rocks on a
         # flat floor (rise_m) has left it, whatever the other rules hold.
-        if was and lowest_vz > still_v and lowest - support > rise_m:
+        lifted = was and lowest_vz > still_v and lowest - support > rise_m
+        if lifted:
             on = False
         # The support: the calibration's floor where the foot stands within near_m
         # of it, else the level of its lowest point (a step, a riser).
@@ -334,7 +348,9 @@ def _step(
                 state[s, _FROZEN] = 1.0
             else:
                 state[s, _SUPPORT] = here
-        if not on:
+        if lifted:
+            state[s, _FROZEN] = _LIFTED
+        elif not on and state[s, _FROZEN] != _LIFTED:
             state[s, _FROZEN] = 0.0
         state[s, _CONTACT] = 1.0 if on else 0.0
         if on:

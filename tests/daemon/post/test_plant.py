@@ -489,3 +489,43 @@ def test_a_foot_on_a_step_stands_on_its_own_sole_not_the_detectors_level() -> No
     )
     held, _ = run(offline, settled)
     np.testing.assert_allclose(held, top, atol=1e-9)  # the level it reached, all along
+
+
+def test_the_plant_warns_of_hip_centres_no_range_of_motion_placed(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """``feet = "plant"`` on a calibration whose hip centres are the rig's regression
+    (Plug-in Gait's, no ``calibrate --rom``) says so once, naming them: on a stair a
+    stance foot stands as low as the solve lands it (docs/feet.md, "The stairs' sink
+    is the calibration's hip"); on hips placed from the performer's range of
+    motion, nothing."""
+    import logging
+
+    from retargetd.daemon.body.calibration import calibrate
+    from retargetd.daemon.body.rig import load_rig
+    from retargetd.daemon.post.plant import plant_stage
+    from retargetd.daemon.post.stance import StanceDetector
+    from retargetd.daemon.retarget.retarget import Retargeter
+    from retargetd.daemon.synth import performer as pf
+
+    rig = load_rig("plug-in-gait")
+    rom = pf.synthesize(seconds=25.0, rate_hz=60.0, markerset="plug-in-gait",
+                        motions=("rom",), seed=0)  # fmt: skip
+    base = rom.markers_world[:30]
+    motion = (rom.markers_world, rom.labels, {"take": "synth rom"})
+    lines = {}
+    for placed in (False, True):
+        cal = calibrate(rig, base, rom.labels, rom=motion if placed else None)
+        caplog.clear()
+        with caplog.at_level(
+            logging.WARNING, logger="retargetd.daemon.post.plant_target"
+        ):
+            stage = plant_stage(
+                "plant", Retargeter(rig, cal, default_humanoid()),
+                StanceDetector(rig, cal),
+            )  # fmt: skip
+        assert stage is not None
+        lines[placed] = [r.getMessage() for r in caplog.records]
+    (line,) = lines[False]
+    assert "LHJC RHJC" in line and "--rom" in line
+    assert lines[True] == []
