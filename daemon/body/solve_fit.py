@@ -19,6 +19,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -564,6 +565,20 @@ class FitSolver:
             stats=v[9],
             fit_buffers=(bufs["f8"], bufs["f4"], bufs["u1"], bufs["b1"]),
         )
+
+    def packed_buffers(self, pose: FitPose) -> tuple[Any, ...]:
+        """``kernel_fit.fit_one``'s arguments after the markers for ``pose``, then
+        what :meth:`solve_frame` does around that call: the scalars whose ``C_DT``
+        slot it sets, the pose's stats and residuals (its frame flags and occluded
+        count) and the interval used when none is given (for a kernel that runs
+        this solve inside its own call, ``live/solve_emit.py``)."""
+        if pose.fit_buffers is None:
+            raise ValueError("the pose was not made by new_pose()")
+        return (
+            self._mf, self._mi, self._sf, self._si, self._sb, self._layout, self._con,
+            *pose.fit_buffers, self._scalars, pose.stats, pose.marker_residual,
+            1.0 / self.rate_hz,
+        )  # fmt: skip
 
     def solve_frame(
         self, markers_world: F64Array, out: FitPose, dt_s: float = 0.0

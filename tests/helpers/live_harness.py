@@ -528,7 +528,7 @@ def _fit_oracle(calibration: Path, frames: list[np.ndarray]) -> list[tuple[Any, 
     from retargetd.daemon.validate.model import SEGMENT_KIND
 
     # the daemon's frame time: OscSource's source clock, frame number / RATE_HZ
-    # (live.send.frame_interval_s), one frame apart
+    # (live.interval.frame_interval_s), one frame apart
     solver = make_body_solver(
         "fit", load_rig(EXACT_RIG), load_calibration(calibration), _take().labels,
         joint_limits=JOINT_LIMITS_DEG, segment_kind=SEGMENT_KIND, rate_hz=RATE_HZ,
