@@ -696,6 +696,12 @@ def warm_up() -> FitPose:
     Returns:
         The last warm-up frame's pose (finite; a check for the caller's tests).
     """
+    return warm_up_solver()[1]
+
+
+def warm_up_solver() -> tuple[FitSolver, FitPose]:
+    """:func:`warm_up`'s solver and its last pose (for a kernel that runs the fit
+    inside its own call to warm up on: ``live/solve_emit.py``)."""
     rig = parse_rig(_WARM_RIG, source="warm-up")
     labels = ("A", "B", "C", "D")
     frame = (
@@ -706,4 +712,4 @@ def warm_up() -> FitPose:
     solver = FitSolver(rig, cal, labels, base_positions=frame[None])
     solver.solve_take(frame[None])
     frame[3] = np.nan
-    return solver.solve_frame(frame, solver.new_pose())
+    return solver, solver.solve_frame(frame, solver.new_pose())

@@ -280,6 +280,22 @@ def _post_stages(spec: PipelineSpec) -> SolvePost | None:
     return SolvePost(stages, parents, rest, output_rate_hz=rate)
 
 
+def may_fuse(config: Any) -> bool:
+    """Whether a pipeline of the daemon's ``config`` (``DaemonConfig``) can run its
+    solve and emit in one call (:func:`new_pipeline`'s ``fused``): not with an
+    output rate, the spine pivot or the foot plant, which last the daemon's life.
+    The ``[[pipeline]]`` stages (a reload), a face (the stream's labels) and the
+    live validator (while it builds, or after its build failed) come and go, so
+    they do not rule it out. The daemon's start warms the fused kernel only then
+    (its cache load ~0.3-0.5 s, its compile 15-30 s on this VM)."""
+    return (
+        SOLVE_EMIT_AVAILABLE
+        and not config.loop.output_rate_hz > 0.0
+        and config.target.spine != "pivot"
+        and config.target.feet != "plant"
+    )
+
+
 def warm_up_pipeline(perf: Performer, sh: Shared) -> None:
     """Run every stage of a throwaway pipeline of ``perf`` once (its calibration
     needed), so that no streamed frame pays for a first call: the solve, the

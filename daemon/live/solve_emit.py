@@ -25,6 +25,7 @@ and ``live/emit.py`` included, so an edit to any of them recompiles these too.
 
 from __future__ import annotations
 
+import math
 import sys
 import time
 from typing import Any
@@ -38,6 +39,8 @@ from numba.extending import intrinsic
 from retargetd.daemon.body import fit_terms as ft
 from retargetd.daemon.body.kernel import solve_one
 from retargetd.daemon.body.kernel_fit import fit_one
+from retargetd.daemon.body.solve import warm_up as warm_up_construction
+from retargetd.daemon.body.solve_fit import warm_up_solver as warm_up_fit
 from retargetd.daemon.compiled import direct, kernel
 from retargetd.daemon.live.emit import (
     DO_RETARGET,
@@ -45,6 +48,7 @@ from retargetd.daemon.live.emit import (
     NO_FLAGS,
     EmitPlan,
     emit_frame,
+    warm_args,
 )
 from retargetd.protocols.pose_stream import (
     FRAME_HELD,
@@ -228,3 +232,39 @@ class SolveEmit:
         self.call: Any = direct(
             self.kernel, self.what, markers, *self.args, 0, 0, 0.0, 0, 0, 0.0
         )
+
+
+def warm_call(fit: bool) -> tuple[Any, tuple[Any, ...]]:
+    """The fused kernel of a body method and arguments of the types a pipeline's
+    :class:`SolveEmit` passes (``tests/daemon/test_solve_emit.py`` compares them):
+    the warm-up rig's solver and pose (``solve.warm_up``, ``solve_fit.
+    warm_up_solver``), a one-bone plan (``emit.warm_args``), an all-hidden frame,
+    ``what`` 0 (the fit: an unseen frame, not emitted; the construction: an emit
+    that only slices its arenas). Nothing here is a real pipeline's."""
+    solver: Any
+    pose: Any
+    solver, pose = warm_up_fit() if fit else warm_up_construction()
+    fused = solve_emit_fit if fit else solve_emit_construction
+    markers = np.full((solver.n_stream, 3), np.nan)
+    args = (
+        0, markers, *solver.packed_buffers(pose), pose.world_from_bone_quat,
+        pose.parent_from_bone_quat, pose.rest_from_bone_quat, pose.root_pos,
+        pose.bone_flags, *warm_args(), NO_FLAGS, 0, 0, math.nan, 0, 0, 0.0,
+    )  # fmt: skip
+    return fused, args
+
+
+def warm_up(fit: bool) -> None:
+    """Compile (or load from numba's cache) the fused kernel of the body method at
+    the daemon's start, with the other kernels (where :data:`AVAILABLE`).
+
+    Without it the kernel was first found by the pipeline's first frame: on a
+    start with a calibration the throwaway pipeline's warm-up found it, after the
+    daemon had announced its endpoints; a daemon that calibrates live (``retargetd
+    demo``) stalled its first streamed frame for the cache load (~0.3 s) or, on a
+    cache without it, for the compile (13 s of CPU here, 29 s at load 5). A start
+    killed during that compile (a test's deadline) never saved it, so every later
+    start compiled it again (README "Fewer Python steps per frame")."""
+    if AVAILABLE:
+        fused, args = warm_call(fit)
+        fused(*args)

@@ -15,10 +15,13 @@ from typing import Any
 
 import numpy as np
 import pytest
+from live_harness import EXACT_RIG, _take
+from numba import typeof
 
 from retargetd.daemon.body.calibration import load_calibration
 from retargetd.daemon.body.method import make_body_solver
 from retargetd.daemon.body.rig import load_rig
+from retargetd.daemon.live.config import DaemonConfig
 from retargetd.daemon.live.emit import (
     DO_POSE,
     DO_RETARGET,
@@ -27,7 +30,13 @@ from retargetd.daemon.live.emit import (
     NO_FLAGS,
     EmitPlan,
 )
-from retargetd.daemon.live.solve_emit import AVAILABLE, SolveEmit, monotonic_ns
+from retargetd.daemon.live.pipeline import may_fuse
+from retargetd.daemon.live.solve_emit import (
+    AVAILABLE,
+    SolveEmit,
+    monotonic_ns,
+    warm_call,
+)
 from retargetd.daemon.post.stance import StanceDetector
 from retargetd.daemon.retarget.retarget import Retargeter, default_humanoid
 from retargetd.protocols import engine_unity, pose_stream
@@ -167,3 +176,41 @@ def test_solve_emit_equals_solve_then_emit(
         assert any(b & pose_stream.FRAME_RESEEDED for b in seen_bits), seen_bits
     else:
         assert seen_bits == {0}
+
+
+@pytest.mark.parametrize("method", ["construction", "fit"])
+def test_warm_up_compiles_the_types_a_pipeline_passes(
+    method: str, exact_calibration: Path
+) -> None:
+    """The daemon's start compiles (or loads) the fused kernel on the warm-up rig
+    (``solve_emit.warm_up``): a pipeline's call must have the same argument types,
+    else its first frame compiles (the reverted h35s tree's slow starts)."""
+    rig = load_rig(EXACT_RIG)
+    side = _side(method, rig, load_calibration(exact_calibration), _take().labels)
+    fused = SolveEmit(side["solver"], side["pose"], side["plan"])
+    markers = np.zeros((side["solver"].n_stream, 3))
+    real = (fused.what, markers, *fused.args, T0_NS, 1, 0.5, 10_000, 0, 0.01)
+    kernel, warm = warm_call(method == "fit")
+    assert kernel is fused.kernel
+    assert len(warm) == len(real)
+    for k, (a, b) in enumerate(zip(warm, real, strict=True)):
+        assert typeof(a) == typeof(b), f"argument {k}: {typeof(a)} != {typeof(b)}"
+
+
+@pytest.mark.parametrize(
+    ("extra", "fused"),
+    [
+        ({}, True),
+        ({"pipeline": [{"kind": "one_euro"}]}, True),  # a reload may remove it
+        ({"loop": {"output_rate_hz": 60.0}}, False),
+        ({"target": {"spine": "pivot"}}, False),
+        ({"target": {"feet": "plant"}}, False),
+    ],
+)
+def test_the_start_warms_the_fused_call_only_where_it_can_run(
+    extra: dict[str, Any], fused: bool
+) -> None:
+    config = DaemonConfig.from_dict(
+        {"performer": {"rig": str(EXACT_RIG)}, **extra}, source="test"
+    )
+    assert may_fuse(config) is fused

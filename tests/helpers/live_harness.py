@@ -109,10 +109,12 @@ def pytest_runtestloop(session: pytest.Session) -> Iterator[object]:
 
 def compile_kernels() -> None:
     """A daemon opened in-process with the fit, both ``[[pipeline]]`` stages, an output
-    rate and the validator on, then closed; and the face kernel."""
+    rate and the validator on, then closed; the face kernel; and the fused solve and
+    emit of both methods."""
     import tempfile
 
     from retargetd.daemon.live.face import warm_up as warm_up_face
+    from retargetd.daemon.live.solve_emit import warm_up as warm_up_solve_emit
 
     take = _take()
     rig = load_rig(EXACT_RIG)
@@ -136,6 +138,10 @@ def compile_kernels() -> None:
         finally:
             daemon.close()
     warm_up_face()
+    # The solve and the emit in one call (live/solve_emit.py), both methods: the
+    # daemon above, with its stages, does not run it; the tests' daemons do.
+    warm_up_solve_emit(fit=True)
+    warm_up_solve_emit(fit=False)
 
 
 def _ignore(_: str) -> None:
