@@ -20,10 +20,12 @@ Each stage of the frame is timed by a wrapper put around the call on the live ob
 (``time.perf_counter_ns`` before and after): the poll, the decode and book-keeping of
 the input (``_service`` minus the performer's ``path.process``), the body solve, the
 emit call (``live/emit.py``: the retarget, the engine-frame conversion, the VMC and pose
-packs in one compiled call), the VMC sends (``send`` on the connected socket), the pose
-send, the validator's submit (stages a configuration never calls are left out of the
-table: the separate retarget, engine frame, VMC and pose encode rows appear only where
-the loop still makes them, the retarget with ``[target] spine = "pivot"``); "glue" is
+packs in one compiled call), or the two in one (``solve + emit call``,
+``live/solve_emit.py``: the default pipeline without a live validator), the VMC sends
+(``send`` on the connected socket), the pose send, the validator's submit (stages a
+configuration never calls are left out of the table: the separate retarget, engine
+frame, VMC and pose encode rows appear only where the loop still makes them, the
+retarget with ``[target] spine = "pivot"``); "glue" is
 ``path.process`` minus the stages inside it (attribute reads, flags, the budget checks,
 the stats record, which is also timed alone on the same object after the run: a
 slotted object cannot be wrapped in place). The wrapper's own cost (measured on an empty
@@ -130,7 +132,7 @@ def _wake(d: Daemon, poll: Callable[[int], Any]) -> None:
 
 def profile(
     transport: str, n_frames: int, warmup: int, method: str, validate: bool,
-    cprofile: bool = False, rate_hz: float = 0.0,
+    cprofile: bool = False, rate_hz: float = 0.0, ab: bool = False,
 ) -> None:  # fmt: skip
     take = pf.synthesize(seconds=(n_frames + warmup) / 240.0 + 1.0, rate_hz=240.0)
     rows = np.asarray(take.markers_world, dtype=np.float32)
@@ -183,15 +185,19 @@ def profile(
                     sub.recv_multipart()
 
             poll_fn = d._poller.poll
+            path = d.performers.first.path
             for p in pkts[:warmup]:
                 send(p)
                 time.sleep(0.0002)
                 _wake(d, poll_fn)
                 drain()
+                if not path.pipelines:  # built off the loop (the fit's: seconds on
+                    path.done_building(120.0)  # a loaded machine): waited for
             pipe = next(iter(d.performers.first.path.pipelines.values()))
             names = (
                 "poll", "service", "solve_and_send", "body solve", "retarget",
-                "engine frame", "VMC encode", "emit call", "VMC send", "pose encode",
+                "engine frame", "VMC encode", "emit call", "solve + emit call",
+                "VMC send", "pose encode",
                 "pose send", "validator submit", "stats record", "empty wrapper",
             )  # fmt: skip
             t = {k: Timer(n_frames) for k in names}
@@ -227,6 +233,12 @@ def profile(
                 saved_emit = getattr(live_send, "emit_frame", None)
                 if saved_emit is not None:
                     live_send.emit_frame = t["emit call"].wrap(saved_emit)
+            # The body solve and the emit in one call (live/solve_emit.py), where
+            # the pipeline has it (none before it, nor with a stage between them).
+            fused = getattr(pipe, "solve_emit", None)
+            saved_fused = getattr(fused, "call", None)
+            if saved_fused is not None:
+                fused.call = t["solve + emit call"].wrap(saved_fused)
             real_vmc = perf.vmc.sock
             assert real_vmc is not None
             perf.vmc.sock = SocketProxy(real_vmc, t["VMC send"])  # type: ignore[assignment]
@@ -243,6 +255,8 @@ def profile(
                         ahead = next_s - time.perf_counter()
                         if ahead > 0:
                             time.sleep(ahead)
+                    if ab and saved_fused is not None:  # odd frames: two calls
+                        pipe.solve_emit = fused if k % 2 == 0 else None
                     send(p)
                     time.sleep(0.0002)  # the packet is in the socket before the wake
                     if prof is not None:
@@ -258,6 +272,9 @@ def profile(
                     plan.call = saved_call
                 if saved_emit is not None:
                     live_send.emit_frame = saved_emit
+                if saved_fused is not None:
+                    fused.call = saved_fused
+                    pipe.solve_emit = fused
                 perf.vmc.sock = real_vmc
             solved = d.stats.frames_solved
             # The stats record (a slotted object: not wrappable in place), alone on
@@ -285,31 +302,52 @@ def profile(
             us[k] = (timer.ns - timer.calls * wrapper) / 1e3
     inside = (
         "body solve", "retarget", "engine frame", "VMC encode", "emit call",
-        "VMC send", "pose encode", "pose send", "validator submit",
+        "solve + emit call", "VMC send", "pose encode", "pose send", "validator submit",
     )  # fmt: skip
     us["glue (solve_and_send rest)"] = us["solve_and_send"] - sum(us[k] for k in inside)
     us["decode + book-keeping"] = us["service"] - us["solve_and_send"]
+    sends = ("VMC send", "pose send", "validator submit")
+    us["path without sends"] = us["solve_and_send"] - sum(us[k] for k in sends)
     order = (
         "poll", "decode + book-keeping", *inside, "glue (solve_and_send rest)",
-        "stats record",
+        "stats record", "path without sends",
         "solve_and_send", "service",
     )  # fmt: skip
-    total = float(np.median(us["service"] + us["poll"]))
     pacing = f"paced at {rate_hz:g} Hz" if rate_hz > 0 else "unpaced"
-    print(
+    head = (
         f"\n== {transport}, {method}, validator {'on' if validate else 'off'}, "
         f"{pacing}: {n_frames} frames after {warmup} warm-up, {solved} solved; "
         f"wrapper cost {wrapper / 1e3:.2f} µs subtracted per call"
     )
+    if not (ab and saved_fused is not None):
+        _table(head, us, t, order, np.ones(n_frames, dtype=bool))
+        return
+    even = np.arange(n_frames) % 2 == 0
+    _table(f"{head}\n   even frames: the solve and the emit in one call", us, t,
+           order, even)  # fmt: skip
+    _table(f"{head}\n   odd frames: the solve's call, then the emit's", us, t,
+           order, ~even)  # fmt: skip
+
+
+def _table(
+    head: str,
+    us: dict[str, np.ndarray],
+    t: dict[str, Timer],
+    order: tuple[str, ...],
+    rows: np.ndarray,
+) -> None:
+    """The stages' medians and p99s over the frames ``rows`` selects."""
+    total = float(np.median((us["service"] + us["poll"])[rows]))
+    print(head)
     print(f"{'stage':30s} {'median µs':>10s} {'p99 µs':>9s} {'share':>7s}")
     for k in order:
-        if k in t and not t[k].calls.any():
+        if k in t and not t[k].calls[rows].any():
             continue  # a stage this configuration never calls (e.g. the pivot's)
-        a = us[k]
+        a = us[k][rows]
         med, p99 = float(np.median(a)), float(np.percentile(a, 99))
         share = (
             ""
-            if k in ("solve_and_send", "service", "stats record")
+            if k in ("solve_and_send", "service", "stats record", "path without sends")
             else f"{100 * med / total:6.1f}%"
         )
         print(f"{k:30s} {med:10.1f} {p99:9.1f} {share:>7s}")
@@ -332,6 +370,12 @@ def main(argv: list[str] | None = None) -> int:
         "--cprofile", action="store_true",
         help="also print cProfile's top functions of the timed wake-ups",
     )  # fmt: skip
+    ap.add_argument(
+        "--ab", action="store_true",
+        help="where the pipeline has the solve and the emit in one call "
+        "(live/solve_emit.py), make every other frame's two calls instead (the "
+        "same pipeline and state) and print a table for each kind of frame",
+    )  # fmt: skip
     args = ap.parse_args(argv)
     la = os.getloadavg()
     print(
@@ -341,7 +385,7 @@ def main(argv: list[str] | None = None) -> int:
     for transport in args.transports.split(","):
         profile(
             transport.strip(), args.frames, args.warmup, args.method, args.validate,
-            args.cprofile, args.rate_hz,
+            args.cprofile, args.rate_hz, args.ab,
         )  # fmt: skip
     la = os.getloadavg()
     print(f"load average at the end: {la[0]:.2f} {la[1]:.2f} {la[2]:.2f}")

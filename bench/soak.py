@@ -79,7 +79,7 @@ import fuzz
 LOCALHOST = "127.0.0.1"
 RATE_HZ = 240.0
 #: The daemon's ``[validate] rate_hz`` here (its default): the rate of the frame
-#: numbers, which the fit's frame times come from (``live.send.frame_interval_s``).
+#: numbers, which the fit's frame times come from (``live.interval.frame_interval_s``).
 VALIDATE_RATE_HZ = 240.0
 LABEL_SET_ID = 1
 #: The pass thresholds (issue 12 item 7).
@@ -1052,7 +1052,7 @@ def replay_check(
     from retargetd.daemon.body.calibration import load_calibration
     from retargetd.daemon.body.method import make_body_solver
     from retargetd.daemon.body.rig import load_rig
-    from retargetd.daemon.live.send import frame_interval_s
+    from retargetd.daemon.live.interval import frame_interval_s
     from retargetd.daemon.validate.limits import JOINT_LIMITS_DEG
     from retargetd.daemon.validate.model import SEGMENT_KIND
     from retargetd.protocols import osc_in, pose_stream

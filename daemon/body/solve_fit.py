@@ -19,6 +19,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -565,6 +566,20 @@ class FitSolver:
             fit_buffers=(bufs["f8"], bufs["f4"], bufs["u1"], bufs["b1"]),
         )
 
+    def packed_buffers(self, pose: FitPose) -> tuple[Any, ...]:
+        """``kernel_fit.fit_one``'s arguments after the markers for ``pose``, then
+        what :meth:`solve_frame` does around that call: the scalars whose ``C_DT``
+        slot it sets, the pose's stats and residuals (its frame flags and occluded
+        count) and the interval used when none is given (for a kernel that runs
+        this solve inside its own call, ``live/solve_emit.py``)."""
+        if pose.fit_buffers is None:
+            raise ValueError("the pose was not made by new_pose()")
+        return (
+            self._mf, self._mi, self._sf, self._si, self._sb, self._layout, self._con,
+            *pose.fit_buffers, self._scalars, pose.stats, pose.marker_residual,
+            1.0 / self.rate_hz,
+        )  # fmt: skip
+
     def solve_frame(
         self, markers_world: F64Array, out: FitPose, dt_s: float = 0.0
     ) -> FitPose:
@@ -681,6 +696,12 @@ def warm_up() -> FitPose:
     Returns:
         The last warm-up frame's pose (finite; a check for the caller's tests).
     """
+    return warm_up_solver()[1]
+
+
+def warm_up_solver() -> tuple[FitSolver, FitPose]:
+    """:func:`warm_up`'s solver and its last pose (for a kernel that runs the fit
+    inside its own call to warm up on: ``live/solve_emit.py``)."""
     rig = parse_rig(_WARM_RIG, source="warm-up")
     labels = ("A", "B", "C", "D")
     frame = (
@@ -691,4 +712,4 @@ def warm_up() -> FitPose:
     solver = FitSolver(rig, cal, labels, base_positions=frame[None])
     solver.solve_take(frame[None])
     frame[3] = np.nan
-    return solver.solve_frame(frame, solver.new_pose())
+    return solver, solver.solve_frame(frame, solver.new_pose())

@@ -285,20 +285,29 @@ class EmitPlan:
         return self.ef[a : a + int(np.prod(shape))].reshape(shape)
 
 
+def warm_args() -> tuple[np.ndarray, ...]:
+    """A tiny plan's arrays after the pose's five (``EmitPlan.args[5:]``: the arenas
+    for one target bone, the VMC and pose buffers, no face, no contact), of the
+    types a bound plan passes (``live/solve_emit.py``'s warm-up reuses them)."""
+    n = 1
+    ei, at = _arenas(n)
+    ei[N_HEAD + 3] = -1  # the Hips: no parent
+    stage = np.zeros(7 * (n + 1) + 1, dtype=np.float32)
+    return (
+        ei, np.zeros(at), np.zeros(n, dtype=np.uint8), np.zeros((n + 1, 4)), stage,
+        np.arange(len(stage), dtype=np.int64) * 4, np.zeros(4 * len(stage), np.uint8),
+        np.zeros(68, dtype=np.uint8), np.zeros(52, dtype=np.uint8), np.zeros(0),
+        np.zeros(0), *_NO_STANCE,
+    )  # fmt: skip
+
+
 def warm_up() -> None:
     """Compile (or load from the cache) :func:`emit_frame` on a tiny plan, through
     the types the loop passes, so no streamed frame pays for it."""
-    n, b = 1, 1
-    ei, at = _arenas(n)
-    ei[N_HEAD + 3] = -1  # the Hips: no parent
+    b = 1
     quat = np.array([[1.0, 0.0, 0.0, 0.0]])
     u8 = np.zeros(b, dtype=np.uint8)
-    stage = np.zeros(7 * (n + 1) + 1, dtype=np.float32)
     emit_frame(
-        DO_RETARGET | DO_VMC | DO_POSE, quat, quat, quat, np.zeros(3), u8, ei,
-        np.zeros(at), np.zeros(n, dtype=np.uint8), np.zeros((n + 1, 4)), stage,
-        np.arange(len(stage), dtype=np.int64) * 4, np.zeros(4 * len(stage), np.uint8),
-        np.zeros(68, dtype=np.uint8), np.zeros(52, dtype=np.uint8), np.zeros(0),
-        np.zeros(0), *_NO_STANCE, np.zeros(0, dtype=np.uint8), 0.0, 0, 0.0, 0, 0, 0,
-        0.0,
+        DO_RETARGET | DO_VMC | DO_POSE, quat, quat, quat, np.zeros(3), u8,
+        *warm_args(), np.zeros(0, dtype=np.uint8), 0.0, 0, 0.0, 0, 0, 0, 0.0,
     )  # fmt: skip

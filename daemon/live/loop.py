@@ -70,6 +70,7 @@ from retargetd.daemon.live.inputs import (
 from retargetd.daemon.live.outputs import Outputs, VmcOut
 from retargetd.daemon.live.performer import build_performers
 from retargetd.daemon.live.performers import Performers
+from retargetd.daemon.live.pipeline import may_fuse
 from retargetd.daemon.live.prewarm import Prewarm
 from retargetd.daemon.live.props import LiveProps, vmc_destinations
 from retargetd.daemon.live.ratelog import (
@@ -79,6 +80,7 @@ from retargetd.daemon.live.ratelog import (
 )
 from retargetd.daemon.live.recording import LiveRecording
 from retargetd.daemon.live.shared import Shared
+from retargetd.daemon.live.solve_emit import warm_up as warm_up_solve_emit
 from retargetd.daemon.live.sources import CaptureSource
 from retargetd.daemon.live.spin import Spin
 from retargetd.daemon.live.stalls import LoopStalls
@@ -368,6 +370,9 @@ class Daemon:
             protocol_kernels.warm_up()
             warm_up_emit()
             warm_up_match()  # the calibration check fits the first second's frames
+            fuse = may_fuse(self.config)  # the solve and the emit in one call
+            if fuse and not fit:
+                warm_up_solve_emit(fit=False)
             bar.update()
             if fit:
                 self.out(
@@ -375,6 +380,8 @@ class Daemon:
                 )
                 bar.set_description("kernels: fit")
                 warm_up_fit()
+                if fuse:
+                    warm_up_solve_emit(fit=True)
                 bar.update()
             if self.face is not None:
                 bar.set_description("kernels: face")

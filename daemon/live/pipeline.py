@@ -27,6 +27,8 @@ from retargetd.daemon.live.face import FaceStage
 from retargetd.daemon.live.performer import Performer
 from retargetd.daemon.live.rebuild import Build
 from retargetd.daemon.live.shared import Shared
+from retargetd.daemon.live.solve_emit import AVAILABLE as SOLVE_EMIT_AVAILABLE
+from retargetd.daemon.live.solve_emit import SolveEmit
 from retargetd.daemon.post.pipeline import build_pipeline
 from retargetd.daemon.post.pivot import SpinePivot, spine_stage
 from retargetd.daemon.post.plant import FootPlant, plant_stage
@@ -65,6 +67,9 @@ class Pipeline:
     tick_source_clock: bool = True  # resampled ticks' times are the source's clock
     spine: SpinePivot | None = None  # [target] spine = "pivot", after the retarget
     emit: EmitPlan | None = None  # the one compiled call per frame (live/emit.py)
+    # the body solve and the emit in one call, when nothing runs between them
+    # (live/solve_emit.py; None: the solve's call, then the emit's)
+    solve_emit: SolveEmit | None = None
     stance: StanceDetector | None = None  # foot contact (post/stance.py)
     stance_bits: int = 0  # its FRAME_CONTACT_* bits for the latest solved frame
     plant: FootPlant | None = None  # [target] feet = "plant", after the retarget
@@ -216,6 +221,11 @@ def make_pipeline(spec: PipelineSpec, solver: Any = None) -> Pipeline:
     # Nothing between the solve and the emit: the emit call finds the contact too.
     alone = post is None and spine is None and plant is None
     emit.bind(pose, blend, weights, stance if alone else None)
+    # No face either, and the contact (if any) inside the emit: the solve joins
+    # the emit's call (the loop uses it while no live validator runs).
+    fused = None
+    if SOLVE_EMIT_AVAILABLE and alone and face is None and emit.stance is not None:
+        fused = SolveEmit(solver, pose, emit)
     cols = [int(c) for c in solver.marker_cols]
     if face is not None:
         cols += face.solver.columns()
@@ -246,6 +256,7 @@ def make_pipeline(spec: PipelineSpec, solver: Any = None) -> Pipeline:
         spine=spine,
         plant=plant,
         emit=emit,
+        solve_emit=fused,
         stance=stance,
     )
 
@@ -267,6 +278,22 @@ def _post_stages(spec: PipelineSpec) -> SolvePost | None:
         rest_parent_from_bone_quat=rest,
     )
     return SolvePost(stages, parents, rest, output_rate_hz=rate)
+
+
+def may_fuse(config: Any) -> bool:
+    """Whether a pipeline of the daemon's ``config`` (``DaemonConfig``) can run its
+    solve and emit in one call (:func:`new_pipeline`'s ``fused``): not with an
+    output rate, the spine pivot or the foot plant, which last the daemon's life.
+    The ``[[pipeline]]`` stages (a reload), a face (the stream's labels) and the
+    live validator (while it builds, or after its build failed) come and go, so
+    they do not rule it out. The daemon's start warms the fused kernel only then
+    (its cache load ~0.3-0.5 s, its compile 15-30 s on this VM)."""
+    return (
+        SOLVE_EMIT_AVAILABLE
+        and not config.loop.output_rate_hz > 0.0
+        and config.target.spine != "pivot"
+        and config.target.feet != "plant"
+    )
 
 
 def warm_up_pipeline(perf: Performer, sh: Shared) -> None:
@@ -308,5 +335,10 @@ def warm_up_pipeline(perf: Performer, sh: Shared) -> None:
             pipe.spine.apply(tp.world_from_bone_quat, tp.rest_from_bone_quat)
         if pipe.plant is not None:
             pipe.plant.apply_pose(tp)
+    fused = pipe.solve_emit
+    if fused is not None:  # the solve and the emit in one call: its own kernel
+        fused.call(
+            fused.what, nan_frame, *fused.args, sh.t0_ns, 0, math.nan, now_ns, 0, 0.0
+        )
     pipe.solver.reset()
     sh.names_id -= 1  # this pipeline is thrown away; keep the ids dense

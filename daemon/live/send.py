@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import logging
 import math
-import struct
 import time
 from typing import Any
 
@@ -18,6 +17,7 @@ import numpy as np
 
 from retargetd.daemon.body.match import MatchWindow
 from retargetd.daemon.body.solve import FLAG_HELD
+from retargetd.daemon.live import held
 from retargetd.daemon.live.emit import (
     DO_POSE,
     DO_RETARGET,
@@ -25,58 +25,18 @@ from retargetd.daemon.live.emit import (
     DO_VMC,
     NO_FLAGS,
 )
-from retargetd.daemon.live.outputs import VMC_STATE_INTERVAL_NS
+from retargetd.daemon.live.interval import frame_interval_s
 from retargetd.daemon.live.performer import FrameSource, Performer
 from retargetd.daemon.live.pipeline import Pipeline, new_pipeline, warm_up_pipeline
 from retargetd.daemon.live.pipelines import Pipelines
 from retargetd.daemon.live.shared import Shared
 from retargetd.daemon.live.validation import Validation
 from retargetd.protocols import pose_stream
-from retargetd.protocols.vmc_out import (
-    CALIBRATION_CALIBRATED,
-    CALIBRATION_CALIBRATING,
-    CALIBRATION_WAITING,
-)
 
 logger = logging.getLogger(__name__)
 
 
-def frame_interval_s(
-    last: tuple[float, int, int], frame: Any, received_ns: int, rate_hz: float
-) -> tuple[float, tuple[float, int, int]]:
-    """Seconds between a solved frame and the one solved before it, for the fit's
-    prediction: the source's clock when it sends one, else its frame numbers at
-    ``rate_hz`` (``[validate] rate_hz``), else the receive clock; 0 for the first
-    frame (the solver's own rate then). Shared by the loop and the replays that
-    reproduce it (``bench/soak.py``).
-
-    Args:
-        last: the previous solved frame's (source time s, frame number, receive ns);
-            (NaN, -1, 0) before any.
-        frame: this frame (``source_time_s``, ``frame_id``).
-        received_ns: its receive time.
-        rate_hz: the source's frame-number rate.
-
-    Returns:
-        (seconds, this frame's (source time, frame number, receive ns)).
-    """
-    last_t, last_id, last_ns = last
-    t, fid = frame.source_time_s, frame.frame_id
-    now = (t, fid, received_ns)
-    if last_ns == 0:
-        return 0.0, now
-    if t == t and last_t == last_t and t > last_t:  # (NaN: no source clock)
-        return float(t - last_t), now
-    if fid > last_id >= 0:
-        return (fid - last_id) / rate_hz, now
-    return max(received_ns - last_ns, 0) * 1e-9, now
-
-
 _PERFORMER_MASK = pose_stream.PERFORMER_MASK
-#: Byte offset of the frame flags in the pose-stream data header (PROTOCOLS.md): a
-#: held pose sent again is flagged in place.
-_FLAGS_OFFSET = struct.calcsize("<4sHHqdqqq")
-_FLAGS = struct.Struct("<I")
 
 
 class BodyPath:
@@ -172,7 +132,13 @@ class BodyPath:
         retarget, encode and send it: :meth:`begin`, :meth:`solve_begun` and
         :meth:`finish` in a row (``performers.Performers`` may run several
         performers' middle steps on more threads: ``solve_threads.py``)."""
-        if self.begin(stream, received_ns):
+        if not self.begin(stream, received_ns):
+            return
+        pipe = self._begun
+        assert pipe is not None
+        if pipe.solve_emit is not None and self.validation.validator is None:
+            self._solve_emit(pipe, stream, received_ns)  # one compiled call
+        else:
             self.solve_begun()
             self.finish(stream, received_ns)
 
@@ -233,7 +199,7 @@ class BodyPath:
         pipe = self._begun
         assert pipe is not None
         self._begun = None
-        sh, perf = self.shared, self.perf
+        sh = self.shared
         stats = sh.stats
         t_start = turn_ns or self._t_start
         frame = stream.current.frame
@@ -242,17 +208,7 @@ class BodyPath:
         fit_bits = pose.frame_flags
         if fit_bits:
             if fit_bits & pose_stream.FRAME_UNSEEN:
-                # the performer's markers not seen: no pose to stream (counted;
-                # the console still shows the markers)
-                stats.unseen += 1
-                stats.frames_solved += 1
-                if sh.recording.packets is not None:  # a replay solves it too
-                    sh.recording.event("unseen", received_ns=received_ns)
-                if perf.console is not None:
-                    perf.console.publish_markers(
-                        t_start, frame, stream.current.label_set.labels,
-                        stats, sh.status,
-                    )  # fmt: skip
+                self._unseen(stream, received_ns, t_start)
                 return
             if fit_bits & pose_stream.FRAME_UNEXPLAINED:
                 stats.unexplained += 1
@@ -295,6 +251,21 @@ class BodyPath:
         self._emit(pipe, stream, frame_id, source_t, arrival_ns, t_start, dt)
         if post is not None and post.resampler is not None:
             self._send_due_ticks_of(pipe, time.monotonic_ns())  # overdue ones too
+
+    def _unseen(self, stream: FrameSource, received_ns: int, t_start: int) -> None:
+        """The performer's markers not seen: no pose to stream (counted; the
+        console still shows the markers)."""
+        sh, perf = self.shared, self.perf
+        stats = sh.stats
+        stats.unseen += 1
+        stats.frames_solved += 1
+        if sh.recording.packets is not None:  # a replay solves it too
+            sh.recording.event("unseen", received_ns=received_ns)
+        if perf.console is not None:
+            perf.console.publish_markers(
+                t_start, stream.current.frame, stream.current.label_set.labels,
+                stats, sh.status,
+            )  # fmt: skip
 
     def _check_calibration_match(
         self, window: Any, pipe: Pipeline, frame: Any, received_ns: int
@@ -380,7 +351,7 @@ class BodyPath:
         packs the VMC datagrams and the pose message; Python sends them."""
         pose = pipe.pose
         perf, sh = self.perf, self.shared
-        stats, outputs, recording = sh.stats, sh.outputs, sh.recording
+        stats, outputs = sh.stats, sh.outputs
         frame = stream.current.frame if stream is not None else None
         emit = pipe.emit
         assert emit is not None
@@ -444,6 +415,89 @@ class BodyPath:
         if what & DO_STANCE:  # the contact found inside the call, in the header
             pipe.stance_bits = contact
             flags_word |= contact
+        self._sent(
+            pipe, stream, frame_id, received_ns, t_start, solved_ns, flags_word,
+            vmc_on, publish, vb, fo, n_results,
+        )  # fmt: skip
+
+    def _solve_emit(
+        self, pipe: Pipeline, stream: FrameSource, received_ns: int
+    ) -> None:
+        """:meth:`solve_begun`, :meth:`finish` and :meth:`_emit`'s call for the
+        frame :meth:`begin` took, on a pipeline whose solve and emit are one
+        compiled call (``pipe.solve_emit``: no post stage, pivot, plant or face;
+        no live validator): the flags the solve cannot change are set before it,
+        the counters after it, from what it returns; the sends as after the emit
+        call (:meth:`_sent`)."""
+        self._begun = None
+        sh = self.shared
+        stats = sh.stats
+        frame = stream.current.frame
+        fused, emit = pipe.solve_emit, pipe.emit
+        assert fused is not None and emit is not None
+        what = fused.what
+        vmc_on, publish = self.perf.vmc.on, sh.outputs.publishing
+        if vmc_on:
+            what |= DO_VMC
+        if publish:
+            what |= DO_POSE
+        # (the contact is found inside the call: pipe.stance_bits is not ORed in)
+        flags = self.frame_flags | self.match_flags
+        flags_word = (flags & ~_PERFORMER_MASK) | emit.performer_bits
+        frame_id = frame.frame_id
+        n_held, n_occ, fit_bits, contact, solved_ns = fused.call(
+            what, frame.markers_world, *fused.args, sh.t0_ns, frame_id,
+            frame.source_time_s, received_ns, flags_word, self._begun_dt,
+        )  # fmt: skip
+        pose = pipe.pose
+        pose.n_held, pose.n_occluded, pose.frame_flags = n_held, n_occ, fit_bits
+        if fit_bits:  # (as finish)
+            if fit_bits & pose_stream.FRAME_UNSEEN:
+                self._unseen(stream, received_ns, self._t_start)
+                return
+            if fit_bits & pose_stream.FRAME_UNEXPLAINED:
+                stats.unexplained += 1
+            if fit_bits & pose_stream.FRAME_RESEEDED:
+                stats.reseeded += 1
+        stats.frames_solved += 1
+        stats.held_bone_frames += n_held
+        stats.occluded_samples += n_occ
+        self.frame_flags = 0
+        if what & DO_STANCE:
+            pipe.stance_bits = contact
+        flags_word |= fit_bits | contact | (pose_stream.FRAME_HELD if n_held else 0)
+        self._sent(
+            pipe, stream, frame_id, received_ns, self._t_start, solved_ns,
+            flags_word, vmc_on, publish, None, None, 0,
+        )  # fmt: skip
+
+    def _sent(
+        self,
+        pipe: Pipeline,
+        stream: FrameSource | None,
+        frame_id: int,
+        received_ns: int,
+        t_start: int,
+        solved_ns: int,
+        flags_word: int,
+        vmc_on: bool,
+        publish: bool,
+        vb: Any,
+        fo: Any,
+        n_results: int,
+    ) -> None:
+        """After the emit call: the VMC send, the pose message's flags, face and
+        sends, then (for a frame, not a timer tick) the recording, the validator,
+        the console, the overrun check and the latencies."""
+        pose = pipe.pose
+        perf, sh = self.perf, self.shared
+        stats, outputs, recording = sh.stats, sh.outputs, sh.recording
+        frame = stream.current.frame if stream is not None else None
+        vmc = perf.vmc
+        val = self.validation
+        validator = val.validator
+        face = pipe.face
+        tp = pipe.target_pose
         if vmc_on:  # (one datagram to a loopback receiver; never blocks)
             vmc.send(pipe.vmc.datagrams)
         bone_flags = pose.bone_flags
@@ -529,49 +583,16 @@ class BodyPath:
         }
 
     def resend_held(self, key: int, now_ns: int) -> tuple[bool, bool]:
-        """The last pose message on the pipeline ``key`` sent again (its encoder's
-        buffers still hold it), flagged held and source_lost, with a new sent time:
-        the capture system is lost. Returns (VMC state sent, pose sent)."""
+        """The last pose of the pipeline ``key`` sent again, held and source_lost
+        (``held.resend_held``); (False, False) without one."""
         pipe = self.pipelines.get(key)
         if pipe is None:
             return False, False
-        sh, vmc = self.shared, self.perf.vmc
-        outputs = sh.outputs
-        if outputs.vmc_on:
-            # VMC has no frame flags; its own word for this is /VMC/Ext/OK with
-            # tracking 0 (VMC 2.7): the model is loaded and calibrated, tracking is
-            # lost. Receivers keep the last pose they got and hear the performer is
-            # still there (silence reads as "no performer" in EVMC4U and VSeeFace).
-            dgram = vmc.state.encode_state(
-                CALIBRATION_CALIBRATED, False, (now_ns - sh.t0_ns) * 1e-9
-            )
-            vmc.send((dgram,))
-        if not outputs.publishing:
-            return outputs.vmc_on, False
-        parts = pipe.pose_enc.parts
-        header = parts[0]
-        (flags,) = _FLAGS.unpack_from(header, _FLAGS_OFFSET)
-        flags |= pose_stream.FRAME_HELD | pose_stream.FRAME_SOURCE_LOST
-        _FLAGS.pack_into(header, _FLAGS_OFFSET, flags)
-        pose_stream.stamp_sent(header, now_ns)
-        outputs.send_pub(parts, now_ns)
-        return outputs.vmc_on, True
+        return held.resend_held(pipe, self.perf, self.shared, now_ns)
 
     def send_vmc_state(self, now_ns: int, calibrating: bool) -> None:
-        """Before a calibration, and while one collects frames, tell the VMC receiver
-        the state (``/VMC/Ext/OK`` calibration state 1 waiting or 2 calibrating, the
-        tracking flag) about twice a second: no pose is streamed then, and silence
-        reads as "no performer" in EVMC4U and VSeeFace."""
-        vmc, sh = self.perf.vmc, self.shared
-        if not sh.outputs.vmc_on or now_ns < vmc.next_state_ns:
-            return
-        if self.perf.calibration is not None and not calibrating:
-            return
-        vmc.next_state_ns = now_ns + VMC_STATE_INTERVAL_NS
-        state = CALIBRATION_CALIBRATING if calibrating else CALIBRATION_WAITING
-        tracking = now_ns - sh.last_frame_ns < 1_000_000_000
-        dgram = vmc.state.encode_state(state, tracking, (now_ns - sh.t0_ns) * 1e-9)
-        vmc.send((dgram,))
+        """The VMC calibration state while no pose streams (``held.send_vmc_state``)."""
+        held.send_vmc_state(self.perf, self.shared, now_ns, calibrating)
 
     @property
     def validator(self) -> Any:

@@ -37,6 +37,12 @@ CONFIGS: dict[str, tuple[dict[str, Any], bool]] = {
         False,
     ),
     "construction": ({"solve": {"method": "construction"}}, False),
+    # without the validator, the solve and the emit in one call (solve_emit.py)
+    "fit_alone": ({"validate": {"enabled": False}}, False),
+    "construction_alone": (
+        {"solve": {"method": "construction"}, "validate": {"enabled": False}},
+        False,
+    ),
     "face": ({}, True),
 }
 

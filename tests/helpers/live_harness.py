@@ -109,10 +109,12 @@ def pytest_runtestloop(session: pytest.Session) -> Iterator[object]:
 
 def compile_kernels() -> None:
     """A daemon opened in-process with the fit, both ``[[pipeline]]`` stages, an output
-    rate and the validator on, then closed; and the face kernel."""
+    rate and the validator on, then closed; the face kernel; and the fused solve and
+    emit of both methods."""
     import tempfile
 
     from retargetd.daemon.live.face import warm_up as warm_up_face
+    from retargetd.daemon.live.solve_emit import warm_up as warm_up_solve_emit
 
     take = _take()
     rig = load_rig(EXACT_RIG)
@@ -136,6 +138,10 @@ def compile_kernels() -> None:
         finally:
             daemon.close()
     warm_up_face()
+    # The solve and the emit in one call (live/solve_emit.py), both methods: the
+    # daemon above, with its stages, does not run it; the tests' daemons do.
+    warm_up_solve_emit(fit=True)
+    warm_up_solve_emit(fit=False)
 
 
 def _ignore(_: str) -> None:
@@ -528,7 +534,7 @@ def _fit_oracle(calibration: Path, frames: list[np.ndarray]) -> list[tuple[Any, 
     from retargetd.daemon.validate.model import SEGMENT_KIND
 
     # the daemon's frame time: OscSource's source clock, frame number / RATE_HZ
-    # (live.send.frame_interval_s), one frame apart
+    # (live.interval.frame_interval_s), one frame apart
     solver = make_body_solver(
         "fit", load_rig(EXACT_RIG), load_calibration(calibration), _take().labels,
         joint_limits=JOINT_LIMITS_DEG, segment_kind=SEGMENT_KIND, rate_hz=RATE_HZ,
