@@ -329,7 +329,10 @@ def test_an_elbow_marker_hidden_leaves_the_forearm_its_wrist_markers(
     performer's forearm twist): with the hold read from the straight calibration
     pose's tables alone the forearm stayed at its twist and the hand went 113-128 deg
     off the intact solve; read by the elbow's bend, within 10 deg and 20 mm (measured
-    2.8-4.3 deg, 3-4 mm)."""
+    2.8-4.3 deg, 3-4 mm; 0.6-0.7 deg, 1.7-2.1 mm with the rule below). Since a hinge_twist's twist is not held for a marker above
+    its hinge where the parent's own markers resolve the parent's turn
+    (``fit_track.hold_priors``, issue 28 item 6), the straight tables alone hold it
+    right too (1.9-2.4 deg measured; more than 45 before): two guards, each shown."""
     take, cal = _synthetic("menache")
     window = slice(int(3.0 * RATE_HZ), int(4.0 * RATE_HZ))
     hidden = damage(take.markers_world, take.labels, "hide", window,
@@ -341,7 +344,9 @@ def test_an_elbow_marker_hidden_leaves_the_forearm_its_wrist_markers(
     print(f"\n{marker} hidden 1 s: bone {m.max_bone_deg:.1f} deg ({m.max_bone}), "
           f"joint {m.max_joint_mm:.1f} mm")  # fmt: skip
     assert m.max_bone_deg <= 10.0 and m.max_joint_mm <= 20.0
-    # the mechanism: no limb hinge, the straight table alone
+    # the second guard: no limb hinge, the straight table alone; the epicondyle
+    # marker rides the upper arm, whose other epicondyle marker resolves its turn
+    # about the forearm's twist axis, so the forearm's twist is not held
     monkeypatch.setattr(
         fit_observe, "marker_hinges",
         lambda chain: np.full(len(chain.marker_bone), -1, dtype=np.int64),
@@ -353,7 +358,9 @@ def test_an_elbow_marker_hidden_leaves_the_forearm_its_wrist_markers(
     base = straight.solve_take(take.markers_world)
     straight.reset()
     worse = damage_metrics(base, straight.solve_take(hidden), window, RATE_HZ)
-    assert worse.max_bone_deg > 45.0, worse.max_bone_deg
+    print(f"  the straight table alone: bone {worse.max_bone_deg:.1f} deg "
+          f"({worse.max_bone}), joint {worse.max_joint_mm:.1f} mm")  # fmt: skip
+    assert worse.max_bone_deg <= 10.0 and worse.max_joint_mm <= 20.0, worse
 
 
 # --- item 2: a steady misfit; item 5: a performer not yet seen ----------------------
