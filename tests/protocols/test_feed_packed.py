@@ -106,7 +106,8 @@ def test_compiled_sequencer_equals_the_python_rules(
     frame, t_ns = 0, 0
     for value, step, set_id, gap_ms, restart in events:
         t_ns += gap_ms * MS
-        frame = max(frame + value, -1) if step else value
+        # a step past int64 is a number no packet can carry (the wire's int64)
+        frame = min(max(frame + value, -1), 2**63 - 1) if step else value
         if restart:
             seq.restart_next()
             ref._restart_next = True
