@@ -329,8 +329,9 @@ def test_an_elbow_marker_hidden_leaves_the_forearm_its_wrist_markers(
     performer's forearm twist): with the hold read from the straight calibration
     pose's tables alone the forearm stayed at its twist and the hand went 113-128 deg
     off the intact solve; read by the elbow's bend, within 10 deg and 20 mm (measured
-    2.8-4.3 deg, 3-4 mm; 0.6-0.7 deg, 1.7-2.1 mm with the rule below). Since a hinge_twist's twist is not held for a marker above
-    its hinge where the parent's own markers resolve the parent's turn
+    2.8-4.3 deg, 3-4 mm; 0.6-0.7 deg, 1.7-2.1 mm with the rule below). Since a
+    hinge_twist's twist is not held for a marker above its hinge where the parent's
+    own markers resolve the parent's turn
     (``fit_track.hold_priors``, issue 28 item 6), the straight tables alone hold it
     right too (1.9-2.4 deg measured; more than 45 before): two guards, each shown."""
     take, cal = _synthetic("menache")
