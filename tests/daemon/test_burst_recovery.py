@@ -331,3 +331,67 @@ def test_a_take_that_fits_worse_after_a_gap_is_not_held_for_good(
     assert back.size, "held for the rest of the take"
     assert g1 + back[0] - g0 <= rate * 1.0 + 1, back[0]  # the level's 1 s
     assert not held[back[0] :].any(), np.flatnonzero(held[back[0] :])
+
+
+def _no_worse_s(hit: Any, intact: Any, seen_all: Any, t1: int, rate: float) -> float:
+    """``bench/burst_recovery.py``'s second measure: seconds from the burst's last
+    frame to the first after it whose every bone is within the soak's degrees of the
+    solve without the bursts or no more than that further from the solve with
+    nothing hidden than the solve without the bursts is (the root likewise), neither
+    held nor unseen: the burst left nothing worse than the hides already had."""
+    soak = bench_module("burst_recovery").soak
+
+    def apart(a: Any, b: Any) -> tuple[np.ndarray, np.ndarray]:
+        deg = bone_deviation_deg(
+            np.asarray(a.world_from_bone_quat), np.asarray(b.world_from_bone_quat)
+        )
+        return deg, np.linalg.norm(a.root_pos - b.root_pos, axis=1)
+
+    deg, root = apart(hit, intact)
+    deg_all, root_all = apart(hit, seen_all)
+    deg_hides, root_hides = apart(intact, seen_all)
+    worse_deg = np.max(np.minimum(deg, deg_all - deg_hides), axis=1)
+    worse_m = np.minimum(root, root_all - root_hides)
+    ok = (worse_deg <= soak.RECOVERED_DEG) & (worse_m <= soak.RECOVERED_M)
+    ok &= ~hit.unexplained & ~hit.unseen
+    after = np.flatnonzero(ok[t1:])
+    assert after.size, "never back"
+    return float((after[0] + 1) / rate)
+
+
+@pytest.mark.timeout(300)
+@pytest.mark.xfail(
+    strict=True,
+    reason="the hold of the one marker that sees the upper arm's twist, hidden inside "
+    "the burst and after it, is anchored on the last frame before the burst, when the "
+    "hides had the arm 16 deg off (README 'Bursts on a take with markers missing "
+    "around them'): the frames that would anchor it better are the burst's",
+)
+def test_a_hold_anchored_before_the_burst_leaves_the_arm_worse_than_the_hides(
+    datasets: Path,
+) -> None:
+    """``bench/burst_recovery.py --seed 3``'s zeros of 39 frames (its 6th burst,
+    frames 3300-3338), the one burst of seeds 1-9 late by both of its measures
+    (0.300 s, no worse than the hides after 0.300 s): back within 0.25 s of the
+    solve without the bursts, or no worse than that solve against the one with
+    nothing hidden. Traced (helper h28z, 2026-12-07): LSHO hidden from frame 3248
+    leaves both solves' left upper arm 12.6 deg (16.0 parent-relative) from the solve
+    with nothing hidden at frame 3299; in the solve without the bursts LSHO is back at
+    3305 (0.4 deg) and LELB, the upper arm's one marker, hides at 3334, its hold
+    anchored there (0.1 deg); after the burst LELB is hidden until 3409, and its hold
+    is anchored on frame 3299, the last explained one: the upper arm 14.8-22.7 deg from
+    the solve with nothing hidden (26.5 at the first frame after) while the other's
+    drifts 0.3 -> 16.3 deg, back the frame after LELB returns. With the hold dropped
+    after the gap wherever the seen markers observe the rotation at all, the seen
+    markers turn that arm 39-54 deg off (seeds 1-6: late 1, 0, 2, 1, 2, 2 -> 1, 2, 5,
+    3, 2, 3)."""
+    br = bench_module("burst_recovery")
+    hit, intact, kind, t0, t1 = _soak_burst_replay(datasets, 3, 5, 90)
+    assert (kind, t0, t1 - t0) == ("zeros", 3300, 39)
+    walk, fit = _pig_walk(datasets)
+    pos = walk.positions
+    rows = np.array([br.soak.walk_row(k, pos.shape[0]) for k in range(t1 + 90)])
+    seen_all = fit(240.0).solve_take(pos[rows])
+    rec_s = _no_worse_s(hit, intact, seen_all, t1, 240.0)
+    print(f"no worse than the hides after {rec_s:.3f} s")
+    assert rec_s <= br.soak.MAX_RECOVERY_S, rec_s
