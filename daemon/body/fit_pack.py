@@ -13,11 +13,11 @@ of its dtype; unused dimensions 1), rows in the order of ``m``, then ``s``, then
 outputs (``ROW_*``). The element kinds (dtype, ndim) are fixed by the kernel code
 below; :func:`pack` checks the arrays it is given against them.
 
-The views are built by :func:`_view`, not by slicing and ``reshape``: numba's
-``reshape`` normalizes the shape and checks the size through an out-of-line helper
-at every call, ~32 ns a view, and a frame's call builds 102 of them (3.3 µs of the
-fit's ~90 µs a frame on the PiG walk; ``_view`` ~1 ns). The layout is trusted: it is
-:func:`pack`'s own.
+The views are built by ``_view`` (a numba intrinsic), not by slicing and
+``reshape``: numba's ``reshape`` normalizes the shape and checks the size through an
+out-of-line helper at every call, ~32 ns a view, and a frame's call builds 102 of them
+(3.3 µs of the fit's ~90 µs a frame on the PiG walk; ``_view`` ~1 ns). The layout is
+trusted: it is :func:`pack`'s own.
 """
 
 from __future__ import annotations
@@ -100,8 +100,7 @@ def pack(
     return bufs, rows, tuple(views)
 
 
-@intrinsic
-def _view(
+def _view_typing(
     typingctx: object, buf: types.Array, off: types.Integer, shape: types.UniTuple
 ) -> tuple:
     # A C-contiguous view of ``buf`` (1-d, C) from element ``off`` with ``shape``:
@@ -126,6 +125,9 @@ def _view(
         return impl_ret_borrowed(context, builder, ret, dst._getvalue())
 
     return ret(buf, off, shape), codegen
+
+
+_view: Any = intrinsic(_view_typing)  # (Any: mypy reads the typing signature)
 
 
 @kernel
