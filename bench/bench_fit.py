@@ -10,7 +10,10 @@ For each case it prints
 - ``FitSolver.solve_frame`` latency, one frame at a time as the live loop calls it
   (``--warmup`` frames first, then ``--calls`` timed calls, ``time.perf_counter_ns``
   around each): median, p99 and max in microseconds, and LM iterations per frame
-  (median, p99, max) and reseeds;
+  (median, p99, max) and reseeds; and the same calls' CPU time
+  (``time.thread_time_ns`` around each, outside the wall clock's reads: the time
+  the calling thread ran, not the time it waited for a core, which on a shared
+  machine sets the wall clock's p99);
 - batch throughput, ``FitSolver.solve_take`` over the stream (one core, best of
   ``--repeat``);
 - baseline 1, the construction kernel (``BodySolver.solve_frame``) on the same frames:
@@ -332,12 +335,16 @@ def run(case: Case, args: argparse.Namespace) -> None:
         fit.solve_frame(case.frames[f % n], pose)
     gc.disable()
     times = np.zeros(args.calls, dtype=np.int64)
+    cpu = np.zeros(args.calls, dtype=np.int64)
     try:
         for k in range(args.calls):
             frame = case.frames[(args.warmup + k) % n]
+            c0 = time.thread_time_ns()
             t0 = time.perf_counter_ns()
             fit.solve_frame(frame, pose)
-            times[k] = time.perf_counter_ns() - t0
+            t1 = time.perf_counter_ns()
+            cpu[k] = time.thread_time_ns() - c0
+            times[k] = t1 - t0
             iters[k] = pose.stats[ft.S_ITER]
             solves[k] = pose.stats[ft.S_SOLVES]
             reseeds += int(pose.stats[ft.S_RESEEDED])
@@ -347,6 +354,11 @@ def run(case: Case, args: argparse.Namespace) -> None:
     print(
         f"  fit, one frame ({args.calls} calls after {args.warmup} warm-up): "
         f"median {med:.1f} us, p99 {p99:.1f} us, max {worst:.1f} us   [{_load()}]"
+    )
+    cmed_, cp99_, cmax_ = _pct(cpu)
+    print(
+        f"    CPU time of the same calls: median {cmed_:.1f} us, p99 {cp99_:.1f} us, "
+        f"max {cmax_:.1f} us"
     )
     print(
         f"    iterations per frame: median {np.median(iters):.0f}, p99 "

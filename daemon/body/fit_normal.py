@@ -17,11 +17,14 @@ from retargetd.daemon.body.fit_terms import (
     L_TWIST_AXIS,
     P_KAPPA_HINGE,
     P_KAPPA_LIMIT,
-    neutral_w,
+    R_CONT,
+    R_HOLD,
+    R_PEN,
+    R_PEN_ON,
+    R_PRIOR,
     pen_components,
     prior_normal,
     qexp,
-    qlog,
 )
 from retargetd.daemon.compiled import kernel, qmul
 
@@ -35,7 +38,7 @@ def build_normal(m: tuple, s: tuple) -> None:
     hinge, lim, left, fwd = m[10], m[11], m[12], m[13]
     anc_ptr, anc_idx = m[14], m[15]
     params, lock = m[18], m[20]
-    q, t, qprev, tprev = s[0], s[1], s[2], s[3]
+    q, t, tprev = s[0], s[1], s[3]
     wm, o, pm, res, wrob = s[8], s[9], s[10], s[14], s[15]
     s0, sa, sm, sr, sc = s[16], s[17], s[18], s[19], s[20]
     hh, g = s[21], s[23]
@@ -158,21 +161,24 @@ def build_normal(m: tuple, s: tuple) -> None:
             for j in range(3):
                 hh[n_b + root_of[k], j, j] += w0
     # Continuity: lambda I on every rotation block, gradient lambda W phi (phi the
-    # rotation from the prediction, bone axes).
+    # rotation from the prediction, bone axes). The terms' values at this state
+    # (phi, the priors' charts, the penalty residuals) are those the cost took at
+    # it (fit_terms.reg_cost, s[65]): every build follows the evaluation of its
+    # state (kernel_fit._lm), and evaluated again they cost as much as the cost.
     sc = s[36]
     lam = sc[C_LAM_ROT]
     s_lim = math.sqrt(params[P_KAPPA_LIMIT])
     s_hinge = math.sqrt(params[P_KAPPA_HINGE])
     prior = m[21]
     hold, anchor, hold_on = s[53], s[54], s[55]
+    reg = s[65]
     eps = 1e-6
     for b in range(n_b):
         rb = 3 * (n_b - 1 - b)
         hb = hh[n_b - 1 - b]
+        rg = reg[b]
         if lam > 0.0:
-            d = qmul(qprev[b, 0], -qprev[b, 1], -qprev[b, 2], -qprev[b, 3],
-                      q[b, 0], q[b, 1], q[b, 2], q[b, 3])  # fmt: skip
-            px, py, pz = qlog(d[0], d[1], d[2], d[3])
+            px, py, pz = rg[R_CONT], rg[R_CONT + 1], rg[R_CONT + 2]
             for j in range(3):
                 hb[j, j] += lam
                 g[rb + j] += lam * (
@@ -184,13 +190,13 @@ def build_normal(m: tuple, s: tuple) -> None:
                   q[b, 0], q[b, 1], q[b, 2], q[b, 3])  # fmt: skip
         pb = prior[b]
         if pb[0, 0] + pb[1, 1] + pb[2, 2] > 0.0:  # the rig's and the automatic prior
-            prior_normal(rest_pfb[b], q[b], pb, wm[b], hb, g, rb, jac)
+            prior_normal(rest_pfb[b], q[b], pb, wm[b], hb, g, rb, jac, rg, R_PRIOR)
         if hold_on[b] > 0.0:  # the hold while a marker is hidden (kernel_fit)
-            prior_normal(anchor[b], q[b], hold[b], wm[b], hb, g, rb, jac)
-        if abs(neutral_w(lim[b], r)) > m[19][b]:
+            prior_normal(anchor[b], q[b], hold[b], wm[b], hb, g, rb, jac, rg, R_HOLD)
+        if rg[R_PEN_ON] == 0.0:  # (fit_terms.neutral_w: far inside the limits)
             continue
-        pen_components(r[0], r[1], r[2], r[3], lim[b], left[b], fwd[b], hinge[b],
-                        lock[b], s_lim, s_hinge, pen)  # fmt: skip
+        for k in range(6):
+            pen[k] = rg[R_PEN + k]
         active = False
         for k in range(6):
             if pen[k] != 0.0:
@@ -286,6 +292,12 @@ def build_normal(m: tuple, s: tuple) -> None:
             g[tb + j] += lt * (t[rr, j] - tprev[rr, j])
 
 
+@kernel(inline="always")
+def _dot3(a: tuple, b: tuple) -> float:
+    # (a0 b0 + a1 b1) + a2 b2: the order solve_step always summed in
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
 @kernel
 def solve_step(m: tuple, s: tuple, mu: float) -> float:
     # x = -(H + mu I)^-1 g by a Cholesky over 3 x 3 nodes in elimination order
@@ -333,25 +345,36 @@ def solve_step(m: tuple, s: tuple, mu: float) -> float:
                 bp[i, 0] = y0
                 bp[i, 1] = y1
                 bp[i, 2] = y2
-        # A_ab -= L_ak L_bk^T for ancestors b <= a
+        # A_ab -= L_ak L_bk^T for ancestors b <= a (L_ak, L_bk read once into
+        # registers: the blocks written are other nodes', which the compiler cannot
+        # know, and it reloaded them after every store)
         for p in range(p0, p1):
-            ep = n_nodes + p
-            a = node_idx[p]
-            for i in range(3):
-                u0, u1, u2 = ll[ep, i, 0], ll[ep, i, 1], ll[ep, i, 2]
-                for j in range(i + 1):
-                    ll[a, i, j] -= (
-                        u0 * ll[ep, j, 0] + u1 * ll[ep, j, 1] + u2 * ll[ep, j, 2]
-                    )
+            bp = ll[n_nodes + p]
+            u0 = (bp[0, 0], bp[0, 1], bp[0, 2])
+            u1 = (bp[1, 0], bp[1, 1], bp[1, 2])
+            u2 = (bp[2, 0], bp[2, 1], bp[2, 2])
+            da = ll[node_idx[p]]
+            da[0, 0] -= _dot3(u0, u0)
+            da[1, 0] -= _dot3(u1, u0)
+            da[1, 1] -= _dot3(u1, u1)
+            da[2, 0] -= _dot3(u2, u0)
+            da[2, 1] -= _dot3(u2, u1)
+            da[2, 2] -= _dot3(u2, u2)
             for q in range(p0, p):
-                eq = n_nodes + q
-                et = n_nodes + node_ptr[node_idx[q]] + (p - q - 1)
-                for i in range(3):
-                    u0, u1, u2 = ll[ep, i, 0], ll[ep, i, 1], ll[ep, i, 2]
-                    for j in range(3):
-                        ll[et, i, j] -= (
-                            u0 * ll[eq, j, 0] + u1 * ll[eq, j, 1] + u2 * ll[eq, j, 2]
-                        )
+                bq = ll[n_nodes + q]
+                v0 = (bq[0, 0], bq[0, 1], bq[0, 2])
+                v1 = (bq[1, 0], bq[1, 1], bq[1, 2])
+                v2 = (bq[2, 0], bq[2, 1], bq[2, 2])
+                bt = ll[n_nodes + node_ptr[node_idx[q]] + (p - q - 1)]
+                bt[0, 0] -= _dot3(u0, v0)
+                bt[0, 1] -= _dot3(u0, v1)
+                bt[0, 2] -= _dot3(u0, v2)
+                bt[1, 0] -= _dot3(u1, v0)
+                bt[1, 1] -= _dot3(u1, v1)
+                bt[1, 2] -= _dot3(u1, v2)
+                bt[2, 0] -= _dot3(u2, v0)
+                bt[2, 1] -= _dot3(u2, v1)
+                bt[2, 2] -= _dot3(u2, v2)
     for e in range(g.shape[0]):
         x[e] = -g[e]
     # forward: L y = b

@@ -72,6 +72,20 @@ N_STATS = 9
 
 INF = 1e300
 
+#: The regularization terms' values at a state, per bone (``reg_cost`` writes them:
+#: s[65] for the current state, s[66] for the trial; ``fit_normal.build_normal``
+#: reads the current state's instead of evaluating them again, since every build
+#: follows the evaluation of the state it is built at): the continuity's rotation
+#: vector (0:3), the prior's and the hold's charts (3:6, 6:9), the penalty residuals
+#: (9:15) and 1 where they were evaluated, 0 where the joint is too far inside its
+#: limits to have any (15).
+R_CONT = 0
+R_PRIOR = 3
+R_HOLD = 6
+R_PEN = 9
+R_PEN_ON = 15
+N_REG = 16
+
 #: A joint's penalty row (``m[11]``, ``lim``): fit_model's limit columns (N_LIM of
 #: them), then a "hinge_twist"'s twist axis in the bone's rest axes (3).
 L_TWIST_AXIS = 10
@@ -120,11 +134,15 @@ def prior_chart(w: float, x: float, y: float, z: float) -> tuple[float, float, f
 
 
 @kernel
-def prior_cost(a: np.ndarray, q: np.ndarray, pb: np.ndarray) -> float:
+def prior_cost(
+    a: np.ndarray, q: np.ndarray, pb: np.ndarray, reg: np.ndarray, k0: int
+) -> float:
     # 1/2 c^T P c, c the swing-twist coordinates of conj(a) q (a: the prior's
-    # anchor, a parent_from_bone w x y z; q: the joint's; pb: (3, 3) m^2 / rad^2).
+    # anchor, a parent_from_bone w x y z; q: the joint's; pb: (3, 3) m^2 / rad^2);
+    # c kept in reg[k0:k0 + 3] (prior_normal's c0 at the same state).
     r = qmul(a[0], -a[1], -a[2], -a[3], q[0], q[1], q[2], q[3])
     c = prior_chart(r[0], r[1], r[2], r[3])
+    reg[k0], reg[k0 + 1], reg[k0 + 2] = c[0], c[1], c[2]
     cost = 0.0
     for i in range(3):
         for j in range(3):
@@ -135,15 +153,17 @@ def prior_cost(a: np.ndarray, q: np.ndarray, pb: np.ndarray) -> float:
 @kernel
 def prior_normal(
     a: np.ndarray, q: np.ndarray, pb: np.ndarray, wmb: np.ndarray,
-    hb: np.ndarray, g: np.ndarray, rb: int, jac: np.ndarray,
+    hb: np.ndarray, g: np.ndarray, rb: int, jac: np.ndarray, reg: np.ndarray,
+    k0: int,
 ) -> None:  # fmt: skip
     # The prior's Gauss-Newton terms in the bone's world increments (block hb,
     # gradient g[rb:rb + 3]): the chart's numerical Jacobian in the bone's own
     # increments (jac rows 0-2), turned into world increments U = jac W^T (rows
-    # 3-5), then H += U^T P U, g += U^T P c. wmb: the bone's world rotation matrix.
+    # 3-5), then H += U^T P U, g += U^T P c. wmb: the bone's world rotation matrix;
+    # c at q: reg[k0:k0 + 3], as prior_cost left it at the same state.
     eps = 1e-6
     r = qmul(a[0], -a[1], -a[2], -a[3], q[0], q[1], q[2], q[3])
-    c0 = prior_chart(r[0], r[1], r[2], r[3])
+    c0 = (reg[k0], reg[k0 + 1], reg[k0 + 2])
     for c in range(3):
         e = qexp(eps if c == 0 else 0.0, eps if c == 1 else 0.0,
                   eps if c == 2 else 0.0)  # fmt: skip
@@ -391,9 +411,11 @@ def marker_cost(
 
 
 @kernel
-def reg_cost(m: tuple, s: tuple, q: np.ndarray, t: np.ndarray) -> float:
+def reg_cost(
+    m: tuple, s: tuple, q: np.ndarray, t: np.ndarray, reg: np.ndarray
+) -> float:
     # Continuity (pull to the predicted pose s[2], s[3]), priors and joint penalties
-    # at (q, t).
+    # at (q, t); their values per bone into reg (N_REG columns).
     parent, rest_pfb = m[0], m[3]
     hinge, lim, left, fwd = m[10], m[11], m[12], m[13]
     params = m[18]
@@ -407,24 +429,29 @@ def reg_cost(m: tuple, s: tuple, q: np.ndarray, t: np.ndarray) -> float:
     s_hinge = math.sqrt(params[P_KAPPA_HINGE])
     cost = 0.0
     for b in range(parent.shape[0]):
+        rg = reg[b]
         if lam > 0.0:
             d = qmul(qpred[b, 0], -qpred[b, 1], -qpred[b, 2], -qpred[b, 3],
                       q[b, 0], q[b, 1], q[b, 2], q[b, 3])  # fmt: skip
             vx, vy, vz = qlog(d[0], d[1], d[2], d[3])
+            rg[R_CONT], rg[R_CONT + 1], rg[R_CONT + 2] = vx, vy, vz
             cost += 0.5 * lam * (vx * vx + vy * vy + vz * vz)
         if parent[b] >= 0:
             r = qmul(rest_pfb[b, 0], -rest_pfb[b, 1], -rest_pfb[b, 2], -rest_pfb[b, 3],
                       q[b, 0], q[b, 1], q[b, 2], q[b, 3])  # fmt: skip
             pb = prior[b]
             if pb[0, 0] + pb[1, 1] + pb[2, 2] > 0.0:
-                cost += prior_cost(rest_pfb[b], q[b], pb)
+                cost += prior_cost(rest_pfb[b], q[b], pb, rg, R_PRIOR)
             if hold_on[b] > 0.0:
-                cost += prior_cost(anchor[b], q[b], hold[b])
+                cost += prior_cost(anchor[b], q[b], hold[b], rg, R_HOLD)
             if abs(neutral_w(lim[b], r)) > pen_cos[b]:
+                rg[R_PEN_ON] = 0.0
                 continue
             pen_components(r[0], r[1], r[2], r[3], lim[b], left[b], fwd[b],
                             hinge[b], lock[b], s_lim, s_hinge, pen)  # fmt: skip
+            rg[R_PEN_ON] = 1.0
             for k in range(6):
+                rg[R_PEN + k] = pen[k]
                 cost += 0.5 * pen[k] * pen[k]
     lt = sc[C_LAM_TRANS]
     for rr in range(t.shape[0]):

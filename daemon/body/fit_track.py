@@ -452,7 +452,6 @@ def local_floor(m: tuple, s: tuple, thr: float) -> None:
     wq, wm, o = s[29], s[8], s[9]
     acc, touched, jac = s[18], s[39], s[28]
     n_b = parent.shape[0]
-    fk(parent, m[1], m[2], s[0], s[1], wq, wm, o)
     any_hidden = False
     for b in range(n_b):
         touched[b] = 0
@@ -463,8 +462,9 @@ def local_floor(m: tuple, s: tuple, thr: float) -> None:
                 touched[k] += 1
                 k = parent[k]
             any_hidden = True
-    if not any_hidden:
+    if not any_hidden:  # (most frames: no FK to pay; the fit's own comes next)
         return
+    fk(parent, m[1], m[2], s[0], s[1], wq, wm, o)
     for b in range(n_b):
         for i in range(3):
             for j in range(3):

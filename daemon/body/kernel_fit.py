@@ -137,7 +137,7 @@ FLAG_PARTIAL = body_kernel.FLAG_PARTIAL  #: some marker of the bone not seen
 def _evaluate_current(m: tuple, s: tuple, gated: bool) -> float:
     fk(m[0], m[1], m[2], s[0], s[1], s[29], s[8], s[9])
     return marker_cost(m, s, s[8], s[9], s[10], s[14], s[15], gated) + reg_cost(
-        m, s, s[0], s[1]
+        m, s, s[0], s[1], s[65]
     )
 
 
@@ -191,7 +191,7 @@ def _lm(m: tuple, s: tuple, gated: bool, max_iter: int) -> tuple[int, bool, floa
             apply_step(m, s)
             fk(m[0], m[1], m[2], qt, tt, wqt, wmt, ot)
             ct = marker_cost(m, s, wmt, ot, pmt, rest, wrobt, gated) + reg_cost(
-                m, s, qt, tt
+                m, s, qt, tt, s[66]
             )
             if ct <= cost and math.isfinite(ct):
                 accepted = True
@@ -206,6 +206,7 @@ def _lm(m: tuple, s: tuple, gated: bool, max_iter: int) -> tuple[int, bool, floa
                 cp2(pm, pmt)
                 cp2(res, rest)
                 cp1(wrob, wrobt)
+                cp2(s[65], s[66])  # the terms' values (fit_terms.N_REG)
                 # Nielsen's update from the gain ratio (Madsen, Nielsen & Tingleff,
                 # "Methods for non-linear least squares problems", DTU 2004, 3.2)
                 rho = (cost_before - ct) / pred if pred > 0.0 else 1.0
