@@ -27,12 +27,18 @@ from typing import Any
 
 import numpy as np
 from numba import types
-from numba.core import cgutils
-from numba.core.imputils import impl_ret_borrowed
 from numba.extending import intrinsic
-from numba.np.arrayobj import make_array, populate_array
 
 from retargetd.daemon.compiled import kernel
+
+try:  # numba's array-struct helpers (there since numba 0.4x, not its public API)
+    from numba.core import cgutils
+    from numba.core.imputils import impl_ret_borrowed
+    from numba.np.arrayobj import make_array, populate_array
+
+    VIEW_INTRINSIC = True
+except ImportError:  # pragma: no cover (a numba that moved them: the reshape views)
+    VIEW_INTRINSIC = False
 
 #: (dtype, ndim) of each element of the model tuple ``m`` (``kernel_fit``).
 M_KINDS: tuple[tuple[str, int], ...] = (
@@ -127,7 +133,20 @@ def _view_typing(
     return ret(buf, off, shape), codegen
 
 
-_view: Any = intrinsic(_view_typing)  # (Any: mypy reads the typing signature)
+@kernel
+def view_by_reshape(b: np.ndarray, off: int, shape: tuple) -> np.ndarray:
+    """``_view`` by slicing and ``reshape``: the same view, at ~32 ns (numba's size
+    check); used where numba lacks the helpers the intrinsic needs, and as the
+    intrinsic's reference (``tests/daemon/test_fit.py``)."""
+    n = 1
+    for d in shape:
+        n *= d
+    return b[off : off + n].reshape(shape)
+
+
+#: ``_view(b, off, shape)``: the intrinsic, or :func:`view_by_reshape` where this
+#: numba lacks its helpers. (Any: mypy reads the typing function's signature.)
+_view: Any = intrinsic(_view_typing) if VIEW_INTRINSIC else view_by_reshape
 
 
 @kernel

@@ -910,6 +910,37 @@ def test_pack_checks_the_kinds() -> None:
         fit_pack.pack(arrays, (("i8", 1), ("f8", 1), ("b1", 1)))
 
 
+def test_pack_views_equal_reshaped_slices() -> None:
+    """The views the kernels build (``fit_pack._view``, a numba intrinsic with no
+    size check) are the slices ``reshape`` gives: same values, shape, strides and
+    memory, 1 to 3 dimensions, at offsets inside the buffer."""
+    import numba
+
+    view = fit_pack._view
+
+    @numba.njit
+    def both(b: np.ndarray, lay: np.ndarray) -> tuple:
+        a1, r1 = (
+            view(b, lay[0, 0], (lay[0, 1],)),
+            fit_pack.view_by_reshape(b, lay[0, 0], (lay[0, 1],)),
+        )
+        a2 = view(b, lay[1, 0], (lay[1, 1], lay[1, 2]))
+        r2 = fit_pack.view_by_reshape(b, lay[1, 0], (lay[1, 1], lay[1, 2]))
+        a3 = view(b, lay[2, 0], (lay[2, 1], lay[2, 2], lay[2, 3]))
+        r3 = fit_pack.view_by_reshape(b, lay[2, 0], (lay[2, 1], lay[2, 2], lay[2, 3]))
+        a3[1, 2, 0] = -1.0  # written through the view: the buffer's memory
+        return a1, r1, a2, r2, a3, r3
+
+    buf = np.arange(100.0)
+    lay = np.array([[3, 7, 1, 1], [10, 4, 5, 1], [31, 2, 3, 4]], dtype=np.int64)
+    a1, r1, a2, r2, a3, r3 = both(buf, lay)
+    for a, r in ((a1, r1), (a2, r2), (a3, r3)):
+        np.testing.assert_array_equal(a, r)
+        assert a.shape == r.shape and a.strides == r.strides and a.flags.c_contiguous
+        assert a.__array_interface__["data"][0] == r.__array_interface__["data"][0]
+    assert buf[31 + 1 * 12 + 2 * 4] == -1.0 and a2[0, 0] == 10.0 and a3[1, 0, 0] == 43
+
+
 def _nrt_allocs() -> int:
     nrt = pytest.importorskip("numba.core.runtime._nrt_python")
     if not hasattr(nrt, "memsys_enable_stats"):
