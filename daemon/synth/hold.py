@@ -24,10 +24,11 @@ while two or more hidden markers ride it or hang below it. Nor is the share of a
 (``fit_track.twist_to_parent``) counted: the parent's allowance stays its own
 table's (a stricter figure: the parent's turn about that axis counts against it).
 A ``hinge_twist`` below the bones the marker rides, whose parent's own markers left
-resolve the parent's turn about its twist axis, has its twist taken off the hold by
-the kernel (the marker never moved with it); a held direction of such a bone with any
-twist in it is left out here whole (the kernel holds what is left of it off the twist:
-a stricter figure, which never counts a hinge's flexion excursion as held).
+resolve the parent's turn about its twist axis or whose parent the marker does not
+ride, has its twist taken off the hold by the kernel (the marker never moved with
+it); a held direction of such a bone with any twist in it is left out here whole
+(the kernel holds what is left of it off the twist: a stricter figure, which never
+counts a hinge's flexion excursion as held).
 The directions are unit vectors in each bone's own axes.
 
 **The truth's excursion in them** (:func:`hold_excursion_deg`): the hold pulls the
@@ -179,7 +180,10 @@ def held_directions(
                 if (
                     model.twist_lock[b] == 2.0
                     and b not in rides
-                    and _parent_turn_info(model, marker, b, pfb_t0[b]) >= thr
+                    and (
+                        int(model.bone_parent[b]) not in rides
+                        or _parent_turn_info(model, marker, b, pfb_t0[b]) >= thr
+                    )
                     and abs(float(u @ model.twist_axis[b])) > 0.0
                 ):
                     continue
