@@ -1379,6 +1379,17 @@ def _by_kind(rec: list[dict[str, Any]]) -> dict[str, Any]:
     return out
 
 
+def _late(rec: list[dict[str, Any]]) -> str:
+    """The bursts back past MAX_RECOVERY_S, one line: their count, then each one's
+    kind, length, recovery and worst angle from the intact solve."""
+    late = [b for b in rec if b["recovery_s"] > MAX_RECOVERY_S]
+    return f"late (past {MAX_RECOVERY_S} s): {len(late)} of {len(rec)}" + "".join(
+        f"; {b['kind']} of {b['frames']} frames {b['recovery_s']} s "
+        f"(worst {b['worst_deg']} deg)"
+        for b in late
+    )
+
+
 def _load(avg: tuple[float, float, float]) -> str:
     return " ".join(f"{x:.2f}" for x in avg)
 
@@ -1468,6 +1479,7 @@ def print_result(result: dict[str, Any]) -> None:
             print(f"bursts: {len(rec)}; recovery s median {np.median(times):.4f} max "
                   f"{times.max():.4f} (<= {MAX_RECOVERY_S}); by kind "
                   f"{_by_kind(rec)}")  # fmt: skip
+            print(_late(rec))
     print(f"pass: {result['pass']}")
 
 
