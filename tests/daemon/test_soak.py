@@ -65,7 +65,10 @@ def test_soak_with_faults() -> None:
     att = result["attacks"]
     assert att["ok"], att
     assert all(sent_n >= 1 for sent_n, _ in att["pairs"].values()), att
-    assert att["churn_started"] == 1 and att["spoofed_triples"] >= 1, att
+    # One recording started of the churn, one more for each second the pairs took
+    # on a slow host (record.min_interval_s: within att["ok"]); 2 of 50 under xdist
+    # at load 5 (helper hci, 2026-12-07).
+    assert att["churn_started"] >= 1 and att["spoofed_triples"] >= 1, att
     # Every burst kind met and its recovery measured (printed). Not asserted yet:
     # measured here the pose was back within 0.25 s of the intact solve after most
     # bursts but not all (this test: 23 bursts, 0.2499 s at worst; a 30 s soak:
