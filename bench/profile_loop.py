@@ -21,7 +21,11 @@ Each stage of the frame is timed by a wrapper put around the call on the live ob
 the input (``_service`` minus the performer's ``path.process``), the body solve, the
 emit call (``live/emit.py``: the retarget, the engine-frame conversion, the VMC and pose
 packs in one compiled call), or the two in one (``solve + emit call``,
-``live/solve_emit.py``: the default pipeline without a live validator), the VMC sends
+``live/solve_emit.py``: the default pipeline without a live validator), or the
+packet's feed with them (``feed + solve + emit call``: the one compiled call per frame
+of ``one_call.FastFrame``, where the stream's is armed; its ``run`` is
+then the frame's ``solve_and_send``, and the decode and book-keeping row is the
+drain's Python and the wake-up's around it), the VMC sends
 (``send`` on the connected socket), the pose send, the validator's submit (stages a
 configuration never calls are left out of the table: the separate retarget, engine
 frame, VMC and pose encode rows appear only where the loop still makes them, the
@@ -197,7 +201,7 @@ def profile(
             names = (
                 "poll", "service", "solve_and_send", "body solve", "retarget",
                 "engine frame", "VMC encode", "emit call", "solve + emit call",
-                "VMC send", "pose encode",
+                "feed + solve + emit call", "VMC send", "pose encode",
                 "pose send", "validator submit", "stats record", "empty wrapper",
             )  # fmt: skip
             t = {k: Timer(n_frames) for k in names}
@@ -211,6 +215,16 @@ def profile(
             }
             d._service = t["service"].wrap(orig["service"])  # type: ignore[method-assign]
             path.process = t["solve_and_send"].wrap(orig["solve_and_send"])  # type: ignore[method-assign]
+            # One compiled call per frame (one_call.FastFrame: the packet's feed, the
+            # solve and the emit), where the stream's is armed: its run is the
+            # frame's solve_and_send (the feed inside it).
+            stream = d.osc_stream if transport == "osc" else d.zmq_stream
+            fast = getattr(stream, "fast", None)
+            saved_fast = getattr(fast, "call", None)
+            if fast is not None:
+                saved_run = fast.run
+                fast.run = t["solve_and_send"].wrap(saved_run)
+                fast.call = t["feed + solve + emit call"].wrap(saved_fast)
             outputs.send_pub = t["pose send"].wrap(orig["_send_pub"])  # type: ignore[method-assign]
             pipe.solver.solve_frame = t["body solve"].wrap(pipe.solver.solve_frame)  # type: ignore[method-assign]
             pipe.retargeter.apply = t["retarget"].wrap(pipe.retargeter.apply)
@@ -255,7 +269,9 @@ def profile(
                         ahead = next_s - time.perf_counter()
                         if ahead > 0:
                             time.sleep(ahead)
-                    if ab and saved_fused is not None:  # odd frames: two calls
+                    if ab and fast is not None:  # odd frames: the feed, the frame
+                        stream.fast = fast if k % 2 == 0 else None
+                    elif ab and saved_fused is not None:  # odd frames: two calls
                         pipe.solve_emit = fused if k % 2 == 0 else None
                     send(p)
                     time.sleep(0.0002)  # the packet is in the socket before the wake
@@ -275,6 +291,10 @@ def profile(
                 if saved_fused is not None:
                     fused.call = saved_fused
                     pipe.solve_emit = fused
+                if fast is not None:
+                    fast.call = saved_fast
+                    fast.run = saved_run
+                    stream.fast = fast
                 perf.vmc.sock = real_vmc
             solved = d.stats.frames_solved
             # The stats record (a slotted object: not wrappable in place), alone on
@@ -302,7 +322,8 @@ def profile(
             us[k] = (timer.ns - timer.calls * wrapper) / 1e3
     inside = (
         "body solve", "retarget", "engine frame", "VMC encode", "emit call",
-        "solve + emit call", "VMC send", "pose encode", "pose send", "validator submit",
+        "solve + emit call", "feed + solve + emit call", "VMC send", "pose encode",
+        "pose send", "validator submit",
     )  # fmt: skip
     us["glue (solve_and_send rest)"] = us["solve_and_send"] - sum(us[k] for k in inside)
     us["decode + book-keeping"] = us["service"] - us["solve_and_send"]
@@ -319,6 +340,13 @@ def profile(
         f"{pacing}: {n_frames} frames after {warmup} warm-up, {solved} solved; "
         f"wrapper cost {wrapper / 1e3:.2f} µs subtracted per call"
     )
+    if ab and fast is not None:
+        even = np.arange(n_frames) % 2 == 0
+        _table(f"{head}\n   even frames: one call (the feed, the solve, the emit)",
+               us, t, order, even)  # fmt: skip
+        _table(f"{head}\n   odd frames: the feed's call, then the frame's", us, t,
+               order, ~even)  # fmt: skip
+        return
     if not (ab and saved_fused is not None):
         _table(head, us, t, order, np.ones(n_frames, dtype=bool))
         return
@@ -372,9 +400,11 @@ def main(argv: list[str] | None = None) -> int:
     )  # fmt: skip
     ap.add_argument(
         "--ab", action="store_true",
-        help="where the pipeline has the solve and the emit in one call "
-        "(live/solve_emit.py), make every other frame's two calls instead (the "
-        "same pipeline and state) and print a table for each kind of frame",
+        help="where the stream's one call per frame is armed (one_call.FastFrame), "
+        "make every other frame's two calls instead (the feed's, the frame's), "
+        "else where the pipeline has the solve and the emit in one call "
+        "(live/solve_emit.py), every other frame's solve and emit calls; the same "
+        "pipeline and state; a table for each kind of frame",
     )  # fmt: skip
     args = ap.parse_args(argv)
     la = os.getloadavg()

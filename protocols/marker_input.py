@@ -531,6 +531,13 @@ class MarkerStream:
         seq = self.sequencer
         self._feed_tail = (seq.q, seq.qf, self.counters.counts, self._source_time)
         self._feed_call: Any = kernels.feed_frame
+        #: The live loop's one compiled call per frame for this stream, while armed
+        #: (``daemon/live/send.py``, ``FastFrame``; None: the feed, then the frame).
+        self.fast: Any = None
+        #: ``(form, head, payload)``: the ``kernels.FORM_*`` and the receive buffers
+        #: of a live input that feeds it with :meth:`feed_packed` (set by the
+        #: loop's inputs), else None.
+        self.wire: tuple[int, np.ndarray, np.ndarray] | None = None
 
     def _in_use(self, t_ns: int | None) -> bool:
         """Whether frames carrying the current id were accepted recently (within the
@@ -627,16 +634,51 @@ class MarkerStream:
                 kernels.feed_frame, form, head, n_head, payload, n_payload, t_ns,
                 label_set.id, *spare.packed_args, *self._feed_tail,
             )  # fmt: skip
+        return self.take(code, frame_id, source_t, t_ns)
+
+    def take(self, code: int, frame_id: int, source_t: float, t_ns: int) -> int:
+        """The end of :meth:`feed_packed` after its compiled call (``code``, the
+        frame number and the source time it returned): an accepted frame (``ACCEPTED``
+        or ``RESTART``) in the spare packet swapped in as ``current``; ``code``
+        returned. Also the end of a call that fed the spare inside a larger one
+        (the live loop's ``send.BodyPath.run_fast``)."""
         if code > RESTART or code < 0:
             return code
+        spare = self._spare
         frame = spare.frame
         frame.frame_id = frame_id
         frame.source_time_s = source_t
         frame.t_ns = t_ns
-        spare.label_set_id = label_set.id
+        assert self.label_set is not None
+        spare.label_set_id = self.label_set.id
         spare.unknown_labels = 0
         self._spare, self.current = self.current, spare
         return code
+
+    def packets(self) -> tuple[MarkerPacket, MarkerPacket]:
+        """The two packets (``current``, then the spare the next packet decodes
+        into), the spare re-targeted at the label set now, as :meth:`feed_packed`
+        does before its decode (not for the hot path). Their arrays are fixed until
+        the label set changes."""
+        assert self.label_set is not None
+        if self._spare.label_set is not self.label_set:
+            self._spare = self._spare.with_label_set(self.label_set)
+        return self.current, self._spare
+
+    def spare_packet(self) -> MarkerPacket:
+        """The packet the next frame packet decodes into."""
+        return self._spare
+
+    def fused_tail(
+        self, form: int, head: np.ndarray, payload: np.ndarray, packet: MarkerPacket
+    ) -> tuple[Any, ...]:
+        """``kernels.feed_frame``'s arguments but the packet's sizes and receive
+        time, for a feed into ``packet`` (one of :meth:`packets`), in order:
+        ``form, head, payload, label_set_id, *packet.packed_args, q, qf, counts,
+        source_time`` (``live/solve_emit.py``'s one call per frame takes them)."""
+        assert self.label_set is not None
+        return (form, head, payload, self.label_set.id, *packet.packed_args,
+                *self._feed_tail)  # fmt: skip
 
     def feed(self, decode: Callable[..., MarkerPacket], *parts: Any, t_ns: int) -> int:
         """Decode one packet and classify it.

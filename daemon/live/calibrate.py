@@ -180,6 +180,7 @@ class LiveCalibration:
                 f"{sh.config.control.min_interval_s:g} s"
             )
         self.target = n
+        self.shared.bump()  # its frames wanted: the one-call path disarmed
         self.frames = []
         self.times = []
         self.labels = ()
@@ -321,6 +322,7 @@ class LiveCalibration:
     def _end_calibration_request(self) -> None:
         """Nothing pending any more (the frames collected let go)."""
         self.target = 0
+        self.shared.bump()  # (the one-call path may arm again)
         self.frames = []
         self.times = []
         self._end_rom()

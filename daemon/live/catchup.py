@@ -43,22 +43,22 @@ class CatchUp:
         fallback_ns: the window before the cadence is known (ns).
     """
 
-    __slots__ = ("_cadence", "_since_ns", "_solved", "fallback_ns")
+    __slots__ = ("_cadence", "_since_ns", "fallback_ns", "solved_any")
 
     def __init__(self, cadence: Cadence, fallback_ns: int) -> None:
         self._cadence = cadence
         self.fallback_ns = fallback_ns
-        self._solved = False  # a frame solved in this wake-up
+        self.solved_any = False  # a frame solved in this wake-up (read by the drains)
         self._since_ns = 0  # the first frame that waited for a solve (0: none yet)
 
     def wake(self) -> None:
         """A wake-up begins: nothing solved in it yet, nothing waited."""
-        self._solved = False
+        self.solved_any = False
         self._since_ns = 0
 
     def solved(self) -> None:
         """A frame was solved in this wake-up: a frame accepted after this waited."""
-        self._solved = True
+        self.solved_any = True
 
     def window_ns(self) -> float:
         """How long the loop catches up before the latest wins (ns): one frame
@@ -71,7 +71,7 @@ class CatchUp:
         """Whether a frame accepted at ``now_ns`` should wait for the end of the
         wake-up (where only its input's newest is solved) rather than be solved
         now: the loop has been catching up for a window already."""
-        if not self._solved:  # the wake-up's first solve: nothing of ours waited
+        if not self.solved_any:  # the wake-up's first solve: nothing of ours waited
             return False
         if not self._since_ns:  # the first frame that waited: catching up from now
             self._since_ns = now_ns

@@ -20,8 +20,10 @@ from typing import Any
 import numpy as np
 import zmq
 
+from retargetd.daemon.live.catchup import CatchUp
 from retargetd.daemon.live.config import ConfigError, DaemonConfig
 from retargetd.daemon.live.kernel_drops import udp_kernel_drops
+from retargetd.daemon.live.one_call import FAST_NOT_TAKEN, FAST_SOLVED
 from retargetd.daemon.live.ratelog import OncePer
 from retargetd.daemon.live.recording import FORM_OSC, FORM_ZMQ, LiveRecording
 from retargetd.daemon.live.stats import LoopStats
@@ -78,6 +80,8 @@ class Inputs:
         on_labels: told of every label set an input takes (the performers build
             their columns for it then, off the hot path).
         stale: called when an accepted frame is superseded before it was solved.
+        catch_up: the wake-up's catch-up state: a stream's armed one-call path
+            (``stream.fast``, ``one_call.FastFrame``) takes the wake-up's first solve.
 
     Raises:
         ConfigError: ``[input.osc] key_file`` unreadable since the config was read.
@@ -92,6 +96,7 @@ class Inputs:
         accept: Accept,
         on_labels: Callable[[MarkerStream, LabelSet], None],
         stale: Callable[[], None],
+        catch_up: CatchUp,
     ) -> None:
         self.config = config
         self.stats = stats
@@ -100,6 +105,7 @@ class Inputs:
         self._accept = accept
         self._on_labels = on_labels
         self._stale = stale
+        self._catch_up = catch_up
         osc_cfg, zmq_cfg = config.input.osc, config.input.zmq
         simple_labels = (
             LabelSet(0, osc_cfg.labels) if osc_cfg.form == "simple" else None
@@ -128,6 +134,11 @@ class Inputs:
         self._osc_limit = osc_cfg.max_message_bytes
         self.allow = frozenset(osc_cfg.allow)
         self.osc_form = FORM_OSC[osc_cfg.form]
+        # What a stream's one-call path feeds from (one_call.FastFrame): its form and
+        # the receive buffers (the simple OSC form decodes in Python: none).
+        if not self._osc_simple:
+            self.osc_stream.wire = (_OSC_COMPACT, self._wire, self._wire)
+        self.zmq_stream.wire = (_ZMQ_FRAME, self._zwire_header, self._zwire_payload)
         try:  # [input.osc] key_file: signed datagrams only (PROTOCOLS.md 13)
             self._osc_auth = osc_verifier(osc_cfg.key_file)
         except KeyFileError as exc:  # changed since the config was checked
@@ -303,8 +314,20 @@ class Inputs:
                 self._take_labels("osc", stream, label_set, t_ns)
                 continue
             else:  # decode, sequencing and counter in one compiled call, in place
-                code = stream.feed_packed(_OSC_COMPACT, self._wire, n, self._wire, 0,
-                                          t_ns)  # fmt: skip
+                code = FAST_NOT_TAKEN
+                fast = stream.fast  # with the frame's solve and emit in it, armed:
+                if (  # the wake-up's first solve (catchup.py)
+                    fast is not None
+                    and fast.epoch == fast.shared.epoch
+                    and not self._catch_up.solved_any
+                ):
+                    code = fast.run(stream, n, 0, t_ns)
+                    if code == FAST_SOLVED:  # sent: what _accept does after it
+                        self._catch_up.solved_any = True
+                        continue
+                if code == FAST_NOT_TAKEN:
+                    code = stream.feed_packed(_OSC_COMPACT, self._wire, n, self._wire,
+                                              0, t_ns)  # fmt: skip
                 if code < 0:  # refused by the compiled checks: the decoder says why
                     code = stream.feed(osc_in.decode_compact_into, self._wire, n,
                                        t_ns=t_ns)  # fmt: skip
@@ -393,9 +416,21 @@ class Inputs:
                     continue
                 self._take_labels("zmq", stream, label_set, t_ns)
                 continue
-            code = stream.feed_packed(
-                _ZMQ_FRAME, self._zwire_header, n0, self._zwire_payload, n1, t_ns
-            )  # decode, sequencing and counter in one compiled call, in place
+            code = FAST_NOT_TAKEN
+            fast = stream.fast  # the frame's solve and emit in the call (drain_osc)
+            if (
+                fast is not None
+                and fast.epoch == fast.shared.epoch
+                and not self._catch_up.solved_any
+            ):
+                code = fast.run(stream, n0, n1, t_ns)
+                if code == FAST_SOLVED:
+                    self._catch_up.solved_any = True
+                    continue
+            if code == FAST_NOT_TAKEN:
+                code = stream.feed_packed(
+                    _ZMQ_FRAME, self._zwire_header, n0, self._zwire_payload, n1, t_ns
+                )  # decode, sequencing and counter in one compiled call, in place
             if code < 0:  # refused by the compiled checks: the decoder says why
                 code = stream.feed(
                     zmq_wire.decode_zmq_into, self._zwire_header, n0,

@@ -169,20 +169,20 @@ class Daemon:
         self.recording = LiveRecording(
             rc.folder, rc.max_total_mb, rc.min_free_mb, rc.min_interval_s
         )
-        # The marker inputs (OSC, ZeroMQ): sockets, buffers and a stream each.
-        self.inputs = Inputs(
-            config, self.stats, self.recording, self._warn,
-            self._accept, self._on_labels, self._stale,
-        )  # fmt: skip
-        # The pose stream and each performer's VMC destination.
-        vmc = [VmcOut(p.vmc_addr, p.vmc_max_datagram, self.stats) for p in performers]
-        self.outputs = Outputs(self.stats, self.recording, vmc)
         budget_ns = int(config.loop.solve_budget_ms * 1e6)  # solve + send
         self._prewarm = Prewarm(config.loop.prewarm_ms)
         # A wake-up catches up the frames that waited behind a solve for one frame
         # period of the source (catchup.py); until its cadence is known, for the
         # budget of their solves: a frame of N performers is N solves.
         self._catch_up = CatchUp(self._prewarm, budget_ns * len(performers))
+        # The marker inputs (OSC, ZeroMQ): sockets, buffers and a stream each.
+        self.inputs = Inputs(
+            config, self.stats, self.recording, self._warn,
+            self._accept, self._on_labels, self._stale, self._catch_up,
+        )  # fmt: skip
+        # The pose stream and each performer's VMC destination.
+        vmc = [VmcOut(p.vmc_addr, p.vmc_max_datagram, self.stats) for p in performers]
+        self.outputs = Outputs(self.stats, self.recording, vmc)
         spin_us = config.loop.spin_us  # [loop] spin_us: None = off (the default)
         self._spin = Spin(spin_us, self._prewarm) if spin_us > 0.0 else None
         self.shared = Shared(
@@ -209,6 +209,9 @@ class Daemon:
         # [[prop]]: rigid props and cameras, one part called per accepted frame
         self.props = LiveProps(config.props, vmc_destinations(config),
                                self.outputs.send_pub, self.out)  # fmt: skip
+        # A frame's packet, solve and emit in one compiled call (one_call.FastFrame):
+        # one performer, no props (each would run between the feed and the solve)
+        self.shared.fast_ok = not self.performers.several and not self.props.props
         # A capture system ([input] source: QTM, NatNet): an input of its own.
         self.capture = CaptureSource(
             self.shared, self.performers, self._poller, self.endpoints, self._warn,
@@ -545,6 +548,7 @@ class Daemon:
 
     def _on_labels(self, stream: MarkerStream, label_set: LabelSet) -> None:
         """An input took a label set: the performers build their columns now."""
+        self.shared.bump()  # (the armed one-call paths: their packets' label set)
         self.performers.prepare(stream, label_set)
 
     def run(self, should_exit: Callable[[], bool]) -> None:

@@ -110,6 +110,7 @@ class Pipelines:
         if job is not None and not job.done():
             return None
         job = self.builds[key] = start_build(self.perf, self.shared, labels)
+        self.shared.bump()  # a pipeline swapped in soon: by a frame's lookup
         return job
 
     def _swap(self, key: int, job: Build, stream: FrameSource) -> Pipeline | None:
@@ -119,6 +120,7 @@ class Pipelines:
         announced with this frame. A build that raised: None (:meth:`_failed`)."""
         del self.builds[key]
         sh = self.shared
+        sh.bump()
         try:
             pipe = adopt(job.take(), sh)
         except Exception as exc:  # counted and said; the loop goes on
@@ -156,6 +158,7 @@ class Pipelines:
                 and not job.wants(self._want(labels))
             ):
                 self.builds[key] = start_build(self.perf, self.shared, labels)
+                self.shared.bump()
 
     def prepare(self, key: int, labels: tuple[str, ...]) -> None:
         """A stream (or view) ``key`` took a label set, ``labels`` being this

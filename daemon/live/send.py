@@ -26,6 +26,7 @@ from retargetd.daemon.live.emit import (
     NO_FLAGS,
 )
 from retargetd.daemon.live.interval import frame_interval_s
+from retargetd.daemon.live.one_call import arm
 from retargetd.daemon.live.performer import FrameSource, Performer
 from retargetd.daemon.live.pipeline import Pipeline, new_pipeline, warm_up_pipeline
 from retargetd.daemon.live.pipelines import Pipelines
@@ -75,6 +76,9 @@ class BodyPath:
         self._begun_dt = 0.0
         self._begun_markers: Any = None
         self._t_start = 0
+        #: id(stream) -> the ``Shared.epoch`` its one-call path was last tried at
+        #: (``one_call.arm``)
+        self.tried: dict[int, int] = {}
 
     def pipeline(self, stream: FrameSource) -> Pipeline | None:
         """The pipeline to solve ``stream``'s current frame with, or None
@@ -208,7 +212,7 @@ class BodyPath:
         fit_bits = pose.frame_flags
         if fit_bits:
             if fit_bits & pose_stream.FRAME_UNSEEN:
-                self._unseen(stream, received_ns, t_start)
+                self.unseen(stream, received_ns, t_start)
                 return
             if fit_bits & pose_stream.FRAME_UNEXPLAINED:
                 stats.unexplained += 1
@@ -252,7 +256,7 @@ class BodyPath:
         if post is not None and post.resampler is not None:
             self._send_due_ticks_of(pipe, time.monotonic_ns())  # overdue ones too
 
-    def _unseen(self, stream: FrameSource, received_ns: int, t_start: int) -> None:
+    def unseen(self, stream: FrameSource, received_ns: int, t_start: int) -> None:
         """The performer's markers not seen: no pose to stream (counted; the
         console still shows the markers)."""
         sh, perf = self.shared, self.perf
@@ -287,6 +291,7 @@ class BodyPath:
         found = window.add(frame.markers_world, pipe.solver.marker_cols, t_s)
         if found is None:
             return
+        self.shared.bump()  # the window is over: the one-call path may arm
         line = found.warning()
         if line is None:
             logger.info("%s: %s", perf.label, found.summary())
@@ -415,7 +420,7 @@ class BodyPath:
         if what & DO_STANCE:  # the contact found inside the call, in the header
             pipe.stance_bits = contact
             flags_word |= contact
-        self._sent(
+        self.sent(
             pipe, stream, frame_id, received_ns, t_start, solved_ns, flags_word,
             vmc_on, publish, vb, fo, n_results,
         )  # fmt: skip
@@ -428,7 +433,7 @@ class BodyPath:
         compiled call (``pipe.solve_emit``: no post stage, pivot, plant or face;
         no live validator): the flags the solve cannot change are set before it,
         the counters after it, from what it returns; the sends as after the emit
-        call (:meth:`_sent`)."""
+        call (:meth:`sent`)."""
         self._begun = None
         sh = self.shared
         stats = sh.stats
@@ -453,7 +458,7 @@ class BodyPath:
         pose.n_held, pose.n_occluded, pose.frame_flags = n_held, n_occ, fit_bits
         if fit_bits:  # (as finish)
             if fit_bits & pose_stream.FRAME_UNSEEN:
-                self._unseen(stream, received_ns, self._t_start)
+                self.unseen(stream, received_ns, self._t_start)
                 return
             if fit_bits & pose_stream.FRAME_UNEXPLAINED:
                 stats.unexplained += 1
@@ -466,12 +471,14 @@ class BodyPath:
         if what & DO_STANCE:
             pipe.stance_bits = contact
         flags_word |= fit_bits | contact | (pose_stream.FRAME_HELD if n_held else 0)
-        self._sent(
+        self.sent(
             pipe, stream, frame_id, received_ns, self._t_start, solved_ns,
             flags_word, vmc_on, publish, None, None, 0,
         )  # fmt: skip
+        if self.tried.get(id(stream)) != sh.epoch:  # once per change, not per frame
+            arm(self, pipe, stream)  # its next frames' one call (one_call.py)
 
-    def _sent(
+    def sent(
         self,
         pipe: Pipeline,
         stream: FrameSource | None,

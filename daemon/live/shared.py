@@ -35,6 +35,10 @@ class Shared:
         budget_ns: ``solve_budget_ms``: solve + send of one frame.
         names_id: the id of the latest pose-stream names message (16 bits).
         last_frame_ns: the receive time of the latest accepted frame.
+        fast_ok: the loop may solve a frame in one compiled call with its
+            packet's feed (one performer, no ``[[prop]]``: ``one_call.FastFrame``).
+        epoch: counts the changes that may end a stream's armed one-call path
+            (:meth:`bump`): a path armed at another epoch is not used.
     """
 
     config: DaemonConfig
@@ -49,6 +53,15 @@ class Shared:
     budget_ns: int
     names_id: int = 0
     last_frame_ns: int = 0
+    fast_ok: bool = False
+    epoch: int = 0
+
+    def bump(self) -> None:
+        """Something a frame's one-call path was armed on changed (a label set, a
+        pipeline build, the validator, a live calibration, the calibration-match
+        window's end): every armed path is off until a frame's two calls arm it
+        again (``one_call.arm``)."""
+        self.epoch += 1
 
     def next_names_id(self) -> int:
         """A new names id (a pipeline announces new names)."""

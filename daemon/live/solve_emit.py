@@ -50,6 +50,8 @@ from retargetd.daemon.live.emit import (
     emit_frame,
     warm_args,
 )
+from retargetd.protocols.kernels import FORM_ZMQ, S_ACCEPTED, feed_frame
+from retargetd.protocols.marker_input import LabelSet, MarkerStream
 from retargetd.protocols.pose_stream import (
     FRAME_HELD,
     FRAME_RESEEDED,
@@ -203,6 +205,121 @@ def solve_emit_fit(
     )  # fmt: skip
 
 
+@kernel
+def interval_s(
+    last_t: float, last_id: int, last_ns: int, t: float, fid: int, received_ns: int,
+    rate_hz: float,
+) -> float:  # fmt: skip
+    """``interval.frame_interval_s``'s seconds, compiled (the same operations on
+    the same float64 and int64 values: the same result, bit for bit)."""
+    if last_ns == 0:
+        return 0.0
+    if t == t and last_t == last_t and t > last_t:  # (NaN: no source clock)
+        return t - last_t
+    if fid > last_id and last_id >= 0:
+        return (fid - last_id) / rate_hz
+    return max(received_ns - last_ns, 0) * 1e-9
+
+
+@kernel
+def feed_solve_emit_construction(
+    n_head: int, n_payload: int, t_ns: int, what: int, flags_word: int,
+    last_t: float, last_id: int, last_ns: int,
+    form: int, head: np.ndarray, payload: np.ndarray, set_id: int,
+    zero_is_occluded: bool, rhs: np.ndarray, raw32: np.ndarray, occluded: np.ndarray,
+    valid: np.ndarray, markers: np.ndarray, limit_m: float, implausible: np.ndarray,
+    q: np.ndarray, qf: np.ndarray, counts: np.ndarray, source_time: np.ndarray,
+    pi: np.ndarray, pf: np.ndarray, sf: np.ndarray, sb: np.ndarray, si: np.ndarray,
+    of: np.ndarray, oq: np.ndarray, ofl: np.ndarray,
+    wfb: np.ndarray, pfb: np.ndarray, rfb: np.ndarray, root: np.ndarray,
+    bone_flags: np.ndarray, ei: np.ndarray, ef: np.ndarray, tflags: np.ndarray,
+    last_quat: np.ndarray, stage32: np.ndarray, offsets: np.ndarray,
+    wire: np.ndarray, header: np.ndarray, body: np.ndarray, blend: np.ndarray,
+    weights: np.ndarray, stance_ints: np.ndarray, stance_floats: np.ndarray,
+    or_flags: np.ndarray, t0_ns: int, rate_hz: float,
+) -> tuple[int, int, float, int, int, int, int, int, int]:  # fmt: skip
+    """A packet's feed (``kernels.feed_frame``: the decode into the stream's spare
+    packet, the sequencer, the outcome's counter) and, when the frame is
+    ``ACCEPTED``, its interval (:func:`interval_s`) and
+    :func:`solve_emit_construction` on it: the one compiled call per frame of the
+    default live path (``send.BodyPath.run_fast``).
+
+    Args:
+        n_head .. t_ns: the packet's sizes and receive time.
+        what, flags_word: as :func:`solve_emit_construction`'s.
+        last_t, last_id, last_ns: the pipeline's ``last_times``.
+        form .. source_time: ``feed_frame``'s per-stream and per-packet arrays
+            (``MarkerStream.fused_tail``); ``markers`` the spare's frame, solved.
+        pi .. or_flags: ``SolveEmit.args``.
+        t0_ns: the daemon's start; rate_hz: ``[validate] rate_hz``.
+
+    Returns:
+        (code, frame number, source time, then, when the code is ``S_ACCEPTED``,
+        :func:`solve_emit_construction`'s five and the clock read after the feed
+        (the frame's start), else zeros: nothing solved, the caller goes on as after
+        ``feed_frame``).
+    """
+    code, frame_id, source_t = feed_frame(
+        form, head, n_head, payload, n_payload, t_ns, set_id, zero_is_occluded, rhs,
+        raw32, occluded, valid, markers, limit_m, implausible, q, qf, counts,
+        source_time,
+    )  # fmt: skip
+    if code != S_ACCEPTED:
+        return code, frame_id, source_t, 0, 0, 0, 0, 0, 0
+    t_start = _clock_gettime_ns()
+    dt = interval_s(last_t, last_id, last_ns, source_t, frame_id, t_ns, rate_hz)
+    n_held, n_occ, fit_bits, contact, solved_ns = solve_emit_construction(
+        what, markers, pi, pf, sf, sb, si, of, oq, ofl, wfb, pfb, rfb, root,
+        bone_flags, ei, ef, tflags, last_quat, stage32, offsets, wire, header, body,
+        blend, weights, stance_ints, stance_floats, or_flags, t0_ns, frame_id,
+        source_t, t_ns, flags_word, dt,
+    )  # fmt: skip
+    return (
+        code, frame_id, source_t, n_held, n_occ, fit_bits, contact, solved_ns, t_start
+    )  # fmt: skip
+
+
+@kernel
+def feed_solve_emit_fit(
+    n_head: int, n_payload: int, t_ns: int, what: int, flags_word: int,
+    last_t: float, last_id: int, last_ns: int,
+    form: int, head: np.ndarray, payload: np.ndarray, set_id: int,
+    zero_is_occluded: bool, rhs: np.ndarray, raw32: np.ndarray, occluded: np.ndarray,
+    valid: np.ndarray, markers: np.ndarray, limit_m: float, implausible: np.ndarray,
+    q: np.ndarray, qf: np.ndarray, counts: np.ndarray, source_time: np.ndarray,
+    mf: np.ndarray, mi: np.ndarray, sf: np.ndarray, si: np.ndarray, sb: np.ndarray,
+    lay: np.ndarray, con: tuple, of: np.ndarray, of4: np.ndarray, ou1: np.ndarray,
+    ob: np.ndarray, scalars: np.ndarray, stats: np.ndarray, resid: np.ndarray,
+    dt_default: float,
+    wfb: np.ndarray, pfb: np.ndarray, rfb: np.ndarray, root: np.ndarray,
+    bone_flags: np.ndarray, ei: np.ndarray, ef: np.ndarray, tflags: np.ndarray,
+    last_quat: np.ndarray, stage32: np.ndarray, offsets: np.ndarray,
+    wire: np.ndarray, header: np.ndarray, body: np.ndarray, blend: np.ndarray,
+    weights: np.ndarray, stance_ints: np.ndarray, stance_floats: np.ndarray,
+    or_flags: np.ndarray, t0_ns: int, rate_hz: float,
+) -> tuple[int, int, float, int, int, int, int, int, int]:  # fmt: skip
+    """:func:`feed_solve_emit_construction` with the fit: ``mf .. dt_default``
+    ``FitSolver.packed_buffers(pose)``, then :func:`solve_emit_fit`."""
+    code, frame_id, source_t = feed_frame(
+        form, head, n_head, payload, n_payload, t_ns, set_id, zero_is_occluded, rhs,
+        raw32, occluded, valid, markers, limit_m, implausible, q, qf, counts,
+        source_time,
+    )  # fmt: skip
+    if code != S_ACCEPTED:
+        return code, frame_id, source_t, 0, 0, 0, 0, 0, 0
+    t_start = _clock_gettime_ns()
+    dt = interval_s(last_t, last_id, last_ns, source_t, frame_id, t_ns, rate_hz)
+    n_held, n_occ, fit_bits, contact, solved_ns = solve_emit_fit(
+        what, markers, mf, mi, sf, si, sb, lay, con, of, of4, ou1, ob, scalars, stats,
+        resid, dt_default, wfb, pfb, rfb, root, bone_flags, ei, ef, tflags, last_quat,
+        stage32, offsets, wire, header, body, blend, weights, stance_ints,
+        stance_floats, or_flags, t0_ns, frame_id, source_t, t_ns, flags_word, dt,
+    )  # fmt: skip
+    return (
+        code, frame_id, source_t, n_held, n_occ, fit_bits, contact, solved_ns, t_start
+    )  # fmt: skip
+
+
 class SolveEmit:
     """One pipeline's fused call: its solver's packed buffers and its emit plan's
     arrays bound once (``args``), the compiled function found for their types
@@ -220,6 +337,11 @@ class SolveEmit:
     def __init__(self, solver: Any, pose: Any, plan: EmitPlan) -> None:
         fit = hasattr(pose, "fit_buffers")
         self.kernel: Any = solve_emit_fit if fit else solve_emit_construction
+        #: the packet's feed, this and the frame's interval in one call
+        #: (``send.FastFrame``)
+        self.fast_kernel: Any = (
+            feed_solve_emit_fit if fit else feed_solve_emit_construction
+        )
         #: the ``what`` bits every frame has (the retarget, the contact when the
         #: plan runs it); the loop adds VMC and the pose when they are on
         self.what = DO_RETARGET | (0 if plan.stance is None else DO_STANCE)
@@ -254,6 +376,24 @@ def warm_call(fit: bool) -> tuple[Any, tuple[Any, ...]]:
     return fused, args
 
 
+def warm_fast_call(fit: bool) -> tuple[Any, tuple[Any, ...]]:
+    """As :func:`warm_call`, for the packet's feed, the solve and the emit in one
+    call (``feed_solve_emit_*``): a stream of the warm-up rig's marker count
+    whose packets decode from receive buffers of the types the live inputs pass
+    (``np.frombuffer`` over a ``bytearray``), an empty packet (refused at once by
+    the decode: nothing solved), then :func:`warm_call`'s arrays."""
+    _, warm = warm_call(fit)
+    n = warm[1].shape[0]
+    stream = MarkerStream(LabelSet(0, tuple(f"m{i}" for i in range(n))))
+    head = np.frombuffer(bytearray(64), dtype=np.uint8)
+    payload = np.frombuffer(bytearray(64), dtype=np.uint8)
+    tail = stream.fused_tail(FORM_ZMQ, head, payload, stream.packets()[1])
+    fused = feed_solve_emit_fit if fit else feed_solve_emit_construction
+    solve_args = warm[2:-6]  # the solver's buffers, the plan's, the validation's
+    args = (0, 0, 0, 0, 0, math.nan, -1, 0, *tail, *solve_args, 0, 240.0)
+    return fused, args
+
+
 def warm_up(fit: bool) -> None:
     """Compile (or load from numba's cache) the fused kernel of the body method at
     the daemon's start, with the other kernels (where :data:`AVAILABLE`).
@@ -268,3 +408,5 @@ def warm_up(fit: bool) -> None:
     if AVAILABLE:
         fused, args = warm_call(fit)
         fused(*args)
+        fast, args = warm_fast_call(fit)  # and the one with the packet's feed
+        fast(*args)

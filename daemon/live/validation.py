@@ -91,6 +91,7 @@ class Validation:
 
         Raises:
             ValueError: ``wait`` and a calibration the validator cannot use."""
+        self.shared.bump()  # a calibration, rig or reload: re-armed after
         want = self._want()
         if want is None:  # off: the running one stops
             self._swap(None)
@@ -154,6 +155,7 @@ class Validation:
         """``validator`` in (None: off), the old one closed off the loop, the
         latest result's bits cleared."""
         old, self.validator = self.validator, validator
+        self.shared.bump()  # the one-call path runs without a validator only
         if old is not None:
             _close_later(old)
         self.bits = 0
