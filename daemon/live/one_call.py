@@ -117,28 +117,46 @@ class FastFrame:
         sh.last_frame_ns = t_ns
         sh.prewarm.observe(t_ns)
         pipe.last_times = (source_t, frame_id, t_ns)  # (begin: frame_interval_s)
-        pose = pipe.pose  # (the rest as BodyPath._solve_emit after its call)
-        pose.n_held, pose.n_occluded, pose.frame_flags = n_held, n_occ, fit_bits
-        if fit_bits:
-            if fit_bits & pose_stream.FRAME_UNSEEN:
-                path.unseen(stream, t_ns, t0)
-                return FAST_SOLVED
-            if fit_bits & pose_stream.FRAME_UNEXPLAINED:
-                stats.unexplained += 1
-            if fit_bits & pose_stream.FRAME_RESEEDED:
-                stats.reseeded += 1
-        stats.frames_solved += 1
-        stats.held_bone_frames += n_held
-        stats.occluded_samples += n_occ
-        path.frame_flags = 0
-        if what & DO_STANCE:
-            pipe.stance_bits = contact
-        flags_word |= fit_bits | contact | (pose_stream.FRAME_HELD if n_held else 0)
-        path.sent(
-            pipe, stream, frame_id, t_ns, t0, solved_ns, flags_word, vmc_on, publish,
-            None, None, 0,
+        fused_done(  # (the rest as BodyPath._solve_emit after its call)
+            path, pipe, stream, frame_id, t_ns, t0, what, flags_word, vmc_on, publish,
+            n_held, n_occ, fit_bits, contact, solved_ns,
         )  # fmt: skip
         return FAST_SOLVED
+
+
+def fused_done(
+    path: Any, pipe: Pipeline, stream: FrameSource, frame_id: int, received_ns: int,
+    t_start: int, what: int, flags_word: int, vmc_on: bool, publish: bool,
+    n_held: int, n_occ: int, fit_bits: int, contact: int, solved_ns: int,
+) -> bool:  # fmt: skip
+    """After a compiled call that solved and emitted ``path``'s (a ``send.BodyPath``)
+    frame (the frame's, ``BodyPath._solve_emit``, or the packet's with it,
+    :class:`FastFrame`), from what it returned: the pose's and the loop's counters,
+    the flags, then the sends (``BodyPath.sent``). False for a frame with no marker
+    seen (counted, no pose: ``BodyPath.unseen``)."""
+    stats = path.shared.stats
+    pose = pipe.pose
+    pose.n_held, pose.n_occluded, pose.frame_flags = n_held, n_occ, fit_bits
+    if fit_bits:  # (as BodyPath.finish)
+        if fit_bits & pose_stream.FRAME_UNSEEN:
+            path.unseen(stream, received_ns, t_start)
+            return False
+        if fit_bits & pose_stream.FRAME_UNEXPLAINED:
+            stats.unexplained += 1
+        if fit_bits & pose_stream.FRAME_RESEEDED:
+            stats.reseeded += 1
+    stats.frames_solved += 1
+    stats.held_bone_frames += n_held
+    stats.occluded_samples += n_occ
+    path.frame_flags = 0
+    if what & DO_STANCE:
+        pipe.stance_bits = contact
+    flags_word |= fit_bits | contact | (pose_stream.FRAME_HELD if n_held else 0)
+    path.sent(
+        pipe, stream, frame_id, received_ns, t_start, solved_ns, flags_word, vmc_on,
+        publish, None, None, 0,
+    )  # fmt: skip
+    return True
 
 
 def arm(path: Any, pipe: Pipeline, stream: FrameSource) -> None:

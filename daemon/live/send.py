@@ -26,7 +26,7 @@ from retargetd.daemon.live.emit import (
     NO_FLAGS,
 )
 from retargetd.daemon.live.interval import frame_interval_s
-from retargetd.daemon.live.one_call import arm
+from retargetd.daemon.live.one_call import arm, fused_done
 from retargetd.daemon.live.performer import FrameSource, Performer
 from retargetd.daemon.live.pipeline import Pipeline, new_pipeline, warm_up_pipeline
 from retargetd.daemon.live.pipelines import Pipelines
@@ -436,7 +436,6 @@ class BodyPath:
         call (:meth:`sent`)."""
         self._begun = None
         sh = self.shared
-        stats = sh.stats
         frame = stream.current.frame
         fused, emit = pipe.solve_emit, pipe.emit
         assert fused is not None and emit is not None
@@ -454,27 +453,11 @@ class BodyPath:
             what, frame.markers_world, *fused.args, sh.t0_ns, frame_id,
             frame.source_time_s, received_ns, flags_word, self._begun_dt,
         )  # fmt: skip
-        pose = pipe.pose
-        pose.n_held, pose.n_occluded, pose.frame_flags = n_held, n_occ, fit_bits
-        if fit_bits:  # (as finish)
-            if fit_bits & pose_stream.FRAME_UNSEEN:
-                self.unseen(stream, received_ns, self._t_start)
-                return
-            if fit_bits & pose_stream.FRAME_UNEXPLAINED:
-                stats.unexplained += 1
-            if fit_bits & pose_stream.FRAME_RESEEDED:
-                stats.reseeded += 1
-        stats.frames_solved += 1
-        stats.held_bone_frames += n_held
-        stats.occluded_samples += n_occ
-        self.frame_flags = 0
-        if what & DO_STANCE:
-            pipe.stance_bits = contact
-        flags_word |= fit_bits | contact | (pose_stream.FRAME_HELD if n_held else 0)
-        self.sent(
-            pipe, stream, frame_id, received_ns, self._t_start, solved_ns,
-            flags_word, vmc_on, publish, None, None, 0,
-        )  # fmt: skip
+        if not fused_done(
+            self, pipe, stream, frame_id, received_ns, self._t_start, what, flags_word,
+            vmc_on, publish, n_held, n_occ, fit_bits, contact, solved_ns,
+        ):  # fmt: skip
+            return
         if self.tried.get(id(stream)) != sh.epoch:  # once per change, not per frame
             arm(self, pipe, stream)  # its next frames' one call (one_call.py)
 
