@@ -532,7 +532,7 @@ class MarkerStream:
         self._feed_tail = (seq.q, seq.qf, self.counters.counts, self._source_time)
         self._feed_call: Any = kernels.feed_frame
         #: The live loop's one compiled call per frame for this stream, while armed
-        #: (``daemon/live/send.py``, ``FastFrame``; None: the feed, then the frame).
+        #: (``daemon/live/one_call.py``, ``FastFrame``; None: the feed, then the frame).
         self.fast: Any = None
         #: ``(form, head, payload)``: the ``kernels.FORM_*`` and the receive buffers
         #: of a live input that feeds it with :meth:`feed_packed` (set by the
@@ -641,7 +641,7 @@ class MarkerStream:
         frame number and the source time it returned): an accepted frame (``ACCEPTED``
         or ``RESTART``) in the spare packet swapped in as ``current``; ``code``
         returned. Also the end of a call that fed the spare inside a larger one
-        (the live loop's ``send.BodyPath.run_fast``)."""
+        (the live loop's ``one_call.FastFrame.run``)."""
         if code > RESTART or code < 0:
             return code
         spare = self._spare

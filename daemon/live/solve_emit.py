@@ -242,7 +242,7 @@ def feed_solve_emit_construction(
     packet, the sequencer, the outcome's counter) and, when the frame is
     ``ACCEPTED``, its interval (:func:`interval_s`) and
     :func:`solve_emit_construction` on it: the one compiled call per frame of the
-    default live path (``send.BodyPath.run_fast``).
+    default live path (``one_call.FastFrame.run``).
 
     Args:
         n_head .. t_ns: the packet's sizes and receive time.
@@ -338,7 +338,7 @@ class SolveEmit:
         fit = hasattr(pose, "fit_buffers")
         self.kernel: Any = solve_emit_fit if fit else solve_emit_construction
         #: the packet's feed, this and the frame's interval in one call
-        #: (``send.FastFrame``)
+        #: (``one_call.FastFrame``)
         self.fast_kernel: Any = (
             feed_solve_emit_fit if fit else feed_solve_emit_construction
         )
