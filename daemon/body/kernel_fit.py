@@ -300,13 +300,22 @@ def fit_one(
     ob: np.ndarray,
 ) -> int:
     """Fit one frame from packed buffers (:mod:`fit_pack`: the live call, whose
-    dispatch unboxes 13 arguments instead of 90); returns the bones held."""
+    dispatch unboxes 13 arguments instead of 90); returns the bones held, plus the
+    rig markers not seen (their residual NaN) times 2^32, as the construction's
+    ``body.kernel.solve_one`` returns its counts (counted here, not by the caller
+    in numpy: ~4 us a frame of ``FitSolver.solve_frame``, PiG walk)."""
     m = fit_pack.model_views(mf, mi, lay)
     s = fit_pack.state_views(sf, si, sb, lay)
     o = fit_pack.out_views(of, of4, ou1, ob, lay)
-    return fit_one_t(
+    held = fit_one_t(
         markers, m, s, c, o[0], o[1], o[2], o[3], o[4], o[5], o[6], o[7], o[8], o[9]
     )
+    resid = o[7]
+    n_occ = 0
+    for i in range(resid.shape[0]):
+        if resid[i] != resid[i]:
+            n_occ += 1
+    return held | (n_occ << 32)
 
 
 #: Markers a pose needs before the performer counts as seen: three points fix a rigid

@@ -43,12 +43,16 @@ from retargetd.daemon.body.solve import (
     BodySolve,
     BodySolver,
 )
+from retargetd.protocols import kernels
 from retargetd.protocols.frames import F64Array
 from retargetd.protocols.pose_stream import (
     FRAME_RESEEDED,
     FRAME_UNEXPLAINED,
     FRAME_UNSEEN,
 )
+
+#: float64 (native byte order): a frame's dtype for ``FitSolver._fit_entry``.
+_F8 = np.dtype(np.float64)
 
 
 def _empty() -> np.ndarray:
@@ -510,6 +514,10 @@ class FitSolver:
         # restored when the frame turns out unexplained (kernel_fit.fit_one_t).
         packed = con.packed_buffers(self._con_pose)
         self._con = (*packed, packed[2].copy(), packed[3].copy(), packed[4].copy())
+        # kernel_fit.fit_one's compiled function for a frame's usual types, bound at
+        # the first such call (solve_frame): called without numba's dispatcher, which
+        # resolves the types of the 12 arguments at every call
+        self._fit_entry: Any = None
         self.reset()
 
     def reset(self) -> None:
@@ -598,10 +606,33 @@ class FitSolver:
         self._scalars[ft.C_DT] = dt_s if dt_s > 0.0 else 1.0 / self.rate_hz
         fb = out.fit_buffers
         if fb is not None:
-            out.n_held = kf.fit_one(
+            # The compiled function takes its arguments as the types it was compiled
+            # for, unchecked: only a frame of those types (float64, 2-d, C-contiguous,
+            # aligned) goes to it, anything else to the dispatcher. Every other
+            # argument is this solver's or a pose's from new_pose: the same types at
+            # every call. Same compiled code either way: the same answers.
+            fl = markers_world.flags
+            usual = (
+                markers_world.dtype is _F8
+                and markers_world.ndim == 2
+                and fl.c_contiguous
+                and fl.aligned
+            )
+            entry = self._fit_entry if usual else None
+            args = (
                 markers_world, self._mf, self._mi, self._sf, self._si, self._sb,
                 self._layout, self._con, fb[0], fb[1], fb[2], fb[3],
             )  # fmt: skip
+            if entry is None:
+                both = kf.fit_one(*args)
+                if usual:
+                    self._fit_entry = kernels.direct(kf.fit_one, *args)
+            else:
+                both = entry(*args)
+            out.n_held = both & 0xFFFFFFFF
+            # rig markers not seen this frame (their residual is NaN): the loop
+            # counts them as occluded samples
+            out.n_occluded = both >> 32
         else:  # a FitPose made by hand: its arrays one by one (a slower dispatch)
             out.n_held = kf.fit_one_t(
                 markers_world, self._model, self._state, self._con,
@@ -609,16 +640,14 @@ class FitSolver:
                 out.rest_from_bone_quat, out.root_pos, out.bone_quality,
                 out.bone_flags, out.marker_residual, out.marker_rejected, out.stats,
             )  # fmt: skip
+            out.n_occluded = len(out.marker_residual) - int(
+                np.count_nonzero(out.marker_residual == out.marker_residual)
+            )
         st = out.stats
         out.frame_flags = (
             (FRAME_RESEEDED if st[ft.S_RESEEDED] else 0)
             | (FRAME_UNEXPLAINED if st[ft.S_UNEXPLAINED] else 0)
             | (FRAME_UNSEEN if st[ft.S_UNSEEN] else 0)
-        )
-        # Rig markers not seen this frame (their residual is NaN): the loop counts
-        # them as occluded samples.
-        out.n_occluded = len(out.marker_residual) - int(
-            np.count_nonzero(out.marker_residual == out.marker_residual)
         )
         return out
 

@@ -185,7 +185,9 @@ def solve_emit_fit(
     ``FitSolver.packed_buffers(pose)``). An unseen frame is not emitted (its flags
     returned with ``FRAME_UNSEEN``, ``solved_ns`` 0)."""
     scalars[ft.C_DT] = dt if dt > 0.0 else dt_default
-    n_held = fit_one(markers, mf, mi, sf, si, sb, lay, con, of, of4, ou1, ob)
+    both = fit_one(markers, mf, mi, sf, si, sb, lay, con, of, of4, ou1, ob)
+    n_held = both & 0xFFFFFFFF
+    n_occ = both >> 32  # rig markers not seen: their residual is NaN
     fit_bits = 0
     if stats[ft.S_RESEEDED] != 0.0:  # (as Python's truth: NaN counts)
         fit_bits |= FRAME_RESEEDED
@@ -193,10 +195,6 @@ def solve_emit_fit(
         fit_bits |= FRAME_UNEXPLAINED
     if stats[ft.S_UNSEEN] != 0.0:
         fit_bits |= FRAME_UNSEEN
-    n_occ = 0  # rig markers not seen: their residual is NaN
-    for r in resid:
-        if r != r:
-            n_occ += 1
     return _emit_solved(
         what, n_held, n_occ, fit_bits, wfb, pfb, rfb, root, bone_flags, ei, ef, tflags,
         last_quat, stage32, offsets, wire, header, body, blend, weights, stance_ints,

@@ -886,12 +886,18 @@ def test_packed_call_equals_the_tuple_call() -> None:
     got = {
         k: np.zeros((take.n_frames, *packed.world_from_bone_quat.shape)) for k in "ab"
     }
+    # the counts: the packed call's from the kernel (fit_one's high word), the
+    # hand-made pose's counted in numpy from its residuals
+    counts = {k: np.zeros((take.n_frames, 3), dtype=np.int64) for k in "ab"}
     for key, pose in (("a", packed), ("b", by_hand)):
         solver.reset()
         for f in range(take.n_frames):
             solver.solve_frame(take.markers_world[f], pose)
             got[key][f] = pose.world_from_bone_quat
+            counts[key][f] = pose.n_held, pose.n_occluded, pose.frame_flags
     np.testing.assert_array_equal(got["a"], got["b"])
+    np.testing.assert_array_equal(counts["a"], counts["b"])
+    assert counts["a"][:, 1].max() > 0  # (5% dropout: markers hidden on some frames)
     np.testing.assert_array_equal(packed.marker_residual, by_hand.marker_residual)
     np.testing.assert_array_equal(packed.stats, by_hand.stats)
     assert np.isfinite(got["a"]).all() and np.abs(got["a"]).sum() > 0.0
