@@ -152,9 +152,10 @@ class FitModel:
             in that bone's frame; ``marker_weight`` (Mr,) residual weights.
         joint_names: (J,); ``joint_bone`` (J,), ``joint_local`` (J, 3) metres.
         hinge_axis: (B, 3) unit hinge axis in the bone's rest axes, zeros = ball.
-        twist_axis: (B, 3) unit twist axis of a "hinge_twist" in the bone's rest
-            axes (``twist_to``: to that marker; else, and for every other bone, +Y).
-        twist_lock: (B,) 1.0 for a swing joint (no rotation about the bone's own +Y
+        twist_axis: (B, 3) unit twist axis of a "hinge_twist" or a "swing" in the
+            bone's rest axes (``twist_to``: to that marker; else, and for every other
+            bone, +Y).
+        twist_lock: (B,) 1.0 for a swing joint (no rotation about its twist axis
             relative to its calibration pose), 2.0 for a hinge with the bone's twist
             ("hinge_twist": the bone's axis stays on the cone the hinge sweeps it
             on), else 0.0.
@@ -674,6 +675,8 @@ def build_fit_model(
                     )
                 twist_lock[b] = 2.0
         elif bopt.dof == "swing":
+            if bopt.twist_to:  # the twist it forbids: about that line, not +Y
+                twist_axis[b] = _twist_axis(name, bopt.twist_to, rig, pts, wfb[:, b])
             twist_lock[b] = 1.0
         elif bopt.dof == "fixed":
             explicit[b] = FIXED_STIFFNESS * np.eye(3)

@@ -211,17 +211,24 @@ def build_normal(m: tuple, s: tuple) -> None:
             rw, rx, ry, rz = r[0], r[1], r[2], r[3]
             if rw < 0.0:
                 rw, rx, ry, rz = -rw, -rx, -ry, -rz
-            if lk == 1.0:  # d twist, twist = 2 atan2(y, w)
+            lb = lim[b]
+            a0, a1 = lb[L_TWIST_AXIS], lb[L_TWIST_AXIS + 1]
+            a2 = lb[L_TWIST_AXIS + 2]
+            if lk == 1.0 and a0 == 0.0 and a2 == 0.0:  # twist = 2 atan2(y, w)
                 den = rw * rw + ry * ry
                 j0 = s_hinge * (rw * rz + rx * ry) / den
                 j1 = s_hinge
                 j2 = s_hinge * (ry * rz - rw * rx) / den
+            elif lk == 1.0:  # twist = 2 atan2(p, w), p = v . a (v: r's vector part)
+                # d p = (w a + a x v) . dw / 2, d w = -v . dw / 2 (dw: the increment)
+                p = rx * a0 + ry * a1 + rz * a2
+                den = rw * rw + p * p
+                j0 = s_hinge * (rw * (rw * a0 + a1 * rz - a2 * ry) + p * rx) / den
+                j1 = s_hinge * (rw * (rw * a1 + a2 * rx - a0 * rz) + p * ry) / den
+                j2 = s_hinge * (rw * (rw * a2 + a0 * ry - a1 * rx) + p * rz) / den
             else:  # the twist axis R a off the cone about h: d (h . R a) / d w
                 # = (R^T h) . (e_k x a) = (a x R^T h)_k (a: lim[b, L_TWIST_AXIS:])
                 hv = hinge[b]
-                lb = lim[b]
-                a0, a1 = lb[L_TWIST_AXIS], lb[L_TWIST_AXIS + 1]
-                a2 = lb[L_TWIST_AXIS + 2]
                 ah = a0 * hv[0] + a1 * hv[1] + a2 * hv[2]
                 sc_h = s_hinge / math.sqrt(1.0 - ah * ah)
                 t0 = (

@@ -146,8 +146,8 @@ def joint_basis(
     Args:
         dof: "root", "ball", "hinge", "hinge_twist", "swing" or "fixed".
         hinge_axis: (3,) the hinge axis in the bone's rest axes (hinges only).
-        twist_axis: (3,) a hinge_twist's twist axis in the bone's rest axes (None:
-            the bone's own +Y).
+        twist_axis: (3,) a hinge_twist's twist axis, or the one a swing forbids, in
+            the bone's rest axes (None: the bone's own +Y).
 
     Returns:
         (3, d) orthonormal columns in the bone's rest axes.
@@ -156,8 +156,12 @@ def joint_basis(
         return _EYE.copy()
     if dof == "fixed":
         return np.zeros((3, 0))
-    if dof == "swing":
-        return _EYE[:, [0, 2]].copy()
+    if dof == "swing":  # perpendicular to the twist it forbids (+Y or twist_to's)
+        if twist_axis is None or (twist_axis[0] == 0.0 and twist_axis[2] == 0.0):
+            return _EYE[:, [0, 2]].copy()
+        a = np.asarray(twist_axis, dtype=np.float64)
+        q, _ = np.linalg.qr(np.stack([a / np.linalg.norm(a), _EYE[0], _EYE[2]], 1))
+        return np.asarray(q[:, 1:])
     h = np.asarray(hinge_axis, dtype=np.float64)
     h = h / np.linalg.norm(h)
     if dof == "hinge":

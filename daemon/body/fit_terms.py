@@ -334,9 +334,14 @@ def pen_components(
         d = ax * hinge[0] + ay * hinge[1] + az * hinge[2] - ah
         out[3] = s_hinge * d / math.sqrt(1.0 - ah * ah)
     elif lock != 0.0:
-        # Zero twist about +Y <=> q_y = 0 <=> the rotation's axis is perpendicular to
-        # the bone: a pure swing (of the calibration-relative rotation).
-        th = 2.0 * math.atan2(hy, hw)
+        # Zero twist about the twist axis a (lim[10:13]; +Y unless the rig's
+        # twist_to) <=> q's vector part is perpendicular to a: a pure swing (of the
+        # calibration-relative rotation) about axes perpendicular to a.
+        a0, a1, a2 = lim[L_TWIST_AXIS], lim[L_TWIST_AXIS + 1], lim[L_TWIST_AXIS + 2]
+        if a0 == 0.0 and a2 == 0.0:  # +Y: q_y itself
+            th = 2.0 * math.atan2(hy, hw)
+        else:
+            th = 2.0 * math.atan2(hx * a0 + hy * a1 + hz * a2, hw)
         out[3] = s_hinge * ((th + math.pi) % (2.0 * math.pi) - math.pi)
     elif hinge[0] != 0.0 or hinge[1] != 0.0 or hinge[2] != 0.0:
         vx, vy, vz = qlog(hw, hx, hy, hz)

@@ -15,7 +15,7 @@ axis_markers = ["LIKNEE", "LEKNEE"]  # the axis is the line through these two ma
                         # of the parent bone at the calibration pose (signed like axis)
 twist_to = "LUS"     # hinge_twist: the twist turns about the line from the bone's
                         # origin to this marker or point at the calibration pose
-                        # (default: the bone's own +Y)
+                        # (default: the bone's own +Y); swing: the twist it forbids
 stiffness_mm = 0     # pull towards the calibration pose, mm of residual per radian
 stiffness_free_plane = ["LHEE", "LTOE"]  # the pull spares the rotation about the
                         # normal of the plane through the joint and these two
@@ -90,8 +90,9 @@ class BoneFitOptions:
     ``dof``: "ball" (three rotations), "hinge" (one, about ``axis``), "hinge_twist"
     (two: a hinge about ``axis``, then the bone's own twist about its long axis +Y: an
     elbow with its forearm's pronation), "swing" (two: a ball joint without rotation
-    about the bone's own long axis, +Y) or "fixed" (none: the bone keeps its
-    calibration pose relative to its parent, a link of one rigid segment).
+    about the bone's own long axis, +Y, or ``twist_to``'s line) or "fixed" (none:
+    the bone keeps its calibration pose relative to its parent, a link of one rigid
+    segment).
     ``axis_in``: the axes ``axis`` is given in, the bone's rest axes ("bone") or its
     parent's ("parent": an elbow's flexion axis is the upper arm's epicondyle axis,
     the upper arm's +X when its up reference is the lateral epicondyle).
@@ -105,10 +106,15 @@ class BoneFitOptions:
     The line is the anatomical axis itself; a bone frame's axis is that line made
     perpendicular to a bone whose other end is an estimate (a hip or shoulder
     centre), so it carries the estimate's error into every flexion.
-    ``twist_to``: a "hinge_twist" only: the twist turns about the line from the
-    bone's origin to this marker or derived point where the calibration placed it,
-    not about the bone's own +Y (empty: +Y). A forearm pronates about the line from
-    the radial head to the ulnar head (Hollister et al., Clin Orthop Relat Res
+    ``twist_to``: a "hinge_twist" or a "swing" only: the twist turns (a swing: the
+    rotation it forbids is the one) about the line from the bone's origin to this
+    marker or derived point where the calibration placed it, not about the bone's
+    own +Y (empty: +Y). A wrist flexes and deviates about axes perpendicular to the
+    hand's long axis, the third metacarpal's, which lies along the forearm's at
+    neutral (Wu et al. 2005, below): a hand bone that aims at a marker off that line
+    (Plug-in Gait's FIN, over the second metacarpal, 20 deg off it) names a point on
+    the forearm's axis carried past the wrist centre. A forearm pronates about the
+    line from the radial head to the ulnar head (Hollister et al., Clin Orthop Relat Res
     298:272-276, 1994), which the ISB takes as the line from the elbow centre to the
     ulnar styloid (Wu et al., J Biomech 38(5):981-992, 2005); a forearm bone that
     aims at the wrist centre names its ulnar styloid (a marker on it, or a point the
@@ -334,8 +340,10 @@ def parse_fit_table(
                 "give axis_markers or axis_from_bend_deg, not both",
             )
         twist_to = spec.get("twist_to", "")
-        if "twist_to" in spec and dof != "hinge_twist":
-            raise fail(f"{key}.twist_to", "only a hinge_twist has a twist axis")
+        if "twist_to" in spec and dof not in ("hinge_twist", "swing"):
+            raise fail(
+                f"{key}.twist_to", "only a hinge_twist or a swing has a twist axis"
+            )
         if not isinstance(twist_to, str) or (
             twist_to and twist_to not in markers and twist_to not in points
         ):

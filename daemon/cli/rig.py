@@ -245,11 +245,12 @@ def _print_observability(
         out(f"  {obs.bone} ({obs.dof}{note}): {obs.describe()}\n")
         out(f"      markers riding it: {' '.join(riders) or '(none)'}\n")
         twist = model.twist_axis[rig.bone_names.index(obs.bone)]
-        if obs.dof == "hinge_twist":
-            to = explicit.twist_to if explicit is not None else ""
+        to = explicit.twist_to if explicit is not None else ""
+        if obs.dof == "hinge_twist" or (obs.dof == "swing" and to):
             off = math.degrees(math.acos(min(1.0, abs(float(twist[1])))))
+            what = "twist axis" if obs.dof == "hinge_twist" else "no twist about"
             out(
-                f"      twist axis [{twist[0]:+.3f} {twist[1]:+.3f} {twist[2]:+.3f}] "
+                f"      {what} [{twist[0]:+.3f} {twist[1]:+.3f} {twist[2]:+.3f}] "
                 f"in its axes, {off:.1f} deg off its +Y "
                 f"({'to ' + to if to else 'its own axis'})\n"
             )

@@ -549,6 +549,56 @@ def test_swing_joint_has_no_twist(tmp_path: Path) -> None:
     assert np.isfinite(res.world_from_bone_quat).all()
 
 
+def test_swing_forbids_the_twist_about_twist_to(tmp_path: Path) -> None:
+    """``dof = "swing"`` with ``twist_to``: the rotation the joint forbids is the one
+    about the line from the bone's origin to that point (a hand's long axis, the
+    forearm's at neutral, where the hand bone aims at a marker off it), not about
+    the bone's own +Y: the model's twist axis is that line, the observed rotations
+    are perpendicular to it, and the solve keeps the twist about it at the
+    calibration's while the twist about +Y moves with the swing."""
+    points = "".join(
+        f'\n[points.{s.upper()}US]\nline = ["{s.upper()}WRA", "{s.upper()}WRB"]\n'
+        f"u = {95.0 / 120.0!r}\n"
+        for s in ("l", "r")
+    )
+    own = _forearms_as(tmp_path, 'dof = "swing"', noise_mm=0.5)
+    rig_text = EXACT_RIG.read_text()
+    text = own.text.replace(rig_text, rig_text + points)
+    for s in ("l", "r"):
+        text = text.replace(
+            f'[fit.bones.{s}_forearm]\ndof = "swing"\n',
+            f'[fit.bones.{s}_forearm]\ndof = "swing"\ntwist_to = "{s.upper()}US"\n',
+        )
+    path = tmp_path / "rig_swing_to.toml"
+    path.write_text(text)
+    rig, opts = load_fit_rig(path)
+    assert opts.bones["r_forearm"].twist_to == "RUS"
+    cal = calibrate(rig, own.base, own.take.labels)
+    model = build_fit_model(rig, cal, own.base, own.take.labels, opts)
+    assert (model.twist_lock[own.idx] == 1.0).all()
+    res = FitSolver(rig, cal, own.take.labels, model=model).solve_take(
+        own.take.markers_world
+    )
+    for b in own.idx:
+        a = model.twist_axis[b]
+        off = np.degrees(np.arccos(abs(float(a[1]))))
+        assert 3.0 < off < 15.0, off  # the styloid line, 7.4 deg off the bone's axis
+        obs = model.observation[b]
+        np.testing.assert_allclose(obs.axes @ a, 0.0, atol=1e-12)
+        q = res.rest_from_bone_quat[:, b]
+        about_a = np.degrees(np.abs(rot.twist_angle(q, a)))
+        about_y = np.degrees(np.abs(rot.twist_angle(q, np.array([0.0, 1.0, 0.0]))))
+        own_y = np.abs(_twist_deg(own.res.rest_from_bone_quat[:, b]))
+        print(
+            f"\n{rig.bone_names[b]}: twist about twist_to max {about_a.max():.3f} "
+            f"deg, about +Y max {about_y.max():.2f} (swing about +Y: {own_y.max():.3f})"
+        )
+        assert about_a.max() < 0.5  # locked about the line (as +Y is without it)
+        assert about_y.max() > 1.0  # and no longer about +Y
+        assert own_y.max() < 0.5
+    assert np.isfinite(res.world_from_bone_quat).all()
+
+
 def _off_cone_deg(q: np.ndarray, h: np.ndarray) -> np.ndarray:
     """How far (degrees) rotations q (..., 4) put the bone's +Y off the cone a hinge
     about the unit axis h (bone rest axes) sweeps it on."""

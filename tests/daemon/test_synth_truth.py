@@ -427,6 +427,36 @@ def test_plug_in_gait_arm_markers_sit_where_its_rules_put_the_joints(
 
 
 @functools.cache
+@pytest.mark.parametrize("rig_name", ["plug-in-gait", "menache"])
+def test_hands_follow_the_truth_in_the_default_motions(rig_name: str) -> None:
+    """Issue 28 item 6 on the hands in the default motions (wrist flexion +-25 deg,
+    deviation +-10), the fit, 10 s at 60 Hz: p95 5 deg, max 10 deg against the
+    truth, the plain error. Both rigs aim the hand bone at a marker over the second
+    metacarpal, 20 deg off the hand's long axis; a swing about axes perpendicular to
+    that line (no ``twist_to``) turned part of every flexion into a twist about it,
+    which the marker, on the line, cannot see: Plug-in Gait's hands were 7.6-8.0 /
+    8.9-9.4 deg (docs/fit-truth.md, 120 Hz), the truth's own twist about the line
+    7.4-7.9 p95; about the forearm's axis (``twist_to = HAND_AXIS``) it is 2.0."""
+    take = pf.synthesize(seconds=10.0, rate_hz=60.0, markerset=rig_name)
+    rig = load_rig(rig_name)
+    cal = calibrate(rig, take.markers_world[take.base_pose_frames], take.labels)
+    solver = make_body_solver(
+        "fit", rig, cal, take.labels, joint_limits=JOINT_LIMITS_DEG,
+        segment_kind=SEGMENT_KIND, rate_hz=take.rate_hz,
+    )  # fmt: skip
+    cmp = compare_with_truth(
+        solver.solve_take(take.markers_world), take, rig,
+        frames=slice(take.base_pose_frames.stop, None),
+    )  # fmt: skip
+    hands = [n for n in cmp.bone_names if n.endswith("hand")]
+    assert len(hands) == 2, cmp.bone_names
+    for name in hands:
+        k = cmp.bone_names.index(name)
+        p95, top = float(cmp.p95_deg[k]), float(cmp.max_deg[k])
+        print(f"\n{rig_name} {name}: {p95:.1f} / {top:.1f} deg p95 / max")
+        assert p95 <= 5.0 and top <= 10.0, (name, p95, top)
+
+
 def _pig_squat_fit() -> tuple[dict[str, float], dict[str, float]]:
     """Plug-in Gait's fit of the deep squat (5 s at 60 Hz) against the truth: p95 and
     max per bone, degrees. The squat flexes the performer's trunk 30 deg, 15 at its
