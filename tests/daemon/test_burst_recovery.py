@@ -364,8 +364,8 @@ def _no_worse_s(hit: Any, intact: Any, seen_all: Any, t1: int, rate: float) -> f
     strict=True,
     reason="the hold of the one marker that sees the upper arm's twist, hidden inside "
     "the burst and after it, is anchored on the last frame before the burst, when the "
-    "hides had the arm 16 deg off (README 'Bursts on a take with markers missing "
-    "around them'): the frames that would anchor it better are the burst's",
+    "hides had the arm 16 deg off (docs/fit-open.md 'Bursts on a take with markers "
+    "missing around them'): the frames that would anchor it better are the burst's",
 )
 def test_a_hold_anchored_before_the_burst_leaves_the_arm_worse_than_the_hides(
     datasets: Path,

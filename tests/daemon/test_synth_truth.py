@@ -492,7 +492,7 @@ def test_plug_in_gait_chest_follows_the_truth_in_the_deep_squat() -> None:
 
 @pytest.mark.xfail(
     strict=True,
-    reason="measured (issue 28 item 6, README 'Two ways to solve the body'): the "
+    reason="measured (issue 28 item 6, docs/fit-open.md): the "
     "spine is 19.1 / 19.3 deg p95 / max off the abdomen in the deep squat (60 Hz, "
     "5 s; 19.1 / 19.3 in docs/fit-truth.md at 120 Hz). Plug-in Gait's spine is a rod "
     "from PELVIS_TOP, 113 mm below the performer's lumbar joint, to the STRN-T10 "
