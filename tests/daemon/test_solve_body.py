@@ -301,7 +301,7 @@ def test_solve_frame_allocates_nothing_in_steady_state(
 ) -> None:
     _, solver, _ = exact_solved
     out = solver.new_pose()
-    frames = np.ascontiguousarray(exact_take.markers_world)
+    frames = np.array(exact_take.markers_world)  # writable, as the loop's
     solver.reset()
     for t in range(50):  # warm-up: compilation, caches
         solver.solve_frame(frames[t], out)
