@@ -127,6 +127,15 @@ def direct(dispatcher: Any, *args: Any) -> Any:
     return protocol_kernels.direct(dispatcher, *args)
 
 
+def readonly_f64(a: Any) -> np.ndarray:
+    """A C-contiguous float64 copy of ``a``, marked read-only: constant arguments
+    passed to a kernel as one type whatever their source (numba compiles a read-only
+    array and a writable one apart)."""
+    out = np.array(a, dtype=np.float64, order="C")
+    out.flags.writeable = False
+    return out
+
+
 @kernel(inline="always")
 def qmul(
     aw: float, ax: float, ay: float, az: float,

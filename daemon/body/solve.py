@@ -322,6 +322,11 @@ class BodySolver:
             The solved arrays.
         """
         positions = np.ascontiguousarray(positions, dtype=np.float64)
+        if not positions.flags.writeable:
+            # One compiled type per kernel: a read-only take (a synthetic one, a
+            # memory map) would compile the whole batch kernel a second time
+            # (numba types read-only arrays apart); copied here, off the hot path.
+            positions = positions.copy()
         if positions.ndim != 3 or positions.shape[1:] != (self.n_stream, 3):
             raise ValueError(
                 f"positions must be (frames, {self.n_stream}, 3); got {positions.shape}"

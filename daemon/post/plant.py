@@ -70,7 +70,7 @@ from typing import Any
 
 import numpy as np
 
-from retargetd.daemon.compiled import direct, kernel, qmul, qrot
+from retargetd.daemon.compiled import direct, kernel, qmul, qrot, readonly_f64
 from retargetd.daemon.post.foot_roll import ball_roll, keep_toe_world, pitch_onto_floor
 from retargetd.daemon.post.plant_level import (
     LEVEL,
@@ -569,8 +569,11 @@ class FootPlant:
                 t = target.index(name)
                 self._toes[s] = t
                 self._tip[s] = np.asarray(target.aim_offsets[t], dtype=np.float64)
-        self._rest = np.ascontiguousarray(target.rest_world_from_bone_quat, np.float64)
-        self._offsets = np.ascontiguousarray(target.rest_offsets, np.float64)
+        # Read-only copies whatever the target's are (a TargetSkeleton's are read-only,
+        # a BVH's legs' writable): numba types the two apart and compiled _plant_step
+        # once for each.
+        self._rest = readonly_f64(target.rest_world_from_bone_quat)
+        self._offsets = readonly_f64(target.rest_offsets)
         self._parents = np.asarray(parents, dtype=np.int64)
         self._left = np.ascontiguousarray(target.left_world, np.float64)
         self._params = np.array([

@@ -333,7 +333,7 @@ def test_humanoid_posed_on_the_console_thread_matches_the_target() -> None:
     out = np.zeros((len(target.bone_names), 3))
     moved = 0.0
     for f in (hold.stop + 10, take.n_frames - 1):
-        solver.solve_frame(take.markers_world[f], pose)
+        solver.solve_frame(np.array(take.markers_world[f]), pose)  # writable, as live
         rt.apply(pose, tp)
         want = joint_positions_world(target, tp)
         got = humanoid_positions(layout, tp.world_from_bone_quat, tp.hips_pos, out)

@@ -880,19 +880,22 @@ def test_one_frame_equals_batch_and_allocates_nothing() -> None:
     rig = load_rig(EXACT_RIG)
     take = _exact_take(noise_mm=0.5, dropout=0.05, seconds=3.0)
     _, solver = _solver(rig, take)
-    batch = solver.solve_take(take.markers_world)
+    # Writable frames, as the live loop's: the synthetic take's are read-only, a
+    # type numba compiles the whole fit for a second time.
+    frames = np.array(take.markers_world)
+    batch = solver.solve_take(frames)
     solver.reset()
     pose = solver.new_pose()
     wfb = np.zeros_like(batch.world_from_bone_quat)
     for f in range(20):
-        solver.solve_frame(take.markers_world[f], pose)
+        solver.solve_frame(frames[f], pose)
         wfb[f] = pose.world_from_bone_quat
     tracemalloc.start()
     try:
         tracemalloc.reset_peak()
         start, _ = tracemalloc.get_traced_memory()
         for f in range(20, take.n_frames):
-            out = solver.solve_frame(take.markers_world[f], pose)
+            out = solver.solve_frame(frames[f], pose)
         end, peak = tracemalloc.get_traced_memory()
     finally:
         tracemalloc.stop()
@@ -907,11 +910,31 @@ def test_one_frame_equals_batch_and_allocates_nothing() -> None:
     # one frame at a time is the batch, bit for bit
     solver.reset()
     for f in range(take.n_frames):
-        solver.solve_frame(take.markers_world[f], pose)
+        solver.solve_frame(frames[f], pose)
         wfb[f] = pose.world_from_bone_quat
     np.testing.assert_array_equal(wfb, batch.world_from_bone_quat)
     np.testing.assert_array_equal(pose.root_pos, batch.root_pos[-1])
     np.testing.assert_array_equal(pose.marker_residual, batch.marker_residual[-1])
+
+
+def test_a_read_only_take_compiles_the_fit_once() -> None:
+    """A read-only take (the synthetic performer's, a memory map) is its own type to
+    numba: ``solve_take`` passes it on writable, so the batch fit is compiled for one
+    type (a cold compile of its tree took ~50 s on this 2-core VM)."""
+    from retargetd.daemon.body import kernel_fit
+
+    rig = load_rig(EXACT_RIG)
+    take = _exact_take(noise_mm=0.5, dropout=0.05, seconds=1.0)
+    assert not take.markers_world.flags.writeable
+    _, solver = _solver(rig, take)
+    writable = solver.solve_take(np.array(take.markers_world))
+    solver.reset()
+    read_only = solver.solve_take(take.markers_world)
+    assert kernel_fit.fit_many.signatures
+    assert all(sig[0].mutable for sig in kernel_fit.fit_many.signatures)
+    np.testing.assert_array_equal(
+        read_only.world_from_bone_quat, writable.world_from_bone_quat
+    )
 
 
 def test_packed_call_equals_the_tuple_call() -> None:
@@ -939,10 +962,11 @@ def test_packed_call_equals_the_tuple_call() -> None:
     # the counts: the packed call's from the kernel (fit_one's high word), the
     # hand-made pose's counted in numpy from its residuals
     counts = {k: np.zeros((take.n_frames, 3), dtype=np.int64) for k in "ab"}
+    frames = np.array(take.markers_world)  # writable, as the live loop's (one compile)
     for key, pose in (("a", packed), ("b", by_hand)):
         solver.reset()
         for f in range(take.n_frames):
-            solver.solve_frame(take.markers_world[f], pose)
+            solver.solve_frame(frames[f], pose)
             got[key][f] = pose.world_from_bone_quat
             counts[key][f] = pose.n_held, pose.n_occluded, pose.frame_flags
     np.testing.assert_array_equal(got["a"], got["b"])

@@ -533,8 +533,9 @@ def test_exact_rig_tracks_the_truth() -> None:
     mapped = [i for i, b in enumerate(rt.source_bones) if b]
     h_conj = rot.quat_conj(rt.heading_quat)
     worst = 0.0
-    for f in range(take.markers_world.shape[0]):
-        rt.apply(solver.solve_frame(take.markers_world[f], bp), out)
+    frames = np.array(take.markers_world)  # writable, as the live loop's
+    for f in range(frames.shape[0]):
+        rt.apply(solver.solve_frame(frames[f], bp), out)
         if f == 0:
             _same_rotation(out.rest_from_bone_quat[0], rt.heading_quat, atol=1e-9)
             assert _angle_deg(out.rest_from_bone_quat[1:]).max() < 1e-6
@@ -567,7 +568,7 @@ def test_shipped_rigs_on_the_synthetic_performer(name: str) -> None:
     assert max(off.values()) < 17.0
     solver = BodySolver(rig, cal, take.labels)
     bp, out = solver.new_pose(), rt.new_pose()
-    rt.apply(solver.solve_frame(take.markers_world[0], bp), out)
+    rt.apply(solver.solve_frame(np.array(take.markers_world[0]), bp), out)
     _same_rotation(out.rest_from_bone_quat[0], rt.heading_quat, atol=1e-6)
     # Feet fallback agrees with the pelvis axis.
     pelvis = rig.humanoid["Hips"]

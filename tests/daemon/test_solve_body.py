@@ -280,7 +280,8 @@ def test_solve_frame_returns_out_and_keeps_dtypes(
     out = solver.new_pose()
     before = {k: (id(getattr(out, k)), getattr(out, k).dtype) for k in _ARRAYS}
     solver.reset()
-    result = solver.solve_frame(exact_take.markers_world[200], out)
+    # Writable, as the live loop's frames (a read-only one compiles the kernel again)
+    result = solver.solve_frame(np.array(exact_take.markers_world[200]), out)
     assert result is out
     for k, (ident, dtype) in before.items():
         assert id(getattr(out, k)) == ident and getattr(out, k).dtype == dtype, k
@@ -300,7 +301,7 @@ def test_solve_frame_allocates_nothing_in_steady_state(
 ) -> None:
     _, solver, _ = exact_solved
     out = solver.new_pose()
-    frames = np.ascontiguousarray(exact_take.markers_world)
+    frames = np.array(exact_take.markers_world)  # writable, as the loop's
     solver.reset()
     for t in range(50):  # warm-up: compilation, caches
         solver.solve_frame(frames[t], out)
@@ -347,6 +348,27 @@ def test_kernel_allocates_nothing_per_frame_when_all_markers_are_seen(
     assert _batch_allocs(solver, frames) == _batch_allocs(solver, frames[:1])
 
 
+def test_a_read_only_take_compiles_the_batch_kernel_once(
+    exact_take: pf.SynthTake, exact_solved: tuple[Calibration, BodySolver, BodySolve]
+) -> None:
+    """``solve_take`` passes a read-only take (the synthetic performer's) on
+    writable: numba types read-only arrays apart, and would compile the batch kernel
+    a second time."""
+    from retargetd.daemon.body import kernel
+
+    _, solver, _ = exact_solved
+    assert not exact_take.markers_world.flags.writeable
+    solver.reset()
+    read_only = solver.solve_take(exact_take.markers_world[:50])
+    solver.reset()
+    writable = solver.solve_take(np.array(exact_take.markers_world[:50]))
+    assert kernel.solve_many.signatures
+    assert all(sig[0].mutable for sig in kernel.solve_many.signatures)
+    np.testing.assert_array_equal(
+        read_only.world_from_bone_quat, writable.world_from_bone_quat
+    )
+
+
 def test_kernel_allocates_nothing_per_frame_when_rebuilding(
     exact_take: pf.SynthTake, exact_solved: tuple[Calibration, BodySolver, BodySolve]
 ) -> None:
@@ -372,8 +394,9 @@ def test_one_frame_at_a_time_equals_batch_with_dropouts(exact_rig: Rig) -> None:
     ).any()
     solver.reset()
     out = solver.new_pose()
+    frames = np.array(take.markers_world)  # writable, as the live loop's
     for t in range(take.n_frames):
-        solver.solve_frame(take.markers_world[t], out)
+        solver.solve_frame(frames[t], out)
         for name in _ARRAYS:
             got, want = getattr(out, name), getattr(batch, name)[t]
             np.testing.assert_allclose(got, want, rtol=0, atol=1e-9, err_msg=name)
@@ -413,8 +436,9 @@ def test_frame_counts_and_both_output_forms_agree(exact_rig: Rig) -> None:
     )
     cols = packed.marker_cols
     n_held_total = 0
+    frames = np.array(take.markers_world)  # writable, as the live loop's
     for t in range(take.n_frames):
-        m = take.markers_world[t]
+        m = frames[t]
         packed.solve_frame(m, out)
         by_hand.solve_frame(m, hand)
         seen = cols >= 0

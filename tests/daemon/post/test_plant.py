@@ -142,6 +142,39 @@ def test_the_stance_foot_stays_where_it_landed_as_the_body_moves_over_it() -> No
     assert not any(flags)
 
 
+class _WritableArrays:
+    """A target as a BVH's legs are (``cli/retarget_plant.py``): its rest arrays
+    writable, where a ``TargetSkeleton``'s are read-only."""
+
+    def __init__(self, target: Any) -> None:
+        self._target = target
+
+    def __getattr__(self, name: str) -> Any:
+        value = getattr(self._target, name)
+        if name in ("rest_world_from_bone_quat", "rest_offsets"):
+            return np.array(value)
+        return value
+
+
+def test_a_target_with_writable_arrays_plants_alike_on_one_compiled_kernel() -> None:
+    """Whether the target's rest arrays are read-only or not, the plant passes them
+    on read-only: numba types the two apart and compiled its kernel twice (the
+    post stages' largest) in one run."""
+    from retargetd.daemon.post.plant import _plant_step
+
+    target = default_humanoid()
+    assert not target.rest_offsets.flags.writeable
+    writable = _WritableArrays(target)
+    assert writable.rest_offsets.flags.writeable
+    z = _on_floor_z()
+    frames = [(0.08 * min(t / 30.0, 1.0), z, True) for t in range(40)]
+    a, _, _ = _run(FootPlant(target, 1.0, LEG_M), target, frames)
+    b, _, _ = _run(FootPlant(writable, 1.0, LEG_M), target, frames)
+    np.testing.assert_array_equal(np.array(a), np.array(b))
+    assert _plant_step.signatures
+    assert not any(sig[6].mutable or sig[7].mutable for sig in _plant_step.signatures)
+
+
 def test_a_zero_correction_leaves_the_pose_as_solved() -> None:
     """Standing still with both feet flat on the floor and in contact: every
     rotation, the root and the hips come out as they went in (the IK of a goal where
