@@ -528,6 +528,30 @@ def _forearms_as(tmp_path: Path, keys: str, noise_mm: float) -> _Forearms:
     return _Forearms(text, path, rig, opts, take, base, cal, model, idx, res, ball)
 
 
+def _forearms_twist_to(
+    tmp_path: Path, keys: str, noise_mm: float, name: str
+) -> tuple[_Forearms, Path]:
+    """:func:`_forearms_as`, then its rig again with the ulnar styloid's points
+    (``LUS``/``RUS``, at u = 95 / 120 on the line from WRA to WRB) and each
+    forearm's ``twist_to`` naming them, written to ``name``."""
+    points = "".join(
+        f'\n[points.{s.upper()}US]\nline = ["{s.upper()}WRA", "{s.upper()}WRB"]\n'
+        f"u = {95.0 / 120.0!r}\n"
+        for s in ("l", "r")
+    )
+    own = _forearms_as(tmp_path, keys, noise_mm=noise_mm)
+    rig_text = EXACT_RIG.read_text()
+    text = own.text.replace(rig_text, rig_text + points)
+    for s in ("l", "r"):
+        text = text.replace(
+            f"[fit.bones.{s}_forearm]\n{keys}\n",
+            f'[fit.bones.{s}_forearm]\n{keys}\ntwist_to = "{s.upper()}US"\n',
+        )
+    path = tmp_path / name
+    path.write_text(text)
+    return own, path
+
+
 def test_swing_joint_has_no_twist(tmp_path: Path) -> None:
     """``dof = "swing"``: the joint keeps two rotations; its twist about the bone's
     long axis stays at the calibration's (a clavicle whose one marker cannot see its
@@ -556,21 +580,7 @@ def test_swing_forbids_the_twist_about_twist_to(tmp_path: Path) -> None:
     the bone's own +Y: the model's twist axis is that line, the observed rotations
     are perpendicular to it, and the solve keeps the twist about it at the
     calibration's while the twist about +Y moves with the swing."""
-    points = "".join(
-        f'\n[points.{s.upper()}US]\nline = ["{s.upper()}WRA", "{s.upper()}WRB"]\n'
-        f"u = {95.0 / 120.0!r}\n"
-        for s in ("l", "r")
-    )
-    own = _forearms_as(tmp_path, 'dof = "swing"', noise_mm=0.5)
-    rig_text = EXACT_RIG.read_text()
-    text = own.text.replace(rig_text, rig_text + points)
-    for s in ("l", "r"):
-        text = text.replace(
-            f'[fit.bones.{s}_forearm]\ndof = "swing"\n',
-            f'[fit.bones.{s}_forearm]\ndof = "swing"\ntwist_to = "{s.upper()}US"\n',
-        )
-    path = tmp_path / "rig_swing_to.toml"
-    path.write_text(text)
+    own, path = _forearms_twist_to(tmp_path, 'dof = "swing"', 0.5, "rig_swing_to.toml")
     rig, opts = load_fit_rig(path)
     assert opts.bones["r_forearm"].twist_to == "RUS"
     cal = calibrate(rig, own.base, own.take.labels)
@@ -655,22 +665,8 @@ def test_hinge_twist_pronates_about_twist_to(tmp_path: Path) -> None:
     named in ``twist_to`` gives the fit that axis; twisting about the bone's own +Y
     instead, a pronation swings the styloid side off the hinge's plane and the fit
     turns the humerus to follow."""
-    points = "".join(
-        f'\n[points.{s.upper()}US]\nline = ["{s.upper()}WRA", "{s.upper()}WRB"]\n'
-        f"u = {95.0 / 120.0!r}\n"
-        for s in ("l", "r")
-    )
     keys = 'dof = "hinge_twist"\naxis = "x"\naxis_in = "parent"'
-    own = _forearms_as(tmp_path, keys, noise_mm=1.0)
-    rig_text = EXACT_RIG.read_text()
-    text = own.text.replace(rig_text, rig_text + points)
-    for s in ("l", "r"):
-        text = text.replace(
-            f"[fit.bones.{s}_forearm]\n{keys}\n",
-            f'[fit.bones.{s}_forearm]\n{keys}\ntwist_to = "{s.upper()}US"\n',
-        )
-    path = tmp_path / "rig_twist_to.toml"
-    path.write_text(text)
+    own, path = _forearms_twist_to(tmp_path, keys, 1.0, "rig_twist_to.toml")
     rig, opts = load_fit_rig(path)
     assert opts.bones["l_forearm"].twist_to == "LUS"
     cal = calibrate(rig, own.base, own.take.labels)  # (the rig has two more points)
