@@ -578,14 +578,14 @@ class FitSolver:
     def packed_buffers(self, pose: FitPose) -> tuple[Any, ...]:
         """``kernel_fit.fit_one``'s arguments after the markers for ``pose``, then
         what :meth:`solve_frame` does around that call: the scalars whose ``C_DT``
-        slot it sets, the pose's stats and residuals (its frame flags and occluded
-        count) and the interval used when none is given (for a kernel that runs
-        this solve inside its own call, ``live/solve_emit.py``)."""
+        slot it sets, the pose's stats (its frame flags) and the interval used
+        when none is given (for a kernel that runs this solve inside its own call,
+        ``live/solve_emit.py``)."""
         if pose.fit_buffers is None:
             raise ValueError("the pose was not made by new_pose()")
         return (
             self._mf, self._mi, self._sf, self._si, self._sb, self._layout, self._con,
-            *pose.fit_buffers, self._scalars, pose.stats, pose.marker_residual,
+            *pose.fit_buffers, self._scalars, pose.stats,
             1.0 / self.rate_hz,
         )  # fmt: skip
 

@@ -169,7 +169,7 @@ def solve_emit_fit(
     what: int, markers: np.ndarray,
     mf: np.ndarray, mi: np.ndarray, sf: np.ndarray, si: np.ndarray, sb: np.ndarray,
     lay: np.ndarray, con: tuple, of: np.ndarray, of4: np.ndarray, ou1: np.ndarray,
-    ob: np.ndarray, scalars: np.ndarray, stats: np.ndarray, resid: np.ndarray,
+    ob: np.ndarray, scalars: np.ndarray, stats: np.ndarray,
     dt_default: float,
     wfb: np.ndarray, pfb: np.ndarray, rfb: np.ndarray, root: np.ndarray,
     bone_flags: np.ndarray, ei: np.ndarray, ef: np.ndarray, tflags: np.ndarray,
@@ -287,7 +287,7 @@ def feed_solve_emit_fit(
     q: np.ndarray, qf: np.ndarray, counts: np.ndarray, source_time: np.ndarray,
     mf: np.ndarray, mi: np.ndarray, sf: np.ndarray, si: np.ndarray, sb: np.ndarray,
     lay: np.ndarray, con: tuple, of: np.ndarray, of4: np.ndarray, ou1: np.ndarray,
-    ob: np.ndarray, scalars: np.ndarray, stats: np.ndarray, resid: np.ndarray,
+    ob: np.ndarray, scalars: np.ndarray, stats: np.ndarray,
     dt_default: float,
     wfb: np.ndarray, pfb: np.ndarray, rfb: np.ndarray, root: np.ndarray,
     bone_flags: np.ndarray, ei: np.ndarray, ef: np.ndarray, tflags: np.ndarray,
@@ -309,7 +309,7 @@ def feed_solve_emit_fit(
     dt = interval_s(last_t, last_id, last_ns, source_t, frame_id, t_ns, rate_hz)
     n_held, n_occ, fit_bits, contact, solved_ns = solve_emit_fit(
         what, markers, mf, mi, sf, si, sb, lay, con, of, of4, ou1, ob, scalars, stats,
-        resid, dt_default, wfb, pfb, rfb, root, bone_flags, ei, ef, tflags, last_quat,
+        dt_default, wfb, pfb, rfb, root, bone_flags, ei, ef, tflags, last_quat,
         stage32, offsets, wire, header, body, blend, weights, stance_ints,
         stance_floats, or_flags, t0_ns, frame_id, source_t, t_ns, flags_word, dt,
     )  # fmt: skip
