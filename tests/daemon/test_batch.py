@@ -18,6 +18,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from paths import require_datasets
 
 from retargetd.daemon.cli import batch
 from retargetd.daemon.cli import batch_jobs as bj
@@ -55,10 +56,12 @@ BROKEN = "broken/corrupt.trc"
 VOLATILE = ("seconds", "cpu_seconds", "render_seconds", "worker", "skipped")
 
 
-@pytest.fixture
-def library(datasets: Path, tmp_path: Path) -> Path:
-    """``tmp/lib``: links to the takes, a corrupt TRC and the manifest."""
-    lib = tmp_path / "lib"
+@pytest.fixture(scope="module")
+def library(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """``tmp/lib``: links to the takes, a corrupt TRC and the manifest (one for the
+    module: no test writes into it)."""
+    datasets = require_datasets()
+    lib = tmp_path_factory.mktemp("batch") / "lib"
     for rel in (*TAKES, "btkdata/PiG_Calibration-FlatFoot-Full.c3d",
                 "btkdata/MOTEK_T.trc"):  # fmt: skip
         (lib / rel).parent.mkdir(parents=True, exist_ok=True)
@@ -71,6 +74,19 @@ def library(datasets: Path, tmp_path: Path) -> Path:
     (lib / BROKEN).write_text("\n".join([*header, "1\t0.0\tnot\ta\tnumber"]) + "\n")
     (lib / "batch.toml").write_text(MANIFEST)
     return lib
+
+
+@pytest.fixture(scope="module")
+def serial_solve(
+    library: Path, tmp_path_factory: pytest.TempPathFactory
+) -> tuple[dict[str, Any], Path]:
+    """The library solved serially, once for the module (the summary and its
+    folder): what the Dask cluster's and the process pool's solves must equal."""
+    out = tmp_path_factory.mktemp("serial") / "solve-serial"
+    with pytest.MonkeyPatch.context() as mp:
+        mp.chdir(out.parent)  # MuJoCo's log, as mujoco_cwd
+        summary = batch.run_batch(_jobs(library, "solve", out), scheduler="serial")
+    return summary, out
 
 
 def _jobs(lib: Path, mode: str, out: Path, **kw: Any) -> list[dict[str, Any]]:
@@ -153,14 +169,21 @@ def dask_cluster() -> Iterator[str]:
 
 @pytest.mark.timeout(600)
 def test_dask_equals_serial_solve_and_validate(
-    library: Path, tmp_path: Path, dask_cluster: str
+    library: Path,
+    tmp_path: Path,
+    dask_cluster: str,
+    serial_solve: tuple[dict[str, Any], Path],
 ) -> None:
     assert dask_cluster.startswith("tcp://127.0.0.1:")
     # solve on the cluster by its address, validate on an embedded local cluster.
     for mode, scheduler in (("solve", dask_cluster), ("validate", "dask")):
-        serial = batch.run_batch(
-            _jobs(library, mode, tmp_path / f"{mode}-serial"), scheduler="serial"
-        )
+        if mode == "solve":
+            serial, serial_out = serial_solve
+        else:
+            serial_out = tmp_path / f"{mode}-serial"
+            serial = batch.run_batch(
+                _jobs(library, mode, serial_out), scheduler="serial"
+            )
         dask = batch.run_batch(
             _jobs(library, mode, tmp_path / f"{mode}-dask"),
             scheduler=scheduler,
@@ -176,13 +199,13 @@ def test_dask_equals_serial_solve_and_validate(
         for take in TAKES:
             tid = take.replace("/", "__")
             if mode == "solve":
-                a = np.load(tmp_path / "solve-serial" / tid / "solve.npz")
+                a = np.load(serial_out / tid / "solve.npz")
                 b = np.load(tmp_path / "solve-dask" / tid / "solve.npz")
                 assert set(a.files) == set(b.files)
                 for k in a.files:
                     np.testing.assert_array_equal(a[k], b[k], err_msg=k)
             else:
-                ra = json.loads((tmp_path / "validate-serial" / tid / "report.json")
+                ra = json.loads((serial_out / tid / "report.json")
                                 .read_text())  # fmt: skip
                 rb = json.loads((tmp_path / "validate-dask" / tid / "report.json")
                                 .read_text())  # fmt: skip
@@ -191,14 +214,14 @@ def test_dask_equals_serial_solve_and_validate(
 
 
 @pytest.mark.timeout(300)
-def test_resume_and_force(library: Path, tmp_path: Path) -> None:
+def test_resume_and_force(
+    library: Path, tmp_path: Path, serial_solve: tuple[dict[str, Any], Path]
+) -> None:
     out = tmp_path / "out"
     first = batch.run_batch(_jobs(library, "solve", out), workers=2)  # process pool
     _check_statuses(first)
     assert first["totals"]["ran"] == 4 and first["totals"]["error"] == 1
-    serial = batch.run_batch(
-        _jobs(library, "solve", tmp_path / "serial"), scheduler="serial"
-    )
+    serial = serial_solve[0]
     assert _stable(first) == _stable(serial)
     stamp = {
         t: (out / t.replace("/", "__") / "result.json").stat().st_mtime_ns
