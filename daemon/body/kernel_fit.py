@@ -627,10 +627,13 @@ def fit_one_t(
         if have[0] != 0:
             sc[C_GAP] += 1.0
         return n_held
-    rloc, rbend, limb = s[56], s[59], m[25]
+    rloc, rbend, limb, rlevel = s[56], s[59], m[25], s[67]
     for i in range(n_mk):
         if vis[i] and not rej[i]:
             b = mk_bone[i]
+            # the take's level where it was last accepted: the threshold of its hold
+            # while it hides (fit_track.hold_priors)
+            rlevel[i] = sc[C_LEVEL]
             for j in range(3):
                 rref[i, j] = res[i, j]
                 rloc[i, j] = (
