@@ -492,7 +492,7 @@ class FitSolver:
             z(n_b, 4), z(n_r, 3), z(n_m), z(self.n_stream, 3),
             z(n_b, 3, 3), z(n_b, 4), z(n_b), z(n_m, 3), z(n_m, 3), z(n_m), z(n_m),
             *fit_fill.new_fill_state(n_m),
-            z(n_b, ft.N_REG), z(n_b, ft.N_REG),
+            z(n_b, ft.N_REG), z(n_b, ft.N_REG), z(n_m),
         )  # fmt: skip
         sbuf, srows, self._state = fit_pack.pack(state_arrays, fit_pack.S_KINDS)
         self._sf, self._si, self._sb = sbuf["f8"], sbuf["i8"], sbuf["b1"]
