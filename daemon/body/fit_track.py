@@ -12,6 +12,11 @@ import math
 import numpy as np
 
 from retargetd.daemon.body.fit_fill import FILL_DROPS_HOLD
+from retargetd.daemon.body.fit_hold_robust import (
+    freeze_robust,
+    parent_gauges,
+    robust_drop,
+)
 from retargetd.daemon.body.fit_terms import (
     C_DT,
     C_GAP,
@@ -287,14 +292,23 @@ def hold_priors(m: tuple, s: tuple) -> None:
     rlevel = s[67]
     rage, fresh = s[48], s[40]  # (s[40], s[39]: scratch here, the outputs' later)
     rides = s[39]
+    # (s[18], s[19]: scratch, fit_normal.build_normal's per-bone sums, rebuilt
+    # there; local_floor below reuses s[18] after the last read of drop)
+    drop, gauge = s[18], s[19]
     for b in range(n_b):
         fresh[b] = 0
         for i in range(3):
             for j in range(3):
                 hold[b, i, j] = 0.0
+    dropped = False
     for k in range(wt.shape[0]):
         if wt[k] <= 0.0 or vis[k] or (FILL_DROPS_HOLD and s[63][k, 4] > 0.0):
             continue
+        if not dropped:
+            freeze_robust(m, s)
+            robust_drop(m, s, drop)
+            parent_gauges(m, s, gauge)
+            dropped = True
         new = rage[k] == 0.0  # accepted in the last explained frame: hidden now
         # The threshold is the level where the marker was last accepted, or the
         # level now where that is lower: the level is a running RMS of the markers
@@ -334,10 +348,23 @@ def hold_priors(m: tuple, s: tuple) -> None:
                 row = base + b
                 for j in range(3):
                     lo = lost[row, j]
-                    li = lam[row, j]
-                    if lo <= 0.0 or li >= thr:
+                    if lo <= 0.0:
                         continue
-                    kk = share * min(lo, thr - li)
+                    u0, u1, u2 = (
+                        axes[row, 3 * j],
+                        axes[row, 3 * j + 1],
+                        axes[row, 3 * j + 2],
+                    )
+                    # what the table counts as still seen, less what the robust
+                    # loss took from the seen markers at the hide (robust_drop)
+                    li = lam[row, j]
+                    for a in range(3):
+                        ua = axes[row, 3 * j + a]
+                        for e in range(3):
+                            li -= ua * drop[b, a, e] * axes[row, 3 * j + e]
+                    if li >= thr:
+                        continue
+                    kk = share * min(lo, thr - max(li, 0.0))
                     if kk < 0.01 * thr:
                         # (a hold under 1 % of the threshold moves nothing by more
                         # than 1 % of the resolution: not worth its terms in every
@@ -345,11 +372,12 @@ def hold_priors(m: tuple, s: tuple) -> None:
                         continue
                     if new:
                         fresh[b] = 1
-                    u0, u1, u2 = (
-                        axes[row, 3 * j],
-                        axes[row, 3 * j + 1],
-                        axes[row, 3 * j + 2],
-                    )
+                    # never along the parent's gauge (parent_gauges): the priors
+                    # decide that one at the proximal joint
+                    ug = u0 * gauge[b, 0] + u1 * gauge[b, 1] + u2 * gauge[b, 2]
+                    u0 -= ug * gauge[b, 0]
+                    u1 -= ug * gauge[b, 1]
+                    u2 -= ug * gauge[b, 2]
                     if (
                         lock[b] == 2.0
                         and not rides[b]

@@ -492,7 +492,7 @@ class FitSolver:
             z(n_b, 4), z(n_r, 3), z(n_m), z(self.n_stream, 3),
             z(n_b, 3, 3), z(n_b, 4), z(n_b), z(n_m, 3), z(n_m, 3), z(n_m), z(n_m),
             *fit_fill.new_fill_state(n_m),
-            z(n_b, ft.N_REG), z(n_b, ft.N_REG), z(n_m),
+            z(n_b, ft.N_REG), z(n_b, ft.N_REG), z(n_m), z(n_m),
         )  # fmt: skip
         sbuf, srows, self._state = fit_pack.pack(state_arrays, fit_pack.S_KINDS)
         self._sf, self._si, self._sb = sbuf["f8"], sbuf["i8"], sbuf["b1"]
@@ -535,6 +535,7 @@ class FitSolver:
         self._hold_active[:] = 0.0
         self._state[58][:] = 0.0  # no misfit carried
         self._state[67][:] = 0.0  # no level at any marker's last accepted frame
+        self._state[68][:] = 0.0  # no robust share taken at a hide (fit_hold_robust)
         for dst, src in zip(  # no pair statistics, no donors (fit_fill)
             self._state[60:65],
             fit_fill.new_fill_state(len(self.marker_names)),
