@@ -16,7 +16,11 @@ import math
 
 import numpy as np
 
-from retargetd.daemon.body.fit_terms import P_CAUCHY_M, P_HOLD_STRAIGHT_RAD
+from retargetd.daemon.body.fit_terms import (
+    P_CAUCHY_M,
+    P_HOLD_STRAIGHT_RAD,
+    limb_bent,
+)
 from retargetd.daemon.compiled import kernel
 
 
@@ -85,12 +89,7 @@ def robust_drop(m: tuple, s: tuple, drop: np.ndarray) -> None:
         if n2 <= c2:
             continue
         lw = min(frozen[i], n2 / (c2 + n2))
-        h = limb[i]
-        bent = 0.0
-        if h >= 0:
-            q = qlast[h]  # cos of the bend: fit_track._bone_y_cos
-            cb = 1.0 - 2.0 * (q[1] * q[1] + q[3] * q[3])
-            bent = min(1.0, math.sqrt(max(0.0, 1.0 - cb * cb)) / sin_bent)
+        bent = limb_bent(qlast, limb[i], sin_bent)
         for half in range(2):
             share = lw * (bent if half == 1 else 1.0 - bent)
             if share <= 0.0:

@@ -213,6 +213,25 @@ def continuity_weights(
 
 
 @kernel
+def bone_y_cos(q: np.ndarray) -> float:
+    # cos of a joint's bend: its bone's +Y against its parent's +Y, the joint at
+    # parent_from_bone q (unit): the y component of q's rotation of +Y
+    return 1.0 - 2.0 * (q[1] * q[1] + q[3] * q[3])
+
+
+@kernel
+def limb_bent(qlast: np.ndarray, h: int, sin_bent: float) -> float:
+    # the bent-pose hold table's share for a marker on limb hinge h (h < 0: none,
+    # 0): sin(bend) / sin(hold_straight) at the last explained frame (qlast, the
+    # joints' parent_from_bone), at most 1 (fit_track.hold_priors,
+    # fit_hold_robust.robust_drop)
+    if h < 0:
+        return 0.0
+    c = bone_y_cos(qlast[h])
+    return min(1.0, math.sqrt(max(0.0, 1.0 - c * c)) / sin_bent)
+
+
+@kernel
 def cp2(dst: np.ndarray, src: np.ndarray) -> None:
     for i in range(dst.shape[0]):
         for j in range(dst.shape[1]):

@@ -41,8 +41,10 @@ from retargetd.daemon.body.fit_terms import (
     P_SPEED_MAX,
     P_UNEXPLAINED_K,
     P_VELOCITY_TAU_S,
+    bone_y_cos,
     cp2,
     fk,
+    limb_bent,
     qexp,
     qlog,
 )
@@ -211,17 +213,10 @@ def impossible(m: tuple, s: tuple, frames: float) -> bool:
 
 
 @kernel
-def _bone_y_cos(q: np.ndarray) -> float:
-    # cos of a joint's bend: its bone's +Y against its parent's +Y, the joint at
-    # parent_from_bone q (unit): the y component of q's rotation of +Y
-    return 1.0 - 2.0 * (q[1] * q[1] + q[3] * q[3])
-
-
-@kernel
 def hinge_bend(q: np.ndarray) -> float:
     # a joint's bend (rad): its bone's +Y from its parent's +Y, the joint at
     # parent_from_bone q (unit)
-    c = _bone_y_cos(q)
+    c = bone_y_cos(q)
     return math.acos(1.0 if c > 1.0 else (-1.0 if c < -1.0 else c))
 
 
@@ -334,11 +329,7 @@ def hold_priors(m: tuple, s: tuple) -> None:
         while kb >= 0:
             rides[kb] = 1
             kb = parent[kb]
-        h = limb[k]
-        bent = 0.0
-        if h >= 0:
-            c = _bone_y_cos(qlast[h])
-            bent = min(1.0, math.sqrt(max(0.0, 1.0 - c * c)) / sin_bent)
+        bent = limb_bent(qlast, limb[k], sin_bent)
         for half in range(2):
             share = bent if half == 1 else 1.0 - bent
             if share <= 0.0:
