@@ -21,7 +21,7 @@ from retargetd.daemon.body.fit_terms import (
     P_HOLD_STRAIGHT_RAD,
     limb_bent,
 )
-from retargetd.daemon.compiled import kernel
+from retargetd.daemon.compiled import kernel, qrot
 
 
 @kernel
@@ -141,18 +141,9 @@ def parent_gauges(m: tuple, s: tuple, gauge: np.ndarray) -> None:
         n = math.sqrt(off[b, 0] ** 2 + off[b, 1] ** 2 + off[b, 2] ** 2)
         if not only or n <= 0.0:
             continue
-        # the parent-axes line in the bone's axes: R(q)^T v, q = parent_from_bone
-        w, x, y, z = qlast[b, 0], qlast[b, 1], qlast[b, 2], qlast[b, 3]
-        v0, v1, v2 = off[b, 0] / n, off[b, 1] / n, off[b, 2] / n
-        r00 = 1.0 - 2.0 * (y * y + z * z)
-        r01 = 2.0 * (x * y - w * z)
-        r02 = 2.0 * (x * z + w * y)
-        r10 = 2.0 * (x * y + w * z)
-        r11 = 1.0 - 2.0 * (x * x + z * z)
-        r12 = 2.0 * (y * z - w * x)
-        r20 = 2.0 * (x * z - w * y)
-        r21 = 2.0 * (y * z + w * x)
-        r22 = 1.0 - 2.0 * (x * x + y * y)
-        gauge[b, 0] = r00 * v0 + r10 * v1 + r20 * v2
-        gauge[b, 1] = r01 * v0 + r11 * v1 + r21 * v2
-        gauge[b, 2] = r02 * v0 + r12 * v1 + r22 * v2
+        # the parent-axes line in the bone's axes: q's inverse applied to it, q =
+        # parent_from_bone
+        q = qlast[b]
+        gauge[b, 0], gauge[b, 1], gauge[b, 2] = qrot(
+            q[0], -q[1], -q[2], -q[3], off[b, 0] / n, off[b, 1] / n, off[b, 2] / n
+        )
