@@ -138,9 +138,11 @@ def fill_update(m: tuple, s: tuple) -> None:
 
 
 @kernel
-def _pair(pair: np.ndarray, i: int, j: int) -> np.ndarray:
-    # a pair's statistics: kept in the row of its lower index only
-    return pair[i, j] if i < j else pair[j, i]
+def _pair(pair: np.ndarray, i: int, j: int, k: int) -> float:
+    # a pair's statistic k: kept in the row of its lower index only (a value, not
+    # the row: kernel_fit.fit_one_t compiles without reference counting, and a
+    # kernel returning a view would leave its count raised)
+    return pair[i, j, k] if i < j else pair[j, i, k]
 
 
 @kernel
@@ -171,17 +173,17 @@ def _choose_donors(m: tuple, s: tuple, i: int) -> None:
         for j in range(n):
             if j == i or not vis[j] or wt[j] <= 0.0 or rage[j] != 0.0:
                 continue
-            if _pair(pair, i, j)[2] < MIN_COVERAGE:
+            if _pair(pair, i, j, 2) < MIN_COVERAGE:
                 continue
             if not _on_chain(parent, mk_bone[i], mk_bone[j]):
                 continue
-            v = _pair(pair, i, j)[1]
+            v = _pair(pair, i, j, 1)
             for k in range(nd):
                 d = donors[i, k]
-                if d == j or _pair(pair, j, d)[2] < MIN_COVERAGE:
+                if d == j or _pair(pair, j, d, 2) < MIN_COVERAGE:
                     v = math.inf
                 else:
-                    v = max(v, _pair(pair, j, d)[1])
+                    v = max(v, _pair(pair, j, d, 1))
             if v <= lim and v < bv:
                 best, bv = j, v
         if best < 0:
@@ -222,7 +224,7 @@ def _choose_donors(m: tuple, s: tuple, i: int) -> None:
     var = 0.0
     for k in range(nd):
         d = donors[i, k]
-        var += _pair(pair, i, d)[1] / nd
+        var += _pair(pair, i, d, 1) / nd
         for j in range(3):
             ref[i, k, j] = mem[d, j]
     for j in range(3):
@@ -260,7 +262,7 @@ def rigid_fill(m: tuple, s: tuple, known: bool) -> None:
         n2 = params[P_NOISE_M] ** 2
         for k in range(N_DONORS):
             d = donors[i, k]
-            wts[k] = 1.0 / (n2 + _pair(pair, i, d)[1]) if d >= 0 else 0.0
+            wts[k] = 1.0 / (n2 + _pair(pair, i, d, 1)) if d >= 0 else 0.0
         lay = ref[i, :N_DONORS]
         used = horn_fit(lay, meas, donors[i], vis, wts, n44, v44, q4, cen)
         if used < 3:

@@ -59,6 +59,18 @@ Per frame (``fit_one_t``; the rules' numbers are ``solve_fit.FitParams``):
 
 No output is ever NaN. Everything is preallocated by ``solve_fit.FitSolver``: no
 allocation per frame.
+
+**No reference counting.** :func:`fit_one_t` and :func:`fit_many` compile with
+numba's ``_nrt`` option off, and so does every kernel they call that does not set it
+itself (numba's flag inheritance): a kernel handed the model and state tuples (27 and
+69 arrays) took a reference to each array it unpacked and gave it back on every exit,
+two atomic operations per array per call, and the fit makes dozens of such calls a
+frame (``_evaluate_current`` alone: 137 increments, 138 decrements in its optimized
+code). Nothing below them allocates or returns an array (which numba refuses without
+reference counting), so nothing is counted that could be freed early: every array
+they see belongs to the caller for the whole call. The construction's seed
+(:func:`_seed_from_construction`, first frames and reseeds) keeps the counting: the
+construction's views are returned by its kernels.
 """
 
 from __future__ import annotations
@@ -254,7 +266,7 @@ def _whole_cost(m: tuple, s: tuple) -> float:
     return _evaluate_current(m, s, False)
 
 
-@kernel
+@kernel(_nrt=True)
 def _seed_from_construction(markers: np.ndarray, m: tuple, s: tuple, c: tuple) -> None:
     # Run the construction kernel on this frame and take its bone rotations and root.
     # c: its packed plan, state and output buffers (``body.kernel.solve_one``): eight
@@ -332,7 +344,7 @@ def _hold(m: tuple, s: tuple) -> None:
     _evaluate_current(m, s, True)
 
 
-@kernel
+@kernel(_nrt=False)
 def fit_one_t(
     markers: np.ndarray,  # (M_stream, 3) world metres, NaN = occluded
     m: tuple,  # the model (solve_fit.FitSolver._model)
@@ -409,9 +421,11 @@ def fit_one_t(
         if first:
             # (the construction's memory kept: a first frame that turns out
             # unexplained must not leave its bones in the construction, step 5)
-            c[8][:] = c[2]
-            c[9][:] = c[3]
-            c[10][:] = c[4]
+            # (element by element: a slice assignment may copy its source through
+            # a temporary, an allocation, which this kernel compiles without)
+            cp1(c[8], c[2])
+            cp1(c[9], c[3])
+            cp1(c[10], c[4])
             c_kept = True
             mu_kept = sc[C_MU]
             _seed_from_construction(clean, m, s, c)
@@ -470,9 +484,9 @@ def fit_one_t(
             # holds its last value): what it took from a frame that turns out
             # unexplained (a burst's mirrored labels) must not be held into the
             # frames after it; its state is kept (c[8:11]) and restored below
-            c[8][:] = c[2]
-            c[9][:] = c[3]
-            c[10][:] = c[4]
+            cp1(c[8], c[2])
+            cp1(c[9], c[3])
+            cp1(c[10], c[4])
             c_kept = True
             continuity_weights(params, sc, max(sc[C_GAP], persist), known)
             cost_a = _whole_cost(m, s)
@@ -532,9 +546,9 @@ def fit_one_t(
                 sc[C_MU] = mu_kept
                 sc[C_SINCE_TRY] = 0.0
             if c_kept:
-                c[2][:] = c[8]
-                c[3][:] = c[9]
-                c[4][:] = c[10]
+                cp1(c[2], c[8])
+                cp1(c[3], c[9])
+                cp1(c[4], c[10])
         else:
             advance_level(params, sc, rms, lost_at)
     # 3. outputs
@@ -663,7 +677,7 @@ def fit_one_t(
     return n_held
 
 
-@kernel
+@kernel(_nrt=False)
 def fit_many(
     markers: np.ndarray,  # (T, M_stream, 3)
     m: tuple,
