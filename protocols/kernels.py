@@ -24,6 +24,10 @@ byte). The kernels here call nothing outside this module, so numba's per-file ca
 (which does not see a change in a callee from another module) cannot go stale:
 ``tests/protocols/test_kernels.py`` keeps it so. ``protocols`` sits below ``daemon``,
 so these do not use ``daemon.compiled.kernel``; they compile with the same options.
+
+Importing this module locks numba's cache between processes (:mod:`.cache_lock`, which
+compiles nothing): every process that compiles a kernel of the package imports it
+first (``daemon.compiled`` does), and none of its kernels compiles before that.
 """
 
 from __future__ import annotations
@@ -32,6 +36,10 @@ import math
 
 import numba
 import numpy as np
+
+from retargetd.protocols import cache_lock
+
+cache_lock.install()
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")

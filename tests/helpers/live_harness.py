@@ -17,11 +17,13 @@ import math
 import os
 import re
 import socket
+import subprocess
+import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 import numpy as np
 import pytest
@@ -110,11 +112,60 @@ def pytest_runtestloop(session: pytest.Session) -> Iterator[object]:
 def compile_kernels() -> None:
     """A daemon opened in-process with the fit, both ``[[pipeline]]`` stages, an output
     rate and the validator on, then closed; the face kernel; and the fused solve and
-    emit of both methods."""
-    import tempfile
+    emit of both methods.
 
+    Over two processes: the fit (the costliest, its kernels compiled for one signature
+    each) in a second interpreter (``compile_part.py fit``) while this one compiles
+    every kernel that does not call it (the same daemon solving with the construction,
+    the face, the construction's fused kernel); then this one opens the fit's daemon
+    and compiles the fit's fused kernel, loading the fit from numba's cache. numba's
+    cache is locked between processes (``protocols/cache_lock.py``): two that save one
+    function at once leave each signature with its own code. A failure of the second
+    process is raised here with its output; it never outlives this call."""
+    child, log = _start_part("fit")
+    with log:
+        try:
+            compile_part("apart")
+            _join_part(child, log, "fit")
+        finally:
+            if child.poll() is None:  # (this one failed, or the child timed out)
+                child.kill()
+                child.wait()
+    compile_part("after")
+
+
+#: What ``compile_kernels`` compiles in each step: ``fit`` in the second process.
+PARTS = ("fit", "apart", "after")
+#: How long the second process may take (the fit compiled for 140 s of CPU on this
+#: 2-core VM; a CI runner twice as slow and busy beside it stays well inside).
+PART_TIMEOUT_S = 1800.0
+
+
+def compile_part(part: str) -> None:
+    """One step of :func:`compile_kernels` (:data:`PARTS`)."""
+    from retargetd.daemon.body.solve_fit import warm_up as warm_up_fit
     from retargetd.daemon.live.face import warm_up as warm_up_face
     from retargetd.daemon.live.solve_emit import warm_up as warm_up_solve_emit
+
+    if part == "fit":
+        warm_up_fit()
+    elif part == "apart":
+        _open_kernel_daemon("construction")
+        warm_up_face()
+        warm_up_solve_emit(fit=False)
+    elif part == "after":
+        _open_kernel_daemon("fit")
+        # The solve and the emit in one call (live/solve_emit.py), both methods: the
+        # daemon, with its stages, does not run it; the tests' daemons do.
+        warm_up_solve_emit(fit=True)
+    else:
+        raise ValueError(f"no part {part!r} (one of {', '.join(PARTS)})")
+
+
+def _open_kernel_daemon(method: str) -> None:
+    """A daemon with ``method``, both stages, an output rate and the validator,
+    opened (its warm-up compiles its kernels) and closed."""
+    import tempfile
 
     take = _take()
     rig = load_rig(EXACT_RIG)
@@ -126,7 +177,7 @@ def compile_kernels() -> None:
             _ephemeral_doc(_unused_udp_port()),
             {
                 "performer": {"calibration": str(path)},
-                "solve": {"method": "fit"},
+                "solve": {"method": method},
                 "loop": {"output_rate_hz": 60.0},
                 "pipeline": [{"kind": "twist"}, {"kind": "one_euro"}],
                 "validate": {"enabled": True},
@@ -137,11 +188,41 @@ def compile_kernels() -> None:
             daemon.open()
         finally:
             daemon.close()
-    warm_up_face()
-    # The solve and the emit in one call (live/solve_emit.py), both methods: the
-    # daemon above, with its stages, does not run it; the tests' daemons do.
-    warm_up_solve_emit(fit=True)
-    warm_up_solve_emit(fit=False)
+
+
+def _start_part(part: str) -> tuple[subprocess.Popen[bytes], IO[bytes]]:
+    """``compile_part(part)`` in a fresh interpreter, and the file of its output."""
+    import tempfile
+
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join(
+        p for p in (str(Path(__file__).parent), env.get("PYTHONPATH", "")) if p
+    )
+    log = tempfile.TemporaryFile()  # noqa: SIM115 (closed by the caller)
+    try:
+        child = subprocess.Popen(
+            [sys.executable, str(Path(__file__).with_name("compile_part.py")), part],
+            env=env, stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT,
+        )  # fmt: skip
+    except BaseException:
+        log.close()
+        raise
+    return child, log
+
+
+def _join_part(child: subprocess.Popen[bytes], log: IO[bytes], part: str) -> None:
+    """Wait for ``child`` (:data:`PART_TIMEOUT_S`); raise with its output unless it
+    succeeded."""
+    try:
+        rc: int | None = child.wait(timeout=PART_TIMEOUT_S)
+    except subprocess.TimeoutExpired:
+        rc = None
+    if rc == 0:
+        return
+    log.seek(0)
+    out = log.read().decode(errors="replace")[-8000:]
+    what = f"ran past {PART_TIMEOUT_S:g} s" if rc is None else f"exited with {rc}"
+    raise RuntimeError(f"compile_part.py {part} {what}:\n{out}")
 
 
 def _ignore(_: str) -> None:
