@@ -62,6 +62,7 @@ def _past(intact: Any, solve: Any, window: slice) -> list[str]:
         ("plug-in-gait", "LWRA", 0.25),  # causal: the hand 13.8 deg, 2 steps
         ("plug-in-gait", "RFIN", 1.0),  # causal: the hand 39.7 deg
         ("menache", "LHEAD", 1.0),  # causal: the head 38.9 deg, 2 steps
+        ("menache", "RHEAD", 1.0),  # causal: the head 55.6 deg, a step
     ],
 )
 def test_a_hidden_marker_filled_from_both_sides_is_within_item_6(
@@ -75,6 +76,22 @@ def test_a_hidden_marker_filled_from_both_sides_is_within_item_6(
     before, after = _past(intact, causal, window), _past(intact, both, window)
     print(f"\n{markerset} {marker} {seconds} s: causal {before}, two-sided {after}")
     assert not after, after
+
+
+def test_a_return_the_forward_solve_cannot_explain_is_handed_back() -> None:
+    """Plug-in Gait's RWRA hidden 1 s: the forward solve cannot explain the frame
+    the marker returns on (the forearm's held twist ~90 deg from where the performer
+    took it) and holds every bone's last pose there. Every bone takes the backward
+    solve on that frame and no new step is left (the causal solve: 3; blended with
+    no hand-back: 6, the hand 94.5 deg off the intact solve)."""
+    window = slice(HIDE_AT, HIDE_AT + round(RATE_HZ))
+    _, intact, causal, both = _hidden("plug-in-gait", "RWRA", window)
+    assert causal.unexplained[window.stop]
+    assert both.filled[window.stop].all()
+    before = damage_metrics(intact, causal, window, RATE_HZ, step_deg=STEP_DEG)
+    after = damage_metrics(intact, both, window, RATE_HZ, step_deg=STEP_DEG)
+    print(f"\nplug-in-gait RWRA 1 s: new steps {before.new_steps} -> {after.new_steps}")
+    assert after.new_steps == 0
 
 
 def test_outside_the_spans_the_forward_solve_bit_for_bit() -> None:
