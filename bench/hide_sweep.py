@@ -9,6 +9,9 @@ motions, calibrated on its first second), hidden from ``--at-s``; ``--take walk`
 btkdata Plug-in Gait walk (100 Hz), hidden from each row of ``--rows``. Prints one
 line per case and the count past, with the load. For the hold and the virtual markers
 (``body.fit_track``); ``python bench/hide_sweep.py --rig plug-in-gait --seconds 1``.
+``--two-sided``: judge the offline solve (``body.fit_gaps``: forward and backward,
+each hidden span filled from both sides; the intact solve too) instead of the causal
+one, as ``retargetd solve`` gives it (``--causal`` there for the live daemon's).
 """
 
 from __future__ import annotations
@@ -26,6 +29,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import fit_truth as ft
 from burst_recovery import add_datasets_option
 
+from retargetd.daemon.body import fit_gaps
 from retargetd.daemon.body.calibration import calibrate
 from retargetd.daemon.body.method import make_body_solver
 from retargetd.daemon.body.rig import load_rig
@@ -51,7 +55,17 @@ def _line(start: int, name: str, mt: Any) -> tuple[str, bool]:
     )
 
 
-def synthetic(rig: str, seconds: float, at_s: float, only: set[str]) -> list[bool]:
+def _solve(fit: Any, positions: np.ndarray, two_sided: bool) -> Any:
+    """The take from a fresh state: causal, or filled from both sides."""
+    fit.reset()
+    if two_sided:
+        return fit_gaps.solve_two_sided(fit, positions)
+    return fit.solve_take(positions)
+
+
+def synthetic(
+    rig: str, seconds: float, at_s: float, only: set[str], two_sided: bool = False
+) -> list[bool]:
     """The synthetic performer, each marker hidden ``seconds`` from ``at_s``."""
     s = ft.Settings(
         seconds=10.0, rate_hz=120.0, noise_mm=0.0, seed=0, calibrate_frames=120,
@@ -60,7 +74,8 @@ def synthetic(rig: str, seconds: float, at_s: float, only: set[str]) -> list[boo
     )  # fmt: skip
     take = ft._take(rig, "default", s)
     truth_rig, _ = ft._calibrated(rig, "default", s)
-    intact = ft._solve(rig, "default", "fit", s)
+    fit = ft._solver(rig, "default", "fit", s)
+    intact = _solve(fit, take.markers_world, two_sided)
     start = round(at_s * s.rate_hz)
     window = slice(start, start + round(seconds * s.rate_hz))
     out = []
@@ -68,7 +83,7 @@ def synthetic(rig: str, seconds: float, at_s: float, only: set[str]) -> list[boo
         if only and name not in only:
             continue
         pos = damage(take.markers_world, take.labels, "hide", window, marker=m)
-        hidden = ft._solve(rig, "default", "fit", s, pos)
+        hidden = _solve(fit, pos, two_sided)
         mt = damage_metrics(intact, hidden, window, s.rate_hz, step_deg=STEP_DEG,
                             truth=take, rig=truth_rig)  # fmt: skip
         text, past = _line(start, name, mt)
@@ -77,7 +92,13 @@ def synthetic(rig: str, seconds: float, at_s: float, only: set[str]) -> list[boo
     return out
 
 
-def walk(datasets: Path, seconds: float, rows: list[int], only: set[str]) -> list[bool]:
+def walk(
+    datasets: Path,
+    seconds: float,
+    rows: list[int],
+    only: set[str],
+    two_sided: bool = False,
+) -> list[bool]:
     """The btkdata Plug-in Gait walk, each marker hidden ``seconds`` from each row."""
     static, take = load_take(datasets / STATIC), load_take(datasets / WALK)
     rig = load_rig("plug-in-gait")
@@ -87,7 +108,7 @@ def walk(datasets: Path, seconds: float, rows: list[int], only: set[str]) -> lis
         "fit", rig, cal, take.labels, joint_limits=JOINT_LIMITS_DEG,
         segment_kind=SEGMENT_KIND, rate_hz=take.rate_hz,
     )  # fmt: skip
-    intact = fit.solve_take(take.positions)
+    intact = _solve(fit, take.positions, two_sided)
     n = round(seconds * take.rate_hz)
     out = []
     for start in rows:
@@ -97,9 +118,10 @@ def walk(datasets: Path, seconds: float, rows: list[int], only: set[str]) -> lis
                 take.positions[window, m]
             ).any():
                 continue
-            fit.reset()
-            hidden = fit.solve_take(
-                damage(take.positions, take.labels, "hide", window, marker=m)
+            hidden = _solve(
+                fit,
+                damage(take.positions, take.labels, "hide", window, marker=m),
+                two_sided,
             )
             mt = damage_metrics(intact, hidden, window, take.rate_hz,
                                 step_deg=STEP_DEG)  # fmt: skip
@@ -117,6 +139,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--at-s", type=float, default=4.0, help="synthetic: hidden from")
     ap.add_argument("--rows", default="30,150", help="walk: hidden from these rows")
     ap.add_argument("--markers", default="", help="only these (comma-separated)")
+    ap.add_argument(
+        "--two-sided",
+        action="store_true",
+        help="the offline solve filled from both sides (body.fit_gaps), not the "
+        "causal one",
+    )
     add_datasets_option(ap)
     args = ap.parse_args(argv)
     if args.seconds <= 0.0:
@@ -134,9 +162,9 @@ def main(argv: list[str] | None = None) -> int:
             print(f"error: --rows {args.rows!r}: comma-separated row numbers",
                   file=sys.stderr)  # fmt: skip
             return 2
-        past = walk(args.datasets, args.seconds, rows, only)
+        past = walk(args.datasets, args.seconds, rows, only, args.two_sided)
     else:
-        past = synthetic(args.rig, args.seconds, args.at_s, only)
+        past = synthetic(args.rig, args.seconds, args.at_s, only, args.two_sided)
     print(f"past {sum(past)} of {len(past)}; load {os.getloadavg()[0]:.2f} (1 min)")
     return 0
 

@@ -272,6 +272,14 @@ def add_method_argument(
         help="the body solve: the rigid-skeleton fit to every visible marker "
         "(default) or the chapter's construction",
     )
+    parser.add_argument(
+        "--causal",
+        action="store_true",
+        help="the fit as the live daemon solves it, each frame from the ones before "
+        "it alone; by default an offline take is also solved backwards and each "
+        "hidden marker's span filled from both sides (README 'Two ways to solve "
+        "the body')",
+    )
 
 
 def solver_for_take(args: argparse.Namespace) -> tuple[Any, Any, Any, Any]:
@@ -510,21 +518,44 @@ def solve_take_chunked(
 
 
 def solve_take_progress(
-    solver: Any, positions: Any, *, quiet: bool = False, desc: str = "solve"
+    solver: Any,
+    positions: Any,
+    *,
+    quiet: bool = False,
+    desc: str = "solve",
+    causal: bool = False,
 ) -> Any:
     """``solver.solve_take(positions)`` with a progress bar on a terminal.
 
     With a bar the take is solved in up to :data:`_MAX_CHUNKS` chunks
     (:func:`solve_take_chunked`: the same arrays as one call); without one
-    (``quiet``, stderr not a TTY) it is one call.
+    (``quiet``, stderr not a TTY) it is one call. The fit, unless ``causal``
+    (``--causal``), then solves the take backwards (a second bar) and fills each
+    hidden marker's span from both sides (``body.fit_gaps``): an offline take is
+    known at both ends of a gap.
     """
+    import numpy as np
+
+    from retargetd.daemon.body import fit_gaps
+    from retargetd.daemon.body.solve_fit import FitSolver
     from retargetd.daemon.progress import Progress
 
     n = int(positions.shape[0])
-    with Progress(n, desc, unit="frames", enabled=False if quiet else None) as bar:
-        if not bar.active or n <= _MIN_CHUNK:
-            res = solver.solve_take(positions)
-            bar.update(n)
-            return res
-        step = max(_MIN_CHUNK, -(-n // _MAX_CHUNKS))
-        return solve_take_chunked(solver, positions, step, bar.update)
+
+    def run(what: str, s: Any, pos: Any) -> Any:
+        with Progress(n, what, unit="frames", enabled=False if quiet else None) as bar:
+            if not bar.active or n <= _MIN_CHUNK:
+                res = s.solve_take(pos)
+                bar.update(n)
+                return res
+            step = max(_MIN_CHUNK, -(-n // _MAX_CHUNKS))
+            return solve_take_chunked(s, pos, step, bar.update)
+
+    forward = run(desc, solver, positions)
+    if causal or not isinstance(solver, FitSolver):
+        return forward
+    positions = np.ascontiguousarray(positions, dtype=np.float64)
+    backward = fit_gaps.backward_solve(
+        solver, positions, lambda s, pos: run(f"{desc} backwards", s, pos)
+    )
+    return fit_gaps.fill_from_both_sides(solver, positions, forward, backward)

@@ -538,7 +538,9 @@ def solved_take(args: argparse.Namespace) -> tuple[Any, Any, Any, Any]:
 
     rig, take, cal, solver = solver_for_take(args)
     quiet = getattr(args, "quiet", False)
-    res = solve_take_progress(solver, take.positions, quiet=quiet)
+    res = solve_take_progress(
+        solver, take.positions, quiet=quiet, causal=getattr(args, "causal", False)
+    )
     if getattr(args, "pipeline", None) is not None:
         res, _ = apply_pipeline_to_solve(args.pipeline, res, cal, take.rate_hz)
     return rig, take, cal, res
@@ -564,7 +566,10 @@ def solve_other_take(
     from retargetd.daemon.cli.args import solve_take_progress
 
     res = solve_take_progress(
-        solver, take.positions, quiet=getattr(args, "quiet", False)
+        solver,
+        take.positions,
+        quiet=getattr(args, "quiet", False),
+        causal=getattr(args, "causal", False),
     )
     if getattr(args, "pipeline", None) is not None:
         res, _ = apply_pipeline_to_solve(args.pipeline, res, calibration, take.rate_hz)

@@ -254,7 +254,9 @@ def run(args: argparse.Namespace) -> int:
 
     prop_arrays, prop_lines = solve_props_for_take(args)  # --prop: props beside
     started = time.perf_counter()
-    res = solve_take_progress(solver, take.positions, quiet=args.quiet)
+    res = solve_take_progress(
+        solver, take.positions, quiet=args.quiet, causal=args.causal
+    )
     solve_s = time.perf_counter() - started
     ft = None if face is None else face_io.solve_face_of_take(face, take)
     # Stance from the solve, before any post stage: the live daemon's detector on the
@@ -366,6 +368,12 @@ def run(args: argparse.Namespace) -> int:
             f"{int(np.count_nonzero(res.reseeded))} frames; unexplained (held) "
             f"{int(np.count_nonzero(res.unexplained))}; performer unseen "
             f"{int(np.count_nonzero(res.unseen))}\n"
+        )
+    filled = getattr(res, "filled", None)
+    if filled is not None:
+        out(
+            f"hidden spans filled from both sides: {int(filled.any(axis=1).sum())} "
+            f"frames, {int(filled.sum())} bone-frames (--causal: none)\n"
         )
     missing = n * int((cols < 0).sum())
     out(
@@ -533,6 +541,7 @@ def _fit_arrays(res: Any) -> dict[str, Any]:
         "fit_unseen": res.unseen,
         "fit_residual_level": res.residual_level,
         "frame_flags": res.frame_flags,
+        **({"fit_filled": res.filled} if hasattr(res, "filled") else {}),
     }
 
 

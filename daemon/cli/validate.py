@@ -179,7 +179,9 @@ def _validate(
         skeleton_from_calibration,
     )
 
-    res = solve_take_progress(solver, take.positions, quiet=args.quiet)
+    res = solve_take_progress(
+        solver, take.positions, quiet=args.quiet, causal=args.causal
+    )
     body_mass = DEFAULT_BODY_MASS_KG if mass is None else mass
     vm = build_model(skeleton_from_calibration(rig, cal), body_mass)
     (report_dir / "model.xml").write_text(vm.xml)

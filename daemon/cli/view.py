@@ -144,7 +144,7 @@ def _sequence(args: argparse.Namespace, flagged: list[int] | None) -> Any:
     rig, take, _cal, solver = solver_for_take(args)
     from retargetd.daemon.cli.args import solve_take_progress
 
-    res = solve_take_progress(solver, take.positions)
+    res = solve_take_progress(solver, take.positions, causal=args.causal)
     arrays = {
         "joint_names": res.joint_names, "joint_centres": res.joint_centres,
         "bone_names": res.bone_names, "world_from_bone_quat": res.world_from_bone_quat,

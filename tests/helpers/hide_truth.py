@@ -9,6 +9,7 @@ from typing import Any
 
 import numpy as np
 
+from retargetd.daemon.body import fit_gaps
 from retargetd.daemon.body.calibration import calibrate
 from retargetd.daemon.body.method import make_body_solver
 from retargetd.daemon.body.rig import load_rig
@@ -44,17 +45,23 @@ def synthetic(markerset: str) -> tuple[pf.SynthTake, Any, Any, Any]:
     return take, rig, fit, fit.solve_take(take.markers_world)
 
 
-def hidden_beyond_hold(markerset: str, marker: str, seconds: float) -> tuple[Any, Any]:
+def hidden_beyond_hold(
+    markerset: str, marker: str, seconds: float, *, two_sided: bool = False
+) -> tuple[Any, Any]:
     """``marker`` hidden ``seconds`` from HIDE_AT: the damaged solve and its
     ``hide_truth_excess`` (each bone's error since the hide, less the intact
-    solve's and the truth's own turn in the rotations the fit holds)."""
+    solve's and the truth's own turn in the rotations the fit holds). The causal
+    solve (the live daemon's), or with ``two_sided`` the offline one
+    (``body.fit_gaps``: the intact take has no span, so its solve is the same)."""
     take, rig, fit, intact = synthetic(markerset)
     window = slice(HIDE_AT, HIDE_AT + round(seconds * RATE_HZ))
     col = take.labels.index(marker)
     fit.reset()
-    solve = fit.solve_take(
-        damage(take.markers_world, take.labels, "hide", window, marker=col)
-    )
+    damaged = damage(take.markers_world, take.labels, "hide", window, marker=col)
+    if two_sided:
+        solve = fit_gaps.solve_two_sided(fit, damaged)
+    else:
+        solve = fit.solve_take(damaged)
     fit.reset()
     rig_marker = int(np.flatnonzero(fit.marker_cols == col)[0])
     held = held_directions(
