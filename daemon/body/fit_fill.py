@@ -140,8 +140,9 @@ def fill_update(m: tuple, s: tuple) -> None:
 @kernel
 def _pair(pair: np.ndarray, i: int, j: int, k: int) -> float:
     # a pair's statistic k: kept in the row of its lower index only (a value, not
-    # the row: kernel_fit.fit_one_t compiles without reference counting, and a
-    # kernel returning a view would leave its count raised)
+    # the row: kernel_fit.fit_one_t compiles without reference counting, and numba
+    # refuses to compile a function that returns a view without it, so a kernel
+    # returning the row here would fail loudly at compile time)
     return pair[i, j, k] if i < j else pair[j, i, k]
 
 

@@ -164,7 +164,7 @@ def build_normal(m: tuple, s: tuple) -> None:
     # rotation from the prediction, bone axes). The terms' values at this state
     # (phi, the priors' charts, the penalty residuals) are those the cost took at
     # it (fit_terms.reg_cost, s[65]): every build follows the evaluation of its
-    # state (kernel_fit._lm), and evaluated again they cost as much as the cost.
+    # state (fit_lm.lm), and evaluated again they cost as much as the cost.
     sc = s[36]
     lam = sc[C_LAM_ROT]
     s_lim = math.sqrt(params[P_KAPPA_LIMIT])

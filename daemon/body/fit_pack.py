@@ -58,7 +58,7 @@ S_KINDS: tuple[tuple[str, int], ...] = (
     ("f8", 2), ("f8", 2), ("f8", 2), ("b1", 1), ("b1", 1), ("f8", 2), ("f8", 1),
     ("f8", 2), ("f8", 2), ("f8", 1), ("f8", 2), ("f8", 3), ("f8", 2), ("f8", 1),
     ("f8", 2), ("f8", 2), ("f8", 1), ("f8", 1), ("f8", 3), ("i8", 2), ("f8", 3),
-    ("f8", 2), ("f8", 1), ("f8", 2), ("f8", 2), ("f8", 1), ("f8", 1),
+    ("f8", 2), ("f8", 1), ("f8", 2), ("f8", 2), ("f8", 1), ("f8", 1), ("f8", 3),
 )  # fmt: skip
 #: (dtype, ndim) of the outputs: joint centres, world / parent / rest rotations, root,
 #: quality, flags, residuals, rejected, stats (``kernel_fit.fit_one_t``'s order).
@@ -69,7 +69,7 @@ O_KINDS: tuple[tuple[str, int], ...] = (
 ROW_S = len(M_KINDS)  #: first state row
 ROW_O = ROW_S + len(S_KINDS)  #: first output row
 N_ROWS = ROW_O + len(O_KINDS)
-if (ROW_S, ROW_O) != (27, 96):  # the literals of state_views and out_views
+if (ROW_S, ROW_O) != (27, 97):  # the literals of state_views and out_views
     raise ImportError("fit_pack: the kinds and the view functions disagree")
 
 
@@ -205,7 +205,7 @@ def state_views(f: np.ndarray, i: np.ndarray, b: np.ndarray, lay: np.ndarray) ->
         _v1(f, lay, r + 58), _v1(f, lay, r + 59), _v3(f, lay, r + 60),
         _v2(i, lay, r + 61), _v3(f, lay, r + 62), _v2(f, lay, r + 63),
         _v1(f, lay, r + 64), _v2(f, lay, r + 65), _v2(f, lay, r + 66),
-        _v1(f, lay, r + 67), _v1(f, lay, r + 68),
+        _v1(f, lay, r + 67), _v1(f, lay, r + 68), _v3(f, lay, r + 69),
     )  # fmt: skip
 
 
@@ -214,7 +214,7 @@ def out_views(
     f: np.ndarray, f4: np.ndarray, u1: np.ndarray, b: np.ndarray, lay: np.ndarray
 ) -> tuple:
     """The outputs (:data:`O_KINDS`) as views of a pose's buffers."""
-    r = 96  # ROW_O
+    r = 97  # ROW_O
     return (
         _v2(f, lay, r), _v2(f, lay, r + 1), _v2(f, lay, r + 2), _v2(f, lay, r + 3),
         _v1(f, lay, r + 4), _v1(f4, lay, r + 5), _v1(u1, lay, r + 6),

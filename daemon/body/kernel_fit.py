@@ -22,10 +22,13 @@ the fit minimizes
                                                       towards the last seen pose
 
 (c_b, d_b: swing-twist coordinates, ``fit_terms.prior_chart``) by Levenberg-Marquardt
-(compiled with ``compiled.kernel``). Increments are rotation vectors in world axes at
-each joint (``omega_b``; a bone's own increment is ``conj(W_b) omega_b``), so a marker
-on bone s has the Jacobian ``-[p_i - o_k]x`` for every ancestor-or-self k of s and
-``I`` for its root's position. The normal equations are assembled from per-bone
+(compiled with ``compiled.kernel``): the first step on the Gauss-Newton matrix with
+the markers' IRLS weights, the next ones on Newton's, the markers' own curvature
+added (``fit_newton``: the Cauchy loss's along each residual and the skeleton's).
+Increments are rotation vectors in world axes at each joint (``omega_b``; a bone's
+own increment is ``conj(W_b) omega_b``), so a marker on bone s has the Jacobian
+``-[p_i - o_k]x`` for every ancestor-or-self k of s and ``I`` for its root's
+position. The normal equations are assembled from per-bone
 moment sums (no per-marker Jacobian rows) and solved by a Cholesky factorization
 ordered children first, in which the kinematic tree produces no fill-in (the cost is
 the sum over unknowns of (3 x depth)^2, not n^3).
@@ -60,15 +63,15 @@ Per frame (``fit_one_t``; the rules' numbers are ``solve_fit.FitParams``):
 No output is ever NaN. Everything is preallocated by ``solve_fit.FitSolver``: no
 allocation per frame.
 
-**No reference counting.** :func:`fit_one_t` and :func:`fit_many` compile with
-numba's ``_nrt`` option off, and so does every kernel they call that does not set it
-itself (numba's flag inheritance): a kernel handed the model and state tuples (27 and
-69 arrays) took a reference to each array it unpacked and gave it back on every exit,
-two atomic operations per array per call, and the fit makes dozens of such calls a
-frame (``_evaluate_current`` alone: 137 increments, 138 decrements in its optimized
+**No reference counting.** :func:`fit_one_t` and :func:`fit_many` compile with numba's
+``_nrt`` option off, and so does every kernel they call that does not set it itself
+(numba's flag inheritance): a kernel handed the model and state tuples (27 and 69
+arrays) took a reference to each array it unpacked and gave it back on every exit, two
+atomic operations per array per call, and the fit makes dozens of such calls a frame
+(``fit_lm.evaluate_current`` alone: 137 increments, 138 decrements in its optimized
 code). Nothing below them allocates or returns an array (which numba refuses without
-reference counting), so nothing is counted that could be freed early: every array
-they see belongs to the caller for the whole call. The construction's seed
+reference counting), so nothing is counted that could be freed early: every array they
+see belongs to the caller for the whole call. The construction's seed
 (:func:`_seed_from_construction`, first frames and reseeds) keeps the counting: the
 construction's views are returned by its kernels.
 """
@@ -82,7 +85,7 @@ import numpy as np
 from retargetd.daemon.body import fit_pack
 from retargetd.daemon.body import kernel as body_kernel
 from retargetd.daemon.body.fit_fill import fill_update, rigid_fill
-from retargetd.daemon.body.fit_normal import apply_step, build_normal, solve_step
+from retargetd.daemon.body.fit_lm import evaluate_current, fit_phases
 from retargetd.daemon.body.fit_terms import (
     C_DT,
     C_GAP,
@@ -92,15 +95,11 @@ from retargetd.daemon.body.fit_terms import (
     C_MU,
     C_SINCE_TRY,
     C_SOLVES,
-    P_FTOL,
-    P_GATE_K,
     P_GATE_M,
     P_LOST_FLOOR_M,
     P_LOST_K,
-    P_MAX_ITER,
     P_PERSIST,
     P_REJECT_FRAC,
-    P_TOL,
     P_UNEXPLAINED_FRAC,
     S_COST,
     S_ITER,
@@ -114,10 +113,6 @@ from retargetd.daemon.body.fit_terms import (
     continuity_weights,
     cp1,
     cp2,
-    cp3,
-    fk,
-    marker_cost,
-    reg_cost,
 )
 from retargetd.daemon.body.fit_track import (
     advance_level,
@@ -125,8 +120,6 @@ from retargetd.daemon.body.fit_track import (
     hinge_bend,
     hold_priors,
     impossible,
-    mark_outliers,
-    median_residual,
     predict,
     score,
     truncated_rms,
@@ -146,124 +139,11 @@ FLAG_PARTIAL = body_kernel.FLAG_PARTIAL  #: some marker of the bone not seen
 
 
 @kernel
-def _evaluate_current(m: tuple, s: tuple, gated: bool) -> float:
-    fk(m[0], m[1], m[2], s[0], s[1], s[29], s[8], s[9])
-    return marker_cost(m, s, s[8], s[9], s[10], s[14], s[15], gated) + reg_cost(
-        m, s, s[0], s[1], s[65]
-    )
-
-
-@kernel
-def _lm(m: tuple, s: tuple, gated: bool, max_iter: int) -> tuple[int, bool, float]:
-    # Levenberg-Marquardt from the current state; returns (iterations, converged,
-    # cost). The state (q, t and its FK / residual buffers) ends at the best iterate.
-    params = m[18]
-    tol = params[P_TOL]
-    q, t, qt, tt = s[0], s[1], s[6], s[7]
-    wq, wm, o, pm, res, wrob = s[29], s[8], s[9], s[10], s[14], s[15]
-    wqt, wmt, ot, pmt, rest, wrobt = s[30], s[31], s[32], s[33], s[34], s[35]
-    hh = s[21]
-    g, x = s[23], s[24]
-    cost = _evaluate_current(m, s, gated)
-    # damping from where the last fit left it (a stretch of frames whose markers
-    # leave a direction nearly flat needs it every frame); Nielsen's update below
-    # already lowers it by up to 3x per good step, so it is carried as it is: a
-    # further decay per frame started most frames below what the problem needed and
-    # paid for it in rejected steps (menache: 2.85 -> 2.45 solves a frame)
-    mu_scale = max(1e-8, s[36][C_MU])
-    converged = False
-    it = 0
-    while it < max_iter:
-        it += 1
-        build_normal(m, s)
-        dmax = 0.0
-        for e in range(m[16].shape[0] - 1):  # the diagonal blocks (fit_normal)
-            for j in range(3):
-                if hh[e, j, j] > dmax:
-                    dmax = hh[e, j, j]
-        accepted = False
-        small = False
-        step = 0.0
-        for _try in range(8):
-            mu = mu_scale * dmax
-            step = solve_step(m, s, mu)
-            s[36][C_SOLVES] += 1.0
-            if step < tol:
-                # converged: a step under the tolerance is not worth its evaluation
-                # (one FK and cost, most frames' second iteration)
-                break
-            # decrease the quadratic model predicts: with (H + mu I) x = -g,
-            # -g.x - x.H.x / 2 = (-g.x + mu |x|^2) / 2
-            gx = 0.0
-            xx = 0.0
-            for e in range(g.shape[0]):
-                gx += g[e] * x[e]
-                xx += x[e] * x[e]
-            pred = 0.5 * (mu * xx - gx)
-            apply_step(m, s)
-            fk(m[0], m[1], m[2], qt, tt, wqt, wmt, ot)
-            ct = marker_cost(m, s, wmt, ot, pmt, rest, wrobt, gated) + reg_cost(
-                m, s, qt, tt, s[66]
-            )
-            if ct <= cost and math.isfinite(ct):
-                accepted = True
-                cost_before = cost
-                small = cost - ct <= params[P_FTOL] * cost
-                cost = ct
-                cp2(q, qt)
-                cp2(t, tt)
-                cp2(wq, wqt)
-                cp3(wm, wmt)
-                cp2(o, ot)
-                cp2(pm, pmt)
-                cp2(res, rest)
-                cp1(wrob, wrobt)
-                cp2(s[65], s[66])  # the terms' values (fit_terms.N_REG)
-                # Nielsen's update from the gain ratio (Madsen, Nielsen & Tingleff,
-                # "Methods for non-linear least squares problems", DTU 2004, 3.2)
-                rho = (cost_before - ct) / pred if pred > 0.0 else 1.0
-                mu_scale = max(mu_scale * max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3),
-                               1e-12)  # fmt: skip
-                break
-            # rejected: Marquardt's factor of 10 ("An algorithm for least-squares
-            # estimation of nonlinear parameters", SIAM J Appl Math 11(2):431-441,
-            # 1963), not Nielsen's 2, 4, 8...: every retry costs a solve and an FK,
-            # and the damping carried from the last frame is seldom off by less
-            # (menache: linear solves p99 6 -> 5, max 10 -> 7)
-            mu_scale *= 10.0
-        if not accepted or step < tol or small:
-            converged = True
-            break
-    s[36][C_MU] = mu_scale
-    return it, converged, cost
-
-
-@kernel
-def _fit_phases(m: tuple, s: tuple) -> tuple[int, bool, float]:
-    # Phase 1 ungated; phase 2 without the markers the gate rejects, from the same
-    # start, when there are any.
-    params = m[18]
-    max_iter = int(params[P_MAX_ITER])
-    cp2(s[43], s[0])
-    cp2(s[44], s[1])
-    it1, conv1, cost = _lm(m, s, False, max_iter)
-    gate = max(params[P_GATE_M], params[P_GATE_K] * median_residual(s))
-    s[36][C_GATE] = gate
-    if not mark_outliers(m, s, gate):
-        return it1, conv1, cost
-    # the outliers pulled phase 1 away: start again from the warm start without them
-    cp2(s[0], s[43])
-    cp2(s[1], s[44])
-    it2, conv2, cost = _lm(m, s, True, max_iter)
-    return it1 + it2, conv2, cost
-
-
-@kernel
 def _whole_cost(m: tuple, s: tuple) -> float:
     # The cost a candidate pose is judged on: every visible marker under the Cauchy
     # loss (none gated out: a marker one candidate rejects still counts against it)
     # plus continuity, priors and joint penalties, at the current state.
-    return _evaluate_current(m, s, False)
+    return evaluate_current(m, s, False)
 
 
 @kernel(_nrt=True)
@@ -341,7 +221,7 @@ def _hold(m: tuple, s: tuple) -> None:
     # puts it there), for a frame the fit cannot explain or a performer not seen.
     cp2(s[0], s[49])
     cp2(s[1], s[50])
-    _evaluate_current(m, s, True)
+    evaluate_current(m, s, True)
 
 
 @kernel(_nrt=False)
@@ -457,7 +337,7 @@ def fit_one_t(
                 # where it was, the thigh turned 8 deg against its seen marker).
                 # The holds, parent-relative, stay.
                 virtual_markers(m, s)
-        iters, _conv, cost = _fit_phases(m, s)
+        iters, _conv, cost = fit_phases(m, s)
         ss, n_in, n_rej = score(m, s)
         rms = truncated_rms(ss, n_in, n_rej, sc[C_GATE])
         # the take's own residual: its running level, or the last explained frame's
@@ -495,18 +375,18 @@ def fit_one_t(
             cp1(s[46], s[45])
             gate_a = sc[C_GATE]
             _seed_from_construction(clean, m, s, c)
-            it2, _conv2, _cost2 = _fit_phases(m, s)
+            it2, _conv2, _cost2 = fit_phases(m, s)
             iters += it2
             cost_b = _whole_cost(m, s)
             if cost_b < cost_a and math.isfinite(cost_b):
                 reseeded = True
-                _evaluate_current(m, s, True)
+                evaluate_current(m, s, True)
             else:
                 cp2(q, qb)
                 cp2(t, tb)
                 cp1(s[45], s[46])
                 sc[C_GATE] = gate_a
-                _evaluate_current(m, s, True)
+                evaluate_current(m, s, True)
             ss, n_in, n_rej = score(m, s)
             rms = truncated_rms(ss, n_in, n_rej, sc[C_GATE])
         else:

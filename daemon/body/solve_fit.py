@@ -257,7 +257,10 @@ class FitParams:
             a tenth of the marker noise floor above; Gauss-Newton's next step would be
             smaller still).
         ftol: or when an accepted step lowers the cost by less than this fraction (1e-5:
-            what is left is a direction the markers hardly see).
+            what is left is a direction the markers hardly see), or the next step's
+            predicted decrease does (tested before its evaluation is paid for: from
+            the second iteration the model is Newton's, ``fit_newton``, and its
+            prediction is the decrease to within a few per cent near the optimum).
     """
 
     noise_m: float = 1e-3
@@ -492,7 +495,7 @@ class FitSolver:
             z(n_b, 4), z(n_r, 3), z(n_m), z(self.n_stream, 3),
             z(n_b, 3, 3), z(n_b, 4), z(n_b), z(n_m, 3), z(n_m, 3), z(n_m), z(n_m),
             *fit_fill.new_fill_state(n_m),
-            z(n_b, ft.N_REG), z(n_b, ft.N_REG), z(n_m), z(n_m),
+            z(n_b, ft.N_REG), z(n_b, ft.N_REG), z(n_m), z(n_m), z(n_b, 3, 12),
         )  # fmt: skip
         sbuf, srows, self._state = fit_pack.pack(state_arrays, fit_pack.S_KINDS)
         self._sf, self._si, self._sb = sbuf["f8"], sbuf["i8"], sbuf["b1"]
