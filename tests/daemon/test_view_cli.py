@@ -45,6 +45,15 @@ def solved(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, Path]:
     return take, npz, report / "report.json"
 
 
+def _ctrl_c_on() -> None:
+    """In the child, before exec: SIGINT's default action, as a terminal's foreground
+    command has it. A suite started in the background by a script (``pytest &``)
+    ignores SIGINT, its children inherit that, and the view (which leaves SIGINT to
+    Python's KeyboardInterrupt) then never stopped: both tests failed so, the view's
+    main thread still in its wait (its tracebacks, faulthandler)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 class _View:
     """``retargetd view ...`` as a subprocess; its URL read from stdout."""
 
@@ -56,7 +65,7 @@ class _View:
             [sys.executable, "-m", "retargetd.daemon", "view", *args,
              "--console", "0"],
             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=cwd,
-            env=env,
+            env=env, preexec_fn=_ctrl_c_on,
         )  # fmt: skip
         self.url = ""
         self.err = ""
