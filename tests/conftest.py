@@ -9,9 +9,10 @@ import pytest
 from paths import DATASETS, IN_CI, REPO_ROOT, require_datasets
 
 #: The live-daemon harness's fixtures (``start_daemon``, ``exact_calibration``, ``vmc``,
-#: ``osc_source``) and the headless browser (``driver``) for every test;
-#: ``tests/helpers`` is on pytest's ``pythonpath``.
-pytest_plugins = ["live_harness", "browser"]
+#: ``osc_source``), the headless browser (``driver``) for every test, and the tests
+#: that run with no other beside them under xdist (``alone``); ``tests/helpers`` is on
+#: pytest's ``pythonpath``.
+pytest_plugins = ["live_harness", "browser", "alone"]
 
 __all__ = ["DATASETS", "IN_CI", "REPO_ROOT", "require_datasets"]
 

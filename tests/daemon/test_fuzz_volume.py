@@ -111,6 +111,10 @@ def test_control_over_req_at_volume(
     assert tally.outcomes["ok"] > 0 and tally.outcomes["error"] > 0
 
 
+# alone (tests/helpers/alone.py): a 500-per-second flood at a daemon process, its pose
+# rate measured before, during and after and every datagram accounted for: the
+# other xdist worker's test beside it would take the CPU the flood measures.
+@pytest.mark.alone
 @pytest.mark.timeout(300)
 def test_flood_at_a_running_daemon(fuzz: ModuleType) -> None:
     """15 s of the walk at 240 Hz; the middle 5 s mutated inputs on every input."""

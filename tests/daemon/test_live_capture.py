@@ -289,6 +289,10 @@ def test_live_from_capture_system_equals_batch_solve(
     ]
 
 
+# alone (tests/helpers/alone.py): times control replies (under 0.5 s) from a daemon
+# process while an emulator process serves it: three processes of this test, which
+# the other xdist worker's test beside it would slow.
+@pytest.mark.alone
 @pytest.mark.timeout(120)
 @pytest.mark.parametrize("system", ["natnet", "qtm"])
 def test_faults_are_said_counted_and_the_last_pose_held(

@@ -7,6 +7,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -26,6 +27,7 @@ from live_harness import (
 from retargetd.daemon.body.calibration import load_calibration
 from retargetd.daemon.body.method import make_body_solver
 from retargetd.daemon.body.rig import load_rig
+from retargetd.daemon.live import prewarm
 from retargetd.daemon.live.config import DaemonConfig
 from retargetd.daemon.live.loop import Daemon
 from retargetd.daemon.live.prewarm import Prewarm
@@ -118,13 +120,20 @@ def test_the_daemon_streams_the_offline_fits_poses_with_the_touch_on(
 
 
 class _Scratch:
-    """A scratch solver stand-in: its solve flags the pose and takes ``sleep_s``."""
+    """A scratch solver stand-in: its solve flags the pose and takes ``sleep_s``
+    (on ``clock``, a fake monotonic clock in ns, when given: it moves it on)."""
 
-    def __init__(self, flags: int, sleep_s: float) -> None:
+    def __init__(
+        self, flags: int, sleep_s: float, clock: list[int] | None = None
+    ) -> None:
         self.flags, self.sleep_s, self.resets = flags, sleep_s, 0
+        self.clock = clock
 
     def solve_frame(self, markers: Any, pose: Any) -> Any:
-        time.sleep(self.sleep_s)  # never returns early
+        if self.clock is None:
+            time.sleep(self.sleep_s)  # never returns early
+        else:
+            self.clock[0] += round(self.sleep_s * 1e9)
         pose.frame_flags = self.flags
         return pose
 
@@ -140,11 +149,19 @@ class _Frame:
     markers_world = np.zeros((3, 3))
 
 
-def test_a_flagged_or_slow_touch_resets_its_scratch_and_counts() -> None:
+def test_a_flagged_or_slow_touch_resets_its_scratch_and_counts(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # The touch's own clock, moved only by the scratches: on the machine's, a touch
+    # of no time preempted for the 1.5 ms lead (a loaded machine, the other xdist
+    # worker's test beside it) was judged slow and reset (1 of 2 runs of the suite
+    # under -n 2 at load 2.8-3.2).
+    clock = [10**12]
+    monkeypatch.setattr(prewarm, "time", SimpleNamespace(monotonic_ns=lambda: clock[0]))
     p = Prewarm(1.5)
-    ok = _Scratch(FRAME_RESEEDED, 0.0)  # reseeded alone: a pose explains them
-    lost = _Scratch(FRAME_UNEXPLAINED, 0.0)
-    slow = _Scratch(0, 0.002)  # longer than the 1.5 ms lead
+    ok = _Scratch(FRAME_RESEEDED, 0.0, clock)  # reseeded alone: a pose explains them
+    lost = _Scratch(FRAME_UNEXPLAINED, 0.0, clock)
+    slow = _Scratch(0, 0.002, clock)  # longer than the 1.5 ms lead
     p._scratch = {
         (0, k): (s, _Pose(), _Frame()) for k, s in enumerate((ok, lost, slow))
     }

@@ -45,16 +45,30 @@ def solved(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, Path]:
     return take, npz, report / "report.json"
 
 
+def _ctrl_c_on() -> None:
+    """In the child, before exec: SIGINT's default action, as a terminal's foreground
+    command has it. A suite started in the background by a script (``pytest &``)
+    ignores SIGINT, its children inherit that, and the view (which leaves SIGINT to
+    Python's KeyboardInterrupt) then never stopped: both tests failed so, the view's
+    main thread still in its wait (its tracebacks, faulthandler)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 class _View:
     """``retargetd view ...`` as a subprocess; its URL read from stdout."""
 
     def __init__(self, *args: str, cwd: Path) -> None:
+        # faulthandler: a view that does not stop is sent SIGABRT (stop()), and its
+        # threads' tracebacks end up in ``err``
+        env = {**os.environ, "PYTHONFAULTHANDLER": "1"}
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "retargetd.daemon", "view", *args,
              "--console", "0"],
             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=cwd,
+            env=env, preexec_fn=_ctrl_c_on,
         )  # fmt: skip
         self.url = ""
+        self.err = ""
         t_end = time.monotonic() + 90
         assert self.proc.stdout is not None
         while time.monotonic() < t_end:
@@ -67,16 +81,24 @@ class _View:
                 self.line = line
                 return
         self.stop()
-        raise AssertionError(f"no URL printed; stderr: {self.proc.stderr.read()}")
+        raise AssertionError(f"no URL printed; stderr: {self.err}")
 
     def stop(self) -> int:
+        """SIGINT, then 20 s; a view still running is aborted (its tracebacks,
+        with the rest of its stderr, in :attr:`err`). The exit code."""
         if self.proc.poll() is None:
             self.proc.send_signal(signal.SIGINT)
             try:
                 self.proc.wait(20)
             except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait(5)
+                self.proc.send_signal(signal.SIGABRT)
+                try:
+                    self.proc.wait(5)
+                except subprocess.TimeoutExpired:
+                    self.proc.kill()
+                    self.proc.wait(5)
+        if self.proc.stderr is not None:
+            self.err = self.proc.stderr.read()[-6000:]
         for f in (self.proc.stdout, self.proc.stderr):
             if f is not None:
                 f.close()
@@ -189,7 +211,7 @@ def test_view_serves_a_solve_and_scrubs_in_chromium(
         in0 = (p0[:, 0] > 5) & (p0[:, 0] < w + left - 5) & (p0[:, 1] > top + 5)
         assert _near(img, p0[in0], _blue).mean() <= 0.4, "frame 0 drawn, not the last"
     finally:
-        assert view.stop() == 0
+        assert view.stop() == 0, view.err
 
 
 @pytest.mark.timeout(240)
@@ -205,7 +227,7 @@ def test_view_solves_a_take_with_a_rig(
         want = len(flagged_frames_from_report(json.loads(report.read_text())))
         assert f"180 frames at 60 Hz, {want} flagged" in view.line, view.line
     finally:
-        assert view.stop() == 0
+        assert view.stop() == 0, view.err
 
 
 def test_view_refuses_bad_arguments(

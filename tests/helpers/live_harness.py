@@ -15,6 +15,7 @@ import functools
 import json
 import math
 import os
+import random
 import re
 import socket
 import subprocess
@@ -103,8 +104,17 @@ def pytest_runtestloop(session: pytest.Session) -> Iterator[object]:
     from the cache (~0.5 s) instead of compiling them while a test's deadline runs:
     on a fresh machine the fit alone compiles for 69 s on this 2-core VM (82 s for a
     daemon's whole warm-up; measured), and a CI runner twice as slow made tests that
-    started the first daemons of a kind time out, then leave them running."""
-    if session.items and not session.config.option.collectonly:
+    started the first daemons of a kind time out, then leave them running.
+
+    Under pytest-xdist (``-n 2``) the controller compiles, before it hands the workers
+    their first test (its ``session.items`` is empty: the workers collect, meanwhile),
+    and the workers load every kernel from the cache; a worker compiles nothing here.
+    """
+    config = session.config
+    if hasattr(config, "workerinput"):  # an xdist worker: the controller compiled
+        return (yield)
+    distributed = config.pluginmanager.has_plugin("dsession")  # xdist's controller
+    if (session.items or distributed) and not config.option.collectonly:
         compile_kernels()
     return (yield)
 
@@ -254,10 +264,40 @@ def _deep_merge(base: dict[str, Any], extra: dict[str, Any]) -> dict[str, Any]:
 
 
 def _unused_udp_port() -> int:
-    """A port nobody listens on (bound, then closed at once)."""
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
+    """A port on 127.0.0.1 nobody listens on, by UDP or TCP, and that no socket bound
+    to port 0 will be given while a test uses it.
+
+    Below the kernel's ephemeral range (``ip_local_port_range``, from which every
+    ``bind(("127.0.0.1", 0))`` and ZeroMQ ``tcp://127.0.0.1:*`` gets its port), in its
+    lower half, a random port that binds now (nothing there). A port probed by binding
+    port 0 and closing at once (as this did) can go to the next socket bound to port
+    0, in another test process (the xdist workers) as well as in this one: a daemon's
+    VMC, sent to the "unused" port, would then reach another test's receiver or
+    input. Two tests that draw the same port here both send to nobody."""
+    low = _ephemeral_low()
+    rng = random.Random()  # seeded from os.urandom: each process its own draws
+    for _ in range(100):
+        port = rng.randrange(max(1024, low // 2), low) if low > 2048 else 0
+        with (
+            socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as udp,
+            socket.socket(socket.AF_INET, socket.SOCK_STREAM) as tcp,
+        ):
+            try:
+                udp.bind(("127.0.0.1", port))
+                tcp.bind(("127.0.0.1", port or udp.getsockname()[1]))
+            except OSError:
+                continue
+            return int(udp.getsockname()[1])
+    raise RuntimeError("no unused port on 127.0.0.1 in 100 draws")
+
+
+def _ephemeral_low() -> int:
+    """The first port of the kernel's ephemeral range (Linux); 0 where unknown."""
+    ports = Path("/proc/sys/net/ipv4/ip_local_port_range")
+    try:
+        return int(ports.read_text().split()[0])
+    except (OSError, ValueError, IndexError):
+        return 0
 
 
 def _ephemeral_doc(vmc_port: int) -> dict[str, Any]:

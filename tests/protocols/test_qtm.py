@@ -335,6 +335,9 @@ def test_packet_the_sdk_cannot_parse_costs_a_reconnect(take: Any) -> None:
     assert any("disconnected" in line for line in lines)
 
 
+# alone (tests/helpers/alone.py): times a read (under 10 ms), shorter than one
+# scheduler slice lost to the other xdist worker's test.
+@pytest.mark.alone
 @pytest.mark.timeout(30)
 def test_vanished_server_reconnects_with_backoff_and_never_blocks(take: Any) -> None:
     server, source, lines = _start(take, em.Scenario(faults=False, vanish_at=40))
